@@ -1,0 +1,20 @@
+//! The shared language of the Isovox server and client.
+//!
+//! Pure data: no I/O, no async runtime, no memory mapping. Everything here works on values and
+//! byte slices, so the server, the client, tools and tests agree on one definition.
+//!
+//! Layout:
+//! - [`voxel`]: voxel types and the ICVG value range (L, H, S).
+//! - [`layout`]: the brick octree's geometry: levels, brick grids, [`BrickKey`], node indices.
+//! - [`vod2`]: the VOD 2 file's on-disk records (header, slots, commits, index, bricks), encoded
+//!   and decoded over byte slices with validation. The byte layout is in `docs/vod2.md`.
+//! - [`error`]: [`FormatError`], what a malformed record is.
+
+pub mod error;
+pub mod layout;
+pub mod voxel;
+pub mod vod2;
+
+pub use error::FormatError;
+pub use layout::{BrickKey, VolumeLayout};
+pub use voxel::VoxelType;

@@ -1,0 +1,852 @@
+//! VOD 2 on-disk records, encoded and decoded over byte slices.
+//!
+//! The full byte layout, with the reasons behind it, is `docs/vod2.md`. In short:
+//!
+//! ```text
+//! [0, 4096)        file header (fixed at creation, checksummed)
+//! [4096, 8192)     header slot A  } the two switchable slots: each names the newest durable
+//! [8192, 12288)    header slot B  } commit; written alternately, sequence number + checksum
+//! [12288, ...)     append-only region: brick records, index checkpoints, commit records
+//! ```
+//!
+//! All integers are little endian. Every decoder checks bounds, sizes and checksums and returns a
+//! [`FormatError`] naming the problem; none panics on any input.
+
+use crate::error::FormatError;
+use crate::layout::VolumeLayout;
+use crate::voxel::VoxelType;
+use xxhash_rust::xxh3::xxh3_64;
+
+/// First four bytes of every VOD file (VOD 1 and VOD 2 alike), in file order.
+pub const SIGNATURE: [u8; 4] = *b".VOD";
+/// The `fileVersion` this module reads and writes.
+pub const FORMAT_VERSION: u32 = 2;
+/// Content hash algorithm fourcc: xxh3, 64 bits, of the decoded brick bytes.
+pub const HASH_XH64: [u8; 4] = *b"XH64";
+/// Size of the file header record.
+pub const HEADER_LEN: usize = 128;
+/// Offsets of the two header slots; each sits alone in its own 4 KiB page so that a torn write
+/// of one can never damage the other.
+pub const SLOT_OFFSETS: [u64; 2] = [4096, 8192];
+/// Size of a header slot record.
+pub const SLOT_LEN: usize = 48;
+/// Where the append-only region starts.
+pub const DATA_START: u64 = 12288;
+/// Size of the header in front of every stored brick payload.
+pub const BRICK_HEADER_LEN: usize = 24;
+/// Size of a commit record without its changes.
+pub const COMMIT_FIXED_LEN: usize = 56;
+/// Bytes per change entry in a commit record: (node index, node entry).
+pub const CHANGE_LEN: usize = 16;
+/// Size of a checkpoint's leading fields.
+pub const CHECKPOINT_FIXED_LEN: usize = 16;
+/// Index entries per checkpoint chunk (4 KiB of entries).
+pub const CHUNK_ENTRIES: u64 = 512;
+/// Header flag: edge bricks are padded with L on the right-hand side (always set; VOD 1 bit 1).
+pub const FLAG_RIGHT_PADDING: u32 = 1 << 1;
+
+const SLOT_MAGIC: [u8; 4] = *b"VSLT";
+const COMMIT_MAGIC: [u8; 4] = *b"VCMT";
+const CHECKPOINT_MAGIC: [u8; 4] = *b"VIDX";
+const NODE_CONSTANT: u64 = 1 << 63;
+
+/// The content hash of a decoded brick: xxh3-64 of its bytes (u16 little endian).
+pub fn content_hash(bytes: &[u8]) -> u64 {
+    xxh3_64(bytes)
+}
+
+/// Bounds-checked little-endian reads from a record.
+#[derive(Debug, Clone, Copy)]
+pub struct Fields<'a> {
+    what: &'static str,
+    bytes: &'a [u8],
+    base: u64,
+}
+
+impl<'a> Fields<'a> {
+    /// A view of `bytes`, which sit at file offset `base` (for error messages).
+    pub fn new(what: &'static str, bytes: &'a [u8], base: u64) -> Self {
+        Fields { what, bytes, base }
+    }
+
+    /// `len` bytes at `off`.
+    ///
+    /// # Errors
+    /// The range is outside the record.
+    pub fn slice(&self, off: usize, len: usize) -> Result<&'a [u8], FormatError> {
+        off.checked_add(len)
+            .and_then(|end| self.bytes.get(off..end))
+            .ok_or(FormatError::Truncated {
+                what: self.what,
+                offset: self.base + off as u64,
+                needed: len as u64,
+                available: self.bytes.len().saturating_sub(off) as u64,
+            })
+    }
+
+    fn array<const N: usize>(&self, off: usize) -> Result<[u8; N], FormatError> {
+        let s = self.slice(off, N)?;
+        let mut a = [0u8; N];
+        a.copy_from_slice(s);
+        Ok(a)
+    }
+
+    pub fn u16(&self, off: usize) -> Result<u16, FormatError> {
+        Ok(u16::from_le_bytes(self.array(off)?))
+    }
+    pub fn u32(&self, off: usize) -> Result<u32, FormatError> {
+        Ok(u32::from_le_bytes(self.array(off)?))
+    }
+    pub fn u64(&self, off: usize) -> Result<u64, FormatError> {
+        Ok(u64::from_le_bytes(self.array(off)?))
+    }
+    pub fn f32(&self, off: usize) -> Result<f32, FormatError> {
+        Ok(f32::from_le_bytes(self.array(off)?))
+    }
+    pub fn fourcc(&self, off: usize) -> Result<[u8; 4], FormatError> {
+        self.array(off)
+    }
+
+    /// Checks a fourcc at `off`.
+    ///
+    /// # Errors
+    /// It differs from `expected`.
+    pub fn magic(&self, off: usize, expected: [u8; 4]) -> Result<(), FormatError> {
+        let found = self.fourcc(off)?;
+        if found != expected {
+            return Err(FormatError::BadMagic {
+                what: self.what,
+                expected,
+                found,
+            });
+        }
+        Ok(())
+    }
+
+    /// Checks that the u64 at `stored_at` equals xxh3 of bytes `[0, stored_at)`.
+    ///
+    /// # Errors
+    /// The record is truncated or the checksum differs.
+    pub fn checksum(&self, stored_at: usize) -> Result<(), FormatError> {
+        let stored = self.u64(stored_at)?;
+        let computed = xxh3_64(self.slice(0, stored_at)?);
+        if stored != computed {
+            return Err(FormatError::Checksum {
+                what: self.what,
+                offset: self.base,
+                stored,
+                computed,
+            });
+        }
+        Ok(())
+    }
+}
+
+fn put(buf: &mut [u8], off: usize, bytes: &[u8]) {
+    buf[off..off + bytes.len()].copy_from_slice(bytes);
+}
+
+fn seal(buf: &mut [u8], stored_at: usize) {
+    let sum = xxh3_64(&buf[..stored_at]);
+    put(buf, stored_at, &sum.to_le_bytes());
+}
+
+/// The file header: the volume's shape, fixed when the file is created.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FileHeader {
+    pub layout: VolumeLayout,
+    /// World size of one level-0 voxel.
+    pub voxel_scale: [f32; 3],
+    pub flags: u32,
+}
+
+impl FileHeader {
+    pub fn new(layout: VolumeLayout, voxel_scale: [f32; 3]) -> Self {
+        FileHeader {
+            layout,
+            voxel_scale,
+            flags: FLAG_RIGHT_PADDING,
+        }
+    }
+
+    pub fn encode(&self) -> [u8; HEADER_LEN] {
+        let mut b = [0u8; HEADER_LEN];
+        let l = &self.layout;
+        put(&mut b, 0, &SIGNATURE);
+        put(&mut b, 4, &FORMAT_VERSION.to_le_bytes());
+        put(&mut b, 8, &(HEADER_LEN as u32).to_le_bytes());
+        put(&mut b, 12, &self.flags.to_le_bytes());
+        for (i, d) in l.dims().iter().enumerate() {
+            put(&mut b, 16 + 4 * i, &d.to_le_bytes());
+        }
+        put(&mut b, 28, &l.brick().to_le_bytes());
+        put(&mut b, 32, &l.voxel_type().bits().to_le_bytes());
+        put(&mut b, 36, &(l.levels() as u32).to_le_bytes());
+        for (i, s) in self.voxel_scale.iter().enumerate() {
+            put(&mut b, 40 + 4 * i, &s.to_le_bytes());
+        }
+        put(&mut b, 52, &HASH_XH64);
+        put(&mut b, 56, &1u32.to_le_bytes()); // channels
+        seal(&mut b, HEADER_LEN - 8);
+        b
+    }
+
+    /// # Errors
+    /// Bad signature, version, checksum, or a shape that [`VolumeLayout::new`] rejects.
+    pub fn decode(bytes: &[u8]) -> Result<Self, FormatError> {
+        let f = Fields::new("file header", bytes, 0);
+        f.magic(0, SIGNATURE)?;
+        let version = f.u32(4)?;
+        if version != FORMAT_VERSION {
+            return Err(FormatError::Unsupported {
+                what: "file version",
+                detail: format!("{version} (this reader handles VOD {FORMAT_VERSION})"),
+            });
+        }
+        let header_len = f.u32(8)?;
+        if header_len as usize != HEADER_LEN {
+            return Err(FormatError::invalid(
+                "file header",
+                format!("header length {header_len}, expected {HEADER_LEN}"),
+            ));
+        }
+        f.checksum(HEADER_LEN - 8)?;
+        let flags = f.u32(12)?;
+        let dims = [f.u32(16)?, f.u32(20)?, f.u32(24)?];
+        let brick = f.u32(28)?;
+        let bits = f.u32(32)?;
+        let voxel_type = VoxelType::from_bits(bits).ok_or_else(|| FormatError::Unsupported {
+            what: "voxel size",
+            detail: format!("{bits} bits per voxel"),
+        })?;
+        let layout = VolumeLayout::new(dims, brick, voxel_type)?;
+        let levels = f.u32(36)?;
+        if levels != layout.levels() as u32 {
+            return Err(FormatError::invalid(
+                "file header",
+                format!("{levels} levels stored, the shape has {}", layout.levels()),
+            ));
+        }
+        let voxel_scale = [f.f32(40)?, f.f32(44)?, f.f32(48)?];
+        if voxel_scale.iter().any(|s| !s.is_finite() || *s <= 0.0) {
+            return Err(FormatError::invalid(
+                "file header",
+                format!("voxel scale {voxel_scale:?} is not positive and finite"),
+            ));
+        }
+        let hash = f.fourcc(52)?;
+        if hash != HASH_XH64 {
+            return Err(FormatError::Unsupported {
+                what: "hash algorithm",
+                detail: format!("{:?}", String::from_utf8_lossy(&hash)),
+            });
+        }
+        let channels = f.u32(56)?;
+        if channels != 1 {
+            return Err(FormatError::Unsupported {
+                what: "channel count",
+                detail: channels.to_string(),
+            });
+        }
+        Ok(FileHeader {
+            layout,
+            voxel_scale,
+            flags,
+        })
+    }
+}
+
+/// A header slot: which commit is the newest durable one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct HeaderSlot {
+    /// Increases by one with every slot write; the valid slot with the highest wins.
+    pub seq: u64,
+    /// File offset of the head commit record.
+    pub commit: u64,
+    /// File length covered by that commit: nothing beyond it is referenced.
+    pub committed_len: u64,
+    /// The head commit's version number.
+    pub version: u64,
+}
+
+impl HeaderSlot {
+    pub fn encode(&self) -> [u8; SLOT_LEN] {
+        let mut b = [0u8; SLOT_LEN];
+        put(&mut b, 0, &SLOT_MAGIC);
+        put(&mut b, 8, &self.seq.to_le_bytes());
+        put(&mut b, 16, &self.commit.to_le_bytes());
+        put(&mut b, 24, &self.committed_len.to_le_bytes());
+        put(&mut b, 32, &self.version.to_le_bytes());
+        seal(&mut b, SLOT_LEN - 8);
+        b
+    }
+
+    /// # Errors
+    /// Bad magic or checksum (a slot never written, or torn), or offsets that do not fit.
+    pub fn decode(bytes: &[u8], base: u64) -> Result<Self, FormatError> {
+        let f = Fields::new("header slot", bytes, base);
+        f.magic(0, SLOT_MAGIC)?;
+        f.checksum(SLOT_LEN - 8)?;
+        let slot = HeaderSlot {
+            seq: f.u64(8)?,
+            commit: f.u64(16)?,
+            committed_len: f.u64(24)?,
+            version: f.u64(32)?,
+        };
+        if slot.commit < DATA_START
+            || slot
+                .commit
+                .checked_add(COMMIT_FIXED_LEN as u64)
+                .is_none_or(|end| end > slot.committed_len)
+        {
+            return Err(FormatError::invalid(
+                "header slot",
+                format!(
+                    "commit offset {} outside the committed region [{DATA_START}, {})",
+                    slot.commit, slot.committed_len
+                ),
+            ));
+        }
+        Ok(slot)
+    }
+}
+
+/// How a stored brick's payload is encoded. (The third codec, constant, has no payload at all: it
+/// lives in the index entry, see [`NodeEntry::Constant`].)
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Codec {
+    /// The decoded bytes as they are.
+    Raw = 0,
+    /// An lz4 block (lz4_flex block format, no frame); decodes to exactly one brick.
+    Lz4 = 1,
+    /// A zstd frame; decodes to exactly one brick. Denser than lz4 (what the compression goals
+    /// need) and still decoded at over 1 GB/s; HTTP can send it as `Content-Encoding: zstd`.
+    Zstd = 2,
+}
+
+impl Codec {
+    pub fn name(self) -> &'static str {
+        match self {
+            Codec::Raw => "raw",
+            Codec::Lz4 => "lz4",
+            Codec::Zstd => "zstd",
+        }
+    }
+}
+
+/// The header in front of a stored brick's payload.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BrickHeader {
+    /// [`content_hash`] of the decoded brick.
+    pub hash: u64,
+    /// Payload bytes that follow the header.
+    pub stored_len: u32,
+    pub codec: Codec,
+    /// Smallest and largest voxel value of the brick (answers "can this hold a surface?"
+    /// without decoding).
+    pub min: u16,
+    pub max: u16,
+}
+
+impl BrickHeader {
+    pub fn encode(&self) -> [u8; BRICK_HEADER_LEN] {
+        let mut b = [0u8; BRICK_HEADER_LEN];
+        put(&mut b, 0, &self.hash.to_le_bytes());
+        put(&mut b, 8, &self.stored_len.to_le_bytes());
+        b[12] = self.codec as u8;
+        put(&mut b, 14, &self.min.to_le_bytes());
+        put(&mut b, 16, &self.max.to_le_bytes());
+        let check = xxh3_64(&b[..20]) as u32;
+        put(&mut b, 20, &check.to_le_bytes());
+        b
+    }
+
+    /// Decodes and validates a brick header against the volume's shape: the payload length must
+    /// be plausible for the codec and the brick size.
+    ///
+    /// # Errors
+    /// Checksum mismatch, unknown codec, impossible length or value range.
+    pub fn decode(bytes: &[u8], base: u64, layout: &VolumeLayout) -> Result<Self, FormatError> {
+        let f = Fields::new("brick header", bytes, base);
+        let stored = f.u32(20)?;
+        let computed = xxh3_64(f.slice(0, 20)?) as u32;
+        if stored != computed {
+            return Err(FormatError::Checksum {
+                what: "brick header",
+                offset: base,
+                stored: stored as u64,
+                computed: computed as u64,
+            });
+        }
+        let codec = match f.slice(12, 1)?[0] {
+            0 => Codec::Raw,
+            1 => Codec::Lz4,
+            2 => Codec::Zstd,
+            other => {
+                return Err(FormatError::Unsupported {
+                    what: "brick codec",
+                    detail: format!("{other} at offset {base}"),
+                })
+            }
+        };
+        let h = BrickHeader {
+            hash: f.u64(0)?,
+            stored_len: f.u32(8)?,
+            codec,
+            min: f.u16(14)?,
+            max: f.u16(16)?,
+        };
+        let brick_bytes = layout.brick_bytes() as u64;
+        let len_ok = match codec {
+            Codec::Raw => h.stored_len as u64 == brick_bytes,
+            // An lz4 block of n bytes decodes to at most ~255 * n bytes; anything longer than the
+            // raw brick would have been stored raw.
+            Codec::Lz4 | Codec::Zstd => h.stored_len > 0 && (h.stored_len as u64) < brick_bytes,
+        };
+        let high = layout.voxel_type().high();
+        if !len_ok || h.min > h.max || h.max > high {
+            return Err(FormatError::invalid(
+                "brick header",
+                format!(
+                    "at offset {base}: codec {} with {} payload bytes, range [{}, {}] (brick of {brick_bytes} bytes, max value {high})",
+                    codec.name(),
+                    h.stored_len,
+                    h.min,
+                    h.max
+                ),
+            ));
+        }
+        Ok(h)
+    }
+}
+
+/// One entry of the pyramidal index: what a brick of the volume is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum NodeEntry {
+    /// Every voxel holds this value; no payload is stored (the "constant" codec).
+    Constant(u16),
+    /// A brick record (header and payload) at this file offset.
+    Stored(u64),
+}
+
+impl NodeEntry {
+    pub fn encode(self) -> u64 {
+        match self {
+            NodeEntry::Constant(v) => NODE_CONSTANT | v as u64,
+            NodeEntry::Stored(off) => off,
+        }
+    }
+
+    /// # Errors
+    /// A constant outside the voxel type's range or with stray bits, or an offset before the
+    /// data region or past the committed length.
+    pub fn decode(raw: u64, voxel_type: VoxelType, committed_len: u64) -> Result<Self, FormatError> {
+        if raw & NODE_CONSTANT != 0 {
+            let v = raw & !NODE_CONSTANT;
+            if v > voxel_type.high() as u64 {
+                return Err(FormatError::invalid(
+                    "index entry",
+                    format!("constant {v} out of range for {voxel_type}"),
+                ));
+            }
+            return Ok(NodeEntry::Constant(v as u16));
+        }
+        if raw < DATA_START || raw.saturating_add(BRICK_HEADER_LEN as u64) > committed_len {
+            return Err(FormatError::invalid(
+                "index entry",
+                format!("brick offset {raw} outside the data region [{DATA_START}, {committed_len})"),
+            ));
+        }
+        Ok(NodeEntry::Stored(raw))
+    }
+}
+
+/// The fixed part of a commit record. On disk it is followed by `n_changes` pairs of
+/// (node index u64, [`NodeEntry`] u64) and an xxh3 checksum of everything before it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CommitHeader {
+    pub version: u64,
+    /// Offset of the previous commit record, 0 for the first.
+    pub parent: u64,
+    pub timestamp_ms: u64,
+    /// Offset of an index checkpoint holding the full index after this commit, or 0 when the
+    /// index is the parent's with this commit's changes applied.
+    pub checkpoint: u64,
+    pub n_changes: u64,
+}
+
+impl CommitHeader {
+    /// Total bytes of the record.
+    pub fn record_len(n_changes: u64) -> u64 {
+        COMMIT_FIXED_LEN as u64 + n_changes * CHANGE_LEN as u64
+    }
+
+    /// Encodes the record with its changes.
+    pub fn encode(&self, changes: &[(u64, NodeEntry)]) -> Vec<u8> {
+        assert_eq!(changes.len() as u64, self.n_changes);
+        let len = Self::record_len(self.n_changes) as usize;
+        let mut b = vec![0u8; len];
+        put(&mut b, 0, &COMMIT_MAGIC);
+        put(&mut b, 8, &self.version.to_le_bytes());
+        put(&mut b, 16, &self.parent.to_le_bytes());
+        put(&mut b, 24, &self.timestamp_ms.to_le_bytes());
+        put(&mut b, 32, &self.checkpoint.to_le_bytes());
+        put(&mut b, 40, &self.n_changes.to_le_bytes());
+        for (i, (node, entry)) in changes.iter().enumerate() {
+            let at = 48 + i * CHANGE_LEN;
+            put(&mut b, at, &node.to_le_bytes());
+            put(&mut b, at + 8, &entry.encode().to_le_bytes());
+        }
+        seal(&mut b, len - 8);
+        b
+    }
+
+    /// Reads the fixed part of the record at `base`; `avail` is every byte from `base` to the end
+    /// of the committed region. Returns the header and the full record bytes (checksum verified).
+    ///
+    /// # Errors
+    /// Bad magic, truncation, checksum mismatch, or a change count the region cannot hold.
+    pub fn decode(avail: &[u8], base: u64) -> Result<(Self, &[u8]), FormatError> {
+        let f = Fields::new("commit record", avail, base);
+        f.magic(0, COMMIT_MAGIC)?;
+        let n_changes = f.u64(40)?;
+        let max_changes = (avail.len() as u64).saturating_sub(COMMIT_FIXED_LEN as u64) / CHANGE_LEN as u64;
+        if n_changes > max_changes {
+            return Err(FormatError::Truncated {
+                what: "commit record",
+                offset: base,
+                needed: n_changes.saturating_mul(CHANGE_LEN as u64),
+                available: avail.len() as u64,
+            });
+        }
+        let len = Self::record_len(n_changes) as usize;
+        let record = f.slice(0, len)?;
+        Fields::new("commit record", record, base).checksum(len - 8)?;
+        let h = CommitHeader {
+            version: f.u64(8)?,
+            parent: f.u64(16)?,
+            timestamp_ms: f.u64(24)?,
+            checkpoint: f.u64(32)?,
+            n_changes,
+        };
+        if h.parent >= base || (h.parent != 0 && h.parent < DATA_START) {
+            return Err(FormatError::invalid(
+                "commit record",
+                format!("at {base}: parent offset {} does not precede it", h.parent),
+            ));
+        }
+        if h.checkpoint >= base || (h.checkpoint != 0 && h.checkpoint < DATA_START) {
+            return Err(FormatError::invalid(
+                "commit record",
+                format!("at {base}: checkpoint offset {} does not precede it", h.checkpoint),
+            ));
+        }
+        if h.parent == 0 && h.checkpoint == 0 {
+            return Err(FormatError::invalid(
+                "commit record",
+                format!("at {base}: neither a parent nor a checkpoint"),
+            ));
+        }
+        Ok((h, record))
+    }
+
+    /// The (node, raw entry) pairs of a record returned by [`CommitHeader::decode`].
+    pub fn changes(record: &[u8]) -> impl Iterator<Item = (u64, u64)> + '_ {
+        let body = &record[48..record.len() - 8];
+        body.chunks_exact(CHANGE_LEN).map(|c| {
+            let mut n = [0u8; 8];
+            let mut e = [0u8; 8];
+            n.copy_from_slice(&c[..8]);
+            e.copy_from_slice(&c[8..]);
+            (u64::from_le_bytes(n), u64::from_le_bytes(e))
+        })
+    }
+}
+
+/// Where one chunk of a checkpoint's entries is stored and how to check it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ChunkRef {
+    /// Offset of the payload, relative to the checkpoint's start.
+    pub offset: u64,
+    pub stored_len: u32,
+    /// [`Codec::Raw`] (the little-endian entries) or [`Codec::Zstd`].
+    pub codec: Codec,
+    /// xxh3 of the decoded entries' bytes.
+    pub hash: u64,
+}
+
+/// Bytes per chunk reference in a checkpoint's directory.
+pub const CHUNK_REF_LEN: usize = 24;
+
+/// An index checkpoint: the whole pyramidal index of one version, in chunks of
+/// [`CHUNK_ENTRIES`] entries, each stored raw or zstd-compressed (constant runs shrink to a few
+/// bytes).
+///
+/// ```text
+/// 0                 magic "VIDX", u32 entries per chunk (512)
+/// 8                 u64 node count
+/// 16                chunk count x ChunkRef { u64 offset from the checkpoint's start,
+///                                            u32 stored length, u8 codec, 3 bytes zero,
+///                                            u64 xxh3 of the decoded entries }
+/// 16 + 24 n         u64 xxh3 of everything before it
+/// ...               chunk payloads
+/// ```
+///
+/// Opening a file reads and checks only the directory (24 bytes per 512 bricks); a chunk is
+/// decoded and checked against its hash when first used.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Checkpoint<'a> {
+    pub n_nodes: u64,
+    base: u64,
+    bytes: &'a [u8],
+}
+
+impl<'a> Checkpoint<'a> {
+    pub fn n_chunks(n_nodes: u64) -> u64 {
+        n_nodes.div_ceil(CHUNK_ENTRIES)
+    }
+
+    /// Length of the fixed part and directory, including its checksum.
+    pub fn directory_len(n_nodes: u64) -> u64 {
+        CHECKPOINT_FIXED_LEN as u64 + Self::n_chunks(n_nodes) * CHUNK_REF_LEN as u64 + 8
+    }
+
+    /// Encodes a checkpoint from already encoded chunks `(codec, payload, hash of decoded)`.
+    pub fn encode(n_nodes: u64, chunks: &[(Codec, Vec<u8>, u64)]) -> Vec<u8> {
+        assert_eq!(chunks.len() as u64, Self::n_chunks(n_nodes));
+        let dir_len = Self::directory_len(n_nodes) as usize;
+        let total = dir_len + chunks.iter().map(|c| c.1.len()).sum::<usize>();
+        let mut b = vec![0u8; dir_len];
+        b.reserve(total - dir_len);
+        put(&mut b, 0, &CHECKPOINT_MAGIC);
+        put(&mut b, 4, &(CHUNK_ENTRIES as u32).to_le_bytes());
+        put(&mut b, 8, &n_nodes.to_le_bytes());
+        let mut offset = dir_len as u64;
+        for (i, (codec, payload, hash)) in chunks.iter().enumerate() {
+            let at = CHECKPOINT_FIXED_LEN + i * CHUNK_REF_LEN;
+            put(&mut b, at, &offset.to_le_bytes());
+            put(&mut b, at + 8, &(payload.len() as u32).to_le_bytes());
+            b[at + 12] = *codec as u8;
+            put(&mut b, at + 16, &hash.to_le_bytes());
+            offset += payload.len() as u64;
+        }
+        seal(&mut b, dir_len - 8);
+        for (_, payload, _) in chunks {
+            b.extend_from_slice(payload);
+        }
+        b
+    }
+
+    /// Validates a checkpoint's fixed fields and directory, reading only
+    /// `16 + 24 * ceil(n / 512) + 8` bytes of `avail` (everything from the checkpoint's start to
+    /// the end of the committed region).
+    ///
+    /// # Errors
+    /// Bad magic, node count different from the layout's, truncation, checksum mismatch.
+    pub fn decode(avail: &'a [u8], base: u64, expected_nodes: u64) -> Result<Self, FormatError> {
+        let f = Fields::new("index checkpoint", avail, base);
+        f.magic(0, CHECKPOINT_MAGIC)?;
+        let per_chunk = f.u32(4)?;
+        if per_chunk as u64 != CHUNK_ENTRIES {
+            return Err(FormatError::invalid(
+                "index checkpoint",
+                format!("{per_chunk} entries per chunk, expected {CHUNK_ENTRIES}"),
+            ));
+        }
+        let n_nodes = f.u64(8)?;
+        if n_nodes != expected_nodes {
+            return Err(FormatError::invalid(
+                "index checkpoint",
+                format!("{n_nodes} entries, the volume has {expected_nodes} bricks"),
+            ));
+        }
+        f.checksum(Self::directory_len(n_nodes) as usize - 8)?;
+        Ok(Checkpoint {
+            n_nodes,
+            base,
+            bytes: avail,
+        })
+    }
+
+    /// The reference of chunk `chunk`, its payload bounds checked.
+    ///
+    /// # Errors
+    /// The chunk is out of range, has an unknown codec, or its payload lies outside the region.
+    pub fn chunk(&self, chunk: u64) -> Result<(ChunkRef, &'a [u8]), FormatError> {
+        if chunk >= Self::n_chunks(self.n_nodes) {
+            return Err(FormatError::invalid("index checkpoint", format!("no chunk {chunk}")));
+        }
+        let f = Fields::new("index checkpoint", self.bytes, self.base);
+        let at = CHECKPOINT_FIXED_LEN + chunk as usize * CHUNK_REF_LEN;
+        let codec = match f.slice(at + 12, 1)?[0] {
+            0 => Codec::Raw,
+            2 => Codec::Zstd,
+            other => {
+                return Err(FormatError::Unsupported {
+                    what: "index chunk codec",
+                    detail: other.to_string(),
+                })
+            }
+        };
+        let r = ChunkRef {
+            offset: f.u64(at)?,
+            stored_len: f.u32(at + 8)?,
+            codec,
+            hash: f.u64(at + 16)?,
+        };
+        let payload = usize::try_from(r.offset)
+            .ok()
+            .and_then(|o| self.bytes.get(o..o.checked_add(r.stored_len as usize)?))
+            .ok_or(FormatError::Truncated {
+                what: "index chunk",
+                offset: self.base.saturating_add(r.offset),
+                needed: r.stored_len as u64,
+                available: (self.bytes.len() as u64).saturating_sub(r.offset),
+            })?;
+        Ok((r, payload))
+    }
+
+    /// Entries in chunk `chunk` (512, fewer in the last).
+    pub fn chunk_entries(&self, chunk: u64) -> u64 {
+        CHUNK_ENTRIES.min(self.n_nodes - chunk * CHUNK_ENTRIES)
+    }
+
+    /// Bytes from the checkpoint's start to the end of its last payload.
+    ///
+    /// # Errors
+    /// A chunk reference is invalid.
+    pub fn total_len(&self) -> Result<u64, FormatError> {
+        let mut end = Self::directory_len(self.n_nodes);
+        for c in 0..Self::n_chunks(self.n_nodes) {
+            let (r, _) = self.chunk(c)?;
+            end = end.max(r.offset + r.stored_len as u64);
+        }
+        Ok(end)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn layout() -> VolumeLayout {
+        VolumeLayout::new([200, 160, 160], 16, VoxelType::U16).unwrap()
+    }
+
+    #[test]
+    fn header_round_trips_and_starts_like_vod1() {
+        let h = FileHeader::new(layout(), [1.0, 0.5, 2.0]);
+        let b = h.encode();
+        // Golden bytes: '.VOD', version 2, as VOD 1 starts with '.VOD', version 1.
+        assert_eq!(&b[..8], &[b'.', b'V', b'O', b'D', 2, 0, 0, 0]);
+        // dims 200 = 0xc8, 160 = 0xa0 little endian.
+        assert_eq!(&b[16..28], &[0xc8, 0, 0, 0, 0xa0, 0, 0, 0, 0xa0, 0, 0, 0]);
+        assert_eq!(FileHeader::decode(&b).unwrap(), h);
+    }
+
+    #[test]
+    fn header_flip_is_detected() {
+        let b = FileHeader::new(layout(), [1.0; 3]).encode();
+        for i in 0..HEADER_LEN {
+            let mut c = b;
+            c[i] ^= 0x10;
+            assert!(FileHeader::decode(&c).is_err(), "flip at byte {i} not detected");
+        }
+    }
+
+    #[test]
+    fn slot_round_trip_and_rejects_bad_offsets() {
+        let s = HeaderSlot {
+            seq: 7,
+            commit: DATA_START + 100,
+            committed_len: DATA_START + 1000,
+            version: 3,
+        };
+        assert_eq!(HeaderSlot::decode(&s.encode(), 4096).unwrap(), s);
+        let bad = HeaderSlot {
+            commit: DATA_START + 990,
+            ..s
+        };
+        assert!(HeaderSlot::decode(&bad.encode(), 4096).is_err());
+        assert!(HeaderSlot::decode(&[0u8; SLOT_LEN], 4096).is_err());
+    }
+
+    #[test]
+    fn brick_header_round_trip_and_validation() {
+        let l = layout();
+        let h = BrickHeader {
+            hash: 0x0123_4567_89ab_cdef,
+            stored_len: 100,
+            codec: Codec::Lz4,
+            min: 0,
+            max: 65535,
+        };
+        assert_eq!(BrickHeader::decode(&h.encode(), 0, &l).unwrap(), h);
+        let raw_wrong_len = BrickHeader {
+            codec: Codec::Raw,
+            ..h
+        };
+        assert!(BrickHeader::decode(&raw_wrong_len.encode(), 0, &l).is_err());
+        let inverted = BrickHeader { min: 9, max: 3, ..h };
+        assert!(BrickHeader::decode(&inverted.encode(), 0, &l).is_err());
+    }
+
+    #[test]
+    fn node_entries() {
+        let t = VoxelType::U8;
+        assert_eq!(NodeEntry::decode(NodeEntry::Constant(255).encode(), t, 1 << 20), Ok(NodeEntry::Constant(255)));
+        assert!(NodeEntry::decode(NodeEntry::Constant(256).encode(), t, 1 << 20).is_err());
+        assert_eq!(NodeEntry::decode(DATA_START, t, DATA_START + 24), Ok(NodeEntry::Stored(DATA_START)));
+        assert!(NodeEntry::decode(DATA_START, t, DATA_START + 23).is_err());
+        assert!(NodeEntry::decode(5, t, 1 << 20).is_err());
+    }
+
+    #[test]
+    fn commit_round_trip() {
+        let changes = vec![(3, NodeEntry::Constant(9)), (5, NodeEntry::Stored(DATA_START))];
+        let h = CommitHeader {
+            version: 2,
+            parent: DATA_START + 8,
+            timestamp_ms: 1234,
+            checkpoint: 0,
+            n_changes: 2,
+        };
+        let base = DATA_START + 4096;
+        let mut bytes = h.encode(&changes);
+        bytes.extend_from_slice(&[0xAA; 10]); // trailing bytes of the region are ignored
+        let (d, rec) = CommitHeader::decode(&bytes, base).unwrap();
+        assert_eq!(d, h);
+        let got: Vec<_> = CommitHeader::changes(rec).collect();
+        assert_eq!(got, vec![(3, NodeEntry::Constant(9).encode()), (5, DATA_START)]);
+        // A huge change count cannot make the decoder allocate or read past the region.
+        let mut hostile = h.encode(&changes);
+        hostile[40..48].copy_from_slice(&u64::MAX.to_le_bytes());
+        assert!(CommitHeader::decode(&hostile, base).is_err());
+    }
+
+    #[test]
+    fn checkpoint_round_trip_and_bounds() {
+        // 1300 entries: chunks of 512, 512, 276.
+        let chunks = vec![
+            (Codec::Raw, vec![1u8; 512 * 8], 11),
+            (Codec::Zstd, vec![2u8; 40], 22),
+            (Codec::Raw, vec![3u8; 276 * 8], 33),
+        ];
+        let b = Checkpoint::encode(1300, &chunks);
+        let cp = Checkpoint::decode(&b, DATA_START, 1300).unwrap();
+        assert_eq!(Checkpoint::n_chunks(1300), 3);
+        assert_eq!(cp.chunk_entries(2), 276);
+        assert_eq!(cp.total_len().unwrap() as usize, b.len());
+        let (r, p) = cp.chunk(1).unwrap();
+        assert_eq!((r.codec, r.hash, p), (Codec::Zstd, 22, &[2u8; 40][..]));
+        assert!(cp.chunk(3).is_err());
+        assert!(Checkpoint::decode(&b, DATA_START, 1299).is_err());
+        // A directory flip fails the checksum; a truncated region fails the chunk bounds.
+        let mut flipped = b.clone();
+        flipped[16 + 24 + 8] ^= 1;
+        assert!(Checkpoint::decode(&flipped, DATA_START, 1300).is_err());
+        let short = &b[..b.len() - 1];
+        let cp = Checkpoint::decode(short, DATA_START, 1300).unwrap();
+        assert!(cp.chunk(2).is_err());
+    }
+}

@@ -1,0 +1,402 @@
+//! The data tools: import, export, generate, inspect, get.
+
+use super::{parse_dims, parse_scale, progress, sibling, TypeArg};
+use crate::generate::{EllipsoidSource, WorldSource};
+use crate::store::inspect::inspect as inspect_vod2;
+use crate::store::raw::{export_raw, rawvox_header, RawInput, Region, RAWVOX_MAGIC};
+use crate::store::vod1::{write_vod1, Vod1, Vod1Source};
+use crate::store::codec::{Compression, DEFAULT_ZSTD_LEVEL};
+use crate::store::{build_vod2, mapping::Mapping, BrickSource, BuildOptions, DenseGrid, Vod2};
+use anyhow::{anyhow, bail, Context};
+use clap::{Args, ValueEnum};
+use isovox_proto::VolumeLayout;
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum VodFormat {
+    Vod2,
+    Vod1,
+}
+
+#[derive(Debug, Args)]
+pub struct ImportArgs {
+    /// Input: .raw (needs --dims), .rawvox (carries its shape), or a VOD 1 file.
+    pub input: PathBuf,
+    /// Output file.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Voxels per axis of a RAW file: X,Y,Z.
+    #[arg(long, value_parser = parse_dims)]
+    pub dims: Option<[u32; 3]>,
+    /// Voxel type of a RAW file (u16 is little endian).
+    #[arg(long = "type", value_enum)]
+    pub voxel_type: Option<TypeArg>,
+    /// Brick edge in voxels, a power of two (16 as in the thesis's storage tests; 32 serves well).
+    #[arg(long, default_value_t = 32)]
+    pub brick: u32,
+    /// World size of one voxel: SX,SY,SZ.
+    #[arg(long, value_parser = parse_scale, default_value = "1,1,1")]
+    pub scale: [f32; 3],
+    /// Output format.
+    #[arg(long, value_enum, default_value_t = VodFormat::Vod2)]
+    pub format: VodFormat,
+    #[command(flatten)]
+    pub compression: CompressionArgs,
+}
+
+/// How bricks are compressed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum CodecArg {
+    /// zstd: the densest (default).
+    Zstd,
+    /// lz4: the fastest to decode.
+    Lz4,
+    /// no compression (constant bricks and deduplication still apply).
+    None,
+}
+
+#[derive(Debug, Clone, Copy, Args)]
+pub struct CompressionArgs {
+    /// Brick compression.
+    #[arg(long, value_enum, default_value_t = CodecArg::Zstd)]
+    pub codec: CodecArg,
+    /// zstd level (1-22): higher is smaller and slower to write; reading speed barely changes.
+    #[arg(long, default_value_t = DEFAULT_ZSTD_LEVEL, value_parser = clap::value_parser!(i32).range(1..=22))]
+    pub zstd_level: i32,
+}
+
+impl CompressionArgs {
+    pub fn compression(&self) -> Compression {
+        match self.codec {
+            CodecArg::Zstd => Compression::Zstd(self.zstd_level),
+            CodecArg::Lz4 => Compression::Lz4,
+            CodecArg::None => Compression::None,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ExportFormat {
+    Raw,
+    Rawvox,
+    Vod1,
+}
+
+#[derive(Debug, Args)]
+pub struct ExportArgs {
+    /// A VOD 2 file.
+    pub input: PathBuf,
+    /// Output file.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Level of detail to export (0 = full resolution).
+    #[arg(long, default_value_t = 0)]
+    pub level: u8,
+    /// Output format: raw/rawvox write one level; vod1 writes the whole volume.
+    #[arg(long, value_enum, default_value_t = ExportFormat::Raw)]
+    pub format: ExportFormat,
+    /// Only this box of the level's voxels: MINX,MINY,MINZ,MAXX,MAXY,MAXZ (max exclusive).
+    #[arg(long)]
+    pub region: Option<String>,
+    /// Export this version instead of the newest.
+    #[arg(long)]
+    pub version: Option<u64>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Dataset {
+    /// The ICVG ellipsoid sampling function filling the volume.
+    Ellipsoid,
+    /// Terrain from a fractal Perlin-noise height map.
+    World,
+}
+
+#[derive(Debug, Args)]
+pub struct GenerateArgs {
+    /// What to generate.
+    #[arg(value_enum)]
+    pub dataset: Dataset,
+    /// Output VOD 2 file.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Voxels per axis: X,Y,Z.
+    #[arg(long, value_parser = parse_dims, default_value = "256,256,256")]
+    pub dims: [u32; 3],
+    #[arg(long = "type", value_enum, default_value_t = TypeArg::U8)]
+    pub voxel_type: TypeArg,
+    /// Brick edge in voxels, a power of two.
+    #[arg(long, default_value_t = 32)]
+    pub brick: u32,
+    /// Noise seed (world).
+    #[arg(long, default_value_t = 1)]
+    pub seed: u32,
+    #[command(flatten)]
+    pub compression: CompressionArgs,
+}
+
+#[derive(Debug, Args)]
+pub struct InspectArgs {
+    /// A VOD 2 or VOD 1 file.
+    pub input: PathBuf,
+    /// Print JSON for scripts.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct GetArgs {
+    /// A VOD 2 or VOD 1 file.
+    pub input: PathBuf,
+    pub level: u8,
+    pub x: u32,
+    pub y: u32,
+    pub z: u32,
+    /// Write here instead of stdout.
+    #[arg(short, long)]
+    pub output: Option<PathBuf>,
+    /// Read this version instead of the newest (VOD 2).
+    #[arg(long)]
+    pub version: Option<u64>,
+}
+
+/// What kind of file a path holds, by its first bytes.
+enum InputKind {
+    Vod(u32),
+    Rawvox,
+    Raw,
+}
+
+fn sniff(path: &Path) -> anyhow::Result<InputKind> {
+    use std::io::Read;
+    let mut head = [0u8; 8];
+    let mut f = File::open(path).with_context(|| format!("cannot open {}", path.display()))?;
+    let n = f.read(&mut head).with_context(|| format!("cannot read {}", path.display()))?;
+    if n >= 8 && head[..4] == isovox_proto::vod2::SIGNATURE {
+        return Ok(InputKind::Vod(u32::from_le_bytes([head[4], head[5], head[6], head[7]])));
+    }
+    if n >= 4 && i32::from_le_bytes([head[0], head[1], head[2], head[3]]) == RAWVOX_MAGIC {
+        return Ok(InputKind::Rawvox);
+    }
+    Ok(InputKind::Raw)
+}
+
+/// Builds `output` from `source` via a temporary file renamed into place, so an interrupted run
+/// never leaves a half-written volume under the final name. With `vod1`, the VOD 2 build is
+/// converted and removed.
+fn build_to(output: &Path, layout: &VolumeLayout, scale: [f32; 3], source: &dyn BrickSource, compression: Compression, format: VodFormat) -> anyhow::Result<()> {
+    let tmp = sibling(output, ".isovox-tmp");
+    let options = BuildOptions { compression, progress: progress("building") };
+    let report = build_vod2(&tmp, layout, scale, source, &options).with_context(|| format!("cannot build {}", output.display()))?;
+    if format == VodFormat::Vod1 {
+        let vod = Vod2::open(&tmp)?;
+        let mut out = BufWriter::new(File::create(output).with_context(|| format!("cannot create {}", output.display()))?);
+        write_vod1(&vod.head(), compression != Compression::None, &mut out)?;
+        out.flush()?;
+        drop(vod);
+        std::fs::remove_file(&tmp).ok();
+    } else {
+        std::fs::rename(&tmp, output).with_context(|| format!("cannot move the result to {}", output.display()))?;
+    }
+    tracing::info!(
+        output = %output.display(),
+        bytes = report.file_bytes,
+        seconds = report.elapsed.as_secs_f64(),
+        "built volume"
+    );
+    Ok(())
+}
+
+pub fn import(a: ImportArgs) -> anyhow::Result<()> {
+    let compress = a.compression.compression();
+    match sniff(&a.input)? {
+        InputKind::Vod(1) => {
+            let file = File::open(&a.input).with_context(|| format!("cannot open {}", a.input.display()))?;
+            let len = file.metadata()?.len();
+            let map = Mapping::new(&file, len)?;
+            let vod1 = Vod1::parse(map.bytes()).with_context(|| format!("{} is not a valid VOD 1 file", a.input.display()))?;
+            let source = Vod1Source::new(&vod1);
+            build_to(&a.output, &vod1.layout, vod1.voxel_scale, &source, compress, a.format)?;
+            source.finish().with_context(|| format!("{}: a brick does not decode", a.input.display()))?;
+        }
+        InputKind::Vod(v) => bail!("{} is already a VOD {v} file; import reads RAW, RAWVOX and VOD 1", a.input.display()),
+        kind => {
+            let rawvox = matches!(kind, InputKind::Rawvox);
+            let input = RawInput::open(&a.input, rawvox, a.dims, a.voxel_type.map(Into::into))?;
+            let layout = VolumeLayout::new(input.dims, a.brick, input.voxel_type)?;
+            let grid = DenseGrid::new(input.dims, input.voxel_type, a.brick, input.voxels());
+            build_to(&a.output, &layout, a.scale, &grid, compress, a.format)?;
+        }
+    }
+    Ok(())
+}
+
+fn parse_region(s: &str) -> anyhow::Result<Region> {
+    let v: Vec<u32> = s
+        .split(',')
+        .map(|p| p.trim().parse::<u32>().map_err(|_| anyhow!("region value {p:?} is not a non-negative integer")))
+        .collect::<Result<_, _>>()?;
+    if v.len() != 6 {
+        bail!("--region takes six values MINX,MINY,MINZ,MAXX,MAXY,MAXZ, got {}", v.len());
+    }
+    Ok(Region { min: [v[0], v[1], v[2]], max: [v[3], v[4], v[5]] })
+}
+
+pub fn export(a: ExportArgs) -> anyhow::Result<()> {
+    if let InputKind::Vod(v) = sniff(&a.input)? {
+        if v != 2 {
+            bail!("{} is a VOD {v} file; export reads VOD 2 (import it first)", a.input.display());
+        }
+    }
+    let vod = Vod2::open(&a.input).with_context(|| format!("cannot open {}", a.input.display()))?;
+    let snap = match a.version {
+        Some(v) => vod.version(v)?,
+        None => vod.head(),
+    };
+    let tmp = sibling(&a.output, ".isovox-tmp");
+    let mut out = BufWriter::with_capacity(1 << 20, File::create(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?);
+    match a.format {
+        ExportFormat::Vod1 => {
+            if a.region.is_some() || a.level != 0 {
+                bail!("--format vod1 writes the whole volume; --level and --region apply to raw and rawvox");
+            }
+            write_vod1(&snap, true, &mut out)?;
+        }
+        ExportFormat::Raw | ExportFormat::Rawvox => {
+            let layout = snap.layout();
+            if a.level >= layout.levels() {
+                bail!("level {} out of range: the volume has levels 0..{}", a.level, layout.levels() - 1);
+            }
+            let region = match &a.region {
+                Some(r) => parse_region(r)?,
+                None => Region { min: [0; 3], max: layout.level_dims(a.level) },
+            };
+            if a.format == ExportFormat::Rawvox {
+                let dims = [0, 1, 2].map(|i| region.max[i].saturating_sub(region.min[i]));
+                out.write_all(&rawvox_header(dims, layout.voxel_type()))?;
+            }
+            export_raw(&snap, a.level, region, &mut out, &progress("exporting"))?;
+        }
+    }
+    out.flush()?;
+    drop(out);
+    std::fs::rename(&tmp, &a.output).with_context(|| format!("cannot move the result to {}", a.output.display()))?;
+    Ok(())
+}
+
+pub fn generate(a: GenerateArgs) -> anyhow::Result<()> {
+    let layout = VolumeLayout::new(a.dims, a.brick, a.voxel_type.into())?;
+    let source: Box<dyn BrickSource> = match a.dataset {
+        Dataset::Ellipsoid => Box::new(EllipsoidSource::new(layout.clone())),
+        Dataset::World => Box::new(WorldSource::new(layout.clone(), a.seed)),
+    };
+    build_to(&a.output, &layout, [1.0; 3], source.as_ref(), a.compression.compression(), VodFormat::Vod2)
+}
+
+fn human(bytes: u64) -> String {
+    let units = ["B", "KiB", "MiB", "GiB", "TiB"];
+    let mut v = bytes as f64;
+    let mut u = 0;
+    while v >= 1024.0 && u + 1 < units.len() {
+        v /= 1024.0;
+        u += 1;
+    }
+    if u == 0 {
+        format!("{bytes} B")
+    } else {
+        format!("{v:.2} {}", units[u])
+    }
+}
+
+pub fn inspect(a: InspectArgs) -> anyhow::Result<()> {
+    match sniff(&a.input)? {
+        InputKind::Vod(1) => inspect_vod1(&a),
+        InputKind::Vod(2) => {
+            let vod = Vod2::open(&a.input).with_context(|| format!("cannot open {}", a.input.display()))?;
+            let i = inspect_vod2(&vod).with_context(|| format!("{} is damaged", a.input.display()))?;
+            if a.json {
+                println!("{}", serde_json::to_string_pretty(&i)?);
+                return Ok(());
+            }
+            let [x, y, z] = i.dims;
+            println!("{}: {} file, version {} ({} commits)", a.input.display(), i.format, i.version, i.commits);
+            println!("  volume      {x} x {y} x {z} {} voxels, brick {}^3, voxel scale {:?}", i.voxel_type, i.brick, i.voxel_scale);
+            println!("  levels      {}", i.levels.len());
+            for l in &i.levels {
+                let [gx, gy, gz] = l.grid;
+                println!("    level {:>2}  grid {gx:>5} x {gy:>5} x {gz:>5}  {:>10} bricks  {:>10} constant  {:>10} stored", l.level, l.bricks, l.constant, l.stored);
+            }
+            println!("  bricks      {} total, {} unique", i.bricks_total, i.bricks_unique);
+            let c = &i.codecs;
+            println!(
+                "  by codec    constant {} bricks (no payload); zstd {} records, {}; lz4 {} records, {}; raw {} records, {}",
+                c.constant_bricks, c.zstd_records, human(c.zstd_bytes), c.lz4_records, human(c.lz4_bytes), c.raw_records, human(c.raw_bytes)
+            );
+            println!("  index       {}", human(i.index_bytes));
+            println!("  size        {} on disk, {} as RAW: ratio {:.2}:1", human(i.file_bytes), human(i.raw_bytes), i.ratio);
+            println!("  garbage     {} not referenced by the head version", human(i.garbage_bytes));
+            Ok(())
+        }
+        InputKind::Vod(v) => bail!("{}: VOD version {v} is not supported", a.input.display()),
+        _ => bail!("{} is not a VOD file", a.input.display()),
+    }
+}
+
+fn inspect_vod1(a: &InspectArgs) -> anyhow::Result<()> {
+    let file = File::open(&a.input)?;
+    let len = file.metadata()?.len();
+    let map = Mapping::new(&file, len)?;
+    let v = Vod1::parse(map.bytes()).with_context(|| format!("{} is not a valid VOD 1 file", a.input.display()))?;
+    let raw = v.layout.raw_bytes();
+    let [x, y, z] = v.layout.dims();
+    if a.json {
+        let j = serde_json::json!({
+            "format": "VOD 1", "dims": v.layout.dims(), "voxel_type": v.layout.voxel_type(),
+            "brick": v.layout.brick(), "levels": v.height, "version": 1,
+            "bricks_total": crate::store::vod1::node_count(v.height), "bricks_unique": v.unique_bricks(),
+            "file_bytes": len, "raw_bytes": raw, "ratio": raw as f64 / len as f64,
+        });
+        println!("{}", serde_json::to_string_pretty(&j)?);
+    } else {
+        println!("{}: VOD 1 file (thesis layout)", a.input.display());
+        println!("  volume      {x} x {y} x {z} {} voxels, brick {}^3", v.layout.voxel_type(), v.layout.brick());
+        println!("  octree      height {}, {} nodes, {} unique bricks", v.height, crate::store::vod1::node_count(v.height), v.unique_bricks());
+        println!("  size        {} on disk, {} as RAW: ratio {:.2}:1", human(len), human(raw), raw as f64 / len as f64);
+    }
+    Ok(())
+}
+
+pub fn get(a: GetArgs) -> anyhow::Result<()> {
+    let bytes = match sniff(&a.input)? {
+        InputKind::Vod(1) => {
+            let file = File::open(&a.input)?;
+            let len = file.metadata()?.len();
+            let map = Mapping::new(&file, len)?;
+            let v = Vod1::parse(map.bytes())?;
+            let key = v.layout.key(a.level, a.x, a.y, a.z)?;
+            let mut out = vec![0u8; v.layout.brick_bytes()];
+            v.read_into(key, &mut out)?;
+            out
+        }
+        _ => {
+            let vod = Vod2::open(&a.input).with_context(|| format!("cannot open {}", a.input.display()))?;
+            let snap = match a.version {
+                Some(v) => vod.version(v)?,
+                None => vod.head(),
+            };
+            let key = snap.layout().key(a.level, a.x, a.y, a.z)?;
+            snap.read(key)?
+        }
+    };
+    match a.output {
+        Some(path) => std::fs::write(&path, &bytes).with_context(|| format!("cannot write {}", path.display()))?,
+        None => {
+            let mut stdout = std::io::stdout().lock();
+            stdout.write_all(&bytes)?;
+            stdout.flush()?;
+        }
+    }
+    Ok(())
+}
+

@@ -1,0 +1,16 @@
+//! Isovox: serves large, editable volumes over HTTP.
+//!
+//! This crate is the server side: the storage engine, the volume algebra, and the `isovox`
+//! command-line tool that drives them. Data flows one way: command or request -> handler ->
+//! store / icvg -> bytes.
+//!
+//! Layout:
+//! - [`store`]: VOD 1 and VOD 2 files, brick index, deduplication, commits (the foundation).
+//! - [`icvg`]: primitives of the volume algebra (`spec/icvg.md`).
+//! - [`generate`]: synthetic data sets (ellipsoid, Perlin-noise world).
+//! - [`cli`]: the `isovox` subcommands.
+
+pub mod cli;
+pub mod generate;
+pub mod icvg;
+pub mod store;

@@ -1,0 +1,221 @@
+//! Building a whole VOD 2 volume from a level-0 source, streaming.
+//!
+//! Level 0 is produced one z-slab of bricks at a time (all bricks with the same z). Two slabs of
+//! level k make one slab of level k+1, so memory holds at most two slabs per level, whatever the
+//! volume's size. Within a slab, bricks are filled, classified, hashed and compressed in parallel
+//! (rayon); deduplication and appending run in order on one thread, so the file is deterministic.
+
+use super::codec::Compression;
+use super::pyramid::{constant_parent, downsample, BrickSource, BrickVoxels};
+use super::writer::{Vod2Writer, WriteStats};
+use super::StoreError;
+use indicatif::ProgressBar;
+use isovox_proto::vod2::FileHeader;
+use isovox_proto::{BrickKey, VolumeLayout};
+use rayon::prelude::*;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+/// How to build.
+#[derive(Debug, Clone)]
+pub struct BuildOptions {
+    /// How bricks are compressed (each is stored raw where compression does not shrink it;
+    /// constants and deduplication apply in every case).
+    pub compression: Compression,
+    /// Advanced once per brick written (all levels); hidden when not on a terminal.
+    pub progress: ProgressBar,
+}
+
+impl Default for BuildOptions {
+    fn default() -> Self {
+        BuildOptions {
+            compression: Compression::default(),
+            progress: ProgressBar::hidden(),
+        }
+    }
+}
+
+/// What a build wrote.
+#[derive(Debug, Clone)]
+pub struct BuildReport {
+    pub stats: WriteStats,
+    pub file_bytes: u64,
+    pub elapsed: Duration,
+}
+
+/// Builds `path` as version 1 of a volume whose level-0 voxels come from `source`.
+///
+/// # Errors
+/// The file cannot be written.
+pub fn build_vod2(
+    path: &Path,
+    layout: &VolumeLayout,
+    voxel_scale: [f32; 3],
+    source: &dyn BrickSource,
+    options: &BuildOptions,
+) -> Result<BuildReport, StoreError> {
+    let start = Instant::now();
+    let writer = Vod2Writer::create(path, FileHeader::new(layout.clone(), voxel_scale), options.compression)?;
+    let mut sink = FileSink {
+        writer,
+        entries: vec![0u64; layout.node_count() as usize],
+    };
+    options.progress.set_length(layout.node_count());
+    stream_pyramid(layout, source, &mut sink, &options.progress)?;
+    let FileSink { mut writer, entries } = sink;
+    writer.commit(&[], Some(&entries))?;
+    options.progress.finish_and_clear();
+    Ok(BuildReport {
+        stats: writer.stats(),
+        file_bytes: writer.end(),
+        elapsed: start.elapsed(),
+    })
+}
+
+/// Receives each level's bricks, one z-slab at a time, as the pyramid is built.
+pub trait SlabSink {
+    /// # Errors
+    /// Whatever storing the slab can fail with.
+    fn slab(&mut self, layout: &VolumeLayout, level: u8, z: u32, slab: &[BrickVoxels]) -> Result<(), StoreError>;
+}
+
+/// Keeps every brick of every level in memory, in node order (for measuring what building the
+/// octree from RAW costs, as the thesis's Table 5 does).
+#[derive(Debug, Default)]
+pub struct MemorySink {
+    pub bricks: Vec<BrickVoxels>,
+}
+
+impl SlabSink for MemorySink {
+    fn slab(&mut self, _: &VolumeLayout, _: u8, _: u32, slab: &[BrickVoxels]) -> Result<(), StoreError> {
+        // Slabs arrive interleaved across levels; keep them all, order does not matter here.
+        self.bricks.extend_from_slice(slab);
+        Ok(())
+    }
+}
+
+struct FileSink {
+    writer: Vod2Writer,
+    entries: Vec<u64>,
+}
+
+impl SlabSink for FileSink {
+    fn slab(&mut self, layout: &VolumeLayout, level: u8, z: u32, slab: &[BrickVoxels]) -> Result<(), StoreError> {
+        let writer = &self.writer;
+        let prepared: Vec<_> = slab.par_iter().map(|v| writer.prepare(v)).collect();
+        let first = layout.node_index(BrickKey { level, x: 0, y: 0, z });
+        for (i, (voxels, p)) in slab.iter().zip(prepared).enumerate() {
+            self.entries[first as usize + i] = self.writer.store(voxels, p)?.encode();
+        }
+        Ok(())
+    }
+}
+
+/// Produces every brick of every level from a level-0 source and hands them to `sink`.
+///
+/// # Errors
+/// What the sink returns.
+pub fn stream_pyramid(
+    layout: &VolumeLayout,
+    source: &dyn BrickSource,
+    sink: &mut dyn SlabSink,
+    progress: &ProgressBar,
+) -> Result<(), StoreError> {
+    let mut b = Builder {
+        layout,
+        sink,
+        pending: vec![None; layout.levels() as usize],
+        progress,
+    };
+    let g = layout.grid(0);
+    let brick_bytes = layout.brick_bytes();
+    for z in 0..g[2] {
+        let slab: Vec<BrickVoxels> = (0..g[0] * g[1])
+            .into_par_iter()
+            .map(|i| {
+                let key = BrickKey {
+                    level: 0,
+                    x: i % g[0],
+                    y: i / g[0],
+                    z,
+                };
+                if let Some(v) = source.constant(key) {
+                    return BrickVoxels::Constant(v);
+                }
+                let mut out = vec![0u8; brick_bytes];
+                source.fill(key, &mut out);
+                BrickVoxels::from_bytes(out, layout.voxel_type())
+            })
+            .collect();
+        b.add_slab(0, z, slab)?;
+    }
+    Ok(())
+}
+
+struct Builder<'a> {
+    layout: &'a VolumeLayout,
+    sink: &'a mut dyn SlabSink,
+    /// Per level: an even slab waiting for its odd partner.
+    pending: Vec<Option<Vec<BrickVoxels>>>,
+    progress: &'a ProgressBar,
+}
+
+impl Builder<'_> {
+    fn add_slab(&mut self, level: u8, z: u32, slab: Vec<BrickVoxels>) -> Result<(), StoreError> {
+        self.write_slab(level, z, &slab)?;
+        if level + 1 == self.layout.levels() {
+            return Ok(());
+        }
+        let gz = self.layout.grid(level)[2];
+        let (lower, upper) = if z % 2 == 0 {
+            if z + 1 < gz {
+                self.pending[level as usize] = Some(slab);
+                return Ok(());
+            }
+            (slab, None)
+        } else {
+            let lower = self.pending[level as usize]
+                .take()
+                .ok_or_else(|| StoreError::Invalid(format!("internal: level {level} slab {z} has no partner")))?;
+            (lower, Some(slab))
+        };
+        let parent = self.parent_slab(level, &lower, upper.as_deref());
+        self.add_slab(level + 1, z / 2, parent)
+    }
+
+    fn parent_slab(&self, level: u8, lower: &[BrickVoxels], upper: Option<&[BrickVoxels]>) -> Vec<BrickVoxels> {
+        let child = self.layout.grid(level);
+        let parent = self.layout.grid(level + 1);
+        let brick = self.layout.brick();
+        let voxel_type = self.layout.voxel_type();
+        let brick_bytes = self.layout.brick_bytes();
+        (0..parent[0] * parent[1])
+            .into_par_iter()
+            .map(|i| {
+                let (px, py) = (i % parent[0], i / parent[0]);
+                let mut children: [Option<&BrickVoxels>; 8] = [None; 8];
+                for (octant, slot) in children.iter_mut().enumerate() {
+                    let (cx, cy) = (px * 2 + (octant & 1) as u32, py * 2 + (octant >> 1 & 1) as u32);
+                    let slab = if octant >> 2 == 0 { Some(lower) } else { upper };
+                    if let Some(slab) = slab {
+                        if cx < child[0] && cy < child[1] {
+                            *slot = Some(&slab[(cy * child[0] + cx) as usize]);
+                        }
+                    }
+                }
+                if let Some(v) = constant_parent(&children) {
+                    return BrickVoxels::Constant(v);
+                }
+                let mut out = vec![0u8; brick_bytes];
+                downsample(&children, brick, voxel_type, &mut out);
+                BrickVoxels::from_bytes(out, voxel_type)
+            })
+            .collect()
+    }
+
+    fn write_slab(&mut self, level: u8, z: u32, slab: &[BrickVoxels]) -> Result<(), StoreError> {
+        self.sink.slab(self.layout, level, z, slab)?;
+        self.progress.inc(slab.len() as u64);
+        Ok(())
+    }
+}

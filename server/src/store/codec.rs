@@ -1,0 +1,197 @@
+//! Brick payload encoding: constant, raw, an lz4 block or a zstd frame, chosen per brick.
+//!
+//! zstd is the default for storage: on the thesis's synthetic volumes it stores bricks about 2.5x
+//! smaller than lz4 (what the compression goals need) and still decodes at over 1 GB/s per core.
+//! lz4 remains for files that favour decode speed above all.
+
+use super::StoreError;
+use isovox_proto::vod2::Codec;
+use isovox_proto::VoxelType;
+use std::cell::RefCell;
+
+/// How a writer compresses bricks (each brick is stored raw when compression does not shrink it).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Compression {
+    None,
+    Lz4,
+    /// zstd at this level (1-22).
+    Zstd(i32),
+}
+
+impl Default for Compression {
+    fn default() -> Self {
+        Compression::Zstd(DEFAULT_ZSTD_LEVEL)
+    }
+}
+
+/// The zstd level imports use unless told otherwise.
+pub const DEFAULT_ZSTD_LEVEL: i32 = 5;
+
+thread_local! {
+    static ZSTD_ENCODER: RefCell<Option<(i32, zstd::bulk::Compressor<'static>)>> = const { RefCell::new(None) };
+    static ZSTD_DECODER: RefCell<Option<zstd::bulk::Decompressor<'static>>> = const { RefCell::new(None) };
+}
+
+/// Smallest and largest voxel value of a decoded brick.
+pub fn min_max(bytes: &[u8], voxel_type: VoxelType) -> (u16, u16) {
+    match voxel_type {
+        VoxelType::U8 => {
+            let (mut lo, mut hi) = (u8::MAX, u8::MIN);
+            for &v in bytes {
+                lo = lo.min(v);
+                hi = hi.max(v);
+            }
+            (lo as u16, hi as u16)
+        }
+        VoxelType::U16 => {
+            let (mut lo, mut hi) = (u16::MAX, u16::MIN);
+            for c in bytes.chunks_exact(2) {
+                let v = u16::from_le_bytes([c[0], c[1]]);
+                lo = lo.min(v);
+                hi = hi.max(v);
+            }
+            (lo, hi)
+        }
+    }
+}
+
+/// Fills a decoded brick with one value.
+pub fn fill_constant(out: &mut [u8], value: u16, voxel_type: VoxelType) {
+    match voxel_type {
+        VoxelType::U8 => out.fill(value as u8),
+        VoxelType::U16 => {
+            let le = value.to_le_bytes();
+            for c in out.chunks_exact_mut(2) {
+                c.copy_from_slice(&le);
+            }
+        }
+    }
+}
+
+fn zstd_compress(bytes: &[u8], level: i32) -> Option<Vec<u8>> {
+    ZSTD_ENCODER.with(|cell| {
+        let mut slot = cell.borrow_mut();
+        if slot.as_ref().is_none_or(|(l, _)| *l != level) {
+            *slot = Some((level, zstd::bulk::Compressor::new(level).ok()?));
+        }
+        let (_, encoder) = slot.as_mut()?;
+        encoder.compress(bytes).ok()
+    })
+}
+
+/// Encodes bytes with `compression`, falling back to raw when that is not smaller.
+/// (Constant bricks never get here: they are stored in the index.)
+pub fn encode(bytes: &[u8], compression: Compression) -> (Codec, Vec<u8>) {
+    let compressed = match compression {
+        Compression::None => None,
+        Compression::Lz4 => Some((Codec::Lz4, lz4_flex::block::compress(bytes))),
+        Compression::Zstd(level) => zstd_compress(bytes, level).map(|c| (Codec::Zstd, c)),
+    };
+    match compressed {
+        Some((codec, c)) if c.len() < bytes.len() => (codec, c),
+        _ => (Codec::Raw, bytes.to_vec()),
+    }
+}
+
+/// Decodes a stored payload into `out`, which has exactly the decoded size.
+///
+/// # Errors
+/// The payload is malformed or does not decode to exactly `out.len()` bytes. Decoding never
+/// writes or allocates beyond `out`.
+pub fn decode(codec: Codec, payload: &[u8], out: &mut [u8], offset: u64) -> Result<(), StoreError> {
+    let n = match codec {
+        Codec::Raw => {
+            if payload.len() == out.len() {
+                out.copy_from_slice(payload);
+            }
+            payload.len()
+        }
+        Codec::Lz4 => lz4_flex::block::decompress_into(payload, out)
+            .map_err(|e| StoreError::corrupt(offset, format!("lz4 block does not decode: {e}")))?,
+        Codec::Zstd => ZSTD_DECODER
+            .with(|cell| {
+                let mut slot = cell.borrow_mut();
+                if slot.is_none() {
+                    *slot = Some(zstd::bulk::Decompressor::new()?);
+                }
+                match slot.as_mut() {
+                    Some(d) => d.decompress_to_buffer(payload, out),
+                    None => Err(std::io::Error::other("no zstd decoder")),
+                }
+            })
+            .map_err(|e| StoreError::corrupt(offset, format!("zstd frame does not decode: {e}")))?,
+    };
+    if n != out.len() {
+        return Err(StoreError::corrupt(
+            offset,
+            format!("{} payload decodes to {n} bytes, expected {}", codec.name(), out.len()),
+        ));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn min_max_of_both_types() {
+        assert_eq!(min_max(&[5, 3, 9, 7], VoxelType::U8), (3, 9));
+        // u16 little endian: 0x0102 = 258, 0x0001 = 256, 0x00ff = 255.
+        assert_eq!(min_max(&[2, 1, 0, 1, 0xff, 0], VoxelType::U16), (255, 258));
+    }
+
+    #[test]
+    fn constant_fill_is_little_endian() {
+        let mut b = [0u8; 6];
+        fill_constant(&mut b, 0x1234, VoxelType::U16);
+        assert_eq!(b, [0x34, 0x12, 0x34, 0x12, 0x34, 0x12]);
+    }
+
+    fn noise(n: usize) -> Vec<u8> {
+        let mut s = 0x9E37_79B9_7F4A_7C15u64;
+        (0..n)
+            .map(|_| {
+                s ^= s << 13;
+                s ^= s >> 7;
+                s ^= s << 17;
+                s as u8
+            })
+            .collect()
+    }
+
+    #[test]
+    fn every_compression_round_trips_and_falls_back_to_raw() {
+        let mut smooth = vec![0u8; 4096];
+        smooth[100..900].fill(200);
+        for compression in [Compression::Lz4, Compression::Zstd(3), Compression::Zstd(19)] {
+            let (c, p) = encode(&smooth, compression);
+            assert_ne!(c, Codec::Raw);
+            assert!(p.len() < 200, "{compression:?} gave {} bytes", p.len());
+            let mut out = vec![0u8; 4096];
+            decode(c, &p, &mut out, 0).unwrap();
+            assert_eq!(out, smooth);
+            // An xorshift sequence does not compress: stored raw.
+            let n = noise(4096);
+            let (c, p) = encode(&n, compression);
+            assert_eq!(c, Codec::Raw);
+            decode(c, &p, &mut out, 0).unwrap();
+            assert_eq!(out, n);
+        }
+        assert_eq!(encode(&smooth, Compression::None).0, Codec::Raw);
+    }
+
+    #[test]
+    fn decode_rejects_garbage_without_overrunning() {
+        let mut out = vec![0u8; 64];
+        assert!(decode(Codec::Lz4, &[0xff, 0xff, 0xff], &mut out, 0).is_err());
+        assert!(decode(Codec::Zstd, &[0x28, 0xb5, 0x2f, 0xfd, 0, 0], &mut out, 0).is_err());
+        assert!(decode(Codec::Raw, &[0; 63], &mut out, 0).is_err());
+        // Valid frames of the wrong decoded size: too short, and too long for the buffer.
+        for big in [32usize, 65] {
+            let data = vec![1u8; big];
+            assert!(decode(Codec::Lz4, &lz4_flex::block::compress(&data), &mut out, 0).is_err());
+            assert!(decode(Codec::Zstd, &zstd::bulk::compress(&data, 3).unwrap(), &mut out, 0).is_err());
+        }
+    }
+}

@@ -1,0 +1,137 @@
+//! Whole-file statistics for `isovox inspect`: levels, bricks by codec, unique bricks,
+//! compression ratio, and the bytes the head version no longer references.
+
+use super::vod2::{StoredBrick, Vod2};
+use super::StoreError;
+use isovox_proto::vod2::{Codec, CommitHeader, BRICK_HEADER_LEN, DATA_START};
+use isovox_proto::VoxelType;
+use serde::Serialize;
+use std::collections::HashSet;
+
+/// What `inspect --json` prints. Field names are an interface scripts rely on (`spec/cli.md`).
+#[derive(Debug, Clone, Serialize)]
+pub struct Inspection {
+    pub format: &'static str,
+    pub dims: [u32; 3],
+    pub voxel_type: VoxelType,
+    pub brick: u32,
+    pub voxel_scale: [f32; 3],
+    pub version: u64,
+    pub commits: u64,
+    pub levels: Vec<LevelStats>,
+    /// Bricks addressed by the index (every level).
+    pub bricks_total: u64,
+    /// Distinct brick contents: distinct stored records plus distinct constant values.
+    pub bricks_unique: u64,
+    pub codecs: CodecStats,
+    pub file_bytes: u64,
+    pub raw_bytes: u64,
+    /// raw_bytes / file_bytes.
+    pub ratio: f64,
+    /// Bytes the head version needs: fixed header and slots, its bricks, its index checkpoint
+    /// and the commit records from it to the head.
+    pub live_bytes: u64,
+    /// file_bytes - live_bytes: older versions' bricks and index, and any unfinished commit;
+    /// `isovox compact` reclaims them.
+    pub garbage_bytes: u64,
+    pub index_bytes: u64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct LevelStats {
+    pub level: u8,
+    pub grid: [u32; 3],
+    pub bricks: u64,
+    pub constant: u64,
+    pub stored: u64,
+}
+
+/// Bricks and payload bytes by codec, counting each stored record once.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct CodecStats {
+    pub constant_bricks: u64,
+    pub raw_records: u64,
+    pub raw_bytes: u64,
+    pub lz4_records: u64,
+    pub lz4_bytes: u64,
+    pub zstd_records: u64,
+    pub zstd_bytes: u64,
+}
+
+/// Scans every index entry of the head version.
+///
+/// # Errors
+/// Any entry, brick header or commit record on the way is malformed.
+pub fn inspect(vod: &Vod2) -> Result<Inspection, StoreError> {
+    let snap = vod.head();
+    let layout = snap.layout();
+    let mut records = HashSet::new();
+    let mut constants = HashSet::new();
+    let mut codecs = CodecStats::default();
+    let mut live = DATA_START;
+    let mut levels = Vec::new();
+    for level in 0..layout.levels() {
+        let (first, count) = layout.level_range(level);
+        let mut stats = LevelStats { level, grid: layout.grid(level), bricks: count, constant: 0, stored: 0 };
+        for node in first..first + count {
+            match snap.stored_entry(snap.entry_at(node)?)? {
+                StoredBrick::Constant(v) => {
+                    stats.constant += 1;
+                    codecs.constant_bricks += 1;
+                    constants.insert(v);
+                }
+                StoredBrick::Record { offset, header, .. } => {
+                    stats.stored += 1;
+                    if records.insert(offset) {
+                        live += BRICK_HEADER_LEN as u64 + header.stored_len as u64;
+                        let len = header.stored_len as u64;
+                        let (records, bytes) = match header.codec {
+                            Codec::Raw => (&mut codecs.raw_records, &mut codecs.raw_bytes),
+                            Codec::Lz4 => (&mut codecs.lz4_records, &mut codecs.lz4_bytes),
+                            Codec::Zstd => (&mut codecs.zstd_records, &mut codecs.zstd_bytes),
+                        };
+                        *records += 1;
+                        *bytes += len;
+                    }
+                }
+            }
+        }
+        levels.push(stats);
+    }
+    let (_, checkpoint_len) = snap.checkpoint_span();
+    live += checkpoint_len;
+    let commits = vod.commits()?;
+    for (_, h) in commits.iter().take_while(|(_, h)| h.version >= checkpoint_version(&commits, snap.checkpoint_span().0)) {
+        live += CommitHeader::record_len(h.n_changes);
+    }
+    let file_bytes = vod.file_len();
+    let raw_bytes = layout.raw_bytes();
+    Ok(Inspection {
+        format: "VOD 2",
+        dims: layout.dims(),
+        voxel_type: layout.voxel_type(),
+        brick: layout.brick(),
+        voxel_scale: snap.header().voxel_scale,
+        version: snap.version,
+        commits: commits.len() as u64,
+        levels,
+        bricks_total: layout.node_count(),
+        bricks_unique: records.len() as u64 + constants.len() as u64,
+        codecs,
+        file_bytes,
+        raw_bytes,
+        ratio: raw_bytes as f64 / file_bytes as f64,
+        live_bytes: live,
+        garbage_bytes: file_bytes.saturating_sub(live),
+        index_bytes: checkpoint_len,
+    })
+}
+
+/// The version of the commit that wrote the checkpoint at `checkpoint_at`.
+fn checkpoint_version(commits: &[(u64, CommitHeader)], checkpoint_at: u64) -> u64 {
+    commits
+        .iter()
+        .find(|(_, h)| h.checkpoint == checkpoint_at)
+        .map(|(_, h)| h.version)
+        .unwrap_or(0)
+}

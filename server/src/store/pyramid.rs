@@ -1,0 +1,246 @@
+//! Bricks of voxels and the level-of-detail rule.
+//!
+//! A brick of level k+1 is made from its 8 children of level k: each 2x2x2 group of child voxels
+//! becomes one voxel, their mean rounded half up, `(sum + 4) / 8` (the thesis's example
+//! 4,10,6,8,2,2,4,4 gives 40/8 = 5). A child outside the volume is all L. Because the brick edge
+//! is even, every 2x2x2 group lies inside one child, so the rule is the same as downsampling the
+//! whole level as one array.
+
+use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
+
+/// The voxels of one brick: one value everywhere, or the decoded bytes (x fastest, then y, then
+/// z; u16 little endian).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum BrickVoxels {
+    Constant(u16),
+    Data(Vec<u8>),
+}
+
+impl BrickVoxels {
+    /// Turns a decoded brick into `Constant` when all its voxels are equal.
+    pub fn from_bytes(bytes: Vec<u8>, voxel_type: VoxelType) -> BrickVoxels {
+        let (lo, hi) = super::codec::min_max(&bytes, voxel_type);
+        if lo == hi {
+            BrickVoxels::Constant(lo)
+        } else {
+            BrickVoxels::Data(bytes)
+        }
+    }
+
+    /// The decoded bytes of a brick of `brick_bytes` bytes.
+    pub fn to_bytes(&self, layout: &VolumeLayout) -> Vec<u8> {
+        match self {
+            BrickVoxels::Data(d) => d.clone(),
+            BrickVoxels::Constant(v) => {
+                let mut out = vec![0u8; layout.brick_bytes()];
+                super::codec::fill_constant(&mut out, *v, layout.voxel_type());
+                out
+            }
+        }
+    }
+}
+
+/// Where the voxels of level 0 come from when a volume is built: a RAW file, a generator, a
+/// VOD 1 file. Implementations are called from several threads at once.
+pub trait BrickSource: Sync {
+    /// Fills `out` (one brick's bytes, zeroed) with the level-0 brick at `key`. Voxels beyond
+    /// the volume's dimensions must be left L (zero).
+    fn fill(&self, key: BrickKey, out: &mut [u8]);
+
+    /// A cheap answer for bricks known to be constant without looking at their voxels (for
+    /// example the air above a terrain). `None` means "fill it and see".
+    fn constant(&self, _key: BrickKey) -> Option<u16> {
+        None
+    }
+}
+
+/// A dense voxel array, x fastest, then y, then z (the RAW layout), borrowed from a mapped file
+/// or owned.
+#[derive(Debug, Clone, Copy)]
+pub struct DenseGrid<'a> {
+    pub dims: [u32; 3],
+    pub voxel_type: VoxelType,
+    pub bytes: &'a [u8],
+    pub brick: u32,
+}
+
+impl<'a> DenseGrid<'a> {
+    /// # Panics
+    /// `bytes` does not hold exactly the voxels of `dims`; callers check this first.
+    pub fn new(dims: [u32; 3], voxel_type: VoxelType, brick: u32, bytes: &'a [u8]) -> Self {
+        let expected = dims.iter().map(|&d| d as usize).product::<usize>() * voxel_type.bytes();
+        assert_eq!(bytes.len(), expected, "grid bytes do not match its dimensions");
+        DenseGrid {
+            dims,
+            voxel_type,
+            bytes,
+            brick,
+        }
+    }
+}
+
+impl BrickSource for DenseGrid<'_> {
+    fn fill(&self, key: BrickKey, out: &mut [u8]) {
+        let b = self.brick as usize;
+        let vb = self.voxel_type.bytes();
+        let [dx, dy, dz] = self.dims.map(|d| d as usize);
+        let origin = [key.x as usize * b, key.y as usize * b, key.z as usize * b];
+        let nx = b.min(dx.saturating_sub(origin[0]));
+        let ny = b.min(dy.saturating_sub(origin[1]));
+        let nz = b.min(dz.saturating_sub(origin[2]));
+        for z in 0..nz {
+            for y in 0..ny {
+                let src = ((origin[2] + z) * dy + origin[1] + y) * dx + origin[0];
+                let dst = (z * b + y) * b;
+                out[dst * vb..(dst + nx) * vb].copy_from_slice(&self.bytes[src * vb..(src + nx) * vb]);
+            }
+        }
+    }
+}
+
+/// Writes into `out` (the parent brick's bytes) the downsampling of its 8 children, given in
+/// octant order (x fastest); a `None` child is outside the volume and counts as all L.
+pub fn downsample(children: &[Option<&BrickVoxels>; 8], brick: u32, voxel_type: VoxelType, out: &mut [u8]) {
+    let b = brick as usize;
+    let h = b / 2;
+    for (octant, child) in children.iter().enumerate() {
+        let (ox, oy, oz) = ((octant & 1) * h, (octant >> 1 & 1) * h, (octant >> 2) * h);
+        match child {
+            None => fill_subcube(out, b, [ox, oy, oz], 0, voxel_type),
+            Some(BrickVoxels::Constant(v)) => fill_subcube(out, b, [ox, oy, oz], *v, voxel_type),
+            Some(BrickVoxels::Data(d)) => match voxel_type {
+                VoxelType::U8 => mean_subcube_u8(d, out, b, [ox, oy, oz]),
+                VoxelType::U16 => mean_subcube_u16(d, out, b, [ox, oy, oz]),
+            },
+        }
+    }
+}
+
+fn fill_subcube(out: &mut [u8], b: usize, o: [usize; 3], value: u16, voxel_type: VoxelType) {
+    let h = b / 2;
+    let vb = voxel_type.bytes();
+    for z in 0..h {
+        for y in 0..h {
+            let at = ((o[2] + z) * b + o[1] + y) * b + o[0];
+            super::codec::fill_constant(&mut out[at * vb..(at + h) * vb], value, voxel_type);
+        }
+    }
+}
+
+fn mean_subcube_u8(child: &[u8], out: &mut [u8], b: usize, o: [usize; 3]) {
+    let h = b / 2;
+    for z in 0..h {
+        for y in 0..h {
+            let r00 = &child[((2 * z) * b + 2 * y) * b..][..b];
+            let r01 = &child[((2 * z) * b + 2 * y + 1) * b..][..b];
+            let r10 = &child[((2 * z + 1) * b + 2 * y) * b..][..b];
+            let r11 = &child[((2 * z + 1) * b + 2 * y + 1) * b..][..b];
+            let dst = &mut out[((o[2] + z) * b + o[1] + y) * b + o[0]..][..h];
+            for (x, d) in dst.iter_mut().enumerate() {
+                let sum = r00[2 * x] as u32
+                    + r00[2 * x + 1] as u32
+                    + r01[2 * x] as u32
+                    + r01[2 * x + 1] as u32
+                    + r10[2 * x] as u32
+                    + r10[2 * x + 1] as u32
+                    + r11[2 * x] as u32
+                    + r11[2 * x + 1] as u32;
+                *d = ((sum + 4) / 8) as u8;
+            }
+        }
+    }
+}
+
+fn mean_subcube_u16(child: &[u8], out: &mut [u8], b: usize, o: [usize; 3]) {
+    let h = b / 2;
+    let at = |x: usize, y: usize, z: usize| -> u32 {
+        let i = ((z * b + y) * b + x) * 2;
+        u16::from_le_bytes([child[i], child[i + 1]]) as u32
+    };
+    for z in 0..h {
+        for y in 0..h {
+            for x in 0..h {
+                let mut sum = 0u32;
+                for (dx, dy, dz) in [(0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0), (0, 0, 1), (1, 0, 1), (0, 1, 1), (1, 1, 1)] {
+                    sum += at(2 * x + dx, 2 * y + dy, 2 * z + dz);
+                }
+                let v = ((sum + 4) / 8) as u16;
+                let i = (((o[2] + z) * b + o[1] + y) * b + o[0] + x) * 2;
+                out[i..i + 2].copy_from_slice(&v.to_le_bytes());
+            }
+        }
+    }
+}
+
+/// The parent of 8 children without looking at voxels when that is possible: all children
+/// constant with one value (or absent, counting as L, when that value is L) gives that value.
+pub fn constant_parent(children: &[Option<&BrickVoxels>; 8]) -> Option<u16> {
+    let mut value = None;
+    for c in children {
+        let v = match c {
+            None => 0,
+            Some(BrickVoxels::Constant(v)) => *v,
+            Some(BrickVoxels::Data(_)) => return None,
+        };
+        match value {
+            None => value = Some(v),
+            Some(prev) if prev != v => return None,
+            _ => {}
+        }
+    }
+    value
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn thesis_mean_example() {
+        // Thesis section 4.4: 4,10,6,8,2,2,4,4 -> 5. A 2^3 brick whose first child holds these
+        // values in x-fastest order: the parent's voxel (0,0,0) is their mean.
+        let child = BrickVoxels::Data(vec![4, 10, 6, 8, 2, 2, 4, 4]);
+        let children = [Some(&child), None, None, None, None, None, None, None];
+        let mut out = vec![0u8; 8];
+        downsample(&children, 2, VoxelType::U8, &mut out);
+        assert_eq!(out, vec![5, 0, 0, 0, 0, 0, 0, 0]);
+    }
+
+    #[test]
+    fn rounding_is_half_up() {
+        // sum 12 -> 1.5 -> 2; sum 11 -> 1.375 -> 1; u16 sum 8*65535 -> 65535.
+        for (vals, expect) in [([3u8, 3, 3, 3, 0, 0, 0, 0], 2u8), ([3, 3, 3, 2, 0, 0, 0, 0], 1)] {
+            let child = BrickVoxels::Data(vals.to_vec());
+            let mut out = vec![0u8; 8];
+            downsample(&[Some(&child), None, None, None, None, None, None, None], 2, VoxelType::U8, &mut out);
+            assert_eq!(out[0], expect);
+        }
+        let full = BrickVoxels::Data([0xffu8; 16].to_vec());
+        let mut out = vec![0u8; 16];
+        downsample(&[Some(&full), None, None, None, None, None, None, None], 2, VoxelType::U16, &mut out);
+        assert_eq!(&out[..2], &[0xff, 0xff]);
+        assert_eq!(&out[2..4], &[0, 0]);
+    }
+
+    #[test]
+    fn constant_children_fast_path() {
+        let a = BrickVoxels::Constant(9);
+        let all9 = [Some(&a); 8];
+        assert_eq!(constant_parent(&all9), Some(9));
+        let mut mixed = all9;
+        mixed[3] = None;
+        assert_eq!(constant_parent(&mixed), None);
+        let z = BrickVoxels::Constant(0);
+        assert_eq!(constant_parent(&[Some(&z), None, None, None, None, None, None, None]), Some(0));
+    }
+
+    #[test]
+    fn dense_grid_pads_with_l() {
+        // 3x2x1 grid, brick 2: brick (1,0,0) holds voxel x=2 only, the rest L.
+        let bytes = [1u8, 2, 3, 4, 5, 6];
+        let g = DenseGrid::new([3, 2, 1], VoxelType::U8, 2, &bytes);
+        let mut out = vec![0u8; 8];
+        g.fill(BrickKey { level: 0, x: 1, y: 0, z: 0 }, &mut out);
+        assert_eq!(out, vec![3, 0, 6, 0, 0, 0, 0, 0]);
+    }
+}

@@ -1,0 +1,494 @@
+//! Reading a VOD 2 file by random access.
+//!
+//! [`Vod2::open`] reads the fixed header and both header slots with `pread`, maps the committed
+//! region, and loads the head version's index: the newest checkpoint at or before it (validated
+//! through its small chunk-hash table, not entry by entry) plus the changes of the commits since
+//! (at most a bounded number). It never reads brick data, so opening costs the same for a 64^3
+//! and a 2048^3 volume.
+//!
+//! A [`Snapshot`] is one version's immutable view: readers hold an `Arc<Snapshot>` and are never
+//! blocked by a writer. A brick lookup is an overlay probe, one index entry (its chunk of 512
+//! entries is decoded and checked against its hash the first time it is used, then kept), and a
+//! slice of the mapping.
+//! Every decoded brick is checked against its content hash, so a corrupted file gives an error,
+//! never wrong voxels.
+
+use super::codec;
+use super::mapping::Mapping;
+use super::StoreError;
+use isovox_proto::vod2::{
+    content_hash, BrickHeader, Checkpoint, ChunkRef, CommitHeader, FileHeader, HeaderSlot, NodeEntry,
+    BRICK_HEADER_LEN, CHUNK_ENTRIES, DATA_START, HEADER_LEN, SLOT_LEN, SLOT_OFFSETS,
+};
+use isovox_proto::{BrickKey, FormatError, VolumeLayout};
+use std::collections::HashMap;
+use std::fs::File;
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, OnceLock};
+
+/// An open VOD 2 file.
+#[derive(Debug)]
+pub struct Vod2 {
+    path: PathBuf,
+    header: Arc<FileHeader>,
+    map: Arc<Mapping>,
+    file_len: u64,
+    head_slot: HeaderSlot,
+    head: Arc<Snapshot>,
+}
+
+/// One stored brick as it is in the file: a constant, or a header and its payload (a slice of
+/// the mapping, ready to be sent as it is).
+#[derive(Debug, Clone, Copy)]
+pub enum StoredBrick<'a> {
+    Constant(u16),
+    Record {
+        offset: u64,
+        header: BrickHeader,
+        payload: &'a [u8],
+    },
+}
+
+impl StoredBrick<'_> {
+    pub fn min_max(&self) -> (u16, u16) {
+        match self {
+            StoredBrick::Constant(v) => (*v, *v),
+            StoredBrick::Record { header, .. } => (header.min, header.max),
+        }
+    }
+}
+
+fn read_exact_at(file: &File, path: &Path, offset: u64, len: usize) -> Result<Vec<u8>, StoreError> {
+    let mut buf = vec![0u8; len];
+    file.read_exact_at(&mut buf, offset)
+        .map_err(StoreError::io_path("cannot read", path))?;
+    Ok(buf)
+}
+
+impl Vod2 {
+    /// Opens the newest durable version of a VOD 2 file.
+    ///
+    /// # Errors
+    /// The file cannot be read, is not VOD 2, or its header, slots, head commit or index
+    /// checkpoint are malformed.
+    pub fn open(path: &Path) -> Result<Vod2, StoreError> {
+        let file = File::open(path).map_err(StoreError::io_path("cannot open", path))?;
+        let file_len = file
+            .metadata()
+            .map_err(StoreError::io_path("cannot stat", path))?
+            .len();
+        if file_len < DATA_START {
+            return Err(FormatError::Truncated {
+                what: "VOD 2 file",
+                offset: 0,
+                needed: DATA_START,
+                available: file_len,
+            }
+            .into());
+        }
+        let header = FileHeader::decode(&read_exact_at(&file, path, 0, HEADER_LEN)?)?;
+        let slot = Self::find_head_slot(&file, path, file_len)?;
+        let map = Arc::new(Mapping::new(&file, slot.committed_len).map_err(StoreError::io_path("cannot map", path))?);
+        let header = Arc::new(header);
+        let head = Arc::new(Snapshot::load(header.clone(), map.clone(), slot.commit)?);
+        if head.version != slot.version {
+            return Err(FormatError::invalid(
+                "header slot",
+                format!("names version {}, its commit record says {}", slot.version, head.version),
+            )
+            .into());
+        }
+        Ok(Vod2 {
+            path: path.to_path_buf(),
+            header,
+            map,
+            file_len,
+            head_slot: slot,
+            head,
+        })
+    }
+
+    /// The header slot the head version was found through.
+    pub fn head_slot(&self) -> HeaderSlot {
+        self.head_slot
+    }
+
+    /// The valid slot with the highest sequence number whose committed length fits the file.
+    fn find_head_slot(file: &File, path: &Path, file_len: u64) -> Result<HeaderSlot, StoreError> {
+        let mut best: Option<HeaderSlot> = None;
+        let mut problems = Vec::new();
+        for at in SLOT_OFFSETS {
+            let bytes = read_exact_at(file, path, at, SLOT_LEN)?;
+            match HeaderSlot::decode(&bytes, at) {
+                Ok(s) if s.committed_len > file_len => problems.push(format!(
+                    "slot at {at} names {} committed bytes, the file has {file_len}",
+                    s.committed_len
+                )),
+                Ok(s) => {
+                    if best.is_none_or(|b| s.seq > b.seq) {
+                        best = Some(s);
+                    }
+                }
+                Err(e) => problems.push(e.to_string()),
+            }
+        }
+        best.ok_or_else(|| {
+            FormatError::invalid("header slots", format!("no valid slot: {}", problems.join("; "))).into()
+        })
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    pub fn header(&self) -> &FileHeader {
+        &self.header
+    }
+
+    pub fn layout(&self) -> &VolumeLayout {
+        &self.header.layout
+    }
+
+    /// The file's length on disk (bytes past the committed length are an unfinished commit).
+    pub fn file_len(&self) -> u64 {
+        self.file_len
+    }
+
+    /// The newest version.
+    pub fn head(&self) -> Arc<Snapshot> {
+        self.head.clone()
+    }
+
+    /// An older version, while its bricks are still in the file.
+    ///
+    /// # Errors
+    /// No such version, or its records are malformed.
+    pub fn version(&self, version: u64) -> Result<Arc<Snapshot>, StoreError> {
+        if version == self.head.version {
+            return Ok(self.head.clone());
+        }
+        let mut at = self.head.commit_offset;
+        let bytes = self.map.bytes();
+        loop {
+            let (h, _) = CommitHeader::decode(&bytes[at as usize..], at)?;
+            if h.version == version {
+                return Ok(Arc::new(Snapshot::load(self.header.clone(), self.map.clone(), at)?));
+            }
+            if h.parent == 0 || h.version < version {
+                return Err(StoreError::Invalid(format!(
+                    "version {version} is not in this file (head is {})",
+                    self.head.version
+                )));
+            }
+            at = h.parent;
+        }
+    }
+
+    /// The commit records from the head back to the first, newest first.
+    ///
+    /// # Errors
+    /// A record on the chain is malformed.
+    pub fn commits(&self) -> Result<Vec<(u64, CommitHeader)>, StoreError> {
+        let bytes = self.map.bytes();
+        let mut out = Vec::new();
+        let mut at = self.head.commit_offset;
+        loop {
+            let (h, _) = CommitHeader::decode(&bytes[at as usize..], at)?;
+            out.push((at, h));
+            if h.parent == 0 {
+                return Ok(out);
+            }
+            at = h.parent;
+        }
+    }
+
+    /// The mapped bytes of the committed region.
+    pub fn mapped(&self) -> &[u8] {
+        self.map.bytes()
+    }
+}
+
+/// One version of a volume: an immutable index over the shared mapping.
+#[derive(Debug)]
+pub struct Snapshot {
+    header: Arc<FileHeader>,
+    map: Arc<Mapping>,
+    pub version: u64,
+    pub timestamp_ms: u64,
+    commit_offset: u64,
+    index: Arc<IndexChunks>,
+    /// Entries changed by the commits after the checkpoint: node index -> raw entry.
+    overlay: HashMap<u64, u64>,
+}
+
+impl Snapshot {
+    fn load(header: Arc<FileHeader>, map: Arc<Mapping>, commit_at: u64) -> Result<Snapshot, StoreError> {
+        let bytes = map.bytes();
+        let layout = &header.layout;
+        let committed = bytes.len() as u64;
+        let region = |at: u64| -> Result<&[u8], StoreError> {
+            bytes.get(at as usize..).ok_or_else(|| {
+                FormatError::invalid("commit chain", format!("offset {at} past the committed length {committed}")).into()
+            })
+        };
+        // Walk back to the newest checkpoint, keeping each commit's changes.
+        let mut chain: Vec<&[u8]> = Vec::new();
+        let mut at = commit_at;
+        let (head, _) = CommitHeader::decode(region(at)?, at)?;
+        let checkpoint_at = loop {
+            let (h, record) = CommitHeader::decode(region(at)?, at)?;
+            chain.push(record);
+            if h.checkpoint != 0 {
+                break h.checkpoint;
+            }
+            let (parent, _) = CommitHeader::decode(region(h.parent)?, h.parent)?;
+            if parent.version + 1 != h.version {
+                return Err(FormatError::invalid(
+                    "commit chain",
+                    format!("commit at {at} is version {}, its parent is version {}", h.version, parent.version),
+                )
+                .into());
+            }
+            at = h.parent;
+        };
+        let index = Arc::new(IndexChunks::open(region(checkpoint_at)?, checkpoint_at, layout.node_count())?);
+        let mut overlay = HashMap::new();
+        // The checkpoint holds the state after its own commit: apply only the later ones.
+        for record in chain.iter().rev().skip(1) {
+            for (node, entry) in CommitHeader::changes(record) {
+                if node >= layout.node_count() {
+                    return Err(FormatError::invalid(
+                        "commit record",
+                        format!("change to node {node}, the volume has {}", layout.node_count()),
+                    )
+                    .into());
+                }
+                overlay.insert(node, entry);
+            }
+        }
+        Ok(Snapshot {
+            version: head.version,
+            timestamp_ms: head.timestamp_ms,
+            commit_offset: commit_at,
+            index,
+            overlay,
+            header,
+            map,
+        })
+    }
+
+    pub fn layout(&self) -> &VolumeLayout {
+        &self.header.layout
+    }
+
+    pub fn header(&self) -> &FileHeader {
+        &self.header
+    }
+
+    /// Offset of this version's commit record.
+    pub fn commit_offset(&self) -> u64 {
+        self.commit_offset
+    }
+
+    /// Offset and length of the index checkpoint this version builds on.
+    pub fn checkpoint_span(&self) -> (u64, u64) {
+        (self.index.base, self.index.total_len)
+    }
+
+    /// Number of entries that differ from the checkpoint.
+    pub fn overlay_len(&self) -> usize {
+        self.overlay.len()
+    }
+
+    /// The index entry at a node index.
+    ///
+    /// # Errors
+    /// The node is out of range, its checkpoint chunk fails its hash, or the entry is invalid.
+    pub fn entry_at(&self, node: u64) -> Result<NodeEntry, StoreError> {
+        let layout = self.layout();
+        if node >= layout.node_count() {
+            return Err(FormatError::invalid("node index", format!("{node} >= {}", layout.node_count())).into());
+        }
+        let raw = match self.overlay.get(&node) {
+            Some(&raw) => raw,
+            None => self.index.entry(self.map.bytes(), node)?,
+        };
+        Ok(NodeEntry::decode(raw, layout.voxel_type(), self.map.bytes().len() as u64)?)
+    }
+
+    /// The index entry of a brick.
+    ///
+    /// # Errors
+    /// See [`Snapshot::entry_at`]; the key must come from this volume's layout.
+    pub fn entry(&self, key: BrickKey) -> Result<NodeEntry, StoreError> {
+        let layout = self.layout();
+        if !layout.contains(key) {
+            return Err(StoreError::Invalid(format!("brick {key} is outside the volume")));
+        }
+        self.entry_at(layout.node_index(key))
+    }
+
+    /// The stored form of the brick behind an entry, without decoding it.
+    ///
+    /// # Errors
+    /// The brick header or its payload bounds are invalid.
+    pub fn stored_entry(&self, entry: NodeEntry) -> Result<StoredBrick<'_>, StoreError> {
+        match entry {
+            NodeEntry::Constant(v) => Ok(StoredBrick::Constant(v)),
+            NodeEntry::Stored(offset) => {
+                let bytes = self.map.bytes();
+                let at = offset as usize;
+                let header = BrickHeader::decode(&bytes[at..at + BRICK_HEADER_LEN], offset, self.layout())?;
+                let start = at + BRICK_HEADER_LEN;
+                let payload = bytes.get(start..start + header.stored_len as usize).ok_or(FormatError::Truncated {
+                    what: "brick payload",
+                    offset: start as u64,
+                    needed: header.stored_len as u64,
+                    available: (bytes.len() - start) as u64,
+                })?;
+                Ok(StoredBrick::Record {
+                    offset,
+                    header,
+                    payload,
+                })
+            }
+        }
+    }
+
+    /// The stored form of a brick, without decoding it.
+    ///
+    /// # Errors
+    /// See [`Snapshot::entry`] and [`Snapshot::stored_entry`].
+    pub fn stored(&self, key: BrickKey) -> Result<StoredBrick<'_>, StoreError> {
+        self.stored_entry(self.entry(key)?)
+    }
+
+    /// Decodes a brick into `out` (exactly one brick's bytes) and checks its content hash.
+    ///
+    /// # Errors
+    /// See [`Snapshot::stored`]; also a payload that does not decode or does not match its hash.
+    pub fn read_into(&self, key: BrickKey, out: &mut [u8]) -> Result<(), StoreError> {
+        let stored = self.stored(key)?;
+        decode_stored(&stored, self.layout(), out)
+    }
+
+    /// Decodes a brick into a new buffer.
+    ///
+    /// # Errors
+    /// See [`Snapshot::read_into`].
+    pub fn read(&self, key: BrickKey) -> Result<Vec<u8>, StoreError> {
+        let mut out = vec![0u8; self.layout().brick_bytes()];
+        self.read_into(key, &mut out)?;
+        Ok(out)
+    }
+
+    /// The content hash of a brick (for a constant, the hash of its expanded bytes).
+    ///
+    /// # Errors
+    /// See [`Snapshot::stored`].
+    pub fn hash(&self, key: BrickKey) -> Result<u64, StoreError> {
+        Ok(match self.stored(key)? {
+            StoredBrick::Record { header, .. } => header.hash,
+            StoredBrick::Constant(v) => {
+                let mut out = vec![0u8; self.layout().brick_bytes()];
+                codec::fill_constant(&mut out, v, self.layout().voxel_type());
+                content_hash(&out)
+            }
+        })
+    }
+}
+
+/// The entries of an index checkpoint, decoded chunk by chunk on first use and then kept.
+#[derive(Debug)]
+struct IndexChunks {
+    base: u64,
+    total_len: u64,
+    refs: Vec<ChunkRef>,
+    chunks: Vec<OnceLock<Box<[u64]>>>,
+    n_nodes: u64,
+}
+
+impl IndexChunks {
+    /// Reads and checks the directory (24 bytes per 512 entries) and every chunk's bounds.
+    fn open(avail: &[u8], base: u64, n_nodes: u64) -> Result<IndexChunks, StoreError> {
+        let cp = Checkpoint::decode(avail, base, n_nodes)?;
+        let n_chunks = Checkpoint::n_chunks(n_nodes);
+        let mut refs = Vec::with_capacity(n_chunks as usize);
+        let mut total_len = Checkpoint::directory_len(n_nodes);
+        for c in 0..n_chunks {
+            let (r, _) = cp.chunk(c)?;
+            total_len = total_len.max(r.offset + r.stored_len as u64);
+            refs.push(r);
+        }
+        Ok(IndexChunks {
+            base,
+            total_len,
+            refs,
+            chunks: (0..n_chunks).map(|_| OnceLock::new()).collect(),
+            n_nodes,
+        })
+    }
+
+    fn entry(&self, mapped: &[u8], node: u64) -> Result<u64, StoreError> {
+        let c = (node / CHUNK_ENTRIES) as usize;
+        let chunk = match self.chunks[c].get() {
+            Some(chunk) => chunk,
+            None => {
+                let decoded = self.decode_chunk(mapped, c)?;
+                // Another reader may have decoded it meanwhile: either copy is the same.
+                let _ = self.chunks[c].set(decoded);
+                self.chunks[c].get().ok_or_else(|| StoreError::Invalid("index chunk vanished".into()))?
+            }
+        };
+        Ok(chunk[(node % CHUNK_ENTRIES) as usize])
+    }
+
+    fn decode_chunk(&self, mapped: &[u8], c: usize) -> Result<Box<[u64]>, StoreError> {
+        let r = self.refs[c];
+        let entries = CHUNK_ENTRIES.min(self.n_nodes - c as u64 * CHUNK_ENTRIES) as usize;
+        let at = (self.base + r.offset) as usize;
+        let payload = &mapped[at..at + r.stored_len as usize];
+        let mut bytes = vec![0u8; entries * 8];
+        codec::decode(r.codec, payload, &mut bytes, self.base + r.offset)?;
+        let hash = xxhash_rust::xxh3::xxh3_64(&bytes);
+        if hash != r.hash {
+            return Err(FormatError::Checksum {
+                what: "index chunk",
+                offset: self.base + r.offset,
+                stored: r.hash,
+                computed: hash,
+            }
+            .into());
+        }
+        Ok(bytes
+            .chunks_exact(8)
+            .map(|e| u64::from_le_bytes([e[0], e[1], e[2], e[3], e[4], e[5], e[6], e[7]]))
+            .collect())
+    }
+}
+
+/// Decodes a stored brick into `out` and verifies it against its content hash.
+///
+/// # Errors
+/// The payload does not decode, or decodes to bytes whose hash differs from the header's.
+pub fn decode_stored(stored: &StoredBrick<'_>, layout: &VolumeLayout, out: &mut [u8]) -> Result<(), StoreError> {
+    match *stored {
+        StoredBrick::Constant(v) => codec::fill_constant(out, v, layout.voxel_type()),
+        StoredBrick::Record {
+            offset,
+            header,
+            payload,
+        } => {
+            codec::decode(header.codec, payload, out, offset)?;
+            let hash = content_hash(out);
+            if hash != header.hash {
+                return Err(StoreError::corrupt(
+                    offset,
+                    format!("content hash {hash:#018x} differs from the stored {:#018x}", header.hash),
+                ));
+            }
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,356 @@
+//! Appending to a VOD 2 file: brick records with deduplication, index checkpoints, commits.
+//!
+//! The commit protocol (crash-safe at any byte):
+//! 1. append the new brick records, the index checkpoint if any, and the commit record;
+//! 2. `fdatasync` the file, so all of that is durable;
+//! 3. write the header slot that is *not* the current head's (sequence number + 1, checksum),
+//!    naming the new commit and the new committed length; `fdatasync` again.
+//!
+//! A crash before 3 completes leaves the old slot as the valid one with the highest sequence
+//! number: the old version, intact. A torn slot fails its checksum and is ignored. Nothing ever
+//! overwrites a byte below the committed length.
+
+use super::codec::{self, Compression};
+use super::pyramid::BrickVoxels;
+use super::StoreError;
+use isovox_proto::vod2::{
+    content_hash, BrickHeader, Checkpoint, Codec, CommitHeader, FileHeader, HeaderSlot, NodeEntry,
+    BRICK_HEADER_LEN, CHUNK_ENTRIES, DATA_START, SLOT_OFFSETS,
+};
+use isovox_proto::VoxelType;
+use std::collections::HashMap;
+use std::fs::{File, OpenOptions};
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+use std::time::{SystemTime, UNIX_EPOCH};
+
+/// Append buffer size: large sequential writes, bounded memory.
+const FLUSH_AT: usize = 8 << 20;
+
+/// A brick made ready for storage off the writer's thread: classified, hashed and (unless a
+/// copy with the same hash is already stored) compressed.
+#[derive(Debug)]
+pub struct PreparedBrick {
+    /// Set when every voxel holds this value.
+    constant: Option<u16>,
+    hash: u64,
+    min: u16,
+    max: u16,
+    encoded: Option<(Codec, Vec<u8>)>,
+}
+
+/// Counters of what a writer stored.
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct WriteStats {
+    /// Bricks that went into the index as constants (no payload).
+    pub constant: u64,
+    /// Bricks whose content was already stored (by hash and byte comparison).
+    pub deduplicated: u64,
+    /// Brick records written and their payload bytes (headers not included), by codec:
+    /// raw, lz4, zstd.
+    pub stored: [u64; 3],
+    pub stored_bytes: [u64; 3],
+    /// Hash matches whose bytes differed (collisions kept apart).
+    pub hash_collisions: u64,
+}
+
+/// An open VOD 2 file being appended to.
+#[derive(Debug)]
+pub struct Vod2Writer {
+    file: File,
+    path: PathBuf,
+    header: FileHeader,
+    /// Offset of `buf[0]` in the file; everything below it is written.
+    buf_at: u64,
+    buf: Vec<u8>,
+    /// hash -> offsets of stored brick records with that content hash.
+    known: HashMap<u64, Vec<u64>>,
+    compression: Compression,
+    head: Option<HeaderSlot>,
+    stats: WriteStats,
+}
+
+impl Vod2Writer {
+    /// Creates (or truncates) `path` as an empty VOD 2 file with no commit yet.
+    ///
+    /// # Errors
+    /// The file cannot be created or written.
+    pub fn create(path: &Path, header: FileHeader, compression: Compression) -> Result<Self, StoreError> {
+        let file = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(true)
+            .open(path)
+            .map_err(StoreError::io_path("cannot create", path))?;
+        let mut buf = vec![0u8; DATA_START as usize];
+        buf[..isovox_proto::vod2::HEADER_LEN].copy_from_slice(&header.encode());
+        Ok(Vod2Writer {
+            file,
+            path: path.to_path_buf(),
+            header,
+            buf_at: 0,
+            buf,
+            known: HashMap::new(),
+            compression,
+            head: None,
+            stats: WriteStats::default(),
+        })
+    }
+
+    /// Opens an existing VOD 2 file to append new versions to its head. Bytes past the head's
+    /// committed length (an unfinished commit of a crashed writer) are cut off first. The
+    /// deduplication table is rebuilt from the head's stored bricks (one pass over the index,
+    /// no brick data read).
+    ///
+    /// Only one writer may append to a file at a time; the caller serializes writers.
+    ///
+    /// # Errors
+    /// The file does not open as VOD 2 or cannot be written.
+    pub fn open_append(path: &Path, compression: Compression) -> Result<Self, StoreError> {
+        let vod = super::Vod2::open(path)?;
+        let head = vod.head_slot();
+        let snap = vod.head();
+        let mut known: HashMap<u64, Vec<u64>> = HashMap::new();
+        let mut seen = std::collections::HashSet::new();
+        for node in 0..snap.layout().node_count() {
+            if let NodeEntry::Stored(offset) = snap.entry_at(node)? {
+                if seen.insert(offset) {
+                    if let super::StoredBrick::Record { header, .. } = snap.stored_entry(NodeEntry::Stored(offset))? {
+                        known.entry(header.hash).or_default().push(offset);
+                    }
+                }
+            }
+        }
+        let header = vod.header().clone();
+        drop(snap);
+        drop(vod);
+        let file = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .open(path)
+            .map_err(StoreError::io_path("cannot open for writing", path))?;
+        file.set_len(head.committed_len)
+            .map_err(StoreError::io_path("cannot cut the unfinished tail of", path))?;
+        Ok(Vod2Writer {
+            file,
+            path: path.to_path_buf(),
+            header,
+            buf_at: head.committed_len,
+            buf: Vec::new(),
+            known,
+            compression,
+            head: Some(head),
+            stats: WriteStats::default(),
+        })
+    }
+
+    pub fn header(&self) -> &FileHeader {
+        &self.header
+    }
+
+    /// The slot naming the newest commit this writer made or found.
+    pub fn head(&self) -> Option<HeaderSlot> {
+        self.head
+    }
+
+    pub fn stats(&self) -> WriteStats {
+        self.stats
+    }
+
+    /// The offset the next appended byte gets.
+    pub fn end(&self) -> u64 {
+        self.buf_at + self.buf.len() as u64
+    }
+
+    fn append(&mut self, bytes: &[u8]) -> Result<u64, StoreError> {
+        let at = self.end();
+        self.buf.extend_from_slice(bytes);
+        if self.buf.len() >= FLUSH_AT {
+            self.flush()?;
+        }
+        Ok(at)
+    }
+
+    fn flush(&mut self) -> Result<(), StoreError> {
+        if !self.buf.is_empty() {
+            self.file
+                .write_all_at(&self.buf, self.buf_at)
+                .map_err(StoreError::io_path("cannot write", &self.path))?;
+            self.buf_at += self.buf.len() as u64;
+            self.buf.clear();
+        }
+        Ok(())
+    }
+
+    fn read_at(&self, offset: u64, len: usize) -> Result<Vec<u8>, StoreError> {
+        if offset >= self.buf_at {
+            let start = (offset - self.buf_at) as usize;
+            return Ok(self.buf[start..start + len].to_vec());
+        }
+        let mut out = vec![0u8; len];
+        self.file
+            .read_exact_at(&mut out, offset)
+            .map_err(StoreError::io_path("cannot read back", &self.path))?;
+        Ok(out)
+    }
+
+    /// Classifies, hashes and compresses one brick. Pure and thread-safe: call it from rayon
+    /// over a batch, then hand the results to [`Vod2Writer::store`] in order.
+    pub fn prepare(&self, voxels: &BrickVoxels) -> PreparedBrick {
+        let voxel_type = self.header.layout.voxel_type();
+        prepare(voxels, voxel_type, self.compression, &self.known)
+    }
+
+    /// Stores a prepared brick: a constant goes into the index; content already stored is
+    /// shared (hash match confirmed byte for byte); anything else is appended.
+    ///
+    /// # Errors
+    /// Reading back a candidate duplicate or appending fails.
+    pub fn store(&mut self, voxels: &BrickVoxels, brick: PreparedBrick) -> Result<NodeEntry, StoreError> {
+        let bytes = match (voxels, brick.constant.as_ref()) {
+            (BrickVoxels::Data(d), None) => d,
+            (BrickVoxels::Constant(v), _) | (BrickVoxels::Data(_), Some(v)) => {
+                let v = *v;
+                self.stats.constant += 1;
+                return Ok(NodeEntry::Constant(v));
+            }
+        };
+        if let Some(candidates) = self.known.get(&brick.hash) {
+            for &offset in candidates.clone().iter() {
+                if self.stored_equals(offset, bytes)? {
+                    self.stats.deduplicated += 1;
+                    return Ok(NodeEntry::Stored(offset));
+                }
+            }
+            self.stats.hash_collisions += 1;
+        }
+        let (codec, payload) = match brick.encoded {
+            Some(e) => e,
+            None => codec::encode(bytes, self.compression),
+        };
+        let header = BrickHeader {
+            hash: brick.hash,
+            stored_len: payload.len() as u32,
+            codec,
+            min: brick.min,
+            max: brick.max,
+        };
+        let offset = self.append(&header.encode())?;
+        self.append(&payload)?;
+        self.stats.stored[codec as usize] += 1;
+        self.stats.stored_bytes[codec as usize] += payload.len() as u64;
+        self.known.entry(brick.hash).or_default().push(offset);
+        Ok(NodeEntry::Stored(offset))
+    }
+
+    fn stored_equals(&self, offset: u64, bytes: &[u8]) -> Result<bool, StoreError> {
+        let head = self.read_at(offset, BRICK_HEADER_LEN)?;
+        let h = BrickHeader::decode(&head, offset, &self.header.layout)?;
+        let payload = self.read_at(offset + BRICK_HEADER_LEN as u64, h.stored_len as usize)?;
+        let mut decoded = vec![0u8; bytes.len()];
+        codec::decode(h.codec, &payload, &mut decoded, offset)?;
+        Ok(decoded == bytes)
+    }
+
+    /// Makes everything appended so far durable and switches the head to a new commit.
+    /// `checkpoint` is the full index after the commit (written as a checkpoint), or `None`
+    /// to record only `changes` relative to the current head.
+    ///
+    /// # Errors
+    /// Writing or syncing fails; the head is then unchanged.
+    pub fn commit(&mut self, changes: &[(u64, NodeEntry)], checkpoint: Option<&[u64]>) -> Result<HeaderSlot, StoreError> {
+        let checkpoint_at = match checkpoint {
+            Some(entries) => {
+                assert_eq!(entries.len() as u64, self.header.layout.node_count());
+                self.append(&encode_checkpoint(entries))?
+            }
+            None => {
+                if self.head.is_none() {
+                    return Err(StoreError::Invalid("the first commit of a file needs a checkpoint".into()));
+                }
+                0
+            }
+        };
+        let (parent, version, seq) = match self.head {
+            Some(h) => (h.commit, h.version + 1, h.seq + 1),
+            None => (0, 1, 1),
+        };
+        let record = CommitHeader {
+            version,
+            parent,
+            timestamp_ms: SystemTime::now()
+                .duration_since(UNIX_EPOCH)
+                .map(|d| d.as_millis() as u64)
+                .unwrap_or(0),
+            checkpoint: checkpoint_at,
+            n_changes: changes.len() as u64,
+        }
+        .encode(changes);
+        let commit_at = self.append(&record)?;
+        self.flush()?;
+        self.file
+            .sync_data()
+            .map_err(StoreError::io_path("cannot sync", &self.path))?;
+        let slot = HeaderSlot {
+            seq,
+            commit: commit_at,
+            committed_len: self.end(),
+            version,
+        };
+        let slot_at = SLOT_OFFSETS[(seq % 2) as usize];
+        self.file
+            .write_all_at(&slot.encode(), slot_at)
+            .map_err(StoreError::io_path("cannot write header slot of", &self.path))?;
+        self.file
+            .sync_data()
+            .map_err(StoreError::io_path("cannot sync", &self.path))?;
+        self.head = Some(slot);
+        Ok(slot)
+    }
+}
+
+/// Encodes a full index as a checkpoint: chunks of 512 entries, each zstd-compressed when that
+/// is smaller (runs of constant entries shrink to a few bytes).
+pub fn encode_checkpoint(entries: &[u64]) -> Vec<u8> {
+    use rayon::prelude::*;
+    let chunks: Vec<(Codec, Vec<u8>, u64)> = entries
+        .par_chunks(CHUNK_ENTRIES as usize)
+        .map(|chunk| {
+            let bytes: Vec<u8> = chunk.iter().flat_map(|e| e.to_le_bytes()).collect();
+            let hash = xxhash_rust::xxh3::xxh3_64(&bytes);
+            let (codec, payload) = codec::encode(&bytes, Compression::Zstd(codec::DEFAULT_ZSTD_LEVEL));
+            (codec, payload, hash)
+        })
+        .collect();
+    Checkpoint::encode(entries.len() as u64, &chunks)
+}
+
+fn prepare(voxels: &BrickVoxels, voxel_type: VoxelType, compression: Compression, known: &HashMap<u64, Vec<u64>>) -> PreparedBrick {
+    let constant = |v| PreparedBrick {
+        constant: Some(v),
+        hash: 0,
+        min: v,
+        max: v,
+        encoded: None,
+    };
+    match voxels {
+        BrickVoxels::Constant(v) => constant(*v),
+        BrickVoxels::Data(bytes) => {
+            let (min, max) = codec::min_max(bytes, voxel_type);
+            if min == max {
+                return constant(min);
+            }
+            let hash = content_hash(bytes);
+            // Probably a duplicate of a stored brick: compress only if that turns out false.
+            let encoded = (!known.contains_key(&hash)).then(|| codec::encode(bytes, compression));
+            PreparedBrick {
+                constant: None,
+                hash,
+                min,
+                max,
+                encoded,
+            }
+        }
+    }
+}
