@@ -7,7 +7,9 @@ use thiserror::Error;
 #[derive(Debug, Error, Clone, PartialEq, Eq)]
 pub enum FormatError {
     /// The bytes end before the record does.
-    #[error("{what} is truncated: needs {needed} bytes at offset {offset}, only {available} available")]
+    #[error(
+        "{what} is truncated: needs {needed} bytes at offset {offset}, only {available} available"
+    )]
     Truncated {
         what: &'static str,
         offset: u64,

@@ -165,7 +165,10 @@ impl VolumeLayout {
         if level >= self.levels() {
             return Err(FormatError::invalid(
                 "brick key",
-                format!("level {level} out of range (volume has {} levels)", self.levels()),
+                format!(
+                    "level {level} out of range (volume has {} levels)",
+                    self.levels()
+                ),
             ));
         }
         let g = self.grid(level);
@@ -249,10 +252,17 @@ impl VolumeLayout {
         }
         let mut out = Vec::with_capacity(8);
         for octant in 0..8usize {
-            let (ox, oy, oz) = ((octant & 1) as u32, (octant >> 1 & 1) as u32, (octant >> 2) as u32);
-            if let Ok(child) =
-                self.key(key.level - 1, key.x * 2 + ox, key.y * 2 + oy, key.z * 2 + oz)
-            {
+            let (ox, oy, oz) = (
+                (octant & 1) as u32,
+                (octant >> 1 & 1) as u32,
+                (octant >> 2) as u32,
+            );
+            if let Ok(child) = self.key(
+                key.level - 1,
+                key.x * 2 + ox,
+                key.y * 2 + oy,
+                key.z * 2 + oz,
+            ) {
                 out.push((octant, child));
             }
         }

@@ -12,8 +12,8 @@
 
 pub mod error;
 pub mod layout;
-pub mod voxel;
 pub mod vod2;
+pub mod voxel;
 
 pub use error::FormatError;
 pub use layout::{BrickKey, VolumeLayout};

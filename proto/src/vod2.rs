@@ -39,7 +39,7 @@ pub const COMMIT_FIXED_LEN: usize = 56;
 /// Bytes per change entry in a commit record: (node index, node entry).
 pub const CHANGE_LEN: usize = 16;
 /// Size of a checkpoint's leading fields.
-pub const CHECKPOINT_FIXED_LEN: usize = 16;
+pub const CHECKPOINT_FIXED_LEN: usize = 24;
 /// Index entries per checkpoint chunk (4 KiB of entries).
 pub const CHUNK_ENTRIES: u64 = 512;
 /// Header flag: edge bricks are padded with L on the right-hand side (always set; VOD 1 bit 1).
@@ -440,7 +440,11 @@ impl NodeEntry {
     /// # Errors
     /// A constant outside the voxel type's range or with stray bits, or an offset before the
     /// data region or past the committed length.
-    pub fn decode(raw: u64, voxel_type: VoxelType, committed_len: u64) -> Result<Self, FormatError> {
+    pub fn decode(
+        raw: u64,
+        voxel_type: VoxelType,
+        committed_len: u64,
+    ) -> Result<Self, FormatError> {
         if raw & NODE_CONSTANT != 0 {
             let v = raw & !NODE_CONSTANT;
             if v > voxel_type.high() as u64 {
@@ -454,7 +458,9 @@ impl NodeEntry {
         if raw < DATA_START || raw.saturating_add(BRICK_HEADER_LEN as u64) > committed_len {
             return Err(FormatError::invalid(
                 "index entry",
-                format!("brick offset {raw} outside the data region [{DATA_START}, {committed_len})"),
+                format!(
+                    "brick offset {raw} outside the data region [{DATA_START}, {committed_len})"
+                ),
             ));
         }
         Ok(NodeEntry::Stored(raw))
@@ -510,7 +516,8 @@ impl CommitHeader {
         let f = Fields::new("commit record", avail, base);
         f.magic(0, COMMIT_MAGIC)?;
         let n_changes = f.u64(40)?;
-        let max_changes = (avail.len() as u64).saturating_sub(COMMIT_FIXED_LEN as u64) / CHANGE_LEN as u64;
+        let max_changes =
+            (avail.len() as u64).saturating_sub(COMMIT_FIXED_LEN as u64) / CHANGE_LEN as u64;
         if n_changes > max_changes {
             return Err(FormatError::Truncated {
                 what: "commit record",
@@ -538,7 +545,10 @@ impl CommitHeader {
         if h.checkpoint >= base || (h.checkpoint != 0 && h.checkpoint < DATA_START) {
             return Err(FormatError::invalid(
                 "commit record",
-                format!("at {base}: checkpoint offset {} does not precede it", h.checkpoint),
+                format!(
+                    "at {base}: checkpoint offset {} does not precede it",
+                    h.checkpoint
+                ),
             ));
         }
         if h.parent == 0 && h.checkpoint == 0 {
@@ -576,24 +586,25 @@ pub struct ChunkRef {
 }
 
 /// Bytes per chunk reference in a checkpoint's directory.
-pub const CHUNK_REF_LEN: usize = 24;
+pub const CHUNK_REF_LEN: usize = 32;
 
 /// An index checkpoint: the whole pyramidal index of one version, in chunks of
 /// [`CHUNK_ENTRIES`] entries, each stored raw or zstd-compressed (constant runs shrink to a few
 /// bytes).
 ///
 /// ```text
-/// 0                 magic "VIDX", u32 entries per chunk (512)
-/// 8                 u64 node count
-/// 16                chunk count x ChunkRef { u64 offset from the checkpoint's start,
-///                                            u32 stored length, u8 codec, 3 bytes zero,
-///                                            u64 xxh3 of the decoded entries }
-/// 16 + 24 n         u64 xxh3 of everything before it
-/// ...               chunk payloads
+/// 0            magic "VIDX", u32 entries per chunk (512)
+/// 8            u64 node count
+/// 16           u64 xxh3 of bytes [0, 16)
+/// 24           chunk count x ChunkRef { u64 offset from the checkpoint's start, u32 stored
+///                                       length, u8 codec, 3 bytes zero, u64 xxh3 of the
+///                                       decoded entries, u64 xxh3 of the ref's first 24 bytes }
+/// 24 + 32 n    chunk payloads
 /// ```
 ///
-/// Opening a file reads and checks only the directory (24 bytes per 512 bricks); a chunk is
-/// decoded and checked against its hash when first used.
+/// Every part carries its own checksum, so opening a file checks only the 24 fixed bytes (open
+/// time does not grow with the volume); a chunk's reference and payload are checked when the
+/// chunk is first used.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Checkpoint<'a> {
     pub n_nodes: u64,
@@ -606,9 +617,9 @@ impl<'a> Checkpoint<'a> {
         n_nodes.div_ceil(CHUNK_ENTRIES)
     }
 
-    /// Length of the fixed part and directory, including its checksum.
+    /// Length of the fixed part and the directory.
     pub fn directory_len(n_nodes: u64) -> u64 {
-        CHECKPOINT_FIXED_LEN as u64 + Self::n_chunks(n_nodes) * CHUNK_REF_LEN as u64 + 8
+        CHECKPOINT_FIXED_LEN as u64 + Self::n_chunks(n_nodes) * CHUNK_REF_LEN as u64
     }
 
     /// Encodes a checkpoint from already encoded chunks `(codec, payload, hash of decoded)`.
@@ -621,31 +632,34 @@ impl<'a> Checkpoint<'a> {
         put(&mut b, 0, &CHECKPOINT_MAGIC);
         put(&mut b, 4, &(CHUNK_ENTRIES as u32).to_le_bytes());
         put(&mut b, 8, &n_nodes.to_le_bytes());
+        seal(&mut b, 16);
         let mut offset = dir_len as u64;
         for (i, (codec, payload, hash)) in chunks.iter().enumerate() {
             let at = CHECKPOINT_FIXED_LEN + i * CHUNK_REF_LEN;
-            put(&mut b, at, &offset.to_le_bytes());
-            put(&mut b, at + 8, &(payload.len() as u32).to_le_bytes());
-            b[at + 12] = *codec as u8;
-            put(&mut b, at + 16, &hash.to_le_bytes());
+            let r = &mut b[at..at + CHUNK_REF_LEN];
+            put(r, 0, &offset.to_le_bytes());
+            put(r, 8, &(payload.len() as u32).to_le_bytes());
+            r[12] = *codec as u8;
+            put(r, 16, &hash.to_le_bytes());
+            seal(r, 24);
             offset += payload.len() as u64;
         }
-        seal(&mut b, dir_len - 8);
         for (_, payload, _) in chunks {
             b.extend_from_slice(payload);
         }
         b
     }
 
-    /// Validates a checkpoint's fixed fields and directory, reading only
-    /// `16 + 24 * ceil(n / 512) + 8` bytes of `avail` (everything from the checkpoint's start to
-    /// the end of the committed region).
+    /// Validates a checkpoint's 24 fixed bytes and that its directory lies inside `avail`
+    /// (everything from the checkpoint's start to the end of the committed region). Constant
+    /// time: the directory's entries are checked one by one by [`Checkpoint::chunk`].
     ///
     /// # Errors
     /// Bad magic, node count different from the layout's, truncation, checksum mismatch.
     pub fn decode(avail: &'a [u8], base: u64, expected_nodes: u64) -> Result<Self, FormatError> {
         let f = Fields::new("index checkpoint", avail, base);
         f.magic(0, CHECKPOINT_MAGIC)?;
+        f.checksum(16)?;
         let per_chunk = f.u32(4)?;
         if per_chunk as u64 != CHUNK_ENTRIES {
             return Err(FormatError::invalid(
@@ -660,7 +674,15 @@ impl<'a> Checkpoint<'a> {
                 format!("{n_nodes} entries, the volume has {expected_nodes} bricks"),
             ));
         }
-        f.checksum(Self::directory_len(n_nodes) as usize - 8)?;
+        let dir_len = Self::directory_len(n_nodes);
+        if dir_len > avail.len() as u64 {
+            return Err(FormatError::Truncated {
+                what: "index checkpoint directory",
+                offset: base,
+                needed: dir_len,
+                available: avail.len() as u64,
+            });
+        }
         Ok(Checkpoint {
             n_nodes,
             base,
@@ -668,17 +690,27 @@ impl<'a> Checkpoint<'a> {
         })
     }
 
-    /// The reference of chunk `chunk`, its payload bounds checked.
+    /// The reference of chunk `chunk` (its checksum verified) and its payload (bounds checked).
     ///
     /// # Errors
-    /// The chunk is out of range, has an unknown codec, or its payload lies outside the region.
+    /// The chunk is out of range, its reference fails its checksum, has an unknown codec, or its
+    /// payload lies outside the region.
     pub fn chunk(&self, chunk: u64) -> Result<(ChunkRef, &'a [u8]), FormatError> {
         if chunk >= Self::n_chunks(self.n_nodes) {
-            return Err(FormatError::invalid("index checkpoint", format!("no chunk {chunk}")));
+            return Err(FormatError::invalid(
+                "index checkpoint",
+                format!("no chunk {chunk}"),
+            ));
         }
-        let f = Fields::new("index checkpoint", self.bytes, self.base);
         let at = CHECKPOINT_FIXED_LEN + chunk as usize * CHUNK_REF_LEN;
-        let codec = match f.slice(at + 12, 1)?[0] {
+        let whole = Fields::new("index checkpoint", self.bytes, self.base);
+        let f = Fields::new(
+            "index chunk reference",
+            whole.slice(at, CHUNK_REF_LEN)?,
+            self.base + at as u64,
+        );
+        f.checksum(24)?;
+        let codec = match f.slice(12, 1)?[0] {
             0 => Codec::Raw,
             2 => Codec::Zstd,
             other => {
@@ -689,10 +721,10 @@ impl<'a> Checkpoint<'a> {
             }
         };
         let r = ChunkRef {
-            offset: f.u64(at)?,
-            stored_len: f.u32(at + 8)?,
+            offset: f.u64(0)?,
+            stored_len: f.u32(8)?,
             codec,
-            hash: f.u64(at + 16)?,
+            hash: f.u64(16)?,
         };
         let payload = usize::try_from(r.offset)
             .ok()
@@ -711,7 +743,8 @@ impl<'a> Checkpoint<'a> {
         CHUNK_ENTRIES.min(self.n_nodes - chunk * CHUNK_ENTRIES)
     }
 
-    /// Bytes from the checkpoint's start to the end of its last payload.
+    /// Bytes from the checkpoint's start to the end of its last payload (reads every chunk
+    /// reference: for tools, not for opening).
     ///
     /// # Errors
     /// A chunk reference is invalid.
@@ -750,7 +783,10 @@ mod tests {
         for i in 0..HEADER_LEN {
             let mut c = b;
             c[i] ^= 0x10;
-            assert!(FileHeader::decode(&c).is_err(), "flip at byte {i} not detected");
+            assert!(
+                FileHeader::decode(&c).is_err(),
+                "flip at byte {i} not detected"
+            );
         }
     }
 
@@ -787,23 +823,36 @@ mod tests {
             ..h
         };
         assert!(BrickHeader::decode(&raw_wrong_len.encode(), 0, &l).is_err());
-        let inverted = BrickHeader { min: 9, max: 3, ..h };
+        let inverted = BrickHeader {
+            min: 9,
+            max: 3,
+            ..h
+        };
         assert!(BrickHeader::decode(&inverted.encode(), 0, &l).is_err());
     }
 
     #[test]
     fn node_entries() {
         let t = VoxelType::U8;
-        assert_eq!(NodeEntry::decode(NodeEntry::Constant(255).encode(), t, 1 << 20), Ok(NodeEntry::Constant(255)));
+        assert_eq!(
+            NodeEntry::decode(NodeEntry::Constant(255).encode(), t, 1 << 20),
+            Ok(NodeEntry::Constant(255))
+        );
         assert!(NodeEntry::decode(NodeEntry::Constant(256).encode(), t, 1 << 20).is_err());
-        assert_eq!(NodeEntry::decode(DATA_START, t, DATA_START + 24), Ok(NodeEntry::Stored(DATA_START)));
+        assert_eq!(
+            NodeEntry::decode(DATA_START, t, DATA_START + 24),
+            Ok(NodeEntry::Stored(DATA_START))
+        );
         assert!(NodeEntry::decode(DATA_START, t, DATA_START + 23).is_err());
         assert!(NodeEntry::decode(5, t, 1 << 20).is_err());
     }
 
     #[test]
     fn commit_round_trip() {
-        let changes = vec![(3, NodeEntry::Constant(9)), (5, NodeEntry::Stored(DATA_START))];
+        let changes = vec![
+            (3, NodeEntry::Constant(9)),
+            (5, NodeEntry::Stored(DATA_START)),
+        ];
         let h = CommitHeader {
             version: 2,
             parent: DATA_START + 8,
@@ -817,7 +866,10 @@ mod tests {
         let (d, rec) = CommitHeader::decode(&bytes, base).unwrap();
         assert_eq!(d, h);
         let got: Vec<_> = CommitHeader::changes(rec).collect();
-        assert_eq!(got, vec![(3, NodeEntry::Constant(9).encode()), (5, DATA_START)]);
+        assert_eq!(
+            got,
+            vec![(3, NodeEntry::Constant(9).encode()), (5, DATA_START)]
+        );
         // A huge change count cannot make the decoder allocate or read past the region.
         let mut hostile = h.encode(&changes);
         hostile[40..48].copy_from_slice(&u64::MAX.to_le_bytes());
@@ -843,8 +895,13 @@ mod tests {
         assert!(Checkpoint::decode(&b, DATA_START, 1299).is_err());
         // A directory flip fails the checksum; a truncated region fails the chunk bounds.
         let mut flipped = b.clone();
-        flipped[16 + 24 + 8] ^= 1;
+        flipped[8] ^= 1; // node count: fixed-part checksum
         assert!(Checkpoint::decode(&flipped, DATA_START, 1300).is_err());
+        let mut flipped = b.clone();
+        flipped[24 + 32 + 8] ^= 1; // chunk 1's stored length: its reference checksum
+        let cp = Checkpoint::decode(&flipped, DATA_START, 1300).unwrap();
+        assert!(cp.chunk(0).is_ok());
+        assert!(cp.chunk(1).is_err());
         let short = &b[..b.len() - 1];
         let cp = Checkpoint::decode(short, DATA_START, 1300).unwrap();
         assert!(cp.chunk(2).is_err());

@@ -87,11 +87,19 @@ mod tests {
     fn range_table_matches_the_spec() {
         // spec/icvg.md: u8 0/255/127, u16 0/65535/32767.
         assert_eq!(
-            (VoxelType::U8.low(), VoxelType::U8.high(), VoxelType::U8.surface()),
+            (
+                VoxelType::U8.low(),
+                VoxelType::U8.high(),
+                VoxelType::U8.surface()
+            ),
             (0, 255, 127)
         );
         assert_eq!(
-            (VoxelType::U16.low(), VoxelType::U16.high(), VoxelType::U16.surface()),
+            (
+                VoxelType::U16.low(),
+                VoxelType::U16.high(),
+                VoxelType::U16.surface()
+            ),
             (0, 65535, 32767)
         );
     }

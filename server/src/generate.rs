@@ -56,7 +56,8 @@ impl BrickSource for EllipsoidSource {
         for z in lo[2]..=hi[2] {
             for y in lo[1]..=hi[1] {
                 for x in lo[0]..=hi[0] {
-                    let i = (((z - lo[2]) as usize * b + (y - lo[1]) as usize) * b) + (x - lo[0]) as usize;
+                    let i = (((z - lo[2]) as usize * b + (y - lo[1]) as usize) * b)
+                        + (x - lo[0]) as usize;
                     put(out, i, self.ellipsoid.sample([x, y, z], t), t);
                 }
             }
@@ -90,7 +91,10 @@ impl WorldSource {
     /// A world whose hills vary between about 15% and 85% of the height, four hills across.
     pub fn new(layout: VolumeLayout, seed: u32) -> Self {
         let [dx, dy, dz] = layout.dims();
-        let fbm = Fbm::<Perlin>::new(seed).set_octaves(6).set_frequency(4.0 / dx.max(dz) as f64).set_persistence(0.5);
+        let fbm = Fbm::<Perlin>::new(seed)
+            .set_octaves(6)
+            .set_frequency(4.0 / dx.max(dz) as f64)
+            .set_persistence(0.5);
         let heights: Vec<f32> = (0..dz)
             .into_par_iter()
             .flat_map_iter(|z| {
@@ -136,7 +140,8 @@ impl BrickSource for WorldSource {
             for x in lo[0]..=hi[0] {
                 let h = self.heights[z as usize * dx + x as usize];
                 for y in lo[1]..=hi[1] {
-                    let i = (((z - lo[2]) as usize * b + (y - lo[1]) as usize) * b) + (x - lo[0]) as usize;
+                    let i = (((z - lo[2]) as usize * b + (y - lo[1]) as usize) * b)
+                        + (x - lo[0]) as usize;
                     put(out, i, Self::value(h, y, t.high()), t);
                 }
             }

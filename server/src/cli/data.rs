@@ -2,10 +2,10 @@
 
 use super::{parse_dims, parse_scale, progress, sibling, TypeArg};
 use crate::generate::{EllipsoidSource, WorldSource};
+use crate::store::codec::{Compression, DEFAULT_ZSTD_LEVEL};
 use crate::store::inspect::inspect as inspect_vod2;
 use crate::store::raw::{export_raw, rawvox_header, RawInput, Region, RAWVOX_MAGIC};
 use crate::store::vod1::{write_vod1, Vod1, Vod1Source};
-use crate::store::codec::{Compression, DEFAULT_ZSTD_LEVEL};
 use crate::store::{build_vod2, mapping::Mapping, BrickSource, BuildOptions, DenseGrid, Vod2};
 use anyhow::{anyhow, bail, Context};
 use clap::{Args, ValueEnum};
@@ -172,9 +172,13 @@ fn sniff(path: &Path) -> anyhow::Result<InputKind> {
     use std::io::Read;
     let mut head = [0u8; 8];
     let mut f = File::open(path).with_context(|| format!("cannot open {}", path.display()))?;
-    let n = f.read(&mut head).with_context(|| format!("cannot read {}", path.display()))?;
+    let n = f
+        .read(&mut head)
+        .with_context(|| format!("cannot read {}", path.display()))?;
     if n >= 8 && head[..4] == isovox_proto::vod2::SIGNATURE {
-        return Ok(InputKind::Vod(u32::from_le_bytes([head[4], head[5], head[6], head[7]])));
+        return Ok(InputKind::Vod(u32::from_le_bytes([
+            head[4], head[5], head[6], head[7],
+        ])));
     }
     if n >= 4 && i32::from_le_bytes([head[0], head[1], head[2], head[3]]) == RAWVOX_MAGIC {
         return Ok(InputKind::Rawvox);
@@ -185,19 +189,33 @@ fn sniff(path: &Path) -> anyhow::Result<InputKind> {
 /// Builds `output` from `source` via a temporary file renamed into place, so an interrupted run
 /// never leaves a half-written volume under the final name. With `vod1`, the VOD 2 build is
 /// converted and removed.
-fn build_to(output: &Path, layout: &VolumeLayout, scale: [f32; 3], source: &dyn BrickSource, compression: Compression, format: VodFormat) -> anyhow::Result<()> {
+fn build_to(
+    output: &Path,
+    layout: &VolumeLayout,
+    scale: [f32; 3],
+    source: &dyn BrickSource,
+    compression: Compression,
+    format: VodFormat,
+) -> anyhow::Result<()> {
     let tmp = sibling(output, ".isovox-tmp");
-    let options = BuildOptions { compression, progress: progress("building") };
-    let report = build_vod2(&tmp, layout, scale, source, &options).with_context(|| format!("cannot build {}", output.display()))?;
+    let options = BuildOptions {
+        compression,
+        progress: progress("building"),
+    };
+    let report = build_vod2(&tmp, layout, scale, source, &options)
+        .with_context(|| format!("cannot build {}", output.display()))?;
     if format == VodFormat::Vod1 {
         let vod = Vod2::open(&tmp)?;
-        let mut out = BufWriter::new(File::create(output).with_context(|| format!("cannot create {}", output.display()))?);
+        let mut out = BufWriter::new(
+            File::create(output).with_context(|| format!("cannot create {}", output.display()))?,
+        );
         write_vod1(&vod.head(), compression != Compression::None, &mut out)?;
         out.flush()?;
         drop(vod);
         std::fs::remove_file(&tmp).ok();
     } else {
-        std::fs::rename(&tmp, output).with_context(|| format!("cannot move the result to {}", output.display()))?;
+        std::fs::rename(&tmp, output)
+            .with_context(|| format!("cannot move the result to {}", output.display()))?;
     }
     tracing::info!(
         output = %output.display(),
@@ -212,15 +230,29 @@ pub fn import(a: ImportArgs) -> anyhow::Result<()> {
     let compress = a.compression.compression();
     match sniff(&a.input)? {
         InputKind::Vod(1) => {
-            let file = File::open(&a.input).with_context(|| format!("cannot open {}", a.input.display()))?;
+            let file = File::open(&a.input)
+                .with_context(|| format!("cannot open {}", a.input.display()))?;
             let len = file.metadata()?.len();
             let map = Mapping::new(&file, len)?;
-            let vod1 = Vod1::parse(map.bytes()).with_context(|| format!("{} is not a valid VOD 1 file", a.input.display()))?;
+            let vod1 = Vod1::parse(map.bytes())
+                .with_context(|| format!("{} is not a valid VOD 1 file", a.input.display()))?;
             let source = Vod1Source::new(&vod1);
-            build_to(&a.output, &vod1.layout, vod1.voxel_scale, &source, compress, a.format)?;
-            source.finish().with_context(|| format!("{}: a brick does not decode", a.input.display()))?;
+            build_to(
+                &a.output,
+                &vod1.layout,
+                vod1.voxel_scale,
+                &source,
+                compress,
+                a.format,
+            )?;
+            source
+                .finish()
+                .with_context(|| format!("{}: a brick does not decode", a.input.display()))?;
         }
-        InputKind::Vod(v) => bail!("{} is already a VOD {v} file; import reads RAW, RAWVOX and VOD 1", a.input.display()),
+        InputKind::Vod(v) => bail!(
+            "{} is already a VOD {v} file; import reads RAW, RAWVOX and VOD 1",
+            a.input.display()
+        ),
         kind => {
             let rawvox = matches!(kind, InputKind::Rawvox);
             let input = RawInput::open(&a.input, rawvox, a.dims, a.voxel_type.map(Into::into))?;
@@ -235,18 +267,31 @@ pub fn import(a: ImportArgs) -> anyhow::Result<()> {
 fn parse_region(s: &str) -> anyhow::Result<Region> {
     let v: Vec<u32> = s
         .split(',')
-        .map(|p| p.trim().parse::<u32>().map_err(|_| anyhow!("region value {p:?} is not a non-negative integer")))
+        .map(|p| {
+            p.trim()
+                .parse::<u32>()
+                .map_err(|_| anyhow!("region value {p:?} is not a non-negative integer"))
+        })
         .collect::<Result<_, _>>()?;
     if v.len() != 6 {
-        bail!("--region takes six values MINX,MINY,MINZ,MAXX,MAXY,MAXZ, got {}", v.len());
+        bail!(
+            "--region takes six values MINX,MINY,MINZ,MAXX,MAXY,MAXZ, got {}",
+            v.len()
+        );
     }
-    Ok(Region { min: [v[0], v[1], v[2]], max: [v[3], v[4], v[5]] })
+    Ok(Region {
+        min: [v[0], v[1], v[2]],
+        max: [v[3], v[4], v[5]],
+    })
 }
 
 pub fn export(a: ExportArgs) -> anyhow::Result<()> {
     if let InputKind::Vod(v) = sniff(&a.input)? {
         if v != 2 {
-            bail!("{} is a VOD {v} file; export reads VOD 2 (import it first)", a.input.display());
+            bail!(
+                "{} is a VOD {v} file; export reads VOD 2 (import it first)",
+                a.input.display()
+            );
         }
     }
     let vod = Vod2::open(&a.input).with_context(|| format!("cannot open {}", a.input.display()))?;
@@ -255,7 +300,10 @@ pub fn export(a: ExportArgs) -> anyhow::Result<()> {
         None => vod.head(),
     };
     let tmp = sibling(&a.output, ".isovox-tmp");
-    let mut out = BufWriter::with_capacity(1 << 20, File::create(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?);
+    let mut out = BufWriter::with_capacity(
+        1 << 20,
+        File::create(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?,
+    );
     match a.format {
         ExportFormat::Vod1 => {
             if a.region.is_some() || a.level != 0 {
@@ -266,11 +314,18 @@ pub fn export(a: ExportArgs) -> anyhow::Result<()> {
         ExportFormat::Raw | ExportFormat::Rawvox => {
             let layout = snap.layout();
             if a.level >= layout.levels() {
-                bail!("level {} out of range: the volume has levels 0..{}", a.level, layout.levels() - 1);
+                bail!(
+                    "level {} out of range: the volume has levels 0..{}",
+                    a.level,
+                    layout.levels() - 1
+                );
             }
             let region = match &a.region {
                 Some(r) => parse_region(r)?,
-                None => Region { min: [0; 3], max: layout.level_dims(a.level) },
+                None => Region {
+                    min: [0; 3],
+                    max: layout.level_dims(a.level),
+                },
             };
             if a.format == ExportFormat::Rawvox {
                 let dims = [0, 1, 2].map(|i| region.max[i].saturating_sub(region.min[i]));
@@ -281,7 +336,8 @@ pub fn export(a: ExportArgs) -> anyhow::Result<()> {
     }
     out.flush()?;
     drop(out);
-    std::fs::rename(&tmp, &a.output).with_context(|| format!("cannot move the result to {}", a.output.display()))?;
+    std::fs::rename(&tmp, &a.output)
+        .with_context(|| format!("cannot move the result to {}", a.output.display()))?;
     Ok(())
 }
 
@@ -291,7 +347,14 @@ pub fn generate(a: GenerateArgs) -> anyhow::Result<()> {
         Dataset::Ellipsoid => Box::new(EllipsoidSource::new(layout.clone())),
         Dataset::World => Box::new(WorldSource::new(layout.clone(), a.seed)),
     };
-    build_to(&a.output, &layout, [1.0; 3], source.as_ref(), a.compression.compression(), VodFormat::Vod2)
+    build_to(
+        &a.output,
+        &layout,
+        [1.0; 3],
+        source.as_ref(),
+        a.compression.compression(),
+        VodFormat::Vod2,
+    )
 }
 
 fn human(bytes: u64) -> String {
@@ -313,29 +376,51 @@ pub fn inspect(a: InspectArgs) -> anyhow::Result<()> {
     match sniff(&a.input)? {
         InputKind::Vod(1) => inspect_vod1(&a),
         InputKind::Vod(2) => {
-            let vod = Vod2::open(&a.input).with_context(|| format!("cannot open {}", a.input.display()))?;
-            let i = inspect_vod2(&vod).with_context(|| format!("{} is damaged", a.input.display()))?;
+            let vod = Vod2::open(&a.input)
+                .with_context(|| format!("cannot open {}", a.input.display()))?;
+            let i =
+                inspect_vod2(&vod).with_context(|| format!("{} is damaged", a.input.display()))?;
             if a.json {
                 println!("{}", serde_json::to_string_pretty(&i)?);
                 return Ok(());
             }
             let [x, y, z] = i.dims;
-            println!("{}: {} file, version {} ({} commits)", a.input.display(), i.format, i.version, i.commits);
-            println!("  volume      {x} x {y} x {z} {} voxels, brick {}^3, voxel scale {:?}", i.voxel_type, i.brick, i.voxel_scale);
+            println!(
+                "{}: {} file, version {} ({} commits)",
+                a.input.display(),
+                i.format,
+                i.version,
+                i.commits
+            );
+            println!(
+                "  volume      {x} x {y} x {z} {} voxels, brick {}^3, voxel scale {:?}",
+                i.voxel_type, i.brick, i.voxel_scale
+            );
             println!("  levels      {}", i.levels.len());
             for l in &i.levels {
                 let [gx, gy, gz] = l.grid;
                 println!("    level {:>2}  grid {gx:>5} x {gy:>5} x {gz:>5}  {:>10} bricks  {:>10} constant  {:>10} stored", l.level, l.bricks, l.constant, l.stored);
             }
-            println!("  bricks      {} total, {} unique", i.bricks_total, i.bricks_unique);
+            println!(
+                "  bricks      {} total, {} unique",
+                i.bricks_total, i.bricks_unique
+            );
             let c = &i.codecs;
             println!(
                 "  by codec    constant {} bricks (no payload); zstd {} records, {}; lz4 {} records, {}; raw {} records, {}",
                 c.constant_bricks, c.zstd_records, human(c.zstd_bytes), c.lz4_records, human(c.lz4_bytes), c.raw_records, human(c.raw_bytes)
             );
             println!("  index       {}", human(i.index_bytes));
-            println!("  size        {} on disk, {} as RAW: ratio {:.2}:1", human(i.file_bytes), human(i.raw_bytes), i.ratio);
-            println!("  garbage     {} not referenced by the head version", human(i.garbage_bytes));
+            println!(
+                "  size        {} on disk, {} as RAW: ratio {:.2}:1",
+                human(i.file_bytes),
+                human(i.raw_bytes),
+                i.ratio
+            );
+            println!(
+                "  garbage     {} not referenced by the head version",
+                human(i.garbage_bytes)
+            );
             Ok(())
         }
         InputKind::Vod(v) => bail!("{}: VOD version {v} is not supported", a.input.display()),
@@ -347,7 +432,8 @@ fn inspect_vod1(a: &InspectArgs) -> anyhow::Result<()> {
     let file = File::open(&a.input)?;
     let len = file.metadata()?.len();
     let map = Mapping::new(&file, len)?;
-    let v = Vod1::parse(map.bytes()).with_context(|| format!("{} is not a valid VOD 1 file", a.input.display()))?;
+    let v = Vod1::parse(map.bytes())
+        .with_context(|| format!("{} is not a valid VOD 1 file", a.input.display()))?;
     let raw = v.layout.raw_bytes();
     let [x, y, z] = v.layout.dims();
     if a.json {
@@ -360,9 +446,23 @@ fn inspect_vod1(a: &InspectArgs) -> anyhow::Result<()> {
         println!("{}", serde_json::to_string_pretty(&j)?);
     } else {
         println!("{}: VOD 1 file (thesis layout)", a.input.display());
-        println!("  volume      {x} x {y} x {z} {} voxels, brick {}^3", v.layout.voxel_type(), v.layout.brick());
-        println!("  octree      height {}, {} nodes, {} unique bricks", v.height, crate::store::vod1::node_count(v.height), v.unique_bricks());
-        println!("  size        {} on disk, {} as RAW: ratio {:.2}:1", human(len), human(raw), raw as f64 / len as f64);
+        println!(
+            "  volume      {x} x {y} x {z} {} voxels, brick {}^3",
+            v.layout.voxel_type(),
+            v.layout.brick()
+        );
+        println!(
+            "  octree      height {}, {} nodes, {} unique bricks",
+            v.height,
+            crate::store::vod1::node_count(v.height),
+            v.unique_bricks()
+        );
+        println!(
+            "  size        {} on disk, {} as RAW: ratio {:.2}:1",
+            human(len),
+            human(raw),
+            raw as f64 / len as f64
+        );
     }
     Ok(())
 }
@@ -380,7 +480,8 @@ pub fn get(a: GetArgs) -> anyhow::Result<()> {
             out
         }
         _ => {
-            let vod = Vod2::open(&a.input).with_context(|| format!("cannot open {}", a.input.display()))?;
+            let vod = Vod2::open(&a.input)
+                .with_context(|| format!("cannot open {}", a.input.display()))?;
             let snap = match a.version {
                 Some(v) => vod.version(v)?,
                 None => vod.head(),
@@ -390,7 +491,8 @@ pub fn get(a: GetArgs) -> anyhow::Result<()> {
         }
     };
     match a.output {
-        Some(path) => std::fs::write(&path, &bytes).with_context(|| format!("cannot write {}", path.display()))?,
+        Some(path) => std::fs::write(&path, &bytes)
+            .with_context(|| format!("cannot write {}", path.display()))?,
         None => {
             let mut stdout = std::io::stdout().lock();
             stdout.write_all(&bytes)?;
@@ -399,4 +501,3 @@ pub fn get(a: GetArgs) -> anyhow::Result<()> {
     }
     Ok(())
 }
-

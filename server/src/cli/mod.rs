@@ -74,9 +74,13 @@ fn parse_triple<T: std::str::FromStr>(s: &str) -> Result<[T; 3], String> {
     }
     let mut out = Vec::with_capacity(3);
     for p in parts {
-        out.push(p.parse::<T>().map_err(|_| format!("{p:?} is not a valid number"))?);
+        out.push(
+            p.parse::<T>()
+                .map_err(|_| format!("{p:?} is not a valid number"))?,
+        );
     }
-    out.try_into().map_err(|_| "expected three values".to_string())
+    out.try_into()
+        .map_err(|_| "expected three values".to_string())
 }
 
 pub(crate) fn parse_dims(s: &str) -> Result<[u32; 3], String> {
@@ -90,7 +94,9 @@ pub(crate) fn parse_dims(s: &str) -> Result<[u32; 3], String> {
 pub(crate) fn parse_scale(s: &str) -> Result<[f32; 3], String> {
     let v = parse_triple::<f32>(s)?;
     if v.iter().any(|x| !x.is_finite() || *x <= 0.0) {
-        return Err(format!("voxel scale must be positive and finite, got {s:?}"));
+        return Err(format!(
+            "voxel scale must be positive and finite, got {s:?}"
+        ));
     }
     Ok(v)
 }
@@ -106,9 +112,10 @@ pub(crate) fn progress(what: &str) -> ProgressBar {
         return ProgressBar::hidden();
     }
     let bar = ProgressBar::with_draw_target(Some(0), ProgressDrawTarget::stderr());
-    let style = ProgressStyle::with_template("{msg:>12} [{bar:40}] {percent:>3}% {pos}/{len} ({eta} left)")
-        .map(|s| s.progress_chars("=> "))
-        .unwrap_or_else(|_| ProgressStyle::default_bar());
+    let style =
+        ProgressStyle::with_template("{msg:>12} [{bar:40}] {percent:>3}% {pos}/{len} ({eta} left)")
+            .map(|s| s.progress_chars("=> "))
+            .unwrap_or_else(|_| ProgressStyle::default_bar());
     bar.set_style(style);
     bar.set_message(what.to_string());
     bar

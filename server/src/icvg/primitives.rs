@@ -25,15 +25,20 @@ impl Ellipsoid {
     /// The value at world voxel `v`.
     pub fn sample(&self, v: [i64; 3], voxel_type: VoxelType) -> u16 {
         let r = self.radii_f64();
-        for axis in 0..3 {
-            let local = v[axis] - (self.center[axis] - self.radii[axis] as i64);
-            if local < 0 || local > 2 * self.radii[axis] as i64 {
-                return voxel_type.low();
-            }
+        let outside = (0..3).any(|a| {
+            let local = v[a] - (self.center[a] - self.radii[a] as i64);
+            local < 0 || local > 2 * self.radii[a] as i64
+        });
+        if outside {
+            return voxel_type.low();
         }
         let t = [0, 1, 2].map(|a| (v[a] - self.center[a]) as f64);
         let len = (t[0] * t[0] + t[1] * t[1] + t[2] * t[2]).sqrt();
-        let unit = if len == 0.0 { [0.0; 3] } else { t.map(|c| c / len) };
+        let unit = if len == 0.0 {
+            [0.0; 3]
+        } else {
+            t.map(|c| c / len)
+        };
         let (h, s) = (voxel_type.high(), voxel_type.surface());
         if body([t[0] + unit[0], t[1] + unit[1], t[2] + unit[2]], r) < 1.0 {
             return h;
@@ -54,10 +59,17 @@ impl Ellipsoid {
         let mut max_sq = 0.0f64;
         let mut min_sq = 0.0f64;
         for a in 0..3 {
-            let (l, h) = ((lo[a] - self.center[a]) as f64, (hi[a] - self.center[a]) as f64);
+            let (l, h) = (
+                (lo[a] - self.center[a]) as f64,
+                (hi[a] - self.center[a]) as f64,
+            );
             let far = l.abs().max(h.abs());
             max_sq += far * far / (r[a] * r[a]);
-            let near = if l <= 0.0 && h >= 0.0 { 0.0 } else { l.abs().min(h.abs()) };
+            let near = if l <= 0.0 && h >= 0.0 {
+                0.0
+            } else {
+                l.abs().min(h.abs())
+            };
             min_sq += near * near / (r[a] * r[a]);
         }
         if max_sq.sqrt() + step < 1.0 - margin {
@@ -77,7 +89,10 @@ mod tests {
     #[test]
     fn ellipsoid_golden_values() {
         // Sphere of radius 4 centred at (4,4,4), u8: S = 127.
-        let e = Ellipsoid { center: [4, 4, 4], radii: [4, 4, 4] };
+        let e = Ellipsoid {
+            center: [4, 4, 4],
+            radii: [4, 4, 4],
+        };
         let t = VoxelType::U8;
         // Centre: T = 0, T^ = 0, body(0) = 0 < 1 -> H.
         assert_eq!(e.sample([4, 4, 4], t), 255);
@@ -100,7 +115,10 @@ mod tests {
 
     #[test]
     fn constant_over_agrees_with_sampling() {
-        let e = Ellipsoid { center: [40, 30, 35], radii: [33, 25, 29] };
+        let e = Ellipsoid {
+            center: [40, 30, 35],
+            radii: [33, 25, 29],
+        };
         let t = VoxelType::U8;
         let mut decided = 0;
         for bz in 0..9i64 {
@@ -113,7 +131,11 @@ mod tests {
                         for z in lo[2]..=hi[2] {
                             for y in lo[1]..=hi[1] {
                                 for x in lo[0]..=hi[0] {
-                                    assert_eq!(e.sample([x, y, z], t), v, "box {lo:?} voxel {x},{y},{z}");
+                                    assert_eq!(
+                                        e.sample([x, y, z], t),
+                                        v,
+                                        "box {lo:?} voxel {x},{y},{z}"
+                                    );
                                 }
                             }
                         }
@@ -121,6 +143,9 @@ mod tests {
                 }
             }
         }
-        assert!(decided > 300, "the shortcut should decide most boxes, decided {decided}");
+        assert!(
+            decided > 300,
+            "the shortcut should decide most boxes, decided {decided}"
+        );
     }
 }

@@ -55,14 +55,21 @@ pub fn build_vod2(
     options: &BuildOptions,
 ) -> Result<BuildReport, StoreError> {
     let start = Instant::now();
-    let writer = Vod2Writer::create(path, FileHeader::new(layout.clone(), voxel_scale), options.compression)?;
+    let writer = Vod2Writer::create(
+        path,
+        FileHeader::new(layout.clone(), voxel_scale),
+        options.compression,
+    )?;
     let mut sink = FileSink {
         writer,
         entries: vec![0u64; layout.node_count() as usize],
     };
     options.progress.set_length(layout.node_count());
     stream_pyramid(layout, source, &mut sink, &options.progress)?;
-    let FileSink { mut writer, entries } = sink;
+    let FileSink {
+        mut writer,
+        entries,
+    } = sink;
     writer.commit(&[], Some(&entries))?;
     options.progress.finish_and_clear();
     Ok(BuildReport {
@@ -76,7 +83,13 @@ pub fn build_vod2(
 pub trait SlabSink {
     /// # Errors
     /// Whatever storing the slab can fail with.
-    fn slab(&mut self, layout: &VolumeLayout, level: u8, z: u32, slab: &[BrickVoxels]) -> Result<(), StoreError>;
+    fn slab(
+        &mut self,
+        layout: &VolumeLayout,
+        level: u8,
+        z: u32,
+        slab: &[BrickVoxels],
+    ) -> Result<(), StoreError>;
 }
 
 /// Keeps every brick of every level in memory, in node order (for measuring what building the
@@ -87,7 +100,13 @@ pub struct MemorySink {
 }
 
 impl SlabSink for MemorySink {
-    fn slab(&mut self, _: &VolumeLayout, _: u8, _: u32, slab: &[BrickVoxels]) -> Result<(), StoreError> {
+    fn slab(
+        &mut self,
+        _: &VolumeLayout,
+        _: u8,
+        _: u32,
+        slab: &[BrickVoxels],
+    ) -> Result<(), StoreError> {
         // Slabs arrive interleaved across levels; keep them all, order does not matter here.
         self.bricks.extend_from_slice(slab);
         Ok(())
@@ -100,10 +119,21 @@ struct FileSink {
 }
 
 impl SlabSink for FileSink {
-    fn slab(&mut self, layout: &VolumeLayout, level: u8, z: u32, slab: &[BrickVoxels]) -> Result<(), StoreError> {
+    fn slab(
+        &mut self,
+        layout: &VolumeLayout,
+        level: u8,
+        z: u32,
+        slab: &[BrickVoxels],
+    ) -> Result<(), StoreError> {
         let writer = &self.writer;
         let prepared: Vec<_> = slab.par_iter().map(|v| writer.prepare(v)).collect();
-        let first = layout.node_index(BrickKey { level, x: 0, y: 0, z });
+        let first = layout.node_index(BrickKey {
+            level,
+            x: 0,
+            y: 0,
+            z,
+        });
         for (i, (voxels, p)) in slab.iter().zip(prepared).enumerate() {
             self.entries[first as usize + i] = self.writer.store(voxels, p)?.encode();
         }
@@ -167,23 +197,28 @@ impl Builder<'_> {
             return Ok(());
         }
         let gz = self.layout.grid(level)[2];
-        let (lower, upper) = if z % 2 == 0 {
+        let (lower, upper) = if z.is_multiple_of(2) {
             if z + 1 < gz {
                 self.pending[level as usize] = Some(slab);
                 return Ok(());
             }
             (slab, None)
         } else {
-            let lower = self.pending[level as usize]
-                .take()
-                .ok_or_else(|| StoreError::Invalid(format!("internal: level {level} slab {z} has no partner")))?;
+            let lower = self.pending[level as usize].take().ok_or_else(|| {
+                StoreError::Invalid(format!("internal: level {level} slab {z} has no partner"))
+            })?;
             (lower, Some(slab))
         };
         let parent = self.parent_slab(level, &lower, upper.as_deref());
         self.add_slab(level + 1, z / 2, parent)
     }
 
-    fn parent_slab(&self, level: u8, lower: &[BrickVoxels], upper: Option<&[BrickVoxels]>) -> Vec<BrickVoxels> {
+    fn parent_slab(
+        &self,
+        level: u8,
+        lower: &[BrickVoxels],
+        upper: Option<&[BrickVoxels]>,
+    ) -> Vec<BrickVoxels> {
         let child = self.layout.grid(level);
         let parent = self.layout.grid(level + 1);
         let brick = self.layout.brick();
@@ -195,7 +230,10 @@ impl Builder<'_> {
                 let (px, py) = (i % parent[0], i / parent[0]);
                 let mut children: [Option<&BrickVoxels>; 8] = [None; 8];
                 for (octant, slot) in children.iter_mut().enumerate() {
-                    let (cx, cy) = (px * 2 + (octant & 1) as u32, py * 2 + (octant >> 1 & 1) as u32);
+                    let (cx, cy) = (
+                        px * 2 + (octant & 1) as u32,
+                        py * 2 + (octant >> 1 & 1) as u32,
+                    );
                     let slab = if octant >> 2 == 0 { Some(lower) } else { upper };
                     if let Some(slab) = slab {
                         if cx < child[0] && cy < child[1] {

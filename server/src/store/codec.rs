@@ -124,7 +124,11 @@ pub fn decode(codec: Codec, payload: &[u8], out: &mut [u8], offset: u64) -> Resu
     if n != out.len() {
         return Err(StoreError::corrupt(
             offset,
-            format!("{} payload decodes to {n} bytes, expected {}", codec.name(), out.len()),
+            format!(
+                "{} payload decodes to {n} bytes, expected {}",
+                codec.name(),
+                out.len()
+            ),
         ));
     }
     Ok(())
@@ -164,7 +168,11 @@ mod tests {
     fn every_compression_round_trips_and_falls_back_to_raw() {
         let mut smooth = vec![0u8; 4096];
         smooth[100..900].fill(200);
-        for compression in [Compression::Lz4, Compression::Zstd(3), Compression::Zstd(19)] {
+        for compression in [
+            Compression::Lz4,
+            Compression::Zstd(3),
+            Compression::Zstd(19),
+        ] {
             let (c, p) = encode(&smooth, compression);
             assert_ne!(c, Codec::Raw);
             assert!(p.len() < 200, "{compression:?} gave {} bytes", p.len());
@@ -191,7 +199,13 @@ mod tests {
         for big in [32usize, 65] {
             let data = vec![1u8; big];
             assert!(decode(Codec::Lz4, &lz4_flex::block::compress(&data), &mut out, 0).is_err());
-            assert!(decode(Codec::Zstd, &zstd::bulk::compress(&data, 3).unwrap(), &mut out, 0).is_err());
+            assert!(decode(
+                Codec::Zstd,
+                &zstd::bulk::compress(&data, 3).unwrap(),
+                &mut out,
+                0
+            )
+            .is_err());
         }
     }
 }

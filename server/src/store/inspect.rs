@@ -72,7 +72,13 @@ pub fn inspect(vod: &Vod2) -> Result<Inspection, StoreError> {
     let mut levels = Vec::new();
     for level in 0..layout.levels() {
         let (first, count) = layout.level_range(level);
-        let mut stats = LevelStats { level, grid: layout.grid(level), bricks: count, constant: 0, stored: 0 };
+        let mut stats = LevelStats {
+            level,
+            grid: layout.grid(level),
+            bricks: count,
+            constant: 0,
+            stored: 0,
+        };
         for node in first..first + count {
             match snap.stored_entry(snap.entry_at(node)?)? {
                 StoredBrick::Constant(v) => {
@@ -98,10 +104,13 @@ pub fn inspect(vod: &Vod2) -> Result<Inspection, StoreError> {
         }
         levels.push(stats);
     }
-    let (_, checkpoint_len) = snap.checkpoint_span();
+    let (checkpoint_at, checkpoint_len) = snap.checkpoint_span()?;
     live += checkpoint_len;
     let commits = vod.commits()?;
-    for (_, h) in commits.iter().take_while(|(_, h)| h.version >= checkpoint_version(&commits, snap.checkpoint_span().0)) {
+    for (_, h) in commits
+        .iter()
+        .take_while(|(_, h)| h.version >= checkpoint_version(&commits, checkpoint_at))
+    {
         live += CommitHeader::record_len(h.n_changes);
     }
     let file_bytes = vod.file_len();

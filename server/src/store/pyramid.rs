@@ -69,7 +69,11 @@ impl<'a> DenseGrid<'a> {
     /// `bytes` does not hold exactly the voxels of `dims`; callers check this first.
     pub fn new(dims: [u32; 3], voxel_type: VoxelType, brick: u32, bytes: &'a [u8]) -> Self {
         let expected = dims.iter().map(|&d| d as usize).product::<usize>() * voxel_type.bytes();
-        assert_eq!(bytes.len(), expected, "grid bytes do not match its dimensions");
+        assert_eq!(
+            bytes.len(),
+            expected,
+            "grid bytes do not match its dimensions"
+        );
         DenseGrid {
             dims,
             voxel_type,
@@ -92,7 +96,8 @@ impl BrickSource for DenseGrid<'_> {
             for y in 0..ny {
                 let src = ((origin[2] + z) * dy + origin[1] + y) * dx + origin[0];
                 let dst = (z * b + y) * b;
-                out[dst * vb..(dst + nx) * vb].copy_from_slice(&self.bytes[src * vb..(src + nx) * vb]);
+                out[dst * vb..(dst + nx) * vb]
+                    .copy_from_slice(&self.bytes[src * vb..(src + nx) * vb]);
             }
         }
     }
@@ -100,7 +105,12 @@ impl BrickSource for DenseGrid<'_> {
 
 /// Writes into `out` (the parent brick's bytes) the downsampling of its 8 children, given in
 /// octant order (x fastest); a `None` child is outside the volume and counts as all L.
-pub fn downsample(children: &[Option<&BrickVoxels>; 8], brick: u32, voxel_type: VoxelType, out: &mut [u8]) {
+pub fn downsample(
+    children: &[Option<&BrickVoxels>; 8],
+    brick: u32,
+    voxel_type: VoxelType,
+    out: &mut [u8],
+) {
     let b = brick as usize;
     let h = b / 2;
     for (octant, child) in children.iter().enumerate() {
@@ -161,7 +171,16 @@ fn mean_subcube_u16(child: &[u8], out: &mut [u8], b: usize, o: [usize; 3]) {
         for y in 0..h {
             for x in 0..h {
                 let mut sum = 0u32;
-                for (dx, dy, dz) in [(0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0), (0, 0, 1), (1, 0, 1), (0, 1, 1), (1, 1, 1)] {
+                for (dx, dy, dz) in [
+                    (0, 0, 0),
+                    (1, 0, 0),
+                    (0, 1, 0),
+                    (1, 1, 0),
+                    (0, 0, 1),
+                    (1, 0, 1),
+                    (0, 1, 1),
+                    (1, 1, 1),
+                ] {
                     sum += at(2 * x + dx, 2 * y + dy, 2 * z + dz);
                 }
                 let v = ((sum + 4) / 8) as u16;
@@ -209,15 +228,28 @@ mod tests {
     #[test]
     fn rounding_is_half_up() {
         // sum 12 -> 1.5 -> 2; sum 11 -> 1.375 -> 1; u16 sum 8*65535 -> 65535.
-        for (vals, expect) in [([3u8, 3, 3, 3, 0, 0, 0, 0], 2u8), ([3, 3, 3, 2, 0, 0, 0, 0], 1)] {
+        for (vals, expect) in [
+            ([3u8, 3, 3, 3, 0, 0, 0, 0], 2u8),
+            ([3, 3, 3, 2, 0, 0, 0, 0], 1),
+        ] {
             let child = BrickVoxels::Data(vals.to_vec());
             let mut out = vec![0u8; 8];
-            downsample(&[Some(&child), None, None, None, None, None, None, None], 2, VoxelType::U8, &mut out);
+            downsample(
+                &[Some(&child), None, None, None, None, None, None, None],
+                2,
+                VoxelType::U8,
+                &mut out,
+            );
             assert_eq!(out[0], expect);
         }
         let full = BrickVoxels::Data([0xffu8; 16].to_vec());
         let mut out = vec![0u8; 16];
-        downsample(&[Some(&full), None, None, None, None, None, None, None], 2, VoxelType::U16, &mut out);
+        downsample(
+            &[Some(&full), None, None, None, None, None, None, None],
+            2,
+            VoxelType::U16,
+            &mut out,
+        );
         assert_eq!(&out[..2], &[0xff, 0xff]);
         assert_eq!(&out[2..4], &[0, 0]);
     }
@@ -231,7 +263,10 @@ mod tests {
         mixed[3] = None;
         assert_eq!(constant_parent(&mixed), None);
         let z = BrickVoxels::Constant(0);
-        assert_eq!(constant_parent(&[Some(&z), None, None, None, None, None, None, None]), Some(0));
+        assert_eq!(
+            constant_parent(&[Some(&z), None, None, None, None, None, None, None]),
+            Some(0)
+        );
     }
 
     #[test]
@@ -240,7 +275,15 @@ mod tests {
         let bytes = [1u8, 2, 3, 4, 5, 6];
         let g = DenseGrid::new([3, 2, 1], VoxelType::U8, 2, &bytes);
         let mut out = vec![0u8; 8];
-        g.fill(BrickKey { level: 0, x: 1, y: 0, z: 0 }, &mut out);
+        g.fill(
+            BrickKey {
+                level: 0,
+                x: 1,
+                y: 0,
+                z: 0,
+            },
+            &mut out,
+        );
         assert_eq!(out, vec![3, 0, 6, 0, 0, 0, 0, 0]);
     }
 }

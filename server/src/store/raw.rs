@@ -34,30 +34,56 @@ impl RawInput {
     /// # Errors
     /// The file cannot be read, a RAW file lacks `dims`, the header is malformed, or the file's
     /// size does not match its shape.
-    pub fn open(path: &Path, rawvox: bool, dims: Option<[u32; 3]>, voxel_type: Option<VoxelType>) -> Result<Self, StoreError> {
+    pub fn open(
+        path: &Path,
+        rawvox: bool,
+        dims: Option<[u32; 3]>,
+        voxel_type: Option<VoxelType>,
+    ) -> Result<Self, StoreError> {
         let file = File::open(path).map_err(StoreError::io_path("cannot open", path))?;
-        let len = file.metadata().map_err(StoreError::io_path("cannot stat", path))?.len();
+        let len = file
+            .metadata()
+            .map_err(StoreError::io_path("cannot stat", path))?
+            .len();
         let map = Mapping::new(&file, len).map_err(StoreError::io_path("cannot map", path))?;
         let (dims, voxel_type, data_at) = if rawvox {
             let b = map.bytes();
             if b.len() < RAWVOX_HEADER_LEN {
-                return Err(StoreError::Invalid(format!("{}: shorter than a RAWVOX header (20 bytes)", path.display())));
+                return Err(StoreError::Invalid(format!(
+                    "{}: shorter than a RAWVOX header (20 bytes)",
+                    path.display()
+                )));
             }
-            let field = |i: usize| i32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]]);
+            let field =
+                |i: usize| i32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]]);
             if field(0) != RAWVOX_MAGIC {
-                return Err(StoreError::Invalid(format!("{}: not a RAWVOX file (bad magic)", path.display())));
+                return Err(StoreError::Invalid(format!(
+                    "{}: not a RAWVOX file (bad magic)",
+                    path.display()
+                )));
             }
             let mut header_dims = [0u32; 3];
             for (axis, d) in header_dims.iter_mut().enumerate() {
                 *d = u32::try_from(field(1 + axis)).map_err(|_| {
-                    StoreError::Invalid(format!("{}: negative size {} in the RAWVOX header", path.display(), field(1 + axis)))
+                    StoreError::Invalid(format!(
+                        "{}: negative size {} in the RAWVOX header",
+                        path.display(),
+                        field(1 + axis)
+                    ))
                 })?;
             }
             let bits = field(4);
-            let header_type = VoxelType::from_bits(bits as u32).filter(|_| bits > 0).ok_or_else(|| {
-                StoreError::Invalid(format!("{}: {bits} bits per voxel (Isovox reads 8 and 16)", path.display()))
-            })?;
-            if dims.is_some_and(|d| d != header_dims) || voxel_type.is_some_and(|t| t != header_type) {
+            let header_type = VoxelType::from_bits(bits as u32)
+                .filter(|_| bits > 0)
+                .ok_or_else(|| {
+                    StoreError::Invalid(format!(
+                        "{}: {bits} bits per voxel (Isovox reads 8 and 16)",
+                        path.display()
+                    ))
+                })?;
+            if dims.is_some_and(|d| d != header_dims)
+                || voxel_type.is_some_and(|t| t != header_type)
+            {
                 return Err(StoreError::Invalid(format!(
                     "{}: --dims/--type disagree with the RAWVOX header ({header_dims:?}, {header_type})",
                     path.display()
@@ -65,7 +91,8 @@ impl RawInput {
             }
             (header_dims, header_type, RAWVOX_HEADER_LEN)
         } else {
-            let dims = dims.ok_or_else(|| StoreError::Invalid("a RAW file needs --dims X,Y,Z".into()))?;
+            let dims =
+                dims.ok_or_else(|| StoreError::Invalid("a RAW file needs --dims X,Y,Z".into()))?;
             (dims, voxel_type.unwrap_or(VoxelType::U8), 0)
         };
         let expected = dims.iter().map(|&d| d as u64).product::<u64>() * voxel_type.bytes() as u64;
@@ -96,7 +123,13 @@ impl RawInput {
 /// The RAWVOX header for a volume.
 pub fn rawvox_header(dims: [u32; 3], voxel_type: VoxelType) -> [u8; RAWVOX_HEADER_LEN] {
     let mut h = [0u8; RAWVOX_HEADER_LEN];
-    let fields = [RAWVOX_MAGIC, dims[0] as i32, dims[1] as i32, dims[2] as i32, voxel_type.bits() as i32];
+    let fields = [
+        RAWVOX_MAGIC,
+        dims[0] as i32,
+        dims[1] as i32,
+        dims[2] as i32,
+        voxel_type.bits() as i32,
+    ];
     for (i, f) in fields.iter().enumerate() {
         h[4 * i..4 * i + 4].copy_from_slice(&f.to_le_bytes());
     }
@@ -115,10 +148,19 @@ pub struct Region {
 ///
 /// # Errors
 /// The region is empty or outside the level, a brick is corrupt, or writing fails.
-pub fn export_raw(snap: &Snapshot, level: u8, region: Region, out: &mut dyn Write, progress: &ProgressBar) -> Result<(), StoreError> {
+pub fn export_raw(
+    snap: &Snapshot,
+    level: u8,
+    region: Region,
+    out: &mut dyn Write,
+    progress: &ProgressBar,
+) -> Result<(), StoreError> {
     let layout = snap.layout();
     if level >= layout.levels() {
-        return Err(StoreError::Invalid(format!("level {level} out of range (volume has {} levels)", layout.levels())));
+        return Err(StoreError::Invalid(format!(
+            "level {level} out of range (volume has {} levels)",
+            layout.levels()
+        )));
     }
     let extent = layout.level_dims(level);
     for axis in 0..3 {
@@ -163,17 +205,20 @@ pub fn export_raw(snap: &Snapshot, level: u8, region: Region, out: &mut dyn Writ
                 while x < region.max[0] {
                     let (ix, lx) = (((x / b) - bx0) as usize, (x % b) as usize);
                     let n = ((b as usize - lx) as u32).min(region.max[0] - x) as usize;
-                    let src = &slab[jy * nbx + ix][((lz * b as usize + ly) * b as usize + lx) * vb..][..n * vb];
+                    let src = &slab[jy * nbx + ix]
+                        [((lz * b as usize + ly) * b as usize + lx) * vb..][..n * vb];
                     let dst = (row * row_voxels + (x - region.min[0]) as usize) * vb;
                     plane[dst..dst + n * vb].copy_from_slice(src);
                     x += n as u32;
                 }
             }
-            out.write_all(&plane).map_err(StoreError::io("cannot write the export"))?;
+            out.write_all(&plane)
+                .map_err(StoreError::io("cannot write the export"))?;
             progress.inc(1);
         }
     }
-    out.flush().map_err(StoreError::io("cannot write the export"))?;
+    out.flush()
+        .map_err(StoreError::io("cannot write the export"))?;
     progress.finish_and_clear();
     Ok(())
 }

@@ -45,7 +45,8 @@ pub fn preorder_index(height: u32, key: BrickKey) -> u64 {
     let mut index = 0u64;
     for d in 1..=depth {
         let shift = depth - d;
-        let octant = ((key.x >> shift) & 1) | (((key.y >> shift) & 1) << 1) | (((key.z >> shift) & 1) << 2);
+        let octant =
+            ((key.x >> shift) & 1) | (((key.y >> shift) & 1) << 1) | (((key.z >> shift) & 1) << 2);
         index += 1 + octant as u64 * node_count(height - d);
     }
     index
@@ -61,15 +62,28 @@ fn preorder_keys(height: u32) -> Vec<BrickKey> {
         }
         let _ = height;
         for octant in 0..8u32 {
-            visit(out, height, BrickKey {
-                level: key.level - 1,
-                x: key.x * 2 + (octant & 1),
-                y: key.y * 2 + (octant >> 1 & 1),
-                z: key.z * 2 + (octant >> 2),
-            });
+            visit(
+                out,
+                height,
+                BrickKey {
+                    level: key.level - 1,
+                    x: key.x * 2 + (octant & 1),
+                    y: key.y * 2 + (octant >> 1 & 1),
+                    z: key.z * 2 + (octant >> 2),
+                },
+            );
         }
     }
-    visit(&mut out, height, BrickKey { level: (height - 1) as u8, x: 0, y: 0, z: 0 });
+    visit(
+        &mut out,
+        height,
+        BrickKey {
+            level: (height - 1) as u8,
+            x: 0,
+            y: 0,
+            z: 0,
+        },
+    );
     out
 }
 
@@ -104,7 +118,11 @@ pub fn write_vod1(snap: &Snapshot, compress: bool, out: &mut dyn Write) -> Resul
         let id = match found {
             Some(id) => id,
             None => {
-                let payload = if compress { lz4_flex::block::compress(&decoded) } else { decoded.clone() };
+                let payload = if compress {
+                    lz4_flex::block::compress(&decoded)
+                } else {
+                    decoded.clone()
+                };
                 bricks.push((hash, payload));
                 let id = bricks.len() as u32;
                 ids.entry(hash).or_default().push(id);
@@ -153,12 +171,22 @@ pub fn write_vod1(snap: &Snapshot, compress: bool, out: &mut dyn Write) -> Resul
         buf.extend_from_slice(&(payload.len() as u32).to_le_bytes());
         buf.extend_from_slice(payload);
     }
-    out.write_all(&buf).map_err(StoreError::io("cannot write the VOD 1 file"))?;
+    out.write_all(&buf)
+        .map_err(StoreError::io("cannot write the VOD 1 file"))?;
     Ok(buf.len() as u64)
 }
 
-fn decode_payload(payload: &[u8], compressed: bool, out: &mut [u8], offset: u64) -> Result<(), StoreError> {
-    let codec = if compressed { isovox_proto::vod2::Codec::Lz4 } else { isovox_proto::vod2::Codec::Raw };
+fn decode_payload(
+    payload: &[u8],
+    compressed: bool,
+    out: &mut [u8],
+    offset: u64,
+) -> Result<(), StoreError> {
+    let codec = if compressed {
+        isovox_proto::vod2::Codec::Lz4
+    } else {
+        isovox_proto::vod2::Codec::Raw
+    };
     codec::decode(codec, payload, out, offset)
 }
 
@@ -187,27 +215,44 @@ impl<'a> Vod1<'a> {
         f.magic(0, SIGNATURE)?;
         let version = f.u32(4)?;
         if version != 1 {
-            return Err(FormatError::Unsupported { what: "VOD 1 file version", detail: version.to_string() }.into());
+            return Err(FormatError::Unsupported {
+                what: "VOD 1 file version",
+                detail: version.to_string(),
+            }
+            .into());
         }
         let dims = [f.u32(8)?, f.u32(12)?, f.u32(16)?];
         let brick = [f.u32(20)?, f.u32(24)?, f.u32(28)?];
         if brick[0] != brick[1] || brick[1] != brick[2] {
-            return Err(FormatError::Unsupported { what: "brick size", detail: format!("{brick:?} (Isovox bricks are cubes)") }.into());
+            return Err(FormatError::Unsupported {
+                what: "brick size",
+                detail: format!("{brick:?} (Isovox bricks are cubes)"),
+            }
+            .into());
         }
         let voxel_scale = [f.f32(32)?, f.f32(36)?, f.f32(40)?];
         let height = f.u32(44)?;
         let bits = f.u32(48)?;
         let flags = f.u32(60)?;
         if flags & FLAG_FLOAT != 0 {
-            return Err(FormatError::Unsupported { what: "voxel data", detail: "float voxels".into() }.into());
+            return Err(FormatError::Unsupported {
+                what: "voxel data",
+                detail: "float voxels".into(),
+            }
+            .into());
         }
-        let voxel_type = VoxelType::from_bits(bits)
-            .ok_or_else(|| FormatError::Unsupported { what: "voxel size", detail: format!("{bits} bits") })?;
+        let voxel_type = VoxelType::from_bits(bits).ok_or_else(|| FormatError::Unsupported {
+            what: "voxel size",
+            detail: format!("{bits} bits"),
+        })?;
         let layout = VolumeLayout::new(dims, brick[0], voxel_type)?;
         if height != layout.levels() as u32 {
             return Err(FormatError::invalid(
                 "VOD 1 header",
-                format!("tree height {height}, but the volume's octree has {} levels", layout.levels()),
+                format!(
+                    "tree height {height}, but the volume's octree has {} levels",
+                    layout.levels()
+                ),
             )
             .into());
         }
@@ -215,37 +260,68 @@ impl<'a> Vod1<'a> {
             b"XH64" => 8,
             b"XH32" => 4,
             other => {
-                return Err(FormatError::Unsupported { what: "hash algorithm", detail: String::from_utf8_lossy(other).into() }.into())
+                return Err(FormatError::Unsupported {
+                    what: "hash algorithm",
+                    detail: String::from_utf8_lossy(other).into(),
+                }
+                .into())
             }
         };
         let compressed = match (&f.fourcc(56)?, flags & FLAG_COMPRESSED != 0) {
             (b"LZ4B", true) => true,
             (_, false) => false,
             (other, true) => {
-                return Err(FormatError::Unsupported { what: "compression", detail: String::from_utf8_lossy(other).into() }.into())
+                return Err(FormatError::Unsupported {
+                    what: "compression",
+                    detail: String::from_utf8_lossy(other).into(),
+                }
+                .into())
             }
         };
         let n_nodes = node_count(height);
         let nodes_at = HEADER_LEN;
         // Bounds before any allocation: the node array and the table must fit in the file.
-        f.slice(nodes_at, n_nodes.saturating_mul(4).min(bytes.len() as u64 + 1) as usize)?;
+        f.slice(
+            nodes_at,
+            n_nodes.saturating_mul(4).min(bytes.len() as u64 + 1) as usize,
+        )?;
         let count_at = nodes_at + n_nodes as usize * 4; // fits: the slice above exists
         let n_bricks = f.u32(count_at)? as usize;
         let entry_len = 8 + hash_width;
-        let table = f.slice(count_at + 4, n_bricks.saturating_mul(entry_len).min(bytes.len() + 1))?;
+        let table = f.slice(
+            count_at + 4,
+            n_bricks.saturating_mul(entry_len).min(bytes.len() + 1),
+        )?;
         let mut bricks = HashMap::with_capacity(n_bricks);
         for e in table.chunks_exact(entry_len) {
             let t = Fields::new("VOD 1 brick table", e, 0);
             let id = t.u32(0)?;
             let offset = t.u32(4)? as u64;
-            let hash = if hash_width == 8 { t.u64(8)? } else { t.u32(8)? as u64 };
+            let hash = if hash_width == 8 {
+                t.u64(8)?
+            } else {
+                t.u32(8)? as u64
+            };
             let size = f.u32(offset as usize)?;
             f.slice(offset as usize + 4, size as usize)?;
             if id == 0 || bricks.insert(id, (offset, hash)).is_some() {
-                return Err(FormatError::invalid("VOD 1 brick table", format!("brick ID {id} is zero or listed twice")).into());
+                return Err(FormatError::invalid(
+                    "VOD 1 brick table",
+                    format!("brick ID {id} is zero or listed twice"),
+                )
+                .into());
             }
         }
-        Ok(Vod1 { bytes, layout, voxel_scale, height, compressed, hash_width, nodes_at, bricks })
+        Ok(Vod1 {
+            bytes,
+            layout,
+            voxel_scale,
+            height,
+            compressed,
+            hash_width,
+            nodes_at,
+            bricks,
+        })
     }
 
     /// Number of distinct bricks stored.
@@ -265,17 +341,26 @@ impl<'a> Vod1<'a> {
             out.fill(0);
             return Ok(());
         }
-        let &(offset, hash) = self
-            .bricks
-            .get(&id)
-            .ok_or_else(|| FormatError::invalid("VOD 1 node array", format!("node {node} names unknown brick {id}")))?;
+        let &(offset, hash) = self.bricks.get(&id).ok_or_else(|| {
+            FormatError::invalid(
+                "VOD 1 node array",
+                format!("node {node} names unknown brick {id}"),
+            )
+        })?;
         let size = f.u32(offset as usize)? as usize;
         let payload = f.slice(offset as usize + 4, size)?;
         decode_payload(payload, self.compressed, out, offset)?;
         let computed = content_hash(out);
-        let computed = if self.hash_width == 8 { computed } else { computed & 0xffff_ffff };
+        let computed = if self.hash_width == 8 {
+            computed
+        } else {
+            computed & 0xffff_ffff
+        };
         if computed != hash {
-            return Err(StoreError::corrupt(offset, format!("VOD 1 brick {id}: hash {computed:#x} differs from stored {hash:#x}")));
+            return Err(StoreError::corrupt(
+                offset,
+                format!("VOD 1 brick {id}: hash {computed:#x} differs from stored {hash:#x}"),
+            ));
         }
         Ok(())
     }
@@ -291,7 +376,10 @@ pub struct Vod1Source<'a> {
 
 impl<'a> Vod1Source<'a> {
     pub fn new(vod1: &'a Vod1<'a>) -> Self {
-        Vod1Source { vod1, error: std::sync::Mutex::new(None) }
+        Vod1Source {
+            vod1,
+            error: std::sync::Mutex::new(None),
+        }
     }
 
     /// # Errors
@@ -330,12 +418,38 @@ mod tests {
     fn preorder_index_agrees_with_traversal() {
         for height in 1..5 {
             for (i, key) in preorder_keys(height).into_iter().enumerate() {
-                assert_eq!(preorder_index(height, key), i as u64, "height {height} key {key}");
+                assert_eq!(
+                    preorder_index(height, key),
+                    i as u64,
+                    "height {height} key {key}"
+                );
             }
         }
         // Hand-computed, height 3: root 0; its child octant 1 (x=1) at 1 + 1*9 = 10; that node's
         // child octant 2 (y=1): 10 + 1 + 2*1 = 13, which is level-0 brick (2, 1, 0).
-        assert_eq!(preorder_index(3, BrickKey { level: 1, x: 1, y: 0, z: 0 }), 10);
-        assert_eq!(preorder_index(3, BrickKey { level: 0, x: 2, y: 1, z: 0 }), 13);
+        assert_eq!(
+            preorder_index(
+                3,
+                BrickKey {
+                    level: 1,
+                    x: 1,
+                    y: 0,
+                    z: 0
+                }
+            ),
+            10
+        );
+        assert_eq!(
+            preorder_index(
+                3,
+                BrickKey {
+                    level: 0,
+                    x: 2,
+                    y: 1,
+                    z: 0
+                }
+            ),
+            13
+        );
     }
 }

@@ -17,7 +17,7 @@ use super::codec;
 use super::mapping::Mapping;
 use super::StoreError;
 use isovox_proto::vod2::{
-    content_hash, BrickHeader, Checkpoint, ChunkRef, CommitHeader, FileHeader, HeaderSlot, NodeEntry,
+    content_hash, BrickHeader, Checkpoint, CommitHeader, FileHeader, HeaderSlot, NodeEntry,
     BRICK_HEADER_LEN, CHUNK_ENTRIES, DATA_START, HEADER_LEN, SLOT_LEN, SLOT_OFFSETS,
 };
 use isovox_proto::{BrickKey, FormatError, VolumeLayout};
@@ -89,13 +89,19 @@ impl Vod2 {
         }
         let header = FileHeader::decode(&read_exact_at(&file, path, 0, HEADER_LEN)?)?;
         let slot = Self::find_head_slot(&file, path, file_len)?;
-        let map = Arc::new(Mapping::new(&file, slot.committed_len).map_err(StoreError::io_path("cannot map", path))?);
+        let map = Arc::new(
+            Mapping::new(&file, slot.committed_len)
+                .map_err(StoreError::io_path("cannot map", path))?,
+        );
         let header = Arc::new(header);
         let head = Arc::new(Snapshot::load(header.clone(), map.clone(), slot.commit)?);
         if head.version != slot.version {
             return Err(FormatError::invalid(
                 "header slot",
-                format!("names version {}, its commit record says {}", slot.version, head.version),
+                format!(
+                    "names version {}, its commit record says {}",
+                    slot.version, head.version
+                ),
             )
             .into());
         }
@@ -134,7 +140,11 @@ impl Vod2 {
             }
         }
         best.ok_or_else(|| {
-            FormatError::invalid("header slots", format!("no valid slot: {}", problems.join("; "))).into()
+            FormatError::invalid(
+                "header slots",
+                format!("no valid slot: {}", problems.join("; ")),
+            )
+            .into()
         })
     }
 
@@ -173,7 +183,11 @@ impl Vod2 {
         loop {
             let (h, _) = CommitHeader::decode(&bytes[at as usize..], at)?;
             if h.version == version {
-                return Ok(Arc::new(Snapshot::load(self.header.clone(), self.map.clone(), at)?));
+                return Ok(Arc::new(Snapshot::load(
+                    self.header.clone(),
+                    self.map.clone(),
+                    at,
+                )?));
             }
             if h.parent == 0 || h.version < version {
                 return Err(StoreError::Invalid(format!(
@@ -223,13 +237,21 @@ pub struct Snapshot {
 }
 
 impl Snapshot {
-    fn load(header: Arc<FileHeader>, map: Arc<Mapping>, commit_at: u64) -> Result<Snapshot, StoreError> {
+    fn load(
+        header: Arc<FileHeader>,
+        map: Arc<Mapping>,
+        commit_at: u64,
+    ) -> Result<Snapshot, StoreError> {
         let bytes = map.bytes();
         let layout = &header.layout;
         let committed = bytes.len() as u64;
         let region = |at: u64| -> Result<&[u8], StoreError> {
             bytes.get(at as usize..).ok_or_else(|| {
-                FormatError::invalid("commit chain", format!("offset {at} past the committed length {committed}")).into()
+                FormatError::invalid(
+                    "commit chain",
+                    format!("offset {at} past the committed length {committed}"),
+                )
+                .into()
             })
         };
         // Walk back to the newest checkpoint, keeping each commit's changes.
@@ -246,13 +268,20 @@ impl Snapshot {
             if parent.version + 1 != h.version {
                 return Err(FormatError::invalid(
                     "commit chain",
-                    format!("commit at {at} is version {}, its parent is version {}", h.version, parent.version),
+                    format!(
+                        "commit at {at} is version {}, its parent is version {}",
+                        h.version, parent.version
+                    ),
                 )
                 .into());
             }
             at = h.parent;
         };
-        let index = Arc::new(IndexChunks::open(region(checkpoint_at)?, checkpoint_at, layout.node_count())?);
+        let index = Arc::new(IndexChunks::open(
+            region(checkpoint_at)?,
+            checkpoint_at,
+            layout.node_count(),
+        )?);
         let mut overlay = HashMap::new();
         // The checkpoint holds the state after its own commit: apply only the later ones.
         for record in chain.iter().rev().skip(1) {
@@ -260,7 +289,10 @@ impl Snapshot {
                 if node >= layout.node_count() {
                     return Err(FormatError::invalid(
                         "commit record",
-                        format!("change to node {node}, the volume has {}", layout.node_count()),
+                        format!(
+                            "change to node {node}, the volume has {}",
+                            layout.node_count()
+                        ),
                     )
                     .into());
                 }
@@ -291,9 +323,14 @@ impl Snapshot {
         self.commit_offset
     }
 
-    /// Offset and length of the index checkpoint this version builds on.
-    pub fn checkpoint_span(&self) -> (u64, u64) {
-        (self.index.base, self.index.total_len)
+    /// Offset and length of the index checkpoint this version builds on (reads every chunk
+    /// reference).
+    ///
+    /// # Errors
+    /// A chunk reference is invalid.
+    pub fn checkpoint_span(&self) -> Result<(u64, u64), StoreError> {
+        let cp = self.index.checkpoint(self.map.bytes())?;
+        Ok((self.index.base, cp.total_len()?))
     }
 
     /// Number of entries that differ from the checkpoint.
@@ -308,13 +345,21 @@ impl Snapshot {
     pub fn entry_at(&self, node: u64) -> Result<NodeEntry, StoreError> {
         let layout = self.layout();
         if node >= layout.node_count() {
-            return Err(FormatError::invalid("node index", format!("{node} >= {}", layout.node_count())).into());
+            return Err(FormatError::invalid(
+                "node index",
+                format!("{node} >= {}", layout.node_count()),
+            )
+            .into());
         }
         let raw = match self.overlay.get(&node) {
             Some(&raw) => raw,
             None => self.index.entry(self.map.bytes(), node)?,
         };
-        Ok(NodeEntry::decode(raw, layout.voxel_type(), self.map.bytes().len() as u64)?)
+        Ok(NodeEntry::decode(
+            raw,
+            layout.voxel_type(),
+            self.map.bytes().len() as u64,
+        )?)
     }
 
     /// The index entry of a brick.
@@ -324,7 +369,9 @@ impl Snapshot {
     pub fn entry(&self, key: BrickKey) -> Result<NodeEntry, StoreError> {
         let layout = self.layout();
         if !layout.contains(key) {
-            return Err(StoreError::Invalid(format!("brick {key} is outside the volume")));
+            return Err(StoreError::Invalid(format!(
+                "brick {key} is outside the volume"
+            )));
         }
         self.entry_at(layout.node_index(key))
     }
@@ -339,14 +386,17 @@ impl Snapshot {
             NodeEntry::Stored(offset) => {
                 let bytes = self.map.bytes();
                 let at = offset as usize;
-                let header = BrickHeader::decode(&bytes[at..at + BRICK_HEADER_LEN], offset, self.layout())?;
+                let header =
+                    BrickHeader::decode(&bytes[at..at + BRICK_HEADER_LEN], offset, self.layout())?;
                 let start = at + BRICK_HEADER_LEN;
-                let payload = bytes.get(start..start + header.stored_len as usize).ok_or(FormatError::Truncated {
-                    what: "brick payload",
-                    offset: start as u64,
-                    needed: header.stored_len as u64,
-                    available: (bytes.len() - start) as u64,
-                })?;
+                let payload = bytes.get(start..start + header.stored_len as usize).ok_or(
+                    FormatError::Truncated {
+                        what: "brick payload",
+                        offset: start as u64,
+                        needed: header.stored_len as u64,
+                        available: (bytes.len() - start) as u64,
+                    },
+                )?;
                 Ok(StoredBrick::Record {
                     offset,
                     header,
@@ -403,31 +453,29 @@ impl Snapshot {
 #[derive(Debug)]
 struct IndexChunks {
     base: u64,
-    total_len: u64,
-    refs: Vec<ChunkRef>,
-    chunks: Vec<OnceLock<Box<[u64]>>>,
     n_nodes: u64,
+    chunks: Vec<OnceLock<Box<[u64]>>>,
 }
 
 impl IndexChunks {
-    /// Reads and checks the directory (24 bytes per 512 entries) and every chunk's bounds.
+    /// Checks the checkpoint's fixed fields; chunks are checked when first used.
     fn open(avail: &[u8], base: u64, n_nodes: u64) -> Result<IndexChunks, StoreError> {
-        let cp = Checkpoint::decode(avail, base, n_nodes)?;
-        let n_chunks = Checkpoint::n_chunks(n_nodes);
-        let mut refs = Vec::with_capacity(n_chunks as usize);
-        let mut total_len = Checkpoint::directory_len(n_nodes);
-        for c in 0..n_chunks {
-            let (r, _) = cp.chunk(c)?;
-            total_len = total_len.max(r.offset + r.stored_len as u64);
-            refs.push(r);
-        }
+        Checkpoint::decode(avail, base, n_nodes)?;
         Ok(IndexChunks {
             base,
-            total_len,
-            refs,
-            chunks: (0..n_chunks).map(|_| OnceLock::new()).collect(),
             n_nodes,
+            chunks: (0..Checkpoint::n_chunks(n_nodes))
+                .map(|_| OnceLock::new())
+                .collect(),
         })
+    }
+
+    fn checkpoint<'m>(&self, mapped: &'m [u8]) -> Result<Checkpoint<'m>, StoreError> {
+        Ok(Checkpoint::decode(
+            &mapped[self.base as usize..],
+            self.base,
+            self.n_nodes,
+        )?)
     }
 
     fn entry(&self, mapped: &[u8], node: u64) -> Result<u64, StoreError> {
@@ -435,21 +483,21 @@ impl IndexChunks {
         let chunk = match self.chunks[c].get() {
             Some(chunk) => chunk,
             None => {
-                let decoded = self.decode_chunk(mapped, c)?;
+                let decoded = self.decode_chunk(mapped, c as u64)?;
                 // Another reader may have decoded it meanwhile: either copy is the same.
                 let _ = self.chunks[c].set(decoded);
-                self.chunks[c].get().ok_or_else(|| StoreError::Invalid("index chunk vanished".into()))?
+                self.chunks[c]
+                    .get()
+                    .ok_or_else(|| StoreError::Invalid("index chunk vanished".into()))?
             }
         };
         Ok(chunk[(node % CHUNK_ENTRIES) as usize])
     }
 
-    fn decode_chunk(&self, mapped: &[u8], c: usize) -> Result<Box<[u64]>, StoreError> {
-        let r = self.refs[c];
-        let entries = CHUNK_ENTRIES.min(self.n_nodes - c as u64 * CHUNK_ENTRIES) as usize;
-        let at = (self.base + r.offset) as usize;
-        let payload = &mapped[at..at + r.stored_len as usize];
-        let mut bytes = vec![0u8; entries * 8];
+    fn decode_chunk(&self, mapped: &[u8], c: u64) -> Result<Box<[u64]>, StoreError> {
+        let cp = self.checkpoint(mapped)?;
+        let (r, payload) = cp.chunk(c)?;
+        let mut bytes = vec![0u8; cp.chunk_entries(c) as usize * 8];
         codec::decode(r.codec, payload, &mut bytes, self.base + r.offset)?;
         let hash = xxhash_rust::xxh3::xxh3_64(&bytes);
         if hash != r.hash {
@@ -472,7 +520,11 @@ impl IndexChunks {
 ///
 /// # Errors
 /// The payload does not decode, or decodes to bytes whose hash differs from the header's.
-pub fn decode_stored(stored: &StoredBrick<'_>, layout: &VolumeLayout, out: &mut [u8]) -> Result<(), StoreError> {
+pub fn decode_stored(
+    stored: &StoredBrick<'_>,
+    layout: &VolumeLayout,
+    out: &mut [u8],
+) -> Result<(), StoreError> {
     match *stored {
         StoredBrick::Constant(v) => codec::fill_constant(out, v, layout.voxel_type()),
         StoredBrick::Record {
@@ -485,7 +537,10 @@ pub fn decode_stored(stored: &StoredBrick<'_>, layout: &VolumeLayout, out: &mut 
             if hash != header.hash {
                 return Err(StoreError::corrupt(
                     offset,
-                    format!("content hash {hash:#018x} differs from the stored {:#018x}", header.hash),
+                    format!(
+                        "content hash {hash:#018x} differs from the stored {:#018x}",
+                        header.hash
+                    ),
                 ));
             }
         }

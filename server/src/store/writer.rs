@@ -75,7 +75,11 @@ impl Vod2Writer {
     ///
     /// # Errors
     /// The file cannot be created or written.
-    pub fn create(path: &Path, header: FileHeader, compression: Compression) -> Result<Self, StoreError> {
+    pub fn create(
+        path: &Path,
+        header: FileHeader,
+        compression: Compression,
+    ) -> Result<Self, StoreError> {
         let file = OpenOptions::new()
             .read(true)
             .write(true)
@@ -116,7 +120,9 @@ impl Vod2Writer {
         for node in 0..snap.layout().node_count() {
             if let NodeEntry::Stored(offset) = snap.entry_at(node)? {
                 if seen.insert(offset) {
-                    if let super::StoredBrick::Record { header, .. } = snap.stored_entry(NodeEntry::Stored(offset))? {
+                    if let super::StoredBrick::Record { header, .. } =
+                        snap.stored_entry(NodeEntry::Stored(offset))?
+                    {
                         known.entry(header.hash).or_default().push(offset);
                     }
                 }
@@ -131,7 +137,10 @@ impl Vod2Writer {
             .open(path)
             .map_err(StoreError::io_path("cannot open for writing", path))?;
         file.set_len(head.committed_len)
-            .map_err(StoreError::io_path("cannot cut the unfinished tail of", path))?;
+            .map_err(StoreError::io_path(
+                "cannot cut the unfinished tail of",
+                path,
+            ))?;
         Ok(Vod2Writer {
             file,
             path: path.to_path_buf(),
@@ -207,7 +216,11 @@ impl Vod2Writer {
     ///
     /// # Errors
     /// Reading back a candidate duplicate or appending fails.
-    pub fn store(&mut self, voxels: &BrickVoxels, brick: PreparedBrick) -> Result<NodeEntry, StoreError> {
+    pub fn store(
+        &mut self,
+        voxels: &BrickVoxels,
+        brick: PreparedBrick,
+    ) -> Result<NodeEntry, StoreError> {
         let bytes = match (voxels, brick.constant.as_ref()) {
             (BrickVoxels::Data(d), None) => d,
             (BrickVoxels::Constant(v), _) | (BrickVoxels::Data(_), Some(v)) => {
@@ -259,7 +272,11 @@ impl Vod2Writer {
     ///
     /// # Errors
     /// Writing or syncing fails; the head is then unchanged.
-    pub fn commit(&mut self, changes: &[(u64, NodeEntry)], checkpoint: Option<&[u64]>) -> Result<HeaderSlot, StoreError> {
+    pub fn commit(
+        &mut self,
+        changes: &[(u64, NodeEntry)],
+        checkpoint: Option<&[u64]>,
+    ) -> Result<HeaderSlot, StoreError> {
         let checkpoint_at = match checkpoint {
             Some(entries) => {
                 assert_eq!(entries.len() as u64, self.header.layout.node_count());
@@ -267,7 +284,9 @@ impl Vod2Writer {
             }
             None => {
                 if self.head.is_none() {
-                    return Err(StoreError::Invalid("the first commit of a file needs a checkpoint".into()));
+                    return Err(StoreError::Invalid(
+                        "the first commit of a file needs a checkpoint".into(),
+                    ));
                 }
                 0
             }
@@ -301,7 +320,10 @@ impl Vod2Writer {
         let slot_at = SLOT_OFFSETS[(seq % 2) as usize];
         self.file
             .write_all_at(&slot.encode(), slot_at)
-            .map_err(StoreError::io_path("cannot write header slot of", &self.path))?;
+            .map_err(StoreError::io_path(
+                "cannot write header slot of",
+                &self.path,
+            ))?;
         self.file
             .sync_data()
             .map_err(StoreError::io_path("cannot sync", &self.path))?;
@@ -319,14 +341,20 @@ pub fn encode_checkpoint(entries: &[u64]) -> Vec<u8> {
         .map(|chunk| {
             let bytes: Vec<u8> = chunk.iter().flat_map(|e| e.to_le_bytes()).collect();
             let hash = xxhash_rust::xxh3::xxh3_64(&bytes);
-            let (codec, payload) = codec::encode(&bytes, Compression::Zstd(codec::DEFAULT_ZSTD_LEVEL));
+            let (codec, payload) =
+                codec::encode(&bytes, Compression::Zstd(codec::DEFAULT_ZSTD_LEVEL));
             (codec, payload, hash)
         })
         .collect();
     Checkpoint::encode(entries.len() as u64, &chunks)
 }
 
-fn prepare(voxels: &BrickVoxels, voxel_type: VoxelType, compression: Compression, known: &HashMap<u64, Vec<u64>>) -> PreparedBrick {
+fn prepare(
+    voxels: &BrickVoxels,
+    voxel_type: VoxelType,
+    compression: Compression,
+    known: &HashMap<u64, Vec<u64>>,
+) -> PreparedBrick {
     let constant = |v| PreparedBrick {
         constant: Some(v),
         hash: 0,
