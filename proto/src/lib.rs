@@ -4,12 +4,14 @@
 //! byte slices, so the server, the client, tools and tests agree on one definition.
 //!
 //! Layout:
+//! - [`api`]: the JSON types of the HTTP API.
 //! - [`voxel`]: voxel types and the ICVG value range (L, H, S).
 //! - [`layout`]: the brick octree's geometry: levels, brick grids, [`BrickKey`], node indices.
 //! - [`vod2`]: the VOD 2 file's on-disk records (header, slots, commits, index, bricks), encoded
 //!   and decoded over byte slices with validation. The byte layout is in `docs/vod2.md`.
 //! - [`error`]: [`FormatError`], what a malformed record is.
 
+pub mod api;
 pub mod error;
 pub mod layout;
 pub mod vod2;

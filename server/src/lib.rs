@@ -8,9 +8,13 @@
 //! - [`store`]: VOD 1 and VOD 2 files, brick index, deduplication, commits (the foundation).
 //! - [`icvg`]: primitives of the volume algebra (`spec/icvg.md`).
 //! - [`generate`]: synthetic data sets (ellipsoid, Perlin-noise world).
+//! - [`catalog`]: the volumes a server serves.
+//! - [`http`]: the axum router, thin handlers, errors as responses.
 //! - [`cli`]: the `isovox` subcommands.
 
+pub mod catalog;
 pub mod cli;
 pub mod generate;
+pub mod http;
 pub mod icvg;
 pub mod store;

@@ -3,6 +3,7 @@
 
 mod bench;
 mod data;
+mod serve;
 
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
@@ -20,6 +21,9 @@ pub struct Cli {
 
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    /// Serve every VOD 2 file of a data directory over HTTP (a demo world is generated on
+    /// first start).
+    Serve(serve::ServeArgs),
     /// Import a RAW, RAWVOX or VOD 1 file into VOD 2 (or write VOD 1 with --format vod1).
     Import(data::ImportArgs),
     /// Export a level (or a region of it) to RAW/RAWVOX, or the whole volume to VOD 1.
@@ -41,6 +45,7 @@ pub enum Command {
 /// Whatever the subcommand fails with, with context for the user.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
+        Command::Serve(a) => serve::serve(a),
         Command::Import(a) => data::import(a),
         Command::Export(a) => data::export(a),
         Command::Generate(a) => data::generate(a),

@@ -1,0 +1,85 @@
+//! The volumes a server serves: every VOD 2 file of its data directory, named after the file.
+
+use crate::store::{StoreError, Vod2};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// Volumes by name.
+#[derive(Debug, Default)]
+pub struct Catalog {
+    volumes: BTreeMap<String, Arc<Vod2>>,
+}
+
+/// Whether `name` is acceptable as a volume name (and so as a file stem and URL segment).
+pub fn valid_name(name: &str) -> bool {
+    !name.is_empty()
+        && name.len() <= 128
+        && !name.starts_with('.')
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-' || b == b'.')
+}
+
+impl Catalog {
+    /// Opens every `*.vod` VOD 2 file in `dir`. A file that does not open is reported and left
+    /// out, so one damaged volume does not take the others down.
+    ///
+    /// # Errors
+    /// The directory cannot be read.
+    pub fn open_dir(dir: &Path) -> Result<Catalog, StoreError> {
+        let mut volumes = BTreeMap::new();
+        let entries = std::fs::read_dir(dir)
+            .map_err(StoreError::io_path("cannot read the data directory", dir))?;
+        let mut paths: Vec<PathBuf> = entries
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|e| e == "vod"))
+            .collect();
+        paths.sort();
+        for path in paths {
+            let Some(name) = path
+                .file_stem()
+                .and_then(|s| s.to_str())
+                .map(str::to_string)
+            else {
+                continue;
+            };
+            if !valid_name(&name) {
+                tracing::warn!(path = %path.display(), "skipping a volume whose name is not [A-Za-z0-9_.-]");
+                continue;
+            }
+            match Vod2::open(&path) {
+                Ok(vod) => {
+                    volumes.insert(name, Arc::new(vod));
+                }
+                Err(e) => {
+                    tracing::error!(path = %path.display(), error = %e, "cannot open volume; not serving it")
+                }
+            }
+        }
+        Ok(Catalog { volumes })
+    }
+
+    /// Serves exactly these volumes (for tests and embedding).
+    pub fn from_volumes(volumes: impl IntoIterator<Item = (String, Vod2)>) -> Catalog {
+        Catalog {
+            volumes: volumes.into_iter().map(|(n, v)| (n, Arc::new(v))).collect(),
+        }
+    }
+
+    pub fn get(&self, name: &str) -> Option<Arc<Vod2>> {
+        self.volumes.get(name).cloned()
+    }
+
+    pub fn iter(&self) -> impl Iterator<Item = (&str, &Arc<Vod2>)> {
+        self.volumes.iter().map(|(n, v)| (n.as_str(), v))
+    }
+
+    pub fn len(&self) -> usize {
+        self.volumes.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.volumes.is_empty()
+    }
+}

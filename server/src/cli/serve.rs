@@ -1,0 +1,98 @@
+//! `isovox serve`: serve every VOD 2 file of a data directory over HTTP.
+
+use super::progress;
+use crate::catalog::Catalog;
+use crate::generate::WorldSource;
+use crate::http::{run, shutdown_signal, AppState};
+use crate::store::{build_vod2, BuildOptions};
+use anyhow::Context;
+use clap::Args;
+use isovox_proto::{VolumeLayout, VoxelType};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+#[derive(Debug, Args)]
+pub struct ServeArgs {
+    /// Directory of VOD 2 files; each is served as a volume named after the file. When it holds
+    /// none, a demo world is generated there first.
+    #[arg(long, env = "ISOVOX_DATA", default_value = "data")]
+    pub data: PathBuf,
+    /// Address to listen on.
+    #[arg(long, env = "ISOVOX_ADDR", default_value = "127.0.0.1:7070")]
+    pub addr: SocketAddr,
+}
+
+/// Name of the volume generated on first start.
+pub const DEMO_NAME: &str = "demo";
+
+fn has_volumes(dir: &Path) -> bool {
+    std::fs::read_dir(dir)
+        .map(|entries| {
+            entries
+                .filter_map(Result::ok)
+                .any(|e| e.path().extension().is_some_and(|x| x == "vod"))
+        })
+        .unwrap_or(false)
+}
+
+/// Generates the demo world (512 x 256 x 512 terrain, brick 32) into `dir`.
+fn generate_demo(dir: &Path) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir)
+        .with_context(|| format!("cannot create the data directory {}", dir.display()))?;
+    let path = dir.join(format!("{DEMO_NAME}.vod"));
+    eprintln!(
+        "{} holds no volume: generating a demo world in {}",
+        dir.display(),
+        path.display()
+    );
+    let layout = VolumeLayout::new([512, 256, 512], 32, VoxelType::U8)?;
+    let tmp = super::sibling(&path, ".isovox-tmp");
+    let options = BuildOptions {
+        progress: progress("demo world"),
+        ..BuildOptions::default()
+    };
+    build_vod2(
+        &tmp,
+        &layout,
+        [1.0; 3],
+        &WorldSource::new(layout.clone(), 1),
+        &options,
+    )?;
+    std::fs::rename(&tmp, &path)?;
+    Ok(())
+}
+
+pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
+    if !has_volumes(&a.data) {
+        generate_demo(&a.data)?;
+    }
+    let catalog = Catalog::open_dir(&a.data)?;
+    if catalog.is_empty() {
+        anyhow::bail!(
+            "no volume in {} could be opened (see the errors above)",
+            a.data.display()
+        );
+    }
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    runtime.block_on(async {
+        let listener = tokio::net::TcpListener::bind(a.addr)
+            .await
+            .with_context(|| format!("cannot listen on {}", a.addr))?;
+        let addr = listener.local_addr()?;
+        let names: Vec<&str> = catalog.iter().map(|(n, _)| n).collect();
+        eprintln!(
+            "isovox serving {} on http://{addr}/v1/volumes",
+            names.join(", ")
+        );
+        let state = AppState {
+            catalog: Arc::new(catalog),
+        };
+        run(listener, state, shutdown_signal())
+            .await
+            .context("server failed")
+    })
+}

@@ -1,0 +1,63 @@
+//! Errors as responses: one place decides every status code (RFC 9457 problem details).
+
+use crate::store::StoreError;
+use axum::http::{header, StatusCode};
+use axum::response::{IntoResponse, Response};
+use isovox_proto::api::Problem;
+
+/// An error a handler returns. Client errors (4xx) carry their detail to the client and are not
+/// logged as errors; server errors (5xx) return a generic body and log the cause.
+#[derive(Debug)]
+pub enum ApiError {
+    BadRequest(String),
+    NotFound(String),
+    NotAcceptable(String),
+    Internal(String),
+}
+
+impl ApiError {
+    pub fn not_found(what: impl Into<String>) -> Self {
+        ApiError::NotFound(what.into())
+    }
+}
+
+impl From<StoreError> for ApiError {
+    fn from(e: StoreError) -> Self {
+        match e {
+            // Raised by lookups for things that do not exist (a version no longer in the file,
+            // a key outside the volume): the client asked for something absent.
+            StoreError::Invalid(detail) => ApiError::NotFound(detail),
+            other => ApiError::Internal(other.to_string()),
+        }
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let (status, detail) = match self {
+            ApiError::BadRequest(d) => (StatusCode::BAD_REQUEST, d),
+            ApiError::NotFound(d) => (StatusCode::NOT_FOUND, d),
+            ApiError::NotAcceptable(d) => (StatusCode::NOT_ACCEPTABLE, d),
+            ApiError::Internal(cause) => {
+                tracing::error!(%cause, "internal error");
+                (
+                    StatusCode::INTERNAL_SERVER_ERROR,
+                    "the server failed to answer; the cause is in its log".to_string(),
+                )
+            }
+        };
+        let problem = Problem {
+            kind: "about:blank".into(),
+            title: status.canonical_reason().unwrap_or("Error").into(),
+            status: status.as_u16(),
+            detail,
+        };
+        let body = serde_json::to_vec(&problem).unwrap_or_default();
+        (
+            status,
+            [(header::CONTENT_TYPE, "application/problem+json")],
+            body,
+        )
+            .into_response()
+    }
+}

@@ -1,0 +1,89 @@
+//! The HTTP service: an axum router over the [`Catalog`], thin handlers, errors as responses.
+//!
+//! [`app`] builds the router from a state (tests call it without a socket); [`run`] serves it on
+//! a listener until `shutdown` resolves, then finishes in-flight requests.
+//!
+//! Routes (all under `/v1` but the probes):
+//! - `GET /healthz`: liveness.
+//! - `GET /v1/volumes`, `GET /v1/volumes/{name}`: what is served and how to address it.
+//! - `GET /v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}`: one brick (see [`handlers::brick`]).
+
+mod error;
+pub mod handlers;
+
+pub use error::ApiError;
+
+use crate::catalog::Catalog;
+use axum::http::StatusCode;
+use axum::routing::get;
+use axum::Router;
+use std::future::Future;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::net::TcpListener;
+use tower_http::cors::CorsLayer;
+use tower_http::timeout::TimeoutLayer;
+use tower_http::trace::TraceLayer;
+
+/// What every handler can reach.
+#[derive(Debug, Clone)]
+pub struct AppState {
+    pub catalog: Arc<Catalog>,
+}
+
+/// The router, with its layers: request spans, a 30 s timeout, CORS for browser clients.
+pub fn app(state: AppState) -> Router {
+    Router::new()
+        .route("/healthz", get(handlers::healthz))
+        .route("/v1/volumes", get(handlers::list_volumes))
+        .route("/v1/volumes/{name}", get(handlers::volume_info))
+        .route(
+            "/v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}",
+            get(handlers::brick),
+        )
+        .fallback(handlers::not_found)
+        .with_state(state)
+        .layer(TimeoutLayer::with_status_code(
+            StatusCode::SERVICE_UNAVAILABLE,
+            Duration::from_secs(30),
+        ))
+        .layer(CorsLayer::permissive())
+        .layer(TraceLayer::new_for_http())
+}
+
+/// Serves `state` on `listener` until `shutdown` completes, then lets in-flight requests finish.
+///
+/// # Errors
+/// The listener fails.
+pub async fn run(
+    listener: TcpListener,
+    state: AppState,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> std::io::Result<()> {
+    axum::serve(listener, app(state))
+        .with_graceful_shutdown(shutdown)
+        .await
+}
+
+/// Resolves on Ctrl-C or SIGTERM.
+pub async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        () = ctrl_c => {},
+        () = term => {},
+    }
+    tracing::info!("shutting down: finishing in-flight requests");
+}
