@@ -2,6 +2,8 @@
 //! bricks byte-exact against the file (raw, lz4, zstd content encoding), ETag revalidation, and
 //! every error status with its problem-details body.
 
+#![allow(clippy::unwrap_used)] // tests fail loudly on purpose
+
 use isovox_proto::api::{Problem, VolumeInfo, VolumeList};
 use isovox_proto::{VolumeLayout, VoxelType};
 use isovox_server::catalog::Catalog;
