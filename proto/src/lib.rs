@@ -5,6 +5,7 @@
 //!
 //! Layout:
 //! - [`api`]: the JSON types of the HTTP API.
+//! - [`icvg`]: ICVG terms and edit requests (JSON).
 //! - [`voxel`]: voxel types and the ICVG value range (L, H, S).
 //! - [`layout`]: the brick octree's geometry: levels, brick grids, [`BrickKey`], node indices.
 //! - [`vod2`]: the VOD 2 file's on-disk records (header, slots, commits, index, bricks), encoded
@@ -13,6 +14,7 @@
 
 pub mod api;
 pub mod error;
+pub mod icvg;
 pub mod layout;
 pub mod vod2;
 pub mod voxel;

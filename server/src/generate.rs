@@ -2,7 +2,7 @@
 //! terrain from a fractal Perlin-noise height map. Both are [`BrickSource`]s, so any size streams
 //! into a VOD 2 file without holding the volume in memory.
 
-use crate::icvg::primitives::Ellipsoid;
+use crate::icvg::primitives::{constant_over, Box3, Ellipsoid, Primitive};
 use crate::store::BrickSource;
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use noise::{Fbm, MultiFractal, NoiseFn, Perlin};
@@ -67,7 +67,7 @@ impl BrickSource for EllipsoidSource {
     fn constant(&self, key: BrickKey) -> Option<u16> {
         let (lo, hi, whole) = brick_box(&self.layout, key);
         let t = self.layout.voxel_type();
-        match self.ellipsoid.constant_over(lo, hi, t) {
+        match constant_over(&self.ellipsoid, &Box3::new(lo, hi.map(|c| c + 1)), t) {
             // A partial brick is padded with L: constant only if the inside is L too.
             Some(v) if whole || v == t.low() => Some(v),
             _ => None,

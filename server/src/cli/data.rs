@@ -111,6 +111,8 @@ pub enum Dataset {
     Ellipsoid,
     /// Terrain from a fractal Perlin-noise height map.
     World,
+    /// The world with tunnels, a crater and a few primitives applied as ICVG edits.
+    Scene,
 }
 
 #[derive(Debug, Args)]
@@ -343,18 +345,60 @@ pub fn export(a: ExportArgs) -> anyhow::Result<()> {
 
 pub fn generate(a: GenerateArgs) -> anyhow::Result<()> {
     let layout = VolumeLayout::new(a.dims, a.brick, a.voxel_type.into())?;
-    let source: Box<dyn BrickSource> = match a.dataset {
-        Dataset::Ellipsoid => Box::new(EllipsoidSource::new(layout.clone())),
-        Dataset::World => Box::new(WorldSource::new(layout.clone(), a.seed)),
-    };
+    let compression = a.compression.compression();
+    match a.dataset {
+        Dataset::Ellipsoid => build_to(
+            &a.output,
+            &layout,
+            [1.0; 3],
+            &EllipsoidSource::new(layout.clone()),
+            compression,
+            VodFormat::Vod2,
+        ),
+        Dataset::World => build_to(
+            &a.output,
+            &layout,
+            [1.0; 3],
+            &WorldSource::new(layout.clone(), a.seed),
+            compression,
+            VodFormat::Vod2,
+        ),
+        Dataset::Scene => generate_scene(
+            &a.output,
+            &layout,
+            &WorldSource::new(layout.clone(), a.seed),
+            compression,
+        ),
+    }
+}
+
+/// Builds the world, applies the scene's edits, then rebuilds the file from the final level 0,
+/// so the result is version 1 with no history and no garbage.
+pub fn generate_scene(
+    output: &Path,
+    layout: &VolumeLayout,
+    world: &dyn BrickSource,
+    compression: Compression,
+) -> anyhow::Result<()> {
+    let work = sibling(output, ".isovox-scene");
+    build_to(&work, layout, [1.0; 3], world, compression, VodFormat::Vod2)?;
+    for req in super::edit::scene_edits(layout.dims()) {
+        super::edit::edit_file(&work, &req)?;
+    }
+    let edited = Vod2::open(&work)?;
+    let source = crate::store::SnapshotSource::new(edited.head());
     build_to(
-        &a.output,
-        &layout,
+        output,
+        layout,
         [1.0; 3],
-        source.as_ref(),
-        a.compression.compression(),
+        &source,
+        compression,
         VodFormat::Vod2,
-    )
+    )?;
+    source.finish()?;
+    drop(edited);
+    std::fs::remove_file(&work).ok();
+    Ok(())
 }
 
 fn human(bytes: u64) -> String {

@@ -3,6 +3,7 @@
 
 mod bench;
 mod data;
+pub mod edit;
 mod serve;
 
 use clap::{Parser, Subcommand, ValueEnum};
@@ -30,6 +31,8 @@ pub enum Command {
     Export(data::ExportArgs),
     /// Generate a synthetic data set (the thesis's Table 2) straight into a VOD 2 file.
     Generate(data::GenerateArgs),
+    /// Apply an ICVG edit (JSON request, or a shorthand primitive) as a new version.
+    Edit(edit::EditArgs),
     /// Show a file's header, levels, bricks by codec, compression ratio and garbage bytes.
     Inspect(data::InspectArgs),
     /// Write one brick of one level, decoded (raw voxels), to a file or stdout.
@@ -50,6 +53,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Export(a) => data::export(a),
         Command::Generate(a) => data::generate(a),
         Command::Inspect(a) => data::inspect(a),
+        Command::Edit(a) => edit::edit(a),
         Command::Get(a) => data::get(a),
         Command::Bench(b) => bench::run(b),
     }

@@ -23,7 +23,7 @@ pub mod writer;
 
 pub use build::{build_vod2, stream_pyramid, BuildOptions, BuildReport, MemorySink, SlabSink};
 pub use pyramid::{BrickSource, BrickVoxels, DenseGrid};
-pub use vod2::{Snapshot, StoredBrick, Vod2};
+pub use vod2::{Snapshot, SnapshotSource, StoredBrick, Vod2};
 pub use writer::Vod2Writer;
 
 use isovox_proto::FormatError;

@@ -54,6 +54,31 @@ pub trait BrickSource: Sync {
     }
 }
 
+/// The first error of a [`BrickSource`] that reads from somewhere fallible: `fill` cannot
+/// return an error mid-build, so it records it here and the caller checks after the build.
+#[derive(Debug, Default)]
+pub struct FirstError(std::sync::Mutex<Option<super::StoreError>>);
+
+impl FirstError {
+    pub fn record(&self, e: super::StoreError) {
+        if let Ok(mut slot) = self.0.lock() {
+            slot.get_or_insert(e);
+        }
+    }
+
+    /// # Errors
+    /// The first error recorded.
+    pub fn finish(self) -> Result<(), super::StoreError> {
+        match self.0.into_inner() {
+            Ok(None) => Ok(()),
+            Ok(Some(e)) => Err(e),
+            Err(_) => Err(super::StoreError::Invalid(
+                "a reader thread panicked".into(),
+            )),
+        }
+    }
+}
+
 /// A dense voxel array, x fastest, then y, then z (the RAW layout), borrowed from a mapped file
 /// or owned.
 #[derive(Debug, Clone, Copy)]

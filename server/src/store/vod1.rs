@@ -16,7 +16,7 @@
 //! the volume reference the all-L brick. All offsets are u32, so a VOD 1 file is at most 4 GiB.
 
 use super::codec;
-use super::pyramid::BrickSource;
+use super::pyramid::{BrickSource, FirstError};
 use super::vod2::Snapshot;
 use super::StoreError;
 use isovox_proto::vod2::{content_hash, Fields, SIGNATURE};
@@ -371,34 +371,28 @@ impl<'a> Vod1<'a> {
 #[derive(Debug)]
 pub struct Vod1Source<'a> {
     pub vod1: &'a Vod1<'a>,
-    error: std::sync::Mutex<Option<StoreError>>,
+    errors: FirstError,
 }
 
 impl<'a> Vod1Source<'a> {
     pub fn new(vod1: &'a Vod1<'a>) -> Self {
         Vod1Source {
             vod1,
-            error: std::sync::Mutex::new(None),
+            errors: FirstError::default(),
         }
     }
 
     /// # Errors
     /// The first brick that failed to decode during the build.
     pub fn finish(self) -> Result<(), StoreError> {
-        match self.error.into_inner() {
-            Ok(None) => Ok(()),
-            Ok(Some(e)) => Err(e),
-            Err(_) => Err(StoreError::Invalid("a VOD 1 reader thread panicked".into())),
-        }
+        self.errors.finish()
     }
 }
 
 impl BrickSource for Vod1Source<'_> {
     fn fill(&self, key: BrickKey, out: &mut [u8]) {
         if let Err(e) = self.vod1.read_into(key, out) {
-            if let Ok(mut slot) = self.error.lock() {
-                slot.get_or_insert(e);
-            }
+            self.errors.record(e);
         }
     }
 }

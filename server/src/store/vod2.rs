@@ -234,6 +234,8 @@ pub struct Snapshot {
     index: Arc<IndexChunks>,
     /// Entries changed by the commits after the checkpoint: node index -> raw entry.
     overlay: HashMap<u64, u64>,
+    /// Commits replayed on top of the checkpoint.
+    chain_len: usize,
 }
 
 impl Snapshot {
@@ -305,6 +307,7 @@ impl Snapshot {
             commit_offset: commit_at,
             index,
             overlay,
+            chain_len: chain.len() - 1,
             header,
             map,
         })
@@ -336,6 +339,11 @@ impl Snapshot {
     /// Number of entries that differ from the checkpoint.
     pub fn overlay_len(&self) -> usize {
         self.overlay.len()
+    }
+
+    /// Number of commits between the checkpoint and this version.
+    pub fn chain_len(&self) -> usize {
+        self.chain_len
     }
 
     /// The index entry at a node index.
@@ -446,6 +454,44 @@ impl Snapshot {
                 content_hash(&out)
             }
         })
+    }
+}
+
+/// A version's level 0 as the source of a build (same brick size): rebuilding a file from its
+/// head drops every older version and all garbage.
+#[derive(Debug)]
+pub struct SnapshotSource {
+    snap: Arc<Snapshot>,
+    errors: super::pyramid::FirstError,
+}
+
+impl SnapshotSource {
+    pub fn new(snap: Arc<Snapshot>) -> Self {
+        SnapshotSource {
+            snap,
+            errors: Default::default(),
+        }
+    }
+
+    /// # Errors
+    /// The first brick that failed to read during the build.
+    pub fn finish(self) -> Result<(), StoreError> {
+        self.errors.finish()
+    }
+}
+
+impl super::BrickSource for SnapshotSource {
+    fn fill(&self, key: BrickKey, out: &mut [u8]) {
+        if let Err(e) = self.snap.read_into(key, out) {
+            self.errors.record(e);
+        }
+    }
+
+    fn constant(&self, key: BrickKey) -> Option<u16> {
+        match self.snap.entry(key) {
+            Ok(NodeEntry::Constant(v)) => Some(v),
+            _ => None,
+        }
     }
 }
 

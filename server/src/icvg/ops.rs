@@ -1,0 +1,310 @@
+//! The operators of the algebra (`spec/icvg.md`, "Operators"). D1 is the existing volume, D2
+//! the operand; every result is clamped to [L, H].
+
+use isovox_proto::VoxelType;
+
+/// A binary operator.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum BinaryOp {
+    Union,
+    Intersection,
+    Trim,
+    Cap,
+    Difference,
+    DifferenceA,
+    DifferenceB,
+    Add,
+    Modulate,
+    Product,
+    DivideA,
+    /// `S_L` real in (0, 1].
+    Divide(f64),
+}
+
+/// What a binary operator gives where the operand is L (outside the operand's B-box).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Outside {
+    /// `op(D1, L) = D1`: bricks the operand does not reach are left alone.
+    Identity,
+    /// `op(D1, L)` is this constant whatever D1 is: such bricks become the shared constant brick.
+    Constant(u16),
+}
+
+impl BinaryOp {
+    /// The operator named `name` (the JSON names), with `s_l` for divide.
+    ///
+    /// # Errors
+    /// Unknown name, or divide without `s_l` in (0, 1].
+    pub fn from_name(name: &str, s_l: Option<f64>) -> Result<BinaryOp, String> {
+        Ok(match name {
+            "union" => BinaryOp::Union,
+            "intersection" => BinaryOp::Intersection,
+            "trim" => BinaryOp::Trim,
+            "cap" => BinaryOp::Cap,
+            "difference" => BinaryOp::Difference,
+            "difference_a" => BinaryOp::DifferenceA,
+            "difference_b" => BinaryOp::DifferenceB,
+            "add" => BinaryOp::Add,
+            "modulate" => BinaryOp::Modulate,
+            "product" => BinaryOp::Product,
+            "divide_a" => BinaryOp::DivideA,
+            "divide" => {
+                let s_l = s_l.ok_or("divide needs \"s_l\", a real in (0, 1]")?;
+                check_s_l(s_l)?;
+                BinaryOp::Divide(s_l)
+            }
+            other => return Err(format!("unknown operator {other:?}")),
+        })
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            BinaryOp::Union => "union",
+            BinaryOp::Intersection => "intersection",
+            BinaryOp::Trim => "trim",
+            BinaryOp::Cap => "cap",
+            BinaryOp::Difference => "difference",
+            BinaryOp::DifferenceA => "difference_a",
+            BinaryOp::DifferenceB => "difference_b",
+            BinaryOp::Add => "add",
+            BinaryOp::Modulate => "modulate",
+            BinaryOp::Product => "product",
+            BinaryOp::DivideA => "divide_a",
+            BinaryOp::Divide(_) => "divide",
+        }
+    }
+
+    /// `op(d1, d2)` for voxels of type `t`.
+    #[inline]
+    pub fn apply(self, d1: u16, d2: u16, t: VoxelType) -> u16 {
+        let (l, h, s) = (t.low() as i64, t.high() as i64, t.surface() as i64);
+        let (a, b) = (d1 as i64, d2 as i64);
+        let r = match self {
+            BinaryOp::Union => a.max(b),
+            BinaryOp::Intersection => a.min(b),
+            BinaryOp::Trim => {
+                if a >= b {
+                    a
+                } else {
+                    l
+                }
+            }
+            BinaryOp::Cap => {
+                if a <= b {
+                    a
+                } else {
+                    l
+                }
+            }
+            BinaryOp::DifferenceA => (a - b).max(l),
+            BinaryOp::DifferenceB => {
+                if b >= s {
+                    (a - b).max(l)
+                } else {
+                    a
+                }
+            }
+            BinaryOp::Difference => {
+                if a >= s && b < s {
+                    (a - b).max(s)
+                } else {
+                    (a - b).max(l)
+                }
+            }
+            BinaryOp::Add => (a + b).min(h),
+            BinaryOp::Modulate => (a * b).min(h),
+            BinaryOp::Product => a * b / h,
+            BinaryOp::DivideA => {
+                if b > 0 {
+                    a / b
+                } else {
+                    h
+                }
+            }
+            BinaryOp::Divide(s_l) => {
+                let den = b as f64 * s_l;
+                if den > 0.0 {
+                    (a as f64 / den).floor().min(h as f64) as i64
+                } else {
+                    h
+                }
+            }
+        };
+        r.clamp(l, h) as u16
+    }
+
+    /// How the operator treats voxels the operand does not reach (`spec/icvg.md`).
+    pub fn outside(self, t: VoxelType) -> Outside {
+        match self {
+            BinaryOp::Union
+            | BinaryOp::Trim
+            | BinaryOp::Difference
+            | BinaryOp::DifferenceA
+            | BinaryOp::DifferenceB
+            | BinaryOp::Add => Outside::Identity,
+            BinaryOp::Intersection | BinaryOp::Cap | BinaryOp::Modulate | BinaryOp::Product => {
+                Outside::Constant(t.low())
+            }
+            BinaryOp::DivideA | BinaryOp::Divide(_) => Outside::Constant(t.high()),
+        }
+    }
+}
+
+/// Checks divide's `S_L`.
+///
+/// # Errors
+/// Not a real in (0, 1].
+pub fn check_s_l(s_l: f64) -> Result<(), String> {
+    if s_l.is_finite() && s_l > 0.0 && s_l <= 1.0 {
+        Ok(())
+    } else {
+        Err(format!("s_l must be a real in (0, 1], got {s_l}"))
+    }
+}
+
+/// A unary operator.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum UnaryOp {
+    /// `H - D1` (CVG's complement).
+    Inverse,
+    /// `clamp(D1 + k)`.
+    AddScalar(i32),
+}
+
+impl UnaryOp {
+    #[inline]
+    pub fn apply(self, d1: u16, t: VoxelType) -> u16 {
+        match self {
+            UnaryOp::Inverse => t.high() - d1.min(t.high()),
+            UnaryOp::AddScalar(k) => {
+                (d1 as i64 + k as i64).clamp(t.low() as i64, t.high() as i64) as u16
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use BinaryOp::*;
+
+    const U8: VoxelType = VoxelType::U8;
+
+    /// (D1, D2) pairs at the boundaries L=0, S-1=126, S=127, H=255, and one in the middle.
+    const CASES: [(u16, u16); 10] = [
+        (0, 0),
+        (0, 255),
+        (255, 0),
+        (255, 255),
+        (127, 126),
+        (126, 127),
+        (127, 127),
+        (200, 100),
+        (100, 200),
+        (126, 126),
+    ];
+
+    fn table(op: BinaryOp) -> Vec<u16> {
+        CASES.iter().map(|&(a, b)| op.apply(a, b, U8)).collect()
+    }
+
+    // Each expected row is worked out by hand from the table in spec/icvg.md.
+    #[test]
+    fn union_intersection_trim_cap() {
+        assert_eq!(
+            table(Union),
+            vec![0, 255, 255, 255, 127, 127, 127, 200, 200, 126]
+        );
+        assert_eq!(
+            table(Intersection),
+            vec![0, 0, 0, 255, 126, 126, 127, 100, 100, 126]
+        );
+        // trim: D1 if D1 >= D2 else L
+        assert_eq!(table(Trim), vec![0, 0, 255, 255, 127, 0, 127, 200, 0, 126]);
+        // cap: D1 if D1 <= D2 else L
+        assert_eq!(table(Cap), vec![0, 0, 0, 255, 0, 126, 127, 0, 100, 126]);
+    }
+
+    #[test]
+    fn differences() {
+        // difference_a: max(D1 - D2, L)
+        assert_eq!(table(DifferenceA), vec![0, 0, 255, 0, 1, 0, 0, 100, 0, 0]);
+        // difference_b: max(D1 - D2, L) if D2 >= S else D1
+        assert_eq!(
+            table(DifferenceB),
+            vec![0, 0, 255, 0, 127, 0, 0, 200, 0, 126]
+        );
+        // difference: max(D1 - D2, S) if D1 >= S and D2 < S, else max(D1 - D2, L).
+        // (127,126): 127>=S, 126<S -> max(1, 127) = 127; (255,0): max(255,127) = 255;
+        // (200,100): max(100,127) = 127; (126,126): D1 < S -> max(0, 0) = 0.
+        assert_eq!(table(Difference), vec![0, 0, 255, 0, 127, 0, 0, 127, 0, 0]);
+    }
+
+    #[test]
+    fn arithmetic() {
+        assert_eq!(
+            table(Add),
+            vec![0, 255, 255, 255, 253, 253, 254, 255, 255, 252]
+        );
+        // modulate: min(D1 * D2, H)
+        assert_eq!(
+            table(Modulate),
+            vec![0, 0, 0, 255, 255, 255, 255, 255, 255, 255]
+        );
+        // product: D1 * D2 / H, floored: 127*126/255 = 62.75 -> 62; 127*127/255 = 63.25 -> 63;
+        // 200*100/255 = 78.4 -> 78; 126*126/255 = 62.26 -> 62.
+        assert_eq!(table(Product), vec![0, 0, 0, 255, 62, 62, 63, 78, 78, 62]);
+        // divide_a: D1 / D2 if D2 > 0 else H: 127/126 = 1; 126/127 = 0; 200/100 = 2.
+        assert_eq!(table(DivideA), vec![255, 0, 255, 1, 1, 0, 1, 2, 0, 1]);
+        // divide, S_L = 0.5: D1 / (D2 * 0.5): 255/127.5 = 2; 127/63 = 2.01 -> 2; 126/63.5 = 1.98 -> 1;
+        // 127/63.5 = 2; 200/50 = 4; 100/100 = 1; 126/63 = 2.
+        assert_eq!(table(Divide(0.5)), vec![255, 0, 255, 2, 2, 1, 2, 4, 1, 2]);
+    }
+
+    #[test]
+    fn u16_boundaries() {
+        let t = VoxelType::U16;
+        assert_eq!(Add.apply(40000, 40000, t), 65535);
+        assert_eq!(Difference.apply(40000, 100, t), 39900);
+        assert_eq!(Difference.apply(32768, 32766, t), 32767); // D1 >= S, D2 < S: floor at S
+        assert_eq!(Product.apply(65535, 32767, t), 32767);
+        assert_eq!(UnaryOp::Inverse.apply(0, t), 65535);
+        assert_eq!(UnaryOp::AddScalar(-70000).apply(5, t), 0);
+    }
+
+    #[test]
+    fn unary() {
+        assert_eq!(UnaryOp::Inverse.apply(0, U8), 255);
+        assert_eq!(UnaryOp::Inverse.apply(127, U8), 128);
+        assert_eq!(UnaryOp::AddScalar(-20).apply(10, U8), 0);
+        assert_eq!(UnaryOp::AddScalar(20).apply(250, U8), 255);
+        assert_eq!(UnaryOp::AddScalar(5).apply(100, U8), 105);
+    }
+
+    #[test]
+    fn outside_classification_matches_apply() {
+        // op(D1, L) for every D1 must be what outside() says.
+        for op in [
+            Union,
+            Intersection,
+            Trim,
+            Cap,
+            Difference,
+            DifferenceA,
+            DifferenceB,
+            Add,
+            Modulate,
+            Product,
+            DivideA,
+            Divide(0.25),
+        ] {
+            for d1 in 0..=255u16 {
+                let got = op.apply(d1, 0, U8);
+                match op.outside(U8) {
+                    Outside::Identity => assert_eq!(got, d1, "{op:?}({d1}, L)"),
+                    Outside::Constant(c) => assert_eq!(got, c, "{op:?}({d1}, L)"),
+                }
+            }
+        }
+    }
+}
