@@ -362,7 +362,7 @@ pub struct Torus {
 
 impl Torus {
     /// Offset from the nearest point of the tube's centre circle.
-    fn from_core(&self, p: [f64; 3]) -> [f64; 3] {
+    fn offset_from_core(&self, p: [f64; 3]) -> [f64; 3] {
         let ring = (p[0] * p[0] + p[2] * p[2]).sqrt();
         let major = self.major as f64;
         if ring == 0.0 {
@@ -373,7 +373,7 @@ impl Torus {
     }
 
     fn body(&self, p: [f64; 3]) -> f64 {
-        let d = self.from_core(p);
+        let d = self.offset_from_core(p);
         let r = self.minor as f64;
         (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) / (r * r)
     }
@@ -394,7 +394,7 @@ impl Primitive for Torus {
 
     fn sample_inside(&self, v: [i64; 3], t: VoxelType) -> u16 {
         let p = [0, 1, 2].map(|a| (v[a] - self.center[a]) as f64);
-        curved(|q| self.body(q), p, unit(self.from_core(p)), t)
+        curved(|q| self.body(q), p, unit(self.offset_from_core(p)), t)
     }
 }
 
@@ -407,13 +407,13 @@ pub struct Capsule {
 }
 
 impl Capsule {
-    fn from_axis(&self, p: [f64; 3]) -> [f64; 3] {
+    fn offset_from_axis(&self, p: [f64; 3]) -> [f64; 3] {
         let half = self.length as f64 / 2.0;
         [p[0], p[1] - p[1].clamp(-half, half), p[2]]
     }
 
     fn body(&self, p: [f64; 3]) -> f64 {
-        let d = self.from_axis(p);
+        let d = self.offset_from_axis(p);
         let r = self.radius as f64;
         (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) / (r * r)
     }
@@ -440,7 +440,7 @@ impl Primitive for Capsule {
 
     fn sample_inside(&self, v: [i64; 3], t: VoxelType) -> u16 {
         let p = [0, 1, 2].map(|a| (v[a] - self.center[a]) as f64);
-        curved(|q| self.body(q), p, unit(self.from_axis(p)), t)
+        curved(|q| self.body(q), p, unit(self.offset_from_axis(p)), t)
     }
 }
 
