@@ -124,6 +124,12 @@ impl WorldSource {
         }
     }
 
+    /// The ground's height at column (x, z), in voxels.
+    pub fn height(&self, x: u32, z: u32) -> f32 {
+        let dx = self.layout.dims()[0];
+        self.heights[(z.min(self.layout.dims()[2] - 1) * dx + x.min(dx - 1)) as usize]
+    }
+
     fn value(h: f32, y: i64, high: u16) -> u16 {
         let v = (high as f64 * (h as f64 - y as f64 + 0.5)).floor();
         v.clamp(0.0, high as f64) as u16

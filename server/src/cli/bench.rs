@@ -26,6 +26,9 @@ pub enum BenchCommand {
     /// The thesis's Tables 3-5 on generated data of the same sizes (brick 16): RAW and VOD sizes
     /// with and without compression, load times; plus import throughput and open time.
     Store(StoreArgs),
+    /// ICVG: primitive sampling in ns/voxel (the paper's 72^3 shapes) and edit latency (carving
+    /// radius-16 ellipsoids into a world, evaluate + dedup + LOD + durable commit).
+    Icvg(super::bench_icvg::IcvgArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -52,6 +55,7 @@ pub struct StoreArgs {
 pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
     match cmd {
         BenchCommand::Store(a) => bench_store(a),
+        BenchCommand::Icvg(a) => super::bench_icvg::run(a),
     }
 }
 
@@ -94,12 +98,12 @@ struct Row {
     load_vod_ms: f64,
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
+pub(crate) fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
 }
 
-fn percentile(mut v: Vec<f64>, p: f64) -> f64 {
+pub(crate) fn percentile(mut v: Vec<f64>, p: f64) -> f64 {
     v.sort_by(f64::total_cmp);
     v[((v.len() - 1) as f64 * p).round() as usize]
 }

@@ -2,7 +2,8 @@
 //! library, print. Long jobs show a progress bar on a terminal and stay quiet otherwise.
 
 mod bench;
-mod data;
+mod bench_icvg;
+pub(crate) mod data;
 pub mod edit;
 mod serve;
 

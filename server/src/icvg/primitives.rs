@@ -65,6 +65,13 @@ pub trait Primitive: std::fmt::Debug + Send + Sync {
     fn bbox(&self) -> Box3;
     /// The value at world voxel `v` inside [`Primitive::bbox`].
     fn sample_inside(&self, v: [i64; 3], t: VoxelType) -> u16;
+    /// The values of the voxels `(x0 + i, y, z)` for every `i < out.len()`, all inside
+    /// [`Primitive::bbox`]. Primitives with a cheaper per-row form override it.
+    fn sample_row(&self, x0: i64, y: i64, z: i64, t: VoxelType, out: &mut [u16]) {
+        for (i, o) in out.iter_mut().enumerate() {
+            *o = self.sample_inside([x0 + i as i64, y, z], t);
+        }
+    }
     /// The one value of every voxel of `b` (a sub-box of the extension space), when that is
     /// certain without sampling; `None` when unsure.
     fn constant_inside(&self, _b: &Box3, _t: VoxelType) -> Option<u16> {
@@ -194,6 +201,16 @@ impl Ellipsoid {
     }
 }
 
+impl Ellipsoid {
+    /// The spec's rule computed literally: the reference the fast path falls back to.
+    fn sample_literal(&self, p: [f64; 3], t: VoxelType) -> u16 {
+        curved(|q| self.body(q), p, unit(p), t)
+    }
+}
+
+/// How close to a threshold the fast path must not decide on its own.
+const FAST_EPS: f64 = 1e-9;
+
 impl Primitive for Ellipsoid {
     fn bbox(&self) -> Box3 {
         Box3::new(
@@ -203,8 +220,57 @@ impl Primitive for Ellipsoid {
     }
 
     fn sample_inside(&self, v: [i64; 3], t: VoxelType) -> u16 {
-        let p = [0, 1, 2].map(|a| (v[a] - self.center[a]) as f64);
-        curved(|q| self.body(q), p, unit(p), t)
+        let mut out = [0u16];
+        self.sample_row(v[0], v[1], v[2], t, &mut out);
+        out[0]
+    }
+
+    /// Fast path: with `u = T / |T|`, `body(T +- u) = body(T) (1 +- 1/|T|)^2` exactly in real
+    /// arithmetic, so one body (with precomputed 1/R^2), one square root and one division decide
+    /// almost every voxel. Where a comparison or the floor lands within 1e-9 of its threshold
+    /// (float rounding could tip it), the literal formula decides, so the result is always the
+    /// spec's.
+    fn sample_row(&self, x0: i64, y: i64, z: i64, t: VoxelType, out: &mut [u16]) {
+        let inv = self.radii.map(|r| 1.0 / (r as f64 * r as f64));
+        let (py, pz) = ((y - self.center[1]) as f64, (z - self.center[2]) as f64);
+        let yz2 = py * py + pz * pz;
+        let body_yz = py * py * inv[1] + pz * pz * inv[2];
+        let (high, low, s) = (t.high(), t.low(), t.surface() as f64);
+        for (i, o) in out.iter_mut().enumerate() {
+            let px = (x0 + i as i64 - self.center[0]) as f64;
+            let len2 = px * px + yz2;
+            if len2 == 0.0 {
+                *o = high;
+                continue;
+            }
+            let body = px * px * inv[0] + body_yz;
+            let inv_len = 1.0 / len2.sqrt();
+            let outer = body * (1.0 + inv_len) * (1.0 + inv_len);
+            if outer < 1.0 - FAST_EPS {
+                *o = high;
+                continue;
+            }
+            if outer > 1.0 + FAST_EPS {
+                let inner = body * (1.0 - inv_len) * (1.0 - inv_len);
+                if inner > 1.0 + FAST_EPS {
+                    *o = low;
+                    continue;
+                }
+                if inner < 1.0 - FAST_EPS {
+                    let q = s / body;
+                    if q >= high as f64 + FAST_EPS {
+                        *o = high;
+                        continue;
+                    }
+                    let frac = q - q.floor();
+                    if frac > FAST_EPS && frac < 1.0 - FAST_EPS {
+                        *o = q.floor() as u16;
+                        continue;
+                    }
+                }
+            }
+            *o = self.sample_literal([px, py, pz], t);
+        }
     }
 
     /// `|T^|_R <= 1 / min(R)` bounds how far one unit step moves the norm.
@@ -606,6 +672,46 @@ mod tests {
         // u16: (8,4,4) is floor(32767 / 1) = 32767; (7,4,4) floor(32767 * 16 / 9) = 58252.
         assert_eq!(e.sample([8, 4, 4], VoxelType::U16), 32767);
         assert_eq!(e.sample([7, 4, 4], VoxelType::U16), 58252);
+    }
+
+    #[test]
+    fn ellipsoid_fast_path_equals_the_literal_formula() {
+        // Every voxel of many ellipsoids, u8 and u16: the fast path must give exactly the
+        // spec's literal computation (it defers to it near every threshold).
+        let mut checked = 0;
+        for radii in [
+            [1, 1, 1],
+            [1, 2, 3],
+            [3, 3, 3],
+            [4, 4, 4],
+            [5, 3, 8],
+            [7, 7, 2],
+            [12, 9, 10],
+            [16, 16, 16],
+            [25, 6, 13],
+        ] {
+            let e = Ellipsoid {
+                center: [3, -2, 5],
+                radii,
+            };
+            let b = e.bbox();
+            for t in [VoxelType::U8, VoxelType::U16] {
+                for z in b.min[2]..b.max[2] {
+                    for y in b.min[1]..b.max[1] {
+                        for x in b.min[0]..b.max[0] {
+                            let p = [x - 3, y + 2, z - 5].map(|c| c as f64);
+                            assert_eq!(
+                                e.sample_inside([x, y, z], t),
+                                e.sample_literal(p, t),
+                                "{radii:?} at {x},{y},{z} {t}"
+                            );
+                            checked += 1;
+                        }
+                    }
+                }
+            }
+        }
+        assert!(checked > 100_000);
     }
 
     fn check_constant_shortcut(p: &dyn Primitive, t: VoxelType) -> usize {

@@ -376,17 +376,7 @@ impl CompiledTerm {
         }
         let t = self.voxel_type;
         match &self.node {
-            Node::Primitive(p) => {
-                let mut i = 0;
-                for z in b.min[2]..b.max[2] {
-                    for y in b.min[1]..b.max[1] {
-                        for x in b.min[0]..b.max[0] {
-                            out[i] = p.sample([x, y, z], t);
-                            i += 1;
-                        }
-                    }
-                }
-            }
+            Node::Primitive(p) => eval_primitive(p.as_ref(), t, b, b, out),
             Node::Volume { snap, origin } => read_volume_box(snap, *origin, b, out)?,
             Node::Binary(op, x, y) => {
                 x.eval(b, out)?;
@@ -405,6 +395,60 @@ impl CompiledTerm {
         }
         Ok(())
     }
+}
+
+/// Voxels below which a box is sampled voxel by voxel rather than split further.
+const SPLIT_BELOW: u128 = 512;
+
+/// Evaluates a primitive over `b`, a sub-box of `frame` (the layout of `out`): boxes whose value
+/// is certain are filled, others split in two along their longest axis until small, so only the
+/// voxels near the surface are sampled one by one.
+fn eval_primitive(p: &dyn Primitive, t: VoxelType, frame: &Box3, b: &Box3, out: &mut [u16]) {
+    let size = [0, 1, 2].map(|a| (frame.max[a] - frame.min[a]) as usize);
+    let index = |x: i64, y: i64, z: i64| {
+        (((z - frame.min[2]) as usize * size[1] + (y - frame.min[1]) as usize) * size[0])
+            + (x - frame.min[0]) as usize
+    };
+    if let Some(v) = constant_over(p, b, t) {
+        for z in b.min[2]..b.max[2] {
+            for y in b.min[1]..b.max[1] {
+                let row = index(b.min[0], y, z);
+                out[row..row + (b.max[0] - b.min[0]) as usize].fill(v);
+            }
+        }
+        return;
+    }
+    if b.voxels() <= SPLIT_BELOW {
+        let inside = b.intersect(&p.bbox());
+        let width = (b.max[0] - b.min[0]) as usize;
+        for z in b.min[2]..b.max[2] {
+            for y in b.min[1]..b.max[1] {
+                let row = index(b.min[0], y, z);
+                let line = &mut out[row..row + width];
+                let in_yz = (inside.min[1]..inside.max[1]).contains(&y)
+                    && (inside.min[2]..inside.max[2]).contains(&z);
+                if inside.is_empty() || !in_yz {
+                    line.fill(t.low());
+                    continue;
+                }
+                let (x0, x1) = (
+                    (inside.min[0] - b.min[0]) as usize,
+                    (inside.max[0] - b.min[0]) as usize,
+                );
+                line[..x0].fill(t.low());
+                line[x1..].fill(t.low());
+                p.sample_row(inside.min[0], y, z, t, &mut line[x0..x1]);
+            }
+        }
+        return;
+    }
+    let axis = (0..3).max_by_key(|&a| b.max[a] - b.min[a]).unwrap_or(0);
+    let mid = b.min[axis] + (b.max[axis] - b.min[axis]) / 2;
+    let (mut lo, mut hi) = (*b, *b);
+    lo.max[axis] = mid;
+    hi.min[axis] = mid;
+    eval_primitive(p, t, frame, &lo, out);
+    eval_primitive(p, t, frame, &hi, out);
 }
 
 /// The B-box of a binary node from its children's (`spec/icvg.md`): union-like operators
