@@ -42,7 +42,7 @@ pub enum Term {
         minor: u32,
     },
     /// A segment along +y of `length` voxels centred on `center`, swept by a ball of `radius`;
-    /// extension `(2 r + 1, length + 2 r + 1, 2 r + 1)`.
+    /// extension `(2 r + 1, 2 ceil(length / 2) + 2 r + 1, 2 r + 1)`, symmetric about `center`.
     Capsule {
         center: [i64; 3],
         radius: u32,

@@ -483,7 +483,8 @@ fn inspect_vod1(a: &InspectArgs) -> anyhow::Result<()> {
     if a.json {
         let j = serde_json::json!({
             "format": "VOD 1", "dims": v.layout.dims(), "voxel_type": v.layout.voxel_type(),
-            "brick": v.layout.brick(), "levels": v.height, "version": 1,
+            "brick": v.layout.brick(), "tree_height": v.height,
+            "levels": (0..v.layout.levels()).map(|l| serde_json::json!({"level": l, "grid": v.layout.grid(l)})).collect::<Vec<_>>(), "version": 1,
             "bricks_total": crate::store::vod1::node_count(v.height), "bricks_unique": v.unique_bricks(),
             "file_bytes": len, "raw_bytes": raw, "ratio": raw as f64 / len as f64,
         });

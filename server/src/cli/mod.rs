@@ -15,7 +15,9 @@ use std::path::PathBuf;
 
 /// Isovox: large, editable volumes as brick octrees, served over HTTP.
 #[derive(Debug, Parser)]
-#[command(name = "isovox", version, about, propagate_version = true)]
+// Not `propagate_version`: `export`, `get` and `edit` have a `--version N` of their own (a
+// volume version), which an automatic `--version` flag on every subcommand would clash with.
+#[command(name = "isovox", version, about)]
 pub struct Cli {
     #[command(subcommand)]
     pub command: Command,

@@ -464,7 +464,8 @@ impl Primitive for Torus {
     }
 }
 
-/// Capsule: a segment of `length` voxels along +y centred on `center`, swept by a ball.
+/// Capsule: a segment of `length` voxels along +y centred on `center`, swept by a ball; its
+/// extension is `(2 r + 1, 2 ceil(length / 2) + 2 r + 1, 2 r + 1)`, symmetric about `center`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Capsule {
     pub center: [i64; 3],
@@ -488,8 +489,10 @@ impl Capsule {
 impl Primitive for Capsule {
     fn bbox(&self) -> Box3 {
         let r = self.radius as i64;
-        let half_lo = self.length as i64 / 2;
-        let half_hi = self.length as i64 - half_lo;
+        // Symmetric about the centre: the segment reaches length / 2 either way (x.5 for an odd
+        // length), so the extension reaches ceil(length / 2) + r.
+        let half_lo = (self.length as i64 + 1) / 2;
+        let half_hi = half_lo;
         Box3::new(
             [
                 self.center[0] - r,

@@ -95,7 +95,17 @@ impl RawInput {
                 dims.ok_or_else(|| StoreError::Invalid("a RAW file needs --dims X,Y,Z".into()))?;
             (dims, voxel_type.unwrap_or(VoxelType::U8), 0)
         };
-        let expected = dims.iter().map(|&d| d as u64).product::<u64>() * voxel_type.bytes() as u64;
+        let expected = dims
+            .iter()
+            .try_fold(voxel_type.bytes() as u64, |acc, &d| {
+                acc.checked_mul(d as u64)
+            })
+            .ok_or_else(|| {
+                StoreError::Invalid(format!(
+                    "{}: dimensions {dims:?} are too large",
+                    path.display()
+                ))
+            })?;
         if len - data_at as u64 != expected {
             return Err(StoreError::Invalid(format!(
                 "{}: {} voxel bytes, but {}x{}x{} {voxel_type} voxels need {expected}",

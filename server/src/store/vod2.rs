@@ -267,7 +267,7 @@ impl Snapshot {
                 break h.checkpoint;
             }
             let (parent, _) = CommitHeader::decode(region(h.parent)?, h.parent)?;
-            if parent.version + 1 != h.version {
+            if parent.version.checked_add(1) != Some(h.version) {
                 return Err(FormatError::invalid(
                     "commit chain",
                     format!(

@@ -271,15 +271,50 @@ impl Vod2Writer {
     /// to record only `changes` relative to the current head.
     ///
     /// # Errors
-    /// Writing or syncing fails; the head is then unchanged.
+    /// A change names a node outside the volume, a constant out of range or a brick offset
+    /// outside the appended region; the version or slot sequence is exhausted; writing or
+    /// syncing fails. The head is then unchanged.
     pub fn commit(
         &mut self,
         changes: &[(u64, NodeEntry)],
         checkpoint: Option<&[u64]>,
     ) -> Result<HeaderSlot, StoreError> {
+        let (parent, version, seq) = match self.head {
+            Some(h) => match (h.version.checked_add(1), h.seq.checked_add(1)) {
+                (Some(version), Some(seq)) => (h.commit, version, seq),
+                _ => {
+                    return Err(StoreError::Invalid(format!(
+                        "{}: version or slot sequence number exhausted (version {}, sequence {}); compact the file",
+                        self.path.display(),
+                        h.version,
+                        h.seq
+                    )))
+                }
+            },
+            None => (0, 1, 1),
+        };
+        let layout = &self.header.layout;
+        for (node, entry) in changes {
+            let valid = *node < layout.node_count()
+                && match *entry {
+                    NodeEntry::Constant(v) => v <= layout.voxel_type().high(),
+                    NodeEntry::Stored(offset) => offset >= DATA_START && offset < self.end(),
+                };
+            if !valid {
+                return Err(StoreError::Invalid(format!(
+                    "invalid change to node {node}: {entry:?}"
+                )));
+            }
+        }
         let checkpoint_at = match checkpoint {
             Some(entries) => {
-                assert_eq!(entries.len() as u64, self.header.layout.node_count());
+                if entries.len() as u64 != self.header.layout.node_count() {
+                    return Err(StoreError::Invalid(format!(
+                        "a checkpoint needs {} entries, got {}",
+                        self.header.layout.node_count(),
+                        entries.len()
+                    )));
+                }
                 self.append(&encode_checkpoint(entries))?
             }
             None => {
@@ -290,10 +325,6 @@ impl Vod2Writer {
                 }
                 0
             }
-        };
-        let (parent, version, seq) = match self.head {
-            Some(h) => (h.commit, h.version + 1, h.seq + 1),
-            None => (0, 1, 1),
         };
         let record = CommitHeader {
             version,
