@@ -17,4 +17,5 @@ pub mod cli;
 pub mod generate;
 pub mod http;
 pub mod icvg;
+pub mod mesh;
 pub mod store;

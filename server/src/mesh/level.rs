@@ -1,0 +1,145 @@
+//! Whole levels and adaptive selections of tiles, meshed in parallel and welded.
+
+use super::mc::Mesh;
+use super::tile::{mesh_tile, TileScratch};
+use crate::store::{Snapshot, StoreError};
+use indicatif::ProgressBar;
+use isovox_proto::BrickKey;
+use rayon::prelude::*;
+use std::collections::HashMap;
+
+/// Every tile of `level`.
+pub fn level_tiles(snap: &Snapshot, level: u8) -> Vec<BrickKey> {
+    let g = snap.layout().grid(level);
+    let mut out = Vec::with_capacity((g[0] * g[1] * g[2]) as usize);
+    for z in 0..g[2] {
+        for y in 0..g[1] {
+            for x in 0..g[0] {
+                out.push(BrickKey { level, x, y, z });
+            }
+        }
+    }
+    out
+}
+
+/// The tiles the thesis's spherical detail bias selects: level k where the tile lies within
+/// `radii[k]` of the camera (level 0 nearest), the coarsest level beyond the last radius. A tile
+/// of level k+1 is refined into its children when its nearest point is within `radii[k]`.
+pub fn adaptive_tiles(snap: &Snapshot, camera: [f32; 3], radii: &[f32]) -> Vec<BrickKey> {
+    let layout = snap.layout();
+    let scale = snap.header().voxel_scale;
+    let b = layout.brick() as f32;
+    let distance = |k: BrickKey| {
+        let span = b * (1u64 << k.level) as f32;
+        let mut d2 = 0f32;
+        for (a, c) in [k.x, k.y, k.z].into_iter().enumerate() {
+            let (lo, hi) = (
+                c as f32 * span * scale[a],
+                (c as f32 + 1.0) * span * scale[a],
+            );
+            let d = if camera[a] < lo {
+                lo - camera[a]
+            } else if camera[a] > hi {
+                camera[a] - hi
+            } else {
+                0.0
+            };
+            d2 += d * d;
+        }
+        d2.sqrt()
+    };
+    let mut out = Vec::new();
+    let mut stack = level_tiles(snap, layout.levels() - 1);
+    while let Some(k) = stack.pop() {
+        let refine = k.level > 0
+            && radii
+                .get(k.level as usize - 1)
+                .is_some_and(|&r| distance(k) <= r);
+        if refine {
+            stack.extend(layout.children(k).into_iter().map(|(_, c)| c));
+        } else {
+            out.push(k);
+        }
+    }
+    out.sort();
+    out
+}
+
+/// Meshes `tiles` in parallel and concatenates the results (vertices on tile seams appear once
+/// per tile; see [`weld`]).
+///
+/// # Errors
+/// A brick fails to read.
+pub fn mesh_tiles(
+    snap: &Snapshot,
+    tiles: &[BrickKey],
+    iso: f32,
+    progress: &ProgressBar,
+) -> Result<Mesh, StoreError> {
+    progress.set_length(tiles.len() as u64);
+    let parts: Vec<Mesh> = tiles
+        .par_iter()
+        .map_init(TileScratch::default, |scratch, &key| {
+            let mut m = Mesh::default();
+            mesh_tile(snap, key, iso, &mut m, scratch)?;
+            progress.inc(1);
+            Ok(m)
+        })
+        .collect::<Result<_, StoreError>>()?;
+    progress.finish_and_clear();
+    let mut out = Mesh::default();
+    for p in parts {
+        let base = out.positions.len() as u32;
+        out.positions.extend_from_slice(&p.positions);
+        out.normals.extend_from_slice(&p.normals);
+        out.indices.extend(p.indices.iter().map(|i| i + base));
+    }
+    Ok(out)
+}
+
+/// Merges vertices with bit-identical positions (the seam vertices of neighbouring tiles).
+pub fn weld(mesh: &Mesh) -> Mesh {
+    let mut index: HashMap<[u32; 3], u32> = HashMap::with_capacity(mesh.positions.len());
+    let mut out = Mesh::default();
+    let mut remap = Vec::with_capacity(mesh.positions.len());
+    for (p, n) in mesh.positions.iter().zip(&mesh.normals) {
+        let key = p.map(f32::to_bits);
+        let id = *index.entry(key).or_insert_with(|| {
+            out.positions.push(*p);
+            out.normals.push(*n);
+            (out.positions.len() - 1) as u32
+        });
+        remap.push(id);
+    }
+    out.indices = mesh.indices.iter().map(|&i| remap[i as usize]).collect();
+    out
+}
+
+/// Checks a welded mesh is closed and 2-manifold: every edge in exactly two triangles, once in
+/// each direction. Returns the number of offending edges.
+pub fn open_edges(mesh: &Mesh) -> usize {
+    let mut count: HashMap<(u32, u32), i32> = HashMap::new();
+    for t in mesh.indices.chunks_exact(3) {
+        for k in 0..3 {
+            let (a, b) = (t[k], t[(k + 1) % 3]);
+            *count.entry((a, b)).or_default() += 1;
+        }
+    }
+    count
+        .iter()
+        .filter(|(&(a, b), &n)| n != 1 || count.get(&(b, a)) != Some(&1))
+        .count()
+}
+
+/// The volume a closed, outward-wound mesh encloses (divergence theorem).
+pub fn enclosed_volume(mesh: &Mesh) -> f64 {
+    mesh.indices
+        .chunks_exact(3)
+        .map(|t| {
+            let [a, b, c] = [t[0], t[1], t[2]].map(|i| mesh.positions[i as usize].map(f64::from));
+            (a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0])
+                + a[2] * (b[0] * c[1] - b[1] * c[0]))
+                / 6.0
+        })
+        .sum()
+}

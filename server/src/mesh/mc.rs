@@ -1,0 +1,245 @@
+//! The marching-cubes kernel: a pure function of a sample grid, writing into reusable buffers.
+//!
+//! Cells run between integer grid points. A vertex lies on a cell edge where the field crosses
+//! `iso`, interpolated linearly from the edge's lower endpoint to its upper one, so two cells (or
+//! two tiles) that share an edge compute the bit-identical vertex from the same two samples. A
+//! corner is inside when its value is >= `iso`; with integer voxels and the default
+//! `iso = S - 0.5` that is exactly the algebra's `>= S`, and no vertex ever lands on a sample.
+//! Normals are the negated, interpolated central-difference gradient (they point from inside to
+//! outside, as the triangles' winding does).
+
+use super::table::{table, EDGES, EDGE_AXIS};
+
+/// A scalar field sampled on integer grid points: the value of point `origin + (x, y, z)` is
+/// `values[(z * size[1] + y) * size[0] + x]`.
+#[derive(Debug, Clone, Copy)]
+pub struct Field<'a> {
+    pub origin: [i64; 3],
+    pub size: [usize; 3],
+    pub values: &'a [f32],
+}
+
+impl Field<'_> {
+    #[inline]
+    fn at(&self, p: [i64; 3]) -> f32 {
+        let l = [0, 1, 2].map(|a| (p[a] - self.origin[a]) as usize);
+        self.values[(l[2] * self.size[1] + l[1]) * self.size[0] + l[0]]
+    }
+
+    fn gradient(&self, p: [i64; 3]) -> [f32; 3] {
+        let mut g = [0f32; 3];
+        for (a, ga) in g.iter_mut().enumerate() {
+            let (mut lo, mut hi) = (p, p);
+            lo[a] -= 1;
+            hi[a] += 1;
+            *ga = (self.at(hi) - self.at(lo)) * 0.5;
+        }
+        g
+    }
+}
+
+/// A triangle mesh: positions, unit normals, and indices (three per triangle, counter-clockwise
+/// seen from outside).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Mesh {
+    pub positions: Vec<[f32; 3]>,
+    pub normals: Vec<[f32; 3]>,
+    pub indices: Vec<u32>,
+}
+
+impl Mesh {
+    pub fn clear(&mut self) {
+        self.positions.clear();
+        self.normals.clear();
+        self.indices.clear();
+    }
+
+    pub fn triangles(&self) -> usize {
+        self.indices.len() / 3
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.indices.is_empty()
+    }
+}
+
+/// Reusable per-call memory: the vertex id of each grid edge already visited.
+#[derive(Debug, Default)]
+pub struct Scratch {
+    edge_vertex: Vec<u32>,
+}
+
+/// Marches the cells whose lower corners lie in `[lo, hi)` and appends their triangles to `out`
+/// (positions in grid coordinates).
+///
+/// The field must cover `[lo - 1, hi + 1]` on every axis (inclusive): `hi` for the cells' upper
+/// corners, one more on each side for the central differences of the normals. Checked once up
+/// front.
+///
+/// # Panics
+/// The field does not cover that range.
+pub fn march(
+    field: &Field<'_>,
+    lo: [i64; 3],
+    hi: [i64; 3],
+    iso: f32,
+    out: &mut Mesh,
+    scratch: &mut Scratch,
+) {
+    for a in 0..3 {
+        assert!(
+            field.origin[a] <= lo[a] - 1
+                && lo[a] <= hi[a]
+                && hi[a] + 1 < field.origin[a] + field.size[a] as i64,
+            "the field does not cover the cells and their gradient halo on axis {a}"
+        );
+    }
+    assert_eq!(field.values.len(), field.size.iter().product::<usize>());
+    let n = [0, 1, 2].map(|a| (hi[a] - lo[a]) as usize);
+    // Edge slots: one per grid point of [lo, hi] and axis.
+    let points = (n[0] + 1) * (n[1] + 1) * (n[2] + 1);
+    scratch.edge_vertex.clear();
+    scratch.edge_vertex.resize(points * 3, u32::MAX);
+    let table = table();
+    for z in lo[2]..hi[2] {
+        for y in lo[1]..hi[1] {
+            for x in lo[0]..hi[0] {
+                let mut corners = [0f32; 8];
+                let mut case = 0usize;
+                for (c, v) in corners.iter_mut().enumerate() {
+                    *v = field.at([
+                        x + (c & 1) as i64,
+                        y + (c >> 1 & 1) as i64,
+                        z + (c >> 2 & 1) as i64,
+                    ]);
+                    if *v >= iso {
+                        case |= 1 << c;
+                    }
+                }
+                let tris = &table[case];
+                if tris.is_empty() {
+                    continue;
+                }
+                for &e in tris.iter() {
+                    let (c0, c1) = EDGES[e as usize];
+                    let axis = EDGE_AXIS[e as usize] as usize;
+                    let p0 = [
+                        x + (c0 & 1) as i64,
+                        y + (c0 >> 1 & 1) as i64,
+                        z + (c0 >> 2 & 1) as i64,
+                    ];
+                    let l = [0, 1, 2].map(|a| (p0[a] - lo[a]) as usize);
+                    let slot = (((l[2] * (n[1] + 1) + l[1]) * (n[0] + 1) + l[0]) * 3) + axis;
+                    let mut id = scratch.edge_vertex[slot];
+                    if id == u32::MAX {
+                        let (v0, v1) = (corners[c0 as usize], corners[c1 as usize]);
+                        let t = (iso - v0) / (v1 - v0);
+                        let mut pos = p0.map(|c| c as f32);
+                        pos[axis] += t;
+                        let mut p1 = p0;
+                        p1[axis] += 1;
+                        let (g0, g1) = (field.gradient(p0), field.gradient(p1));
+                        let g = [0, 1, 2].map(|a| g0[a] + t * (g1[a] - g0[a]));
+                        let len = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
+                        let normal = if len > 0.0 {
+                            g.map(|c| -c / len)
+                        } else {
+                            // Flat gradient: point along the edge, from inside to outside.
+                            let mut d = [0f32; 3];
+                            d[axis] = if v1 >= iso { -1.0 } else { 1.0 };
+                            d
+                        };
+                        id = out.positions.len() as u32;
+                        out.positions.push(pos);
+                        out.normals.push(normal);
+                        scratch.edge_vertex[slot] = id;
+                    }
+                    out.indices.push(id);
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn single_voxel_gives_a_closed_octahedron() {
+        // One inside sample at the origin of a 5^3 grid of L: 8 cells touch it, one triangle
+        // each, 6 vertices (one per axis direction) at distance t = (0.5 - 0) / (1 - 0) = 0.5...
+        // here with values 0 and 1 and iso 0.5.
+        let mut values = vec![0f32; 5 * 5 * 5];
+        values[(2 * 5 + 2) * 5 + 2] = 1.0;
+        let field = Field {
+            origin: [-2, -2, -2],
+            size: [5; 3],
+            values: &values,
+        };
+        let mut mesh = Mesh::default();
+        march(
+            &field,
+            [-1, -1, -1],
+            [1, 1, 1],
+            0.5,
+            &mut mesh,
+            &mut Scratch::default(),
+        );
+        assert_eq!(mesh.triangles(), 8);
+        assert_eq!(mesh.positions.len(), 6);
+        let mut ps: Vec<[f32; 3]> = mesh.positions.clone();
+        ps.sort_by(|a, b| a.partial_cmp(b).unwrap());
+        assert_eq!(
+            ps,
+            vec![
+                [-0.5, 0.0, 0.0],
+                [0.0, -0.5, 0.0],
+                [0.0, 0.0, -0.5],
+                [0.0, 0.0, 0.5],
+                [0.0, 0.5, 0.0],
+                [0.5, 0.0, 0.0]
+            ]
+        );
+        // Normals point outwards: the same direction as the position here.
+        for (p, n) in mesh.positions.iter().zip(&mesh.normals) {
+            assert!(p[0] * n[0] + p[1] * n[1] + p[2] * n[2] > 0.0, "{p:?} {n:?}");
+        }
+        // Every triangle's winding normal points outwards too.
+        for t in mesh.indices.chunks(3) {
+            let [a, b, c] = [t[0], t[1], t[2]].map(|i| mesh.positions[i as usize]);
+            let u = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+            let v = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
+            let n = [
+                u[1] * v[2] - u[2] * v[1],
+                u[2] * v[0] - u[0] * v[2],
+                u[0] * v[1] - u[1] * v[0],
+            ];
+            let centre = [
+                (a[0] + b[0] + c[0]) / 3.0,
+                (a[1] + b[1] + c[1]) / 3.0,
+                (a[2] + b[2] + c[2]) / 3.0,
+            ];
+            assert!(n[0] * centre[0] + n[1] * centre[1] + n[2] * centre[2] > 0.0);
+        }
+    }
+
+    #[test]
+    #[should_panic(expected = "does not cover")]
+    fn the_up_front_bounds_check_refuses_a_short_field() {
+        let values = vec![0f32; 27];
+        let field = Field {
+            origin: [0; 3],
+            size: [3; 3],
+            values: &values,
+        };
+        march(
+            &field,
+            [0; 3],
+            [1; 3],
+            0.5,
+            &mut Mesh::default(),
+            &mut Scratch::default(),
+        );
+    }
+}

@@ -1,0 +1,12 @@
+//! Meshing: marching cubes per tile, crack-free across tiles.
+//!
+//! Layout:
+//! - [`level`]: whole levels and adaptive tile selections, welding, closedness checks.
+//! - [`mc`]: the kernel over a sample grid.
+//! - [`tile`]: one brick's mesh with its halo, in world coordinates (the seam rule).
+//! - [`table`]: the case table, generated with a face-consistent rule.
+
+pub mod level;
+pub mod mc;
+pub mod table;
+pub mod tile;
