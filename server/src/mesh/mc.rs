@@ -88,7 +88,7 @@ pub fn march(
 ) {
     for a in 0..3 {
         assert!(
-            field.origin[a] <= lo[a] - 1
+            field.origin[a] < lo[a]
                 && lo[a] <= hi[a]
                 && hi[a] + 1 < field.origin[a] + field.size[a] as i64,
             "the field does not cover the cells and their gradient halo on axis {a}"
