@@ -8,6 +8,7 @@
 //! - [`icvg`]: ICVG terms and edit requests (JSON).
 //! - [`voxel`]: voxel types and the ICVG value range (L, H, S).
 //! - [`layout`]: the brick octree's geometry: levels, brick grids, [`BrickKey`], node indices.
+//! - [`mesh`]: triangle meshes and their wire encodings (compact binary, GLB).
 //! - [`vod2`]: the VOD 2 file's on-disk records (header, slots, commits, index, bricks), encoded
 //!   and decoded over byte slices with validation. The byte layout is in `docs/vod2.md`.
 //! - [`error`]: [`FormatError`], what a malformed record is.
@@ -16,6 +17,7 @@ pub mod api;
 pub mod error;
 pub mod icvg;
 pub mod layout;
+pub mod mesh;
 pub mod vod2;
 pub mod voxel;
 

@@ -53,7 +53,7 @@ impl Catalog {
                     volumes.insert(name, Arc::new(vod));
                 }
                 Err(e) => {
-                    tracing::error!(path = %path.display(), error = %e, "cannot open volume; not serving it")
+                    tracing::error!(path = %path.display(), error = %crate::store::error_chain(&e), "cannot open volume; not serving it")
                 }
             }
         }

@@ -41,9 +41,13 @@ impl VolumeResolver for DirVolumes {
             return Err(TermError(format!("{name:?} is not a volume name")));
         }
         let path = self.dir.join(format!("{name}.vod"));
-        Vod2::open(&path)
-            .map(|v| v.head())
-            .map_err(|e| TermError(format!("volume {name:?} ({}): {e}", path.display())))
+        Vod2::open(&path).map(|v| v.head()).map_err(|e| {
+            TermError(format!(
+                "volume {name:?} ({}): {}",
+                path.display(),
+                crate::store::error_chain(&e)
+            ))
+        })
     }
 }
 

@@ -5,6 +5,7 @@ mod bench;
 mod bench_icvg;
 pub(crate) mod data;
 pub mod edit;
+mod mesh;
 mod serve;
 
 use clap::{Parser, Subcommand, ValueEnum};
@@ -36,6 +37,8 @@ pub enum Command {
     Generate(data::GenerateArgs),
     /// Apply an ICVG edit (JSON request, or a shorthand primitive) as a new version.
     Edit(edit::EditArgs),
+    /// Mesh a level (or the adaptive LOD around a camera) with marching cubes to GLB, OBJ or PLY.
+    Mesh(mesh::MeshArgs),
     /// Show a file's header, levels, bricks by codec, compression ratio and garbage bytes.
     Inspect(data::InspectArgs),
     /// Write one brick of one level, decoded (raw voxels), to a file or stdout.
@@ -57,6 +60,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Generate(a) => data::generate(a),
         Command::Inspect(a) => data::inspect(a),
         Command::Edit(a) => edit::edit(a),
+        Command::Mesh(a) => mesh::mesh(a),
         Command::Get(a) => data::get(a),
         Command::Bench(b) => bench::run(b),
     }

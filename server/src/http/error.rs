@@ -27,7 +27,7 @@ impl From<StoreError> for ApiError {
             // Raised by lookups for things that do not exist (a version no longer in the file,
             // a key outside the volume): the client asked for something absent.
             StoreError::Invalid(detail) => ApiError::NotFound(detail),
-            other => ApiError::Internal(other.to_string()),
+            other => ApiError::Internal(crate::store::error_chain(&other)),
         }
     }
 }

@@ -22,9 +22,10 @@ pub fn level_tiles(snap: &Snapshot, level: u8) -> Vec<BrickKey> {
     out
 }
 
-/// The tiles the thesis's spherical detail bias selects: level k where the tile lies within
-/// `radii[k]` of the camera (level 0 nearest), the coarsest level beyond the last radius. A tile
-/// of level k+1 is refined into its children when its nearest point is within `radii[k]`.
+/// The tiles the thesis's spherical detail bias selects: with radii `r0 < r1 < ... < r(n-1)`,
+/// level k where the tile's nearest point lies within `r(k)` of the camera, level n (or the
+/// coarsest, if fewer) beyond the last radius. Walking down from the root, a tile of level k+1 is
+/// refined into its children when it is within `r(k)`, and always while k+1 > n.
 pub fn adaptive_tiles(snap: &Snapshot, camera: [f32; 3], radii: &[f32]) -> Vec<BrickKey> {
     let layout = snap.layout();
     let scale = snap.header().voxel_scale;
@@ -51,10 +52,8 @@ pub fn adaptive_tiles(snap: &Snapshot, camera: [f32; 3], radii: &[f32]) -> Vec<B
     let mut out = Vec::new();
     let mut stack = level_tiles(snap, layout.levels() - 1);
     while let Some(k) = stack.pop() {
-        let refine = k.level > 0
-            && radii
-                .get(k.level as usize - 1)
-                .is_some_and(|&r| distance(k) <= r);
+        let level = k.level as usize;
+        let refine = level > radii.len() || (level > 0 && distance(k) <= radii[level - 1]);
         if refine {
             stack.extend(layout.children(k).into_iter().map(|(_, c)| c));
         } else {
@@ -88,11 +87,8 @@ pub fn mesh_tiles(
         .collect::<Result<_, StoreError>>()?;
     progress.finish_and_clear();
     let mut out = Mesh::default();
-    for p in parts {
-        let base = out.positions.len() as u32;
-        out.positions.extend_from_slice(&p.positions);
-        out.normals.extend_from_slice(&p.normals);
-        out.indices.extend(p.indices.iter().map(|i| i + base));
+    for p in &parts {
+        out.append(p);
     }
     Ok(out)
 }

@@ -38,30 +38,7 @@ impl Field<'_> {
     }
 }
 
-/// A triangle mesh: positions, unit normals, and indices (three per triangle, counter-clockwise
-/// seen from outside).
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct Mesh {
-    pub positions: Vec<[f32; 3]>,
-    pub normals: Vec<[f32; 3]>,
-    pub indices: Vec<u32>,
-}
-
-impl Mesh {
-    pub fn clear(&mut self) {
-        self.positions.clear();
-        self.normals.clear();
-        self.indices.clear();
-    }
-
-    pub fn triangles(&self) -> usize {
-        self.indices.len() / 3
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.indices.is_empty()
-    }
-}
+pub use isovox_proto::mesh::Mesh;
 
 /// Reusable per-call memory: the vertex id of each grid edge already visited.
 #[derive(Debug, Default)]

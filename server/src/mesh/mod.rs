@@ -1,11 +1,13 @@
 //! Meshing: marching cubes per tile, crack-free across tiles.
 //!
 //! Layout:
+//! - [`files`]: GLB, OBJ and PLY output.
 //! - [`level`]: whole levels and adaptive tile selections, welding, closedness checks.
 //! - [`mc`]: the kernel over a sample grid.
 //! - [`tile`]: one brick's mesh with its halo, in world coordinates (the seam rule).
 //! - [`table`]: the case table, generated with a face-consistent rule.
 
+pub mod files;
 pub mod level;
 pub mod mc;
 pub mod table;

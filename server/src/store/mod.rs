@@ -35,14 +35,14 @@ use thiserror::Error;
 #[derive(Debug, Error)]
 pub enum StoreError {
     /// An operating-system error, with what was being done.
-    #[error("{context}: {source}")]
+    #[error("{context}")]
     Io {
         context: String,
         #[source]
         source: io::Error,
     },
     /// A record of the file is malformed.
-    #[error("malformed file: {0}")]
+    #[error("malformed file")]
     Format(#[from] FormatError),
     /// A brick's payload does not decode to what its header promises.
     #[error("corrupt brick at offset {offset}: {detail}")]
@@ -51,6 +51,18 @@ pub enum StoreError {
     /// over 4 GiB, ...).
     #[error("{0}")]
     Invalid(String),
+}
+
+/// An error and all its sources, joined with ": " (what `{:#}` prints for anyhow errors).
+pub fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut out = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        out.push_str(": ");
+        out.push_str(&s.to_string());
+        source = s.source();
+    }
+    out
 }
 
 impl StoreError {
