@@ -11,7 +11,6 @@ use isovox_server::generate::WorldSource;
 use isovox_server::http::{run, AppState};
 use isovox_server::store::{build_vod2, BuildOptions, Vod2};
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 
 struct Server {
     base: String,
@@ -45,9 +44,7 @@ async fn start() -> Server {
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = listener.local_addr().unwrap();
     let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-    let state = AppState {
-        catalog: Arc::new(catalog),
-    };
+    let state = AppState::new(catalog, 64 << 20, 16);
     tokio::spawn(async move {
         run(listener, state, async {
             let _ = rx.await;
@@ -246,4 +243,85 @@ async fn errors_are_problem_details() {
     )
     .await;
     problem(get("/v1/nothing/here").await.unwrap(), 404).await;
+}
+
+#[tokio::test]
+async fn mesh_tiles_match_the_offline_mesher() {
+    use isovox_proto::mesh::{decode_compact, Mesh};
+    use isovox_server::mesh::tile::{default_iso, mesh_tile, TileScratch};
+    let s = start().await;
+    let c = reqwest::Client::new();
+    let vod = Vod2::open(&s.path).unwrap();
+    let snap = vod.head();
+    let mut nonempty = 0;
+    for (level, x, y, z) in [
+        (0u8, 2u32, 1u32, 2u32),
+        (0, 0, 0, 0),
+        (0, 6, 2, 4),
+        (1, 1, 0, 1),
+        (3, 0, 0, 0),
+    ] {
+        let key = snap.layout().key(level, x, y, z).unwrap();
+        let mut want = Mesh::default();
+        mesh_tile(
+            &snap,
+            key,
+            default_iso(VoxelType::U8),
+            &mut want,
+            &mut TileScratch::default(),
+        )
+        .unwrap();
+        let url = format!("{}/v1/volumes/terrain/meshes/{level}/{x}/{y}/{z}", s.base);
+        let r = c.get(&url).send().await.unwrap();
+        assert_eq!(r.status().as_u16(), 200);
+        assert_eq!(r.headers()["content-type"], "application/x-isovox-mesh");
+        let etag = r.headers()["etag"].to_str().unwrap().to_string();
+        let got = decode_compact(&r.bytes().await.unwrap()).unwrap();
+        assert_eq!(got.positions, want.positions, "tile {key}");
+        assert_eq!(got.indices, want.indices, "tile {key}");
+        nonempty += usize::from(!want.is_empty());
+        // Twice more: from the cache, same bytes; and revalidation.
+        let again =
+            decode_compact(&c.get(&url).send().await.unwrap().bytes().await.unwrap()).unwrap();
+        assert_eq!(again.positions, want.positions);
+        let r = c
+            .get(&url)
+            .header("If-None-Match", &etag)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status().as_u16(), 304);
+        let r = c.get(format!("{url}?format=glb")).send().await.unwrap();
+        assert_eq!(r.headers()["content-type"], "model/gltf-binary");
+        assert_eq!(&r.bytes().await.unwrap()[..4], b"glTF");
+    }
+    assert!(nonempty >= 2, "some chosen tiles cross the terrain");
+    let get = |p: String| c.get(p).send();
+    problem(
+        get(format!(
+            "{}/v1/volumes/terrain/meshes/0/0/0/0?format=stl",
+            s.base
+        ))
+        .await
+        .unwrap(),
+        400,
+    )
+    .await;
+    problem(
+        get(format!("{}/v1/volumes/terrain/meshes/0/0/9/0", s.base))
+            .await
+            .unwrap(),
+        404,
+    )
+    .await;
+    problem(
+        get(format!(
+            "{}/v1/volumes/terrain/meshes/0/0/0/0?iso=abc",
+            s.base
+        ))
+        .await
+        .unwrap(),
+        400,
+    )
+    .await;
 }

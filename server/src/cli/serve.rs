@@ -9,7 +9,6 @@ use clap::Args;
 use isovox_proto::{VolumeLayout, VoxelType};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 
 #[derive(Debug, Args)]
 pub struct ServeArgs {
@@ -20,6 +19,12 @@ pub struct ServeArgs {
     /// Address to listen on.
     #[arg(long, env = "ISOVOX_ADDR", default_value = "127.0.0.1:7070")]
     pub addr: SocketAddr,
+    /// Memory for cached mesh tiles, in MiB.
+    #[arg(long, env = "ISOVOX_MESH_CACHE_MB", default_value_t = 256)]
+    pub mesh_cache_mb: usize,
+    /// Meshing jobs running or queued at once; beyond it requests get 503 with Retry-After.
+    #[arg(long, env = "ISOVOX_CPU_QUEUE", default_value_t = 64)]
+    pub cpu_queue: usize,
 }
 
 /// Name of the volume generated on first start.
@@ -80,9 +85,7 @@ pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
             "isovox serving {} on http://{addr}/v1/volumes",
             names.join(", ")
         );
-        let state = AppState {
-            catalog: Arc::new(catalog),
-        };
+        let state = AppState::new(catalog, a.mesh_cache_mb << 20, a.cpu_queue);
         run(listener, state, shutdown_signal())
             .await
             .context("server failed")

@@ -1,7 +1,7 @@
 //! Errors as responses: one place decides every status code (RFC 9457 problem details).
 
 use crate::store::StoreError;
-use axum::http::{header, StatusCode};
+use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use isovox_proto::api::Problem;
 
@@ -12,6 +12,8 @@ pub enum ApiError {
     BadRequest(String),
     NotFound(String),
     NotAcceptable(String),
+    /// Too much work queued: retry after this many seconds.
+    Overloaded(u32),
     Internal(String),
 }
 
@@ -32,32 +34,44 @@ impl From<StoreError> for ApiError {
     }
 }
 
+fn problem(status: StatusCode, detail: String) -> Response {
+    let problem = Problem {
+        kind: "about:blank".into(),
+        title: status.canonical_reason().unwrap_or("Error").into(),
+        status: status.as_u16(),
+        detail,
+    };
+    let body = serde_json::to_vec(&problem).unwrap_or_default();
+    (
+        status,
+        [(header::CONTENT_TYPE, "application/problem+json")],
+        body,
+    )
+        .into_response()
+}
+
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
-        let (status, detail) = match self {
-            ApiError::BadRequest(d) => (StatusCode::BAD_REQUEST, d),
-            ApiError::NotFound(d) => (StatusCode::NOT_FOUND, d),
-            ApiError::NotAcceptable(d) => (StatusCode::NOT_ACCEPTABLE, d),
+        match self {
+            ApiError::BadRequest(d) => problem(StatusCode::BAD_REQUEST, d),
+            ApiError::NotFound(d) => problem(StatusCode::NOT_FOUND, d),
+            ApiError::NotAcceptable(d) => problem(StatusCode::NOT_ACCEPTABLE, d),
+            ApiError::Overloaded(after) => {
+                let mut r = problem(
+                    StatusCode::SERVICE_UNAVAILABLE,
+                    format!("the server is busy; retry in {after} s"),
+                );
+                r.headers_mut()
+                    .insert(header::RETRY_AFTER, HeaderValue::from(after));
+                r
+            }
             ApiError::Internal(cause) => {
                 tracing::error!(%cause, "internal error");
-                (
+                problem(
                     StatusCode::INTERNAL_SERVER_ERROR,
-                    "the server failed to answer; the cause is in its log".to_string(),
+                    "the server failed to answer; the cause is in its log".into(),
                 )
             }
-        };
-        let problem = Problem {
-            kind: "about:blank".into(),
-            title: status.canonical_reason().unwrap_or("Error").into(),
-            status: status.as_u16(),
-            detail,
-        };
-        let body = serde_json::to_vec(&problem).unwrap_or_default();
-        (
-            status,
-            [(header::CONTENT_TYPE, "application/problem+json")],
-            body,
-        )
-            .into_response()
+        }
     }
 }

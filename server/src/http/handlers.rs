@@ -166,3 +166,109 @@ pub async fn brick(
     );
     Ok((response_headers, decoded).into_response())
 }
+
+/// Query of a mesh tile.
+#[derive(Debug, Deserialize)]
+pub struct MeshQuery {
+    pub version: Option<u64>,
+    /// Iso value; default S - 0.5.
+    pub iso: Option<f32>,
+    /// `compact` (default, `application/x-isovox-mesh`) or `glb` (`model/gltf-binary`).
+    pub format: Option<String>,
+}
+
+/// Media type of the compact mesh encoding (`proto::mesh`).
+pub const MESH_MEDIA_TYPE: &str = "application/x-isovox-mesh";
+
+/// One mesh tile: marching cubes over the brick and its halo, through the content-keyed mesh
+/// cache, meshed on the blocking pool (never on the async workers). `ETag` names the tile's
+/// inputs and position, so a revalidation costs 27 index lookups and no meshing.
+pub async fn mesh_tile(
+    State(state): State<AppState>,
+    path: Result<Path<BrickPath>, PathRejection>,
+    query: Result<Query<MeshQuery>, QueryRejection>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    let Path((name, level, x, y, z)) =
+        path.map_err(|e| ApiError::BadRequest(format!("malformed mesh path: {e}")))?;
+    let Query(query) = query.map_err(|e| ApiError::BadRequest(format!("malformed query: {e}")))?;
+    let glb = match query.format.as_deref() {
+        None | Some("compact") => false,
+        Some("glb") => true,
+        Some(other) => {
+            return Err(ApiError::BadRequest(format!(
+                "unknown mesh format {other:?} (compact or glb)"
+            )))
+        }
+    };
+    let vod = volume(&state, &name)?;
+    let snap = match query.version {
+        Some(v) => vod.version(v)?,
+        None => vod.head(),
+    };
+    let key = snap
+        .layout()
+        .key(level, x, y, z)
+        .map_err(|e| ApiError::not_found(e.to_string()))?;
+    let iso = query
+        .iso
+        .unwrap_or_else(|| crate::mesh::tile::default_iso(snap.layout().voxel_type()));
+    if !iso.is_finite() {
+        return Err(ApiError::BadRequest(format!(
+            "iso must be a finite number, got {iso}"
+        )));
+    }
+    let inputs = crate::mesh::tile::tile_inputs(&snap, key, iso)?;
+    let mut tag = Vec::with_capacity(64);
+    tag.extend_from_slice(&inputs.key.to_le_bytes());
+    for c in [x, y, z] {
+        tag.extend_from_slice(&c.to_le_bytes());
+    }
+    for s in snap.header().voxel_scale {
+        tag.extend_from_slice(&s.to_le_bytes());
+    }
+    tag.push(glb as u8);
+    let etag = format!("\"{:016x}\"", xxhash_rust::xxh3::xxh3_64(&tag));
+    let mut response_headers = HeaderMap::new();
+    response_headers.insert(
+        header::ETAG,
+        HeaderValue::from_str(&etag).map_err(|e| ApiError::Internal(e.to_string()))?,
+    );
+    response_headers.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-cache"));
+    let revalidated = headers
+        .get_all(header::IF_NONE_MATCH)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(','))
+        .any(|t| t.trim() == etag || t.trim() == "*");
+    if revalidated {
+        return Ok((StatusCode::NOT_MODIFIED, response_headers).into_response());
+    }
+    let permit = state
+        .cpu
+        .clone()
+        .try_acquire_owned()
+        .map_err(|_| ApiError::Overloaded(1))?;
+    let cache = state.meshes.clone();
+    let body = tokio::task::spawn_blocking(move || -> Result<Vec<u8>, crate::store::StoreError> {
+        let _permit = permit;
+        let mut scratch = crate::mesh::tile::TileScratch::default();
+        let tile = cache.tile(&snap, key, iso, &mut scratch)?;
+        let mut mesh = (*tile.mesh).clone();
+        crate::mesh::tile::to_world(&mut mesh, key, &snap);
+        Ok(if glb {
+            isovox_proto::mesh::encode_glb(&mesh)
+        } else {
+            isovox_proto::mesh::encode_compact(&mesh)
+        })
+    })
+    .await
+    .map_err(|e| ApiError::Internal(format!("meshing task failed: {e}")))??;
+    let media = if glb {
+        "model/gltf-binary"
+    } else {
+        MESH_MEDIA_TYPE
+    };
+    response_headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(media));
+    Ok((response_headers, body).into_response())
+}

@@ -7,6 +7,8 @@
 //! - `GET /healthz`: liveness.
 //! - `GET /v1/volumes`, `GET /v1/volumes/{name}`: what is served and how to address it.
 //! - `GET /v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}`: one brick (see [`handlers::brick`]).
+//! - `GET /v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}`: one mesh tile (see
+//!   [`handlers::mesh_tile`]).
 
 mod error;
 pub mod handlers;
@@ -14,6 +16,7 @@ pub mod handlers;
 pub use error::ApiError;
 
 use crate::catalog::Catalog;
+use crate::mesh::cache::MeshCache;
 use axum::http::StatusCode;
 use axum::routing::get;
 use axum::Router;
@@ -29,6 +32,23 @@ use tower_http::trace::TraceLayer;
 #[derive(Debug, Clone)]
 pub struct AppState {
     pub catalog: Arc<Catalog>,
+    /// Tile meshes by the content of their inputs.
+    pub meshes: Arc<MeshCache>,
+    /// Permits for CPU work off the async runtime (meshing); when none is free the request gets
+    /// 503 with Retry-After instead of waiting in an unbounded queue.
+    pub cpu: Arc<tokio::sync::Semaphore>,
+}
+
+impl AppState {
+    /// A state serving `catalog` with a mesh cache of `mesh_cache_bytes` and room for
+    /// `cpu_queue` meshing jobs at once (running or queued on the blocking pool).
+    pub fn new(catalog: Catalog, mesh_cache_bytes: usize, cpu_queue: usize) -> Self {
+        AppState {
+            catalog: Arc::new(catalog),
+            meshes: Arc::new(MeshCache::new(mesh_cache_bytes)),
+            cpu: Arc::new(tokio::sync::Semaphore::new(cpu_queue)),
+        }
+    }
 }
 
 /// The router, with its layers: request spans, a 30 s timeout, CORS for browser clients.
@@ -40,6 +60,10 @@ pub fn app(state: AppState) -> Router {
         .route(
             "/v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}",
             get(handlers::brick),
+        )
+        .route(
+            "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}",
+            get(handlers::mesh_tile),
         )
         .fallback(handlers::not_found)
         .with_state(state)

@@ -46,8 +46,9 @@ pub struct Scratch {
     edge_vertex: Vec<u32>,
 }
 
-/// Marches the cells whose lower corners lie in `[lo, hi)` and appends their triangles to `out`
-/// (positions in grid coordinates).
+/// Marches the cells whose lower corners lie in `[lo, hi)` and appends their triangles to `out`,
+/// with positions in grid coordinates relative to `frame` (so a tile's mesh does not depend on
+/// where the tile is, and identical tiles can share one cached mesh).
 ///
 /// The field must cover `[lo - 1, hi + 1]` on every axis (inclusive): `hi` for the cells' upper
 /// corners, one more on each side for the central differences of the normals. Checked once up
@@ -58,6 +59,7 @@ pub struct Scratch {
 pub fn march(
     field: &Field<'_>,
     lo: [i64; 3],
+    frame: [i64; 3],
     hi: [i64; 3],
     iso: f32,
     out: &mut Mesh,
@@ -111,7 +113,7 @@ pub fn march(
                     if id == u32::MAX {
                         let (v0, v1) = (corners[c0 as usize], corners[c1 as usize]);
                         let t = (iso - v0) / (v1 - v0);
-                        let mut pos = p0.map(|c| c as f32);
+                        let mut pos = [0, 1, 2].map(|a| (p0[a] - frame[a]) as f32);
                         pos[axis] += t;
                         let mut p1 = p0;
                         p1[axis] += 1;
@@ -158,6 +160,7 @@ mod tests {
         march(
             &field,
             [-1, -1, -1],
+            [0, 0, 0],
             [1, 1, 1],
             0.5,
             &mut mesh,
@@ -212,6 +215,7 @@ mod tests {
         };
         march(
             &field,
+            [0; 3],
             [0; 3],
             [1; 3],
             0.5,

@@ -37,7 +37,82 @@ pub fn default_iso(t: VoxelType) -> f32 {
     t.surface() as f32 - 0.5
 }
 
-/// Meshes tile `key` of `snap` at `iso` into `out` (cleared first).
+/// What a tile's mesh depends on: its level, the iso value, the brick edge and voxel type,
+/// whether it is the first tile on an axis (it then owns one more cell), and the content of the
+/// 27 bricks around it (content hash, constant value, or outside the volume).
+#[derive(Debug, Clone)]
+pub struct TileInputs {
+    /// Content key: equal keys give equal local meshes.
+    pub key: u128,
+    /// Whether the iso value can lie between the samples the cells read (from brick min/max).
+    pub may_cross: bool,
+}
+
+/// Computes a tile's inputs from the index and brick headers alone (no voxel decoded).
+///
+/// # Errors
+/// A brick header fails to read.
+pub fn tile_inputs(snap: &Snapshot, key: BrickKey, iso: f32) -> Result<TileInputs, StoreError> {
+    let layout = snap.layout();
+    if !layout.contains(key) {
+        return Err(StoreError::Invalid(format!(
+            "tile {key} is outside the volume"
+        )));
+    }
+    let grid = layout.grid(key.level);
+    let pos = [key.x, key.y, key.z];
+    let mut desc = Vec::with_capacity(32 + 27 * 9);
+    desc.push(key.level);
+    desc.extend_from_slice(&iso.to_bits().to_le_bytes());
+    desc.extend_from_slice(&layout.brick().to_le_bytes());
+    desc.push(layout.voxel_type().bytes() as u8);
+    desc.extend(pos.map(|c| (c == 0) as u8));
+    let (mut any_below, mut any_above) = (false, false);
+    for dz in -1i64..=1 {
+        for dy in -1i64..=1 {
+            for dx in -1i64..=1 {
+                let c = [pos[0] as i64 + dx, pos[1] as i64 + dy, pos[2] as i64 + dz];
+                let inside = (0..3).all(|a| c[a] >= 0 && c[a] < grid[a] as i64);
+                let (min, max) = if inside {
+                    let k = BrickKey {
+                        level: key.level,
+                        x: c[0] as u32,
+                        y: c[1] as u32,
+                        z: c[2] as u32,
+                    };
+                    match snap.stored(k)? {
+                        StoredBrick::Constant(v) => {
+                            desc.push(1);
+                            desc.extend_from_slice(&(v as u64).to_le_bytes());
+                            (v, v)
+                        }
+                        stored @ StoredBrick::Record { header, .. } => {
+                            desc.push(2);
+                            desc.extend_from_slice(&header.hash.to_le_bytes());
+                            stored.min_max()
+                        }
+                    }
+                } else {
+                    desc.push(0);
+                    (0, 0)
+                };
+                // The cells read the samples of the bricks at offsets 0..=1 (and -1 for a first
+                // tile); the others only feed normals.
+                let reads = [dx, dy, dz].iter().zip(pos).all(|(&d, p)| d >= 0 || p == 0);
+                if reads {
+                    any_below |= (min as f32) < iso;
+                    any_above |= (max as f32) >= iso;
+                }
+            }
+        }
+    }
+    Ok(TileInputs {
+        key: xxhash_rust::xxh3::xxh3_128(&desc),
+        may_cross: any_below && any_above,
+    })
+}
+
+/// Meshes tile `key` of `snap` at `iso` into `out` (cleared first), in world coordinates.
 ///
 /// # Errors
 /// A brick fails to read.
@@ -48,53 +123,58 @@ pub fn mesh_tile(
     out: &mut Mesh,
     scratch: &mut TileScratch,
 ) -> Result<TileStats, StoreError> {
-    out.clear();
-    let layout = snap.layout();
-    if !layout.contains(key) {
-        return Err(StoreError::Invalid(format!(
-            "tile {key} is outside the volume"
-        )));
-    }
-    let b = layout.brick() as i64;
-    let pos = [key.x, key.y, key.z].map(|c| c as i64);
-    let lo = [0, 1, 2].map(|a| pos[a] * b - i64::from(pos[a] == 0));
-    let hi = pos.map(|c| (c + 1) * b);
-    // Bricks holding the cells' corner samples [lo, hi]: can the iso value lie between them?
-    let grid = layout.grid(key.level).map(|g| g as i64);
-    let brick_range =
-        |a: usize, from: i64, to: i64| (from.div_euclid(b)..=to.div_euclid(b)).map(move |c| (a, c));
-    let (mut any_below, mut any_above) = (false, false);
-    let mut corners = Vec::with_capacity(8);
-    for (_, bz) in brick_range(2, lo[2], hi[2]) {
-        for (_, by) in brick_range(1, lo[1], hi[1]) {
-            for (_, bx) in brick_range(0, lo[0], hi[0]) {
-                corners.push([bx, by, bz]);
-            }
+    let stats = mesh_tile_local(snap, key, iso, out, scratch)?;
+    to_world(out, key, snap);
+    Ok(stats)
+}
+
+/// Moves a tile's local mesh (grid coordinates relative to the tile's first voxel) to world
+/// coordinates. Every tile goes through this one formula, so shared seam vertices stay
+/// bit-identical whether a tile came from the cache or not.
+pub fn to_world(mesh: &mut Mesh, key: BrickKey, snap: &Snapshot) {
+    let b = snap.layout().brick() as f32;
+    let origin = [key.x, key.y, key.z].map(|c| c as f32 * b);
+    let step = (1u64 << key.level) as f32;
+    let scale = snap.header().voxel_scale;
+    for p in &mut mesh.positions {
+        for a in 0..3 {
+            p[a] = (((p[a] + origin[a]) + 0.5) * step - 0.5) * scale[a];
         }
     }
-    for c in &corners {
-        let inside_grid = (0..3).all(|a| c[a] >= 0 && c[a] < grid[a]);
-        // Outside the grid every sample is L; padding inside a brick is L and counted in its min.
-        let (min, max) = if inside_grid {
-            snap.stored(BrickKey {
-                level: key.level,
-                x: c[0] as u32,
-                y: c[1] as u32,
-                z: c[2] as u32,
-            })?
-            .min_max()
-        } else {
-            (0, 0)
-        };
-        any_below |= (min as f32) < iso;
-        any_above |= (max as f32) >= iso;
+    if scale[0] != scale[1] || scale[1] != scale[2] {
+        for n in &mut mesh.normals {
+            let m = [n[0] / scale[0], n[1] / scale[1], n[2] / scale[2]];
+            let len = (m[0] * m[0] + m[1] * m[1] + m[2] * m[2]).sqrt();
+            *n = m.map(|c| c / len);
+        }
     }
-    if !(any_below && any_above) {
+}
+
+/// Meshes tile `key` into `out` (cleared first) in local grid coordinates: relative to the
+/// tile's first voxel, level-k voxel units.
+///
+/// # Errors
+/// A brick fails to read.
+pub fn mesh_tile_local(
+    snap: &Snapshot,
+    key: BrickKey,
+    iso: f32,
+    out: &mut Mesh,
+    scratch: &mut TileScratch,
+) -> Result<TileStats, StoreError> {
+    out.clear();
+    if !tile_inputs(snap, key, iso)?.may_cross {
         return Ok(TileStats {
             skipped: true,
             triangles: 0,
         });
     }
+    let layout = snap.layout();
+    let b = layout.brick() as i64;
+    let pos = [key.x, key.y, key.z].map(|c| c as i64);
+    let lo = [0, 1, 2].map(|a| pos[a] * b - i64::from(pos[a] == 0));
+    let hi = pos.map(|c| (c + 1) * b);
+    let grid = layout.grid(key.level).map(|g| g as i64);
     // Gather the field [lo - 1, hi + 1].
     let origin = lo.map(|c| c - 1);
     let size = [0, 1, 2].map(|a| (hi[a] + 1 - origin[a] + 1) as usize);
@@ -162,22 +242,15 @@ pub fn mesh_tile(
         size,
         values: &scratch.field,
     };
-    march(&field, lo, hi, iso, out, &mut scratch.march);
-    // To world coordinates; normals through the inverse scale.
-    let step = (1u64 << key.level) as f32;
-    let scale = snap.header().voxel_scale;
-    for p in &mut out.positions {
-        for a in 0..3 {
-            p[a] = ((p[a] + 0.5) * step - 0.5) * scale[a];
-        }
-    }
-    if scale[0] != scale[1] || scale[1] != scale[2] {
-        for n in &mut out.normals {
-            let m = [n[0] / scale[0], n[1] / scale[1], n[2] / scale[2]];
-            let len = (m[0] * m[0] + m[1] * m[1] + m[2] * m[2]).sqrt();
-            *n = m.map(|c| c / len);
-        }
-    }
+    march(
+        &field,
+        lo,
+        pos.map(|c| c * b),
+        hi,
+        iso,
+        out,
+        &mut scratch.march,
+    );
     Ok(TileStats {
         skipped: false,
         triangles: out.triangles(),
