@@ -103,7 +103,7 @@ pub fn encode_compact(mesh: &Mesh) -> Vec<u8> {
             b.extend_from_slice(&(i as u16).to_le_bytes());
         }
     }
-    while b.len() % 4 != 0 {
+    while !b.len().is_multiple_of(4) {
         b.push(0);
     }
     b
@@ -128,7 +128,7 @@ pub fn decode_compact(bytes: &[u8]) -> Result<Mesh, FormatError> {
     let m = f.u32(12)? as usize;
     let index_bytes = if wide { 4 } else { 2 };
     let need = (n as u64) * 18 + (m as u64) * index_bytes;
-    if m % 3 != 0 || HEADER as u64 + need > bytes.len() as u64 {
+    if !m.is_multiple_of(3) || HEADER as u64 + need > bytes.len() as u64 {
         return Err(FormatError::invalid(
             "compact mesh",
             format!(
@@ -192,7 +192,7 @@ pub fn encode_glb(mesh: &Mesh) -> Vec<u8> {
         }
     }
     let index_len = bin.len() - index_at;
-    while bin.len() % 4 != 0 {
+    while !bin.len().is_multiple_of(4) {
         bin.push(0);
     }
     let (lo, hi) = mesh.bounds();
@@ -221,7 +221,7 @@ pub fn encode_glb(mesh: &Mesh) -> Vec<u8> {
         "buffers": [{"byteLength": bin.len()}],
     });
     let mut json = serde_json::to_vec(&json).unwrap_or_default();
-    while json.len() % 4 != 0 {
+    while !json.len().is_multiple_of(4) {
         json.push(b' ');
     }
     let total = 12 + 8 + json.len() + 8 + bin.len();
