@@ -29,6 +29,9 @@ pub enum BenchCommand {
     /// ICVG: primitive sampling in ns/voxel (the paper's 72^3 shapes) and edit latency (carving
     /// radius-16 ellipsoids into a world, evaluate + dedup + LOD + durable commit).
     Icvg(super::bench_icvg::IcvgArgs),
+    /// Marching cubes: throughput next to VTK Flying Edges and scikit-image (--peers), by
+    /// thread count and level, and the adaptive LOD's triangle savings.
+    Mesh(super::bench_mesh::MeshBenchArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -56,6 +59,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
     match cmd {
         BenchCommand::Store(a) => bench_store(a),
         BenchCommand::Icvg(a) => super::bench_icvg::run(a),
+        BenchCommand::Mesh(a) => super::bench_mesh::run(a),
     }
 }
 

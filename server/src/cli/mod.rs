@@ -3,6 +3,7 @@
 
 mod bench;
 mod bench_icvg;
+mod bench_mesh;
 pub(crate) mod data;
 pub mod edit;
 mod mesh;

@@ -8,6 +8,9 @@ use isovox_proto::BrickKey;
 use rayon::prelude::*;
 use std::collections::HashMap;
 
+/// Memory for decoded bricks during one [`mesh_tiles`] pass.
+const BRICK_CACHE_BYTES: usize = 256 << 20;
+
 /// Every tile of `level`.
 pub fn level_tiles(snap: &Snapshot, level: u8) -> Vec<BrickKey> {
     let g = snap.layout().grid(level);
@@ -64,6 +67,35 @@ pub fn adaptive_tiles(snap: &Snapshot, camera: [f32; 3], radii: &[f32]) -> Vec<B
     out
 }
 
+/// Meshes `tiles` in parallel, one mesh per tile (world coordinates), in the order given.
+///
+/// # Errors
+/// A brick fails to read.
+pub fn mesh_tile_parts(
+    snap: &Snapshot,
+    tiles: &[BrickKey],
+    iso: f32,
+    progress: &ProgressBar,
+) -> Result<Vec<Mesh>, StoreError> {
+    progress.set_length(tiles.len() as u64);
+    // Decoded bricks shared by all tiles of this pass: each is read whole by up to 27 tiles.
+    let bricks = std::sync::Arc::new(super::cache::BrickCache::new(BRICK_CACHE_BYTES));
+    let parts = tiles
+        .par_iter()
+        .map_init(
+            || TileScratch::with_bricks(bricks.clone()),
+            |scratch, &key| {
+                let mut m = Mesh::default();
+                mesh_tile(snap, key, iso, &mut m, scratch)?;
+                progress.inc(1);
+                Ok(m)
+            },
+        )
+        .collect::<Result<_, StoreError>>()?;
+    progress.finish_and_clear();
+    Ok(parts)
+}
+
 /// Meshes `tiles` in parallel and concatenates the results (vertices on tile seams appear once
 /// per tile; see [`weld`]).
 ///
@@ -75,17 +107,7 @@ pub fn mesh_tiles(
     iso: f32,
     progress: &ProgressBar,
 ) -> Result<Mesh, StoreError> {
-    progress.set_length(tiles.len() as u64);
-    let parts: Vec<Mesh> = tiles
-        .par_iter()
-        .map_init(TileScratch::default, |scratch, &key| {
-            let mut m = Mesh::default();
-            mesh_tile(snap, key, iso, &mut m, scratch)?;
-            progress.inc(1);
-            Ok(m)
-        })
-        .collect::<Result<_, StoreError>>()?;
-    progress.finish_and_clear();
+    let parts = mesh_tile_parts(snap, tiles, iso, progress)?;
     let mut out = Mesh::default();
     for p in &parts {
         out.append(p);

@@ -20,30 +20,32 @@ pub struct Field<'a> {
 }
 
 impl Field<'_> {
-    #[inline]
-    fn at(&self, p: [i64; 3]) -> f32 {
+    fn index(&self, p: [i64; 3]) -> usize {
         let l = [0, 1, 2].map(|a| (p[a] - self.origin[a]) as usize);
-        self.values[(l[2] * self.size[1] + l[1]) * self.size[0] + l[0]]
+        (l[2] * self.size[1] + l[1]) * self.size[0] + l[0]
     }
 
-    fn gradient(&self, p: [i64; 3]) -> [f32; 3] {
-        let mut g = [0f32; 3];
-        for (a, ga) in g.iter_mut().enumerate() {
-            let (mut lo, mut hi) = (p, p);
-            lo[a] -= 1;
-            hi[a] += 1;
-            *ga = (self.at(hi) - self.at(lo)) * 0.5;
-        }
-        g
+    /// Central differences at the point with flat index `i` (strides 1, size x, size x * y).
+    #[inline]
+    fn gradient_at(&self, i: usize) -> [f32; 3] {
+        let (sy, sz) = (self.size[0], self.size[0] * self.size[1]);
+        let v = self.values;
+        [
+            (v[i + 1] - v[i - 1]) * 0.5,
+            (v[i + sy] - v[i - sy]) * 0.5,
+            (v[i + sz] - v[i - sz]) * 0.5,
+        ]
     }
 }
 
 pub use isovox_proto::mesh::Mesh;
 
-/// Reusable per-call memory: the vertex id of each grid edge already visited.
+/// Reusable per-call memory: the vertex id of each grid edge already visited, stamped with the
+/// call that wrote it so the table never needs clearing between calls.
 #[derive(Debug, Default)]
 pub struct Scratch {
-    edge_vertex: Vec<u32>,
+    edge_vertex: Vec<(u32, u32)>,
+    stamp: u32,
 }
 
 /// Marches the cells whose lower corners lie in `[lo, hi)` and appends their triangles to `out`,
@@ -77,24 +79,43 @@ pub fn march(
     let n = [0, 1, 2].map(|a| (hi[a] - lo[a]) as usize);
     // Edge slots: one per grid point of [lo, hi] and axis.
     let points = (n[0] + 1) * (n[1] + 1) * (n[2] + 1);
-    scratch.edge_vertex.clear();
-    scratch.edge_vertex.resize(points * 3, u32::MAX);
+    scratch.stamp = scratch.stamp.wrapping_add(1);
+    if scratch.stamp == 0 || scratch.edge_vertex.len() < points * 3 {
+        // First use, a larger grid, or the stamp wrapped: start from a clean table.
+        scratch.edge_vertex.clear();
+        scratch.edge_vertex.resize(points * 3, (0, 0));
+        scratch.stamp = 1;
+    }
+    let stamp = scratch.stamp;
     let table = table();
+    let row = |y: i64, z: i64| {
+        let start = (((z - field.origin[2]) as usize * field.size[1])
+            + (y - field.origin[1]) as usize)
+            * field.size[0];
+        let x0 = (lo[0] - field.origin[0]) as usize;
+        &field.values[start + x0..start + x0 + n[0] + 1]
+    };
     for z in lo[2]..hi[2] {
         for y in lo[1]..hi[1] {
-            for x in lo[0]..hi[0] {
-                let mut corners = [0f32; 8];
-                let mut case = 0usize;
-                for (c, v) in corners.iter_mut().enumerate() {
-                    *v = field.at([
-                        x + (c & 1) as i64,
-                        y + (c >> 1 & 1) as i64,
-                        z + (c >> 2 & 1) as i64,
-                    ]);
-                    if *v >= iso {
-                        case |= 1 << c;
-                    }
+            // The four rows of samples the cells of this row read (x fastest): corner c of cell x
+            // is rows[c >> 1][x + (c & 1)].
+            let rows = [row(y, z), row(y + 1, z), row(y, z + 1), row(y + 1, z + 1)];
+            // Inside flags of the cells' x-side corners, as the bits of corners 0, 2, 4, 6.
+            let side = |i: usize| -> usize {
+                (rows[0][i] >= iso) as usize
+                    | ((rows[1][i] >= iso) as usize) << 2
+                    | ((rows[2][i] >= iso) as usize) << 4
+                    | ((rows[3][i] >= iso) as usize) << 6
+            };
+            let mut low_side = side(0);
+            for (i, x) in (lo[0]..hi[0]).enumerate() {
+                let high_side = side(i + 1);
+                let case = low_side | high_side << 1;
+                low_side = high_side;
+                if case == 0 || case == 255 {
+                    continue;
                 }
+                let corners: [f32; 8] = std::array::from_fn(|c| rows[c >> 1][i + (c & 1)]);
                 let tris = &table[case];
                 if tris.is_empty() {
                     continue;
@@ -109,15 +130,15 @@ pub fn march(
                     ];
                     let l = [0, 1, 2].map(|a| (p0[a] - lo[a]) as usize);
                     let slot = (((l[2] * (n[1] + 1) + l[1]) * (n[0] + 1) + l[0]) * 3) + axis;
-                    let mut id = scratch.edge_vertex[slot];
-                    if id == u32::MAX {
+                    let (seen, mut id) = scratch.edge_vertex[slot];
+                    if seen != stamp {
                         let (v0, v1) = (corners[c0 as usize], corners[c1 as usize]);
                         let t = (iso - v0) / (v1 - v0);
                         let mut pos = [0, 1, 2].map(|a| (p0[a] - frame[a]) as f32);
                         pos[axis] += t;
-                        let mut p1 = p0;
-                        p1[axis] += 1;
-                        let (g0, g1) = (field.gradient(p0), field.gradient(p1));
+                        let i0 = field.index(p0);
+                        let stride = [1, field.size[0], field.size[0] * field.size[1]][axis];
+                        let (g0, g1) = (field.gradient_at(i0), field.gradient_at(i0 + stride));
                         let g = [0, 1, 2].map(|a| g0[a] + t * (g1[a] - g0[a]));
                         let len = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
                         let normal = if len > 0.0 {
@@ -131,7 +152,7 @@ pub fn march(
                         id = out.positions.len() as u32;
                         out.positions.push(pos);
                         out.normals.push(normal);
-                        scratch.edge_vertex[slot] = id;
+                        scratch.edge_vertex[slot] = (stamp, id);
                     }
                     out.indices.push(id);
                 }

@@ -20,8 +20,42 @@ use isovox_proto::{BrickKey, VoxelType};
 #[derive(Debug, Default)]
 pub struct TileScratch {
     field: Vec<f32>,
-    brick: Vec<u8>,
     march: Scratch,
+    /// Decoded bricks shared between tiles (and threads); without it each tile decodes its
+    /// neighbours itself.
+    pub bricks: Option<std::sync::Arc<super::cache::BrickCache>>,
+}
+
+impl TileScratch {
+    /// Scratch that shares decoded bricks through `bricks`.
+    pub fn with_bricks(bricks: std::sync::Arc<super::cache::BrickCache>) -> Self {
+        TileScratch {
+            bricks: Some(bricks),
+            ..TileScratch::default()
+        }
+    }
+}
+
+/// The decoded bytes of a stored brick record (content hash `hash`), through the shared cache
+/// when there is one.
+fn decoded(
+    hash: u64,
+    stored: &StoredBrick<'_>,
+    layout: &isovox_proto::VolumeLayout,
+    cache: Option<&super::cache::BrickCache>,
+) -> Result<std::sync::Arc<Vec<u8>>, StoreError> {
+    // The key mixes in the brick size: equal hashes of different sizes are different content.
+    let hash = (hash as u128) << 32 | layout.brick_bytes() as u128;
+    if let Some(hit) = cache.and_then(|c| c.get(hash)) {
+        return Ok(hit);
+    }
+    let mut out = vec![0u8; layout.brick_bytes()];
+    crate::store::vod2::decode_stored(stored, layout, &mut out)?;
+    let out = std::sync::Arc::new(out);
+    if let Some(c) = cache {
+        c.put(hash, out.clone(), layout.brick_bytes());
+    }
+    Ok(out)
 }
 
 /// What meshing one tile did.
@@ -181,7 +215,6 @@ pub fn mesh_tile_local(
     scratch.field.clear();
     scratch.field.resize(size[0] * size[1] * size[2], 0.0);
     let t = layout.voxel_type();
-    scratch.brick.resize(layout.brick_bytes(), 0);
     let end = [0, 1, 2].map(|a| origin[a] + size[a] as i64); // exclusive
     for bz in origin[2].div_euclid(b)..=(end[2] - 1).div_euclid(b) {
         for by in origin[1].div_euclid(b)..=(end[1] - 1).div_euclid(b) {
@@ -197,40 +230,46 @@ pub fn mesh_tile_local(
                     z: bz as u32,
                 };
                 let stored = snap.stored(k)?;
-                let constant = match stored {
-                    StoredBrick::Constant(v) => Some(v as f32),
-                    _ => {
-                        crate::store::vod2::decode_stored(&stored, layout, &mut scratch.brick)?;
-                        None
-                    }
-                };
-                if constant == Some(0.0) {
-                    continue;
-                }
                 let blo = c.map(|v| v * b);
                 let from = [0, 1, 2].map(|a| blo[a].max(origin[a]));
                 let to = [0, 1, 2].map(|a| (blo[a] + b).min(end[a]));
-                for z in from[2]..to[2] {
-                    for y in from[1]..to[1] {
-                        let row = (((z - origin[2]) as usize * size[1]) + (y - origin[1]) as usize)
-                            * size[0];
-                        let src = (((z - blo[2]) * b + (y - blo[1])) * b) as usize;
-                        for x in from[0]..to[0] {
-                            let v = match constant {
-                                Some(v) => v,
-                                None => {
-                                    let i = src + (x - blo[0]) as usize;
-                                    match t {
-                                        VoxelType::U8 => scratch.brick[i] as f32,
-                                        VoxelType::U16 => u16::from_le_bytes([
-                                            scratch.brick[2 * i],
-                                            scratch.brick[2 * i + 1],
-                                        ])
-                                            as f32,
+                let width = (to[0] - from[0]) as usize;
+                let rows = (from[2]..to[2]).flat_map(|z| (from[1]..to[1]).map(move |y| (y, z)));
+                let at = |y: i64, z: i64| {
+                    ((((z - origin[2]) as usize * size[1]) + (y - origin[1]) as usize) * size[0])
+                        + (from[0] - origin[0]) as usize
+                };
+                match stored {
+                    StoredBrick::Constant(0) => {} // L: the field is already 0
+                    StoredBrick::Constant(v) => {
+                        for (y, z) in rows {
+                            let row = at(y, z);
+                            scratch.field[row..row + width].fill(v as f32);
+                        }
+                    }
+                    StoredBrick::Record { header, .. } => {
+                        let bytes =
+                            decoded(header.hash, &stored, layout, scratch.bricks.as_deref())?;
+                        for (y, z) in rows {
+                            let row = at(y, z);
+                            let src = (((z - blo[2]) * b + (y - blo[1])) * b + (from[0] - blo[0]))
+                                as usize;
+                            let dst = &mut scratch.field[row..row + width];
+                            match t {
+                                VoxelType::U8 => {
+                                    for (d, s) in dst.iter_mut().zip(&bytes[src..src + width]) {
+                                        *d = *s as f32;
                                     }
                                 }
-                            };
-                            scratch.field[row + (x - origin[0]) as usize] = v;
+                                VoxelType::U16 => {
+                                    for (d, s) in dst
+                                        .iter_mut()
+                                        .zip(bytes[2 * src..2 * (src + width)].chunks_exact(2))
+                                    {
+                                        *d = u16::from_le_bytes([s[0], s[1]]) as f32;
+                                    }
+                                }
+                            }
                         }
                     }
                 }

@@ -10,10 +10,12 @@
 //! - [`vod1`]: the thesis's VOD 1 layout, read and write.
 //! - [`raw`]: RAW and RAWVOX input and output.
 //! - [`inspect`]: whole-file statistics (bricks by codec, unique bricks, garbage bytes).
+//! - [`lru`]: a content-keyed LRU bounded by bytes (decoded bricks, mesh tiles).
 
 pub mod build;
 pub mod codec;
 pub mod inspect;
+pub mod lru;
 pub mod mapping;
 pub mod pyramid;
 pub mod raw;
