@@ -38,6 +38,9 @@ pub struct MeshBenchArgs {
     pub brick: u32,
 }
 
+/// A benchmark input: name, RAW path (for the peers), the volume, its dims and voxel type.
+type DataSet = (String, PathBuf, Arc<Snapshot>, [u32; 3], VoxelType);
+
 struct Run {
     seconds: f64,
     triangles: usize,
@@ -87,7 +90,7 @@ fn peers(raw: &Path, dims: [u32; 3], t: VoxelType) -> anyhow::Result<serde_json:
 
 pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&a.dir)?;
-    let mut sets: Vec<(String, PathBuf, Arc<Snapshot>, [u32; 3], VoxelType)> = Vec::new();
+    let mut sets: Vec<DataSet> = Vec::new();
     let mut keep = Vec::new();
     for (name, world) in [("Large Ellipsoid", false), ("Large World", true)] {
         let layout = VolumeLayout::new([512; 3], a.brick, VoxelType::U8)?;
