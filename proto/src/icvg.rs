@@ -60,10 +60,14 @@ pub enum Term {
         origin: [i64; 3],
         size: [u32; 3],
     },
-    /// Another stored volume's level 0, its voxel (0, 0, 0) placed at `origin`.
+    /// Another stored volume's level 0, placed with its voxel (0, 0, 0) at `origin`; with
+    /// `region`, only that box of it (min inclusive, max exclusive, in its own voxels), placed
+    /// with the region's `min` corner at `origin`.
     Volume {
         name: String,
         origin: [i64; 3],
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        region: Option<Region>,
     },
     Union(Box<Term>, Box<Term>),
     Intersection(Box<Term>, Box<Term>),

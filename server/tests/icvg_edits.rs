@@ -1119,6 +1119,7 @@ fn stored_volume_operand() {
         let term = Term::Volume {
             name: "boulder".into(),
             origin,
+            region: None,
         };
         let c = CompiledTerm::compile(&term, t, &TermLimits::default(), &files).unwrap();
         assert_eq!(
@@ -1152,6 +1153,62 @@ fn stored_volume_operand() {
             }
         }
 
+        // A region of the volume: its min corner lands on `origin`, nothing outside it shows.
+        let (rmin, rmax) = ([2i64, 1, 3], [10i64, 7, 9]);
+        let part = Term::Volume {
+            name: "boulder".into(),
+            origin,
+            region: Some(Region {
+                min: rmin,
+                max: rmax,
+            }),
+        };
+        let c = CompiledTerm::compile(&part, t, &TermLimits::default(), &files).unwrap();
+        assert_eq!(
+            c.bbox,
+            Some(Box3::new(origin, [13, 3, 13])),
+            "origin + region size (8, 6, 6)"
+        );
+        let b = Box3::new([3, -5, 5], [16, 5, 16]);
+        let mut out = vec![0u16; b.voxels() as usize];
+        c.eval(&b, &mut out).unwrap();
+        let mut i = 0;
+        for z in b.min[2]..b.max[2] {
+            for y in b.min[1]..b.max[1] {
+                for x in b.min[0]..b.max[0] {
+                    let s = [
+                        x - origin[0] + rmin[0],
+                        y - origin[1] + rmin[1],
+                        z - origin[2] + rmin[2],
+                    ];
+                    let want = if (0..3).all(|a| s[a] >= rmin[a] && s[a] < rmax[a]) {
+                        boulder.at(s[0] as usize, s[1] as usize, s[2] as usize)
+                    } else {
+                        0
+                    };
+                    assert_eq!(out[i], want, "{t} region eval at ({x},{y},{z})");
+                    assert_eq!(
+                        c.sample([x, y, z]),
+                        want,
+                        "{t} region sample at ({x},{y},{z})"
+                    );
+                    i += 1;
+                }
+            }
+        }
+        let outside = Term::Volume {
+            name: "boulder".into(),
+            origin,
+            region: Some(Region {
+                min: [0, 0, 0],
+                max: [14, 1, 1],
+            }),
+        };
+        assert!(
+            CompiledTerm::compile(&outside, t, &TermLimits::default(), &files).is_err(),
+            "a region beyond the volume is refused"
+        );
+
         // Edits: union at one place, a difference partly outside the volume, a product in a
         // region.
         let path = dir.path().join("v.vod2");
@@ -1174,6 +1231,7 @@ fn stored_volume_operand() {
                 term: Some(Term::Volume {
                     name: "boulder".into(),
                     origin,
+                    region: None,
                 }),
                 s_l: None,
                 k: None,

@@ -1309,7 +1309,8 @@ fn spec_leaf_examples_parse() {
         parse(r#"{"volume":    {"name": "other", "origin": [1, 2, 3]}}"#),
         Term::Volume {
             name: "other".into(),
-            origin: [1, 2, 3]
+            origin: [1, 2, 3],
+            region: None
         }
     );
     assert_eq!(

@@ -57,10 +57,11 @@ impl VolumeResolver for NoVolumes {
 #[derive(Debug)]
 pub enum Node {
     Primitive(Box<dyn Primitive>),
-    /// Another volume's level 0 with its voxel (0,0,0) at `origin`.
+    /// A box `source` of another volume's level 0, moved by `shift` (world = source + shift).
     Volume {
         snap: Arc<Snapshot>,
-        origin: [i64; 3],
+        shift: [i64; 3],
+        source: Box3,
     },
     Binary(BinaryOp, Box<CompiledTerm>, Box<CompiledTerm>),
     Unary(UnaryOp, Box<CompiledTerm>),
@@ -268,7 +269,11 @@ impl CompiledTerm {
                     }))
                 }
             }
-            Term::Volume { name, origin } => {
+            Term::Volume {
+                name,
+                origin,
+                region,
+            } => {
                 let snap = volumes.resolve(name)?;
                 if snap.layout().voxel_type() != t {
                     return Err(TermError(format!(
@@ -276,12 +281,27 @@ impl CompiledTerm {
                         snap.layout().voxel_type()
                     )));
                 }
-                let dims = snap.layout().dims();
-                let bbox = Box3::new(*origin, [0, 1, 2].map(|a| origin[a] + dims[a] as i64));
+                let whole = Box3::new([0; 3], snap.layout().dims().map(|d| d as i64));
+                let source = match region {
+                    Some(r) => {
+                        let b = Box3::new(r.min, r.max);
+                        if b.is_empty() || b.intersect(&whole) != b {
+                            return Err(TermError(format!(
+                                "region {:?}..{:?} is empty or outside volume {name:?} ({:?})",
+                                r.min, r.max, whole.max
+                            )));
+                        }
+                        b
+                    }
+                    None => whole,
+                };
+                let shift = [0, 1, 2].map(|a| origin[a] - source.min[a]);
+                let bbox = Box3::new(*origin, [0, 1, 2].map(|a| source.max[a] + shift[a]));
                 Ok(CompiledTerm {
                     node: Node::Volume {
                         snap,
-                        origin: *origin,
+                        shift,
+                        source,
                     },
                     bbox: Some(bbox),
                     voxel_type: t,
@@ -339,8 +359,17 @@ impl CompiledTerm {
         }
         match &self.node {
             Node::Primitive(p) => p.sample(v, t),
-            Node::Volume { snap, origin } => {
-                volume_voxel(snap, [0, 1, 2].map(|a| v[a] - origin[a])).unwrap_or(t.low())
+            Node::Volume {
+                snap,
+                shift,
+                source,
+            } => {
+                let s = [0, 1, 2].map(|a| v[a] - shift[a]);
+                if source.contains(s) {
+                    volume_voxel(snap, s).unwrap_or(t.low())
+                } else {
+                    t.low()
+                }
             }
             Node::Binary(op, a, b) => op.apply(a.sample(v), b.sample(v), t),
             Node::Unary(op, a) => op.apply(a.sample(v), t),
@@ -377,7 +406,11 @@ impl CompiledTerm {
         let t = self.voxel_type;
         match &self.node {
             Node::Primitive(p) => eval_primitive(p.as_ref(), t, b, b, out),
-            Node::Volume { snap, origin } => read_volume_box(snap, *origin, b, out)?,
+            Node::Volume {
+                snap,
+                shift,
+                source,
+            } => read_volume_box(snap, *shift, source, b, out)?,
             Node::Binary(op, x, y) => {
                 x.eval(b, out)?;
                 let mut other = vec![0u16; out.len()];
@@ -491,15 +524,16 @@ fn volume_voxel(snap: &Snapshot, v: [i64; 3]) -> Option<u16> {
     })
 }
 
-/// Copies the voxels of `b` from a volume placed at `origin` (L outside it).
+/// Copies the voxels of world box `b` from the box `source` of a volume moved by `origin`
+/// (world = source voxel + origin; L elsewhere).
 fn read_volume_box(
     snap: &Snapshot,
     origin: [i64; 3],
+    source: &Box3,
     b: &Box3,
     out: &mut [u16],
 ) -> Result<(), crate::store::StoreError> {
     let layout = snap.layout();
-    let dims = layout.dims();
     let edge = layout.brick() as i64;
     let vt = layout.voxel_type();
     out.fill(0);
@@ -507,7 +541,7 @@ fn read_volume_box(
         [0, 1, 2].map(|a| b.min[a] - origin[a]),
         [0, 1, 2].map(|a| b.max[a] - origin[a]),
     )
-    .intersect(&Box3::new([0; 3], dims.map(|d| d as i64)));
+    .intersect(source);
     if local.is_empty() {
         return Ok(());
     }
