@@ -181,7 +181,7 @@ pub fn run(a: IcvgArgs) -> anyhow::Result<()> {
     println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
     std::fs::create_dir_all(&a.dir)?;
     for &size in &a.sizes {
-        let dims = [size, size / 2, size];
+        let dims = [size; 3];
         let layout = VolumeLayout::new(dims, a.brick, VoxelType::U8)?;
         let world = WorldSource::new(layout.clone(), 7);
         let path = a.dir.join(format!("edit-world-{size}.vod"));

@@ -4,6 +4,10 @@
 use std::collections::{BTreeMap, HashMap};
 use std::sync::{Arc, Mutex};
 
+/// Shards: threads meshing neighbouring tiles hit the cache for the same bricks many times a
+/// tile; one lock would serialize them.
+const SHARDS: usize = 16;
+
 #[derive(Debug)]
 struct Inner<V> {
     entries: HashMap<u128, (Arc<V>, usize, u64)>,
@@ -12,33 +16,46 @@ struct Inner<V> {
     clock: u64,
 }
 
-/// Values by content key, at most `capacity` bytes, least recently used out first.
+/// Values by content key, at most `capacity` bytes, least recently used out first (per shard:
+/// the key picks one of 16 shards, each holding a 16th of the capacity).
 #[derive(Debug)]
 pub struct ByteLru<V> {
-    capacity: usize,
-    inner: Mutex<Inner<V>>,
+    shard_capacity: usize,
+    shards: Vec<Mutex<Inner<V>>>,
 }
 
 impl<V> ByteLru<V> {
     pub fn new(capacity: usize) -> Self {
         ByteLru {
-            capacity,
-            inner: Mutex::new(Inner {
-                entries: HashMap::new(),
-                order: BTreeMap::new(),
-                bytes: 0,
-                clock: 0,
-            }),
+            shard_capacity: capacity / SHARDS,
+            shards: (0..SHARDS)
+                .map(|_| {
+                    Mutex::new(Inner {
+                        entries: HashMap::new(),
+                        order: BTreeMap::new(),
+                        bytes: 0,
+                        clock: 0,
+                    })
+                })
+                .collect(),
         }
+    }
+
+    fn shard(&self, key: u128) -> &Mutex<Inner<V>> {
+        // Keys are hashes already: their low bits are uniform.
+        &self.shards[key as usize % SHARDS]
     }
 
     /// Bytes held now.
     pub fn bytes(&self) -> usize {
-        self.inner.lock().map(|l| l.bytes).unwrap_or(0)
+        self.shards
+            .iter()
+            .map(|s| s.lock().map(|l| l.bytes).unwrap_or(0))
+            .sum()
     }
 
     pub fn get(&self, key: u128) -> Option<Arc<V>> {
-        let mut inner = self.inner.lock().ok()?;
+        let mut inner = self.shard(key).lock().ok()?;
         inner.clock += 1;
         let now = inner.clock;
         let (value, old) = {
@@ -52,12 +69,12 @@ impl<V> ByteLru<V> {
         Some(value)
     }
 
-    /// Keeps `value` (of `size` bytes) unless it alone exceeds the capacity.
+    /// Keeps `value` (of `size` bytes) unless it alone exceeds its shard's capacity.
     pub fn put(&self, key: u128, value: Arc<V>, size: usize) {
-        if size > self.capacity {
+        if size > self.shard_capacity {
             return;
         }
-        let Ok(mut inner) = self.inner.lock() else {
+        let Ok(mut inner) = self.shard(key).lock() else {
             return;
         };
         inner.clock += 1;
@@ -68,7 +85,7 @@ impl<V> ByteLru<V> {
         }
         inner.order.insert(now, key);
         inner.bytes += size;
-        while inner.bytes > self.capacity {
+        while inner.bytes > self.shard_capacity {
             let Some((_, victim)) = inner.order.pop_first() else {
                 break;
             };
@@ -85,20 +102,25 @@ mod tests {
 
     #[test]
     fn evicts_least_recently_used_within_its_byte_budget() {
-        let c = ByteLru::new(1000);
-        for k in 1..=3u128 {
-            c.put(k, Arc::new(k), 300);
+        // Keys that are multiples of the shard count share shard 0, of 1000 bytes.
+        let c = ByteLru::new(1000 * SHARDS);
+        let k = |i: u128| i * SHARDS as u128;
+        for i in 1..=3u128 {
+            c.put(k(i), Arc::new(i), 300);
         }
         assert_eq!(c.bytes(), 900);
-        assert!(c.get(1).is_some()); // 1 is now the most recent; 2 the least
-        c.put(4, Arc::new(4), 300);
-        assert!(c.get(2).is_none());
-        assert!(c.get(1).is_some() && c.get(3).is_some() && c.get(4).is_some());
+        assert!(c.get(k(1)).is_some()); // 1 is now the most recent; 2 the least
+        c.put(k(4), Arc::new(4), 300);
+        assert!(c.get(k(2)).is_none());
+        assert!(c.get(k(1)).is_some() && c.get(k(3)).is_some() && c.get(k(4)).is_some());
         assert!(c.bytes() <= 1000);
-        c.put(5, Arc::new(5), 1001); // larger than the whole budget: not kept
-        assert!(c.get(5).is_none());
-        c.put(3, Arc::new(33), 100); // replacing an entry frees its old size
-        assert_eq!(*c.get(3).unwrap(), 33);
+        c.put(k(5), Arc::new(5), 1001); // larger than the shard's budget: not kept
+        assert!(c.get(k(5)).is_none());
+        c.put(k(3), Arc::new(33), 100); // replacing an entry frees its old size
+        assert_eq!(*c.get(k(3)).unwrap(), 33);
         assert_eq!(c.bytes(), 700);
+        // Other shards have their own budget.
+        c.put(1, Arc::new(1), 900);
+        assert_eq!(c.bytes(), 1600);
     }
 }
