@@ -71,3 +71,24 @@ pub struct Problem {
     pub status: u16,
     pub detail: String,
 }
+
+/// One brick in a level's grid.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LevelBrick {
+    /// Content hash, 16 hex digits: `GET .../blobs/{hash}` fetches it.
+    pub hash: String,
+    pub min: u16,
+    pub max: u16,
+}
+
+/// `GET /v1/volumes/{name}/levels/{level}`: the brick grid of a level, or of the box
+/// `min..max` (brick coordinates, max exclusive) of it; bricks x fastest, then y, then z.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LevelGrid {
+    pub level: u8,
+    pub grid: [u32; 3],
+    pub min: [u32; 3],
+    pub max: [u32; 3],
+    pub version: u64,
+    pub bricks: Vec<LevelBrick>,
+}

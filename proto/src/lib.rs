@@ -5,6 +5,7 @@
 //!
 //! Layout:
 //! - [`api`]: the JSON types of the HTTP API.
+//! - [`batch`]: many bricks in one response (the batch route's encoding).
 //! - [`icvg`]: ICVG terms and edit requests (JSON).
 //! - [`voxel`]: voxel types and the ICVG value range (L, H, S).
 //! - [`layout`]: the brick octree's geometry: levels, brick grids, [`BrickKey`], node indices.
@@ -14,6 +15,7 @@
 //! - [`error`]: [`FormatError`], what a malformed record is.
 
 pub mod api;
+pub mod batch;
 pub mod error;
 pub mod icvg;
 pub mod layout;

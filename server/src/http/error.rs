@@ -12,6 +12,8 @@ pub enum ApiError {
     BadRequest(String),
     NotFound(String),
     NotAcceptable(String),
+    /// The request asks for more than a response may carry.
+    TooLarge(String),
     /// Too much work queued: retry after this many seconds.
     Overloaded(u32),
     Internal(String),
@@ -56,6 +58,7 @@ impl IntoResponse for ApiError {
             ApiError::BadRequest(d) => problem(StatusCode::BAD_REQUEST, d),
             ApiError::NotFound(d) => problem(StatusCode::NOT_FOUND, d),
             ApiError::NotAcceptable(d) => problem(StatusCode::NOT_ACCEPTABLE, d),
+            ApiError::TooLarge(d) => problem(StatusCode::PAYLOAD_TOO_LARGE, d),
             ApiError::Overloaded(after) => {
                 let mut r = problem(
                     StatusCode::SERVICE_UNAVAILABLE,

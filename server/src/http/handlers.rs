@@ -10,6 +10,7 @@ use axum::response::{IntoResponse, Response};
 use axum::Json;
 use isovox_proto::api::{VolumeInfo, VolumeList};
 use isovox_proto::vod2::{content_hash, Codec};
+use isovox_proto::VolumeLayout;
 use serde::Deserialize;
 use std::sync::Arc;
 
@@ -104,6 +105,28 @@ pub async fn brick(
         .key(level, x, y, z)
         .map_err(|e| ApiError::not_found(e.to_string()))?;
     let stored = snap.stored(key)?;
+    brick_response(stored, layout, &headers, "no-cache")
+}
+
+/// Whether `If-None-Match` names `etag` (or `*`).
+fn if_none_match(headers: &HeaderMap, etag: &str) -> bool {
+    headers
+        .get_all(header::IF_NONE_MATCH)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(','))
+        .any(|t| t.trim() == etag || t.trim() == "*")
+}
+
+/// The response for one stored brick, shared by the position and the content-hash routes:
+/// ETag = content hash (304 on a match); the stored zstd frame as `Content-Encoding: zstd` to
+/// clients that accept it, an lz4 block for `Accept: application/x-lz4`, else the raw voxels.
+fn brick_response(
+    stored: StoredBrick<'_>,
+    layout: &VolumeLayout,
+    headers: &HeaderMap,
+    cache_control: &'static str,
+) -> Result<Response, ApiError> {
     let mut decoded = vec![0u8; layout.brick_bytes()];
     let hash = match stored {
         StoredBrick::Record { header, .. } => header.hash,
@@ -113,24 +136,23 @@ pub async fn brick(
         }
     };
     let etag = format!("\"{hash:016x}\"");
-    let etag_value = HeaderValue::from_str(&etag).map_err(|e| ApiError::Internal(e.to_string()))?;
-    let matches = headers
-        .get_all(header::IF_NONE_MATCH)
-        .iter()
-        .filter_map(|v| v.to_str().ok())
-        .flat_map(|v| v.split(','))
-        .any(|t| t.trim() == etag || t.trim() == "*");
     let mut response_headers = HeaderMap::new();
-    response_headers.insert(header::ETAG, etag_value);
-    response_headers.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-cache"));
+    response_headers.insert(
+        header::ETAG,
+        HeaderValue::from_str(&etag).map_err(|e| ApiError::Internal(e.to_string()))?,
+    );
+    response_headers.insert(
+        header::CACHE_CONTROL,
+        HeaderValue::from_static(cache_control),
+    );
     response_headers.insert(
         header::VARY,
         HeaderValue::from_static("Accept, Accept-Encoding"),
     );
-    if matches {
+    if if_none_match(headers, &etag) {
         return Ok((StatusCode::NOT_MODIFIED, response_headers).into_response());
     }
-    let want_lz4 = accepts(&headers, header::ACCEPT, LZ4_MEDIA_TYPE);
+    let want_lz4 = accepts(headers, header::ACCEPT, LZ4_MEDIA_TYPE);
     if let StoredBrick::Record {
         header: h, payload, ..
     } = stored
@@ -142,7 +164,7 @@ pub async fn brick(
             );
             return Ok((response_headers, payload.to_vec()).into_response());
         }
-        if !want_lz4 && h.codec == Codec::Zstd && accepts(&headers, header::ACCEPT_ENCODING, "zstd")
+        if !want_lz4 && h.codec == Codec::Zstd && accepts(headers, header::ACCEPT_ENCODING, "zstd")
         {
             response_headers.insert(
                 header::CONTENT_TYPE,
@@ -165,6 +187,35 @@ pub async fn brick(
         HeaderValue::from_static("application/octet-stream"),
     );
     Ok((response_headers, decoded).into_response())
+}
+
+/// A brick by content hash (16 hex digits): immutable, so any HTTP cache or CDN may keep it
+/// forever. Bricks of the newest version are found.
+pub async fn blob(
+    State(state): State<AppState>,
+    path: Result<Path<(String, String)>, PathRejection>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    let Path((name, hex)) =
+        path.map_err(|e| ApiError::BadRequest(format!("malformed blob path: {e}")))?;
+    let hash = u64::from_str_radix(&hex, 16)
+        .ok()
+        .filter(|_| hex.len() == 16)
+        .ok_or_else(|| {
+            ApiError::BadRequest(format!("{hex:?} is not a content hash (16 hex digits)"))
+        })?;
+    let vod = volume(&state, &name)?;
+    let snap = vod.head();
+    let entry = snap
+        .find_by_hash(hash)?
+        .ok_or_else(|| ApiError::not_found(format!("no brick with hash {hex} in {name:?}")))?;
+    let stored = snap.stored_entry(entry)?;
+    brick_response(
+        stored,
+        snap.layout(),
+        &headers,
+        "public, max-age=31536000, immutable",
+    )
 }
 
 /// Query of a mesh tile.
@@ -235,13 +286,7 @@ pub async fn mesh_tile(
         HeaderValue::from_str(&etag).map_err(|e| ApiError::Internal(e.to_string()))?,
     );
     response_headers.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-cache"));
-    let revalidated = headers
-        .get_all(header::IF_NONE_MATCH)
-        .iter()
-        .filter_map(|v| v.to_str().ok())
-        .flat_map(|v| v.split(','))
-        .any(|t| t.trim() == etag || t.trim() == "*");
-    if revalidated {
+    if if_none_match(&headers, &etag) {
         return Ok((StatusCode::NOT_MODIFIED, response_headers).into_response());
     }
     let permit = state
@@ -271,4 +316,250 @@ pub async fn mesh_tile(
     };
     response_headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(media));
     Ok((response_headers, body).into_response())
+}
+
+/// Most decoded bytes one batch or level answer may carry (413 beyond).
+pub const MAX_RESPONSE_BYTES: usize = 64 << 20;
+
+/// Many bricks in one response (`proto::batch`): decoding runs on the blocking pool.
+pub async fn batch(
+    State(state): State<AppState>,
+    path: Result<Path<String>, PathRejection>,
+    body: Result<Json<isovox_proto::batch::BatchRequest>, axum::extract::rejection::JsonRejection>,
+) -> Result<Response, ApiError> {
+    use isovox_proto::batch::{encode_batch, BatchCodec, BatchEncoding, BatchEntry, MAX_BATCH};
+    let Path(name) = path.map_err(|e| ApiError::BadRequest(format!("malformed path: {e}")))?;
+    let Json(req) = body.map_err(|e| {
+        if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+            ApiError::TooLarge(format!("batch request: {e}"))
+        } else {
+            ApiError::BadRequest(format!("malformed batch request: {e}"))
+        }
+    })?;
+    if req.keys.len() > MAX_BATCH {
+        return Err(ApiError::TooLarge(format!(
+            "{} keys; a batch takes at most {MAX_BATCH}",
+            req.keys.len()
+        )));
+    }
+    let vod = volume(&state, &name)?;
+    let snap = match req.version {
+        Some(v) => vod.version(v)?,
+        None => vod.head(),
+    };
+    let layout = snap.layout();
+    if req.encoding == BatchEncoding::Raw
+        && req.keys.len() * layout.brick_bytes() > MAX_RESPONSE_BYTES
+    {
+        return Err(ApiError::TooLarge(format!(
+            "{} raw bricks of {} bytes exceed {MAX_RESPONSE_BYTES} bytes; ask for fewer or for \"encoding\": \"stored\"",
+            req.keys.len(),
+            layout.brick_bytes()
+        )));
+    }
+    let keys = req
+        .keys
+        .iter()
+        .map(|&(l, x, y, z)| layout.key(l, x, y, z))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| ApiError::not_found(e.to_string()))?;
+    let permit = state
+        .cpu
+        .clone()
+        .try_acquire_owned()
+        .map_err(|_| ApiError::Overloaded(1))?;
+    let encoding = req.encoding;
+    let body = tokio::task::spawn_blocking(move || -> Result<Vec<u8>, crate::store::StoreError> {
+        let _permit = permit;
+        let layout = snap.layout();
+        let mut entries = Vec::with_capacity(keys.len());
+        for key in keys {
+            let stored = snap.stored(key)?;
+            let entry = match (encoding, stored) {
+                (BatchEncoding::Stored, StoredBrick::Constant(v)) => {
+                    let mut full = vec![0u8; layout.brick_bytes()];
+                    codec::fill_constant(&mut full, v, layout.voxel_type());
+                    BatchEntry {
+                        key,
+                        codec: BatchCodec::Constant,
+                        hash: content_hash(&full),
+                        payload: v.to_le_bytes().to_vec(),
+                    }
+                }
+                (
+                    BatchEncoding::Stored,
+                    StoredBrick::Record {
+                        header, payload, ..
+                    },
+                ) => {
+                    let codec = match header.codec {
+                        Codec::Raw => BatchCodec::Raw,
+                        Codec::Lz4 => BatchCodec::Lz4,
+                        Codec::Zstd => BatchCodec::Zstd,
+                    };
+                    BatchEntry {
+                        key,
+                        codec,
+                        hash: header.hash,
+                        payload: payload.to_vec(),
+                    }
+                }
+                (BatchEncoding::Raw, stored) => {
+                    let mut out = vec![0u8; layout.brick_bytes()];
+                    crate::store::vod2::decode_stored(&stored, layout, &mut out)?;
+                    BatchEntry {
+                        key,
+                        codec: BatchCodec::Raw,
+                        hash: content_hash(&out),
+                        payload: out,
+                    }
+                }
+            };
+            entries.push(entry);
+        }
+        Ok(encode_batch(&entries))
+    })
+    .await
+    .map_err(|e| ApiError::Internal(format!("batch task failed: {e}")))??;
+    Ok((
+        [(header::CONTENT_TYPE, "application/x-isovox-bricks")],
+        body,
+    )
+        .into_response())
+}
+
+/// Query of a level.
+#[derive(Debug, Deserialize)]
+pub struct LevelQuery {
+    pub version: Option<u64>,
+    /// `MINX,MINY,MINZ,MAXX,MAXY,MAXZ` (max exclusive): bricks for `format=grid`, voxels for
+    /// `format=voxels`. The whole level by default.
+    pub region: Option<String>,
+    /// `grid` (default): the brick grid as JSON (content hash, min, max per brick); `voxels`:
+    /// the voxels as one RAW array (x fastest), for levels or regions up to 64 MiB.
+    pub format: Option<String>,
+}
+
+fn parse_region(s: &str, extent: [u32; 3]) -> Result<([u32; 3], [u32; 3]), ApiError> {
+    let v: Vec<u32> = s
+        .split(',')
+        .map(|p| p.trim().parse::<u32>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| {
+            ApiError::BadRequest(format!("region {s:?}: six non-negative integers expected"))
+        })?;
+    if v.len() != 6 {
+        return Err(ApiError::BadRequest(format!(
+            "region {s:?}: six values MINX,MINY,MINZ,MAXX,MAXY,MAXZ expected"
+        )));
+    }
+    let (min, max) = ([v[0], v[1], v[2]], [v[3], v[4], v[5]]);
+    if (0..3).any(|a| min[a] >= max[a] || max[a] > extent[a]) {
+        return Err(ApiError::BadRequest(format!(
+            "region {s:?} is empty or outside {extent:?}"
+        )));
+    }
+    Ok((min, max))
+}
+
+/// A whole level (or a region of it): its brick grid with each brick's content hash and value
+/// range, or its voxels as one array.
+pub async fn level(
+    State(state): State<AppState>,
+    path: Result<Path<(String, u8)>, PathRejection>,
+    query: Result<Query<LevelQuery>, QueryRejection>,
+) -> Result<Response, ApiError> {
+    let Path((name, level)) =
+        path.map_err(|e| ApiError::BadRequest(format!("malformed level path: {e}")))?;
+    let Query(query) = query.map_err(|e| ApiError::BadRequest(format!("malformed query: {e}")))?;
+    let vod = volume(&state, &name)?;
+    let snap = match query.version {
+        Some(v) => vod.version(v)?,
+        None => vod.head(),
+    };
+    let layout = snap.layout().clone();
+    if level >= layout.levels() {
+        return Err(ApiError::not_found(format!(
+            "level {level}: the volume has levels 0..{}",
+            layout.levels() - 1
+        )));
+    }
+    let voxels = match query.format.as_deref() {
+        None | Some("grid") => false,
+        Some("voxels") => true,
+        Some(other) => {
+            return Err(ApiError::BadRequest(format!(
+                "unknown level format {other:?} (grid or voxels)"
+            )))
+        }
+    };
+    let extent = if voxels {
+        layout.level_dims(level)
+    } else {
+        layout.grid(level)
+    };
+    let (min, max) = match &query.region {
+        Some(r) => parse_region(r, extent)?,
+        None => ([0; 3], extent),
+    };
+    let count: u64 = (0..3).map(|a| (max[a] - min[a]) as u64).product();
+    if voxels && count * layout.voxel_type().bytes() as u64 > MAX_RESPONSE_BYTES as u64 {
+        return Err(ApiError::TooLarge(format!(
+            "{count} voxels exceed {MAX_RESPONSE_BYTES} bytes; ask for a region or a coarser level"
+        )));
+    }
+    let permit = state
+        .cpu
+        .clone()
+        .try_acquire_owned()
+        .map_err(|_| ApiError::Overloaded(1))?;
+    let body =
+        tokio::task::spawn_blocking(move || -> Result<Response, crate::store::StoreError> {
+            let _permit = permit;
+            if voxels {
+                let mut out = Vec::with_capacity(count as usize * layout.voxel_type().bytes());
+                let region = crate::store::raw::Region { min, max };
+                crate::store::raw::export_raw(
+                    &snap,
+                    level,
+                    region,
+                    &mut out,
+                    &indicatif::ProgressBar::hidden(),
+                )?;
+                return Ok(
+                    ([(header::CONTENT_TYPE, "application/octet-stream")], out).into_response()
+                );
+            }
+            let mut bricks = Vec::with_capacity(count as usize);
+            for z in min[2]..max[2] {
+                for y in min[1]..max[1] {
+                    for x in min[0]..max[0] {
+                        let key = isovox_proto::BrickKey { level, x, y, z };
+                        let stored = snap.stored(key)?;
+                        let (lo, hi) = stored.min_max();
+                        let hash = match stored {
+                            StoredBrick::Record { header, .. } => header.hash,
+                            StoredBrick::Constant(_) => snap.hash(key)?,
+                        };
+                        bricks.push(isovox_proto::api::LevelBrick {
+                            hash: format!("{hash:016x}"),
+                            min: lo,
+                            max: hi,
+                        });
+                    }
+                }
+            }
+            let grid = isovox_proto::api::LevelGrid {
+                level,
+                grid: layout.grid(level),
+                min,
+                max,
+                version: snap.version,
+                bricks,
+            };
+            Ok(Json(grid).into_response())
+        })
+        .await
+        .map_err(|e| ApiError::Internal(format!("level task failed: {e}")))??;
+    Ok(body)
 }

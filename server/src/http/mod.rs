@@ -4,14 +4,19 @@
 //! a listener until `shutdown` resolves, then finishes in-flight requests.
 //!
 //! Routes (all under `/v1` but the probes):
-//! - `GET /healthz`: liveness.
+//! - `GET /healthz`: liveness; `GET /metrics`: Prometheus text; `GET /openapi.json`: the API.
 //! - `GET /v1/volumes`, `GET /v1/volumes/{name}`: what is served and how to address it.
 //! - `GET /v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}`: one brick (see [`handlers::brick`]).
+//! - `GET /v1/volumes/{name}/blobs/{hash}`: a brick by content hash, cacheable forever.
+//! - `POST /v1/volumes/{name}/batch`: many bricks in one response (`proto::batch`).
+//! - `GET /v1/volumes/{name}/levels/{level}`: a level's brick grid, or its voxels.
 //! - `GET /v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}`: one mesh tile (see
 //!   [`handlers::mesh_tile`]).
 
 mod error;
 pub mod handlers;
+pub mod metrics;
+mod openapi;
 
 pub use error::ApiError;
 
@@ -37,6 +42,9 @@ pub struct AppState {
     /// Permits for CPU work off the async runtime (meshing); when none is free the request gets
     /// 503 with Retry-After instead of waiting in an unbounded queue.
     pub cpu: Arc<tokio::sync::Semaphore>,
+    /// The semaphore's size.
+    pub cpu_permits: usize,
+    pub metrics: Arc<metrics::Metrics>,
 }
 
 impl AppState {
@@ -47,6 +55,8 @@ impl AppState {
             catalog: Arc::new(catalog),
             meshes: Arc::new(MeshCache::new(mesh_cache_bytes)),
             cpu: Arc::new(tokio::sync::Semaphore::new(cpu_queue)),
+            cpu_permits: cpu_queue,
+            metrics: Arc::new(metrics::Metrics::default()),
         }
     }
 }
@@ -55,6 +65,8 @@ impl AppState {
 pub fn app(state: AppState) -> Router {
     Router::new()
         .route("/healthz", get(handlers::healthz))
+        .route("/metrics", get(metrics::metrics))
+        .route("/openapi.json", get(openapi::openapi))
         .route("/v1/volumes", get(handlers::list_volumes))
         .route("/v1/volumes/{name}", get(handlers::volume_info))
         .route(
@@ -65,8 +77,20 @@ pub fn app(state: AppState) -> Router {
             "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}",
             get(handlers::mesh_tile),
         )
+        .route("/v1/volumes/{name}/blobs/{hash}", get(handlers::blob))
+        .route(
+            "/v1/volumes/{name}/batch",
+            axum::routing::post(handlers::batch),
+        )
+        .route("/v1/volumes/{name}/levels/{level}", get(handlers::level))
         .fallback(handlers::not_found)
+        .layer(axum::middleware::from_fn_with_state(
+            state.clone(),
+            metrics::track,
+        ))
         .with_state(state)
+        // Request bodies (edit terms, batch key lists) are small; larger ones get 413.
+        .layer(axum::extract::DefaultBodyLimit::max(1 << 20))
         .layer(TimeoutLayer::with_status_code(
             StatusCode::SERVICE_UNAVAILABLE,
             Duration::from_secs(30),

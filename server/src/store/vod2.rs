@@ -234,6 +234,8 @@ pub struct Snapshot {
     index: Arc<IndexChunks>,
     /// Entries changed by the commits after the checkpoint: node index -> raw entry.
     overlay: HashMap<u64, u64>,
+    /// Content hash -> entry, built on first use by [`Snapshot::find_by_hash`].
+    by_hash: OnceLock<HashMap<u64, NodeEntry>>,
     /// Commits replayed on top of the checkpoint.
     chain_len: usize,
 }
@@ -308,6 +310,7 @@ impl Snapshot {
             index,
             overlay,
             chain_len: chain.len() - 1,
+            by_hash: OnceLock::new(),
             header,
             map,
         })
@@ -439,6 +442,38 @@ impl Snapshot {
         let mut out = vec![0u8; self.layout().brick_bytes()];
         self.read_into(key, &mut out)?;
         Ok(out)
+    }
+
+    /// The entry of a brick of this version with content hash `hash`, if any. The first call
+    /// scans the index once (reading brick headers, not payloads) and keeps a hash table.
+    ///
+    /// # Errors
+    /// An entry or brick header on the way is malformed.
+    pub fn find_by_hash(&self, hash: u64) -> Result<Option<NodeEntry>, StoreError> {
+        if let Some(map) = self.by_hash.get() {
+            return Ok(map.get(&hash).copied());
+        }
+        let layout = self.layout();
+        let mut map = HashMap::new();
+        let mut constants = std::collections::HashSet::new();
+        let mut scratch = vec![0u8; layout.brick_bytes()];
+        for node in 0..layout.node_count() {
+            let entry = self.entry_at(node)?;
+            match self.stored_entry(entry)? {
+                StoredBrick::Record { header, .. } => {
+                    map.entry(header.hash).or_insert(entry);
+                }
+                StoredBrick::Constant(v) => {
+                    if constants.insert(v) {
+                        codec::fill_constant(&mut scratch, v, layout.voxel_type());
+                        map.entry(content_hash(&scratch)).or_insert(entry);
+                    }
+                }
+            }
+        }
+        let found = map.get(&hash).copied();
+        let _ = self.by_hash.set(map);
+        Ok(found)
     }
 
     /// The content hash of a brick (for a constant, the hash of its expanded bytes).

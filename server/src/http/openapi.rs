@@ -1,0 +1,134 @@
+//! `GET /openapi.json`: the API described in OpenAPI 3.1, written by hand next to the routes it
+//! describes (`mod.rs`); the end-to-end tests check that every route is listed.
+
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use serde_json::{json, Value};
+
+fn problem_responses(codes: &[&str]) -> Value {
+    let mut m = serde_json::Map::new();
+    for c in codes {
+        m.insert(
+            (*c).to_string(),
+            json!({"description": "problem details (RFC 9457)", "content": {"application/problem+json": {"schema": {"$ref": "#/components/schemas/Problem"}}}}),
+        );
+    }
+    Value::Object(m)
+}
+
+fn merge(mut a: Value, b: Value) -> Value {
+    if let (Some(a), Value::Object(b)) = (a.as_object_mut(), b) {
+        a.extend(b);
+    }
+    a
+}
+
+fn path_param(name: &str, schema: Value, description: &str) -> Value {
+    json!({"name": name, "in": "path", "required": true, "schema": schema, "description": description})
+}
+
+fn query_param(name: &str, schema: Value, description: &str) -> Value {
+    json!({"name": name, "in": "query", "required": false, "schema": schema, "description": description})
+}
+
+/// The document.
+pub fn document() -> Value {
+    let name = path_param(
+        "name",
+        json!({"type": "string", "pattern": "^[A-Za-z0-9_.-]{1,128}$"}),
+        "volume name",
+    );
+    let level = path_param(
+        "level",
+        json!({"type": "integer", "minimum": 0, "maximum": 255}),
+        "level of detail",
+    );
+    let coord = |c: &str| {
+        path_param(
+            c,
+            json!({"type": "integer", "minimum": 0, "maximum": 4294967295u64}),
+            "brick coordinate at the level",
+        )
+    };
+    let version = query_param(
+        "version",
+        json!({"type": "integer", "minimum": 0}),
+        "read this older version",
+    );
+    let brick_params = json!([name, level, coord("x"), coord("y"), coord("z"), version]);
+    let binary = |media: &str| json!({media: {"schema": {"type": "string", "format": "binary"}}});
+    json!({
+        "openapi": "3.1.0",
+        "info": {"title": "Isovox", "version": env!("CARGO_PKG_VERSION"),
+                 "description": "Large, editable volumes as brick octrees: bricks, levels and marching-cubes tiles by random access."},
+        "paths": {
+            "/healthz": {"get": {"summary": "liveness", "responses": {"200": {"description": "ok", "content": {"text/plain": {"schema": {"type": "string"}}}}}}},
+            "/metrics": {"get": {"summary": "Prometheus metrics", "responses": {"200": {"description": "text format 0.0.4", "content": {"text/plain": {"schema": {"type": "string"}}}}}}},
+            "/openapi.json": {"get": {"summary": "this document", "responses": {"200": {"description": "OpenAPI 3.1", "content": {"application/json": {"schema": {"type": "object"}}}}}}},
+            "/v1/volumes": {"get": {"summary": "list volumes", "responses": {"200": {"description": "volumes", "content": {"application/json": {"schema": {"$ref": "#/components/schemas/VolumeList"}}}}}}},
+            "/v1/volumes/{name}": {"get": {"summary": "volume metadata", "parameters": [name],
+                "responses": merge(json!({"200": {"description": "metadata", "content": {"application/json": {"schema": {"$ref": "#/components/schemas/VolumeInfo"}}}}}), problem_responses(&["400", "404"]))}},
+            "/v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}": {"get": {
+                "summary": "one brick: raw voxels (x fastest, u16 little endian); the stored zstd frame with Accept-Encoding: zstd; an lz4 block with Accept: application/x-lz4",
+                "parameters": brick_params,
+                "responses": merge(json!({
+                    "200": {"description": "the brick; ETag is its content hash", "content": merge(binary("application/octet-stream"), binary("application/x-lz4"))},
+                    "304": {"description": "not modified (If-None-Match)"}}), problem_responses(&["400", "404", "500"]))}},
+            "/v1/volumes/{name}/blobs/{hash}": {"get": {
+                "summary": "a brick by content hash, immutable (Cache-Control: public, max-age=31536000, immutable)",
+                "parameters": [name, path_param("hash", json!({"type": "string", "pattern": "^[0-9a-f]{16}$"}), "content hash, 16 hex digits")],
+                "responses": merge(json!({
+                    "200": {"description": "the brick", "content": merge(binary("application/octet-stream"), binary("application/x-lz4"))},
+                    "304": {"description": "not modified"}}), problem_responses(&["400", "404", "500"]))}},
+            "/v1/volumes/{name}/batch": {"post": {
+                "summary": "many bricks in one response (application/x-isovox-bricks, see proto/src/batch.rs)",
+                "parameters": [name],
+                "requestBody": {"required": true, "content": {"application/json": {"schema": {"$ref": "#/components/schemas/BatchRequest"}}}},
+                "responses": merge(json!({"200": {"description": "the bricks", "content": binary("application/x-isovox-bricks")}}), problem_responses(&["400", "404", "413", "415", "500", "503"]))}},
+            "/v1/volumes/{name}/levels/{level}": {"get": {
+                "summary": "a level's brick grid (JSON), or its voxels as one RAW array (format=voxels)",
+                "parameters": [name, level, version,
+                    query_param("region", json!({"type": "string", "pattern": "^[0-9]+(,[0-9]+){5}$"}), "MINX,MINY,MINZ,MAXX,MAXY,MAXZ, max exclusive (bricks for grid, voxels for voxels)"),
+                    query_param("format", json!({"type": "string", "enum": ["grid", "voxels"]}), "grid (default) or voxels")],
+                "responses": merge(json!({"200": {"description": "the grid or the voxels", "content": merge(json!({"application/json": {"schema": {"$ref": "#/components/schemas/LevelGrid"}}}), binary("application/octet-stream"))}}),
+                    problem_responses(&["400", "404", "413", "500", "503"]))}},
+            "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}": {"get": {
+                "summary": "the marching-cubes mesh of one tile, in world coordinates",
+                "parameters": [name, level, coord("x"), coord("y"), coord("z"), version,
+                    query_param("iso", json!({"type": "number"}), "iso value, default S - 0.5"),
+                    query_param("format", json!({"type": "string", "enum": ["compact", "glb"]}), "compact (default, see proto/src/mesh.rs) or glb")],
+                "responses": merge(json!({
+                    "200": {"description": "the mesh", "content": merge(binary("application/x-isovox-mesh"), binary("model/gltf-binary"))},
+                    "304": {"description": "not modified"}}), problem_responses(&["400", "404", "500", "503"]))}},
+        },
+        "components": {"schemas": {
+            "Problem": {"type": "object", "required": ["type", "title", "status", "detail"],
+                "properties": {"type": {"type": "string"}, "title": {"type": "string"}, "status": {"type": "integer"}, "detail": {"type": "string"}}},
+            "LevelInfo": {"type": "object", "required": ["level", "grid", "dims"],
+                "properties": {"level": {"type": "integer"}, "grid": {"$ref": "#/components/schemas/Triple"}, "dims": {"$ref": "#/components/schemas/Triple"}}},
+            "Triple": {"type": "array", "items": {"type": "integer", "minimum": 0}, "minItems": 3, "maxItems": 3},
+            "VolumeInfo": {"type": "object",
+                "required": ["name", "dims", "voxel_type", "low", "high", "surface", "brick", "levels", "voxel_scale", "version"],
+                "properties": {"name": {"type": "string"}, "dims": {"$ref": "#/components/schemas/Triple"},
+                    "voxel_type": {"type": "string", "enum": ["u8", "u16"]}, "low": {"type": "integer"}, "high": {"type": "integer"},
+                    "surface": {"type": "integer"}, "brick": {"type": "integer"},
+                    "levels": {"type": "array", "items": {"$ref": "#/components/schemas/LevelInfo"}},
+                    "voxel_scale": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
+                    "version": {"type": "integer"}}},
+            "VolumeList": {"type": "object", "required": ["volumes"], "properties": {"volumes": {"type": "array", "items": {"$ref": "#/components/schemas/VolumeInfo"}}}},
+            "LevelGrid": {"type": "object", "required": ["level", "grid", "min", "max", "version", "bricks"],
+                "properties": {"level": {"type": "integer"}, "grid": {"$ref": "#/components/schemas/Triple"},
+                    "min": {"$ref": "#/components/schemas/Triple"}, "max": {"$ref": "#/components/schemas/Triple"}, "version": {"type": "integer"},
+                    "bricks": {"type": "array", "items": {"type": "object", "required": ["hash", "min", "max"],
+                        "properties": {"hash": {"type": "string"}, "min": {"type": "integer"}, "max": {"type": "integer"}}}}}},
+            "BatchRequest": {"type": "object", "required": ["keys"], "additionalProperties": false,
+                "properties": {"keys": {"type": "array", "maxItems": 4096,
+                        "items": {"type": "array", "minItems": 4, "maxItems": 4, "items": {"type": "integer", "minimum": 0}}},
+                    "version": {"type": "integer", "minimum": 0}, "encoding": {"type": "string", "enum": ["raw", "stored"]}}}
+        }}
+    })
+}
+
+pub async fn openapi() -> Response {
+    Json(document()).into_response()
+}
