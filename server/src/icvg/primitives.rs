@@ -289,6 +289,16 @@ impl Primitive for Ellipsoid {
     }
 }
 
+/// The extension space of a solid along +y (cylinder, cone): `(2 rx + 1, height, 2 rz + 1)`
+/// with `base` the centre of its bottom layer.
+fn axial_box(base: [i64; 3], radii: [u32; 2], height: u32) -> Box3 {
+    let [rx, rz] = radii.map(|r| r as i64);
+    Box3::new(
+        [base[0] - rx, base[1], base[2] - rz],
+        [base[0] + rx + 1, base[1] + height as i64, base[2] + rz + 1],
+    )
+}
+
 /// Cylinder along +y: elliptic cross-section `radii = (rx, rz)`, L padding and S surface layers
 /// at the bottom and top.
 #[derive(Debug, Clone, PartialEq)]
@@ -307,15 +317,7 @@ impl Cylinder {
 
 impl Primitive for Cylinder {
     fn bbox(&self) -> Box3 {
-        let [rx, rz] = self.radii.map(|r| r as i64);
-        Box3::new(
-            [self.base[0] - rx, self.base[1], self.base[2] - rz],
-            [
-                self.base[0] + rx + 1,
-                self.base[1] + self.height as i64,
-                self.base[2] + rz + 1,
-            ],
-        )
+        axial_box(self.base, self.radii, self.height)
     }
 
     fn sample_inside(&self, v: [i64; 3], t: VoxelType) -> u16 {
@@ -381,15 +383,7 @@ impl Cone {
 
 impl Primitive for Cone {
     fn bbox(&self) -> Box3 {
-        let [rx, rz] = self.radii.map(|r| r as i64);
-        Box3::new(
-            [self.base[0] - rx, self.base[1], self.base[2] - rz],
-            [
-                self.base[0] + rx + 1,
-                self.base[1] + self.height as i64,
-                self.base[2] + rz + 1,
-            ],
-        )
+        axial_box(self.base, self.radii, self.height)
     }
 
     fn sample_inside(&self, v: [i64; 3], t: VoxelType) -> u16 {
