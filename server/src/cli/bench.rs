@@ -32,6 +32,9 @@ pub enum BenchCommand {
     /// Marching cubes: throughput next to VTK Flying Edges and scikit-image (--peers), by
     /// thread count and level, and the adaptive LOD's triangle savings.
     Mesh(super::bench_mesh::MeshBenchArgs),
+    /// HTTP: brick requests per second with wrk against isovox serve, nginx on the same bytes,
+    /// and a bare axum handler (needs wrk and nginx; scripts/bench-http.sh installs them).
+    Http(super::bench_http::HttpBenchArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -60,6 +63,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Store(a) => bench_store(a),
         BenchCommand::Icvg(a) => super::bench_icvg::run(a),
         BenchCommand::Mesh(a) => super::bench_mesh::run(a),
+        BenchCommand::Http(a) => super::bench_http::run_bench(a),
     }
 }
 

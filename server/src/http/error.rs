@@ -14,6 +14,8 @@ pub enum ApiError {
     NotAcceptable(String),
     /// The request asks for more than a response may carry.
     TooLarge(String),
+    /// The request body is not of a media type the route reads.
+    UnsupportedMedia(String),
     /// Too much work queued: retry after this many seconds.
     Overloaded(u32),
     Internal(String),
@@ -59,6 +61,7 @@ impl IntoResponse for ApiError {
             ApiError::NotFound(d) => problem(StatusCode::NOT_FOUND, d),
             ApiError::NotAcceptable(d) => problem(StatusCode::NOT_ACCEPTABLE, d),
             ApiError::TooLarge(d) => problem(StatusCode::PAYLOAD_TOO_LARGE, d),
+            ApiError::UnsupportedMedia(d) => problem(StatusCode::UNSUPPORTED_MEDIA_TYPE, d),
             ApiError::Overloaded(after) => {
                 let mut r = problem(
                     StatusCode::SERVICE_UNAVAILABLE,

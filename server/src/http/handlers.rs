@@ -105,7 +105,7 @@ pub async fn brick(
         .key(level, x, y, z)
         .map_err(|e| ApiError::not_found(e.to_string()))?;
     let stored = snap.stored(key)?;
-    brick_response(stored, layout, &headers, "no-cache")
+    brick_response(&state, stored, layout, &headers, "no-cache")
 }
 
 /// Whether `If-None-Match` names `etag` (or `*`).
@@ -115,24 +115,26 @@ fn if_none_match(headers: &HeaderMap, etag: &str) -> bool {
         .iter()
         .filter_map(|v| v.to_str().ok())
         .flat_map(|v| v.split(','))
-        .any(|t| t.trim() == etag || t.trim() == "*")
+        // If-None-Match compares weakly (RFC 9110 13.1.2): W/"x" matches "x".
+        .map(|t| t.trim().trim_start_matches("W/"))
+        .any(|t| t == etag || t == "*")
 }
 
 /// The response for one stored brick, shared by the position and the content-hash routes:
 /// ETag = content hash (304 on a match); the stored zstd frame as `Content-Encoding: zstd` to
 /// clients that accept it, an lz4 block for `Accept: application/x-lz4`, else the raw voxels.
 fn brick_response(
+    state: &AppState,
     stored: StoredBrick<'_>,
     layout: &VolumeLayout,
     headers: &HeaderMap,
     cache_control: &'static str,
 ) -> Result<Response, ApiError> {
-    let mut decoded = vec![0u8; layout.brick_bytes()];
-    let hash = match stored {
-        StoredBrick::Record { header, .. } => header.hash,
+    let (hash, constant) = match stored {
+        StoredBrick::Record { header, .. } => (header.hash, None),
         StoredBrick::Constant(v) => {
-            codec::fill_constant(&mut decoded, v, layout.voxel_type());
-            content_hash(&decoded)
+            let (hash, body) = state.constant_brick(v, layout);
+            (hash, Some(body))
         }
     };
     let etag = format!("\"{hash:016x}\"");
@@ -153,28 +155,40 @@ fn brick_response(
         return Ok((StatusCode::NOT_MODIFIED, response_headers).into_response());
     }
     let want_lz4 = accepts(headers, header::ACCEPT, LZ4_MEDIA_TYPE);
-    if let StoredBrick::Record {
-        header: h, payload, ..
-    } = stored
-    {
-        if want_lz4 && h.codec == Codec::Lz4 {
-            response_headers.insert(
-                header::CONTENT_TYPE,
-                HeaderValue::from_static(LZ4_MEDIA_TYPE),
-            );
-            return Ok((response_headers, payload.to_vec()).into_response());
+    let decoded: bytes::Bytes = match (constant, stored) {
+        (Some(body), _) => body,
+        (
+            None,
+            StoredBrick::Record {
+                header: h, payload, ..
+            },
+        ) => {
+            if want_lz4 && h.codec == Codec::Lz4 {
+                response_headers.insert(
+                    header::CONTENT_TYPE,
+                    HeaderValue::from_static(LZ4_MEDIA_TYPE),
+                );
+                return Ok((response_headers, payload.to_vec()).into_response());
+            }
+            if !want_lz4
+                && h.codec == Codec::Zstd
+                && accepts(headers, header::ACCEPT_ENCODING, "zstd")
+            {
+                response_headers.insert(
+                    header::CONTENT_TYPE,
+                    HeaderValue::from_static("application/octet-stream"),
+                );
+                response_headers.insert(header::CONTENT_ENCODING, HeaderValue::from_static("zstd"));
+                return Ok((response_headers, payload.to_vec()).into_response());
+            }
+            let mut out = vec![0u8; layout.brick_bytes()];
+            crate::store::vod2::decode_stored(&stored, layout, &mut out)?;
+            out.into()
         }
-        if !want_lz4 && h.codec == Codec::Zstd && accepts(headers, header::ACCEPT_ENCODING, "zstd")
-        {
-            response_headers.insert(
-                header::CONTENT_TYPE,
-                HeaderValue::from_static("application/octet-stream"),
-            );
-            response_headers.insert(header::CONTENT_ENCODING, HeaderValue::from_static("zstd"));
-            return Ok((response_headers, payload.to_vec()).into_response());
+        (None, StoredBrick::Constant(_)) => {
+            return Err(ApiError::Internal("constant brick without a body".into()))
         }
-        crate::store::vod2::decode_stored(&stored, layout, &mut decoded)?;
-    }
+    };
     if want_lz4 {
         response_headers.insert(
             header::CONTENT_TYPE,
@@ -198,9 +212,9 @@ pub async fn blob(
 ) -> Result<Response, ApiError> {
     let Path((name, hex)) =
         path.map_err(|e| ApiError::BadRequest(format!("malformed blob path: {e}")))?;
-    let hash = u64::from_str_radix(&hex, 16)
-        .ok()
-        .filter(|_| hex.len() == 16)
+    let hash = (hex.len() == 16 && hex.bytes().all(|b| b.is_ascii_hexdigit()))
+        .then(|| u64::from_str_radix(&hex, 16).ok())
+        .flatten()
         .ok_or_else(|| {
             ApiError::BadRequest(format!("{hex:?} is not a content hash (16 hex digits)"))
         })?;
@@ -211,6 +225,7 @@ pub async fn blob(
         .ok_or_else(|| ApiError::not_found(format!("no brick with hash {hex} in {name:?}")))?;
     let stored = snap.stored_entry(entry)?;
     brick_response(
+        &state,
         stored,
         snap.layout(),
         &headers,
@@ -329,12 +344,12 @@ pub async fn batch(
 ) -> Result<Response, ApiError> {
     use isovox_proto::batch::{encode_batch, BatchCodec, BatchEncoding, BatchEntry, MAX_BATCH};
     let Path(name) = path.map_err(|e| ApiError::BadRequest(format!("malformed path: {e}")))?;
-    let Json(req) = body.map_err(|e| {
-        if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
-            ApiError::TooLarge(format!("batch request: {e}"))
-        } else {
-            ApiError::BadRequest(format!("malformed batch request: {e}"))
+    let Json(req) = body.map_err(|e| match e.status() {
+        StatusCode::PAYLOAD_TOO_LARGE => ApiError::TooLarge(format!("batch request: {e}")),
+        StatusCode::UNSUPPORTED_MEDIA_TYPE => {
+            ApiError::UnsupportedMedia(format!("batch request: {e}"))
         }
+        _ => ApiError::BadRequest(format!("malformed batch request: {e}")),
     })?;
     if req.keys.len() > MAX_BATCH {
         return Err(ApiError::TooLarge(format!(

@@ -9,7 +9,6 @@ use axum::response::{IntoResponse, Response};
 use std::collections::BTreeMap;
 use std::fmt::Write;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Mutex;
 use std::time::Instant;
 
 /// Upper bounds of the latency buckets, seconds.
@@ -17,57 +16,82 @@ const BUCKETS: [f64; 14] = [
     0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
 ];
 
-#[derive(Debug, Default)]
-struct Histogram {
-    counts: [u64; BUCKETS.len()],
-    count: u64,
-    sum: f64,
+/// One route's counters, lock-free: requests by status code, and a latency histogram.
+#[derive(Debug)]
+struct RouteMetrics {
+    by_status: Vec<AtomicU64>,
+    buckets: [AtomicU64; BUCKETS.len()],
+    count: AtomicU64,
+    sum_micros: AtomicU64,
 }
 
-/// The server's counters.
+impl Default for RouteMetrics {
+    fn default() -> Self {
+        RouteMetrics {
+            by_status: (0..600).map(|_| AtomicU64::new(0)).collect(),
+            buckets: std::array::from_fn(|_| AtomicU64::new(0)),
+            count: AtomicU64::new(0),
+            sum_micros: AtomicU64::new(0),
+        }
+    }
+}
+
+/// The server's counters. Routes are registered once (the router's templates); recording a
+/// request touches only atomics, so it costs no lock and no allocation.
 #[derive(Debug, Default)]
 pub struct Metrics {
-    requests: Mutex<BTreeMap<(String, u16), u64>>,
-    latency: Mutex<BTreeMap<String, Histogram>>,
+    routes: BTreeMap<&'static str, RouteMetrics>,
     bytes_sent: AtomicU64,
 }
 
 impl Metrics {
+    /// Counters for these route templates (others are counted as "unmatched").
+    pub fn new(routes: &[&'static str]) -> Self {
+        let mut map = BTreeMap::new();
+        for r in routes.iter().copied().chain(["unmatched"]) {
+            map.insert(r, RouteMetrics::default());
+        }
+        Metrics {
+            routes: map,
+            bytes_sent: AtomicU64::new(0),
+        }
+    }
+
     fn record(&self, route: &str, status: u16, seconds: f64, bytes: u64) {
-        if let Ok(mut r) = self.requests.lock() {
-            *r.entry((route.to_string(), status)).or_default() += 1;
+        let Some(m) = self
+            .routes
+            .get(route)
+            .or_else(|| self.routes.get("unmatched"))
+        else {
+            return;
+        };
+        if let Some(c) = m.by_status.get(status as usize) {
+            c.fetch_add(1, Ordering::Relaxed);
         }
-        if let Ok(mut l) = self.latency.lock() {
-            let h = l.entry(route.to_string()).or_default();
-            for (i, b) in BUCKETS.iter().enumerate() {
-                if seconds <= *b {
-                    h.counts[i] += 1;
-                }
+        for (i, b) in BUCKETS.iter().enumerate() {
+            if seconds <= *b {
+                m.buckets[i].fetch_add(1, Ordering::Relaxed);
             }
-            h.count += 1;
-            h.sum += seconds;
         }
+        m.count.fetch_add(1, Ordering::Relaxed);
+        m.sum_micros
+            .fetch_add((seconds * 1e6) as u64, Ordering::Relaxed);
         self.bytes_sent.fetch_add(bytes, Ordering::Relaxed);
     }
 }
 
 /// Middleware: times every request and counts it under its route template.
 pub async fn track(State(state): State<AppState>, request: Request, next: Next) -> Response {
-    let route = request
-        .extensions()
-        .get::<MatchedPath>()
-        .map(|p| p.as_str().to_string())
-        .unwrap_or_else(|| "unmatched".to_string());
+    let route = request.extensions().get::<MatchedPath>().cloned();
+    let route = route.as_ref().map_or("unmatched", MatchedPath::as_str);
     let start = Instant::now();
     let response = next.run(request).await;
-    let bytes = response
-        .headers()
-        .get(header::CONTENT_LENGTH)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.parse().ok())
+    // The body's exact size when known (Content-Length is added later, by the server).
+    let bytes = axum::body::HttpBody::size_hint(response.body())
+        .exact()
         .unwrap_or(0);
     state.metrics.record(
-        &route,
+        route,
         response.status().as_u16(),
         start.elapsed().as_secs_f64(),
         bytes,
@@ -80,40 +104,43 @@ pub async fn metrics(State(state): State<AppState>) -> Response {
     let mut out = String::new();
     let m = &state.metrics;
     let _ = writeln!(out, "# HELP isovox_requests_total HTTP requests by route and status.\n# TYPE isovox_requests_total counter");
-    if let Ok(r) = m.requests.lock() {
-        for ((route, status), n) in r.iter() {
-            let _ = writeln!(
-                out,
-                "isovox_requests_total{{route=\"{route}\",status=\"{status}\"}} {n}"
-            );
+    for (route, r) in &m.routes {
+        for (status, n) in r.by_status.iter().enumerate() {
+            let n = n.load(Ordering::Relaxed);
+            if n > 0 {
+                let _ = writeln!(
+                    out,
+                    "isovox_requests_total{{route=\"{route}\",status=\"{status}\"}} {n}"
+                );
+            }
         }
     }
     let _ = writeln!(out, "# HELP isovox_request_seconds Request latency by route.\n# TYPE isovox_request_seconds histogram");
-    if let Ok(l) = m.latency.lock() {
-        for (route, h) in l.iter() {
-            for (i, b) in BUCKETS.iter().enumerate() {
-                let _ = writeln!(
-                    out,
-                    "isovox_request_seconds_bucket{{route=\"{route}\",le=\"{b}\"}} {}",
-                    h.counts[i]
-                );
-            }
+    for (route, r) in &m.routes {
+        let count = r.count.load(Ordering::Relaxed);
+        if count == 0 {
+            continue;
+        }
+        for (i, b) in BUCKETS.iter().enumerate() {
             let _ = writeln!(
                 out,
-                "isovox_request_seconds_bucket{{route=\"{route}\",le=\"+Inf\"}} {}",
-                h.count
-            );
-            let _ = writeln!(
-                out,
-                "isovox_request_seconds_sum{{route=\"{route}\"}} {}",
-                h.sum
-            );
-            let _ = writeln!(
-                out,
-                "isovox_request_seconds_count{{route=\"{route}\"}} {}",
-                h.count
+                "isovox_request_seconds_bucket{{route=\"{route}\",le=\"{b}\"}} {}",
+                r.buckets[i].load(Ordering::Relaxed)
             );
         }
+        let _ = writeln!(
+            out,
+            "isovox_request_seconds_bucket{{route=\"{route}\",le=\"+Inf\"}} {count}"
+        );
+        let _ = writeln!(
+            out,
+            "isovox_request_seconds_sum{{route=\"{route}\"}} {}",
+            r.sum_micros.load(Ordering::Relaxed) as f64 / 1e6
+        );
+        let _ = writeln!(
+            out,
+            "isovox_request_seconds_count{{route=\"{route}\"}} {count}"
+        );
     }
     let gauges: [(&str, &str, &str, u64); 6] = [
         (

@@ -33,6 +33,9 @@ use tower_http::cors::CorsLayer;
 use tower_http::timeout::TimeoutLayer;
 use tower_http::trace::TraceLayer;
 
+/// Constant bricks by (value, brick bytes, voxel bytes): their content hash and decoded body.
+type ConstantBricks = std::collections::HashMap<(u16, usize, usize), (u64, bytes::Bytes)>;
+
 /// What every handler can reach.
 #[derive(Debug, Clone)]
 pub struct AppState {
@@ -45,6 +48,9 @@ pub struct AppState {
     /// The semaphore's size.
     pub cpu_permits: usize,
     pub metrics: Arc<metrics::Metrics>,
+    /// Content hash and body of constant bricks, by (value, brick bytes, voxel bytes): most
+    /// bricks of a sparse volume are constant, and hashing 32 KiB per request would dominate.
+    constants: Arc<std::sync::RwLock<ConstantBricks>>,
 }
 
 impl AppState {
@@ -56,10 +62,52 @@ impl AppState {
             meshes: Arc::new(MeshCache::new(mesh_cache_bytes)),
             cpu: Arc::new(tokio::sync::Semaphore::new(cpu_queue)),
             cpu_permits: cpu_queue,
-            metrics: Arc::new(metrics::Metrics::default()),
+            metrics: Arc::new(metrics::Metrics::new(ROUTES)),
+            constants: Arc::default(),
         }
     }
+
+    /// The content hash and decoded bytes of a constant brick of `layout`'s shape.
+    pub fn constant_brick(
+        &self,
+        value: u16,
+        layout: &isovox_proto::VolumeLayout,
+    ) -> (u64, bytes::Bytes) {
+        let key = (value, layout.brick_bytes(), layout.voxel_type().bytes());
+        if let Some(hit) = self
+            .constants
+            .read()
+            .ok()
+            .and_then(|m| m.get(&key).cloned())
+        {
+            return hit;
+        }
+        let mut body = vec![0u8; layout.brick_bytes()];
+        crate::store::codec::fill_constant(&mut body, value, layout.voxel_type());
+        let entry = (
+            isovox_proto::vod2::content_hash(&body),
+            bytes::Bytes::from(body),
+        );
+        if let Ok(mut m) = self.constants.write() {
+            m.insert(key, entry.clone());
+        }
+        entry
+    }
 }
+
+/// Every route template the router serves (metrics are kept per template).
+pub const ROUTES: &[&str] = &[
+    "/healthz",
+    "/metrics",
+    "/openapi.json",
+    "/v1/volumes",
+    "/v1/volumes/{name}",
+    "/v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}",
+    "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}",
+    "/v1/volumes/{name}/blobs/{hash}",
+    "/v1/volumes/{name}/batch",
+    "/v1/volumes/{name}/levels/{level}",
+];
 
 /// The router, with its layers: request spans, a 30 s timeout, CORS for browser clients.
 pub fn app(state: AppState) -> Router {

@@ -88,7 +88,7 @@ pub fn document() -> Value {
             "/v1/volumes/{name}/levels/{level}": {"get": {
                 "summary": "a level's brick grid (JSON), or its voxels as one RAW array (format=voxels)",
                 "parameters": [name, level, version,
-                    query_param("region", json!({"type": "string", "pattern": "^[0-9]+(,[0-9]+){5}$"}), "MINX,MINY,MINZ,MAXX,MAXY,MAXZ, max exclusive (bricks for grid, voxels for voxels)"),
+                    query_param("region", json!({"type": "string", "pattern": "^[0-9]+(,[0-9]+){5}$"}), "MINX,MINY,MINZ,MAXX,MAXY,MAXZ, max exclusive (bricks for grid, voxels for voxels); must be non-empty and inside the level (400 otherwise)"),
                     query_param("format", json!({"type": "string", "enum": ["grid", "voxels"]}), "grid (default) or voxels")],
                 "responses": merge(json!({"200": {"description": "the grid or the voxels", "content": merge(json!({"application/json": {"schema": {"$ref": "#/components/schemas/LevelGrid"}}}), binary("application/octet-stream"))}}),
                     problem_responses(&["400", "404", "413", "500", "503"]))}},
@@ -123,8 +123,12 @@ pub fn document() -> Value {
                         "properties": {"hash": {"type": "string"}, "min": {"type": "integer"}, "max": {"type": "integer"}}}}}},
             "BatchRequest": {"type": "object", "required": ["keys"], "additionalProperties": false,
                 "properties": {"keys": {"type": "array", "maxItems": 4096,
-                        "items": {"type": "array", "minItems": 4, "maxItems": 4, "items": {"type": "integer", "minimum": 0}}},
-                    "version": {"type": "integer", "minimum": 0}, "encoding": {"type": "string", "enum": ["raw", "stored"]}}}
+                        "items": {"type": "array", "minItems": 4, "maxItems": 4, "items": false, "prefixItems": [
+                            {"type": "integer", "minimum": 0, "maximum": 255},
+                            {"type": "integer", "minimum": 0, "maximum": 4294967295u64},
+                            {"type": "integer", "minimum": 0, "maximum": 4294967295u64},
+                            {"type": "integer", "minimum": 0, "maximum": 4294967295u64}]}},
+                    "version": {"type": ["integer", "null"], "minimum": 0, "maximum": u64::MAX}, "encoding": {"type": "string", "enum": ["raw", "stored"]}}}
         }}
     })
 }

@@ -1,0 +1,312 @@
+//! `isovox bench http`: brick requests per second and latency with wrk (2 threads, 64
+//! connections, random keys over a 512^3 world) against `isovox serve`, nginx serving the same
+//! bytes as static files, and a bare axum handler returning static bytes of the same size (the
+//! ceiling on this machine). Needs `wrk` and `nginx` on the PATH (scripts/bench-http.sh
+//! installs them).
+
+use crate::catalog::Catalog;
+use crate::generate::WorldSource;
+use crate::http::{run, AppState};
+use crate::store::{build_vod2, BuildOptions, StoredBrick, Vod2};
+use anyhow::{bail, Context};
+use clap::Args;
+use isovox_proto::vod2::Codec;
+use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command};
+use std::time::Duration;
+
+#[derive(Debug, Args)]
+pub struct HttpBenchArgs {
+    #[arg(long, default_value = "bench-out/http")]
+    pub dir: PathBuf,
+    /// Seconds per wrk run.
+    #[arg(long, default_value_t = 10)]
+    pub seconds: u32,
+    #[arg(long, default_value_t = 64)]
+    pub connections: u32,
+    /// Edge of the cubic world.
+    #[arg(long, default_value_t = 512)]
+    pub size: u32,
+}
+
+struct Killed(Child);
+
+impl Drop for Killed {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// A wrk Lua script requesting random level-0 bricks under `prefix`, with `accept`.
+fn wrk_script(
+    dir: &Path,
+    name: &str,
+    prefix: &str,
+    grid: [u32; 3],
+    accept: Option<&str>,
+) -> anyhow::Result<PathBuf> {
+    let path = dir.join(format!("{name}.lua"));
+    let header = accept
+        .map(|a| format!("wrk.headers[\"Accept\"] = \"{a}\"\n"))
+        .unwrap_or_default();
+    std::fs::write(
+        &path,
+        format!(
+            "{header}math.randomseed(42)\nrequest = function()\n  local x, y, z = math.random(0, {}), math.random(0, {}), math.random(0, {})\n  return wrk.format(\"GET\", \"{prefix}/\" .. x .. \"/\" .. y .. \"/\" .. z)\nend\n",
+            grid[0] - 1,
+            grid[1] - 1,
+            grid[2] - 1
+        ),
+    )?;
+    Ok(path)
+}
+
+struct WrkResult {
+    rps: f64,
+    p50_ms: f64,
+    p99_ms: f64,
+    errors: String,
+}
+
+fn parse_ms(s: &str) -> Option<f64> {
+    let (num, unit) = s
+        .trim()
+        .split_at(s.trim().find(|c: char| c.is_alphabetic())?);
+    let v: f64 = num.parse().ok()?;
+    Some(match unit {
+        "us" => v / 1000.0,
+        "ms" => v,
+        "s" => v * 1000.0,
+        _ => return None,
+    })
+}
+
+fn wrk(url: &str, script: &Path, seconds: u32, connections: u32) -> anyhow::Result<WrkResult> {
+    let out = Command::new("wrk")
+        .args([
+            "-t2",
+            &format!("-c{connections}"),
+            &format!("-d{seconds}s"),
+            "--latency",
+            "-s",
+        ])
+        .arg(script)
+        .arg(url)
+        .output()
+        .context("cannot run wrk (install it: scripts/bench-http.sh)")?;
+    let text = String::from_utf8_lossy(&out.stdout).to_string();
+    let find = |prefix: &str| {
+        text.lines()
+            .find(|l| l.trim_start().starts_with(prefix))
+            .map(str::trim)
+            .map(str::to_string)
+    };
+    let rps = find("Requests/sec:")
+        .and_then(|l| l.split_whitespace().nth(1).and_then(|v| v.parse().ok()))
+        .unwrap_or(0.0);
+    let pct = |p: &str| {
+        find(p)
+            .and_then(|l| l.split_whitespace().nth(1).and_then(parse_ms))
+            .unwrap_or(f64::NAN)
+    };
+    let errors = [find("Non-2xx"), find("Socket errors")]
+        .into_iter()
+        .flatten()
+        .collect::<Vec<_>>()
+        .join("; ");
+    Ok(WrkResult {
+        rps,
+        p50_ms: pct("50%"),
+        p99_ms: pct("99%"),
+        errors,
+    })
+}
+
+async fn wait_up(port: u16) -> anyhow::Result<()> {
+    for _ in 0..100 {
+        if tokio::net::TcpStream::connect(("127.0.0.1", port))
+            .await
+            .is_ok()
+        {
+            return Ok(());
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    bail!("nothing listens on port {port}")
+}
+
+pub fn run_bench(a: HttpBenchArgs) -> anyhow::Result<()> {
+    let data = a.dir.join("data");
+    let statics = a.dir.join("static");
+    std::fs::create_dir_all(&data)?;
+    let layout = VolumeLayout::new([a.size; 3], 32, VoxelType::U8)?;
+    let file = data.join("world.vod");
+    if !file.exists() {
+        eprintln!("bench http: generating the {0}^3 world", a.size);
+        build_vod2(
+            &file,
+            &layout,
+            [1.0; 3],
+            &WorldSource::new(layout.clone(), 1),
+            &BuildOptions {
+                compression: crate::store::codec::Compression::Lz4,
+                ..BuildOptions::default()
+            },
+        )?;
+    }
+    // The same bytes as static files: raw voxels, and the lz4 blocks isovox serves.
+    let vod = Vod2::open(&file)?;
+    let snap = vod.head();
+    let g = layout.grid(0);
+    let mut lz4_sizes = Vec::new();
+    for z in 0..g[2] {
+        for y in 0..g[1] {
+            for x in 0..g[0] {
+                let key = BrickKey { level: 0, x, y, z };
+                let raw = snap.read(key)?;
+                let lz4 = match snap.stored(key)? {
+                    StoredBrick::Record {
+                        header, payload, ..
+                    } if header.codec == Codec::Lz4 => payload.to_vec(),
+                    _ => lz4_flex::block::compress(&raw),
+                };
+                lz4_sizes.push(lz4.len());
+                for (tree, bytes) in [("raw", &raw), ("lz4", &lz4)] {
+                    let dir = statics.join(format!("{tree}/{x}/{y}"));
+                    std::fs::create_dir_all(&dir)?;
+                    std::fs::write(dir.join(z.to_string()), bytes)?;
+                }
+            }
+        }
+    }
+    lz4_sizes.sort_unstable();
+    let lz4_median = lz4_sizes[lz4_sizes.len() / 2];
+    // nginx on the static tree.
+    let nginx_port = 7081u16;
+    let conf = a.dir.join("nginx.conf");
+    let root = std::fs::canonicalize(&statics)?;
+    let logs = std::fs::canonicalize(&a.dir)?;
+    std::fs::write(
+        &conf,
+        format!(
+            "worker_processes 2;\npid {logs}/nginx.pid;\nerror_log {logs}/nginx-error.log;\nevents {{ worker_connections 1024; }}\nhttp {{\n  access_log off;\n  open_file_cache max=10000 inactive=60s;\n  open_file_cache_valid 60s;\n  sendfile on;\n  tcp_nopush on;\n  default_type application/octet-stream;\n  client_body_temp_path {logs}/tmp;\n  proxy_temp_path {logs}/tmp;\n  fastcgi_temp_path {logs}/tmp;\n  uwsgi_temp_path {logs}/tmp;\n  scgi_temp_path {logs}/tmp;\n  server {{ listen 127.0.0.1:{nginx_port}; root {root}; etag on; }}\n}}\n",
+            logs = logs.display(),
+            root = root.display()
+        ),
+    )?;
+    std::fs::create_dir_all(a.dir.join("tmp"))?;
+    let _nginx = Killed(
+        Command::new("nginx")
+            .args(["-c"])
+            .arg(std::fs::canonicalize(&conf)?)
+            .args(["-g", "daemon off;"])
+            .spawn()
+            .context("cannot start nginx (install it: scripts/bench-http.sh)")?,
+    );
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?;
+    let (isovox_port, ceiling_port) = (7082u16, 7083u16);
+    let brick_bytes = layout.brick_bytes();
+    runtime.block_on(async {
+        let catalog = Catalog::open_dir(&data)?;
+        let listener = tokio::net::TcpListener::bind(("127.0.0.1", isovox_port)).await?;
+        tokio::spawn(run(
+            listener,
+            AppState::new(catalog, 256 << 20, 64),
+            std::future::pending(),
+        ));
+        // The ceiling: a bare axum handler returning static bytes of a brick's size.
+        let raw_body = bytes::Bytes::from(vec![7u8; brick_bytes]);
+        let lz4_body = bytes::Bytes::from(vec![7u8; lz4_median]);
+        let app = axum::Router::new()
+            .route(
+                "/raw/{x}/{y}/{z}",
+                axum::routing::get(move || {
+                    let b = raw_body.clone();
+                    async move { b }
+                }),
+            )
+            .route(
+                "/lz4/{x}/{y}/{z}",
+                axum::routing::get(move || {
+                    let b = lz4_body.clone();
+                    async move { b }
+                }),
+            );
+        let listener = tokio::net::TcpListener::bind(("127.0.0.1", ceiling_port)).await?;
+        tokio::spawn(async move { axum::serve(listener, app).await });
+        for p in [nginx_port, isovox_port, ceiling_port] {
+            wait_up(p).await?;
+        }
+        anyhow::Ok(())
+    })?;
+    let bench = a.dir.join("wrk");
+    std::fs::create_dir_all(&bench)?;
+    println!("### Brick requests: wrk, 2 threads, {} connections, {} s each, random level-0 keys over a {}^3 world (brick 32^3: {} B raw, lz4 median {} B)\n", a.connections, a.seconds, a.size, brick_bytes, lz4_median);
+    println!("| server | encoding | requests/s | p50 ms | p99 ms | errors | isovox / nginx | isovox / bare axum |");
+    println!("|---|---|---:|---:|---:|---|---:|---:|");
+    for (encoding, accept) in [("raw", None), ("lz4", Some("application/x-lz4"))] {
+        let iso_script = wrk_script(
+            &bench,
+            &format!("isovox-{encoding}"),
+            "/v1/volumes/world/bricks/0",
+            g,
+            accept,
+        )?;
+        let static_script = wrk_script(
+            &bench,
+            &format!("static-{encoding}"),
+            &format!("/{encoding}"),
+            g,
+            None,
+        )?;
+        let isovox = wrk(
+            &format!("http://127.0.0.1:{isovox_port}"),
+            &iso_script,
+            a.seconds,
+            a.connections,
+        )?;
+        let nginx = wrk(
+            &format!("http://127.0.0.1:{nginx_port}"),
+            &static_script,
+            a.seconds,
+            a.connections,
+        )?;
+        let ceiling = wrk(
+            &format!("http://127.0.0.1:{ceiling_port}"),
+            &static_script,
+            a.seconds,
+            a.connections,
+        )?;
+        for (name, r) in [
+            ("isovox serve", &isovox),
+            ("nginx (static files)", &nginx),
+            ("bare axum (static bytes)", &ceiling),
+        ] {
+            let ratios = if name == "isovox serve" {
+                format!(
+                    "{:.2} | {:.2}",
+                    isovox.rps / nginx.rps,
+                    isovox.rps / ceiling.rps
+                )
+            } else {
+                "| ".to_string()
+            };
+            println!(
+                "| {name} | {encoding} | {:.0} | {:.2} | {:.2} | {} | {ratios} |",
+                r.rps,
+                r.p50_ms,
+                r.p99_ms,
+                if r.errors.is_empty() {
+                    "none"
+                } else {
+                    &r.errors
+                }
+            );
+        }
+    }
+    Ok(())
+}
