@@ -11,7 +11,6 @@
 use super::ops::{BinaryOp, Outside, UnaryOp};
 use super::primitives::Box3;
 use super::term::{CompiledTerm, TermError, TermLimits, VolumeResolver};
-use crate::store::codec::fill_constant;
 use crate::store::pyramid::{constant_parent, downsample};
 use crate::store::writer::Vod2Writer;
 use crate::store::{BrickVoxels, Snapshot, StoreError, StoredBrick};
@@ -369,11 +368,4 @@ pub fn apply_edit(
         checkpoint,
         elapsed: start.elapsed(),
     })
-}
-
-/// Fills a decoded brick with a constant (re-exported for tests that build expectations).
-pub fn constant_brick(layout: &VolumeLayout, v: u16) -> Vec<u8> {
-    let mut out = vec![0u8; layout.brick_bytes()];
-    fill_constant(&mut out, v, layout.voxel_type());
-    out
 }

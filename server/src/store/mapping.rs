@@ -44,12 +44,4 @@ impl Mapping {
     pub fn bytes(&self) -> &[u8] {
         self.map.as_deref().unwrap_or(&[])
     }
-
-    /// Asks the kernel to read the whole mapping ahead (for sequential scans such as export).
-    pub fn advise_sequential(&self) {
-        #[cfg(unix)]
-        if let Some(map) = &self.map {
-            let _ = map.advise(memmap2::Advice::Sequential);
-        }
-    }
 }

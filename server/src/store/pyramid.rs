@@ -6,7 +6,7 @@
 //! is even, every 2x2x2 group lies inside one child, so the rule is the same as downsampling the
 //! whole level as one array.
 
-use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
+use isovox_proto::{BrickKey, VoxelType};
 
 /// The voxels of one brick: one value everywhere, or the decoded bytes (x fastest, then y, then
 /// z; u16 little endian).
@@ -24,18 +24,6 @@ impl BrickVoxels {
             BrickVoxels::Constant(lo)
         } else {
             BrickVoxels::Data(bytes)
-        }
-    }
-
-    /// The decoded bytes of a brick of `brick_bytes` bytes.
-    pub fn to_bytes(&self, layout: &VolumeLayout) -> Vec<u8> {
-        match self {
-            BrickVoxels::Data(d) => d.clone(),
-            BrickVoxels::Constant(v) => {
-                let mut out = vec![0u8; layout.brick_bytes()];
-                super::codec::fill_constant(&mut out, *v, layout.voxel_type());
-                out
-            }
         }
     }
 }
