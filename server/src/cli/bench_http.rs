@@ -30,10 +30,15 @@ pub struct HttpBenchArgs {
     pub size: u32,
 }
 
+/// A child process in its own process group, stopped with the whole group (nginx's workers
+/// outlive a killed master otherwise).
 struct Killed(Child);
 
 impl Drop for Killed {
     fn drop(&mut self) {
+        let _ = Command::new("kill")
+            .args(["-TERM", &format!("-{}", self.0.id())])
+            .status();
         let _ = self.0.kill();
         let _ = self.0.wait();
     }
