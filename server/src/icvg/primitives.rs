@@ -534,17 +534,30 @@ impl Plane {
 }
 
 /// A convex solid: an axis-aligned cuboid (with its L and S layers) cut by slanted planes; the
-/// value is the minimum over the cuboid's and the planes' values (an intersection).
-fn polytope(cuboid: &Cuboid, planes: &[Plane], v: [i64; 3], t: VoxelType) -> u16 {
-    let mut value = cuboid.sample_inside(v, t);
-    let p = v.map(|c| c as f64);
-    for plane in planes {
-        if value == t.low() {
-            break;
-        }
-        value = value.min(plane.sample(p, t));
+/// value is the minimum over the cuboid's and the planes' values (an intersection). The planes
+/// are computed once, when the term is compiled.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CutCuboid {
+    cuboid: Cuboid,
+    planes: Vec<Plane>,
+}
+
+impl Primitive for CutCuboid {
+    fn bbox(&self) -> Box3 {
+        self.cuboid.bbox()
     }
-    value
+
+    fn sample_inside(&self, v: [i64; 3], t: VoxelType) -> u16 {
+        let mut value = self.cuboid.sample_inside(v, t);
+        let p = v.map(|c| c as f64);
+        for plane in &self.planes {
+            if value == t.low() {
+                break;
+            }
+            value = value.min(plane.sample(p, t));
+        }
+        value
+    }
 }
 
 /// Wedge: the cuboid cut by the plane through its top-left edge (x = 0, y = top) and its
@@ -556,31 +569,19 @@ pub struct Prism {
 }
 
 impl Prism {
-    fn parts(&self) -> (Cuboid, [Plane; 1]) {
-        let c = Cuboid {
-            origin: self.origin,
-            size: self.size,
-        };
+    /// The wedge as a cuboid and its one slanted plane.
+    pub fn solid(&self) -> CutCuboid {
         let o = self.origin.map(|x| x as f64);
         let (w, h) = (self.size[0] as f64 - 3.0, self.size[1] as f64 - 3.0);
         // Through (o.x + 1, o.y + 1 + h) and (o.x + 1 + w, o.y + 1); outward normal (h, w, 0).
         let plane = Plane::through([o[0] + 1.0, o[1] + 1.0 + h, o[2]], [h, w, 0.0]);
-        (c, [plane])
-    }
-}
-
-impl Primitive for Prism {
-    fn bbox(&self) -> Box3 {
-        Cuboid {
-            origin: self.origin,
-            size: self.size,
+        CutCuboid {
+            cuboid: Cuboid {
+                origin: self.origin,
+                size: self.size,
+            },
+            planes: vec![plane],
         }
-        .bbox()
-    }
-
-    fn sample_inside(&self, v: [i64; 3], t: VoxelType) -> u16 {
-        let (c, planes) = self.parts();
-        polytope(&c, &planes, v, t)
     }
 }
 
@@ -592,11 +593,8 @@ pub struct Pyramid {
 }
 
 impl Pyramid {
-    fn parts(&self) -> (Cuboid, [Plane; 4]) {
-        let c = Cuboid {
-            origin: self.origin,
-            size: self.size,
-        };
+    /// The pyramid as a cuboid and its four slanted planes.
+    pub fn solid(&self) -> CutCuboid {
         let o = self.origin.map(|x| x as f64);
         let (w, h, d) = (
             self.size[0] as f64 - 3.0,
@@ -605,30 +603,43 @@ impl Pyramid {
         );
         let apex = [o[0] + 1.0 + w / 2.0, o[1] + 1.0 + h, o[2] + 1.0 + d / 2.0];
         let (hx, hz) = (w / 2.0, d / 2.0);
-        let planes = [
+        let planes = vec![
             Plane::through(apex, [h, hx, 0.0]),
             Plane::through(apex, [-h, hx, 0.0]),
             Plane::through(apex, [0.0, hz, h]),
             Plane::through(apex, [0.0, hz, -h]),
         ];
-        (c, planes)
-    }
-}
-
-impl Primitive for Pyramid {
-    fn bbox(&self) -> Box3 {
-        Cuboid {
-            origin: self.origin,
-            size: self.size,
+        CutCuboid {
+            cuboid: Cuboid {
+                origin: self.origin,
+                size: self.size,
+            },
+            planes,
         }
-        .bbox()
-    }
-
-    fn sample_inside(&self, v: [i64; 3], t: VoxelType) -> u16 {
-        let (c, planes) = self.parts();
-        polytope(&c, &planes, v, t)
     }
 }
+
+/// The wedge and the pyramid sample through their solids (the engine compiles them to
+/// [`CutCuboid`]s directly, so the planes are not rebuilt per voxel there).
+macro_rules! via_solid {
+    ($t:ty) => {
+        impl Primitive for $t {
+            fn bbox(&self) -> Box3 {
+                Cuboid {
+                    origin: self.origin,
+                    size: self.size,
+                }
+                .bbox()
+            }
+
+            fn sample_inside(&self, v: [i64; 3], t: VoxelType) -> u16 {
+                self.solid().sample_inside(v, t)
+            }
+        }
+    };
+}
+via_solid!(Prism);
+via_solid!(Pyramid);
 
 /// The one value of every voxel of `b` (any box), when certain without sampling.
 pub fn constant_over(p: &dyn Primitive, b: &Box3, t: VoxelType) -> Option<u16> {

@@ -258,15 +258,21 @@ impl CompiledTerm {
                 }
                 extent(name, *size.iter().max().unwrap_or(&0) as u64)?;
                 if name == "prism" {
-                    prim(Box::new(Prism {
-                        origin: *origin,
-                        size: *size,
-                    }))
+                    prim(Box::new(
+                        Prism {
+                            origin: *origin,
+                            size: *size,
+                        }
+                        .solid(),
+                    ))
                 } else {
-                    prim(Box::new(Pyramid {
-                        origin: *origin,
-                        size: *size,
-                    }))
+                    prim(Box::new(
+                        Pyramid {
+                            origin: *origin,
+                            size: *size,
+                        }
+                        .solid(),
+                    ))
                 }
             }
             Term::Volume {
