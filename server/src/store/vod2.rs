@@ -258,17 +258,18 @@ impl Snapshot {
                 .into()
             })
         };
-        // Walk back to the newest checkpoint, keeping each commit's changes.
+        // Walk back to the newest checkpoint, keeping each commit's changes; every record is
+        // decoded (and checksummed) once.
         let mut chain: Vec<&[u8]> = Vec::new();
         let mut at = commit_at;
-        let (head, _) = CommitHeader::decode(region(at)?, at)?;
+        let (head, record) = CommitHeader::decode(region(at)?, at)?;
+        let (mut h, mut record) = (head, record);
         let checkpoint_at = loop {
-            let (h, record) = CommitHeader::decode(region(at)?, at)?;
             chain.push(record);
             if h.checkpoint != 0 {
                 break h.checkpoint;
             }
-            let (parent, _) = CommitHeader::decode(region(h.parent)?, h.parent)?;
+            let (parent, parent_record) = CommitHeader::decode(region(h.parent)?, h.parent)?;
             if parent.version.checked_add(1) != Some(h.version) {
                 return Err(FormatError::invalid(
                     "commit chain",
@@ -280,6 +281,7 @@ impl Snapshot {
                 .into());
             }
             at = h.parent;
+            (h, record) = (parent, parent_record);
         };
         let index = Arc::new(IndexChunks::open(
             region(checkpoint_at)?,
