@@ -16,7 +16,7 @@ use indicatif::ProgressBar;
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use rayon::prelude::*;
 use std::fs::File;
-use std::io::BufWriter;
+use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
@@ -132,21 +132,21 @@ fn write_raw(
     let vod = dir.join(format!("{name}.source.vod"));
     build_vod2(&vod, layout, [1.0; 3], source, &BuildOptions::default())?;
     let raw = dir.join(format!("{name}.raw"));
-    let v = Vod2::open(&vod)?;
-    let mut out = BufWriter::with_capacity(1 << 20, File::create(&raw)?);
-    export_raw(
-        &v.head(),
-        0,
-        Region {
-            min: [0; 3],
-            max: layout.dims(),
-        },
-        &mut out,
-        &ProgressBar::hidden(),
-    )?;
-    drop(out);
+    write_level0_raw(&Vod2::open(&vod)?, &raw)?;
     std::fs::remove_file(&vod).ok();
     Ok(raw)
+}
+
+/// Writes a volume's level 0 as a RAW file (what the peers and the RAW timings read).
+pub(crate) fn write_level0_raw(vod: &Vod2, raw: &Path) -> anyhow::Result<()> {
+    let mut out = BufWriter::with_capacity(1 << 20, File::create(raw)?);
+    let region = Region {
+        min: [0; 3],
+        max: vod.layout().dims(),
+    };
+    export_raw(&vod.head(), 0, region, &mut out, &ProgressBar::hidden())?;
+    out.flush()?;
+    Ok(())
 }
 
 /// Reads every brick of every level once (decoded and hash-checked), in parallel.

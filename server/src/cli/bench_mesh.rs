@@ -6,7 +6,7 @@ use super::TypeArg;
 use crate::generate::{EllipsoidSource, WorldSource};
 use crate::mesh::level::{adaptive_tiles, level_tiles, mesh_tile_parts, mesh_tiles};
 use crate::mesh::tile::default_iso;
-use crate::store::raw::{export_raw, RawInput, Region};
+use crate::store::raw::RawInput;
 use crate::store::{build_vod2, BrickSource, BuildOptions, DenseGrid, Snapshot, Vod2};
 use anyhow::Context;
 use clap::Args;
@@ -113,17 +113,7 @@ pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
         let vod = Vod2::open(&file)?;
         let raw = file.with_extension("raw");
         if a.peers {
-            let mut out = std::io::BufWriter::new(std::fs::File::create(&raw)?);
-            export_raw(
-                &vod.head(),
-                0,
-                Region {
-                    min: [0; 3],
-                    max: layout.dims(),
-                },
-                &mut out,
-                &ProgressBar::hidden(),
-            )?;
+            super::bench::write_level0_raw(&vod, &raw)?;
         }
         sets.push((
             name.to_string(),

@@ -313,7 +313,7 @@ pub async fn mesh_tile(
     let body = tokio::task::spawn_blocking(move || -> Result<Vec<u8>, crate::store::StoreError> {
         let _permit = permit;
         let mut scratch = crate::mesh::tile::TileScratch::default();
-        let tile = cache.tile(&snap, key, iso, &mut scratch)?;
+        let tile = cache.tile_with(&snap, key, iso, &inputs, &mut scratch)?;
         let mut mesh = (*tile.mesh).clone();
         crate::mesh::tile::to_world(&mut mesh, key, &snap);
         Ok(if glb {

@@ -8,7 +8,7 @@
 //! halo from up to 26 neighbours, which would otherwise be decoded again for every tile.
 
 use super::mc::Mesh;
-use super::tile::{mesh_tile_local, tile_inputs, TileScratch};
+use super::tile::{mesh_tile_from, tile_inputs, TileInputs, TileScratch};
 use crate::store::lru::ByteLru;
 use crate::store::{Snapshot, StoreError};
 use isovox_proto::BrickKey;
@@ -67,6 +67,21 @@ impl MeshCache {
         scratch: &mut TileScratch,
     ) -> Result<CachedTile, StoreError> {
         let inputs = tile_inputs(snap, key, iso)?;
+        self.tile_with(snap, key, iso, &inputs, scratch)
+    }
+
+    /// [`MeshCache::tile`] with the tile's inputs already computed.
+    ///
+    /// # Errors
+    /// A brick fails to read.
+    pub fn tile_with(
+        &self,
+        snap: &Snapshot,
+        key: BrickKey,
+        iso: f32,
+        inputs: &TileInputs,
+        scratch: &mut TileScratch,
+    ) -> Result<CachedTile, StoreError> {
         if let Some(mesh) = self.tiles.get(inputs.key) {
             self.hits.fetch_add(1, Ordering::Relaxed);
             return Ok(CachedTile {
@@ -78,7 +93,7 @@ impl MeshCache {
         self.misses.fetch_add(1, Ordering::Relaxed);
         let mut mesh = Mesh::default();
         scratch.bricks = Some(self.bricks.clone());
-        mesh_tile_local(snap, key, iso, &mut mesh, scratch)?;
+        mesh_tile_from(snap, key, iso, inputs, &mut mesh, scratch)?;
         let mesh = Arc::new(mesh);
         self.tiles.put(inputs.key, mesh.clone(), mesh_bytes(&mesh));
         Ok(CachedTile {

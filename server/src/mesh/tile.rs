@@ -196,8 +196,25 @@ pub fn mesh_tile_local(
     out: &mut Mesh,
     scratch: &mut TileScratch,
 ) -> Result<TileStats, StoreError> {
+    let inputs = tile_inputs(snap, key, iso)?;
+    mesh_tile_from(snap, key, iso, &inputs, out, scratch)
+}
+
+/// [`mesh_tile_local`] for a caller that already has the tile's [`TileInputs`] (the cache and
+/// the HTTP handler compute them for the key and the ETag; doing it again costs 27 lookups).
+///
+/// # Errors
+/// A brick fails to read.
+pub fn mesh_tile_from(
+    snap: &Snapshot,
+    key: BrickKey,
+    iso: f32,
+    inputs: &TileInputs,
+    out: &mut Mesh,
+    scratch: &mut TileScratch,
+) -> Result<TileStats, StoreError> {
     out.clear();
-    if !tile_inputs(snap, key, iso)?.may_cross {
+    if !inputs.may_cross {
         return Ok(TileStats {
             skipped: true,
             triangles: 0,
