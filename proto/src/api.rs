@@ -70,6 +70,9 @@ pub struct Problem {
     pub title: String,
     pub status: u16,
     pub detail: String,
+    /// The volume's current version, on a 409 from a conditional edit (`If-Match`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub version: Option<u64>,
 }
 
 /// One brick in a level's grid.
@@ -91,4 +94,58 @@ pub struct LevelGrid {
     pub max: [u32; 3],
     pub version: u64,
     pub bricks: Vec<LevelBrick>,
+}
+
+/// Changed bricks per level (level 0 first), each list sorted by z, then y, then x.
+pub type ChangedBricks = Vec<Vec<[u32; 3]>>;
+
+/// `POST /v1/volumes/{name}/edits`: what one acknowledged edit did.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct EditResponse {
+    /// The version the edit created.
+    pub version: u64,
+    /// The version it was applied to.
+    pub previous: u64,
+    pub changed: ChangedBricks,
+    /// Level-0 bricks whose voxels were evaluated.
+    pub evaluated: u64,
+    /// Brick records appended to the file (content not stored before).
+    pub new_records: u64,
+    /// Whether the commit wrote a full index checkpoint.
+    pub checkpoint: bool,
+    /// Time from the start of the evaluation to the durable commit.
+    pub elapsed_us: u64,
+}
+
+/// One committed version as the change feed announces it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ChangeEvent {
+    pub version: u64,
+    pub timestamp_ms: u64,
+    pub changed: ChangedBricks,
+}
+
+/// `GET /v1/volumes/{name}/changes?since=N`: the versions after `since`, oldest first.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ChangeList {
+    pub since: u64,
+    /// The current version.
+    pub head: u64,
+    /// The oldest version the file still holds.
+    pub oldest: u64,
+    /// Versions after the last listed one exist: ask again from it.
+    pub more: bool,
+    pub changes: Vec<ChangeEvent>,
+}
+
+/// `POST /v1/volumes/{name}/compact`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CompactResponse {
+    /// The head version, unchanged by compaction.
+    pub version: u64,
+    pub bytes_before: u64,
+    pub bytes_after: u64,
+    /// Distinct brick records in the new file.
+    pub bricks: u64,
+    pub elapsed_us: u64,
 }

@@ -1,6 +1,7 @@
 //! The volumes a server serves: every VOD 2 file of its data directory, named after the file.
 
 use crate::store::{StoreError, Vod2};
+use crate::volume::LiveVolume;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -8,7 +9,7 @@ use std::sync::Arc;
 /// Volumes by name.
 #[derive(Debug, Default)]
 pub struct Catalog {
-    volumes: BTreeMap<String, Arc<Vod2>>,
+    volumes: BTreeMap<String, Arc<LiveVolume>>,
 }
 
 /// Whether `name` is acceptable as a volume name (and so as a file stem and URL segment).
@@ -48,9 +49,9 @@ impl Catalog {
                 tracing::warn!(path = %path.display(), "skipping a volume whose name is not [A-Za-z0-9_.-]");
                 continue;
             }
-            match Vod2::open(&path) {
-                Ok(vod) => {
-                    volumes.insert(name, Arc::new(vod));
+            match Vod2::open(&path).and_then(|vod| LiveVolume::new(&name, vod)) {
+                Ok(volume) => {
+                    volumes.insert(name, Arc::new(volume));
                 }
                 Err(e) => {
                     tracing::error!(path = %path.display(), error = %crate::store::error_chain(&e), "cannot open volume; not serving it")
@@ -61,17 +62,24 @@ impl Catalog {
     }
 
     /// Serves exactly these volumes (for tests and embedding).
-    pub fn from_volumes(volumes: impl IntoIterator<Item = (String, Vod2)>) -> Catalog {
-        Catalog {
-            volumes: volumes.into_iter().map(|(n, v)| (n, Arc::new(v))).collect(),
-        }
+    ///
+    /// # Errors
+    /// A volume's commit chain is malformed.
+    pub fn from_volumes(
+        volumes: impl IntoIterator<Item = (String, Vod2)>,
+    ) -> Result<Catalog, StoreError> {
+        let volumes = volumes
+            .into_iter()
+            .map(|(n, v)| Ok((n.clone(), Arc::new(LiveVolume::new(&n, v)?))))
+            .collect::<Result<_, StoreError>>()?;
+        Ok(Catalog { volumes })
     }
 
-    pub fn get(&self, name: &str) -> Option<Arc<Vod2>> {
+    pub fn get(&self, name: &str) -> Option<Arc<LiveVolume>> {
         self.volumes.get(name).cloned()
     }
 
-    pub fn iter(&self) -> impl Iterator<Item = (&str, &Arc<Vod2>)> {
+    pub fn iter(&self) -> impl Iterator<Item = (&str, &Arc<LiveVolume>)> {
         self.volumes.iter().map(|(n, v)| (n.as_str(), v))
     }
 

@@ -9,6 +9,7 @@
 //! - [`icvg`]: primitives of the volume algebra (`spec/icvg.md`).
 //! - [`generate`]: synthetic data sets (ellipsoid, Perlin-noise world).
 //! - [`catalog`]: the volumes a server serves.
+//! - [`volume`]: one served volume: current version, single writer, history, change feed.
 //! - [`http`]: the axum router, thin handlers, errors as responses.
 //! - [`cli`]: the `isovox` subcommands.
 
@@ -19,3 +20,4 @@ pub mod http;
 pub mod icvg;
 pub mod mesh;
 pub mod store;
+pub mod volume;

@@ -546,3 +546,29 @@ pub fn get(a: GetArgs) -> anyhow::Result<()> {
     }
     Ok(())
 }
+
+#[derive(Debug, Args)]
+pub struct CompactArgs {
+    /// The VOD 2 file to compact in place.
+    pub input: PathBuf,
+}
+
+pub fn compact(a: CompactArgs) -> anyhow::Result<()> {
+    let vod = Vod2::open(&a.input).with_context(|| format!("cannot open {}", a.input.display()))?;
+    let head = vod.head();
+    let bar = super::progress("compacting");
+    let report = crate::store::compact::compact(&vod, &head, &bar)
+        .with_context(|| format!("cannot compact {}", a.input.display()))?;
+    bar.finish_and_clear();
+    println!(
+        "{}: version {} kept, {} distinct bricks, {} -> {} bytes ({:.1}% saved) in {:.2} s",
+        a.input.display(),
+        report.version,
+        report.bricks,
+        report.bytes_before,
+        report.bytes_after,
+        100.0 * (1.0 - report.bytes_after as f64 / report.bytes_before.max(1) as f64),
+        report.elapsed.as_secs_f64()
+    );
+    Ok(())
+}

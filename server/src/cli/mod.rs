@@ -45,6 +45,10 @@ pub enum Command {
     Inspect(data::InspectArgs),
     /// Write one brick of one level, decoded (raw voxels), to a file or stdout.
     Get(data::GetArgs),
+    /// Rewrite a file with only its head version (drops older versions and unreferenced
+    /// bricks); run it on a file no server is writing (a server compacts with
+    /// POST /v1/volumes/{name}/compact).
+    Compact(data::CompactArgs),
     /// Benchmarks that print Markdown tables next to the papers' figures.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -64,6 +68,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Edit(a) => edit::edit(a),
         Command::Mesh(a) => mesh::mesh(a),
         Command::Get(a) => data::get(a),
+        Command::Compact(a) => data::compact(a),
         Command::Bench(b) => bench::run(b),
     }
 }

@@ -2,7 +2,8 @@
 
 use crate::catalog::Catalog;
 use crate::generate::WorldSource;
-use crate::http::{run, shutdown_signal, AppState};
+use crate::http::auth::{random_secret, Scope, Tokens};
+use crate::http::{run, shutdown_signal, AppState, ServerConfig};
 use crate::store::codec::Compression;
 use anyhow::Context;
 use clap::Args;
@@ -25,6 +26,78 @@ pub struct ServeArgs {
     /// Meshing jobs running or queued at once; beyond it requests get 503 with Retry-After.
     #[arg(long, env = "ISOVOX_CPU_QUEUE", default_value_t = 64)]
     pub cpu_queue: usize,
+    /// Tokens, one per line: `NAME TOKEN [write|read]`. Default: DATA/tokens, created with one
+    /// random write token on first start when no token is configured.
+    #[arg(long, env = "ISOVOX_TOKEN_FILE")]
+    pub token_file: Option<PathBuf>,
+    /// Every /v1 route needs a token (reads too).
+    #[arg(long, env = "ISOVOX_PRIVATE_READS")]
+    pub private_reads: bool,
+    /// Edits per second per token (also the burst); beyond it 429.
+    #[arg(long, env = "ISOVOX_EDIT_RATE", default_value_t = 50.0)]
+    pub edit_rate: f64,
+    /// Edits waiting for one volume's writer; beyond it 503.
+    #[arg(long, env = "ISOVOX_EDIT_QUEUE", default_value_t = 64)]
+    pub edit_queue: usize,
+    /// Level-0 voxels one edit may evaluate; beyond it 422.
+    #[arg(long, env = "ISOVOX_MAX_EDIT_VOXELS", default_value_t = 1 << 28)]
+    pub max_edit_voxels: u64,
+}
+
+/// The tokens the server accepts: the token file (DATA/tokens by default, created with one
+/// random write token when nothing else is configured) and `ISOVOX_WRITE_TOKEN`.
+fn load_tokens(a: &ServeArgs) -> anyhow::Result<Tokens> {
+    let env_token = std::env::var("ISOVOX_WRITE_TOKEN")
+        .ok()
+        .filter(|t| !t.is_empty());
+    let default_file = a.data.join("tokens");
+    let file = match &a.token_file {
+        Some(f) => Some(f.clone()),
+        None if default_file.exists() => Some(default_file),
+        None if env_token.is_none() => {
+            let secret = random_secret().context("cannot draw a random token")?;
+            write_private(
+                &default_file,
+                &format!(
+                    "# isovox tokens: NAME TOKEN [write|read]. Send Authorization: Bearer TOKEN.\ndemo {secret} write\n"
+                ),
+            )?;
+            eprintln!(
+                "created {} with a write token for edits (Authorization: Bearer ...)",
+                default_file.display()
+            );
+            Some(default_file)
+        }
+        None => None,
+    };
+    let mut tokens = match file {
+        Some(f) => Tokens::load(&f).map_err(anyhow::Error::msg)?,
+        None => Tokens::default(),
+    };
+    if let Some(secret) = env_token {
+        tokens
+            .add("env", &secret, Scope::Write)
+            .map_err(|e| anyhow::anyhow!("ISOVOX_WRITE_TOKEN: {e}"))?;
+    }
+    Ok(tokens)
+}
+
+/// Creates `path` readable by its owner only.
+fn write_private(path: &Path, text: &str) -> anyhow::Result<()> {
+    use std::io::Write;
+    let mut options = std::fs::OpenOptions::new();
+    options.write(true).create_new(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.mode(0o600);
+    }
+    let mut f = options
+        .open(path)
+        .with_context(|| format!("cannot create {}", path.display()))?;
+    f.write_all(text.as_bytes())
+        .and_then(|()| f.sync_all())
+        .with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// Name of the volume generated on first start.
@@ -64,6 +137,7 @@ pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
     if !has_volumes(&a.data) {
         generate_demo(&a.data)?;
     }
+    let tokens = load_tokens(&a)?;
     let catalog = Catalog::open_dir(&a.data)?;
     if catalog.is_empty() {
         anyhow::bail!(
@@ -85,7 +159,20 @@ pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
             "isovox serving {} on http://{addr}/v1/volumes",
             names.join(", ")
         );
-        let state = AppState::new(catalog, a.mesh_cache_mb << 20, a.cpu_queue);
+        if tokens.is_empty() {
+            tracing::warn!("no write token configured: every edit will be refused");
+        }
+        let config = ServerConfig {
+            mesh_cache_bytes: a.mesh_cache_mb << 20,
+            cpu_queue: a.cpu_queue,
+            tokens,
+            private_reads: a.private_reads,
+            edit_rate: a.edit_rate,
+            edit_queue: a.edit_queue,
+            max_edit_voxels: a.max_edit_voxels,
+            ..ServerConfig::default()
+        };
+        let state = AppState::with_config(catalog, config);
         run(listener, state, shutdown_signal())
             .await
             .context("server failed")

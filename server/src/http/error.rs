@@ -18,6 +18,21 @@ pub enum ApiError {
     UnsupportedMedia(String),
     /// Too much work queued: retry after this many seconds.
     Overloaded(u32),
+    /// No credentials, or unknown ones (401, with `WWW-Authenticate: Bearer`).
+    Unauthorized(String),
+    /// Valid credentials without the right (403).
+    Forbidden(String),
+    /// A conditional edit found another version (409, the current one in the body).
+    Conflict {
+        detail: String,
+        version: u64,
+    },
+    /// What was asked for existed once and is gone for good (410).
+    Gone(String),
+    /// Well-formed but invalid (422): an edit that does not compile or exceeds a limit.
+    Unprocessable(String),
+    /// The caller's rate limit: retry after this many seconds (429).
+    TooManyRequests(u32),
     Internal(String),
 }
 
@@ -39,11 +54,16 @@ impl From<StoreError> for ApiError {
 }
 
 fn problem(status: StatusCode, detail: String) -> Response {
+    problem_with_version(status, detail, None)
+}
+
+fn problem_with_version(status: StatusCode, detail: String, version: Option<u64>) -> Response {
     let problem = Problem {
         kind: "about:blank".into(),
         title: status.canonical_reason().unwrap_or("Error").into(),
         status: status.as_u16(),
         detail,
+        version,
     };
     let body = serde_json::to_vec(&problem).unwrap_or_default();
     (
@@ -66,6 +86,29 @@ impl IntoResponse for ApiError {
                 let mut r = problem(
                     StatusCode::SERVICE_UNAVAILABLE,
                     format!("the server is busy; retry in {after} s"),
+                );
+                r.headers_mut()
+                    .insert(header::RETRY_AFTER, HeaderValue::from(after));
+                r
+            }
+            ApiError::Unauthorized(d) => {
+                let mut r = problem(StatusCode::UNAUTHORIZED, d);
+                r.headers_mut().insert(
+                    header::WWW_AUTHENTICATE,
+                    HeaderValue::from_static("Bearer realm=\"isovox\""),
+                );
+                r
+            }
+            ApiError::Forbidden(d) => problem(StatusCode::FORBIDDEN, d),
+            ApiError::Conflict { detail, version } => {
+                problem_with_version(StatusCode::CONFLICT, detail, Some(version))
+            }
+            ApiError::Gone(d) => problem(StatusCode::GONE, d),
+            ApiError::Unprocessable(d) => problem(StatusCode::UNPROCESSABLE_ENTITY, d),
+            ApiError::TooManyRequests(after) => {
+                let mut r = problem(
+                    StatusCode::TOO_MANY_REQUESTS,
+                    format!("edit rate exceeded; retry in {after} s"),
                 );
                 r.headers_mut()
                     .insert(header::RETRY_AFTER, HeaderValue::from(after));

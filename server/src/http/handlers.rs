@@ -2,7 +2,8 @@
 
 use super::{ApiError, AppState};
 use crate::store::codec;
-use crate::store::{StoredBrick, Vod2};
+use crate::store::StoredBrick;
+use crate::volume::LiveVolume;
 use axum::extract::rejection::{PathRejection, QueryRejection};
 use axum::extract::{Path, Query, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
@@ -25,14 +26,15 @@ pub async fn not_found() -> ApiError {
     ApiError::not_found("no such route; the API is described at /openapi.json")
 }
 
-fn volume(state: &AppState, name: &str) -> Result<Arc<Vod2>, ApiError> {
+pub(super) fn volume(state: &AppState, name: &str) -> Result<Arc<LiveVolume>, ApiError> {
     state
         .catalog
         .get(name)
         .ok_or_else(|| ApiError::not_found(format!("no volume named {name:?}")))
 }
 
-fn info(name: &str, vod: &Vod2) -> VolumeInfo {
+fn info(name: &str, volume: &LiveVolume) -> VolumeInfo {
+    let vod = volume.current();
     VolumeInfo::new(
         name,
         vod.layout(),

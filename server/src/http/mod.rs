@@ -13,6 +13,8 @@
 //! - `GET /v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}`: one mesh tile (see
 //!   [`handlers::mesh_tile`]).
 
+pub mod auth;
+pub mod edits;
 mod error;
 pub mod handlers;
 pub mod metrics;
@@ -36,6 +38,41 @@ use tower_http::trace::TraceLayer;
 /// Constant bricks by (value, brick bytes, voxel bytes): their content hash and decoded body.
 type ConstantBricks = std::collections::HashMap<(u16, usize, usize), (u64, bytes::Bytes)>;
 
+/// How a server runs: caches, queues, access control and edit limits.
+#[derive(Debug, Clone)]
+pub struct ServerConfig {
+    /// Memory for cached mesh tiles.
+    pub mesh_cache_bytes: usize,
+    /// Meshing and batch jobs running or queued at once.
+    pub cpu_queue: usize,
+    /// Who may write (and, with `private_reads`, read).
+    pub tokens: auth::Tokens,
+    /// Every `/v1` route needs a token (of either scope).
+    pub private_reads: bool,
+    /// Edits per second per token (and the burst).
+    pub edit_rate: f64,
+    /// Edits waiting for one volume's writer; beyond it 503.
+    pub edit_queue: usize,
+    /// Level-0 voxels one edit may evaluate; beyond it 422.
+    pub max_edit_voxels: u64,
+    pub term_limits: crate::icvg::term::TermLimits,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        ServerConfig {
+            mesh_cache_bytes: 256 << 20,
+            cpu_queue: 64,
+            tokens: auth::Tokens::default(),
+            private_reads: false,
+            edit_rate: 50.0,
+            edit_queue: 64,
+            max_edit_voxels: 1 << 28,
+            term_limits: crate::icvg::term::TermLimits::default(),
+        }
+    }
+}
+
 /// What every handler can reach.
 #[derive(Debug, Clone)]
 pub struct AppState {
@@ -51,19 +88,35 @@ pub struct AppState {
     /// Content hash and body of constant bricks, by (value, brick bytes, voxel bytes): most
     /// bricks of a sparse volume are constant, and hashing 32 KiB per request would dominate.
     constants: Arc<std::sync::RwLock<ConstantBricks>>,
+    pub config: Arc<ServerConfig>,
+    pub edit_rate: Arc<auth::RateLimiter>,
 }
 
 impl AppState {
     /// A state serving `catalog` with a mesh cache of `mesh_cache_bytes` and room for
     /// `cpu_queue` meshing jobs at once (running or queued on the blocking pool).
     pub fn new(catalog: Catalog, mesh_cache_bytes: usize, cpu_queue: usize) -> Self {
+        AppState::with_config(
+            catalog,
+            ServerConfig {
+                mesh_cache_bytes,
+                cpu_queue,
+                ..ServerConfig::default()
+            },
+        )
+    }
+
+    /// A state serving `catalog` as `config` says.
+    pub fn with_config(catalog: Catalog, config: ServerConfig) -> Self {
         AppState {
             catalog: Arc::new(catalog),
-            meshes: Arc::new(MeshCache::new(mesh_cache_bytes)),
-            cpu: Arc::new(tokio::sync::Semaphore::new(cpu_queue)),
-            cpu_permits: cpu_queue,
+            meshes: Arc::new(MeshCache::new(config.mesh_cache_bytes)),
+            cpu: Arc::new(tokio::sync::Semaphore::new(config.cpu_queue)),
+            cpu_permits: config.cpu_queue,
             metrics: Arc::new(metrics::Metrics::new(ROUTES)),
             constants: Arc::default(),
+            edit_rate: Arc::new(auth::RateLimiter::new(config.edit_rate)),
+            config: Arc::new(config),
         }
     }
 
@@ -107,6 +160,10 @@ pub const ROUTES: &[&str] = &[
     "/v1/volumes/{name}/blobs/{hash}",
     "/v1/volumes/{name}/batch",
     "/v1/volumes/{name}/levels/{level}",
+    "/v1/volumes/{name}/edits",
+    "/v1/volumes/{name}/changes",
+    "/v1/volumes/{name}/events",
+    "/v1/volumes/{name}/compact",
 ];
 
 /// The router, with its layers: request spans, CORS for browser clients, metrics, a body limit,
@@ -126,8 +183,18 @@ pub fn app(state: AppState) -> Router {
             axum::routing::post(handlers::batch),
         )
         .route("/v1/volumes/{name}/levels/{level}", get(handlers::level))
+        .route("/v1/volumes/{name}/changes", get(edits::changes))
         .route_layer(timeout);
-    Router::new()
+    // Edits wait for their volume's writer (bounded by the edit queue), and the change feed is
+    // meant to stay open: neither gets the timeout.
+    let write_routes = Router::new()
+        .route("/v1/volumes/{name}/edits", axum::routing::post(edits::edit))
+        .route(
+            "/v1/volumes/{name}/compact",
+            axum::routing::post(edits::compact),
+        )
+        .route("/v1/volumes/{name}/events", get(edits::events));
+    let mut router = Router::new()
         .route("/healthz", get(handlers::healthz))
         .route("/metrics", get(metrics::metrics))
         .route("/openapi.json", get(openapi::openapi))
@@ -139,6 +206,15 @@ pub fn app(state: AppState) -> Router {
         )
         .route("/v1/volumes/{name}/blobs/{hash}", get(handlers::blob))
         .merge(cpu_routes)
+        .merge(write_routes);
+    if state.config.private_reads {
+        // Only then: a middleware per request costs throughput on the brick routes.
+        router = router.route_layer(axum::middleware::from_fn_with_state(
+            state.clone(),
+            edits::require_token,
+        ));
+    }
+    router
         .fallback(handlers::not_found)
         .layer(axum::middleware::from_fn_with_state(
             state.clone(),

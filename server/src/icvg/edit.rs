@@ -140,14 +140,55 @@ fn brick_box(layout: &VolumeLayout, key: BrickKey) -> Box3 {
 }
 
 /// Level-0 brick keys whose box meets `b`.
-fn bricks_meeting(layout: &VolumeLayout, b: &Box3) -> Vec<BrickKey> {
-    if b.is_empty() {
-        return Vec::new();
+impl Edit {
+    /// The level-0 voxels the edit applies to: its region within the volume.
+    pub fn target(&self, layout: &VolumeLayout) -> Box3 {
+        let volume = Box3::new([0; 3], layout.dims().map(|d| d as i64));
+        self.region.map_or(volume, |r| r.intersect(&volume))
     }
+
+    /// The level-0 voxels that can change: for operators with `op(D1, L) = D1` the term's B-box
+    /// within the target, else the whole target.
+    pub fn reach(&self, layout: &VolumeLayout) -> Box3 {
+        let target = self.target(layout);
+        match &self.kind {
+            EditKind::Binary(op, term) => match (op.outside(layout.voxel_type()), term.bbox) {
+                (Outside::Identity, Some(b)) => b.intersect(&target),
+                _ => target,
+            },
+            EditKind::Unary(_) => target,
+        }
+    }
+
+    /// How many level-0 voxels applying the edit evaluates (whole bricks): what an edit costs,
+    /// for limits.
+    pub fn evaluated_voxels(&self, layout: &VolumeLayout) -> u64 {
+        bricks_meeting_count(layout, &self.reach(layout)) * (layout.brick() as u64).pow(3)
+    }
+}
+
+/// The level-0 brick range `lo..=hi` per axis that meets `b` (non-empty).
+fn brick_range(layout: &VolumeLayout, b: &Box3) -> ([u32; 3], [u32; 3]) {
     let e = layout.brick() as i64;
     let g = layout.grid(0);
     let lo = [0, 1, 2].map(|a| (b.min[a].max(0) / e) as u32);
     let hi = [0, 1, 2].map(|a| (((b.max[a] - 1) / e) as u32).min(g[a] - 1));
+    (lo, hi)
+}
+
+fn bricks_meeting_count(layout: &VolumeLayout, b: &Box3) -> u64 {
+    if b.is_empty() {
+        return 0;
+    }
+    let (lo, hi) = brick_range(layout, b);
+    (0..3).map(|a| (hi[a] - lo[a] + 1) as u64).product()
+}
+
+fn bricks_meeting(layout: &VolumeLayout, b: &Box3) -> Vec<BrickKey> {
+    if b.is_empty() {
+        return Vec::new();
+    }
+    let (lo, hi) = brick_range(layout, b);
     let mut out = Vec::new();
     for z in lo[2]..=hi[2] {
         for y in lo[1]..=hi[1] {
@@ -269,17 +310,8 @@ pub fn apply_edit(
     let start = Instant::now();
     let layout = snap.layout().clone();
     let t = layout.voxel_type();
-    let volume = Box3::new([0; 3], layout.dims().map(|d| d as i64));
-    let target = edit.region.map_or(volume, |r| r.intersect(&volume));
-    // The bricks that can change.
-    let reach = match &edit.kind {
-        EditKind::Binary(op, term) => match (op.outside(t), term.bbox) {
-            (Outside::Identity, Some(b)) => b.intersect(&target),
-            _ => target,
-        },
-        EditKind::Unary(_) => target,
-    };
-    let keys = bricks_meeting(&layout, &reach);
+    let target = edit.target(&layout);
+    let keys = bricks_meeting(&layout, &edit.reach(&layout));
     let results: Vec<(BrickKey, Option<BrickVoxels>)> = keys
         .par_iter()
         .map(|&key| edit_brick(edit, snap, &target, key).map(|r| (key, r)))

@@ -6,6 +6,7 @@
 //! - [`pyramid`]: bricks of voxels, the level-of-detail mean, sources of level-0 voxels.
 //! - [`vod2`]: opening a VOD 2 file and reading any brick of any version by random access.
 //! - [`writer`]: appending bricks with deduplication, index checkpoints and atomic commits.
+//! - [`compact`]: rewriting a file with only its head version.
 //! - [`build`]: building a whole volume (all levels) from a level-0 source, streaming.
 //! - [`vod1`]: the thesis's VOD 1 layout, read and write.
 //! - [`raw`]: RAW and RAWVOX input and output.
@@ -14,6 +15,7 @@
 
 pub mod build;
 pub mod codec;
+pub mod compact;
 pub mod inspect;
 pub mod lru;
 pub mod mapping;

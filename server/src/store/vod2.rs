@@ -115,6 +115,54 @@ impl Vod2 {
         })
     }
 
+    /// The file after a commit this process appended (`slot`, as [`Vod2Writer::commit`]
+    /// returned it): maps the new committed length and builds the new head from the current one
+    /// (its decoded index chunks and blob index carried over, the commit's changes added), so
+    /// an edit does not pay for reopening the file.
+    ///
+    /// [`Vod2Writer::commit`]: super::Vod2Writer::commit
+    ///
+    /// # Errors
+    /// The file cannot be mapped, or the new commit record is malformed.
+    pub fn advance(&self, slot: HeaderSlot) -> Result<Vod2, StoreError> {
+        let file =
+            File::open(&self.path).map_err(StoreError::io_path("cannot open", &self.path))?;
+        let file_len = file
+            .metadata()
+            .map_err(StoreError::io_path("cannot stat", &self.path))?
+            .len();
+        if slot.committed_len > file_len {
+            return Err(StoreError::Invalid(format!(
+                "{}: commit names {} bytes, the file has {file_len}",
+                self.path.display(),
+                slot.committed_len
+            )));
+        }
+        let map = Arc::new(
+            Mapping::new(&file, slot.committed_len)
+                .map_err(StoreError::io_path("cannot map", &self.path))?,
+        );
+        let head = Arc::new(self.head.extend(map.clone(), slot.commit)?);
+        if head.version != slot.version {
+            return Err(FormatError::invalid(
+                "header slot",
+                format!(
+                    "names version {}, its commit record says {}",
+                    slot.version, head.version
+                ),
+            )
+            .into());
+        }
+        Ok(Vod2 {
+            path: self.path.clone(),
+            header: self.header.clone(),
+            map,
+            file_len,
+            head_slot: slot,
+            head,
+        })
+    }
+
     /// The header slot the head version was found through.
     pub fn head_slot(&self) -> HeaderSlot {
         self.head_slot
@@ -199,6 +247,14 @@ impl Vod2 {
         }
     }
 
+    /// The version whose commit record is at `commit_at` (an offset from the history).
+    ///
+    /// # Errors
+    /// No valid commit record there.
+    pub fn snapshot_at(&self, commit_at: u64) -> Result<Snapshot, StoreError> {
+        Snapshot::load(self.header.clone(), self.map.clone(), commit_at)
+    }
+
     /// The commit records from the head back to the first, newest first.
     ///
     /// # Errors
@@ -234,8 +290,9 @@ pub struct Snapshot {
     index: Arc<IndexChunks>,
     /// Entries changed by the commits after the checkpoint: node index -> raw entry.
     overlay: HashMap<u64, u64>,
-    /// Content hash -> entry, built on first use by [`Snapshot::find_by_hash`].
-    by_hash: OnceLock<HashMap<u64, NodeEntry>>,
+    /// Content hash -> entry, built on first use by [`Snapshot::find_by_hash`] (or carried over
+    /// from the parent version and extended).
+    by_hash: OnceLock<HashIndex>,
     /// Commits replayed on top of the checkpoint.
     chain_len: usize,
 }
@@ -316,6 +373,67 @@ impl Snapshot {
             header,
             map,
         })
+    }
+
+    /// The version whose commit record is at `commit_at` in `map`, a child of this one: this
+    /// version's index plus the commit's changes (or, when the commit wrote a checkpoint or is
+    /// not a child of this version, loaded from the file as [`Vod2::open`] does).
+    fn extend(&self, map: Arc<Mapping>, commit_at: u64) -> Result<Snapshot, StoreError> {
+        let bytes = map.bytes();
+        let record_bytes = bytes.get(commit_at as usize..).ok_or_else(|| {
+            FormatError::invalid(
+                "commit",
+                format!(
+                    "offset {commit_at} past the committed length {}",
+                    bytes.len()
+                ),
+            )
+        })?;
+        let (h, record) = CommitHeader::decode(record_bytes, commit_at)?;
+        if h.checkpoint != 0
+            || h.parent != self.commit_offset
+            || self.version.checked_add(1) != Some(h.version)
+        {
+            return Snapshot::load(self.header.clone(), map, commit_at);
+        }
+        let layout = self.layout();
+        let mut overlay = self.overlay.clone();
+        let mut added = Vec::new();
+        for (node, entry) in CommitHeader::changes(record) {
+            if node >= layout.node_count() {
+                return Err(FormatError::invalid(
+                    "commit record",
+                    format!(
+                        "change to node {node}, the volume has {}",
+                        layout.node_count()
+                    ),
+                )
+                .into());
+            }
+            overlay.insert(node, entry);
+            added.push(entry);
+        }
+        let snap = Snapshot {
+            version: h.version,
+            timestamp_ms: h.timestamp_ms,
+            commit_offset: commit_at,
+            index: self.index.clone(),
+            overlay,
+            chain_len: self.chain_len + 1,
+            by_hash: OnceLock::new(),
+            header: self.header.clone(),
+            map,
+        };
+        if let Some(parent_hashes) = self.by_hash.get() {
+            let mut hashes = parent_hashes.child();
+            for raw in added {
+                let entry =
+                    NodeEntry::decode(raw, layout.voxel_type(), snap.map.bytes().len() as u64)?;
+                hashes.insert(snap.entry_hash(entry)?, entry);
+            }
+            let _ = snap.by_hash.set(hashes);
+        }
+        Ok(snap)
     }
 
     pub fn layout(&self) -> &VolumeLayout {
@@ -452,38 +570,33 @@ impl Snapshot {
     /// # Errors
     /// An entry or brick header on the way is malformed.
     pub fn find_by_hash(&self, hash: u64) -> Result<Option<NodeEntry>, StoreError> {
-        if let Some(map) = self.by_hash.get() {
-            return Ok(map.get(&hash).copied());
+        if let Some(index) = self.by_hash.get() {
+            return Ok(index.get(hash));
         }
-        let layout = self.layout();
         let mut map = HashMap::new();
         let mut constants = std::collections::HashSet::new();
-        let mut scratch = vec![0u8; layout.brick_bytes()];
-        for node in 0..layout.node_count() {
+        for node in 0..self.layout().node_count() {
             let entry = self.entry_at(node)?;
-            match self.stored_entry(entry)? {
-                StoredBrick::Record { header, .. } => {
-                    map.entry(header.hash).or_insert(entry);
-                }
-                StoredBrick::Constant(v) => {
-                    if constants.insert(v) {
-                        codec::fill_constant(&mut scratch, v, layout.voxel_type());
-                        map.entry(content_hash(&scratch)).or_insert(entry);
-                    }
-                }
+            let first_sight = match entry {
+                NodeEntry::Constant(v) => constants.insert(v),
+                NodeEntry::Stored(_) => true,
+            };
+            if first_sight {
+                map.entry(self.entry_hash(entry)?).or_insert(entry);
             }
         }
-        let found = map.get(&hash).copied();
-        let _ = self.by_hash.set(map);
+        let index = HashIndex {
+            base: Arc::new(map),
+            added: HashMap::new(),
+        };
+        let found = index.get(hash);
+        let _ = self.by_hash.set(index);
         Ok(found)
     }
 
-    /// The content hash of a brick (for a constant, the hash of its expanded bytes).
-    ///
-    /// # Errors
-    /// See [`Snapshot::stored`].
-    pub fn hash(&self, key: BrickKey) -> Result<u64, StoreError> {
-        Ok(match self.stored(key)? {
+    /// The content hash of the brick behind an entry (for a constant, of its expanded bytes).
+    fn entry_hash(&self, entry: NodeEntry) -> Result<u64, StoreError> {
+        Ok(match self.stored_entry(entry)? {
             StoredBrick::Record { header, .. } => header.hash,
             StoredBrick::Constant(v) => {
                 let mut out = vec![0u8; self.layout().brick_bytes()];
@@ -491,6 +604,58 @@ impl Snapshot {
                 content_hash(&out)
             }
         })
+    }
+
+    /// The content hash of a brick (for a constant, the hash of its expanded bytes).
+    ///
+    /// # Errors
+    /// See [`Snapshot::stored`].
+    pub fn hash(&self, key: BrickKey) -> Result<u64, StoreError> {
+        self.entry_hash(self.entry(key)?)
+    }
+}
+
+/// Content hash -> entry for [`Snapshot::find_by_hash`]: a shared base plus what later versions
+/// added, so a commit extends its parent's table instead of rescanning the index. Entries of
+/// bricks an edit replaced stay findable: their records are still in the file, and content
+/// named by its hash is the same whichever version holds it.
+#[derive(Debug)]
+struct HashIndex {
+    base: Arc<HashMap<u64, NodeEntry>>,
+    added: HashMap<u64, NodeEntry>,
+}
+
+impl HashIndex {
+    /// Additions past this size are folded into a new base (one copy of the table).
+    const MAX_ADDED: usize = 4096;
+
+    fn get(&self, hash: u64) -> Option<NodeEntry> {
+        self.added
+            .get(&hash)
+            .or_else(|| self.base.get(&hash))
+            .copied()
+    }
+
+    /// A copy for a child version (cheap: the base is shared).
+    fn child(&self) -> HashIndex {
+        if self.added.len() < Self::MAX_ADDED {
+            return HashIndex {
+                base: self.base.clone(),
+                added: self.added.clone(),
+            };
+        }
+        let mut base = (*self.base).clone();
+        base.extend(self.added.iter().map(|(h, e)| (*h, *e)));
+        HashIndex {
+            base: Arc::new(base),
+            added: HashMap::new(),
+        }
+    }
+
+    fn insert(&mut self, hash: u64, entry: NodeEntry) {
+        if self.base.get(&hash) != Some(&entry) {
+            self.added.entry(hash).or_insert(entry);
+        }
     }
 }
 

@@ -67,6 +67,8 @@ pub struct Vod2Writer {
     known: HashMap<u64, Vec<u64>>,
     compression: Compression,
     head: Option<HeaderSlot>,
+    /// Version number of the first commit when the file has none yet.
+    first_version: u64,
     stats: WriteStats,
 }
 
@@ -98,6 +100,7 @@ impl Vod2Writer {
             known: HashMap::new(),
             compression,
             head: None,
+            first_version: 1,
             stats: WriteStats::default(),
         })
     }
@@ -150,12 +153,47 @@ impl Vod2Writer {
             known,
             compression,
             head: Some(head),
+            first_version: 1,
             stats: WriteStats::default(),
         })
     }
 
     pub fn header(&self) -> &FileHeader {
         &self.header
+    }
+
+    /// Numbers this new file's first commit `version` instead of 1: a compacted copy keeps its
+    /// head's number, so versions never go backwards for clients.
+    ///
+    /// # Errors
+    /// The file already has a commit, or `version` is 0.
+    pub fn start_at_version(&mut self, version: u64) -> Result<(), StoreError> {
+        if self.head.is_some() || version == 0 {
+            return Err(StoreError::Invalid(format!(
+                "cannot start {} at version {version}: it has commits, or 0 was asked",
+                self.path.display()
+            )));
+        }
+        self.first_version = version;
+        Ok(())
+    }
+
+    /// Appends a brick record exactly as another file stores it (header and payload), for
+    /// copying distinct records between files without decoding them.
+    ///
+    /// # Errors
+    /// Appending fails.
+    pub fn copy_record(
+        &mut self,
+        header: &BrickHeader,
+        payload: &[u8],
+    ) -> Result<NodeEntry, StoreError> {
+        let offset = self.append(&header.encode())?;
+        self.append(payload)?;
+        self.stats.stored[header.codec as usize] += 1;
+        self.stats.stored_bytes[header.codec as usize] += payload.len() as u64;
+        self.known.entry(header.hash).or_default().push(offset);
+        Ok(NodeEntry::Stored(offset))
     }
 
     /// The slot naming the newest commit this writer made or found.
@@ -291,7 +329,7 @@ impl Vod2Writer {
                     )))
                 }
             },
-            None => (0, 1, 1),
+            None => (0, self.first_version, 1),
         };
         let layout = &self.header.layout;
         for (node, entry) in changes {

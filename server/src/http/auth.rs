@@ -1,0 +1,294 @@
+//! Bearer tokens and per-token edit rates.
+//!
+//! A token file has one token per line, `NAME TOKEN [SCOPE]` (SCOPE `write`, the default, or
+//! `read`); `#` starts a comment. Secrets are compared in constant time and never printed: a
+//! [`Token`]'s `Debug` shows its name and scope only, and logs name the token, not its secret.
+
+use super::ApiError;
+use axum::http::{header, HeaderMap};
+use std::collections::HashMap;
+use std::path::Path;
+use std::sync::Mutex;
+use std::time::Instant;
+
+/// What a token may do.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Scope {
+    Read,
+    Write,
+}
+
+/// One configured token.
+#[derive(Clone)]
+pub struct Token {
+    pub name: String,
+    secret: String,
+    pub scope: Scope,
+}
+
+impl std::fmt::Debug for Token {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Token")
+            .field("name", &self.name)
+            .field("scope", &self.scope)
+            .finish_non_exhaustive()
+    }
+}
+
+/// The server's tokens.
+#[derive(Debug, Clone, Default)]
+pub struct Tokens {
+    tokens: Vec<Token>,
+}
+
+/// Shortest secret accepted: guessing one must be hopeless.
+pub const MIN_SECRET_LEN: usize = 16;
+
+impl Tokens {
+    /// Parses a token file's text.
+    ///
+    /// # Errors
+    /// A line that is not `NAME TOKEN [SCOPE]`, an unknown scope, a secret shorter than
+    /// [`MIN_SECRET_LEN`], or a name or secret given twice (the message names the line, never
+    /// the secret).
+    pub fn parse(text: &str) -> Result<Tokens, String> {
+        let mut tokens = Tokens::default();
+        for (i, line) in text.lines().enumerate() {
+            let line = line.split('#').next().unwrap_or("").trim();
+            if line.is_empty() {
+                continue;
+            }
+            let fields: Vec<&str> = line.split_whitespace().collect();
+            let scope = match fields.get(2).copied() {
+                None | Some("write") => Scope::Write,
+                Some("read") => Scope::Read,
+                Some(other) => {
+                    return Err(format!(
+                        "line {}: scope {other:?} is neither write nor read",
+                        i + 1
+                    ))
+                }
+            };
+            if !(2..=3).contains(&fields.len()) {
+                return Err(format!("line {}: expected NAME TOKEN [SCOPE]", i + 1));
+            }
+            tokens
+                .add(fields[0], fields[1], scope)
+                .map_err(|e| format!("line {}: {e}", i + 1))?;
+        }
+        Ok(tokens)
+    }
+
+    /// Reads a token file.
+    ///
+    /// # Errors
+    /// The file cannot be read or does not parse.
+    pub fn load(path: &Path) -> Result<Tokens, String> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| format!("cannot read the token file {}: {e}", path.display()))?;
+        Tokens::parse(&text).map_err(|e| format!("token file {}: {e}", path.display()))
+    }
+
+    /// Adds a token.
+    ///
+    /// # Errors
+    /// A short secret, or a name or secret already present.
+    pub fn add(&mut self, name: &str, secret: &str, scope: Scope) -> Result<(), String> {
+        if secret.len() < MIN_SECRET_LEN {
+            return Err(format!(
+                "the token of {name:?} is shorter than {MIN_SECRET_LEN} characters"
+            ));
+        }
+        if self.tokens.iter().any(|t| t.name == name) {
+            return Err(format!("the name {name:?} is given twice"));
+        }
+        if self.find(secret).is_some() {
+            return Err(format!("the token of {name:?} is given twice"));
+        }
+        self.tokens.push(Token {
+            name: name.to_string(),
+            secret: secret.to_string(),
+            scope,
+        });
+        Ok(())
+    }
+
+    pub fn len(&self) -> usize {
+        self.tokens.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.tokens.is_empty()
+    }
+
+    /// The token with this secret. Every configured secret is compared in full, so the time
+    /// taken does not tell how much of a guess was right.
+    fn find(&self, secret: &str) -> Option<&Token> {
+        let mut found = None;
+        for t in &self.tokens {
+            if constant_time_eq(t.secret.as_bytes(), secret.as_bytes()) {
+                found = Some(t);
+            }
+        }
+        found
+    }
+
+    /// The token a request carries, if it has at least `need`.
+    ///
+    /// # Errors
+    /// 401 without a bearer token or with an unknown one; 403 when its scope is short.
+    pub fn authorize(&self, headers: &HeaderMap, need: Scope) -> Result<&Token, ApiError> {
+        let Some(value) = headers.get(header::AUTHORIZATION) else {
+            return Err(ApiError::Unauthorized(
+                "this route needs a bearer token (Authorization: Bearer TOKEN)".into(),
+            ));
+        };
+        let secret = value
+            .to_str()
+            .ok()
+            .and_then(|v| {
+                let (scheme, rest) = v.split_once(' ')?;
+                scheme.eq_ignore_ascii_case("bearer").then(|| rest.trim())
+            })
+            .ok_or_else(|| {
+                ApiError::Unauthorized("the Authorization header is not `Bearer TOKEN`".into())
+            })?;
+        let token = self
+            .find(secret)
+            .ok_or_else(|| ApiError::Unauthorized("unknown token".into()))?;
+        if token.scope < need {
+            return Err(ApiError::Forbidden(format!(
+                "the token {:?} is read-only",
+                token.name
+            )));
+        }
+        Ok(token)
+    }
+}
+
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    let mut diff = a.len() ^ b.len();
+    for (i, &x) in a.iter().enumerate() {
+        diff |= usize::from(x ^ b.get(i).copied().unwrap_or(!x));
+    }
+    diff == 0
+}
+
+/// A random secret: 32 hex digits from the operating system's generator.
+///
+/// # Errors
+/// The generator cannot be read.
+pub fn random_secret() -> std::io::Result<String> {
+    use std::io::Read;
+    let mut bytes = [0u8; 16];
+    std::fs::File::open("/dev/urandom")?.read_exact(&mut bytes)?;
+    Ok(bytes.iter().map(|b| format!("{b:02x}")).collect())
+}
+
+/// Edits per second per token: a token bucket per token name, `rate` tokens per second up to
+/// a burst of `rate`.
+#[derive(Debug)]
+pub struct RateLimiter {
+    rate: f64,
+    buckets: Mutex<HashMap<String, (f64, Instant)>>,
+}
+
+impl RateLimiter {
+    pub fn new(rate: f64) -> Self {
+        RateLimiter {
+            rate: rate.max(f64::MIN_POSITIVE),
+            buckets: Mutex::default(),
+        }
+    }
+
+    /// Takes one edit from `name`'s bucket.
+    ///
+    /// # Errors
+    /// 429 with the seconds until the bucket holds an edit again.
+    pub fn take(&self, name: &str) -> Result<(), ApiError> {
+        let now = Instant::now();
+        let mut buckets = self.buckets.lock().unwrap_or_else(|p| p.into_inner());
+        let (level, at) = buckets.entry(name.to_string()).or_insert((self.rate, now));
+        *level = (*level + now.duration_since(*at).as_secs_f64() * self.rate).min(self.rate);
+        *at = now;
+        if *level >= 1.0 {
+            *level -= 1.0;
+            return Ok(());
+        }
+        let wait = ((1.0 - *level) / self.rate).ceil().max(1.0);
+        Err(ApiError::TooManyRequests(wait.min(u32::MAX as f64) as u32))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_names_scopes_and_comments() {
+        let t = Tokens::parse(
+            "# team\nalice 0123456789abcdef0123 write\n\nbob fedcba9876543210fedc # default scope\nviewer 00000000000000000000 read\n",
+        )
+        .unwrap();
+        assert_eq!(t.len(), 3);
+        let mut h = HeaderMap::new();
+        h.insert(
+            header::AUTHORIZATION,
+            "Bearer 00000000000000000000".parse().unwrap(),
+        );
+        assert!(matches!(
+            t.authorize(&h, Scope::Write),
+            Err(ApiError::Forbidden(_))
+        ));
+        assert_eq!(t.authorize(&h, Scope::Read).unwrap().name, "viewer");
+        h.insert(
+            header::AUTHORIZATION,
+            "bearer fedcba9876543210fedc".parse().unwrap(),
+        );
+        assert_eq!(t.authorize(&h, Scope::Write).unwrap().name, "bob");
+        h.insert(
+            header::AUTHORIZATION,
+            "Bearer fedcba9876543210fed".parse().unwrap(),
+        );
+        assert!(matches!(
+            t.authorize(&h, Scope::Read),
+            Err(ApiError::Unauthorized(_))
+        ));
+    }
+
+    #[test]
+    fn rejects_bad_lines_without_echoing_secrets() {
+        for bad in [
+            "alice",
+            "alice 0123456789abcdef0123 admin",
+            "alice short",
+            "a 0123456789abcdef0123\na 1123456789abcdef0123",
+            "a 0123456789abcdef0123\nb 0123456789abcdef0123",
+            "a 0123456789abcdef0123 write extra",
+        ] {
+            let e = Tokens::parse(bad).unwrap_err();
+            assert!(!e.contains("0123456789abcdef0123"), "{e}");
+            assert!(e.starts_with("line "), "{e}");
+        }
+        let t = Tokens::parse("alice 0123456789abcdef0123").unwrap();
+        assert!(!format!("{t:?}").contains("0123456789abcdef0123"));
+    }
+
+    #[test]
+    fn constant_time_eq_is_eq() {
+        for (a, b) in [("", ""), ("a", "a"), ("a", "b"), ("ab", "a"), ("a", "ab")] {
+            assert_eq!(constant_time_eq(a.as_bytes(), b.as_bytes()), a == b);
+        }
+    }
+
+    #[test]
+    fn rate_limiter_allows_a_burst_then_refuses() {
+        let r = RateLimiter::new(3.0);
+        for _ in 0..3 {
+            r.take("a").unwrap();
+        }
+        assert!(matches!(r.take("a"), Err(ApiError::TooManyRequests(1))));
+        // Buckets are per token.
+        r.take("b").unwrap();
+    }
+}

@@ -1,0 +1,104 @@
+//! Compaction: rewriting a file with only its head version, so that the bricks older versions
+//! and edits left behind stop taking space.
+//!
+//! The head's distinct brick records are copied as they are (no decoding, no recompression) into
+//! `NAME.vod.compact` beside the file, with one full index checkpoint and one commit numbered like
+//! the head; that file is synced and renamed over the original, then the directory is synced.
+//! A crash at any point leaves either the old file or the new one, each whole. Readers that still
+//! map the old file keep reading it: the rename does not touch its bytes.
+
+use super::writer::Vod2Writer;
+use super::{Snapshot, StoreError, StoredBrick, Vod2};
+use isovox_proto::vod2::NodeEntry;
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// What a compaction did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CompactReport {
+    /// The head version (the compacted file's only one).
+    pub version: u64,
+    pub bytes_before: u64,
+    pub bytes_after: u64,
+    /// Distinct brick records copied.
+    pub bricks: u64,
+    pub elapsed: std::time::Duration,
+}
+
+/// The temporary file a compaction of `path` writes before renaming it over `path`.
+pub fn compact_path(path: &Path) -> PathBuf {
+    let mut name = path.file_name().unwrap_or_default().to_os_string();
+    name.push(".compact");
+    path.with_file_name(name)
+}
+
+/// Rewrites the file `vod` was opened from with only the version `head` (normally its head),
+/// and renames the result over it. The caller makes sure no writer appends meanwhile.
+///
+/// # Errors
+/// Reading the index or a brick record fails, or the new file cannot be written, synced or
+/// renamed (the original is then untouched).
+pub fn compact(
+    vod: &Vod2,
+    head: &Snapshot,
+    progress: &indicatif::ProgressBar,
+) -> Result<CompactReport, StoreError> {
+    let start = Instant::now();
+    let path = vod.path();
+    let tmp = compact_path(path);
+    let bricks = {
+        let mut writer = Vod2Writer::create(&tmp, vod.header().clone(), Default::default())?;
+        writer.start_at_version(head.version)?;
+        let nodes = head.layout().node_count();
+        progress.set_length(nodes);
+        let mut moved: HashMap<u64, NodeEntry> = HashMap::new();
+        let mut entries = Vec::with_capacity(nodes as usize);
+        for node in 0..nodes {
+            let entry = head.entry_at(node)?;
+            let copied = match entry {
+                NodeEntry::Constant(_) => entry,
+                NodeEntry::Stored(offset) => match moved.get(&offset) {
+                    Some(&e) => e,
+                    None => {
+                        let StoredBrick::Record {
+                            header, payload, ..
+                        } = head.stored_entry(entry)?
+                        else {
+                            return Err(StoreError::Invalid(format!(
+                                "node {node}: a stored entry read back as a constant"
+                            )));
+                        };
+                        let e = writer.copy_record(&header, payload)?;
+                        moved.insert(offset, e);
+                        e
+                    }
+                },
+            };
+            entries.push(copied.encode());
+            if node % 4096 == 0 {
+                progress.set_position(node);
+            }
+        }
+        progress.set_position(nodes);
+        writer.commit(&[], Some(&entries))?;
+        moved.len() as u64
+    };
+    let bytes_after = std::fs::metadata(&tmp)
+        .map_err(StoreError::io_path("cannot stat", &tmp))?
+        .len();
+    std::fs::rename(&tmp, path).map_err(StoreError::io_path("cannot rename over", path))?;
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        // The rename is durable once the directory entry is.
+        std::fs::File::open(dir)
+            .and_then(|d| d.sync_all())
+            .map_err(StoreError::io_path("cannot sync the directory", dir))?;
+    }
+    Ok(CompactReport {
+        version: head.version,
+        bytes_before: vod.file_len(),
+        bytes_after,
+        bricks,
+        elapsed: start.elapsed(),
+    })
+}
