@@ -228,6 +228,11 @@ impl LiveVolume {
         (before < max_waiting).then_some(ticket)
     }
 
+    /// Change-feed subscribers connected now.
+    pub fn subscribers(&self) -> usize {
+        self.feed.receiver_count()
+    }
+
     /// Edits waiting for the writer now.
     pub fn queue_depth(&self) -> usize {
         self.waiting.load(Ordering::Acquire)

@@ -35,6 +35,9 @@ pub enum BenchCommand {
     /// HTTP: brick requests per second with wrk against isovox serve, nginx on the same bytes,
     /// and a bare axum handler (needs wrk and nginx; scripts/bench-http.sh installs them).
     Http(super::bench_http::HttpBenchArgs),
+    /// Shared editing over HTTP: edit throughput and latency under concurrent editors, change
+    /// propagation to many subscribers, and read throughput while edits run (needs wrk).
+    Edits(super::bench_edits::EditsBenchArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -64,6 +67,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Icvg(a) => super::bench_icvg::run(a),
         BenchCommand::Mesh(a) => super::bench_mesh::run(a),
         BenchCommand::Http(a) => super::bench_http::run_bench(a),
+        BenchCommand::Edits(a) => super::bench_edits::run_bench(a),
     }
 }
 

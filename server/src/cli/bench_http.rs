@@ -30,22 +30,42 @@ pub struct HttpBenchArgs {
     pub size: u32,
 }
 
-/// A child process in its own process group, stopped with the whole group (nginx's workers
-/// outlive a killed master otherwise).
+/// A child process started in a process group of its own ([`spawn_group`]), stopped with its
+/// whole group: nginx's workers outlive their master otherwise. The group is the child's own,
+/// never this process's.
 struct Killed(Child);
 
 impl Drop for Killed {
     fn drop(&mut self) {
+        let group = format!("-{}", self.0.id());
         let _ = Command::new("kill")
-            .args(["-TERM", &format!("-{}", self.0.id())])
+            .args(["-s", "TERM", "--", &group])
+            .status();
+        let deadline = std::time::Instant::now() + Duration::from_secs(5);
+        while std::time::Instant::now() < deadline {
+            if matches!(self.0.try_wait(), Ok(Some(_))) {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        // Whatever is left of the group (a worker that ignored TERM), and the master.
+        let _ = Command::new("kill")
+            .args(["-s", "KILL", "--", &group])
+            .stderr(std::process::Stdio::null())
             .status();
         let _ = self.0.kill();
         let _ = self.0.wait();
     }
 }
 
+/// Starts `command` as the leader of a new process group.
+fn spawn_group(command: &mut Command) -> std::io::Result<Killed> {
+    use std::os::unix::process::CommandExt;
+    command.process_group(0).spawn().map(Killed)
+}
+
 /// A wrk Lua script requesting random level-0 bricks under `prefix`, with `accept`.
-fn wrk_script(
+pub(super) fn wrk_script(
     dir: &Path,
     name: &str,
     prefix: &str,
@@ -68,11 +88,11 @@ fn wrk_script(
     Ok(path)
 }
 
-struct WrkResult {
-    rps: f64,
-    p50_ms: f64,
-    p99_ms: f64,
-    errors: String,
+pub(super) struct WrkResult {
+    pub rps: f64,
+    pub p50_ms: f64,
+    pub p99_ms: f64,
+    pub errors: String,
 }
 
 fn parse_ms(s: &str) -> Option<f64> {
@@ -88,7 +108,12 @@ fn parse_ms(s: &str) -> Option<f64> {
     })
 }
 
-fn wrk(url: &str, script: &Path, seconds: u32, connections: u32) -> anyhow::Result<WrkResult> {
+pub(super) fn wrk(
+    url: &str,
+    script: &Path,
+    seconds: u32,
+    connections: u32,
+) -> anyhow::Result<WrkResult> {
     let out = Command::new("wrk")
         .args([
             "-t2",
@@ -202,14 +227,13 @@ pub fn run_bench(a: HttpBenchArgs) -> anyhow::Result<()> {
         ),
     )?;
     std::fs::create_dir_all(a.dir.join("tmp"))?;
-    let _nginx = Killed(
+    let _nginx = spawn_group(
         Command::new("nginx")
             .args(["-c"])
             .arg(std::fs::canonicalize(&conf)?)
-            .args(["-g", "daemon off;"])
-            .spawn()
-            .context("cannot start nginx (install it: scripts/bench-http.sh)")?,
-    );
+            .args(["-g", "daemon off;"]),
+    )
+    .context("cannot start nginx (install it: scripts/bench-http.sh)")?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?;

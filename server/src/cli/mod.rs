@@ -2,6 +2,7 @@
 //! library, print. Long jobs show a progress bar on a terminal and stay quiet otherwise.
 
 mod bench;
+mod bench_edits;
 mod bench_http;
 mod bench_icvg;
 mod bench_mesh;

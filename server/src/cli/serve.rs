@@ -23,6 +23,9 @@ pub struct ServeArgs {
     /// Memory for cached mesh tiles, in MiB.
     #[arg(long, env = "ISOVOX_MESH_CACHE_MB", default_value_t = 256)]
     pub mesh_cache_mb: usize,
+    /// Memory for decoded and transcoded brick bodies, in MiB.
+    #[arg(long, env = "ISOVOX_BRICK_CACHE_MB", default_value_t = 64)]
+    pub brick_cache_mb: usize,
     /// Meshing jobs running or queued at once; beyond it requests get 503 with Retry-After.
     #[arg(long, env = "ISOVOX_CPU_QUEUE", default_value_t = 64)]
     pub cpu_queue: usize,
@@ -164,6 +167,7 @@ pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
         }
         let config = ServerConfig {
             mesh_cache_bytes: a.mesh_cache_mb << 20,
+            brick_cache_bytes: a.brick_cache_mb << 20,
             cpu_queue: a.cpu_queue,
             tokens,
             private_reads: a.private_reads,

@@ -228,9 +228,10 @@ pub async fn changes(
     let Path(name) = path.map_err(|e| ApiError::BadRequest(format!("malformed path: {e}")))?;
     let Query(query) = query.map_err(|e| ApiError::BadRequest(format!("malformed query: {e}")))?;
     let vol = volume(&state, &name)?;
+    // Without `since`: everything the file holds.
     let since = query
         .since
-        .ok_or_else(|| ApiError::BadRequest("changes needs ?since=VERSION".into()))?;
+        .unwrap_or_else(|| vol.oldest().saturating_sub(1));
     let limit = query.limit.unwrap_or(DEFAULT_CHANGES);
     if !(1..=MAX_CHANGES).contains(&limit) {
         return Err(ApiError::BadRequest(format!(

@@ -1,8 +1,9 @@
 //! Thin handlers: extract, call the store, map the result.
 
+use super::bodies::BodyKind;
 use super::{ApiError, AppState};
 use crate::store::codec;
-use crate::store::StoredBrick;
+use crate::store::{Snapshot, StoredBrick};
 use crate::volume::LiveVolume;
 use axum::extract::rejection::{PathRejection, QueryRejection};
 use axum::extract::{Path, Query, State};
@@ -107,7 +108,7 @@ pub async fn brick(
         .key(level, x, y, z)
         .map_err(|e| ApiError::not_found(e.to_string()))?;
     let stored = snap.stored(key)?;
-    brick_response(&state, stored, layout, &headers, "no-cache")
+    brick_response(&state, &snap, stored, &headers, "no-cache")
 }
 
 /// Whether `If-None-Match` names `etag` (or `*`).
@@ -125,25 +126,28 @@ fn if_none_match(headers: &HeaderMap, etag: &str) -> bool {
 /// The response for one stored brick, shared by the position and the content-hash routes:
 /// ETag = content hash (304 on a match); the stored zstd frame as `Content-Encoding: zstd` to
 /// clients that accept it, an lz4 block for `Accept: application/x-lz4`, else the raw voxels.
+///
+/// Stored payloads go out as shared slices of the mapping (no copy); decoded voxels and
+/// transcoded lz4 blocks come from the body cache, keyed by content hash, so a hot brick is
+/// decoded once.
 fn brick_response(
     state: &AppState,
+    snap: &Snapshot,
     stored: StoredBrick<'_>,
-    layout: &VolumeLayout,
     headers: &HeaderMap,
     cache_control: &'static str,
 ) -> Result<Response, ApiError> {
-    let (hash, constant) = match stored {
-        StoredBrick::Record { header, .. } => (header.hash, None),
-        StoredBrick::Constant(v) => {
-            let (hash, body) = state.constant_brick(v, layout);
-            (hash, Some(body))
-        }
+    let layout = snap.layout();
+    let hash = match stored {
+        StoredBrick::Record { header, .. } => header.hash,
+        StoredBrick::Constant(v) => state.constant_brick(v, layout).0,
     };
-    let etag = format!("\"{hash:016x}\"");
-    let mut response_headers = HeaderMap::new();
+    let mut etag = [0u8; 18];
+    let etag = format_etag(hash, &mut etag);
+    let mut response_headers = HeaderMap::with_capacity(6);
     response_headers.insert(
         header::ETAG,
-        HeaderValue::from_str(&etag).map_err(|e| ApiError::Internal(e.to_string()))?,
+        HeaderValue::from_str(etag).map_err(|e| ApiError::Internal(e.to_string()))?,
     );
     response_headers.insert(
         header::CACHE_CONTROL,
@@ -153,56 +157,74 @@ fn brick_response(
         header::VARY,
         HeaderValue::from_static("Accept, Accept-Encoding"),
     );
-    if if_none_match(headers, &etag) {
+    if if_none_match(headers, etag) {
         return Ok((StatusCode::NOT_MODIFIED, response_headers).into_response());
     }
     let want_lz4 = accepts(headers, header::ACCEPT, LZ4_MEDIA_TYPE);
-    let decoded: bytes::Bytes = match (constant, stored) {
-        (Some(body), _) => body,
-        (
+    let (media, encoding, body) = match stored {
+        StoredBrick::Record {
+            offset, header: h, ..
+        } if want_lz4 && h.codec == Codec::Lz4 => {
+            (LZ4_MEDIA_TYPE, None, snap.payload_bytes(offset, &h)?)
+        }
+        StoredBrick::Record {
+            offset, header: h, ..
+        } if !want_lz4
+            && h.codec == Codec::Zstd
+            && accepts(headers, header::ACCEPT_ENCODING, "zstd") =>
+        {
+            (
+                "application/octet-stream",
+                Some("zstd"),
+                snap.payload_bytes(offset, &h)?,
+            )
+        }
+        _ if want_lz4 => (
+            LZ4_MEDIA_TYPE,
             None,
-            StoredBrick::Record {
-                header: h, payload, ..
-            },
-        ) => {
-            if want_lz4 && h.codec == Codec::Lz4 {
-                response_headers.insert(
-                    header::CONTENT_TYPE,
-                    HeaderValue::from_static(LZ4_MEDIA_TYPE),
-                );
-                return Ok((response_headers, payload.to_vec()).into_response());
-            }
-            if !want_lz4
-                && h.codec == Codec::Zstd
-                && accepts(headers, header::ACCEPT_ENCODING, "zstd")
-            {
-                response_headers.insert(
-                    header::CONTENT_TYPE,
-                    HeaderValue::from_static("application/octet-stream"),
-                );
-                response_headers.insert(header::CONTENT_ENCODING, HeaderValue::from_static("zstd"));
-                return Ok((response_headers, payload.to_vec()).into_response());
-            }
-            let mut out = vec![0u8; layout.brick_bytes()];
-            crate::store::vod2::decode_stored(&stored, layout, &mut out)?;
-            out.into()
-        }
-        (None, StoredBrick::Constant(_)) => {
-            return Err(ApiError::Internal("constant brick without a body".into()))
-        }
+            state.bodies.get_or_make(hash, BodyKind::Lz4, || {
+                Ok(lz4_flex::block::compress(&decoded(state, layout, stored, hash)?).into())
+            })?,
+        ),
+        _ => (
+            "application/octet-stream",
+            None,
+            decoded(state, layout, stored, hash)?,
+        ),
     };
-    if want_lz4 {
-        response_headers.insert(
-            header::CONTENT_TYPE,
-            HeaderValue::from_static(LZ4_MEDIA_TYPE),
-        );
-        return Ok((response_headers, lz4_flex::block::compress(&decoded)).into_response());
+    response_headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(media));
+    if let Some(e) = encoding {
+        response_headers.insert(header::CONTENT_ENCODING, HeaderValue::from_static(e));
     }
-    response_headers.insert(
-        header::CONTENT_TYPE,
-        HeaderValue::from_static("application/octet-stream"),
-    );
-    Ok((response_headers, decoded).into_response())
+    Ok((response_headers, body).into_response())
+}
+
+/// `"` + 16 hex digits + `"`, without allocating.
+fn format_etag(hash: u64, out: &mut [u8; 18]) -> &str {
+    const HEX: &[u8; 16] = b"0123456789abcdef";
+    out[0] = b'"';
+    out[17] = b'"';
+    for i in 0..16 {
+        out[1 + i] = HEX[((hash >> (60 - 4 * i)) & 0xf) as usize];
+    }
+    std::str::from_utf8(out).unwrap_or("\"0\"")
+}
+
+/// A brick's voxels: constants from the constant table, records from the body cache.
+fn decoded(
+    state: &AppState,
+    layout: &VolumeLayout,
+    stored: StoredBrick<'_>,
+    hash: u64,
+) -> Result<bytes::Bytes, ApiError> {
+    if let StoredBrick::Constant(v) = stored {
+        return Ok(state.constant_brick(v, layout).1);
+    }
+    state.bodies.get_or_make(hash, BodyKind::Raw, || {
+        let mut out = vec![0u8; layout.brick_bytes()];
+        crate::store::vod2::decode_stored(&stored, layout, &mut out)?;
+        Ok(out.into())
+    })
 }
 
 /// A brick by content hash (16 hex digits): immutable, so any HTTP cache or CDN may keep it
@@ -228,8 +250,8 @@ pub async fn blob(
     let stored = snap.stored_entry(entry)?;
     brick_response(
         &state,
+        &snap,
         stored,
-        snap.layout(),
         &headers,
         "public, max-age=31536000, immutable",
     )

@@ -68,10 +68,10 @@ impl Metrics {
         if let Some(c) = m.by_status.get(status as usize) {
             c.fetch_add(1, Ordering::Relaxed);
         }
-        for (i, b) in BUCKETS.iter().enumerate() {
-            if seconds <= *b {
-                m.buckets[i].fetch_add(1, Ordering::Relaxed);
-            }
+        // One bucket per request (cumulated when rendered): every atomic shared between cores
+        // costs on the hottest routes.
+        if let Some(i) = BUCKETS.iter().position(|b| seconds <= *b) {
+            m.buckets[i].fetch_add(1, Ordering::Relaxed);
         }
         m.count.fetch_add(1, Ordering::Relaxed);
         m.sum_micros
@@ -121,11 +121,12 @@ pub async fn metrics(State(state): State<AppState>) -> Response {
         if count == 0 {
             continue;
         }
+        let mut cumulative = 0;
         for (i, b) in BUCKETS.iter().enumerate() {
+            cumulative += r.buckets[i].load(Ordering::Relaxed);
             let _ = writeln!(
                 out,
-                "isovox_request_seconds_bucket{{route=\"{route}\",le=\"{b}\"}} {}",
-                r.buckets[i].load(Ordering::Relaxed)
+                "isovox_request_seconds_bucket{{route=\"{route}\",le=\"{b}\"}} {cumulative}"
             );
         }
         let _ = writeln!(
@@ -142,7 +143,12 @@ pub async fn metrics(State(state): State<AppState>) -> Response {
             "isovox_request_seconds_count{{route=\"{route}\"}} {count}"
         );
     }
-    let gauges: [(&str, &str, &str, u64); 6] = [
+    let (mut edit_queue, mut subscribers) = (0, 0);
+    for (_, v) in state.catalog.iter() {
+        edit_queue += v.queue_depth() as u64;
+        subscribers += v.subscribers() as u64;
+    }
+    let gauges: [(&str, &str, &str, u64); 11] = [
         (
             "isovox_response_bytes_total",
             "counter",
@@ -172,6 +178,36 @@ pub async fn metrics(State(state): State<AppState>) -> Response {
             "gauge",
             "CPU jobs (meshing, batches, levels) running or queued.",
             (state.cpu_permits - state.cpu.available_permits()) as u64,
+        ),
+        (
+            "isovox_brick_cache_hits_total",
+            "counter",
+            "Brick bodies (decoded voxels, lz4 blocks) served from the cache.",
+            state.bodies.hits.load(Ordering::Relaxed),
+        ),
+        (
+            "isovox_brick_cache_misses_total",
+            "counter",
+            "Brick bodies decoded or transcoded on request.",
+            state.bodies.misses.load(Ordering::Relaxed),
+        ),
+        (
+            "isovox_brick_cache_bytes",
+            "gauge",
+            "Bytes held by the brick body cache.",
+            state.bodies.bytes() as u64,
+        ),
+        (
+            "isovox_edit_queue_depth",
+            "gauge",
+            "Edits waiting for a volume's writer.",
+            edit_queue,
+        ),
+        (
+            "isovox_feed_subscribers",
+            "gauge",
+            "Change-feed subscribers connected.",
+            subscribers,
         ),
         (
             "isovox_volumes",

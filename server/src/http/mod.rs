@@ -14,6 +14,7 @@
 //!   [`handlers::mesh_tile`]).
 
 pub mod auth;
+pub mod bodies;
 pub mod edits;
 mod error;
 pub mod handlers;
@@ -43,6 +44,8 @@ type ConstantBricks = std::collections::HashMap<(u16, usize, usize), (u64, bytes
 pub struct ServerConfig {
     /// Memory for cached mesh tiles.
     pub mesh_cache_bytes: usize,
+    /// Memory for decoded and transcoded brick bodies.
+    pub brick_cache_bytes: usize,
     /// Meshing and batch jobs running or queued at once.
     pub cpu_queue: usize,
     /// Who may write (and, with `private_reads`, read).
@@ -62,6 +65,7 @@ impl Default for ServerConfig {
     fn default() -> Self {
         ServerConfig {
             mesh_cache_bytes: 256 << 20,
+            brick_cache_bytes: 64 << 20,
             cpu_queue: 64,
             tokens: auth::Tokens::default(),
             private_reads: false,
@@ -90,6 +94,8 @@ pub struct AppState {
     constants: Arc<std::sync::RwLock<ConstantBricks>>,
     pub config: Arc<ServerConfig>,
     pub edit_rate: Arc<auth::RateLimiter>,
+    /// Decoded and transcoded brick bodies by content hash.
+    pub bodies: Arc<bodies::BodyCache>,
 }
 
 impl AppState {
@@ -116,6 +122,7 @@ impl AppState {
             metrics: Arc::new(metrics::Metrics::new(ROUTES)),
             constants: Arc::default(),
             edit_rate: Arc::new(auth::RateLimiter::new(config.edit_rate)),
+            bodies: Arc::new(bodies::BodyCache::new(config.brick_cache_bytes)),
             config: Arc::new(config),
         }
     }

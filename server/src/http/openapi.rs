@@ -57,7 +57,7 @@ pub fn document() -> Value {
     );
     let brick_params = json!([name, level, coord("x"), coord("y"), coord("z"), version]);
     let binary = |media: &str| json!({media: {"schema": {"type": "string", "format": "binary"}}});
-    json!({
+    let mut doc = json!({
         "openapi": "3.1.0",
         "info": {"title": "Isovox", "version": env!("CARGO_PKG_VERSION"),
                  "description": "Large, editable volumes as brick octrees: bricks, levels and marching-cubes tiles by random access."},
@@ -101,9 +101,10 @@ pub fn document() -> Value {
                     "200": {"description": "the mesh", "content": merge(binary("application/x-isovox-mesh"), binary("model/gltf-binary"))},
                     "304": {"description": "not modified"}}), problem_responses(&["400", "404", "500", "503"]))}},
         },
-        "components": {"schemas": {
+        "components": {"securitySchemes": {"bearer": {"type": "http", "scheme": "bearer"}}, "schemas": {
             "Problem": {"type": "object", "required": ["type", "title", "status", "detail"],
-                "properties": {"type": {"type": "string"}, "title": {"type": "string"}, "status": {"type": "integer"}, "detail": {"type": "string"}}},
+                "properties": {"type": {"type": "string"}, "title": {"type": "string"}, "status": {"type": "integer"}, "detail": {"type": "string"},
+                    "version": {"type": "integer", "description": "the current version, on 409"}}},
             "LevelInfo": {"type": "object", "required": ["level", "grid", "dims"],
                 "properties": {"level": {"type": "integer"}, "grid": {"$ref": "#/components/schemas/Triple"}, "dims": {"$ref": "#/components/schemas/Triple"}}},
             "Triple": {"type": "array", "items": {"type": "integer", "minimum": 0}, "minItems": 3, "maxItems": 3},
@@ -130,7 +131,67 @@ pub fn document() -> Value {
                             {"type": "integer", "minimum": 0, "maximum": 4294967295u64}]}},
                     "version": {"type": ["integer", "null"], "minimum": 0, "maximum": u64::MAX}, "encoding": {"type": "string", "enum": ["raw", "stored"]}}}
         }}
-    })
+    });
+    let (paths, schemas) = write_side(name);
+    if let Some(p) = doc["paths"].as_object_mut() {
+        p.extend(paths.as_object().cloned().unwrap_or_default());
+    }
+    if let Some(s) = doc["components"]["schemas"].as_object_mut() {
+        s.extend(schemas.as_object().cloned().unwrap_or_default());
+    }
+    doc
+}
+
+/// The write side (`docs/editing.md`): edits, compaction, the change feed and its catch-up.
+fn write_side(name: Value) -> (Value, Value) {
+    let json_body = |schema: &str| json!({"application/json": {"schema": {"$ref": format!("#/components/schemas/{schema}")}}});
+    let bearer = json!([{"bearer": []}]);
+    let since = query_param(
+        "since",
+        json!({"type": "integer", "minimum": 0}),
+        "list the versions after this one",
+    );
+    let paths = json!({
+        "/v1/volumes/{name}/edits": {"post": {
+            "summary": "apply an ICVG edit (docs/icvg.md) as the next version; durable before the answer",
+            "security": bearer,
+            "parameters": [name, {"name": "If-Match", "in": "header", "required": false, "schema": {"type": "string"}, "description": "apply only at this version (quoted or not); 409 otherwise"}],
+            "requestBody": {"required": true, "content": {"application/json": {"schema": {"type": "object", "required": ["op"], "properties": {"op": {"type": "string"}}}}}},
+            "responses": merge(json!({"200": {"description": "the new version and the changed bricks", "content": json_body("EditResponse")}}),
+                problem_responses(&["400", "401", "403", "404", "409", "413", "415", "422", "429", "500", "503"]))}},
+        "/v1/volumes/{name}/compact": {"post": {
+            "summary": "rewrite the volume's file with only the head version",
+            "security": bearer,
+            "parameters": [name],
+            "responses": merge(json!({"200": {"description": "what compaction did", "content": json_body("CompactResponse")}}),
+                problem_responses(&["400", "401", "403", "404", "500", "503"]))}},
+        "/v1/volumes/{name}/changes": {"get": {
+            "summary": "the versions after `since`, oldest first, with their changed bricks per level",
+            "parameters": [name, since.clone(), query_param("limit", json!({"type": "integer", "minimum": 1, "maximum": 10000}), "most versions listed (default 1000)")],
+            "responses": merge(json!({"200": {"description": "the versions", "content": json_body("ChangeList")}}),
+                problem_responses(&["400", "404", "410", "500"]))}},
+        "/v1/volumes/{name}/events": {"get": {
+            "summary": "change feed, server-sent events: hello, then one commit event per version (resync when too far behind)",
+            "parameters": [name, since, {"name": "Last-Event-ID", "in": "header", "required": false, "schema": {"type": "string"}, "description": "resume after this version"}],
+            "responses": merge(json!({"200": {"description": "an event stream", "content": {"text/event-stream": {"schema": {"type": "string"}}}}}),
+                problem_responses(&["400", "404", "410"]))}},
+    });
+    let changed = json!({"type": "array", "items": {"type": "array", "items": {"$ref": "#/components/schemas/Triple"}}});
+    let event = json!({"type": "object", "required": ["version", "timestamp_ms", "changed"],
+        "properties": {"version": {"type": "integer"}, "timestamp_ms": {"type": "integer"}, "changed": changed}});
+    let schemas = json!({
+        "EditResponse": {"type": "object", "required": ["version", "previous", "changed", "evaluated", "new_records", "checkpoint", "elapsed_us"],
+            "properties": {"version": {"type": "integer"}, "previous": {"type": "integer"}, "changed": changed,
+                "evaluated": {"type": "integer"}, "new_records": {"type": "integer"}, "checkpoint": {"type": "boolean"}, "elapsed_us": {"type": "integer"}}},
+        "ChangeEvent": event,
+        "ChangeList": {"type": "object", "required": ["since", "head", "oldest", "more", "changes"],
+            "properties": {"since": {"type": "integer"}, "head": {"type": "integer"}, "oldest": {"type": "integer"}, "more": {"type": "boolean"},
+                "changes": {"type": "array", "items": {"$ref": "#/components/schemas/ChangeEvent"}}}},
+        "CompactResponse": {"type": "object", "required": ["version", "bytes_before", "bytes_after", "bricks", "elapsed_us"],
+            "properties": {"version": {"type": "integer"}, "bytes_before": {"type": "integer"}, "bytes_after": {"type": "integer"},
+                "bricks": {"type": "integer"}, "elapsed_us": {"type": "integer"}}},
+    });
+    (paths, schemas)
 }
 
 pub async fn openapi() -> Response {

@@ -659,6 +659,47 @@ impl HashIndex {
     }
 }
 
+/// A range of a mapping that keeps the mapping alive: lets a response carry mapped bytes
+/// without copying them.
+#[derive(Debug)]
+struct MappedRange {
+    map: Arc<Mapping>,
+    start: usize,
+    end: usize,
+}
+
+impl AsRef<[u8]> for MappedRange {
+    fn as_ref(&self) -> &[u8] {
+        &self.map.bytes()[self.start..self.end]
+    }
+}
+
+impl Snapshot {
+    /// The stored payload of a brick record (from [`Snapshot::stored`]) as shared bytes of the
+    /// mapping: no copy, and the mapping lives as long as the bytes do.
+    ///
+    /// # Errors
+    /// The record lies outside this snapshot's mapping.
+    pub fn payload_bytes(
+        &self,
+        offset: u64,
+        header: &BrickHeader,
+    ) -> Result<bytes::Bytes, StoreError> {
+        let start = offset as usize + BRICK_HEADER_LEN;
+        let end = start + header.stored_len as usize;
+        if end > self.map.bytes().len() {
+            return Err(StoreError::Invalid(format!(
+                "brick record at {offset} ends past the mapped length"
+            )));
+        }
+        Ok(bytes::Bytes::from_owner(MappedRange {
+            map: self.map.clone(),
+            start,
+            end,
+        }))
+    }
+}
+
 /// A version's level 0 as the source of a build (same brick size): rebuilding a file from its
 /// head drops every older version and all garbage.
 #[derive(Debug)]
