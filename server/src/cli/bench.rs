@@ -38,6 +38,9 @@ pub enum BenchCommand {
     /// Shared editing over HTTP: edit throughput and latency under concurrent editors, change
     /// propagation to many subscribers, and read throughput while edits run (needs wrk).
     Edits(super::bench_edits::EditsBenchArgs),
+    /// The server's resident memory (RssAnon, beyond the page cache) while a client walks
+    /// every brick of a 2048^3 world once in random order.
+    Memory(super::bench_memory::MemoryBenchArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -68,6 +71,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Mesh(a) => super::bench_mesh::run(a),
         BenchCommand::Http(a) => super::bench_http::run_bench(a),
         BenchCommand::Edits(a) => super::bench_edits::run_bench(a),
+        BenchCommand::Memory(a) => super::bench_memory::run_bench(a),
     }
 }
 

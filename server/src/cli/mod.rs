@@ -5,6 +5,7 @@ mod bench;
 mod bench_edits;
 mod bench_http;
 mod bench_icvg;
+mod bench_memory;
 mod bench_mesh;
 pub(crate) mod data;
 pub mod edit;

@@ -8,7 +8,7 @@ use crate::icvg::edit::{CheckpointPolicy, Edit};
 use crate::icvg::term::{TermError, VolumeResolver};
 use crate::store::Snapshot;
 use crate::volume::{EditError, FeedItem, LiveVolume};
-use axum::body::Bytes;
+use axum::body::Body;
 use axum::extract::rejection::{PathRejection, QueryRejection};
 use axum::extract::{Path, Query, Request, State};
 use axum::http::{header, HeaderMap};
@@ -27,6 +27,9 @@ use tokio::sync::broadcast::error::RecvError;
 /// Versions listed by one `changes` answer, by default and at most.
 const DEFAULT_CHANGES: usize = 1000;
 const MAX_CHANGES: usize = 10_000;
+
+/// Largest edit request body.
+const MAX_EDIT_BODY: usize = 1 << 20;
 
 /// With `--private-reads`: every `/v1` route needs a token of either scope.
 pub async fn require_token(
@@ -91,8 +94,9 @@ pub async fn edit(
     State(state): State<AppState>,
     path: Result<Path<String>, PathRejection>,
     headers: HeaderMap,
-    body: Bytes,
+    body: Body,
 ) -> Result<Json<EditResponse>, ApiError> {
+    // The token is checked before the body is read: without one, nothing is read.
     let token = state
         .config
         .tokens
@@ -105,6 +109,13 @@ pub async fn edit(
             "an edit is JSON: send Content-Type: application/json".into(),
         ));
     }
+    let body = axum::body::to_bytes(body, MAX_EDIT_BODY)
+        .await
+        .map_err(|_| {
+            ApiError::TooLarge(format!(
+                "an edit request takes at most {MAX_EDIT_BODY} bytes (or the body was cut off)"
+            ))
+        })?;
     let request: EditRequest = serde_json::from_slice(&body)
         .map_err(|e| ApiError::BadRequest(format!("not an edit request: {e}")))?;
     let expected = if_match(&headers)?;
