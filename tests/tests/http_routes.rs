@@ -682,7 +682,67 @@ async fn batch_errors_are_problem_details() {
         .await
         .unwrap();
     assert_eq!(r.status().as_u16(), 405);
-    assert_eq!(header(&r, "allow").as_deref(), Some("POST"));
+    assert_eq!(header(&r, "allow").as_deref(), Some("POST,OPTIONS"));
+}
+
+/// Browsers: every response lets any origin read it (and the headers it needs, such as ETag),
+/// and a preflight on any route allows the methods and request headers the API uses.
+#[tokio::test]
+async fn cors_for_browsers() {
+    let s = start(&[Vol::Plain], 16).await;
+    let c = reqwest::Client::new();
+    for url in [
+        "/v1/volumes",
+        "/v1/volumes/plain/bricks/0/0/0/0",
+        "/v1/volumes/nope",
+        "/healthz",
+    ] {
+        let r = c
+            .get(s.url(url))
+            .header("origin", "https://viewer.example")
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(
+            header(&r, "access-control-allow-origin").as_deref(),
+            Some("*"),
+            "{url}"
+        );
+        assert_eq!(
+            header(&r, "access-control-expose-headers").as_deref(),
+            Some("*"),
+            "{url}"
+        );
+    }
+    for (url, method) in [
+        ("/v1/volumes/plain/bricks/0/0/0/0", "GET"),
+        ("/v1/volumes/plain/edits", "POST"),
+        ("/v1/volumes/plain/batch", "POST"),
+        ("/v1/volumes/plain/events", "GET"),
+    ] {
+        let r = c
+            .request(reqwest::Method::OPTIONS, s.url(url))
+            .header("origin", "https://viewer.example")
+            .header("access-control-request-method", method)
+            .header(
+                "access-control-request-headers",
+                "authorization, content-type, if-match",
+            )
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status().as_u16(), 204, "{url}");
+        assert_eq!(
+            header(&r, "access-control-allow-origin").as_deref(),
+            Some("*")
+        );
+        let methods = header(&r, "access-control-allow-methods").unwrap();
+        assert!(methods.contains(method), "{url}: {methods}");
+        let allowed = header(&r, "access-control-allow-headers").unwrap();
+        for h in ["authorization", "content-type", "if-match", "if-none-match"] {
+            assert!(allowed.contains(h), "{url}: {allowed}");
+        }
+    }
 }
 
 /// A batch whose body is JSON but whose media type is not: axum's `Json` rejects it with 415

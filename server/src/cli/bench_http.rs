@@ -25,6 +25,10 @@ pub struct HttpBenchArgs {
     pub seconds: u32,
     #[arg(long, default_value_t = 64)]
     pub connections: u32,
+    /// Rounds: the three servers are measured in turn this many times and each one's median
+    /// run is reported (this machine's throughput drifts between runs).
+    #[arg(long, default_value_t = 3)]
+    pub rounds: usize,
     /// Edge of the cubic world.
     #[arg(long, default_value_t = 512)]
     pub size: u32,
@@ -88,6 +92,7 @@ pub(super) fn wrk_script(
     Ok(path)
 }
 
+#[derive(Debug, Default)]
 pub(super) struct WrkResult {
     pub rps: f64,
     pub p50_ms: f64,
@@ -274,7 +279,7 @@ pub fn run_bench(a: HttpBenchArgs) -> anyhow::Result<()> {
     })?;
     let bench = a.dir.join("wrk");
     std::fs::create_dir_all(&bench)?;
-    println!("### Brick requests: wrk, 2 threads, {} connections, {} s each, random level-0 keys over a {}^3 world (brick 32^3: {} B raw, lz4 median {} B)\n", a.connections, a.seconds, a.size, brick_bytes, lz4_median);
+    println!("### Brick requests: wrk, 2 threads, {} connections, {} s per run, {} rounds taken in turn (median run shown), random level-0 keys over a {}^3 world (brick 32^3: {} B raw, lz4 median {} B)\n", a.connections, a.seconds, a.rounds, a.size, brick_bytes, lz4_median);
     println!("| server | encoding | requests/s | p50 ms | p99 ms | errors | isovox / nginx | isovox / bare axum |");
     println!("|---|---|---:|---:|---:|---|---:|---:|");
     for (encoding, accept) in [("raw", None), ("lz4", Some("application/x-lz4"))] {
@@ -292,24 +297,28 @@ pub fn run_bench(a: HttpBenchArgs) -> anyhow::Result<()> {
             g,
             None,
         )?;
-        let isovox = wrk(
-            &format!("http://127.0.0.1:{isovox_port}"),
-            &iso_script,
-            a.seconds,
-            a.connections,
-        )?;
-        let nginx = wrk(
-            &format!("http://127.0.0.1:{nginx_port}"),
-            &static_script,
-            a.seconds,
-            a.connections,
-        )?;
-        let ceiling = wrk(
-            &format!("http://127.0.0.1:{ceiling_port}"),
-            &static_script,
-            a.seconds,
-            a.connections,
-        )?;
+        let mut runs: [Vec<WrkResult>; 3] = Default::default();
+        for _ in 0..a.rounds.max(1) {
+            for (i, (port, script)) in [
+                (isovox_port, &iso_script),
+                (nginx_port, &static_script),
+                (ceiling_port, &static_script),
+            ]
+            .into_iter()
+            .enumerate()
+            {
+                runs[i].push(wrk(
+                    &format!("http://127.0.0.1:{port}"),
+                    script,
+                    a.seconds,
+                    a.connections,
+                )?);
+            }
+        }
+        let [isovox, nginx, ceiling] = runs.map(|mut r| {
+            r.sort_by(|x, y| x.rps.total_cmp(&y.rps));
+            r.swap_remove(r.len() / 2)
+        });
         for (name, r) in [
             ("isovox serve", &isovox),
             ("nginx (static files)", &nginx),

@@ -93,8 +93,10 @@ pub async fn brick(
     State(state): State<AppState>,
     path: Result<Path<BrickPath>, PathRejection>,
     query: Result<Query<VersionQuery>, QueryRejection>,
-    headers: HeaderMap,
+    // The request itself, not a `HeaderMap` extractor (which clones every header).
+    request: axum::extract::Request,
 ) -> Result<Response, ApiError> {
+    let headers = request.headers();
     let Path((name, level, x, y, z)) =
         path.map_err(|e| ApiError::BadRequest(format!("malformed brick path: {e}")))?;
     let Query(query) = query.map_err(|e| ApiError::BadRequest(format!("malformed query: {e}")))?;
@@ -108,7 +110,7 @@ pub async fn brick(
         .key(level, x, y, z)
         .map_err(|e| ApiError::not_found(e.to_string()))?;
     let stored = snap.stored(key)?;
-    brick_response(&state, &snap, stored, &headers, "no-cache")
+    brick_response(&state, &snap, stored, headers, "no-cache")
 }
 
 /// Whether `If-None-Match` names `etag` (or `*`).
@@ -232,8 +234,9 @@ fn decoded(
 pub async fn blob(
     State(state): State<AppState>,
     path: Result<Path<(String, String)>, PathRejection>,
-    headers: HeaderMap,
+    request: axum::extract::Request,
 ) -> Result<Response, ApiError> {
+    let headers = request.headers();
     let Path((name, hex)) =
         path.map_err(|e| ApiError::BadRequest(format!("malformed blob path: {e}")))?;
     let hash = (hex.len() == 16 && hex.bytes().all(|b| b.is_ascii_hexdigit()))
@@ -252,7 +255,7 @@ pub async fn blob(
         &state,
         &snap,
         stored,
-        &headers,
+        headers,
         "public, max-age=31536000, immutable",
     )
 }

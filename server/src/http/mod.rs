@@ -15,6 +15,7 @@
 
 pub mod auth;
 pub mod bodies;
+mod cors;
 pub mod edits;
 mod error;
 pub mod handlers;
@@ -25,14 +26,14 @@ pub use error::ApiError;
 
 use crate::catalog::Catalog;
 use crate::mesh::cache::MeshCache;
+use axum::handler::Handler;
 use axum::http::StatusCode;
-use axum::routing::get;
+use axum::routing::{get, post, MethodRouter};
 use axum::Router;
 use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::TcpListener;
-use tower_http::cors::CorsLayer;
 use tower_http::timeout::TimeoutLayer;
 use tower_http::trace::TraceLayer;
 
@@ -77,9 +78,22 @@ impl Default for ServerConfig {
     }
 }
 
-/// What every handler can reach.
+/// What every handler can reach: one `Arc`, so the per-request clones of the state (the
+/// middleware's and the handler's) touch one shared counter, not one per field.
 #[derive(Debug, Clone)]
-pub struct AppState {
+pub struct AppState(Arc<Shared>);
+
+impl std::ops::Deref for AppState {
+    type Target = Shared;
+
+    fn deref(&self) -> &Shared {
+        &self.0
+    }
+}
+
+/// The server's shared parts (see [`AppState`]).
+#[derive(Debug)]
+pub struct Shared {
     pub catalog: Arc<Catalog>,
     /// Tile meshes by the content of their inputs.
     pub meshes: Arc<MeshCache>,
@@ -114,7 +128,7 @@ impl AppState {
 
     /// A state serving `catalog` as `config` says.
     pub fn with_config(catalog: Catalog, config: ServerConfig) -> Self {
-        AppState {
+        AppState(Arc::new(Shared {
             catalog: Arc::new(catalog),
             meshes: Arc::new(MeshCache::new(config.mesh_cache_bytes)),
             cpu: Arc::new(tokio::sync::Semaphore::new(config.cpu_queue)),
@@ -124,9 +138,11 @@ impl AppState {
             edit_rate: Arc::new(auth::RateLimiter::new(config.edit_rate)),
             bodies: Arc::new(bodies::BodyCache::new(config.brick_cache_bytes)),
             config: Arc::new(config),
-        }
+        }))
     }
+}
 
+impl Shared {
     /// The content hash and decoded bytes of a constant brick of `layout`'s shape.
     pub fn constant_brick(
         &self,
@@ -183,35 +199,29 @@ pub fn app(state: AppState) -> Router {
     let cpu_routes = Router::new()
         .route(
             "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}",
-            get(handlers::mesh_tile),
+            read(handlers::mesh_tile),
         )
-        .route(
-            "/v1/volumes/{name}/batch",
-            axum::routing::post(handlers::batch),
-        )
-        .route("/v1/volumes/{name}/levels/{level}", get(handlers::level))
-        .route("/v1/volumes/{name}/changes", get(edits::changes))
+        .route("/v1/volumes/{name}/batch", write(handlers::batch))
+        .route("/v1/volumes/{name}/levels/{level}", read(handlers::level))
+        .route("/v1/volumes/{name}/changes", read(edits::changes))
         .route_layer(timeout);
     // Edits wait for their volume's writer (bounded by the edit queue), and the change feed is
     // meant to stay open: neither gets the timeout.
     let write_routes = Router::new()
-        .route("/v1/volumes/{name}/edits", axum::routing::post(edits::edit))
-        .route(
-            "/v1/volumes/{name}/compact",
-            axum::routing::post(edits::compact),
-        )
-        .route("/v1/volumes/{name}/events", get(edits::events));
+        .route("/v1/volumes/{name}/edits", write(edits::edit))
+        .route("/v1/volumes/{name}/compact", write(edits::compact))
+        .route("/v1/volumes/{name}/events", read(edits::events));
     let mut router = Router::new()
-        .route("/healthz", get(handlers::healthz))
-        .route("/metrics", get(metrics::metrics))
-        .route("/openapi.json", get(openapi::openapi))
-        .route("/v1/volumes", get(handlers::list_volumes))
-        .route("/v1/volumes/{name}", get(handlers::volume_info))
+        .route("/healthz", read(handlers::healthz))
+        .route("/metrics", read(metrics::metrics))
+        .route("/openapi.json", read(openapi::openapi))
+        .route("/v1/volumes", read(handlers::list_volumes))
+        .route("/v1/volumes/{name}", read(handlers::volume_info))
         .route(
             "/v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}",
-            get(handlers::brick),
+            read(handlers::brick),
         )
-        .route("/v1/volumes/{name}/blobs/{hash}", get(handlers::blob))
+        .route("/v1/volumes/{name}/blobs/{hash}", read(handlers::blob))
         .merge(cpu_routes)
         .merge(write_routes);
     if state.config.private_reads {
@@ -221,17 +231,34 @@ pub fn app(state: AppState) -> Router {
             edits::require_token,
         ));
     }
+    let (allow_origin, expose_headers) = cors::layers();
     router
         .fallback(handlers::not_found)
-        .layer(axum::middleware::from_fn_with_state(
-            state.clone(),
-            metrics::track,
-        ))
+        .layer(metrics::MetricsLayer::new(state.metrics.clone()))
         .with_state(state)
         // Request bodies (edit terms, batch key lists) are small; larger ones get 413.
         .layer(axum::extract::DefaultBodyLimit::max(1 << 20))
-        .layer(CorsLayer::permissive())
+        .layer(allow_origin)
+        .layer(expose_headers)
         .layer(TraceLayer::new_for_http())
+}
+
+/// A GET route that also answers CORS preflight requests.
+fn read<H, T>(handler: H) -> MethodRouter<AppState>
+where
+    H: Handler<T, AppState>,
+    T: 'static,
+{
+    get(handler).options(cors::preflight)
+}
+
+/// A POST route that also answers CORS preflight requests.
+fn write<H, T>(handler: H) -> MethodRouter<AppState>
+where
+    H: Handler<T, AppState>,
+    T: 'static,
+{
+    post(handler).options(cors::preflight)
 }
 
 /// Serves `state` on `listener` until `shutdown` completes, then lets in-flight requests finish.
