@@ -1,7 +1,13 @@
-//! The Isovox client library.
+//! The Isovox client library: typed calls for every route of the HTTP API, a camera-distance
+//! streamer that follows other users' edits, and the `isovox-load` load tester.
 //!
-//! It speaks only through the HTTP API and returns [`isovox_proto`] types. The HTTP calls, the
-//! camera-distance streamer and the `isovox-load` binary come with the HTTP service; today the
-//! crate re-exports the shared types so that client code and the server agree on one definition.
+//! It speaks only through the HTTP API and returns [`isovox_proto`] types.
+//!
+//! Layout:
+//! - [`client`]: [`Client`], one typed async call per route, retries with backoff, errors that
+//!   carry the server's problem details; [`Feed`], the change feed (server-sent events).
 
+pub mod client;
+
+pub use client::{Brick, Client, ClientError, Feed, FeedEvent, Observer, RetryPolicy};
 pub use isovox_proto as proto;

@@ -1,0 +1,654 @@
+//! Typed calls for every route of the HTTP API (`docs/editing.md`, `/openapi.json`), with
+//! retries.
+//!
+//! Every call returns `proto` types or a [`ClientError`] that carries the server's problem
+//! details. Connection failures, 503 and 429 are retried with exponential backoff (honouring
+//! `Retry-After`): reads always, edits only when the server cannot have applied them (the
+//! connection was refused, or it answered 503/429).
+
+use bytes::Bytes;
+use isovox_proto::api::{
+    ChangeEvent, ChangeList, CompactResponse, EditResponse, LevelGrid, Problem, VolumeInfo,
+    VolumeList,
+};
+use isovox_proto::batch::{decode_batch, BatchEncoding, BatchEntry, BatchRequest};
+use isovox_proto::icvg::EditRequest;
+use isovox_proto::mesh::{decode_compact, Mesh};
+use isovox_proto::BrickKey;
+use reqwest::header::{HeaderMap, HeaderValue};
+use reqwest::{Method, RequestBuilder, StatusCode};
+use std::time::Duration;
+
+/// What a call can fail with.
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    /// The server answered with an error status (and, normally, problem details).
+    #[error("{status}: {}", problem.as_ref().map_or("(no problem details)", |p| p.detail.as_str()))]
+    Status {
+        status: StatusCode,
+        problem: Option<Problem>,
+    },
+    /// The request did not get an answer (connection refused or reset, timeout).
+    #[error("transport: {0}")]
+    Transport(#[from] reqwest::Error),
+    /// The answer did not decode.
+    #[error("cannot decode the answer: {0}")]
+    Decode(String),
+}
+
+impl ClientError {
+    /// The HTTP status, when the server answered.
+    pub fn status(&self) -> Option<StatusCode> {
+        match self {
+            ClientError::Status { status, .. } => Some(*status),
+            _ => None,
+        }
+    }
+
+    /// A short name for reports: the status code or the kind of transport failure.
+    pub fn kind(&self) -> String {
+        match self {
+            ClientError::Status { status, .. } => status.as_u16().to_string(),
+            ClientError::Transport(e) if e.is_timeout() => "timeout".into(),
+            ClientError::Transport(e) if e.is_connect() => "connect".into(),
+            ClientError::Transport(_) => "transport".into(),
+            ClientError::Decode(_) => "decode".into(),
+        }
+    }
+}
+
+/// How calls are retried.
+#[derive(Debug, Clone, Copy)]
+pub struct RetryPolicy {
+    /// Attempts in all (1 = no retry).
+    pub attempts: u32,
+    /// First backoff; doubled on every retry, with jitter, up to `max_delay`.
+    pub base_delay: Duration,
+    pub max_delay: Duration,
+}
+
+impl Default for RetryPolicy {
+    fn default() -> Self {
+        RetryPolicy {
+            attempts: 5,
+            base_delay: Duration::from_millis(50),
+            max_delay: Duration::from_secs(5),
+        }
+    }
+}
+
+/// One brick as the server sent it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Brick {
+    pub key: BrickKey,
+    /// Content hash (the ETag).
+    pub hash: u64,
+    /// Decoded voxels, x fastest, u16 little endian.
+    pub voxels: Bytes,
+}
+
+/// One event of the change feed.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum FeedEvent {
+    /// The first event: the version current when the subscription started.
+    Hello { version: u64 },
+    /// A committed version.
+    Commit(ChangeEvent),
+    /// The subscriber fell behind: versions after `since` up to `version` were skipped; fetch
+    /// them with [`Client::changes`].
+    Resync { since: u64, version: u64 },
+}
+
+/// Sees every HTTP exchange a [`Client`] makes (each attempt of a retried call): load tests
+/// and the streamer's statistics hang off it.
+pub trait Observer: Send + Sync + std::fmt::Debug {
+    /// `route` names the API route (`"brick"`, `"mesh"`, `"edit"`, ...); `outcome` is the
+    /// status code, or the kind of transport failure; `bytes` the response body's length when
+    /// it is known up front.
+    fn exchange(
+        &self,
+        route: &'static str,
+        outcome: Result<u16, &str>,
+        latency: Duration,
+        bytes: u64,
+    );
+}
+
+/// A client of one Isovox server.
+#[derive(Debug, Clone)]
+pub struct Client {
+    http: reqwest::Client,
+    base: String,
+    token: Option<String>,
+    retry: RetryPolicy,
+    observer: Option<std::sync::Arc<dyn Observer>>,
+}
+
+/// `reqwest` idles connections per host; a viewer keeps a few dozen requests in flight.
+const POOL_PER_HOST: usize = 64;
+
+impl Client {
+    /// A client of the server at `base` (e.g. `http://127.0.0.1:7070`).
+    ///
+    /// # Errors
+    /// The HTTP client cannot be built (TLS or resolver setup).
+    pub fn new(base: &str) -> Result<Client, ClientError> {
+        let http = reqwest::Client::builder()
+            .pool_max_idle_per_host(POOL_PER_HOST)
+            .connect_timeout(Duration::from_secs(5))
+            .build()?;
+        Ok(Client {
+            http,
+            base: base.trim_end_matches('/').to_string(),
+            token: None,
+            retry: RetryPolicy::default(),
+            observer: None,
+        })
+    }
+
+    /// Sends `Authorization: Bearer token` (needed for edits and compaction).
+    pub fn with_token(mut self, token: impl Into<String>) -> Client {
+        self.token = Some(token.into());
+        self
+    }
+
+    pub fn with_retry(mut self, retry: RetryPolicy) -> Client {
+        self.retry = retry;
+        self
+    }
+
+    /// Reports every exchange to `observer`.
+    pub fn with_observer(mut self, observer: std::sync::Arc<dyn Observer>) -> Client {
+        self.observer = Some(observer);
+        self
+    }
+
+    pub fn base(&self) -> &str {
+        &self.base
+    }
+
+    fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.base)
+    }
+
+    fn request(&self, method: Method, path: &str) -> RequestBuilder {
+        let r = self.http.request(method, self.url(path));
+        match &self.token {
+            Some(t) => r.bearer_auth(t),
+            None => r,
+        }
+    }
+
+    /// Sends (retrying as [`RetryPolicy`] says) and returns a successful response, or the
+    /// server's problem. `idempotent` requests are retried on any transport error, others only
+    /// when the connection could not be made.
+    async fn send(
+        &self,
+        route: &'static str,
+        build: impl Fn() -> RequestBuilder,
+        idempotent: bool,
+    ) -> Result<reqwest::Response, ClientError> {
+        let mut attempt = 0;
+        loop {
+            attempt += 1;
+            let last = attempt >= self.retry.attempts.max(1);
+            let start = std::time::Instant::now();
+            let answer = build().send().await;
+            if let Some(o) = &self.observer {
+                match &answer {
+                    Ok(r) => o.exchange(
+                        route,
+                        Ok(r.status().as_u16()),
+                        start.elapsed(),
+                        r.content_length().unwrap_or(0),
+                    ),
+                    Err(e) => o.exchange(
+                        route,
+                        Err(if e.is_timeout() {
+                            "timeout"
+                        } else if e.is_connect() {
+                            "connect"
+                        } else {
+                            "transport"
+                        }),
+                        start.elapsed(),
+                        0,
+                    ),
+                }
+            }
+            let wait = match answer {
+                Ok(r) if r.status().is_success() || r.status() == StatusCode::NOT_MODIFIED => {
+                    return Ok(r)
+                }
+                Ok(r) => {
+                    let status = r.status();
+                    let retryable = status == StatusCode::SERVICE_UNAVAILABLE
+                        || status == StatusCode::TOO_MANY_REQUESTS;
+                    if !retryable || last {
+                        return Err(problem(r).await);
+                    }
+                    retry_after(r.headers())
+                }
+                Err(e) => {
+                    if last || !(idempotent || e.is_connect()) {
+                        return Err(e.into());
+                    }
+                    None
+                }
+            };
+            tokio::time::sleep(wait.unwrap_or_else(|| self.backoff(attempt))).await;
+        }
+    }
+
+    fn backoff(&self, attempt: u32) -> Duration {
+        let exp = self
+            .retry
+            .base_delay
+            .saturating_mul(1 << (attempt - 1).min(16))
+            .min(self.retry.max_delay);
+        // Jitter in [50%, 100%]: clients that failed together do not retry together.
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.subsec_nanos());
+        exp.mul_f64(0.5 + (nanos % 1000) as f64 / 2000.0)
+    }
+
+    async fn json<T: serde::de::DeserializeOwned>(
+        &self,
+        route: &'static str,
+        build: impl Fn() -> RequestBuilder,
+        idempotent: bool,
+    ) -> Result<T, ClientError> {
+        let bytes = self.send(route, build, idempotent).await?.bytes().await?;
+        serde_json::from_slice(&bytes).map_err(|e| ClientError::Decode(e.to_string()))
+    }
+
+    /// `GET /v1/volumes`.
+    ///
+    /// # Errors
+    /// See [`ClientError`].
+    pub async fn volumes(&self) -> Result<VolumeList, ClientError> {
+        self.json("volumes", || self.request(Method::GET, "/v1/volumes"), true)
+            .await
+    }
+
+    /// `GET /v1/volumes/{name}`.
+    ///
+    /// # Errors
+    /// See [`ClientError`].
+    pub async fn volume(&self, name: &str) -> Result<VolumeInfo, ClientError> {
+        let path = format!("/v1/volumes/{name}");
+        self.json("volume", || self.request(Method::GET, &path), true)
+            .await
+    }
+
+    /// One brick's voxels, fetched as an lz4 block (small on the wire) and decoded.
+    /// `known` is the content hash the caller holds: when the brick still has it, the server
+    /// answers 304 and this returns `None`.
+    ///
+    /// # Errors
+    /// See [`ClientError`]; `Decode` when the block does not decode to `brick_bytes`.
+    pub async fn brick(
+        &self,
+        name: &str,
+        key: BrickKey,
+        version: Option<u64>,
+        known: Option<u64>,
+        brick_bytes: usize,
+    ) -> Result<Option<Brick>, ClientError> {
+        let mut path = format!(
+            "/v1/volumes/{name}/bricks/{}/{}/{}/{}",
+            key.level, key.x, key.y, key.z
+        );
+        if let Some(v) = version {
+            path.push_str(&format!("?version={v}"));
+        }
+        let response = self
+            .send(
+                "brick",
+                || {
+                    let r = self
+                        .request(Method::GET, &path)
+                        .header("accept", "application/x-lz4");
+                    match known {
+                        Some(h) => r.header("if-none-match", format!("\"{h:016x}\"")),
+                        None => r,
+                    }
+                },
+                true,
+            )
+            .await?;
+        if response.status() == StatusCode::NOT_MODIFIED {
+            return Ok(None);
+        }
+        let hash = etag_hash(response.headers())
+            .ok_or_else(|| ClientError::Decode("a brick without a content-hash ETag".into()))?;
+        let lz4 = response
+            .headers()
+            .get("content-type")
+            .is_some_and(|v| v.as_bytes() == b"application/x-lz4");
+        let body = response.bytes().await?;
+        let voxels = if lz4 {
+            Bytes::from(
+                lz4_flex::block::decompress(&body, brick_bytes)
+                    .map_err(|e| ClientError::Decode(format!("brick {key}: {e}")))?,
+            )
+        } else {
+            body
+        };
+        if voxels.len() != brick_bytes {
+            return Err(ClientError::Decode(format!(
+                "brick {key}: {} bytes, expected {brick_bytes}",
+                voxels.len()
+            )));
+        }
+        Ok(Some(Brick { key, hash, voxels }))
+    }
+
+    /// A brick by content hash (raw voxels).
+    ///
+    /// # Errors
+    /// See [`ClientError`].
+    pub async fn blob(&self, name: &str, hash: u64) -> Result<Bytes, ClientError> {
+        let path = format!("/v1/volumes/{name}/blobs/{hash:016x}");
+        Ok(self
+            .send("blob", || self.request(Method::GET, &path), true)
+            .await?
+            .bytes()
+            .await?)
+    }
+
+    /// Many bricks in one request (at most `proto::batch::MAX_BATCH`), decoded voxels.
+    ///
+    /// # Errors
+    /// See [`ClientError`].
+    pub async fn batch(
+        &self,
+        name: &str,
+        keys: &[BrickKey],
+        version: Option<u64>,
+    ) -> Result<Vec<BatchEntry>, ClientError> {
+        let path = format!("/v1/volumes/{name}/batch");
+        let body = serde_json::to_vec(&BatchRequest {
+            keys: keys.iter().map(|k| (k.level, k.x, k.y, k.z)).collect(),
+            version,
+            encoding: BatchEncoding::Raw,
+        })
+        .map_err(|e| ClientError::Decode(e.to_string()))?;
+        let bytes = self
+            .send(
+                "batch",
+                || {
+                    self.request(Method::POST, &path)
+                        .header("content-type", "application/json")
+                        .body(body.clone())
+                },
+                true,
+            )
+            .await?
+            .bytes()
+            .await?;
+        decode_batch(&bytes).map_err(|e| ClientError::Decode(e.to_string()))
+    }
+
+    /// A level's brick grid (or the box `region` of it, in bricks: min, max exclusive).
+    ///
+    /// # Errors
+    /// See [`ClientError`].
+    pub async fn level_grid(
+        &self,
+        name: &str,
+        level: u8,
+        region: Option<([u32; 3], [u32; 3])>,
+        version: Option<u64>,
+    ) -> Result<LevelGrid, ClientError> {
+        let path = level_path(name, level, "grid", region, version);
+        self.json("level", || self.request(Method::GET, &path), true)
+            .await
+    }
+
+    /// A level's voxels (or the box `region` of it, in voxels) as one array, x fastest.
+    ///
+    /// # Errors
+    /// See [`ClientError`].
+    pub async fn level_voxels(
+        &self,
+        name: &str,
+        level: u8,
+        region: Option<([u32; 3], [u32; 3])>,
+        version: Option<u64>,
+    ) -> Result<Bytes, ClientError> {
+        let path = level_path(name, level, "voxels", region, version);
+        Ok(self
+            .send("level", || self.request(Method::GET, &path), true)
+            .await?
+            .bytes()
+            .await?)
+    }
+
+    /// One mesh tile (compact encoding, world coordinates). `iso` defaults to the server's.
+    ///
+    /// # Errors
+    /// See [`ClientError`].
+    pub async fn mesh_tile(
+        &self,
+        name: &str,
+        key: BrickKey,
+        iso: Option<f32>,
+        version: Option<u64>,
+    ) -> Result<Mesh, ClientError> {
+        let mut path = format!(
+            "/v1/volumes/{name}/meshes/{}/{}/{}/{}?format=compact",
+            key.level, key.x, key.y, key.z
+        );
+        if let Some(iso) = iso {
+            path.push_str(&format!("&iso={iso}"));
+        }
+        if let Some(v) = version {
+            path.push_str(&format!("&version={v}"));
+        }
+        let bytes = self
+            .send("mesh", || self.request(Method::GET, &path), true)
+            .await?
+            .bytes()
+            .await?;
+        decode_compact(&bytes).map_err(|e| ClientError::Decode(format!("tile {key}: {e}")))
+    }
+
+    /// Applies an edit (needs a write token); with `if_match`, only at that version.
+    ///
+    /// # Errors
+    /// See [`ClientError`]; 409 when `if_match` names another version (the problem's
+    /// `version` is the current one).
+    pub async fn edit(
+        &self,
+        name: &str,
+        edit: &EditRequest,
+        if_match: Option<u64>,
+    ) -> Result<EditResponse, ClientError> {
+        let path = format!("/v1/volumes/{name}/edits");
+        let body = serde_json::to_vec(edit).map_err(|e| ClientError::Decode(e.to_string()))?;
+        self.json(
+            "edit",
+            || {
+                let r = self
+                    .request(Method::POST, &path)
+                    .header("content-type", "application/json")
+                    .body(body.clone());
+                match if_match {
+                    Some(v) => r.header("if-match", v.to_string()),
+                    None => r,
+                }
+            },
+            false,
+        )
+        .await
+    }
+
+    /// The versions after `since` (at most `limit`, the server's default when `None`).
+    ///
+    /// # Errors
+    /// See [`ClientError`]; 410 when compaction dropped versions after `since`.
+    pub async fn changes(
+        &self,
+        name: &str,
+        since: u64,
+        limit: Option<usize>,
+    ) -> Result<ChangeList, ClientError> {
+        let mut path = format!("/v1/volumes/{name}/changes?since={since}");
+        if let Some(l) = limit {
+            path.push_str(&format!("&limit={l}"));
+        }
+        self.json("changes", || self.request(Method::GET, &path), true)
+            .await
+    }
+
+    /// Rewrites the volume's file with only its head version (needs a write token).
+    ///
+    /// # Errors
+    /// See [`ClientError`].
+    pub async fn compact(&self, name: &str) -> Result<CompactResponse, ClientError> {
+        let path = format!("/v1/volumes/{name}/compact");
+        self.json("compact", || self.request(Method::POST, &path), false)
+            .await
+    }
+
+    /// Subscribes to the change feed; with `since`, the versions after it come first.
+    ///
+    /// # Errors
+    /// See [`ClientError`].
+    pub async fn events(&self, name: &str, since: Option<u64>) -> Result<Feed, ClientError> {
+        let mut path = format!("/v1/volumes/{name}/events");
+        if let Some(s) = since {
+            path.push_str(&format!("?since={s}"));
+        }
+        let response = self
+            .send("events", || self.request(Method::GET, &path), true)
+            .await?;
+        Ok(Feed {
+            response,
+            buffer: Vec::new(),
+            event: String::new(),
+            data: String::new(),
+        })
+    }
+}
+
+fn level_path(
+    name: &str,
+    level: u8,
+    format: &str,
+    region: Option<([u32; 3], [u32; 3])>,
+    version: Option<u64>,
+) -> String {
+    let mut path = format!("/v1/volumes/{name}/levels/{level}?format={format}");
+    if let Some((min, max)) = region {
+        path.push_str(&format!(
+            "&region={},{},{},{},{},{}",
+            min[0], min[1], min[2], max[0], max[1], max[2]
+        ));
+    }
+    if let Some(v) = version {
+        path.push_str(&format!("&version={v}"));
+    }
+    path
+}
+
+/// The content hash an ETag (`"16 hex digits"`, maybe weak) names.
+fn etag_hash(headers: &HeaderMap) -> Option<u64> {
+    let v = headers.get("etag")?.to_str().ok()?;
+    u64::from_str_radix(v.trim_start_matches("W/").trim_matches('"'), 16).ok()
+}
+
+fn retry_after(headers: &HeaderMap) -> Option<Duration> {
+    headers
+        .get("retry-after")
+        .and_then(|v: &HeaderValue| v.to_str().ok())
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .map(Duration::from_secs)
+}
+
+/// The error for a non-success answer, with its problem details when it has them.
+async fn problem(response: reqwest::Response) -> ClientError {
+    let status = response.status();
+    let problem = response
+        .bytes()
+        .await
+        .ok()
+        .and_then(|b| serde_json::from_slice::<Problem>(&b).ok());
+    ClientError::Status { status, problem }
+}
+
+/// A change-feed subscription (server-sent events).
+#[derive(Debug)]
+pub struct Feed {
+    response: reqwest::Response,
+    buffer: Vec<u8>,
+    event: String,
+    data: String,
+}
+
+impl Feed {
+    /// The next event; `None` when the server closed the stream.
+    ///
+    /// # Errors
+    /// The connection failed, or an event did not decode.
+    pub async fn next(&mut self) -> Result<Option<FeedEvent>, ClientError> {
+        loop {
+            while let Some(end) = self.buffer.iter().position(|&b| b == b'\n') {
+                let line: Vec<u8> = self.buffer.drain(..=end).collect();
+                let line = String::from_utf8_lossy(&line);
+                let line = line.trim_end_matches(['\r', '\n']);
+                if line.is_empty() {
+                    // End of an event.
+                    let (event, data) = (
+                        std::mem::take(&mut self.event),
+                        std::mem::take(&mut self.data),
+                    );
+                    if let Some(e) = parse_event(&event, &data)? {
+                        return Ok(Some(e));
+                    }
+                } else if let Some(v) = line.strip_prefix("event:") {
+                    self.event = v.trim().to_string();
+                } else if let Some(v) = line.strip_prefix("data:") {
+                    if !self.data.is_empty() {
+                        self.data.push('\n');
+                    }
+                    self.data.push_str(v.trim_start());
+                }
+                // `id:` repeats the commit's version; comments (`:`) keep the line alive.
+            }
+            match self.response.chunk().await? {
+                Some(chunk) => self.buffer.extend_from_slice(&chunk),
+                None => return Ok(None),
+            }
+        }
+    }
+}
+
+fn parse_event(event: &str, data: &str) -> Result<Option<FeedEvent>, ClientError> {
+    #[derive(serde::Deserialize)]
+    struct Hello {
+        version: u64,
+    }
+    #[derive(serde::Deserialize)]
+    struct Resync {
+        since: u64,
+        version: u64,
+    }
+    let bad = |e: serde_json::Error| ClientError::Decode(format!("{event} event: {e}"));
+    Ok(match event {
+        "hello" => Some(FeedEvent::Hello {
+            version: serde_json::from_str::<Hello>(data).map_err(bad)?.version,
+        }),
+        "commit" => Some(FeedEvent::Commit(serde_json::from_str(data).map_err(bad)?)),
+        "resync" => {
+            let r: Resync = serde_json::from_str(data).map_err(bad)?;
+            Some(FeedEvent::Resync {
+                since: r.since,
+                version: r.version,
+            })
+        }
+        _ => None,
+    })
+}
