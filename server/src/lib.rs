@@ -9,6 +9,7 @@
 //! - [`icvg`]: primitives of the volume algebra (`spec/icvg.md`).
 //! - [`generate`]: synthetic data sets (ellipsoid, Perlin-noise world).
 //! - [`catalog`]: the volumes a server serves.
+//! - [`voxelize`]: meshes into volumes (solid voxelization by parity, density, conservative fills).
 //! - [`volume`]: one served volume: current version, single writer, history, change feed.
 //! - [`http`]: the axum router, thin handlers, errors as responses.
 //! - [`cli`]: the `isovox` subcommands.
@@ -21,3 +22,4 @@ pub mod icvg;
 pub mod mesh;
 pub mod store;
 pub mod volume;
+pub mod voxelize;

@@ -41,6 +41,9 @@ pub enum BenchCommand {
     /// The server's resident memory (RssAnon, beyond the page cache) while a client walks
     /// every brick of a 2048^3 world once in random order.
     Memory(super::bench_memory::MemoryBenchArgs),
+    /// Solid voxelization of a ~300k-triangle closed model into 512^3 and 1024^3, next to the
+    /// paper's GPU figures.
+    Voxelize(super::bench_voxelize::VoxelizeBenchArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -72,6 +75,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Http(a) => super::bench_http::run_bench(a),
         BenchCommand::Edits(a) => super::bench_edits::run_bench(a),
         BenchCommand::Memory(a) => super::bench_memory::run_bench(a),
+        BenchCommand::Voxelize(a) => super::bench_voxelize::run_bench(a),
     }
 }
 

@@ -191,7 +191,7 @@ fn sniff(path: &Path) -> anyhow::Result<InputKind> {
 /// Builds `output` from `source` via a temporary file renamed into place, so an interrupted run
 /// never leaves a half-written volume under the final name. With `vod1`, the VOD 2 build is
 /// converted and removed.
-fn build_to(
+pub(crate) fn build_to(
     output: &Path,
     layout: &VolumeLayout,
     scale: [f32; 3],

@@ -7,10 +7,12 @@ mod bench_http;
 mod bench_icvg;
 mod bench_memory;
 mod bench_mesh;
+mod bench_voxelize;
 pub(crate) mod data;
 pub mod edit;
 mod mesh;
 mod serve;
+mod voxelize;
 
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
@@ -47,6 +49,8 @@ pub enum Command {
     Inspect(data::InspectArgs),
     /// Write one brick of one level, decoded (raw voxels), to a file or stdout.
     Get(data::GetArgs),
+    /// Voxelize a watertight triangle mesh (STL, OBJ, PLY, glTF/GLB) into a volume.
+    Voxelize(voxelize::VoxelizeArgs),
     /// Rewrite a file with only its head version (drops older versions and unreferenced
     /// bricks); run it on a file no server is writing (a server compacts with
     /// POST /v1/volumes/{name}/compact).
@@ -71,6 +75,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Mesh(a) => mesh::mesh(a),
         Command::Get(a) => data::get(a),
         Command::Compact(a) => data::compact(a),
+        Command::Voxelize(a) => voxelize::voxelize_cmd(a),
         Command::Bench(b) => bench::run(b),
     }
 }
