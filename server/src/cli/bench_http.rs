@@ -346,5 +346,66 @@ pub fn run_bench(a: HttpBenchArgs) -> anyhow::Result<()> {
             );
         }
     }
+    drop(_nginx);
+    mesh_tiles(&runtime, isovox_port, g)?;
+    Ok(())
+}
+
+/// Mesh tiles per second over every level-0 tile of the world: first cold (meshed on
+/// request), then again from the mesh cache; 8 requests in flight, compact encoding.
+fn mesh_tiles(runtime: &tokio::runtime::Runtime, port: u16, grid: [u32; 3]) -> anyhow::Result<()> {
+    let mut urls = Vec::new();
+    for z in 0..grid[2] {
+        for y in 0..grid[1] {
+            for x in 0..grid[0] {
+                urls.push(format!(
+                    "http://127.0.0.1:{port}/v1/volumes/world/meshes/0/{x}/{y}/{z}"
+                ));
+            }
+        }
+    }
+    let urls = std::sync::Arc::new(urls);
+    println!("\n### Mesh tiles (every level-0 tile of the world, 32^3 voxels each, compact encoding, 8 requests in flight)\n");
+    println!("| pass | tiles | seconds | tiles/s | MB received | errors |");
+    println!("|---|---:|---:|---:|---:|---:|");
+    for pass in ["cold (meshed on request)", "cached"] {
+        let start = std::time::Instant::now();
+        let (bytes, errors) = runtime.block_on(async {
+            let client = reqwest::Client::new();
+            let next = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+            let mut tasks = Vec::new();
+            for _ in 0..8 {
+                let (client, urls, next) = (client.clone(), urls.clone(), next.clone());
+                tasks.push(tokio::spawn(async move {
+                    let (mut bytes, mut errors) = (0usize, 0usize);
+                    loop {
+                        let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        let Some(url) = urls.get(i) else { break };
+                        match client.get(url).send().await {
+                            Ok(r) if r.status().is_success() => match r.bytes().await {
+                                Ok(b) => bytes += b.len(),
+                                Err(_) => errors += 1,
+                            },
+                            _ => errors += 1,
+                        }
+                    }
+                    (bytes, errors)
+                }));
+            }
+            let mut total = (0, 0);
+            for t in tasks {
+                let (b, e) = t.await.unwrap_or((0, 1));
+                total = (total.0 + b, total.1 + e);
+            }
+            total
+        });
+        let seconds = start.elapsed().as_secs_f64();
+        println!(
+            "| {pass} | {} | {seconds:.2} | {:.0} | {:.1} | {errors} |",
+            urls.len(),
+            urls.len() as f64 / seconds,
+            bytes as f64 / 1048576.0
+        );
+    }
     Ok(())
 }
