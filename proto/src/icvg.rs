@@ -91,6 +91,17 @@ pub enum Term {
         k: i32,
         arg: Box<Term>,
     },
+    /// Grey-value dilation: the maximum over a box of `radius` voxels around each voxel (a
+    /// cube of side 2 * radius + 1); on a binary volume, morphological dilation.
+    Dilate {
+        radius: u32,
+        arg: Box<Term>,
+    },
+    /// Grey-value erosion: the minimum over the same box.
+    Erode {
+        radius: u32,
+        arg: Box<Term>,
+    },
 }
 
 /// A box of level-0 voxels: `min` inclusive, `max` exclusive.

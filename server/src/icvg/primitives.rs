@@ -44,6 +44,14 @@ impl Box3 {
         }
     }
 
+    /// The box grown by `r` voxels on every side.
+    pub fn grow(&self, r: i64) -> Box3 {
+        Box3 {
+            min: self.min.map(|c| c - r),
+            max: self.max.map(|c| c + r),
+        }
+    }
+
     pub fn contains(&self, v: [i64; 3]) -> bool {
         (0..3).all(|a| v[a] >= self.min[a] && v[a] < self.max[a])
     }

@@ -65,6 +65,12 @@ pub enum Node {
     },
     Binary(BinaryOp, Box<CompiledTerm>, Box<CompiledTerm>),
     Unary(UnaryOp, Box<CompiledTerm>),
+    /// Dilation (max) or erosion (min) over a cube of side `2 * radius + 1`.
+    Morph {
+        dilate: bool,
+        radius: u32,
+        arg: Box<CompiledTerm>,
+    },
 }
 
 /// A term ready to evaluate, with its B-box: outside it the term is L. `None` means unbounded
@@ -336,6 +342,27 @@ impl CompiledTerm {
                     voxel_type: t,
                 })
             }
+            Term::Dilate { radius, arg } | Term::Erode { radius, arg } => {
+                let dilate = matches!(term, Term::Dilate { .. });
+                positive("morphology radius", *radius)?;
+                extent("morphology box", 2 * *radius as u64 + 1)?;
+                let a = child(arg, nodes)?;
+                // Dilation reaches `radius` beyond its argument; erosion stays inside it (the
+                // minimum over a box that leaves the argument's B-box includes an L).
+                let bbox = match (dilate, a.bbox) {
+                    (true, Some(b)) => Some(b.grow(*radius as i64)),
+                    (_, b) => b,
+                };
+                Ok(CompiledTerm {
+                    node: Node::Morph {
+                        dilate,
+                        radius: *radius,
+                        arg: Box::new(a),
+                    },
+                    bbox,
+                    voxel_type: t,
+                })
+            }
             Term::AddScalar { k, arg } => {
                 if k.unsigned_abs() > t.high() as u32 {
                     return Err(TermError(format!(
@@ -379,6 +406,23 @@ impl CompiledTerm {
             }
             Node::Binary(op, a, b) => op.apply(a.sample(v), b.sample(v), t),
             Node::Unary(op, a) => op.apply(a.sample(v), t),
+            Node::Morph {
+                dilate,
+                radius,
+                arg,
+            } => {
+                let r = *radius as i64;
+                let mut best = if *dilate { t.low() } else { t.high() };
+                for z in v[2] - r..=v[2] + r {
+                    for y in v[1] - r..=v[1] + r {
+                        for x in v[0] - r..=v[0] + r {
+                            let s = arg.sample([x, y, z]);
+                            best = if *dilate { best.max(s) } else { best.min(s) };
+                        }
+                    }
+                }
+                best
+            }
         }
     }
 
@@ -395,6 +439,8 @@ impl CompiledTerm {
             Node::Volume { .. } => None,
             Node::Binary(op, x, y) => Some(op.apply(x.constant_over(b)?, y.constant_over(b)?, t)),
             Node::Unary(op, x) => Some(op.apply(x.constant_over(b)?, t)),
+            // Constant over the box grown by the radius: the filter of a constant.
+            Node::Morph { radius, arg, .. } => arg.constant_over(&b.grow(*radius as i64)),
         }
     }
 
@@ -430,6 +476,16 @@ impl CompiledTerm {
                 for o in out.iter_mut() {
                     *o = op.apply(*o, t);
                 }
+            }
+            Node::Morph {
+                dilate,
+                radius,
+                arg,
+            } => {
+                let grown = b.grow(*radius as i64);
+                let mut field = vec![0u16; grown.voxels() as usize];
+                arg.eval(&grown, &mut field)?;
+                morph_crop(&mut field, &grown, b, *radius as usize, *dilate, out);
             }
         }
         Ok(())
@@ -593,4 +649,41 @@ fn read_volume_box(
         }
     }
     Ok(())
+}
+
+/// Separable grey-value morphology: the max (dilate) or min (erode) over a cube of side
+/// `2r + 1`, as three one-dimensional passes (x, then y, then z) over `field` (the values of
+/// `grown`, which is `b` grown by `r`), written for the voxels of `b` into `out`.
+fn morph_crop(field: &mut [u16], grown: &Box3, b: &Box3, r: usize, dilate: bool, out: &mut [u16]) {
+    let n = [0, 1, 2].map(|a| (grown.max[a] - grown.min[a]) as usize);
+    let pick = |a: u16, c: u16| if dilate { a.max(c) } else { a.min(c) };
+    let stride = [1, n[0], n[0] * n[1]];
+    let mut line = Vec::new();
+    for axis in 0..3 {
+        let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
+        for j in 0..n[v] {
+            for i in 0..n[u] {
+                let base = i * stride[u] + j * stride[v];
+                line.clear();
+                line.extend((0..n[axis]).map(|k| field[base + k * stride[axis]]));
+                for k in 0..n[axis] {
+                    let lo = k.saturating_sub(r);
+                    let hi = (k + r).min(n[axis] - 1);
+                    let mut best = line[lo];
+                    for &x in &line[lo + 1..=hi] {
+                        best = pick(best, x);
+                    }
+                    field[base + k * stride[axis]] = best;
+                }
+            }
+        }
+    }
+    let size = [0, 1, 2].map(|a| (b.max[a] - b.min[a]) as usize);
+    for z in 0..size[2] {
+        for y in 0..size[1] {
+            let from = ((z + r) * n[1] + y + r) * n[0] + r;
+            let to = (z * size[1] + y) * size[0];
+            out[to..to + size[0]].copy_from_slice(&field[from..from + size[0]]);
+        }
+    }
 }
