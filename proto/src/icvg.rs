@@ -91,6 +91,14 @@ pub enum Term {
         k: i32,
         arg: Box<Term>,
     },
+    /// An uploaded watertight mesh (`POST /v1/meshes`, named by its content hash), placed so
+    /// that model point p lands at voxel `p * scale + offset`, as a density (2x2x2 samples per
+    /// voxel: H inside, L outside, the fraction inside near the surface).
+    Mesh {
+        hash: String,
+        offset: [f64; 3],
+        scale: f64,
+    },
     /// Grey-value dilation: the maximum over a box of `radius` voxels around each voxel (a
     /// cube of side 2 * radius + 1); on a binary volume, morphological dilation.
     Dilate {

@@ -1106,7 +1106,7 @@ async fn metrics_count_response_bytes() {
 // 5. OpenAPI.
 
 /// Every route the router serves, with its method (from `server/src/http/mod.rs`).
-const ROUTES: [(&str, &str); 14] = [
+const ROUTES: [(&str, &str); 15] = [
     ("/healthz", "get"),
     ("/metrics", "get"),
     ("/openapi.json", "get"),
@@ -1121,6 +1121,7 @@ const ROUTES: [(&str, &str); 14] = [
     ("/v1/volumes/{name}/compact", "post"),
     ("/v1/volumes/{name}/changes", "get"),
     ("/v1/volumes/{name}/events", "get"),
+    ("/v1/meshes", "post"),
 ];
 
 #[tokio::test]

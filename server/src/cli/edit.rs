@@ -36,6 +36,13 @@ pub struct DirVolumes {
 }
 
 impl VolumeResolver for DirVolumes {
+    /// Meshes uploaded to a server on this directory (`DIR/meshes/HASH.EXT`).
+    fn mesh(&self, hash: u64) -> Result<Arc<crate::voxelize::solid::TriMesh>, TermError> {
+        crate::voxelize::store::MeshStore::new(&self.dir.join("meshes"))
+            .get(hash)
+            .map_err(TermError)
+    }
+
     fn resolve(&self, name: &str) -> Result<Arc<Snapshot>, TermError> {
         if !crate::catalog::valid_name(name) {
             return Err(TermError(format!("{name:?} is not a volume name")));

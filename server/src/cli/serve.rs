@@ -174,6 +174,7 @@ pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
             edit_rate: a.edit_rate,
             edit_queue: a.edit_queue,
             max_edit_voxels: a.max_edit_voxels,
+            mesh_dir: Some(a.data.join("meshes")),
             ..ServerConfig::default()
         };
         let state = AppState::with_config(catalog, config);

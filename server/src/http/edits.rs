@@ -8,6 +8,8 @@ use crate::icvg::edit::{CheckpointPolicy, Edit};
 use crate::icvg::term::{TermError, VolumeResolver};
 use crate::store::Snapshot;
 use crate::volume::{EditError, FeedItem, LiveVolume};
+use crate::voxelize::solid::TriMesh;
+use crate::voxelize::store::{MeshInfo, MeshStore};
 use axum::body::Body;
 use axum::extract::rejection::{PathRejection, QueryRejection};
 use axum::extract::{Path, Query, Request, State};
@@ -49,8 +51,8 @@ pub async fn require_token(
     next.run(request).await
 }
 
-/// Volumes named in edit terms: the catalog's, at their current version.
-struct CatalogVolumes(Arc<Catalog>);
+/// Volumes named in edit terms: the catalog's, at their current version; meshes: the uploads.
+struct CatalogVolumes(Arc<Catalog>, Option<Arc<MeshStore>>);
 
 impl VolumeResolver for CatalogVolumes {
     fn resolve(&self, name: &str) -> Result<Arc<Snapshot>, TermError> {
@@ -59,6 +61,56 @@ impl VolumeResolver for CatalogVolumes {
             .map(|v| v.head())
             .ok_or_else(|| TermError(format!("no volume named {name:?}")))
     }
+
+    fn mesh(&self, hash: u64) -> Result<Arc<TriMesh>, TermError> {
+        match &self.1 {
+            Some(store) => store.get(hash).map_err(TermError),
+            None => Err(TermError("this server keeps no meshes".into())),
+        }
+    }
+}
+
+/// Largest mesh upload.
+const MAX_MESH_BODY: usize = 256 << 20;
+
+#[derive(Debug, Deserialize)]
+pub struct MeshQuery {
+    pub format: Option<String>,
+}
+
+/// `POST /v1/meshes?format=stl|obj|ply|glb`: keeps a watertight model by its content hash,
+/// for `mesh` leaves of edit terms.
+pub async fn upload_mesh(
+    State(state): State<AppState>,
+    query: Result<Query<MeshQuery>, QueryRejection>,
+    headers: HeaderMap,
+    body: Body,
+) -> Result<Json<MeshInfo>, ApiError> {
+    let token = state
+        .config
+        .tokens
+        .authorize(&headers, Scope::Write)?
+        .clone();
+    let Query(query) = query.map_err(|e| ApiError::BadRequest(format!("malformed query: {e}")))?;
+    let store = state
+        .mesh_store
+        .clone()
+        .ok_or_else(|| ApiError::NotFound("this server keeps no meshes".into()))?;
+    let format = query
+        .format
+        .ok_or_else(|| {
+            ApiError::BadRequest("give the model's ?format= (stl, obj, ply or glb)".into())
+        })?
+        .to_ascii_lowercase();
+    let body = axum::body::to_bytes(body, MAX_MESH_BODY)
+        .await
+        .map_err(|_| ApiError::TooLarge(format!("a model takes at most {MAX_MESH_BODY} bytes")))?;
+    let info = tokio::task::spawn_blocking(move || store.store(&body, &format))
+        .await
+        .map_err(|e| ApiError::Internal(format!("mesh task failed: {e}")))?
+        .map_err(ApiError::Unprocessable)?;
+    tracing::info!(token = %token.name, hash = %format!("{:016x}", info.hash), triangles = info.triangles, "mesh stored");
+    Ok(Json(info))
 }
 
 /// `If-Match: N`, `"N"` or `W/"N"`.
@@ -126,7 +178,7 @@ pub async fn edit(
         &request,
         layout.voxel_type(),
         &state.config.term_limits,
-        &CatalogVolumes(state.catalog.clone()),
+        &CatalogVolumes(state.catalog.clone(), state.mesh_store.clone()),
     )
     .map_err(|e| ApiError::Unprocessable(format!("invalid edit: {}", e.0)))?;
     let voxels = edit.evaluated_voxels(&layout);

@@ -60,6 +60,8 @@ pub struct ServerConfig {
     /// Level-0 voxels one edit may evaluate; beyond it 422.
     pub max_edit_voxels: u64,
     pub term_limits: crate::icvg::term::TermLimits,
+    /// Where uploaded meshes are kept (`POST /v1/meshes`); none: uploads are refused.
+    pub mesh_dir: Option<std::path::PathBuf>,
 }
 
 impl Default for ServerConfig {
@@ -74,6 +76,7 @@ impl Default for ServerConfig {
             edit_queue: 64,
             max_edit_voxels: 1 << 28,
             term_limits: crate::icvg::term::TermLimits::default(),
+            mesh_dir: None,
         }
     }
 }
@@ -110,6 +113,8 @@ pub struct Shared {
     pub edit_rate: Arc<auth::RateLimiter>,
     /// Decoded and transcoded brick bodies by content hash.
     pub bodies: Arc<bodies::BodyCache>,
+    /// Uploaded meshes for `mesh` leaves of edit terms.
+    pub mesh_store: Option<Arc<crate::voxelize::store::MeshStore>>,
 }
 
 impl AppState {
@@ -137,6 +142,10 @@ impl AppState {
             constants: Arc::default(),
             edit_rate: Arc::new(auth::RateLimiter::new(config.edit_rate)),
             bodies: Arc::new(bodies::BodyCache::new(config.brick_cache_bytes)),
+            mesh_store: config
+                .mesh_dir
+                .as_deref()
+                .map(|d| Arc::new(crate::voxelize::store::MeshStore::new(d))),
             config: Arc::new(config),
         }))
     }
@@ -187,6 +196,7 @@ pub const ROUTES: &[&str] = &[
     "/v1/volumes/{name}/changes",
     "/v1/volumes/{name}/events",
     "/v1/volumes/{name}/compact",
+    "/v1/meshes",
 ];
 
 /// The router, with its layers: request spans, CORS for browser clients, metrics, a body limit,
@@ -210,6 +220,7 @@ pub fn app(state: AppState) -> Router {
     let write_routes = Router::new()
         .route("/v1/volumes/{name}/edits", write(edits::edit))
         .route("/v1/volumes/{name}/compact", write(edits::compact))
+        .route("/v1/meshes", write(edits::upload_mesh))
         .route("/v1/volumes/{name}/events", read(edits::events));
     let mut router = Router::new()
         .route("/healthz", read(handlers::healthz))

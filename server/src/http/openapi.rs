@@ -165,6 +165,13 @@ fn write_side(name: Value) -> (Value, Value) {
             "parameters": [name],
             "responses": merge(json!({"200": {"description": "what compaction did", "content": json_body("CompactResponse")}}),
                 problem_responses(&["400", "401", "403", "404", "500", "503"]))}},
+        "/v1/meshes": {"post": {
+            "summary": "keep a watertight model (the file's bytes) by its content hash, for mesh leaves of edit terms",
+            "security": bearer,
+            "parameters": [query_param("format", json!({"type": "string", "enum": ["stl", "obj", "ply", "glb"]}), "the model's format (required)")],
+            "requestBody": {"required": true, "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}},
+            "responses": merge(json!({"200": {"description": "the stored mesh", "content": json_body("MeshInfo")}}),
+                problem_responses(&["400", "401", "403", "404", "413", "422", "500"]))}},
         "/v1/volumes/{name}/changes": {"get": {
             "summary": "the versions after `since`, oldest first, with their changed bricks per level",
             "parameters": [name, since.clone(), query_param("limit", json!({"type": "integer", "minimum": 1, "maximum": 10000}), "most versions listed (default 1000)")],
@@ -184,6 +191,9 @@ fn write_side(name: Value) -> (Value, Value) {
             "properties": {"version": {"type": "integer"}, "previous": {"type": "integer"}, "changed": changed,
                 "evaluated": {"type": "integer"}, "new_records": {"type": "integer"}, "checkpoint": {"type": "boolean"}, "elapsed_us": {"type": "integer"}}},
         "ChangeEvent": event,
+        "MeshInfo": {"type": "object", "required": ["hash", "triangles", "vertices", "min", "max"],
+            "properties": {"hash": {"type": "string"}, "triangles": {"type": "integer"}, "vertices": {"type": "integer"},
+                "min": {"type": "array", "items": {"type": "number"}}, "max": {"type": "array", "items": {"type": "number"}}}},
         "ChangeList": {"type": "object", "required": ["since", "head", "oldest", "more", "changes"],
             "properties": {"since": {"type": "integer"}, "head": {"type": "integer"}, "oldest": {"type": "integer"}, "more": {"type": "boolean"},
                 "changes": {"type": "array", "items": {"$ref": "#/components/schemas/ChangeEvent"}}}},

@@ -41,6 +41,16 @@ pub trait VolumeResolver {
     /// # Errors
     /// No volume of that name.
     fn resolve(&self, name: &str) -> Result<Arc<Snapshot>, TermError>;
+
+    /// The uploaded mesh with this content hash (for `mesh` leaves).
+    ///
+    /// # Errors
+    /// No such mesh, or no mesh store here.
+    fn mesh(&self, hash: u64) -> Result<Arc<crate::voxelize::solid::TriMesh>, TermError> {
+        Err(TermError(format!(
+            "mesh {hash:016x}: meshes are not available here"
+        )))
+    }
 }
 
 /// A resolver that knows no volume.
@@ -65,6 +75,11 @@ pub enum Node {
     },
     Binary(BinaryOp, Box<CompiledTerm>, Box<CompiledTerm>),
     Unary(UnaryOp, Box<CompiledTerm>),
+    /// Values sampled once into an array over `frame` (a voxelized mesh); L outside.
+    Grid {
+        frame: Box3,
+        values: Vec<u16>,
+    },
     /// Dilation (max) or erosion (min) over a cube of side `2 * radius + 1`.
     Morph {
         dilate: bool,
@@ -342,6 +357,44 @@ impl CompiledTerm {
                     voxel_type: t,
                 })
             }
+            Term::Mesh {
+                hash,
+                offset,
+                scale,
+            } => {
+                let h = (hash.len() == 16)
+                    .then(|| u64::from_str_radix(hash, 16).ok())
+                    .flatten()
+                    .ok_or_else(|| {
+                        TermError(format!("mesh hash {hash:?}: 16 hex digits expected"))
+                    })?;
+                if !(scale.is_finite() && *scale > 0.0) || offset.iter().any(|o| !o.is_finite()) {
+                    return Err(TermError(format!(
+                        "mesh {hash}: scale must be positive and finite, offset finite"
+                    )));
+                }
+                let mesh = volumes.mesh(h)?;
+                let (lo, hi) = mesh
+                    .bounds()
+                    .ok_or_else(|| TermError(format!("mesh {hash} has no triangles")))?;
+                let place = |p: [f32; 3]| -> [f64; 3] {
+                    std::array::from_fn(|a| p[a] as f64 * scale + offset[a])
+                };
+                let (a, b) = (place(lo), place(hi));
+                let min = a.map(|c| c.floor() as i64 - 1);
+                let max = b.map(|c| c.ceil() as i64 + 1);
+                for axis in 0..3 {
+                    extent("mesh", (max[axis] - min[axis]).max(0) as u64)?;
+                }
+                let frame = Box3::new(min, max);
+                let dims = [0, 1, 2].map(|i| (max[i] - min[i]) as usize);
+                let values = crate::voxelize::density_box(&mesh, min, dims, 2, t, place);
+                Ok(CompiledTerm {
+                    node: Node::Grid { frame, values },
+                    bbox: Some(frame),
+                    voxel_type: t,
+                })
+            }
             Term::Dilate { radius, arg } | Term::Erode { radius, arg } => {
                 let dilate = matches!(term, Term::Dilate { .. });
                 positive("morphology radius", *radius)?;
@@ -406,6 +459,7 @@ impl CompiledTerm {
             }
             Node::Binary(op, a, b) => op.apply(a.sample(v), b.sample(v), t),
             Node::Unary(op, a) => op.apply(a.sample(v), t),
+            Node::Grid { frame, values } => grid_value(frame, values, v, t),
             Node::Morph {
                 dilate,
                 radius,
@@ -436,7 +490,7 @@ impl CompiledTerm {
         }
         match &self.node {
             Node::Primitive(p) => constant_over(p.as_ref(), b, t),
-            Node::Volume { .. } => None,
+            Node::Volume { .. } | Node::Grid { .. } => None,
             Node::Binary(op, x, y) => Some(op.apply(x.constant_over(b)?, y.constant_over(b)?, t)),
             Node::Unary(op, x) => Some(op.apply(x.constant_over(b)?, t)),
             // Constant over the box grown by the radius: the filter of a constant.
@@ -475,6 +529,17 @@ impl CompiledTerm {
                 x.eval(b, out)?;
                 for o in out.iter_mut() {
                     *o = op.apply(*o, t);
+                }
+            }
+            Node::Grid { frame, values } => {
+                let mut i = 0;
+                for z in b.min[2]..b.max[2] {
+                    for y in b.min[1]..b.max[1] {
+                        for x in b.min[0]..b.max[0] {
+                            out[i] = grid_value(frame, values, [x, y, z], t);
+                            i += 1;
+                        }
+                    }
                 }
             }
             Node::Morph {
@@ -686,4 +751,14 @@ fn morph_crop(field: &mut [u16], grown: &Box3, b: &Box3, r: usize, dilate: bool,
             out[to..to + size[0]].copy_from_slice(&field[from..from + size[0]]);
         }
     }
+}
+
+/// A value of a sampled array over `frame`, L outside it.
+fn grid_value(frame: &Box3, values: &[u16], v: [i64; 3], t: VoxelType) -> u16 {
+    if !frame.contains(v) {
+        return t.low();
+    }
+    let n = [0, 1, 2].map(|a| (frame.max[a] - frame.min[a]) as usize);
+    let [x, y, z] = [0, 1, 2].map(|a| (v[a] - frame.min[a]) as usize);
+    values[(z * n[1] + y) * n[0] + x]
 }

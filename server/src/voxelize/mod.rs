@@ -4,6 +4,7 @@
 //!
 //! Layout:
 //! - [`load`]: STL, OBJ, PLY and glTF/GLB readers.
+//! - [`store`]: uploaded meshes by content hash, for mesh leaves of ICVG terms.
 //! - [`solid`]: bit-packed columns, XOR parity per triangle with exact centre sampling, the
 //!   conservative surface, the watertightness check.
 //!
@@ -16,6 +17,7 @@
 
 pub mod load;
 pub mod solid;
+pub mod store;
 
 use isovox_proto::VoxelType;
 use rayon::prelude::*;
@@ -252,4 +254,30 @@ fn fill_density_2(grid: &BitGrid, dims: [u32; 3], table: &[u16], t: VoxelType, o
                 }
             }
         });
+}
+
+/// The density of `mesh` placed by `to_voxel` (model point -> voxel coordinates) over the box
+/// of `dims` voxels starting at voxel `min`, one value per voxel (x fastest), sampled `s`^3
+/// times per voxel: for ICVG mesh leaves.
+pub fn density_box(
+    mesh: &TriMesh,
+    min: [i64; 3],
+    dims: [usize; 3],
+    s: usize,
+    t: VoxelType,
+    to_voxel: impl Fn([f32; 3]) -> [f64; 3] + Sync,
+) -> Vec<u16> {
+    let fine = dims.map(|d| d * s);
+    let grid = voxelize_solid(mesh, fine, |p| {
+        let v = to_voxel(p);
+        std::array::from_fn(|a| (v[a] - min[a] as f64) * s as f64)
+    });
+    let bytes = fill_values(&grid, dims.map(|d| d as u32), s, t);
+    match t {
+        VoxelType::U8 => bytes.into_iter().map(u16::from).collect(),
+        VoxelType::U16 => bytes
+            .chunks_exact(2)
+            .map(|c| u16::from_le_bytes([c[0], c[1]]))
+            .collect(),
+    }
 }
