@@ -52,9 +52,16 @@ pub fn load_model(path: &Path) -> Result<TriMesh, LoadError> {
 }
 
 fn load_stl(path: &Path) -> Result<TriMesh, LoadError> {
-    let mut file =
-        std::io::BufReader::new(std::fs::File::open(path).map_err(|e| read_err(path, e))?);
-    let stl = stl_io::read_stl(&mut file).map_err(|e| read_err(path, e))?;
+    let bytes = std::fs::read(path).map_err(|e| read_err(path, e))?;
+    // A binary STL's size is 84 + 50 n: decide by that, not by the header, which many binary
+    // files start with "solid" (stl_io would then read them as ASCII).
+    if bytes.len() >= 84 {
+        let n = u32::from_le_bytes([bytes[80], bytes[81], bytes[82], bytes[83]]) as usize;
+        if n.checked_mul(50).and_then(|b| b.checked_add(84)) == Some(bytes.len()) {
+            return Ok(binary_stl(&bytes[84..], n));
+        }
+    }
+    let stl = stl_io::read_stl(&mut std::io::Cursor::new(&bytes)).map_err(|e| read_err(path, e))?;
     Ok(TriMesh {
         positions: stl.vertices.iter().map(|v| [v[0], v[1], v[2]]).collect(),
         triangles: stl
@@ -63,6 +70,23 @@ fn load_stl(path: &Path) -> Result<TriMesh, LoadError> {
             .map(|f| f.vertices.map(|i| i as u32))
             .collect(),
     })
+}
+
+/// The triangles of a binary STL body (`n` records of 50 bytes), three vertices each.
+fn binary_stl(body: &[u8], n: usize) -> TriMesh {
+    let mut mesh = TriMesh::default();
+    for record in body.chunks_exact(50).take(n) {
+        let f = |at: usize| {
+            f32::from_le_bytes([record[at], record[at + 1], record[at + 2], record[at + 3]])
+        };
+        let base = mesh.positions.len() as u32;
+        for v in 0..3 {
+            let at = 12 + 12 * v;
+            mesh.positions.push([f(at), f(at + 4), f(at + 8)]);
+        }
+        mesh.triangles.push([base, base + 1, base + 2]);
+    }
+    mesh
 }
 
 fn load_obj(path: &Path) -> Result<TriMesh, LoadError> {
@@ -171,7 +195,14 @@ fn load_gltf(path: &Path) -> Result<TriMesh, LoadError> {
         let world = mul(parent, node.transform().matrix());
         if let Some(m) = node.mesh() {
             for prim in m.primitives() {
-                if prim.mode() != gltf::mesh::Mode::Triangles {
+                let mode = prim.mode();
+                if !matches!(
+                    mode,
+                    gltf::mesh::Mode::Triangles
+                        | gltf::mesh::Mode::TriangleStrip
+                        | gltf::mesh::Mode::TriangleFan
+                ) {
+                    // Points and lines bound no volume.
                     continue;
                 }
                 let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d[..]));
@@ -186,11 +217,34 @@ fn load_gltf(path: &Path) -> Result<TriMesh, LoadError> {
                     Some(i) => i.into_u32().collect(),
                     None => (0..count).collect(),
                 };
-                mesh.triangles.extend(
-                    indices
-                        .chunks_exact(3)
-                        .map(|t| [base + t[0], base + t[1], base + t[2]]),
-                );
+                let n = indices.len();
+                match mode {
+                    gltf::mesh::Mode::TriangleStrip => {
+                        // Every other triangle of a strip is wound the other way.
+                        for i in 0..n.saturating_sub(2) {
+                            let (a, b) = if i % 2 == 0 { (i, i + 1) } else { (i + 1, i) };
+                            mesh.triangles.push([
+                                base + indices[a],
+                                base + indices[b],
+                                base + indices[i + 2],
+                            ]);
+                        }
+                    }
+                    gltf::mesh::Mode::TriangleFan => {
+                        for i in 1..n.saturating_sub(1) {
+                            mesh.triangles.push([
+                                base + indices[0],
+                                base + indices[i],
+                                base + indices[i + 1],
+                            ]);
+                        }
+                    }
+                    _ => mesh.triangles.extend(
+                        indices
+                            .chunks_exact(3)
+                            .map(|t| [base + t[0], base + t[1], base + t[2]]),
+                    ),
+                }
             }
         }
         stack.extend(node.children().map(|c| (c, world)));

@@ -24,6 +24,9 @@ use rayon::prelude::*;
 use solid::{odd_edges, voxelize_solid, voxelize_surface, BitGrid, TriMesh};
 use std::time::{Duration, Instant};
 
+/// Most samples one voxelization may take (16 GiB of bits).
+const MAX_SAMPLES: u128 = 1 << 37;
+
 /// What a voxel's value says.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Fill {
@@ -108,10 +111,13 @@ pub struct Report {
 /// No triangles, a size out of range, or (unless `allow_open`) a mesh that is not watertight.
 pub fn voxelize(mesh: &TriMesh, options: &Options) -> Result<Voxelized, VoxelizeError> {
     let (lo, hi) = mesh.bounds().ok_or(VoxelizeError::Empty)?;
-    if !(1..=4096).contains(&options.size) || !(1..=4).contains(&options.supersample) {
+    if !(1..=4096).contains(&options.size)
+        || !(1..=4).contains(&options.supersample)
+        || options.padding > 1024
+    {
         return Err(VoxelizeError::Invalid(format!(
-            "size must be in 1..=4096 and supersample in 1..=4 (got {} and {})",
-            options.size, options.supersample
+            "size must be in 1..=4096, supersample in 1..=4 and padding at most 1024 (got {}, {} and {})",
+            options.size, options.supersample, options.padding
         )));
     }
     if !options.allow_open {
@@ -138,6 +144,18 @@ pub fn voxelize(mesh: &TriMesh, options: &Options) -> Result<Voxelized, Voxelize
         _ => 1,
     };
     let fine = dims.map(|d| d as usize * s);
+    // One bit per sample: refuse grids whose bits alone would not fit in memory.
+    let samples: u128 = fine.iter().map(|&d| d as u128).product();
+    if samples > MAX_SAMPLES {
+        return Err(VoxelizeError::Invalid(format!(
+            "{}x{}x{} samples would need {} GiB of bits; the limit is {} GiB (lower --size or --supersample)",
+            fine[0],
+            fine[1],
+            fine[2],
+            samples / 8 >> 30,
+            MAX_SAMPLES / 8 >> 30
+        )));
+    }
     let to_fine = |p: [f32; 3]| -> [f64; 3] {
         std::array::from_fn(|a| (p[a] as f64 - origin[a]) / voxel_size * s as f64)
     };

@@ -149,11 +149,13 @@ struct Projected {
     y: [i64; 3],
     z: [f64; 3],
     /// Twice the signed projected area, > 0 (counter-clockwise).
-    area2: i64,
+    area2: i128,
 }
 
-fn edge(ax: i64, ay: i64, bx: i64, by: i64, px: i64, py: i64) -> i64 {
-    (bx - ax) * (py - ay) - (by - ay) * (px - ax)
+/// Twice the signed area of (a, b, p), exact: in i128, so triangles spanning any number of
+/// voxels cannot overflow (i64 products overflow past about 46,000 voxels).
+fn edge(ax: i64, ay: i64, bx: i64, by: i64, px: i64, py: i64) -> i128 {
+    (bx - ax) as i128 * (py - ay) as i128 - (by - ay) as i128 * (px - ax) as i128
 }
 
 /// Whether an edge with direction (dx, dy) owns the points on it (see the module docs).
@@ -229,7 +231,7 @@ pub fn voxelize_solid(
             };
             for x in x0..=x1 {
                 let px = x as i64 * ONE + HALF;
-                let mut w = [0i64; 3];
+                let mut w = [0i128; 3];
                 let mut inside = true;
                 for (e, we) in w.iter_mut().enumerate() {
                     let (a, b) = ((e + 1) % 3, (e + 2) % 3);
