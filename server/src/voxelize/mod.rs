@@ -152,8 +152,8 @@ pub fn voxelize(mesh: &TriMesh, options: &Options) -> Result<Voxelized, Voxelize
             fine[0],
             fine[1],
             fine[2],
-            samples / 8 >> 30,
-            MAX_SAMPLES / 8 >> 30
+            (samples / 8) >> 30,
+            (MAX_SAMPLES / 8) >> 30
         )));
     }
     let to_fine = |p: [f32; 3]| -> [f64; 3] {
