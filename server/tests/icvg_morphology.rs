@@ -154,7 +154,11 @@ fn an_edit_dilates_a_stored_volume() {
         seed ^= seed >> 7;
         seed ^= seed << 17;
         // Sparse specks of varied values.
-        *v = if seed.is_multiple_of(23) { (seed >> 8) as u8 } else { 0 };
+        *v = if seed.is_multiple_of(23) {
+            (seed >> 8) as u8
+        } else {
+            0
+        };
     }
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("v.vod");

@@ -390,11 +390,21 @@ impl Snapshot {
             )
         })?;
         let (h, record) = CommitHeader::decode(record_bytes, commit_at)?;
-        if h.checkpoint != 0
-            || h.parent != self.commit_offset
-            || self.version.checked_add(1) != Some(h.version)
-        {
-            return Snapshot::load(self.header.clone(), map, commit_at);
+        let child =
+            h.parent == self.commit_offset && self.version.checked_add(1) == Some(h.version);
+        if h.checkpoint != 0 || !child {
+            let snap = Snapshot::load(self.header.clone(), map.clone(), commit_at)?;
+            // A child that wrote a checkpoint still finds what its parents held by hash.
+            if let (true, Some(parent_hashes)) = (child, self.by_hash.get()) {
+                let mut hashes = parent_hashes.child();
+                let voxel_type = self.layout().voxel_type();
+                for (_, raw) in CommitHeader::changes(record) {
+                    let entry = NodeEntry::decode(raw, voxel_type, snap.map.bytes().len() as u64)?;
+                    hashes.insert(snap.entry_hash(entry)?, entry);
+                }
+                let _ = snap.by_hash.set(hashes);
+            }
+            return Ok(snap);
         }
         let layout = self.layout();
         let mut overlay = self.overlay.clone();
