@@ -8,6 +8,12 @@
 //!   carry the server's problem details; [`Feed`], the change feed (server-sent events).
 
 pub mod client;
+pub mod streamer;
 
 pub use client::{Brick, Client, ClientError, Feed, FeedEvent, Observer, RetryPolicy};
 pub use isovox_proto as proto;
+pub use streamer::{
+    select_tiles, StreamEvent, Streamer, StreamerConfig, StreamerStats, TileData, TileKind,
+};
+
+pub mod load;

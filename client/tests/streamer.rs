@@ -1,0 +1,1232 @@
+#![allow(clippy::unwrap_used)] // tests fail loudly on purpose
+//! The camera-distance streamer against a real server (the server's library, run in its own
+//! runtime on a real socket): its selection against an independent computation, camera moves,
+//! content deduplication, live updates from another client's edits (bricks and mesh tiles), and
+//! catching up after the server went away and came back with new versions.
+//!
+//! Golden values come from elsewhere than the code under test: the selection from a brute force
+//! over every tile of every level written here from the rule's statement; brick content and
+//! hashes from the VOD 2 file itself; mesh tiles from the server's offline mesher on the file;
+//! what an edit changed from the server's answer (or the offline edit's outcome).
+
+use isovox_client::proto::api::VolumeInfo;
+use isovox_client::proto::icvg::{EditRequest, Term};
+use isovox_client::proto::mesh::{decode_compact, encode_compact, Mesh};
+use isovox_client::proto::{BrickKey, VolumeLayout, VoxelType};
+use isovox_client::{
+    select_tiles, Client, Observer, StreamEvent, Streamer, StreamerConfig, TileData, TileKind,
+};
+use isovox_server::catalog::Catalog;
+use isovox_server::generate::WorldSource;
+use isovox_server::http::auth::Tokens;
+use isovox_server::http::{run, AppState, ServerConfig};
+use isovox_server::store::{build_vod2, BuildOptions, Vod2};
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use tokio::sync::mpsc::Receiver;
+
+const TOKEN: &str = "0123456789abcdef0123";
+const NAME: &str = "w";
+
+// ---------------------------------------------------------------------------------------------
+// The server
+// ---------------------------------------------------------------------------------------------
+
+/// A world volume `w.vod` in a fresh directory.
+struct World {
+    dir: tempfile::TempDir,
+    path: PathBuf,
+    source: WorldSource,
+}
+
+fn world(dims: [u32; 3], brick: u32, scale: [f32; 3]) -> World {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join(format!("{NAME}.vod"));
+    let layout = VolumeLayout::new(dims, brick, VoxelType::U8).unwrap();
+    let source = WorldSource::new(layout.clone(), 3);
+    build_vod2(&path, &layout, scale, &source, &BuildOptions::default()).unwrap();
+    World { dir, path, source }
+}
+
+/// `isovox serve` in-process: the server's library in its own runtime (its own threads), on a
+/// real socket. Stopping it shuts that runtime down, which closes every connection at once, as
+/// a killed process would.
+struct TestServer {
+    base: String,
+    addr: SocketAddr,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl TestServer {
+    /// Serves every volume of `dir` on `addr` (an ephemeral port when `None`), with one write
+    /// token.
+    fn start(dir: &Path, addr: Option<SocketAddr>) -> TestServer {
+        let dir = dir.to_path_buf();
+        let (addr_tx, addr_rx) = std::sync::mpsc::channel();
+        let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+        let thread = std::thread::spawn(move || {
+            let rt = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .enable_all()
+                .build()
+                .unwrap();
+            rt.block_on(async move {
+                let socket = tokio::net::TcpSocket::new_v4().unwrap();
+                socket.set_reuseaddr(true).unwrap();
+                socket
+                    .bind(addr.unwrap_or_else(|| "127.0.0.1:0".parse().unwrap()))
+                    .unwrap();
+                let listener = socket.listen(1024).unwrap();
+                addr_tx.send(listener.local_addr().unwrap()).unwrap();
+                let config = ServerConfig {
+                    tokens: Tokens::parse(&format!("t {TOKEN} write")).unwrap(),
+                    ..ServerConfig::default()
+                };
+                let state = AppState::with_config(Catalog::open_dir(&dir).unwrap(), config);
+                tokio::select! {
+                    r = run(listener, state, std::future::pending()) => r.unwrap(),
+                    _ = stop_rx => {}
+                }
+            });
+            rt.shutdown_timeout(Duration::from_secs(10));
+        });
+        let addr = addr_rx.recv().unwrap();
+        TestServer {
+            base: format!("http://{addr}"),
+            addr,
+            stop: Some(stop_tx),
+            thread: Some(thread),
+        }
+    }
+
+    fn stop(&mut self) {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        if let Some(t) = self.thread.take() {
+            t.join().unwrap();
+        }
+    }
+}
+
+impl Drop for TestServer {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+/// Counts a client's HTTP exchanges by route.
+#[derive(Debug, Default)]
+struct Counter(Mutex<HashMap<&'static str, u64>>);
+
+impl Observer for Counter {
+    fn exchange(&self, route: &'static str, _: Result<u16, &str>, _: Duration, _: u64) {
+        *self.0.lock().unwrap().entry(route).or_default() += 1;
+    }
+}
+
+impl Counter {
+    fn snapshot(&self) -> HashMap<&'static str, u64> {
+        self.0.lock().unwrap().clone()
+    }
+
+    /// Exchanges of `route` since `before`.
+    fn since(&self, before: &HashMap<&'static str, u64>, route: &str) -> u64 {
+        let now = self.snapshot();
+        now.get(route).copied().unwrap_or(0) - before.get(route).copied().unwrap_or(0)
+    }
+}
+
+fn counted_client(base: &str) -> (Client, Arc<Counter>) {
+    let counter = Arc::new(Counter::default());
+    let client = Client::new(base).unwrap().with_observer(counter.clone());
+    (client, counter)
+}
+
+/// Drains events until the streamer is idle at `version` or later (for the current camera).
+async fn settle(s: &Streamer, rx: &mut Receiver<StreamEvent>, version: u64) -> Vec<StreamEvent> {
+    let mut out = Vec::new();
+    let wait = s.wait_version(version);
+    tokio::pin!(wait);
+    let deadline = tokio::time::sleep(Duration::from_secs(120));
+    tokio::pin!(deadline);
+    loop {
+        tokio::select! {
+            biased;
+            Some(e) = rx.recv() => out.push(e),
+            () = &mut wait => break,
+            () = &mut deadline => panic!(
+                "the streamer did not settle at version {version} within 120 s; stats {:?}, last events {:?}",
+                s.stats(),
+                out.iter().rev().take(5).collect::<Vec<_>>()
+            ),
+        }
+    }
+    while let Ok(e) = rx.try_recv() {
+        out.push(e);
+    }
+    out
+}
+
+fn ready_keys(events: &[StreamEvent]) -> Vec<BrickKey> {
+    events
+        .iter()
+        .filter_map(|e| match e {
+            StreamEvent::Ready { key, .. } => Some(*key),
+            _ => None,
+        })
+        .collect()
+}
+
+fn dropped_keys(events: &[StreamEvent]) -> Vec<BrickKey> {
+    events
+        .iter()
+        .filter_map(|e| match e {
+            StreamEvent::Dropped { key } => Some(*key),
+            _ => None,
+        })
+        .collect()
+}
+
+fn stale_keys(events: &[StreamEvent]) -> Vec<BrickKey> {
+    events
+        .iter()
+        .filter_map(|e| match e {
+            StreamEvent::Stale { key, .. } => Some(*key),
+            _ => None,
+        })
+        .collect()
+}
+
+/// The keys as a set, asserting none appears twice.
+fn once(keys: &[BrickKey], what: &str) -> BTreeSet<BrickKey> {
+    let set: BTreeSet<BrickKey> = keys.iter().copied().collect();
+    assert_eq!(set.len(), keys.len(), "a key {what} twice");
+    set
+}
+
+// ---------------------------------------------------------------------------------------------
+// The selection, computed independently
+// ---------------------------------------------------------------------------------------------
+
+/// Distance (f64) from `camera` to the box of tile (level, p): the brick's cell, `brick * 2^level`
+/// level-0 voxels per side, times the voxel scale.
+fn box_distance(info: &VolumeInfo, level: usize, p: [u32; 3], camera: [f32; 3]) -> f64 {
+    let span = info.brick as f64 * (1u64 << level) as f64;
+    let mut d2 = 0.0;
+    for a in 0..3 {
+        let s = info.voxel_scale[a] as f64;
+        let lo = p[a] as f64 * span * s;
+        let hi = (p[a] as f64 + 1.0) * span * s;
+        let c = camera[a] as f64;
+        let d = (lo - c).max(0.0).max(c - hi);
+        d2 += d * d;
+    }
+    d2.sqrt()
+}
+
+/// The spherical detail bias by brute force over every tile of every level: with radii
+/// r0 < ... < r(n-1), a tile of level j > 0 is refined (replaced by its children) when j > n or
+/// its box lies within r(j-1) of the camera; a tile is selected when it is not refined and every
+/// tile above it (its ancestors, up to the single root) is.
+fn expected_set(info: &VolumeInfo, camera: [f32; 3], radii: &[f32]) -> BTreeSet<BrickKey> {
+    let n = radii.len();
+    let top = info.levels.len() - 1;
+    let refined = |level: usize, p: [u32; 3]| {
+        level > n || (level > 0 && box_distance(info, level, p, camera) <= radii[level - 1] as f64)
+    };
+    let mut out = BTreeSet::new();
+    for level in 0..=top {
+        let g = info.levels[level].grid;
+        for z in 0..g[2] {
+            for y in 0..g[1] {
+                for x in 0..g[0] {
+                    let p = [x, y, z];
+                    let ancestors_refined =
+                        (level + 1..=top).all(|j| refined(j, p.map(|c| c >> (j - level))));
+                    if !refined(level, p) && ancestors_refined {
+                        out.insert(BrickKey {
+                            level: level as u8,
+                            x,
+                            y,
+                            z,
+                        });
+                    }
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Every level-0 brick is covered by exactly one selected tile.
+fn assert_covers_once(info: &VolumeInfo, set: &BTreeSet<BrickKey>) {
+    let g = info.levels[0].grid;
+    for z in 0..g[2] {
+        for y in 0..g[1] {
+            for x in 0..g[0] {
+                let covering = (0..info.levels.len())
+                    .filter(|&l| {
+                        set.contains(&BrickKey {
+                            level: l as u8,
+                            x: x >> l,
+                            y: y >> l,
+                            z: z >> l,
+                        })
+                    })
+                    .count();
+                assert_eq!(
+                    covering, 1,
+                    "level-0 brick {x},{y},{z} covered {covering} times"
+                );
+            }
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// 1. The selected set, and the streamed bricks
+// ---------------------------------------------------------------------------------------------
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn selection_matches_independent_computation_and_streams_the_file_bricks() {
+    // Extents in world units: 64 x 48 x 96; grids 16x8x12, 8x4x6, 4x2x3, 2x1x2, 1x1x1.
+    let w = world([128, 64, 96], 8, [0.5, 0.75, 1.0]);
+    let server = TestServer::start(w.dir.path(), None);
+    let (client, counter) = counted_client(&server.base);
+    let info = client.volume(NAME).await.unwrap();
+    assert_eq!(info.levels.len(), 5);
+
+    let cases: Vec<([f32; 3], Vec<f32>)> = vec![
+        ([10.3, 20.1, 30.7], vec![9.5, 21.3, 40.2, 80.9]),
+        ([-20.2, 5.5, 50.1], vec![12.1, 30.3]),
+        ([61.7, 47.1, 3.3], vec![4.1, 17.9, 33.3]),
+        ([33.3, 100.7, 48.9], vec![]),
+        ([200.0, -50.0, 400.0], vec![5.0, 10.0, 20.0, 40.0]),
+    ];
+    for (camera, radii) in &cases {
+        let expected = expected_set(&info, *camera, radii);
+        let got: Vec<BrickKey> = select_tiles(&info, *camera, radii);
+        assert!(got.windows(2).all(|w| w[0] < w[1]), "sorted, no duplicates");
+        assert_eq!(
+            got.iter().copied().collect::<BTreeSet<_>>(),
+            expected,
+            "camera {camera:?} radii {radii:?}"
+        );
+        assert_covers_once(&info, &expected);
+    }
+    // The shapes the cases were chosen for.
+    assert_eq!(
+        select_tiles(&info, cases[3].0, &cases[3].1).len(),
+        16 * 8 * 12
+    );
+    assert_eq!(
+        select_tiles(&info, cases[4].0, &cases[4].1),
+        vec![BrickKey {
+            level: 4,
+            x: 0,
+            y: 0,
+            z: 0
+        }]
+    );
+    let levels_used: BTreeSet<u8> = select_tiles(&info, cases[0].0, &cases[0].1)
+        .iter()
+        .map(|k| k.level)
+        .collect();
+    assert!(
+        levels_used.len() >= 3,
+        "the first case mixes levels: {levels_used:?}"
+    );
+
+    // Radii from a screen-space error: r_k = 2^(k+1) s H / (2 tan(fov/2) e), s the largest
+    // voxel-scale component; one per level but the coarsest.
+    let fov = 50f32.to_radians();
+    let radii = StreamerConfig::radii_for_screen_error(&info, fov, 720.0, 8.0);
+    assert_eq!(radii.len(), info.levels.len() - 1);
+    for (k, r) in radii.iter().enumerate() {
+        let want = 2f64.powi(k as i32 + 1) * 1.0 * 720.0 / (2.0 * (25f64.to_radians()).tan() * 8.0);
+        assert!(
+            ((*r as f64) - want).abs() < 1e-3 * want,
+            "r_{k} = {r}, want {want}"
+        );
+    }
+    let expected = expected_set(&info, [5.0, 30.0, 5.0], &radii);
+    assert_eq!(
+        select_tiles(&info, [5.0, 30.0, 5.0], &radii),
+        expected.iter().copied().collect::<Vec<_>>()
+    );
+    let defaults = StreamerConfig::default();
+    assert_eq!(defaults.kind, TileKind::Bricks);
+    assert!(defaults.radii.is_empty());
+    assert_eq!(
+        (defaults.max_in_flight, defaults.cache_bytes),
+        (16, 256 << 20)
+    );
+    assert!(defaults.follow_edits);
+
+    // The streamer's resident set for the first case, and every delivered brick is the file's.
+    let (camera, radii) = &cases[0];
+    let expected = expected_set(&info, *camera, radii);
+    let (streamer, mut rx) = Streamer::start(
+        client.clone(),
+        NAME,
+        StreamerConfig {
+            radii: radii.clone(),
+            max_in_flight: 4,
+            ..StreamerConfig::default()
+        },
+    )
+    .await
+    .unwrap();
+    assert_eq!(streamer.info(), &info);
+    // A viewer can wait from a spawned task.
+    fn is_send<T: Send>(_: &T) {}
+    is_send(&streamer.wait_idle());
+    is_send(&streamer);
+    streamer.set_camera(*camera);
+    let start = Instant::now();
+    let events = settle(&streamer, &mut rx, 1).await;
+    let elapsed = start.elapsed();
+    assert_eq!(
+        streamer.resident().into_iter().collect::<BTreeSet<_>>(),
+        expected
+    );
+    assert_eq!(once(&ready_keys(&events), "was ready"), expected);
+    assert!(dropped_keys(&events).is_empty() && stale_keys(&events).is_empty());
+    assert!(events
+        .iter()
+        .all(|e| !matches!(e, StreamEvent::Error { .. })));
+    let vod = Vod2::open(&w.path).unwrap();
+    let snap = vod.head();
+    for e in &events {
+        if let StreamEvent::Ready {
+            key,
+            hash,
+            data,
+            version,
+        } = e
+        {
+            let TileData::Brick(bytes) = data else {
+                panic!("a brick streamer delivered a mesh");
+            };
+            assert_eq!(
+                bytes.as_ref(),
+                snap.read(*key).unwrap().as_slice(),
+                "brick {key}"
+            );
+            assert_eq!(*hash, snap.hash(*key).unwrap(), "hash of {key}");
+            assert_eq!(*version, 1);
+        }
+    }
+    let stats = streamer.stats();
+    assert_eq!(stats.resident, expected.len());
+    assert_eq!(stats.in_flight, 0);
+    assert_eq!(stats.version, 1);
+    // Every blob fetched was needed: one per distinct hash of the set.
+    let distinct: HashSet<u64> = expected.iter().map(|&k| snap.hash(k).unwrap()).collect();
+    assert_eq!(
+        counter.snapshot().get("blob").copied(),
+        Some(distinct.len() as u64)
+    );
+    assert_eq!(counter.snapshot().get("brick"), None);
+    eprintln!(
+        "streamed {} tiles ({} distinct) in {elapsed:?}: {stats:?}",
+        expected.len(),
+        distinct.len()
+    );
+    streamer.shutdown().await;
+}
+
+// ---------------------------------------------------------------------------------------------
+// 2. Moving the camera
+// ---------------------------------------------------------------------------------------------
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn moving_the_camera_drops_and_adds_the_right_tiles() {
+    let w = world([128, 64, 96], 8, [0.5, 0.75, 1.0]);
+    let server = TestServer::start(w.dir.path(), None);
+    let (client, _) = counted_client(&server.base);
+    let radii = vec![6.5, 14.3, 29.9, 61.1];
+    let (streamer, mut rx) = Streamer::start(
+        client,
+        NAME,
+        StreamerConfig {
+            radii: radii.clone(),
+            ..StreamerConfig::default()
+        },
+    )
+    .await
+    .unwrap();
+    let info = streamer.info().clone();
+    let a = [8.2, 20.3, 12.7];
+    let b = [50.9, 30.1, 70.3];
+    streamer.set_camera(a);
+    settle(&streamer, &mut rx, 1).await;
+    let set_a = expected_set(&info, a, &radii);
+    assert_eq!(
+        streamer.resident().into_iter().collect::<BTreeSet<_>>(),
+        set_a
+    );
+
+    streamer.set_camera(b);
+    let events = settle(&streamer, &mut rx, 1).await;
+    let set_b = expected_set(&info, b, &radii);
+    let old_minus_new: BTreeSet<BrickKey> = set_a.difference(&set_b).copied().collect();
+    let new_minus_old: BTreeSet<BrickKey> = set_b.difference(&set_a).copied().collect();
+    assert!(!old_minus_new.is_empty() && !new_minus_old.is_empty());
+    assert!(set_a.intersection(&set_b).count() > 0, "some tiles stay");
+    assert_eq!(once(&dropped_keys(&events), "was dropped"), old_minus_new);
+    assert_eq!(once(&ready_keys(&events), "was ready"), new_minus_old);
+    assert!(stale_keys(&events).is_empty());
+    assert_eq!(
+        streamer.resident().into_iter().collect::<BTreeSet<_>>(),
+        set_b
+    );
+
+    // Quick moves without waiting: requests for tiles that left the set are cancelled and never
+    // delivered after they left; the end state is the last camera's set.
+    let path: Vec<[f32; 3]> = (0..12)
+        .map(|i| {
+            let t = i as f32 / 11.0;
+            [50.9 - 45.0 * t, 30.1 - 10.0 * t, 70.3 - 60.0 * t]
+        })
+        .collect();
+    let mut events = Vec::new();
+    for c in &path {
+        streamer.set_camera(*c);
+        tokio::time::sleep(Duration::from_millis(3)).await;
+        while let Ok(e) = rx.try_recv() {
+            events.push(e);
+        }
+    }
+    events.extend(settle(&streamer, &mut rx, 1).await);
+    let last = expected_set(&info, path[path.len() - 1], &radii);
+    assert_eq!(
+        streamer.resident().into_iter().collect::<BTreeSet<_>>(),
+        last
+    );
+    // Per key, events alternate Ready / Dropped starting from the state at camera b, and end
+    // resident exactly for the last set.
+    let mut shown: BTreeSet<BrickKey> = set_b.clone();
+    for e in &events {
+        match e {
+            StreamEvent::Ready { key, .. } => assert!(shown.insert(*key), "{key} ready twice"),
+            StreamEvent::Dropped { key } => assert!(shown.remove(key), "{key} dropped unshown"),
+            StreamEvent::Stale { .. } => panic!("nothing was edited"),
+            _ => {}
+        }
+    }
+    assert_eq!(shown, last);
+    streamer.shutdown().await;
+}
+
+// ---------------------------------------------------------------------------------------------
+// 3. Content deduplication, and the byte bound of the cache
+// ---------------------------------------------------------------------------------------------
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_brick_shared_by_many_positions_is_fetched_once() {
+    let w = world([128, 64, 96], 8, [0.5, 0.75, 1.0]);
+    let server = TestServer::start(w.dir.path(), None);
+    let (client, counter) = counted_client(&server.base);
+    // Default radii: derived for 1 px at 1080 px and 60 degrees, far larger than this volume,
+    // so the whole level 0 is selected.
+    let (streamer, mut rx) = Streamer::start(client, NAME, StreamerConfig::default())
+        .await
+        .unwrap();
+    let info = streamer.info().clone();
+    assert_eq!(
+        streamer.radii(),
+        StreamerConfig::radii_for_screen_error(&info, 60f32.to_radians(), 1080.0, 1.0)
+    );
+    let camera = [30.0, 40.0, 50.0];
+    streamer.set_camera(camera);
+    let events = settle(&streamer, &mut rx, 1).await;
+    let expected = expected_set(&info, camera, streamer.radii());
+    assert!(expected.iter().all(|k| k.level == 0));
+    assert_eq!(expected.len(), 16 * 8 * 12);
+    assert_eq!(once(&ready_keys(&events), "was ready"), expected);
+
+    let snap = Vod2::open(&w.path).unwrap().head();
+    let distinct: HashSet<u64> = expected.iter().map(|&k| snap.hash(k).unwrap()).collect();
+    assert!(
+        distinct.len() * 2 < expected.len(),
+        "the world shares content: {} distinct of {}",
+        distinct.len(),
+        expected.len()
+    );
+    let blobs = counter.snapshot().get("blob").copied().unwrap_or(0);
+    assert_eq!(
+        blobs,
+        distinct.len() as u64,
+        "one blob request per distinct hash"
+    );
+    let stats = streamer.stats();
+    assert_eq!(stats.cache_misses, distinct.len() as u64);
+    assert_eq!(stats.cache_hits, (expected.len() - distinct.len()) as u64);
+    for e in &events {
+        if let StreamEvent::Ready { key, data, .. } = e {
+            let TileData::Brick(bytes) = data else {
+                panic!("a brick streamer delivered a mesh");
+            };
+            assert_eq!(
+                bytes.as_ref(),
+                snap.read(*key).unwrap().as_slice(),
+                "brick {key}"
+            );
+        }
+    }
+    streamer.shutdown().await;
+
+    // A cache of 5 bricks holds at most 5 bricks' bytes, and every tile is still delivered right.
+    let (client, _) = counted_client(&server.base);
+    let brick_bytes = 8 * 8 * 8;
+    let (small, mut rx) = Streamer::start(
+        client,
+        NAME,
+        StreamerConfig {
+            cache_bytes: 5 * brick_bytes,
+            radii: vec![10.0, 20.0],
+            ..StreamerConfig::default()
+        },
+    )
+    .await
+    .unwrap();
+    small.set_camera(camera);
+    let events = settle(&small, &mut rx, 1).await;
+    let expected = expected_set(&info, camera, &[10.0, 20.0]);
+    assert_eq!(once(&ready_keys(&events), "was ready"), expected);
+    for e in &events {
+        if let StreamEvent::Ready { key, data, .. } = e {
+            let TileData::Brick(bytes) = data else {
+                panic!("a brick streamer delivered a mesh");
+            };
+            assert_eq!(
+                bytes.as_ref(),
+                snap.read(*key).unwrap().as_slice(),
+                "brick {key}"
+            );
+        }
+    }
+    let stats = small.stats();
+    assert!(stats.cache_bytes <= 5 * brick_bytes, "{stats:?}");
+    assert!(stats.cache_bytes > 0);
+    small.shutdown().await;
+}
+
+// ---------------------------------------------------------------------------------------------
+// 4. Live updates
+// ---------------------------------------------------------------------------------------------
+
+fn carve(center: [i64; 3], r: u32) -> EditRequest {
+    EditRequest {
+        op: "difference".into(),
+        term: Some(Term::Ellipsoid {
+            center,
+            radii: [r, r, r],
+        }),
+        s_l: None,
+        k: None,
+        region: None,
+    }
+}
+
+/// A point on the terrain's surface (level-0 voxels).
+fn ground(w: &World, x: u32, z: u32) -> [i64; 3] {
+    [x as i64, w.source.height(x, z).round() as i64, z as i64]
+}
+
+/// The bricks an edit changed, as keys.
+fn changed_keys(changed: &[Vec<[u32; 3]>]) -> BTreeSet<BrickKey> {
+    changed
+        .iter()
+        .enumerate()
+        .flat_map(|(l, ps)| {
+            ps.iter().map(move |p| BrickKey {
+                level: l as u8,
+                x: p[0],
+                y: p[1],
+                z: p[2],
+            })
+        })
+        .collect()
+}
+
+/// Mesh tiles whose inputs include a changed brick: per `server/src/mesh/tile.rs`, tile (x, y, z)
+/// reads the bricks at offsets -1..=1 around it at its level.
+fn mesh_readers(changed: &BTreeSet<BrickKey>) -> BTreeSet<BrickKey> {
+    let mut out = BTreeSet::new();
+    for b in changed {
+        for dz in -1i64..=1 {
+            for dy in -1i64..=1 {
+                for dx in -1i64..=1 {
+                    let c = [b.x as i64 + dx, b.y as i64 + dy, b.z as i64 + dz];
+                    if c.iter().all(|&v| v >= 0) {
+                        out.insert(BrickKey {
+                            level: b.level,
+                            x: c[0] as u32,
+                            y: c[1] as u32,
+                            z: c[2] as u32,
+                        });
+                    }
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Asserts the events after an edit: exactly `expected` went stale and came back ready, each
+/// Stale before its Ready, and the version was announced.
+fn assert_stale_then_ready(events: &[StreamEvent], expected: &BTreeSet<BrickKey>, version: u64) {
+    let stale: BTreeSet<BrickKey> = stale_keys(events).into_iter().collect();
+    assert_eq!(&stale, expected, "the stale tiles");
+    assert_eq!(
+        &once(&ready_keys(events), "was ready"),
+        expected,
+        "the refetched tiles"
+    );
+    assert!(dropped_keys(events).is_empty());
+    let position = |want: &dyn Fn(&StreamEvent) -> bool| events.iter().position(want);
+    for key in expected {
+        let s = position(&|e| matches!(e, StreamEvent::Stale { key: k, .. } if k == key));
+        let r = position(&|e| matches!(e, StreamEvent::Ready { key: k, .. } if k == key));
+        assert!(s.unwrap() < r.unwrap(), "{key}: Stale before Ready");
+    }
+    for e in events {
+        match e {
+            StreamEvent::Stale { version: v, .. } => assert!(*v <= version && *v > 1),
+            StreamEvent::Ready { version: v, .. } => assert_eq!(*v, version),
+            _ => {}
+        }
+    }
+    assert!(events
+        .iter()
+        .any(|e| matches!(e, StreamEvent::Version { version: v } if *v == version)));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_edit_by_another_client_refetches_exactly_the_affected_bricks() {
+    // Grids 12x8x12, 6x4x6, 3x2x3, 2x1x2, 1x1x1.
+    let w = world([96, 64, 96], 8, [1.0; 3]);
+    let server = TestServer::start(w.dir.path(), None);
+    let (client, counter) = counted_client(&server.base);
+    let radii = vec![12.0, 30.0, 60.0, 120.0];
+    let (streamer, mut rx) = Streamer::start(
+        client,
+        NAME,
+        StreamerConfig {
+            radii: radii.clone(),
+            ..StreamerConfig::default()
+        },
+    )
+    .await
+    .unwrap();
+    let g = ground(&w, 30, 40);
+    let camera = [30.0, g[1] as f32 + 4.0, 40.0];
+    streamer.set_camera(camera);
+    let before = settle(&streamer, &mut rx, 1).await;
+    let resident: BTreeSet<BrickKey> = streamer.resident().into_iter().collect();
+    assert_eq!(resident, expected_set(streamer.info(), camera, &radii));
+    let cached: HashSet<u64> = before
+        .iter()
+        .filter_map(|e| match e {
+            StreamEvent::Ready { hash, .. } => Some(*hash),
+            _ => None,
+        })
+        .collect();
+
+    let editor = Client::new(&server.base).unwrap().with_token(TOKEN);
+    let counts = counter.snapshot();
+    let resp = editor
+        .edit(NAME, &carve(ground(&w, 46, 40), 8), None)
+        .await
+        .unwrap();
+    assert_eq!(resp.version, 2);
+    let changed = changed_keys(&resp.changed);
+    let expected: BTreeSet<BrickKey> = resident.intersection(&changed).copied().collect();
+    assert!(
+        expected.iter().any(|k| k.level == 0) && expected.iter().any(|k| k.level > 0),
+        "the edit reaches resident tiles of several levels: {expected:?}"
+    );
+    assert!(
+        resident.len() > expected.len() + 10,
+        "most tiles are untouched"
+    );
+
+    let events = settle(&streamer, &mut rx, resp.version).await;
+    assert_stale_then_ready(&events, &expected, resp.version);
+    let snap = Vod2::open(&w.path).unwrap().head();
+    let mut new_hashes = HashSet::new();
+    for e in &events {
+        if let StreamEvent::Ready {
+            key, data, hash, ..
+        } = e
+        {
+            let TileData::Brick(bytes) = data else {
+                panic!("a brick streamer delivered a mesh");
+            };
+            assert_eq!(
+                bytes.as_ref(),
+                snap.read(*key).unwrap().as_slice(),
+                "brick {key}"
+            );
+            assert_eq!(*hash, snap.hash(*key).unwrap());
+            new_hashes.insert(*hash);
+        }
+    }
+    assert!(
+        new_hashes.iter().any(|h| !cached.contains(h)),
+        "new content"
+    );
+    // No other tile refetched: one blob per new content not cached before, nothing by position,
+    // and the new hashes in one grid region per level reached.
+    assert_eq!(
+        counter.since(&counts, "blob"),
+        new_hashes.difference(&cached).count() as u64
+    );
+    assert_eq!(counter.since(&counts, "brick"), 0);
+    assert_eq!(counter.since(&counts, "mesh"), 0);
+    let levels: BTreeSet<u8> = expected.iter().map(|k| k.level).collect();
+    assert_eq!(counter.since(&counts, "level"), levels.len() as u64);
+    assert_eq!(
+        streamer.resident().into_iter().collect::<BTreeSet<_>>(),
+        resident
+    );
+    let stats = streamer.stats();
+    assert_eq!(stats.version, resp.version);
+    assert_eq!(stats.stale_refetches, expected.len() as u64);
+    streamer.shutdown().await;
+}
+
+/// The server's offline mesher on the file, through the compact encoding the route sends.
+fn offline_mesh(path: &Path, key: BrickKey) -> Mesh {
+    use isovox_server::mesh::tile::{default_iso, mesh_tile, TileScratch};
+    let snap = Vod2::open(path).unwrap().head();
+    let mut m = Mesh::default();
+    let iso = default_iso(snap.layout().voxel_type());
+    mesh_tile(&snap, key, iso, &mut m, &mut TileScratch::default()).unwrap();
+    decode_compact(&encode_compact(&m)).unwrap()
+}
+
+fn assert_meshes_match_file(events: &[StreamEvent], path: &Path) -> usize {
+    let mut triangles = 0;
+    for e in events {
+        if let StreamEvent::Ready { key, data, .. } = e {
+            let TileData::Mesh(mesh) = data else {
+                panic!("a mesh streamer delivered a brick");
+            };
+            assert_eq!(**mesh, offline_mesh(path, *key), "mesh tile {key}");
+            triangles += mesh.triangles();
+        }
+    }
+    triangles
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_edit_by_another_client_refetches_exactly_the_affected_mesh_tiles() {
+    // Grids 8x6x8, 4x3x4, 2x2x2, 1x1x1.
+    let w = world([64, 48, 64], 8, [1.0; 3]);
+    let server = TestServer::start(w.dir.path(), None);
+    let (client, counter) = counted_client(&server.base);
+    let radii = vec![14.0, 30.0, 60.0];
+    let (streamer, mut rx) = Streamer::start(
+        client,
+        NAME,
+        StreamerConfig {
+            kind: TileKind::Meshes { iso: None },
+            radii: radii.clone(),
+            ..StreamerConfig::default()
+        },
+    )
+    .await
+    .unwrap();
+    let g = ground(&w, 20, 24);
+    let camera = [20.0, g[1] as f32 + 3.0, 24.0];
+    streamer.set_camera(camera);
+    let before = settle(&streamer, &mut rx, 1).await;
+    let resident: BTreeSet<BrickKey> = streamer.resident().into_iter().collect();
+    assert_eq!(resident, expected_set(streamer.info(), camera, &radii));
+    assert_eq!(once(&ready_keys(&before), "was ready"), resident);
+    let triangles = assert_meshes_match_file(&before, &w.path);
+    assert!(triangles > 100, "the tiles hold the terrain's surface");
+    assert_eq!(
+        counter.snapshot().get("mesh").copied(),
+        Some(resident.len() as u64)
+    );
+    assert_eq!(counter.snapshot().get("blob"), None);
+
+    let editor = Client::new(&server.base).unwrap().with_token(TOKEN);
+    let counts = counter.snapshot();
+    let resp = editor
+        .edit(NAME, &carve(ground(&w, 22, 27), 4), None)
+        .await
+        .unwrap();
+    let changed = changed_keys(&resp.changed);
+    let expected: BTreeSet<BrickKey> = resident
+        .intersection(&mesh_readers(&changed))
+        .copied()
+        .collect();
+    assert!(expected.iter().any(|k| k.level == 0));
+    assert!(
+        expected.len() > changed.intersection(&resident).count(),
+        "neighbours of changed bricks go stale too"
+    );
+    assert!(resident.len() > expected.len(), "some tiles are untouched");
+
+    let events = settle(&streamer, &mut rx, resp.version).await;
+    assert_stale_then_ready(&events, &expected, resp.version);
+    assert_meshes_match_file(&events, &w.path);
+    assert_eq!(counter.since(&counts, "mesh"), expected.len() as u64);
+    assert_eq!(counter.since(&counts, "blob"), 0);
+    assert_eq!(counter.since(&counts, "brick"), 0);
+    let levels: BTreeSet<u8> = expected.iter().map(|k| k.level).collect();
+    assert_eq!(counter.since(&counts, "level"), levels.len() as u64);
+    assert_eq!(streamer.stats().stale_refetches, expected.len() as u64);
+    streamer.shutdown().await;
+}
+
+// ---------------------------------------------------------------------------------------------
+// 5. Catching up after a disconnect
+// ---------------------------------------------------------------------------------------------
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn after_a_disconnect_the_streamer_catches_up_from_its_last_version() {
+    let w = world([96, 64, 96], 8, [1.0; 3]);
+    let mut server = TestServer::start(w.dir.path(), None);
+    let (client, counter) = counted_client(&server.base);
+    let radii = vec![12.0, 30.0, 60.0, 120.0];
+    let (streamer, mut rx) = Streamer::start(
+        client,
+        NAME,
+        StreamerConfig {
+            radii: radii.clone(),
+            ..StreamerConfig::default()
+        },
+    )
+    .await
+    .unwrap();
+    let g = ground(&w, 60, 30);
+    let camera = [60.0, g[1] as f32 + 4.0, 30.0];
+    streamer.set_camera(camera);
+    settle(&streamer, &mut rx, 1).await;
+    let resident: BTreeSet<BrickKey> = streamer.resident().into_iter().collect();
+
+    // The server goes away (every connection closed, the feed's too); two edits are committed
+    // to the file while no server runs; a new server starts on the same port and data.
+    let addr = server.addr;
+    tokio::task::block_in_place(|| server.stop());
+    let first =
+        isovox_server::cli::edit::edit_file(&w.path, &carve(ground(&w, 62, 33), 5)).unwrap();
+    let second =
+        isovox_server::cli::edit::edit_file(&w.path, &carve(ground(&w, 57, 27), 4)).unwrap();
+    assert_eq!((first.version, second.version), (2, 3));
+    let counts = counter.snapshot();
+    let _server = TestServer::start(w.dir.path(), Some(addr));
+
+    let events = settle(&streamer, &mut rx, 3).await;
+    let mut changed = changed_keys(&first.changed);
+    changed.extend(changed_keys(&second.changed));
+    let expected: BTreeSet<BrickKey> = resident.intersection(&changed).copied().collect();
+    assert!(!expected.is_empty());
+    assert!(
+        events
+            .iter()
+            .any(|e| matches!(e, StreamEvent::Error { key: None, .. })),
+        "the disconnect was reported"
+    );
+    // The two versions may be applied in one go or one after the other (a tile changed only by
+    // version 2 may be ready again before version 3 arrives): exactly the changed tiles go
+    // stale, come back, and each one's last event is Ready with the file's current content.
+    let stale: BTreeSet<BrickKey> = stale_keys(&events).into_iter().collect();
+    assert_eq!(stale, expected, "the stale tiles");
+    let ready: BTreeSet<BrickKey> = ready_keys(&events).into_iter().collect();
+    assert_eq!(ready, expected, "the refetched tiles");
+    assert!(dropped_keys(&events).is_empty());
+    for key in &expected {
+        let last = events
+            .iter()
+            .rev()
+            .find(|e| {
+                matches!(e, StreamEvent::Stale { key: k, .. } | StreamEvent::Ready { key: k, .. } if k == key)
+            })
+            .unwrap();
+        assert!(
+            matches!(last, StreamEvent::Ready { .. }),
+            "{key} ends ready"
+        );
+    }
+    assert!(events
+        .iter()
+        .any(|e| matches!(e, StreamEvent::Version { version: 3 })));
+    // A tile changed by both versions went stale once per version.
+    let per_version: BTreeMap<u64, BTreeSet<BrickKey>> =
+        events.iter().fold(BTreeMap::new(), |mut m, e| {
+            if let StreamEvent::Stale { key, version } = e {
+                assert!(m.entry(*version).or_default().insert(*key));
+            }
+            m
+        });
+    let want_2: BTreeSet<BrickKey> = resident
+        .intersection(&changed_keys(&first.changed))
+        .copied()
+        .collect();
+    let want_3: BTreeSet<BrickKey> = resident
+        .intersection(&changed_keys(&second.changed))
+        .copied()
+        .collect();
+    assert_eq!(per_version.get(&2).cloned().unwrap_or_default(), want_2);
+    assert_eq!(per_version.get(&3).cloned().unwrap_or_default(), want_3);
+    let snap = Vod2::open(&w.path).unwrap().head();
+    for e in &events {
+        if let StreamEvent::Ready { key, data, .. } = e {
+            let TileData::Brick(bytes) = data else {
+                panic!("a brick streamer delivered a mesh");
+            };
+            assert_eq!(
+                bytes.as_ref(),
+                snap.read(*key).unwrap().as_slice(),
+                "brick {key}"
+            );
+        }
+    }
+    assert_eq!(streamer.stats().version, 3);
+    assert_eq!(
+        streamer.resident().into_iter().collect::<BTreeSet<_>>(),
+        resident
+    );
+    // Only the changed tiles' content was fetched again (at most one blob per Ready).
+    assert!(counter.since(&counts, "blob") <= ready_keys(&events).len() as u64);
+    assert_eq!(counter.since(&counts, "brick"), 0);
+    streamer.shutdown().await;
+}
+
+// ---------------------------------------------------------------------------------------------
+// 6. Reloading when the versions it missed were compacted away
+// ---------------------------------------------------------------------------------------------
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn when_the_missed_versions_were_compacted_away_the_streamer_reloads() {
+    let w = world([96, 64, 96], 8, [1.0; 3]);
+    let mut server = TestServer::start(w.dir.path(), None);
+    let (client, counter) = counted_client(&server.base);
+    let radii = vec![12.0, 30.0, 60.0, 120.0];
+    let (streamer, mut rx) = Streamer::start(
+        client,
+        NAME,
+        StreamerConfig {
+            radii: radii.clone(),
+            ..StreamerConfig::default()
+        },
+    )
+    .await
+    .unwrap();
+    let g = ground(&w, 40, 50);
+    streamer.set_camera([40.0, g[1] as f32 + 4.0, 50.0]);
+    let before = settle(&streamer, &mut rx, 1).await;
+    let resident: BTreeSet<BrickKey> = streamer.resident().into_iter().collect();
+    let cached: HashSet<u64> = before
+        .iter()
+        .filter_map(|e| match e {
+            StreamEvent::Ready { hash, .. } => Some(*hash),
+            _ => None,
+        })
+        .collect();
+
+    // While the streamer is cut off: two versions, then a compaction (through a server on
+    // another port, which the streamer does not know) that keeps only the last one.
+    let addr = server.addr;
+    tokio::task::block_in_place(|| server.stop());
+    isovox_server::cli::edit::edit_file(&w.path, &carve(ground(&w, 42, 52), 6)).unwrap();
+    isovox_server::cli::edit::edit_file(&w.path, &carve(ground(&w, 38, 47), 5)).unwrap();
+    let mut other = TestServer::start(w.dir.path(), None);
+    let compacted = Client::new(&other.base)
+        .unwrap()
+        .with_token(TOKEN)
+        .compact(NAME)
+        .await
+        .unwrap();
+    assert_eq!(compacted.version, 3);
+    tokio::task::block_in_place(|| other.stop());
+    let counts = counter.snapshot();
+    let _server = TestServer::start(w.dir.path(), Some(addr));
+
+    // Its version 1 is gone (410): it reloads, and every resident tile goes stale and comes back
+    // with the file's content; content it already held is not fetched again.
+    let events = settle(&streamer, &mut rx, 3).await;
+    assert_eq!(once(&stale_keys(&events), "went stale"), resident);
+    assert_eq!(once(&ready_keys(&events), "was ready"), resident);
+    assert!(dropped_keys(&events).is_empty());
+    let snap = Vod2::open(&w.path).unwrap().head();
+    let mut hashes = HashSet::new();
+    for e in &events {
+        if let StreamEvent::Ready {
+            key, data, hash, ..
+        } = e
+        {
+            let TileData::Brick(bytes) = data else {
+                panic!("a brick streamer delivered a mesh");
+            };
+            assert_eq!(
+                bytes.as_ref(),
+                snap.read(*key).unwrap().as_slice(),
+                "brick {key}"
+            );
+            assert_eq!(*hash, snap.hash(*key).unwrap());
+            hashes.insert(*hash);
+        }
+    }
+    assert!(hashes.iter().any(|h| !cached.contains(h)), "the edits show");
+    assert_eq!(
+        counter.since(&counts, "blob"),
+        hashes.difference(&cached).count() as u64
+    );
+    assert_eq!(streamer.stats().version, 3);
+    streamer.shutdown().await;
+}
+
+// ---------------------------------------------------------------------------------------------
+// 7. Nearest first, with bounded concurrency
+// ---------------------------------------------------------------------------------------------
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn missing_tiles_come_nearest_first_within_the_concurrency_bound() {
+    let w = world([128, 64, 96], 8, [0.5, 0.75, 1.0]);
+    let server = TestServer::start(w.dir.path(), None);
+    let (client, _) = counted_client(&server.base);
+    let radii = vec![6.5, 14.3, 29.9, 61.1];
+    let (streamer, mut rx) = Streamer::start(
+        client,
+        NAME,
+        StreamerConfig {
+            radii: radii.clone(),
+            max_in_flight: 1,
+            ..StreamerConfig::default()
+        },
+    )
+    .await
+    .unwrap();
+    let info = streamer.info().clone();
+    let camera = [40.3, 25.1, 60.7];
+    streamer.set_camera(camera);
+    let mut ready: Vec<(BrickKey, u64)> = Vec::new();
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while ready.len() < expected_set(&info, camera, &radii).len() {
+        assert!(Instant::now() < deadline, "not all tiles arrived");
+        let e = tokio::time::timeout(Duration::from_secs(60), rx.recv())
+            .await
+            .unwrap()
+            .unwrap();
+        assert!(streamer.stats().in_flight <= 1);
+        if let StreamEvent::Ready { key, hash, .. } = e {
+            ready.push((key, hash));
+        }
+    }
+    streamer.wait_idle().await;
+    let d = |k: BrickKey| box_distance(&info, k.level as usize, [k.x, k.y, k.z], camera);
+    // The tile around the camera comes with the first content fetched.
+    let home = expected_set(&info, camera, &radii)
+        .into_iter()
+        .find(|&k| d(k) == 0.0)
+        .unwrap();
+    let first_other = ready
+        .iter()
+        .position(|&(_, h)| h != ready[0].1)
+        .unwrap_or(ready.len());
+    assert!(
+        ready[..first_other].iter().any(|&(k, _)| k == home),
+        "the camera's own tile {home} is among the first delivered"
+    );
+    // On the whole, nearer tiles come earlier.
+    let half = ready.len() / 2;
+    let mean = |s: &[(BrickKey, u64)]| s.iter().map(|&(k, _)| d(k)).sum::<f64>() / s.len() as f64;
+    assert!(
+        mean(&ready[..half]) < mean(&ready[half..]),
+        "nearer first: {} vs {}",
+        mean(&ready[..half]),
+        mean(&ready[half..])
+    );
+    streamer.shutdown().await;
+}
+
+// ---------------------------------------------------------------------------------------------
+// 8. Cancelling requests the camera no longer needs
+// ---------------------------------------------------------------------------------------------
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn requests_the_camera_no_longer_needs_are_cancelled() {
+    let w = world([128, 64, 96], 8, [0.5, 0.75, 1.0]);
+    let mut server = TestServer::start(w.dir.path(), None);
+    let (client, _) = counted_client(&server.base);
+    let radii = vec![6.5, 14.3, 29.9, 61.1];
+    let (streamer, mut rx) = Streamer::start(
+        client,
+        NAME,
+        StreamerConfig {
+            radii: radii.clone(),
+            ..StreamerConfig::default()
+        },
+    )
+    .await
+    .unwrap();
+    let info = streamer.info().clone();
+    let a = [8.2, 20.3, 12.7];
+    let b = [55.9, 30.1, 80.3];
+    streamer.set_camera(a);
+    settle(&streamer, &mut rx, 1).await;
+    let set_a = expected_set(&info, a, &radii);
+    let set_b = expected_set(&info, b, &radii);
+
+    // With the server gone, requests for camera b stay in flight (the client retries a refused
+    // connection for at least ~0.4 s) ...
+    tokio::task::block_in_place(|| server.stop());
+    streamer.set_camera(b);
+    let deadline = Instant::now() + Duration::from_secs(5);
+    while streamer.stats().in_flight == 0 {
+        assert!(Instant::now() < deadline, "no request started for camera b");
+        tokio::time::sleep(Duration::from_millis(2)).await;
+    }
+    // ... and moving back to a, whose content is all cached, cancels them: the streamer is idle
+    // with nothing in flight, and the cancelled requests never report.
+    streamer.set_camera(a);
+    let mut events = settle(&streamer, &mut rx, 1).await;
+    assert_eq!(streamer.stats().in_flight, 0);
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    while let Ok(e) = rx.try_recv() {
+        events.push(e);
+    }
+    for e in &events {
+        if let StreamEvent::Error { error, .. } = e {
+            assert!(
+                error.starts_with("change feed"),
+                "a cancelled request reported: {error}"
+            );
+        }
+    }
+    // Tiles of b whose hashes were known (grid regions come in 8x8x8 blocks) and whose content
+    // was cached (air, rock) were delivered even without a server, and dropped again; the
+    // others never were.
+    let a_only: BTreeSet<BrickKey> = set_a.difference(&set_b).copied().collect();
+    let b_only: BTreeSet<BrickKey> = set_b.difference(&set_a).copied().collect();
+    assert!(!a_only.is_empty());
+    let ready = once(&ready_keys(&events), "was ready");
+    let b_delivered: BTreeSet<BrickKey> = ready.difference(&a_only).copied().collect();
+    assert!(b_delivered.is_subset(&b_only));
+    assert!(
+        b_delivered.len() < b_only.len(),
+        "some of b needed the server"
+    );
+    let both: BTreeSet<BrickKey> = a_only.union(&b_delivered).copied().collect();
+    assert_eq!(ready, both);
+    assert_eq!(once(&dropped_keys(&events), "was dropped"), both);
+    assert_eq!(
+        streamer.resident().into_iter().collect::<BTreeSet<_>>(),
+        set_a
+    );
+    assert_eq!(streamer.stats().in_flight, 0);
+    streamer.shutdown().await;
+}
