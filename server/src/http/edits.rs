@@ -191,11 +191,7 @@ pub async fn edit(
     if let Some(v) = expected.filter(|&v| v != head.version) {
         return Err(conflict(v, head.version));
     }
-    let ticket = vol
-        .enqueue(state.config.edit_queue)
-        .ok_or(ApiError::Overloaded(1))?;
-    let mut writer = vol.lock_writer().await;
-    drop(ticket);
+    let mut writer = wait_for_writer(&state, &vol).await?;
     let applying = vol.clone();
     let response = tokio::task::spawn_blocking(move || {
         applying.apply(&mut writer, &edit, expected, CheckpointPolicy::default())
@@ -215,6 +211,20 @@ pub async fn edit(
         "edit committed"
     );
     Ok(Json(response))
+}
+
+/// Takes a place in the volume's writer queue (503 when `--edit-queue` edits already wait) and
+/// waits for the writer, in arrival order.
+async fn wait_for_writer(
+    state: &AppState,
+    vol: &LiveVolume,
+) -> Result<tokio::sync::OwnedMutexGuard<crate::volume::WriterSlot>, ApiError> {
+    let ticket = vol
+        .enqueue(state.config.edit_queue)
+        .ok_or(ApiError::Overloaded(1))?;
+    let writer = vol.lock_writer().await;
+    drop(ticket);
+    Ok(writer)
 }
 
 fn conflict(expected: u64, current: u64) -> ApiError {
@@ -237,11 +247,7 @@ pub async fn compact(
         .clone();
     let Path(name) = path.map_err(|e| ApiError::BadRequest(format!("malformed path: {e}")))?;
     let vol = volume(&state, &name)?;
-    let ticket = vol
-        .enqueue(state.config.edit_queue)
-        .ok_or(ApiError::Overloaded(1))?;
-    let mut writer = vol.lock_writer().await;
-    drop(ticket);
+    let mut writer = wait_for_writer(&state, &vol).await?;
     let compacting = vol.clone();
     let report = tokio::task::spawn_blocking(move || compacting.compact(&mut writer))
         .await

@@ -395,14 +395,8 @@ impl Snapshot {
         if h.checkpoint != 0 || !child {
             let snap = Snapshot::load(self.header.clone(), map.clone(), commit_at)?;
             // A child that wrote a checkpoint still finds what its parents held by hash.
-            if let (true, Some(parent_hashes)) = (child, self.by_hash.get()) {
-                let mut hashes = parent_hashes.child();
-                let voxel_type = self.layout().voxel_type();
-                for (_, raw) in CommitHeader::changes(record) {
-                    let entry = NodeEntry::decode(raw, voxel_type, snap.map.bytes().len() as u64)?;
-                    hashes.insert(snap.entry_hash(entry)?, entry);
-                }
-                let _ = snap.by_hash.set(hashes);
+            if child {
+                self.hand_down_hashes(&snap, CommitHeader::changes(record).map(|(_, e)| e))?;
             }
             return Ok(snap);
         }
@@ -434,16 +428,28 @@ impl Snapshot {
             header: self.header.clone(),
             map,
         };
-        if let Some(parent_hashes) = self.by_hash.get() {
-            let mut hashes = parent_hashes.child();
-            for raw in added {
-                let entry =
-                    NodeEntry::decode(raw, layout.voxel_type(), snap.map.bytes().len() as u64)?;
-                hashes.insert(snap.entry_hash(entry)?, entry);
-            }
-            let _ = snap.by_hash.set(hashes);
-        }
+        self.hand_down_hashes(&snap, added.into_iter())?;
         Ok(snap)
+    }
+
+    /// Gives `child` this version's blob index (when it was built) plus the entries its commit
+    /// `added`: bricks replaced by the commit stay findable by hash.
+    fn hand_down_hashes(
+        &self,
+        child: &Snapshot,
+        added: impl Iterator<Item = u64>,
+    ) -> Result<(), StoreError> {
+        let Some(parent_hashes) = self.by_hash.get() else {
+            return Ok(());
+        };
+        let mut hashes = parent_hashes.child();
+        let (voxel_type, mapped) = (self.layout().voxel_type(), child.map.bytes().len() as u64);
+        for raw in added {
+            let entry = NodeEntry::decode(raw, voxel_type, mapped)?;
+            hashes.insert(child.entry_hash(entry)?, entry);
+        }
+        let _ = child.by_hash.set(hashes);
+        Ok(())
     }
 
     pub fn layout(&self) -> &VolumeLayout {
