@@ -204,15 +204,22 @@ impl LiveVolume {
     ) -> Result<(Vec<ChangeEvent>, bool), StoreError> {
         let vod = self.current();
         let head = vod.head().version;
-        let history = self.history_read().clone();
         let last = head.min(since.saturating_add(limit as u64));
-        let mut out = Vec::with_capacity((last.saturating_sub(since)) as usize);
-        for version in since + 1..=last {
-            let at = history.offset(version).ok_or_else(|| {
-                StoreError::Invalid(format!("version {version} is not in this volume"))
-            })?;
-            out.push(change_event(&vod, at)?);
-        }
+        // Only the offsets asked for are copied (the history grows with every commit).
+        let offsets: Vec<u64> = {
+            let history = self.history_read();
+            (since + 1..=last)
+                .map(|version| {
+                    history.offset(version).ok_or_else(|| {
+                        StoreError::Invalid(format!("version {version} is not in this volume"))
+                    })
+                })
+                .collect::<Result<_, _>>()?
+        };
+        let out = offsets
+            .into_iter()
+            .map(|at| change_event(&vod, at))
+            .collect::<Result<Vec<_>, _>>()?;
         Ok((out, last < head))
     }
 

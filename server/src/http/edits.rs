@@ -174,12 +174,17 @@ pub async fn edit(
     state.edit_rate.take(&token.name)?;
     let head = vol.head();
     let layout = head.layout().clone();
-    let edit = Edit::from_request(
-        &request,
-        layout.voxel_type(),
-        &state.config.term_limits,
-        &CatalogVolumes(state.catalog.clone(), state.mesh_store.clone()),
-    )
+    // Compiling can voxelize a mesh leaf: CPU work, off the async runtime.
+    let (limits, resolver) = (
+        state.config.term_limits,
+        CatalogVolumes(state.catalog.clone(), state.mesh_store.clone()),
+    );
+    let voxel_type = layout.voxel_type();
+    let edit = tokio::task::spawn_blocking(move || {
+        Edit::from_request(&request, voxel_type, &limits, &resolver)
+    })
+    .await
+    .map_err(|e| ApiError::Internal(format!("edit compile task failed: {e}")))?
     .map_err(|e| ApiError::Unprocessable(format!("invalid edit: {}", e.0)))?;
     let voxels = edit.evaluated_voxels(&layout);
     if voxels > state.config.max_edit_voxels {
