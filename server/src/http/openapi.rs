@@ -180,7 +180,9 @@ fn write_side(name: Value) -> (Value, Value) {
         "/v1/volumes/{name}/events": {"get": {
             "summary": "change feed, server-sent events: hello, then one commit event per version (resync when too far behind)",
             "parameters": [name, since, {"name": "Last-Event-ID", "in": "header", "required": false, "schema": {"type": "string"}, "description": "resume after this version"}],
-            "responses": merge(json!({"200": {"description": "an event stream", "content": {"text/event-stream": {"schema": {"type": "string"}}}}}),
+            "responses": merge(json!({"200": {"description": "an event stream; each event as its fields (data: JSON text)", "content": {"text/event-stream": {"schema": {
+                "type": "object", "required": ["data"],
+                "properties": {"event": {"type": "string", "enum": ["hello", "commit", "resync"]}, "data": {"type": "string"}, "id": {"type": "string"}}}}}}}),
                 problem_responses(&["400", "404", "410"]))}},
     });
     let changed = json!({"type": "array", "items": {"type": "array", "items": {"$ref": "#/components/schemas/Triple"}}});
