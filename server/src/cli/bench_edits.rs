@@ -10,6 +10,7 @@
 
 use super::bench::{median, percentile};
 use super::bench_http::{wrk, wrk_script};
+use super::bench_icvg::Rng;
 use crate::catalog::Catalog;
 use crate::generate::WorldSource;
 use crate::http::auth::{random_secret, Scope, Tokens};
@@ -53,18 +54,6 @@ pub struct EditsBenchArgs {
     /// wrk connections for the read phases.
     #[arg(long, default_value_t = 64)]
     pub connections: u32,
-}
-
-/// Deterministic positions (xorshift64).
-struct Rng(u64);
-
-impl Rng {
-    fn below(&mut self, n: u32) -> u32 {
-        self.0 ^= self.0 << 13;
-        self.0 ^= self.0 >> 7;
-        self.0 ^= self.0 << 17;
-        (self.0 % n as u64) as u32
-    }
 }
 
 /// What the editors saw: per acknowledged version, when its answer arrived and how long the

@@ -30,18 +30,18 @@ pub struct IcvgArgs {
     pub sizes: Vec<u32>,
 }
 
-/// xorshift64*: deterministic positions without a dependency.
-struct Rng(u64);
+/// xorshift64*: deterministic positions without a dependency (shared by the benches).
+pub(super) struct Rng(pub(super) u64);
 
 impl Rng {
-    fn next(&mut self) -> u64 {
+    pub(super) fn next(&mut self) -> u64 {
         self.0 ^= self.0 >> 12;
         self.0 ^= self.0 << 25;
         self.0 ^= self.0 >> 27;
         self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
     }
 
-    fn below(&mut self, n: u32) -> u32 {
+    pub(super) fn below(&mut self, n: u32) -> u32 {
         (self.next() % n as u64) as u32
     }
 }

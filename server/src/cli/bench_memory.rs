@@ -95,14 +95,11 @@ pub fn run_bench(a: MemoryBenchArgs) -> anyhow::Result<()> {
     std::thread::spawn(move || for _ in lines {});
     let (anon_start, file_start) = rss(pid).context("cannot read the server's memory")?;
 
-    // Every brick of every level once, in a random order (Fisher-Yates, xorshift).
+    // Every brick of every level once, in a random order (Fisher-Yates).
     let mut nodes: Vec<u64> = (0..layout.node_count()).collect();
-    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let mut rng = super::bench_icvg::Rng(0x2545_f491_4f6c_dd1d);
     for i in (1..nodes.len()).rev() {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        nodes.swap(i, (state % (i as u64 + 1)) as usize);
+        nodes.swap(i, (rng.next() % (i as u64 + 1)) as usize);
     }
     let nodes = Arc::new(nodes);
     let next = Arc::new(AtomicUsize::new(0));
