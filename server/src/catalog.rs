@@ -79,6 +79,12 @@ impl Catalog {
         self.volumes.get(name).cloned()
     }
 
+    /// The volume `name`, borrowed (no reference count touched: on the brick routes, a count
+    /// shared by every core is a cache line they fight over).
+    pub fn volume(&self, name: &str) -> Option<&Arc<LiveVolume>> {
+        self.volumes.get(name)
+    }
+
     pub fn iter(&self) -> impl Iterator<Item = (&str, &Arc<LiveVolume>)> {
         self.volumes.iter().map(|(n, v)| (n.as_str(), v))
     }

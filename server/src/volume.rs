@@ -151,6 +151,12 @@ impl LiveVolume {
         self.current.load_full()
     }
 
+    /// The current file, borrowed for as long as the guard lives (cheaper than [`Self::current`]:
+    /// no shared reference count is touched).
+    pub fn load(&self) -> arc_swap::Guard<Arc<Vod2>> {
+        self.current.load()
+    }
+
     /// The head snapshot.
     pub fn head(&self) -> Arc<Snapshot> {
         self.current.load().head()

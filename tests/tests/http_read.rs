@@ -8,7 +8,8 @@ use isovox_proto::api::{Problem, VolumeInfo, VolumeList};
 use isovox_proto::{VolumeLayout, VoxelType};
 use isovox_server::catalog::Catalog;
 use isovox_server::generate::WorldSource;
-use isovox_server::http::{run, AppState};
+use isovox_server::http::auth::{Scope, Tokens};
+use isovox_server::http::{run, AppState, ServerConfig};
 use isovox_server::store::{build_vod2, BuildOptions, Vod2};
 use std::path::{Path, PathBuf};
 
@@ -29,6 +30,11 @@ impl Drop for Server {
 
 /// A 100x40x70 u8 world, brick 16, served as "terrain".
 async fn start() -> Server {
+    start_with(ServerConfig::default()).await
+}
+
+/// The same, served as `config` says.
+async fn start_with(config: ServerConfig) -> Server {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("terrain.vod");
     let layout = VolumeLayout::new([100, 40, 70], 16, VoxelType::U8).unwrap();
@@ -44,7 +50,7 @@ async fn start() -> Server {
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = listener.local_addr().unwrap();
     let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-    let state = AppState::new(catalog, 64 << 20, 16);
+    let state = AppState::with_config(catalog, config);
     tokio::spawn(async move {
         run(listener, state, async {
             let _ = rx.await;
@@ -197,6 +203,47 @@ async fn bricks_are_byte_exact_in_every_encoding() {
         checked > 0,
         "at least one surface brick is stored as zstd and sent as it is"
     );
+}
+
+/// With private reads, bricks need a token.
+#[tokio::test]
+async fn private_reads_guard_bricks() {
+    let mut tokens = Tokens::default();
+    tokens
+        .add("viewer", "a-read-secret-of-enough-length", Scope::Read)
+        .unwrap();
+    let s = start_with(ServerConfig {
+        tokens,
+        private_reads: true,
+        ..ServerConfig::default()
+    })
+    .await;
+    let c = reqwest::Client::new();
+    for url in [
+        "/v1/volumes/terrain/bricks/0/1/1/1",
+        "/v1/volumes/terrain/bricks/0/1/1/1?version=1",
+        "/v1/volumes/terrain/blobs/0123456789abcdef",
+        "/v1/volumes/terrain",
+    ] {
+        let url = format!("{}{url}", s.base);
+        let r = c.get(&url).send().await.unwrap();
+        problem(r, 401).await;
+        let r = c
+            .get(&url)
+            .header("authorization", "Bearer not-the-secret-at-all")
+            .send()
+            .await
+            .unwrap();
+        problem(r, 401).await;
+        let r = c
+            .get(&url)
+            .header("authorization", "Bearer a-read-secret-of-enough-length")
+            .send()
+            .await
+            .unwrap();
+        assert_ne!(r.status().as_u16(), 401, "{url}");
+        assert_ne!(r.status().as_u16(), 403, "{url}");
+    }
 }
 
 #[tokio::test]

@@ -196,7 +196,7 @@ pub async fn edit(
     if let Some(v) = expected.filter(|&v| v != head.version) {
         return Err(conflict(v, head.version));
     }
-    let mut writer = wait_for_writer(&state, &vol).await?;
+    let mut writer = wait_for_writer(&state, vol).await?;
     let applying = vol.clone();
     let response = tokio::task::spawn_blocking(move || {
         applying.apply(&mut writer, &edit, expected, CheckpointPolicy::default())
@@ -252,7 +252,7 @@ pub async fn compact(
         .clone();
     let Path(name) = path.map_err(|e| ApiError::BadRequest(format!("malformed path: {e}")))?;
     let vol = volume(&state, &name)?;
-    let mut writer = wait_for_writer(&state, &vol).await?;
+    let mut writer = wait_for_writer(&state, vol).await?;
     let compacting = vol.clone();
     let report = tokio::task::spawn_blocking(move || compacting.compact(&mut writer))
         .await
@@ -312,7 +312,7 @@ pub async fn changes(
             "limit must be in 1..={MAX_CHANGES}"
         )));
     }
-    check_since(&vol, since)?;
+    check_since(vol, since)?;
     let listing = vol.clone();
     let (changes, more) = tokio::task::spawn_blocking(move || listing.changes(since, limit))
         .await
@@ -425,13 +425,13 @@ pub async fn events(
     let head = vol.head().version;
     let since = query.since.or(last_event_id);
     if let Some(since) = since {
-        check_since(&vol, since)?;
+        check_since(vol, since)?;
     }
     let hello = Event::default()
         .event("hello")
         .data(format!("{{\"version\":{head}}}"));
     let feed = Feed {
-        vol,
+        vol: vol.clone(),
         rx,
         pending: VecDeque::from([hello]),
         last: since.unwrap_or(head),

@@ -27,10 +27,10 @@ pub async fn not_found() -> ApiError {
     ApiError::not_found("no such route; the API is described at /openapi.json")
 }
 
-pub(super) fn volume(state: &AppState, name: &str) -> Result<Arc<LiveVolume>, ApiError> {
+pub(super) fn volume<'a>(state: &'a AppState, name: &str) -> Result<&'a Arc<LiveVolume>, ApiError> {
     state
         .catalog
-        .get(name)
+        .volume(name)
         .ok_or_else(|| ApiError::not_found(format!("no volume named {name:?}")))
 }
 
@@ -55,7 +55,7 @@ pub async fn volume_info(
     Path(name): Path<String>,
 ) -> Result<Json<VolumeInfo>, ApiError> {
     let vod = volume(&state, &name)?;
-    Ok(Json(info(&name, &vod)))
+    Ok(Json(info(&name, vod)))
 }
 
 /// `{name}/bricks/{level}/{x}/{y}/{z}`.
@@ -101,16 +101,24 @@ pub async fn brick(
         path.map_err(|e| ApiError::BadRequest(format!("malformed brick path: {e}")))?;
     let Query(query) = query.map_err(|e| ApiError::BadRequest(format!("malformed query: {e}")))?;
     let vod = volume(&state, &name)?;
-    let snap = match query.version {
-        Some(v) => vod.version(v)?,
-        None => vod.head(),
+    // The head is borrowed from the volume's current file (no reference count touched).
+    let (current, older);
+    let snap: &Snapshot = match query.version {
+        Some(v) => {
+            older = vod.version(v)?;
+            &older
+        }
+        None => {
+            current = vod.load();
+            current.head_ref()
+        }
     };
     let layout = snap.layout();
     let key = layout
         .key(level, x, y, z)
         .map_err(|e| ApiError::not_found(e.to_string()))?;
     let stored = snap.stored(key)?;
-    brick_response(&state, &snap, stored, headers, "no-cache")
+    brick_response(&state, snap, stored, headers, "no-cache")
 }
 
 /// Whether `If-None-Match` names `etag` (or `*`).
@@ -132,7 +140,7 @@ fn if_none_match(headers: &HeaderMap, etag: &str) -> bool {
 /// Stored payloads go out as shared slices of the mapping (no copy); decoded voxels and
 /// transcoded lz4 blocks come from the body cache, keyed by content hash, so a hot brick is
 /// decoded once.
-fn brick_response(
+pub(super) fn brick_response(
     state: &AppState,
     snap: &Snapshot,
     stored: StoredBrick<'_>,
@@ -142,11 +150,13 @@ fn brick_response(
     let layout = snap.layout();
     let hash = match stored {
         StoredBrick::Record { header, .. } => header.hash,
-        StoredBrick::Constant(v) => state.constant_brick(v, layout).0,
+        StoredBrick::Constant(v) => state.constants.hash(v, layout),
     };
     let mut etag = [0u8; 18];
     let etag = format_etag(hash, &mut etag);
-    let mut response_headers = HeaderMap::with_capacity(6);
+    // Room for every header the response will carry (these, CORS, length, date): growing the
+    // map rehashes it.
+    let mut response_headers = HeaderMap::with_capacity(12);
     response_headers.insert(
         header::ETAG,
         HeaderValue::from_str(etag).map_err(|e| ApiError::Internal(e.to_string()))?,
@@ -181,6 +191,11 @@ fn brick_response(
                 snap.payload_bytes(offset, &h)?,
             )
         }
+        StoredBrick::Constant(v) if want_lz4 => (
+            LZ4_MEDIA_TYPE,
+            None,
+            state.constants.body(v, layout, BodyKind::Lz4),
+        ),
         _ if want_lz4 => (
             LZ4_MEDIA_TYPE,
             None,
@@ -198,7 +213,10 @@ fn brick_response(
     if let Some(e) = encoding {
         response_headers.insert(header::CONTENT_ENCODING, HeaderValue::from_static(e));
     }
-    Ok((response_headers, body).into_response())
+    // Built in place: `(headers, body).into_response()` would copy the headers into a new map.
+    let mut response = Response::new(axum::body::Body::from(body));
+    *response.headers_mut() = response_headers;
+    Ok(response)
 }
 
 /// `"` + 16 hex digits + `"`, without allocating.
@@ -220,7 +238,7 @@ fn decoded(
     hash: u64,
 ) -> Result<bytes::Bytes, ApiError> {
     if let StoredBrick::Constant(v) = stored {
-        return Ok(state.constant_brick(v, layout).1);
+        return Ok(state.constants.body(v, layout, BodyKind::Raw));
     }
     state.bodies.get_or_make(hash, BodyKind::Raw, || {
         let mut out = vec![0u8; layout.brick_bytes()];

@@ -218,6 +218,11 @@ impl Vod2 {
         self.head.clone()
     }
 
+    /// The newest version, borrowed.
+    pub fn head_ref(&self) -> &Snapshot {
+        &self.head
+    }
+
     /// An older version, while its bricks are still in the file.
     ///
     /// # Errors
@@ -691,8 +696,9 @@ impl AsRef<[u8]> for MappedRange {
 }
 
 impl Snapshot {
-    /// The stored payload of a brick record (from [`Snapshot::stored`]) as shared bytes of the
-    /// mapping: no copy, and the mapping lives as long as the bytes do.
+    /// The stored payload of a brick record (from [`Snapshot::stored`]) as bytes: payloads up
+    /// to [`SHARE_PAYLOADS_FROM`] are copied, larger ones are shared slices of the mapping (no
+    /// copy; the mapping lives as long as the bytes do).
     ///
     /// # Errors
     /// The record lies outside this snapshot's mapping.
@@ -708,6 +714,9 @@ impl Snapshot {
                 "brick record at {offset} ends past the mapped length"
             )));
         }
+        if end - start < SHARE_PAYLOADS_FROM {
+            return Ok(bytes::Bytes::copy_from_slice(&self.map.bytes()[start..end]));
+        }
         Ok(bytes::Bytes::from_owner(MappedRange {
             map: self.map.clone(),
             start,
@@ -715,6 +724,12 @@ impl Snapshot {
         }))
     }
 }
+
+/// Payloads from this size on are served as shared slices of the mapping; smaller ones are
+/// copied. Sharing costs an allocation and two updates of the mapping's reference count, which
+/// every core serving bricks touches; for a typical lz4 brick (a few hundred bytes) the copy is
+/// cheaper.
+pub const SHARE_PAYLOADS_FROM: usize = 4096;
 
 /// A version's level 0 as the source of a build (same brick size): rebuilding a file from its
 /// head drops every older version and all garbage.
