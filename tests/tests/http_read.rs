@@ -205,7 +205,94 @@ async fn bricks_are_byte_exact_in_every_encoding() {
     );
 }
 
-/// With private reads, bricks need a token.
+/// Plain brick requests are answered before the router (`http/fast_path.rs`); a query string
+/// sends the same request through it. Both must give the same status, headers and body, for
+/// stored and constant bricks, in every encoding, and for revalidations.
+#[tokio::test]
+async fn plain_brick_requests_are_answered_as_the_router_answers_them() {
+    let s = start().await;
+    let c = reqwest::Client::new();
+    let vod = Vod2::open(&s.path).unwrap();
+    let head = vod.head();
+    let layout = head.layout().clone();
+    let (mut stored, mut constant) = (0, 0);
+    for level in 0..layout.levels() {
+        let g = layout.grid(level);
+        for (x, y, z) in [
+            (0, 0, 0),
+            (g[0] - 1, g[1] - 1, g[2] - 1),
+            (g[0] / 2, 0, g[2] / 2),
+        ] {
+            let key = layout.key(level, x, y, z).unwrap();
+            match head.stored(key).unwrap() {
+                isovox_server::store::StoredBrick::Constant(_) => constant += 1,
+                isovox_server::store::StoredBrick::Record { .. } => stored += 1,
+            }
+            let plain = format!("{}/v1/volumes/terrain/bricks/{level}/{x}/{y}/{z}", s.base);
+            let routed = format!("{plain}?version={}", head.version);
+            let etag = format!(
+                "\"{:016x}\"",
+                isovox_proto::vod2::content_hash(&expected_brick(&s.path, level, x, y, z))
+            );
+            for headers in [
+                vec![],
+                vec![("accept", "application/x-lz4")],
+                vec![("accept-encoding", "zstd")],
+                vec![("if-none-match", etag.as_str())],
+                vec![("if-none-match", "\"0000000000000000\"")],
+            ] {
+                let mut answers = Vec::new();
+                for url in [&plain, &routed] {
+                    let mut req = c.get(url);
+                    for (k, v) in &headers {
+                        req = req.header(*k, *v);
+                    }
+                    let r = req.send().await.unwrap();
+                    let status = r.status().as_u16();
+                    let mut h: Vec<(String, String)> = r
+                        .headers()
+                        .iter()
+                        .filter(|(k, _)| k.as_str() != "date")
+                        .map(|(k, v)| (k.to_string(), v.to_str().unwrap().to_string()))
+                        .collect();
+                    h.sort();
+                    answers.push((status, h, r.bytes().await.unwrap()));
+                }
+                assert_eq!(
+                    answers[0], answers[1],
+                    "brick {level}/{x}/{y}/{z} with {headers:?}: plain and routed answers differ"
+                );
+                assert!(matches!(answers[0].0, 200 | 304));
+            }
+        }
+    }
+    assert!(
+        stored > 0 && constant > 0,
+        "{stored} stored, {constant} constant"
+    );
+    // Answered before the router, still counted under the brick route.
+    let text = c
+        .get(format!("{}/metrics", s.base))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    let count: u64 = text
+        .lines()
+        .find_map(|l| {
+            l.strip_prefix(
+                "isovox_request_seconds_count{route=\"/v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}\"} ",
+            )
+        })
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert_eq!(count, u64::from(layout.levels()) * 3 * 5 * 2);
+}
+
+/// With private reads, bricks need a token on both the plain and the routed way.
 #[tokio::test]
 async fn private_reads_guard_bricks() {
     let mut tokens = Tokens::default();

@@ -12,12 +12,16 @@
 //! - `GET /v1/volumes/{name}/levels/{level}`: a level's brick grid, or its voxels.
 //! - `GET /v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}`: one mesh tile (see
 //!   [`handlers::mesh_tile`]).
+//!
+//! Plain brick requests (no query, nothing escaped) are answered before the router by the same
+//! code the routed handler calls; see `fast_path.rs` for why and for what counts as plain.
 
 pub mod auth;
 pub mod bodies;
 mod cors;
 pub mod edits;
 mod error;
+mod fast_path;
 pub mod handlers;
 pub mod metrics;
 mod openapi;
@@ -182,6 +186,7 @@ pub fn app(
        + Sync
        + 'static {
     let metrics = state.metrics.clone();
+    let fast_state = state.clone();
     let router = routes(&state)
         .fallback(handlers::not_found)
         .with_state(state);
@@ -194,7 +199,7 @@ pub fn app(
         // Request bodies (edit terms, batch key lists) are small; larger ones get 413.
         .layer(axum::extract::DefaultBodyLimit::max(1 << 20))
         .layer(metrics::MetricsLayer::new(metrics))
-        .service(router)
+        .service(fast_path::BrickFirst::new(fast_state, router))
 }
 
 /// The routes, with the layers only some of them take: a 30 s timeout on the routes that do
