@@ -179,81 +179,17 @@ impl StreamerConfig {
     }
 }
 
-/// The distance from `camera` to the nearest point of tile `key`'s box (world units), with the
-/// same `f32` arithmetic as the server's `adaptive_tiles`.
-fn tile_distance(brick: u32, scale: [f32; 3], key: BrickKey, camera: [f32; 3]) -> f32 {
-    let b = brick as f32;
-    let span = b * (1u64 << key.level) as f32;
-    let mut d2 = 0f32;
-    for (a, c) in [key.x, key.y, key.z].into_iter().enumerate() {
-        let (lo, hi) = (
-            c as f32 * span * scale[a],
-            (c as f32 + 1.0) * span * scale[a],
-        );
-        let d = if camera[a] < lo {
-            lo - camera[a]
-        } else if camera[a] > hi {
-            camera[a] - hi
-        } else {
-            0.0
-        };
-        d2 += d * d;
-    }
-    d2.sqrt()
-}
-
 /// The desired set for a camera (sorted), from metadata only.
 ///
 /// Level k where the tile's nearest point lies within `radii[k]` of `camera`, coarser beyond
-/// (see the module documentation); the same set as the server's `adaptive_tiles`.
+/// (see the module documentation): [`isovox_proto::lod::adaptive_tiles`], as the server's
+/// adaptive meshes select them.
 pub fn select_tiles(info: &VolumeInfo, camera: [f32; 3], radii: &[f32]) -> Vec<BrickKey> {
-    let Some(top) = info.levels.len().checked_sub(1) else {
-        return Vec::new();
-    };
-    let grid = |level: usize| info.levels[level].grid;
-    let mut stack = Vec::new();
-    let g = grid(top);
-    for z in 0..g[2] {
-        for y in 0..g[1] {
-            for x in 0..g[0] {
-                stack.push(BrickKey {
-                    level: top as u8,
-                    x,
-                    y,
-                    z,
-                });
-            }
-        }
+    match VolumeLayout::new(info.dims, info.brick, info.voxel_type) {
+        Ok(layout) => isovox_proto::lod::adaptive_tiles(&layout, info.voxel_scale, camera, radii),
+        // Metadata no server sends (it describes a valid layout); nothing to select.
+        Err(_) => Vec::new(),
     }
-    let mut out = Vec::new();
-    while let Some(k) = stack.pop() {
-        let level = k.level as usize;
-        let refine = level > radii.len()
-            || (level > 0
-                && tile_distance(info.brick, info.voxel_scale, k, camera) <= radii[level - 1]);
-        if refine {
-            let g = grid(level - 1);
-            for octant in 0..8u32 {
-                let c = [
-                    k.x * 2 + (octant & 1),
-                    k.y * 2 + (octant >> 1 & 1),
-                    k.z * 2 + (octant >> 2),
-                ];
-                if c[0] < g[0] && c[1] < g[1] && c[2] < g[2] {
-                    stack.push(BrickKey {
-                        level: k.level - 1,
-                        x: c[0],
-                        y: c[1],
-                        z: c[2],
-                    });
-                }
-            }
-        } else {
-            out.push(k);
-        }
-    }
-    out.sort();
-    out
 }
 
 /// A tile's content.
@@ -853,7 +789,9 @@ impl Engine {
 
     fn distance(&self, key: BrickKey) -> f32 {
         match self.camera {
-            Some(c) => tile_distance(self.info.brick, self.info.voxel_scale, key, c),
+            Some(c) => {
+                isovox_proto::lod::tile_distance(&self.layout, self.info.voxel_scale, key, c)
+            }
             None => 0.0,
         }
     }

@@ -9,6 +9,7 @@
 //! - [`icvg`]: ICVG terms and edit requests (JSON).
 //! - [`voxel`]: voxel types and the ICVG value range (L, H, S).
 //! - [`layout`]: the brick octree's geometry: levels, brick grids, [`BrickKey`], node indices.
+//! - [`lod`]: which tiles a camera needs (the spherical detail bias).
 //! - [`mesh`]: triangle meshes and their wire encodings (compact binary, GLB).
 //! - [`vod2`]: the VOD 2 file's on-disk records (header, slots, commits, index, bricks), encoded
 //!   and decoded over byte slices with validation. The byte layout is in `docs/vod2.md`.
@@ -19,6 +20,7 @@ pub mod batch;
 pub mod error;
 pub mod icvg;
 pub mod layout;
+pub mod lod;
 pub mod mesh;
 pub mod vod2;
 pub mod voxel;

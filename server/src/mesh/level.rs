@@ -25,46 +25,10 @@ pub fn level_tiles(snap: &Snapshot, level: u8) -> Vec<BrickKey> {
     out
 }
 
-/// The tiles the thesis's spherical detail bias selects: with radii `r0 < r1 < ... < r(n-1)`,
-/// level k where the tile's nearest point lies within `r(k)` of the camera, level n (or the
-/// coarsest, if fewer) beyond the last radius. Walking down from the root, a tile of level k+1 is
-/// refined into its children when it is within `r(k)`, and always while k+1 > n.
+/// The tiles the thesis's spherical detail bias selects for `camera` (see
+/// [`isovox_proto::lod::adaptive_tiles`], which the client's streamer uses too).
 pub fn adaptive_tiles(snap: &Snapshot, camera: [f32; 3], radii: &[f32]) -> Vec<BrickKey> {
-    let layout = snap.layout();
-    let scale = snap.header().voxel_scale;
-    let b = layout.brick() as f32;
-    let distance = |k: BrickKey| {
-        let span = b * (1u64 << k.level) as f32;
-        let mut d2 = 0f32;
-        for (a, c) in [k.x, k.y, k.z].into_iter().enumerate() {
-            let (lo, hi) = (
-                c as f32 * span * scale[a],
-                (c as f32 + 1.0) * span * scale[a],
-            );
-            let d = if camera[a] < lo {
-                lo - camera[a]
-            } else if camera[a] > hi {
-                camera[a] - hi
-            } else {
-                0.0
-            };
-            d2 += d * d;
-        }
-        d2.sqrt()
-    };
-    let mut out = Vec::new();
-    let mut stack = level_tiles(snap, layout.levels() - 1);
-    while let Some(k) = stack.pop() {
-        let level = k.level as usize;
-        let refine = level > radii.len() || (level > 0 && distance(k) <= radii[level - 1]);
-        if refine {
-            stack.extend(layout.children(k).into_iter().map(|(_, c)| c));
-        } else {
-            out.push(k);
-        }
-    }
-    out.sort();
-    out
+    isovox_proto::lod::adaptive_tiles(snap.layout(), snap.header().voxel_scale, camera, radii)
 }
 
 /// Meshes `tiles` in parallel, one mesh per tile (world coordinates), in the order given.
