@@ -13,7 +13,7 @@ use isovox_proto::{VolumeLayout, VoxelType};
 use isovox_server::catalog::Catalog;
 use isovox_server::generate::WorldSource;
 use isovox_server::http::auth::Tokens;
-use isovox_server::http::{run as serve, AppState, ServerConfig};
+use isovox_server::http::{spawn, AppState, ServerConfig, Spawned};
 use isovox_server::store::{build_vod2, BuildOptions};
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -23,16 +23,8 @@ const TOKEN: &str = "0123456789abcdef0123";
 
 struct Server {
     base: String,
+    _server: Spawned,
     _dir: tempfile::TempDir,
-    shutdown: Option<tokio::sync::oneshot::Sender<()>>,
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        if let Some(s) = self.shutdown.take() {
-            let _ = s.send(());
-        }
-    }
 }
 
 /// A 128x64x128 u8 terrain, brick 16, served as "terrain" with a write token.
@@ -49,9 +41,6 @@ async fn start() -> Server {
     )
     .unwrap();
     let catalog = Catalog::open_dir(dir.path()).unwrap();
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
     let state = AppState::with_config(
         catalog,
         ServerConfig {
@@ -60,17 +49,11 @@ async fn start() -> Server {
             ..Default::default()
         },
     );
-    tokio::spawn(async move {
-        serve(listener, state, async {
-            let _ = rx.await;
-        })
-        .await
-        .unwrap();
-    });
+    let server = spawn("127.0.0.1:0", state).await.unwrap();
     Server {
-        base: format!("http://{addr}"),
+        base: server.base(),
+        _server: server,
         _dir: dir,
-        shutdown: Some(tx),
     }
 }
 

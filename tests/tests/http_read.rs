@@ -9,23 +9,15 @@ use isovox_proto::{VolumeLayout, VoxelType};
 use isovox_server::catalog::Catalog;
 use isovox_server::generate::WorldSource;
 use isovox_server::http::auth::{Scope, Tokens};
-use isovox_server::http::{run, AppState, ServerConfig};
+use isovox_server::http::{spawn, AppState, ServerConfig, Spawned};
 use isovox_server::store::{build_vod2, BuildOptions, Vod2};
 use std::path::{Path, PathBuf};
 
 struct Server {
     base: String,
     path: PathBuf,
+    _server: Spawned,
     _dir: tempfile::TempDir,
-    shutdown: Option<tokio::sync::oneshot::Sender<()>>,
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        if let Some(s) = self.shutdown.take() {
-            let _ = s.send(());
-        }
-    }
 }
 
 /// A 100x40x70 u8 world, brick 16, served as "terrain".
@@ -47,22 +39,14 @@ async fn start_with(config: ServerConfig) -> Server {
     )
     .unwrap();
     let catalog = Catalog::open_dir(dir.path()).unwrap();
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-    let state = AppState::with_config(catalog, config);
-    tokio::spawn(async move {
-        run(listener, state, async {
-            let _ = rx.await;
-        })
+    let server = spawn("127.0.0.1:0", AppState::with_config(catalog, config))
         .await
         .unwrap();
-    });
     Server {
-        base: format!("http://{addr}"),
+        base: server.base(),
         path,
+        _server: server,
         _dir: dir,
-        shutdown: Some(tx),
     }
 }
 

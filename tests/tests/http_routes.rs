@@ -11,7 +11,7 @@ use isovox_proto::vod2::{content_hash, Codec};
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use isovox_server::catalog::Catalog;
 use isovox_server::generate::{EllipsoidSource, WorldSource};
-use isovox_server::http::{run, AppState};
+use isovox_server::http::{spawn, AppState, Spawned};
 use isovox_server::store::codec::Compression;
 use isovox_server::store::{build_vod2, BrickSource, BuildOptions, Snapshot, StoredBrick, Vod2};
 use std::collections::{HashMap, HashSet};
@@ -82,16 +82,8 @@ fn build(dir: &Path, vol: Vol) -> PathBuf {
 struct Server {
     base: String,
     paths: HashMap<Vol, PathBuf>,
+    _server: Spawned,
     _dir: tempfile::TempDir,
-    shutdown: Option<tokio::sync::oneshot::Sender<()>>,
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        if let Some(s) = self.shutdown.take() {
-            let _ = s.send(());
-        }
-    }
 }
 
 impl Server {
@@ -110,22 +102,14 @@ async fn start(vols: &[Vol], cpu_queue: usize) -> Server {
     let paths = vols.iter().map(|&v| (v, build(dir.path(), v))).collect();
     let catalog = Catalog::open_dir(dir.path()).unwrap();
     assert_eq!(catalog.len(), vols.len());
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-    let state = AppState::new(catalog, 64 << 20, cpu_queue);
-    tokio::spawn(async move {
-        run(listener, state, async {
-            let _ = rx.await;
-        })
+    let server = spawn("127.0.0.1:0", AppState::new(catalog, 64 << 20, cpu_queue))
         .await
         .unwrap();
-    });
     Server {
-        base: format!("http://{addr}"),
+        base: server.base(),
         paths,
+        _server: server,
         _dir: dir,
-        shutdown: Some(tx),
     }
 }
 

@@ -284,6 +284,54 @@ pub async fn run(
     .await
 }
 
+/// A server running on the current tokio runtime (see [`spawn`]); dropping it shuts the server
+/// down gracefully.
+#[derive(Debug)]
+pub struct Spawned {
+    /// Where it listens.
+    pub addr: std::net::SocketAddr,
+    shutdown: Option<tokio::sync::oneshot::Sender<()>>,
+}
+
+impl Spawned {
+    /// `http://ADDR`, the base of every URL.
+    pub fn base(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+}
+
+impl Drop for Spawned {
+    fn drop(&mut self) {
+        if let Some(s) = self.shutdown.take() {
+            let _ = s.send(());
+        }
+    }
+}
+
+/// Serves `state` on `addr` (port 0: an ephemeral port) as a task of the current tokio runtime,
+/// until the returned handle is dropped. For tests, benchmarks and embedding; `isovox serve`
+/// uses [`run`].
+///
+/// # Errors
+/// The address cannot be bound.
+pub async fn spawn(addr: &str, state: AppState) -> std::io::Result<Spawned> {
+    let listener = TcpListener::bind(addr).await?;
+    let addr = listener.local_addr()?;
+    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+    tokio::spawn(async move {
+        let stopped = async {
+            let _ = rx.await;
+        };
+        if let Err(e) = run(listener, state, stopped).await {
+            tracing::error!("server on {addr} stopped: {e}");
+        }
+    });
+    Ok(Spawned {
+        addr,
+        shutdown: Some(tx),
+    })
+}
+
 /// Resolves on Ctrl-C or SIGTERM.
 pub async fn shutdown_signal() {
     let ctrl_c = async {
