@@ -23,6 +23,8 @@ use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+mod random_terms;
+
 const BRICK: u32 = 8;
 const DIMS: [u32; 3] = [37, 29, 23];
 
@@ -357,66 +359,19 @@ const BINARY_NAMES: [&str; 12] = [
     "divide",
 ];
 
-fn pos() -> impl Strategy<Value = [i64; 3]> {
+fn pos() -> impl Strategy<Value = [i64; 3]> + Clone {
     (-6i64..43, -6i64..35, -6i64..29).prop_map(|(x, y, z)| [x, y, z])
 }
 
 fn leaf() -> impl Strategy<Value = Term> {
-    prop_oneof![
-        (pos(), prop::array::uniform3(3u32..20))
-            .prop_map(|(origin, size)| Term::Cuboid { origin, size }),
-        (pos(), prop::array::uniform3(1u32..12))
-            .prop_map(|(center, radii)| Term::Ellipsoid { center, radii }),
-        (pos(), prop::array::uniform2(1u32..9), 3u32..20).prop_map(|(base, radii, height)| {
-            Term::Cylinder {
-                base,
-                radii,
-                height,
-            }
-        }),
-        (pos(), prop::array::uniform2(1u32..9), 3u32..20).prop_map(|(base, radii, height)| {
-            Term::Cone {
-                base,
-                radii,
-                height,
-            }
-        }),
-        (pos(), 0u32..8, 1u32..5).prop_map(|(center, major, minor)| Term::Torus {
-            center,
-            major,
-            minor
-        }),
-        (pos(), 1u32..7, 0u32..10).prop_map(|(center, radius, length)| Term::Capsule {
-            center,
-            radius,
-            length
-        }),
-        (pos(), prop::array::uniform3(4u32..16))
-            .prop_map(|(origin, size)| Term::Prism { origin, size }),
-        (pos(), prop::array::uniform3(4u32..16))
-            .prop_map(|(origin, size)| Term::Pyramid { origin, size }),
-    ]
+    random_terms::leaf(pos(), 20)
 }
 
 fn small_term() -> impl Strategy<Value = Term> {
     leaf().prop_recursive(2, 6, 2, |inner| {
         prop_oneof![
-            3 => (0usize..11, inner.clone(), inner.clone()).prop_map(|(w, a, b)| {
-                let (a, b) = (Box::new(a), Box::new(b));
-                match w {
-                    0 => Term::Union(a, b),
-                    1 => Term::Intersection(a, b),
-                    2 => Term::Trim(a, b),
-                    3 => Term::Cap(a, b),
-                    4 => Term::Difference(a, b),
-                    5 => Term::DifferenceA(a, b),
-                    6 => Term::DifferenceB(a, b),
-                    7 => Term::Add(a, b),
-                    8 => Term::Modulate(a, b),
-                    9 => Term::Product(a, b),
-                    _ => Term::DivideA(a, b),
-                }
-            }),
+            3 => (0u8..12, inner.clone(), inner.clone(), 1u32..=100)
+                .prop_map(|(w, a, b, s)| random_terms::binary(w, a, b, f64::from(s) / 100.0)),
             1 => inner.clone().prop_map(|a| Term::Inverse(Box::new(a))),
             1 => (-200i32..200, inner).prop_map(|(k, a)| Term::AddScalar { k, arg: Box::new(a) }),
         ]

@@ -10,6 +10,8 @@ use isovox_server::icvg::primitives::Box3;
 use isovox_server::icvg::term::{CompiledTerm, NoVolumes, TermLimits};
 use proptest::prelude::*;
 
+mod random_terms;
+
 const ALL_BINARY: [BinaryOp; 12] = [
     BinaryOp::Union,
     BinaryOp::Intersection,
@@ -131,64 +133,13 @@ proptest! {
 // Terms: eval over a box equals sample voxel by voxel.
 // ---------------------------------------------------------------------------------------------
 
-fn pos() -> impl Strategy<Value = [i64; 3]> {
+fn pos() -> impl Strategy<Value = [i64; 3]> + Clone {
     prop::array::uniform3(-8i64..24)
 }
 
-/// A random primitive with a random placement (all eight kinds).
+/// A random primitive (all eight kinds), about a box's size.
 fn leaf() -> impl Strategy<Value = Term> {
-    prop_oneof![
-        (pos(), prop::array::uniform3(3u32..12))
-            .prop_map(|(origin, size)| Term::Cuboid { origin, size }),
-        (pos(), prop::array::uniform3(1u32..7))
-            .prop_map(|(center, radii)| Term::Ellipsoid { center, radii }),
-        (pos(), prop::array::uniform2(1u32..6), 3u32..14).prop_map(|(base, radii, height)| {
-            Term::Cylinder {
-                base,
-                radii,
-                height,
-            }
-        }),
-        (pos(), prop::array::uniform2(1u32..6), 3u32..14).prop_map(|(base, radii, height)| {
-            Term::Cone {
-                base,
-                radii,
-                height,
-            }
-        }),
-        (pos(), 0u32..6, 1u32..4).prop_map(|(center, major, minor)| Term::Torus {
-            center,
-            major,
-            minor
-        }),
-        (pos(), 1u32..5, 0u32..8).prop_map(|(center, radius, length)| Term::Capsule {
-            center,
-            radius,
-            length
-        }),
-        (pos(), prop::array::uniform3(4u32..12))
-            .prop_map(|(origin, size)| Term::Prism { origin, size }),
-        (pos(), prop::array::uniform3(4u32..12))
-            .prop_map(|(origin, size)| Term::Pyramid { origin, size }),
-    ]
-}
-
-fn binary_term(which: u8, a: Term, b: Term, s_l: f64) -> Term {
-    let (a, b) = (Box::new(a), Box::new(b));
-    match which % 12 {
-        0 => Term::Union(a, b),
-        1 => Term::Intersection(a, b),
-        2 => Term::Trim(a, b),
-        3 => Term::Cap(a, b),
-        4 => Term::Difference(a, b),
-        5 => Term::DifferenceA(a, b),
-        6 => Term::DifferenceB(a, b),
-        7 => Term::Add(a, b),
-        8 => Term::Modulate(a, b),
-        9 => Term::Product(a, b),
-        10 => Term::DivideA(a, b),
-        _ => Term::Divide { s_l, args: (a, b) },
-    }
+    random_terms::leaf(pos(), 12)
 }
 
 /// Random trees of depth <= 3 over random primitives and every operator.
@@ -196,7 +147,7 @@ fn term() -> impl Strategy<Value = Term> {
     leaf().prop_recursive(3, 15, 2, |inner| {
         prop_oneof![
             4 => (0u8..12, inner.clone(), inner.clone(), 1u32..=100)
-                .prop_map(|(w, a, b, s)| binary_term(w, a, b, s as f64 / 100.0)),
+                .prop_map(|(w, a, b, s)| random_terms::binary(w, a, b, s as f64 / 100.0)),
             1 => inner.clone().prop_map(|a| Term::Inverse(Box::new(a))),
             1 => inner.clone().prop_map(|a| Term::Complement(Box::new(a))),
             1 => (-255i32..=255, inner).prop_map(|(k, a)| Term::AddScalar { k, arg: Box::new(a) }),
