@@ -75,10 +75,6 @@ impl Catalog {
         Ok(Catalog { volumes })
     }
 
-    pub fn get(&self, name: &str) -> Option<Arc<LiveVolume>> {
-        self.volumes.get(name).cloned()
-    }
-
     /// The volume `name`, borrowed (no reference count touched: on the brick routes, a count
     /// shared by every core is a cache line they fight over).
     pub fn volume(&self, name: &str) -> Option<&Arc<LiveVolume>> {

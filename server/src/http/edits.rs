@@ -57,7 +57,7 @@ struct CatalogVolumes(Arc<Catalog>, Option<Arc<MeshStore>>);
 impl VolumeResolver for CatalogVolumes {
     fn resolve(&self, name: &str) -> Result<Arc<Snapshot>, TermError> {
         self.0
-            .get(name)
+            .volume(name)
             .map(|v| v.head())
             .ok_or_else(|| TermError(format!("no volume named {name:?}")))
     }

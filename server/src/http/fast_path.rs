@@ -6,7 +6,7 @@
 //! service and a boxed future per request) cost about a tenth of its throughput. So
 //! [`BrickFirst`] answers plain requests for it itself: `GET`, no query, a volume name without
 //! escapes, numbers in plain digits, reads not private. It answers them with the routed
-//! handler's own [`handlers::brick_response`], and only when that succeeds: every other request,
+//! handler's own [`handlers::brick_at`], and only when that succeeds: every other request,
 //! and every request that would fail, goes to the router, so error responses are decided in
 //! one place.
 
@@ -92,12 +92,7 @@ fn plain_brick(state: &AppState, request: &Request) -> Option<Response> {
         return None;
     }
     let (name, level, x, y, z) = parse(request)?;
-    let volume = state.catalog.volume(name)?;
-    let current = volume.load();
-    let snap = current.head_ref();
-    let key = snap.layout().key(level, x, y, z).ok()?;
-    let stored = snap.stored(key).ok()?;
-    handlers::brick_response(state, snap, stored, request.headers(), "no-cache").ok()
+    handlers::brick_at(state, name, None, (level, x, y, z), request.headers()).ok()
 }
 
 #[cfg(test)]

@@ -100,10 +100,22 @@ pub async fn brick(
     let Path((name, level, x, y, z)) =
         path.map_err(|e| ApiError::BadRequest(format!("malformed brick path: {e}")))?;
     let Query(query) = query.map_err(|e| ApiError::BadRequest(format!("malformed query: {e}")))?;
-    let vod = volume(&state, &name)?;
+    brick_at(&state, &name, query.version, (level, x, y, z), headers)
+}
+
+/// The response for brick (level, x, y, z) of volume `name` at `version` (the head if `None`):
+/// the brick route's work once its request is parsed, shared with the fast path.
+pub(super) fn brick_at(
+    state: &AppState,
+    name: &str,
+    version: Option<u64>,
+    (level, x, y, z): (u8, u32, u32, u32),
+    headers: &HeaderMap,
+) -> Result<Response, ApiError> {
+    let vod = volume(state, name)?;
     // The head is borrowed from the volume's current file (no reference count touched).
     let (current, older);
-    let snap: &Snapshot = match query.version {
+    let snap: &Snapshot = match version {
         Some(v) => {
             older = vod.version(v)?;
             &older
@@ -113,12 +125,12 @@ pub async fn brick(
             current.head_ref()
         }
     };
-    let layout = snap.layout();
-    let key = layout
+    let key = snap
+        .layout()
         .key(level, x, y, z)
         .map_err(|e| ApiError::not_found(e.to_string()))?;
     let stored = snap.stored(key)?;
-    brick_response(&state, snap, stored, headers, "no-cache")
+    brick_response(state, snap, stored, headers, "no-cache")
 }
 
 /// Whether `If-None-Match` names `etag` (or `*`).
@@ -137,10 +149,10 @@ fn if_none_match(headers: &HeaderMap, etag: &str) -> bool {
 /// ETag = content hash (304 on a match); the stored zstd frame as `Content-Encoding: zstd` to
 /// clients that accept it, an lz4 block for `Accept: application/x-lz4`, else the raw voxels.
 ///
-/// Stored payloads go out as shared slices of the mapping (no copy); decoded voxels and
-/// transcoded lz4 blocks come from the body cache, keyed by content hash, so a hot brick is
-/// decoded once.
-pub(super) fn brick_response(
+/// Stored payloads go out as they are stored (small ones copied, large ones as shared slices of
+/// the mapping: see `Snapshot::payload_bytes`); decoded voxels and transcoded lz4 blocks come
+/// from the body cache, keyed by content hash, so a hot brick is decoded once.
+fn brick_response(
     state: &AppState,
     snap: &Snapshot,
     stored: StoredBrick<'_>,
