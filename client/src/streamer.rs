@@ -201,6 +201,18 @@ pub enum TileData {
     Mesh(Arc<Mesh>),
 }
 
+impl TileData {
+    /// The tile's size in memory: voxel bytes, or the mesh's arrays.
+    pub fn bytes(&self) -> u64 {
+        match self {
+            TileData::Brick(b) => b.len() as u64,
+            TileData::Mesh(m) => {
+                (m.positions.len() * 12 + m.normals.len() * 12 + m.indices.len() * 4) as u64
+            }
+        }
+    }
+}
+
 /// What the streamer reports.
 #[derive(Debug, Clone)]
 pub enum StreamEvent {

@@ -920,10 +920,8 @@ async fn after_a_disconnect_the_streamer_catches_up_from_its_last_version() {
     // to the file while no server runs; a new server starts on the same port and data.
     let addr = server.addr;
     tokio::task::block_in_place(|| server.stop());
-    let first =
-        isovox_server::cli::edit::edit_file(&w.path, &carve(ground(&w, 62, 33), 5)).unwrap();
-    let second =
-        isovox_server::cli::edit::edit_file(&w.path, &carve(ground(&w, 57, 27), 4)).unwrap();
+    let first = isovox_server::volume::edit_file(&w.path, &carve(ground(&w, 62, 33), 5)).unwrap();
+    let second = isovox_server::volume::edit_file(&w.path, &carve(ground(&w, 57, 27), 4)).unwrap();
     assert_eq!((first.version, second.version), (2, 3));
     let counts = counter.snapshot();
     let _server = TestServer::start(w.dir.path(), Some(addr));
@@ -1041,8 +1039,8 @@ async fn when_the_missed_versions_were_compacted_away_the_streamer_reloads() {
     // another port, which the streamer does not know) that keeps only the last one.
     let addr = server.addr;
     tokio::task::block_in_place(|| server.stop());
-    isovox_server::cli::edit::edit_file(&w.path, &carve(ground(&w, 42, 52), 6)).unwrap();
-    isovox_server::cli::edit::edit_file(&w.path, &carve(ground(&w, 38, 47), 5)).unwrap();
+    isovox_server::volume::edit_file(&w.path, &carve(ground(&w, 42, 52), 6)).unwrap();
+    isovox_server::volume::edit_file(&w.path, &carve(ground(&w, 38, 47), 5)).unwrap();
     let mut other = TestServer::start(w.dir.path(), None);
     let compacted = Client::new(&other.base)
         .unwrap()

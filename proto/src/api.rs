@@ -20,7 +20,7 @@ pub struct VolumeInfo {
     pub name: String,
     pub dims: [u32; 3],
     pub voxel_type: VoxelType,
-    /// L, H and S of the voxel type (`spec/icvg.md`).
+    /// L, H and S of the voxel type (`docs/icvg.md`).
     pub low: u16,
     pub high: u16,
     pub surface: u16,

@@ -1,4 +1,4 @@
-//! ICVG terms and edit requests as JSON (`spec/icvg.md`, "Term JSON").
+//! ICVG terms and edit requests as JSON (`docs/icvg.md`, "Term JSON").
 //!
 //! A term is a tree: leaves are primitives placed in the world (level-0 voxel coordinates) or
 //! stored volumes; inner nodes are operators. Every variant below serializes as a one-key object

@@ -1,7 +1,7 @@
 //! The volumes a server serves: every VOD 2 file of its data directory, named after the file.
 
 use crate::store::{StoreError, Vod2};
-use crate::volume::LiveVolume;
+use crate::volume::{LiveVolume, VolumeError};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -79,6 +79,16 @@ impl Catalog {
     /// shared by every core is a cache line they fight over).
     pub fn volume(&self, name: &str) -> Option<&Arc<LiveVolume>> {
         self.volumes.get(name)
+    }
+
+    /// The volume `name`, borrowed.
+    ///
+    /// # Errors
+    /// [`VolumeError::NoSuchVolume`].
+    pub fn get(&self, name: &str) -> Result<&Arc<LiveVolume>, VolumeError> {
+        self.volumes
+            .get(name)
+            .ok_or_else(|| VolumeError::NoSuchVolume(name.to_string()))
     }
 
     pub fn iter(&self) -> impl Iterator<Item = (&str, &Arc<LiveVolume>)> {

@@ -4,8 +4,11 @@
 //! `read`); `#` starts a comment. Secrets are compared in constant time and never printed: a
 //! [`Token`]'s `Debug` shows its name and scope only, and logs name the token, not its secret.
 
-use super::ApiError;
+use super::{ApiError, AppState};
+use axum::extract::{Request, State};
 use axum::http::{header, HeaderMap};
+use axum::middleware::Next;
+use axum::response::{IntoResponse, Response};
 use std::collections::HashMap;
 use std::path::Path;
 use std::sync::Mutex;
@@ -164,6 +167,24 @@ impl Tokens {
         }
         Ok(token)
     }
+}
+
+/// With `--private-reads`: every `/v1` route needs a token of either scope.
+pub async fn require_token(
+    State(state): State<AppState>,
+    request: Request,
+    next: Next,
+) -> Response {
+    if request.uri().path().starts_with("/v1/") {
+        if let Err(e) = state
+            .config
+            .tokens
+            .authorize(request.headers(), Scope::Read)
+        {
+            return e.into_response();
+        }
+    }
+    next.run(request).await
 }
 
 fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {

@@ -1,4 +1,4 @@
-//! The operators of the algebra (`spec/icvg.md`, "Operators"). D1 is the existing volume, D2
+//! The operators of the algebra (`docs/icvg.md`, "Operators"). D1 is the existing volume, D2
 //! the operand; every result is clamped to [L, H].
 
 use isovox_proto::VoxelType;
@@ -133,7 +133,7 @@ impl BinaryOp {
         r.clamp(l, h) as u16
     }
 
-    /// How the operator treats voxels the operand does not reach (`spec/icvg.md`).
+    /// How the operator treats voxels the operand does not reach (`docs/icvg.md`).
     pub fn outside(self, t: VoxelType) -> Outside {
         match self {
             BinaryOp::Union
@@ -208,7 +208,7 @@ mod tests {
         CASES.iter().map(|&(a, b)| op.apply(a, b, U8)).collect()
     }
 
-    // Each expected row is worked out by hand from the table in spec/icvg.md.
+    // Each expected row is worked out by hand from the table in docs/icvg.md.
     #[test]
     fn union_intersection_trim_cap() {
         assert_eq!(

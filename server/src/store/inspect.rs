@@ -8,7 +8,7 @@ use isovox_proto::VoxelType;
 use serde::Serialize;
 use std::collections::HashSet;
 
-/// What `inspect --json` prints. Field names are an interface scripts rely on (`spec/cli.md`).
+/// What `inspect --json` prints. Field names are an interface scripts rely on (`docs/cli.md`).
 #[derive(Debug, Clone, Serialize)]
 pub struct Inspection {
     pub format: &'static str,

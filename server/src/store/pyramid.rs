@@ -60,7 +60,7 @@ impl FirstError {
         match self.0.into_inner() {
             Ok(None) => Ok(()),
             Ok(Some(e)) => Err(e),
-            Err(_) => Err(super::StoreError::Invalid(
+            Err(_) => Err(super::StoreError::Internal(
                 "a reader thread panicked".into(),
             )),
         }

@@ -132,7 +132,7 @@ impl Vod2 {
             .map_err(StoreError::io_path("cannot stat", &self.path))?
             .len();
         if slot.committed_len > file_len {
-            return Err(StoreError::Invalid(format!(
+            return Err(StoreError::Internal(format!(
                 "{}: commit names {} bytes, the file has {file_len}",
                 self.path.display(),
                 slot.committed_len
@@ -243,7 +243,7 @@ impl Vod2 {
                 )?));
             }
             if h.parent == 0 || h.version < version {
-                return Err(StoreError::Invalid(format!(
+                return Err(StoreError::Absent(format!(
                     "version {version} is not in this file (head is {})",
                     self.head.version
                 )));
@@ -521,7 +521,7 @@ impl Snapshot {
     pub fn entry(&self, key: BrickKey) -> Result<NodeEntry, StoreError> {
         let layout = self.layout();
         if !layout.contains(key) {
-            return Err(StoreError::Invalid(format!(
+            return Err(StoreError::OutOfRange(format!(
                 "brick {key} is outside the volume"
             )));
         }
@@ -575,6 +575,21 @@ impl Snapshot {
         decode_stored(&stored, self.layout(), out)
     }
 
+    /// A brick's voxels: a constant as it is stored, anything else decoded (and checked).
+    ///
+    /// # Errors
+    /// See [`Snapshot::read_into`].
+    pub fn voxels(&self, key: BrickKey) -> Result<super::BrickVoxels, StoreError> {
+        Ok(match self.stored(key)? {
+            StoredBrick::Constant(v) => super::BrickVoxels::Constant(v),
+            record => {
+                let mut out = vec![0u8; self.layout().brick_bytes()];
+                decode_stored(&record, self.layout(), &mut out)?;
+                super::BrickVoxels::Data(out)
+            }
+        })
+    }
+
     /// Decodes a brick into a new buffer.
     ///
     /// # Errors
@@ -616,14 +631,13 @@ impl Snapshot {
     }
 
     /// The content hash of the brick behind an entry (for a constant, of its expanded bytes).
-    fn entry_hash(&self, entry: NodeEntry) -> Result<u64, StoreError> {
+    ///
+    /// # Errors
+    /// See [`Snapshot::stored_entry`].
+    pub fn entry_hash(&self, entry: NodeEntry) -> Result<u64, StoreError> {
         Ok(match self.stored_entry(entry)? {
             StoredBrick::Record { header, .. } => header.hash,
-            StoredBrick::Constant(v) => {
-                let mut out = vec![0u8; self.layout().brick_bytes()];
-                codec::fill_constant(&mut out, v, self.layout().voxel_type());
-                content_hash(&out)
-            }
+            StoredBrick::Constant(v) => codec::constant_hash(v, self.layout()),
         })
     }
 
@@ -710,9 +724,14 @@ impl Snapshot {
         let start = offset as usize + BRICK_HEADER_LEN;
         let end = start + header.stored_len as usize;
         if end > self.map.bytes().len() {
-            return Err(StoreError::Invalid(format!(
-                "brick record at {offset} ends past the mapped length"
-            )));
+            return Err(StoreError::corrupt(
+                offset,
+                format!(
+                    "a brick record within the {} mapped bytes",
+                    self.map.bytes().len()
+                ),
+                format!("one that ends at {end}"),
+            ));
         }
         if end - start < SHARE_PAYLOADS_FROM {
             return Ok(bytes::Bytes::copy_from_slice(&self.map.bytes()[start..end]));
@@ -808,7 +827,7 @@ impl IndexChunks {
                 let _ = self.chunks[c].set(decoded);
                 self.chunks[c]
                     .get()
-                    .ok_or_else(|| StoreError::Invalid("index chunk vanished".into()))?
+                    .ok_or_else(|| StoreError::Internal("index chunk vanished".into()))?
             }
         };
         Ok(chunk[(node % CHUNK_ENTRIES) as usize])
@@ -857,10 +876,8 @@ pub fn decode_stored(
             if hash != header.hash {
                 return Err(StoreError::corrupt(
                     offset,
-                    format!(
-                        "content hash {hash:#018x} differs from the stored {:#018x}",
-                        header.hash
-                    ),
+                    format!("content hash {:#018x}", header.hash),
+                    format!("{hash:#018x}"),
                 ));
             }
         }

@@ -169,7 +169,7 @@ impl Vod2Writer {
     /// The file already has a commit, or `version` is 0.
     pub fn start_at_version(&mut self, version: u64) -> Result<(), StoreError> {
         if self.head.is_some() || version == 0 {
-            return Err(StoreError::Invalid(format!(
+            return Err(StoreError::Internal(format!(
                 "cannot start {} at version {version}: it has commits, or 0 was asked",
                 self.path.display()
             )));
@@ -321,7 +321,7 @@ impl Vod2Writer {
             Some(h) => match (h.version.checked_add(1), h.seq.checked_add(1)) {
                 (Some(version), Some(seq)) => (h.commit, version, seq),
                 _ => {
-                    return Err(StoreError::Invalid(format!(
+                    return Err(StoreError::Internal(format!(
                         "{}: version or slot sequence number exhausted (version {}, sequence {}); compact the file",
                         self.path.display(),
                         h.version,
@@ -339,7 +339,7 @@ impl Vod2Writer {
                     NodeEntry::Stored(offset) => offset >= DATA_START && offset < self.end(),
                 };
             if !valid {
-                return Err(StoreError::Invalid(format!(
+                return Err(StoreError::Internal(format!(
                     "invalid change to node {node}: {entry:?}"
                 )));
             }
@@ -347,7 +347,7 @@ impl Vod2Writer {
         let checkpoint_at = match checkpoint {
             Some(entries) => {
                 if entries.len() as u64 != self.header.layout.node_count() {
-                    return Err(StoreError::Invalid(format!(
+                    return Err(StoreError::Internal(format!(
                         "a checkpoint needs {} entries, got {}",
                         self.header.layout.node_count(),
                         entries.len()
@@ -357,7 +357,7 @@ impl Vod2Writer {
             }
             None => {
                 if self.head.is_none() {
-                    return Err(StoreError::Invalid(
+                    return Err(StoreError::Internal(
                         "the first commit of a file needs a checkpoint".into(),
                     ));
                 }

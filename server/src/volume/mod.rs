@@ -10,13 +10,23 @@
 //! that falls more than [`FEED_CAPACITY`] versions behind learns it (`Lagged`) instead of
 //! slowing anyone down. What it announces is read back from the commit record, the same
 //! source `changes?since=N` reads, so the live feed and the catch-up list cannot disagree.
+//!
+//! Layout: this file holds the volume's versions, history and feed; [`read`] the reads a
+//! server answers (batches, levels, mesh tiles), checked first and run later off the async
+//! runtime; [`write`] edits (with a server's limits) and compaction; [`resolve`] the volumes
+//! and meshes edit terms name; [`error`] what can go wrong.
 
-use crate::icvg::edit::{apply_edit, CheckpointPolicy, Edit};
-use crate::store::codec::Compression;
-use crate::store::compact::{compact, CompactReport};
+pub mod error;
+pub mod read;
+pub mod resolve;
+pub mod write;
+
+pub use error::VolumeError;
+pub use write::{edit_file, EditLimits};
+
 use crate::store::{Snapshot, StoreError, Vod2, Vod2Writer};
 use arc_swap::ArcSwap;
-use isovox_proto::api::{ChangeEvent, ChangedBricks, EditResponse};
+use isovox_proto::api::{ChangeEvent, ChangeList, ChangedBricks};
 use isovox_proto::vod2::CommitHeader;
 use isovox_proto::{FormatError, VolumeLayout};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -33,15 +43,10 @@ pub struct FeedItem {
     pub json: String,
 }
 
-/// Why an edit was not applied.
-#[derive(Debug, thiserror::Error)]
-pub enum EditError {
-    /// `If-Match` named another version.
-    #[error("the volume is at version {current}, not {expected}")]
-    Conflict { expected: u64, current: u64 },
-    #[error(transparent)]
-    Store(#[from] StoreError),
-}
+/// Versions listed by one `changes` answer, by default and at most.
+pub const DEFAULT_CHANGES: usize = 1000;
+/// See [`DEFAULT_CHANGES`].
+pub const MAX_CHANGES: usize = 10_000;
 
 /// Commit offsets by version: `offsets[v - oldest]` is version `v`'s commit record.
 #[derive(Debug, Clone, Default)]
@@ -165,8 +170,9 @@ impl LiveVolume {
     /// Version `version`, while the file holds it.
     ///
     /// # Errors
-    /// [`StoreError::Invalid`] when the file no longer (or not yet) holds it.
-    pub fn version(&self, version: u64) -> Result<Arc<Snapshot>, StoreError> {
+    /// [`VolumeError::NoSuchVersion`] when the file no longer (or not yet) holds it; a
+    /// malformed commit record.
+    pub fn version(&self, version: u64) -> Result<Arc<Snapshot>, VolumeError> {
         let vod = self.current();
         let head = vod.head();
         if version == head.version {
@@ -178,11 +184,22 @@ impl LiveVolume {
             .filter(|_| version < head.version);
         match at {
             Some(at) => Ok(Arc::new(vod.snapshot_at(at)?)),
-            None => Err(StoreError::Invalid(format!(
-                "version {version} is not in this volume (it holds {}..={})",
-                self.oldest(),
-                head.version
-            ))),
+            None => Err(VolumeError::NoSuchVersion {
+                version,
+                oldest: self.oldest(),
+                head: head.version,
+            }),
+        }
+    }
+
+    /// Version `version`, or the head when `None`.
+    ///
+    /// # Errors
+    /// See [`LiveVolume::version`].
+    pub fn snapshot(&self, version: Option<u64>) -> Result<Arc<Snapshot>, VolumeError> {
+        match version {
+            Some(v) => self.version(v),
+            None => Ok(self.head()),
         }
     }
 
@@ -217,7 +234,7 @@ impl LiveVolume {
             (since + 1..=last)
                 .map(|version| {
                     history.offset(version).ok_or_else(|| {
-                        StoreError::Invalid(format!("version {version} is not in this volume"))
+                        StoreError::Absent(format!("version {version} is not in this volume"))
                     })
                 })
                 .collect::<Result<_, _>>()?
@@ -227,6 +244,55 @@ impl LiveVolume {
             .map(|at| change_event(&vod, at))
             .collect::<Result<Vec<_>, _>>()?;
         Ok((out, last < head))
+    }
+
+    /// Checks that the versions after `since` can be listed.
+    ///
+    /// # Errors
+    /// [`VolumeError::SinceAfterHead`] past the head, [`VolumeError::Compacted`] when
+    /// compaction dropped some of them.
+    pub fn check_since(&self, since: u64) -> Result<(), VolumeError> {
+        let head = self.head().version;
+        let oldest = self.oldest();
+        if since > head {
+            return Err(VolumeError::SinceAfterHead { since, head });
+        }
+        if since.saturating_add(1) < oldest {
+            return Err(VolumeError::Compacted { oldest, head });
+        }
+        Ok(())
+    }
+
+    /// The catch-up list: the versions after `since` (everything the file holds when `None`),
+    /// at most `limit` of them ([`DEFAULT_CHANGES`] when `None`). Blocking: it reads commit
+    /// records.
+    ///
+    /// # Errors
+    /// A limit outside `1..=MAX_CHANGES`, a `since` that cannot be listed (see
+    /// [`LiveVolume::check_since`]), or a malformed commit record.
+    pub fn change_list(
+        &self,
+        since: Option<u64>,
+        limit: Option<usize>,
+    ) -> Result<ChangeList, VolumeError> {
+        let since = since.unwrap_or_else(|| self.oldest().saturating_sub(1));
+        let limit = limit.unwrap_or(DEFAULT_CHANGES);
+        if !(1..=MAX_CHANGES).contains(&limit) {
+            return Err(VolumeError::BadRequest(format!(
+                "limit must be in 1..={MAX_CHANGES}"
+            )));
+        }
+        self.check_since(since)?;
+        let (changes, more) = self.changes(since, limit)?;
+        // Read after the listing: the head is at least the last version listed.
+        let head = self.head().version;
+        Ok(ChangeList {
+            since,
+            head: changes.last().map_or(head, |c| c.version.max(head)),
+            oldest: self.oldest(),
+            more,
+            changes,
+        })
     }
 
     /// Subscribes to the change feed: every version committed from now on.
@@ -255,112 +321,18 @@ impl LiveVolume {
     pub async fn lock_writer(&self) -> tokio::sync::OwnedMutexGuard<WriterSlot> {
         self.writer.clone().lock_owned().await
     }
-
-    /// Applies `edit` to the head and commits it as the next version, holding the writer.
-    /// Blocking (evaluates on rayon, syncs the file): call it off the async runtime.
-    ///
-    /// # Errors
-    /// `If-Match` mismatch, or reading or committing failed (the head is then unchanged and
-    /// the writer is reopened on the next edit, cutting off whatever the failed commit
-    /// appended).
-    pub fn apply(
-        &self,
-        slot: &mut WriterSlot,
-        edit: &Edit,
-        if_match: Option<u64>,
-        policy: CheckpointPolicy,
-    ) -> Result<EditResponse, EditError> {
-        let vod = self.current();
-        let head = vod.head();
-        if let Some(expected) = if_match.filter(|&v| v != head.version) {
-            return Err(EditError::Conflict {
-                expected,
-                current: head.version,
-            });
-        }
-        let writer = match &mut slot.writer {
-            Some(w) => w,
-            empty => empty.insert(Vod2Writer::open_append(vod.path(), Compression::default())?),
-        };
-        if writer.head().map(|h| h.commit) != Some(head.commit_offset()) {
-            slot.writer = None;
-            return Err(StoreError::Invalid(
-                "the writer and the served head disagree; reopening the writer".into(),
-            )
-            .into());
-        }
-        let outcome = match apply_edit(writer, &head, edit, policy) {
-            Ok(o) => o,
-            Err(e) => {
-                slot.writer = None;
-                return Err(e.into());
-            }
-        };
-        let Some(committed) = writer.head() else {
-            slot.writer = None;
-            return Err(
-                StoreError::Invalid("a commit left the writer without a head".into()).into(),
-            );
-        };
-        // The commit is durable: from here on, failing to publish it would hide an edit that a
-        // restart would show, so fall back to reopening the file.
-        let next = vod
-            .advance(committed)
-            .or_else(|e| {
-                tracing::warn!(error = %crate::store::error_chain(&e), "cannot extend the head; reopening the file");
-                Vod2::open(vod.path())
-            })?;
-        let event = change_event(&next, committed.commit)?;
-        {
-            let mut history = self.history.write().unwrap_or_else(|p| p.into_inner());
-            if history.offsets.is_empty() {
-                history.oldest = committed.version;
-            }
-            history.offsets.push(committed.commit);
-        }
-        self.current.store(Arc::new(next));
-        let json = serde_json::to_string(&event).unwrap_or_default();
-        // No subscriber is not an error.
-        let _ = self.feed.send(Arc::new(FeedItem {
-            version: event.version,
-            json,
-        }));
-        Ok(EditResponse {
-            version: event.version,
-            previous: head.version,
-            changed: event.changed,
-            evaluated: outcome.evaluated as u64,
-            new_records: outcome.new_records,
-            checkpoint: outcome.checkpoint,
-            elapsed_us: outcome.elapsed.as_micros() as u64,
-        })
-    }
-
-    /// Rewrites the file with only the head version and serves the result, holding the writer.
-    /// Blocking: call it off the async runtime.
-    ///
-    /// # Errors
-    /// Compaction failed (the old file is then still served) or the new file does not open.
-    pub fn compact(&self, slot: &mut WriterSlot) -> Result<CompactReport, StoreError> {
-        let vod = self.current();
-        let head = vod.head();
-        // The writer's dedup table names offsets of the old file.
-        slot.writer = None;
-        let report = compact(&vod, &head, &indicatif::ProgressBar::hidden())?;
-        let fresh = Vod2::open(vod.path())?;
-        let history = History::read(&fresh)?;
-        *self.history.write().unwrap_or_else(|p| p.into_inner()) = history;
-        self.current.store(Arc::new(fresh));
-        Ok(report)
-    }
 }
 
 /// The change-feed event of the commit record at `at`.
-fn change_event(vod: &Vod2, at: u64) -> Result<ChangeEvent, StoreError> {
+pub(crate) fn change_event(vod: &Vod2, at: u64) -> Result<ChangeEvent, StoreError> {
     let bytes = vod.mapped();
-    let record = bytes
-        .get(at as usize..)
-        .ok_or_else(|| StoreError::Invalid(format!("commit offset {at} past the mapped length")))?;
+    let record = bytes.get(at as usize..).ok_or_else(|| {
+        StoreError::corrupt(
+            at,
+            format!("a commit record within the {} mapped bytes", bytes.len()),
+            "an offset past them",
+        )
+    })?;
     let (h, changes) = CommitHeader::decode(record, at)?;
     Ok(ChangeEvent {
         version: h.version,
