@@ -640,6 +640,44 @@ fn ground(w: &World, x: u32, z: u32) -> [i64; 3] {
     [x as i64, w.source.height(x, z).round() as i64, z as i64]
 }
 
+/// A served terrain of `dims` (brick 8), a counted client's streamer on it as `config` says,
+/// its camera `above` voxels over the ground at (x, z), settled at version 1.
+struct Scenario {
+    w: World,
+    server: TestServer,
+    counter: Arc<Counter>,
+    streamer: Streamer,
+    rx: Receiver<StreamEvent>,
+    camera: [f32; 3],
+    /// The events up to the first settled state.
+    before: Vec<StreamEvent>,
+}
+
+async fn scenario(
+    dims: [u32; 3],
+    config: StreamerConfig,
+    (x, z): (u32, u32),
+    above: f32,
+) -> Scenario {
+    let w = world(dims, 8, [1.0; 3]);
+    let server = TestServer::start(w.dir.path(), None);
+    let (client, counter) = counted_client(&server.base);
+    let (streamer, mut rx) = Streamer::start(client, NAME, config).await.unwrap();
+    let g = ground(&w, x, z);
+    let camera = [x as f32, g[1] as f32 + above, z as f32];
+    streamer.set_camera(camera);
+    let before = settle(&streamer, &mut rx, 1).await;
+    Scenario {
+        w,
+        server,
+        counter,
+        streamer,
+        rx,
+        camera,
+        before,
+    }
+}
+
 /// The bricks an edit changed, as keys.
 fn changed_keys(changed: &[Vec<[u32; 3]>]) -> BTreeSet<BrickKey> {
     changed
@@ -712,24 +750,20 @@ fn assert_stale_then_ready(events: &[StreamEvent], expected: &BTreeSet<BrickKey>
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_edit_by_another_client_refetches_exactly_the_affected_bricks() {
     // Grids 12x8x12, 6x4x6, 3x2x3, 2x1x2, 1x1x1.
-    let w = world([96, 64, 96], 8, [1.0; 3]);
-    let server = TestServer::start(w.dir.path(), None);
-    let (client, counter) = counted_client(&server.base);
     let radii = vec![12.0, 30.0, 60.0, 120.0];
-    let (streamer, mut rx) = Streamer::start(
-        client,
-        NAME,
-        StreamerConfig {
-            radii: radii.clone(),
-            ..StreamerConfig::default()
-        },
-    )
-    .await
-    .unwrap();
-    let g = ground(&w, 30, 40);
-    let camera = [30.0, g[1] as f32 + 4.0, 40.0];
-    streamer.set_camera(camera);
-    let before = settle(&streamer, &mut rx, 1).await;
+    let config = StreamerConfig {
+        radii: radii.clone(),
+        ..StreamerConfig::default()
+    };
+    let Scenario {
+        w,
+        server,
+        counter,
+        streamer,
+        mut rx,
+        camera,
+        before,
+    } = scenario([96, 64, 96], config, (30, 40), 4.0).await;
     let resident: BTreeSet<BrickKey> = streamer.resident().into_iter().collect();
     assert_eq!(resident, expected_set(streamer.info(), camera, &radii));
     let cached: HashSet<u64> = before
@@ -830,25 +864,21 @@ fn assert_meshes_match_file(events: &[StreamEvent], path: &Path) -> usize {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_edit_by_another_client_refetches_exactly_the_affected_mesh_tiles() {
     // Grids 8x6x8, 4x3x4, 2x2x2, 1x1x1.
-    let w = world([64, 48, 64], 8, [1.0; 3]);
-    let server = TestServer::start(w.dir.path(), None);
-    let (client, counter) = counted_client(&server.base);
     let radii = vec![14.0, 30.0, 60.0];
-    let (streamer, mut rx) = Streamer::start(
-        client,
-        NAME,
-        StreamerConfig {
-            kind: TileKind::Meshes { iso: None },
-            radii: radii.clone(),
-            ..StreamerConfig::default()
-        },
-    )
-    .await
-    .unwrap();
-    let g = ground(&w, 20, 24);
-    let camera = [20.0, g[1] as f32 + 3.0, 24.0];
-    streamer.set_camera(camera);
-    let before = settle(&streamer, &mut rx, 1).await;
+    let config = StreamerConfig {
+        kind: TileKind::Meshes { iso: None },
+        radii: radii.clone(),
+        ..StreamerConfig::default()
+    };
+    let Scenario {
+        w,
+        server,
+        counter,
+        streamer,
+        mut rx,
+        camera,
+        before,
+    } = scenario([64, 48, 64], config, (20, 24), 3.0).await;
     let resident: BTreeSet<BrickKey> = streamer.resident().into_iter().collect();
     assert_eq!(resident, expected_set(streamer.info(), camera, &radii));
     assert_eq!(once(&ready_keys(&before), "was ready"), resident);
@@ -896,24 +926,18 @@ async fn an_edit_by_another_client_refetches_exactly_the_affected_mesh_tiles() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn after_a_disconnect_the_streamer_catches_up_from_its_last_version() {
-    let w = world([96, 64, 96], 8, [1.0; 3]);
-    let mut server = TestServer::start(w.dir.path(), None);
-    let (client, counter) = counted_client(&server.base);
-    let radii = vec![12.0, 30.0, 60.0, 120.0];
-    let (streamer, mut rx) = Streamer::start(
-        client,
-        NAME,
-        StreamerConfig {
-            radii: radii.clone(),
-            ..StreamerConfig::default()
-        },
-    )
-    .await
-    .unwrap();
-    let g = ground(&w, 60, 30);
-    let camera = [60.0, g[1] as f32 + 4.0, 30.0];
-    streamer.set_camera(camera);
-    settle(&streamer, &mut rx, 1).await;
+    let config = StreamerConfig {
+        radii: vec![12.0, 30.0, 60.0, 120.0],
+        ..StreamerConfig::default()
+    };
+    let Scenario {
+        w,
+        mut server,
+        counter,
+        streamer,
+        mut rx,
+        ..
+    } = scenario([96, 64, 96], config, (60, 30), 4.0).await;
     let resident: BTreeSet<BrickKey> = streamer.resident().into_iter().collect();
 
     // The server goes away (every connection closed, the feed's too); two edits are committed
@@ -1009,23 +1033,19 @@ async fn after_a_disconnect_the_streamer_catches_up_from_its_last_version() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn when_the_missed_versions_were_compacted_away_the_streamer_reloads() {
-    let w = world([96, 64, 96], 8, [1.0; 3]);
-    let mut server = TestServer::start(w.dir.path(), None);
-    let (client, counter) = counted_client(&server.base);
-    let radii = vec![12.0, 30.0, 60.0, 120.0];
-    let (streamer, mut rx) = Streamer::start(
-        client,
-        NAME,
-        StreamerConfig {
-            radii: radii.clone(),
-            ..StreamerConfig::default()
-        },
-    )
-    .await
-    .unwrap();
-    let g = ground(&w, 40, 50);
-    streamer.set_camera([40.0, g[1] as f32 + 4.0, 50.0]);
-    let before = settle(&streamer, &mut rx, 1).await;
+    let config = StreamerConfig {
+        radii: vec![12.0, 30.0, 60.0, 120.0],
+        ..StreamerConfig::default()
+    };
+    let Scenario {
+        w,
+        mut server,
+        counter,
+        streamer,
+        mut rx,
+        before,
+        ..
+    } = scenario([96, 64, 96], config, (40, 50), 4.0).await;
     let resident: BTreeSet<BrickKey> = streamer.resident().into_iter().collect();
     let cached: HashSet<u64> = before
         .iter()

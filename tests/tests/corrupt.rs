@@ -8,36 +8,24 @@
 
 #![allow(clippy::unwrap_used)] // tests fail loudly on purpose
 
-use isovox_proto::api::Problem;
 use isovox_proto::icvg::{EditRequest, Term};
 use isovox_proto::vod2::{NodeEntry, BRICK_HEADER_LEN};
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use isovox_server::catalog::Catalog;
 use isovox_server::generate::WorldSource;
-use isovox_server::http::{spawn, AppState, ServerConfig};
+use isovox_server::http::ServerConfig;
 use isovox_server::store::{build_vod2, BuildOptions, StoredBrick, Vod2};
 use isovox_server::volume::edit_file;
 use std::os::unix::fs::FileExt;
+
+mod common;
+use common::{problem, serve};
 
 /// The generic detail of every 500 (`http/error.rs`): nothing about the cause leaks.
 const GENERIC: &str = "the server failed to answer; the cause is in its log";
 
 async fn server_error(resp: reqwest::Response, what: &str) {
-    let status = resp.status().as_u16();
-    let ctype = resp
-        .headers()
-        .get("content-type")
-        .map(|v| v.to_str().unwrap().to_string());
-    let body = resp.bytes().await.unwrap();
-    assert_eq!(
-        status,
-        500,
-        "{what}: status (body {:?})",
-        String::from_utf8_lossy(&body)
-    );
-    assert_eq!(ctype.as_deref(), Some("application/problem+json"), "{what}");
-    let p: Problem = serde_json::from_slice(&body).unwrap();
-    assert_eq!(p.status, 500, "{what}");
+    let p = problem(resp, 500).await;
     assert_eq!(p.detail, GENERIC, "{what}");
 }
 
@@ -132,14 +120,12 @@ async fn corrupt_records_answer_500_and_the_rest_is_served() {
     file.write_all_at(&garbage, payload_at).unwrap();
     file.sync_all().unwrap();
 
-    let catalog = Catalog::open_dir(dir.path()).unwrap();
-    assert_eq!(catalog.len(), 1, "opening reads no brick data");
-    let server = spawn(
-        "127.0.0.1:0",
-        AppState::with_config(catalog, ServerConfig::default()),
-    )
-    .await
-    .unwrap();
+    assert_eq!(
+        Catalog::open_dir(dir.path()).unwrap().len(),
+        1,
+        "opening reads no brick data"
+    );
+    let server = serve(dir.path(), ServerConfig::default()).await;
     let base = format!("{}/v1/volumes/w", server.base());
     let c = reqwest::Client::new();
     let get = |p: String| c.get(format!("{base}{p}")).send();

@@ -169,6 +169,26 @@ impl Tokens {
     }
 }
 
+/// The write token a request carries: as the first extractor of a write route, it is checked
+/// before anything else of the request is read (a caller without one learns nothing).
+#[derive(Debug, Clone)]
+pub struct WriteToken(pub Token);
+
+impl axum::extract::FromRequestParts<AppState> for WriteToken {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(
+        parts: &mut axum::http::request::Parts,
+        state: &AppState,
+    ) -> Result<Self, ApiError> {
+        let token = state
+            .config
+            .tokens
+            .authorize(&parts.headers, Scope::Write)?;
+        Ok(WriteToken(token.clone()))
+    }
+}
+
 /// With `--private-reads`: every `/v1` route needs a token of either scope.
 pub async fn require_token(
     State(state): State<AppState>,

@@ -1,28 +1,20 @@
 //! `POST /v1/volumes/{name}/compact`: rewrite a served file with only its head version, while
 //! serving it.
 
-use super::auth::Scope;
+use super::auth::WriteToken;
 use super::cpu::blocking;
 use super::extract::Path;
 use super::{ApiError, AppState};
 use axum::extract::State;
-use axum::http::HeaderMap;
 use axum::Json;
 use isovox_proto::api::CompactResponse;
 
 /// Waits for the volume's writer, compacts off the async runtime, and serves the new file.
 pub async fn compact(
+    WriteToken(token): WriteToken,
     State(state): State<AppState>,
-    path: Result<Path<String>, ApiError>,
-    headers: HeaderMap,
+    Path(name): Path<String>,
 ) -> Result<Json<CompactResponse>, ApiError> {
-    let token = state
-        .config
-        .tokens
-        .authorize(&headers, Scope::Write)?
-        .clone();
-    // Read after the token check: a caller without one learns nothing about the path.
-    let Path(name) = path?;
     let vol = state.catalog.get(&name)?.clone();
     let mut writer = vol.wait_for_writer(state.config.edit_queue).await?;
     let compacting = vol.clone();

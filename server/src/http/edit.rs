@@ -1,6 +1,6 @@
 //! `POST /v1/volumes/{name}/edits`: an ICVG edit as the next version (`docs/editing.md`).
 
-use super::auth::Scope;
+use super::auth::WriteToken;
 use super::cpu::blocking;
 use super::extract::Path;
 use super::{ApiError, AppState};
@@ -19,19 +19,13 @@ const MAX_EDIT_BODY: usize = 1 << 20;
 /// for the volume's writer (bounded queue), applies and commits, and answers with the new
 /// version.
 pub async fn edit(
+    // First: without a token, nothing else is read.
+    WriteToken(token): WriteToken,
     State(state): State<AppState>,
-    path: Result<Path<String>, ApiError>,
+    Path(name): Path<String>,
     headers: HeaderMap,
     body: Body,
 ) -> Result<Json<EditResponse>, ApiError> {
-    // The token is checked before the body is read: without one, nothing is read.
-    let token = state
-        .config
-        .tokens
-        .authorize(&headers, Scope::Write)?
-        .clone();
-    // Read after the token check: a caller without one learns nothing about the path.
-    let Path(name) = path?;
     let vol = state.catalog.get(&name)?.clone();
     let request = edit_request(&headers, body).await?;
     let if_match = if_match(&headers)?;

@@ -1,14 +1,13 @@
 //! `POST /v1/meshes?format=stl|obj|ply|glb`: keeps a watertight model by its content hash, for
 //! `mesh` leaves of edit terms.
 
-use super::auth::Scope;
+use super::auth::WriteToken;
 use super::cpu::blocking;
 use super::extract::Query;
 use super::{ApiError, AppState};
 use crate::voxelize::store::MeshInfo;
 use axum::body::Body;
 use axum::extract::State;
-use axum::http::HeaderMap;
 use axum::Json;
 use serde::Deserialize;
 
@@ -23,17 +22,11 @@ pub struct UploadQuery {
 
 /// Reads the model (after the token check), checks and stores it off the async runtime.
 pub async fn upload_mesh(
+    WriteToken(token): WriteToken,
     State(state): State<AppState>,
-    query: Result<Query<UploadQuery>, ApiError>,
-    headers: HeaderMap,
+    Query(query): Query<UploadQuery>,
     body: Body,
 ) -> Result<Json<MeshInfo>, ApiError> {
-    let token = state
-        .config
-        .tokens
-        .authorize(&headers, Scope::Write)?
-        .clone();
-    let Query(query) = query?;
     let store = state
         .mesh_store
         .clone()

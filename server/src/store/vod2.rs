@@ -353,19 +353,7 @@ impl Snapshot {
         let mut overlay = HashMap::new();
         // The checkpoint holds the state after its own commit: apply only the later ones.
         for record in chain.iter().rev().skip(1) {
-            for (node, entry) in CommitHeader::changes(record) {
-                if node >= layout.node_count() {
-                    return Err(FormatError::invalid(
-                        "commit record",
-                        format!(
-                            "change to node {node}, the volume has {}",
-                            layout.node_count()
-                        ),
-                    )
-                    .into());
-                }
-                overlay.insert(node, entry);
-            }
+            apply_changes(record, layout, &mut overlay, |_| ())?;
         }
         Ok(Snapshot {
             version: head.version,
@@ -408,20 +396,7 @@ impl Snapshot {
         let layout = self.layout();
         let mut overlay = self.overlay.clone();
         let mut added = Vec::new();
-        for (node, entry) in CommitHeader::changes(record) {
-            if node >= layout.node_count() {
-                return Err(FormatError::invalid(
-                    "commit record",
-                    format!(
-                        "change to node {node}, the volume has {}",
-                        layout.node_count()
-                    ),
-                )
-                .into());
-            }
-            overlay.insert(node, entry);
-            added.push(entry);
-        }
+        apply_changes(record, layout, &mut overlay, |entry| added.push(entry))?;
         let snap = Snapshot {
             version: h.version,
             timestamp_ms: h.timestamp_ms,
@@ -648,6 +623,31 @@ impl Snapshot {
     pub fn hash(&self, key: BrickKey) -> Result<u64, StoreError> {
         self.entry_hash(self.entry(key)?)
     }
+}
+
+/// Applies a commit record's changes to `overlay` (node index -> raw entry), checking each node
+/// against the layout, and hands each entry to `added`.
+fn apply_changes(
+    record: &[u8],
+    layout: &VolumeLayout,
+    overlay: &mut HashMap<u64, u64>,
+    mut added: impl FnMut(u64),
+) -> Result<(), StoreError> {
+    for (node, entry) in CommitHeader::changes(record) {
+        if node >= layout.node_count() {
+            return Err(FormatError::invalid(
+                "commit record",
+                format!(
+                    "change to node {node}, the volume has {}",
+                    layout.node_count()
+                ),
+            )
+            .into());
+        }
+        overlay.insert(node, entry);
+        added(entry);
+    }
+    Ok(())
 }
 
 /// Content hash -> entry for [`Snapshot::find_by_hash`]: a shared base plus what later versions
