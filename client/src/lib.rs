@@ -10,6 +10,8 @@
 //! - [`streamer`]: [`Streamer`], the tiles (bricks or meshes) a camera needs, level k within
 //!   radius r_k, nearest first, kept fresh as edits arrive.
 
+#![warn(missing_docs)]
+
 pub mod client;
 pub mod streamer;
 

@@ -18,6 +18,8 @@
 //!   every status code).
 //! - [`progress`]: how long jobs report progress.
 
+#![warn(missing_docs)]
+
 pub mod catalog;
 pub mod generate;
 pub mod geometry;

@@ -17,13 +17,13 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum VodFormat {
+pub(crate) enum VodFormat {
     Vod2,
     Vod1,
 }
 
 #[derive(Debug, Args)]
-pub struct ImportArgs {
+pub(crate) struct ImportArgs {
     /// Input: .raw (needs --dims), .rawvox (carries its shape), or a VOD 1 file.
     pub input: PathBuf,
     /// Output file.
@@ -50,7 +50,7 @@ pub struct ImportArgs {
 
 /// How bricks are compressed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum CodecArg {
+pub(crate) enum CodecArg {
     /// zstd: the densest (default).
     Zstd,
     /// lz4: the fastest to decode.
@@ -60,7 +60,7 @@ pub enum CodecArg {
 }
 
 #[derive(Debug, Clone, Copy, Args)]
-pub struct CompressionArgs {
+pub(crate) struct CompressionArgs {
     /// Brick compression.
     #[arg(long, value_enum, default_value_t = CodecArg::Zstd)]
     pub codec: CodecArg,
@@ -70,7 +70,7 @@ pub struct CompressionArgs {
 }
 
 impl CompressionArgs {
-    pub fn compression(&self) -> Compression {
+    pub(crate) fn compression(&self) -> Compression {
         match self.codec {
             CodecArg::Zstd => Compression::Zstd(self.zstd_level),
             CodecArg::Lz4 => Compression::Lz4,
@@ -80,14 +80,14 @@ impl CompressionArgs {
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum ExportFormat {
+pub(crate) enum ExportFormat {
     Raw,
     Rawvox,
     Vod1,
 }
 
 #[derive(Debug, Args)]
-pub struct ExportArgs {
+pub(crate) struct ExportArgs {
     /// A VOD 2 file.
     pub input: PathBuf,
     /// Output file.
@@ -108,7 +108,7 @@ pub struct ExportArgs {
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum Dataset {
+pub(crate) enum Dataset {
     /// The ICVG ellipsoid sampling function filling the volume.
     Ellipsoid,
     /// Terrain from a fractal Perlin-noise height map.
@@ -118,7 +118,7 @@ pub enum Dataset {
 }
 
 #[derive(Debug, Args)]
-pub struct GenerateArgs {
+pub(crate) struct GenerateArgs {
     /// What to generate.
     #[arg(value_enum)]
     pub dataset: Dataset,
@@ -141,7 +141,7 @@ pub struct GenerateArgs {
 }
 
 #[derive(Debug, Args)]
-pub struct InspectArgs {
+pub(crate) struct InspectArgs {
     /// A VOD 2 or VOD 1 file.
     pub input: PathBuf,
     /// Print JSON for scripts.
@@ -150,7 +150,7 @@ pub struct InspectArgs {
 }
 
 #[derive(Debug, Args)]
-pub struct GetArgs {
+pub(crate) struct GetArgs {
     /// A VOD 2 or VOD 1 file.
     pub input: PathBuf,
     pub level: u8,
@@ -216,7 +216,7 @@ fn options(compression: Compression) -> BuildOptions {
     }
 }
 
-pub fn import(a: ImportArgs) -> anyhow::Result<()> {
+pub(super) fn import(a: ImportArgs) -> anyhow::Result<()> {
     let compress = a.compression.compression();
     match sniff(&a.input)? {
         InputKind::Vod(1) => {
@@ -273,7 +273,7 @@ fn parse_region(s: &str) -> anyhow::Result<Region> {
     })
 }
 
-pub fn export(a: ExportArgs) -> anyhow::Result<()> {
+pub(super) fn export(a: ExportArgs) -> anyhow::Result<()> {
     if let InputKind::Vod(v) = sniff(&a.input)? {
         if v != 2 {
             bail!(
@@ -329,7 +329,7 @@ pub fn export(a: ExportArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-pub fn generate(a: GenerateArgs) -> anyhow::Result<()> {
+pub(super) fn generate(a: GenerateArgs) -> anyhow::Result<()> {
     let layout = VolumeLayout::new(a.dims, a.brick, a.voxel_type.into())?;
     let compression = a.compression.compression();
     match a.dataset {
@@ -373,7 +373,7 @@ fn human(bytes: u64) -> String {
     }
 }
 
-pub fn inspect(a: InspectArgs) -> anyhow::Result<()> {
+pub(super) fn inspect(a: InspectArgs) -> anyhow::Result<()> {
     match sniff(&a.input)? {
         InputKind::Vod(1) => inspect_vod1(&a),
         InputKind::Vod(2) => {
@@ -469,7 +469,7 @@ fn inspect_vod1(a: &InspectArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-pub fn get(a: GetArgs) -> anyhow::Result<()> {
+pub(super) fn get(a: GetArgs) -> anyhow::Result<()> {
     let bytes = match sniff(&a.input)? {
         InputKind::Vod(1) => {
             let file = Vod1File::open(&a.input)?;
@@ -503,12 +503,12 @@ pub fn get(a: GetArgs) -> anyhow::Result<()> {
 }
 
 #[derive(Debug, Args)]
-pub struct CompactArgs {
+pub(crate) struct CompactArgs {
     /// The VOD 2 file to compact in place.
     pub input: PathBuf,
 }
 
-pub fn compact(a: CompactArgs) -> anyhow::Result<()> {
+pub(super) fn compact(a: CompactArgs) -> anyhow::Result<()> {
     let vod = Vod2::open(&a.input).with_context(|| format!("cannot open {}", a.input.display()))?;
     let head = vod.head();
     let report = isovox_server::store::compact::compact(&vod, &head, &progress("compacting"))

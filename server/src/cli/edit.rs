@@ -7,7 +7,7 @@ use isovox_server::volume::edit_file;
 use std::path::PathBuf;
 
 #[derive(Debug, Args)]
-pub struct EditArgs {
+pub(crate) struct EditArgs {
     /// The VOD 2 file to edit.
     pub input: PathBuf,
     /// An edit request as JSON (docs/icvg.md), e.g. {"op": "difference", "term": {...}}; `-`
@@ -76,7 +76,7 @@ fn request(a: &EditArgs) -> anyhow::Result<EditRequest> {
     }
 }
 
-pub fn edit(a: EditArgs) -> anyhow::Result<()> {
+pub(super) fn edit(a: EditArgs) -> anyhow::Result<()> {
     let req = request(&a)?;
     let outcome =
         edit_file(&a.input, &req).with_context(|| format!("cannot edit {}", a.input.display()))?;

@@ -12,7 +12,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 #[derive(Debug, Args)]
-pub struct MeshArgs {
+pub(crate) struct MeshArgs {
     /// A VOD 2 file.
     pub input: PathBuf,
     /// Output: .glb, .obj or .ply.
@@ -36,7 +36,7 @@ pub struct MeshArgs {
     pub version: Option<u64>,
 }
 
-pub fn mesh(a: MeshArgs) -> anyhow::Result<()> {
+pub(super) fn mesh(a: MeshArgs) -> anyhow::Result<()> {
     let format = MeshFormat::from_path(&a.output).with_context(|| {
         format!(
             "{}: the output must end in .glb, .obj or .ply",

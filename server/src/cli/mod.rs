@@ -19,13 +19,13 @@ use std::sync::atomic::{AtomicU64, Ordering};
 // Not `propagate_version`: `export`, `get` and `edit` have a `--version N` of their own (a
 // volume version), which an automatic `--version` flag on every subcommand would clash with.
 #[command(name = "isovox", version, about)]
-pub struct Cli {
+pub(crate) struct Cli {
     #[command(subcommand)]
     pub command: Command,
 }
 
 #[derive(Debug, Subcommand)]
-pub enum Command {
+pub(crate) enum Command {
     /// Serve every VOD 2 file of a data directory over HTTP (a demo world is generated on
     /// first start).
     Serve(serve::ServeArgs),
@@ -55,7 +55,7 @@ pub enum Command {
 ///
 /// # Errors
 /// Whatever the subcommand fails with, with context for the user.
-pub fn run(cli: Cli) -> anyhow::Result<()> {
+pub(crate) fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Serve(a) => serve::serve(a),
         Command::Import(a) => data::import(a),

@@ -11,7 +11,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 
 #[derive(Debug, Args)]
-pub struct ServeArgs {
+pub(crate) struct ServeArgs {
     /// Directory of VOD 2 files; each is served as a volume named after the file. When it holds
     /// none, a demo world is generated there first.
     #[arg(long, env = "ISOVOX_DATA", default_value = "data")]
@@ -123,7 +123,7 @@ fn generate_demo(dir: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
+pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
     if !has_volumes(&a.data) {
         generate_demo(&a.data)?;
     }

@@ -11,7 +11,7 @@ use isovox_server::voxelize::{load::load_model, voxelize, Fill, Options};
 use std::path::PathBuf;
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
-pub enum FillArg {
+pub(crate) enum FillArg {
     /// Fraction of the supersampled voxel centres inside, as a density (smooth surfaces).
     Density,
     /// Binary: the voxel's centre is inside.
@@ -23,7 +23,7 @@ pub enum FillArg {
 }
 
 #[derive(Debug, Args)]
-pub struct VoxelizeArgs {
+pub(crate) struct VoxelizeArgs {
     /// The model: .stl (binary or ASCII), .obj, .ply, .gltf or .glb; it must be watertight.
     pub model: PathBuf,
     #[arg(short, long)]
@@ -48,7 +48,7 @@ pub struct VoxelizeArgs {
     pub allow_open: bool,
 }
 
-pub fn voxelize_cmd(a: VoxelizeArgs) -> anyhow::Result<()> {
+pub(super) fn voxelize_cmd(a: VoxelizeArgs) -> anyhow::Result<()> {
     let start = std::time::Instant::now();
     let mesh = load_model(&a.model)?;
     let loaded = start.elapsed();

@@ -21,13 +21,13 @@ use std::task::{Context, Poll};
 
 /// Answers plain brick requests, hands everything else to `inner` (the router).
 #[derive(Debug, Clone)]
-pub struct BrickFirst<S> {
+pub(super) struct BrickFirst<S> {
     state: AppState,
     inner: S,
 }
 
 impl<S> BrickFirst<S> {
-    pub fn new(state: AppState, inner: S) -> Self {
+    pub(super) fn new(state: AppState, inner: S) -> Self {
         BrickFirst { state, inner }
     }
 }

@@ -8,7 +8,7 @@ use isovox_server::http::{spawn, AppState, ServerConfig, Spawned};
 use std::path::Path;
 
 /// Serves every volume of `dir` as `config` says, on an ephemeral port, until dropped.
-pub async fn serve(dir: &Path, config: ServerConfig) -> Spawned {
+pub(crate) async fn serve(dir: &Path, config: ServerConfig) -> Spawned {
     let catalog = Catalog::open_dir(dir).unwrap();
     spawn("127.0.0.1:0", AppState::with_config(catalog, config))
         .await
@@ -16,7 +16,7 @@ pub async fn serve(dir: &Path, config: ServerConfig) -> Spawned {
 }
 
 /// Checks an RFC 9457 problem-details answer with `status`.
-pub async fn problem(resp: reqwest::Response, status: u16) -> Problem {
+pub(crate) async fn problem(resp: reqwest::Response, status: u16) -> Problem {
     let url = resp.url().to_string();
     let got = resp.status().as_u16();
     let ctype = resp
