@@ -8,7 +8,9 @@ use std::str::FromStr;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum VoxelType {
+    /// 8 bits per voxel: L 0, H 255, S 127.
     U8,
+    /// 16 bits per voxel, little endian: L 0, H 65535, S 32767.
     U16,
 }
 

@@ -91,14 +91,17 @@ impl Catalog {
             .ok_or_else(|| VolumeError::NoSuchVolume(name.to_string()))
     }
 
+    /// The volumes with their names, in name order.
     pub fn iter(&self) -> impl Iterator<Item = (&str, &Arc<LiveVolume>)> {
         self.volumes.iter().map(|(n, v)| (n.as_str(), v))
     }
 
+    /// How many volumes.
     pub fn len(&self) -> usize {
         self.volumes.len()
     }
 
+    /// Whether there is none.
     pub fn is_empty(&self) -> bool {
         self.volumes.is_empty()
     }

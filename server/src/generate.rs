@@ -34,11 +34,14 @@ fn clipped_brick(layout: &VolumeLayout, key: BrickKey) -> (Box3, bool) {
 /// its extension space `2R + 1` starts at voxel 0.
 #[derive(Debug, Clone)]
 pub struct EllipsoidSource {
+    /// The volume's layout.
     pub layout: VolumeLayout,
+    /// The ellipsoid, placed.
     pub ellipsoid: Ellipsoid,
 }
 
 impl EllipsoidSource {
+    /// The ellipsoid filling `layout`'s volume.
     pub fn new(layout: VolumeLayout) -> Self {
         let radii = layout.dims().map(|d| ((d.saturating_sub(1)) / 2).max(1));
         EllipsoidSource {
@@ -83,6 +86,7 @@ impl BrickSource for EllipsoidSource {
 /// so marching cubes finds a smooth surface at S.
 #[derive(Debug, Clone)]
 pub struct WorldSource {
+    /// The volume's layout.
     pub layout: VolumeLayout,
     /// Height of the ground at each (x, z) column, x fastest, in voxels.
     heights: Vec<f32>,
@@ -169,55 +173,6 @@ impl BrickSource for WorldSource {
             return Some(high);
         }
         None
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn check_constant_shortcut(source: &dyn BrickSource, layout: &VolumeLayout) -> usize {
-        let g = layout.grid(0);
-        let mut decided = 0;
-        for z in 0..g[2] {
-            for y in 0..g[1] {
-                for x in 0..g[0] {
-                    let key = BrickKey { level: 0, x, y, z };
-                    if let Some(v) = source.constant(key) {
-                        decided += 1;
-                        let mut out = vec![0u8; layout.brick_bytes()];
-                        source.fill(key, &mut out);
-                        let mut expect = vec![0u8; layout.brick_bytes()];
-                        crate::store::codec::fill_constant(&mut expect, v, layout.voxel_type());
-                        assert_eq!(out, expect, "brick {key} is not the constant {v}");
-                    }
-                }
-            }
-        }
-        decided
-    }
-
-    #[test]
-    fn world_shortcut_is_exact() {
-        let layout = VolumeLayout::new([70, 60, 50], 8, VoxelType::U8).unwrap();
-        let w = WorldSource::new(layout.clone(), 7);
-        assert!(check_constant_shortcut(&w, &layout) > 100);
-    }
-
-    #[test]
-    fn ellipsoid_shortcut_is_exact() {
-        let layout = VolumeLayout::new([61, 50, 43], 8, VoxelType::U16).unwrap();
-        let e = EllipsoidSource::new(layout.clone());
-        assert!(check_constant_shortcut(&e, &layout) > 20);
-    }
-
-    #[test]
-    fn world_band_values() {
-        // h = 10.25: y = 10 -> floor(255 * 0.75) = 191; y = 11 -> floor(255 * -0.25) -> 0;
-        // y = 9 -> 255 * 1.75 clamps to 255.
-        assert_eq!(WorldSource::value(10.25, 10, 255), 191);
-        assert_eq!(WorldSource::value(10.25, 11, 255), 0);
-        assert_eq!(WorldSource::value(10.25, 9, 255), 255);
     }
 }
 
@@ -350,4 +305,53 @@ pub fn build_demo(dir: &Path, options: &BuildOptions) -> Result<PathBuf, VolumeE
         options,
     )?;
     Ok(path)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn check_constant_shortcut(source: &dyn BrickSource, layout: &VolumeLayout) -> usize {
+        let g = layout.grid(0);
+        let mut decided = 0;
+        for z in 0..g[2] {
+            for y in 0..g[1] {
+                for x in 0..g[0] {
+                    let key = BrickKey { level: 0, x, y, z };
+                    if let Some(v) = source.constant(key) {
+                        decided += 1;
+                        let mut out = vec![0u8; layout.brick_bytes()];
+                        source.fill(key, &mut out);
+                        let mut expect = vec![0u8; layout.brick_bytes()];
+                        crate::store::codec::fill_constant(&mut expect, v, layout.voxel_type());
+                        assert_eq!(out, expect, "brick {key} is not the constant {v}");
+                    }
+                }
+            }
+        }
+        decided
+    }
+
+    #[test]
+    fn world_shortcut_is_exact() {
+        let layout = VolumeLayout::new([70, 60, 50], 8, VoxelType::U8).unwrap();
+        let w = WorldSource::new(layout.clone(), 7);
+        assert!(check_constant_shortcut(&w, &layout) > 100);
+    }
+
+    #[test]
+    fn ellipsoid_shortcut_is_exact() {
+        let layout = VolumeLayout::new([61, 50, 43], 8, VoxelType::U16).unwrap();
+        let e = EllipsoidSource::new(layout.clone());
+        assert!(check_constant_shortcut(&e, &layout) > 20);
+    }
+
+    #[test]
+    fn world_band_values() {
+        // h = 10.25: y = 10 -> floor(255 * 0.75) = 191; y = 11 -> floor(255 * -0.25) -> 0;
+        // y = 9 -> 255 * 1.75 clamps to 255.
+        assert_eq!(WorldSource::value(10.25, 10, 255), 191);
+        assert_eq!(WorldSource::value(10.25, 11, 255), 0);
+        assert_eq!(WorldSource::value(10.25, 9, 255), 255);
+    }
 }

@@ -5,19 +5,24 @@ use isovox_proto::{BrickKey, VolumeLayout};
 /// A box of world voxels: `min` inclusive, `max` exclusive.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Box3 {
+    /// The first voxel (inclusive).
     pub min: [i64; 3],
+    /// The end (exclusive).
     pub max: [i64; 3],
 }
 
 impl Box3 {
+    /// The box `[min, max)`.
     pub fn new(min: [i64; 3], max: [i64; 3]) -> Self {
         Box3 { min, max }
     }
 
+    /// Whether it holds no voxel.
     pub fn is_empty(&self) -> bool {
         (0..3).any(|a| self.min[a] >= self.max[a])
     }
 
+    /// The voxels in both boxes (maybe empty).
     pub fn intersect(&self, o: &Box3) -> Box3 {
         Box3 {
             min: [0, 1, 2].map(|a| self.min[a].max(o.min[a])),
@@ -25,6 +30,7 @@ impl Box3 {
         }
     }
 
+    /// The smallest box holding both.
     pub fn hull(&self, o: &Box3) -> Box3 {
         Box3 {
             min: [0, 1, 2].map(|a| self.min[a].min(o.min[a])),
@@ -40,6 +46,7 @@ impl Box3 {
         }
     }
 
+    /// Whether voxel `v` is in the box.
     pub fn contains(&self, v: [i64; 3]) -> bool {
         (0..3).all(|a| v[a] >= self.min[a] && v[a] < self.max[a])
     }

@@ -126,12 +126,16 @@ pub enum TileKind {
     /// Bricks' voxels (raw, x fastest, u16 little endian).
     Bricks,
     /// Marching-cubes tiles at `iso` (the server's default, S - 0.5, when `None`).
-    Meshes { iso: Option<f32> },
+    Meshes {
+        /// The iso value; the server's default when `None`.
+        iso: Option<f32>,
+    },
 }
 
 /// How a [`Streamer`] runs.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StreamerConfig {
+    /// Bricks or mesh tiles.
     pub kind: TileKind,
     /// World units (voxel_scale applied); r_0 < r_1 < ...; level k within r_k, coarser beyond.
     /// Empty: derived at start with [`StreamerConfig::radii_for_screen_error`] for a 60 degree
@@ -223,20 +227,37 @@ pub enum StreamEvent {
     /// `key` has content `data` (content key `hash`: the brick's content hash, or for a mesh
     /// tile the hash of its position, iso and inputs), current as of `version`.
     Ready {
+        /// The tile.
         key: BrickKey,
+        /// Its content key.
         hash: u64,
+        /// Its content.
         data: TileData,
+        /// The version it is current as of.
         version: u64,
     },
     /// `key` left the desired set; it had been delivered.
-    Dropped { key: BrickKey },
+    Dropped {
+        /// The tile.
+        key: BrickKey,
+    },
     /// Commit `version` changed an input of `key`; new content follows as `Ready`.
-    Stale { key: BrickKey, version: u64 },
+    Stale {
+        /// The tile.
+        key: BrickKey,
+        /// The commit that changed it.
+        version: u64,
+    },
     /// The streamer applied every commit up to `version`.
-    Version { version: u64 },
+    Version {
+        /// The version.
+        version: u64,
+    },
     /// A request (for `key`, when it served one tile) or the change feed failed; retried.
     Error {
+        /// The tile the request was for, if one.
         key: Option<BrickKey>,
+        /// What failed.
         error: String,
     },
 }
@@ -252,6 +273,7 @@ pub struct StreamerStats {
     pub cache_hits: u64,
     /// Content requests completed (blobs, mesh tiles).
     pub cache_misses: u64,
+    /// Requests running now.
     pub in_flight: usize,
     /// Delivered tiles of the desired set (see [`Streamer::resident`]).
     pub resident: usize,
@@ -401,6 +423,7 @@ impl Streamer {
         });
     }
 
+    /// What the streamer has done so far.
     pub fn stats(&self) -> StreamerStats {
         lock(&self.shared).stats.clone()
     }

@@ -17,15 +17,19 @@ use std::time::Instant;
 /// What a token may do.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Scope {
+    /// May read (with `--private-reads`).
     Read,
+    /// May read and write.
     Write,
 }
 
 /// One configured token.
 #[derive(Clone)]
 pub struct Token {
+    /// Its name, for logs and rate limits (never the secret).
     pub name: String,
     secret: String,
+    /// What it may do.
     pub scope: Scope,
 }
 
@@ -116,10 +120,12 @@ impl Tokens {
         Ok(())
     }
 
+    /// How many tokens.
     pub fn len(&self) -> usize {
         self.tokens.len()
     }
 
+    /// Whether there is none.
     pub fn is_empty(&self) -> bool {
         self.tokens.is_empty()
     }
@@ -235,6 +241,7 @@ pub struct RateLimiter {
 }
 
 impl RateLimiter {
+    /// `rate` edits per second per token, bursts of `rate`.
     pub fn new(rate: f64) -> Self {
         RateLimiter {
             rate: rate.max(f64::MIN_POSITIVE),

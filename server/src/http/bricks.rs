@@ -25,6 +25,7 @@ pub type BrickPath = (String, u8, u32, u32, u32);
 /// `?version=N`.
 #[derive(Debug, Deserialize)]
 pub struct VersionQuery {
+    /// The version to read; the newest when absent.
     pub version: Option<u64>,
 }
 

@@ -35,7 +35,12 @@ pub enum ApiError {
     /// Valid credentials without the right (403).
     Forbidden(String),
     /// A conditional edit found another version (409, the current one in the body).
-    Conflict { detail: String, version: u64 },
+    Conflict {
+        /// What differs.
+        detail: String,
+        /// The current version.
+        version: u64,
+    },
     /// What was asked for existed once and is gone for good (410).
     Gone(String),
     /// Well-formed but invalid (422): an edit that does not compile or exceeds a limit.

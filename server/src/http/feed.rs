@@ -20,7 +20,9 @@ use tokio::sync::broadcast::error::RecvError;
 /// `?since=N&limit=K`.
 #[derive(Debug, Deserialize)]
 pub struct ChangesQuery {
+    /// The version to list after; everything the file holds when absent.
     pub since: Option<u64>,
+    /// Versions listed at most (1000 by default, at most 10,000).
     pub limit: Option<usize>,
 }
 
@@ -44,32 +46,8 @@ pub async fn events(
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     let vol = state.catalog.get(&name)?;
-    let last_event_id = match headers.get("last-event-id") {
-        None => None,
-        Some(v) => Some(
-            v.to_str()
-                .ok()
-                .and_then(|v| v.trim().parse::<u64>().ok())
-                .ok_or_else(|| ApiError::BadRequest("Last-Event-ID must be a version".into()))?,
-        ),
-    };
-    // Subscribe before reading the head, so no version falls between the two.
-    let rx = vol.subscribe();
-    let head = vol.head().version;
-    let since = query.since.or(last_event_id);
-    if let Some(since) = since {
-        vol.check_since(since)?;
-    }
-    let hello = Event::default()
-        .event("hello")
-        .data(format!("{{\"version\":{head}}}"));
-    let feed = Feed {
-        vol: vol.clone(),
-        rx,
-        pending: VecDeque::from([hello]),
-        last: since.unwrap_or(head),
-        backlog_until: head,
-    };
+    let since = query.since.or(last_event_id(&headers)?);
+    let feed = Feed::start(vol, since)?;
     let stream = futures_util::stream::unfold(feed, |mut feed| async move {
         feed.next()
             .await
@@ -82,6 +60,19 @@ pub async fn events(
                 .text("keep-alive"),
         )
         .into_response())
+}
+
+/// `Last-Event-ID: N`, the version a reconnecting subscriber had.
+fn last_event_id(headers: &HeaderMap) -> Result<Option<u64>, ApiError> {
+    headers
+        .get("last-event-id")
+        .map(|v| {
+            v.to_str()
+                .ok()
+                .and_then(|v| v.trim().parse::<u64>().ok())
+                .ok_or_else(|| ApiError::BadRequest("Last-Event-ID must be a version".into()))
+        })
+        .transpose()
 }
 
 /// Where a feed subscriber is.
@@ -97,6 +88,27 @@ struct Feed {
 }
 
 impl Feed {
+    /// A subscriber of `vol` that first gets `hello`, then the versions after `since` (from
+    /// the file, when given), then every new one.
+    fn start(vol: &Arc<LiveVolume>, since: Option<u64>) -> Result<Feed, ApiError> {
+        // Subscribe before reading the head, so no version falls between the two.
+        let rx = vol.subscribe();
+        let head = vol.head().version;
+        if let Some(since) = since {
+            vol.check_since(since)?;
+        }
+        let hello = Event::default()
+            .event("hello")
+            .data(format!("{{\"version\":{head}}}"));
+        Ok(Feed {
+            vol: vol.clone(),
+            rx,
+            pending: VecDeque::from([hello]),
+            last: since.unwrap_or(head),
+            backlog_until: head,
+        })
+    }
+
     async fn next(&mut self) -> Option<Event> {
         loop {
             if let Some(e) = self.pending.pop_front() {

@@ -57,6 +57,7 @@ pub async fn volume_info(
 /// Query of a mesh tile.
 #[derive(Debug, Deserialize)]
 pub struct MeshQuery {
+    /// The version to read; the newest when absent.
     pub version: Option<u64>,
     /// Iso value; default S - 0.5.
     pub iso: Option<f32>,
@@ -121,6 +122,7 @@ pub async fn batch(
 /// Query of a level.
 #[derive(Debug, Deserialize)]
 pub struct LevelQuery {
+    /// The version to read; the newest when absent.
     pub version: Option<u64>,
     /// `MINX,MINY,MINZ,MAXX,MAXY,MAXZ` (max exclusive): bricks for `format=grid`, voxels for
     /// `format=voxels`. The whole level by default.

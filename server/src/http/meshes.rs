@@ -17,6 +17,7 @@ const MAX_MESH_BODY: usize = 256 << 20;
 /// `?format=`.
 #[derive(Debug, Deserialize)]
 pub struct UploadQuery {
+    /// The model's file format: stl, obj, ply or glb.
     pub format: Option<String>,
 }
 

@@ -24,13 +24,16 @@ use std::time::{Duration, Instant};
 /// What an edit does.
 #[derive(Debug)]
 pub enum EditKind {
+    /// `op(volume, term)`.
     Binary(BinaryOp, CompiledTerm),
+    /// `op(volume)`.
     Unary(UnaryOp),
 }
 
 /// A validated edit, ready to apply.
 #[derive(Debug)]
 pub struct Edit {
+    /// What the edit does.
     pub kind: EditKind,
     /// Where the edit applies (level-0 voxels, max exclusive); the whole volume when `None`.
     pub region: Option<Box3>,
@@ -39,6 +42,7 @@ pub struct Edit {
 /// What an edit changed.
 #[derive(Debug, Clone, Serialize)]
 pub struct EditOutcome {
+    /// The version committed.
     pub version: u64,
     /// Changed bricks per level (level 0 first), as `[x, y, z]`.
     pub changed: ChangedKeys,
@@ -46,7 +50,9 @@ pub struct EditOutcome {
     pub evaluated: usize,
     /// Brick records appended (new unique content).
     pub new_records: u64,
+    /// Whether the commit wrote a full index checkpoint.
     pub checkpoint: bool,
+    /// How long evaluating, storing and committing took.
     #[serde(serialize_with = "micros")]
     pub elapsed: Duration,
 }

@@ -6,16 +6,27 @@ use isovox_proto::VoxelType;
 /// A binary operator.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum BinaryOp {
+    /// max(D1, D2).
     Union,
+    /// min(D1, D2).
     Intersection,
+    /// D1 where D1 >= D2, else L.
     Trim,
+    /// D1 where D1 <= D2, else L.
     Cap,
+    /// Carving that keeps the source's visible surface (`docs/icvg.md`).
     Difference,
+    /// max(D1 - D2, L).
     DifferenceA,
+    /// max(D1 - D2, L) where D2 >= S, else D1.
     DifferenceB,
+    /// min(D1 + D2, H).
     Add,
+    /// min(D1 * D2, H).
     Modulate,
+    /// D1 * D2 / H.
     Product,
+    /// D1 / D2 where D2 > 0, else H.
     DivideA,
     /// `S_L` real in (0, 1].
     Divide(f64),
@@ -57,6 +68,7 @@ impl BinaryOp {
         })
     }
 
+    /// The operator's name in terms and edit requests.
     pub fn name(self) -> &'static str {
         match self {
             BinaryOp::Union => "union",
@@ -172,6 +184,7 @@ pub enum UnaryOp {
 }
 
 impl UnaryOp {
+    /// The operator applied to one voxel value.
     #[inline]
     pub fn apply(self, d1: u16, t: VoxelType) -> u16 {
         match self {

@@ -117,7 +117,9 @@ fn offsets(b: &Box3, centre: [f64; 3]) -> ([f64; 3], [f64; 3]) {
 /// Cuboid: L on the outer layer, S on the next, H inside (B > 2 on every axis).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Cuboid {
+    /// The first voxel of the extension space.
     pub origin: [i64; 3],
+    /// The extension space's size.
     pub size: [u32; 3],
 }
 
@@ -153,7 +155,9 @@ impl Primitive for Cuboid {
 /// Ellipsoid: radii `R`, centre `C = R` in its extension space `2R + 1`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Ellipsoid {
+    /// The centre voxel.
     pub center: [i64; 3],
+    /// The radii along x, y, z.
     pub radii: [u32; 3],
 }
 
@@ -266,8 +270,11 @@ fn axial_box(base: [i64; 3], radii: [u32; 2], height: u32) -> Box3 {
 /// at the bottom and top.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Cylinder {
+    /// The centre of the bottom padding layer.
     pub base: [i64; 3],
+    /// The radii along x and z.
     pub radii: [u32; 2],
+    /// The height along +y.
     pub height: u32,
 }
 
@@ -325,8 +332,11 @@ impl Primitive for Cylinder {
 /// `h = 1 - Vy / (By - 1)`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Cone {
+    /// The centre of the bottom padding layer.
     pub base: [i64; 3],
+    /// The base's radii along x and z.
     pub radii: [u32; 2],
+    /// The height along +y.
     pub height: u32,
 }
 
@@ -378,8 +388,11 @@ impl Primitive for Cone {
 /// Torus around the +y axis through `center`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Torus {
+    /// The centre of the ring.
     pub center: [i64; 3],
+    /// The radius of the tube's centre circle.
     pub major: u32,
+    /// The tube's radius.
     pub minor: u32,
 }
 
@@ -425,8 +438,11 @@ impl Primitive for Torus {
 /// extension is `(2 r + 1, 2 ceil(length / 2) + 2 r + 1, 2 r + 1)`, symmetric about `center`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Capsule {
+    /// The centre of the segment.
     pub center: [i64; 3],
+    /// The ball's radius.
     pub radius: u32,
+    /// The segment's length along +y.
     pub length: u32,
 }
 
@@ -527,7 +543,9 @@ impl Primitive for CutCuboid {
 /// bottom-right edge (x = right, y = 0), measured between the S layers.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Prism {
+    /// The first voxel of the bounding cuboid.
     pub origin: [i64; 3],
+    /// The bounding cuboid's size.
     pub size: [u32; 3],
 }
 
@@ -551,7 +569,9 @@ impl Prism {
 /// Square pyramid: base on the cuboid's bottom S layer, apex at the centre of its top S layer.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Pyramid {
+    /// The first voxel of the bounding cuboid.
     pub origin: [i64; 3],
+    /// The bounding cuboid's size.
     pub size: [u32; 3],
 }
 

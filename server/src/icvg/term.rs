@@ -40,8 +40,11 @@ pub enum TermError {
     /// A primitive wider than [`TermLimits::max_extent`].
     #[error("{what} spans {extent} voxels, more than the limit of {limit}")]
     TooWide {
+        /// What is too wide.
         what: String,
+        /// Its extension in voxels.
         extent: u64,
+        /// The limit.
         limit: u32,
     },
     /// A size, radius, parameter or operator out of its range, or a missing or superfluous
@@ -88,24 +91,35 @@ impl VolumeResolver for NoVolumes {
 /// A compiled term node.
 #[derive(Debug)]
 pub enum Node {
+    /// A primitive, placed.
     Primitive(Box<dyn Primitive>),
     /// A box `source` of another volume's level 0, moved by `shift` (world = source + shift).
     Volume {
+        /// The other volume's version read.
         snap: Arc<Snapshot>,
+        /// World position minus source position.
         shift: [i64; 3],
+        /// The box of the other volume's voxels used.
         source: Box3,
     },
+    /// A binary operator and its operands.
     Binary(BinaryOp, Box<CompiledTerm>, Box<CompiledTerm>),
+    /// A unary operator and its operand.
     Unary(UnaryOp, Box<CompiledTerm>),
     /// Values sampled once into an array over `frame` (a voxelized mesh); L outside.
     Grid {
+        /// The box the values cover.
         frame: Box3,
+        /// The values, x fastest.
         values: Vec<u16>,
     },
     /// Dilation (max) or erosion (min) over a cube of side `2 * radius + 1`.
     Morph {
+        /// Dilation when true, erosion when false.
         dilate: bool,
+        /// The window is the cube of side 2 * radius + 1.
         radius: u32,
+        /// The term filtered.
         arg: Box<CompiledTerm>,
     },
 }
@@ -114,8 +128,11 @@ pub enum Node {
 /// (an operator that maps (L, L) to something else: inverse, divide, add_scalar with k > 0).
 #[derive(Debug)]
 pub struct CompiledTerm {
+    /// The node.
     pub node: Node,
+    /// The B-box (see above).
     pub bbox: Option<Box3>,
+    /// The voxel type it is evaluated for.
     pub voxel_type: VoxelType,
 }
 

@@ -18,8 +18,11 @@ use std::sync::Arc;
 /// A tile's mesh from the cache: local coordinates (see [`super::tile::to_world`]).
 #[derive(Debug, Clone)]
 pub struct CachedTile {
+    /// The tile's content key.
     pub key: u128,
+    /// The mesh, in tile-local coordinates.
     pub mesh: Arc<Mesh>,
+    /// Whether it came from the cache.
     pub hit: bool,
 }
 

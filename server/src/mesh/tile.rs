@@ -43,6 +43,7 @@ impl TileScratch {
 pub struct TileStats {
     /// The tile was skipped from brick min/max alone, without decoding a voxel.
     pub skipped: bool,
+    /// Triangles made.
     pub triangles: usize,
 }
 

@@ -48,8 +48,11 @@ impl Default for BuildOptions {
 /// What a build wrote.
 #[derive(Debug, Clone)]
 pub struct BuildReport {
+    /// What the writer stored.
     pub stats: WriteStats,
+    /// The file's size.
     pub file_bytes: u64,
+    /// How long the build took.
     pub elapsed: Duration,
 }
 
@@ -100,6 +103,7 @@ pub trait SlabSink {
 /// octree from RAW costs, as the thesis's Table 5 does).
 #[derive(Debug, Default)]
 pub struct MemorySink {
+    /// Every brick of every level.
     pub bricks: Vec<BrickVoxels>,
 }
 

@@ -12,7 +12,9 @@ use std::cell::RefCell;
 /// How a writer compresses bricks (each brick is stored raw when compression does not shrink it).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Compression {
+    /// Every brick stored raw.
     None,
+    /// lz4 blocks (fast to decode, larger).
     Lz4,
     /// zstd at this level (1-22).
     Zstd(i32),

@@ -21,10 +21,13 @@ use std::time::Instant;
 pub struct CompactReport {
     /// The head version (the compacted file's only one).
     pub version: u64,
+    /// The file's size before.
     pub bytes_before: u64,
+    /// The file's size after.
     pub bytes_after: u64,
     /// Distinct brick records copied.
     pub bricks: u64,
+    /// How long it took.
     pub elapsed: std::time::Duration,
 }
 

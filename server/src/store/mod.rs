@@ -48,7 +48,9 @@ pub enum StoreError {
     /// An operating-system error, with what was being done.
     #[error("{context}")]
     Io {
+        /// What was being done.
         context: String,
+        /// The system's error.
         #[source]
         source: io::Error,
     },
@@ -59,8 +61,11 @@ pub enum StoreError {
     /// was found (a payload that does not decode, or decodes to other content than its hash).
     #[error("corrupt data at offset {offset}: expected {expected}, found {found}")]
     Corrupt {
+        /// Where the bytes start in the file.
         offset: u64,
+        /// What they must be.
         expected: String,
+        /// What they are.
         found: String,
     },
     /// What was asked for is not there (a version the file no longer or not yet holds).

@@ -16,6 +16,7 @@ use std::path::Path;
 
 /// RAWVOX magic as a little-endian i32.
 pub const RAWVOX_MAGIC: i32 = 0x5256_4F58;
+/// Bytes of a RAWVOX header (magic, three sizes, bits per voxel).
 pub const RAWVOX_HEADER_LEN: usize = 20;
 
 /// A RAW or RAWVOX file, mapped.
@@ -23,7 +24,9 @@ pub const RAWVOX_HEADER_LEN: usize = 20;
 pub struct RawInput {
     map: Mapping,
     data_at: usize,
+    /// Size in voxels.
     pub dims: [u32; 3],
+    /// The voxel type.
     pub voxel_type: VoxelType,
 }
 
@@ -149,7 +152,9 @@ pub fn rawvox_header(dims: [u32; 3], voxel_type: VoxelType) -> [u8; RAWVOX_HEADE
 /// A box of voxels at one level: `min` inclusive, `max` exclusive.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Region {
+    /// The first voxel (inclusive).
     pub min: [u32; 3],
+    /// The end (exclusive).
     pub max: [u32; 3],
 }
 

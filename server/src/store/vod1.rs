@@ -24,6 +24,7 @@ use isovox_proto::{BrickKey, FormatError, VolumeLayout, VoxelType};
 use std::collections::HashMap;
 use std::io::Write;
 
+/// Bytes of the fixed header.
 pub const HEADER_LEN: usize = 64;
 const FLAG_COMPRESSED: u32 = 1 << 0;
 const FLAG_PADDING: u32 = 1 << 1;
@@ -236,8 +237,11 @@ impl Vod1File {
 #[derive(Debug)]
 pub struct Vod1<'a> {
     bytes: &'a [u8],
+    /// Dimensions, brick edge and voxel type.
     pub layout: VolumeLayout,
+    /// World size of one voxel.
     pub voxel_scale: [f32; 3],
+    /// Levels of the complete octree.
     pub height: u32,
     compressed: bool,
     hash_width: usize,
@@ -413,11 +417,13 @@ impl<'a> Vod1<'a> {
 /// reported by [`Vod1Source::finish`] (a source cannot fail mid-build).
 #[derive(Debug)]
 pub struct Vod1Source<'a> {
+    /// The file read.
     pub vod1: &'a Vod1<'a>,
     errors: FirstError,
 }
 
 impl<'a> Vod1Source<'a> {
+    /// A source reading `vod1`'s level 0.
     pub fn new(vod1: &'a Vod1<'a>) -> Self {
         Vod1Source {
             vod1,

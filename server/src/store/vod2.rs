@@ -42,15 +42,21 @@ pub struct Vod2 {
 /// the mapping, ready to be sent as it is).
 #[derive(Debug, Clone, Copy)]
 pub enum StoredBrick<'a> {
+    /// Every voxel holds this value (no payload).
     Constant(u16),
+    /// A brick record.
     Record {
+        /// Where the record starts.
         offset: u64,
+        /// Its header.
         header: BrickHeader,
+        /// Its payload, a slice of the mapping.
         payload: &'a [u8],
     },
 }
 
 impl StoredBrick<'_> {
+    /// The brick's smallest and largest voxel value.
     pub fn min_max(&self) -> (u16, u16) {
         match self {
             StoredBrick::Constant(v) => (*v, *v),
@@ -196,14 +202,17 @@ impl Vod2 {
         })
     }
 
+    /// The file's path.
     pub fn path(&self) -> &Path {
         &self.path
     }
 
+    /// The fixed header.
     pub fn header(&self) -> &FileHeader {
         &self.header
     }
 
+    /// Dimensions, brick edge and voxel type.
     pub fn layout(&self) -> &VolumeLayout {
         &self.header.layout
     }
@@ -289,7 +298,9 @@ impl Vod2 {
 pub struct Snapshot {
     header: Arc<FileHeader>,
     map: Arc<Mapping>,
+    /// The version.
     pub version: u64,
+    /// When it was committed (Unix milliseconds).
     pub timestamp_ms: u64,
     commit_offset: u64,
     index: Arc<IndexChunks>,
@@ -432,10 +443,12 @@ impl Snapshot {
         Ok(())
     }
 
+    /// Dimensions, brick edge and voxel type.
     pub fn layout(&self) -> &VolumeLayout {
         &self.header.layout
     }
 
+    /// The file's fixed header.
     pub fn header(&self) -> &FileHeader {
         &self.header
     }
@@ -759,6 +772,7 @@ pub struct SnapshotSource {
 }
 
 impl SnapshotSource {
+    /// A source reading `snap`'s level 0.
     pub fn new(snap: Arc<Snapshot>) -> Self {
         SnapshotSource {
             snap,

@@ -49,6 +49,7 @@ pub struct WriteStats {
     /// Brick records written and their payload bytes (headers not included), by codec:
     /// raw, lz4, zstd.
     pub stored: [u64; 3],
+    /// Their payload bytes, by codec.
     pub stored_bytes: [u64; 3],
     /// Hash matches whose bytes differed (collisions kept apart).
     pub hash_collisions: u64,
@@ -158,6 +159,7 @@ impl Vod2Writer {
         })
     }
 
+    /// The file's fixed header.
     pub fn header(&self) -> &FileHeader {
         &self.header
     }
@@ -201,6 +203,7 @@ impl Vod2Writer {
         self.head
     }
 
+    /// What it stored so far.
     pub fn stats(&self) -> WriteStats {
         self.stats
     }

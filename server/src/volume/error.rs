@@ -13,8 +13,11 @@ pub enum VolumeError {
     /// The version is not (or no longer) in the volume's file.
     #[error("version {version} is not in this volume (it holds {oldest}..={head})")]
     NoSuchVersion {
+        /// The version asked for.
         version: u64,
+        /// The oldest version the file holds.
         oldest: u64,
+        /// The head.
         head: u64,
     },
     /// A brick, tile or level outside the volume.
@@ -31,16 +34,36 @@ pub enum VolumeError {
     InvalidEdit(#[from] TermError),
     /// The edit would evaluate more voxels than the server allows per edit.
     #[error("the edit reaches {voxels} voxels; this server allows {max} per edit (give a region, or split it)")]
-    EditTooLarge { voxels: u64, max: u64 },
+    EditTooLarge {
+        /// Voxels the edit would evaluate.
+        voxels: u64,
+        /// Voxels allowed.
+        max: u64,
+    },
     /// A conditional edit named another version than the head.
     #[error("If-Match names version {expected}; the volume is at version {current}")]
-    Conflict { expected: u64, current: u64 },
+    Conflict {
+        /// The version named.
+        expected: u64,
+        /// The head.
+        current: u64,
+    },
     /// `since` lies after the head.
     #[error("since = {since} is after the current version {head}")]
-    SinceAfterHead { since: u64, head: u64 },
+    SinceAfterHead {
+        /// The version asked to list after.
+        since: u64,
+        /// The head.
+        head: u64,
+    },
     /// Versions after `since` were compacted away.
     #[error("versions before {oldest} were compacted away; reload the volume (metadata, then bricks by hash) and follow from version {head}")]
-    Compacted { oldest: u64, head: u64 },
+    Compacted {
+        /// The oldest version the file holds now.
+        oldest: u64,
+        /// The head.
+        head: u64,
+    },
     /// Too many edits already wait for the volume's writer.
     #[error("too many edits are waiting for this volume")]
     WriterBusy,

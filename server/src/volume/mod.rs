@@ -39,7 +39,9 @@ pub const FEED_CAPACITY: usize = 1024;
 /// One committed version on the change feed, with its JSON made once for every subscriber.
 #[derive(Debug)]
 pub struct FeedItem {
+    /// The version.
     pub version: u64,
+    /// Its change event as JSON.
     pub json: String,
 }
 
@@ -147,6 +149,7 @@ impl LiveVolume {
         })
     }
 
+    /// The name it is served under.
     pub fn name(&self) -> &str {
         &self.name
     }

@@ -208,7 +208,9 @@ pub enum LevelForm {
 /// The answer to a level read.
 #[derive(Debug)]
 pub enum LevelAnswer {
+    /// The brick grid.
     Grid(LevelGrid),
+    /// The voxels.
     Voxels(Vec<u8>),
 }
 

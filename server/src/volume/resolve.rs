@@ -13,7 +13,9 @@ use std::sync::Arc;
 /// no meshes).
 #[derive(Debug, Clone)]
 pub struct CatalogVolumes {
+    /// The volumes.
     pub catalog: Arc<Catalog>,
+    /// The uploads; none when the server keeps no meshes.
     pub meshes: Option<Arc<MeshStore>>,
 }
 
@@ -36,6 +38,7 @@ impl VolumeResolver for CatalogVolumes {
 /// The `NAME.vod` files of a directory, and the meshes a server on it keeps (`DIR/meshes`).
 #[derive(Debug, Clone)]
 pub struct DirVolumes {
+    /// The directory.
     pub dir: PathBuf,
 }
 

@@ -1,4 +1,4 @@
-//! `isovox bench edits`: shared editing over HTTP on a generated world.
+//! `isovox-bench edits`: shared editing over HTTP on a generated world.
 //!
 //! One server (in this process, on an ephemeral port) serves a copy of a world; `--editors`
 //! clients carve small ellipsoids at random places on its terrain as fast as they are answered,

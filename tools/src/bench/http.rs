@@ -1,4 +1,4 @@
-//! `isovox bench http`: brick requests per second and latency with wrk (2 threads, 64
+//! `isovox-bench http`: brick requests per second and latency with wrk (2 threads, 64
 //! connections, random keys over a 512^3 world) against `isovox serve`, nginx serving the same
 //! bytes as static files, and a bare axum handler returning static bytes of the same size (the
 //! ceiling on this machine). Needs `wrk` and `nginx` on the PATH (scripts/bench-http.sh

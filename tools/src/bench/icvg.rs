@@ -1,4 +1,4 @@
-//! `isovox bench icvg`: primitive sampling speed and edit latency.
+//! `isovox-bench icvg`: primitive sampling speed and edit latency.
 
 use super::{median, percentile};
 use clap::Args;

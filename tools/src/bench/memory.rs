@@ -1,4 +1,4 @@
-//! `isovox bench memory`: the server's resident memory while a client walks every brick of a
+//! `isovox-bench memory`: the server's resident memory while a client walks every brick of a
 //! large volume once, in random order.
 //!
 //! The server runs as a child process (this binary's `serve`), so its memory is its own.

@@ -1,4 +1,4 @@
-//! `isovox bench mesh`: marching-cubes throughput next to VTK's Flying Edges and scikit-image,
+//! `isovox-bench mesh`: marching-cubes throughput next to VTK's Flying Edges and scikit-image,
 //! and the thesis's Tables 6-8 (speed-up by threads, by level, triangles per level, adaptive LOD).
 
 use super::median;

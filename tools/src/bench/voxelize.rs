@@ -1,4 +1,4 @@
-//! `isovox bench voxelize`: solid voxelization of a closed model of about 300,000 triangles
+//! `isovox-bench voxelize`: solid voxelization of a closed model of about 300,000 triangles
 //! into 512^3 and 1024^3 grids, next to the paper's GPU figures.
 //!
 //! The model is the project's own mesh of a generated world (marching cubes on a coarse level,
