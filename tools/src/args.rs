@@ -1,24 +1,5 @@
 //! Command-line values the tools parse.
 
-use clap::ValueEnum;
-use isovox_proto::VoxelType;
-
-/// Voxel type as a command-line value.
-#[derive(Debug, Clone, Copy, ValueEnum)]
-pub enum TypeArg {
-    U8,
-    U16,
-}
-
-impl From<TypeArg> for VoxelType {
-    fn from(t: TypeArg) -> Self {
-        match t {
-            TypeArg::U8 => VoxelType::U8,
-            TypeArg::U16 => VoxelType::U16,
-        }
-    }
-}
-
 /// Parses `X,Y,Z` into three positive dimensions.
 ///
 /// # Errors

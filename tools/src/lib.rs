@@ -7,7 +7,7 @@
 //!   measures and prints Markdown tables, next to the papers' figures and the peers run in the
 //!   same process.
 //! - [`load`]: simulated viewers and editors against a server, through the typed client.
-//! - [`args`]: command-line values both binaries parse.
+//! - [`args`]: command-line values the benchmarks parse.
 //! - [`progress`]: progress bars on a terminal.
 
 pub mod args;

@@ -101,16 +101,7 @@ impl Vod2 {
         );
         let header = Arc::new(header);
         let head = Arc::new(Snapshot::load(header.clone(), map.clone(), slot.commit)?);
-        if head.version != slot.version {
-            return Err(FormatError::invalid(
-                "header slot",
-                format!(
-                    "names version {}, its commit record says {}",
-                    slot.version, head.version
-                ),
-            )
-            .into());
-        }
+        check_slot(&slot, &head)?;
         Ok(Vod2 {
             path: path.to_path_buf(),
             header,
@@ -149,16 +140,7 @@ impl Vod2 {
                 .map_err(StoreError::io_path("cannot map", &self.path))?,
         );
         let head = Arc::new(self.head.extend(map.clone(), slot.commit)?);
-        if head.version != slot.version {
-            return Err(FormatError::invalid(
-                "header slot",
-                format!(
-                    "names version {}, its commit record says {}",
-                    slot.version, head.version
-                ),
-            )
-            .into());
-        }
+        check_slot(&slot, &head)?;
         Ok(Vod2 {
             path: self.path.clone(),
             header: self.header.clone(),
@@ -636,6 +618,21 @@ impl Snapshot {
     pub fn hash(&self, key: BrickKey) -> Result<u64, StoreError> {
         self.entry_hash(self.entry(key)?)
     }
+}
+
+/// Checks that the head loaded through `slot` is the version the slot names.
+fn check_slot(slot: &HeaderSlot, head: &Snapshot) -> Result<(), StoreError> {
+    if head.version != slot.version {
+        return Err(FormatError::invalid(
+            "header slot",
+            format!(
+                "names version {}, its commit record says {}",
+                slot.version, head.version
+            ),
+        )
+        .into());
+    }
+    Ok(())
 }
 
 /// Applies a commit record's changes to `overlay` (node index -> raw entry), checking each node

@@ -2,7 +2,6 @@
 //! and the thesis's Tables 6-8 (speed-up by threads, by level, triangles per level, adaptive LOD).
 
 use super::median;
-use crate::args::TypeArg;
 use anyhow::Context;
 use clap::Args;
 use isovox_proto::{VolumeLayout, VoxelType};
@@ -27,8 +26,9 @@ pub struct MeshBenchArgs {
     pub mri: Option<PathBuf>,
     #[arg(long, value_delimiter = ',', default_value = "197,233,189")]
     pub mri_dims: Vec<u32>,
-    #[arg(long, value_enum, default_value_t = TypeArg::U8)]
-    pub mri_type: TypeArg,
+    /// Voxel type of the --mri RAW (u8 or u16).
+    #[arg(long, default_value = "u8")]
+    pub mri_type: VoxelType,
     /// Run the peers (python3 scripts/bench_mesh_peers.py: VTK and scikit-image must be
     /// installed; scripts/bench-mesh.sh installs them).
     #[arg(long)]
@@ -126,7 +126,7 @@ pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
     }
     if let Some(mri) = &a.mri {
         let dims = [a.mri_dims[0], a.mri_dims[1], a.mri_dims[2]];
-        let t: VoxelType = a.mri_type.into();
+        let t = a.mri_type;
         let input = RawInput::open(mri, false, Some(dims), Some(t))?;
         let layout = VolumeLayout::new(dims, a.brick, t)?;
         let file = a.dir.join("mesh-mri.vod");

@@ -11,7 +11,7 @@ pub mod memory;
 pub mod mesh;
 pub mod voxelize;
 
-use crate::args::{parse_dims, TypeArg};
+use crate::args::parse_dims;
 use anyhow::Context;
 use clap::Subcommand;
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
@@ -65,8 +65,9 @@ pub struct StoreArgs {
     /// Dimensions of the --mri RAW.
     #[arg(long, value_parser = parse_dims, default_value = "197,233,189")]
     pub mri_dims: [u32; 3],
-    #[arg(long, value_enum, default_value_t = TypeArg::U8)]
-    pub mri_type: TypeArg,
+    /// Voxel type of the --mri RAW (u8 or u16).
+    #[arg(long, default_value = "u8")]
+    pub mri_type: VoxelType,
     /// Edge of the large world used for the open-time comparison (0 skips it).
     #[arg(long, default_value_t = 2048)]
     pub large: u32,
@@ -331,14 +332,7 @@ fn bench_store(a: StoreArgs) -> anyhow::Result<()> {
     let large = [512, 512, 512];
     if let Some(mri) = &a.mri {
         eprintln!("bench store: MRI {}", mri.display());
-        rows.push(measure(
-            &a.dir,
-            "MRI",
-            mri,
-            a.mri_dims,
-            a.mri_type.into(),
-            b,
-        )?);
+        rows.push(measure(&a.dir, "MRI", mri, a.mri_dims, a.mri_type, b)?);
     }
     for (name, dims, world) in [
         ("Small Ellipsoid", small, false),
