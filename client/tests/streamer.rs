@@ -20,7 +20,7 @@ use isovox_server::catalog::Catalog;
 use isovox_server::generate::WorldSource;
 use isovox_server::http::auth::Tokens;
 use isovox_server::http::{run, AppState, ServerConfig};
-use isovox_server::store::{build_vod2, BuildOptions, Vod2};
+use isovox_server::store::{build_vod2, BuildOptions, Snapshot, Vod2};
 use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -402,23 +402,9 @@ async fn selection_matches_independent_computation_and_streams_the_file_bricks()
         .all(|e| !matches!(e, StreamEvent::Error { .. })));
     let vod = Vod2::open(&w.path).unwrap();
     let snap = vod.head();
+    assert_bricks_match_file(&events, &snap);
     for e in &events {
-        if let StreamEvent::Ready {
-            key,
-            hash,
-            data,
-            version,
-        } = e
-        {
-            let TileData::Brick(bytes) = data else {
-                panic!("a brick streamer delivered a mesh");
-            };
-            assert_eq!(
-                bytes.as_ref(),
-                snap.read(*key).unwrap().as_slice(),
-                "brick {key}"
-            );
-            assert_eq!(*hash, snap.hash(*key).unwrap(), "hash of {key}");
+        if let StreamEvent::Ready { version, .. } = e {
             assert_eq!(*version, 1);
         }
     }
@@ -568,18 +554,7 @@ async fn a_brick_shared_by_many_positions_is_fetched_once() {
     let stats = streamer.stats();
     assert_eq!(stats.cache_misses, distinct.len() as u64);
     assert_eq!(stats.cache_hits, (expected.len() - distinct.len()) as u64);
-    for e in &events {
-        if let StreamEvent::Ready { key, data, .. } = e {
-            let TileData::Brick(bytes) = data else {
-                panic!("a brick streamer delivered a mesh");
-            };
-            assert_eq!(
-                bytes.as_ref(),
-                snap.read(*key).unwrap().as_slice(),
-                "brick {key}"
-            );
-        }
-    }
+    assert_bricks_match_file(&events, &snap);
     streamer.shutdown().await;
 
     // A cache of 5 bricks holds at most 5 bricks' bytes, and every tile is still delivered right.
@@ -600,18 +575,7 @@ async fn a_brick_shared_by_many_positions_is_fetched_once() {
     let events = settle(&small, &mut rx, 1).await;
     let expected = expected_set(&info, camera, &[10.0, 20.0]);
     assert_eq!(once(&ready_keys(&events), "was ready"), expected);
-    for e in &events {
-        if let StreamEvent::Ready { key, data, .. } = e {
-            let TileData::Brick(bytes) = data else {
-                panic!("a brick streamer delivered a mesh");
-            };
-            assert_eq!(
-                bytes.as_ref(),
-                snap.read(*key).unwrap().as_slice(),
-                "brick {key}"
-            );
-        }
-    }
+    assert_bricks_match_file(&events, &snap);
     let stats = small.stats();
     assert!(stats.cache_bytes <= 5 * brick_bytes, "{stats:?}");
     assert!(stats.cache_bytes > 0);
@@ -638,6 +602,30 @@ fn carve(center: [i64; 3], r: u32) -> EditRequest {
 /// A point on the terrain's surface (level-0 voxels).
 fn ground(w: &World, x: u32, z: u32) -> [i64; 3] {
     [x as i64, w.source.height(x, z).round() as i64, z as i64]
+}
+
+/// Checks every `Ready` brick of `events` against the file's version `snap`: its voxels and its
+/// content hash. Returns the hashes delivered.
+fn assert_bricks_match_file(events: &[StreamEvent], snap: &Snapshot) -> HashSet<u64> {
+    let mut hashes = HashSet::new();
+    for e in events {
+        if let StreamEvent::Ready {
+            key, data, hash, ..
+        } = e
+        {
+            let TileData::Brick(bytes) = data else {
+                panic!("a brick streamer delivered a mesh");
+            };
+            assert_eq!(
+                bytes.as_ref(),
+                snap.read(*key).unwrap().as_slice(),
+                "brick {key}"
+            );
+            assert_eq!(*hash, snap.hash(*key).unwrap(), "hash of {key}");
+            hashes.insert(*hash);
+        }
+    }
+    hashes
 }
 
 /// A served terrain of `dims` (brick 8), a counted client's streamer on it as `config` says,
@@ -795,24 +783,7 @@ async fn an_edit_by_another_client_refetches_exactly_the_affected_bricks() {
     let events = settle(&streamer, &mut rx, resp.version).await;
     assert_stale_then_ready(&events, &expected, resp.version);
     let snap = Vod2::open(&w.path).unwrap().head();
-    let mut new_hashes = HashSet::new();
-    for e in &events {
-        if let StreamEvent::Ready {
-            key, data, hash, ..
-        } = e
-        {
-            let TileData::Brick(bytes) = data else {
-                panic!("a brick streamer delivered a mesh");
-            };
-            assert_eq!(
-                bytes.as_ref(),
-                snap.read(*key).unwrap().as_slice(),
-                "brick {key}"
-            );
-            assert_eq!(*hash, snap.hash(*key).unwrap());
-            new_hashes.insert(*hash);
-        }
-    }
+    let new_hashes = assert_bricks_match_file(&events, &snap);
     assert!(
         new_hashes.iter().any(|h| !cached.contains(h)),
         "new content"
@@ -1004,18 +975,7 @@ async fn after_a_disconnect_the_streamer_catches_up_from_its_last_version() {
     assert_eq!(per_version.get(&2).cloned().unwrap_or_default(), want_2);
     assert_eq!(per_version.get(&3).cloned().unwrap_or_default(), want_3);
     let snap = Vod2::open(&w.path).unwrap().head();
-    for e in &events {
-        if let StreamEvent::Ready { key, data, .. } = e {
-            let TileData::Brick(bytes) = data else {
-                panic!("a brick streamer delivered a mesh");
-            };
-            assert_eq!(
-                bytes.as_ref(),
-                snap.read(*key).unwrap().as_slice(),
-                "brick {key}"
-            );
-        }
-    }
+    assert_bricks_match_file(&events, &snap);
     assert_eq!(streamer.stats().version, 3);
     assert_eq!(
         streamer.resident().into_iter().collect::<BTreeSet<_>>(),
@@ -1080,24 +1040,7 @@ async fn when_the_missed_versions_were_compacted_away_the_streamer_reloads() {
     assert_eq!(once(&ready_keys(&events), "was ready"), resident);
     assert!(dropped_keys(&events).is_empty());
     let snap = Vod2::open(&w.path).unwrap().head();
-    let mut hashes = HashSet::new();
-    for e in &events {
-        if let StreamEvent::Ready {
-            key, data, hash, ..
-        } = e
-        {
-            let TileData::Brick(bytes) = data else {
-                panic!("a brick streamer delivered a mesh");
-            };
-            assert_eq!(
-                bytes.as_ref(),
-                snap.read(*key).unwrap().as_slice(),
-                "brick {key}"
-            );
-            assert_eq!(*hash, snap.hash(*key).unwrap());
-            hashes.insert(*hash);
-        }
-    }
+    let hashes = assert_bricks_match_file(&events, &snap);
     assert!(hashes.iter().any(|h| !cached.contains(h)), "the edits show");
     assert_eq!(
         counter.since(&counts, "blob"),
