@@ -66,7 +66,8 @@ pub struct VersionQuery {
     pub version: Option<u64>,
 }
 
-fn accepts(headers: &HeaderMap, name: header::HeaderName, token: &str) -> bool {
+/// Whether a list header (`Accept`, `Accept-Encoding`) names `token` without `q=0`.
+pub(super) fn accepts(headers: &HeaderMap, name: header::HeaderName, token: &str) -> bool {
     headers
         .get_all(name)
         .iter()
