@@ -103,8 +103,8 @@ fn vectors() -> String {
     let mut cases = Vec::new();
     let mut distances = Vec::new();
     for v in volumes() {
-        let layout = VolumeLayout::new(v.dims, v.brick, VoxelType::U8)
-            .unwrap_or_else(|e| panic!("{e}"));
+        let layout =
+            VolumeLayout::new(v.dims, v.brick, VoxelType::U8).unwrap_or_else(|e| panic!("{e}"));
         let world = [0, 1, 2].map(|a| v.dims[a] as f32 * v.scale[a]);
         let mut cameras: Vec<[f32; 3]> = vec![
             [0.0; 3],
@@ -178,7 +178,8 @@ fn vectors() -> String {
 
 #[test]
 fn web_lod_vectors_are_current() {
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../web/test-vectors/lod.json");
+    let path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../web/test-vectors/lod.json");
     let fresh = vectors();
     // Parses as JSON, so the TypeScript side can read it.
     let parsed: serde_json::Value =
