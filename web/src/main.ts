@@ -41,7 +41,13 @@ new PerformanceObserver((list) => {
     if (!e.name.includes("/v1/")) continue;
     wire.requests++;
     wire.bytes += e.transferSize;
-    if (e.nextHopProtocol) protocol = e.nextHopProtocol;
+    if (e.nextHopProtocol && e.nextHopProtocol !== protocol) {
+      protocol = e.nextHopProtocol;
+      if (streamer) {
+        streamer.maxInFlight = inFlightBudget();
+        streamer.plan();
+      }
+    }
   }
 }).observe({ type: "resource", buffered: true });
 
@@ -392,6 +398,11 @@ const hook = {
   }),
   /** Where world point (x, y, z) appears on the canvas, in CSS pixels. */
   project: (x: number, y: number, z: number) => viewport.project(new THREE.Vector3(x, y, z)),
+  /** The ray from the camera through canvas pixel (x, y): origin and unit direction. */
+  ray: (x: number, y: number) => {
+    const r = viewport.ray(x, y).ray;
+    return { origin: r.origin.toArray(), direction: r.direction.toArray() };
+  },
   /** The surface point under canvas pixel (x, y), or null. */
   pick: (x: number, y: number) => viewport.pick(x, y)?.toArray() ?? null,
 };
@@ -400,7 +411,6 @@ const hook = {
 async function start(): Promise<void> {
   const state = readUrl();
   const { volumes } = await api.volumes();
-  protocol = inFlightProtocol();
   const picker = $<HTMLSelectElement>("volume");
   for (const v of volumes) picker.add(new Option(`${v.name} (${v.dims.join("x")} ${v.voxel_type})`, v.name));
   const name =
@@ -413,12 +423,6 @@ async function start(): Promise<void> {
   }
   picker.value = name;
   await openVolume(name, state);
-}
-
-/** The protocol of the first API answer, read before the observer's first callback. */
-function inFlightProtocol(): string {
-  const entries = performance.getEntriesByType("resource") as PerformanceResourceTiming[];
-  return entries.find((e) => e.name.includes("/v1/volumes"))?.nextHopProtocol || protocol;
 }
 
 start().catch((e: unknown) => {

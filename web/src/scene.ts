@@ -127,10 +127,15 @@ export class Viewport implements TileSink {
     this.camera.far = extent * 20;
     this.camera.updateProjectionMatrix();
     this.fly.speed = extent / 4;
-    const target = view?.target ?? size.clone().multiplyScalar(0.5).setY(size.y * 0.35);
+    // By default: the whole volume in view, seen from above one corner.
+    const target = view?.target ?? size.clone().multiplyScalar(0.5);
+    const radius = size.length() / 2;
+    const fovY = THREE.MathUtils.degToRad(this.camera.fov);
+    const fovX = 2 * Math.atan(Math.tan(fovY / 2) * this.camera.aspect);
+    const distance = (0.72 * radius) / Math.sin(Math.min(fovX, fovY) / 2);
     const position =
       view?.position ??
-      target.clone().add(new THREE.Vector3(-0.55 * size.x, 0.55 * size.y + 0.25 * extent, 0.85 * size.z));
+      target.clone().add(new THREE.Vector3(-0.45, 0.6, 0.85).normalize().multiplyScalar(distance));
     this.camera.position.copy(position);
     this.orbit.target.copy(target);
     this.camera.lookAt(target);
@@ -221,13 +226,18 @@ export class Viewport implements TileSink {
     this.requestRender();
   }
 
-  /** The point of the surface under canvas pixel (x, y) (CSS pixels), if any. */
-  pick(x: number, y: number): THREE.Vector3 | null {
+  /** The ray from the camera through canvas pixel (x, y) (CSS pixels). */
+  ray(x: number, y: number): THREE.Raycaster {
     const c = this.renderer.domElement;
     const ndc = new THREE.Vector2((x / c.clientWidth) * 2 - 1, -(y / c.clientHeight) * 2 + 1);
     const ray = new THREE.Raycaster();
     ray.setFromCamera(ndc, this.camera);
-    const hits = ray.intersectObjects([...this.tiles.values()].map((t) => t.mesh), false);
+    return ray;
+  }
+
+  /** The point of the surface under canvas pixel (x, y), if any. */
+  pick(x: number, y: number): THREE.Vector3 | null {
+    const hits = this.ray(x, y).intersectObjects([...this.tiles.values()].map((t) => t.mesh), false);
     return hits[0]?.point ?? null;
   }
 
