@@ -114,8 +114,19 @@ async function openVolume(name: string, state: UrlState | null): Promise<void> {
   writeUrl(urlState());
 }
 
-/** The streamer changed what it shows or knows. */
+let changePending = false;
+
+/** The streamer changed what it shows or knows: update the rest once per frame. */
 function changed(): void {
+  if (changePending) return;
+  changePending = true;
+  requestAnimationFrame(() => {
+    changePending = false;
+    afterChange();
+  });
+}
+
+function afterChange(): void {
   const s = streamer;
   if (!s) return;
   if (lastEdit && lastEdit.screenMs === null) {
@@ -123,7 +134,10 @@ function changed(): void {
     if (st.version >= lastEdit.version && st.stale === 0) {
       // Drawn with the next frame.
       const edit = lastEdit;
-      requestAnimationFrame(() => (edit.screenMs = performance.now() - edit.sent));
+      requestAnimationFrame(() => {
+        edit.screenMs = performance.now() - edit.sent;
+        updateOverlay();
+      });
     }
   }
   applyStitchMasks();

@@ -102,6 +102,7 @@ export class Streamer {
   private readyCount = 0;
   private staleCount = 0;
   private desired: TileKey[] = [];
+  private selectionKey = "";
   private planned = false;
   private retryTimer: ReturnType<typeof setTimeout> | null = null;
   private stopped = false;
@@ -168,6 +169,7 @@ export class Streamer {
     for (const job of this.jobs.values()) this.abort(job);
     this.info = info;
     this.layout = new Layout(info.dims, info.brick);
+    this.selectionKey = "";
     this.hashes = this.layout.grids.map(() => new Map());
     this.commitLog.length = 0;
     this.version = info.version;
@@ -282,7 +284,12 @@ export class Streamer {
     this.planned = true;
     this.statsCache = null;
     const scale = this.info.voxel_scale;
-    this.desired = adaptiveTiles(this.layout, scale, this.camera, this.radii);
+    // The selection depends on the camera, the radii and the layout only.
+    const selectionKey = `${this.camera.join(",")}|${this.radii.join(",")}|${this.layout.grids.length}`;
+    if (selectionKey !== this.selectionKey) {
+      this.selectionKey = selectionKey;
+      this.desired = adaptiveTiles(this.layout, scale, this.camera, this.radii);
+    }
     // Stand-ins: the tiles of the selection's coarsest level over selected tiles that have
     // nothing to show yet.
     const coarsest = this.desired.reduce((a, k) => Math.max(a, k.level), 0);

@@ -31,3 +31,9 @@ export function compactMesh(
   }
   return buffer;
 }
+
+/** One triangle in the z = 0 plane, facing +z. */
+export function triangle(indices = [0, 1, 2], options: { wide?: boolean } = {}): ArrayBuffer {
+  const normal = [0, 0, 1];
+  return compactMesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [normal, normal, normal], indices, options);
+}

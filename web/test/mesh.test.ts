@@ -1,6 +1,6 @@
 import { describe, expect, it } from "vitest";
 import { decodeCompact, MeshFormatError } from "../src/mesh";
-import { compactMesh } from "./compact";
+import { compactMesh, triangle } from "./compact";
 
 // The quad of proto/src/mesh.rs's golden test: 4 vertices, 2 triangles, 124 bytes.
 const quad = () =>
@@ -50,20 +50,7 @@ describe("compact mesh decoding", () => {
 
   it("reads u32 indices at an unaligned offset", () => {
     // 3 vertices with wide indices: the indices start at 40 + 54 = 94, not a multiple of 4.
-    const b = compactMesh(
-      [
-        [0, 0, 0],
-        [1, 0, 0],
-        [0, 1, 0],
-      ],
-      [
-        [0, 0, 1],
-        [0, 0, 1],
-        [0, 0, 1],
-      ],
-      [2, 1, 0],
-      { wide: true },
-    );
+    const b = triangle([2, 1, 0], { wide: true });
     const m = decodeCompact(b);
     expect(m.indices).toBeInstanceOf(Uint32Array);
     expect([...m.indices]).toEqual([2, 1, 0]);

@@ -3,7 +3,7 @@ import type { Api, LevelGrid, Vec3 } from "../src/api";
 import { adaptiveTiles, keyText, Layout, tileDistance, type TileKey } from "../src/lod";
 import type { TileMesh } from "../src/mesh";
 import { Streamer } from "../src/streamer";
-import { compactMesh } from "./compact";
+import { triangle } from "./compact";
 
 // The streamer against a scripted server: level grids answer at once, mesh tiles wait until the
 // test answers them, so the order, the bound and the cancellation of requests can be watched.
@@ -23,19 +23,7 @@ const INFO = {
   voxel_scale: [1, 1, 1] as Vec3,
   version: 1,
 };
-const TRIANGLE = compactMesh(
-  [
-    [0, 0, 0],
-    [1, 0, 0],
-    [0, 1, 0],
-  ],
-  [
-    [0, 0, 1],
-    [0, 0, 1],
-    [0, 0, 1],
-  ],
-  [0, 1, 2],
-);
+const TRIANGLE = triangle();
 
 interface MeshCall {
   key: TileKey;
