@@ -6,7 +6,7 @@
 // `cargo test -p isovox-server --test web` runs this with the binary it built.
 
 import { execFileSync } from "node:child_process";
-import { mkdtempSync, rmSync, writeFileSync } from "node:fs";
+import { copyFileSync, mkdtempSync, rmSync, writeFileSync } from "node:fs";
 import { tmpdir } from "node:os";
 import { join } from "node:path";
 import { after, before, test } from "node:test";
@@ -426,4 +426,35 @@ test("the page survives a server restart and catches up with what changed meanwh
   assert.ok(fetched.length > 0);
   for (const t of fetched) assert.ok(isStale(t, changes.changes[0].changed), `tile ${t} was fetched but not stale`);
   await context.close();
+});
+
+test("over HTTPS the page loads with HTTP/2, its requests sharing one connection", { timeout: 120_000 }, async () => {
+  // A server of its own on a copy of the demo world, with a self-signed certificate.
+  const dir = mkdtempSync(join(tmpdir(), "isovox-tls-"));
+  copyFileSync(join(dataDir, "demo.vod"), join(dir, "demo.vod"));
+  const [cert, key] = [join(dir, "cert.pem"), join(dir, "key.pem")];
+  execFileSync("openssl", [
+    "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-days", "2",
+    "-subj", "/CN=127.0.0.1", "-addext", "subjectAltName=IP:127.0.0.1", "-keyout", key, "-out", cert,
+  ], { stdio: "ignore" });
+  const tls = await startServer(BIN, dir, { extraArgs: ["--tls-cert", cert, "--tls-key", key] });
+  const secure = await launch(["--ignore-certificate-errors"]);
+  try {
+    assert.match(tls.base, /^https:/);
+    const context = await secure.newContext({ viewport: VIEW });
+    const page = await context.newPage();
+    await page.goto(`${tls.base}/`);
+    const s = await waitComplete(page);
+    assert.equal(s.protocol, "h2");
+    assert.ok(s.triangles > 10_000 && s.webgl2);
+    const protocols = await page.evaluate(() =>
+      performance.getEntriesByType("resource").filter((e) => e.name.includes("/v1/")).map((e) => e.nextHopProtocol),
+    );
+    assert.ok(protocols.length > 10);
+    assert.deepEqual([...new Set(protocols)], ["h2"]);
+  } finally {
+    await secure.close();
+    await tls.kill();
+    rmSync(dir, { recursive: true, force: true });
+  }
 });
