@@ -3,7 +3,7 @@
 
 import "./style.css";
 import * as THREE from "three";
-import { Api, editErrorWords, type VolumeInfo } from "./api";
+import { Api, ApiError, editErrorWords, type VolumeInfo } from "./api";
 import { editRequest, OPERATORS, PRIMITIVES, TokenStore, type Primitive } from "./edit";
 import { Feed, type FeedState } from "./feed";
 import { radiiForScreenError, stitchMasks, Layout } from "./lod";
@@ -269,7 +269,7 @@ async function sendEdit(request: Record<string, unknown>): Promise<void> {
     say(`Applied as version ${r.version}.`);
     changed();
   } catch (e) {
-    if (e instanceof Error && "status" in e && (e.status === 401 || e.status === 403)) {
+    if (e instanceof ApiError && (e.status === 401 || e.status === 403)) {
       tokens.forget();
     }
     say(editErrorWords(e), true);
@@ -289,12 +289,12 @@ $<HTMLFormElement>("token-form").addEventListener("submit", (e) => {
 });
 
 /** Edits at canvas pixel (x, y): picks the surface and sends the edit. */
-function editAt(x: number, y: number): boolean {
-  if (!info) return false;
+function editAt(x: number, y: number): void {
+  if (!info) return;
   const p = viewport.pick(x, y);
   if (!p) {
     say("No surface under the pointer.", true);
-    return false;
+    return;
   }
   const s = info.voxel_scale;
   const request = editRequest(
@@ -304,9 +304,11 @@ function editAt(x: number, y: number): boolean {
     Number($<HTMLInputElement>("size").value),
     info.dims,
   );
-  if (!request) return false;
+  if (!request) {
+    say("The shape lies outside the volume.", true);
+    return;
+  }
   void sendEdit(request);
-  return true;
 }
 
 {
