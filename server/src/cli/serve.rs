@@ -44,6 +44,12 @@ pub(crate) struct ServeArgs {
     /// Level-0 voxels one edit may evaluate; beyond it 422.
     #[arg(long, env = "ISOVOX_MAX_EDIT_VOXELS", default_value_t = 1 << 28)]
     pub max_edit_voxels: u64,
+    /// Serve HTTPS (HTTP/2 and HTTP/1.1) with this PEM certificate chain; needs --tls-key.
+    #[arg(long, env = "ISOVOX_TLS_CERT", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// The PEM private key of --tls-cert.
+    #[arg(long, env = "ISOVOX_TLS_KEY", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
 }
 
 /// The tokens the server accepts: the token file (DATA/tokens by default, created with one
@@ -135,6 +141,12 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             a.data.display()
         );
     }
+    let tls = match (&a.tls_cert, &a.tls_key) {
+        (Some(cert), Some(key)) => {
+            Some(isovox_server::http::tls::config(cert, key).map_err(anyhow::Error::msg)?)
+        }
+        _ => None,
+    };
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -145,8 +157,9 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             .with_context(|| format!("cannot listen on {}", a.addr))?;
         let addr = listener.local_addr()?;
         let names: Vec<&str> = catalog.iter().map(|(n, _)| n).collect();
+        let scheme = if tls.is_some() { "https" } else { "http" };
         eprintln!(
-            "isovox serving {} on http://{addr}/v1/volumes",
+            "isovox serving {} on {scheme}://{addr}/v1/volumes, the viewer on {scheme}://{addr}/",
             names.join(", ")
         );
         if tokens.is_empty() {
@@ -165,8 +178,12 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             ..ServerConfig::default()
         };
         let state = AppState::with_config(catalog, config);
-        run(listener, state, shutdown_signal())
-            .await
-            .context("server failed")
+        match tls {
+            Some(tls) => {
+                isovox_server::http::tls::run_tls(listener, tls, state, shutdown_signal()).await
+            }
+            None => run(listener, state, shutdown_signal()).await,
+        }
+        .context("server failed")
     })
 }

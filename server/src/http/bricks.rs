@@ -112,7 +112,7 @@ pub async fn blob(
 }
 
 /// Whether a header of `name` lists `token` (and does not refuse it with `q=0`).
-fn accepts(headers: &HeaderMap, name: header::HeaderName, token: &str) -> bool {
+pub(super) fn accepts(headers: &HeaderMap, name: header::HeaderName, token: &str) -> bool {
     headers
         .get_all(name)
         .iter()

@@ -27,6 +27,7 @@ pub mod auth;
 pub mod bodies;
 pub mod bricks;
 pub mod compact;
+mod compression;
 mod cors;
 pub mod cpu;
 pub mod edit;
@@ -38,6 +39,8 @@ pub mod handlers;
 pub mod meshes;
 pub mod metrics;
 mod openapi;
+pub mod tls;
+mod web_app;
 
 pub use error::ApiError;
 
@@ -201,6 +204,9 @@ pub const ROUTES: &[&str] = &[
     "/v1/volumes/{name}/events",
     "/v1/volumes/{name}/compact",
     "/v1/meshes",
+    "/",
+    "/index.html",
+    "/assets/{*file}",
 ];
 
 /// The whole service: the router inside the layers every request passes through (request
@@ -250,7 +256,8 @@ fn routes(state: &AppState) -> Router<AppState> {
         .route("/v1/volumes/{name}/batch", write(handlers::batch))
         .route("/v1/volumes/{name}/levels/{level}", read(handlers::level))
         .route("/v1/volumes/{name}/changes", read(feed::changes))
-        .route_layer(timeout);
+        .route_layer(timeout)
+        .route_layer(compression::layer());
     // Edits wait for their volume's writer (bounded by the edit queue), and the change feed is
     // meant to stay open: neither gets the timeout.
     let write_routes = Router::new()
@@ -270,7 +277,8 @@ fn routes(state: &AppState) -> Router<AppState> {
         )
         .route("/v1/volumes/{name}/blobs/{hash}", read(bricks::blob))
         .merge(cpu_routes)
-        .merge(write_routes);
+        .merge(write_routes)
+        .merge(web_app::routes());
     if state.config.private_reads {
         // Only then: a middleware per request costs throughput on the brick routes.
         router = router.route_layer(axum::middleware::from_fn_with_state(
