@@ -196,7 +196,7 @@ fn the_viewer_is_served_at_the_root_with_zstd_and_caching() {
 }
 
 #[test]
-fn mesh_tiles_and_level_grids_go_out_as_zstd_to_clients_that_accept_it() {
+fn mesh_tiles_level_grids_and_batches_go_out_as_zstd_to_clients_that_accept_it() {
     let s = serve_world();
     let mut checked = 0;
     // Tiles of level 0 (grid 4x2x4) whose mesh is large enough to be compressed.
@@ -230,5 +230,35 @@ fn mesh_tiles_and_level_grids_go_out_as_zstd_to_clients_that_accept_it() {
     let packed = get(&url, &[("accept-encoding", "zstd")]);
     assert_eq!(header(&packed, "content-encoding").as_deref(), Some("zstd"));
     let packed = packed.bytes().unwrap_or_default();
+    assert_eq!(zstd::decode_all(&packed[..]).unwrap_or_default(), plain);
+
+    // A batch of every level-0 brick (32 KiB each, mostly air and rock).
+    let keys: Vec<String> = (0..4)
+        .flat_map(|z| (0..2).flat_map(move |y| (0..4).map(move |x| format!("[0,{x},{y},{z}]"))))
+        .collect();
+    let body = format!("{{\"keys\":[{}]}}", keys.join(","));
+    let batch = |accept: Option<&str>| {
+        let mut r = reqwest::blocking::Client::new()
+            .post(format!("{}/v1/volumes/w/batch", s.base))
+            .header("content-type", "application/json")
+            .body(body.clone());
+        if let Some(a) = accept {
+            r = r.header("accept-encoding", a);
+        }
+        r.send().unwrap_or_else(|e| panic!("batch: {e}"))
+    };
+    let plain = batch(None);
+    assert_eq!(plain.status().as_u16(), 200);
+    assert_eq!(header(&plain, "content-encoding"), None);
+    let plain = plain.bytes().unwrap_or_default();
+    let packed = batch(Some("zstd"));
+    assert_eq!(header(&packed, "content-encoding").as_deref(), Some("zstd"));
+    let packed = packed.bytes().unwrap_or_default();
+    assert!(
+        packed.len() < plain.len(),
+        "{} of {}",
+        packed.len(),
+        plain.len()
+    );
     assert_eq!(zstd::decode_all(&packed[..]).unwrap_or_default(), plain);
 }

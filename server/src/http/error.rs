@@ -121,6 +121,13 @@ impl From<JsonRejection> for ApiError {
     }
 }
 
+/// Work that cannot fail, run through the same helpers (`cpu.rs`) as work that can.
+impl From<std::convert::Infallible> for ApiError {
+    fn from(e: std::convert::Infallible) -> Self {
+        match e {}
+    }
+}
+
 /// A task on the blocking pool panicked or was cancelled: a bug.
 impl From<tokio::task::JoinError> for ApiError {
     fn from(e: tokio::task::JoinError) -> Self {

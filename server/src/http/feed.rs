@@ -1,16 +1,15 @@
 //! The change feed (`GET .../events`, server-sent events) and its catch-up list
 //! (`GET .../changes?since=N`), both read from the file's commit records (`docs/editing.md`).
 
+use super::compression::{accepts_zstd, Body};
 use super::cpu::blocking;
 use super::extract::{Path, Query};
 use super::{ApiError, AppState};
-use crate::volume::{FeedItem, LiveVolume, DEFAULT_CHANGES};
+use crate::volume::{FeedItem, LiveVolume, VolumeError, DEFAULT_CHANGES};
 use axum::extract::State;
 use axum::http::HeaderMap;
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
-use axum::Json;
-use isovox_proto::api::ChangeList;
 use serde::Deserialize;
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -26,15 +25,22 @@ pub struct ChangesQuery {
     pub limit: Option<usize>,
 }
 
-/// `GET /v1/volumes/{name}/changes?since=N&limit=K`.
+/// `GET /v1/volumes/{name}/changes?since=N&limit=K`, read from the file (and compressed) off
+/// the async runtime.
 pub async fn changes(
     State(state): State<AppState>,
     Path(name): Path<String>,
     Query(query): Query<ChangesQuery>,
-) -> Result<Json<ChangeList>, ApiError> {
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
     let vol = state.catalog.get(&name)?.clone();
-    let list = blocking(move || vol.change_list(query.since, query.limit)).await?;
-    Ok(Json(list))
+    let zstd = accepts_zstd(&headers);
+    let body = blocking(move || {
+        let list = vol.change_list(query.since, query.limit)?;
+        Ok::<_, VolumeError>(Body::json(&list, zstd))
+    })
+    .await?;
+    Ok(body.respond("application/json", HeaderMap::new()))
 }
 
 /// `GET /v1/volumes/{name}/events`: server-sent events, `hello` then one `commit` per version

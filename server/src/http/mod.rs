@@ -256,8 +256,7 @@ fn routes(state: &AppState) -> Router<AppState> {
         .route("/v1/volumes/{name}/batch", write(handlers::batch))
         .route("/v1/volumes/{name}/levels/{level}", read(handlers::level))
         .route("/v1/volumes/{name}/changes", read(feed::changes))
-        .route_layer(timeout)
-        .route_layer(compression::layer());
+        .route_layer(timeout);
     // Edits wait for their volume's writer (bounded by the edit queue), and the change feed is
     // meant to stay open: neither gets the timeout.
     let write_routes = Router::new()

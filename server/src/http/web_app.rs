@@ -5,6 +5,8 @@
 //! so they are cacheable forever. Text files go out as zstd to browsers that accept it,
 //! compressed once at first use.
 
+use super::bricks::{accepts, if_none_match};
+use super::cpu::blocking;
 use super::ApiError;
 use axum::extract::Path;
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
@@ -12,7 +14,8 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
 use std::collections::HashMap;
-use std::sync::LazyLock;
+use std::convert::Infallible;
+use std::sync::OnceLock;
 
 mod embedded {
     include!(concat!(env!("OUT_DIR"), "/web_assets.rs"));
@@ -22,6 +25,7 @@ mod embedded {
 /// the default level on the viewer's script.
 const ZSTD_LEVEL: i32 = 19;
 
+#[derive(Debug)]
 struct Asset {
     media: &'static str,
     raw: bytes::Bytes,
@@ -30,7 +34,12 @@ struct Asset {
     etag: HeaderValue,
 }
 
-static ASSETS: LazyLock<HashMap<&'static str, Asset>> = LazyLock::new(|| {
+type Assets = HashMap<&'static str, Asset>;
+
+/// The embedded files, their text ones compressed once, on first use.
+static ASSETS: OnceLock<Assets> = OnceLock::new();
+
+fn compress_all() -> Assets {
     embedded::ASSETS
         .iter()
         .map(|&(path, media, raw)| {
@@ -41,19 +50,27 @@ static ASSETS: LazyLock<HashMap<&'static str, Asset>> = LazyLock::new(|| {
                 .flatten()
                 .filter(|z| z.len() < raw.len())
                 .map(bytes::Bytes::from);
-            let hash = xxhash_rust::xxh3::xxh3_64(raw);
-            let etag = HeaderValue::from_str(&format!("\"{hash:016x}\""))
-                .unwrap_or_else(|_| HeaderValue::from_static("\"0\""));
+            let etag = format!("\"{:016x}\"", xxhash_rust::xxh3::xxh3_64(raw));
             let asset = Asset {
                 media,
                 raw: bytes::Bytes::from_static(raw),
                 zstd,
-                etag,
+                // Quoted hex digits: always a valid header value.
+                etag: HeaderValue::from_str(&etag).unwrap_or(HeaderValue::from_static("\"0\"")),
             };
             (path, asset)
         })
         .collect()
-});
+}
+
+/// The files, compressing them on the blocking pool the first time (level 19 is CPU work the
+/// async runtime must not do).
+async fn assets() -> Result<&'static Assets, ApiError> {
+    match ASSETS.get() {
+        Some(assets) => Ok(assets),
+        None => blocking(|| Ok::<_, Infallible>(ASSETS.get_or_init(compress_all))).await,
+    }
+}
 
 /// The viewer's routes: the page at `/` (and `/index.html`) and its files under `/assets/`.
 pub(super) fn routes<S: Clone + Send + Sync + 'static>() -> Router<S> {
@@ -64,37 +81,34 @@ pub(super) fn routes<S: Clone + Send + Sync + 'static>() -> Router<S> {
 }
 
 async fn page(headers: HeaderMap) -> Result<Response, ApiError> {
-    respond("/index.html", &headers, "no-cache")
+    respond("/index.html", &headers, "no-cache").await
 }
 
 async fn asset(Path(file): Path<String>, headers: HeaderMap) -> Result<Response, ApiError> {
-    respond(
-        &format!("/assets/{file}"),
-        &headers,
-        "public, max-age=31536000, immutable",
-    )
+    let path = format!("/assets/{file}");
+    respond(&path, &headers, "public, max-age=31536000, immutable").await
 }
 
-fn respond(path: &str, headers: &HeaderMap, cache: &'static str) -> Result<Response, ApiError> {
-    let asset = ASSETS
-        .get(path)
-        .ok_or_else(|| ApiError::NotFound(format!("no file {path} in the viewer")))?;
+/// The file at `path`: 304 when `If-None-Match` names it, zstd to clients that take it; a path
+/// the viewer has no file for is answered as any unknown route.
+async fn respond(
+    path: &str,
+    headers: &HeaderMap,
+    cache: &'static str,
+) -> Result<Response, ApiError> {
+    let Some(asset) = assets().await?.get(path) else {
+        return Err(super::handlers::not_found().await);
+    };
     let mut out = HeaderMap::with_capacity(6);
     out.insert(header::ETAG, asset.etag.clone());
     out.insert(header::CACHE_CONTROL, HeaderValue::from_static(cache));
     out.insert(header::VARY, HeaderValue::from_static("Accept-Encoding"));
-    let matches = headers
-        .get_all(header::IF_NONE_MATCH)
-        .iter()
-        .filter_map(|v| v.to_str().ok())
-        .flat_map(|v| v.split(','))
-        .any(|t| t.trim().trim_start_matches("W/").as_bytes() == asset.etag.as_bytes());
-    if matches {
+    if if_none_match(headers, asset.etag.to_str().unwrap_or_default()) {
         return Ok((StatusCode::NOT_MODIFIED, out).into_response());
     }
     out.insert(header::CONTENT_TYPE, HeaderValue::from_static(asset.media));
     let body = match &asset.zstd {
-        Some(z) if super::bricks::accepts(headers, header::ACCEPT_ENCODING, "zstd") => {
+        Some(z) if accepts(headers, header::ACCEPT_ENCODING, "zstd") => {
             out.insert(header::CONTENT_ENCODING, HeaderValue::from_static("zstd"));
             z.clone()
         }
