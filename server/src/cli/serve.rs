@@ -5,7 +5,7 @@ use clap::Args;
 use isovox_server::catalog::Catalog;
 use isovox_server::generate::{build_demo, DEMO_NAME};
 use isovox_server::http::auth::{random_secret, Scope, Tokens};
-use isovox_server::http::{run, shutdown_signal, AppState, ServerConfig};
+use isovox_server::http::{run, run_tls, shutdown_signal, AppState, ServerConfig};
 use isovox_server::store::BuildOptions;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -50,6 +50,10 @@ pub(crate) struct ServeArgs {
     /// The PEM private key of --tls-cert.
     #[arg(long, env = "ISOVOX_TLS_KEY", requires = "tls_cert")]
     pub tls_key: Option<PathBuf>,
+    /// On Ctrl-C or SIGTERM, seconds to let requests in flight finish before closing their
+    /// connections (change feeds end at once).
+    #[arg(long, env = "ISOVOX_SHUTDOWN_GRACE", default_value_t = 10.0)]
+    pub shutdown_grace: f64,
 }
 
 /// The tokens the server accepts: the token file (DATA/tokens by default, created with one
@@ -147,6 +151,8 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
         }
         _ => None,
     };
+    let shutdown_grace = std::time::Duration::try_from_secs_f64(a.shutdown_grace)
+        .map_err(|e| anyhow::anyhow!("--shutdown-grace {}: {e}", a.shutdown_grace))?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -175,13 +181,12 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             edit_queue: a.edit_queue,
             max_edit_voxels: a.max_edit_voxels,
             mesh_dir: Some(a.data.join("meshes")),
+            shutdown_grace,
             ..ServerConfig::default()
         };
         let state = AppState::with_config(catalog, config);
         match tls {
-            Some(tls) => {
-                isovox_server::http::tls::run_tls(listener, tls, state, shutdown_signal()).await
-            }
+            Some(tls) => run_tls(listener, tls, state, shutdown_signal()).await,
             None => run(listener, state, shutdown_signal()).await,
         }
         .context("server failed")
