@@ -17,9 +17,11 @@
 //! - [`http`]: the axum router, thin handlers, errors as responses (`http/error.rs` decides
 //!   every status code).
 //! - [`progress`]: how long jobs report progress.
+//! - [`cancel`]: stopping long CPU work (an edit past its deadline, a client gone, shutdown).
 
 #![warn(missing_docs)]
 
+pub mod cancel;
 pub mod catalog;
 pub mod generate;
 pub mod geometry;

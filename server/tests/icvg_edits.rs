@@ -10,6 +10,7 @@
 
 use isovox_proto::icvg::{EditRequest, Region, Term};
 use isovox_proto::{VolumeLayout, VoxelType};
+use isovox_server::cancel::CancelToken;
 use isovox_server::geometry::Box3;
 use isovox_server::icvg::edit::{apply_edit, Edit, EditKind, EditOutcome};
 use isovox_server::icvg::ops::Outside;
@@ -257,9 +258,9 @@ fn run(
     let vod = Vod2::open(path).unwrap();
     let snap = vod.head();
     let t = snap.layout().voxel_type();
-    let edit = Edit::from_request(req, t, &TermLimits::default(), volumes).unwrap();
+    let mut edit = Edit::from_request(req, t, &TermLimits::default(), volumes).unwrap();
     let mut w = Vod2Writer::open_append(path, Compression::Zstd(5)).unwrap();
-    let outcome = apply_edit(&mut w, &snap, &edit, policy).unwrap();
+    let outcome = apply_edit(&mut w, &snap, &mut edit, policy, &CancelToken::never()).unwrap();
     (edit, outcome)
 }
 

@@ -10,6 +10,7 @@
 
 use isovox_proto::icvg::{EditRequest, Term};
 use isovox_proto::{VolumeLayout, VoxelType};
+use isovox_server::cancel::CancelToken;
 use isovox_server::geometry::Box3;
 use isovox_server::icvg::edit::{apply_edit, Edit};
 use isovox_server::icvg::term::{CompiledTerm, NoVolumes, TermError, TermLimits, VolumeResolver};
@@ -179,7 +180,7 @@ fn an_edit_dilates_a_stored_volume() {
         r#"{"op": "union", "term": {"dilate": {"radius": 2, "arg": {"volume": {"name": "v", "origin": [0, 0, 0]}}}}}"#,
     )
     .unwrap();
-    let edit = Edit::from_request(
+    let mut edit = Edit::from_request(
         &request,
         VoxelType::U8,
         &TermLimits::default(),
@@ -187,7 +188,15 @@ fn an_edit_dilates_a_stored_volume() {
     )
     .unwrap();
     let mut writer = Vod2Writer::open_append(&path, Compression::default()).unwrap();
-    apply_edit(&mut writer, &snap, &edit, CheckpointPolicy::default()).unwrap();
+    let never = CancelToken::never();
+    apply_edit(
+        &mut writer,
+        &snap,
+        &mut edit,
+        CheckpointPolicy::default(),
+        &never,
+    )
+    .unwrap();
     let after = Vod2::open(&path).unwrap().head();
     let at = |x: i64, y: i64, z: i64| -> u8 {
         if x < 0

@@ -12,6 +12,7 @@
 use isovox_proto::icvg::{EditRequest, Term};
 use isovox_proto::vod2::NodeEntry;
 use isovox_proto::{VolumeLayout, VoxelType};
+use isovox_server::cancel::CancelToken;
 use isovox_server::generate::WorldSource;
 use isovox_server::icvg::edit::Edit;
 use isovox_server::icvg::term::{NoVolumes, TermLimits};
@@ -22,6 +23,10 @@ use std::path::Path;
 
 mod common;
 use common::XorShift;
+
+fn never() -> CancelToken {
+    CancelToken::never()
+}
 
 fn world(path: &Path) -> VolumeLayout {
     let layout = VolumeLayout::new([96, 64, 80], 16, VoxelType::U8).unwrap();
@@ -114,9 +119,11 @@ fn advanced_heads_equal_freshly_opened_ones_through_checkpoints() {
     assert!(vol.head().find_by_hash(0).unwrap().is_none());
     for _ in 0..24 {
         let req = random_edit(&mut rng);
-        let edit =
+        let mut edit =
             Edit::from_request(&req, VoxelType::U8, &TermLimits::default(), &NoVolumes).unwrap();
-        let answer = vol.apply(&mut slot, &edit, None, policy).unwrap();
+        let answer = vol
+            .apply(&mut slot, &mut edit, None, policy, &never())
+            .unwrap();
         assert_eq!(answer.previous + 1, answer.version);
         let live = vol.head();
         assert_eq!(live.version, answer.version);
@@ -227,18 +234,20 @@ fn if_match_refuses_a_moved_head_and_changes_nothing() {
     let a = vol
         .apply(
             &mut slot,
-            &edit(&mut rng),
+            &mut edit(&mut rng),
             Some(v1),
             CheckpointPolicy::default(),
+            &never(),
         )
         .unwrap();
     assert_eq!(a.version, v1 + 1);
     let len = std::fs::metadata(&path).unwrap().len();
     let refused = vol.apply(
         &mut slot,
-        &edit(&mut rng),
+        &mut edit(&mut rng),
         Some(v1),
         CheckpointPolicy::default(),
+        &never(),
     );
     match refused {
         Err(isovox_server::volume::VolumeError::Conflict { expected, current }) => {
@@ -259,15 +268,21 @@ fn compaction_keeps_the_head_and_its_number_and_edits_continue() {
     let mut slot = WriterSlot::default();
     let mut rng = XorShift(99);
     for _ in 0..10 {
-        let edit = Edit::from_request(
+        let mut edit = Edit::from_request(
             &random_edit(&mut rng),
             VoxelType::U8,
             &TermLimits::default(),
             &NoVolumes,
         )
         .unwrap();
-        vol.apply(&mut slot, &edit, None, CheckpointPolicy::default())
-            .unwrap();
+        vol.apply(
+            &mut slot,
+            &mut edit,
+            None,
+            CheckpointPolicy::default(),
+            &never(),
+        )
+        .unwrap();
     }
     let before = vol.head();
     let expected = contents(&before);
@@ -290,7 +305,7 @@ fn compaction_keeps_the_head_and_its_number_and_edits_continue() {
     assert_eq!(contents(&reopened.head()), expected);
     assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
     // Edits continue from the same number.
-    let edit = Edit::from_request(
+    let mut edit = Edit::from_request(
         &random_edit(&mut rng),
         VoxelType::U8,
         &TermLimits::default(),
@@ -298,7 +313,13 @@ fn compaction_keeps_the_head_and_its_number_and_edits_continue() {
     )
     .unwrap();
     let a = vol
-        .apply(&mut slot, &edit, None, CheckpointPolicy::default())
+        .apply(
+            &mut slot,
+            &mut edit,
+            None,
+            CheckpointPolicy::default(),
+            &never(),
+        )
         .unwrap();
     assert_eq!(a.version, before.version + 1);
     assert_eq!(

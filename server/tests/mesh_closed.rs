@@ -6,6 +6,7 @@
 
 use isovox_proto::icvg::{EditRequest, Term};
 use isovox_proto::{VolumeLayout, VoxelType};
+use isovox_server::cancel::CancelToken;
 use isovox_server::icvg::edit::{apply_edit, Edit};
 use isovox_server::icvg::term::{NoVolumes, TermLimits};
 use isovox_server::mesh::level::{enclosed_volume, level_tiles, mesh_tiles, open_edges, weld};
@@ -43,9 +44,17 @@ fn volume_with(
             k: None,
             region: None,
         };
-        let edit = Edit::from_request(&req, t, &TermLimits::default(), &NoVolumes).unwrap();
+        let mut edit = Edit::from_request(&req, t, &TermLimits::default(), &NoVolumes).unwrap();
         let mut w = Vod2Writer::open_append(&path, Compression::Zstd(3)).unwrap();
-        apply_edit(&mut w, &vod.head(), &edit, CheckpointPolicy::default()).unwrap();
+        let never = CancelToken::never();
+        apply_edit(
+            &mut w,
+            &vod.head(),
+            &mut edit,
+            CheckpointPolicy::default(),
+            &never,
+        )
+        .unwrap();
     }
     let vod = Vod2::open(&path).unwrap();
     (dir, vod)

@@ -41,9 +41,14 @@ pub(crate) struct ServeArgs {
     /// Edits waiting for one volume's writer; beyond it 503.
     #[arg(long, env = "ISOVOX_EDIT_QUEUE", default_value_t = 64)]
     pub edit_queue: usize,
-    /// Level-0 voxels one edit may evaluate; beyond it 422.
+    /// Voxels one edit may evaluate (its bricks, and what mesh leaves and dilate/erode sample);
+    /// beyond it 422.
     #[arg(long, env = "ISOVOX_MAX_EDIT_VOXELS", default_value_t = 1 << 28)]
     pub max_edit_voxels: u64,
+    /// Seconds that compiling an edit, and then evaluating it, may each take; past it the edit
+    /// is stopped (nothing committed, the volume's writer freed) and answered with 422.
+    #[arg(long, env = "ISOVOX_EDIT_TIMEOUT", default_value_t = 30.0)]
+    pub edit_timeout: f64,
     /// Serve HTTPS (HTTP/2 and HTTP/1.1) with this PEM certificate chain; needs --tls-key.
     #[arg(long, env = "ISOVOX_TLS_CERT", requires = "tls_key")]
     pub tls_cert: Option<PathBuf>,
@@ -153,11 +158,20 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
     };
     let shutdown_grace = std::time::Duration::try_from_secs_f64(a.shutdown_grace)
         .map_err(|e| anyhow::anyhow!("--shutdown-grace {}: {e}", a.shutdown_grace))?;
+    let edit_timeout = std::time::Duration::try_from_secs_f64(a.edit_timeout)
+        .ok()
+        .filter(|t| !t.is_zero())
+        .ok_or_else(|| {
+            anyhow::anyhow!(
+                "--edit-timeout {}: a positive number of seconds expected",
+                a.edit_timeout
+            )
+        })?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
         .context("cannot start the async runtime")?;
-    runtime.block_on(async {
+    let served = runtime.block_on(async {
         let listener = tokio::net::TcpListener::bind(a.addr)
             .await
             .with_context(|| format!("cannot listen on {}", a.addr))?;
@@ -180,6 +194,7 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             edit_rate: a.edit_rate,
             edit_queue: a.edit_queue,
             max_edit_voxels: a.max_edit_voxels,
+            edit_timeout,
             mesh_dir: Some(a.data.join("meshes")),
             shutdown_grace,
             ..ServerConfig::default()
@@ -190,5 +205,9 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             None => run(listener, state, shutdown_signal()).await,
         }
         .context("server failed")
-    })
+    });
+    // The listener loop has ended and closed every connection, which stopped their edits; work
+    // still on the blocking pool gets a few seconds to notice, never an unbounded wait.
+    runtime.shutdown_timeout(std::time::Duration::from_secs(5));
+    served
 }

@@ -5,6 +5,7 @@ use super::cpu::blocking;
 use super::extract::Path;
 use super::request_body::{is_json, read_limited};
 use super::{ApiError, AppState};
+use crate::cancel::CancelToken;
 use crate::store::CheckpointPolicy;
 use axum::body::Body;
 use axum::extract::State;
@@ -18,7 +19,9 @@ const MAX_EDIT_BODY: usize = 1 << 20;
 
 /// Checks the token before anything is read, compiles the edit off the async runtime, waits
 /// for the volume's writer (bounded queue), applies and commits, and answers with the new
-/// version.
+/// version. Compiling and evaluating each get the server's edit timeout (waiting for the writer
+/// does not count); the work stops as soon as this request's future is dropped (the client
+/// left, or a shutdown closed the connection), and nothing is committed then.
 pub async fn edit(
     // First: without a token, nothing else is read.
     WriteToken(token): WriteToken,
@@ -31,13 +34,18 @@ pub async fn edit(
     let request = edit_request(&headers, body).await?;
     let if_match = if_match(&headers)?;
     state.edit_rate.take(&token.name)?;
+    let cancel = CancelToken::with_timeout(state.config.edit_timeout);
+    let _stop_when_dropped = cancel.cancel_on_drop();
     let (limits, volumes, preparing) = (state.edit_limits(), state.resolver(), vol.clone());
-    let edit =
-        blocking(move || preparing.prepare_edit(&request, &limits, &volumes, if_match)).await?;
+    let compiling = cancel.clone();
+    let mut edit =
+        blocking(move || preparing.prepare_edit(&request, &limits, &volumes, if_match, &compiling))
+            .await?;
     let mut writer = vol.wait_for_writer(state.config.edit_queue).await?;
-    let applying = vol.clone();
+    let (applying, evaluating) = (vol.clone(), cancel.restarted());
+    let policy = CheckpointPolicy::default();
     let response =
-        blocking(move || applying.apply(&mut writer, &edit, if_match, CheckpointPolicy::default()))
+        blocking(move || applying.apply(&mut writer, &mut edit, if_match, policy, &evaluating))
             .await?;
     tracing::info!(
         volume = %name,

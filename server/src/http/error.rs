@@ -6,6 +6,7 @@
 //! Damage (a corrupt record), a failing system and bugs are a 500 with a generic body; the
 //! cause goes to the log.
 
+use crate::cancel::Stopped;
 use crate::icvg::term::TermError;
 use crate::store::{error_chain, StoreError};
 use crate::volume::VolumeError;
@@ -86,6 +87,10 @@ impl From<VolumeError> for ApiError {
             },
             VolumeError::Compacted { .. } => ApiError::Gone(detail),
             VolumeError::WriterBusy => ApiError::Overloaded(1),
+            // Too costly for this server: like an edit over the voxel budget.
+            VolumeError::Stopped(Stopped::TimedOut(_)) => ApiError::Unprocessable(detail),
+            // The server is shutting down (a client that left hears nothing).
+            VolumeError::Stopped(Stopped::Cancelled) => ApiError::Overloaded(1),
             VolumeError::Store(e) => e.into(),
         }
     }
@@ -93,7 +98,7 @@ impl From<VolumeError> for ApiError {
 
 impl From<TermError> for ApiError {
     fn from(e: TermError) -> Self {
-        VolumeError::InvalidEdit(e).into()
+        VolumeError::from(e).into()
     }
 }
 

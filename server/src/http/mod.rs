@@ -82,8 +82,12 @@ pub struct ServerConfig {
     pub edit_rate: f64,
     /// Edits waiting for one volume's writer; beyond it 503.
     pub edit_queue: usize,
-    /// Level-0 voxels one edit may evaluate; beyond it 422.
+    /// Voxels one edit may evaluate (its bricks, and what its term samples besides: mesh
+    /// leaves, morphology arguments); beyond it 422.
     pub max_edit_voxels: u64,
+    /// How long compiling an edit, and then evaluating it, may each take; past it the edit is
+    /// stopped, nothing is committed, and the answer is 422.
+    pub edit_timeout: Duration,
     /// Limits on edit terms (depth, nodes, extent).
     pub term_limits: crate::icvg::term::TermLimits,
     /// Where uploaded meshes are kept (`POST /v1/meshes`); none: uploads are refused.
@@ -104,6 +108,7 @@ impl Default for ServerConfig {
             edit_rate: 50.0,
             edit_queue: 64,
             max_edit_voxels: 1 << 28,
+            edit_timeout: Duration::from_secs(30),
             term_limits: crate::icvg::term::TermLimits::default(),
             mesh_dir: None,
             shutdown_grace: Duration::from_secs(10),

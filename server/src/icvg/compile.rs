@@ -2,17 +2,19 @@
 //! its own arguments and the size limit) and the tree walk (depth and node limits, B-boxes of
 //! operators).
 
+use super::morph;
 use super::ops::{check_s_l, BinaryOp, UnaryOp};
 use super::primitives::{
     Capsule, Cone, Cuboid, Cylinder, Ellipsoid, Primitive, Prism, Pyramid, Torus,
 };
-use super::term::{CompiledTerm, Node, TermError, TermLimits, VolumeResolver};
+use super::term::{CompiledTerm, Node, Scope, TermError, TermLimits, VolumeResolver};
 use crate::geometry::Box3;
 use isovox_proto::icvg::{Region, Term};
 use isovox_proto::VoxelType;
 
 impl CompiledTerm {
-    /// Validates and compiles a term for voxels of type `t`.
+    /// Validates and compiles a term for voxels of type `t`, to be evaluated anywhere (mesh
+    /// leaves are voxelized over their whole placed extent).
     ///
     /// # Errors
     /// A radius or size out of range, an extension over the limit, a tree too deep or too
@@ -23,26 +25,69 @@ impl CompiledTerm {
         limits: &TermLimits,
         volumes: &dyn VolumeResolver,
     ) -> Result<CompiledTerm, TermError> {
-        Compiler {
+        Ok(CompiledTerm::compile_in(term, t, limits, volumes, &Scope::default())?.0)
+    }
+
+    /// Validates and compiles a term to be evaluated within `scope.within`, with what it
+    /// samples besides its own evaluation (mesh leaves voxelized, morphology inputs) counted
+    /// against `scope.max_voxels`. Returns the term and that count.
+    ///
+    /// # Errors
+    /// As [`CompiledTerm::compile`]; [`TermError::OverBudget`] past `scope.max_voxels`;
+    /// [`TermError::Stopped`] when `scope.cancel` stops a mesh leaf's voxelization.
+    pub fn compile_in(
+        term: &Term,
+        t: VoxelType,
+        limits: &TermLimits,
+        volumes: &dyn VolumeResolver,
+        scope: &Scope,
+    ) -> Result<(CompiledTerm, u64), TermError> {
+        let mut compiler = Compiler {
             t,
             limits,
             volumes,
+            scope,
             nodes: 0,
-        }
-        .node(term, 0)
+            sampled: 0,
+        };
+        let compiled = compiler.node(term, 0, scope.within)?;
+        Ok((compiled, compiler.sampled))
     }
 }
 
-/// The tree walk: counts nodes and depth against the limits.
+/// The tree walk: counts nodes and depth against the limits, and the voxels sampled against
+/// the scope's budget.
 struct Compiler<'a> {
     t: VoxelType,
     limits: &'a TermLimits,
     volumes: &'a dyn VolumeResolver,
+    scope: &'a Scope,
     nodes: usize,
+    sampled: u64,
 }
 
 impl Compiler<'_> {
-    fn node(&mut self, term: &Term, depth: usize) -> Result<CompiledTerm, TermError> {
+    /// Counts `voxels` sampled by `what` against the budget, before they are sampled.
+    fn spend(&mut self, what: impl FnOnce() -> String, voxels: u128) -> Result<(), TermError> {
+        let voxels = u64::try_from(voxels).unwrap_or(u64::MAX);
+        self.sampled = self.sampled.saturating_add(voxels);
+        match self.scope.max_voxels {
+            Some(limit) if self.sampled > limit => Err(TermError::OverBudget {
+                what: what(),
+                voxels: self.sampled,
+                limit,
+            }),
+            _ => Ok(()),
+        }
+    }
+
+    /// Compiles `term`, to be evaluated within `within` (anywhere when `None`).
+    fn node(
+        &mut self,
+        term: &Term,
+        depth: usize,
+        within: Option<Box3>,
+    ) -> Result<CompiledTerm, TermError> {
         self.nodes += 1;
         if depth > self.limits.max_depth {
             return Err(TermError::TooDeep(self.limits.max_depth));
@@ -88,37 +133,49 @@ impl Compiler<'_> {
                 hash,
                 offset,
                 scale,
-            } => Ok(self.leaf(mesh(hash, *offset, *scale, t, limits, self.volumes)?)),
-            Term::Union(a, b) => self.binary(BinaryOp::Union, a, b, depth),
-            Term::Intersection(a, b) => self.binary(BinaryOp::Intersection, a, b, depth),
-            Term::Trim(a, b) => self.binary(BinaryOp::Trim, a, b, depth),
-            Term::Cap(a, b) => self.binary(BinaryOp::Cap, a, b, depth),
-            Term::Difference(a, b) => self.binary(BinaryOp::Difference, a, b, depth),
-            Term::DifferenceA(a, b) => self.binary(BinaryOp::DifferenceA, a, b, depth),
-            Term::DifferenceB(a, b) => self.binary(BinaryOp::DifferenceB, a, b, depth),
-            Term::Add(a, b) => self.binary(BinaryOp::Add, a, b, depth),
-            Term::Modulate(a, b) => self.binary(BinaryOp::Modulate, a, b, depth),
-            Term::Product(a, b) => self.binary(BinaryOp::Product, a, b, depth),
-            Term::DivideA(a, b) => self.binary(BinaryOp::DivideA, a, b, depth),
+            } => {
+                let node = self.mesh(hash, *offset, *scale, within)?;
+                Ok(self.leaf(node))
+            }
+            Term::Union(a, b) => self.binary(BinaryOp::Union, a, b, depth, within),
+            Term::Intersection(a, b) => self.binary(BinaryOp::Intersection, a, b, depth, within),
+            Term::Trim(a, b) => self.binary(BinaryOp::Trim, a, b, depth, within),
+            Term::Cap(a, b) => self.binary(BinaryOp::Cap, a, b, depth, within),
+            Term::Difference(a, b) => self.binary(BinaryOp::Difference, a, b, depth, within),
+            Term::DifferenceA(a, b) => self.binary(BinaryOp::DifferenceA, a, b, depth, within),
+            Term::DifferenceB(a, b) => self.binary(BinaryOp::DifferenceB, a, b, depth, within),
+            Term::Add(a, b) => self.binary(BinaryOp::Add, a, b, depth, within),
+            Term::Modulate(a, b) => self.binary(BinaryOp::Modulate, a, b, depth, within),
+            Term::Product(a, b) => self.binary(BinaryOp::Product, a, b, depth, within),
+            Term::DivideA(a, b) => self.binary(BinaryOp::DivideA, a, b, depth, within),
             Term::Divide { s_l, args } => {
                 check_s_l(*s_l).map_err(TermError::Invalid)?;
-                self.binary(BinaryOp::Divide(*s_l), &args.0, &args.1, depth)
+                self.binary(BinaryOp::Divide(*s_l), &args.0, &args.1, depth, within)
             }
             Term::Inverse(a) | Term::Complement(a) => {
-                let a = self.node(a, depth + 1)?;
+                let a = self.node(a, depth + 1, within)?;
                 Ok(self.with_bbox(Node::Unary(UnaryOp::Inverse, Box::new(a)), None))
             }
             Term::Dilate { radius, arg } | Term::Erode { radius, arg } => {
                 let dilate = matches!(term, Term::Dilate { .. });
                 positive("morphology radius", *radius)?;
-                within(limits, "morphology box", 2 * *radius as u64 + 1)?;
-                let a = self.node(arg, depth + 1)?;
-                // Dilation reaches `radius` beyond its argument; erosion stays inside it (the
-                // minimum over a box that leaves the argument's B-box includes an L).
+                within_limit(limits, "morphology box", 2 * *radius as u64 + 1)?;
+                let r = *radius as i64;
+                let a = self.node(arg, depth + 1, within.map(|w| w.grow(r)))?;
+                // Dilation reaches `radius` beyond its argument; erosion stays `radius` inside
+                // it (the minimum over a window that leaves the argument's B-box includes an L).
                 let bbox = match (dilate, a.bbox) {
-                    (true, Some(b)) => Some(b.grow(*radius as i64)),
-                    (_, b) => b,
+                    (true, Some(b)) => Some(b.grow(r)),
+                    (false, Some(b)) => Some(morph::eroded_bbox(b, *radius)),
+                    (_, None) => None,
                 };
+                // Filtering reads the argument over the evaluated box grown by the radius.
+                if let Some(w) = within {
+                    if let Some((_, input)) = morph::boxes(&w, bbox, a.bbox, *radius, dilate) {
+                        let name = if dilate { "dilate" } else { "erode" };
+                        self.spend(|| format!("{name} of radius {radius}"), input.voxels())?;
+                    }
+                }
                 let node = Node::Morph {
                     dilate,
                     radius: *radius,
@@ -128,7 +185,7 @@ impl Compiler<'_> {
             }
             Term::AddScalar { k, arg } => {
                 check_k(*k, t)?;
-                let a = self.node(arg, depth + 1)?;
+                let a = self.node(arg, depth + 1, within)?;
                 let bbox = if *k > 0 { None } else { a.bbox };
                 Ok(self.with_bbox(Node::Unary(UnaryOp::AddScalar(*k), Box::new(a)), bbox))
             }
@@ -141,8 +198,10 @@ impl Compiler<'_> {
         a: &Term,
         b: &Term,
         depth: usize,
+        within: Option<Box3>,
     ) -> Result<CompiledTerm, TermError> {
-        let (a, b) = (self.node(a, depth + 1)?, self.node(b, depth + 1)?);
+        let a = self.node(a, depth + 1, within)?;
+        let b = self.node(b, depth + 1, within)?;
         let bbox = binary_bbox(op, a.bbox, b.bbox);
         Ok(self.with_bbox(Node::Binary(op, Box::new(a), Box::new(b)), bbox))
     }
@@ -161,6 +220,78 @@ impl Compiler<'_> {
         self.with_bbox(node, bbox)
     }
 
+    /// An uploaded mesh placed at `offset` and `scale` (model point `p` lands on voxel
+    /// coordinate `p * scale + offset`), voxelized once into a grid of densities over its placed
+    /// bounds within `within`: the term is never evaluated elsewhere, so however far the model
+    /// reaches, the grid is no larger than the evaluated box.
+    fn mesh(
+        &mut self,
+        hash: &str,
+        offset: [f64; 3],
+        scale: f64,
+        within: Option<Box3>,
+    ) -> Result<Node, TermError> {
+        let h = (hash.len() == 16)
+            .then(|| u64::from_str_radix(hash, 16).ok())
+            .flatten()
+            .ok_or_else(|| {
+                TermError::Invalid(format!("mesh hash {hash:?}: 16 hex digits expected"))
+            })?;
+        if !(scale.is_finite() && scale > 0.0) || offset.iter().any(|o| !o.is_finite()) {
+            return Err(TermError::Invalid(format!(
+                "mesh {hash}: scale must be positive and finite, offset finite"
+            )));
+        }
+        let mesh = self.volumes.mesh(h)?;
+        let (lo, hi) = mesh
+            .bounds()
+            .ok_or_else(|| TermError::Mesh(format!("mesh {hash} has no triangles")))?;
+        let place =
+            |p: [f32; 3]| -> [f64; 3] { std::array::from_fn(|a| p[a] as f64 * scale + offset[a]) };
+        let (a, b) = (place(lo), place(hi));
+        // NaN and infinity fail the comparison too.
+        if let Some(c) = a.iter().chain(&b).find(|c| !(c.abs() <= MAX_PLACED)) {
+            return Err(TermError::Mesh(format!(
+                "mesh {hash} placed with scale {scale} and offset {offset:?} reaches the coordinate {c:e}; a placed mesh must lie within +-2^40 voxels ({MAX_PLACED:e})"
+            )));
+        }
+        let whole = Box3::new(
+            a.map(|c| c.floor() as i64 - 1),
+            b.map(|c| c.ceil() as i64 + 1),
+        );
+        let frame = match within {
+            Some(w) => whole.intersect(&w),
+            None => {
+                for axis in 0..3 {
+                    within_limit(
+                        self.limits,
+                        "mesh",
+                        (whole.max[axis] - whole.min[axis]) as u64,
+                    )?;
+                }
+                whole
+            }
+        };
+        if frame.is_empty() {
+            return Ok(Node::Grid {
+                frame,
+                values: Vec::new(),
+            });
+        }
+        self.spend(|| format!("mesh {hash} at scale {scale}"), frame.voxels())?;
+        let dims = [0, 1, 2].map(|i| (frame.max[i] - frame.min[i]) as usize);
+        let values = crate::voxelize::density_box(
+            &mesh,
+            frame.min,
+            dims,
+            2,
+            self.t,
+            place,
+            &self.scope.cancel,
+        )?;
+        Ok(Node::Grid { frame, values })
+    }
+
     fn with_bbox(&self, node: Node, bbox: Option<Box3>) -> CompiledTerm {
         CompiledTerm {
             node,
@@ -170,6 +301,11 @@ impl Compiler<'_> {
     }
 }
 
+/// How far from the origin a placed mesh may reach, in voxels: the voxelizer's fixed-point
+/// coordinates (16 fractional bits, times 2 for supersampling, relative to a grid that may
+/// itself start this far out) then stay well inside i64, differences included.
+const MAX_PLACED: f64 = (1u64 << 40) as f64;
+
 fn positive(what: &str, v: u32) -> Result<(), TermError> {
     if v == 0 {
         return Err(TermError::Invalid(format!("{what} must be at least 1")));
@@ -178,7 +314,7 @@ fn positive(what: &str, v: u32) -> Result<(), TermError> {
 }
 
 /// Checks a primitive's extension against [`TermLimits::max_extent`].
-fn within(limits: &TermLimits, what: &str, extent: u64) -> Result<(), TermError> {
+fn within_limit(limits: &TermLimits, what: &str, extent: u64) -> Result<(), TermError> {
     if extent > limits.max_extent as u64 {
         return Err(TermError::TooWide {
             what: what.to_string(),
@@ -206,7 +342,7 @@ fn cuboid(origin: [i64; 3], size: [u32; 3], limits: &TermLimits) -> Result<Cuboi
             "cuboid size {size:?}: every side must be greater than 2"
         )));
     }
-    within(limits, "cuboid", *size.iter().max().unwrap_or(&0) as u64)?;
+    within_limit(limits, "cuboid", *size.iter().max().unwrap_or(&0) as u64)?;
     Ok(Cuboid { origin, size })
 }
 
@@ -218,7 +354,7 @@ fn ellipsoid(
     for r in radii {
         positive("ellipsoid radius", r)?;
     }
-    within(
+    within_limit(
         limits,
         "ellipsoid",
         2 * *radii.iter().max().unwrap_or(&0) as u64 + 1,
@@ -236,7 +372,7 @@ fn axial(name: &str, radii: [u32; 2], height: u32, limits: &TermLimits) -> Resul
             "{name} height must be at least 3, got {height}"
         )));
     }
-    within(
+    within_limit(
         limits,
         name,
         (2 * *radii.iter().max().unwrap_or(&0) as u64 + 1).max(height as u64),
@@ -278,7 +414,7 @@ fn torus(
     limits: &TermLimits,
 ) -> Result<Torus, TermError> {
     positive("torus minor radius", minor)?;
-    within(limits, "torus", 2 * (major as u64 + minor as u64) + 1)?;
+    within_limit(limits, "torus", 2 * (major as u64 + minor as u64) + 1)?;
     Ok(Torus {
         center,
         major,
@@ -293,7 +429,7 @@ fn capsule(
     limits: &TermLimits,
 ) -> Result<Capsule, TermError> {
     positive("capsule radius", radius)?;
-    within(limits, "capsule", length as u64 + 2 * radius as u64 + 1)?;
+    within_limit(limits, "capsule", length as u64 + 2 * radius as u64 + 1)?;
     Ok(Capsule {
         center,
         radius,
@@ -308,7 +444,7 @@ fn slanted(name: &str, size: [u32; 3], limits: &TermLimits) -> Result<(), TermEr
             "{name} size {size:?}: every side must be at least 4"
         )));
     }
-    within(limits, name, *size.iter().max().unwrap_or(&0) as u64)
+    within_limit(limits, name, *size.iter().max().unwrap_or(&0) as u64)
 }
 
 fn prism(
@@ -364,42 +500,6 @@ fn volume(
         shift,
         source,
     })
-}
-
-/// An uploaded mesh, voxelized once into a grid of densities over its placed bounds.
-fn mesh(
-    hash: &str,
-    offset: [f64; 3],
-    scale: f64,
-    t: VoxelType,
-    limits: &TermLimits,
-    volumes: &dyn VolumeResolver,
-) -> Result<Node, TermError> {
-    let h = (hash.len() == 16)
-        .then(|| u64::from_str_radix(hash, 16).ok())
-        .flatten()
-        .ok_or_else(|| TermError::Invalid(format!("mesh hash {hash:?}: 16 hex digits expected")))?;
-    if !(scale.is_finite() && scale > 0.0) || offset.iter().any(|o| !o.is_finite()) {
-        return Err(TermError::Invalid(format!(
-            "mesh {hash}: scale must be positive and finite, offset finite"
-        )));
-    }
-    let mesh = volumes.mesh(h)?;
-    let (lo, hi) = mesh
-        .bounds()
-        .ok_or_else(|| TermError::Mesh(format!("mesh {hash} has no triangles")))?;
-    let place =
-        |p: [f32; 3]| -> [f64; 3] { std::array::from_fn(|a| p[a] as f64 * scale + offset[a]) };
-    let (a, b) = (place(lo), place(hi));
-    let min = a.map(|c| c.floor() as i64 - 1);
-    let max = b.map(|c| c.ceil() as i64 + 1);
-    for axis in 0..3 {
-        within(limits, "mesh", (max[axis] - min[axis]).max(0) as u64)?;
-    }
-    let frame = Box3::new(min, max);
-    let dims = [0, 1, 2].map(|i| (max[i] - min[i]) as usize);
-    let values = crate::voxelize::density_box(&mesh, min, dims, 2, t, place);
-    Ok(Node::Grid { frame, values })
 }
 
 /// The B-box of a binary node from its children's (`docs/icvg.md`): union-like operators

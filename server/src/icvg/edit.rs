@@ -7,14 +7,22 @@
 //! constant without touching a voxel; for unary operators the bricks of the region. Bricks are
 //! evaluated in parallel (rayon), deduplicated, and the coarser levels recomputed only above the
 //! bricks that changed, so the cost is proportional to the change, not to the volume.
+//!
+//! Cost: what an edit evaluates is known before it starts ([`Edit::evaluated_voxels`]: its
+//! bricks, plus what its term samples besides, counted when it is compiled: mesh leaves
+//! voxelized within the edit's box, morphology arguments over their grown boxes), so a server
+//! refuses what is over its budget. A [`CancelToken`] is checked between bricks and inside
+//! every long loop below them, so an edit past its deadline, or whose client left, stops
+//! without committing anything.
 
 use super::compile::check_k;
 use super::ops::{BinaryOp, Outside, UnaryOp};
-use super::term::{CompiledTerm, TermError, TermLimits, VolumeResolver};
+use super::term::{CompiledTerm, EvalError, Scope, TermError, TermLimits, VolumeResolver};
+use crate::cancel::CancelToken;
 use crate::geometry::Box3;
 use crate::store::transaction::{ChangedKeys, CheckpointPolicy, Transaction};
 use crate::store::writer::Vod2Writer;
-use crate::store::{BrickVoxels, Snapshot, StoreError};
+use crate::store::{BrickVoxels, Snapshot};
 use isovox_proto::icvg::EditRequest;
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use rayon::prelude::*;
@@ -37,6 +45,9 @@ pub struct Edit {
     pub kind: EditKind,
     /// Where the edit applies (level-0 voxels, max exclusive); the whole volume when `None`.
     pub region: Option<Box3>,
+    /// Voxels its term samples besides its evaluation brick by brick (mesh leaves voxelized,
+    /// morphology arguments), counted when it was compiled.
+    pub sampled: u64,
 }
 
 /// What an edit changed.
@@ -62,7 +73,9 @@ fn micros<S: serde::Serializer>(d: &Duration, s: S) -> Result<S::Ok, S::Error> {
 }
 
 impl Edit {
-    /// Builds an edit from its JSON request.
+    /// Builds an edit from its JSON request, its term compiled to be evaluated anywhere (mesh
+    /// leaves voxelized over their whole placed extent): for terms tried on no particular
+    /// volume. [`Edit::for_volume`] is what servers and the command line use.
     ///
     /// # Errors
     /// An unknown operator, a missing or superfluous term, a bad `s_l` or `k`, an empty
@@ -72,6 +85,40 @@ impl Edit {
         t: VoxelType,
         limits: &TermLimits,
         volumes: &dyn VolumeResolver,
+    ) -> Result<Edit, TermError> {
+        Edit::build(req, t, limits, volumes, |_| Scope::default())
+    }
+
+    /// Builds an edit of a volume of `layout` from its JSON request: its term is compiled to be
+    /// evaluated only within the edit's target (the volume, or its region within it), with
+    /// what it samples besides counted against `max_voxels`, and `cancel` checked while mesh
+    /// leaves are voxelized.
+    ///
+    /// # Errors
+    /// As [`Edit::from_request`]; [`TermError::OverBudget`] past `max_voxels`;
+    /// [`TermError::Stopped`] when `cancel` stops the compilation.
+    pub fn for_volume(
+        req: &EditRequest,
+        layout: &VolumeLayout,
+        limits: &TermLimits,
+        volumes: &dyn VolumeResolver,
+        max_voxels: Option<u64>,
+        cancel: &CancelToken,
+    ) -> Result<Edit, TermError> {
+        let volume = Box3::of_volume(layout);
+        Edit::build(req, layout.voxel_type(), limits, volumes, |region| Scope {
+            within: Some(region.map_or(volume, |r| r.intersect(&volume))),
+            max_voxels,
+            cancel: cancel.clone(),
+        })
+    }
+
+    fn build(
+        req: &EditRequest,
+        t: VoxelType,
+        limits: &TermLimits,
+        volumes: &dyn VolumeResolver,
+        scope: impl FnOnce(Option<Box3>) -> Scope,
     ) -> Result<Edit, TermError> {
         let region = match req.region {
             Some(r) => {
@@ -110,10 +157,20 @@ impl Edit {
                     .term
                     .as_ref()
                     .ok_or_else(|| TermError::Invalid(format!("{name} needs a \"term\"")))?;
-                EditKind::Binary(op, CompiledTerm::compile(term, t, limits, volumes)?)
+                let (term, sampled) =
+                    CompiledTerm::compile_in(term, t, limits, volumes, &scope(region))?;
+                return Ok(Edit {
+                    kind: EditKind::Binary(op, term),
+                    region,
+                    sampled,
+                });
             }
         };
-        Ok(Edit { kind, region })
+        Ok(Edit {
+            kind,
+            region,
+            sampled: 0,
+        })
     }
 }
 
@@ -137,10 +194,12 @@ impl Edit {
         }
     }
 
-    /// How many level-0 voxels applying the edit evaluates (whole bricks): what an edit costs,
-    /// for limits.
+    /// How many voxels applying the edit evaluates: the level-0 voxels of the bricks it
+    /// visits, plus what its term samples besides (mesh leaves, morphology arguments): what an
+    /// edit costs, for limits.
     pub fn evaluated_voxels(&self, layout: &VolumeLayout) -> u64 {
-        bricks_meeting_count(layout, &self.reach(layout)) * (layout.brick() as u64).pow(3)
+        (bricks_meeting_count(layout, &self.reach(layout)) * (layout.brick() as u64).pow(3))
+            .saturating_add(self.sampled)
     }
 }
 
@@ -204,7 +263,7 @@ fn edit_brick(
     snap: &Snapshot,
     target: &Box3,
     key: BrickKey,
-) -> Result<Option<BrickVoxels>, StoreError> {
+) -> Result<Option<BrickVoxels>, EvalError> {
     let layout = snap.layout();
     let t = layout.voxel_type();
     let whole = Box3::of_brick(layout, key);
@@ -263,23 +322,37 @@ fn edit_brick(
 }
 
 /// Applies `edit` to the version `snap` of the file `writer` appends to, and commits the result
-/// as the next version. `snap` must be the writer's head.
+/// as the next version. `snap` must be the writer's head. Morphology in the term is filtered
+/// once over the edit's reach first (the term keeps those values). `cancel` is checked until
+/// the commit starts; a stopped edit commits nothing.
 ///
 /// # Errors
-/// Reading a brick fails, or writing the commit fails (the head is then unchanged).
+/// Reading a brick fails, `cancel` stops the evaluation, or writing the commit fails (the head
+/// is then unchanged).
 pub fn apply_edit(
     writer: &mut Vod2Writer,
     snap: &Snapshot,
-    edit: &Edit,
+    edit: &mut Edit,
     policy: CheckpointPolicy,
-) -> Result<EditOutcome, StoreError> {
+    cancel: &CancelToken,
+) -> Result<EditOutcome, EvalError> {
     let start = Instant::now();
     let layout = snap.layout();
     let target = edit.target(layout);
-    let keys = bricks_meeting(layout, &edit.reach(layout));
+    let reach = edit.reach(layout);
+    if let EditKind::Binary(_, term) = &mut edit.kind {
+        if !reach.is_empty() {
+            term.materialize(&reach, cancel)?;
+        }
+    }
+    let edit = &*edit;
+    let keys = bricks_meeting(layout, &reach);
     let results: Vec<(BrickKey, Option<BrickVoxels>)> = keys
         .par_iter()
-        .map(|&key| edit_brick(edit, snap, &target, key).map(|r| (key, r)))
+        .map(|&key| {
+            cancel.check()?;
+            edit_brick(edit, snap, &target, key).map(|r| (key, r))
+        })
         .collect::<Result<_, _>>()?;
     let evaluated = results.len();
     let level0 = results

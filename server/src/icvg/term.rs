@@ -1,9 +1,11 @@
 //! CVG terms compiled for evaluation: validated, with B-boxes, evaluated over boxes of voxels.
 
+use super::morph;
 use super::ops::{BinaryOp, UnaryOp};
 use super::primitives::Primitive;
+use crate::cancel::{CancelToken, Stopped};
 use crate::geometry::Box3;
-use crate::store::Snapshot;
+use crate::store::{Snapshot, StoreError};
 use isovox_proto::{BrickKey, VoxelType};
 use std::sync::Arc;
 
@@ -54,9 +56,50 @@ pub enum TermError {
     /// A volume the term names is not there, or does not fit the edited one.
     #[error("{0}")]
     Volume(String),
-    /// A mesh the term names is not there.
+    /// A mesh the term names is not there, or cannot be placed.
     #[error("{0}")]
     Mesh(String),
+    /// Preparing the term (voxelizing a mesh leaf, filtering a morphology argument) would
+    /// sample more voxels than one edit may.
+    #[error("{what} would sample {voxels} voxels within the edited box; this server allows {limit} per edit (--max-edit-voxels): give a region, or split the edit")]
+    OverBudget {
+        /// What would sample them.
+        what: String,
+        /// The voxels it would sample, with those counted before it.
+        voxels: u64,
+        /// The limit.
+        limit: u64,
+    },
+    /// Compiling was stopped (its deadline passed, or its client left).
+    #[error(transparent)]
+    Stopped(#[from] Stopped),
+}
+
+/// Why evaluating a term failed.
+#[derive(Debug, thiserror::Error)]
+pub enum EvalError {
+    /// A stored volume operand could not be read.
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    /// The work was stopped (its deadline passed, or its client left).
+    #[error(transparent)]
+    Stopped(#[from] Stopped),
+}
+
+/// Where a term will be evaluated and what compiling it may spend: set by the edit that
+/// compiles it ([`CompiledTerm::compile_in`]).
+#[derive(Debug, Clone, Default)]
+pub struct Scope {
+    /// The voxels the term will be evaluated over (an edit's target: the volume, or its region
+    /// within it). Mesh leaves are voxelized only there (grown by the radius of every
+    /// morphology above them). `None`: anywhere, so a mesh leaf is voxelized over its whole
+    /// placed extent.
+    pub within: Option<Box3>,
+    /// Most voxels the term may sample besides its own evaluation: mesh leaves voxelized and
+    /// morphology arguments filtered over their input boxes. `None`: no limit.
+    pub max_voxels: Option<u64>,
+    /// Stops the compilation (a mesh leaf being voxelized).
+    pub cancel: CancelToken,
 }
 
 /// Finds the stored volumes a term names (`{"volume": {"name": ...}}`).
@@ -206,7 +249,7 @@ impl CompiledTerm {
     ///
     /// # Errors
     /// A stored volume operand fails to read.
-    pub fn eval(&self, b: &Box3, out: &mut [u16]) -> Result<(), crate::store::StoreError> {
+    pub fn eval(&self, b: &Box3, out: &mut [u16]) -> Result<(), EvalError> {
         debug_assert_eq!(out.len() as u128, b.voxels());
         if let Some(v) = self.constant_over(b) {
             out.fill(v);
@@ -234,30 +277,85 @@ impl CompiledTerm {
                     *o = op.apply(*o, t);
                 }
             }
-            Node::Grid { frame, values } => {
-                let mut i = 0;
-                for z in b.min[2]..b.max[2] {
-                    for y in b.min[1]..b.max[1] {
-                        for x in b.min[0]..b.max[0] {
-                            out[i] = grid_value(frame, values, [x, y, z], t);
-                            i += 1;
-                        }
-                    }
-                }
-            }
+            Node::Grid { frame, values } => copy_grid(frame, values, b, t.low(), out),
             Node::Morph {
                 dilate,
                 radius,
                 arg,
-            } => {
-                let grown = b.grow(*radius as i64);
-                let mut field = vec![0u16; grown.voxels() as usize];
-                arg.eval(&grown, &mut field)?;
-                morph_crop(&mut field, &grown, b, *radius as usize, *dilate, out);
-            }
+            } => match morph::boxes(b, self.bbox, arg.bbox, *radius, *dilate) {
+                None => out.fill(t.low()),
+                Some((part, input)) => {
+                    let values =
+                        morph::filter(arg, &part, &input, *radius, *dilate, &CancelToken::never())?;
+                    copy_grid(&part, &values, b, t.low(), out);
+                }
+            },
         }
         Ok(())
     }
+
+    /// Replaces every morphology node by a grid of its values over the part of `b` it reaches
+    /// (computed once, with `cancel` checked as it goes), so that evaluating the term brick by
+    /// brick over `b` reads them instead of filtering each brick's grown box again. Evaluating
+    /// outside `b` afterwards gives L where a morphology node was.
+    ///
+    /// # Errors
+    /// An argument fails to evaluate, or `cancel` stops the work.
+    pub fn materialize(&mut self, b: &Box3, cancel: &CancelToken) -> Result<(), EvalError> {
+        let grid = match &mut self.node {
+            Node::Primitive(_) | Node::Volume { .. } | Node::Grid { .. } => return Ok(()),
+            Node::Binary(_, x, y) => {
+                x.materialize(b, cancel)?;
+                return y.materialize(b, cancel);
+            }
+            Node::Unary(_, x) => return x.materialize(b, cancel),
+            Node::Morph {
+                dilate,
+                radius,
+                arg,
+            } => match morph::boxes(b, self.bbox, arg.bbox, *radius, *dilate) {
+                None => (Box3::new([0; 3], [0; 3]), Vec::new()),
+                Some((part, input)) => {
+                    arg.materialize(&input, cancel)?;
+                    let values = morph::filter(arg, &part, &input, *radius, *dilate, cancel)?;
+                    (part, values)
+                }
+            },
+        };
+        self.bbox = Some(grid.0);
+        self.node = Node::Grid {
+            frame: grid.0,
+            values: grid.1,
+        };
+        Ok(())
+    }
+}
+
+/// Copies the values of `frame` (x fastest) into `out` over `b`, L where `b` leaves `frame`.
+fn copy_grid(frame: &Box3, values: &[u16], b: &Box3, low: u16, out: &mut [u16]) {
+    let inside = b.intersect(frame);
+    if inside != *b {
+        out.fill(low);
+    }
+    if inside.is_empty() {
+        return;
+    }
+    let (nf, nb) = (size(frame), size(b));
+    let width = (inside.max[0] - inside.min[0]) as usize;
+    for z in inside.min[2]..inside.max[2] {
+        for y in inside.min[1]..inside.max[1] {
+            let from = (((z - frame.min[2]) as usize * nf[1] + (y - frame.min[1]) as usize)
+                * nf[0])
+                + (inside.min[0] - frame.min[0]) as usize;
+            let to = (((z - b.min[2]) as usize * nb[1] + (y - b.min[1]) as usize) * nb[0])
+                + (inside.min[0] - b.min[0]) as usize;
+            out[to..to + width].copy_from_slice(&values[from..from + width]);
+        }
+    }
+}
+
+fn size(b: &Box3) -> [usize; 3] {
+    [0, 1, 2].map(|a| (b.max[a] - b.min[a]).max(0) as usize)
 }
 
 /// Voxels below which a box is sampled voxel by voxel rather than split further.
@@ -344,7 +442,7 @@ fn read_volume_box(
     source: &Box3,
     b: &Box3,
     out: &mut [u16],
-) -> Result<(), crate::store::StoreError> {
+) -> Result<(), StoreError> {
     let layout = snap.layout();
     let edge = layout.brick() as i64;
     let vt = layout.voxel_type();
@@ -399,43 +497,6 @@ fn read_volume_box(
         }
     }
     Ok(())
-}
-
-/// Separable grey-value morphology: the max (dilate) or min (erode) over a cube of side
-/// `2r + 1`, as three one-dimensional passes (x, then y, then z) over `field` (the values of
-/// `grown`, which is `b` grown by `r`), written for the voxels of `b` into `out`.
-fn morph_crop(field: &mut [u16], grown: &Box3, b: &Box3, r: usize, dilate: bool, out: &mut [u16]) {
-    let n = [0, 1, 2].map(|a| (grown.max[a] - grown.min[a]) as usize);
-    let pick = |a: u16, c: u16| if dilate { a.max(c) } else { a.min(c) };
-    let stride = [1, n[0], n[0] * n[1]];
-    let mut line = Vec::new();
-    for axis in 0..3 {
-        let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
-        for j in 0..n[v] {
-            for i in 0..n[u] {
-                let base = i * stride[u] + j * stride[v];
-                line.clear();
-                line.extend((0..n[axis]).map(|k| field[base + k * stride[axis]]));
-                for k in 0..n[axis] {
-                    let lo = k.saturating_sub(r);
-                    let hi = (k + r).min(n[axis] - 1);
-                    let mut best = line[lo];
-                    for &x in &line[lo + 1..=hi] {
-                        best = pick(best, x);
-                    }
-                    field[base + k * stride[axis]] = best;
-                }
-            }
-        }
-    }
-    let size = [0, 1, 2].map(|a| (b.max[a] - b.min[a]) as usize);
-    for z in 0..size[2] {
-        for y in 0..size[1] {
-            let from = ((z + r) * n[1] + y + r) * n[0] + r;
-            let to = (z * size[1] + y) * size[0];
-            out[to..to + size[0]].copy_from_slice(&field[from..from + size[0]]);
-        }
-    }
 }
 
 /// A value of a sampled array over `frame`, L outside it.

@@ -1,5 +1,6 @@
 //! What can go wrong with an operation on a served volume, and whose fault it is.
 
+use crate::cancel::Stopped;
 use crate::icvg::term::TermError;
 use crate::store::StoreError;
 
@@ -31,9 +32,9 @@ pub enum VolumeError {
     TooLarge(String),
     /// The edit does not compile (or names what is not there).
     #[error("invalid edit: {0}")]
-    InvalidEdit(#[from] TermError),
+    InvalidEdit(TermError),
     /// The edit would evaluate more voxels than the server allows per edit.
-    #[error("the edit reaches {voxels} voxels; this server allows {max} per edit (give a region, or split it)")]
+    #[error("the edit evaluates {voxels} voxels (its bricks, and what its mesh leaves and dilate/erode sample); this server allows {max} per edit (--max-edit-voxels): give a region, or split it")]
     EditTooLarge {
         /// Voxels the edit would evaluate.
         voxels: u64,
@@ -64,10 +65,36 @@ pub enum VolumeError {
         /// The head.
         head: u64,
     },
+    /// The edit's work was stopped: it ran past the server's deadline for edits, its client
+    /// left, or the server is shutting down. Nothing was committed.
+    #[error("{}", stopped_detail(.0))]
+    Stopped(Stopped),
     /// Too many edits already wait for the volume's writer.
     #[error("too many edits are waiting for this volume")]
     WriterBusy,
     /// The storage engine failed (its variant says whether the caller or the file is at fault).
     #[error(transparent)]
     Store(#[from] StoreError),
+}
+
+fn stopped_detail(stopped: &Stopped) -> String {
+    match stopped {
+        Stopped::TimedOut(limit) => format!(
+            "the edit was stopped after {:.1} s, this server's limit per edit (--edit-timeout); nothing was committed: give a region, a smaller radius or scale, or split it",
+            limit.as_secs_f64()
+        ),
+        Stopped::Cancelled => {
+            "the edit was cancelled (the server is shutting down); nothing was committed".into()
+        }
+    }
+}
+
+/// A term that was stopped while compiling is a stopped edit, not an invalid one.
+impl From<TermError> for VolumeError {
+    fn from(e: TermError) -> Self {
+        match e {
+            TermError::Stopped(stopped) => VolumeError::Stopped(stopped),
+            e => VolumeError::InvalidEdit(e),
+        }
+    }
 }

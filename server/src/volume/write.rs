@@ -4,7 +4,9 @@
 
 use super::resolve::DirVolumes;
 use super::{change_event, FeedItem, History, LiveVolume, VolumeError, WriterSlot};
+use crate::cancel::CancelToken;
 use crate::icvg::edit::{apply_edit, Edit, EditOutcome};
+use crate::icvg::term::EvalError;
 use crate::icvg::term::{TermLimits, VolumeResolver};
 use crate::progress::Silent;
 use crate::store::codec::Compression;
@@ -21,27 +23,37 @@ use tokio::sync::OwnedMutexGuard;
 pub struct EditLimits {
     /// Limits on the term itself.
     pub term: TermLimits,
-    /// Level-0 voxels one edit may evaluate; `None`: no limit.
+    /// Voxels one edit may evaluate (its bricks' level-0 voxels, and what its term samples
+    /// besides: mesh leaves, morphology arguments); `None`: no limit.
     pub max_voxels: Option<u64>,
 }
 
 impl LiveVolume {
     /// Checks and compiles an edit request for this volume: against the limits, and (with
-    /// `if_match`) against the head's version. CPU work (a mesh leaf is voxelized here): call it
-    /// off the async runtime.
+    /// `if_match`) against the head's version. CPU work (a mesh leaf is voxelized here, within
+    /// the edit's box only): call it off the async runtime; `cancel` stops it.
     ///
     /// # Errors
-    /// [`VolumeError::InvalidEdit`], [`VolumeError::EditTooLarge`], [`VolumeError::Conflict`].
+    /// [`VolumeError::InvalidEdit`], [`VolumeError::EditTooLarge`], [`VolumeError::Conflict`],
+    /// [`VolumeError::Stopped`].
     pub fn prepare_edit(
         &self,
         request: &EditRequest,
         limits: &EditLimits,
         volumes: &dyn VolumeResolver,
         if_match: Option<u64>,
+        cancel: &CancelToken,
     ) -> Result<Edit, VolumeError> {
         let head = self.head();
         let layout = head.layout();
-        let edit = Edit::from_request(request, layout.voxel_type(), &limits.term, volumes)?;
+        let edit = Edit::for_volume(
+            request,
+            layout,
+            &limits.term,
+            volumes,
+            limits.max_voxels,
+            cancel,
+        )?;
         let voxels = edit.evaluated_voxels(layout);
         if let Some(max) = limits.max_voxels.filter(|&max| voxels > max) {
             return Err(VolumeError::EditTooLarge { voxels, max });
@@ -71,18 +83,20 @@ impl LiveVolume {
     }
 
     /// Applies `edit` to the head and commits it as the next version, holding the writer.
-    /// Blocking (evaluates on rayon, syncs the file): call it off the async runtime.
+    /// Blocking (evaluates on rayon, syncs the file): call it off the async runtime. `cancel`
+    /// stops the evaluation (nothing is committed then); once the commit starts it finishes.
     ///
     /// # Errors
-    /// `If-Match` mismatch, or reading or committing failed (the head is then unchanged and
-    /// the writer is reopened on the next edit, cutting off whatever the failed commit
-    /// appended).
+    /// `If-Match` mismatch, [`VolumeError::Stopped`], or reading or committing failed (the head
+    /// is then unchanged and the writer is reopened on the next edit, cutting off whatever the
+    /// failed commit appended).
     pub fn apply(
         &self,
         slot: &mut WriterSlot,
-        edit: &Edit,
+        edit: &mut Edit,
         if_match: Option<u64>,
         policy: CheckpointPolicy,
+        cancel: &CancelToken,
     ) -> Result<EditResponse, VolumeError> {
         let vod = self.current();
         let head = vod.head();
@@ -103,9 +117,11 @@ impl LiveVolume {
             )
             .into());
         }
-        let outcome = match apply_edit(writer, &head, edit, policy) {
+        let outcome = match apply_edit(writer, &head, edit, policy, cancel) {
             Ok(o) => o,
-            Err(e) => {
+            // Nothing was appended: the writer stays as it is.
+            Err(EvalError::Stopped(stopped)) => return Err(VolumeError::Stopped(stopped)),
+            Err(EvalError::Store(e)) => {
                 slot.writer = None;
                 return Err(e.into());
             }
@@ -179,17 +195,25 @@ pub fn edit_file(path: &Path, request: &EditRequest) -> Result<EditOutcome, Volu
     let vod = Vod2::open(path)?;
     let snap = vod.head();
     let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
-    let edit = Edit::from_request(
+    let never = CancelToken::never();
+    let mut edit = Edit::for_volume(
         request,
-        snap.layout().voxel_type(),
+        snap.layout(),
         &TermLimits::default(),
         &DirVolumes { dir },
+        None,
+        &never,
     )?;
     let mut writer = Vod2Writer::open_append(path, Compression::default())?;
-    Ok(apply_edit(
+    apply_edit(
         &mut writer,
         &snap,
-        &edit,
+        &mut edit,
         CheckpointPolicy::default(),
-    )?)
+        &never,
+    )
+    .map_err(|e| match e {
+        EvalError::Store(e) => e.into(),
+        EvalError::Stopped(stopped) => VolumeError::Stopped(stopped),
+    })
 }

@@ -19,9 +19,10 @@ pub mod load;
 pub mod solid;
 pub mod store;
 
+use crate::cancel::{CancelToken, Stopped};
 use isovox_proto::VoxelType;
 use rayon::prelude::*;
-use solid::{odd_edges, voxelize_solid, voxelize_surface, BitGrid, TriMesh};
+use solid::{odd_edges, voxelize_solid, voxelize_solid_until, voxelize_surface, BitGrid, TriMesh};
 use std::time::{Duration, Instant};
 
 /// Most samples one voxelization may take (16 GiB of bits).
@@ -292,7 +293,12 @@ fn fill_density_2(grid: &BitGrid, dims: [u32; 3], table: &[u16], t: VoxelType, o
 
 /// The density of `mesh` placed by `to_voxel` (model point -> voxel coordinates) over the box
 /// of `dims` voxels starting at voxel `min`, one value per voxel (x fastest), sampled `s`^3
-/// times per voxel: for ICVG mesh leaves.
+/// times per voxel: for ICVG mesh leaves. The model may reach far beyond the box: parity along
+/// each column counts the surfaces above the box too, so the values are those of the whole
+/// model's voxelization, cut to the box.
+///
+/// # Errors
+/// [`Stopped`] when `cancel` stops the work.
 pub fn density_box(
     mesh: &TriMesh,
     min: [i64; 3],
@@ -300,18 +306,25 @@ pub fn density_box(
     s: usize,
     t: VoxelType,
     to_voxel: impl Fn([f32; 3]) -> [f64; 3] + Sync,
-) -> Vec<u16> {
+    cancel: &CancelToken,
+) -> Result<Vec<u16>, Stopped> {
     let fine = dims.map(|d| d * s);
-    let grid = voxelize_solid(mesh, fine, |p| {
-        let v = to_voxel(p);
-        std::array::from_fn(|a| (v[a] - min[a] as f64) * s as f64)
-    });
+    let grid = voxelize_solid_until(
+        mesh,
+        fine,
+        |p| {
+            let v = to_voxel(p);
+            std::array::from_fn(|a| (v[a] - min[a] as f64) * s as f64)
+        },
+        cancel,
+    )?;
+    cancel.check()?;
     let bytes = fill_values(&grid, dims.map(|d| d as u32), s, t);
-    match t {
+    Ok(match t {
         VoxelType::U8 => bytes.into_iter().map(u16::from).collect(),
         VoxelType::U16 => bytes
             .chunks_exact(2)
             .map(|c| u16::from_le_bytes([c[0], c[1]]))
             .collect(),
-    }
+    })
 }

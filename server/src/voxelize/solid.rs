@@ -20,9 +20,12 @@
 //! - Triangles seen edge-on (zero projected area) toggle nothing: the ray runs along them and
 //!   their neighbours decide.
 //!
-//! Work is split by rows of columns (one `y` each, in parallel on rayon); each triangle is
-//! binned into the rows its projection covers.
+//! Work is split by bands of rows of columns (16 `y` each, in parallel on rayon); each band
+//! first gathers the triangles whose projection reaches it, so the lists hold a triangle once
+//! per band, never once per row, and a model of a few huge triangles costs no more memory than
+//! a model of small ones.
 
+use crate::cancel::{CancelToken, Stopped};
 use rayon::prelude::*;
 
 /// Fixed-point fraction bits of x and y.
@@ -207,64 +210,113 @@ pub fn voxelize_solid(
     dims: [usize; 3],
     to_grid: impl Fn([f32; 3]) -> [f64; 3] + Sync,
 ) -> BitGrid {
+    match voxelize_solid_until(mesh, dims, to_grid, &CancelToken::never()) {
+        Ok(grid) => grid,
+        // A token nobody cancels, without a deadline, never stops the work.
+        Err(_) => BitGrid::new(dims),
+    }
+}
+
+/// Rows of columns whose triangles are gathered at once: a band's list holds each triangle
+/// once, however many rows it covers, so the lists never outgrow the mesh.
+const BAND: usize = 16;
+
+/// [`voxelize_solid`], stopped by `cancel` (checked every few thousand triangles).
+///
+/// # Errors
+/// [`Stopped`] when `cancel` stops the work.
+pub fn voxelize_solid_until(
+    mesh: &TriMesh,
+    dims: [usize; 3],
+    to_grid: impl Fn([f32; 3]) -> [f64; 3] + Sync,
+    cancel: &CancelToken,
+) -> Result<BitGrid, Stopped> {
     let mut grid = BitGrid::new(dims);
     let projected: Vec<Projected> = mesh
         .triangles
         .par_iter()
         .filter_map(|t| project(t.map(|v| to_grid(mesh.positions[v as usize]))))
         .collect();
-    // Bin triangles into the rows of columns they cover.
-    let mut rows: Vec<Vec<u32>> = vec![Vec::new(); dims[1]];
-    for (i, t) in projected.iter().enumerate() {
-        let (ymin, ymax) = (t.y.iter().min(), t.y.iter().max());
-        if let (Some(&ymin), Some(&ymax)) = (ymin, ymax) {
-            if let Some((lo, hi)) = sample_range(ymin, ymax, dims[1]) {
-                for row in &mut rows[lo..=hi] {
-                    row.push(i as u32);
-                }
-            }
-        }
-    }
+    cancel.check()?;
+    // The sample rows each triangle covers.
+    let rows_of = |t: &Projected| {
+        let ymin = t.y.iter().copied().min().unwrap_or(0);
+        let ymax = t.y.iter().copied().max().unwrap_or(0);
+        sample_range(ymin, ymax, dims[1])
+    };
     let (nx, nz, words) = (dims[0], dims[2], grid.words);
-    grid.rows_mut().for_each(|(y, row)| {
-        let py = y as i64 * ONE + HALF;
-        for &i in &rows[y] {
-            let t = &projected[i as usize];
-            let xmin = t.x.iter().copied().min().unwrap_or(0);
-            let xmax = t.x.iter().copied().max().unwrap_or(0);
-            let Some((x0, x1)) = sample_range(xmin, xmax, nx) else {
-                continue;
-            };
-            for x in x0..=x1 {
-                let px = x as i64 * ONE + HALF;
-                let mut w = [0i128; 3];
-                let mut inside = true;
-                for (e, we) in w.iter_mut().enumerate() {
-                    let (a, b) = ((e + 1) % 3, (e + 2) % 3);
-                    *we = edge(t.x[a], t.y[a], t.x[b], t.y[b], px, py);
-                    if *we < 0 || (*we == 0 && !owns(t.x[b] - t.x[a], t.y[b] - t.y[a])) {
-                        inside = false;
-                        break;
+    let row_words = (nx * words).max(1);
+    grid.bits
+        .par_chunks_mut(row_words * BAND)
+        .enumerate()
+        .try_for_each(|(band, rows)| -> Result<(), Stopped> {
+            let first = band * BAND;
+            let last = first + rows.len() / row_words - 1;
+            let mut mine = Vec::new();
+            for (i, t) in projected.iter().enumerate() {
+                if i % 4096 == 0 {
+                    cancel.check()?;
+                }
+                if let Some((lo, hi)) = rows_of(t) {
+                    if lo <= last && hi >= first {
+                        mine.push(i as u32);
                     }
                 }
-                if !inside {
-                    continue;
-                }
-                let z = (w[0] as f64 * t.z[0] + w[1] as f64 * t.z[1] + w[2] as f64 * t.z[2])
-                    / t.area2 as f64;
-                // Centres k + 0.5 strictly below z: k < z - 0.5.
-                let below = ((z - 0.5).ceil().max(0.0) as usize).min(nz);
-                let col = &mut row[x * words..(x + 1) * words];
-                for word in col.iter_mut().take(below / 64) {
-                    *word = !*word;
-                }
-                if below % 64 != 0 {
-                    col[below / 64] ^= (1u64 << (below % 64)) - 1;
+            }
+            for (r, row) in rows.chunks_mut(row_words).enumerate() {
+                let y = first + r;
+                let py = y as i64 * ONE + HALF;
+                for (n, &i) in mine.iter().enumerate() {
+                    if n % 4096 == 0 {
+                        cancel.check()?;
+                    }
+                    let t = &projected[i as usize];
+                    if !rows_of(t).is_some_and(|(lo, hi)| lo <= y && y <= hi) {
+                        continue;
+                    }
+                    toggle_below(t, py, nx, nz, words, row);
                 }
             }
+            Ok(())
+        })?;
+    Ok(grid)
+}
+
+/// Toggles, in one row of columns (sample y `py`, fixed point), the voxels below triangle `t`
+/// in every column whose centre its projection covers.
+fn toggle_below(t: &Projected, py: i64, nx: usize, nz: usize, words: usize, row: &mut [u64]) {
+    let xmin = t.x.iter().copied().min().unwrap_or(0);
+    let xmax = t.x.iter().copied().max().unwrap_or(0);
+    let Some((x0, x1)) = sample_range(xmin, xmax, nx) else {
+        return;
+    };
+    for x in x0..=x1 {
+        let px = x as i64 * ONE + HALF;
+        let mut w = [0i128; 3];
+        let mut inside = true;
+        for (e, we) in w.iter_mut().enumerate() {
+            let (a, b) = ((e + 1) % 3, (e + 2) % 3);
+            *we = edge(t.x[a], t.y[a], t.x[b], t.y[b], px, py);
+            if *we < 0 || (*we == 0 && !owns(t.x[b] - t.x[a], t.y[b] - t.y[a])) {
+                inside = false;
+                break;
+            }
         }
-    });
-    grid
+        if !inside {
+            continue;
+        }
+        let z =
+            (w[0] as f64 * t.z[0] + w[1] as f64 * t.z[1] + w[2] as f64 * t.z[2]) / t.area2 as f64;
+        // Centres k + 0.5 strictly below z: k < z - 0.5.
+        let below = ((z - 0.5).ceil().max(0.0) as usize).min(nz);
+        let col = &mut row[x * words..(x + 1) * words];
+        for word in col.iter_mut().take(below / 64) {
+            *word = !*word;
+        }
+        if below % 64 != 0 {
+            col[below / 64] ^= (1u64 << (below % 64)) - 1;
+        }
+    }
 }
 
 /// The voxels whose closed box a triangle touches (the surface's conservative boundary).

@@ -4,6 +4,7 @@ use super::{median, percentile};
 use clap::Args;
 use isovox_proto::icvg::Term;
 use isovox_proto::{VolumeLayout, VoxelType};
+use isovox_server::cancel::CancelToken;
 use isovox_server::generate::WorldSource;
 use isovox_server::geometry::Box3;
 use isovox_server::icvg::edit::{apply_edit, Edit, EditKind};
@@ -198,7 +199,7 @@ pub fn run(a: IcvgArgs) -> anyhow::Result<()> {
                 center: [x as i64, y, z as i64],
                 radii: [16; 3],
             };
-            let edit = Edit {
+            let mut edit = Edit {
                 kind: EditKind::Binary(
                     BinaryOp::Difference,
                     CompiledTerm::compile(
@@ -209,9 +210,16 @@ pub fn run(a: IcvgArgs) -> anyhow::Result<()> {
                     )?,
                 ),
                 region: None,
+                sampled: 0,
             };
             let start = Instant::now();
-            let outcome = apply_edit(&mut writer, &snap, &edit, CheckpointPolicy::default())?;
+            let outcome = apply_edit(
+                &mut writer,
+                &snap,
+                &mut edit,
+                CheckpointPolicy::default(),
+                &CancelToken::never(),
+            )?;
             latency.push(start.elapsed().as_secs_f64() * 1e3);
             changed.push(outcome.changed.iter().map(Vec::len).sum::<usize>() as f64);
             let start = Instant::now();
