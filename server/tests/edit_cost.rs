@@ -44,7 +44,7 @@ fn zero_volume(dir: &Path) {
 fn serve(dir: &Path, flags: &[&str]) -> ServerProcess {
     std::fs::write(dir.join("tokens"), format!("t {TOKEN} write\n")).unwrap();
     let mut args: Vec<&std::ffi::OsStr> = vec!["--data".as_ref(), dir.as_os_str()];
-    args.extend(flags.iter().map(|f| f.as_ref()));
+    args.extend(flags.iter().map(std::ffi::OsStr::new));
     ServerProcess::start(&args, &[("ISOVOX_EDIT_RATE", "100000")])
 }
 
@@ -159,14 +159,21 @@ fn mesh_leaves_at_absurd_scales_are_voxelized_within_the_volume_or_refused() {
     // Scale 500: the cube spans [100, 600] x [-300, 200] x [-300, 200]. A voxel's 2x2x2 samples
     // sit at +0.25 and +0.75, so every sample of voxel (x, y, z) is inside exactly when
     // x >= 100, y <= 199 and z <= 199: those voxels become H (8 of 8 inside), the others stay L.
-    let (status, answer) = edit(&server, &mesh_edit("union", &cube, [100.0, -300.0, -300.0], 500.0));
+    let (status, answer) = edit(
+        &server,
+        &mesh_edit("union", &cube, [100.0, -300.0, -300.0], 500.0),
+    );
     assert_eq!(status, 200, "{answer}");
     let v = voxels(&server);
     let n = N as usize;
     for z in 0..n {
         for y in 0..n {
             for x in 0..n {
-                let want = if x >= 100 && y < 200 && z < 200 { 255 } else { 0 };
+                let want = if x >= 100 && y < 200 && z < 200 {
+                    255
+                } else {
+                    0
+                };
                 assert_eq!(v[(z * n + y) * n + x], want, "voxel {x},{y},{z}");
             }
         }
@@ -214,13 +221,13 @@ fn dilate_of_radius_200_is_applied_while_other_edits_go_on() {
         .collect();
     let answers = std::thread::scope(|s| {
         let big = s.spawn(|| edit(&server, &dilate));
-        let others: Vec<_> = small
-            .iter()
-            .map(|e| s.spawn(|| edit(&server, e)))
-            .collect();
+        let others: Vec<_> = small.iter().map(|e| s.spawn(|| edit(&server, e))).collect();
         (
             big.join().unwrap(),
-            others.into_iter().map(|h| h.join().unwrap()).collect::<Vec<_>>(),
+            others
+                .into_iter()
+                .map(|h| h.join().unwrap())
+                .collect::<Vec<_>>(),
         )
     });
     let (status, answer) = answers.0;
@@ -336,10 +343,11 @@ fn sigterm_during_a_long_edit_stops_it_and_the_server_exits() {
         ],
     );
     let v0 = version(&server);
+    let url = server.url("/v1/volumes/w/edits");
     let answer = std::thread::scope(|s| {
         let heavy = s.spawn(|| {
             client()
-                .post(server.url("/v1/volumes/w/edits"))
+                .post(&url)
                 .bearer_auth(TOKEN)
                 .json(&heavy_edit())
                 .send()
@@ -358,5 +366,97 @@ fn sigterm_during_a_long_edit_stops_it_and_the_server_exits() {
     // Its connection was closed at the end of the grace (or it was answered 503).
     assert!(matches!(answer, Err(_) | Ok(503)), "{answer:?}");
     // Had the edit gone on, the server would have waited for it and committed it.
-    assert_eq!(Vod2::open(&dir.path().join("w.vod")).unwrap().head().version, v0);
+    assert_eq!(
+        Vod2::open(&dir.path().join("w.vod"))
+            .unwrap()
+            .head()
+            .version,
+        v0
+    );
+}
+
+/// Resolves every mesh hash to one model (and no volume).
+struct OneMesh(std::sync::Arc<isovox_server::voxelize::solid::TriMesh>);
+
+impl isovox_server::icvg::term::VolumeResolver for OneMesh {
+    fn resolve(
+        &self,
+        name: &str,
+    ) -> Result<std::sync::Arc<isovox_server::store::Snapshot>, isovox_server::icvg::term::TermError>
+    {
+        Err(isovox_server::icvg::term::TermError::Volume(format!(
+            "no volume {name:?}"
+        )))
+    }
+
+    fn mesh(
+        &self,
+        _: u64,
+    ) -> Result<
+        std::sync::Arc<isovox_server::voxelize::solid::TriMesh>,
+        isovox_server::icvg::term::TermError,
+    > {
+        Ok(self.0.clone())
+    }
+}
+
+fn tri_mesh(triangles: &[[[f32; 3]; 3]]) -> isovox_server::voxelize::solid::TriMesh {
+    isovox_server::voxelize::solid::TriMesh {
+        positions: triangles.iter().flatten().copied().collect(),
+        triangles: (0..triangles.len() as u32)
+            .map(|i| [3 * i, 3 * i + 1, 3 * i + 2])
+            .collect(),
+    }
+}
+
+/// A mesh leaf compiled for a box (as an edit compiles it) has, over that box, the values of
+/// the whole model's voxelization (compiled for anywhere): parity counts the surfaces beyond
+/// the box. Boxes cut through the placed models and reach past them.
+#[test]
+fn a_mesh_leaf_voxelized_within_a_box_equals_the_whole_model_cut_to_it() {
+    use isovox_server::geometry::Box3;
+    use isovox_server::icvg::term::{CompiledTerm, Scope, TermLimits};
+    let term = |offset: [f64; 3], scale: f64| isovox_proto::icvg::Term::Mesh {
+        hash: "00000000000000aa".into(),
+        offset,
+        scale,
+    };
+    for (model, offset, scale) in [
+        (unit_cube(), [-5.3, 2.7, -11.9], 37.3),
+        (tetrahedron(1000.0), [-3.1, -20.45, 1.9], 0.061),
+    ] {
+        let meshes = OneMesh(std::sync::Arc::new(tri_mesh(&model)));
+        let whole = CompiledTerm::compile(
+            &term(offset, scale),
+            VoxelType::U8,
+            &TermLimits::default(),
+            &meshes,
+        )
+        .unwrap();
+        for within in [
+            Box3::new([0, 0, 0], [20, 24, 18]),
+            Box3::new([-9, 5, -3], [7, 31, 40]),
+            Box3::new([10, 10, 10], [60, 60, 60]),
+        ] {
+            let scope = Scope {
+                within: Some(within),
+                ..Scope::default()
+            };
+            let (clipped, sampled) = CompiledTerm::compile_in(
+                &term(offset, scale),
+                VoxelType::U8,
+                &TermLimits::default(),
+                &meshes,
+                &scope,
+            )
+            .unwrap();
+            assert!(sampled as u128 <= within.voxels());
+            let n = within.voxels() as usize;
+            let (mut a, mut b) = (vec![0u16; n], vec![0u16; n]);
+            whole.eval(&within, &mut a).unwrap();
+            clipped.eval(&within, &mut b).unwrap();
+            assert_eq!(a, b, "{offset:?} x {scale} within {within:?}");
+            assert!(a.iter().any(|&v| v == 255) && a.contains(&0), "{within:?}");
+        }
+    }
 }

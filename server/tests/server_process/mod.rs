@@ -19,6 +19,8 @@ const SERVE_ENV: &[&str] = &[
     "ISOVOX_EDIT_RATE",
     "ISOVOX_EDIT_QUEUE",
     "ISOVOX_MAX_EDIT_VOXELS",
+    "ISOVOX_EDIT_TIMEOUT",
+    "ISOVOX_SHUTDOWN_GRACE",
 ];
 
 /// A running `isovox serve`.
@@ -108,6 +110,24 @@ impl ServerProcess {
     /// Everything the server wrote to standard error so far.
     pub(crate) fn log(&self) -> String {
         self.log.lock().unwrap().join("\n")
+    }
+
+    /// Sends SIGTERM (a graceful shutdown) and waits up to `hangs` for the server to exit:
+    /// its exit status, or `None` if it was still running then (it is killed afterwards).
+    pub(crate) fn terminate(&mut self, hangs: Duration) -> Option<std::process::ExitStatus> {
+        let sent = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status()
+            .expect("kill runs");
+        assert!(sent.success(), "kill -TERM failed: {sent}");
+        let start = std::time::Instant::now();
+        while start.elapsed() < hangs {
+            if let Some(status) = self.child.try_wait().expect("the server can be waited for") {
+                return Some(status);
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        None
     }
 
     /// Kills the server (SIGKILL), waits for it and for its standard error to end, and returns
