@@ -257,7 +257,7 @@ fn an_edit_over_the_voxel_budget_is_refused_before_it_runs() {
     zero_volume(dir.path());
     let server = serve(dir.path(), &[]);
     let before = version(&server);
-    // 656^3 + 256^3 voxels is over the default budget of 2^28.
+    // 656^3 voxels read, and 656 planes of 256^2 kept, is over the default budget of 2^28.
     let (status, answer) = edit(&server, &heavy_edit());
     assert_eq!(status, 422, "{answer}");
     let detail = answer["detail"].as_str().unwrap();

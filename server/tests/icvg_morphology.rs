@@ -79,8 +79,8 @@ fn dilated_and_eroded_cuboids_are_grown_and_shrunk_cuboids() {
     }
 }
 
-#[test]
-fn fast_path_equals_the_reference_on_curved_and_composite_terms() {
+/// An ellipsoid, and a cuboid with it carved out.
+fn curved_and_composite() -> [Term; 2] {
     let ellipsoid = Term::Ellipsoid {
         center: [10, 12, 9],
         radii: [7, 5, 6],
@@ -89,20 +89,24 @@ fn fast_path_equals_the_reference_on_curved_and_composite_terms() {
         Box::new(cuboid([0, 0, 0], [22, 20, 18])),
         Box::new(ellipsoid.clone()),
     );
-    for arg in [ellipsoid, composite] {
+    [ellipsoid, composite]
+}
+
+fn morphology(dilate: bool, radius: u32, arg: &Term) -> Term {
+    let arg = Box::new(arg.clone());
+    if dilate {
+        Term::Dilate { radius, arg }
+    } else {
+        Term::Erode { radius, arg }
+    }
+}
+
+#[test]
+fn fast_path_equals_the_reference_on_curved_and_composite_terms() {
+    for arg in curved_and_composite() {
         for r in 1..=3 {
             for dilate in [true, false] {
-                let term = if dilate {
-                    Term::Dilate {
-                        radius: r,
-                        arg: Box::new(arg.clone()),
-                    }
-                } else {
-                    Term::Erode {
-                        radius: r,
-                        arg: Box::new(arg.clone()),
-                    }
-                };
+                let term = morphology(dilate, r, &arg);
                 let t = compile(&term);
                 // Boxes that cut through the surface, the inside and the outside.
                 for b in [
@@ -288,15 +292,7 @@ fn an_edit_dilates_and_erodes_with_windows_wider_than_bricks_and_volume() {
 /// argument's samples (the voxel-by-voxel reference of each primitive).
 #[test]
 fn large_radii_equal_the_brute_force_filter() {
-    let ellipsoid = Term::Ellipsoid {
-        center: [10, 12, 9],
-        radii: [7, 5, 6],
-    };
-    let composite = Term::Difference(
-        Box::new(cuboid([0, 0, 0], [22, 20, 18])),
-        Box::new(ellipsoid.clone()),
-    );
-    for arg in [ellipsoid, composite] {
+    for arg in curved_and_composite() {
         let a = compile(&arg);
         for (r, b) in [
             // Across the argument's B-box faces, and beyond them.
@@ -305,17 +301,7 @@ fn large_radii_equal_the_brute_force_filter() {
             (9, Box3::new([-20, -20, -20], [-14, -14, -14])),
         ] {
             for dilate in [true, false] {
-                let term = if dilate {
-                    Term::Dilate {
-                        radius: r,
-                        arg: Box::new(arg.clone()),
-                    }
-                } else {
-                    Term::Erode {
-                        radius: r,
-                        arg: Box::new(arg.clone()),
-                    }
-                };
+                let term = morphology(dilate, r, &arg);
                 let grown = b.grow(r as i64);
                 let field = samples(&a, &grown);
                 let n = [0, 1, 2].map(|i| (grown.max[i] - grown.min[i]) as usize);
@@ -364,23 +350,25 @@ fn what_morphology_samples_is_counted_against_the_budget_before_it_runs() {
             &scope(max),
         )
     };
-    // Dilating a bounded argument reads it only over its B-box: the sphere's 21^3 voxels.
+    // Dilating a bounded argument reads it only over its B-box (the sphere's 21^3 voxels) and
+    // keeps a 256^2 plane for each of its 21 layers for the last pass.
     let dilated = Term::Dilate {
         radius: 200,
         arg: Box::new(sphere.clone()),
     };
     let (_, sampled) = compile_in(&dilated, Some(1 << 28)).unwrap();
-    assert_eq!(sampled, 21 * 21 * 21);
+    assert_eq!(sampled, 21 * 21 * 21 + 256 * 256 * 21);
     // An unbounded argument (the inverse is H far away) is read over the whole volume grown by
-    // 200: 656^3 voxels, over a budget of 2^28.
+    // 200 (656^3 voxels, and 656 planes of 256^2): over a budget of 2^28.
     let unbounded = Term::Dilate {
         radius: 200,
         arg: Box::new(Term::Inverse(Box::new(sphere.clone()))),
     };
-    assert_eq!(compile_in(&unbounded, None).unwrap().1, 656 * 656 * 656);
+    let heavy = 656 * 656 * 656 + 256 * 256 * 656;
+    assert_eq!(compile_in(&unbounded, None).unwrap().1, heavy);
     match compile_in(&unbounded, Some(1 << 28)) {
         Err(TermError::OverBudget { voxels, limit, .. }) => {
-            assert_eq!((voxels, limit), (656 * 656 * 656, 1 << 28));
+            assert_eq!((voxels, limit), (heavy, 1 << 28));
         }
         other => panic!("expected OverBudget, got {other:?}"),
     }

@@ -171,9 +171,10 @@ impl Compiler<'_> {
                 };
                 // Filtering reads the argument over the evaluated box grown by the radius.
                 if let Some(w) = within {
-                    if let Some((_, input)) = morph::boxes(&w, bbox, a.bbox, *radius, dilate) {
+                    if let Some((out, input)) = morph::boxes(&w, bbox, a.bbox, *radius, dilate) {
                         let name = if dilate { "dilate" } else { "erode" };
-                        self.spend(|| format!("{name} of radius {radius}"), input.voxels())?;
+                        let cost = morph::cost(&out, &input);
+                        self.spend(|| format!("{name} of radius {radius}"), cost)?;
                     }
                 }
                 let node = Node::Morph {

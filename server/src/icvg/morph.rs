@@ -46,6 +46,13 @@ pub fn boxes(
     (!input.is_empty()).then_some((out, input))
 }
 
+/// What filtering over `out` from `input` samples and holds, in voxels: the argument's values
+/// over `input`, and the planes of `out.xy` for every input z kept for the z pass.
+pub fn cost(out: &Box3, input: &Box3) -> u128 {
+    let (o, i) = (size(out), size(input));
+    input.voxels() + (o[0] * o[1]) as u128 * i[2] as u128
+}
+
 /// The B-box of `erode(arg, r)`: the argument's shrunk by `r` (maybe empty).
 pub fn eroded_bbox(arg: Box3, r: u32) -> Box3 {
     arg.grow(-(r as i64))
