@@ -6,7 +6,7 @@
 #
 # BEFORE=path/to/an/older/isovox runs that binary on the same data in the same run and prints
 # its figures beside; an edit that has not answered within MAX_TIME seconds (default 240) is
-# shown as "> MAX_TIME s" (its server is then killed).
+# shown as "> MAX_TIME s" (its server is then killed). WORKLOADS="volume sphere" picks the rows.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 cargo build --release --quiet -p isovox-server --bin isovox
@@ -29,11 +29,13 @@ start() {
     local bin=$1
     rm -rf "$WORK/data" && mkdir "$WORK/data"
     cp "$WORK/world.vod" "$WORK/data/w.vod"
+    # The previous server's log must not be read for this one's address.
+    rm -f "$WORK/log"
     ISOVOX_WRITE_TOKEN=$TOKEN "$bin" serve --data "$WORK/data" --addr 127.0.0.1:0 \
         2>"$WORK/log" >/dev/null &
     SERVER_PID=$!
     for _ in $(seq 200); do
-        URL=$(grep -o 'http://[0-9.:]*' "$WORK/log" | head -1 || true)
+        URL=$(grep -o 'http://[0-9.:]*' "$WORK/log" 2>/dev/null | head -1 || true)
         [ -n "$URL" ] && return 0
         sleep 0.05
     done
@@ -79,13 +81,21 @@ else
     echo "| argument | radius | status | s |"
     echo "|---|---:|---:|---:|"
 fi
-for name in volume sphere; do
+for name in ${WORKLOADS:-volume sphere}; do
     if [ $name = volume ]; then arg=$VOLUME; else arg=$SPHERE; fi
     for r in 8 32 64 200; do
         read -r status secs <<<"$(run "$AFTER" "$(edit "$arg" "$r")")"
         if [ -n "$BEFORE" ]; then
             read -r bstatus bsecs <<<"$(run "$BEFORE" "$(edit "$arg" "$r")")"
-            speedup=$(python3 -c "import sys; b, a = sys.argv[1].lstrip('>'), float(sys.argv[2]); print(('>' if sys.argv[1].startswith('>') else '') + f'{float(b) / a:.0f}x')" "$bsecs" "$secs")
+            speedup=$(python3 -c "
+import sys
+before, after = sys.argv[1], sys.argv[2]
+if after.startswith('>'):
+    print('-')
+else:
+    bound = '>' if before.startswith('>') else ''
+    print(f'{bound}{float(before.lstrip(\">\")) / float(after):.0f}x')
+" "$bsecs" "$secs")
             echo "| $name | $r | $bstatus | $bsecs | $status | $secs | $speedup |"
         else
             echo "| $name | $r | $status | $secs |"

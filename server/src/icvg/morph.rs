@@ -131,10 +131,17 @@ pub fn filter(
             .map(|y| {
                 let mut line = Line::new(dilate, low);
                 let mut rows = vec![low; no[0] * no[2]];
+                // Row y of every plane, side by side: the columns then read a small block
+                // instead of striding through all the planes once per column.
+                let mut block = Vec::with_capacity(no[0] * ni[2]);
+                for z in 0..ni[2] {
+                    let at = z * plane_out + y * no[0];
+                    block.extend_from_slice(&planes[at..at + no[0]]);
+                }
                 let mut column = Vec::with_capacity(ni[2]);
                 for x in 0..no[0] {
                     column.clear();
-                    column.extend((0..ni[2]).map(|z| planes[z * plane_out + y * no[0] + x]));
+                    column.extend((0..ni[2]).map(|z| block[z * no[0] + x]));
                     line.run(&column, shift[2], no[2], r);
                     for (z, &v) in line.result(no[2]).iter().enumerate() {
                         rows[z * no[0] + x] = v;
