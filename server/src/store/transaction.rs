@@ -35,10 +35,10 @@ impl Default for CheckpointPolicy {
 /// Changed bricks per level (level 0 first), as `[x, y, z]`.
 pub type ChangedKeys = Vec<Vec<[u32; 3]>>;
 
-/// What a commit wrote.
+/// What a commit wrote (or staged).
 #[derive(Debug, Clone)]
 pub struct Committed {
-    /// The header slot naming the new version.
+    /// The header slot naming the new version (once it is durable).
     pub slot: HeaderSlot,
     /// The bricks whose entries changed, per level (empty for the first commit of a file).
     pub changed: ChangedKeys,
@@ -74,7 +74,8 @@ fn records(writer: &Vod2Writer) -> u64 {
 }
 
 impl<'a> Transaction<'a> {
-    /// A transaction on top of `snap`, which must be the writer's head.
+    /// A transaction on top of `snap`, which must be the writer's newest version (its head, or
+    /// the version it staged last).
     pub fn on(writer: &'a mut Vod2Writer, snap: &'a Snapshot) -> Self {
         Transaction {
             records_before: records(writer),
@@ -240,6 +241,21 @@ impl<'a> Transaction<'a> {
     /// # Errors
     /// Reading the base's index or writing the commit fails (the head is then unchanged).
     pub fn commit(self, policy: CheckpointPolicy) -> Result<Committed, StoreError> {
+        self.finish(policy, true)
+    }
+
+    /// Appends the next version as [`Transaction::commit`] does, without making it durable:
+    /// the writer's next [`Vod2Writer::sync`] does, for every version staged until then (group
+    /// commit). The base must be the writer's newest staged version, or its head.
+    ///
+    /// # Errors
+    /// Reading the base's index or appending fails: roll the writer back to a savepoint taken
+    /// before the transaction began, or drop it.
+    pub fn stage(self, policy: CheckpointPolicy) -> Result<Committed, StoreError> {
+        self.finish(policy, false)
+    }
+
+    fn finish(self, policy: CheckpointPolicy, durable: bool) -> Result<Committed, StoreError> {
         let (slot, changed, checkpoint) = match self.base {
             Base::Version {
                 snap,
@@ -259,14 +275,15 @@ impl<'a> Transaction<'a> {
                 } else {
                     None
                 };
-                let slot = self.writer.commit(&changes, full.as_deref())?;
+                let slot = self.writer.stage(&changes, full.as_deref())?;
                 (slot, changed, checkpoint)
             }
             Base::Empty { entries } => {
-                let slot = self.writer.commit(&[], Some(&entries))?;
+                let slot = self.writer.stage(&[], Some(&entries))?;
                 (slot, ChangedKeys::new(), true)
             }
         };
+        let slot = if durable { self.writer.sync()? } else { slot };
         Ok(Committed {
             slot,
             changed,
