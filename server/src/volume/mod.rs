@@ -1,10 +1,12 @@
 //! A served volume: its current version, its single writer, its history and its change feed.
 //!
 //! Readers call [`LiveVolume::current`] and get the open file as of the newest commit (an
-//! `Arc` swapped atomically): they never wait for the writer. Edits are serialized by the
-//! writer lock; each one is evaluated against the head snapshot, committed (durable before the
-//! call returns), turned into the next [`Vod2`] by [`Vod2::advance`], recorded in the version
-//! history, published to readers, and announced on the change feed, in that order.
+//! `Arc` swapped atomically): they never wait for the writer. Edits wait in the volume's queue
+//! and are applied by its single writer in arrival order, several at a time ([`group`]): each
+//! is evaluated against the version before it, staged as the next version and turned into the
+//! next [`Vod2`] by [`Vod2::advance`]; the group is made durable at once; then each version is
+//! recorded in the history, published to readers, announced on the change feed and answered,
+//! in that order.
 //!
 //! The change feed is a `tokio::sync::broadcast` channel: sending never waits, and a subscriber
 //! that falls more than [`FEED_CAPACITY`] versions behind learns it (`Lagged`) instead of
@@ -13,15 +15,18 @@
 //!
 //! Layout: this file holds the volume's versions, history and feed; [`read`] the reads a
 //! server answers (batches, levels, mesh tiles), checked first and run later off the async
-//! runtime; [`write`] edits (with a server's limits) and compaction; [`resolve`] the volumes
+//! runtime; [`write`] checking edits against a server's limits, and compaction; [`group`] the
+//! edit queue and group commit; [`resolve`] the volumes
 //! and meshes edit terms name; [`error`] what can go wrong.
 
 pub mod error;
+pub mod group;
 pub mod read;
 pub mod resolve;
 pub mod write;
 
 pub use error::VolumeError;
+pub use group::{GroupCommit, PendingEdit};
 pub use write::{edit_file, EditLimits};
 
 use crate::store::{Snapshot, StoreError, Vod2, Vod2Writer};
@@ -101,7 +106,9 @@ pub struct LiveVolume {
     name: String,
     current: ArcSwap<Vod2>,
     writer: Arc<tokio::sync::Mutex<WriterSlot>>,
-    /// Edits waiting for the writer lock.
+    /// Edits waiting for the writer.
+    edits: std::sync::Mutex<group::EditQueue>,
+    /// Compactions waiting for the writer lock.
     waiting: AtomicUsize,
     history: RwLock<History>,
     feed: broadcast::Sender<Arc<FeedItem>>,
@@ -143,6 +150,7 @@ impl LiveVolume {
             name: name.to_string(),
             current: ArcSwap::from_pointee(vod),
             writer: Arc::default(),
+            edits: Default::default(),
             waiting: AtomicUsize::new(0),
             history: RwLock::new(history),
             feed: broadcast::channel(FEED_CAPACITY).0,
@@ -303,11 +311,16 @@ impl LiveVolume {
         self.feed.subscribe()
     }
 
-    /// Joins the queue for the writer unless `max_waiting` edits already wait.
+    /// Joins the queue for the writer lock (a compaction) unless `max_waiting` edits and
+    /// compactions already wait.
     pub fn enqueue(&self, max_waiting: usize) -> Option<QueueTicket<'_>> {
         let before = self.waiting.fetch_add(1, Ordering::AcqRel);
         let ticket = QueueTicket(&self.waiting);
-        (before < max_waiting).then_some(ticket)
+        (before + self.queue().len() < max_waiting).then_some(ticket)
+    }
+
+    pub(super) fn compactions_waiting(&self) -> usize {
+        self.waiting.load(Ordering::Acquire)
     }
 
     /// Change-feed subscribers connected now.
@@ -315,9 +328,9 @@ impl LiveVolume {
         self.feed.receiver_count()
     }
 
-    /// Edits waiting for the writer now.
+    /// Edits (and compactions) waiting for the writer now.
     pub fn queue_depth(&self) -> usize {
-        self.waiting.load(Ordering::Acquire)
+        self.queue().len() + self.compactions_waiting()
     }
 
     /// Waits for the writer lock (in queue order).
