@@ -50,7 +50,7 @@ const VOLUME: &str = "w";
 const DIMS: [usize; 3] = [64, 48, 64];
 const BRICK: u32 = 16;
 const ROUNDS: usize = 20;
-const EDITORS: usize = 3;
+const EDITORS: usize = 8;
 const DEFAULT_SEED: u64 = 0x5eed_d0c5_1a7e_b00c;
 
 // ---------------------------------------------------------------------------------------------
