@@ -5,7 +5,8 @@
 //! Edits stage level-0 bricks on top of the head ([`Transaction::on`]); a build and a compaction
 //! fill every entry of a new file ([`Transaction::first`]), whose first commit is a checkpoint.
 
-use super::pyramid::{constant_parent, downsample, BrickVoxels};
+use super::codec::fill_constant;
+use super::pyramid::{constant_parent, downsample, downsample_changed, BrickVoxels};
 use super::writer::{PreparedBrick, Vod2Writer};
 use super::{Snapshot, StoreError};
 use isovox_proto::vod2::{BrickHeader, HeaderSlot, NodeEntry};
@@ -164,7 +165,9 @@ impl<'a> Transaction<'a> {
     }
 
     /// Stages new contents of level-0 bricks and recomputes every coarser brick above those
-    /// whose entry changed (the others' children are read from the base).
+    /// whose entry changed: a parent is its base content with the octants under changed
+    /// children downsampled again (a parent is the downsampling of its children, octant by
+    /// octant, in every version this writer or a build wrote).
     ///
     /// # Errors
     /// A brick of the base fails to read, storing fails, or this is the first transaction of a
@@ -204,28 +207,33 @@ impl<'a> Transaction<'a> {
                 .par_iter()
                 .map(|&parent| -> Result<(BrickKey, BrickVoxels), StoreError> {
                     let kids = layout.children(parent);
-                    let mut owned: Vec<(usize, BrickVoxels)> = Vec::new();
+                    let mut changed: [Option<&BrickVoxels>; 8] = [None; 8];
                     for (octant, child) in &kids {
-                        if !kept.contains_key(child) {
-                            owned.push((*octant, snap.voxels(*child)?));
-                        }
+                        changed[*octant] = kept.get(child);
                     }
-                    let mut slots: [Option<&BrickVoxels>; 8] = [None; 8];
-                    for (octant, child) in &kids {
-                        if let Some(v) = kept.get(child) {
-                            slots[*octant] = Some(v);
+                    let voxels = if kids.iter().all(|(_, child)| kept.contains_key(child)) {
+                        // Every child is new (octants without a child are outside: L).
+                        match constant_parent(&changed) {
+                            Some(v) => BrickVoxels::Constant(v),
+                            None => {
+                                let mut out = vec![0u8; layout.brick_bytes()];
+                                downsample(&changed, layout.brick(), t, &mut out);
+                                BrickVoxels::from_bytes(out, t)
+                            }
                         }
-                    }
-                    for (octant, v) in &owned {
-                        slots[*octant] = Some(v);
-                    }
-                    let voxels = match constant_parent(&slots) {
-                        Some(v) => BrickVoxels::Constant(v),
-                        None => {
-                            let mut out = vec![0u8; layout.brick_bytes()];
-                            downsample(&slots, layout.brick(), t, &mut out);
-                            BrickVoxels::from_bytes(out, t)
-                        }
+                    } else {
+                        // The other octants are those of the parent as it was: one brick read
+                        // instead of each unchanged child.
+                        let mut out = match snap.voxels(parent)? {
+                            BrickVoxels::Data(bytes) => bytes,
+                            BrickVoxels::Constant(v) => {
+                                let mut bytes = vec![0u8; layout.brick_bytes()];
+                                fill_constant(&mut bytes, v, t);
+                                bytes
+                            }
+                        };
+                        downsample_changed(&changed, layout.brick(), t, &mut out);
+                        BrickVoxels::from_bytes(out, t)
                     };
                     Ok((parent, voxels))
                 })
