@@ -517,7 +517,7 @@ fn a_rolled_back_edit_leaves_the_group_as_if_it_had_never_come() {
     let (a, b, c) = (column(4, 4), column(60, 10), column(30, 50));
     let base = Vod2::open(&path).unwrap();
     let v = base.head().version;
-    let mut writer = Vod2Writer::open_append(&path, Compression::default()).unwrap();
+    let mut writer = Vod2Writer::open_append(&path, Compression::for_edits()).unwrap();
     let policy = CheckpointPolicy::default();
 
     stage_edit(&mut writer, base.head_ref(), &compiled(&a), policy).unwrap();
@@ -583,7 +583,7 @@ fn a_group_cut_short_by_a_crash_is_invisible_and_the_next_writer_cuts_it_off() {
     let v = base.head().version;
     let committed = base.head_slot().committed_len;
     {
-        let mut writer = Vod2Writer::open_append(&path, Compression::default()).unwrap();
+        let mut writer = Vod2Writer::open_append(&path, Compression::for_edits()).unwrap();
         stage_edit(&mut writer, base.head_ref(), &compiled(&a), policy).unwrap();
         let after_a = base.advance(writer.tip().unwrap()).unwrap();
         stage_edit(&mut writer, after_a.head_ref(), &compiled(&b), policy).unwrap();
@@ -610,5 +610,58 @@ fn a_group_cut_short_by_a_crash_is_invisible_and_the_next_writer_cuts_it_off() {
     assert_eq!(
         std::fs::metadata(&path).unwrap().len(),
         std::fs::metadata(&reference).unwrap().len()
+    );
+}
+
+#[test]
+fn a_volume_behind_its_file_catches_up_before_building_on_it() {
+    // The served head falls behind the file when a group stops after its sync and before
+    // publishing; here the file is moved on directly (as `isovox edit` would) to get there.
+    let dir = tempfile::tempdir().unwrap();
+    let (path, reference) = (dir.path().join("w.vod"), dir.path().join("r.vod"));
+    world(&path);
+    world(&reference);
+    let vol = LiveVolume::new("w", Vod2::open(&path).unwrap()).unwrap();
+    let v = vol.head().version;
+    let (a, b) = (column(4, 4), column(60, 10));
+    vol.apply(
+        &mut WriterSlot::default(),
+        compiled(&column(30, 50)),
+        None,
+        CheckpointPolicy::default(),
+    )
+    .unwrap();
+    // One writer at a time: the volume's is closed while the file moves on.
+    isovox_server::volume::edit_file(&path, &a).unwrap();
+    let answer = vol
+        .apply(
+            &mut WriterSlot::default(),
+            compiled(&b),
+            None,
+            CheckpointPolicy::default(),
+        )
+        .unwrap();
+    assert_eq!((answer.previous, answer.version), (v + 2, v + 3));
+    // Nothing is lost: the volume is the world with the three edits, in order.
+    let expected = LiveVolume::new("r", Vod2::open(&reference).unwrap()).unwrap();
+    for request in [&column(30, 50), &a, &b] {
+        expected
+            .apply(
+                &mut WriterSlot::default(),
+                compiled(request),
+                None,
+                CheckpointPolicy::default(),
+            )
+            .unwrap();
+    }
+    assert_eq!(contents(&vol.head()), contents(&expected.head()));
+    assert_eq!(
+        contents(&Vod2::open(&path).unwrap().head()),
+        contents(&expected.head())
+    );
+    let (listed, _) = vol.changes(v, 10).unwrap();
+    assert_eq!(
+        listed.iter().map(|c| c.version).collect::<Vec<_>>(),
+        vec![v + 1, v + 2, v + 3]
     );
 }

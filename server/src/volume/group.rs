@@ -190,7 +190,8 @@ impl LiveVolume {
         group: Vec<PendingEdit>,
         policy: CheckpointPolicy,
     ) {
-        let base = self.current();
+        let began = Instant::now();
+        let mut base = self.current();
         let writer = match writer_at(slot, &base) {
             Ok(w) => w,
             Err(e) => {
@@ -200,6 +201,21 @@ impl LiveVolume {
                 return;
             }
         };
+        if writer.head().map(|h| h.commit) != Some(base.head_ref().commit_offset()) {
+            // The file holds versions the volume does not serve (a group that stopped after
+            // its sync): serve the file as it is before building on it.
+            tracing::error!(volume = %self.name, "the served head is behind the file; reloading it");
+            match self.reload() {
+                Ok(fresh) => base = fresh,
+                Err(e) => {
+                    slot.writer = None;
+                    for pending in group {
+                        pending.answer(Err(copy_of(&e).into()));
+                    }
+                    return;
+                }
+            }
+        }
         // The newest version so far: the served head, then each staged one.
         let mut tip = base;
         let mut staged: Vec<Staged> = Vec::new();
@@ -222,7 +238,11 @@ impl LiveVolume {
                 continue;
             }
             let savepoint = writer.savepoint();
-            match stage(writer, &tip, &pending.edit, policy) {
+            // On a worker of the rayon pool: the edit's many small parallel loops then run
+            // there, instead of each being handed over from this thread and waited for.
+            // On a worker of the rayon pool: the edit's many small parallel loops then run
+            // there, instead of each being handed over from this thread and waited for.
+            match rayon::scope(|_| stage(writer, &tip, &pending.edit, policy)) {
                 Ok((vod, event, response)) => {
                     tip = vod.clone();
                     staged.push(Staged {
@@ -256,7 +276,13 @@ impl LiveVolume {
                 fail_all(staged, refused, std::iter::empty(), &e);
                 return;
             }
-            tracing::debug!(volume = %self.name, edits = staged.len(), sync_us = synced.elapsed().as_micros() as u64, "edit group durable");
+            tracing::debug!(
+                volume = %self.name,
+                edits = staged.len(),
+                staging_us = micros(synced - began),
+                sync_us = micros(synced.elapsed()),
+                "edit group durable"
+            );
         }
         // Publish and answer in order: the refused edits at their places among the versions.
         let mut refused = refused.into_iter().peekable();
@@ -312,8 +338,9 @@ impl LiveVolume {
     }
 }
 
-/// The volume's writer, opened if needed, positioned at the served head with nothing staged
-/// (otherwise reopened: opening cuts off what a failed group appended).
+/// The volume's writer, opened if needed, with nothing staged: reopened when a failed group
+/// left versions staged or the writer is not at the served head (opening cuts off what was
+/// appended past the file's durable head).
 fn writer_at<'a>(slot: &'a mut WriterSlot, base: &Vod2) -> Result<&'a mut Vod2Writer, StoreError> {
     let at_head = slot.writer.as_ref().is_some_and(|w| {
         !w.has_staged() && w.head().map(|h| h.commit) == Some(base.head_ref().commit_offset())
@@ -328,7 +355,7 @@ fn writer_at<'a>(slot: &'a mut WriterSlot, base: &Vod2) -> Result<&'a mut Vod2Wr
         Some(w) => Ok(w),
         empty => Ok(empty.insert(Vod2Writer::open_append(
             base.path(),
-            Compression::default(),
+            Compression::for_edits(),
         )?)),
     }
 }

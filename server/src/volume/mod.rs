@@ -306,6 +306,20 @@ impl LiveVolume {
         })
     }
 
+    /// Serves the file as it is on disk now: its head and history read afresh (after a
+    /// compaction replaced it, or when the served head fell behind the file).
+    ///
+    /// # Errors
+    /// The file does not open, or its commit chain is malformed (the served state is then
+    /// unchanged).
+    pub fn reload(&self) -> Result<Arc<Vod2>, StoreError> {
+        let fresh = Arc::new(Vod2::open(self.current.load().path())?);
+        let history = History::read(&fresh)?;
+        *self.history.write().unwrap_or_else(|p| p.into_inner()) = history;
+        self.current.store(fresh.clone());
+        Ok(fresh)
+    }
+
     /// Subscribes to the change feed: every version committed from now on.
     pub fn subscribe(&self) -> broadcast::Receiver<Arc<FeedItem>> {
         self.feed.subscribe()

@@ -2,7 +2,7 @@
 //! groups, `group.rs`) and compaction; and an edit of a file no server serves.
 
 use super::resolve::DirVolumes;
-use super::{History, LiveVolume, VolumeError, WriterSlot};
+use super::{LiveVolume, VolumeError, WriterSlot};
 use crate::icvg::edit::{apply_edit, Edit, EditOutcome};
 use crate::icvg::term::{TermLimits, VolumeResolver};
 use crate::progress::Silent;
@@ -80,10 +80,7 @@ impl LiveVolume {
         // The writer's dedup table names offsets of the old file.
         slot.writer = None;
         let report = compact(&vod, &head, &Silent)?;
-        let fresh = Vod2::open(vod.path())?;
-        let history = History::read(&fresh)?;
-        *self.history.write().unwrap_or_else(|p| p.into_inner()) = history;
-        self.current.store(Arc::new(fresh));
+        self.reload()?;
         Ok(report)
     }
 }
@@ -104,7 +101,7 @@ pub fn edit_file(path: &Path, request: &EditRequest) -> Result<EditOutcome, Volu
         &TermLimits::default(),
         &DirVolumes { dir },
     )?;
-    let mut writer = Vod2Writer::open_append(path, Compression::default())?;
+    let mut writer = Vod2Writer::open_append(path, Compression::for_edits())?;
     Ok(apply_edit(
         &mut writer,
         &snap,
