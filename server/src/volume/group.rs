@@ -240,8 +240,6 @@ impl LiveVolume {
             let savepoint = writer.savepoint();
             // On a worker of the rayon pool: the edit's many small parallel loops then run
             // there, instead of each being handed over from this thread and waited for.
-            // On a worker of the rayon pool: the edit's many small parallel loops then run
-            // there, instead of each being handed over from this thread and waited for.
             match rayon::scope(|_| stage(writer, &tip, &pending.edit, policy)) {
                 Ok((vod, event, response)) => {
                     tip = vod.clone();

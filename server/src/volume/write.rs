@@ -11,7 +11,6 @@ use crate::store::compact::{compact, CompactReport};
 use crate::store::{CheckpointPolicy, StoreError, Vod2, Vod2Writer};
 use isovox_proto::icvg::EditRequest;
 use std::path::Path;
-use std::sync::Arc;
 use tokio::sync::OwnedMutexGuard;
 
 /// What one edit may ask for.
