@@ -115,7 +115,8 @@ pub async fn batch(
     Json(request): Json<BatchRequest>,
 ) -> Result<Response, ApiError> {
     let read = state.catalog.get(&name)?.batch(&request)?;
-    let body = state.cpu.run(move || read.encode()).await?;
+    let bricks = state.bricks.clone();
+    let body = state.cpu.run(move || read.encode(&bricks)).await?;
     Ok(([(header::CONTENT_TYPE, BATCH_MEDIA_TYPE)], body).into_response())
 }
 

@@ -33,7 +33,9 @@ pub mod writer;
 pub use build::{build_vod2, stream_pyramid, BuildOptions, BuildReport, MemorySink, SlabSink};
 pub use pyramid::{BrickSource, BrickVoxels, DenseGrid};
 pub use transaction::{CheckpointPolicy, Committed, Transaction};
-pub use vod2::{Snapshot, SnapshotSource, StoredBrick, Vod2};
+pub use vod2::{
+    verify_stored, PayloadCheck, SlotState, Snapshot, SnapshotSource, StoredBrick, Vod2, Vod2File,
+};
 pub use writer::Vod2Writer;
 
 use isovox_proto::FormatError;
