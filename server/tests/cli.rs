@@ -556,6 +556,8 @@ fn output_to_a_reader_that_has_gone_ends_quietly() {
     for args in [
         vec!["inspect", f],
         vec!["inspect", "--json", f],
+        vec!["check", f],
+        vec!["check", "--json", f],
         vec!["get", f, "0", "0", "0", "0"],
     ] {
         for _ in 0..3 {

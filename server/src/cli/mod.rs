@@ -18,6 +18,7 @@ macro_rules! out {
 mod data;
 mod edit;
 mod mesh;
+mod repair;
 mod serve;
 mod voxelize;
 
@@ -62,6 +63,12 @@ pub(crate) enum Command {
     /// bricks); run it on a file no server is writing (a server compacts with
     /// POST /v1/volumes/{name}/compact).
     Compact(data::CompactArgs),
+    /// Verify every record of every version of a file; list what is damaged (exit status 1
+    /// when anything is) and which versions are intact.
+    Check(repair::CheckArgs),
+    /// Write a new file from the newest intact version of a damaged one (the damaged file is
+    /// not touched).
+    Salvage(repair::SalvageArgs),
 }
 
 /// Runs a parsed command line.
@@ -80,6 +87,8 @@ pub(crate) fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Get(a) => data::get(a),
         Command::Compact(a) => data::compact(a),
         Command::Voxelize(a) => voxelize::voxelize_cmd(a),
+        Command::Check(a) => repair::check(a),
+        Command::Salvage(a) => repair::salvage(a),
     }
 }
 

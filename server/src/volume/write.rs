@@ -31,7 +31,8 @@ impl LiveVolume {
     /// off the async runtime.
     ///
     /// # Errors
-    /// [`VolumeError::InvalidEdit`], [`VolumeError::EditTooLarge`], [`VolumeError::Conflict`].
+    /// [`VolumeError::ReadOnly`], [`VolumeError::InvalidEdit`], [`VolumeError::EditTooLarge`],
+    /// [`VolumeError::Conflict`].
     pub fn prepare_edit(
         &self,
         request: &EditRequest,
@@ -39,6 +40,7 @@ impl LiveVolume {
         volumes: &dyn VolumeResolver,
         if_match: Option<u64>,
     ) -> Result<Edit, VolumeError> {
+        self.check_writable()?;
         let head = self.head();
         let layout = head.layout();
         let edit = Edit::from_request(request, layout.voxel_type(), &limits.term, volumes)?;
@@ -74,7 +76,7 @@ impl LiveVolume {
     /// Blocking (evaluates on rayon, syncs the file): call it off the async runtime.
     ///
     /// # Errors
-    /// `If-Match` mismatch, or reading or committing failed (the head is then unchanged and
+    /// A read-only volume, `If-Match` mismatch, or reading or committing failed (the head is then unchanged and
     /// the writer is reopened on the next edit, cutting off whatever the failed commit
     /// appended).
     pub fn apply(
@@ -84,6 +86,7 @@ impl LiveVolume {
         if_match: Option<u64>,
         policy: CheckpointPolicy,
     ) -> Result<EditResponse, VolumeError> {
+        self.check_writable()?;
         let vod = self.current();
         let head = vod.head();
         if let Some(expected) = if_match.filter(|&v| v != head.version) {
@@ -154,15 +157,18 @@ impl LiveVolume {
     /// Blocking: call it off the async runtime.
     ///
     /// # Errors
-    /// Compaction failed (the old file is then still served) or the new file does not open.
-    pub fn compact(&self, slot: &mut WriterSlot) -> Result<CompactReport, StoreError> {
+    /// The volume is read-only ([`VolumeError::ReadOnly`]: compacting would rewrite its file
+    /// without the damaged versions; `isovox salvage` writes a new file instead), compaction
+    /// failed (the old file is then still served) or the new file does not open.
+    pub fn compact(&self, slot: &mut WriterSlot) -> Result<CompactReport, VolumeError> {
+        self.check_writable()?;
         let vod = self.current();
         let head = vod.head();
         // The writer's dedup table names offsets of the old file.
         slot.writer = None;
         let report = compact(&vod, &head, &Silent)?;
         let fresh = Vod2::open(vod.path())?;
-        let history = History::read(&fresh)?;
+        let history = History::read(&self.name, &fresh);
         *self.history.write().unwrap_or_else(|p| p.into_inner()) = history;
         self.current.store(Arc::new(fresh));
         Ok(report)
