@@ -8,8 +8,8 @@
 use super::codec::fill_constant;
 use super::pyramid::{constant_parent, downsample, downsample_changed, BrickVoxels};
 use super::writer::{PreparedBrick, Vod2Writer};
-use super::{Snapshot, StoreError};
-use isovox_proto::vod2::{BrickHeader, HeaderSlot, NodeEntry};
+use super::{Snapshot, StoreError, StoredBrick};
+use isovox_proto::vod2::{HeaderSlot, NodeEntry};
 use isovox_proto::BrickKey;
 use rayon::prelude::*;
 use std::collections::HashMap;
@@ -151,17 +151,14 @@ impl<'a> Transaction<'a> {
         self.set(node, entry)
     }
 
-    /// Copies a brick record of another file as it is (no decoding) and returns its new entry
-    /// (not yet set on any node: records shared by several nodes are copied once).
+    /// Copies a brick record of another file with its payload as it is (verified first, see
+    /// [`Vod2Writer::copy_record`]) and returns its new entry (not yet set on any node: records
+    /// shared by several nodes are copied once).
     ///
     /// # Errors
-    /// Appending fails.
-    pub fn copy_record(
-        &mut self,
-        header: &BrickHeader,
-        payload: &[u8],
-    ) -> Result<NodeEntry, StoreError> {
-        self.writer.copy_record(header, payload)
+    /// The payload is damaged, or appending fails.
+    pub fn copy_record(&mut self, stored: &StoredBrick<'_>) -> Result<NodeEntry, StoreError> {
+        self.writer.copy_record(stored)
     }
 
     /// Stages new contents of level-0 bricks and recomputes every coarser brick above those

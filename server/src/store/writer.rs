@@ -21,9 +21,10 @@
 use super::codec::{self, Compression};
 use super::pyramid::BrickVoxels;
 use super::StoreError;
+use super::StoredBrick;
 use isovox_proto::vod2::{
-    content_hash, BrickHeader, Checkpoint, Codec, CommitHeader, FileHeader, HeaderSlot, NodeEntry,
-    BRICK_HEADER_LEN, CHUNK_ENTRIES, DATA_START, SLOT_OFFSETS,
+    content_hash, payload_check, BrickHeader, Checkpoint, Codec, CommitHeader, FileHeader,
+    HeaderSlot, NodeEntry, BRICK_HEADER_LEN, CHUNK_ENTRIES, DATA_START, SLOT_OFFSETS,
 };
 use isovox_proto::VoxelType;
 use std::collections::HashMap;
@@ -211,18 +212,41 @@ impl Vod2Writer {
         Ok(())
     }
 
-    /// Appends a brick record exactly as another file stores it (header and payload), for
-    /// copying distinct records between files without decoding them.
+    /// Appends a brick record of another file (of the same shape) with its payload as it is,
+    /// for copying distinct records between files without recompressing them. The payload is
+    /// verified first ([`verify_stored`]: its checksum, or, in a record written before payload
+    /// checksums, its decoded content), so damage is never copied, and the copy has a
+    /// checksum whatever the original had. A constant is returned as it is.
+    ///
+    /// [`verify_stored`]: super::vod2::verify_stored
     ///
     /// # Errors
-    /// Appending fails.
-    pub fn copy_record(
+    /// The payload is not what was stored ([`StoreError::Corrupt`]), or appending fails.
+    pub fn copy_record(&mut self, stored: &StoredBrick<'_>) -> Result<NodeEntry, StoreError> {
+        match *stored {
+            StoredBrick::Constant(v) => Ok(NodeEntry::Constant(v)),
+            StoredBrick::Record {
+                header, payload, ..
+            } => {
+                super::vod2::verify_stored(stored, &self.header.layout)?;
+                self.append_record(header, payload)
+            }
+        }
+    }
+
+    /// Appends a brick record with a payload checksum; returns its offset.
+    fn append_record(
         &mut self,
-        header: &BrickHeader,
+        header: BrickHeader,
         payload: &[u8],
     ) -> Result<NodeEntry, StoreError> {
+        let header = BrickHeader {
+            checked: true,
+            ..header
+        };
         let offset = self.append(&header.encode())?;
         self.append(payload)?;
+        self.append(&payload_check(payload).to_le_bytes())?;
         self.stats.stored[header.codec as usize] += 1;
         self.stats.stored_bytes[header.codec as usize] += payload.len() as u64;
         self.remember(header.hash, offset);
@@ -336,21 +360,24 @@ impl Vod2Writer {
             codec,
             min: brick.min,
             max: brick.max,
+            checked: true,
         };
-        let offset = self.append(&header.encode())?;
-        self.append(&payload)?;
-        self.stats.stored[codec as usize] += 1;
-        self.stats.stored_bytes[codec as usize] += payload.len() as u64;
-        self.remember(brick.hash, offset);
-        Ok(NodeEntry::Stored(offset))
+        self.append_record(header, &payload)
     }
 
+    /// Whether the record at `offset` holds `bytes`. A damaged record holds nothing: the
+    /// brick is then stored anew, so later versions do not depend on the damage.
     fn stored_equals(&self, offset: u64, bytes: &[u8]) -> Result<bool, StoreError> {
         let head = self.read_at(offset, BRICK_HEADER_LEN)?;
-        let h = BrickHeader::decode(&head, offset, &self.header.layout)?;
+        let h = match BrickHeader::decode(&head, offset, &self.header.layout) {
+            Ok(h) => h,
+            Err(e) => return Ok(damaged(offset, &e.into())),
+        };
         let payload = self.read_at(offset + BRICK_HEADER_LEN as u64, h.stored_len as usize)?;
         let mut decoded = vec![0u8; bytes.len()];
-        codec::decode(h.codec, &payload, &mut decoded, offset)?;
+        if let Err(e) = codec::decode(h.codec, &payload, &mut decoded, offset) {
+            return Ok(damaged(offset, &e));
+        }
         Ok(decoded == bytes)
     }
 
@@ -546,6 +573,12 @@ impl Vod2Writer {
         self.stats = savepoint.stats;
         Ok(())
     }
+}
+
+/// Logs a stored record found damaged while deduplicating, and says it holds nothing.
+fn damaged(offset: u64, e: &StoreError) -> bool {
+    tracing::warn!(offset, error = %super::error_chain(e), "a stored brick record is damaged; storing the brick anew");
+    false
 }
 
 /// Encodes a full index as a checkpoint: chunks of 512 entries, each zstd-compressed when that

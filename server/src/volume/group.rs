@@ -191,6 +191,17 @@ impl LiveVolume {
         policy: CheckpointPolicy,
     ) {
         let began = Instant::now();
+        if let Some(cause) = self.read_only_cause() {
+            // Never open a writer on a file served read-only: opening cuts off what lies past
+            // the version it serves, and the damaged versions are there.
+            for pending in group {
+                pending.answer(Err(VolumeError::ReadOnly {
+                    volume: self.name.clone(),
+                    cause: cause.to_string(),
+                }));
+            }
+            return;
+        }
         let mut base = self.current();
         let writer = match writer_at(slot, &base) {
             Ok(w) => w,

@@ -8,7 +8,7 @@ use crate::icvg::term::{TermLimits, VolumeResolver};
 use crate::progress::Silent;
 use crate::store::codec::Compression;
 use crate::store::compact::{compact, CompactReport};
-use crate::store::{CheckpointPolicy, StoreError, Vod2, Vod2Writer};
+use crate::store::{CheckpointPolicy, Vod2, Vod2Writer};
 use isovox_proto::icvg::EditRequest;
 use std::path::Path;
 use tokio::sync::OwnedMutexGuard;
@@ -28,7 +28,8 @@ impl LiveVolume {
     /// off the async runtime.
     ///
     /// # Errors
-    /// [`VolumeError::InvalidEdit`], [`VolumeError::EditTooLarge`], [`VolumeError::Conflict`].
+    /// [`VolumeError::ReadOnly`], [`VolumeError::InvalidEdit`], [`VolumeError::EditTooLarge`],
+    /// [`VolumeError::Conflict`].
     pub fn prepare_edit(
         &self,
         request: &EditRequest,
@@ -36,6 +37,7 @@ impl LiveVolume {
         volumes: &dyn VolumeResolver,
         if_match: Option<u64>,
     ) -> Result<Edit, VolumeError> {
+        self.check_writable()?;
         let head = self.head();
         let layout = head.layout();
         let edit = Edit::from_request(request, layout.voxel_type(), &limits.term, volumes)?;
@@ -72,8 +74,11 @@ impl LiveVolume {
     /// Blocking: call it off the async runtime.
     ///
     /// # Errors
-    /// Compaction failed (the old file is then still served) or the new file does not open.
-    pub fn compact(&self, slot: &mut WriterSlot) -> Result<CompactReport, StoreError> {
+    /// The volume is read-only ([`VolumeError::ReadOnly`]: compacting would rewrite its file
+    /// without the damaged versions; `isovox salvage` writes a new file instead), compaction
+    /// failed (the old file is then still served) or the new file does not open.
+    pub fn compact(&self, slot: &mut WriterSlot) -> Result<CompactReport, VolumeError> {
+        self.check_writable()?;
         let vod = self.current();
         let head = vod.head();
         // The writer's dedup table names offsets of the old file.
