@@ -429,9 +429,11 @@ fn serve(dir: &Path) -> Server {
         };
         log.push_str(&line);
         log.push('\n');
+        // "isovox serving ... on http://ADDR/v1/volumes, the viewer on http://ADDR/"
         if let Some(i) = line.find("on http://") {
-            let url = &line[i + 3..];
-            break url.trim_end_matches("/v1/volumes").to_string();
+            let rest = &line[i + "on http://".len()..];
+            let addr = &rest[..rest.find('/').unwrap_or(rest.len())];
+            break format!("http://{addr}");
         }
     };
     // Keep reading its log so that it never blocks on a full pipe.
