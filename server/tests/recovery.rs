@@ -13,6 +13,7 @@
 #![allow(clippy::unwrap_used)]
 
 mod common;
+mod server_process;
 use common::{mixed_volume, pyramid, Grid, XorShift};
 
 use isovox_proto::vod2::{Checkpoint, CommitHeader, NodeEntry};
@@ -23,10 +24,10 @@ use isovox_server::store::{
     Vod2Writer,
 };
 use serde_json::Value;
-use std::io::{BufRead, BufReader};
+use server_process::ServerProcess;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Command, Output};
 
 const DIMS: [u32; 3] = [64, 32, 64];
 const BRICK: u32 = 16;
@@ -396,49 +397,21 @@ fn a_damaged_brick_is_never_copied() {
     salvage_gives(&h, dir.path(), HEAD - 1);
 }
 
-/// `isovox serve` on `dir`, stopped when dropped; its address and everything it logged up to
+/// `isovox serve` on `dir` (killed when dropped), its address, and everything it logged up to
 /// the line saying it serves.
 struct Server {
-    child: Child,
+    _process: ServerProcess,
     base: String,
     log: String,
 }
 
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
 fn serve(dir: &Path) -> Server {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_isovox"))
-        .args(["serve", "--data", s(dir), "--addr", "127.0.0.1:0"])
-        .env_remove("ISOVOX_LOG")
-        .env_remove("ISOVOX_WRITE_TOKEN")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
-    let mut log = String::new();
-    let base = loop {
-        let Some(Ok(line)) = lines.next() else {
-            let _ = child.kill();
-            panic!("the server stopped before serving:\n{log}");
-        };
-        log.push_str(&line);
-        log.push('\n');
-        // "isovox serving ... on http://ADDR/v1/volumes, the viewer on http://ADDR/"
-        if let Some(i) = line.find("on http://") {
-            let rest = &line[i + "on http://".len()..];
-            let addr = &rest[..rest.find('/').unwrap_or(rest.len())];
-            break format!("http://{addr}");
-        }
-    };
-    // Keep reading its log so that it never blocks on a full pipe.
-    std::thread::spawn(move || for _ in lines {});
-    Server { child, base, log }
+    let process = ServerProcess::start(&["--data".as_ref(), dir.as_os_str()], &[]);
+    Server {
+        base: process.url(""),
+        log: format!("{}\n{}", process.log(), process.announced),
+        _process: process,
+    }
 }
 
 /// A small edit, with the write token the server made in `dir`.
