@@ -24,7 +24,7 @@ use isovox_server::store::CheckpointPolicy;
 use isovox_server::store::{build_vod2, BuildOptions, Snapshot, StoredBrick, Vod2, Vod2Writer};
 use isovox_server::volume::group::EditAnswer;
 use isovox_server::volume::{LiveVolume, PendingEdit, VolumeError, WriterSlot};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use tokio::sync::oneshot::Receiver;
 
 mod common;
@@ -323,6 +323,30 @@ fn compiled(request: &EditRequest) -> Edit {
 }
 
 /// Both header slots as the file holds them now (read with pread, as a reader opening it).
+/// Two copies of the same world in `dir`: the file under test and a reference.
+fn two_worlds(dir: &Path) -> (PathBuf, PathBuf) {
+    let (path, reference) = (dir.join("w.vod"), dir.join("r.vod"));
+    world(&path);
+    world(&reference);
+    (path, reference)
+}
+
+/// The world at `reference` with `requests` applied one at a time (each a group of its own).
+fn one_at_a_time(reference: &Path, requests: &[&EditRequest]) -> LiveVolume {
+    let vol = LiveVolume::new("r", Vod2::open(reference).unwrap()).unwrap();
+    let mut slot = WriterSlot::default();
+    for request in requests {
+        vol.apply(
+            &mut slot,
+            compiled(request),
+            None,
+            CheckpointPolicy::default(),
+        )
+        .unwrap();
+    }
+    vol
+}
+
 fn header_slots(path: &Path) -> Vec<HeaderSlot> {
     use std::os::unix::fs::FileExt;
     let file = std::fs::File::open(path).unwrap();
@@ -462,11 +486,8 @@ fn if_match_inside_a_group_sees_the_versions_made_before_it_in_the_group() {
 #[test]
 fn an_edit_withdrawn_before_the_writer_reaches_it_is_never_applied() {
     let dir = tempfile::tempdir().unwrap();
-    let (path, reference) = (dir.path().join("w.vod"), dir.path().join("r.vod"));
-    world(&path);
-    world(&reference);
+    let (path, reference) = two_worlds(dir.path());
     let vol = LiveVolume::new("w", Vod2::open(&path).unwrap()).unwrap();
-    let expected = LiveVolume::new("r", Vod2::open(&reference).unwrap()).unwrap();
     let v = vol.head().version;
     let mut rng = XorShift(4242);
     let requests: Vec<EditRequest> = (0..3).map(|_| random_edit(&mut rng)).collect();
@@ -482,16 +503,7 @@ fn an_edit_withdrawn_before_the_writer_reaches_it_is_never_applied() {
     );
     assert_eq!(answer_of(&mut a_answer).unwrap().version, v + 1);
     assert_eq!(answer_of(&mut c_answer).unwrap().version, v + 2);
-    for request in [&requests[0], &requests[2]] {
-        expected
-            .apply(
-                &mut WriterSlot::default(),
-                compiled(request),
-                None,
-                CheckpointPolicy::default(),
-            )
-            .unwrap();
-    }
+    let expected = one_at_a_time(&reference, &[&requests[0], &requests[2]]);
     assert_eq!(contents(&vol.head()), contents(&expected.head()));
 }
 
@@ -513,9 +525,7 @@ fn column(x: i64, z: i64) -> EditRequest {
 #[test]
 fn a_rolled_back_edit_leaves_the_group_as_if_it_had_never_come() {
     let dir = tempfile::tempdir().unwrap();
-    let (path, reference) = (dir.path().join("w.vod"), dir.path().join("r.vod"));
-    world(&path);
-    world(&reference);
+    let (path, reference) = two_worlds(dir.path());
     let (a, b, c) = (column(4, 4), column(60, 10), column(30, 50));
     let base = Vod2::open(&path).unwrap();
     let v = base.head().version;
@@ -547,13 +557,7 @@ fn a_rolled_back_edit_leaves_the_group_as_if_it_had_never_come() {
     writer.sync().unwrap();
 
     // The reference: A, B and C applied one at a time to a copy of the same world.
-    let expected = LiveVolume::new("r", Vod2::open(&reference).unwrap()).unwrap();
-    let mut slot = WriterSlot::default();
-    for request in [&a, &b, &c] {
-        expected
-            .apply(&mut slot, compiled(request), None, policy)
-            .unwrap();
-    }
+    let expected = one_at_a_time(&reference, &[&a, &b, &c]);
     let file = Vod2::open(&path).unwrap();
     assert_eq!(file.head().version, v + 3);
     assert_eq!(entries(&file.head()), entries(&after_c.head()));
@@ -575,9 +579,7 @@ fn a_rolled_back_edit_leaves_the_group_as_if_it_had_never_come() {
 #[test]
 fn a_group_cut_short_by_a_crash_is_invisible_and_the_next_writer_cuts_it_off() {
     let dir = tempfile::tempdir().unwrap();
-    let (path, reference) = (dir.path().join("w.vod"), dir.path().join("r.vod"));
-    world(&path);
-    world(&reference);
+    let (path, reference) = two_worlds(dir.path());
     let mut rng = XorShift(0xc0ffee);
     let [a, b, c] = [0; 3].map(|_| random_edit(&mut rng));
     let policy = CheckpointPolicy::default();
@@ -601,10 +603,7 @@ fn a_group_cut_short_by_a_crash_is_invisible_and_the_next_writer_cuts_it_off() {
         .apply(&mut WriterSlot::default(), compiled(&c), None, policy)
         .unwrap();
     assert_eq!(answer.version, v + 1);
-    let expected = LiveVolume::new("r", Vod2::open(&reference).unwrap()).unwrap();
-    expected
-        .apply(&mut WriterSlot::default(), compiled(&c), None, policy)
-        .unwrap();
+    let expected = one_at_a_time(&reference, &[&c]);
     assert_eq!(
         contents(&Vod2::open(&path).unwrap().head()),
         contents(&expected.head())
@@ -620,9 +619,7 @@ fn a_volume_behind_its_file_catches_up_before_building_on_it() {
     // The served head falls behind the file when a group stops after its sync and before
     // publishing; here the file is moved on directly (as `isovox edit` would) to get there.
     let dir = tempfile::tempdir().unwrap();
-    let (path, reference) = (dir.path().join("w.vod"), dir.path().join("r.vod"));
-    world(&path);
-    world(&reference);
+    let (path, reference) = two_worlds(dir.path());
     let vol = LiveVolume::new("w", Vod2::open(&path).unwrap()).unwrap();
     let v = vol.head().version;
     let (a, b) = (column(4, 4), column(60, 10));
@@ -645,17 +642,7 @@ fn a_volume_behind_its_file_catches_up_before_building_on_it() {
         .unwrap();
     assert_eq!((answer.previous, answer.version), (v + 2, v + 3));
     // Nothing is lost: the volume is the world with the three edits, in order.
-    let expected = LiveVolume::new("r", Vod2::open(&reference).unwrap()).unwrap();
-    for request in [&column(30, 50), &a, &b] {
-        expected
-            .apply(
-                &mut WriterSlot::default(),
-                compiled(request),
-                None,
-                CheckpointPolicy::default(),
-            )
-            .unwrap();
-    }
+    let expected = one_at_a_time(&reference, &[&column(30, 50), &a, &b]);
     assert_eq!(contents(&vol.head()), contents(&expected.head()));
     assert_eq!(
         contents(&Vod2::open(&path).unwrap().head()),

@@ -104,6 +104,41 @@ struct Figures {
     single_p99_ms: f64,
 }
 
+impl Figures {
+    /// The medians of `runs`; the counts (errors, deliveries, missing, out of order) summed.
+    fn summary(runs: &[Figures]) -> Figures {
+        let m = |f: fn(&Figures) -> f64| median(runs.iter().map(f).collect());
+        let sum = |f: fn(&Figures) -> usize| runs.iter().map(f).sum::<usize>();
+        Figures {
+            edits: m(|f| f.edits as f64).round() as usize,
+            per_second: m(|f| f.per_second),
+            p50_ms: m(|f| f.p50_ms),
+            p99_ms: m(|f| f.p99_ms),
+            errors: sum(|f| f.errors),
+            deliveries: sum(|f| f.deliveries),
+            missing: sum(|f| f.missing),
+            out_of_order: sum(|f| f.out_of_order),
+            early_percent: m(|f| f.early_percent),
+            propagation_p50_ms: m(|f| f.propagation_p50_ms),
+            propagation_p99_ms: m(|f| f.propagation_p99_ms),
+            propagation_max_ms: m(|f| f.propagation_max_ms),
+            single_p50_ms: m(|f| f.single_p50_ms),
+            single_p99_ms: m(|f| f.single_p99_ms),
+        }
+    }
+
+    /// One row of the table.
+    fn row(&self, label: &str) -> String {
+        let f = self;
+        format!(
+            "| {label} | {} | {:.0} | {:.2} | {:.2} | {} | {} | {} | {} | {:.0}% | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} |",
+            f.edits, f.per_second, f.p50_ms, f.p99_ms, f.errors, f.deliveries, f.missing,
+            f.out_of_order, f.early_percent, f.propagation_p50_ms, f.propagation_p99_ms,
+            f.propagation_max_ms, f.single_p50_ms, f.single_p99_ms,
+        )
+    }
+}
+
 /// The world and what every run shares.
 struct Bench {
     a: EditsBenchArgs,
@@ -162,36 +197,16 @@ pub fn run_bench(a: EditsBenchArgs) -> anyhow::Result<()> {
         "### Shared editing: {} editors carving radius-{} ellipsoids into a {}^3 world (brick {}), {} change-feed subscribers, {} s; then one editor alone for {} s\n",
         a.editors, a.radius, a.size, a.brick, a.subscribers, a.seconds, a.single_seconds
     );
-    println!("Strategies alternate run by run, each on a fresh copy of the world; medians of {} runs (every run below).\n", a.runs);
+    println!("Strategies alternate run by run, each on a fresh copy of the world; medians of {} runs (errors, deliveries, missing and out of order: their sums), every run below.\n", a.runs);
     println!("| edit group | edits | edits/s | edit p50 ms | edit p99 ms | errors | deliveries | missing | out of order | before the ack | propagation p50 ms | propagation p99 ms | max ms | one editor p50 ms | one editor p99 ms |");
     println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for (group, runs) in a.groups.iter().zip(&figures) {
-        let m = |f: fn(&Figures) -> f64| median(runs.iter().map(f).collect());
-        let sum = |f: fn(&Figures) -> usize| runs.iter().map(f).sum::<usize>();
         println!(
-            "| **{group}** (median) | {:.0} | **{:.0}** | {:.2} | **{:.2}** | {} | {} | {} | {} | {:.0}% | {:.2} | **{:.2}** | {:.2} | {:.2} | {:.2} |",
-            m(|f| f.edits as f64),
-            m(|f| f.per_second),
-            m(|f| f.p50_ms),
-            m(|f| f.p99_ms),
-            sum(|f| f.errors),
-            sum(|f| f.deliveries),
-            sum(|f| f.missing),
-            sum(|f| f.out_of_order),
-            m(|f| f.early_percent),
-            m(|f| f.propagation_p50_ms),
-            m(|f| f.propagation_p99_ms),
-            m(|f| f.propagation_max_ms),
-            m(|f| f.single_p50_ms),
-            m(|f| f.single_p99_ms),
+            "{}",
+            Figures::summary(runs).row(&format!("**{group}** (median)"))
         );
         for f in runs {
-            println!(
-                "| {group} | {} | {:.0} | {:.2} | {:.2} | {} | {} | {} | {} | {:.0}% | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} |",
-                f.edits, f.per_second, f.p50_ms, f.p99_ms, f.errors, f.deliveries, f.missing,
-                f.out_of_order, f.early_percent, f.propagation_p50_ms, f.propagation_p99_ms,
-                f.propagation_max_ms, f.single_p50_ms, f.single_p99_ms,
-            );
+            println!("{}", f.row(&group.to_string()));
         }
     }
     if let (Some(first), Some(last)) = (figures.first(), figures.last()) {
