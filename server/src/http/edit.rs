@@ -6,7 +6,6 @@ use super::extract::Path;
 use super::request_body::{is_json, read_limited};
 use super::{ApiError, AppState};
 use crate::cancel::CancelToken;
-use crate::store::CheckpointPolicy;
 use axum::body::Body;
 use axum::extract::State;
 use axum::http::{header, HeaderMap};
@@ -17,11 +16,12 @@ use isovox_proto::icvg::EditRequest;
 /// Largest edit request body.
 const MAX_EDIT_BODY: usize = 1 << 20;
 
-/// Checks the token before anything is read, compiles the edit off the async runtime, waits
-/// for the volume's writer (bounded queue), applies and commits, and answers with the new
-/// version. Compiling and evaluating each get the server's edit timeout (waiting for the writer
-/// does not count); the work stops as soon as this request's future is dropped (the client
-/// left, or a shutdown closed the connection), and nothing is committed then.
+/// Checks the token before anything is read, compiles the edit off the async runtime, queues
+/// it for the volume's writer (bounded queue; the writer commits the edits waiting together,
+/// each as its own version), and answers with the new version once it is durable. Compiling and
+/// evaluating each get the server's edit timeout (waiting for the writer does not count); the
+/// work stops as soon as this request's future is dropped (the client left, or a shutdown
+/// closed the connection), and nothing of the edit is committed then.
 pub async fn edit(
     // First: without a token, nothing else is read.
     WriteToken(token): WriteToken,
@@ -38,15 +38,12 @@ pub async fn edit(
     let _stop_when_dropped = cancel.cancel_on_drop();
     let (limits, volumes, preparing) = (state.edit_limits(), state.resolver(), vol.clone());
     let compiling = cancel.clone();
-    let mut edit =
+    let edit =
         blocking(move || preparing.prepare_edit(&request, &limits, &volumes, if_match, &compiling))
             .await?;
-    let mut writer = vol.wait_for_writer(state.config.edit_queue).await?;
-    let (applying, evaluating) = (vol.clone(), cancel.restarted());
-    let policy = CheckpointPolicy::default();
-    let response =
-        blocking(move || applying.apply(&mut writer, &mut edit, if_match, policy, &evaluating))
-            .await?;
+    let response = vol
+        .submit(edit, if_match, cancel, state.group_commit())
+        .await?;
     tracing::info!(
         volume = %name,
         token = %token.name,

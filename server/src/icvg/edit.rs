@@ -53,7 +53,7 @@ pub struct Edit {
 /// What an edit changed.
 #[derive(Debug, Clone, Serialize)]
 pub struct EditOutcome {
-    /// The version committed.
+    /// The version committed (or staged).
     pub version: u64,
     /// Changed bricks per level (level 0 first), as `[x, y, z]`.
     pub changed: ChangedKeys,
@@ -322,14 +322,36 @@ fn edit_brick(
 }
 
 /// Applies `edit` to the version `snap` of the file `writer` appends to, and commits the result
-/// as the next version. `snap` must be the writer's head. Morphology in the term is filtered
-/// once over the edit's reach first (the term keeps those values). `cancel` is checked until
-/// the commit starts; a stopped edit commits nothing.
+/// as the next version. `snap` must be the writer's head. `cancel` is checked until the commit
+/// starts (see [`stage_edit`]); a stopped edit commits nothing.
 ///
 /// # Errors
 /// Reading a brick fails, `cancel` stops the evaluation, or writing the commit fails (the head
 /// is then unchanged).
 pub fn apply_edit(
+    writer: &mut Vod2Writer,
+    snap: &Snapshot,
+    edit: &mut Edit,
+    policy: CheckpointPolicy,
+    cancel: &CancelToken,
+) -> Result<EditOutcome, EvalError> {
+    let start = Instant::now();
+    let mut outcome = stage_edit(writer, snap, edit, policy, cancel)?;
+    writer.sync()?;
+    outcome.elapsed = start.elapsed();
+    Ok(outcome)
+}
+
+/// Applies `edit` to the version `snap` and stages the result as the next version, not yet
+/// durable (the writer's next sync makes it so, with every other version staged until then).
+/// `snap` must be the writer's newest version, staged or durable. Morphology in the term is
+/// filtered once over the edit's reach first (the term keeps those values). `cancel` is checked
+/// until the bricks are evaluated: a stopped edit has appended nothing.
+///
+/// # Errors
+/// Reading a brick fails, `cancel` stops the evaluation, or appending fails: what was appended
+/// is then still in the writer (roll it back to a savepoint taken before, or drop it).
+pub fn stage_edit(
     writer: &mut Vod2Writer,
     snap: &Snapshot,
     edit: &mut Edit,
@@ -361,13 +383,13 @@ pub fn apply_edit(
         .collect();
     let mut transaction = Transaction::on(writer, snap);
     transaction.update_level0(level0)?;
-    let committed = transaction.commit(policy)?;
+    let staged = transaction.stage(policy)?;
     Ok(EditOutcome {
-        version: committed.slot.version,
-        changed: committed.changed,
+        version: staged.slot.version,
+        changed: staged.changed,
         evaluated,
-        new_records: committed.new_records,
-        checkpoint: committed.checkpoint,
+        new_records: staged.new_records,
+        checkpoint: staged.checkpoint,
         elapsed: start.elapsed(),
     })
 }

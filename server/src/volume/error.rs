@@ -1,7 +1,7 @@
 //! What can go wrong with an operation on a served volume, and whose fault it is.
 
 use crate::cancel::Stopped;
-use crate::icvg::term::TermError;
+use crate::icvg::term::{EvalError, TermError};
 use crate::store::StoreError;
 
 /// Why an operation on a served volume was not carried out. The HTTP layer decides the status
@@ -69,6 +69,15 @@ pub enum VolumeError {
     /// left, or the server is shutting down. Nothing was committed.
     #[error("{}", stopped_detail(.0))]
     Stopped(Stopped),
+    /// The volume is served read-only (its newest durable version is damaged): no edit, no
+    /// compaction.
+    #[error("volume {volume:?} is read-only: {cause}")]
+    ReadOnly {
+        /// The volume.
+        volume: String,
+        /// Why: what is damaged, what is served, how to recover.
+        cause: String,
+    },
     /// Too many edits already wait for the volume's writer.
     #[error("too many edits are waiting for this volume")]
     WriterBusy,
@@ -95,6 +104,15 @@ impl From<TermError> for VolumeError {
         match e {
             TermError::Stopped(stopped) => VolumeError::Stopped(stopped),
             e => VolumeError::InvalidEdit(e),
+        }
+    }
+}
+
+impl From<EvalError> for VolumeError {
+    fn from(e: EvalError) -> Self {
+        match e {
+            EvalError::Store(e) => VolumeError::Store(e),
+            EvalError::Stopped(stopped) => VolumeError::Stopped(stopped),
         }
     }
 }
