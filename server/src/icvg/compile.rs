@@ -250,8 +250,11 @@ impl Compiler<'_> {
         let place =
             |p: [f32; 3]| -> [f64; 3] { std::array::from_fn(|a| p[a] as f64 * scale + offset[a]) };
         let (a, b) = (place(lo), place(hi));
-        // NaN and infinity fail the comparison too.
-        if let Some(c) = a.iter().chain(&b).find(|c| !(c.abs() <= MAX_PLACED)) {
+        if let Some(c) = a
+            .iter()
+            .chain(&b)
+            .find(|c| !c.is_finite() || c.abs() > MAX_PLACED)
+        {
             return Err(TermError::Mesh(format!(
                 "mesh {hash} placed with scale {scale} and offset {offset:?} reaches the coordinate {c:e}; a placed mesh must lie within +-2^40 voxels ({MAX_PLACED:e})"
             )));

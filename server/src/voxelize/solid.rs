@@ -254,7 +254,7 @@ pub fn voxelize_solid_until(
             let last = first + rows.len() / row_words - 1;
             let mut mine = Vec::new();
             for (i, t) in projected.iter().enumerate() {
-                if i % 4096 == 0 {
+                if i.is_multiple_of(4096) {
                     cancel.check()?;
                 }
                 if let Some((lo, hi)) = rows_of(t) {
@@ -267,7 +267,7 @@ pub fn voxelize_solid_until(
                 let y = first + r;
                 let py = y as i64 * ONE + HALF;
                 for (n, &i) in mine.iter().enumerate() {
-                    if n % 4096 == 0 {
+                    if n.is_multiple_of(4096) {
                         cancel.check()?;
                     }
                     let t = &projected[i as usize];
@@ -313,7 +313,7 @@ fn toggle_below(t: &Projected, py: i64, nx: usize, nz: usize, words: usize, row:
         for word in col.iter_mut().take(below / 64) {
             *word = !*word;
         }
-        if below % 64 != 0 {
+        if !below.is_multiple_of(64) {
             col[below / 64] ^= (1u64 << (below % 64)) - 1;
         }
     }
