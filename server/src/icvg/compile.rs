@@ -8,7 +8,7 @@ use super::primitives::{
 };
 use super::term::{CompiledTerm, Node, TermError, TermLimits, VolumeResolver};
 use crate::geometry::Box3;
-use isovox_proto::icvg::{Region, Term};
+use isovox_proto::icvg::{Region, Term, MAX_COORDINATE};
 use isovox_proto::VoxelType;
 
 impl CompiledTerm {
@@ -177,6 +177,44 @@ fn positive(what: &str, v: u32) -> Result<(), TermError> {
     Ok(())
 }
 
+/// Checks that a placed position lies within [`MAX_COORDINATE`] on every axis.
+fn placed(what: &str, p: [i64; 3]) -> Result<[i64; 3], TermError> {
+    if p.iter().any(|c| c.unsigned_abs() > MAX_COORDINATE as u64) {
+        return Err(TermError::Invalid(format!(
+            "{what} {p:?} is beyond +-{MAX_COORDINATE}, the coordinate limit"
+        )));
+    }
+    Ok(p)
+}
+
+/// The largest torus radius, major and minor alike: a quarter of the extension limit, so the
+/// torus's extension `2 (major + minor) + 1` stays within it whatever the other one is (one
+/// bound per field is what an API schema can state; 16,383 by default).
+pub fn max_torus_radius(limits: &TermLimits) -> u32 {
+    (limits.max_extent / 2 - 1) / 2
+}
+
+/// The largest capsule radius: as a torus radius (see [`max_torus_radius`]).
+pub fn max_capsule_radius(limits: &TermLimits) -> u32 {
+    max_torus_radius(limits)
+}
+
+/// The longest capsule segment: half the extension limit (32,768 by default), so
+/// `length + 2 radius + 1` stays within it.
+pub fn max_capsule_length(limits: &TermLimits) -> u32 {
+    limits.max_extent / 2
+}
+
+/// Checks that `v` is at most `max`.
+fn at_most(what: &str, v: u32, max: u32) -> Result<(), TermError> {
+    if v > max {
+        return Err(TermError::Invalid(format!(
+            "{what} {v} is over the limit of {max}"
+        )));
+    }
+    Ok(())
+}
+
 /// Checks a primitive's extension against [`TermLimits::max_extent`].
 fn within(limits: &TermLimits, what: &str, extent: u64) -> Result<(), TermError> {
     if extent > limits.max_extent as u64 {
@@ -207,7 +245,10 @@ fn cuboid(origin: [i64; 3], size: [u32; 3], limits: &TermLimits) -> Result<Cuboi
         )));
     }
     within(limits, "cuboid", *size.iter().max().unwrap_or(&0) as u64)?;
-    Ok(Cuboid { origin, size })
+    Ok(Cuboid {
+        origin: placed("cuboid origin", origin)?,
+        size,
+    })
 }
 
 fn ellipsoid(
@@ -223,7 +264,10 @@ fn ellipsoid(
         "ellipsoid",
         2 * *radii.iter().max().unwrap_or(&0) as u64 + 1,
     )?;
-    Ok(Ellipsoid { center, radii })
+    Ok(Ellipsoid {
+        center: placed("ellipsoid center", center)?,
+        radii,
+    })
 }
 
 /// The checks a cylinder and a cone share: positive radii, a height of at least 3.
@@ -251,7 +295,7 @@ fn cylinder(
 ) -> Result<Cylinder, TermError> {
     axial("cylinder", radii, height, limits)?;
     Ok(Cylinder {
-        base,
+        base: placed("cylinder base", base)?,
         radii,
         height,
     })
@@ -265,7 +309,7 @@ fn cone(
 ) -> Result<Cone, TermError> {
     axial("cone", radii, height, limits)?;
     Ok(Cone {
-        base,
+        base: placed("cone base", base)?,
         radii,
         height,
     })
@@ -277,10 +321,12 @@ fn torus(
     minor: u32,
     limits: &TermLimits,
 ) -> Result<Torus, TermError> {
+    positive("torus major radius", major)?;
     positive("torus minor radius", minor)?;
-    within(limits, "torus", 2 * (major as u64 + minor as u64) + 1)?;
+    at_most("torus major radius", major, max_torus_radius(limits))?;
+    at_most("torus minor radius", minor, max_torus_radius(limits))?;
     Ok(Torus {
-        center,
+        center: placed("torus center", center)?,
         major,
         minor,
     })
@@ -293,9 +339,10 @@ fn capsule(
     limits: &TermLimits,
 ) -> Result<Capsule, TermError> {
     positive("capsule radius", radius)?;
-    within(limits, "capsule", length as u64 + 2 * radius as u64 + 1)?;
+    at_most("capsule radius", radius, max_capsule_radius(limits))?;
+    at_most("capsule length", length, max_capsule_length(limits))?;
     Ok(Capsule {
-        center,
+        center: placed("capsule center", center)?,
         radius,
         length,
     })
@@ -317,6 +364,7 @@ fn prism(
     limits: &TermLimits,
 ) -> Result<super::primitives::CutCuboid, TermError> {
     slanted("prism", size, limits)?;
+    let origin = placed("prism origin", origin)?;
     Ok(Prism { origin, size }.solid())
 }
 
@@ -326,6 +374,7 @@ fn pyramid(
     limits: &TermLimits,
 ) -> Result<super::primitives::CutCuboid, TermError> {
     slanted("pyramid", size, limits)?;
+    let origin = placed("pyramid origin", origin)?;
     Ok(Pyramid { origin, size }.solid())
 }
 
@@ -337,6 +386,7 @@ fn volume(
     t: VoxelType,
     volumes: &dyn VolumeResolver,
 ) -> Result<Node, TermError> {
+    let origin = placed("volume origin", origin)?;
     let snap = volumes.resolve(name)?;
     if snap.layout().voxel_type() != t {
         return Err(TermError::Volume(format!(
