@@ -85,63 +85,42 @@ async fn an_uploaded_mesh_is_unioned_into_a_volume_where_placed() {
         .await
         .unwrap();
     assert_eq!(r.status().as_u16(), 401);
-    let r = c
-        .post(format!("{base}/v1/meshes"))
-        .bearer_auth(TOKEN)
-        .body(stl.clone())
-        .send()
-        .await
-        .unwrap();
+    // `query` is "" or "?format=...".
+    let upload = |query: &str, body: Vec<u8>| {
+        c.post(format!("{base}/v1/meshes{query}"))
+            .bearer_auth(TOKEN)
+            .body(body)
+            .send()
+    };
+    let detail = |r: reqwest::Response| async move {
+        let problem: serde_json::Value = serde_json::from_slice(&r.bytes().await.unwrap()).unwrap();
+        problem["detail"].as_str().unwrap().to_string()
+    };
+    let r = upload("", stl.clone()).await.unwrap();
     assert_eq!(r.status().as_u16(), 400);
-    let r = c
-        .post(format!("{base}/v1/meshes?format=stl"))
-        .bearer_auth(TOKEN)
-        .body(cube_stl(10.0, Some(3)))
-        .send()
+    let r = upload("?format=stl", cube_stl(10.0, Some(3)))
         .await
         .unwrap();
     assert_eq!(r.status().as_u16(), 422);
-    let problem: serde_json::Value = serde_json::from_slice(&r.bytes().await.unwrap()).unwrap();
-    assert!(
-        problem["detail"].as_str().unwrap().contains("watertight"),
-        "{problem}"
-    );
+    let d = detail(r).await;
+    assert!(d.contains("watertight"), "{d}");
     // A tetrahedron whose four points lie on a line: each edge is used twice, as in a closed
     // surface, but its triangles have zero area and enclose nothing.
     let p = |t: f32| [t, 2.0 * t, 3.0 * t];
     let line = [p(0.0), p(1.0), p(2.0), p(3.0)];
     let tetra =
         [[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]].map(|t: [usize; 3]| t.map(|i| line[i]));
-    let r = c
-        .post(format!("{base}/v1/meshes?format=stl"))
-        .bearer_auth(TOKEN)
-        .body(binary_stl(&tetra))
-        .send()
-        .await
-        .unwrap();
+    let r = upload("?format=stl", binary_stl(&tetra)).await.unwrap();
     assert_eq!(r.status().as_u16(), 422);
-    let problem: serde_json::Value = serde_json::from_slice(&r.bytes().await.unwrap()).unwrap();
-    let detail = problem["detail"].as_str().unwrap();
+    let d = detail(r).await;
     assert!(
-        detail.contains("not watertight") && detail.contains("no volume"),
-        "{problem}"
+        d.contains("not watertight") && d.contains("no volume"),
+        "{d}"
     );
     // The format is one of the four, as written (the document's enum).
-    let r = c
-        .post(format!("{base}/v1/meshes?format=STL"))
-        .bearer_auth(TOKEN)
-        .body(stl.clone())
-        .send()
-        .await
-        .unwrap();
+    let r = upload("?format=STL", stl.clone()).await.unwrap();
     assert_eq!(r.status().as_u16(), 400);
-    let r = c
-        .post(format!("{base}/v1/meshes?format=stl"))
-        .bearer_auth(TOKEN)
-        .body(stl.clone())
-        .send()
-        .await
-        .unwrap();
+    let r = upload("?format=stl", stl.clone()).await.unwrap();
     assert_eq!(r.status().as_u16(), 200);
     let info: serde_json::Value = serde_json::from_slice(&r.bytes().await.unwrap()).unwrap();
     assert_eq!(info["triangles"], 12);

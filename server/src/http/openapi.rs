@@ -14,6 +14,7 @@
 //! type (an `iso` or `k` beyond its H) 400 or 422.
 
 use super::AppState;
+use crate::icvg::ops::BinaryOp;
 use crate::icvg::term::TermLimits;
 use axum::extract::State;
 use axum::response::{IntoResponse, Response};
@@ -364,7 +365,8 @@ fn term_schemas(limits: &TermLimits) -> Value {
             ),
         ));
     }
-    for op in BINARY_OPS {
+    let binary_ops = BinaryOp::WITHOUT_ARGUMENTS.map(BinaryOp::name);
+    for op in binary_ops {
         leaves.push((op, two_terms.clone()));
     }
     let term_kinds: Vec<Value> = leaves
@@ -388,28 +390,13 @@ fn term_schemas(limits: &TermLimits) -> Value {
         "Region": merge(region, json!({"description": "level-0 voxels, min inclusive, max exclusive; an axis with max <= min selects nothing"})),
         "EditRequest": {"description": "op(volume, term) for a binary operator, or a unary operator on the volume; within region when given. Limits no schema states: at most 256 nodes nested at most 32 deep, k within the volume's H, edits evaluating at most --max-edit-voxels voxels (422 beyond)",
             "oneOf": [
-                edit(json!({"type": "string", "enum": BINARY_OPS}), &["op", "term"], &term, &absent, &absent),
+                edit(json!({"type": "string", "enum": binary_ops}), &["op", "term"], &term, &absent, &absent),
                 edit(json!({"const": "divide"}), &["op", "s_l", "term"], &term, &s_l, &absent),
                 edit(json!({"type": "string", "enum": ["inverse", "complement"]}), &["op"], &absent, &absent, &absent),
                 edit(json!({"const": "add_scalar"}), &["op", "k"], &absent, &absent, &k),
             ]},
     })
 }
-
-/// The binary operators without arguments of their own (`divide` has `s_l`).
-const BINARY_OPS: [&str; 11] = [
-    "union",
-    "intersection",
-    "trim",
-    "cap",
-    "difference",
-    "difference_a",
-    "difference_b",
-    "add",
-    "modulate",
-    "product",
-    "divide_a",
-];
 
 pub(super) async fn openapi(State(state): State<AppState>) -> Response {
     Json(document(&state.config.term_limits)).into_response()
