@@ -388,7 +388,7 @@ fn term_schemas(limits: &TermLimits) -> Value {
         "Term": {"description": "an ICVG term (docs/icvg.md): one key naming a primitive, a stored volume, an uploaded mesh or an operator",
             "oneOf": term_kinds},
         "Region": merge(region, json!({"description": "level-0 voxels, min inclusive, max exclusive; an axis with max <= min selects nothing"})),
-        "EditRequest": {"description": "op(volume, term) for a binary operator, or a unary operator on the volume; within region when given. Limits no schema states: at most 256 nodes nested at most 32 deep, k within the volume's H, edits evaluating at most --max-edit-voxels voxels (422 beyond)",
+        "EditRequest": {"description": format!("op(volume, term) for a binary operator, or a unary operator on the volume; within region when given. Limits no schema states (422 beyond): at most {} nodes nested at most {} deep, k within the volume's H, edits evaluating at most --max-edit-voxels voxels", limits.max_nodes, limits.max_depth),
             "oneOf": [
                 edit(json!({"type": "string", "enum": binary_ops}), &["op", "term"], &term, &absent, &absent),
                 edit(json!({"const": "divide"}), &["op", "s_l", "term"], &term, &s_l, &absent),
