@@ -152,7 +152,7 @@ pub(super) fn document(limits: &TermLimits) -> Value {
         "components": {"securitySchemes": {"bearer": {"type": "http", "scheme": "bearer"}}, "schemas": {
             "Problem": {"type": "object", "required": ["type", "title", "status", "detail"],
                 "properties": {"type": {"type": "string"}, "title": {"type": "string"}, "status": {"type": "integer"}, "detail": {"type": "string"},
-                    "version": {"type": "integer", "description": "the current version, on 409"}}},
+                    "version": {"type": "integer", "description": "the current version, on a 409 from If-Match (absent on a 409 from a read-only volume)"}}},
             "LevelInfo": {"type": "object", "required": ["level", "grid", "dims"],
                 "properties": {"level": {"type": "integer"}, "grid": schema_ref("Triple"), "dims": schema_ref("Triple")}},
             "Triple": tuple(3, json!({"type": "integer", "minimum": 0})),
@@ -212,7 +212,7 @@ fn write_side(name: Value, limits: &TermLimits) -> (Value, Value) {
             "security": bearer,
             "parameters": [name],
             "responses": merge(json!({"200": {"description": "what compaction did", "content": json_body("CompactResponse")}}),
-                problem_responses(&["400", "401", "403", "404", "500", "503"]))}},
+                problem_responses(&["400", "401", "403", "404", "409", "500", "503"]))}},
         "/v1/meshes": {"post": {
             "summary": "keep a watertight model (the file's bytes) by its content hash, for mesh leaves of edit terms",
             "description": "422 when the bytes are not a model of the given format, or the model is not watertight (the schema cannot say what a valid model is).",
