@@ -502,7 +502,8 @@ impl Client {
     /// The versions after `since` (at most `limit`, the server's default when `None`).
     ///
     /// # Errors
-    /// See [`ClientError`]; 410 when compaction dropped versions after `since`.
+    /// See [`ClientError`]; 410 when compaction dropped versions after `since`, 409 when
+    /// `since` is after the volume's head (it was replaced: reload).
     pub async fn changes(
         &self,
         name: &str,
@@ -530,7 +531,7 @@ impl Client {
     /// Subscribes to the change feed; with `since`, the versions after it come first.
     ///
     /// # Errors
-    /// See [`ClientError`].
+    /// See [`ClientError`]; 410 and 409 as for [`Client::changes`].
     pub async fn events(&self, name: &str, since: Option<u64>) -> Result<Feed, ClientError> {
         let mut path = format!("/v1/volumes/{name}/events");
         if let Some(s) = since {

@@ -21,7 +21,11 @@ pub enum FormatError {
         available: u64,
     },
     /// A magic number or signature does not match.
-    #[error("{what} has a bad signature: expected {expected:?}, found {found:?}")]
+    #[error(
+        "{what} has a bad signature: expected {}, found {}",
+        signature(expected),
+        signature(found)
+    )]
     BadMagic {
         /// The record.
         what: &'static str,
@@ -60,6 +64,17 @@ pub enum FormatError {
     },
 }
 
+/// A signature as text, the way it is written in the format's documentation: `".VOD"`, with
+/// bytes that are not printable ASCII escaped (`"PK\x03\x04"`).
+fn signature(bytes: &[u8]) -> String {
+    let text: String = bytes
+        .iter()
+        .flat_map(|&b| std::ascii::escape_default(b))
+        .map(char::from)
+        .collect();
+    format!("\"{text}\"")
+}
+
 impl FormatError {
     /// An `Invalid` error.
     pub fn invalid(what: &'static str, detail: impl Into<String>) -> Self {
@@ -67,5 +82,33 @@ impl FormatError {
             what,
             detail: detail.into(),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::FormatError;
+
+    #[test]
+    fn signatures_print_as_text() {
+        let e = FormatError::BadMagic {
+            what: "file header",
+            expected: *b".VOD",
+            found: [b'P', b'K', 3, 4],
+        };
+        assert_eq!(
+            e.to_string(),
+            r#"file header has a bad signature: expected ".VOD", found "PK\x03\x04""#
+        );
+        // Quotes, backslashes and high bytes are escaped too, so the text is unambiguous.
+        let e = FormatError::BadMagic {
+            what: "commit",
+            expected: *b"ICMT",
+            found: [b'"', b'\\', 0xff, b'a'],
+        };
+        assert_eq!(
+            e.to_string(),
+            r#"commit has a bad signature: expected "ICMT", found "\"\\\xffa""#
+        );
     }
 }

@@ -6,6 +6,12 @@
 
 use serde::{Deserialize, Serialize};
 
+/// The largest magnitude of a placed coordinate (a primitive's origin, centre or base, a volume
+/// leaf's origin, a region's corners): 2^53, so every JSON client carries it exactly
+/// (JavaScript's numbers included), far beyond any volume (whose dims are u32), and far from
+/// overflowing the i64 arithmetic of boxes grown by any radius.
+pub const MAX_COORDINATE: i64 = 1 << 53;
+
 /// A CVG term.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
@@ -49,7 +55,7 @@ pub enum Term {
     Torus {
         /// The centre of the ring.
         center: [i64; 3],
-        /// The radius of the tube's centre circle.
+        /// The radius of the tube's centre circle (at least 1).
         major: u32,
         /// The tube's radius (at least 1).
         minor: u32,

@@ -77,6 +77,15 @@ impl Box3 {
     }
 }
 
+/// The signed volume of the tetrahedron (origin, a, b, c): positive when a, b, c turn
+/// counter-clockwise seen from the origin's far side. Summed over a closed, outward-wound
+/// triangle mesh it is the volume the mesh encloses (the divergence theorem).
+pub fn tetra_volume(a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> f64 {
+    (a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0])
+        + a[2] * (b[0] * c[1] - b[1] * c[0]))
+        / 6.0
+}
+
 /// The one value of every voxel of `b`, for a field that is `low` outside `bbox`, when that is
 /// certain without sampling: `low` when `b` misses `bbox`; else `inside`'s answer for the part
 /// of `b` within `bbox`, when that part is all of `b` or the answer is `low` anyway.

@@ -4,6 +4,7 @@ mod cli;
 
 use clap::Parser;
 use cli::{run, Cli};
+use std::io::IsTerminal;
 use std::process::ExitCode;
 
 // The server allocates small, short-lived buffers per request (headers, paths, response
@@ -19,6 +20,8 @@ fn main() -> ExitCode {
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
         )
         .with_writer(std::io::stderr)
+        // Colour codes only for a person at a terminal: in a log file or a pipe they are noise.
+        .with_ansi(std::io::stderr().is_terminal())
         .init();
     match run(Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,

@@ -452,6 +452,46 @@ fn missing_input_is_an_error() {
 }
 
 #[test]
+fn errors_name_the_file_once_and_signatures_as_text() {
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("missing.vod");
+    let (m, raw, glb) = (
+        s(&missing),
+        dir.path().join("out.raw"),
+        dir.path().join("out.glb"),
+    );
+    for args in [
+        vec!["inspect", m],
+        vec!["get", m, "0", "0", "0", "0"],
+        vec!["export", m, "-o", s(&raw)],
+        vec!["mesh", m, "-o", s(&glb)],
+        vec!["compact", m],
+    ] {
+        let e = fails(&args);
+        assert_eq!(e.matches(m).count(), 1, "{args:?} names the file once: {e}");
+        assert!(e.contains("No such file"), "{args:?}: {e}");
+    }
+    // A file that is not VOD 2 at all: its signature is printed as text, escapes for the bytes
+    // that are not printable, as the format's documentation writes it (".VOD").
+    let vod = small_vod(dir.path());
+    let mut b = std::fs::read(&vod).unwrap();
+    b[..4].copy_from_slice(b"PK\x03\x04");
+    let zip = dir.path().join("zip.vod");
+    std::fs::write(&zip, &b).unwrap();
+    for args in [
+        vec!["get", s(&zip), "0", "0", "0", "0"],
+        vec!["mesh", s(&zip), "-o", s(&glb)],
+    ] {
+        let e = fails(&args);
+        assert!(
+            e.contains(r#"bad signature: expected ".VOD", found "PK\x03\x04""#),
+            "{args:?}: {e}"
+        );
+        assert_eq!(e.matches(s(&zip)).count(), 1, "{args:?}: {e}");
+    }
+}
+
+#[test]
 fn get_outside_the_volume_is_an_error() {
     let dir = tempfile::tempdir().unwrap();
     let vod = small_vod(dir.path());

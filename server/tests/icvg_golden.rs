@@ -1507,6 +1507,11 @@ fn zero_radius_is_refused() {
             r#"{"torus": {"center": [0, 0, 0], "major": 4, "minor": 0}}"#,
             "torus minor radius",
         ),
+        // Every radius of 0 is refused, the ring's too (a ring of radius 0 is a ball).
+        (
+            r#"{"torus": {"center": [0, 0, 0], "major": 0, "minor": 4}}"#,
+            "torus major radius",
+        ),
         (
             r#"{"capsule": {"center": [0, 0, 0], "radius": 0, "length": 4}}"#,
             "capsule radius",
@@ -1678,11 +1683,78 @@ fn other_validation_errors() {
     assert!(e.contains("k = -256"), "{e}");
     let req: EditRequest = serde_json::from_str(r#"{"op": "add_scalar", "k": -256}"#).unwrap();
     Edit::from_request(&req, U16, &TermLimits::default(), &NoVolumes).unwrap();
-    // Unknown fields and an empty region.
+    // Unknown fields, and arguments the operator does not take.
     assert!(serde_json::from_str::<Term>(
         r#"{"cuboid": {"origin": [0, 0, 0], "size": [4, 4, 4], "colour": 1}}"#
     )
     .is_err());
-    let e = edit_err(r#"{"op": "inverse", "region": {"min": [0, 0, 0], "max": [4, 0, 4]}}"#);
-    assert!(e.contains("region") && e.contains("empty"), "{e}");
+    let e = edit_err(&format!(r#"{{"op": "union", "s_l": 0.5, "term": {A}}}"#));
+    assert!(e.contains("s_l") && e.contains("divide"), "{e}");
+    let e = edit_err(r#"{"op": "inverse", "k": 3}"#);
+    assert!(e.contains("\"k\"") && e.contains("add_scalar"), "{e}");
+    // Coordinates beyond +-2^53, in a term or a region; 2^53 itself is fine.
+    let e = edit_err(
+        r#"{"op": "inverse", "region": {"min": [0, 0, 0], "max": [9007199254740993, 1, 1]}}"#,
+    );
+    assert!(e.contains("coordinate limit"), "{e}");
+    let e = edit_err(
+        r#"{"op": "union", "term": {"ellipsoid": {"center": [0, -9007199254740993, 0], "radii": [3, 3, 3]}}}"#,
+    );
+    assert!(
+        e.contains("ellipsoid center") && e.contains("coordinate limit"),
+        "{e}"
+    );
+    compile(
+        r#"{"cuboid": {"origin": [9007199254740992, 0, -9007199254740992], "size": [4, 4, 4]}}"#,
+        U8,
+    );
+    // A region with max <= min on an axis selects nothing: accepted, evaluating no voxel.
+    let layout = isovox_proto::VolumeLayout::new([64, 64, 64], 16, U8).unwrap();
+    for region in [r#"[4, 0, 4]"#, r#"[-4, 64, 64]"#] {
+        let req: EditRequest = serde_json::from_str(&format!(
+            r#"{{"op": "inverse", "region": {{"min": [0, 0, 0], "max": {region}}}}}"#
+        ))
+        .unwrap();
+        let edit = Edit::from_request(&req, U8, &TermLimits::default(), &NoVolumes).unwrap();
+        assert_eq!(edit.evaluated_voxels(&layout), 0, "max {region}");
+    }
+}
+
+#[test]
+fn torus_and_capsule_fields_are_bounded_one_by_one() {
+    // A quarter of the 65,536-voxel extension limit per radius, half of it for the length:
+    // then the extension stays within the limit whatever the other field is.
+    for (json, ok) in [
+        (
+            r#"{"torus": {"center": [0, 0, 0], "major": 16383, "minor": 16383}}"#,
+            true,
+        ),
+        (
+            r#"{"torus": {"center": [0, 0, 0], "major": 16384, "minor": 1}}"#,
+            false,
+        ),
+        (
+            r#"{"torus": {"center": [0, 0, 0], "major": 1, "minor": 16384}}"#,
+            false,
+        ),
+        (
+            r#"{"capsule": {"center": [0, 0, 0], "radius": 16383, "length": 32768}}"#,
+            true,
+        ),
+        (
+            r#"{"capsule": {"center": [0, 0, 0], "radius": 16384, "length": 0}}"#,
+            false,
+        ),
+        (
+            r#"{"capsule": {"center": [0, 0, 0], "radius": 1, "length": 32769}}"#,
+            false,
+        ),
+    ] {
+        if ok {
+            compile(json, U8);
+        } else {
+            let e = compile_err(json);
+            assert!(e.contains("over the limit"), "{json}: {e}");
+        }
+    }
 }

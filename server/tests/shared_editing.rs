@@ -47,6 +47,11 @@ impl Server {
     /// Generates the volume and the token file, starts the server with `--edit-rate edit_rate`
     /// and waits for it to announce its address.
     fn start(edit_rate: u32) -> Server {
+        Server::start_on("127.0.0.1:0", edit_rate)
+    }
+
+    /// [`Server::start`], listening on `addr` (`HOST:PORT`).
+    fn start_on(addr: &str, edit_rate: u32) -> Server {
         let dir = tempfile::tempdir().unwrap();
         let vod = dir.path().join("w.vod");
         let out = Command::new(env!("CARGO_BIN_EXE_isovox"))
@@ -69,7 +74,8 @@ impl Server {
         )
         .unwrap();
         let edit_rate = edit_rate.to_string();
-        let process = ServerProcess::start(
+        let process = ServerProcess::start_on(
+            addr,
             &[
                 "--data".as_ref(),
                 dir.path().as_os_str(),
@@ -798,6 +804,133 @@ fn if_match() {
     let p = a.expect_problem(409, "stale quoted If-Match");
     assert_eq!(p["version"].as_u64(), Some(v0 + 2), "409 body {p}");
     assert_eq!(head_version(&c, &s), v0 + 2);
+
+    // `*` matches whatever version is current (RFC 9110): the edit applies.
+    let a = post_edit(&c, &s, "w", Some(SECRET1), &body, Some("*"));
+    assert_eq!(a.status, StatusCode::OK, "If-Match: *: {}", a.text());
+    assert_eq!(a.json()["version"].as_u64(), Some(v0 + 3));
+    // A weak tag of the current version, and a number no version reaches (past u64): the
+    // first applies, the second names another version (409), neither is malformed.
+    let weak = format!("W/\"{}\"", v0 + 3);
+    let a = post_edit(&c, &s, "w", Some(SECRET1), &body, Some(&weak));
+    assert_eq!(a.status, StatusCode::OK, "weak If-Match: {}", a.text());
+    let a = post_edit(
+        &c,
+        &s,
+        "w",
+        Some(SECRET1),
+        &body,
+        Some("99999999999999999999"),
+    );
+    let p = a.expect_problem(409, "If-Match past u64");
+    assert_eq!(p["version"].as_u64(), Some(v0 + 4), "409 body {p}");
+    // Neither `*` nor a version: 400, and nothing is committed.
+    for bad in [
+        "",
+        "**",
+        "abc",
+        "\"5",
+        "5\"",
+        "W/5",
+        "-1",
+        "1, 2",
+        "+5",
+        "123456789012345678901",
+    ] {
+        let a = post_edit(&c, &s, "w", Some(SECRET1), &body, Some(bad));
+        let p = a.expect_problem(400, &format!("If-Match {bad:?}"));
+        assert!(
+            p["detail"].as_str().unwrap().contains("If-Match"),
+            "{bad:?}: {p}"
+        );
+    }
+    assert_eq!(head_version(&c, &s), v0 + 4);
+}
+
+/// A `since` after the head names a version this volume does not have (its file was replaced
+/// by an older copy, say): 409 with the current version, on the list and on the feed alike, so
+/// a client knows to reload; it is well-formed, not a 400.
+#[test]
+fn since_after_the_head_is_a_conflict() {
+    let s = Server::start(1000);
+    let c = client();
+    let h = head_version(&c, &s);
+    let a = changes_since(&c, &s, h);
+    assert_eq!(
+        a.status,
+        StatusCode::OK,
+        "changes since the head: {}",
+        a.text()
+    );
+    for since in [h + 1, u64::MAX] {
+        let p = changes_since(&c, &s, since).expect_problem(409, "changes since past the head");
+        assert_eq!(p["version"].as_u64(), Some(h), "{p}");
+        let a = Answer::read(
+            c.get(s.url(&format!("/v1/volumes/w/events?since={since}")))
+                .send()
+                .unwrap(),
+        );
+        let p = a.expect_problem(409, "events since past the head");
+        assert_eq!(p["version"].as_u64(), Some(h), "{p}");
+    }
+    // Last-Event-ID the same, a number past u64 too; an empty one is no event seen yet (what
+    // a browser means by it): the feed opens.
+    for id in [(h + 1).to_string(), "99999999999999999999".to_string()] {
+        let a = Answer::read(
+            c.get(s.url("/v1/volumes/w/events"))
+                .header("Last-Event-ID", &id)
+                .send()
+                .unwrap(),
+        );
+        a.expect_problem(409, &format!("Last-Event-ID {id}"));
+    }
+    let r = c
+        .get(s.url("/v1/volumes/w/events"))
+        .header("Last-Event-ID", "")
+        .send()
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(
+        r.headers()["content-type"].to_str().unwrap(),
+        "text/event-stream"
+    );
+    let a = Answer::read(
+        c.get(s.url("/v1/volumes/w/events"))
+            .header("Last-Event-ID", "x1")
+            .send()
+            .unwrap(),
+    );
+    a.expect_problem(400, "Last-Event-ID x1");
+}
+
+/// A log written to a pipe or a file carries no ANSI colour codes (they are for terminals), and
+/// `--addr` takes a host name, as every server does.
+#[test]
+fn logs_to_a_pipe_are_plain_and_addr_takes_a_host_name() {
+    let s = Server::start_on("localhost:0", 1000);
+    let c = client();
+    assert!(
+        s.base.starts_with("http://127.0.0.1:") || s.base.starts_with("http://[::1]:"),
+        "localhost is a loopback address: {}",
+        s.base
+    );
+    let r = c.get(s.url("/healthz")).send().unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    edit_ok(
+        &c,
+        &s,
+        SECRET1,
+        &json!({"op": "union", "term": {"cuboid": {"origin": [4, 4, 4], "size": [8, 8, 8]}}}),
+    );
+    let log = s.stop();
+    assert!(
+        log.contains("edit committed"),
+        "the debug log has the edit: {log}"
+    );
+    assert!(
+        !log.contains('\u{1b}'),
+        "colour codes in a piped log: {log:?}"
+    );
 }
 
 /// Write routes: 401 (with `WWW-Authenticate`) without a token, with an unknown one or another

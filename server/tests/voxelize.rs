@@ -1890,6 +1890,63 @@ fn open_models_are_refused_with_the_reason() {
     ));
 }
 
+/// The faces of a tetrahedron over points 0..4, each edge used twice.
+const TETRA: [[u32; 3]; 4] = [[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]];
+
+#[test]
+fn models_that_enclose_no_volume_are_refused() {
+    // Edge counting alone takes these for closed: every edge is used twice. None has an inside.
+    let cases = [
+        // Four points on a line: four triangles of zero area.
+        (
+            "zero-area triangles",
+            Shape {
+                p: vec![[0.0; 3], [1.0; 3], [2.0; 3], [3.0; 3]],
+                t: TETRA.to_vec(),
+            },
+        ),
+        // Four points in one plane: triangles of positive area folded onto each other.
+        (
+            "coplanar tetrahedron",
+            Shape {
+                p: vec![[0.0; 3], [4.0, 0.0, 0.0], [0.0, 4.0, 0.0], [1.0, 1.0, 0.0]],
+                t: TETRA.to_vec(),
+            },
+        ),
+        // One triangle and its back face, tilted so no bounding-box side is 0.
+        (
+            "two faces back to back",
+            Shape {
+                p: vec![[0.0; 3], [4.0, 0.0, 1.0], [0.0, 4.0, 2.0]],
+                t: vec![[0, 1, 2], [0, 2, 1]],
+            },
+        ),
+    ];
+    for (name, shape) in &cases {
+        let e = voxelize(&shape.tri_mesh(), &options(8, Fill::Center)).unwrap_err();
+        assert!(
+            matches!(e, VoxelizeError::Flat { triangles } if triangles == shape.t.len()),
+            "{name}: {e:?}"
+        );
+        let text = e.to_string();
+        assert!(
+            text.contains("not watertight") && text.contains("no volume"),
+            "{name}: {text}"
+        );
+    }
+    // The same faces over four points in general position bound a solid: accepted, and the
+    // check does not depend on the winding.
+    let tetra = Shape {
+        p: vec![[0.0; 3], [4.0, 0.0, 0.0], [0.0, 4.0, 0.0], [0.0, 0.0, 4.0]],
+        t: TETRA.to_vec(),
+    };
+    assert!(voxelize(&tetra.tri_mesh(), &options(8, Fill::Center)).is_ok());
+    assert!(voxelize(&tetra.flipped().tri_mesh(), &options(8, Fill::Center)).is_ok());
+    // A thin solid is still a solid: a slab 1/1000 as thick as it is wide.
+    let slab = cuboid([0.0; 3], [1000.0, 1000.0, 1.0], false);
+    assert!(isovox_server::voxelize::check_closed(&slab.tri_mesh()).is_ok());
+}
+
 #[test]
 fn out_of_range_padding_is_an_error() {
     // Options are validated (size, supersample): so must the padding be. u32::MAX voxels of

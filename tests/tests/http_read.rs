@@ -427,4 +427,28 @@ async fn mesh_tiles_match_the_offline_mesher() {
         400,
     )
     .await;
+    // An iso outside the u8 volume's [0, 255] would put every voxel on one side of the
+    // surface: 400 naming the range, not an empty tile. Its ends are values like any other.
+    for iso in ["256", "-0.5", "65535", "1e39", "NaN", "inf"] {
+        let p = problem(
+            get(format!(
+                "{}/v1/volumes/terrain/meshes/0/2/1/2?iso={iso}",
+                s.base
+            ))
+            .await
+            .unwrap(),
+            400,
+        )
+        .await;
+        assert!(p.detail.contains("[0, 255]"), "iso={iso}: {}", p.detail);
+    }
+    for iso in ["0", "255", "127.5"] {
+        let r = get(format!(
+            "{}/v1/volumes/terrain/meshes/0/2/1/2?iso={iso}",
+            s.base
+        ))
+        .await
+        .unwrap();
+        assert_eq!(r.status().as_u16(), 200, "iso={iso}");
+    }
 }

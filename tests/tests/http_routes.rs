@@ -869,20 +869,18 @@ async fn levels_match_the_file() {
     let got = level_voxels(&c, &s, "/v1/volumes/dunes/levels/1?format=voxels").await;
     assert_eq!(got, voxels_by_hand(&dunes, 1, [0; 3], [40, 24, 20]));
 
-    // Errors.
+    // Errors: a malformed query is 400; a region reaching beyond the level is 404, as a brick
+    // beyond the grid is.
     let get = |p: &str| c.get(s.url(p)).send();
     for q in [
         "region=1,2,3",
         "region=1,2,3,4,5,6,7",
         "region=a,b,c,d,e,f",
         "region=-1,0,0,1,1,1",
+        "region=+1,0,0,2,2,2",
+        "region=%201,0,0,2,2,2",
+        "region=12345678901,0,0,1,1,1",
         "region=",
-        "region=0,0,0,0,1,1",
-        "region=3,0,0,2,1,1",
-        "region=0,0,0,8,1,1",
-        "region=0,0,0,7,3,6",
-        "region=0,0,0,101,40,70&format=voxels",
-        "region=0,0,70,1,1,71&format=voxels",
         "format=png",
         "format=",
         "version=x",
@@ -895,6 +893,39 @@ async fn levels_match_the_file() {
         )
         .await;
     }
+    for q in [
+        "region=0,0,0,8,1,1",
+        "region=0,0,0,7,3,6",
+        "region=9999999999,0,0,1,1,1",
+        "region=0,0,0,101,40,70&format=voxels",
+        "region=0,0,70,1,1,71&format=voxels",
+    ] {
+        let p = problem(
+            get(&format!("/v1/volumes/terrain/levels/0?{q}"))
+                .await
+                .unwrap(),
+            404,
+        )
+        .await;
+        assert!(p.detail.contains("beyond level 0"), "{q}: {}", p.detail);
+    }
+    // An axis with MAX <= MIN selects nothing, as the slice a[3:2] does: an empty answer.
+    for q in [
+        "region=0,0,0,0,1,1",
+        "region=3,0,0,2,1,1",
+        "region=7,3,5,7,3,5",
+    ] {
+        let g = level_grid(&c, &s, &format!("/v1/volumes/terrain/levels/0?{q}")).await;
+        assert!(g.bricks.is_empty(), "{q}: {g:?}");
+        assert_eq!(g.grid, [7, 3, 5], "{q}");
+    }
+    let got = level_voxels(
+        &c,
+        &s,
+        "/v1/volumes/terrain/levels/0?format=voxels&region=5,5,5,5,40,70",
+    )
+    .await;
+    assert!(got.is_empty());
     problem(get("/v1/volumes/terrain/levels/x").await.unwrap(), 400).await;
     problem(get("/v1/volumes/terrain/levels/256").await.unwrap(), 400).await;
     for p in [

@@ -32,6 +32,11 @@ fn cube_stl(side: f32, skip: Option<usize>) -> Vec<u8> {
             tris.push([q[0], q[2], q[3]]);
         }
     }
+    binary_stl(&tris)
+}
+
+/// A binary STL of these triangles (normals left zero, as readers recompute them).
+fn binary_stl(tris: &[[[f32; 3]; 3]]) -> Vec<u8> {
     let mut out = vec![0u8; 80];
     out.extend_from_slice(&(tris.len() as u32).to_le_bytes());
     for t in tris {
@@ -80,41 +85,50 @@ async fn an_uploaded_mesh_is_unioned_into_a_volume_where_placed() {
         .await
         .unwrap();
     assert_eq!(r.status().as_u16(), 401);
-    let r = c
-        .post(format!("{base}/v1/meshes"))
-        .bearer_auth(TOKEN)
-        .body(stl.clone())
-        .send()
-        .await
-        .unwrap();
+    // `query` is "" or "?format=...".
+    let upload = |query: &str, body: Vec<u8>| {
+        c.post(format!("{base}/v1/meshes{query}"))
+            .bearer_auth(TOKEN)
+            .body(body)
+            .send()
+    };
+    let detail = |r: reqwest::Response| async move {
+        let problem: serde_json::Value = serde_json::from_slice(&r.bytes().await.unwrap()).unwrap();
+        problem["detail"].as_str().unwrap().to_string()
+    };
+    let r = upload("", stl.clone()).await.unwrap();
     assert_eq!(r.status().as_u16(), 400);
-    let r = c
-        .post(format!("{base}/v1/meshes?format=stl"))
-        .bearer_auth(TOKEN)
-        .body(cube_stl(10.0, Some(3)))
-        .send()
+    let r = upload("?format=stl", cube_stl(10.0, Some(3)))
         .await
         .unwrap();
     assert_eq!(r.status().as_u16(), 422);
-    let problem: serde_json::Value = serde_json::from_slice(&r.bytes().await.unwrap()).unwrap();
+    let d = detail(r).await;
+    assert!(d.contains("watertight"), "{d}");
+    // A tetrahedron whose four points lie on a line: each edge is used twice, as in a closed
+    // surface, but its triangles have zero area and enclose nothing.
+    let p = |t: f32| [t, 2.0 * t, 3.0 * t];
+    let line = [p(0.0), p(1.0), p(2.0), p(3.0)];
+    let tetra =
+        [[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]].map(|t: [usize; 3]| t.map(|i| line[i]));
+    let r = upload("?format=stl", binary_stl(&tetra)).await.unwrap();
+    assert_eq!(r.status().as_u16(), 422);
+    let d = detail(r).await;
     assert!(
-        problem["detail"].as_str().unwrap().contains("watertight"),
-        "{problem}"
+        d.contains("not watertight") && d.contains("no volume"),
+        "{d}"
     );
-    let r = c
-        .post(format!("{base}/v1/meshes?format=stl"))
-        .bearer_auth(TOKEN)
-        .body(stl.clone())
-        .send()
-        .await
-        .unwrap();
+    // The format is one of the four, as written (the document's enum).
+    let r = upload("?format=STL", stl.clone()).await.unwrap();
+    assert_eq!(r.status().as_u16(), 400);
+    let r = upload("?format=stl", stl.clone()).await.unwrap();
     assert_eq!(r.status().as_u16(), 200);
     let info: serde_json::Value = serde_json::from_slice(&r.bytes().await.unwrap()).unwrap();
     assert_eq!(info["triangles"], 12);
     let hash = info["hash"].as_str().unwrap().to_string();
     assert_eq!(hash.len(), 16);
 
-    // An unknown mesh is a 422, not a 500.
+    // A mesh that was never uploaded is not there: 404, as any resource named that is not
+    // there (not a 500, and not a 422: the request itself is well formed).
     let edit = |hash: &str| {
         format!(
             r#"{{"op": "union", "term": {{"mesh": {{"hash": "{hash}", "offset": [5, 6, 7], "scale": 1.5}}}}}}"#
@@ -128,7 +142,15 @@ async fn an_uploaded_mesh_is_unioned_into_a_volume_where_placed() {
         .send()
         .await
         .unwrap();
-    assert_eq!(r.status().as_u16(), 422);
+    assert_eq!(r.status().as_u16(), 404);
+    let problem: serde_json::Value = serde_json::from_slice(&r.bytes().await.unwrap()).unwrap();
+    assert!(
+        problem["detail"]
+            .as_str()
+            .unwrap()
+            .contains("00000000000000ff"),
+        "{problem}"
+    );
 
     let r = c
         .post(format!("{base}/v1/volumes/w/edits"))

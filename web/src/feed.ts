@@ -8,7 +8,7 @@
 // stream, asks `changes?since=LAST` until that answers (backoff 100 ms doubling to 2 s), applies
 // the versions listed there, and opens the stream again with `?since=` the last of them, which
 // is what `Last-Event-ID` would carry: the server replays anything committed in between. A 410
-// (the history after LAST was compacted away) or a 400 (the server is now behind the page: its
+// (the history after LAST was compacted away) or a 409 (the server is now behind the page: its
 // file was replaced) means the page must reload the volume; so does a `hello` whose version is
 // below the page's. A `resync` (the page fell more than 1024 versions behind the live stream)
 // is filled the same way from `changes`.
@@ -115,7 +115,7 @@ export class Feed {
         break;
       } catch (e) {
         if (this.closed) break;
-        if (e instanceof ApiError && (e.status === 410 || e.status === 400)) {
+        if (e instanceof ApiError && (e.status === 410 || e.status === 409)) {
           step = () => this.reloadVolume();
           continue;
         }

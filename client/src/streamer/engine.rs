@@ -37,8 +37,8 @@ pub(super) async fn follow(
             Some(f) => f,
             None => match client.events(&name, Some(last)).await {
                 Ok(f) => f,
-                Err(e) if matches!(e.status().map(|s| s.as_u16()), Some(400 | 410)) => {
-                    // 410: versions after `last` were compacted away; 400: the volume is behind
+                Err(e) if matches!(e.status().map(|s| s.as_u16()), Some(409 | 410)) => {
+                    // 410: versions after `last` were compacted away; 409: the volume is behind
                     // `last` (replaced). Either way what the streamer holds cannot be updated.
                     match client.volume(&name).await {
                         Ok(info) => {

@@ -10,7 +10,7 @@ use isovox_server::store::codec::{Compression, DEFAULT_ZSTD_LEVEL};
 use isovox_server::store::inspect::inspect as inspect_vod2;
 use isovox_server::store::raw::{export_raw, rawvox_header, RawInput, Region, RAWVOX_MAGIC};
 use isovox_server::store::vod1::{write_vod1, Vod1File, Vod1Source};
-use isovox_server::store::{BrickSource, BuildOptions, DenseGrid, Vod2};
+use isovox_server::store::{BrickSource, BuildOptions, DenseGrid};
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
@@ -282,7 +282,7 @@ pub(super) fn export(a: ExportArgs) -> anyhow::Result<()> {
             );
         }
     }
-    let vod = Vod2::open(&a.input).with_context(|| format!("cannot open {}", a.input.display()))?;
+    let vod = super::open_vod2(&a.input)?;
     let snap = match a.version {
         Some(v) => vod.version(v)?,
         None => vod.head(),
@@ -377,8 +377,7 @@ pub(super) fn inspect(a: InspectArgs) -> anyhow::Result<()> {
     match sniff(&a.input)? {
         InputKind::Vod(1) => inspect_vod1(&a),
         InputKind::Vod(2) => {
-            let vod = Vod2::open(&a.input)
-                .with_context(|| format!("cannot open {}", a.input.display()))?;
+            let vod = super::open_vod2(&a.input)?;
             let i =
                 inspect_vod2(&vod).with_context(|| format!("{} is damaged", a.input.display()))?;
             if a.json {
@@ -483,8 +482,7 @@ pub(super) fn get(a: GetArgs) -> anyhow::Result<()> {
             out
         }
         _ => {
-            let vod = Vod2::open(&a.input)
-                .with_context(|| format!("cannot open {}", a.input.display()))?;
+            let vod = super::open_vod2(&a.input)?;
             let snap = match a.version {
                 Some(v) => vod.version(v)?,
                 None => vod.head(),
@@ -512,7 +510,7 @@ pub(crate) struct CompactArgs {
 }
 
 pub(super) fn compact(a: CompactArgs) -> anyhow::Result<()> {
-    let vod = Vod2::open(&a.input).with_context(|| format!("cannot open {}", a.input.display()))?;
+    let vod = super::open_vod2(&a.input)?;
     let head = vod.head();
     let report = isovox_server::store::compact::compact(&vod, &head, &progress("compacting"))
         .with_context(|| format!("cannot compact {}", a.input.display()))?;

@@ -5,8 +5,7 @@ use anyhow::{bail, Context};
 use clap::Args;
 use isovox_server::mesh::files::{write_mesh, MeshFormat};
 use isovox_server::mesh::level::{adaptive_tiles, level_tiles, mesh_tiles, weld};
-use isovox_server::mesh::tile::default_iso;
-use isovox_server::store::Vod2;
+use isovox_server::mesh::tile::iso_value;
 use std::io::{BufWriter, Write};
 use std::path::PathBuf;
 use std::time::Instant;
@@ -43,13 +42,13 @@ pub(super) fn mesh(a: MeshArgs) -> anyhow::Result<()> {
             a.output.display()
         )
     })?;
-    let vod = Vod2::open(&a.input).with_context(|| format!("cannot open {}", a.input.display()))?;
+    let vod = super::open_vod2(&a.input)?;
     let snap = match a.version {
         Some(v) => vod.version(v)?,
         None => vod.head(),
     };
     let layout = snap.layout();
-    let iso = a.iso.unwrap_or_else(|| default_iso(layout.voxel_type()));
+    let iso = iso_value(a.iso, layout.voxel_type()).map_err(anyhow::Error::msg)?;
     let tiles = match (&a.camera, &a.radii) {
         (Some(c), Some(r)) => {
             if c.len() != 3 {

@@ -7,7 +7,6 @@ use isovox_server::generate::{build_demo, DEMO_NAME};
 use isovox_server::http::auth::{random_secret, Scope, Tokens};
 use isovox_server::http::{run, run_tls, shutdown_signal, AppState, ServerConfig};
 use isovox_server::store::BuildOptions;
-use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 
 #[derive(Debug, Args)]
@@ -16,9 +15,10 @@ pub(crate) struct ServeArgs {
     /// none, a demo world is generated there first.
     #[arg(long, env = "ISOVOX_DATA", default_value = "data")]
     pub data: PathBuf,
-    /// Address to listen on.
+    /// Address to listen on, HOST:PORT; a host name (`localhost:7070`) listens on the first of
+    /// its addresses that can be bound.
     #[arg(long, env = "ISOVOX_ADDR", default_value = "127.0.0.1:7070")]
-    pub addr: SocketAddr,
+    pub addr: String,
     /// Memory for cached mesh tiles, in MiB.
     #[arg(long, env = "ISOVOX_MESH_CACHE_MB", default_value_t = 256)]
     pub mesh_cache_mb: usize,
@@ -176,7 +176,7 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
         .build()
         .context("cannot start the async runtime")?;
     let served = runtime.block_on(async {
-        let listener = tokio::net::TcpListener::bind(a.addr)
+        let listener = tokio::net::TcpListener::bind(a.addr.as_str())
             .await
             .with_context(|| format!("cannot listen on {}", a.addr))?;
         let addr = listener.local_addr()?;

@@ -3,7 +3,7 @@
 use super::auth::WriteToken;
 use super::cpu::blocking;
 use super::extract::Path;
-use super::request_body::{is_json, read_limited};
+use super::request_body::read_json;
 use super::{ApiError, AppState};
 use crate::cancel::CancelToken;
 use axum::body::Body;
@@ -31,7 +31,7 @@ pub async fn edit(
     body: Body,
 ) -> Result<Json<EditResponse>, ApiError> {
     let vol = state.catalog.get(&name)?.clone();
-    let request = edit_request(&headers, body).await?;
+    let request: EditRequest = read_json(&headers, body, MAX_EDIT_BODY, "an edit request").await?;
     let if_match = if_match(&headers)?;
     state.edit_rate.take(&token.name)?;
     let cancel = CancelToken::with_timeout(state.config.edit_timeout);
@@ -55,30 +55,32 @@ pub async fn edit(
     Ok(Json(response))
 }
 
-/// The request body as an edit request: JSON, at most [`MAX_EDIT_BODY`] bytes.
-async fn edit_request(headers: &HeaderMap, body: Body) -> Result<EditRequest, ApiError> {
-    if !is_json(headers) {
-        return Err(ApiError::UnsupportedMedia(
-            "an edit is JSON: send Content-Type: application/json".into(),
-        ));
-    }
-    let body = read_limited(headers, body, MAX_EDIT_BODY, "an edit request").await?;
-    serde_json::from_slice(&body)
-        .map_err(|e| ApiError::BadRequest(format!("not an edit request: {e}")))
-}
-
-/// `If-Match: N`, `"N"` or `W/"N"`.
+/// `If-Match`: `*` (whatever version is current: no condition), or a version `N`, `"N"` or
+/// `W/"N"` (the ETag forms; `/openapi.json` states the same pattern). A number beyond u64
+/// names a version no volume reaches; read as `u64::MAX` it gets the 409 any version but the
+/// current one gets.
 fn if_match(headers: &HeaderMap) -> Result<Option<u64>, ApiError> {
     let Some(value) = headers.get(header::IF_MATCH) else {
         return Ok(None);
     };
-    value
-        .to_str()
-        .ok()
-        .map(|v| v.trim().trim_start_matches("W/").trim_matches('"'))
-        .and_then(|v| v.parse::<u64>().ok())
-        .map(Some)
-        .ok_or_else(|| {
-            ApiError::BadRequest("If-Match takes a version number, quoted or not".into())
-        })
+    let text = value.to_str().unwrap_or_default().trim();
+    if text == "*" {
+        return Ok(None);
+    }
+    let digits = match text.strip_prefix("W/") {
+        Some(weak) => quoted(weak),
+        None => quoted(text).or(Some(text)),
+    }
+    .filter(|d| (1..=20).contains(&d.len()) && d.bytes().all(|b| b.is_ascii_digit()))
+    .ok_or_else(|| {
+        ApiError::BadRequest(format!(
+            "If-Match {text:?}: `*` or a version number (N, \"N\" or W/\"N\") expected"
+        ))
+    })?;
+    Ok(Some(digits.parse().unwrap_or(u64::MAX)))
+}
+
+/// The text between a leading and a trailing double quote.
+fn quoted(s: &str) -> Option<&str> {
+    s.strip_prefix('"')?.strip_suffix('"')
 }

@@ -76,10 +76,15 @@ impl From<VolumeError> for ApiError {
             VolumeError::NoSuchVolume(_)
             | VolumeError::NoSuchVersion { .. }
             | VolumeError::OutOfRange(_) => ApiError::NotFound(detail),
-            VolumeError::BadRequest(_) | VolumeError::SinceAfterHead { .. } => {
-                ApiError::BadRequest(detail)
-            }
+            VolumeError::BadRequest(_) => ApiError::BadRequest(detail),
+            // Well-formed, but in conflict with the volume's state: the caller is ahead of it.
+            VolumeError::SinceAfterHead { head, .. } => ApiError::Conflict {
+                detail,
+                version: Some(head),
+            },
             VolumeError::TooLarge(_) => ApiError::TooLarge(detail),
+            // A volume or mesh the term names that is not there: as any resource not there.
+            VolumeError::InvalidEdit(TermError::Unknown(_)) => ApiError::NotFound(detail),
             VolumeError::InvalidEdit(_) | VolumeError::EditTooLarge { .. } => {
                 ApiError::Unprocessable(detail)
             }

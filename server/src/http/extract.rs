@@ -2,7 +2,7 @@
 //! answered as problem details by `http/error.rs` like every other error, and handlers take
 //! their arguments directly.
 
-use super::request_body::{is_json, read_limited};
+use super::request_body::read_json;
 use super::ApiError;
 use axum::extract::{FromRequest, FromRequestParts, Request};
 use axum::http::request::Parts;
@@ -61,15 +61,8 @@ where
 
     async fn from_request(request: Request, _state: &S) -> Result<Self, ApiError> {
         let (parts, body) = request.into_parts();
-        if !is_json(&parts.headers) {
-            return Err(ApiError::UnsupportedMedia(
-                "the request body is JSON: send Content-Type: application/json".into(),
-            ));
-        }
-        let bytes =
-            read_limited(&parts.headers, body, MAX_JSON_BODY, "a JSON request body").await?;
-        serde_json::from_slice(&bytes)
+        read_json(&parts.headers, body, MAX_JSON_BODY, "a JSON request body")
+            .await
             .map(Json)
-            .map_err(|e| ApiError::BadRequest(format!("malformed request body: {e}")))
     }
 }

@@ -70,17 +70,23 @@ pub async fn events(
         .into_response())
 }
 
-/// `Last-Event-ID: N`, the version a reconnecting subscriber had.
+/// `Last-Event-ID: N`, the version a reconnecting subscriber had. Empty is no event seen yet
+/// (what a browser's `EventSource` means by it). A number beyond u64 is past any head: read
+/// as `u64::MAX` it gets the 409 any version past the head gets.
 fn last_event_id(headers: &HeaderMap) -> Result<Option<u64>, ApiError> {
-    headers
-        .get("last-event-id")
-        .map(|v| {
-            v.to_str()
-                .ok()
-                .and_then(|v| v.trim().parse::<u64>().ok())
-                .ok_or_else(|| ApiError::BadRequest("Last-Event-ID must be a version".into()))
-        })
-        .transpose()
+    let Some(value) = headers.get("last-event-id") else {
+        return Ok(None);
+    };
+    let text = value.to_str().map(str::trim).unwrap_or("?");
+    if text.is_empty() {
+        return Ok(None);
+    }
+    if text.len() > 20 || !text.bytes().all(|b| b.is_ascii_digit()) {
+        return Err(ApiError::BadRequest(format!(
+            "Last-Event-ID {value:?} must be a version number"
+        )));
+    }
+    Ok(Some(text.parse().unwrap_or(u64::MAX)))
 }
 
 /// Where a feed subscriber is.

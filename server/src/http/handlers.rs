@@ -158,14 +158,22 @@ pub struct LevelQuery {
     pub format: Option<String>,
 }
 
-/// `MINX,MINY,MINZ,MAXX,MAXY,MAXZ` as (min, max).
-fn parse_region(s: &str) -> Result<([u32; 3], [u32; 3]), ApiError> {
-    let v: Vec<u32> = s
+/// `MINX,MINY,MINZ,MAXX,MAXY,MAXZ` as (min, max): six numbers of 1 to 10 digits, nothing
+/// else (the pattern `/openapi.json` states).
+fn parse_region(s: &str) -> Result<([u64; 3], [u64; 3]), ApiError> {
+    let number = |p: &str| {
+        ((1..=10).contains(&p.len()) && p.bytes().all(|b| b.is_ascii_digit()))
+            .then(|| p.parse::<u64>().ok())
+            .flatten()
+    };
+    let v: Vec<u64> = s
         .split(',')
-        .map(|p| p.trim().parse::<u32>())
-        .collect::<Result<_, _>>()
-        .map_err(|_| {
-            ApiError::BadRequest(format!("region {s:?}: six non-negative integers expected"))
+        .map(number)
+        .collect::<Option<_>>()
+        .ok_or_else(|| {
+            ApiError::BadRequest(format!(
+                "region {s:?}: six non-negative integers MINX,MINY,MINZ,MAXX,MAXY,MAXZ expected"
+            ))
         })?;
     match v[..] {
         [x0, y0, z0, x1, y1, z1] => Ok(([x0, y0, z0], [x1, y1, z1])),

@@ -6,7 +6,7 @@ use super::cpu::blocking;
 use super::extract::Query;
 use super::request_body::read_limited;
 use super::{ApiError, AppState};
-use crate::voxelize::store::MeshInfo;
+use crate::voxelize::store::{MeshInfo, FORMATS};
 use axum::body::Body;
 use axum::extract::State;
 use axum::http::HeaderMap;
@@ -37,10 +37,10 @@ pub async fn upload_mesh(
         .ok_or_else(|| ApiError::NotFound("this server keeps no meshes".into()))?;
     let format = query
         .format
+        .filter(|f| FORMATS.contains(&f.as_str()))
         .ok_or_else(|| {
-            ApiError::BadRequest("give the model's ?format= (stl, obj, ply or glb)".into())
-        })?
-        .to_ascii_lowercase();
+            ApiError::BadRequest("give the model's ?format=: stl, obj, ply or glb".into())
+        })?;
     let body = read_limited(&headers, body, MAX_MESH_BODY, "a model").await?;
     let info =
         blocking(move || store.store(&body, &format).map_err(ApiError::Unprocessable)).await?;

@@ -1,8 +1,26 @@
 //! `GET /openapi.json`: the API described in OpenAPI 3.1, written by hand next to the routes it
-//! describes (`mod.rs`); the end-to-end tests check that every route is listed.
+//! describes (`mod.rs`).
+//!
+//! The document states what the server accepts, no more and no less, so that a client generated
+//! from it never sends what the server refuses: every bound, enum, pattern and required field
+//! here is one the handlers check, objects whose unknown fields the server refuses say
+//! `additionalProperties: false`, and the term limits come from the server's configuration.
+//! `tests/tests/openapi_fuzz.rs` (and `scripts/fuzz-api.sh`, longer) hold the two together
+//! with Schemathesis: schema-valid requests accepted, schema-invalid ones refused.
+//!
+//! What no schema can state is said in descriptions and answered with the status a client
+//! expects for a resource or a state: a volume, version, brick or region that is not there is
+//! 404; a `since` past the head 409; versions compacted away 410; limits of the volume's voxel
+//! type (an `iso` or `k` beyond its H) 400 or 422.
 
+use super::AppState;
+use crate::icvg::ops::BinaryOp;
+use crate::icvg::term::TermLimits;
+use axum::extract::State;
 use axum::response::{IntoResponse, Response};
 use axum::Json;
+use isovox_proto::batch::MAX_BATCH;
+use isovox_proto::icvg::MAX_COORDINATE;
 use serde_json::{json, Value};
 
 fn problem_responses(codes: &[&str]) -> Value {
@@ -31,29 +49,56 @@ fn query_param(name: &str, schema: Value, description: &str) -> Value {
     json!({"name": name, "in": "query", "required": false, "schema": schema, "description": description})
 }
 
-/// The document.
-pub(super) fn document() -> Value {
-    let name = path_param(
-        "name",
-        json!({"type": "string", "pattern": "^[A-Za-z0-9_.-]{1,128}$"}),
-        "volume name",
-    );
-    let level = path_param(
-        "level",
-        json!({"type": "integer", "minimum": 0, "maximum": 255}),
-        "level of detail",
-    );
+/// An integer in `min..=max`.
+fn int(min: i64, max: u64) -> Value {
+    json!({"type": "integer", "minimum": min, "maximum": max})
+}
+
+/// An array of exactly `n` items of `item`.
+fn tuple(n: usize, item: Value) -> Value {
+    json!({"type": "array", "items": item, "minItems": n, "maxItems": n})
+}
+
+/// An object with exactly these properties, `required` among them; others are refused.
+fn closed(required: &[&str], properties: Value) -> Value {
+    json!({"type": "object", "required": required, "additionalProperties": false, "properties": properties})
+}
+
+/// A reference to a schema of `components`.
+fn schema_ref(name: &str) -> Value {
+    json!({"$ref": format!("#/components/schemas/{name}")})
+}
+
+/// A volume's name, as the catalog names files (`catalog.rs`).
+fn volume_name() -> Value {
+    json!({"type": "string", "pattern": "^[A-Za-z0-9_.-]{1,128}$"})
+}
+
+/// A content hash, 16 lower-case hex digits.
+fn content_hash() -> Value {
+    json!({"type": "string", "pattern": "^[0-9a-f]{16}$"})
+}
+
+/// A version number (any u64).
+fn version_number() -> Value {
+    int(0, u64::MAX)
+}
+
+/// The document, for a server whose edit terms are bounded by `limits`.
+pub(super) fn document(limits: &TermLimits) -> Value {
+    let name = path_param("name", volume_name(), "volume name");
+    let level = path_param("level", int(0, u8::MAX.into()), "level of detail");
     let coord = |c: &str| {
         path_param(
             c,
-            json!({"type": "integer", "minimum": 0, "maximum": 4294967295u64}),
-            "brick coordinate at the level",
+            int(0, u32::MAX.into()),
+            "brick coordinate at the level (404 beyond its grid)",
         )
     };
     let version = query_param(
         "version",
-        json!({"type": "integer", "minimum": 0}),
-        "read this older version",
+        version_number(),
+        "read this older version (404 when the file does not hold it)",
     );
     let brick_params = json!([name, level, coord("x"), coord("y"), coord("z"), version]);
     let binary = |media: &str| json!({media: {"schema": {"type": "string", "format": "binary"}}});
@@ -65,9 +110,9 @@ pub(super) fn document() -> Value {
             "/healthz": {"get": {"summary": "liveness", "responses": {"200": {"description": "ok", "content": {"text/plain": {"schema": {"type": "string"}}}}}}},
             "/metrics": {"get": {"summary": "Prometheus metrics", "responses": {"200": {"description": "text format 0.0.4", "content": {"text/plain": {"schema": {"type": "string"}}}}}}},
             "/openapi.json": {"get": {"summary": "this document", "responses": {"200": {"description": "OpenAPI 3.1", "content": {"application/json": {"schema": {"type": "object"}}}}}}},
-            "/v1/volumes": {"get": {"summary": "list volumes", "responses": {"200": {"description": "volumes", "content": {"application/json": {"schema": {"$ref": "#/components/schemas/VolumeList"}}}}}}},
+            "/v1/volumes": {"get": {"summary": "list volumes", "responses": {"200": {"description": "volumes", "content": {"application/json": {"schema": schema_ref("VolumeList")}}}}}},
             "/v1/volumes/{name}": {"get": {"summary": "volume metadata", "parameters": [name],
-                "responses": merge(json!({"200": {"description": "metadata", "content": {"application/json": {"schema": {"$ref": "#/components/schemas/VolumeInfo"}}}}}), problem_responses(&["400", "404"]))}},
+                "responses": merge(json!({"200": {"description": "metadata", "content": {"application/json": {"schema": schema_ref("VolumeInfo")}}}}), problem_responses(&["400", "404"]))}},
             "/v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}": {"get": {
                 "summary": "one brick: raw voxels (x fastest, u16 little endian); the stored zstd frame with Accept-Encoding: zstd; an lz4 block with Accept: application/x-lz4",
                 "parameters": brick_params,
@@ -76,26 +121,29 @@ pub(super) fn document() -> Value {
                     "304": {"description": "not modified (If-None-Match)"}}), problem_responses(&["400", "404", "500"]))}},
             "/v1/volumes/{name}/blobs/{hash}": {"get": {
                 "summary": "a brick by content hash, immutable (Cache-Control: public, max-age=31536000, immutable)",
-                "parameters": [name, path_param("hash", json!({"type": "string", "pattern": "^[0-9a-f]{16}$"}), "content hash, 16 hex digits")],
+                "parameters": [name, path_param("hash", content_hash(), "content hash, 16 hex digits")],
                 "responses": merge(json!({
                     "200": {"description": "the brick", "content": merge(binary("application/octet-stream"), binary("application/x-lz4"))},
                     "304": {"description": "not modified"}}), problem_responses(&["400", "404", "500"]))}},
             "/v1/volumes/{name}/batch": {"post": {
                 "summary": "many bricks in one response (application/x-isovox-bricks, see proto/src/batch.rs)",
+                "description": "Raw answers carry at most 64 MiB of voxels: 2,048 bricks of 32^3 u8 voxels, 1,024 of u16 (413 beyond); stored answers take up to 4,096 bricks of any size.",
                 "parameters": [name],
-                "requestBody": {"required": true, "content": {"application/json": {"schema": {"$ref": "#/components/schemas/BatchRequest"}}}},
+                "requestBody": {"required": true, "content": {"application/json": {"schema": schema_ref("BatchRequest")}}},
                 "responses": merge(json!({"200": {"description": "the bricks", "content": binary("application/x-isovox-bricks")}}), problem_responses(&["400", "404", "413", "415", "500", "503"]))}},
             "/v1/volumes/{name}/levels/{level}": {"get": {
                 "summary": "a level's brick grid (JSON), or its voxels as one RAW array (format=voxels)",
                 "parameters": [name, level, version,
-                    query_param("region", json!({"type": "string", "pattern": "^[0-9]+(,[0-9]+){5}$"}), "MINX,MINY,MINZ,MAXX,MAXY,MAXZ, max exclusive (bricks for grid, voxels for voxels); must be non-empty and inside the level (400 otherwise)"),
-                    query_param("format", json!({"type": "string", "enum": ["grid", "voxels"]}), "grid (default) or voxels")],
-                "responses": merge(json!({"200": {"description": "the grid or the voxels", "content": merge(json!({"application/json": {"schema": {"$ref": "#/components/schemas/LevelGrid"}}}), binary("application/octet-stream"))}}),
+                    query_param("region", json!({"type": "string", "pattern": "^[0-9]{1,10}(,[0-9]{1,10}){5}$"}),
+                        "MINX,MINY,MINZ,MAXX,MAXY,MAXZ, max exclusive: in bricks for the grid, in voxels for format=voxels. An axis with MAX <= MIN selects nothing (an empty answer); a coordinate beyond the level is 404"),
+                    query_param("format", json!({"type": "string", "enum": ["grid", "voxels"]}), "grid (default) or voxels (at most 64 MiB: 413 beyond)")],
+                "responses": merge(json!({"200": {"description": "the grid or the voxels", "content": merge(json!({"application/json": {"schema": schema_ref("LevelGrid")}}), binary("application/octet-stream"))}}),
                     problem_responses(&["400", "404", "413", "500", "503"]))}},
             "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}": {"get": {
                 "summary": "the marching-cubes mesh of one tile, in world coordinates",
                 "parameters": [name, level, coord("x"), coord("y"), coord("z"), version,
-                    query_param("iso", json!({"type": "number"}), "iso value, default S - 0.5"),
+                    query_param("iso", json!({"type": "number", "minimum": 0, "maximum": u16::MAX}),
+                        "iso value, default S - 0.5; within the volume's [L, H] (0..255 for u8 voxels, 0..65535 for u16: 400 beyond)"),
                     query_param("format", json!({"type": "string", "enum": ["compact", "glb"]}), "compact (default, see proto/src/mesh.rs) or glb")],
                 "responses": merge(json!({
                     "200": {"description": "the mesh", "content": merge(binary("application/x-isovox-mesh"), binary("model/gltf-binary"))},
@@ -106,33 +154,31 @@ pub(super) fn document() -> Value {
                 "properties": {"type": {"type": "string"}, "title": {"type": "string"}, "status": {"type": "integer"}, "detail": {"type": "string"},
                     "version": {"type": "integer", "description": "the current version, on a 409 from If-Match (absent on a 409 from a read-only volume)"}}},
             "LevelInfo": {"type": "object", "required": ["level", "grid", "dims"],
-                "properties": {"level": {"type": "integer"}, "grid": {"$ref": "#/components/schemas/Triple"}, "dims": {"$ref": "#/components/schemas/Triple"}}},
-            "Triple": {"type": "array", "items": {"type": "integer", "minimum": 0}, "minItems": 3, "maxItems": 3},
+                "properties": {"level": {"type": "integer"}, "grid": schema_ref("Triple"), "dims": schema_ref("Triple")}},
+            "Triple": tuple(3, json!({"type": "integer", "minimum": 0})),
             "VolumeInfo": {"type": "object",
                 "required": ["name", "dims", "voxel_type", "low", "high", "surface", "brick", "levels", "voxel_scale", "version"],
-                "properties": {"name": {"type": "string"}, "dims": {"$ref": "#/components/schemas/Triple"},
+                "properties": {"name": {"type": "string"}, "dims": schema_ref("Triple"),
                     "voxel_type": {"type": "string", "enum": ["u8", "u16"]}, "low": {"type": "integer"}, "high": {"type": "integer"},
                     "surface": {"type": "integer"}, "brick": {"type": "integer"},
-                    "levels": {"type": "array", "items": {"$ref": "#/components/schemas/LevelInfo"}},
-                    "voxel_scale": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
+                    "levels": {"type": "array", "items": schema_ref("LevelInfo")},
+                    "voxel_scale": tuple(3, json!({"type": "number"})),
                     "version": {"type": "integer"}}},
-            "VolumeList": {"type": "object", "required": ["volumes"], "properties": {"volumes": {"type": "array", "items": {"$ref": "#/components/schemas/VolumeInfo"}}}},
+            "VolumeList": {"type": "object", "required": ["volumes"], "properties": {"volumes": {"type": "array", "items": schema_ref("VolumeInfo")}}},
             "LevelGrid": {"type": "object", "required": ["level", "grid", "min", "max", "version", "bricks"],
-                "properties": {"level": {"type": "integer"}, "grid": {"$ref": "#/components/schemas/Triple"},
-                    "min": {"$ref": "#/components/schemas/Triple"}, "max": {"$ref": "#/components/schemas/Triple"}, "version": {"type": "integer"},
+                "properties": {"level": {"type": "integer"}, "grid": schema_ref("Triple"),
+                    "min": schema_ref("Triple"), "max": schema_ref("Triple"), "version": {"type": "integer"},
                     "bricks": {"type": "array", "items": {"type": "object", "required": ["hash", "min", "max"],
                         "properties": {"hash": {"type": "string"}, "min": {"type": "integer"}, "max": {"type": "integer"}}}}}},
-            "BatchRequest": {"type": "object", "required": ["keys"], "additionalProperties": false,
-                "properties": {"keys": {"type": "array", "maxItems": 4096,
-                        "items": {"type": "array", "minItems": 4, "maxItems": 4, "items": false, "prefixItems": [
-                            {"type": "integer", "minimum": 0, "maximum": 255},
-                            {"type": "integer", "minimum": 0, "maximum": 4294967295u64},
-                            {"type": "integer", "minimum": 0, "maximum": 4294967295u64},
-                            {"type": "integer", "minimum": 0, "maximum": 4294967295u64}]}},
-                    "version": {"type": ["integer", "null"], "minimum": 0, "maximum": u64::MAX}, "encoding": {"type": "string", "enum": ["raw", "stored"]}}}
+            "BatchRequest": closed(&["keys"], json!({
+                "keys": {"type": "array", "maxItems": MAX_BATCH,
+                    "items": {"type": "array", "minItems": 4, "maxItems": 4, "items": false, "prefixItems": [
+                        int(0, u8::MAX.into()), int(0, u32::MAX.into()), int(0, u32::MAX.into()), int(0, u32::MAX.into())]}},
+                "version": {"type": ["integer", "null"], "minimum": 0, "maximum": u64::MAX},
+                "encoding": {"type": "string", "enum": ["raw", "stored"]}})),
         }}
     });
-    let (paths, schemas) = write_side(name);
+    let (paths, schemas) = write_side(name, limits);
     if let Some(p) = doc["paths"].as_object_mut() {
         p.extend(paths.as_object().cloned().unwrap_or_default());
     }
@@ -143,20 +189,22 @@ pub(super) fn document() -> Value {
 }
 
 /// The write side (`docs/editing.md`): edits, compaction, the change feed and its catch-up.
-fn write_side(name: Value) -> (Value, Value) {
-    let json_body = |schema: &str| json!({"application/json": {"schema": {"$ref": format!("#/components/schemas/{schema}")}}});
+fn write_side(name: Value, limits: &TermLimits) -> (Value, Value) {
+    let json_body = |schema: &str| json!({"application/json": {"schema": schema_ref(schema)}});
     let bearer = json!([{"bearer": []}]);
     let since = query_param(
         "since",
-        json!({"type": "integer", "minimum": 0}),
-        "list the versions after this one",
+        version_number(),
+        "list the versions after this one (409 when it is after the head, 410 when compacted away)",
     );
     let paths = json!({
         "/v1/volumes/{name}/edits": {"post": {
             "summary": "apply an ICVG edit (docs/icvg.md) as the next version; durable before the answer",
             "security": bearer,
-            "parameters": [name, {"name": "If-Match", "in": "header", "required": false, "schema": {"type": "string"}, "description": "apply only at this version (quoted or not); 409 otherwise"}],
-            "requestBody": {"required": true, "content": {"application/json": {"schema": {"type": "object", "required": ["op"], "properties": {"op": {"type": "string"}}}}}},
+            "parameters": [name, {"name": "If-Match", "in": "header", "required": false,
+                "schema": {"type": "string", "pattern": "^(\\*|[0-9]{1,20}|(W/)?\"[0-9]{1,20}\")$"},
+                "description": "apply only at this version (N, \"N\" or W/\"N\"; 409 otherwise), or * for whatever version is current"}],
+            "requestBody": {"required": true, "content": json_body("EditRequest")},
             "responses": merge(json!({"200": {"description": "the new version and the changed bricks", "content": json_body("EditResponse")}}),
                 problem_responses(&["400", "401", "403", "404", "409", "413", "415", "422", "429", "500", "503"]))}},
         "/v1/volumes/{name}/compact": {"post": {
@@ -167,45 +215,189 @@ fn write_side(name: Value) -> (Value, Value) {
                 problem_responses(&["400", "401", "403", "404", "409", "500", "503"]))}},
         "/v1/meshes": {"post": {
             "summary": "keep a watertight model (the file's bytes) by its content hash, for mesh leaves of edit terms",
+            "description": "422 when the bytes are not a model of the given format, or the model is not watertight (the schema cannot say what a valid model is).",
             "security": bearer,
-            "parameters": [query_param("format", json!({"type": "string", "enum": ["stl", "obj", "ply", "glb"]}), "the model's format (required)")],
+            "parameters": [{"name": "format", "in": "query", "required": true,
+                "schema": {"type": "string", "enum": crate::voxelize::store::FORMATS}, "description": "the model's file format"}],
             "requestBody": {"required": true, "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}},
             "responses": merge(json!({"200": {"description": "the stored mesh", "content": json_body("MeshInfo")}}),
                 problem_responses(&["400", "401", "403", "404", "413", "422", "500"]))}},
         "/v1/volumes/{name}/changes": {"get": {
             "summary": "the versions after `since`, oldest first, with their changed bricks per level",
-            "parameters": [name, since.clone(), query_param("limit", json!({"type": "integer", "minimum": 1, "maximum": 10000}), "most versions listed (default 1000)")],
+            "parameters": [name, since.clone(), query_param("limit", int(1, crate::volume::MAX_CHANGES as u64), "most versions listed (default 1000)")],
             "responses": merge(json!({"200": {"description": "the versions", "content": json_body("ChangeList")}}),
-                problem_responses(&["400", "404", "410", "500"]))}},
+                problem_responses(&["400", "404", "409", "410", "500"]))}},
         "/v1/volumes/{name}/events": {"get": {
             "summary": "change feed, server-sent events: hello, then one commit event per version (resync when too far behind)",
-            "parameters": [name, since, {"name": "Last-Event-ID", "in": "header", "required": false, "schema": {"type": "string"}, "description": "resume after this version"}],
+            "parameters": [name, since, {"name": "Last-Event-ID", "in": "header", "required": false,
+                "schema": {"type": "string", "pattern": "^[0-9]{0,20}$"},
+                "description": "resume after this version (empty: no event seen yet)"}],
             "responses": merge(json!({"200": {"description": "an event stream; each event as its fields (data: JSON text)", "content": {"text/event-stream": {"schema": {
                 "type": "object", "required": ["data"],
                 "properties": {"event": {"type": "string", "enum": ["hello", "commit", "resync"]}, "data": {"type": "string"}, "id": {"type": "string"}}}}}}}),
-                problem_responses(&["400", "404", "410"]))}},
+                problem_responses(&["400", "404", "409", "410"]))}},
     });
-    let changed = json!({"type": "array", "items": {"type": "array", "items": {"$ref": "#/components/schemas/Triple"}}});
+    let changed =
+        json!({"type": "array", "items": {"type": "array", "items": schema_ref("Triple")}});
     let event = json!({"type": "object", "required": ["version", "timestamp_ms", "changed"],
         "properties": {"version": {"type": "integer"}, "timestamp_ms": {"type": "integer"}, "changed": changed}});
-    let schemas = json!({
+    let mut schemas = json!({
         "EditResponse": {"type": "object", "required": ["version", "previous", "changed", "evaluated", "new_records", "checkpoint", "elapsed_us"],
             "properties": {"version": {"type": "integer"}, "previous": {"type": "integer"}, "changed": changed,
                 "evaluated": {"type": "integer"}, "new_records": {"type": "integer"}, "checkpoint": {"type": "boolean"}, "elapsed_us": {"type": "integer"}}},
         "ChangeEvent": event,
         "MeshInfo": {"type": "object", "required": ["hash", "triangles", "vertices", "min", "max"],
             "properties": {"hash": {"type": "string"}, "triangles": {"type": "integer"}, "vertices": {"type": "integer"},
-                "min": {"type": "array", "items": {"type": "number"}}, "max": {"type": "array", "items": {"type": "number"}}}},
+                "min": tuple(3, json!({"type": "number"})), "max": tuple(3, json!({"type": "number"}))}},
         "ChangeList": {"type": "object", "required": ["since", "head", "oldest", "more", "changes"],
             "properties": {"since": {"type": "integer"}, "head": {"type": "integer"}, "oldest": {"type": "integer"}, "more": {"type": "boolean"},
-                "changes": {"type": "array", "items": {"$ref": "#/components/schemas/ChangeEvent"}}}},
+                "changes": {"type": "array", "items": schema_ref("ChangeEvent")}}},
         "CompactResponse": {"type": "object", "required": ["version", "bytes_before", "bytes_after", "bricks", "elapsed_us"],
             "properties": {"version": {"type": "integer"}, "bytes_before": {"type": "integer"}, "bytes_after": {"type": "integer"},
                 "bricks": {"type": "integer"}, "elapsed_us": {"type": "integer"}}},
     });
+    if let Some(s) = schemas.as_object_mut() {
+        s.extend(
+            term_schemas(limits)
+                .as_object()
+                .cloned()
+                .unwrap_or_default(),
+        );
+    }
     (paths, schemas)
 }
 
-pub(super) async fn openapi() -> Response {
-    Json(document()).into_response()
+/// The edit request and the ICVG term grammar (`proto/src/icvg.rs`, `docs/icvg.md`), with the
+/// bounds `icvg/compile.rs` checks.
+fn term_schemas(limits: &TermLimits) -> Value {
+    let extent = limits.max_extent as u64;
+    // A radius r spans 2r + 1 voxels.
+    let radius = int(1, (extent - 1) / 2);
+    let point = tuple(3, int(-MAX_COORDINATE, MAX_COORDINATE as u64));
+    let s_l = json!({"type": "number", "exclusiveMinimum": 0, "maximum": 1});
+    let k = int(-i64::from(u16::MAX), u16::MAX.into());
+    let term = schema_ref("Term");
+    let two_terms = json!({"type": "array", "prefixItems": [term, term], "items": false, "minItems": 2, "maxItems": 2});
+    let mut leaves = vec![
+        (
+            "cuboid",
+            closed(
+                &["origin", "size"],
+                json!({"origin": point, "size": tuple(3, int(3, extent))}),
+            ),
+        ),
+        (
+            "ellipsoid",
+            closed(
+                &["center", "radii"],
+                json!({"center": point, "radii": tuple(3, radius.clone())}),
+            ),
+        ),
+        (
+            "torus",
+            closed(
+                &["center", "major", "minor"],
+                json!({"center": point,
+            "major": int(1, crate::icvg::compile::max_torus_radius(limits).into()),
+            "minor": int(1, crate::icvg::compile::max_torus_radius(limits).into())}),
+            ),
+        ),
+        (
+            "capsule",
+            closed(
+                &["center", "radius", "length"],
+                json!({"center": point,
+            "radius": int(1, crate::icvg::compile::max_capsule_radius(limits).into()),
+            "length": int(0, crate::icvg::compile::max_capsule_length(limits).into())}),
+            ),
+        ),
+        (
+            "volume",
+            closed(
+                &["name", "origin"],
+                json!({"name": volume_name(), "origin": point,
+            "region": {"anyOf": [schema_ref("Region"), {"type": "null"}]}}),
+            ),
+        ),
+        (
+            "mesh",
+            closed(
+                &["hash", "offset", "scale"],
+                json!({"hash": content_hash(),
+            "offset": tuple(3, json!({"type": "number"})), "scale": {"type": "number", "exclusiveMinimum": 0}}),
+            ),
+        ),
+        (
+            "divide",
+            closed(&["s_l", "args"], json!({"s_l": s_l, "args": two_terms})),
+        ),
+        (
+            "add_scalar",
+            closed(&["k", "arg"], json!({"k": k, "arg": term})),
+        ),
+        ("inverse", term.clone()),
+        ("complement", term.clone()),
+    ];
+    for axial in ["cylinder", "cone"] {
+        leaves.push((
+            axial,
+            closed(
+                &["base", "radii", "height"],
+                json!({"base": point, "radii": tuple(2, radius.clone()), "height": int(3, extent)}),
+            ),
+        ));
+    }
+    for slanted in ["prism", "pyramid"] {
+        leaves.push((
+            slanted,
+            closed(
+                &["origin", "size"],
+                json!({"origin": point, "size": tuple(3, int(4, extent))}),
+            ),
+        ));
+    }
+    for morph in ["dilate", "erode"] {
+        leaves.push((
+            morph,
+            closed(
+                &["radius", "arg"],
+                json!({"radius": radius.clone(), "arg": term}),
+            ),
+        ));
+    }
+    let binary_ops = BinaryOp::WITHOUT_ARGUMENTS.map(BinaryOp::name);
+    for op in binary_ops {
+        leaves.push((op, two_terms.clone()));
+    }
+    let term_kinds: Vec<Value> = leaves
+        .into_iter()
+        .map(|(key, schema)| closed(&[key], json!({key: schema})))
+        .collect();
+    let region = closed(&["min", "max"], json!({"min": point, "max": point}));
+    // Optional fields may be null, as absent (what a client with None or null for "not given"
+    // sends); a field an operator does not take may only be that.
+    let nullable = |schema: Value| json!({"anyOf": [schema, {"type": "null"}]});
+    let absent = json!({"type": "null"});
+    let edit = |op: Value, required: &[&str], term: &Value, s_l: &Value, k: &Value| {
+        closed(
+            required,
+            json!({"op": op, "term": term, "s_l": s_l, "k": k, "region": nullable(schema_ref("Region"))}),
+        )
+    };
+    json!({
+        "Term": {"description": "an ICVG term (docs/icvg.md): one key naming a primitive, a stored volume, an uploaded mesh or an operator",
+            "oneOf": term_kinds},
+        "Region": merge(region, json!({"description": "level-0 voxels, min inclusive, max exclusive; an axis with max <= min selects nothing"})),
+        "EditRequest": {"description": format!("op(volume, term) for a binary operator, or a unary operator on the volume; within region when given. Limits no schema states (422 beyond): at most {} nodes nested at most {} deep, k within the volume's H, edits evaluating at most --max-edit-voxels voxels", limits.max_nodes, limits.max_depth),
+            "oneOf": [
+                edit(json!({"type": "string", "enum": binary_ops}), &["op", "term"], &term, &absent, &absent),
+                edit(json!({"const": "divide"}), &["op", "s_l", "term"], &term, &s_l, &absent),
+                edit(json!({"type": "string", "enum": ["inverse", "complement"]}), &["op"], &absent, &absent, &absent),
+                edit(json!({"const": "add_scalar"}), &["op", "k"], &absent, &absent, &k),
+            ]},
+    })
+}
+
+pub(super) async fn openapi(State(state): State<AppState>) -> Response {
+    Json(document(&state.config.term_limits)).into_response()
 }

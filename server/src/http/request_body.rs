@@ -1,4 +1,5 @@
-//! Reading a request body with a size limit, and answering "too large" so the client hears it.
+//! Reading a request body with a size limit, and answering "too large" so the client hears it;
+//! JSON bodies parsed as JSON Schema (and so `/openapi.json`) reads them.
 //!
 //! An HTTP/1.1 client writes its whole body before it reads the answer. A server that answers
 //! 413 after reading part of the body and then closes the connection leaves the rest unread;
@@ -13,6 +14,8 @@ use axum::body::Body;
 use axum::http::{header, HeaderMap};
 use bytes::{Bytes, BytesMut};
 use futures_util::StreamExt;
+use serde::de::DeserializeOwned;
+use serde_json::Value;
 use std::time::Duration;
 
 /// Bytes past the limit that are read and discarded so the client can read its 413.
@@ -45,6 +48,54 @@ pub(super) async fn read_limited(
         bytes.extend_from_slice(&chunk);
     }
     Ok(bytes.freeze())
+}
+
+/// A JSON body of at most `limit` bytes as a `T`: 415 unless it is declared JSON, 413 over the
+/// limit, 400 when it is not JSON or not a `T` (`what` names it in the detail: "a batch
+/// request").
+pub(super) async fn read_json<T: DeserializeOwned>(
+    headers: &HeaderMap,
+    body: Body,
+    limit: usize,
+    what: &str,
+) -> Result<T, ApiError> {
+    if !is_json(headers) {
+        return Err(ApiError::UnsupportedMedia(format!(
+            "{what} is JSON: send Content-Type: application/json"
+        )));
+    }
+    let bytes = read_limited(headers, body, limit, what).await?;
+    parse_json(&bytes).map_err(|e| ApiError::BadRequest(format!("{what} is malformed: {e}")))
+}
+
+/// Parses JSON as a `T`. A number written with a zero fraction (`680.0`) counts as the integer
+/// it is, as JSON Schema counts it: a client whose JSON library writes every number as a float
+/// is not refused an integer field for it (`680.5` still is).
+fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, serde_json::Error> {
+    let mut value: Value = serde_json::from_slice(bytes)?;
+    integral_floats_as_integers(&mut value);
+    serde_json::from_value(value)
+}
+
+/// Rewrites every float without a fraction that fits an i64 or a u64 as that integer. The
+/// recursion is bounded by serde_json's nesting limit (128) on what it parses.
+fn integral_floats_as_integers(v: &mut Value) {
+    match v {
+        Value::Number(n) => {
+            let Some(f) = n.as_f64().filter(|f| n.is_f64() && f.fract() == 0.0) else {
+                return;
+            };
+            // 2^63 and 2^64 are exact in f64; the casts below are exact inside these bounds.
+            if (-9.223_372_036_854_776e18..9.223_372_036_854_776e18).contains(&f) {
+                *n = (f as i64).into();
+            } else if (0.0..1.844_674_407_370_955_2e19).contains(&f) {
+                *n = (f as u64).into();
+            }
+        }
+        Value::Array(items) => items.iter_mut().for_each(integral_floats_as_integers),
+        Value::Object(fields) => fields.values_mut().for_each(integral_floats_as_integers),
+        Value::Null | Value::Bool(_) | Value::String(_) => {}
+    }
 }
 
 /// Reads and drops what is left of the body, up to [`DRAIN_BYTES`] past the limit and
@@ -81,4 +132,21 @@ pub(super) fn is_json(headers: &HeaderMap) -> bool {
             let m = m.trim();
             m.eq_ignore_ascii_case("application/json") || m.ends_with("+json")
         })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_json;
+
+    #[test]
+    fn integral_floats_are_integers_and_fractions_are_not() {
+        let v: (u32, i64, u64, f64) = parse_json(b"[680.0, -164.0, 1e19, 2.0]").unwrap();
+        assert_eq!(v, (680, -164, 10_000_000_000_000_000_000, 2.0));
+        let v: Vec<i64> = parse_json(b"[-0.0, -9.0e18]").unwrap();
+        assert_eq!(v, vec![0, -9_000_000_000_000_000_000]);
+        assert!(parse_json::<u32>(b"680.5").is_err());
+        assert!(parse_json::<u32>(b"-1.0").is_err());
+        assert!(parse_json::<u64>(b"1e20").is_err());
+        assert!(parse_json::<i32>(b"3e9").is_err());
+    }
 }

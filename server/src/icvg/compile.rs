@@ -9,7 +9,7 @@ use super::primitives::{
 };
 use super::term::{CompiledTerm, Node, Scope, TermError, TermLimits, VolumeResolver};
 use crate::geometry::Box3;
-use isovox_proto::icvg::{Region, Term};
+use isovox_proto::icvg::{Region, Term, MAX_COORDINATE};
 use isovox_proto::VoxelType;
 
 impl CompiledTerm {
@@ -317,6 +317,44 @@ fn positive(what: &str, v: u32) -> Result<(), TermError> {
     Ok(())
 }
 
+/// Checks that a placed position lies within [`MAX_COORDINATE`] on every axis.
+fn placed(what: &str, p: [i64; 3]) -> Result<[i64; 3], TermError> {
+    if p.iter().any(|c| c.unsigned_abs() > MAX_COORDINATE as u64) {
+        return Err(TermError::Invalid(format!(
+            "{what} {p:?} is beyond +-{MAX_COORDINATE}, the coordinate limit"
+        )));
+    }
+    Ok(p)
+}
+
+/// The largest torus radius, major and minor alike: a quarter of the extension limit, so the
+/// torus's extension `2 (major + minor) + 1` stays within it whatever the other one is (one
+/// bound per field is what an API schema can state; 16,383 by default).
+pub fn max_torus_radius(limits: &TermLimits) -> u32 {
+    (limits.max_extent / 2 - 1) / 2
+}
+
+/// The largest capsule radius: as a torus radius (see [`max_torus_radius`]).
+pub fn max_capsule_radius(limits: &TermLimits) -> u32 {
+    max_torus_radius(limits)
+}
+
+/// The longest capsule segment: half the extension limit (32,768 by default), so
+/// `length + 2 radius + 1` stays within it.
+pub fn max_capsule_length(limits: &TermLimits) -> u32 {
+    limits.max_extent / 2
+}
+
+/// Checks that `v` is at most `max`.
+fn at_most(what: &str, v: u32, max: u32) -> Result<(), TermError> {
+    if v > max {
+        return Err(TermError::Invalid(format!(
+            "{what} {v} is over the limit of {max}"
+        )));
+    }
+    Ok(())
+}
+
 /// Checks a primitive's extension against [`TermLimits::max_extent`].
 fn within_limit(limits: &TermLimits, what: &str, extent: u64) -> Result<(), TermError> {
     if extent > limits.max_extent as u64 {
@@ -347,7 +385,10 @@ fn cuboid(origin: [i64; 3], size: [u32; 3], limits: &TermLimits) -> Result<Cuboi
         )));
     }
     within_limit(limits, "cuboid", *size.iter().max().unwrap_or(&0) as u64)?;
-    Ok(Cuboid { origin, size })
+    Ok(Cuboid {
+        origin: placed("cuboid origin", origin)?,
+        size,
+    })
 }
 
 fn ellipsoid(
@@ -363,7 +404,10 @@ fn ellipsoid(
         "ellipsoid",
         2 * *radii.iter().max().unwrap_or(&0) as u64 + 1,
     )?;
-    Ok(Ellipsoid { center, radii })
+    Ok(Ellipsoid {
+        center: placed("ellipsoid center", center)?,
+        radii,
+    })
 }
 
 /// The checks a cylinder and a cone share: positive radii, a height of at least 3.
@@ -391,7 +435,7 @@ fn cylinder(
 ) -> Result<Cylinder, TermError> {
     axial("cylinder", radii, height, limits)?;
     Ok(Cylinder {
-        base,
+        base: placed("cylinder base", base)?,
         radii,
         height,
     })
@@ -405,7 +449,7 @@ fn cone(
 ) -> Result<Cone, TermError> {
     axial("cone", radii, height, limits)?;
     Ok(Cone {
-        base,
+        base: placed("cone base", base)?,
         radii,
         height,
     })
@@ -417,10 +461,12 @@ fn torus(
     minor: u32,
     limits: &TermLimits,
 ) -> Result<Torus, TermError> {
+    positive("torus major radius", major)?;
     positive("torus minor radius", minor)?;
-    within_limit(limits, "torus", 2 * (major as u64 + minor as u64) + 1)?;
+    at_most("torus major radius", major, max_torus_radius(limits))?;
+    at_most("torus minor radius", minor, max_torus_radius(limits))?;
     Ok(Torus {
-        center,
+        center: placed("torus center", center)?,
         major,
         minor,
     })
@@ -433,9 +479,10 @@ fn capsule(
     limits: &TermLimits,
 ) -> Result<Capsule, TermError> {
     positive("capsule radius", radius)?;
-    within_limit(limits, "capsule", length as u64 + 2 * radius as u64 + 1)?;
+    at_most("capsule radius", radius, max_capsule_radius(limits))?;
+    at_most("capsule length", length, max_capsule_length(limits))?;
     Ok(Capsule {
-        center,
+        center: placed("capsule center", center)?,
         radius,
         length,
     })
@@ -457,6 +504,7 @@ fn prism(
     limits: &TermLimits,
 ) -> Result<super::primitives::CutCuboid, TermError> {
     slanted("prism", size, limits)?;
+    let origin = placed("prism origin", origin)?;
     Ok(Prism { origin, size }.solid())
 }
 
@@ -466,6 +514,7 @@ fn pyramid(
     limits: &TermLimits,
 ) -> Result<super::primitives::CutCuboid, TermError> {
     slanted("pyramid", size, limits)?;
+    let origin = placed("pyramid origin", origin)?;
     Ok(Pyramid { origin, size }.solid())
 }
 
@@ -477,6 +526,7 @@ fn volume(
     t: VoxelType,
     volumes: &dyn VolumeResolver,
 ) -> Result<Node, TermError> {
+    let origin = placed("volume origin", origin)?;
     let snap = volumes.resolve(name)?;
     if snap.layout().voxel_type() != t {
         return Err(TermError::Volume(format!(

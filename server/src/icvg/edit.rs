@@ -23,7 +23,7 @@ use crate::geometry::Box3;
 use crate::store::transaction::{ChangedKeys, CheckpointPolicy, Transaction};
 use crate::store::writer::Vod2Writer;
 use crate::store::{BrickVoxels, Snapshot};
-use isovox_proto::icvg::EditRequest;
+use isovox_proto::icvg::{EditRequest, MAX_COORDINATE};
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -78,8 +78,10 @@ impl Edit {
     /// volume. [`Edit::for_volume`] is what servers and the command line use.
     ///
     /// # Errors
-    /// An unknown operator, a missing or superfluous term, a bad `s_l` or `k`, an empty
-    /// region, or a term that does not compile.
+    /// An unknown operator, a missing or superfluous term, `s_l` or `k`, a bad `s_l` or `k`, a
+    /// region corner beyond the coordinate limit, or a term that does not compile. A region
+    /// with `max <= min` on an axis is no error: it selects nothing, and the edit changes
+    /// nothing (as one whose term misses the volume).
     pub fn from_request(
         req: &EditRequest,
         t: VoxelType,
@@ -122,17 +124,33 @@ impl Edit {
     ) -> Result<Edit, TermError> {
         let region = match req.region {
             Some(r) => {
-                let b = Box3::new(r.min, r.max);
-                if b.is_empty() {
+                if r.min
+                    .iter()
+                    .chain(&r.max)
+                    .any(|c| c.unsigned_abs() > MAX_COORDINATE as u64)
+                {
                     return Err(TermError::Invalid(format!(
-                        "region {:?}..{:?} is empty",
+                        "region {:?}..{:?} reaches beyond +-{MAX_COORDINATE}, the coordinate limit",
                         r.min, r.max
                     )));
                 }
-                Some(b)
+                Some(Box3::new(r.min, r.max))
             }
             None => None,
         };
+        // An argument the operator does not take is a mistake the caller should hear about.
+        if req.s_l.is_some() && req.op != "divide" {
+            return Err(TermError::Invalid(format!(
+                "\"s_l\" belongs to divide, not to {:?}",
+                req.op
+            )));
+        }
+        if req.k.is_some() && req.op != "add_scalar" {
+            return Err(TermError::Invalid(format!(
+                "\"k\" belongs to add_scalar, not to {:?}",
+                req.op
+            )));
+        }
         let kind = match req.op.as_str() {
             "inverse" | "complement" | "add_scalar" => {
                 if req.term.is_some() {

@@ -42,6 +42,21 @@ pub enum Outside {
 }
 
 impl BinaryOp {
+    /// Every binary operator but `divide` (the one with an argument of its own, `s_l`).
+    pub const WITHOUT_ARGUMENTS: [BinaryOp; 11] = [
+        BinaryOp::Union,
+        BinaryOp::Intersection,
+        BinaryOp::Trim,
+        BinaryOp::Cap,
+        BinaryOp::Difference,
+        BinaryOp::DifferenceA,
+        BinaryOp::DifferenceB,
+        BinaryOp::Add,
+        BinaryOp::Modulate,
+        BinaryOp::Product,
+        BinaryOp::DivideA,
+    ];
+
     /// The operator named `name` (the JSON names), with `s_l` for divide.
     ///
     /// # Errors

@@ -53,10 +53,14 @@ pub enum TermError {
     /// part of the request.
     #[error("{0}")]
     Invalid(String),
-    /// A volume the term names is not there, or does not fit the edited one.
+    /// A volume or mesh the term names is not there (a 404 over HTTP, as for any resource
+    /// named that is not there).
+    #[error("{0}")]
+    Unknown(String),
+    /// A volume the term names does not fit the edited one, or cannot be read.
     #[error("{0}")]
     Volume(String),
-    /// A mesh the term names is not there, or cannot be placed.
+    /// A mesh the term names cannot be used or placed.
     #[error("{0}")]
     Mesh(String),
     /// Preparing the term (voxelizing a mesh leaf, filtering a morphology argument) would
@@ -113,7 +117,7 @@ pub trait VolumeResolver {
     /// # Errors
     /// No such mesh, or no mesh store here.
     fn mesh(&self, hash: u64) -> Result<Arc<crate::voxelize::solid::TriMesh>, TermError> {
-        Err(TermError::Mesh(format!(
+        Err(TermError::Unknown(format!(
             "mesh {hash:016x}: meshes are not available here"
         )))
     }
@@ -125,7 +129,7 @@ pub struct NoVolumes;
 
 impl VolumeResolver for NoVolumes {
     fn resolve(&self, name: &str) -> Result<Arc<Snapshot>, TermError> {
-        Err(TermError::Volume(format!(
+        Err(TermError::Unknown(format!(
             "unknown volume {name:?} in term"
         )))
     }

@@ -120,9 +120,7 @@ pub fn enclosed_volume(mesh: &Mesh) -> f64 {
         .chunks_exact(3)
         .map(|t| {
             let [a, b, c] = [t[0], t[1], t[2]].map(|i| mesh.positions[i as usize].map(f64::from));
-            (a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0])
-                + a[2] * (b[0] * c[1] - b[1] * c[0]))
-                / 6.0
+            crate::geometry::tetra_volume(a, b, c)
         })
         .sum()
 }

@@ -52,6 +52,23 @@ pub fn default_iso(t: VoxelType) -> f32 {
     t.surface() as f32 - 0.5
 }
 
+/// The iso value to mesh at: `iso`, or [`default_iso`] when none is given.
+///
+/// # Errors
+/// An iso value outside the voxel type's [L, H] (or NaN): every voxel would lie on one side of
+/// the surface, and an empty mesh would hide the mistake (a u16 iso asked of a u8 volume, say).
+pub fn iso_value(iso: Option<f32>, t: VoxelType) -> Result<f32, String> {
+    let iso = iso.unwrap_or_else(|| default_iso(t));
+    if !(t.low() as f32..=t.high() as f32).contains(&iso) {
+        return Err(format!(
+            "iso {iso} is outside the volume's value range [{}, {}]",
+            t.low(),
+            t.high()
+        ));
+    }
+    Ok(iso)
+}
+
 /// What a tile's mesh depends on: its level, the iso value, the brick edge and voxel type,
 /// whether it is the first tile on an axis (it then owns one more cell), and the content of the
 /// 27 bricks around it (content hash, constant value, or outside the volume).

@@ -49,8 +49,9 @@ pub enum VolumeError {
         /// The head.
         current: u64,
     },
-    /// `since` lies after the head.
-    #[error("since = {since} is after the current version {head}")]
+    /// `since` lies after the head: the caller holds a version this volume does not (it was
+    /// replaced by an older copy, say), so it must reload what it caches.
+    #[error("since = {since} is after the current version {head}: reload the volume")]
     SinceAfterHead {
         /// The version asked to list after.
         since: u64,

@@ -5,7 +5,7 @@
 
 use super::{LiveVolume, VolumeError};
 use crate::mesh::cache::MeshCache;
-use crate::mesh::tile::{default_iso, tile_inputs, to_world, TileInputs, TileScratch};
+use crate::mesh::tile::{iso_value, tile_inputs, to_world, TileInputs, TileScratch};
 use crate::store::codec::constant_hash;
 use crate::store::decoded::{decode, DecodedBricks};
 use crate::store::raw::{export_raw, Region};
@@ -60,17 +60,18 @@ impl LiveVolume {
 
     /// Checks a level read: the level exists, the region (max exclusive; bricks for a grid,
     /// voxels for voxels; the whole level when `None`) lies in it, voxels up to
-    /// [`MAX_RESPONSE_BYTES`].
+    /// [`MAX_RESPONSE_BYTES`]. A region with `max <= min` on an axis selects nothing: its
+    /// answer is empty, as a slice `a[3:2]` is.
     ///
     /// # Errors
-    /// [`VolumeError::NoSuchVersion`], [`VolumeError::OutOfRange`],
-    /// [`VolumeError::BadRequest`], [`VolumeError::TooLarge`].
+    /// [`VolumeError::NoSuchVersion`], [`VolumeError::OutOfRange`] (the level, or a region
+    /// corner beyond it, as a brick beyond the grid), [`VolumeError::TooLarge`].
     pub fn level(
         &self,
         version: Option<u64>,
         level: u8,
         form: LevelForm,
-        region: Option<([u32; 3], [u32; 3])>,
+        region: Option<([u64; 3], [u64; 3])>,
     ) -> Result<LevelRead, VolumeError> {
         let snap = self.snapshot(version)?;
         let layout = snap.layout();
@@ -84,12 +85,25 @@ impl LiveVolume {
             LevelForm::Grid => layout.grid(level),
             LevelForm::Voxels => layout.level_dims(level),
         };
-        let (min, max) = region.unwrap_or(([0; 3], extent));
-        if (0..3).any(|a| min[a] >= max[a] || max[a] > extent[a]) {
-            return Err(VolumeError::BadRequest(format!(
-                "region {min:?}..{max:?} is empty or outside {extent:?}"
-            )));
-        }
+        let (min, max) = match region {
+            None => ([0; 3], extent),
+            Some((min, max)) => {
+                if (0..3).any(|a| min[a].max(max[a]) > extent[a] as u64) {
+                    return Err(VolumeError::OutOfRange(format!(
+                        "region {min:?}..{max:?} reaches beyond level {level}'s {} {extent:?}",
+                        if form == LevelForm::Grid {
+                            "grid"
+                        } else {
+                            "voxels"
+                        }
+                    )));
+                }
+                // Within the extent, so within u32; an axis with max <= min selects nothing.
+                let min = min.map(|c| c as u32);
+                let max: [u32; 3] = std::array::from_fn(|a| (max[a] as u32).max(min[a]));
+                (min, max)
+            }
+        };
         let count: u64 = (0..3).map(|a| (max[a] - min[a]) as u64).product();
         if form == LevelForm::Voxels
             && count * layout.voxel_type().bytes() as u64 > MAX_RESPONSE_BYTES as u64
@@ -111,8 +125,8 @@ impl LiveVolume {
     /// decoded): enough to name the result before meshing it.
     ///
     /// # Errors
-    /// [`VolumeError::NoSuchVersion`], [`VolumeError::OutOfRange`], an iso value that is not
-    /// finite ([`VolumeError::BadRequest`]), a brick header that does not read.
+    /// [`VolumeError::NoSuchVersion`], [`VolumeError::OutOfRange`], an iso value outside the
+    /// voxel type's [L, H] ([`VolumeError::BadRequest`]), a brick header that does not read.
     pub fn mesh_tile(
         &self,
         version: Option<u64>,
@@ -124,12 +138,7 @@ impl LiveVolume {
             .layout()
             .key(level, x, y, z)
             .map_err(|e| VolumeError::OutOfRange(e.to_string()))?;
-        let iso = iso.unwrap_or_else(|| default_iso(snap.layout().voxel_type()));
-        if !iso.is_finite() {
-            return Err(VolumeError::BadRequest(format!(
-                "iso must be a finite number, got {iso}"
-            )));
-        }
+        let iso = iso_value(iso, snap.layout().voxel_type()).map_err(VolumeError::BadRequest)?;
         let inputs = tile_inputs(&snap, key, iso)?;
         Ok(TileRead {
             snap,
@@ -241,6 +250,9 @@ impl LevelRead {
             .product::<usize>();
         if self.form == LevelForm::Voxels {
             let mut out = Vec::with_capacity(count * layout.voxel_type().bytes());
+            if count == 0 {
+                return Ok(LevelAnswer::Voxels(out));
+            }
             export_raw(
                 snap,
                 level,

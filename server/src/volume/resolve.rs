@@ -24,13 +24,13 @@ impl VolumeResolver for CatalogVolumes {
         self.catalog
             .volume(name)
             .map(|v| v.head())
-            .ok_or_else(|| TermError::Volume(format!("no volume named {name:?}")))
+            .ok_or_else(|| TermError::Unknown(format!("no volume named {name:?}")))
     }
 
     fn mesh(&self, hash: u64) -> Result<Arc<TriMesh>, TermError> {
         match &self.meshes {
-            Some(store) => store.get(hash).map_err(TermError::Mesh),
-            None => Err(TermError::Mesh("this server keeps no meshes".into())),
+            Some(store) => uploaded(store, hash),
+            None => Err(TermError::Unknown("this server keeps no meshes".into())),
         }
     }
 }
@@ -45,7 +45,7 @@ pub struct DirVolumes {
 impl VolumeResolver for DirVolumes {
     fn resolve(&self, name: &str) -> Result<Arc<Snapshot>, TermError> {
         if !valid_name(name) {
-            return Err(TermError::Volume(format!("{name:?} is not a volume name")));
+            return Err(TermError::Unknown(format!("{name:?} is not a volume name")));
         }
         let path = self.dir.join(format!("{name}.vod"));
         Vod2::open(&path).map(|v| v.head()).map_err(|e| {
@@ -58,8 +58,14 @@ impl VolumeResolver for DirVolumes {
     }
 
     fn mesh(&self, hash: u64) -> Result<Arc<TriMesh>, TermError> {
-        MeshStore::new(&self.dir.join("meshes"))
-            .get(hash)
-            .map_err(TermError::Mesh)
+        uploaded(&MeshStore::new(&self.dir.join("meshes")), hash)
     }
+}
+
+/// The mesh `store` keeps under `hash`.
+fn uploaded(store: &MeshStore, hash: u64) -> Result<Arc<TriMesh>, TermError> {
+    store
+        .get(hash)
+        .map_err(TermError::Mesh)?
+        .ok_or_else(|| TermError::Unknown(format!("no mesh {hash:016x} has been uploaded")))
 }

@@ -1,6 +1,6 @@
 //! Meshes into volumes: solid voxelization by parity, the paper's 2x2x2 box-filter density,
 //! and conservative variants (Eisemann and Decoret, "Single-Pass GPU Solid Voxelization for
-//! Real-Time Applications", 2008, `../shared/seeds/002_*`), on the CPU.
+//! Real-Time Applications", 2008), on the CPU.
 //!
 //! Layout:
 //! - [`load`]: STL, OBJ, PLY and glTF/GLB readers.
@@ -85,9 +85,63 @@ pub enum VoxelizeError {
         /// Edges in all.
         edges: usize,
     },
+    /// Every edge pairs up, but the triangles enclose no volume (all of zero area, or folded
+    /// flat onto each other): there is no inside to fill.
+    #[error("the model is not watertight: its {triangles} triangles enclose no volume (they have zero area or lie flat on each other), so it has no inside")]
+    Flat {
+        /// The model's triangles.
+        triangles: usize,
+    },
     /// An option out of range.
     #[error("{0}")]
     Invalid(String),
+}
+
+/// Checks that a mesh bounds a solid: it has triangles, every edge is used by an even number
+/// of them (the paper's watertight), and they enclose some volume. The last catches what edge
+/// counting cannot: triangles of zero area (three points on a line) pair up their edges as
+/// well as a real surface does.
+///
+/// # Errors
+/// [`VoxelizeError::Empty`], [`VoxelizeError::NotWatertight`], [`VoxelizeError::Flat`].
+pub fn check_closed(mesh: &TriMesh) -> Result<(), VoxelizeError> {
+    if mesh.triangles.is_empty() {
+        return Err(VoxelizeError::Empty);
+    }
+    let (odd, edges) = odd_edges(mesh);
+    if odd > 0 {
+        return Err(VoxelizeError::NotWatertight { odd, edges });
+    }
+    let (volume, magnitude) = enclosed_volume(mesh);
+    // The signed volume is a sum of tetrahedra that cancel for a flat surface; what is left
+    // then is rounding, far below a billionth of the terms' magnitude. A real solid keeps a
+    // share of it about as large as its thickness over its length.
+    if volume.abs() <= magnitude * 1e-9 {
+        return Err(VoxelizeError::Flat {
+            triangles: mesh.triangles.len(),
+        });
+    }
+    Ok(())
+}
+
+/// The signed volume a closed mesh encloses (the divergence theorem: tetrahedra from the
+/// bounds' centre to each triangle) and the sum of those tetrahedra's absolute volumes.
+fn enclosed_volume(mesh: &TriMesh) -> (f64, f64) {
+    let Some((lo, hi)) = mesh.bounds() else {
+        return (0.0, 0.0);
+    };
+    let centre: [f64; 3] = std::array::from_fn(|a| (lo[a] as f64 + hi[a] as f64) / 2.0);
+    let at = |i: u32| -> [f64; 3] {
+        let p = mesh.positions[i as usize];
+        std::array::from_fn(|a| p[a] as f64 - centre[a])
+    };
+    let (mut volume, mut magnitude) = (0.0, 0.0);
+    for t in &mesh.triangles {
+        let v = crate::geometry::tetra_volume(at(t[0]), at(t[1]), at(t[2]));
+        volume += v;
+        magnitude += v.abs();
+    }
+    (volume, magnitude)
 }
 
 /// A voxelized model.
@@ -125,7 +179,8 @@ pub struct Report {
 /// Voxelizes `mesh` as `options` says.
 ///
 /// # Errors
-/// No triangles, a size out of range, or (unless `allow_open`) a mesh that is not watertight.
+/// No triangles, a size out of range, or (unless `allow_open`) a mesh that does not bound a
+/// solid (see [`check_closed`]).
 pub fn voxelize(mesh: &TriMesh, options: &Options) -> Result<Voxelized, VoxelizeError> {
     let (lo, hi) = mesh.bounds().ok_or(VoxelizeError::Empty)?;
     if !(1..=4096).contains(&options.size)
@@ -137,18 +192,15 @@ pub fn voxelize(mesh: &TriMesh, options: &Options) -> Result<Voxelized, Voxelize
             options.size, options.supersample, options.padding
         )));
     }
-    if !options.allow_open {
-        let (odd, edges) = odd_edges(mesh);
-        if odd > 0 {
-            return Err(VoxelizeError::NotWatertight { odd, edges });
-        }
-    }
     let extent: [f64; 3] = std::array::from_fn(|a| (hi[a] - lo[a]) as f64);
     let longest = extent.iter().copied().fold(0.0, f64::max);
     if longest <= 0.0 || !longest.is_finite() {
         return Err(VoxelizeError::Invalid(
             "the model is flat or a point".into(),
         ));
+    }
+    if !options.allow_open {
+        check_closed(mesh)?;
     }
     let voxel_size = longest / options.size as f64;
     let pad = options.padding as f64;

@@ -5,7 +5,8 @@
 //! a model whose inside is undefined. Loaded meshes are kept in memory by hash.
 
 use super::load::load_model;
-use super::solid::{odd_edges, TriMesh};
+use super::solid::TriMesh;
+use super::{check_closed, VoxelizeError};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
@@ -66,17 +67,13 @@ impl MeshStore {
         std::fs::write(&tmp, bytes).map_err(|e| format!("cannot write the upload: {e}"))?;
         let checked = load_model(&tmp)
             .map_err(|e| e.to_string())
-            .and_then(|mesh| {
-                let (odd, edges) = odd_edges(&mesh);
-                if mesh.triangles.is_empty() {
-                    return Err("the model has no triangles".to_string());
-                }
-                if odd > 0 {
-                    return Err(format!(
-                        "the model is not watertight: {odd} of its {edges} edges are used by an odd number of triangles"
-                    ));
-                }
-                Ok(mesh)
+            .and_then(|mesh| match check_closed(&mesh) {
+                Ok(()) => Ok(mesh),
+                // The voxelizer's message ends in advice for its command line; not here.
+                Err(VoxelizeError::NotWatertight { odd, edges }) => Err(format!(
+                    "the model is not watertight: {odd} of its {edges} edges are used by an odd number of triangles"
+                )),
+                Err(e) => Err(e.to_string()),
             });
         let mesh = match checked {
             Ok(m) => m,
@@ -100,23 +97,25 @@ impl MeshStore {
         Ok(info)
     }
 
-    /// The mesh with this content hash.
+    /// The mesh with this content hash, or `None` when none was uploaded.
     ///
     /// # Errors
-    /// No stored mesh has it, or its file no longer loads.
-    pub fn get(&self, hash: u64) -> Result<Arc<TriMesh>, String> {
+    /// Its file no longer loads.
+    pub fn get(&self, hash: u64) -> Result<Option<Arc<TriMesh>>, String> {
         if let Some(m) = self.loaded.lock().ok().and_then(|l| l.get(&hash).cloned()) {
-            return Ok(m);
+            return Ok(Some(m));
         }
-        let path = FORMATS
+        let Some(path) = FORMATS
             .iter()
             .map(|f| self.dir.join(format!("{hash:016x}.{f}")))
             .find(|p| p.exists())
-            .ok_or_else(|| format!("no mesh {hash:016x} has been uploaded"))?;
+        else {
+            return Ok(None);
+        };
         let mesh = Arc::new(load_model(&path).map_err(|e| e.to_string())?);
         if let Ok(mut loaded) = self.loaded.lock() {
             loaded.insert(hash, mesh.clone());
         }
-        Ok(mesh)
+        Ok(Some(mesh))
     }
 }

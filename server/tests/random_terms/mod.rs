@@ -33,7 +33,8 @@ where
                 height,
             }
         ),
-        (pos.clone(), 0u32..e * 2 / 5, 1u32..e / 4).prop_map(|(center, major, minor)| {
+        // Every radius is at least 1, the ring's too (docs/icvg.md, "Validation").
+        (pos.clone(), 1u32..e * 2 / 5, 1u32..e / 4).prop_map(|(center, major, minor)| {
             Term::Torus {
                 center,
                 major,

@@ -39,8 +39,17 @@ impl ServerProcess {
     /// Runs `isovox serve --addr 127.0.0.1:0 ARGS` with `envs` set, and waits (up to 60 s) for
     /// its "isovox serving ... on http://ADDR/..." line.
     pub(crate) fn start(args: &[&std::ffi::OsStr], envs: &[(&str, &str)]) -> ServerProcess {
+        ServerProcess::start_on("127.0.0.1:0", args, envs)
+    }
+
+    /// [`ServerProcess::start`] listening on `addr` (`HOST:PORT`).
+    pub(crate) fn start_on(
+        addr: &str,
+        args: &[&std::ffi::OsStr],
+        envs: &[(&str, &str)],
+    ) -> ServerProcess {
         let mut command = Command::new(env!("CARGO_BIN_EXE_isovox"));
-        command.args(["serve", "--addr", "127.0.0.1:0"]).args(args);
+        command.args(["serve", "--addr", addr]).args(args);
         for name in SERVE_ENV {
             command.env_remove(name);
         }

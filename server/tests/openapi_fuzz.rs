@@ -1,0 +1,71 @@
+//! The API document against the server that serves it: Schemathesis (pinned by
+//! `scripts/fuzz-api.sh`, installed by `.ci/run`) drives this build's `isovox serve` from
+//! `/openapi.json` with every check (`FUZZ_CHECKS=all`): every operation, the coverage phase
+//! (each bound, enum, pattern and required field just inside and just outside), a few random
+//! examples per operation and the stateful phase. It fails on any 5xx, any answer outside the
+//! documented statuses, types, headers and schemas, any schema-valid request refused and any
+//! schema-invalid one accepted, and on a panic in the server's log. The script's longer run
+//! (500 examples per operation and phase by default) is the same with more cases.
+
+use std::path::PathBuf;
+use std::process::Command;
+
+fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+#[test]
+fn schemathesis_finds_the_document_and_the_server_in_agreement() {
+    let venv = repo().join("bench-out/fuzz-venv/bin/schemathesis");
+    assert!(
+        venv.exists(),
+        "{} is missing: run `bash scripts/fuzz-api.sh --install` (as .ci/run does)",
+        venv.display()
+    );
+    let reports = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+    let out = Command::new("bash")
+        .arg(repo().join("scripts/fuzz-api.sh"))
+        .env("ISOVOX_BIN", env!("CARGO_BIN_EXE_isovox"))
+        .env("FUZZ_CHECKS", "all")
+        .env("FUZZ_EXAMPLES", "5")
+        .env("FUZZ_OUT", reports.path())
+        .env_remove("ISOVOX_LOG")
+        .output()
+        .unwrap_or_else(|e| panic!("cannot run scripts/fuzz-api.sh: {e}"));
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    println!("{text}");
+    assert!(
+        out.status.success(),
+        "Schemathesis found the document and the server at odds ({}):\n{text}",
+        out.status
+    );
+    // The run reached every operation the document lists and ran cases: the summary says so,
+    // not just the exit status.
+    let field = |name: &str| {
+        text.lines()
+            .find_map(|l| l.trim().strip_prefix(name))
+            .map(|v| v.trim().to_string())
+            .unwrap_or_else(|| panic!("no {name:?} in the summary:\n{text}"))
+    };
+    let selected = field("Selected:");
+    let tested = field("Tested:");
+    let (chosen, listed) = selected.split_once('/').unwrap_or_default();
+    assert!(
+        chosen == listed && listed == tested && tested != "0",
+        "selected {selected}, tested {tested}:\n{text}"
+    );
+    let cases = text
+        .lines()
+        .skip_while(|l| l.trim() != "Test cases:")
+        .nth(1)
+        .unwrap_or_default();
+    println!("cases: {}", cases.trim());
+    assert!(
+        cases.contains(" passed") && !cases.contains("fail"),
+        "test cases: {cases:?}\n{text}"
+    );
+}
