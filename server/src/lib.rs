@@ -11,11 +11,13 @@
 //! - [`catalog`]: the volumes a server serves.
 //! - [`voxelize`]: meshes into volumes (solid voxelization by parity, density, conservative fills).
 //! - [`volume`]: one served volume: current version, single writer, history, change feed.
+//! - [`formats`]: the field's formats: Neuroglancer precomputed and OME-Zarr views, imports, exports.
 //! - [`http`]: the axum router, thin handlers, errors as responses.
 //! - [`cli`]: the `isovox` subcommands.
 
 pub mod catalog;
 pub mod cli;
+pub mod formats;
 pub mod generate;
 pub mod http;
 pub mod icvg;

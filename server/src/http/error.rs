@@ -53,6 +53,18 @@ impl From<StoreError> for ApiError {
     }
 }
 
+impl From<crate::formats::ViewError> for ApiError {
+    fn from(e: crate::formats::ViewError) -> Self {
+        use crate::formats::ViewError;
+        match e {
+            ViewError::NotFound(d) => ApiError::NotFound(d),
+            ViewError::BadRequest(d) => ApiError::BadRequest(d),
+            ViewError::Gone(d) => ApiError::Gone(d),
+            ViewError::Store(e) => e.into(),
+        }
+    }
+}
+
 fn problem(status: StatusCode, detail: String) -> Response {
     problem_with_version(status, detail, None)
 }

@@ -134,7 +134,7 @@ pub(super) fn brick_at(
 }
 
 /// Whether `If-None-Match` names `etag` (or `*`).
-fn if_none_match(headers: &HeaderMap, etag: &str) -> bool {
+pub(super) fn if_none_match(headers: &HeaderMap, etag: &str) -> bool {
     headers
         .get_all(header::IF_NONE_MATCH)
         .iter()

@@ -12,6 +12,8 @@
 //! - `GET /v1/volumes/{name}/levels/{level}`: a level's brick grid, or its voxels.
 //! - `GET /v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}`: one mesh tile (see
 //!   [`handlers::mesh_tile`]).
+//! - `GET /v1/volumes/{name}/zarr/...`, `.../precomputed/...` and their version-pinned forms
+//!   under `.../versions/{version}/`: the field's formats (see [`views`]).
 //!
 //! Plain brick requests (no query, nothing escaped) are answered before the router by the same
 //! code the routed handler calls; see `fast_path.rs` for why and for what counts as plain.
@@ -25,6 +27,7 @@ mod fast_path;
 pub mod handlers;
 pub mod metrics;
 mod openapi;
+pub mod views;
 
 pub use error::ApiError;
 
@@ -113,6 +116,9 @@ pub struct Shared {
     pub edit_rate: Arc<auth::RateLimiter>,
     /// Decoded and transcoded brick bodies by content hash.
     pub bodies: Arc<bodies::BodyCache>,
+    /// Chunks of the Zarr and precomputed views made from bricks (decoded, or compressed when
+    /// not stored as a zstd frame), by content hash.
+    pub view_chunks: Arc<crate::formats::view::ChunkCache>,
     /// Uploaded meshes for `mesh` leaves of edit terms.
     pub mesh_store: Option<Arc<crate::voxelize::store::MeshStore>>,
 }
@@ -142,6 +148,9 @@ impl AppState {
             constants: bodies::ConstantBricks::default(),
             edit_rate: Arc::new(auth::RateLimiter::new(config.edit_rate)),
             bodies: Arc::new(bodies::BodyCache::new(config.brick_cache_bytes)),
+            view_chunks: Arc::new(crate::formats::view::ChunkCache::new(
+                config.brick_cache_bytes,
+            )),
             mesh_store: config
                 .mesh_dir
                 .as_deref()
@@ -168,6 +177,10 @@ pub const ROUTES: &[&str] = &[
     "/v1/volumes/{name}/events",
     "/v1/volumes/{name}/compact",
     "/v1/meshes",
+    "/v1/volumes/{name}/zarr/{*path}",
+    "/v1/volumes/{name}/precomputed/{*path}",
+    "/v1/volumes/{name}/versions/{version}/zarr/{*path}",
+    "/v1/volumes/{name}/versions/{version}/precomputed/{*path}",
 ];
 
 /// The whole service: the router inside the layers every request passes through (request
@@ -236,6 +249,19 @@ fn routes(state: &AppState) -> Router<AppState> {
             read(handlers::brick),
         )
         .route("/v1/volumes/{name}/blobs/{hash}", read(handlers::blob))
+        .route("/v1/volumes/{name}/zarr/{*path}", read(views::zarr))
+        .route(
+            "/v1/volumes/{name}/precomputed/{*path}",
+            read(views::precomputed),
+        )
+        .route(
+            "/v1/volumes/{name}/versions/{version}/zarr/{*path}",
+            read(views::zarr_pinned),
+        )
+        .route(
+            "/v1/volumes/{name}/versions/{version}/precomputed/{*path}",
+            read(views::precomputed_pinned),
+        )
         .merge(cpu_routes)
         .merge(write_routes);
     if state.config.private_reads {
