@@ -22,7 +22,9 @@ pub enum VodFormat {
 
 #[derive(Debug, Args)]
 pub struct ImportArgs {
-    /// Input: .raw (needs --dims), .rawvox (carries its shape), or a VOD 1 file.
+    /// Input: .raw (needs --dims), .rawvox (carries its shape), a VOD 1 file, or one of the
+    /// field's formats, local or an http URL: OME-Zarr / Zarr v2 or v3, Neuroglancer
+    /// precomputed, NIfTI-1 (.nii, .nii.gz), a TIFF stack (multi-page file or folder).
     pub input: PathBuf,
     /// Output file.
     #[arg(short, long)]
@@ -44,6 +46,8 @@ pub struct ImportArgs {
     pub format: VodFormat,
     #[command(flatten)]
     pub compression: CompressionArgs,
+    #[command(flatten)]
+    pub formats: super::formats::FormatImportArgs,
 }
 
 /// How bricks are compressed.
@@ -82,6 +86,10 @@ pub enum ExportFormat {
     Raw,
     Rawvox,
     Vod1,
+    /// OME-Zarr 0.5 (Zarr v3): a directory, every level.
+    Zarr,
+    /// Neuroglancer precomputed: a directory, every level.
+    Precomputed,
 }
 
 #[derive(Debug, Args)]
@@ -229,6 +237,9 @@ pub(crate) fn build_to(
 }
 
 pub fn import(a: ImportArgs) -> anyhow::Result<()> {
+    if let Some(done) = super::formats::import(&a) {
+        return done;
+    }
     let compress = a.compression.compression();
     match sniff(&a.input)? {
         InputKind::Vod(1) => {
@@ -288,6 +299,9 @@ fn parse_region(s: &str) -> anyhow::Result<Region> {
 }
 
 pub fn export(a: ExportArgs) -> anyhow::Result<()> {
+    if let Some(done) = super::formats::export(&a) {
+        return done;
+    }
     if let InputKind::Vod(v) = sniff(&a.input)? {
         if v != 2 {
             bail!(
@@ -312,6 +326,10 @@ pub fn export(a: ExportArgs) -> anyhow::Result<()> {
                 bail!("--format vod1 writes the whole volume; --level and --region apply to raw and rawvox");
             }
             write_vod1(&snap, true, &mut out)?;
+        }
+        // Directories, written by `formats::export` above.
+        ExportFormat::Zarr | ExportFormat::Precomputed => {
+            bail!("internal: a view export reached the file exporter")
         }
         ExportFormat::Raw | ExportFormat::Rawvox => {
             let layout = snap.layout();
