@@ -17,8 +17,10 @@
 //! when compression did not pay, lz4, constant) are compressed with zstd on request. A brick
 //! equal to the fill value everywhere answers 404, which Zarr clients read as the fill value.
 //!
-//! Level k's voxel i covers level-0 voxels [i 2^k, (i + 1) 2^k) (the pyramid averages 2x2x2
-//! blocks), so each dataset's scale is the voxel scale times 2^k and no translation is needed.
+//! Level k's voxel i is the mean of level-0 voxels [i 2^k, (i + 1) 2^k) (the pyramid averages
+//! 2x2x2 blocks). OME-Zarr places a voxel's coordinate at its centre, so level k's dataset has
+//! the scale s 2^k and the translation s (2^k - 1) / 2: its voxel centres fall on the centres
+//! of the level-0 blocks they average, and every level lines up with level 0.
 
 use super::view::{level_segment, Chunk, ChunkEncoding, Document, ViewError};
 use crate::store::{Snapshot, StoredBrick};
@@ -63,9 +65,13 @@ pub fn group_metadata(layout: &VolumeLayout, voxel_scale: [f32; 3], name: &str) 
         .map(|k| {
             let f = f64::from(1u32 << k);
             let [sx, sy, sz] = voxel_scale.map(|s| f64::from(s) * f);
+            let [tx, ty, tz] = voxel_scale.map(|s| f64::from(s) * (f - 1.0) / 2.0);
             json!({
                 "path": k.to_string(),
-                "coordinateTransformations": [{"type": "scale", "scale": [sz, sy, sx]}]
+                "coordinateTransformations": [
+                    {"type": "scale", "scale": [sz, sy, sx]},
+                    {"type": "translation", "translation": [tz, ty, tx]}
+                ]
             })
         })
         .collect();
@@ -170,6 +176,16 @@ mod tests {
         assert_eq!(
             ms["datasets"][2]["coordinateTransformations"][0]["scale"],
             json!([8.0, 4.0, 2.0])
+        );
+        // Level 2's voxel 0 averages level-0 voxels 0..4, whose centre is at 1.5 voxels:
+        // 1.5 times (2, 1, 0.5); level 0 needs none.
+        assert_eq!(
+            ms["datasets"][2]["coordinateTransformations"][1]["translation"],
+            json!([3.0, 1.5, 0.75])
+        );
+        assert_eq!(
+            ms["datasets"][0]["coordinateTransformations"][1]["translation"],
+            json!([0.0, 0.0, 0.0])
         );
         // One dataset and one consolidated array per level: 197 needs levels up to one brick
         // (197 -> 99 -> 50 -> 25 <= 32): 4 levels.
