@@ -40,14 +40,18 @@ impl std::fmt::Debug for NiftiInput {
     }
 }
 
-/// Whether `path` starts like a NIfTI-1 file (plain or gzip-compressed).
+/// Whether `path` starts like a NIfTI-1 file (plain or gzip-compressed): `sizeof_hdr` 348 in
+/// either byte order and a NIfTI-1 magic. The rest of the header is checked on opening, so an
+/// unsupported one gets its own message.
 pub fn sniff(path: &Path) -> bool {
     let Ok(file) = File::open(path) else {
         return false;
     };
     let mut reader = open_stream(file, path);
     let mut head = [0u8; HEADER_LEN];
-    reader.read_exact(&mut head).is_ok() && parse_header(&head, path).is_ok()
+    reader.read_exact(&mut head).is_ok()
+        && (head[..4] == 348i32.to_le_bytes() || head[..4] == 348i32.to_be_bytes())
+        && matches!(&head[344..348], b"n+1\0" | b"ni1\0")
 }
 
 fn open_stream(file: File, path: &Path) -> Box<dyn Read + Send> {
