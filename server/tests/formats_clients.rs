@@ -103,14 +103,25 @@ fn script(name: &str, args: &[&str]) {
         .current_dir(scripts())
         .status()
         .expect("the Python script runs");
-    assert!(status.success(), "{name} {args:?} failed ({status}); its output is above");
+    assert!(
+        status.success(),
+        "{name} {args:?} failed ({status}); its output is above"
+    );
 }
 
 /// A u8 world and a u16 ellipsoid whose dimensions are not multiples of their bricks.
 fn odd_volumes(data: &Path) {
     std::fs::create_dir_all(data).expect("create the data directory");
     ok(isovox()
-        .args(["generate", "world", "--dims", "197,77,141", "--brick", "32", "-o"])
+        .args([
+            "generate",
+            "world",
+            "--dims",
+            "197,77,141",
+            "--brick",
+            "32",
+            "-o",
+        ])
         .arg(data.join("world8.vod")));
     ok(isovox()
         .args([
@@ -135,7 +146,14 @@ fn python_clients_read_every_level_live_and_pinned() {
     let server = Server::start(&data);
     script(
         "views_read_back.py",
-        &["--url", &server.url, "--token", TOKEN, "world8", "ellipsoid16"],
+        &[
+            "--url",
+            &server.url,
+            "--token",
+            TOKEN,
+            "world8",
+            "ellipsoid16",
+        ],
     );
 }
 

@@ -67,7 +67,7 @@ def same(what, got, want):
 
 def window(values, lo, hi, high):
     """The documented mapping: round((v - lo) / (hi - lo) * H), clamped; half away from zero."""
-    t = (values.astype(np.float64) - lo) * (high / (hi - lo))
+    t = (values.astype(np.float64) - lo) * high / (hi - lo)
     t = np.where(np.isnan(t), 0, t)
     return np.clip(np.floor(t + 0.5), 0, high)
 

@@ -110,9 +110,11 @@ impl Conversion {
             Conversion::Window { lo, hi, target } => {
                 let n = values.len() / dtype.bytes();
                 let high = f64::from(target.high());
-                let scale = high / (hi - lo);
+                let span = hi - lo;
                 let map = |i: usize| -> u16 {
-                    let v = (dtype.value(values, i) - lo) * scale;
+                    // Multiplied before dividing: exact for integer inputs, so a value halfway
+                    // between two outputs rounds up as documented.
+                    let v = (dtype.value(values, i) - lo) * high / span;
                     // NaN fails both comparisons and lands on 0.
                     if v >= high {
                         target.high()
