@@ -13,7 +13,6 @@ Usage: python imports_round_trip.py --isovox BIN --work DIR --url http://127.0.0
 """
 
 import argparse
-import gzip
 import json
 import os
 import shutil
@@ -175,30 +174,26 @@ def main():
     print("every import round-tripped, every export read back equal, every bad input was refused")
 
 
+def truncated_copy(work, name):
+    """A copy of precomputed volume `name` whose first chunk lost its second half."""
+    copy = os.path.join(work, f"{name}-truncated")
+    shutil.copytree(os.path.join(work, name), copy)
+    chunk_dir = os.path.join(copy, sorted(d for d in os.listdir(copy) if d != "info")[0])
+    victim = os.path.join(chunk_dir, sorted(os.listdir(chunk_dir))[0])
+    with open(victim, "rb") as f:
+        data = f.read()
+    with open(victim, "wb") as f:
+        f.write(data[: len(data) // 2])
+    return copy
+
+
 def bad_inputs(isovox, work):
     """Each must fail with a message naming the problem, and leave no output (not even a
     temporary file)."""
     cases = []
-    # A truncated precomputed chunk.
-    trunc = os.path.join(work, "pre-truncated")
-    shutil.copytree(os.path.join(work, "pre-raw"), trunc)
-    chunk_dir = os.path.join(trunc, sorted(d for d in os.listdir(trunc) if d != "info")[0])
-    victim = os.path.join(chunk_dir, sorted(os.listdir(chunk_dir))[0])
-    with open(victim, "rb") as f:
-        data = f.read()
-    with open(victim, "wb") as f:
-        f.write(data[: len(data) // 2])
-    cases.append(("truncated chunk", [trunc], "truncated"))
-    # A truncated gzip chunk: it does not decompress.
-    gz_trunc = os.path.join(work, "pre-gz-truncated")
-    shutil.copytree(os.path.join(work, "pre-gzip"), gz_trunc)
-    chunk_dir = os.path.join(gz_trunc, sorted(d for d in os.listdir(gz_trunc) if d != "info")[0])
-    victim = os.path.join(chunk_dir, sorted(os.listdir(chunk_dir))[0])
-    with open(victim, "rb") as f:
-        data = f.read()
-    with open(victim, "wb") as f:
-        f.write(data[: len(data) // 2])
-    cases.append(("truncated gzip chunk", [gz_trunc], "cannot read"))
+    # A truncated precomputed chunk, plain and gzip (which then does not decompress).
+    cases.append(("truncated chunk", [truncated_copy(work, "pre-raw")], "truncated"))
+    cases.append(("truncated gzip chunk", [truncated_copy(work, "pre-gzip")], "cannot read"))
     # A data type Isovox does not read.
     zc = zarr.create_array(os.path.join(work, "complex.zarr"), shape=(4, 4, 4), dtype="complex64")
     zc[...] = 1
@@ -249,6 +244,12 @@ def exports(isovox, work, url, data, volume):
     r = run(isovox, "export", vod, "-o", zarr_dir, "--format", "zarr", ok=False)
     if r.returncode == 0 or "already exists" not in r.stderr:
         failures.append(f"export over an existing directory: {r.returncode} {r.stderr.strip()}")
+    # The views themselves, imported over http: Isovox reading Isovox through the field's formats.
+    shape = tuple(reversed(info["dims"]))
+    truth = level_voxels(base, 0, dtype)
+    for source in (f"zarr://{base}/zarr/", f"precomputed://{base}/precomputed"):
+        got, _, _ = import_and_read(isovox, work, source, shape, dtype)
+        same(f"import of {source}", got, truth)
     group = zarr.open_group(zarr_dir, mode="r")
     for k in range(len(info["levels"])):
         want = level_voxels(base, k, dtype)

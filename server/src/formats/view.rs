@@ -88,6 +88,18 @@ pub enum BodyKind {
     Decoded = 0,
     /// A zstd frame of the decoded voxels, made here.
     Zstd = 1,
+    /// A constant brick's voxels; keyed by [`constant_key`], not a content hash.
+    ConstantDecoded = 2,
+    /// A zstd frame of a constant brick; keyed by [`constant_key`].
+    ConstantZstd = 3,
+}
+
+/// The key of a constant brick's bodies: its value and its size in bytes, which together
+/// determine its voxels (brick edges are powers of two, so a u8 and a u16 brick never have the
+/// same size). Most bricks of a sparse volume are constant: making their bodies once saves a
+/// fill and a compression of a whole brick per request.
+pub fn constant_key(value: u16, brick_bytes: usize) -> u64 {
+    u64::from(value) | ((brick_bytes as u64) << 16)
 }
 
 /// Where bodies made from a brick's content (keyed by its content hash) are kept: the server's
@@ -131,8 +143,15 @@ impl BodyMemo for ChunkCache {
         kind: BodyKind,
         make: &mut dyn FnMut() -> Result<Bytes, StoreError>,
     ) -> Result<Bytes, StoreError> {
-        // The hash is uniform in its low bits (they pick the shard); the kind goes on top.
-        let key = u128::from(hash) | ((kind as u128) << 64);
+        // A content hash is uniform in its low bits (they pick the shard); a constant's key is
+        // not, so it is hashed first. The kind goes on top.
+        let spread = match kind {
+            BodyKind::ConstantDecoded | BodyKind::ConstantZstd => {
+                xxhash_rust::xxh3::xxh3_64(&hash.to_le_bytes())
+            }
+            BodyKind::Decoded | BodyKind::Zstd => hash,
+        };
+        let key = u128::from(spread) | ((kind as u128) << 64);
         if let Some(body) = self.lru.get(key) {
             return Ok((*body).clone());
         }
@@ -187,9 +206,11 @@ impl Chunk<'_> {
                     compress_frame(&voxels)
                 })
             }
-            (ChunkEncoding::ZstdFrame, StoredBrick::Constant(_)) => {
-                compress_frame(&self.decoded(snap, memo)?)
-            }
+            (ChunkEncoding::ZstdFrame, StoredBrick::Constant(v)) => memo.get_or_make(
+                constant_key(v, layout.brick_bytes()),
+                BodyKind::ConstantZstd,
+                &mut || compress_frame(&self.decoded(snap, memo)?),
+            ),
             (ChunkEncoding::Raw { extent }, _) => {
                 let voxels = self.decoded(snap, memo)?;
                 let b = layout.brick();
@@ -205,11 +226,15 @@ impl Chunk<'_> {
     fn decoded(&self, snap: &Snapshot, memo: &dyn BodyMemo) -> Result<Bytes, StoreError> {
         let layout = snap.layout();
         match self.stored {
-            StoredBrick::Constant(v) => {
-                let mut out = vec![0u8; layout.brick_bytes()];
-                crate::store::codec::fill_constant(&mut out, v, layout.voxel_type());
-                Ok(out.into())
-            }
+            StoredBrick::Constant(v) => memo.get_or_make(
+                constant_key(v, layout.brick_bytes()),
+                BodyKind::ConstantDecoded,
+                &mut || {
+                    let mut out = vec![0u8; layout.brick_bytes()];
+                    crate::store::codec::fill_constant(&mut out, v, layout.voxel_type());
+                    Ok(out.into())
+                },
+            ),
             StoredBrick::Record { header, .. } => {
                 memo.get_or_make(header.hash, BodyKind::Decoded, &mut || {
                     let mut out = vec![0u8; layout.brick_bytes()];
@@ -313,10 +338,30 @@ pub fn read(
     path: &str,
     memo: &dyn BodyMemo,
 ) -> Result<ViewRead, ViewError> {
-    let snap = snapshot(volume, version)?;
-    let body = match resolve(kind, &snap, volume.name(), path)? {
+    match version {
+        // The head is borrowed from the volume's current file: no reference count touched (one
+        // shared by every core serving chunks is a cache line they would fight over).
+        None => read_snapshot(volume.load().head_ref(), volume.name(), kind, path, memo),
+        Some(_) => read_snapshot(
+            &*snapshot(volume, version)?,
+            volume.name(),
+            kind,
+            path,
+            memo,
+        ),
+    }
+}
+
+fn read_snapshot(
+    snap: &Snapshot,
+    name: &str,
+    kind: ViewKind,
+    path: &str,
+    memo: &dyn BodyMemo,
+) -> Result<ViewRead, ViewError> {
+    let body = match resolve(kind, snap, name, path)? {
         Document::Metadata(json) => ViewBody::Json(json.into()),
-        Document::Chunk(chunk) => ViewBody::Chunk(chunk.body(&snap, memo)?),
+        Document::Chunk(chunk) => ViewBody::Chunk(chunk.body(snap, memo)?),
         Document::Absent => ViewBody::Absent,
     };
     Ok(ViewRead {

@@ -106,18 +106,19 @@ pub fn group_metadata(layout: &VolumeLayout, voxel_scale: [f32; 3], name: &str) 
 /// See [`super::view::resolve`].
 pub fn document<'s>(snap: &'s Snapshot, name: &str, path: &str) -> Result<Document<'s>, ViewError> {
     let layout = snap.layout();
-    let segments: Vec<&str> = path.split('/').collect();
-    match segments.as_slice() {
-        ["zarr.json"] => Ok(metadata(&group_metadata(
+    let mut parts = path.split('/');
+    let segments: [Option<&str>; 6] = std::array::from_fn(|_| parts.next());
+    match segments {
+        [Some("zarr.json"), None, ..] => Ok(metadata(&group_metadata(
             layout,
             snap.header().voxel_scale,
             name,
         ))),
-        [level, "zarr.json"] => Ok(metadata(&array_metadata(
+        [Some(level), Some("zarr.json"), None, ..] => Ok(metadata(&array_metadata(
             layout,
             level_segment(snap, level)?,
         ))),
-        [level, "c", z, y, x] => {
+        [Some(level), Some("c"), Some(z), Some(y), Some(x), None] => {
             let level = level_segment(snap, level)?;
             let coord = |s: &str| s.parse::<u32>().ok();
             let key = match (coord(x), coord(y), coord(z)) {

@@ -15,7 +15,7 @@
 use super::{handlers, ApiError, AppState};
 use crate::formats::view::{read, ViewBody, ViewKind};
 use axum::extract::rejection::PathRejection;
-use axum::extract::{Path, State};
+use axum::extract::{Path, Request, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 
@@ -26,54 +26,45 @@ const PINNED: &str = "public, max-age=31536000, immutable";
 
 type LivePath = Result<Path<(String, String)>, PathRejection>;
 type PinnedPath = Result<Path<(String, u64, String)>, PathRejection>;
+type Reply = Result<Response, ApiError>;
 
-pub async fn zarr(
-    State(state): State<AppState>,
-    path: LivePath,
-    headers: HeaderMap,
-) -> Result<Response, ApiError> {
+// The request itself, not a `HeaderMap` extractor (which clones every header).
+
+pub async fn zarr(State(s): State<AppState>, path: LivePath, request: Request) -> Reply {
     let Path((name, rest)) = path.map_err(malformed)?;
-    answer(&state, ViewKind::Zarr, &name, None, &rest, &headers)
+    answer(&s, ViewKind::Zarr, &name, None, &rest, request.headers())
 }
 
-pub async fn precomputed(
-    State(state): State<AppState>,
-    path: LivePath,
-    headers: HeaderMap,
-) -> Result<Response, ApiError> {
+pub async fn precomputed(State(s): State<AppState>, path: LivePath, request: Request) -> Reply {
     let Path((name, rest)) = path.map_err(malformed)?;
-    answer(&state, ViewKind::Precomputed, &name, None, &rest, &headers)
-}
-
-pub async fn zarr_pinned(
-    State(state): State<AppState>,
-    path: PinnedPath,
-    headers: HeaderMap,
-) -> Result<Response, ApiError> {
-    let Path((name, version, rest)) = path.map_err(malformed)?;
     answer(
-        &state,
-        ViewKind::Zarr,
+        &s,
+        ViewKind::Precomputed,
         &name,
-        Some(version),
+        None,
         &rest,
-        &headers,
+        request.headers(),
     )
 }
 
+pub async fn zarr_pinned(State(s): State<AppState>, path: PinnedPath, request: Request) -> Reply {
+    let Path((name, v, rest)) = path.map_err(malformed)?;
+    answer(&s, ViewKind::Zarr, &name, Some(v), &rest, request.headers())
+}
+
 pub async fn precomputed_pinned(
-    State(state): State<AppState>,
+    State(s): State<AppState>,
     path: PinnedPath,
-    headers: HeaderMap,
-) -> Result<Response, ApiError> {
-    let Path((name, version, rest)) = path.map_err(malformed)?;
+    request: Request,
+) -> Reply {
+    let Path((name, v, rest)) = path.map_err(malformed)?;
     answer(
-        &state,
+        &s,
         ViewKind::Precomputed,
         &name,
-        Some(version),
+        Some(v),
         &rest,
-        &headers,
+        request.headers(),
     )
 }
 
