@@ -1,4 +1,4 @@
-//! Where an input lives: a local path or an http URL, read file by file.
+//! Where an input lives: a local path or an http(s) URL, read file by file.
 //!
 //! Neuroglancer-style prefixes (`precomputed://`, `zarr://`, `zarr2://`, `zarr3://`) are
 //! accepted and name the format. A file may be gzip-compressed: a local `NAME.gz` beside a
@@ -10,7 +10,8 @@ use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-/// A local directory or file, or an http URL.
+/// A local directory or file, or an http(s) URL (TLS through reqwest's default, the system's
+/// OpenSSL, which `zarrs_http` brings in).
 #[derive(Debug, Clone)]
 pub enum Location {
     Local(PathBuf),
@@ -42,9 +43,9 @@ impl Location {
     /// The location `input` names (without a format prefix).
     ///
     /// # Errors
-    /// An https URL (this build has no TLS) or another scheme.
+    /// A scheme other than http, https and file.
     pub fn parse(input: &str) -> Result<Location, FormatsError> {
-        if input.starts_with("http://") {
+        if input.starts_with("http://") || input.starts_with("https://") {
             let client = reqwest::blocking::Client::builder()
                 .connect_timeout(Duration::from_secs(10))
                 .timeout(Duration::from_secs(120))
@@ -57,11 +58,6 @@ impl Location {
                 client,
                 base: input.trim_end_matches('/').to_string(),
             });
-        }
-        if input.starts_with("https://") {
-            return Err(FormatsError::input(format!(
-                "{input}: this build reads http URLs, not https (fetch the data first, or serve it over http)"
-            )));
         }
         if let Some(path) = input.strip_prefix("file://") {
             return Ok(Location::Local(PathBuf::from(path)));

@@ -180,7 +180,7 @@ impl<'p> SlabSource<'p> {
         }
         let b = self.layout.brick();
         let [_, _, dz] = self.layout.dims();
-        let (z0, z1) = (bz * b, ((bz + 1) * b).min(dz));
+        let (z0, z1) = (bz * b, (bz + 1).saturating_mul(b).min(dz));
         let dtype = reader.source().dtype();
         let converted = self.conversion.apply(dtype, reader.planes(z0, z1)?)?;
         let mut slab = self

@@ -152,11 +152,16 @@ impl PrecomputedInput {
         let mut parts = Vec::with_capacity(3);
         let mut extent = [0u32; 3];
         for a in 0..3 {
-            let lo = i[a] * self.chunk[a];
-            let hi = (lo + self.chunk[a]).min(self.dims[a]);
-            extent[a] = hi - lo;
+            // In u64/i64: a hostile info's chunk and size near 2^32 must not overflow.
+            let lo = u64::from(i[a]) * u64::from(self.chunk[a]);
+            let hi = (lo + u64::from(self.chunk[a])).min(u64::from(self.dims[a]));
+            extent[a] = (hi - lo) as u32;
             let o = self.offset[a];
-            parts.push(format!("{}-{}", o + i64::from(lo), o + i64::from(hi)));
+            parts.push(format!(
+                "{}-{}",
+                o.saturating_add(lo as i64),
+                o.saturating_add(hi as i64)
+            ));
         }
         (format!("{}/{}", self.key, parts.join("_")), extent)
     }
@@ -217,15 +222,20 @@ impl PlaneSource for PrecomputedInput {
                 })
                 .collect::<Result<_, FormatsError>>()?;
             for (i, j, bytes, [ex, ey, ez]) in chunks {
-                let (x0, y0, cz0) = (i * self.chunk[0], j * self.chunk[1], k * self.chunk[2]);
+                let (x0, y0, cz0) = (
+                    i * self.chunk[0],
+                    j * self.chunk[1],
+                    u64::from(k) * u64::from(self.chunk[2]),
+                );
                 for lz in 0..ez {
-                    let z = cz0 + lz;
-                    if z < z0 || z >= z1 {
+                    let z = cz0 + u64::from(lz);
+                    if z < u64::from(z0) || z >= u64::from(z1) {
                         continue;
                     }
                     for ly in 0..ey {
                         let src = ((lz * ey + ly) * ex) as usize * vb;
-                        let dst = (((z - z0) as usize * dy as usize + (y0 + ly) as usize)
+                        let dst = (((z - u64::from(z0)) as usize * dy as usize
+                            + (y0 + ly) as usize)
                             * dx as usize
                             + x0 as usize)
                             * vb;
