@@ -14,6 +14,7 @@ use isovox_server::formats::export::{chunk_path, export_view};
 use isovox_server::formats::ViewKind;
 use isovox_server::http::auth::{Scope, Tokens};
 use isovox_server::http::{spawn, AppState, ServerConfig, Spawned};
+use isovox_server::progress::Silent;
 use isovox_server::store::{build_vod2, BuildOptions, DenseGrid, StoredBrick, Vod2};
 use std::path::PathBuf;
 
@@ -340,7 +341,7 @@ async fn an_export_holds_the_bytes_the_server_sends() {
     let layout = snap.layout().clone();
     for kind in [ViewKind::Zarr, ViewKind::Precomputed] {
         let dest = s.dir.path().join(kind.segment());
-        let report = export_view(&snap, kind, "mixed", &dest, &|_, _| {}).unwrap();
+        let report = export_view(&snap, kind, "mixed", &dest, &Silent).unwrap();
         assert!(report.chunks > 0);
         let mut files = 0;
         for level in 0..layout.levels() {
@@ -379,7 +380,7 @@ async fn an_export_holds_the_bytes_the_server_sends() {
                 .to_vec()
         );
         // A second export to the same place is refused and leaves the first intact.
-        assert!(export_view(&snap, kind, "mixed", &dest, &|_, _| {}).is_err());
+        assert!(export_view(&snap, kind, "mixed", &dest, &Silent).is_err());
         assert!(dest.join(meta).exists());
     }
 }

@@ -13,8 +13,9 @@ use isovox_proto::icvg::{EditRequest, Term};
 use isovox_proto::vod2::NodeEntry;
 use isovox_proto::{VolumeLayout, VoxelType};
 use isovox_server::generate::WorldSource;
-use isovox_server::icvg::edit::{CheckpointPolicy, Edit};
+use isovox_server::icvg::edit::Edit;
 use isovox_server::icvg::term::{NoVolumes, TermLimits};
+use isovox_server::store::CheckpointPolicy;
 use isovox_server::store::{build_vod2, BuildOptions, Snapshot, StoredBrick, Vod2};
 use isovox_server::volume::{LiveVolume, WriterSlot};
 use std::path::Path;
@@ -238,7 +239,7 @@ fn if_match_refuses_a_moved_head_and_changes_nothing() {
         CheckpointPolicy::default(),
     );
     match refused {
-        Err(isovox_server::volume::EditError::Conflict { expected, current }) => {
+        Err(isovox_server::volume::VolumeError::Conflict { expected, current }) => {
             assert_eq!((expected, current), (v1, v1 + 1));
         }
         other => panic!("expected a conflict, got {other:?}"),

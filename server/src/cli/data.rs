@@ -1,29 +1,32 @@
 //! The data tools: import, export, generate, inspect, get.
 
-use super::{parse_dims, parse_scale, progress, sibling, TypeArg};
-use crate::generate::{EllipsoidSource, WorldSource};
-use crate::store::codec::{Compression, DEFAULT_ZSTD_LEVEL};
-use crate::store::inspect::inspect as inspect_vod2;
-use crate::store::raw::{export_raw, rawvox_header, RawInput, Region, RAWVOX_MAGIC};
-use crate::store::vod1::{write_vod1, Vod1, Vod1Source};
-use crate::store::{build_vod2, mapping::Mapping, BrickSource, BuildOptions, DenseGrid, Vod2};
+use super::{parse_dims, parse_scale, progress, TypeArg};
 use anyhow::{anyhow, bail, Context};
 use clap::{Args, ValueEnum};
 use isovox_proto::VolumeLayout;
+use isovox_server::formats::ViewKind;
+use isovox_server::generate::{build_scene, EllipsoidSource, WorldSource};
+use isovox_server::store::build::{build_file, sibling, FileFormat};
+use isovox_server::store::codec::{Compression, DEFAULT_ZSTD_LEVEL};
+use isovox_server::store::inspect::inspect as inspect_vod2;
+use isovox_server::store::raw::{export_raw, rawvox_header, RawInput, Region, RAWVOX_MAGIC};
+use isovox_server::store::vod1::{write_vod1, Vod1File, Vod1Source};
+use isovox_server::store::{BrickSource, BuildOptions, DenseGrid, Vod2};
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum VodFormat {
+pub(crate) enum VodFormat {
     Vod2,
     Vod1,
 }
 
 #[derive(Debug, Args)]
-pub struct ImportArgs {
+pub(crate) struct ImportArgs {
     /// Input: .raw (needs --dims), .rawvox (carries its shape), a VOD 1 file, or one of the
-    /// field's formats, local or an http URL: OME-Zarr / Zarr v2 or v3, Neuroglancer
+    /// field's formats, local or an http(s) URL: OME-Zarr / Zarr v2 or v3, Neuroglancer
     /// precomputed, NIfTI-1 (.nii, .nii.gz), a TIFF stack (multi-page file or folder).
     pub input: PathBuf,
     /// Output file.
@@ -52,7 +55,7 @@ pub struct ImportArgs {
 
 /// How bricks are compressed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum CodecArg {
+pub(crate) enum CodecArg {
     /// zstd: the densest (default).
     Zstd,
     /// lz4: the fastest to decode.
@@ -62,7 +65,7 @@ pub enum CodecArg {
 }
 
 #[derive(Debug, Clone, Copy, Args)]
-pub struct CompressionArgs {
+pub(crate) struct CompressionArgs {
     /// Brick compression.
     #[arg(long, value_enum, default_value_t = CodecArg::Zstd)]
     pub codec: CodecArg,
@@ -72,7 +75,7 @@ pub struct CompressionArgs {
 }
 
 impl CompressionArgs {
-    pub fn compression(&self) -> Compression {
+    pub(crate) fn compression(&self) -> Compression {
         match self.codec {
             CodecArg::Zstd => Compression::Zstd(self.zstd_level),
             CodecArg::Lz4 => Compression::Lz4,
@@ -82,7 +85,7 @@ impl CompressionArgs {
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum ExportFormat {
+pub(crate) enum ExportFormat {
     Raw,
     Rawvox,
     Vod1,
@@ -93,16 +96,16 @@ pub enum ExportFormat {
 }
 
 #[derive(Debug, Args)]
-pub struct ExportArgs {
+pub(crate) struct ExportArgs {
     /// A VOD 2 file.
     pub input: PathBuf,
-    /// Output file.
+    /// Output file (a directory for zarr and precomputed).
     #[arg(short, long)]
     pub output: PathBuf,
     /// Level of detail to export (0 = full resolution).
     #[arg(long, default_value_t = 0)]
     pub level: u8,
-    /// Output format: raw/rawvox write one level; vod1 writes the whole volume.
+    /// Output format: raw/rawvox write one level; vod1, zarr and precomputed the whole volume.
     #[arg(long, value_enum, default_value_t = ExportFormat::Raw)]
     pub format: ExportFormat,
     /// Only this box of the level's voxels: MINX,MINY,MINZ,MAXX,MAXY,MAXZ (max exclusive).
@@ -114,7 +117,7 @@ pub struct ExportArgs {
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum Dataset {
+pub(crate) enum Dataset {
     /// The ICVG ellipsoid sampling function filling the volume.
     Ellipsoid,
     /// Terrain from a fractal Perlin-noise height map.
@@ -124,7 +127,7 @@ pub enum Dataset {
 }
 
 #[derive(Debug, Args)]
-pub struct GenerateArgs {
+pub(crate) struct GenerateArgs {
     /// What to generate.
     #[arg(value_enum)]
     pub dataset: Dataset,
@@ -147,7 +150,7 @@ pub struct GenerateArgs {
 }
 
 #[derive(Debug, Args)]
-pub struct InspectArgs {
+pub(crate) struct InspectArgs {
     /// A VOD 2 or VOD 1 file.
     pub input: PathBuf,
     /// Print JSON for scripts.
@@ -156,7 +159,7 @@ pub struct InspectArgs {
 }
 
 #[derive(Debug, Args)]
-pub struct GetArgs {
+pub(crate) struct GetArgs {
     /// A VOD 2 or VOD 1 file.
     pub input: PathBuf,
     pub level: u8,
@@ -196,10 +199,8 @@ fn sniff(path: &Path) -> anyhow::Result<InputKind> {
     Ok(InputKind::Raw)
 }
 
-/// Builds `output` from `source` via a temporary file renamed into place, so an interrupted run
-/// never leaves a half-written volume under the final name. With `vod1`, the VOD 2 build is
-/// converted and removed.
-pub(crate) fn build_to(
+/// Builds `output` from `source` (see [`build_file`]) with a progress bar.
+pub(super) fn build_to(
     output: &Path,
     layout: &VolumeLayout,
     scale: [f32; 3],
@@ -207,47 +208,33 @@ pub(crate) fn build_to(
     compression: Compression,
     format: VodFormat,
 ) -> anyhow::Result<()> {
-    let tmp = sibling(output, ".isovox-tmp");
-    let options = BuildOptions {
-        compression,
-        progress: progress("building"),
+    let format = match format {
+        VodFormat::Vod2 => FileFormat::Vod2,
+        VodFormat::Vod1 => FileFormat::Vod1,
     };
-    let report = build_vod2(&tmp, layout, scale, source, &options)
+    build_file(output, layout, scale, source, &options(compression), format)
         .with_context(|| format!("cannot build {}", output.display()))?;
-    if format == VodFormat::Vod1 {
-        let vod = Vod2::open(&tmp)?;
-        let mut out = BufWriter::new(
-            File::create(output).with_context(|| format!("cannot create {}", output.display()))?,
-        );
-        write_vod1(&vod.head(), compression != Compression::None, &mut out)?;
-        out.flush()?;
-        drop(vod);
-        std::fs::remove_file(&tmp).ok();
-    } else {
-        std::fs::rename(&tmp, output)
-            .with_context(|| format!("cannot move the result to {}", output.display()))?;
-    }
-    tracing::info!(
-        output = %output.display(),
-        bytes = report.file_bytes,
-        seconds = report.elapsed.as_secs_f64(),
-        "built volume"
-    );
     Ok(())
 }
 
-pub fn import(a: ImportArgs) -> anyhow::Result<()> {
-    if let Some(done) = super::formats::import(&a) {
-        return done;
+/// Build options with `compression` and a progress bar.
+fn options(compression: Compression) -> BuildOptions {
+    BuildOptions {
+        compression,
+        progress: Arc::new(progress("building")),
+    }
+}
+
+pub(super) fn import(a: ImportArgs) -> anyhow::Result<()> {
+    if let Some(format) = super::formats::input_format(&a)? {
+        return super::formats::import(&a, format);
     }
     let compress = a.compression.compression();
     match sniff(&a.input)? {
         InputKind::Vod(1) => {
-            let file = File::open(&a.input)
-                .with_context(|| format!("cannot open {}", a.input.display()))?;
-            let len = file.metadata()?.len();
-            let map = Mapping::new(&file, len)?;
-            let vod1 = Vod1::parse(map.bytes())
+            let file = Vod1File::open(&a.input)?;
+            let vod1 = file
+                .parse()
                 .with_context(|| format!("{} is not a valid VOD 1 file", a.input.display()))?;
             let source = Vod1Source::new(&vod1);
             build_to(
@@ -298,10 +285,7 @@ fn parse_region(s: &str) -> anyhow::Result<Region> {
     })
 }
 
-pub fn export(a: ExportArgs) -> anyhow::Result<()> {
-    if let Some(done) = super::formats::export(&a) {
-        return done;
-    }
+pub(super) fn export(a: ExportArgs) -> anyhow::Result<()> {
     if let InputKind::Vod(v) = sniff(&a.input)? {
         if v != 2 {
             bail!(
@@ -315,21 +299,17 @@ pub fn export(a: ExportArgs) -> anyhow::Result<()> {
         Some(v) => vod.version(v)?,
         None => vod.head(),
     };
-    let tmp = sibling(&a.output, ".isovox-tmp");
-    let mut out = BufWriter::with_capacity(
-        1 << 20,
-        File::create(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?,
-    );
     match a.format {
+        ExportFormat::Zarr => super::formats::export(&a, &snap, ViewKind::Zarr),
+        ExportFormat::Precomputed => super::formats::export(&a, &snap, ViewKind::Precomputed),
         ExportFormat::Vod1 => {
             if a.region.is_some() || a.level != 0 {
                 bail!("--format vod1 writes the whole volume; --level and --region apply to raw and rawvox");
             }
-            write_vod1(&snap, true, &mut out)?;
-        }
-        // Directories, written by `formats::export` above.
-        ExportFormat::Zarr | ExportFormat::Precomputed => {
-            bail!("internal: a view export reached the file exporter")
+            write_through_tmp(&a.output, |out| {
+                write_vod1(&snap, true, out)?;
+                Ok(())
+            })
         }
         ExportFormat::Raw | ExportFormat::Rawvox => {
             let layout = snap.layout();
@@ -347,21 +327,40 @@ pub fn export(a: ExportArgs) -> anyhow::Result<()> {
                     max: layout.level_dims(a.level),
                 },
             };
-            if a.format == ExportFormat::Rawvox {
-                let dims = [0, 1, 2].map(|i| region.max[i].saturating_sub(region.min[i]));
-                out.write_all(&rawvox_header(dims, layout.voxel_type()))?;
-            }
-            export_raw(&snap, a.level, region, &mut out, &progress("exporting"))?;
+            write_through_tmp(&a.output, |out| {
+                if a.format == ExportFormat::Rawvox {
+                    let dims = [0, 1, 2].map(|i| region.max[i].saturating_sub(region.min[i]));
+                    out.write_all(&rawvox_header(dims, layout.voxel_type()))?;
+                }
+                export_raw(&snap, a.level, region, out, &progress("exporting"))?;
+                Ok(())
+            })
         }
     }
-    out.flush()?;
-    drop(out);
-    std::fs::rename(&tmp, &a.output)
-        .with_context(|| format!("cannot move the result to {}", a.output.display()))?;
-    Ok(())
 }
 
-pub fn generate(a: GenerateArgs) -> anyhow::Result<()> {
+/// Writes `output` through `write`, into a temporary file beside it renamed into place when
+/// complete.
+fn write_through_tmp(
+    output: &Path,
+    write: impl FnOnce(&mut BufWriter<File>) -> anyhow::Result<()>,
+) -> anyhow::Result<()> {
+    let tmp = sibling(output, ".isovox-tmp");
+    let mut out = BufWriter::with_capacity(
+        1 << 20,
+        File::create(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?,
+    );
+    let written = write(&mut out).and_then(|()| Ok(out.flush()?));
+    drop(out);
+    if let Err(e) = written {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(e);
+    }
+    std::fs::rename(&tmp, output)
+        .with_context(|| format!("cannot move the result to {}", output.display()))
+}
+
+pub(super) fn generate(a: GenerateArgs) -> anyhow::Result<()> {
     let layout = VolumeLayout::new(a.dims, a.brick, a.voxel_type.into())?;
     let compression = a.compression.compression();
     match a.dataset {
@@ -381,42 +380,13 @@ pub fn generate(a: GenerateArgs) -> anyhow::Result<()> {
             compression,
             VodFormat::Vod2,
         ),
-        Dataset::Scene => generate_scene(
+        Dataset::Scene => Ok(build_scene(
             &a.output,
             &layout,
             &WorldSource::new(layout.clone(), a.seed),
-            compression,
-        ),
+            &options(compression),
+        )?),
     }
-}
-
-/// Builds the world, applies the scene's edits, then rebuilds the file from the final level 0,
-/// so the result is version 1 with no history and no garbage.
-pub fn generate_scene(
-    output: &Path,
-    layout: &VolumeLayout,
-    world: &dyn BrickSource,
-    compression: Compression,
-) -> anyhow::Result<()> {
-    let work = sibling(output, ".isovox-scene");
-    build_to(&work, layout, [1.0; 3], world, compression, VodFormat::Vod2)?;
-    for req in super::edit::scene_edits(layout.dims()) {
-        super::edit::edit_file(&work, &req)?;
-    }
-    let edited = Vod2::open(&work)?;
-    let source = crate::store::SnapshotSource::new(edited.head());
-    build_to(
-        output,
-        layout,
-        [1.0; 3],
-        &source,
-        compression,
-        VodFormat::Vod2,
-    )?;
-    source.finish()?;
-    drop(edited);
-    std::fs::remove_file(&work).ok();
-    Ok(())
 }
 
 fn human(bytes: u64) -> String {
@@ -434,7 +404,7 @@ fn human(bytes: u64) -> String {
     }
 }
 
-pub fn inspect(a: InspectArgs) -> anyhow::Result<()> {
+pub(super) fn inspect(a: InspectArgs) -> anyhow::Result<()> {
     match sniff(&a.input)? {
         InputKind::Vod(1) => inspect_vod1(&a),
         InputKind::Vod(2) => {
@@ -491,10 +461,10 @@ pub fn inspect(a: InspectArgs) -> anyhow::Result<()> {
 }
 
 fn inspect_vod1(a: &InspectArgs) -> anyhow::Result<()> {
-    let file = File::open(&a.input)?;
-    let len = file.metadata()?.len();
-    let map = Mapping::new(&file, len)?;
-    let v = Vod1::parse(map.bytes())
+    let file = Vod1File::open(&a.input)?;
+    let len = file.len();
+    let v = file
+        .parse()
         .with_context(|| format!("{} is not a valid VOD 1 file", a.input.display()))?;
     let raw = v.layout.raw_bytes();
     let [x, y, z] = v.layout.dims();
@@ -503,7 +473,7 @@ fn inspect_vod1(a: &InspectArgs) -> anyhow::Result<()> {
             "format": "VOD 1", "dims": v.layout.dims(), "voxel_type": v.layout.voxel_type(),
             "brick": v.layout.brick(), "tree_height": v.height,
             "levels": (0..v.layout.levels()).map(|l| serde_json::json!({"level": l, "grid": v.layout.grid(l)})).collect::<Vec<_>>(), "version": 1,
-            "bricks_total": crate::store::vod1::node_count(v.height), "bricks_unique": v.unique_bricks(),
+            "bricks_total": isovox_server::store::vod1::node_count(v.height), "bricks_unique": v.unique_bricks(),
             "file_bytes": len, "raw_bytes": raw, "ratio": raw as f64 / len as f64,
         });
         println!("{}", serde_json::to_string_pretty(&j)?);
@@ -517,7 +487,7 @@ fn inspect_vod1(a: &InspectArgs) -> anyhow::Result<()> {
         println!(
             "  octree      height {}, {} nodes, {} unique bricks",
             v.height,
-            crate::store::vod1::node_count(v.height),
+            isovox_server::store::vod1::node_count(v.height),
             v.unique_bricks()
         );
         println!(
@@ -530,13 +500,11 @@ fn inspect_vod1(a: &InspectArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-pub fn get(a: GetArgs) -> anyhow::Result<()> {
+pub(super) fn get(a: GetArgs) -> anyhow::Result<()> {
     let bytes = match sniff(&a.input)? {
         InputKind::Vod(1) => {
-            let file = File::open(&a.input)?;
-            let len = file.metadata()?.len();
-            let map = Mapping::new(&file, len)?;
-            let v = Vod1::parse(map.bytes())?;
+            let file = Vod1File::open(&a.input)?;
+            let v = file.parse()?;
             let key = v.layout.key(a.level, a.x, a.y, a.z)?;
             let mut out = vec![0u8; v.layout.brick_bytes()];
             v.read_into(key, &mut out)?;
@@ -566,18 +534,16 @@ pub fn get(a: GetArgs) -> anyhow::Result<()> {
 }
 
 #[derive(Debug, Args)]
-pub struct CompactArgs {
+pub(crate) struct CompactArgs {
     /// The VOD 2 file to compact in place.
     pub input: PathBuf,
 }
 
-pub fn compact(a: CompactArgs) -> anyhow::Result<()> {
+pub(super) fn compact(a: CompactArgs) -> anyhow::Result<()> {
     let vod = Vod2::open(&a.input).with_context(|| format!("cannot open {}", a.input.display()))?;
     let head = vod.head();
-    let bar = super::progress("compacting");
-    let report = crate::store::compact::compact(&vod, &head, &bar)
+    let report = isovox_server::store::compact::compact(&vod, &head, &progress("compacting"))
         .with_context(|| format!("cannot compact {}", a.input.display()))?;
-    bar.finish_and_clear();
     println!(
         "{}: version {} kept, {} distinct bricks, {} -> {} bytes ({:.1}% saved) in {:.2} s",
         a.input.display(),

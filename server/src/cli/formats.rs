@@ -1,20 +1,21 @@
 //! `isovox import` from the field's formats (OME-Zarr and Zarr v2/v3, Neuroglancer
 //! precomputed, NIfTI-1, TIFF stacks) and `isovox export --format zarr|precomputed`: parse,
-//! call `crate::formats`, print.
+//! call `isovox_server::formats`, print.
 
-use super::data::{ExportArgs, ExportFormat, ImportArgs, VodFormat};
+use super::data::{ExportArgs, ImportArgs, VodFormat};
 use super::progress;
-use crate::formats::export::export_view;
-use crate::formats::import::convert::{parse_pair, parse_percentiles};
-use crate::formats::import::{detect, import as import_input, ImportOptions, InputFormat};
-use crate::formats::ViewKind;
-use crate::store::Vod2;
 use anyhow::{bail, Context};
 use clap::Args;
+use isovox_server::formats::export::export_view;
+use isovox_server::formats::import::convert::{parse_pair, parse_percentiles};
+use isovox_server::formats::import::{detect, import as import_input, ImportOptions, InputFormat};
+use isovox_server::formats::ViewKind;
+use isovox_server::store::{BuildOptions, Snapshot};
+use std::sync::Arc;
 
 /// The options of `isovox import` that only the field's formats take.
 #[derive(Debug, Clone, Args)]
-pub struct FormatImportArgs {
+pub(crate) struct FormatImportArgs {
     /// Read the input as this format instead of detecting it: zarr, precomputed, nifti, tiff.
     #[arg(long = "from", value_parser = parse_format)]
     pub from: Option<InputFormat>,
@@ -31,22 +32,19 @@ fn parse_format(s: &str) -> Result<InputFormat, String> {
     s.parse()
 }
 
-/// Runs the import when the input is in one of the field's formats; `None` leaves it to the
-/// RAW and VOD importers.
-pub(crate) fn import(a: &ImportArgs) -> Option<anyhow::Result<()>> {
-    let input = a.input.to_string_lossy().into_owned();
-    let format = match a.formats.from {
-        Some(f) => f,
-        None => match detect(&input) {
-            Ok(Some(f)) => f,
-            Ok(None) => return None,
-            Err(e) => return Some(Err(e).context(format!("cannot read {input}"))),
-        },
-    };
-    Some(run_import(a, &input, format))
+/// The field's format `a.input` is in (`--from`, or detected); `None` when it is in none of
+/// them (a RAW or VOD file, for the other importers).
+pub(super) fn input_format(a: &ImportArgs) -> anyhow::Result<Option<InputFormat>> {
+    if let Some(f) = a.formats.from {
+        return Ok(Some(f));
+    }
+    let input = a.input.to_string_lossy();
+    detect(&input).with_context(|| format!("cannot read {input}"))
 }
 
-fn run_import(a: &ImportArgs, input: &str, format: InputFormat) -> anyhow::Result<()> {
+/// Imports `a.input`, in `format`, into a new VOD 2 file.
+pub(super) fn import(a: &ImportArgs, format: InputFormat) -> anyhow::Result<()> {
+    let input = a.input.to_string_lossy();
     if a.format != VodFormat::Vod2 {
         bail!(
             "imports from {} write VOD 2 (convert to VOD 1 with a second import)",
@@ -61,7 +59,10 @@ fn run_import(a: &ImportArgs, input: &str, format: InputFormat) -> anyhow::Resul
     }
     let options = ImportOptions {
         brick: a.brick,
-        compression: a.compression.compression(),
+        build: BuildOptions {
+            compression: a.compression.compression(),
+            progress: Arc::new(progress("importing")),
+        },
         target: a.voxel_type.map(Into::into),
         window: a
             .formats
@@ -73,60 +74,27 @@ fn run_import(a: &ImportArgs, input: &str, format: InputFormat) -> anyhow::Resul
         // The default 1,1,1 means "as the input says".
         voxel_scale: (a.scale != [1.0; 3]).then_some(a.scale),
     };
-    let scan_bar = progress("sampling");
-    let bar = progress("importing");
-    let report = import_input(
-        input,
-        format,
-        &a.output,
-        &options,
-        &|done, total| {
-            scan_bar.set_length(total);
-            scan_bar.set_position(done);
-        },
-        &|done, total| {
-            bar.set_length(total);
-            bar.set_position(done);
-        },
-    )
-    .with_context(|| format!("cannot import {input}"))?;
-    scan_bar.finish_and_clear();
-    bar.finish_and_clear();
+    let report = import_input(&input, format, &a.output, &options, &progress("sampling"))
+        .with_context(|| format!("cannot import {input}"))?;
     println!("{}: {report}", a.output.display());
     Ok(())
 }
 
-/// Runs the export when a view's format is asked; `None` leaves it to the other exporters.
-pub(crate) fn export(a: &ExportArgs) -> Option<anyhow::Result<()>> {
-    let kind = match a.format {
-        ExportFormat::Zarr => ViewKind::Zarr,
-        ExportFormat::Precomputed => ViewKind::Precomputed,
-        _ => return None,
-    };
-    Some(run_export(a, kind))
-}
-
-fn run_export(a: &ExportArgs, kind: ViewKind) -> anyhow::Result<()> {
+/// Writes view `kind` of `snap` as a directory tree (every level of the whole volume).
+pub(super) fn export(a: &ExportArgs, snap: &Snapshot, kind: ViewKind) -> anyhow::Result<()> {
     if a.region.is_some() || a.level != 0 {
-        bail!("--format {} writes every level of the whole volume; --level and --region apply to raw and rawvox", kind.segment());
+        bail!(
+            "--format {} writes every level of the whole volume; --level and --region apply to raw and rawvox",
+            kind.segment()
+        );
     }
-    let vod = Vod2::open(&a.input).with_context(|| format!("cannot open {}", a.input.display()))?;
-    let snap = match a.version {
-        Some(v) => vod.version(v)?,
-        None => vod.head(),
-    };
     let name = a
         .input
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| "volume".into());
-    let bar = progress("exporting");
-    let report = export_view(&snap, kind, &name, &a.output, &|done, total| {
-        bar.set_length(total);
-        bar.set_position(done);
-    })
-    .with_context(|| format!("cannot export {} as {}", a.input.display(), kind.segment()))?;
-    bar.finish_and_clear();
+    let report = export_view(snap, kind, &name, &a.output, &progress("exporting"))
+        .with_context(|| format!("cannot export {} as {}", a.input.display(), kind.segment()))?;
     println!(
         "{}: {} view of version {}: {} chunk files ({} chunks of fill values left out), {} bytes",
         a.output.display(),

@@ -1,18 +1,17 @@
 //! `isovox serve`: serve every VOD 2 file of a data directory over HTTP.
 
-use crate::catalog::Catalog;
-use crate::generate::WorldSource;
-use crate::http::auth::{random_secret, Scope, Tokens};
-use crate::http::{run, shutdown_signal, AppState, ServerConfig};
-use crate::store::codec::Compression;
 use anyhow::Context;
 use clap::Args;
-use isovox_proto::{VolumeLayout, VoxelType};
+use isovox_server::catalog::Catalog;
+use isovox_server::generate::{build_demo, DEMO_NAME};
+use isovox_server::http::auth::{random_secret, Scope, Tokens};
+use isovox_server::http::{run, shutdown_signal, AppState, ServerConfig};
+use isovox_server::store::BuildOptions;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 
 #[derive(Debug, Args)]
-pub struct ServeArgs {
+pub(crate) struct ServeArgs {
     /// Directory of VOD 2 files; each is served as a volume named after the file. When it holds
     /// none, a demo world is generated there first.
     #[arg(long, env = "ISOVOX_DATA", default_value = "data")]
@@ -23,7 +22,8 @@ pub struct ServeArgs {
     /// Memory for cached mesh tiles, in MiB.
     #[arg(long, env = "ISOVOX_MESH_CACHE_MB", default_value_t = 256)]
     pub mesh_cache_mb: usize,
-    /// Memory for decoded and transcoded brick bodies, in MiB.
+    /// Memory for decoded bricks and the bodies made from them (brick bodies, the formats'
+    /// view chunks, meshing), in MiB.
     #[arg(long, env = "ISOVOX_BRICK_CACHE_MB", default_value_t = 64)]
     pub brick_cache_mb: usize,
     /// Meshing jobs running or queued at once; beyond it requests get 503 with Retry-After.
@@ -103,9 +103,6 @@ fn write_private(path: &Path, text: &str) -> anyhow::Result<()> {
         .with_context(|| format!("cannot write {}", path.display()))
 }
 
-/// Name of the volume generated on first start.
-pub const DEMO_NAME: &str = "demo";
-
 fn has_volumes(dir: &Path) -> bool {
     std::fs::read_dir(dir)
         .map(|entries| {
@@ -116,27 +113,18 @@ fn has_volumes(dir: &Path) -> bool {
         .unwrap_or(false)
 }
 
-/// Generates the demo world into `dir`: a 512 x 256 x 512 terrain with tunnels, a crater and a
-/// few primitives carved and added by ICVG edits (brick 32; about a second, under 2 MB).
+/// Generates the demo world into `dir` (see [`build_demo`]).
 fn generate_demo(dir: &Path) -> anyhow::Result<()> {
-    std::fs::create_dir_all(dir)
-        .with_context(|| format!("cannot create the data directory {}", dir.display()))?;
-    let path = dir.join(format!("{DEMO_NAME}.vod"));
     eprintln!(
         "{} holds no volume: generating a demo world in {}",
         dir.display(),
-        path.display()
+        dir.join(format!("{DEMO_NAME}.vod")).display()
     );
-    let layout = VolumeLayout::new([512, 256, 512], 32, VoxelType::U8)?;
-    super::data::generate_scene(
-        &path,
-        &layout,
-        &WorldSource::new(layout.clone(), 1),
-        Compression::default(),
-    )
+    build_demo(dir, &BuildOptions::default())?;
+    Ok(())
 }
 
-pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
+pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
     if !has_volumes(&a.data) {
         generate_demo(&a.data)?;
     }

@@ -5,8 +5,11 @@
 //! beside the destination (`DEST.isovox-tmp`) and renamed into place when complete: an
 //! interrupted export never leaves a tree under the final name.
 
-use super::view::{resolve, Document, NoMemo, ViewKind};
-use super::{FormatsError, Progress};
+use super::view::{resolve, Document, ViewKind};
+use super::FormatsError;
+use crate::progress::Progress;
+use crate::store::build::sibling;
+use crate::store::decoded::DecodedBricks;
 use crate::store::Snapshot;
 use isovox_proto::{BrickKey, VolumeLayout};
 use rayon::prelude::*;
@@ -46,8 +49,12 @@ fn metadata_paths(kind: ViewKind, layout: &VolumeLayout) -> Vec<String> {
     }
 }
 
+/// Memory for the bodies an export makes once and writes many times: deduplicated bricks (most
+/// of all the constant ones) share one content hash, so their chunk is compressed once.
+const EXPORT_CACHE_BYTES: usize = 64 << 20;
+
 /// Writes view `kind` of `snap` (volume `name`) as a directory tree at `dest`, which must not
-/// exist. `progress` is told (bricks done, bricks in all).
+/// exist. `progress` counts bricks.
 ///
 /// # Errors
 /// `dest` exists, a brick does not decode, or writing fails; nothing is left at `dest` then.
@@ -56,19 +63,22 @@ pub fn export_view(
     kind: ViewKind,
     name: &str,
     dest: &Path,
-    progress: Progress<'_>,
+    progress: &dyn Progress,
 ) -> Result<ExportReport, FormatsError> {
     if dest.exists() {
-        return Err(FormatsError::Input(format!(
+        return Err(FormatsError::BadArgument(format!(
             "{} already exists; export writes a new directory",
             dest.display()
         )));
     }
-    let tmp = super::sibling(dest, ".isovox-tmp");
+    let tmp = sibling(dest, ".isovox-tmp");
     if tmp.exists() {
         std::fs::remove_dir_all(&tmp).map_err(FormatsError::io_path("cannot remove", &tmp))?;
     }
-    let result = write_tree(snap, kind, name, &tmp, progress).and_then(|report| {
+    progress.start(snap.layout().node_count());
+    let written = write_tree(snap, kind, name, &tmp, progress);
+    progress.finish();
+    let result = written.and_then(|report| {
         std::fs::rename(&tmp, dest).map_err(FormatsError::io_path("cannot rename into", dest))?;
         Ok(report)
     });
@@ -83,9 +93,10 @@ fn write_tree(
     kind: ViewKind,
     name: &str,
     root: &Path,
-    progress: Progress<'_>,
+    progress: &dyn Progress,
 ) -> Result<ExportReport, FormatsError> {
     let layout = snap.layout();
+    let bricks = DecodedBricks::new(EXPORT_CACHE_BYTES);
     let write = |rel: &str, bytes: &[u8]| -> Result<(), FormatsError> {
         let path = root.join(rel);
         if let Some(dir) = path.parent() {
@@ -101,19 +112,13 @@ fn write_tree(
                 bytes += doc.len() as u64;
             }
             other => {
-                return Err(FormatsError::Input(format!(
-                    "internal: {rel} resolved to {other:?}, not metadata"
+                return Err(FormatsError::Internal(format!(
+                    "{rel} resolved to {other:?}, not metadata"
                 )))
             }
         }
     }
-    let total = layout.node_count();
-    let (chunks, absent, written, done) = (
-        AtomicU64::new(0),
-        AtomicU64::new(0),
-        AtomicU64::new(bytes),
-        AtomicU64::new(0),
-    );
+    let (chunks, absent, written) = (AtomicU64::new(0), AtomicU64::new(0), AtomicU64::new(bytes));
     for level in 0..layout.levels() {
         let [gx, gy, gz] = layout.grid(level);
         for z in 0..gz {
@@ -127,7 +132,7 @@ fn write_tree(
                 let rel = chunk_path(kind, layout, key);
                 match resolve(kind, snap, name, &rel)? {
                     Document::Chunk(chunk) => {
-                        let body = chunk.body(snap, &NoMemo)?;
+                        let body = chunk.body(snap, &bricks)?;
                         write(&rel, &body)?;
                         chunks.fetch_add(1, Ordering::Relaxed);
                         written.fetch_add(body.len() as u64, Ordering::Relaxed);
@@ -136,17 +141,14 @@ fn write_tree(
                         absent.fetch_add(1, Ordering::Relaxed);
                     }
                     Document::Metadata(_) => {
-                        return Err(FormatsError::Input(format!(
-                            "internal: {rel} resolved to metadata, not a chunk"
+                        return Err(FormatsError::Internal(format!(
+                            "{rel} resolved to metadata, not a chunk"
                         )))
                     }
                 }
                 Ok(())
             })?;
-            progress(
-                done.fetch_add(u64::from(gx * gy), Ordering::Relaxed) + u64::from(gx * gy),
-                total,
-            );
+            progress.advance(u64::from(gx * gy));
         }
     }
     Ok(ExportReport {

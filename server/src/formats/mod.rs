@@ -4,7 +4,8 @@
 //!
 //! Layout:
 //! - [`view`]: what the views share: resolving a path to a document of a snapshot, chunk
-//!   bodies (the stored zstd frame as it is, or decoded), errors.
+//!   bodies (the stored zstd frame as it is, or made through the shared cache of decoded
+//!   bricks), [`ViewError`].
 //! - [`zarr`]: the OME-Zarr 0.5 / Zarr v3 view.
 //! - [`precomputed`]: the Neuroglancer precomputed view.
 //! - [`export`]: a view written to a directory, byte for byte what the server sends.
@@ -23,33 +24,52 @@ pub use view::{ViewError, ViewKind};
 
 use crate::store::StoreError;
 use std::io;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use thiserror::Error;
 
-/// Told (work done, work in all) as a long job goes; units are the job's own (bricks, planes).
-pub type Progress<'a> = &'a (dyn Fn(u64, u64) + Sync);
-
-/// Errors of imports and exports.
+/// Errors of imports and exports. Each variant says whose fault it is: the input's, the
+/// caller's, the network's or the system's, or a bug.
 #[derive(Debug, Error)]
 pub enum FormatsError {
     /// An operating-system error, with what was being done.
     #[error("{context}")]
     Io {
+        /// What was being done.
         context: String,
+        /// The system's error.
         #[source]
         source: io::Error,
     },
     /// The input is malformed, unsupported or inconsistent; the message says what and where.
     #[error("{0}")]
-    Input(String),
+    BadInput(String),
+    /// The caller's arguments cannot be carried out (an export over an existing path, a window
+    /// that is not two increasing numbers, ...).
+    #[error("{0}")]
+    BadArgument(String),
     /// A request to a server failed or was refused.
     #[error("cannot read {url}: {detail}")]
-    Fetch { url: String, detail: String },
+    Fetch {
+        /// What was asked for.
+        url: String,
+        /// Why it failed.
+        detail: String,
+    },
     /// Zarr metadata or chunks that `zarrs` cannot read.
     #[error("{context}: {detail}")]
-    Zarr { context: String, detail: String },
+    Zarr {
+        /// What was being read.
+        context: String,
+        /// zarrs's error and its causes.
+        detail: String,
+    },
+    /// A broken invariant of this program: neither the input's fault nor the caller's.
+    #[error("internal error: {0}")]
+    Internal(String),
+    /// Writing or reading a VOD 2 file failed.
     #[error(transparent)]
     Store(#[from] StoreError),
+    /// A document of a view could not be made (an export).
     #[error(transparent)]
     View(#[from] ViewError),
 }
@@ -61,13 +81,6 @@ impl FormatsError {
     }
 
     pub(crate) fn input(detail: impl Into<String>) -> FormatsError {
-        FormatsError::Input(detail.into())
+        FormatsError::BadInput(detail.into())
     }
-}
-
-/// A path with a suffix appended (for temporaries beside an output).
-pub(crate) fn sibling(path: &Path, suffix: &str) -> PathBuf {
-    let mut s = path.as_os_str().to_owned();
-    s.push(suffix);
-    PathBuf::from(s)
 }

@@ -72,14 +72,14 @@ pub fn document<'s>(snap: &'s Snapshot, path: &str) -> Result<Document<'s>, View
             let (brick, extent) = parse_chunk(layout, level, chunk)?;
             let key = layout
                 .key(level, brick[0], brick[1], brick[2])
-                .map_err(|e| ViewError::NotFound(e.to_string()))?;
+                .map_err(|e| ViewError::NoSuchDocument(e.to_string()))?;
             Ok(Document::Chunk(Chunk {
                 key,
                 stored: snap.stored(key)?,
                 encoding: ChunkEncoding::Raw { extent },
             }))
         }
-        None => Err(ViewError::NotFound(format!(
+        None => Err(ViewError::NoSuchDocument(format!(
             "{path:?} is not in the precomputed view: it has info and {{level}}/{{x0}}-{{x1}}_{{y0}}-{{y1}}_{{z0}}-{{z1}}"
         ))),
     }
@@ -92,7 +92,7 @@ fn parse_chunk(
     name: &str,
 ) -> Result<([u32; 3], [u32; 3]), ViewError> {
     let malformed = || {
-        ViewError::BadRequest(format!(
+        ViewError::NotAChunk(format!(
             "{name:?} is not a chunk name: {{x0}}-{{x1}}_{{y0}}-{{y1}}_{{z0}}-{{z1}} expected"
         ))
     };
@@ -113,14 +113,14 @@ fn parse_chunk(
     for (a, &(lo, hi)) in ranges.iter().enumerate() {
         let axis = ["x", "y", "z"][a];
         if lo >= extent[a] {
-            return Err(ViewError::NotFound(format!(
+            return Err(ViewError::NoSuchDocument(format!(
                 "{axis} {lo}-{hi} starts past level {level}'s extent {}",
                 extent[a]
             )));
         }
         let expected_hi = (lo / b * b + b).min(extent[a]);
         if lo % b != 0 || hi != expected_hi {
-            return Err(ViewError::BadRequest(format!(
+            return Err(ViewError::NotAChunk(format!(
                 "{axis} {lo}-{hi} is not a chunk of level {level}: chunks are {b} voxels, cropped at {}",
                 extent[a]
             )));
@@ -179,17 +179,17 @@ mod tests {
             "0-32_0-32_0-32_0-32",
         ] {
             assert!(
-                matches!(parse_chunk(&l, 0, bad), Err(ViewError::BadRequest(_))),
+                matches!(parse_chunk(&l, 0, bad), Err(ViewError::NotAChunk(_))),
                 "{bad}"
             );
         }
         assert!(matches!(
             parse_chunk(&l, 0, "224-256_0-32_0-32"),
-            Err(ViewError::NotFound(_))
+            Err(ViewError::NoSuchDocument(_))
         ));
         assert!(matches!(
             parse_chunk(&l, 1, "128-160_0-32_0-32"),
-            Err(ViewError::NotFound(_))
+            Err(ViewError::NoSuchDocument(_))
         ));
     }
 }

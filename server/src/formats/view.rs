@@ -5,12 +5,18 @@
 //! layout and voxel scale, its chunks are bricks (the brick edge is the chunk edge), either as
 //! the stored zstd frame itself or decoded. The same functions answer HTTP requests and write
 //! exports, so an exported tree holds exactly the bytes the server sends.
+//!
+//! What a chunk is made from is kept in the process's one cache of decoded bricks
+//! ([`DecodedBricks`], by content hash): the decoded voxels (shared with brick bodies and
+//! meshing) and the zstd frames made from them. Most bricks of a sparse volume are constant and
+//! share one content hash per value, so their chunks are compressed once.
 
-use crate::store::lru::ByteLru;
+use crate::store::decoded::{DecodedBricks, Form};
 use crate::store::{Snapshot, StoreError, StoredBrick};
-use crate::volume::LiveVolume;
+use crate::volume::{LiveVolume, VolumeError};
 use bytes::Bytes;
-use isovox_proto::BrickKey;
+use isovox_proto::vod2::Codec;
+use isovox_proto::{BrickKey, VolumeLayout};
 use std::sync::Arc;
 use thiserror::Error;
 
@@ -33,21 +39,41 @@ impl ViewKind {
     }
 }
 
-/// Why a path of a view names nothing.
+/// Why a document of a view was not answered. The HTTP layer decides the status of each
+/// variant (`http/error.rs`); this type says only what happened.
 #[derive(Debug, Error)]
 pub enum ViewError {
-    /// The path is not one the view has (wrong shape, a level or chunk outside the volume).
+    /// The path names no document of the view (wrong shape, a level or chunk outside the
+    /// volume).
     #[error("{0}")]
-    NotFound(String),
-    /// The path has the view's shape but is malformed (a misaligned chunk range).
+    NoSuchDocument(String),
+    /// The path has the shape of a chunk, but its range is not a chunk's (misaligned, or
+    /// ending elsewhere than the chunk does).
     #[error("{0}")]
-    BadRequest(String),
+    NotAChunk(String),
+    /// A Zarr chunk whose every voxel is the fill value: Zarr clients read a missing chunk as
+    /// the fill value, so it is answered as missing.
+    #[error(
+        "chunk {0} holds only the fill value 0 (Zarr reads a missing chunk as the fill value)"
+    )]
+    FillValue(String),
     /// A pinned version that compaction removed from the file.
-    #[error("{0}")]
-    Gone(String),
-    /// Reading the brick failed: the file is damaged.
+    #[error("version {version} was compacted away; the oldest version kept is {oldest}")]
+    Compacted {
+        /// The version asked for.
+        version: u64,
+        /// The oldest version the file holds.
+        oldest: u64,
+    },
+    /// The volume cannot answer (a version it never had, a damaged file).
     #[error(transparent)]
-    Store(#[from] StoreError),
+    Volume(#[from] VolumeError),
+}
+
+impl From<StoreError> for ViewError {
+    fn from(e: StoreError) -> Self {
+        ViewError::Volume(e.into())
+    }
 }
 
 /// What a path of a view resolves to.
@@ -57,16 +83,19 @@ pub enum Document<'s> {
     Metadata(Vec<u8>),
     /// A chunk, made from one brick.
     Chunk(Chunk<'s>),
-    /// A chunk whose every voxel is the fill value: Zarr clients read a missing chunk as the
-    /// fill value, so it is answered 404 (and left out of exports).
+    /// A chunk whose every voxel is the fill value (see [`ViewError::FillValue`]); left out of
+    /// exports.
     Absent,
 }
 
 /// A chunk of a view: the brick it is made from and how.
 #[derive(Debug)]
 pub struct Chunk<'s> {
+    /// The brick.
     pub key: BrickKey,
+    /// The brick as the file holds it.
     pub stored: StoredBrick<'s>,
+    /// How the chunk's bytes are made from it.
     pub encoding: ChunkEncoding,
 }
 
@@ -78,102 +107,10 @@ pub enum ChunkEncoding {
     ZstdFrame,
     /// The decoded voxels, cropped to this extent (x, y, z) when it is smaller than the brick
     /// (precomputed's edge chunks).
-    Raw { extent: [u32; 3] },
-}
-
-/// Representations made from a brick's content, which a server keeps between requests.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum BodyKind {
-    /// The decoded voxels.
-    Decoded = 0,
-    /// A zstd frame of the decoded voxels, made here.
-    Zstd = 1,
-    /// A constant brick's voxels; keyed by [`constant_key`], not a content hash.
-    ConstantDecoded = 2,
-    /// A zstd frame of a constant brick; keyed by [`constant_key`].
-    ConstantZstd = 3,
-}
-
-/// The key of a constant brick's bodies: its value and its size in bytes, which together
-/// determine its voxels (brick edges are powers of two, so a u8 and a u16 brick never have the
-/// same size). Most bricks of a sparse volume are constant: making their bodies once saves a
-/// fill and a compression of a whole brick per request.
-pub fn constant_key(value: u16, brick_bytes: usize) -> u64 {
-    u64::from(value) | ((brick_bytes as u64) << 16)
-}
-
-/// Where bodies made from a brick's content (keyed by its content hash) are kept: the server's
-/// body cache, or nothing ([`NoMemo`]) for exports, which make each body once.
-pub trait BodyMemo {
-    /// The body of `kind` for content `hash`, made by `make` when not kept.
-    ///
-    /// # Errors
-    /// Whatever `make` fails with.
-    fn get_or_make(
-        &self,
-        hash: u64,
-        kind: BodyKind,
-        make: &mut dyn FnMut() -> Result<Bytes, StoreError>,
-    ) -> Result<Bytes, StoreError>;
-}
-
-/// Bodies kept in memory, bounded by bytes, least recently used out first (the server's).
-#[derive(Debug)]
-pub struct ChunkCache {
-    lru: ByteLru<Bytes>,
-}
-
-impl ChunkCache {
-    pub fn new(capacity: usize) -> Self {
-        ChunkCache {
-            lru: ByteLru::new(capacity),
-        }
-    }
-
-    /// Bytes held now.
-    pub fn bytes(&self) -> usize {
-        self.lru.bytes()
-    }
-}
-
-impl BodyMemo for ChunkCache {
-    fn get_or_make(
-        &self,
-        hash: u64,
-        kind: BodyKind,
-        make: &mut dyn FnMut() -> Result<Bytes, StoreError>,
-    ) -> Result<Bytes, StoreError> {
-        // A content hash is uniform in its low bits (they pick the shard); a constant's key is
-        // not, so it is hashed first. The kind goes on top.
-        let spread = match kind {
-            BodyKind::ConstantDecoded | BodyKind::ConstantZstd => {
-                xxhash_rust::xxh3::xxh3_64(&hash.to_le_bytes())
-            }
-            BodyKind::Decoded | BodyKind::Zstd => hash,
-        };
-        let key = u128::from(spread) | ((kind as u128) << 64);
-        if let Some(body) = self.lru.get(key) {
-            return Ok((*body).clone());
-        }
-        let body = make()?;
-        self.lru.put(key, Arc::new(body.clone()), body.len());
-        Ok(body)
-    }
-}
-
-/// Keeps nothing.
-#[derive(Debug, Clone, Copy, Default)]
-pub struct NoMemo;
-
-impl BodyMemo for NoMemo {
-    fn get_or_make(
-        &self,
-        _: u64,
-        _: BodyKind,
-        make: &mut dyn FnMut() -> Result<Bytes, StoreError>,
-    ) -> Result<Bytes, StoreError> {
-        make()
-    }
+    Raw {
+        /// Voxels kept per axis.
+        extent: [u32; 3],
+    },
 }
 
 /// The zstd level of frames made on request (stored frames keep the level they were written
@@ -181,68 +118,74 @@ impl BodyMemo for NoMemo {
 pub const ZSTD_LEVEL: i32 = 3;
 
 impl Chunk<'_> {
-    /// The chunk's bytes.
+    /// The chunk's bytes, made through `bricks` (the decoded voxels and the zstd frames made
+    /// from them are kept there by content hash, beside every other reader's).
     ///
     /// # Errors
     /// The brick does not decode (the file is damaged).
-    pub fn body(&self, snap: &Snapshot, memo: &dyn BodyMemo) -> Result<Bytes, StoreError> {
+    pub fn body(&self, snap: &Snapshot, bricks: &DecodedBricks) -> Result<Bytes, StoreError> {
         let layout = snap.layout();
-        match (self.encoding, self.stored) {
-            (
-                ChunkEncoding::ZstdFrame,
-                StoredBrick::Record {
-                    offset,
-                    header,
-                    payload,
-                },
-            ) if header.codec == isovox_proto::vod2::Codec::Zstd
-                && frame_qualifies(payload, layout.brick_bytes()) =>
-            {
-                snap.payload_bytes(offset, &header)
-            }
-            (ChunkEncoding::ZstdFrame, StoredBrick::Record { header, .. }) => {
-                memo.get_or_make(header.hash, BodyKind::Zstd, &mut || {
-                    let voxels = self.decoded(snap, memo)?;
-                    compress_frame(&voxels)
+        let hash = self.stored.content_hash(layout);
+        match self.encoding {
+            ChunkEncoding::ZstdFrame => {
+                if let Some(frame) = self.stored_frame(snap)? {
+                    return Ok(frame);
+                }
+                bricks.get_or_make(hash, layout.brick_bytes(), Form::Zstd, || {
+                    compress_frame(&bricks.voxels(hash, &self.stored, layout)?)
                 })
             }
-            (ChunkEncoding::ZstdFrame, StoredBrick::Constant(v)) => memo.get_or_make(
-                constant_key(v, layout.brick_bytes()),
-                BodyKind::ConstantZstd,
-                &mut || compress_frame(&self.decoded(snap, memo)?),
-            ),
-            (ChunkEncoding::Raw { extent }, _) => {
-                let voxels = self.decoded(snap, memo)?;
-                let b = layout.brick();
-                if extent == [b; 3] {
-                    return Ok(voxels);
-                }
-                Ok(crop(&voxels, b, extent, layout.voxel_type().bytes()).into())
+            ChunkEncoding::Raw { extent } => {
+                Ok(self.crop(layout, extent, bricks.voxels(hash, &self.stored, layout)?))
             }
         }
     }
 
-    /// The brick's voxels (x fastest, u16 little endian).
-    fn decoded(&self, snap: &Snapshot, memo: &dyn BodyMemo) -> Result<Bytes, StoreError> {
+    /// The chunk's bytes if they need no work: the stored frame, or a body `bricks` holds.
+    ///
+    /// # Errors
+    /// The brick's record is damaged.
+    pub fn ready_body(
+        &self,
+        snap: &Snapshot,
+        bricks: &DecodedBricks,
+    ) -> Result<Option<Bytes>, StoreError> {
         let layout = snap.layout();
+        let hash = self.stored.content_hash(layout);
+        Ok(match self.encoding {
+            ChunkEncoding::ZstdFrame => match self.stored_frame(snap)? {
+                Some(frame) => Some(frame),
+                None => bricks.get(hash, layout.brick_bytes(), Form::Zstd),
+            },
+            ChunkEncoding::Raw { extent } => bricks
+                .get(hash, layout.brick_bytes(), Form::Raw)
+                .map(|voxels| self.crop(layout, extent, voxels)),
+        })
+    }
+
+    /// The stored zstd frame, when the brick is stored as one that can go out as it is.
+    fn stored_frame(&self, snap: &Snapshot) -> Result<Option<Bytes>, StoreError> {
         match self.stored {
-            StoredBrick::Constant(v) => memo.get_or_make(
-                constant_key(v, layout.brick_bytes()),
-                BodyKind::ConstantDecoded,
-                &mut || {
-                    let mut out = vec![0u8; layout.brick_bytes()];
-                    crate::store::codec::fill_constant(&mut out, v, layout.voxel_type());
-                    Ok(out.into())
-                },
-            ),
-            StoredBrick::Record { header, .. } => {
-                memo.get_or_make(header.hash, BodyKind::Decoded, &mut || {
-                    let mut out = vec![0u8; layout.brick_bytes()];
-                    crate::store::vod2::decode_stored(&self.stored, layout, &mut out)?;
-                    Ok(out.into())
-                })
+            StoredBrick::Record {
+                offset,
+                header,
+                payload,
+            } if header.codec == Codec::Zstd
+                && frame_qualifies(payload, snap.layout().brick_bytes()) =>
+            {
+                snap.payload_bytes(offset, &header).map(Some)
             }
+            _ => Ok(None),
         }
+    }
+
+    /// `voxels` cropped to `extent` (shared as they are when it is the whole brick).
+    fn crop(&self, layout: &VolumeLayout, extent: [u32; 3], voxels: Bytes) -> Bytes {
+        let b = layout.brick();
+        if extent == [b; 3] {
+            return voxels;
+        }
+        crop(&voxels, b, extent, layout.voxel_type().bytes()).into()
     }
 }
 
@@ -282,11 +225,12 @@ pub fn crop(voxels: &[u8], b: u32, extent: [u32; 3], voxel_bytes: usize) -> Vec<
     out
 }
 
-/// What a request for a path of a view gets.
+/// A document of a view, answered.
 #[derive(Debug)]
-pub struct ViewRead {
+pub struct ViewAnswer {
     /// The version read.
     pub version: u64,
+    /// The document.
     pub body: ViewBody,
 }
 
@@ -297,84 +241,125 @@ pub enum ViewBody {
     Json(Bytes),
     /// A chunk.
     Chunk(Bytes),
-    /// A chunk of fill values only, left out (Zarr).
+    /// A Zarr chunk of fill values only, left out (see [`ViewError::FillValue`]).
     Absent,
 }
 
-/// The snapshot a view of `volume` reads: `version`, or the head when `None`.
-///
-/// # Errors
-/// A version after the head ([`ViewError::NotFound`]) or compacted away ([`ViewError::Gone`]).
-pub fn snapshot(volume: &LiveVolume, version: Option<u64>) -> Result<Arc<Snapshot>, ViewError> {
-    let head = volume.head();
-    let Some(v) = version else {
-        return Ok(head);
-    };
-    if v > head.version || v == 0 {
-        return Err(ViewError::NotFound(format!(
-            "version {v} does not exist: {:?} is at version {}",
-            volume.name(),
-            head.version
-        )));
-    }
-    if v < volume.oldest() {
-        return Err(ViewError::Gone(format!(
-            "version {v} of {:?} was compacted away; the oldest kept is {}",
-            volume.name(),
-            volume.oldest()
-        )));
-    }
-    Ok(volume.version(v)?)
+/// A checked read of a document of a view: its answer, or a chunk that must be made first
+/// (decoded, compressed: CPU work the caller runs where it wants, with [`MakeChunk::run`]).
+#[derive(Debug)]
+pub enum ViewRead {
+    /// The answer, which took no work (metadata, a stored frame, a body the cache held).
+    Ready(ViewAnswer),
+    /// A chunk to make.
+    Make(MakeChunk),
 }
 
-/// Reads `path` of view `kind` of `volume` at `version` (the head when `None`).
+/// A chunk of a view that is not ready (see [`ViewRead::Make`]).
+#[derive(Debug)]
+pub struct MakeChunk {
+    snap: Arc<Snapshot>,
+    key: BrickKey,
+    encoding: ChunkEncoding,
+}
+
+impl MakeChunk {
+    /// Makes the chunk, keeping what it decodes and compresses in `bricks`.
+    ///
+    /// # Errors
+    /// The brick does not decode (the file is damaged).
+    pub fn run(self, bricks: &DecodedBricks) -> Result<ViewAnswer, ViewError> {
+        let chunk = Chunk {
+            key: self.key,
+            stored: self.snap.stored(self.key)?,
+            encoding: self.encoding,
+        };
+        Ok(ViewAnswer {
+            version: self.snap.version,
+            body: ViewBody::Chunk(chunk.body(&self.snap, bricks)?),
+        })
+    }
+}
+
+/// Version `version` of `volume`, for a pinned view.
 ///
 /// # Errors
-/// See [`snapshot`] and [`resolve`]; a chunk whose brick does not decode.
+/// [`ViewError::Compacted`] for a version compaction removed; a version the volume never had.
+pub fn pinned_snapshot(volume: &LiveVolume, version: u64) -> Result<Arc<Snapshot>, ViewError> {
+    match volume.version(version) {
+        Err(VolumeError::NoSuchVersion { oldest, .. }) if version > 0 && version < oldest => {
+            Err(ViewError::Compacted { version, oldest })
+        }
+        other => Ok(other?),
+    }
+}
+
+/// Checks a read of `path` of view `kind` of `volume` at `version` (the head when `None`) and
+/// answers it at once when that takes no work (`bricks` is asked for bodies it holds).
+///
+/// # Errors
+/// See [`pinned_snapshot`] and [`resolve`].
 pub fn read(
     volume: &LiveVolume,
     kind: ViewKind,
     version: Option<u64>,
     path: &str,
-    memo: &dyn BodyMemo,
+    bricks: &DecodedBricks,
 ) -> Result<ViewRead, ViewError> {
     match version {
         // The head is borrowed from the volume's current file: no reference count touched (one
         // shared by every core serving chunks is a cache line they would fight over).
-        None => read_snapshot(volume.load().head_ref(), volume.name(), kind, path, memo),
-        Some(_) => read_snapshot(
-            &*snapshot(volume, version)?,
-            volume.name(),
-            kind,
-            path,
-            memo,
-        ),
+        None => {
+            let vod = volume.load();
+            read_snapshot(
+                vod.head_ref(),
+                || vod.head(),
+                volume.name(),
+                kind,
+                path,
+                bricks,
+            )
+        }
+        Some(v) => {
+            let snap = pinned_snapshot(volume, v)?;
+            read_snapshot(&snap, || snap.clone(), volume.name(), kind, path, bricks)
+        }
     }
 }
 
 fn read_snapshot(
     snap: &Snapshot,
+    shared: impl FnOnce() -> Arc<Snapshot>,
     name: &str,
     kind: ViewKind,
     path: &str,
-    memo: &dyn BodyMemo,
+    bricks: &DecodedBricks,
 ) -> Result<ViewRead, ViewError> {
     let body = match resolve(kind, snap, name, path)? {
         Document::Metadata(json) => ViewBody::Json(json.into()),
-        Document::Chunk(chunk) => ViewBody::Chunk(chunk.body(snap, memo)?),
         Document::Absent => ViewBody::Absent,
+        Document::Chunk(chunk) => match chunk.ready_body(snap, bricks)? {
+            Some(body) => ViewBody::Chunk(body),
+            None => {
+                return Ok(ViewRead::Make(MakeChunk {
+                    snap: shared(),
+                    key: chunk.key,
+                    encoding: chunk.encoding,
+                }))
+            }
+        },
     };
-    Ok(ViewRead {
+    Ok(ViewRead::Ready(ViewAnswer {
         version: snap.version,
         body,
-    })
+    }))
 }
 
 /// Resolves `path` (relative to the view's root, no leading slash) of view `kind` of `snap`.
 ///
 /// # Errors
-/// The path names nothing in the view ([`ViewError::NotFound`]), is malformed
-/// ([`ViewError::BadRequest`]), or the brick's record is damaged.
+/// The path names nothing in the view ([`ViewError::NoSuchDocument`]), is not a chunk's
+/// ([`ViewError::NotAChunk`]), or the brick's record is damaged.
 pub fn resolve<'s>(
     kind: ViewKind,
     snap: &'s Snapshot,
@@ -395,7 +380,7 @@ pub(crate) fn level_segment(snap: &Snapshot, segment: &str) -> Result<u8, ViewEr
         .ok()
         .filter(|l| *l < levels && (segment == "0" || !segment.starts_with('0')))
         .ok_or_else(|| {
-            ViewError::NotFound(format!(
+            ViewError::NoSuchDocument(format!(
                 "no level {segment:?}: the volume has levels 0..{}",
                 levels - 1
             ))

@@ -127,7 +127,7 @@ pub fn document<'s>(snap: &'s Snapshot, name: &str, path: &str) -> Result<Docume
             }
             .ok_or_else(|| {
                 let [gx, gy, gz] = layout.grid(level);
-                ViewError::NotFound(format!(
+                ViewError::NoSuchDocument(format!(
                     "no chunk {z}/{y}/{x} at level {level}: its chunk grid (z, y, x) is {gz} x {gy} x {gx}"
                 ))
             })?;
@@ -141,7 +141,7 @@ pub fn document<'s>(snap: &'s Snapshot, name: &str, path: &str) -> Result<Docume
                 encoding: ChunkEncoding::ZstdFrame,
             }))
         }
-        _ => Err(ViewError::NotFound(format!(
+        _ => Err(ViewError::NoSuchDocument(format!(
             "{path:?} is not in the Zarr view: it has zarr.json, {{level}}/zarr.json and {{level}}/c/{{z}}/{{y}}/{{x}}"
         ))),
     }

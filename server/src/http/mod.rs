@@ -6,25 +6,38 @@
 //! Routes (all under `/v1` but the probes):
 //! - `GET /healthz`: liveness; `GET /metrics`: Prometheus text; `GET /openapi.json`: the API.
 //! - `GET /v1/volumes`, `GET /v1/volumes/{name}`: what is served and how to address it.
-//! - `GET /v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}`: one brick (see [`handlers::brick`]).
+//! - `GET /v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}`: one brick (see [`bricks::brick`]).
 //! - `GET /v1/volumes/{name}/blobs/{hash}`: a brick by content hash, cacheable forever.
 //! - `POST /v1/volumes/{name}/batch`: many bricks in one response (`proto::batch`).
 //! - `GET /v1/volumes/{name}/levels/{level}`: a level's brick grid, or its voxels.
 //! - `GET /v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}`: one mesh tile (see
 //!   [`handlers::mesh_tile`]).
+//! - `POST /v1/volumes/{name}/edits` ([`edit`]), `POST .../compact` ([`compact`]),
+//!   `GET .../events` and `GET .../changes` ([`feed`]), `POST /v1/meshes` ([`meshes`]).
 //! - `GET /v1/volumes/{name}/zarr/...`, `.../precomputed/...` and their version-pinned forms
-//!   under `.../versions/{version}/`: the field's formats (see [`views`]).
+//!   under `.../versions/{version}/`: the field's formats ([`views`]).
 //!
 //! Plain brick requests (no query, nothing escaped) are answered before the router by the same
 //! code the routed handler calls; see `fast_path.rs` for why and for what counts as plain.
+//!
+//! Layout: handlers by concern (`bricks`, `handlers`, `views`, `edit`, `compact`, `feed`,
+//! `meshes`); `error` decides every status code; `extract` gives axum's extractors that error;
+//! `cpu` runs CPU work off the async runtime; `auth` checks tokens and edit rates; `bodies`
+//! keeps constant bricks' bodies; `metrics`, `cors` and `openapi` are what their names say.
 
 pub mod auth;
 pub mod bodies;
+pub mod bricks;
+pub mod compact;
 mod cors;
-pub mod edits;
+pub mod cpu;
+pub mod edit;
 mod error;
+pub mod extract;
 mod fast_path;
+pub mod feed;
 pub mod handlers;
+pub mod meshes;
 pub mod metrics;
 mod openapi;
 pub mod views;
@@ -33,6 +46,9 @@ pub use error::ApiError;
 
 use crate::catalog::Catalog;
 use crate::mesh::cache::MeshCache;
+use crate::store::decoded::DecodedBricks;
+use crate::volume::resolve::CatalogVolumes;
+use crate::volume::EditLimits;
 use axum::handler::Handler;
 use axum::http::StatusCode;
 use axum::routing::{get, post, MethodRouter};
@@ -49,7 +65,8 @@ use tower_http::trace::TraceLayer;
 pub struct ServerConfig {
     /// Memory for cached mesh tiles.
     pub mesh_cache_bytes: usize,
-    /// Memory for decoded and transcoded brick bodies.
+    /// Memory for decoded bricks and what is made from them (lz4 blocks, the views' zstd
+    /// chunks): brick bodies, the formats' views and meshing share it.
     pub brick_cache_bytes: usize,
     /// Meshing and batch jobs running or queued at once.
     pub cpu_queue: usize,
@@ -63,6 +80,7 @@ pub struct ServerConfig {
     pub edit_queue: usize,
     /// Level-0 voxels one edit may evaluate; beyond it 422.
     pub max_edit_voxels: u64,
+    /// Limits on edit terms (depth, nodes, extent).
     pub term_limits: crate::icvg::term::TermLimits,
     /// Where uploaded meshes are kept (`POST /v1/meshes`); none: uploads are refused.
     pub mesh_dir: Option<std::path::PathBuf>,
@@ -101,24 +119,23 @@ impl std::ops::Deref for AppState {
 /// The server's shared parts (see [`AppState`]).
 #[derive(Debug)]
 pub struct Shared {
+    /// The volumes served.
     pub catalog: Arc<Catalog>,
     /// Tile meshes by the content of their inputs.
     pub meshes: Arc<MeshCache>,
-    /// Permits for CPU work off the async runtime (meshing); when none is free the request gets
-    /// 503 with Retry-After instead of waiting in an unbounded queue.
-    pub cpu: Arc<tokio::sync::Semaphore>,
-    /// The semaphore's size.
-    pub cpu_permits: usize,
+    /// Decoded bricks and the bodies made from them by content hash, for brick bodies, the
+    /// formats' views and meshing.
+    pub bricks: Arc<DecodedBricks>,
+    /// The bound on CPU work off the async runtime (meshing, batches, levels).
+    pub cpu: cpu::CpuQueue,
+    /// Requests and latencies per route.
     pub metrics: Arc<metrics::Metrics>,
     /// Content hash and bodies of constant bricks.
     pub constants: bodies::ConstantBricks,
+    /// How the server runs.
     pub config: Arc<ServerConfig>,
+    /// Edits per second per token.
     pub edit_rate: Arc<auth::RateLimiter>,
-    /// Decoded and transcoded brick bodies by content hash.
-    pub bodies: Arc<bodies::BodyCache>,
-    /// Chunks of the Zarr and precomputed views made from bricks (decoded, or compressed when
-    /// not stored as a zstd frame), by content hash.
-    pub view_chunks: Arc<crate::formats::view::ChunkCache>,
     /// Uploaded meshes for `mesh` leaves of edit terms.
     pub mesh_store: Option<Arc<crate::voxelize::store::MeshStore>>,
 }
@@ -142,21 +159,33 @@ impl AppState {
         AppState(Arc::new(Shared {
             catalog: Arc::new(catalog),
             meshes: Arc::new(MeshCache::new(config.mesh_cache_bytes)),
-            cpu: Arc::new(tokio::sync::Semaphore::new(config.cpu_queue)),
-            cpu_permits: config.cpu_queue,
+            bricks: Arc::new(DecodedBricks::new(config.brick_cache_bytes)),
+            cpu: cpu::CpuQueue::new(config.cpu_queue),
             metrics: Arc::new(metrics::Metrics::new(ROUTES)),
             constants: bodies::ConstantBricks::default(),
             edit_rate: Arc::new(auth::RateLimiter::new(config.edit_rate)),
-            bodies: Arc::new(bodies::BodyCache::new(config.brick_cache_bytes)),
-            view_chunks: Arc::new(crate::formats::view::ChunkCache::new(
-                config.brick_cache_bytes,
-            )),
             mesh_store: config
                 .mesh_dir
                 .as_deref()
                 .map(|d| Arc::new(crate::voxelize::store::MeshStore::new(d))),
             config: Arc::new(config),
         }))
+    }
+
+    /// What one edit may ask for on this server.
+    pub fn edit_limits(&self) -> EditLimits {
+        EditLimits {
+            term: self.config.term_limits,
+            max_voxels: Some(self.config.max_edit_voxels),
+        }
+    }
+
+    /// The volumes and meshes edit terms may name: the catalog's and the uploads.
+    pub fn resolver(&self) -> CatalogVolumes {
+        CatalogVolumes {
+            catalog: self.catalog.clone(),
+            meshes: self.mesh_store.clone(),
+        }
     }
 }
 
@@ -229,15 +258,15 @@ fn routes(state: &AppState) -> Router<AppState> {
         )
         .route("/v1/volumes/{name}/batch", write(handlers::batch))
         .route("/v1/volumes/{name}/levels/{level}", read(handlers::level))
-        .route("/v1/volumes/{name}/changes", read(edits::changes))
+        .route("/v1/volumes/{name}/changes", read(feed::changes))
         .route_layer(timeout);
     // Edits wait for their volume's writer (bounded by the edit queue), and the change feed is
     // meant to stay open: neither gets the timeout.
     let write_routes = Router::new()
-        .route("/v1/volumes/{name}/edits", write(edits::edit))
-        .route("/v1/volumes/{name}/compact", write(edits::compact))
-        .route("/v1/meshes", write(edits::upload_mesh))
-        .route("/v1/volumes/{name}/events", read(edits::events));
+        .route("/v1/volumes/{name}/edits", write(edit::edit))
+        .route("/v1/volumes/{name}/compact", write(compact::compact))
+        .route("/v1/meshes", write(meshes::upload_mesh))
+        .route("/v1/volumes/{name}/events", read(feed::events));
     let mut router = Router::new()
         .route("/healthz", read(handlers::healthz))
         .route("/metrics", read(metrics::metrics))
@@ -246,9 +275,11 @@ fn routes(state: &AppState) -> Router<AppState> {
         .route("/v1/volumes/{name}", read(handlers::volume_info))
         .route(
             "/v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}",
-            read(handlers::brick),
+            read(bricks::brick),
         )
-        .route("/v1/volumes/{name}/blobs/{hash}", read(handlers::blob))
+        .route("/v1/volumes/{name}/blobs/{hash}", read(bricks::blob))
+        // Chunks are bricks: like the brick routes, these answer at once, and the few that
+        // take work (a brick to decode or compress) take it to the CPU queue.
         .route("/v1/volumes/{name}/zarr/{*path}", read(views::zarr))
         .route(
             "/v1/volumes/{name}/precomputed/{*path}",
@@ -268,7 +299,7 @@ fn routes(state: &AppState) -> Router<AppState> {
         // Only then: a middleware per request costs throughput on the brick routes.
         router = router.route_layer(axum::middleware::from_fn_with_state(
             state.clone(),
-            edits::require_token,
+            auth::require_token,
         ));
     }
     router

@@ -10,12 +10,15 @@
 //!   `Cache-Control: public, max-age=31536000, immutable`.
 //!
 //! A Zarr chunk of fill values only answers 404 (clients read it as the fill value) with the
-//! same caching headers as a chunk.
+//! same caching headers as a chunk. A chunk that must be decoded or compressed (not stored as a
+//! frame that goes out as it is, not in the shared cache) is made on the CPU queue.
 
-use super::{handlers, ApiError, AppState};
-use crate::formats::view::{read, ViewBody, ViewKind};
-use axum::extract::rejection::PathRejection;
-use axum::extract::{Path, Request, State};
+use super::bricks::{format_etag, if_none_match};
+use super::extract::Path;
+use super::{ApiError, AppState};
+use crate::formats::view::{read, ViewAnswer, ViewBody, ViewRead};
+use crate::formats::{ViewError, ViewKind};
+use axum::extract::{Request, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 
@@ -24,65 +27,77 @@ const LIVE: &str = "public, max-age=1";
 /// Pinned views: one version's documents never change.
 const PINNED: &str = "public, max-age=31536000, immutable";
 
-type LivePath = Result<Path<(String, String)>, PathRejection>;
-type PinnedPath = Result<Path<(String, u64, String)>, PathRejection>;
-type Reply = Result<Response, ApiError>;
+/// `{name}/zarr/{*path}` and `{name}/precomputed/{*path}`.
+type LivePath = Path<(String, String)>;
+/// `{name}/versions/{version}/zarr/{*path}` and `.../precomputed/{*path}`.
+type PinnedPath = Path<(String, u64, String)>;
 
-// The request itself, not a `HeaderMap` extractor (which clones every header).
-
-pub async fn zarr(State(s): State<AppState>, path: LivePath, request: Request) -> Reply {
-    let Path((name, rest)) = path.map_err(malformed)?;
-    answer(&s, ViewKind::Zarr, &name, None, &rest, request.headers())
-}
-
-pub async fn precomputed(State(s): State<AppState>, path: LivePath, request: Request) -> Reply {
-    let Path((name, rest)) = path.map_err(malformed)?;
-    answer(
-        &s,
-        ViewKind::Precomputed,
-        &name,
-        None,
-        &rest,
-        request.headers(),
-    )
-}
-
-pub async fn zarr_pinned(State(s): State<AppState>, path: PinnedPath, request: Request) -> Reply {
-    let Path((name, v, rest)) = path.map_err(malformed)?;
-    answer(&s, ViewKind::Zarr, &name, Some(v), &rest, request.headers())
-}
-
-pub async fn precomputed_pinned(
-    State(s): State<AppState>,
-    path: PinnedPath,
+/// `GET /v1/volumes/{name}/zarr/{*path}`.
+pub async fn zarr(
+    State(state): State<AppState>,
+    Path((name, path)): LivePath,
     request: Request,
-) -> Reply {
-    let Path((name, v, rest)) = path.map_err(malformed)?;
-    answer(
-        &s,
-        ViewKind::Precomputed,
-        &name,
-        Some(v),
-        &rest,
-        request.headers(),
-    )
+) -> Result<Response, ApiError> {
+    view(&state, ViewKind::Zarr, &name, None, &path, request).await
 }
 
-fn malformed(e: PathRejection) -> ApiError {
-    ApiError::BadRequest(format!("malformed view path: {e}"))
+/// `GET /v1/volumes/{name}/precomputed/{*path}`.
+pub async fn precomputed(
+    State(state): State<AppState>,
+    Path((name, path)): LivePath,
+    request: Request,
+) -> Result<Response, ApiError> {
+    view(&state, ViewKind::Precomputed, &name, None, &path, request).await
 }
 
-/// Reads the document and maps it to a response with the view's caching headers.
-fn answer(
+/// `GET /v1/volumes/{name}/versions/{version}/zarr/{*path}`.
+pub async fn zarr_pinned(
+    State(state): State<AppState>,
+    Path((name, version, path)): PinnedPath,
+    request: Request,
+) -> Result<Response, ApiError> {
+    view(&state, ViewKind::Zarr, &name, Some(version), &path, request).await
+}
+
+/// `GET /v1/volumes/{name}/versions/{version}/precomputed/{*path}`.
+pub async fn precomputed_pinned(
+    State(state): State<AppState>,
+    Path((name, version, path)): PinnedPath,
+    request: Request,
+) -> Result<Response, ApiError> {
+    let kind = ViewKind::Precomputed;
+    view(&state, kind, &name, Some(version), &path, request).await
+}
+
+/// Reads the document (made on the CPU queue when it takes work) and answers it.
+async fn view(
     state: &AppState,
     kind: ViewKind,
     name: &str,
     version: Option<u64>,
     path: &str,
+    // The request itself, not a `HeaderMap` extractor (which clones every header).
+    request: Request,
+) -> Result<Response, ApiError> {
+    let answer = match read(state.catalog.get(name)?, kind, version, path, &state.bricks)? {
+        ViewRead::Ready(answer) => answer,
+        ViewRead::Make(chunk) => {
+            let bricks = state.bricks.clone();
+            state.cpu.run(move || chunk.run(&bricks)).await?
+        }
+    };
+    respond(kind, name, version, path, answer, request.headers())
+}
+
+/// The response for a document of a view, with the view's caching headers.
+fn respond(
+    kind: ViewKind,
+    name: &str,
+    version: Option<u64>,
+    path: &str,
+    answer: ViewAnswer,
     headers: &HeaderMap,
 ) -> Result<Response, ApiError> {
-    let volume = handlers::volume(state, name)?;
-    let got = read(volume, kind, version, path, &*state.view_chunks)?;
     let mut out = HeaderMap::with_capacity(8);
     out.insert(
         header::CACHE_CONTROL,
@@ -91,31 +106,29 @@ fn answer(
     if version.is_none() {
         let pinned = format!(
             "/v1/volumes/{name}/versions/{}/{}/{path}",
-            got.version,
+            answer.version,
             kind.segment()
         );
         if let Ok(v) = HeaderValue::from_str(&pinned) {
             out.insert(header::CONTENT_LOCATION, v);
         }
     }
-    let (media, body) = match got.body {
+    let (media, body) = match answer.body {
         ViewBody::Json(b) => ("application/json", b),
         ViewBody::Chunk(b) => ("application/octet-stream", b),
         ViewBody::Absent => {
-            let mut r = ApiError::not_found(format!(
-                "chunk {path} holds only the fill value 0 (Zarr reads a missing chunk as the fill value)"
-            ))
-            .into_response();
+            let mut r = ApiError::from(ViewError::FillValue(path.to_string())).into_response();
             r.headers_mut().extend(out);
             return Ok(r);
         }
     };
-    let etag = format!("\"{:016x}\"", xxhash_rust::xxh3::xxh3_64(&body));
+    let mut etag = [0u8; 18];
+    let etag = format_etag(xxhash_rust::xxh3::xxh3_64(&body), &mut etag);
     out.insert(
         header::ETAG,
-        HeaderValue::from_str(&etag).map_err(|e| ApiError::Internal(e.to_string()))?,
+        HeaderValue::from_str(etag).map_err(|e| ApiError::Internal(e.to_string()))?,
     );
-    if handlers::if_none_match(headers, &etag) {
+    if if_none_match(headers, etag) {
         return Ok((StatusCode::NOT_MODIFIED, out).into_response());
     }
     out.insert(header::CONTENT_TYPE, HeaderValue::from_static(media));

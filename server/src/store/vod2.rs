@@ -42,19 +42,33 @@ pub struct Vod2 {
 /// the mapping, ready to be sent as it is).
 #[derive(Debug, Clone, Copy)]
 pub enum StoredBrick<'a> {
+    /// Every voxel holds this value (no payload).
     Constant(u16),
+    /// A brick record.
     Record {
+        /// Where the record starts.
         offset: u64,
+        /// Its header.
         header: BrickHeader,
+        /// Its payload, a slice of the mapping.
         payload: &'a [u8],
     },
 }
 
 impl StoredBrick<'_> {
+    /// The brick's smallest and largest voxel value.
     pub fn min_max(&self) -> (u16, u16) {
         match self {
             StoredBrick::Constant(v) => (*v, *v),
             StoredBrick::Record { header, .. } => (header.min, header.max),
+        }
+    }
+
+    /// The brick's content hash (for a constant, the hash of its expanded bytes).
+    pub fn content_hash(&self, layout: &VolumeLayout) -> u64 {
+        match self {
+            StoredBrick::Constant(v) => codec::constant_hash(*v, layout),
+            StoredBrick::Record { header, .. } => header.hash,
         }
     }
 }
@@ -95,16 +109,7 @@ impl Vod2 {
         );
         let header = Arc::new(header);
         let head = Arc::new(Snapshot::load(header.clone(), map.clone(), slot.commit)?);
-        if head.version != slot.version {
-            return Err(FormatError::invalid(
-                "header slot",
-                format!(
-                    "names version {}, its commit record says {}",
-                    slot.version, head.version
-                ),
-            )
-            .into());
-        }
+        check_slot(&slot, &head)?;
         Ok(Vod2 {
             path: path.to_path_buf(),
             header,
@@ -132,7 +137,7 @@ impl Vod2 {
             .map_err(StoreError::io_path("cannot stat", &self.path))?
             .len();
         if slot.committed_len > file_len {
-            return Err(StoreError::Invalid(format!(
+            return Err(StoreError::Internal(format!(
                 "{}: commit names {} bytes, the file has {file_len}",
                 self.path.display(),
                 slot.committed_len
@@ -143,16 +148,7 @@ impl Vod2 {
                 .map_err(StoreError::io_path("cannot map", &self.path))?,
         );
         let head = Arc::new(self.head.extend(map.clone(), slot.commit)?);
-        if head.version != slot.version {
-            return Err(FormatError::invalid(
-                "header slot",
-                format!(
-                    "names version {}, its commit record says {}",
-                    slot.version, head.version
-                ),
-            )
-            .into());
-        }
+        check_slot(&slot, &head)?;
         Ok(Vod2 {
             path: self.path.clone(),
             header: self.header.clone(),
@@ -196,14 +192,17 @@ impl Vod2 {
         })
     }
 
+    /// The file's path.
     pub fn path(&self) -> &Path {
         &self.path
     }
 
+    /// The fixed header.
     pub fn header(&self) -> &FileHeader {
         &self.header
     }
 
+    /// Dimensions, brick edge and voxel type.
     pub fn layout(&self) -> &VolumeLayout {
         &self.header.layout
     }
@@ -243,7 +242,7 @@ impl Vod2 {
                 )?));
             }
             if h.parent == 0 || h.version < version {
-                return Err(StoreError::Invalid(format!(
+                return Err(StoreError::Absent(format!(
                     "version {version} is not in this file (head is {})",
                     self.head.version
                 )));
@@ -289,7 +288,9 @@ impl Vod2 {
 pub struct Snapshot {
     header: Arc<FileHeader>,
     map: Arc<Mapping>,
+    /// The version.
     pub version: u64,
+    /// When it was committed (Unix milliseconds).
     pub timestamp_ms: u64,
     commit_offset: u64,
     index: Arc<IndexChunks>,
@@ -353,19 +354,7 @@ impl Snapshot {
         let mut overlay = HashMap::new();
         // The checkpoint holds the state after its own commit: apply only the later ones.
         for record in chain.iter().rev().skip(1) {
-            for (node, entry) in CommitHeader::changes(record) {
-                if node >= layout.node_count() {
-                    return Err(FormatError::invalid(
-                        "commit record",
-                        format!(
-                            "change to node {node}, the volume has {}",
-                            layout.node_count()
-                        ),
-                    )
-                    .into());
-                }
-                overlay.insert(node, entry);
-            }
+            apply_changes(record, layout, &mut overlay, |_| ())?;
         }
         Ok(Snapshot {
             version: head.version,
@@ -408,20 +397,7 @@ impl Snapshot {
         let layout = self.layout();
         let mut overlay = self.overlay.clone();
         let mut added = Vec::new();
-        for (node, entry) in CommitHeader::changes(record) {
-            if node >= layout.node_count() {
-                return Err(FormatError::invalid(
-                    "commit record",
-                    format!(
-                        "change to node {node}, the volume has {}",
-                        layout.node_count()
-                    ),
-                )
-                .into());
-            }
-            overlay.insert(node, entry);
-            added.push(entry);
-        }
+        apply_changes(record, layout, &mut overlay, |entry| added.push(entry))?;
         let snap = Snapshot {
             version: h.version,
             timestamp_ms: h.timestamp_ms,
@@ -457,10 +433,12 @@ impl Snapshot {
         Ok(())
     }
 
+    /// Dimensions, brick edge and voxel type.
     pub fn layout(&self) -> &VolumeLayout {
         &self.header.layout
     }
 
+    /// The file's fixed header.
     pub fn header(&self) -> &FileHeader {
         &self.header
     }
@@ -521,7 +499,7 @@ impl Snapshot {
     pub fn entry(&self, key: BrickKey) -> Result<NodeEntry, StoreError> {
         let layout = self.layout();
         if !layout.contains(key) {
-            return Err(StoreError::Invalid(format!(
+            return Err(StoreError::OutOfRange(format!(
                 "brick {key} is outside the volume"
             )));
         }
@@ -575,6 +553,21 @@ impl Snapshot {
         decode_stored(&stored, self.layout(), out)
     }
 
+    /// A brick's voxels: a constant as it is stored, anything else decoded (and checked).
+    ///
+    /// # Errors
+    /// See [`Snapshot::read_into`].
+    pub fn voxels(&self, key: BrickKey) -> Result<super::BrickVoxels, StoreError> {
+        Ok(match self.stored(key)? {
+            StoredBrick::Constant(v) => super::BrickVoxels::Constant(v),
+            record => {
+                let mut out = vec![0u8; self.layout().brick_bytes()];
+                decode_stored(&record, self.layout(), &mut out)?;
+                super::BrickVoxels::Data(out)
+            }
+        })
+    }
+
     /// Decodes a brick into a new buffer.
     ///
     /// # Errors
@@ -616,14 +609,13 @@ impl Snapshot {
     }
 
     /// The content hash of the brick behind an entry (for a constant, of its expanded bytes).
-    fn entry_hash(&self, entry: NodeEntry) -> Result<u64, StoreError> {
+    ///
+    /// # Errors
+    /// See [`Snapshot::stored_entry`].
+    pub fn entry_hash(&self, entry: NodeEntry) -> Result<u64, StoreError> {
         Ok(match self.stored_entry(entry)? {
             StoredBrick::Record { header, .. } => header.hash,
-            StoredBrick::Constant(v) => {
-                let mut out = vec![0u8; self.layout().brick_bytes()];
-                codec::fill_constant(&mut out, v, self.layout().voxel_type());
-                content_hash(&out)
-            }
+            StoredBrick::Constant(v) => codec::constant_hash(v, self.layout()),
         })
     }
 
@@ -634,6 +626,46 @@ impl Snapshot {
     pub fn hash(&self, key: BrickKey) -> Result<u64, StoreError> {
         self.entry_hash(self.entry(key)?)
     }
+}
+
+/// Checks that the head loaded through `slot` is the version the slot names.
+fn check_slot(slot: &HeaderSlot, head: &Snapshot) -> Result<(), StoreError> {
+    if head.version != slot.version {
+        return Err(FormatError::invalid(
+            "header slot",
+            format!(
+                "names version {}, its commit record says {}",
+                slot.version, head.version
+            ),
+        )
+        .into());
+    }
+    Ok(())
+}
+
+/// Applies a commit record's changes to `overlay` (node index -> raw entry), checking each node
+/// against the layout, and hands each entry to `added`.
+fn apply_changes(
+    record: &[u8],
+    layout: &VolumeLayout,
+    overlay: &mut HashMap<u64, u64>,
+    mut added: impl FnMut(u64),
+) -> Result<(), StoreError> {
+    for (node, entry) in CommitHeader::changes(record) {
+        if node >= layout.node_count() {
+            return Err(FormatError::invalid(
+                "commit record",
+                format!(
+                    "change to node {node}, the volume has {}",
+                    layout.node_count()
+                ),
+            )
+            .into());
+        }
+        overlay.insert(node, entry);
+        added(entry);
+    }
+    Ok(())
 }
 
 /// Content hash -> entry for [`Snapshot::find_by_hash`]: a shared base plus what later versions
@@ -710,9 +742,14 @@ impl Snapshot {
         let start = offset as usize + BRICK_HEADER_LEN;
         let end = start + header.stored_len as usize;
         if end > self.map.bytes().len() {
-            return Err(StoreError::Invalid(format!(
-                "brick record at {offset} ends past the mapped length"
-            )));
+            return Err(StoreError::corrupt(
+                offset,
+                format!(
+                    "a brick record within the {} mapped bytes",
+                    self.map.bytes().len()
+                ),
+                format!("one that ends at {end}"),
+            ));
         }
         if end - start < SHARE_PAYLOADS_FROM {
             return Ok(bytes::Bytes::copy_from_slice(&self.map.bytes()[start..end]));
@@ -740,6 +777,7 @@ pub struct SnapshotSource {
 }
 
 impl SnapshotSource {
+    /// A source reading `snap`'s level 0.
     pub fn new(snap: Arc<Snapshot>) -> Self {
         SnapshotSource {
             snap,
@@ -808,7 +846,7 @@ impl IndexChunks {
                 let _ = self.chunks[c].set(decoded);
                 self.chunks[c]
                     .get()
-                    .ok_or_else(|| StoreError::Invalid("index chunk vanished".into()))?
+                    .ok_or_else(|| StoreError::Internal("index chunk vanished".into()))?
             }
         };
         Ok(chunk[(node % CHUNK_ENTRIES) as usize])
@@ -857,10 +895,8 @@ pub fn decode_stored(
             if hash != header.hash {
                 return Err(StoreError::corrupt(
                     offset,
-                    format!(
-                        "content hash {hash:#018x} differs from the stored {:#018x}",
-                        header.hash
-                    ),
+                    format!("content hash {:#018x}", header.hash),
+                    format!("{hash:#018x}"),
                 ));
             }
         }

@@ -12,17 +12,26 @@ use std::fmt;
 /// A voxel type an input may have.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum DType {
+    /// Unsigned 8 bits.
     U8,
+    /// Signed 8 bits.
     I8,
+    /// Unsigned 16 bits.
     U16,
+    /// Signed 16 bits.
     I16,
+    /// Unsigned 32 bits.
     U32,
+    /// Signed 32 bits.
     I32,
+    /// IEEE 754 single precision.
     F32,
+    /// IEEE 754 double precision.
     F64,
 }
 
 impl DType {
+    /// Bytes of one value.
     pub const fn bytes(self) -> usize {
         match self {
             DType::U8 | DType::I8 => 1,
@@ -87,10 +96,18 @@ pub enum Conversion {
     /// Stored as they are (u8 to u8, u16 to u16).
     Identity(VoxelType),
     /// `[lo, hi]` mapped linearly onto `[0, H]` of `target`.
-    Window { lo: f64, hi: f64, target: VoxelType },
+    Window {
+        /// The value mapped to 0.
+        lo: f64,
+        /// The value mapped to H.
+        hi: f64,
+        /// The volume's type.
+        target: VoxelType,
+    },
 }
 
 impl Conversion {
+    /// The volume's type.
     pub fn target(&self) -> VoxelType {
         match *self {
             Conversion::Identity(t) | Conversion::Window { target: t, .. } => t,
@@ -100,11 +117,11 @@ impl Conversion {
     /// `values` (little endian, of `dtype`) as the volume's type.
     ///
     /// # Errors
-    /// An identity conversion of another type (a caller's mistake).
+    /// An identity conversion of another type (a bug: the conversion is chosen for the type).
     pub fn apply(&self, dtype: DType, values: &[u8]) -> Result<Vec<u8>, FormatsError> {
         match *self {
             Conversion::Identity(t) if dtype.is(t) => Ok(values.to_vec()),
-            Conversion::Identity(t) => Err(FormatsError::input(format!(
+            Conversion::Identity(t) => Err(FormatsError::Internal(format!(
                 "{dtype} values cannot be stored as {t} without a window"
             ))),
             Conversion::Window { lo, hi, target } => {
@@ -142,10 +159,12 @@ pub fn parse_pair(s: &str, what: &str) -> Result<(f64, f64), FormatsError> {
         .split(',')
         .map(|p| p.trim().parse::<f64>())
         .collect::<Result<_, _>>()
-        .map_err(|_| FormatsError::input(format!("{what} {s:?}: two numbers LO,HI expected")))?;
+        .map_err(|_| {
+            FormatsError::BadArgument(format!("{what} {s:?}: two numbers LO,HI expected"))
+        })?;
     match v.as_slice() {
         [lo, hi] if lo.is_finite() && hi.is_finite() && lo < hi => Ok((*lo, *hi)),
-        _ => Err(FormatsError::input(format!(
+        _ => Err(FormatsError::BadArgument(format!(
             "{what} {s:?}: two finite numbers LO,HI with LO < HI expected"
         ))),
     }
@@ -222,7 +241,7 @@ impl Sampler {
 pub fn parse_percentiles(s: &str) -> Result<(f64, f64), FormatsError> {
     let (lo, hi) = parse_pair(s, "--percentiles")?;
     if lo < 0.0 || hi > 100.0 {
-        return Err(FormatsError::input(format!(
+        return Err(FormatsError::BadArgument(format!(
             "--percentiles {s:?}: both must lie in 0..100"
         )));
     }

@@ -10,12 +10,15 @@ use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-/// A local directory or file, or an http(s) URL (TLS through reqwest's default, the system's
-/// OpenSSL, which `zarrs_http` brings in).
+/// A local directory or file, or an http(s) URL (TLS by rustls, trusting the system's
+/// certificate store).
 #[derive(Debug, Clone)]
 pub enum Location {
+    /// A local path.
     Local(PathBuf),
+    /// An http(s) URL.
     Http {
+        /// The client every request goes through.
         client: reqwest::blocking::Client,
         /// Without a trailing slash.
         base: String,
@@ -70,10 +73,6 @@ impl Location {
         Ok(Location::Local(PathBuf::from(input)))
     }
 
-    pub fn is_local(&self) -> bool {
-        matches!(self, Location::Local(_))
-    }
-
     /// The local path, if it is one.
     pub fn path(&self) -> Option<&Path> {
         match self {
@@ -90,7 +89,7 @@ impl Location {
         }
     }
 
-    /// The location or its URL as text (for zarrs stores).
+    /// The location or its URL as text (for messages).
     pub fn as_str(&self) -> String {
         match self {
             Location::Local(p) => p.display().to_string(),
@@ -110,7 +109,7 @@ impl Location {
                 match std::fs::File::open(&path) {
                     Ok(f) => read_bounded(f, max_bytes, &path.display().to_string()).map(Some),
                     Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-                        let gz = crate::formats::sibling(&path, ".gz");
+                        let gz = crate::store::build::sibling(&path, ".gz");
                         match std::fs::File::open(&gz) {
                             Ok(f) => read_bounded(
                                 flate2::read::GzDecoder::new(std::io::BufReader::new(f)),

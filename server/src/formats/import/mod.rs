@@ -1,7 +1,7 @@
 //! Imports from the formats users have: OME-Zarr and Zarr v2/v3 arrays, Neuroglancer
 //! precomputed, NIfTI-1 and TIFF stacks, into a VOD 2 file.
 //!
-//! Every reader is a [`PlaneSource`]; [`import`] builds the volume from it one slab at a time
+//! Every reader is a [`PlaneSource`]; [`import()`] builds the volume from it one slab at a time
 //! ([`SlabSource`]), so memory holds one row of bricks of the input, not the input. Types other
 //! than u8 and u16 are converted through a window (given, or from percentiles of a first pass
 //! over the input; see [`convert`]). The file is written beside the output and renamed into
@@ -21,8 +21,9 @@ pub mod zarr;
 use self::convert::{Conversion, DType, Sampler};
 use self::location::Location;
 pub use self::planes::{PlaneSource, SlabSource};
-use super::{FormatsError, Progress};
-use crate::store::codec::Compression;
+use super::FormatsError;
+use crate::progress::Progress;
+use crate::store::build::sibling;
 use crate::store::{build_vod2, BuildOptions};
 use isovox_proto::{VolumeLayout, VoxelType};
 use std::path::Path;
@@ -43,6 +44,7 @@ pub enum InputFormat {
 }
 
 impl InputFormat {
+    /// The format's name on the command line (`--from`).
     pub fn name(self) -> &'static str {
         match self {
             InputFormat::Zarr => "zarr",
@@ -82,7 +84,7 @@ pub fn detect(input: &str) -> Result<Option<InputFormat>, FormatsError> {
     if let Some(name) = prefixed {
         return InputFormat::from_str(name)
             .map(Some)
-            .map_err(FormatsError::Input);
+            .map_err(FormatsError::BadInput);
     }
     let location = Location::parse(rest)?;
     if let Location::Local(path) = &location {
@@ -137,8 +139,10 @@ pub fn open(input: &str, format: InputFormat) -> Result<Box<dyn PlaneSource>, Fo
 /// How to import.
 #[derive(Debug, Clone)]
 pub struct ImportOptions {
+    /// The brick edge of the volume, in voxels.
     pub brick: u32,
-    pub compression: Compression,
+    /// How bricks are compressed, and the progress of the build (bricks written).
+    pub build: BuildOptions,
     /// The volume's type; `None`: u8 for u8 and i8 inputs, u16 for the rest.
     pub target: Option<VoxelType>,
     /// The window other types are mapped through; `None`: from `percentiles`.
@@ -153,7 +157,7 @@ impl Default for ImportOptions {
     fn default() -> Self {
         ImportOptions {
             brick: 32,
-            compression: Compression::default(),
+            build: BuildOptions::default(),
             target: None,
             window: None,
             percentiles: (0.5, 99.5),
@@ -168,12 +172,21 @@ pub enum ConversionNote {
     /// Stored as they were.
     None,
     /// Through the window given.
-    Window { lo: f64, hi: f64 },
+    Window {
+        /// The value mapped to 0.
+        lo: f64,
+        /// The value mapped to the type's largest.
+        hi: f64,
+    },
     /// Through the window of these percentiles of a sample of `sampled` values.
     Percentiles {
+        /// The value mapped to 0.
         lo: f64,
+        /// The value mapped to the type's largest.
         hi: f64,
+        /// The percentiles `lo` and `hi` are.
         percentiles: (f64, f64),
+        /// Values in the sample.
         sampled: usize,
     },
 }
@@ -181,15 +194,23 @@ pub enum ConversionNote {
 /// What an import did.
 #[derive(Debug, Clone)]
 pub struct ImportReport {
+    /// The input's format.
     pub format: InputFormat,
+    /// Voxels per axis (x, y, z).
     pub dims: [u32; 3],
+    /// The input's voxel type.
     pub input_type: DType,
+    /// The volume's voxel type.
     pub voxel_type: VoxelType,
+    /// World size of one voxel (x, y, z).
     pub voxel_scale: [f32; 3],
+    /// How values were converted.
     pub conversion: ConversionNote,
     /// Bytes of input voxels read (once; a percentile pass reads them twice).
     pub input_bytes: u64,
+    /// Bytes of the VOD 2 file written.
     pub file_bytes: u64,
+    /// How long the import took.
     pub elapsed: Duration,
 }
 
@@ -238,7 +259,7 @@ fn choose_conversion(
     options: &ImportOptions,
     dims: [u32; 3],
     reopen: &dyn Fn() -> Result<Box<dyn PlaneSource>, FormatsError>,
-    progress: Progress<'_>,
+    progress: &dyn Progress,
 ) -> Result<(Conversion, ConversionNote), FormatsError> {
     if let Some((lo, hi)) = options.window {
         return Ok((
@@ -253,13 +274,19 @@ fn choose_conversion(
     let mut sampler = Sampler::new(total);
     let mut runs = planes::PlaneRuns::new(reopen()?);
     let step = runs.source().depth().max(1);
-    let mut z = 0;
-    while z < dims[2] {
-        let z1 = (z + step).min(dims[2]);
-        sampler.take(dtype, runs.planes(z, z1)?);
-        progress(u64::from(z1), u64::from(dims[2]));
-        z = z1;
-    }
+    progress.start(u64::from(dims[2]));
+    let sampled = (|| {
+        let mut z = 0;
+        while z < dims[2] {
+            let z1 = (z + step).min(dims[2]);
+            sampler.take(dtype, runs.planes(z, z1)?);
+            progress.advance(u64::from(z1 - z));
+            z = z1;
+        }
+        Ok::<_, FormatsError>(())
+    })();
+    progress.finish();
+    sampled?;
     let (lo, hi, sampled) = sampler.window(options.percentiles)?;
     Ok((
         Conversion::Window { lo, hi, target },
@@ -273,8 +300,8 @@ fn choose_conversion(
 }
 
 /// Imports `input` (a path or http URL) as `format` into a new VOD 2 file at `output`.
-/// `scan` is told the progress of a percentile pass (planes), `progress` of the import
-/// (planes).
+/// `scan` is told the progress of a percentile pass (planes read), `options.build.progress`
+/// that of the import (bricks written).
 ///
 /// # Errors
 /// The input cannot be read or is malformed or unsupported (nothing is left at `output`
@@ -284,8 +311,7 @@ pub fn import(
     format: InputFormat,
     output: &Path,
     options: &ImportOptions,
-    scan: Progress<'_>,
-    progress: Progress<'_>,
+    scan: &dyn Progress,
 ) -> Result<ImportReport, FormatsError> {
     let start = Instant::now();
     let source = open(input, format)?;
@@ -300,18 +326,9 @@ pub fn import(
         .map_err(|e| FormatsError::input(format!("{input}: {e}")))?;
     let (conversion, note) =
         choose_conversion(dtype, target, options, dims, &|| open(input, format), scan)?;
-    let slabs = SlabSource::new(layout.clone(), source, conversion, progress)?;
-    let tmp = super::sibling(output, ".isovox-tmp");
-    let built = build_vod2(
-        &tmp,
-        &layout,
-        voxel_scale,
-        &slabs,
-        &BuildOptions {
-            compression: options.compression,
-            ..BuildOptions::default()
-        },
-    );
+    let slabs = SlabSource::new(layout.clone(), source, conversion)?;
+    let tmp = sibling(output, ".isovox-tmp");
+    let built = build_vod2(&tmp, &layout, voxel_scale, &slabs, &options.build);
     let finished = slabs.finish();
     let outcome = match (built, finished) {
         (_, Err(e)) => Err(e),

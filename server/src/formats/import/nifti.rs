@@ -239,8 +239,8 @@ impl PlaneSource for NiftiInput {
 
     fn read(&mut self, z0: u32, z1: u32, out: &mut Vec<u8>) -> Result<(), FormatsError> {
         if z0 != self.next_z {
-            return Err(FormatsError::input(format!(
-                "internal: NIfTI planes are read in order ({} next, {z0} asked)",
+            return Err(FormatsError::Internal(format!(
+                "NIfTI planes are read in order ({} next, {z0} asked)",
                 self.next_z
             )));
         }

@@ -7,7 +7,7 @@
 //! its size.
 
 use super::convert::{Conversion, DType};
-use crate::formats::{FormatsError, Progress};
+use crate::formats::FormatsError;
 use crate::store::{BrickSource, DenseGrid};
 use isovox_proto::{BrickKey, VolumeLayout};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -54,6 +54,7 @@ impl std::fmt::Debug for PlaneRuns {
 }
 
 impl PlaneRuns {
+    /// Runs of `source`'s planes.
     pub fn new(source: Box<dyn PlaneSource>) -> Self {
         PlaneRuns {
             source,
@@ -62,6 +63,7 @@ impl PlaneRuns {
         }
     }
 
+    /// The source read.
     pub fn source(&self) -> &dyn PlaneSource {
         &*self.source
     }
@@ -79,8 +81,8 @@ impl PlaneRuns {
             self.source.read(start, end, &mut self.buf)?;
             let expected = plane_bytes(x, y, self.source.dtype()) * u64::from(end - start);
             if self.buf.len() as u64 != expected {
-                return Err(FormatsError::input(format!(
-                    "internal: planes {start}..{end} came as {} bytes, {expected} expected",
+                return Err(FormatsError::Internal(format!(
+                    "planes {start}..{end} came as {} bytes, {expected} expected",
                     self.buf.len()
                 )));
             }
@@ -99,7 +101,7 @@ pub fn plane_bytes(x: u32, y: u32, dtype: DType) -> u64 {
 }
 
 /// The level-0 bricks of an import, made from one slab of converted planes at a time.
-pub struct SlabSource<'p> {
+pub struct SlabSource {
     layout: VolumeLayout,
     conversion: Conversion,
     reader: Mutex<PlaneRuns>,
@@ -108,10 +110,9 @@ pub struct SlabSource<'p> {
     /// The first read that failed; once set, bricks are left empty (the build is discarded).
     error: Mutex<Option<FormatsError>>,
     failed: AtomicBool,
-    progress: Progress<'p>,
 }
 
-impl std::fmt::Debug for SlabSource<'_> {
+impl std::fmt::Debug for SlabSource {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("SlabSource")
             .field("layout", &self.layout)
@@ -120,9 +121,9 @@ impl std::fmt::Debug for SlabSource<'_> {
     }
 }
 
-impl<'p> SlabSource<'p> {
+impl SlabSource {
     /// A source for `layout` (whose dims are the input's) reading `input` and converting its
-    /// values with `conversion`; `progress` is told (planes read, planes in all).
+    /// values with `conversion`.
     ///
     /// # Errors
     /// One slab would take more than [`MAX_SLAB_BYTES`].
@@ -130,7 +131,6 @@ impl<'p> SlabSource<'p> {
         layout: VolumeLayout,
         input: Box<dyn PlaneSource>,
         conversion: Conversion,
-        progress: Progress<'p>,
     ) -> Result<Self, FormatsError> {
         let [x, y, _] = layout.dims();
         let per_plane = plane_bytes(x, y, input.dtype()) + plane_bytes(x, y, DType::U16);
@@ -148,7 +148,6 @@ impl<'p> SlabSource<'p> {
             slab: RwLock::new((None, Vec::new())),
             error: Mutex::new(None),
             failed: AtomicBool::new(false),
-            progress,
         })
     }
 
@@ -158,7 +157,7 @@ impl<'p> SlabSource<'p> {
         match self.error.into_inner() {
             Ok(None) => Ok(()),
             Ok(Some(e)) => Err(e),
-            Err(_) => Err(FormatsError::input("a reader thread panicked")),
+            Err(_) => Err(FormatsError::Internal("a reader thread panicked".into())),
         }
     }
 
@@ -174,7 +173,7 @@ impl<'p> SlabSource<'p> {
         let mut reader = self
             .reader
             .lock()
-            .map_err(|_| FormatsError::input("a reader thread panicked"))?;
+            .map_err(|_| FormatsError::Internal("a reader thread panicked".into()))?;
         if self.slab.read().map(|s| s.0 == Some(bz)).unwrap_or(false) {
             return Ok(());
         }
@@ -186,14 +185,13 @@ impl<'p> SlabSource<'p> {
         let mut slab = self
             .slab
             .write()
-            .map_err(|_| FormatsError::input("a reader thread panicked"))?;
+            .map_err(|_| FormatsError::Internal("a reader thread panicked".into()))?;
         *slab = (Some(bz), converted);
-        (self.progress)(u64::from(z1), u64::from(dz));
         Ok(())
     }
 }
 
-impl BrickSource for SlabSource<'_> {
+impl BrickSource for SlabSource {
     fn fill(&self, key: BrickKey, out: &mut [u8]) {
         if self.failed.load(Ordering::Acquire) {
             return;
@@ -226,8 +224,8 @@ impl BrickSource for SlabSource<'_> {
         }
         match self.slab.read() {
             Ok(slab) if copy(&slab, out) => {}
-            _ => self.fail(FormatsError::input(format!(
-                "internal: brick row {} was not held after loading it",
+            _ => self.fail(FormatsError::Internal(format!(
+                "brick row {} was not held after loading it",
                 key.z
             ))),
         }

@@ -206,8 +206,8 @@ impl PlaneSource for TiffInput {
 
     fn read(&mut self, z0: u32, z1: u32, out: &mut Vec<u8>) -> Result<(), FormatsError> {
         if z0 != self.next_z {
-            return Err(FormatsError::input(format!(
-                "internal: TIFF pages are read in order ({} next, {z0} asked)",
+            return Err(FormatsError::Internal(format!(
+                "TIFF pages are read in order ({} next, {z0} asked)",
                 self.next_z
             )));
         }
@@ -217,7 +217,7 @@ impl PlaneSource for TiffInput {
                 self.advance()?;
             }
             let Some((file, decoder)) = &mut self.current else {
-                return Err(FormatsError::input("internal: no TIFF page open"));
+                return Err(FormatsError::Internal("no TIFF page open".into()));
             };
             let path = &self.files[*file].0;
             let (size, dtype) = page_shape(path, decoder)?;

@@ -14,12 +14,67 @@ use serde_json::Value;
 use std::sync::Arc;
 use zarrs::array::{Array, DataType};
 use zarrs::array_subset::ArraySubset;
-use zarrs::storage::ReadableStorageTraits;
+use zarrs::storage::byte_range::ByteRangeIterator;
+use zarrs::storage::{
+    Bytes, MaybeBytes, MaybeBytesIterator, ReadableStorageTraits, StorageError, StoreKey,
+};
 
 type ZarrArray = Array<dyn ReadableStorageTraits>;
 
 /// Most bytes of one metadata document.
 const MAX_METADATA_BYTES: u64 = 16 << 20;
+
+/// Most bytes of one object of a Zarr store read over http (a chunk or a shard).
+const MAX_OBJECT_BYTES: u64 = 1 << 30;
+
+/// A Zarr store over http(s), read through [`Location::get`]: every object is fetched whole (a
+/// byte range is cut from it), within [`MAX_OBJECT_BYTES`].
+#[derive(Debug)]
+struct HttpStore(Location);
+
+impl HttpStore {
+    fn fetch(&self, key: &StoreKey) -> Result<Option<Bytes>, StorageError> {
+        self.0
+            .get(key.as_str(), MAX_OBJECT_BYTES)
+            .map(|found| found.map(Bytes::from))
+            .map_err(|e| StorageError::Other(crate::store::error_chain(&e)))
+    }
+}
+
+impl ReadableStorageTraits for HttpStore {
+    fn get(&self, key: &StoreKey) -> Result<MaybeBytes, StorageError> {
+        self.fetch(key)
+    }
+
+    fn get_partial_many<'a>(
+        &'a self,
+        key: &StoreKey,
+        byte_ranges: ByteRangeIterator<'a>,
+    ) -> Result<MaybeBytesIterator<'a>, StorageError> {
+        let Some(bytes) = self.fetch(key)? else {
+            return Ok(None);
+        };
+        let size = bytes.len() as u64;
+        let parts = byte_ranges.map(move |range| {
+            let (start, end) = (range.start(size), range.end(size));
+            if start > end || end > size {
+                return Err(StorageError::Other(format!(
+                    "byte range {range} is outside an object of {size} bytes"
+                )));
+            }
+            Ok(bytes.slice(start as usize..end as usize))
+        });
+        Ok(Some(Box::new(parts)))
+    }
+
+    fn size_key(&self, key: &StoreKey) -> Result<Option<u64>, StorageError> {
+        Ok(self.fetch(key)?.map(|b| b.len() as u64))
+    }
+
+    fn supports_get_partial(&self) -> bool {
+        false
+    }
+}
 
 /// The finest level of a Zarr image.
 pub struct ZarrInput {
@@ -174,10 +229,7 @@ impl ZarrInput {
                     zarr_error(format!("cannot open {}", p.display()))(e.to_string())
                 })?)
             }
-            Location::Http { base, .. } => Arc::new(
-                zarrs_http::HTTPStore::new(base)
-                    .map_err(|e| zarr_error(format!("cannot open {base}"))(e.to_string()))?,
-            ),
+            Location::Http { .. } => Arc::new(HttpStore(location.clone())),
         };
         let array: ZarrArray = Array::open(store, &format!("/{path}")).map_err(|e| {
             zarr_error(format!("cannot open the array {name}"))(crate::store::error_chain(&e))

@@ -1,17 +1,17 @@
-//! `isovox bench http`: brick requests per second and latency with wrk (2 threads, 64
+//! `isovox-bench http`: brick requests per second and latency with wrk (2 threads, 64
 //! connections, random keys over a 512^3 world) against `isovox serve`, nginx serving the same
 //! bytes as static files, and a bare axum handler returning static bytes of the same size (the
 //! ceiling on this machine). Needs `wrk` and `nginx` on the PATH (scripts/bench-http.sh
 //! installs them).
 
-use crate::catalog::Catalog;
-use crate::generate::WorldSource;
-use crate::http::{run, AppState};
-use crate::store::{build_vod2, BuildOptions, StoredBrick, Vod2};
 use anyhow::{bail, Context};
 use clap::Args;
 use isovox_proto::vod2::Codec;
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
+use isovox_server::catalog::Catalog;
+use isovox_server::generate::WorldSource;
+use isovox_server::http::{run, AppState};
+use isovox_server::store::{build_vod2, BuildOptions, StoredBrick, Vod2};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command};
 use std::time::Duration;
@@ -186,7 +186,7 @@ pub fn run_bench(a: HttpBenchArgs) -> anyhow::Result<()> {
             [1.0; 3],
             &WorldSource::new(layout.clone(), 1),
             &BuildOptions {
-                compression: crate::store::codec::Compression::Lz4,
+                compression: isovox_server::store::codec::Compression::Lz4,
                 ..BuildOptions::default()
             },
         )?;

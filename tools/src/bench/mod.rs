@@ -1,19 +1,27 @@
-//! `isovox bench ...`: benchmarks that print Markdown tables next to the papers' figures.
+//! `isovox-bench ...`: benchmarks that print Markdown tables next to the papers' figures and
+//! the peers' (`store` here; the others in their own modules).
 //!
 //! Timings are wall-clock on this machine with a warm page cache (the data was just written);
 //! each figure is the median of several runs where a run is short.
 
-use super::{parse_dims, TypeArg};
-use crate::generate::{EllipsoidSource, WorldSource};
-use crate::store::codec::{Compression, DEFAULT_ZSTD_LEVEL};
-use crate::store::raw::{export_raw, RawInput, Region};
-use crate::store::{
-    build_vod2, stream_pyramid, BrickSource, BuildOptions, DenseGrid, MemorySink, Vod2,
-};
+pub mod edits;
+pub mod http;
+pub mod icvg;
+pub mod memory;
+pub mod mesh;
+pub mod voxelize;
+
+use crate::args::parse_dims;
 use anyhow::Context;
 use clap::Subcommand;
-use indicatif::ProgressBar;
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
+use isovox_server::generate::{EllipsoidSource, WorldSource};
+use isovox_server::progress::Silent;
+use isovox_server::store::codec::{Compression, DEFAULT_ZSTD_LEVEL};
+use isovox_server::store::raw::{export_raw, RawInput, Region};
+use isovox_server::store::{
+    build_vod2, stream_pyramid, BrickSource, BuildOptions, DenseGrid, MemorySink, Vod2,
+};
 use rayon::prelude::*;
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -28,22 +36,22 @@ pub enum BenchCommand {
     Store(StoreArgs),
     /// ICVG: primitive sampling in ns/voxel (the paper's 72^3 shapes) and edit latency (carving
     /// radius-16 ellipsoids into a world, evaluate + dedup + LOD + durable commit).
-    Icvg(super::bench_icvg::IcvgArgs),
+    Icvg(icvg::IcvgArgs),
     /// Marching cubes: throughput next to VTK Flying Edges and scikit-image (--peers), by
     /// thread count and level, and the adaptive LOD's triangle savings.
-    Mesh(super::bench_mesh::MeshBenchArgs),
+    Mesh(mesh::MeshBenchArgs),
     /// HTTP: brick requests per second with wrk against isovox serve, nginx on the same bytes,
     /// and a bare axum handler (needs wrk and nginx; scripts/bench-http.sh installs them).
-    Http(super::bench_http::HttpBenchArgs),
+    Http(http::HttpBenchArgs),
     /// Shared editing over HTTP: edit throughput and latency under concurrent editors, change
     /// propagation to many subscribers, and read throughput while edits run (needs wrk).
-    Edits(super::bench_edits::EditsBenchArgs),
+    Edits(edits::EditsBenchArgs),
     /// The server's resident memory (RssAnon, beyond the page cache) while a client walks
     /// every brick of a 2048^3 world once in random order.
-    Memory(super::bench_memory::MemoryBenchArgs),
+    Memory(memory::MemoryBenchArgs),
     /// Solid voxelization of a ~300k-triangle closed model into 512^3 and 1024^3, next to the
     /// paper's GPU figures.
-    Voxelize(super::bench_voxelize::VoxelizeBenchArgs),
+    Voxelize(voxelize::VoxelizeBenchArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -57,8 +65,9 @@ pub struct StoreArgs {
     /// Dimensions of the --mri RAW.
     #[arg(long, value_parser = parse_dims, default_value = "197,233,189")]
     pub mri_dims: [u32; 3],
-    #[arg(long, value_enum, default_value_t = TypeArg::U8)]
-    pub mri_type: TypeArg,
+    /// Voxel type of the --mri RAW (u8 or u16).
+    #[arg(long, default_value = "u8")]
+    pub mri_type: VoxelType,
     /// Edge of the large world used for the open-time comparison (0 skips it).
     #[arg(long, default_value_t = 2048)]
     pub large: u32,
@@ -70,12 +79,12 @@ pub struct StoreArgs {
 pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
     match cmd {
         BenchCommand::Store(a) => bench_store(a),
-        BenchCommand::Icvg(a) => super::bench_icvg::run(a),
-        BenchCommand::Mesh(a) => super::bench_mesh::run(a),
-        BenchCommand::Http(a) => super::bench_http::run_bench(a),
-        BenchCommand::Edits(a) => super::bench_edits::run_bench(a),
-        BenchCommand::Memory(a) => super::bench_memory::run_bench(a),
-        BenchCommand::Voxelize(a) => super::bench_voxelize::run_bench(a),
+        BenchCommand::Icvg(a) => icvg::run(a),
+        BenchCommand::Mesh(a) => mesh::run(a),
+        BenchCommand::Http(a) => http::run_bench(a),
+        BenchCommand::Edits(a) => edits::run_bench(a),
+        BenchCommand::Memory(a) => memory::run_bench(a),
+        BenchCommand::Voxelize(a) => voxelize::run_bench(a),
     }
 }
 
@@ -118,12 +127,12 @@ struct Row {
     load_vod_ms: f64,
 }
 
-pub(crate) fn median(mut v: Vec<f64>) -> f64 {
+pub fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
 }
 
-pub(crate) fn percentile(mut v: Vec<f64>, p: f64) -> f64 {
+pub fn percentile(mut v: Vec<f64>, p: f64) -> f64 {
     v.sort_by(f64::total_cmp);
     v[((v.len() - 1) as f64 * p).round() as usize]
 }
@@ -150,13 +159,13 @@ fn write_raw(
 }
 
 /// Writes a volume's level 0 as a RAW file (what the peers and the RAW timings read).
-pub(crate) fn write_level0_raw(vod: &Vod2, raw: &Path) -> anyhow::Result<()> {
+pub fn write_level0_raw(vod: &Vod2, raw: &Path) -> anyhow::Result<()> {
     let mut out = BufWriter::with_capacity(1 << 20, File::create(raw)?);
     let region = Region {
         min: [0; 3],
         max: vod.layout().dims(),
     };
-    export_raw(&vod.head(), 0, region, &mut out, &ProgressBar::hidden())?;
+    export_raw(&vod.head(), 0, region, &mut out, &Silent)?;
     out.flush()?;
     Ok(())
 }
@@ -206,7 +215,7 @@ fn measure(
                     &grid,
                     &BuildOptions {
                         compression,
-                        progress: ProgressBar::hidden(),
+                        progress: std::sync::Arc::new(Silent),
                     },
                 )?;
                 Ok(())
@@ -227,7 +236,7 @@ fn measure(
             let bytes = std::fs::read(raw)?;
             let grid = DenseGrid::new(dims, voxel_type, brick, &bytes);
             let mut sink = MemorySink::default();
-            stream_pyramid(&layout, &grid, &mut sink, &ProgressBar::hidden())?;
+            stream_pyramid(&layout, &grid, &mut sink, &Silent)?;
             Ok(sink.bricks.len())
         })?;
         raw_runs.push(d.as_secs_f64() * 1e3);
@@ -264,9 +273,25 @@ fn open_times(path: &Path, runs: usize) -> anyhow::Result<(f64, f64)> {
     Ok((median(t.clone()), percentile(t, 0.99)))
 }
 
+/// The `isovox` binary the benchmarks run as a process of its own: the one built beside this
+/// binary (`cargo build --release -p isovox-server -p isovox-tools` builds both).
+///
+/// # Errors
+/// It is not there.
+pub fn isovox_exe() -> anyhow::Result<PathBuf> {
+    let me = std::env::current_exe()?;
+    let exe = me.with_file_name("isovox");
+    anyhow::ensure!(
+        exe.is_file(),
+        "{} is missing: build it with cargo build --release -p isovox-server",
+        exe.display()
+    );
+    Ok(exe)
+}
+
 /// Median whole-process time of `isovox get FILE 0 x y z` in milliseconds.
 fn get_process_ms(path: &Path, runs: usize) -> anyhow::Result<f64> {
-    let exe = std::env::current_exe()?;
+    let exe = isovox_exe()?;
     let mut t = Vec::new();
     for _ in 0..runs {
         let start = Instant::now();
@@ -307,14 +332,7 @@ fn bench_store(a: StoreArgs) -> anyhow::Result<()> {
     let large = [512, 512, 512];
     if let Some(mri) = &a.mri {
         eprintln!("bench store: MRI {}", mri.display());
-        rows.push(measure(
-            &a.dir,
-            "MRI",
-            mri,
-            a.mri_dims,
-            a.mri_type.into(),
-            b,
-        )?);
+        rows.push(measure(&a.dir, "MRI", mri, a.mri_dims, a.mri_type, b)?);
     }
     for (name, dims, world) in [
         ("Small Ellipsoid", small, false),

@@ -8,13 +8,13 @@
 
 #![allow(clippy::unwrap_used)] // tests fail loudly on purpose
 
-use isovox_client::load::{run, LoadConfig, LoadReport, PathSpec, RecordedPath, Tiles};
 use isovox_proto::{VolumeLayout, VoxelType};
 use isovox_server::catalog::Catalog;
 use isovox_server::generate::WorldSource;
 use isovox_server::http::auth::Tokens;
 use isovox_server::http::{spawn, AppState, ServerConfig, Spawned};
 use isovox_server::store::{build_vod2, BuildOptions};
+use isovox_tools::load::{run, LoadConfig, LoadReport, PathSpec, RecordedPath, Tiles};
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Duration;
@@ -182,7 +182,7 @@ fn check_run(report: &LoadReport, users: usize) {
 
     // The report's figures add up.
     let sum =
-        |f: fn(&isovox_client::load::RouteReport) -> u64| report.routes.iter().map(f).sum::<u64>();
+        |f: fn(&isovox_tools::load::RouteReport) -> u64| report.routes.iter().map(f).sum::<u64>();
     assert_eq!(report.total.requests, sum(|r| r.requests));
     assert_eq!(report.total.bytes, sum(|r| r.bytes));
     for r in report.routes.iter().chain([&report.total]) {

@@ -1,4 +1,4 @@
-//! `isovox bench edits`: shared editing over HTTP on a generated world.
+//! `isovox-bench edits`: shared editing over HTTP on a generated world.
 //!
 //! One server (in this process, on an ephemeral port) serves a copy of a world; `--editors`
 //! clients carve small ellipsoids at random places on its terrain as fast as they are answered,
@@ -8,18 +8,18 @@
 //!
 //! Everything shares this machine's cores: the clients' own work is in every figure.
 
-use super::bench::{median, percentile};
-use super::bench_http::{wrk, wrk_script};
-use super::bench_icvg::Rng;
-use crate::catalog::Catalog;
-use crate::generate::WorldSource;
-use crate::http::auth::{random_secret, Scope, Tokens};
-use crate::http::{run, AppState, ServerConfig};
-use crate::store::{build_vod2, BuildOptions};
+use super::http::{wrk, wrk_script};
+use super::icvg::Rng;
+use super::{median, percentile};
 use anyhow::Context;
 use isovox_proto::api::EditResponse;
 use isovox_proto::icvg::{EditRequest, Term};
 use isovox_proto::{VolumeLayout, VoxelType};
+use isovox_server::catalog::Catalog;
+use isovox_server::generate::WorldSource;
+use isovox_server::http::auth::{random_secret, Scope, Tokens};
+use isovox_server::http::{run, AppState, ServerConfig};
+use isovox_server::store::{build_vod2, BuildOptions};
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicUsize, Ordering};

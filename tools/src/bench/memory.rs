@@ -1,4 +1,4 @@
-//! `isovox bench memory`: the server's resident memory while a client walks every brick of a
+//! `isovox-bench memory`: the server's resident memory while a client walks every brick of a
 //! large volume once, in random order.
 //!
 //! The server runs as a child process (this binary's `serve`), so its memory is its own.
@@ -6,10 +6,10 @@
 //! holds) and `RssFile` (mapped file pages: the page cache, which the kernel reclaims at will),
 //! sampled every 200 ms.
 
-use crate::generate::WorldSource;
-use crate::store::{build_vod2, BuildOptions};
 use anyhow::Context;
 use isovox_proto::{VolumeLayout, VoxelType};
+use isovox_server::generate::WorldSource;
+use isovox_server::store::{build_vod2, BuildOptions};
 use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
@@ -70,8 +70,7 @@ pub fn run_bench(a: MemoryBenchArgs) -> anyhow::Result<()> {
             &BuildOptions::default(),
         )?;
     }
-    let exe = std::env::current_exe()?;
-    let mut child = Command::new(exe)
+    let mut child = Command::new(super::isovox_exe()?)
         .args(["serve", "--addr", "127.0.0.1:0", "--data"])
         .arg(&data)
         .stderr(Stdio::piped())
@@ -97,7 +96,7 @@ pub fn run_bench(a: MemoryBenchArgs) -> anyhow::Result<()> {
 
     // Every brick of every level once, in a random order (Fisher-Yates).
     let mut nodes: Vec<u64> = (0..layout.node_count()).collect();
-    let mut rng = super::bench_icvg::Rng(0x2545_f491_4f6c_dd1d);
+    let mut rng = super::icvg::Rng(0x2545_f491_4f6c_dd1d);
     for i in (1..nodes.len()).rev() {
         nodes.swap(i, (rng.next() % (i as u64 + 1)) as usize);
     }
@@ -118,7 +117,7 @@ pub fn run_bench(a: MemoryBenchArgs) -> anyhow::Result<()> {
             }
         })
     };
-    let bar = super::progress("walking");
+    let bar = crate::progress::bar("walking");
     bar.set_length(nodes.len() as u64);
     let start = Instant::now();
     let runtime = tokio::runtime::Builder::new_multi_thread()

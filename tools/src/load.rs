@@ -19,8 +19,8 @@
 //! the last acknowledged version (streamers also load what their still camera needs) before
 //! they shut down.
 
-use crate::client::{Client, ClientError, FeedEvent, Observer};
-use crate::streamer::{StreamEvent, Streamer, StreamerConfig, StreamerStats, TileData, TileKind};
+use isovox_client::client::{Client, ClientError, FeedEvent, Observer};
+use isovox_client::streamer::{StreamEvent, Streamer, StreamerConfig, StreamerStats, TileKind};
 use isovox_proto::api::VolumeInfo;
 use isovox_proto::icvg::{EditRequest, Term};
 use serde::Serialize;
@@ -743,7 +743,7 @@ impl ViewerResult {
                     self.ready_by_level.resize(l + 1, 0);
                 }
                 self.ready_by_level[l] += 1;
-                self.ready_bytes += tile_bytes(&data);
+                self.ready_bytes += data.bytes();
             }
             StreamEvent::Dropped { .. } => self.dropped += 1,
             StreamEvent::Stale { .. } => self.stale += 1,
@@ -760,16 +760,6 @@ impl ViewerResult {
                     });
                 }
             }
-        }
-    }
-}
-
-/// The size of a delivered tile: voxel bytes, or the mesh's arrays.
-pub fn tile_bytes(data: &TileData) -> u64 {
-    match data {
-        TileData::Brick(b) => b.len() as u64,
-        TileData::Mesh(m) => {
-            (m.positions.len() * 12 + m.normals.len() * 12 + m.indices.len() * 4) as u64
         }
     }
 }

@@ -1,17 +1,16 @@
-//! `isovox bench mesh`: marching-cubes throughput next to VTK's Flying Edges and scikit-image,
+//! `isovox-bench mesh`: marching-cubes throughput next to VTK's Flying Edges and scikit-image,
 //! and the thesis's Tables 6-8 (speed-up by threads, by level, triangles per level, adaptive LOD).
 
-use super::bench::median;
-use super::TypeArg;
-use crate::generate::{EllipsoidSource, WorldSource};
-use crate::mesh::level::{adaptive_tiles, level_tiles, mesh_tile_parts, mesh_tiles};
-use crate::mesh::tile::default_iso;
-use crate::store::raw::RawInput;
-use crate::store::{build_vod2, BrickSource, BuildOptions, DenseGrid, Snapshot, Vod2};
+use super::median;
 use anyhow::Context;
 use clap::Args;
-use indicatif::ProgressBar;
 use isovox_proto::{VolumeLayout, VoxelType};
+use isovox_server::generate::{EllipsoidSource, WorldSource};
+use isovox_server::mesh::level::{adaptive_tiles, level_tiles, mesh_tile_parts, mesh_tiles};
+use isovox_server::mesh::tile::default_iso;
+use isovox_server::progress::Silent;
+use isovox_server::store::raw::RawInput;
+use isovox_server::store::{build_vod2, BrickSource, BuildOptions, DenseGrid, Snapshot, Vod2};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::Arc;
@@ -27,8 +26,9 @@ pub struct MeshBenchArgs {
     pub mri: Option<PathBuf>,
     #[arg(long, value_delimiter = ',', default_value = "197,233,189")]
     pub mri_dims: Vec<u32>,
-    #[arg(long, value_enum, default_value_t = TypeArg::U8)]
-    pub mri_type: TypeArg,
+    /// Voxel type of the --mri RAW (u8 or u16).
+    #[arg(long, default_value = "u8")]
+    pub mri_type: VoxelType,
     /// Run the peers (python3 scripts/bench_mesh_peers.py: VTK and scikit-image must be
     /// installed; scripts/bench-mesh.sh installs them).
     #[arg(long)]
@@ -55,10 +55,10 @@ fn mesh_with_threads(snap: &Snapshot, level: u8, threads: usize) -> anyhow::Resu
     let mut times = Vec::new();
     let mut triangles = 0;
     // One warm-up run (page cache, allocator), then the median of five.
-    pool.install(|| mesh_tile_parts(snap, &tiles, iso, &ProgressBar::hidden()))?;
+    pool.install(|| mesh_tile_parts(snap, &tiles, iso, &Silent))?;
     for _ in 0..5 {
         let start = Instant::now();
-        let parts = pool.install(|| mesh_tile_parts(snap, &tiles, iso, &ProgressBar::hidden()))?;
+        let parts = pool.install(|| mesh_tile_parts(snap, &tiles, iso, &Silent))?;
         times.push(start.elapsed().as_secs_f64());
         triangles = parts.iter().map(|m| m.triangles()).sum();
     }
@@ -113,7 +113,7 @@ pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
         let vod = Vod2::open(&file)?;
         let raw = file.with_extension("raw");
         if a.peers {
-            super::bench::write_level0_raw(&vod, &raw)?;
+            super::write_level0_raw(&vod, &raw)?;
         }
         sets.push((
             name.to_string(),
@@ -126,7 +126,7 @@ pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
     }
     if let Some(mri) = &a.mri {
         let dims = [a.mri_dims[0], a.mri_dims[1], a.mri_dims[2]];
-        let t: VoxelType = a.mri_type.into();
+        let t = a.mri_type;
         let input = RawInput::open(mri, false, Some(dims), Some(t))?;
         let layout = VolumeLayout::new(dims, a.brick, t)?;
         let file = a.dir.join("mesh-mri.vod");
@@ -224,9 +224,8 @@ pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
         let radii = [max / 4.0, max / 2.0, max];
         let tiles = adaptive_tiles(snap, [0.0, dims[1] as f32, 0.0], &radii);
         let iso = default_iso(snap.layout().voxel_type());
-        let adaptive = mesh_tiles(snap, &tiles, iso, &ProgressBar::hidden())?.triangles();
-        let full =
-            mesh_tiles(snap, &level_tiles(snap, 0), iso, &ProgressBar::hidden())?.triangles();
+        let adaptive = mesh_tiles(snap, &tiles, iso, &Silent)?.triangles();
+        let full = mesh_tiles(snap, &level_tiles(snap, 0), iso, &Silent)?.triangles();
         println!(
             "| {name} | {:.0}, {:.0}, {:.0} | {} | {adaptive} | {full} | {:.0}% |",
             radii[0],

@@ -1,4 +1,4 @@
-//! `isovox bench voxelize`: solid voxelization of a closed model of about 300,000 triangles
+//! `isovox-bench voxelize`: solid voxelization of a closed model of about 300,000 triangles
 //! into 512^3 and 1024^3 grids, next to the paper's GPU figures.
 //!
 //! The model is the project's own mesh of a generated world (marching cubes on a coarse level,
@@ -6,15 +6,15 @@
 //! voxels per second, the bits held per voxel, and the same with the 2x2x2 density (the parity
 //! pass on a grid twice as fine, then the box filter).
 
-use super::bench::median;
-use crate::generate::WorldSource;
-use crate::mesh::level::{level_tiles, mesh_tiles, weld};
-use crate::mesh::tile::default_iso;
-use crate::store::{build_vod2, BuildOptions, Vod2};
-use crate::voxelize::solid::{voxelize_solid, TriMesh};
-use crate::voxelize::{voxelize, Fill, Options};
-use indicatif::ProgressBar;
+use super::median;
 use isovox_proto::{VolumeLayout, VoxelType};
+use isovox_server::generate::WorldSource;
+use isovox_server::mesh::level::{level_tiles, mesh_tiles, weld};
+use isovox_server::mesh::tile::default_iso;
+use isovox_server::progress::Silent;
+use isovox_server::store::{build_vod2, BuildOptions, Vod2};
+use isovox_server::voxelize::solid::{voxelize_solid, TriMesh};
+use isovox_server::voxelize::{voxelize, Fill, Options};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -47,7 +47,7 @@ pub fn run_bench(a: VoxelizeBenchArgs) -> anyhow::Result<()> {
         &snap,
         &tiles,
         default_iso(VoxelType::U8),
-        &ProgressBar::hidden(),
+        &Silent,
     )?);
     let model = TriMesh {
         positions: mesh.positions.clone(),

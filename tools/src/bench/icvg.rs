@@ -1,16 +1,17 @@
-//! `isovox bench icvg`: primitive sampling speed and edit latency.
+//! `isovox-bench icvg`: primitive sampling speed and edit latency.
 
-use super::bench::{median, percentile};
-use crate::generate::WorldSource;
-use crate::icvg::edit::{apply_edit, CheckpointPolicy, Edit, EditKind};
-use crate::icvg::ops::BinaryOp;
-use crate::icvg::primitives::Box3;
-use crate::icvg::term::{CompiledTerm, NoVolumes, Node, TermLimits};
-use crate::store::codec::Compression;
-use crate::store::{build_vod2, BuildOptions, Vod2, Vod2Writer};
+use super::{median, percentile};
 use clap::Args;
 use isovox_proto::icvg::Term;
 use isovox_proto::{VolumeLayout, VoxelType};
+use isovox_server::generate::WorldSource;
+use isovox_server::geometry::Box3;
+use isovox_server::icvg::edit::{apply_edit, Edit, EditKind};
+use isovox_server::icvg::ops::BinaryOp;
+use isovox_server::icvg::term::{CompiledTerm, NoVolumes, Node, TermLimits};
+use isovox_server::store::codec::Compression;
+use isovox_server::store::CheckpointPolicy;
+use isovox_server::store::{build_vod2, BuildOptions, Vod2, Vod2Writer};
 use std::path::PathBuf;
 use std::time::Instant;
 

@@ -11,7 +11,7 @@
 //! when the run could not start.
 
 use clap::{Parser, ValueEnum};
-use isovox_client::load::{run_until, LoadConfig, PathSpec, RecordedPath, Tiles};
+use isovox_tools::load::{run_until, LoadConfig, PathSpec, RecordedPath, Tiles};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
