@@ -932,13 +932,20 @@ async fn after_a_disconnect_the_streamer_catches_up_from_its_last_version() {
             .any(|e| matches!(e, StreamEvent::Error { key: None, .. })),
         "the disconnect was reported"
     );
-    // The two versions may be applied in one go or one after the other (a tile changed only by
-    // version 2 may be ready again before version 3 arrives): exactly the changed tiles go
-    // stale, come back, and each one's last event is Ready with the file's current content.
+    // The server replays both versions after the reconnect, and the streamer applies them in
+    // one step: exactly the changed tiles go stale, come back at version 3 only (no content of
+    // the superseded version 2 is fetched), and each one's last event is Ready with the file's
+    // current content.
     let stale: BTreeSet<BrickKey> = stale_keys(&events).into_iter().collect();
     assert_eq!(stale, expected, "the stale tiles");
     let ready: BTreeSet<BrickKey> = ready_keys(&events).into_iter().collect();
     assert_eq!(ready, expected, "the refetched tiles");
+    assert!(
+        events
+            .iter()
+            .all(|e| !matches!(e, StreamEvent::Ready { version, .. } if *version != 3)),
+        "content of version 3 only"
+    );
     assert!(dropped_keys(&events).is_empty());
     for key in &expected {
         let last = events

@@ -7,7 +7,9 @@ use super::*;
 /// What the change-feed follower forwards to the task.
 #[derive(Debug)]
 pub(super) enum FeedMsg {
-    Commit(ChangeEvent),
+    /// Commits in version order, applied together: one live commit, or every version the
+    /// server replayed after a (re)subscription.
+    Commits(Vec<ChangeEvent>),
     /// The history the streamer followed is gone: start over from this metadata.
     Reload(VolumeInfo),
     Error(String),
@@ -15,6 +17,12 @@ pub(super) enum FeedMsg {
 
 /// Follows the change feed from `feed` (subscribed after version `last`), forwarding commits in
 /// order; reconnects after `last` when the stream ends.
+///
+/// After a subscription the server first replays the versions after `last` up to the head its
+/// `hello` names. Those are forwarded as one message, so the task applies them together and
+/// fetches the newest content of what they changed, never the content of a version it already
+/// knows is superseded (after a long disconnect, one grid region and one blob per changed brick
+/// instead of one per missed version).
 pub(super) async fn follow(
     client: Client,
     name: String,
@@ -61,13 +69,25 @@ pub(super) async fn follow(
                 }
             },
         };
+        // Commits read but not forwarded yet: the replay, until it reaches `replayed_to`.
+        let mut replay = Vec::new();
+        let mut replayed_to = 0;
         let pause = loop {
             match f.next().await {
-                Ok(Some(FeedEvent::Hello { .. })) => delay = FEED_RETRY_MIN,
+                Ok(Some(FeedEvent::Hello { version })) => {
+                    delay = FEED_RETRY_MIN;
+                    replayed_to = version;
+                }
                 Ok(Some(FeedEvent::Commit(ev))) => {
                     if ev.version > last {
                         last = ev.version;
-                        if tx.send(FeedMsg::Commit(ev)).await.is_err() {
+                        replay.push(ev);
+                        if last >= replayed_to
+                            && tx
+                                .send(FeedMsg::Commits(std::mem::take(&mut replay)))
+                                .await
+                                .is_err()
+                        {
                             return;
                         }
                     }
@@ -90,6 +110,10 @@ pub(super) async fn follow(
                 }
             }
         };
+        // A stream that broke during the replay: what arrived of it is still history to apply.
+        if !replay.is_empty() && tx.send(FeedMsg::Commits(replay)).await.is_err() {
+            return;
+        }
         if pause {
             tokio::time::sleep(delay).await;
             delay = (delay * 2).min(FEED_RETRY_MAX);
@@ -906,7 +930,11 @@ impl Engine {
 
     fn on_feed(&mut self, msg: FeedMsg) {
         match msg {
-            FeedMsg::Commit(ev) => self.apply_commit(&ev),
+            FeedMsg::Commits(commits) => {
+                for ev in &commits {
+                    self.apply_commit(ev);
+                }
+            }
             FeedMsg::Reload(info) => self.reload(info),
             FeedMsg::Error(error) => self.outbox.push(StreamEvent::Error { key: None, error }),
         }

@@ -86,7 +86,8 @@
 //!
 //! When the feed ends or fails, the follower reconnects with `since` = the last version it
 //! forwarded (backoff 100 ms doubling to 2 s); the server replays the versions in between from
-//! the file, which the streamer applies like live ones. A `resync` event (the subscriber fell
+//! the file, which the streamer applies like live ones but all in one step: it then fetches
+//! only the newest content of what they changed, not that of versions already superseded. A `resync` event (the subscriber fell
 //! behind) reconnects the same way. When the server answers 410 Gone (the history after that
 //! version was compacted away) or 400 (the volume is now behind the streamer), the streamer
 //! reloads: new metadata, every hash forgotten, every delivered tile stale and refetched (content

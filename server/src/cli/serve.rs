@@ -5,7 +5,7 @@ use clap::Args;
 use isovox_server::catalog::Catalog;
 use isovox_server::generate::{build_demo, DEMO_NAME};
 use isovox_server::http::auth::{random_secret, Scope, Tokens};
-use isovox_server::http::{run, shutdown_signal, AppState, ServerConfig};
+use isovox_server::http::{run, run_tls, shutdown_signal, AppState, ServerConfig};
 use isovox_server::store::BuildOptions;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -45,6 +45,16 @@ pub(crate) struct ServeArgs {
     /// Level-0 voxels one edit may evaluate; beyond it 422.
     #[arg(long, env = "ISOVOX_MAX_EDIT_VOXELS", default_value_t = 1 << 28)]
     pub max_edit_voxels: u64,
+    /// Serve HTTPS (HTTP/2 and HTTP/1.1) with this PEM certificate chain; needs --tls-key.
+    #[arg(long, env = "ISOVOX_TLS_CERT", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// The PEM private key of --tls-cert.
+    #[arg(long, env = "ISOVOX_TLS_KEY", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// On Ctrl-C or SIGTERM, seconds to let requests in flight finish before closing their
+    /// connections (change feeds end at once).
+    #[arg(long, env = "ISOVOX_SHUTDOWN_GRACE", default_value_t = 10.0)]
+    pub shutdown_grace: f64,
 }
 
 /// The tokens the server accepts: the token file (DATA/tokens by default, created with one
@@ -136,6 +146,14 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             a.data.display()
         );
     }
+    let tls = match (&a.tls_cert, &a.tls_key) {
+        (Some(cert), Some(key)) => {
+            Some(isovox_server::http::tls::config(cert, key).map_err(anyhow::Error::msg)?)
+        }
+        _ => None,
+    };
+    let shutdown_grace = std::time::Duration::try_from_secs_f64(a.shutdown_grace)
+        .map_err(|e| anyhow::anyhow!("--shutdown-grace {}: {e}", a.shutdown_grace))?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -146,8 +164,9 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             .with_context(|| format!("cannot listen on {}", a.addr))?;
         let addr = listener.local_addr()?;
         let names: Vec<&str> = catalog.iter().map(|(n, _)| n).collect();
+        let scheme = if tls.is_some() { "https" } else { "http" };
         eprintln!(
-            "isovox serving {} on http://{addr}/v1/volumes",
+            "isovox serving {} on {scheme}://{addr}/v1/volumes, the viewer on {scheme}://{addr}/",
             names.join(", ")
         );
         if tokens.is_empty() {
@@ -163,11 +182,14 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             edit_queue: a.edit_queue,
             max_edit_voxels: a.max_edit_voxels,
             mesh_dir: Some(a.data.join("meshes")),
+            shutdown_grace,
             ..ServerConfig::default()
         };
         let state = AppState::with_config(catalog, config);
-        run(listener, state, shutdown_signal())
-            .await
-            .context("server failed")
+        match tls {
+            Some(tls) => run_tls(listener, tls, state, shutdown_signal()).await,
+            None => run(listener, state, shutdown_signal()).await,
+        }
+        .context("server failed")
     })
 }

@@ -85,7 +85,8 @@ pub(super) fn brick_at(
 }
 
 /// A brick by content hash (16 hex digits): immutable, so any HTTP cache or CDN may keep it
-/// forever. Bricks of the newest version (and those it replaced) are found.
+/// forever. A brick of any version the file still holds is found (a client that read a grid at
+/// `?version=N` asks for its hashes), whether or not this process saw the commits since.
 pub async fn blob(
     State(state): State<AppState>,
     Path((name, hex)): Path<(String, String)>,
@@ -112,7 +113,7 @@ pub async fn blob(
 }
 
 /// Whether a header of `name` lists `token` (and does not refuse it with `q=0`).
-fn accepts(headers: &HeaderMap, name: header::HeaderName, token: &str) -> bool {
+pub(super) fn accepts(headers: &HeaderMap, name: header::HeaderName, token: &str) -> bool {
     headers
         .get_all(name)
         .iter()

@@ -11,7 +11,7 @@ use crate::formats::ViewError;
 use crate::icvg::term::TermError;
 use crate::store::{error_chain, StoreError};
 use crate::volume::VolumeError;
-use axum::extract::rejection::{JsonRejection, PathRejection, QueryRejection};
+use axum::extract::rejection::{PathRejection, QueryRejection};
 use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use isovox_proto::api::Problem;
@@ -123,15 +123,10 @@ impl From<QueryRejection> for ApiError {
     }
 }
 
-impl From<JsonRejection> for ApiError {
-    fn from(e: JsonRejection) -> Self {
-        match e.status() {
-            StatusCode::PAYLOAD_TOO_LARGE => ApiError::TooLarge(format!("request body: {e}")),
-            StatusCode::UNSUPPORTED_MEDIA_TYPE => {
-                ApiError::UnsupportedMedia(format!("request body: {e}"))
-            }
-            _ => ApiError::BadRequest(format!("malformed request body: {e}")),
-        }
+/// Work that cannot fail, run through the same helpers (`cpu.rs`) as work that can.
+impl From<std::convert::Infallible> for ApiError {
+    fn from(e: std::convert::Infallible) -> Self {
+        match e {}
     }
 }
 

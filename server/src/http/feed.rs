@@ -1,18 +1,19 @@
 //! The change feed (`GET .../events`, server-sent events) and its catch-up list
 //! (`GET .../changes?since=N`), both read from the file's commit records (`docs/editing.md`).
 
+use super::compression::{accepts_zstd, Body};
 use super::cpu::blocking;
 use super::extract::{Path, Query};
 use super::{ApiError, AppState};
-use crate::volume::{FeedItem, LiveVolume, DEFAULT_CHANGES};
+use crate::volume::{FeedItem, LiveVolume, VolumeError, DEFAULT_CHANGES};
 use axum::extract::State;
 use axum::http::HeaderMap;
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
-use axum::Json;
-use isovox_proto::api::ChangeList;
 use serde::Deserialize;
 use std::collections::VecDeque;
+use std::future::Future;
+use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::sync::broadcast::error::RecvError;
@@ -26,15 +27,22 @@ pub struct ChangesQuery {
     pub limit: Option<usize>,
 }
 
-/// `GET /v1/volumes/{name}/changes?since=N&limit=K`.
+/// `GET /v1/volumes/{name}/changes?since=N&limit=K`, read from the file (and compressed) off
+/// the async runtime.
 pub async fn changes(
     State(state): State<AppState>,
     Path(name): Path<String>,
     Query(query): Query<ChangesQuery>,
-) -> Result<Json<ChangeList>, ApiError> {
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
     let vol = state.catalog.get(&name)?.clone();
-    let list = blocking(move || vol.change_list(query.since, query.limit)).await?;
-    Ok(Json(list))
+    let zstd = accepts_zstd(&headers);
+    let body = blocking(move || {
+        let list = vol.change_list(query.since, query.limit)?;
+        Ok::<_, VolumeError>(Body::json(&list, zstd))
+    })
+    .await?;
+    Ok(body.respond("application/json", HeaderMap::new()))
 }
 
 /// `GET /v1/volumes/{name}/events`: server-sent events, `hello` then one `commit` per version
@@ -47,7 +55,7 @@ pub async fn events(
 ) -> Result<Response, ApiError> {
     let vol = state.catalog.get(&name)?;
     let since = query.since.or(last_event_id(&headers)?);
-    let feed = Feed::start(vol, since)?;
+    let feed = Feed::start(vol, since, state.closing.closed())?;
     let stream = futures_util::stream::unfold(feed, |mut feed| async move {
         feed.next()
             .await
@@ -79,6 +87,9 @@ fn last_event_id(headers: &HeaderMap) -> Result<Option<u64>, ApiError> {
 struct Feed {
     vol: Arc<LiveVolume>,
     rx: tokio::sync::broadcast::Receiver<Arc<FeedItem>>,
+    /// Resolves when the server shuts down: the stream ends then (subscribers reconnect with
+    /// `since=` to the next server and miss nothing), so the shutdown does not wait for it.
+    closing: Pin<Box<dyn Future<Output = ()> + Send>>,
     /// Events to send before anything else.
     pending: VecDeque<Event>,
     /// The last version sent (or announced by `hello`).
@@ -89,8 +100,12 @@ struct Feed {
 
 impl Feed {
     /// A subscriber of `vol` that first gets `hello`, then the versions after `since` (from
-    /// the file, when given), then every new one.
-    fn start(vol: &Arc<LiveVolume>, since: Option<u64>) -> Result<Feed, ApiError> {
+    /// the file, when given), then every new one, until `closing` resolves.
+    fn start(
+        vol: &Arc<LiveVolume>,
+        since: Option<u64>,
+        closing: impl Future<Output = ()> + Send + 'static,
+    ) -> Result<Feed, ApiError> {
         // Subscribe before reading the head, so no version falls between the two.
         let rx = vol.subscribe();
         let head = vol.head().version;
@@ -103,6 +118,7 @@ impl Feed {
         Ok(Feed {
             vol: vol.clone(),
             rx,
+            closing: Box::pin(closing),
             pending: VecDeque::from([hello]),
             last: since.unwrap_or(head),
             backlog_until: head,
@@ -135,7 +151,11 @@ impl Feed {
                 }
                 continue;
             }
-            match self.rx.recv().await {
+            let received = tokio::select! {
+                received = self.rx.recv() => received,
+                () = &mut self.closing => return None,
+            };
+            match received {
                 Ok(item) if item.version <= self.last => continue,
                 Ok(item) => {
                     self.last = item.version;

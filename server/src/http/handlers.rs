@@ -2,10 +2,11 @@
 //! bricks at once, levels, mesh tiles. Each extracts, calls the volume and maps the result.
 
 use super::bricks::{if_none_match, BrickPath};
+use super::compression::{accepts_zstd, Body};
 use super::extract::{Json, Path, Query};
 use super::{ApiError, AppState};
 use crate::volume::read::{LevelAnswer, LevelForm};
-use crate::volume::LiveVolume;
+use crate::volume::{LiveVolume, VolumeError};
 use axum::extract::State;
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
@@ -66,8 +67,9 @@ pub struct MeshQuery {
 }
 
 /// One mesh tile: marching cubes over the brick and its halo, through the content-keyed mesh
-/// cache, meshed off the async runtime. `ETag` names the tile's inputs and position, so a
-/// revalidation costs 27 index lookups and no meshing.
+/// cache, meshed, encoded and (for clients that take it) zstd-compressed off the async runtime.
+/// `ETag` names the tile's inputs and position, so a revalidation costs 27 index lookups and no
+/// meshing.
 pub async fn mesh_tile(
     State(state): State<AppState>,
     Path((name, level, x, y, z)): Path<BrickPath>,
@@ -94,29 +96,52 @@ pub async fn mesh_tile(
         HeaderValue::from_str(&etag).map_err(|e| ApiError::Internal(e.to_string()))?,
     );
     response_headers.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-cache"));
+    response_headers.insert(header::VARY, HeaderValue::from_static("Accept-Encoding"));
     if if_none_match(&headers, &etag) {
         return Ok((StatusCode::NOT_MODIFIED, response_headers).into_response());
     }
-    let (meshes, bricks) = (state.meshes.clone(), state.bricks.clone());
-    let mesh = state.cpu.run(move || tile.mesh(&meshes, bricks)).await?;
-    let (media, body) = if glb {
-        ("model/gltf-binary", isovox_proto::mesh::encode_glb(&mesh))
+    let (meshes, bricks, zstd) = (
+        state.meshes.clone(),
+        state.bricks.clone(),
+        accepts_zstd(&headers),
+    );
+    let body = state
+        .cpu
+        .run(move || {
+            let mesh = tile.mesh(&meshes, bricks)?;
+            Ok::<_, VolumeError>(Body::new(
+                if glb {
+                    isovox_proto::mesh::encode_glb(&mesh)
+                } else {
+                    isovox_proto::mesh::encode_compact(&mesh)
+                },
+                zstd,
+            ))
+        })
+        .await?;
+    let media = if glb {
+        "model/gltf-binary"
     } else {
-        (MESH_MEDIA_TYPE, isovox_proto::mesh::encode_compact(&mesh))
+        MESH_MEDIA_TYPE
     };
-    response_headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(media));
-    Ok((response_headers, body).into_response())
+    Ok(body.respond(media, response_headers))
 }
 
-/// Many bricks in one response (`proto::batch`), decoded off the async runtime.
+/// Many bricks in one response (`proto::batch`), decoded (and compressed) off the async
+/// runtime.
 pub async fn batch(
     State(state): State<AppState>,
     Path(name): Path<String>,
+    headers: HeaderMap,
     Json(request): Json<BatchRequest>,
 ) -> Result<Response, ApiError> {
     let read = state.catalog.get(&name)?.batch(&request)?;
-    let body = state.cpu.run(move || read.encode()).await?;
-    Ok(([(header::CONTENT_TYPE, BATCH_MEDIA_TYPE)], body).into_response())
+    let zstd = accepts_zstd(&headers);
+    let body = state
+        .cpu
+        .run(move || read.encode().map(|bytes| Body::new(bytes, zstd)))
+        .await?;
+    Ok(body.respond(BATCH_MEDIA_TYPE, HeaderMap::new()))
 }
 
 /// Query of a level.
@@ -150,11 +175,12 @@ fn parse_region(s: &str) -> Result<([u32; 3], [u32; 3]), ApiError> {
 }
 
 /// A whole level (or a region of it): its brick grid with each brick's content hash and value
-/// range, or its voxels as one array.
+/// range, or its voxels as one array; read (and compressed) off the async runtime.
 pub async fn level(
     State(state): State<AppState>,
     Path((name, level)): Path<(String, u8)>,
     Query(query): Query<LevelQuery>,
+    headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     let form = match query.format.as_deref() {
         None | Some("grid") => LevelForm::Grid,
@@ -170,10 +196,17 @@ pub async fn level(
         .catalog
         .get(&name)?
         .level(query.version, level, form, region)?;
-    Ok(match state.cpu.run(move || read.run()).await? {
-        LevelAnswer::Grid(grid) => axum::Json(grid).into_response(),
-        LevelAnswer::Voxels(voxels) => {
-            ([(header::CONTENT_TYPE, "application/octet-stream")], voxels).into_response()
-        }
-    })
+    let zstd = accepts_zstd(&headers);
+    let (media, body) = state
+        .cpu
+        .run(move || {
+            Ok::<_, VolumeError>(match read.run()? {
+                LevelAnswer::Grid(grid) => ("application/json", Body::json(&grid, zstd)),
+                LevelAnswer::Voxels(voxels) => {
+                    ("application/octet-stream", Body::new(voxels, zstd))
+                }
+            })
+        })
+        .await?;
+    Ok(body.respond(media, HeaderMap::new()))
 }

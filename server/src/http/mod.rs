@@ -1,9 +1,10 @@
 //! The HTTP service: an axum router over the [`Catalog`], thin handlers, errors as responses.
 //!
-//! [`app`] builds the service (router and layers) from a state; [`run`] serves it on
-//! a listener until `shutdown` resolves, then finishes in-flight requests.
+//! [`app`] builds the service (router and layers) from a state; [`run`] (plain HTTP) and
+//! [`run_tls`] (HTTPS with HTTP/2) serve it on a listener until `shutdown` resolves, then end the
+//! change feeds and let the other requests in flight finish.
 //!
-//! Routes (all under `/v1` but the probes):
+//! Routes (all under `/v1` but the probes and the viewer):
 //! - `GET /healthz`: liveness; `GET /metrics`: Prometheus text; `GET /openapi.json`: the API.
 //! - `GET /v1/volumes`, `GET /v1/volumes/{name}`: what is served and how to address it.
 //! - `GET /v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}`: one brick (see [`bricks::brick`]).
@@ -16,19 +17,23 @@
 //!   `GET .../events` and `GET .../changes` ([`feed`]), `POST /v1/meshes` ([`meshes`]).
 //! - `GET /v1/volumes/{name}/zarr/...`, `.../precomputed/...` and their version-pinned forms
 //!   under `.../versions/{version}/`: the field's formats ([`views`]).
+//! - `GET /`, `GET /assets/...`: the web viewer, built into the binary (`web_app.rs`).
 //!
 //! Plain brick requests (no query, nothing escaped) are answered before the router by the same
 //! code the routed handler calls; see `fast_path.rs` for why and for what counts as plain.
 //!
 //! Layout: handlers by concern (`bricks`, `handlers`, `views`, `edit`, `compact`, `feed`,
-//! `meshes`); `error` decides every status code; `extract` gives axum's extractors that error;
-//! `cpu` runs CPU work off the async runtime; `auth` checks tokens and edit rates; `bodies`
-//! keeps constant bricks' bodies; `metrics`, `cors` and `openapi` are what their names say.
+//! `meshes`, `web_app`); `error` decides every status code; `extract` gives axum's extractors
+//! that error; `cpu` runs CPU work off the async runtime; `compression` makes the zstd bodies
+//! inside that work; `auth` checks tokens and edit rates; `bodies` keeps constant bricks'
+//! bodies; `serve` is the listener loop and the shutdown, `tls` its certificates; `metrics`,
+//! `cors` and `openapi` are what their names say.
 
 pub mod auth;
 pub mod bodies;
 pub mod bricks;
 pub mod compact;
+mod compression;
 mod cors;
 pub mod cpu;
 pub mod edit;
@@ -40,9 +45,14 @@ pub mod handlers;
 pub mod meshes;
 pub mod metrics;
 mod openapi;
+mod request_body;
+mod serve;
+pub mod tls;
 pub mod views;
+mod web_app;
 
 pub use error::ApiError;
+pub use serve::{run, run_tls, shutdown_signal, spawn, Closing, Spawned};
 
 use crate::catalog::Catalog;
 use crate::mesh::cache::MeshCache;
@@ -53,10 +63,8 @@ use axum::handler::Handler;
 use axum::http::StatusCode;
 use axum::routing::{get, post, MethodRouter};
 use axum::Router;
-use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::net::TcpListener;
 use tower_http::timeout::TimeoutLayer;
 use tower_http::trace::TraceLayer;
 
@@ -84,6 +92,9 @@ pub struct ServerConfig {
     pub term_limits: crate::icvg::term::TermLimits,
     /// Where uploaded meshes are kept (`POST /v1/meshes`); none: uploads are refused.
     pub mesh_dir: Option<std::path::PathBuf>,
+    /// How long a shutdown lets requests in flight finish before it closes their connections
+    /// (change feeds end at once).
+    pub shutdown_grace: Duration,
 }
 
 impl Default for ServerConfig {
@@ -99,6 +110,7 @@ impl Default for ServerConfig {
             max_edit_voxels: 1 << 28,
             term_limits: crate::icvg::term::TermLimits::default(),
             mesh_dir: None,
+            shutdown_grace: Duration::from_secs(10),
         }
     }
 }
@@ -138,6 +150,8 @@ pub struct Shared {
     pub edit_rate: Arc<auth::RateLimiter>,
     /// Uploaded meshes for `mesh` leaves of edit terms.
     pub mesh_store: Option<Arc<crate::voxelize::store::MeshStore>>,
+    /// Set when the server starts shutting down: change feeds end.
+    pub closing: Closing,
 }
 
 impl AppState {
@@ -168,6 +182,7 @@ impl AppState {
                 .mesh_dir
                 .as_deref()
                 .map(|d| Arc::new(crate::voxelize::store::MeshStore::new(d))),
+            closing: Closing::default(),
             config: Arc::new(config),
         }))
     }
@@ -210,6 +225,9 @@ pub const ROUTES: &[&str] = &[
     "/v1/volumes/{name}/precomputed/{*path}",
     "/v1/volumes/{name}/versions/{version}/zarr/{*path}",
     "/v1/volumes/{name}/versions/{version}/precomputed/{*path}",
+    "/",
+    "/index.html",
+    "/assets/{*file}",
 ];
 
 /// The whole service: the router inside the layers every request passes through (request
@@ -238,8 +256,6 @@ pub fn app(
         .layer(TraceLayer::new_for_http())
         .layer(allow_origin)
         .layer(expose_headers)
-        // Request bodies (edit terms, batch key lists) are small; larger ones get 413.
-        .layer(axum::extract::DefaultBodyLimit::max(1 << 20))
         .layer(metrics::MetricsLayer::new(metrics))
         .service(fast_path::BrickFirst::new(fast_state, router))
 }
@@ -294,7 +310,8 @@ fn routes(state: &AppState) -> Router<AppState> {
             read(views::precomputed_pinned),
         )
         .merge(cpu_routes)
-        .merge(write_routes);
+        .merge(write_routes)
+        .merge(web_app::routes());
     if state.config.private_reads {
         // Only then: a middleware per request costs throughput on the brick routes.
         router = router.route_layer(axum::middleware::from_fn_with_state(
@@ -321,93 +338,4 @@ where
     T: 'static,
 {
     post(handler).options(cors::preflight)
-}
-
-/// Serves `state` on `listener` until `shutdown` completes, then lets in-flight requests finish.
-///
-/// # Errors
-/// The listener fails.
-pub async fn run(
-    listener: TcpListener,
-    state: AppState,
-    shutdown: impl Future<Output = ()> + Send + 'static,
-) -> std::io::Result<()> {
-    use axum::ServiceExt;
-    axum::serve(
-        listener,
-        ServiceExt::<axum::extract::Request>::into_make_service(app(state)),
-    )
-    .with_graceful_shutdown(shutdown)
-    .await
-}
-
-/// A server running on the current tokio runtime (see [`spawn`]); dropping it shuts the server
-/// down gracefully.
-#[derive(Debug)]
-pub struct Spawned {
-    /// Where it listens.
-    pub addr: std::net::SocketAddr,
-    shutdown: Option<tokio::sync::oneshot::Sender<()>>,
-}
-
-impl Spawned {
-    /// `http://ADDR`, the base of every URL.
-    pub fn base(&self) -> String {
-        format!("http://{}", self.addr)
-    }
-}
-
-impl Drop for Spawned {
-    fn drop(&mut self) {
-        if let Some(s) = self.shutdown.take() {
-            let _ = s.send(());
-        }
-    }
-}
-
-/// Serves `state` on `addr` (port 0: an ephemeral port) as a task of the current tokio runtime,
-/// until the returned handle is dropped. For tests, benchmarks and embedding; `isovox serve`
-/// uses [`run`].
-///
-/// # Errors
-/// The address cannot be bound.
-pub async fn spawn(addr: &str, state: AppState) -> std::io::Result<Spawned> {
-    let listener = TcpListener::bind(addr).await?;
-    let addr = listener.local_addr()?;
-    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-    tokio::spawn(async move {
-        let stopped = async {
-            let _ = rx.await;
-        };
-        if let Err(e) = run(listener, state, stopped).await {
-            tracing::error!("server on {addr} stopped: {e}");
-        }
-    });
-    Ok(Spawned {
-        addr,
-        shutdown: Some(tx),
-    })
-}
-
-/// Resolves on Ctrl-C or SIGTERM.
-pub async fn shutdown_signal() {
-    let ctrl_c = async {
-        let _ = tokio::signal::ctrl_c().await;
-    };
-    #[cfg(unix)]
-    let term = async {
-        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(mut s) => {
-                s.recv().await;
-            }
-            Err(_) => std::future::pending::<()>().await,
-        }
-    };
-    #[cfg(not(unix))]
-    let term = std::future::pending::<()>();
-    tokio::select! {
-        () = ctrl_c => {},
-        () = term => {},
-    }
-    tracing::info!("shutting down: finishing in-flight requests");
 }

@@ -578,19 +578,49 @@ impl Snapshot {
         Ok(out)
     }
 
-    /// The entry of a brick of this version with content hash `hash`, if any. The first call
-    /// scans the index once (reading brick headers, not payloads) and keeps a hash table.
+    /// An entry with content hash `hash` among the bricks of this version and of every older
+    /// version the file still holds, if any. The first call scans the oldest version's index
+    /// and the commit records since (reading brick headers, not payloads) and keeps a hash
+    /// table; a version built from its parent by [`Vod2::advance`] inherits the parent's.
+    ///
+    /// Why older versions too: a client that learned a hash from a grid at `?version=N` (a
+    /// streamer catching up one version at a time) asks for it by hash, and the answer must not
+    /// depend on whether this process saw the commits after N or opened the file after them.
     ///
     /// # Errors
-    /// An entry or brick header on the way is malformed.
+    /// A commit record, an entry or a brick header on the way is malformed.
     pub fn find_by_hash(&self, hash: u64) -> Result<Option<NodeEntry>, StoreError> {
         if let Some(index) = self.by_hash.get() {
             return Ok(index.get(hash));
         }
+        let index = HashIndex {
+            base: Arc::new(self.history_hashes()?),
+            added: HashMap::new(),
+        };
+        let found = index.get(hash);
+        let _ = self.by_hash.set(index);
+        Ok(found)
+    }
+
+    /// Content hash -> entry over every brick of this version and its ancestors in the file:
+    /// the oldest version's index plus every entry a commit since then wrote (each version is
+    /// the oldest one with those changes applied).
+    fn history_hashes(&self) -> Result<HashMap<u64, NodeEntry>, StoreError> {
+        let bytes = self.map.bytes();
+        let mut records = Vec::new();
+        let mut at = self.commit_offset;
+        let oldest = loop {
+            let (h, record) = CommitHeader::decode(&bytes[at as usize..], at)?;
+            records.push(record);
+            if h.parent == 0 {
+                break at;
+            }
+            at = h.parent;
+        };
+        let oldest = Snapshot::load(self.header.clone(), self.map.clone(), oldest)?;
         let mut map = HashMap::new();
         let mut constants = std::collections::HashSet::new();
-        for node in 0..self.layout().node_count() {
-            let entry = self.entry_at(node)?;
+        let mut add = |entry: NodeEntry| -> Result<(), StoreError> {
             let first_sight = match entry {
                 NodeEntry::Constant(v) => constants.insert(v),
                 NodeEntry::Stored(_) => true,
@@ -598,14 +628,18 @@ impl Snapshot {
             if first_sight {
                 map.entry(self.entry_hash(entry)?).or_insert(entry);
             }
-        }
-        let index = HashIndex {
-            base: Arc::new(map),
-            added: HashMap::new(),
+            Ok(())
         };
-        let found = index.get(hash);
-        let _ = self.by_hash.set(index);
-        Ok(found)
+        for node in 0..self.layout().node_count() {
+            add(oldest.entry_at(node)?)?;
+        }
+        let (voxel_type, mapped) = (self.layout().voxel_type(), bytes.len() as u64);
+        for record in records.iter().rev() {
+            for (_, raw) in CommitHeader::changes(record) {
+                add(NodeEntry::decode(raw, voxel_type, mapped)?)?;
+            }
+        }
+        Ok(map)
     }
 
     /// The content hash of the brick behind an entry (for a constant, of its expanded bytes).
