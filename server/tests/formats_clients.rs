@@ -7,9 +7,11 @@
 //! Python environment is `tests/python/.venv` (or `ISOVOX_PYTHON`); `.ci/run` creates it. A
 //! missing environment fails these tests with the command that creates it: it is not a skip.
 
-use std::io::{BufRead, BufReader};
+mod server_process;
+
+use server_process::ServerProcess;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 
 const TOKEN: &str = "formats-test-token";
 
@@ -53,50 +55,23 @@ fn ok(cmd: &mut Command) {
     );
 }
 
-/// `isovox serve` on an ephemeral loopback port, killed when dropped.
-struct Server {
-    child: Child,
-    url: String,
+/// `isovox serve` of `data` on an ephemeral loopback port, with a write token.
+fn serve(data: &Path) -> ServerProcess {
+    let tokens = data.join("tokens");
+    std::fs::write(&tokens, format!("tester {TOKEN} write\n")).expect("write the token file");
+    ServerProcess::start(
+        &[
+            "--data".as_ref(),
+            data.as_os_str(),
+            "--token-file".as_ref(),
+            tokens.as_os_str(),
+        ],
+        &[],
+    )
 }
 
-impl Server {
-    fn start(data: &Path) -> Server {
-        let tokens = data.join("tokens");
-        std::fs::write(&tokens, format!("tester {TOKEN} write\n")).expect("write the token file");
-        let mut child = isovox()
-            .args(["serve", "--addr", "127.0.0.1:0", "--data"])
-            .arg(data)
-            .arg("--token-file")
-            .arg(&tokens)
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("isovox serve starts");
-        let stderr = child.stderr.take().expect("piped stderr");
-        let mut lines = BufReader::new(stderr).lines();
-        let url = loop {
-            let line = lines
-                .next()
-                .expect("isovox serve printed its address before exiting")
-                .expect("stderr is text");
-            if let Some(rest) = line.split(" on http://").nth(1) {
-                break format!("http://{}", rest.trim_end_matches("/v1/volumes"));
-            }
-        };
-        // Keep draining the server's log so it never blocks on a full pipe.
-        std::thread::spawn(move || for _ in lines {});
-        Server { child, url }
-    }
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-/// Runs a script of `tests/python` and asserts it succeeded.
-fn script(name: &str, args: &[&str]) {
+/// Runs a script of `tests/python` against `server` and asserts it succeeded.
+fn script(name: &str, server: &ServerProcess, args: &[&str]) {
     let status = Command::new(python())
         .arg(scripts().join(name))
         .args(args)
@@ -105,7 +80,8 @@ fn script(name: &str, args: &[&str]) {
         .expect("the Python script runs");
     assert!(
         status.success(),
-        "{name} {args:?} failed ({status}); its output is above"
+        "{name} {args:?} failed ({status}); its output is above; the server's log ends:\n{}",
+        server.log_tail(40)
     );
 }
 
@@ -143,17 +119,12 @@ fn python_clients_read_every_level_live_and_pinned() {
     let dir = tempfile::tempdir().expect("a temporary directory");
     let data = dir.path().join("data");
     odd_volumes(&data);
-    let server = Server::start(&data);
+    let server = serve(&data);
+    let url = server.url("");
     script(
         "views_read_back.py",
-        &[
-            "--url",
-            &server.url,
-            "--token",
-            TOKEN,
-            "world8",
-            "ellipsoid16",
-        ],
+        &server,
+        &["--url", &url, "--token", TOKEN, "world8", "ellipsoid16"],
     );
 }
 
@@ -173,14 +144,16 @@ fn neuroglancer_draws_the_demo_from_both_views() {
     let data = dir.path().join("data");
     std::fs::create_dir_all(&data).expect("create the data directory");
     // An empty data directory: the server generates its demo world, as a user sees it.
-    let server = Server::start(&data);
+    let server = serve(&data);
+    let url = server.url("");
     let out = dir.path().join("screenshots");
     std::fs::create_dir_all(&out).expect("create the screenshot directory");
     script(
         "neuroglancer_draws.py",
+        &server,
         &[
             "--url",
-            &server.url,
+            &url,
             "--volume",
             "demo",
             "--out",
@@ -194,17 +167,19 @@ fn imports_round_trip_and_exports_read_back() {
     let dir = tempfile::tempdir().expect("a temporary directory");
     let data = dir.path().join("data");
     odd_volumes(&data);
-    let server = Server::start(&data);
+    let server = serve(&data);
+    let url = server.url("");
     let work = dir.path().join("work");
     script(
         "imports_round_trip.py",
+        &server,
         &[
             "--isovox",
             env!("CARGO_BIN_EXE_isovox"),
             "--work",
             work.to_str().expect("a UTF-8 path"),
             "--url",
-            &server.url,
+            &url,
             "--data",
             data.to_str().expect("a UTF-8 path"),
             "ellipsoid16",
