@@ -7,6 +7,8 @@
 //! Python environment is `tests/python/.venv` (or `ISOVOX_PYTHON`); `.ci/run` creates it. A
 //! missing environment fails these tests with the command that creates it: it is not a skip.
 
+#![allow(clippy::unwrap_used)] // tests fail loudly on purpose (server_process unwraps its lock)
+
 mod server_process;
 
 use server_process::ServerProcess;

@@ -76,7 +76,7 @@ pub(super) fn import(a: &ImportArgs, format: InputFormat) -> anyhow::Result<()> 
     };
     let report = import_input(&input, format, &a.output, &options, &progress("sampling"))
         .with_context(|| format!("cannot import {input}"))?;
-    println!("{}: {report}", a.output.display());
+    out!("{}: {report}", a.output.display())?;
     Ok(())
 }
 
@@ -95,7 +95,7 @@ pub(super) fn export(a: &ExportArgs, snap: &Snapshot, kind: ViewKind) -> anyhow:
         .unwrap_or_else(|| "volume".into());
     let report = export_view(snap, kind, &name, &a.output, &progress("exporting"))
         .with_context(|| format!("cannot export {} as {}", a.input.display(), kind.segment()))?;
-    println!(
+    out!(
         "{}: {} view of version {}: {} chunk files ({} chunks of fill values left out), {} bytes",
         a.output.display(),
         kind.segment(),
@@ -103,6 +103,6 @@ pub(super) fn export(a: &ExportArgs, snap: &Snapshot, kind: ViewKind) -> anyhow:
         report.chunks,
         report.absent,
         report.bytes
-    );
+    )?;
     Ok(())
 }

@@ -128,7 +128,7 @@ impl Chunk<'_> {
         let hash = self.stored.content_hash(layout);
         match self.encoding {
             ChunkEncoding::ZstdFrame => {
-                if let Some(frame) = self.stored_frame(snap)? {
+                if let Some(frame) = self.stored_frame(snap, bricks)? {
                     return Ok(frame);
                 }
                 bricks.get_or_make(hash, layout.brick_bytes(), Form::Zstd, || {
@@ -141,7 +141,8 @@ impl Chunk<'_> {
         }
     }
 
-    /// The chunk's bytes if they need no work: the stored frame, or a body `bricks` holds.
+    /// The chunk's bytes if they need no work: the stored frame (checked against its checksum),
+    /// or a body `bricks` holds.
     ///
     /// # Errors
     /// The brick's record is damaged.
@@ -153,7 +154,7 @@ impl Chunk<'_> {
         let layout = snap.layout();
         let hash = self.stored.content_hash(layout);
         Ok(match self.encoding {
-            ChunkEncoding::ZstdFrame => match self.stored_frame(snap)? {
+            ChunkEncoding::ZstdFrame => match self.stored_frame(snap, bricks)? {
                 Some(frame) => Some(frame),
                 None => bricks.get(hash, layout.brick_bytes(), Form::Zstd),
             },
@@ -163,17 +164,21 @@ impl Chunk<'_> {
         })
     }
 
-    /// The stored zstd frame, when the brick is stored as one that can go out as it is.
-    fn stored_frame(&self, snap: &Snapshot) -> Result<Option<Bytes>, StoreError> {
+    /// The stored zstd frame, when the brick is stored as one that can go out as it is,
+    /// verified first (against its checksum, or for a record without one by decoding it once:
+    /// see `Snapshot::verified_payload`).
+    fn stored_frame(
+        &self,
+        snap: &Snapshot,
+        bricks: &DecodedBricks,
+    ) -> Result<Option<Bytes>, StoreError> {
         match self.stored {
             StoredBrick::Record {
-                offset,
-                header,
-                payload,
+                header, payload, ..
             } if header.codec == Codec::Zstd
                 && frame_qualifies(payload, snap.layout().brick_bytes()) =>
             {
-                snap.payload_bytes(offset, &header).map(Some)
+                snap.verified_payload(&self.stored, bricks).map(Some)
             }
             _ => Ok(None),
         }

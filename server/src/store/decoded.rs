@@ -5,9 +5,13 @@
 //! all of them take is the one size a server is given.
 //!
 //! Keys are content, so an entry never goes stale: an edit makes new hashes, and the entries
-//! of replaced bricks age out.
+//! of replaced bricks age out. Everything cached was verified when it was made: voxels are
+//! decoded and checked against their content hash, lz4 blocks and zstd frames are made from
+//! such voxels, and the payloads of records without a checksum are remembered only once they
+//! decoded to their hash ([`DecodedBricks::verify_payload`]).
 
 use super::lru::ByteLru;
+use super::vod2::PayloadCheck;
 use super::{StoreError, StoredBrick};
 use bytes::Bytes;
 use isovox_proto::VolumeLayout;
@@ -24,6 +28,15 @@ pub enum Form {
     /// One zstd frame of them that records its content size (a Zarr chunk).
     Zstd = 2,
 }
+
+/// The cache's other kind of entry, beside the [`Form`]s: a stored payload without a checksum
+/// that decoded to its content hash. The key is the payload's xxh3-64 (seeded with its codec),
+/// the value the content hash it decoded to.
+const VERIFIED_PAYLOAD: u8 = 3;
+
+/// What one remembered payload verification is counted as against the cache's byte budget:
+/// about what its entry costs (the key, the 8-byte value, the LRU's bookkeeping).
+const VERIFIED_PAYLOAD_COST: usize = 128;
 
 /// Brick contents by (content hash, brick size, form), bounded by bytes; thread-safe.
 #[derive(Debug)]
@@ -70,23 +83,84 @@ impl DecodedBricks {
         form: Form,
         make: impl FnOnce() -> Result<Bytes, E>,
     ) -> Result<Bytes, E> {
-        if let Some(body) = self.get(hash, brick_bytes, form) {
-            return Ok(body);
-        }
-        self.misses.fetch_add(1, Ordering::Relaxed);
-        let body = make()?;
-        let size = body.len();
-        self.lru
-            .put(key(hash, brick_bytes, form), Arc::new(body.clone()), size);
-        Ok(body)
+        self.get_or_make_sized(hash, brick_bytes, form as u8, make, Bytes::len)
     }
 
     /// The cached `form` of the content with hash `hash` in bricks of `brick_bytes`, if it is
     /// held (a miss is not counted: the caller makes it through [`Self::get_or_make`]).
     pub fn get(&self, hash: u64, brick_bytes: usize, form: Form) -> Option<Bytes> {
-        let body = self.lru.get(key(hash, brick_bytes, form))?;
+        let body = self.lru.get(key(hash, brick_bytes, form as u8))?;
         self.hits.fetch_add(1, Ordering::Relaxed);
         Some((*body).clone())
+    }
+
+    fn get_or_make_sized<E>(
+        &self,
+        hash: u64,
+        brick_bytes: usize,
+        kind: u8,
+        make: impl FnOnce() -> Result<Bytes, E>,
+        cost: impl FnOnce(&Bytes) -> usize,
+    ) -> Result<Bytes, E> {
+        let key = key(hash, brick_bytes, kind);
+        if let Some(body) = self.lru.get(key) {
+            self.hits.fetch_add(1, Ordering::Relaxed);
+            return Ok((*body).clone());
+        }
+        self.misses.fetch_add(1, Ordering::Relaxed);
+        let body = make()?;
+        let size = cost(&body);
+        self.lru.put(key, Arc::new(body.clone()), size);
+        Ok(body)
+    }
+
+    /// Verifies a stored payload before it is sent as it is: against the checksum stored after
+    /// it (no decoding); a record written before payload checksums is decoded and checked
+    /// against its content hash the first time, and the result remembered by the xxh3-64 of
+    /// its payload bytes (and codec), so that a hot brick of an old file is decoded once, not on every
+    /// request (the same payload bytes always decode to the same content).
+    ///
+    /// # Errors
+    /// [`StoreError::Corrupt`]: the payload is not what was stored.
+    pub fn verify_payload(
+        &self,
+        stored: &StoredBrick<'_>,
+        layout: &VolumeLayout,
+    ) -> Result<(), StoreError> {
+        let StoredBrick::Record {
+            offset,
+            header,
+            payload,
+            ..
+        } = *stored
+        else {
+            return Ok(());
+        };
+        if stored.check_payload()? == PayloadCheck::Verified {
+            return Ok(());
+        }
+        // Seeded with the codec: the same bytes under another codec are other content.
+        let payload_hash = xxhash_rust::xxh3::xxh3_64_with_seed(payload, header.codec as u64);
+        let decoded_to = self.get_or_make_sized(
+            payload_hash,
+            layout.brick_bytes(),
+            VERIFIED_PAYLOAD,
+            || {
+                decode(stored, layout)?;
+                Ok::<_, StoreError>(Bytes::copy_from_slice(&header.hash.to_le_bytes()))
+            },
+            |_| VERIFIED_PAYLOAD_COST,
+        )?;
+        // These payload bytes decoded to this content once; a record claiming other content
+        // for them is damaged.
+        if decoded_to[..] != header.hash.to_le_bytes() {
+            return Err(StoreError::corrupt(
+                offset,
+                format!("a payload of content hash {:#018x}", header.hash),
+                "one that decodes to other content",
+            ));
+        }
+        Ok(())
     }
 
     /// The decoded voxels of a stored brick record with content hash `hash`, decoded (and
@@ -106,11 +180,12 @@ impl DecodedBricks {
     }
 }
 
-/// The LRU key of a form of some content. The hash is uniform in its low bits (they pick the
-/// LRU's shard). The brick size goes above it (equal hashes of different sizes are different
-/// content; a brick is at most 2^25 bytes), the form above that.
-fn key(hash: u64, brick_bytes: usize, form: Form) -> u128 {
-    u128::from(hash) | ((brick_bytes as u128) << 64) | ((form as u128) << 120)
+/// The LRU key of one kind of entry (a [`Form`], or [`VERIFIED_PAYLOAD`]) for some content.
+/// The hash is uniform in its low bits (they pick the LRU's shard). The brick size goes above
+/// it (equal hashes of different sizes are different content; a brick is at most 2^25 bytes),
+/// the kind on top (two bits).
+fn key(hash: u64, brick_bytes: usize, kind: u8) -> u128 {
+    u128::from(hash) | ((brick_bytes as u128) << 64) | (u128::from(kind) << 126)
 }
 
 /// A stored brick's voxels in a new buffer, checked against its content hash.
