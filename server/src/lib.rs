@@ -14,6 +14,8 @@
 //! - [`volume`]: one served volume: versions, the single writer, reads and edits with their
 //!   checks, the change feed; [`volume::VolumeError`] says what went wrong.
 //! - [`catalog`]: the volumes a server serves.
+//! - [`formats`]: the field's formats: Neuroglancer precomputed and OME-Zarr views of a
+//!   snapshot, exports of them, imports from OME-Zarr, Zarr, precomputed, NIfTI-1 and TIFF.
 //! - [`http`]: the axum router, thin handlers, errors as responses (`http/error.rs` decides
 //!   every status code).
 //! - [`progress`]: how long jobs report progress.
@@ -23,6 +25,7 @@
 
 pub mod cancel;
 pub mod catalog;
+pub mod formats;
 pub mod generate;
 pub mod geometry;
 pub mod http;

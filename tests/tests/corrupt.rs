@@ -1,6 +1,7 @@
 //! Damage is a server error, not the client's: a corrupt record in a served file answers 500
 //! with problem details (a generic body; the cause goes to the log) on every route that reads
-//! it, never 404; and the server goes on serving the rest of the file.
+//! it (the formats' views included), never 404; and the server goes on serving the rest of the
+//! file.
 //!
 //! The damage is written by the test itself, with its own bytes: garbage over one brick's
 //! payload before the server starts (opening reads no brick data), and garbage over one commit
@@ -48,6 +49,20 @@ fn voxels_of(k: BrickKey, b: u32) -> String {
         k.y * b + b,
         k.z * b + b
     )
+}
+
+/// The routes of the formats' views for exactly level-0 brick `k` (bricks of edge `b`) as a
+/// chunk: the Zarr and the precomputed view, live and pinned to version `pinned`.
+fn views_of(k: BrickKey, b: u32, pinned: u64) -> [String; 4] {
+    let range = |c: u32| format!("{}-{}", c * b, c * b + b);
+    let zarr = format!("zarr/0/c/{}/{}/{}", k.z, k.y, k.x);
+    let precomputed = format!("precomputed/0/{}_{}_{}", range(k.x), range(k.y), range(k.z));
+    [
+        format!("/{zarr}"),
+        format!("/{precomputed}"),
+        format!("/versions/{pinned}/{zarr}"),
+        format!("/versions/{pinned}/{precomputed}"),
+    ]
 }
 
 async fn ok(resp: reqwest::Response, what: &str) -> Vec<u8> {
@@ -151,6 +166,7 @@ async fn corrupt_records_answer_500_and_the_rest_is_served() {
     let c = reqwest::Client::new();
     let get = |p: String| c.get(format!("{base}{p}")).send();
     let voxels_of = |k: BrickKey| voxels_of(k, layout.brick());
+    let views_of = |k: BrickKey| views_of(k, layout.brick(), 4);
 
     for round in 0..2 {
         // The damaged brick, on every route that decodes it.
@@ -172,6 +188,9 @@ async fn corrupt_records_answer_500_and_the_rest_is_served() {
             "mesh tile",
         )
         .await;
+        for view in views_of(bad) {
+            server_error(get(view.clone()).await.unwrap(), &view).await;
+        }
         // The rest of the file, on the same routes (twice: after the failures too).
         let brick = ok(
             get(format!("/bricks/0/{}", at(good))).await.unwrap(),
@@ -186,6 +205,9 @@ async fn corrupt_records_answer_500_and_the_rest_is_served() {
         )
         .await;
         ok(get("/levels/1".into()).await.unwrap(), "level grid").await;
+        for view in views_of(good) {
+            ok(get(view.clone()).await.unwrap(), &view).await;
+        }
         ok(get("/changes?since=0".into()).await.unwrap(), "changes").await;
     }
 
@@ -392,6 +414,15 @@ async fn one_flipped_payload_byte(compression: Compression, codec: isovox_proto:
         &w,
     )
     .await;
+    // As a chunk of the formats' views: in a zstd file the Zarr chunk is the stored frame as it
+    // is, in the others it is made from the decoded voxels, as the precomputed chunk is.
+    for view in views_of(bad, layout.brick(), 1) {
+        server_error(
+            get(view.clone(), None).await.unwrap(),
+            &format!("{what}: {view}"),
+        )
+        .await;
+    }
 
     // A good brick on the same routes: 200 and the generator's voxels.
     let len = layout.brick_bytes();
@@ -430,6 +461,15 @@ async fn one_flipped_payload_byte(compression: Compression, codec: isovox_proto:
     }
     let body = ok(get(voxels_of(good), None).await.unwrap(), &what).await;
     assert_eq!(body, expect(good), "{what}: level voxels");
+    for view in views_of(good, layout.brick(), 1) {
+        let body = ok(get(view.clone(), None).await.unwrap(), &view).await;
+        let got = if view.contains("/zarr/") {
+            zstd::bulk::decompress(&body, len).unwrap()
+        } else {
+            body
+        };
+        assert_eq!(got, expect(good), "{what}: {view}");
+    }
     ok(
         get(format!("/meshes/0/{}", at(good)), None).await.unwrap(),
         &what,
@@ -498,6 +538,7 @@ async fn files_written_before_payload_checksums_are_verified_by_decoding() {
             out
         };
         let snap = vod.head();
+        let head = snap.version;
         let g = layout.grid(0);
         let mut records = 0;
         for node in 0..(g[0] * g[1] * g[2]) as u64 {
@@ -567,6 +608,24 @@ async fn files_written_before_payload_checksums_are_verified_by_decoding() {
                 .await
                 .unwrap();
             server_error(r, fixture).await;
+            // The same as chunks of the formats' views: the Zarr chunk of the zstd file is the
+            // stored frame as it is, verified by decoding like the brick route's.
+            for view in views_of(good, layout.brick(), head) {
+                let body = ok(c.get(format!("{base}{view}")).send().await.unwrap(), &view).await;
+                let got = if view.contains("/zarr/") {
+                    if codec == Codec::Zstd {
+                        assert_eq!(body, good_payload, "{fixture}: {view} is the stored frame");
+                    }
+                    zstd::bulk::decompress(&body, layout.brick_bytes()).unwrap()
+                } else {
+                    body
+                };
+                assert_eq!(got, expect(good), "{fixture}: {view}");
+            }
+            for view in views_of(bad, layout.brick(), head) {
+                let r = c.get(format!("{base}{view}")).send().await.unwrap();
+                server_error(r, &format!("{fixture}: {view}")).await;
+            }
             let r = c
                 .post(format!("{base}/batch"))
                 .header("content-type", "application/json")

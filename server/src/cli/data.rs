@@ -4,6 +4,7 @@ use super::{parse_dims, parse_scale, progress, TypeArg};
 use anyhow::{anyhow, bail, Context};
 use clap::{Args, ValueEnum};
 use isovox_proto::VolumeLayout;
+use isovox_server::formats::ViewKind;
 use isovox_server::generate::{build_scene, EllipsoidSource, WorldSource};
 use isovox_server::store::build::{build_file, sibling, FileFormat};
 use isovox_server::store::codec::{Compression, DEFAULT_ZSTD_LEVEL};
@@ -24,7 +25,9 @@ pub(crate) enum VodFormat {
 
 #[derive(Debug, Args)]
 pub(crate) struct ImportArgs {
-    /// Input: .raw (needs --dims), .rawvox (carries its shape), or a VOD 1 file.
+    /// Input: .raw (needs --dims), .rawvox (carries its shape), a VOD 1 file, or one of the
+    /// field's formats, local or an http(s) URL: OME-Zarr / Zarr v2 or v3, Neuroglancer
+    /// precomputed, NIfTI-1 (.nii, .nii.gz), a TIFF stack (multi-page file or folder).
     pub input: PathBuf,
     /// Output file.
     #[arg(short, long)]
@@ -46,6 +49,8 @@ pub(crate) struct ImportArgs {
     pub format: VodFormat,
     #[command(flatten)]
     pub compression: CompressionArgs,
+    #[command(flatten)]
+    pub formats: super::formats::FormatImportArgs,
 }
 
 /// How bricks are compressed.
@@ -84,19 +89,23 @@ pub(crate) enum ExportFormat {
     Raw,
     Rawvox,
     Vod1,
+    /// OME-Zarr 0.5 (Zarr v3): a directory, every level.
+    Zarr,
+    /// Neuroglancer precomputed: a directory, every level.
+    Precomputed,
 }
 
 #[derive(Debug, Args)]
 pub(crate) struct ExportArgs {
     /// A VOD 2 file.
     pub input: PathBuf,
-    /// Output file.
+    /// Output file (a directory for zarr and precomputed).
     #[arg(short, long)]
     pub output: PathBuf,
     /// Level of detail to export (0 = full resolution).
     #[arg(long, default_value_t = 0)]
     pub level: u8,
-    /// Output format: raw/rawvox write one level; vod1 writes the whole volume.
+    /// Output format: raw/rawvox write one level; vod1, zarr and precomputed the whole volume.
     #[arg(long, value_enum, default_value_t = ExportFormat::Raw)]
     pub format: ExportFormat,
     /// Only this box of the level's voxels: MINX,MINY,MINZ,MAXX,MAXY,MAXZ (max exclusive).
@@ -217,6 +226,9 @@ fn options(compression: Compression) -> BuildOptions {
 }
 
 pub(super) fn import(a: ImportArgs) -> anyhow::Result<()> {
+    if let Some(format) = super::formats::input_format(&a)? {
+        return super::formats::import(&a, format);
+    }
     let compress = a.compression.compression();
     match sniff(&a.input)? {
         InputKind::Vod(1) => {
@@ -287,17 +299,17 @@ pub(super) fn export(a: ExportArgs) -> anyhow::Result<()> {
         Some(v) => vod.version(v)?,
         None => vod.head(),
     };
-    let tmp = sibling(&a.output, ".isovox-tmp");
-    let mut out = BufWriter::with_capacity(
-        1 << 20,
-        File::create(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?,
-    );
     match a.format {
+        ExportFormat::Zarr => super::formats::export(&a, &snap, ViewKind::Zarr),
+        ExportFormat::Precomputed => super::formats::export(&a, &snap, ViewKind::Precomputed),
         ExportFormat::Vod1 => {
             if a.region.is_some() || a.level != 0 {
                 bail!("--format vod1 writes the whole volume; --level and --region apply to raw and rawvox");
             }
-            write_vod1(&snap, true, &mut out)?;
+            write_through_tmp(&a.output, |out| {
+                write_vod1(&snap, true, out)?;
+                Ok(())
+            })
         }
         ExportFormat::Raw | ExportFormat::Rawvox => {
             let layout = snap.layout();
@@ -315,18 +327,37 @@ pub(super) fn export(a: ExportArgs) -> anyhow::Result<()> {
                     max: layout.level_dims(a.level),
                 },
             };
-            if a.format == ExportFormat::Rawvox {
-                let dims = [0, 1, 2].map(|i| region.max[i].saturating_sub(region.min[i]));
-                out.write_all(&rawvox_header(dims, layout.voxel_type()))?;
-            }
-            export_raw(&snap, a.level, region, &mut out, &progress("exporting"))?;
+            write_through_tmp(&a.output, |out| {
+                if a.format == ExportFormat::Rawvox {
+                    let dims = [0, 1, 2].map(|i| region.max[i].saturating_sub(region.min[i]));
+                    out.write_all(&rawvox_header(dims, layout.voxel_type()))?;
+                }
+                export_raw(&snap, a.level, region, out, &progress("exporting"))?;
+                Ok(())
+            })
         }
     }
-    out.flush()?;
+}
+
+/// Writes `output` through `write`, into a temporary file beside it renamed into place when
+/// complete.
+fn write_through_tmp(
+    output: &Path,
+    write: impl FnOnce(&mut BufWriter<File>) -> anyhow::Result<()>,
+) -> anyhow::Result<()> {
+    let tmp = sibling(output, ".isovox-tmp");
+    let mut out = BufWriter::with_capacity(
+        1 << 20,
+        File::create(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?,
+    );
+    let written = write(&mut out).and_then(|()| Ok(out.flush()?));
     drop(out);
-    std::fs::rename(&tmp, &a.output)
-        .with_context(|| format!("cannot move the result to {}", a.output.display()))?;
-    Ok(())
+    if let Err(e) = written {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(e);
+    }
+    std::fs::rename(&tmp, output)
+        .with_context(|| format!("cannot move the result to {}", output.display()))
 }
 
 pub(super) fn generate(a: GenerateArgs) -> anyhow::Result<()> {

@@ -17,6 +17,7 @@ macro_rules! out {
 
 mod data;
 mod edit;
+mod formats;
 mod mesh;
 mod repair;
 mod serve;
@@ -43,9 +44,11 @@ pub(crate) enum Command {
     /// Serve every VOD 2 file of a data directory over HTTP (a demo world is generated on
     /// first start).
     Serve(serve::ServeArgs),
-    /// Import a RAW, RAWVOX or VOD 1 file into VOD 2 (or write VOD 1 with --format vod1).
+    /// Import a RAW, RAWVOX or VOD 1 file into VOD 2 (or write VOD 1 with --format vod1), or
+    /// OME-Zarr, Zarr, Neuroglancer precomputed, NIfTI-1 or a TIFF stack into VOD 2.
     Import(data::ImportArgs),
-    /// Export a level (or a region of it) to RAW/RAWVOX, or the whole volume to VOD 1.
+    /// Export a level (or a region of it) to RAW/RAWVOX, or the whole volume to VOD 1, OME-Zarr
+    /// or Neuroglancer precomputed.
     Export(data::ExportArgs),
     /// Generate a synthetic data set (the thesis's Table 2) straight into a VOD 2 file.
     Generate(data::GenerateArgs),

@@ -22,7 +22,8 @@ pub(crate) struct ServeArgs {
     /// Memory for cached mesh tiles, in MiB.
     #[arg(long, env = "ISOVOX_MESH_CACHE_MB", default_value_t = 256)]
     pub mesh_cache_mb: usize,
-    /// Memory for decoded and transcoded brick bodies, in MiB.
+    /// Memory for decoded bricks and the bodies made from them (brick bodies, the formats'
+    /// view chunks, meshing), in MiB.
     #[arg(long, env = "ISOVOX_BRICK_CACHE_MB", default_value_t = 64)]
     pub brick_cache_mb: usize,
     /// Meshing jobs running or queued at once; beyond it requests get 503 with Retry-After.

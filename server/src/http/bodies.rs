@@ -4,7 +4,6 @@
 //! decoded bricks, [`crate::store::decoded`].)
 
 use crate::store::codec::{constant_hash, fill_constant};
-use crate::store::decoded::Form;
 use arc_swap::ArcSwap;
 use bytes::Bytes;
 use isovox_proto::VolumeLayout;
@@ -61,12 +60,14 @@ impl ConstantBricks {
         self.with(value, layout, |c| c.hash)
     }
 
-    /// Its body: the voxels (shared), or its lz4 block (copied: it is small, and a copy costs
-    /// less than a reference count every core updates).
-    pub fn body(&self, value: u16, layout: &VolumeLayout, form: Form) -> Bytes {
-        self.with(value, layout, |c| match form {
-            Form::Raw => c.raw.clone(),
-            Form::Lz4 => Bytes::copy_from_slice(&c.lz4),
-        })
+    /// Its voxels (shared).
+    pub fn raw(&self, value: u16, layout: &VolumeLayout) -> Bytes {
+        self.with(value, layout, |c| c.raw.clone())
+    }
+
+    /// Its lz4 block (copied: it is small, and a copy costs less than a reference count every
+    /// core updates).
+    pub fn lz4(&self, value: u16, layout: &VolumeLayout) -> Bytes {
+        self.with(value, layout, |c| Bytes::copy_from_slice(&c.lz4))
     }
 }

@@ -196,11 +196,9 @@ fn brick_response(
                 snap.verified_payload(&stored, &state.bricks)?,
             )
         }
-        StoredBrick::Constant(v) if want_lz4 => (
-            LZ4_MEDIA_TYPE,
-            None,
-            state.constants.body(v, layout, Form::Lz4),
-        ),
+        StoredBrick::Constant(v) if want_lz4 => {
+            (LZ4_MEDIA_TYPE, None, state.constants.lz4(v, layout))
+        }
         _ if want_lz4 => (
             LZ4_MEDIA_TYPE,
             None,
@@ -229,7 +227,7 @@ fn brick_response(
 }
 
 /// `"` + 16 hex digits + `"`, without allocating.
-fn format_etag(hash: u64, out: &mut [u8; 18]) -> &str {
+pub(super) fn format_etag(hash: u64, out: &mut [u8; 18]) -> &str {
     const HEX: &[u8; 16] = b"0123456789abcdef";
     out[0] = b'"';
     out[17] = b'"';
@@ -247,7 +245,7 @@ fn voxels(
     hash: u64,
 ) -> Result<bytes::Bytes, ApiError> {
     if let StoredBrick::Constant(v) = stored {
-        return Ok(state.constants.body(v, layout, Form::Raw));
+        return Ok(state.constants.raw(v, layout));
     }
     Ok(state.bricks.voxels(hash, &stored, layout)?)
 }

@@ -1,12 +1,14 @@
 //! Errors as responses: the one place that decides every status code (RFC 9457 problem
-//! details). The domain's errors ([`VolumeError`], [`StoreError`], [`TermError`]) and axum's
-//! rejections of malformed requests convert into [`ApiError`], so handlers use `?`.
+//! details). The domain's errors ([`VolumeError`], [`StoreError`], [`TermError`],
+//! [`ViewError`]) and axum's rejections of malformed requests convert into [`ApiError`], so
+//! handlers use `?`.
 //!
 //! A caller's mistake is a 4xx whose detail tells what to fix, and is not logged as an error.
 //! Damage (a corrupt record), a failing system and bugs are a 500 with a generic body; the
 //! cause goes to the log.
 
 use crate::cancel::Stopped;
+use crate::formats::ViewError;
 use crate::icvg::term::TermError;
 use crate::store::{error_chain, StoreError};
 use crate::volume::VolumeError;
@@ -103,6 +105,18 @@ impl From<VolumeError> for ApiError {
             // The server is shutting down (a client that left hears nothing).
             VolumeError::Stopped(Stopped::Cancelled) => ApiError::Overloaded(1),
             VolumeError::Store(e) => e.into(),
+        }
+    }
+}
+
+impl From<ViewError> for ApiError {
+    fn from(e: ViewError) -> Self {
+        let detail = e.to_string();
+        match e {
+            ViewError::NoSuchDocument(_) | ViewError::FillValue(_) => ApiError::NotFound(detail),
+            ViewError::NotAChunk(_) => ApiError::BadRequest(detail),
+            ViewError::Compacted { .. } => ApiError::Gone(detail),
+            ViewError::Volume(e) => e.into(),
         }
     }
 }

@@ -15,17 +15,19 @@
 //!   [`handlers::mesh_tile`]).
 //! - `POST /v1/volumes/{name}/edits` ([`edit`]), `POST .../compact` ([`compact`]),
 //!   `GET .../events` and `GET .../changes` ([`feed`]), `POST /v1/meshes` ([`meshes`]).
+//! - `GET /v1/volumes/{name}/zarr/...`, `.../precomputed/...` and their version-pinned forms
+//!   under `.../versions/{version}/`: the field's formats ([`views`]).
 //! - `GET /`, `GET /assets/...`: the web viewer, built into the binary (`web_app.rs`).
 //!
 //! Plain brick requests (no query, nothing escaped) are answered before the router by the same
 //! code the routed handler calls; see `fast_path.rs` for why and for what counts as plain.
 //!
-//! Layout: handlers by concern (`bricks`, `handlers`, `edit`, `compact`, `feed`, `meshes`,
-//! `web_app`); `error` decides every status code; `extract` gives axum's extractors that error;
-//! `cpu` runs CPU work off the async runtime; `compression` makes the zstd bodies inside that
-//! work; `auth` checks tokens and edit rates; `bodies` keeps constant bricks' bodies; `serve`
-//! is the listener loop and the shutdown, `tls` its certificates; `metrics`, `cors` and
-//! `openapi` are what their names say.
+//! Layout: handlers by concern (`bricks`, `handlers`, `views`, `edit`, `compact`, `feed`,
+//! `meshes`, `web_app`); `error` decides every status code; `extract` gives axum's extractors
+//! that error; `cpu` runs CPU work off the async runtime; `compression` makes the zstd bodies
+//! inside that work; `auth` checks tokens and edit rates; `bodies` keeps constant bricks'
+//! bodies; `serve` is the listener loop and the shutdown, `tls` its certificates; `metrics`,
+//! `cors` and `openapi` are what their names say.
 
 pub mod auth;
 pub mod bodies;
@@ -46,6 +48,7 @@ mod openapi;
 mod request_body;
 mod serve;
 pub mod tls;
+pub mod views;
 mod web_app;
 
 pub use error::ApiError;
@@ -70,7 +73,8 @@ use tower_http::trace::TraceLayer;
 pub struct ServerConfig {
     /// Memory for cached mesh tiles.
     pub mesh_cache_bytes: usize,
-    /// Memory for decoded bricks and their lz4 blocks (brick bodies and meshing share it).
+    /// Memory for decoded bricks and what is made from them (lz4 blocks, the views' zstd
+    /// chunks): brick bodies, the formats' views and meshing share it.
     pub brick_cache_bytes: usize,
     /// Meshing and batch jobs running or queued at once.
     pub cpu_queue: usize,
@@ -140,7 +144,8 @@ pub struct Shared {
     pub catalog: Arc<Catalog>,
     /// Tile meshes by the content of their inputs.
     pub meshes: Arc<MeshCache>,
-    /// Decoded bricks and their lz4 blocks by content hash, for brick bodies and meshing.
+    /// Decoded bricks and the bodies made from them by content hash, for brick bodies, the
+    /// formats' views and meshing.
     pub bricks: Arc<DecodedBricks>,
     /// The bound on CPU work off the async runtime (meshing, batches, levels).
     pub cpu: cpu::CpuQueue,
@@ -234,6 +239,10 @@ pub const ROUTES: &[&str] = &[
     "/v1/volumes/{name}/events",
     "/v1/volumes/{name}/compact",
     "/v1/meshes",
+    "/v1/volumes/{name}/zarr/{*path}",
+    "/v1/volumes/{name}/precomputed/{*path}",
+    "/v1/volumes/{name}/versions/{version}/zarr/{*path}",
+    "/v1/volumes/{name}/versions/{version}/precomputed/{*path}",
     "/",
     "/index.html",
     "/assets/{*file}",
@@ -303,6 +312,21 @@ fn routes(state: &AppState) -> Router<AppState> {
             read(bricks::brick),
         )
         .route("/v1/volumes/{name}/blobs/{hash}", read(bricks::blob))
+        // Chunks are bricks: like the brick routes, these answer at once, and the few that
+        // take work (a brick to decode or compress) take it to the CPU queue.
+        .route("/v1/volumes/{name}/zarr/{*path}", read(views::zarr))
+        .route(
+            "/v1/volumes/{name}/precomputed/{*path}",
+            read(views::precomputed),
+        )
+        .route(
+            "/v1/volumes/{name}/versions/{version}/zarr/{*path}",
+            read(views::zarr_pinned),
+        )
+        .route(
+            "/v1/volumes/{name}/versions/{version}/precomputed/{*path}",
+            read(views::precomputed_pinned),
+        )
         .merge(cpu_routes)
         .merge(write_routes)
         .merge(web_app::routes());

@@ -84,6 +84,36 @@ fn version_number() -> Value {
     int(0, u64::MAX)
 }
 
+/// The field's formats (`views.rs`, `docs/formats.md`): each view, live and pinned.
+fn view_paths(name: Value) -> Value {
+    let version = path_param(
+        "version",
+        int(1, u64::MAX),
+        "the version this form is pinned to",
+    );
+    let mut paths = serde_json::Map::new();
+    for (segment, what, path_doc) in [
+        ("zarr", "the OME-Zarr 0.5 (Zarr v3) view", "zarr.json, {level}/zarr.json or {level}/c/{z}/{y}/{x} (a chunk of zeros is 404: the fill value)"),
+        ("precomputed", "the Neuroglancer precomputed view", "info or {level}/{x0}-{x1}_{y0}-{y1}_{z0}-{z1} (400 when the range is not a chunk's)"),
+    ] {
+        let path = path_param("path", json!({"type": "string"}), path_doc);
+        let content = json!({"application/json": {"schema": {"type": "object"}},
+            "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}});
+        paths.insert(format!("/v1/volumes/{{name}}/{segment}/{{path}}"), json!({"get": {
+            "summary": format!("{what} of the newest version (Cache-Control: public, max-age=1; a strong ETag; Content-Location names the pinned form)"),
+            "parameters": [name.clone(), path],
+            "responses": merge(json!({"200": {"description": "a metadata document or a chunk", "content": content.clone()},
+                "304": {"description": "not modified (If-None-Match)"}}), problem_responses(&["400", "404", "500"]))}}));
+        let path = path_param("path", json!({"type": "string"}), path_doc);
+        paths.insert(format!("/v1/volumes/{{name}}/versions/{{version}}/{segment}/{{path}}"), json!({"get": {
+            "summary": format!("{what} of one version, immutable (Cache-Control: public, max-age=31536000, immutable)"),
+            "parameters": [name.clone(), version.clone(), path],
+            "responses": merge(json!({"200": {"description": "a metadata document or a chunk", "content": content},
+                "304": {"description": "not modified (If-None-Match)"}}), problem_responses(&["400", "404", "410", "500"]))}}));
+    }
+    Value::Object(paths)
+}
+
 /// The document, for a server whose edit terms are bounded by `limits`.
 pub(super) fn document(limits: &TermLimits) -> Value {
     let name = path_param("name", volume_name(), "volume name");
@@ -178,9 +208,10 @@ pub(super) fn document(limits: &TermLimits) -> Value {
                 "encoding": {"type": "string", "enum": ["raw", "stored"]}})),
         }}
     });
-    let (paths, schemas) = write_side(name, limits);
+    let (paths, schemas) = write_side(name.clone(), limits);
     if let Some(p) = doc["paths"].as_object_mut() {
         p.extend(paths.as_object().cloned().unwrap_or_default());
+        p.extend(view_paths(name).as_object().cloned().unwrap_or_default());
     }
     if let Some(s) = doc["components"]["schemas"].as_object_mut() {
         s.extend(schemas.as_object().cloned().unwrap_or_default());

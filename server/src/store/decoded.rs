@@ -1,12 +1,14 @@
 //! Decoded bricks by content hash, shared by every reader of a process: the HTTP brick bodies
-//! (voxels, and lz4 blocks made from them) and the mesher, which reads a halo from up to 26
-//! neighbours of each tile and would otherwise decode them again for every tile.
+//! (voxels, and lz4 blocks made from them), the chunks of the field's formats' views (voxels,
+//! and zstd frames made from them) and the mesher, which reads a halo from up to 26 neighbours
+//! of each tile and would otherwise decode them again for every tile. One cache, so the memory
+//! all of them take is the one size a server is given.
 //!
 //! Keys are content, so an entry never goes stale: an edit makes new hashes, and the entries
 //! of replaced bricks age out. Everything cached was verified when it was made: voxels are
-//! decoded and checked against their content hash, lz4 blocks are made from such voxels, and
-//! the payloads of records without a checksum are remembered only once they decoded to their
-//! hash ([`DecodedBricks::verify_payload`]).
+//! decoded and checked against their content hash, lz4 blocks and zstd frames are made from
+//! such voxels, and the payloads of records without a checksum are remembered only once they
+//! decoded to their hash ([`DecodedBricks::verify_payload`]).
 
 use super::lru::ByteLru;
 use super::vod2::PayloadCheck;
@@ -23,12 +25,14 @@ pub enum Form {
     Raw = 0,
     /// An lz4 block of them.
     Lz4 = 1,
+    /// One zstd frame of them that records its content size (a Zarr chunk).
+    Zstd = 2,
 }
 
-/// The cache's third kind of entry, beside the two [`Form`]s: a stored payload without a
-/// checksum that decoded to its content hash. The key is the payload's xxh3-64 (seeded with its
-/// codec), the value the content hash it decoded to.
-const VERIFIED_PAYLOAD: u8 = 2;
+/// The cache's other kind of entry, beside the [`Form`]s: a stored payload without a checksum
+/// that decoded to its content hash. The key is the payload's xxh3-64 (seeded with its codec),
+/// the value the content hash it decoded to.
+const VERIFIED_PAYLOAD: u8 = 3;
 
 /// What one remembered payload verification is counted as against the cache's byte budget:
 /// about what its entry costs (the key, the 8-byte value, the LRU's bookkeeping).
@@ -82,6 +86,14 @@ impl DecodedBricks {
         self.get_or_make_sized(hash, brick_bytes, form as u8, make, Bytes::len)
     }
 
+    /// The cached `form` of the content with hash `hash` in bricks of `brick_bytes`, if it is
+    /// held (a miss is not counted: the caller makes it through [`Self::get_or_make`]).
+    pub fn get(&self, hash: u64, brick_bytes: usize, form: Form) -> Option<Bytes> {
+        let body = self.lru.get(key(hash, brick_bytes, form as u8))?;
+        self.hits.fetch_add(1, Ordering::Relaxed);
+        Some((*body).clone())
+    }
+
     fn get_or_make_sized<E>(
         &self,
         hash: u64,
@@ -90,10 +102,7 @@ impl DecodedBricks {
         make: impl FnOnce() -> Result<Bytes, E>,
         cost: impl FnOnce(&Bytes) -> usize,
     ) -> Result<Bytes, E> {
-        // The hash is uniform in its low bits (they pick the LRU's shard). The brick size goes
-        // above it (equal hashes of different sizes are different content), the kind of entry
-        // on top (the brick size takes at most 25 bits).
-        let key = (hash as u128) | ((brick_bytes as u128) << 64) | ((kind as u128) << 126);
+        let key = key(hash, brick_bytes, kind);
         if let Some(body) = self.lru.get(key) {
             self.hits.fetch_add(1, Ordering::Relaxed);
             return Ok((*body).clone());
@@ -171,6 +180,14 @@ impl DecodedBricks {
     }
 }
 
+/// The LRU key of one kind of entry (a [`Form`], or [`VERIFIED_PAYLOAD`]) for some content.
+/// The hash is uniform in its low bits (they pick the LRU's shard). The brick size goes above
+/// it (equal hashes of different sizes are different content; a brick is at most 2^25 bytes),
+/// the kind on top (two bits).
+fn key(hash: u64, brick_bytes: usize, kind: u8) -> u128 {
+    u128::from(hash) | ((brick_bytes as u128) << 64) | (u128::from(kind) << 126)
+}
+
 /// A stored brick's voxels in a new buffer, checked against its content hash.
 ///
 /// # Errors
@@ -179,4 +196,39 @@ pub fn decode(stored: &StoredBrick<'_>, layout: &VolumeLayout) -> Result<Bytes, 
     let mut out = vec![0u8; layout.brick_bytes()];
     super::vod2::decode_stored(stored, layout, &mut out)?;
     Ok(out.into())
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+
+    use super::*;
+
+    #[test]
+    fn forms_and_brick_sizes_of_one_hash_are_kept_apart() {
+        let cache = DecodedBricks::new(1 << 20);
+        let make = |bytes: &'static [u8]| move || Ok::<_, StoreError>(Bytes::from_static(bytes));
+        let hash = 0x0123_4567_89ab_cdef;
+        for (size, form, body) in [
+            (4096, Form::Raw, &b"raw"[..]),
+            (4096, Form::Lz4, b"lz4"),
+            (4096, Form::Zstd, b"zstd"),
+            (8192, Form::Raw, b"raw, larger brick"),
+        ] {
+            assert_eq!(
+                cache.get_or_make(hash, size, form, make(body)).unwrap(),
+                body
+            );
+        }
+        assert_eq!(cache.misses(), 4);
+        assert_eq!(cache.get(hash, 4096, Form::Zstd).unwrap(), &b"zstd"[..]);
+        assert_eq!(cache.get(hash, 4096, Form::Lz4).unwrap(), &b"lz4"[..]);
+        assert_eq!(
+            cache.get(hash, 8192, Form::Raw).unwrap(),
+            &b"raw, larger brick"[..]
+        );
+        assert_eq!(cache.get(hash, 4096, Form::Raw).unwrap(), &b"raw"[..]);
+        assert!(cache.get(hash, 8192, Form::Zstd).is_none());
+        assert_eq!((cache.hits(), cache.misses()), (4, 4));
+    }
 }

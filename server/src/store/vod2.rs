@@ -79,6 +79,14 @@ impl StoredBrick<'_> {
         }
     }
 
+    /// The brick's content hash (for a constant, the hash of its expanded bytes).
+    pub fn content_hash(&self, layout: &VolumeLayout) -> u64 {
+        match self {
+            StoredBrick::Constant(v) => codec::constant_hash(*v, layout),
+            StoredBrick::Record { header, .. } => header.hash,
+        }
+    }
+
     /// Checks the payload against the checksum stored after it (one xxh3 pass over the stored
     /// bytes, no decoding).
     ///

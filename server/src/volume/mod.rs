@@ -34,8 +34,9 @@ use arc_swap::ArcSwap;
 use isovox_proto::api::{ChangeEvent, ChangeList, ChangedBricks};
 use isovox_proto::vod2::CommitHeader;
 use isovox_proto::VolumeLayout;
+use std::collections::VecDeque;
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::{Arc, RwLock};
+use std::sync::{Arc, Mutex, MutexGuard, RwLock};
 use tokio::sync::broadcast;
 
 /// Versions a subscriber may fall behind before it is told to resync.
@@ -49,6 +50,9 @@ pub struct FeedItem {
     /// Its change event as JSON.
     pub json: String,
 }
+
+/// Older versions kept loaded (see [`LiveVolume::version`]).
+pub const OLDER_VERSIONS_KEPT: usize = 4;
 
 /// Versions listed by one `changes` answer, by default and at most.
 pub const DEFAULT_CHANGES: usize = 1000;
@@ -121,6 +125,10 @@ pub struct LiveVolume {
     /// Compactions waiting for the writer lock.
     waiting: AtomicUsize,
     history: RwLock<History>,
+    /// The older versions read last, most recent first: loading one walks its commits back to
+    /// a checkpoint and decodes index chunks again, and pinned readers (a `?version=N` client,
+    /// a version-pinned view) ask for the same few versions request after request.
+    older: Mutex<VecDeque<Arc<Snapshot>>>,
     feed: broadcast::Sender<Arc<FeedItem>>,
 }
 
@@ -184,6 +192,7 @@ impl LiveVolume {
             edits: Default::default(),
             waiting: AtomicUsize::new(0),
             history: RwLock::new(history),
+            older: Mutex::default(),
             feed: broadcast::channel(FEED_CAPACITY).0,
         })
     }
@@ -245,14 +254,42 @@ impl LiveVolume {
         }
         let at = history.offset(version).filter(|_| version < head.version);
         drop(history);
-        match at {
-            Some(at) => Ok(Arc::new(vod.snapshot_at(at)?)),
-            None => Err(VolumeError::NoSuchVersion {
+        let Some(at) = at else {
+            return Err(VolumeError::NoSuchVersion {
                 version,
                 oldest: self.oldest(),
                 head: head.version,
-            }),
+            });
+        };
+        if let Some(kept) = self.kept_version(version) {
+            return Ok(kept);
         }
+        let snap = Arc::new(vod.snapshot_at(at)?);
+        let mut older = self.older_lock();
+        older.retain(|s| s.version != version);
+        older.push_front(snap.clone());
+        older.truncate(OLDER_VERSIONS_KEPT);
+        Ok(snap)
+    }
+
+    /// Version `version` if it is among the older versions kept (then the most recent of them).
+    fn kept_version(&self, version: u64) -> Option<Arc<Snapshot>> {
+        let mut older = self.older_lock();
+        let i = older.iter().position(|s| s.version == version)?;
+        let snap = older.remove(i)?;
+        older.push_front(snap.clone());
+        Some(snap)
+    }
+
+    fn older_lock(&self) -> MutexGuard<'_, VecDeque<Arc<Snapshot>>> {
+        // Every update leaves the list whole (a removal, a push, a truncation), so a poisoned
+        // lock is still sound to use.
+        self.older.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Forgets the older versions kept (compaction replaced the file they read).
+    fn forget_older(&self) {
+        self.older_lock().clear();
     }
 
     /// Version `version`, or the head when `None`.
@@ -373,6 +410,10 @@ impl LiveVolume {
         let history = History::read(&self.name, &fresh);
         *self.history.write().unwrap_or_else(|p| p.into_inner()) = history;
         self.current.store(fresh.clone());
+        // The file may be a new one (compaction): the older versions kept map the old one.
+        // After a compaction none can be asked for again (the history says so first);
+        // forgetting them unmaps the old file sooner.
+        self.forget_older();
         Ok(fresh)
     }
 
@@ -428,4 +469,91 @@ pub(crate) fn change_event(vod: &Vod2, at: u64) -> Result<ChangeEvent, StoreErro
             CommitHeader::changes(changes).map(|(node, _)| node),
         ),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+
+    use super::*;
+    use crate::store::{build_vod2, BuildOptions, DenseGrid};
+    use isovox_proto::icvg::{EditRequest, Term};
+    use isovox_proto::{BrickKey, VoxelType};
+
+    /// A 16^3 volume of 9s, then one edit per version (a small ball added at a new place), so
+    /// every version has content of its own.
+    fn volume_with_versions(path: &std::path::Path, versions: u64) -> LiveVolume {
+        let layout = VolumeLayout::new([16; 3], 16, VoxelType::U8).unwrap();
+        let voxels = vec![9u8; 16 * 16 * 16];
+        let grid = DenseGrid::new([16; 3], VoxelType::U8, 16, &voxels);
+        build_vod2(path, &layout, [1.0; 3], &grid, &BuildOptions::default()).unwrap();
+        for v in 1..versions as i64 {
+            let request = EditRequest {
+                op: "union".into(),
+                term: Some(Term::Ellipsoid {
+                    center: [v * 2, 8, 8],
+                    radii: [1, 1, 1],
+                }),
+                s_l: None,
+                k: None,
+                region: None,
+            };
+            write::edit_file(path, &request).unwrap();
+        }
+        LiveVolume::new("v", Vod2::open(path).unwrap()).unwrap()
+    }
+
+    const BRICK: BrickKey = BrickKey {
+        level: 0,
+        x: 0,
+        y: 0,
+        z: 0,
+    };
+
+    #[test]
+    fn older_versions_are_kept_a_few_at_a_time_and_forgotten_on_compaction() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("v.vod");
+        let volume = volume_with_versions(&path, 8);
+        assert_eq!(volume.head().version, 8);
+        // What each version holds, loaded independently (a fresh open of the file).
+        let fresh = Vod2::open(&path).unwrap();
+        let hashes: Vec<u64> = (1..=8)
+            .map(|v| fresh.version(v).unwrap().hash(BRICK).unwrap())
+            .collect();
+        let mut distinct = hashes.clone();
+        distinct.sort_unstable();
+        distinct.dedup();
+        assert_eq!(distinct.len(), 8, "every version has content of its own");
+
+        let first = volume.version(2).unwrap();
+        // Asked again: the same snapshot, not one loaded anew.
+        assert!(Arc::ptr_eq(&first, &volume.version(2).unwrap()));
+        // Every version reads its own content, kept or not, in any order.
+        for v in [1, 7, 3, 2, 6, 5, 4, 8, 1, 7] {
+            let snap = volume.version(v).unwrap();
+            assert_eq!(snap.version, v);
+            assert_eq!(
+                snap.hash(BRICK).unwrap(),
+                hashes[v as usize - 1],
+                "version {v}"
+            );
+        }
+        // Other versions were read since 2, more than are kept: it was let go.
+        const { assert!(OLDER_VERSIONS_KEPT < 6) };
+        assert!(!Arc::ptr_eq(&first, &volume.version(2).unwrap()));
+        // The one read last is kept.
+        let recent = volume.version(7).unwrap();
+        assert!(Arc::ptr_eq(&recent, &volume.version(7).unwrap()));
+        // After compaction no older version is served, kept or not.
+        volume.compact(&mut WriterSlot::default()).unwrap();
+        assert!(volume.older_lock().is_empty());
+        for v in [2, 7] {
+            assert!(matches!(
+                volume.version(v),
+                Err(VolumeError::NoSuchVersion { oldest: 8, .. })
+            ));
+        }
+        assert_eq!(volume.version(8).unwrap().hash(BRICK).unwrap(), hashes[7]);
+    }
 }

@@ -196,10 +196,7 @@ impl BatchRead {
                 (BatchEncoding::Raw, stored) => BatchEntry {
                     key,
                     codec: BatchCodec::Raw,
-                    hash: match stored {
-                        StoredBrick::Record { header, .. } => header.hash,
-                        StoredBrick::Constant(v) => constant_hash(v, layout),
-                    },
+                    hash: stored.content_hash(layout),
                     payload: decode(&stored, layout)?.to_vec(),
                 },
             };
@@ -268,12 +265,8 @@ impl LevelRead {
                 for x in min[0]..max[0] {
                     let stored = snap.stored(BrickKey { level, x, y, z })?;
                     let (lo, hi) = stored.min_max();
-                    let hash = match stored {
-                        StoredBrick::Record { header, .. } => header.hash,
-                        StoredBrick::Constant(v) => constant_hash(v, layout),
-                    };
                     bricks.push(LevelBrick {
-                        hash: format!("{hash:016x}"),
+                        hash: format!("{:016x}", stored.content_hash(layout)),
                         min: lo,
                         max: hi,
                     });

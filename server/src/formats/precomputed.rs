@@ -1,0 +1,195 @@
+//! The Neuroglancer precomputed view of a volume.
+//!
+//! ```text
+//! info                                    one scale per level, finest first: key "k", size
+//!                                         ceil(dims / 2^k), resolution voxel scale * 2^k,
+//!                                         voxel offset 0, chunk size = brick, raw encoding
+//! {k}/{x0}-{x1}_{y0}-{y1}_{z0}-{z1}       one chunk: brick (x0 / b, y0 / b, z0 / b) of level
+//!                                         k, cropped to the level's extent
+//! ```
+//!
+//! A raw chunk is the voxels x fastest, then y, then z (little endian), as a brick is; chunks
+//! at the volume's far faces are cropped (`x1 = min(x0 + b, size)`), as Neuroglancer checks the
+//! byte count. A range that is not a chunk's (misaligned, wrong end) is a 400; a chunk past the
+//! level's extent or a level the volume does not have is a 404.
+
+use super::view::{level_segment, Chunk, ChunkEncoding, Document, ViewError};
+use crate::store::Snapshot;
+use isovox_proto::VolumeLayout;
+use serde_json::{json, Value};
+
+/// The `info` document.
+pub fn info(layout: &VolumeLayout, voxel_scale: [f32; 3]) -> Value {
+    let b = layout.brick();
+    let scales: Vec<Value> = (0..layout.levels())
+        .map(|k| {
+            let f = f64::from(1u32 << k);
+            json!({
+                "key": k.to_string(),
+                "size": layout.level_dims(k),
+                "resolution": voxel_scale.map(|s| f64::from(s) * f),
+                "voxel_offset": [0, 0, 0],
+                "chunk_sizes": [[b, b, b]],
+                "encoding": "raw"
+            })
+        })
+        .collect();
+    json!({
+        "@type": "neuroglancer_multiscale_volume",
+        "type": "image",
+        "data_type": super::zarr::data_type(layout.voxel_type()),
+        "num_channels": 1,
+        "scales": scales
+    })
+}
+
+/// The file name of a chunk: `{x0}-{x1}_{y0}-{y1}_{z0}-{z1}` for brick `(x, y, z)` of `level`.
+pub fn chunk_name(layout: &VolumeLayout, level: u8, brick: [u32; 3]) -> String {
+    let b = layout.brick();
+    let extent = layout.level_dims(level);
+    let r: Vec<String> = (0..3)
+        .map(|a| {
+            let lo = brick[a] * b;
+            format!("{lo}-{}", (lo + b).min(extent[a]))
+        })
+        .collect();
+    r.join("_")
+}
+
+/// What `path` names in the precomputed view of `snap`.
+///
+/// # Errors
+/// See [`super::view::resolve`].
+pub fn document<'s>(snap: &'s Snapshot, path: &str) -> Result<Document<'s>, ViewError> {
+    let layout = snap.layout();
+    match path.split_once('/') {
+        None if path == "info" => Ok(Document::Metadata(
+            serde_json::to_vec_pretty(&info(layout, snap.header().voxel_scale))
+                .unwrap_or_default(),
+        )),
+        Some((level, chunk)) => {
+            let level = level_segment(snap, level)?;
+            let (brick, extent) = parse_chunk(layout, level, chunk)?;
+            let key = layout
+                .key(level, brick[0], brick[1], brick[2])
+                .map_err(|e| ViewError::NoSuchDocument(e.to_string()))?;
+            Ok(Document::Chunk(Chunk {
+                key,
+                stored: snap.stored(key)?,
+                encoding: ChunkEncoding::Raw { extent },
+            }))
+        }
+        None => Err(ViewError::NoSuchDocument(format!(
+            "{path:?} is not in the precomputed view: it has info and {{level}}/{{x0}}-{{x1}}_{{y0}}-{{y1}}_{{z0}}-{{z1}}"
+        ))),
+    }
+}
+
+/// The brick and the voxel extent of chunk name `name` at `level`.
+fn parse_chunk(
+    layout: &VolumeLayout,
+    level: u8,
+    name: &str,
+) -> Result<([u32; 3], [u32; 3]), ViewError> {
+    let malformed = || {
+        ViewError::NotAChunk(format!(
+            "{name:?} is not a chunk name: {{x0}}-{{x1}}_{{y0}}-{{y1}}_{{z0}}-{{z1}} expected"
+        ))
+    };
+    let ranges: Vec<(u32, u32)> = name
+        .split('_')
+        .map(|r| {
+            let (lo, hi) = r.split_once('-')?;
+            Some((lo.parse().ok()?, hi.parse().ok()?))
+        })
+        .collect::<Option<_>>()
+        .ok_or_else(malformed)?;
+    if ranges.len() != 3 {
+        return Err(malformed());
+    }
+    let b = layout.brick();
+    let extent = layout.level_dims(level);
+    let (mut brick, mut size) = ([0u32; 3], [0u32; 3]);
+    for (a, &(lo, hi)) in ranges.iter().enumerate() {
+        let axis = ["x", "y", "z"][a];
+        if lo >= extent[a] {
+            return Err(ViewError::NoSuchDocument(format!(
+                "{axis} {lo}-{hi} starts past level {level}'s extent {}",
+                extent[a]
+            )));
+        }
+        let expected_hi = (lo / b * b + b).min(extent[a]);
+        if lo % b != 0 || hi != expected_hi {
+            return Err(ViewError::NotAChunk(format!(
+                "{axis} {lo}-{hi} is not a chunk of level {level}: chunks are {b} voxels, cropped at {}",
+                extent[a]
+            )));
+        }
+        brick[a] = lo / b;
+        size[a] = hi - lo;
+    }
+    Ok((brick, size))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use isovox_proto::VoxelType;
+
+    fn layout() -> VolumeLayout {
+        VolumeLayout::new([197, 77, 141], 32, VoxelType::U8).unwrap()
+    }
+
+    #[test]
+    fn info_has_one_scale_per_level() {
+        let i = info(&layout(), [1.0, 2.0, 4.0]);
+        let scales = i["scales"].as_array().unwrap();
+        assert_eq!(scales.len(), 4);
+        assert_eq!(scales[0]["size"], json!([197, 77, 141]));
+        assert_eq!(scales[1]["size"], json!([99, 39, 71]));
+        assert_eq!(scales[3]["resolution"], json!([8.0, 16.0, 32.0]));
+        assert_eq!(scales[2]["chunk_sizes"], json!([[32, 32, 32]]));
+        assert_eq!(i["data_type"], "uint8");
+    }
+
+    #[test]
+    fn chunk_names_are_cropped_at_the_far_faces() {
+        let l = layout();
+        assert_eq!(chunk_name(&l, 0, [0, 0, 0]), "0-32_0-32_0-32");
+        assert_eq!(chunk_name(&l, 0, [6, 2, 4]), "192-197_64-77_128-141");
+        assert_eq!(
+            parse_chunk(&l, 0, "192-197_64-77_128-141").unwrap(),
+            ([6, 2, 4], [5, 13, 13])
+        );
+        assert_eq!(
+            parse_chunk(&l, 1, "96-99_32-39_64-71").unwrap(),
+            ([3, 1, 2], [3, 7, 7])
+        );
+    }
+
+    #[test]
+    fn misaligned_ranges_are_bad_requests_and_far_ones_not_found() {
+        let l = layout();
+        for bad in [
+            "1-33_0-32_0-32",
+            "0-31_0-32_0-32",
+            "192-224_0-32_0-32",
+            "0-32_0-32",
+            "a-b_0-32_0-32",
+            "0-32_0-32_0-32_0-32",
+        ] {
+            assert!(
+                matches!(parse_chunk(&l, 0, bad), Err(ViewError::NotAChunk(_))),
+                "{bad}"
+            );
+        }
+        assert!(matches!(
+            parse_chunk(&l, 0, "224-256_0-32_0-32"),
+            Err(ViewError::NoSuchDocument(_))
+        ));
+        assert!(matches!(
+            parse_chunk(&l, 1, "128-160_0-32_0-32"),
+            Err(ViewError::NoSuchDocument(_))
+        ));
+    }
+}

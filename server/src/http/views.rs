@@ -1,0 +1,136 @@
+//! The field's formats over HTTP: thin handlers for the OME-Zarr and Neuroglancer precomputed
+//! views (`formats::view` does the work).
+//!
+//! - `GET /v1/volumes/{name}/zarr/{*path}`, `GET /v1/volumes/{name}/precomputed/{*path}`: the
+//!   live views, of the newest version: `Cache-Control: public, max-age=1`, a strong `ETag`
+//!   (xxh3-64 of the body; 304 on `If-None-Match`), and `Content-Location` naming the pinned
+//!   URL of the version answered.
+//! - `GET /v1/volumes/{name}/versions/{version}/zarr/{*path}` and `.../precomputed/{*path}`:
+//!   the same documents of one version, which never change:
+//!   `Cache-Control: public, max-age=31536000, immutable`.
+//!
+//! A Zarr chunk of fill values only answers 404 (clients read it as the fill value) with the
+//! same caching headers as a chunk. A chunk that must be decoded or compressed (not stored as a
+//! frame that goes out as it is, not in the shared cache) is made on the CPU queue.
+
+use super::bricks::{format_etag, if_none_match};
+use super::extract::Path;
+use super::{ApiError, AppState};
+use crate::formats::view::{read, ViewAnswer, ViewBody, ViewRead};
+use crate::formats::{ViewError, ViewKind};
+use axum::extract::{Request, State};
+use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
+use axum::response::{IntoResponse, Response};
+
+/// Live views: short-lived in caches, revalidated by ETag.
+const LIVE: &str = "public, max-age=1";
+/// Pinned views: one version's documents never change.
+const PINNED: &str = "public, max-age=31536000, immutable";
+
+/// `{name}/zarr/{*path}` and `{name}/precomputed/{*path}`.
+type LivePath = Path<(String, String)>;
+/// `{name}/versions/{version}/zarr/{*path}` and `.../precomputed/{*path}`.
+type PinnedPath = Path<(String, u64, String)>;
+
+/// `GET /v1/volumes/{name}/zarr/{*path}`.
+pub async fn zarr(
+    State(state): State<AppState>,
+    Path((name, path)): LivePath,
+    request: Request,
+) -> Result<Response, ApiError> {
+    view(&state, ViewKind::Zarr, &name, None, &path, request).await
+}
+
+/// `GET /v1/volumes/{name}/precomputed/{*path}`.
+pub async fn precomputed(
+    State(state): State<AppState>,
+    Path((name, path)): LivePath,
+    request: Request,
+) -> Result<Response, ApiError> {
+    view(&state, ViewKind::Precomputed, &name, None, &path, request).await
+}
+
+/// `GET /v1/volumes/{name}/versions/{version}/zarr/{*path}`.
+pub async fn zarr_pinned(
+    State(state): State<AppState>,
+    Path((name, version, path)): PinnedPath,
+    request: Request,
+) -> Result<Response, ApiError> {
+    view(&state, ViewKind::Zarr, &name, Some(version), &path, request).await
+}
+
+/// `GET /v1/volumes/{name}/versions/{version}/precomputed/{*path}`.
+pub async fn precomputed_pinned(
+    State(state): State<AppState>,
+    Path((name, version, path)): PinnedPath,
+    request: Request,
+) -> Result<Response, ApiError> {
+    let kind = ViewKind::Precomputed;
+    view(&state, kind, &name, Some(version), &path, request).await
+}
+
+/// Reads the document (made on the CPU queue when it takes work) and answers it.
+async fn view(
+    state: &AppState,
+    kind: ViewKind,
+    name: &str,
+    version: Option<u64>,
+    path: &str,
+    // The request itself, not a `HeaderMap` extractor (which clones every header).
+    request: Request,
+) -> Result<Response, ApiError> {
+    let answer = match read(state.catalog.get(name)?, kind, version, path, &state.bricks)? {
+        ViewRead::Ready(answer) => answer,
+        ViewRead::Make(chunk) => {
+            let bricks = state.bricks.clone();
+            state.cpu.run(move || chunk.run(&bricks)).await?
+        }
+    };
+    respond(kind, name, version, path, answer, request.headers())
+}
+
+/// The response for a document of a view, with the view's caching headers.
+fn respond(
+    kind: ViewKind,
+    name: &str,
+    version: Option<u64>,
+    path: &str,
+    answer: ViewAnswer,
+    headers: &HeaderMap,
+) -> Result<Response, ApiError> {
+    let mut out = HeaderMap::with_capacity(8);
+    out.insert(
+        header::CACHE_CONTROL,
+        HeaderValue::from_static(if version.is_some() { PINNED } else { LIVE }),
+    );
+    if version.is_none() {
+        let pinned = format!(
+            "/v1/volumes/{name}/versions/{}/{}/{path}",
+            answer.version,
+            kind.segment()
+        );
+        if let Ok(v) = HeaderValue::from_str(&pinned) {
+            out.insert(header::CONTENT_LOCATION, v);
+        }
+    }
+    let (media, body) = match answer.body {
+        ViewBody::Json(b) => ("application/json", b),
+        ViewBody::Chunk(b) => ("application/octet-stream", b),
+        ViewBody::Absent => {
+            let mut r = ApiError::from(ViewError::FillValue(path.to_string())).into_response();
+            r.headers_mut().extend(out);
+            return Ok(r);
+        }
+    };
+    let mut etag = [0u8; 18];
+    let etag = format_etag(xxhash_rust::xxh3::xxh3_64(&body), &mut etag);
+    out.insert(
+        header::ETAG,
+        HeaderValue::from_str(etag).map_err(|e| ApiError::Internal(e.to_string()))?,
+    );
+    if if_none_match(headers, etag) {
+        return Ok((StatusCode::NOT_MODIFIED, out).into_response());
+    }
+    out.insert(header::CONTENT_TYPE, HeaderValue::from_static(media));
+    Ok((out, body).into_response())
+}

@@ -1,0 +1,135 @@
+"""The field's clients read Isovox's views voxel for voxel, live and pinned to a version.
+
+Against a real `isovox serve`: every level of each volume named, through tensorstore's `zarr3`
+and `neuroglancer_precomputed` drivers, zarr-python, ome-zarr's reader and cloud-volume, must
+equal `/levels/{k}?format=voxels`. Then an edit: the live views return the new voxels, the
+views pinned to the old version the old ones (and the edit must have changed something, or the
+comparison would prove nothing).
+
+Usage: python views_read_back.py --url http://127.0.0.1:PORT --token TOKEN VOLUME...
+"""
+
+import argparse
+import json
+import sys
+import urllib.request
+
+import numpy as np
+import tensorstore as ts
+import zarr
+from cloudvolume import CloudVolume
+from ome_zarr.io import parse_url
+from ome_zarr.reader import Reader
+
+from common import dtype_of, fetch_json, level_voxels
+
+
+def tensorstore_zarr3(root, level):
+    return ts.open({"driver": "zarr3", "kvstore": f"{root}/zarr/{level}/"}).result().read().result()
+
+
+def tensorstore_precomputed(root, level):
+    store = ts.open(
+        {"driver": "neuroglancer_precomputed", "kvstore": f"{root}/precomputed/", "scale_index": level}
+    ).result()
+    # (x, y, z, channel) -> (z, y, x)
+    return np.asarray(store.read().result())[..., 0].transpose(2, 1, 0)
+
+
+def zarr_python(root, level):
+    return zarr.open_group(f"{root}/zarr/", mode="r")[str(level)][...]
+
+
+def cloud_volume(root, level):
+    cv = CloudVolume(f"precomputed://{root}/precomputed", mip=level, progress=False, cache=False)
+    return np.asarray(cv[:, :, :])[..., 0].transpose(2, 1, 0)
+
+
+def ome_zarr(root, level):
+    nodes = list(Reader(parse_url(f"{root}/zarr/"))())
+    return np.asarray(nodes[0].data[level])
+
+
+CLIENTS = {
+    "tensorstore zarr3": tensorstore_zarr3,
+    "tensorstore neuroglancer_precomputed": tensorstore_precomputed,
+    "zarr-python": zarr_python,
+    "ome-zarr": ome_zarr,
+    "cloud-volume": cloud_volume,
+}
+
+
+def check(failures, what, got, want):
+    if got.shape != want.shape or got.dtype != want.dtype:
+        failures.append(f"{what}: {got.dtype}{got.shape}, expected {want.dtype}{want.shape}")
+    elif not np.array_equal(got, want):
+        diff = int(np.count_nonzero(got != want))
+        failures.append(f"{what}: {diff} of {want.size} voxels differ")
+
+
+def edit(base, token, info):
+    """Carves an ellipsoid in the middle of the volume; returns the new version."""
+    dims = info["dims"]
+    body = json.dumps(
+        {
+            "op": "difference",
+            "term": {
+                "ellipsoid": {
+                    "center": [d // 2 for d in dims],
+                    "radii": [max(4, d // 4) for d in dims],
+                }
+            },
+        }
+    ).encode()
+    request = urllib.request.Request(
+        f"{base}/edits",
+        data=body,
+        method="POST",
+        headers={"Authorization": f"Bearer {token}", "Content-Type": "application/json"},
+    )
+    with urllib.request.urlopen(request, timeout=60) as r:
+        return json.load(r)["version"]
+
+
+def main():
+    p = argparse.ArgumentParser()
+    p.add_argument("--url", required=True)
+    p.add_argument("--token", required=True)
+    p.add_argument("volumes", nargs="+")
+    a = p.parse_args()
+    failures = []
+    for name in a.volumes:
+        base = f"{a.url}/v1/volumes/{name}"
+        info = fetch_json(base)
+        dtype = dtype_of(info)
+        levels = len(info["levels"])
+        before = [level_voxels(base, k, dtype) for k in range(levels)]
+        for k in range(levels):
+            for client, read in CLIENTS.items():
+                check(failures, f"{name} level {k} via {client}", read(base, k), before[k])
+        print(f"{name}: {levels} levels of {info['dims']} {info['voxel_type']} read back equal by {len(CLIENTS)} clients")
+
+        old = info["version"]
+        new = edit(base, a.token, info)
+        after = [level_voxels(base, k, dtype) for k in range(levels)]
+        changed = [k for k in range(levels) if not np.array_equal(before[k], after[k])]
+        if not changed:
+            failures.append(f"{name}: the edit changed no voxel; the pinning check would prove nothing")
+        pinned_old = f"{base}/versions/{old}"
+        pinned_new = f"{base}/versions/{new}"
+        for k in range(levels):
+            check(failures, f"{name} level {k} live zarr after the edit", tensorstore_zarr3(base, k), after[k])
+            check(failures, f"{name} level {k} live precomputed after the edit", cloud_volume(base, k), after[k])
+            check(failures, f"{name} level {k} pinned zarr v{old}", tensorstore_zarr3(pinned_old, k), before[k])
+            check(failures, f"{name} level {k} pinned zarr v{old} (zarr-python)", zarr_python(pinned_old, k), before[k])
+            check(failures, f"{name} level {k} pinned precomputed v{old}", tensorstore_precomputed(pinned_old, k), before[k])
+            check(failures, f"{name} level {k} pinned precomputed v{old} (cloud-volume)", cloud_volume(pinned_old, k), before[k])
+            check(failures, f"{name} level {k} pinned zarr v{new}", tensorstore_zarr3(pinned_new, k), after[k])
+        print(f"{name}: after the edit to version {new} (levels {changed} changed), live views show it and version {old} stays pinned")
+    if failures:
+        sys.exit("\n".join(failures))
+    print("every client read every level equal, live and pinned")
+
+
+if __name__ == "__main__":
+    main()
