@@ -7,6 +7,7 @@
 //! A crash at any point leaves either the old file or the new one, each whole. Readers that still
 //! map the old file keep reading it: the rename does not touch its bytes.
 
+use super::remote::{collect_garbage, upload, RemoteVolume};
 use super::transaction::{CheckpointPolicy, Transaction};
 use super::writer::Vod2Writer;
 use super::{Snapshot, StoreError, StoredBrick, Vod2};
@@ -14,6 +15,7 @@ use crate::progress::Progress;
 use isovox_proto::vod2::NodeEntry;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 use std::time::Instant;
 
 /// What a compaction did.
@@ -52,44 +54,7 @@ pub fn compact(
     let start = Instant::now();
     let path = vod.path();
     let tmp = compact_path(path);
-    let bricks = {
-        let mut writer = Vod2Writer::create(&tmp, vod.header().clone(), Default::default())?;
-        writer.start_at_version(head.version)?;
-        let nodes = head.layout().node_count();
-        progress.start(nodes);
-        let mut transaction = Transaction::first(&mut writer);
-        let mut moved: HashMap<u64, NodeEntry> = HashMap::new();
-        for node in 0..nodes {
-            let entry = head.entry_at(node)?;
-            let copied = match entry {
-                NodeEntry::Constant(_) => entry,
-                NodeEntry::Stored(offset) => match moved.get(&offset) {
-                    Some(&e) => e,
-                    None => {
-                        let StoredBrick::Record {
-                            header, payload, ..
-                        } = head.stored_entry(entry)?
-                        else {
-                            return Err(StoreError::Internal(format!(
-                                "node {node}: a stored entry read back as a constant"
-                            )));
-                        };
-                        let e = transaction.copy_record(&header, payload)?;
-                        moved.insert(offset, e);
-                        e
-                    }
-                },
-            };
-            transaction.set(node, copied)?;
-            if node % 4096 == 4095 {
-                progress.advance(4096);
-            }
-        }
-        progress.advance(nodes % 4096);
-        progress.finish();
-        transaction.commit(CheckpointPolicy::default())?;
-        moved.len() as u64
-    };
+    let bricks = write_compacted(vod, head, &tmp, progress)?;
     let bytes_after = std::fs::metadata(&tmp)
         .map_err(StoreError::io_path("cannot stat", &tmp))?
         .len();
@@ -107,4 +72,100 @@ pub fn compact(
         bricks,
         elapsed: start.elapsed(),
     })
+}
+
+/// Compacts a volume kept in an object store (`vod`, as `remote` serves it): writes the head
+/// version alone into a local file, uploads it as the volume's only segment and replaces the
+/// head with it (conditional on the head it compacted, so a commit made meanwhile is never
+/// lost: the compaction is refused instead), then deletes the objects nothing references that
+/// are older than `grace`.
+///
+/// # Errors
+/// The head moved ([`StoreError::HeadMoved`]), or reading, writing or the store fails.
+pub fn compact_remote(
+    remote: &RemoteVolume,
+    vod: &Vod2,
+    grace: Duration,
+) -> Result<CompactReport, StoreError> {
+    let start = Instant::now();
+    let head = vod.head();
+    let (stored, etag) = remote.read_head()?;
+    if stored.version != head.version {
+        return Err(StoreError::HeadMoved {
+            url: remote.bucket().url().to_string(),
+        });
+    }
+    let tmp = std::env::temp_dir().join(format!(
+        "isovox-compact-{}-{}.vod",
+        remote.name(),
+        std::process::id()
+    ));
+    let written = write_compacted(vod, &head, &tmp, &crate::progress::Silent).and_then(|bricks| {
+        let len = std::fs::metadata(&tmp)
+            .map_err(StoreError::io_path("cannot stat", &tmp))?
+            .len();
+        upload(remote.bucket(), &tmp, Some(&etag))?;
+        Ok((bricks, len))
+    });
+    let _ = std::fs::remove_file(&tmp);
+    let (bricks, bytes_after) = written?;
+    let deleted = collect_garbage(remote.bucket(), grace)?;
+    tracing::info!(volume = %remote.name(), deleted, "compacted; unreferenced objects past the grace period deleted");
+    Ok(CompactReport {
+        version: head.version,
+        bytes_before: vod.committed_len(),
+        bytes_after,
+        bricks,
+        elapsed: start.elapsed(),
+    })
+}
+
+/// Writes the version `head` of `vod` alone into a new file `dest` (distinct brick records
+/// copied as they are, one checkpoint, one commit numbered like `head`), synced. Returns the
+/// number of brick records copied.
+///
+/// # Errors
+/// Reading the index or a brick record fails, or `dest` cannot be written.
+pub fn write_compacted(
+    vod: &Vod2,
+    head: &Snapshot,
+    dest: &Path,
+    progress: &dyn Progress,
+) -> Result<u64, StoreError> {
+    let mut writer = Vod2Writer::create(dest, vod.header().clone(), Default::default())?;
+    writer.start_at_version(head.version)?;
+    let nodes = head.layout().node_count();
+    progress.start(nodes);
+    let mut transaction = Transaction::first(&mut writer);
+    let mut moved: HashMap<u64, NodeEntry> = HashMap::new();
+    for node in 0..nodes {
+        let entry = head.entry_at(node)?;
+        let copied = match entry {
+            NodeEntry::Constant(_) => entry,
+            NodeEntry::Stored(offset) => match moved.get(&offset) {
+                Some(&e) => e,
+                None => {
+                    let StoredBrick::Record {
+                        header, payload, ..
+                    } = head.stored_entry(entry)?
+                    else {
+                        return Err(StoreError::Internal(format!(
+                            "node {node}: a stored entry read back as a constant"
+                        )));
+                    };
+                    let e = transaction.copy_record(&header, payload)?;
+                    moved.insert(offset, e);
+                    e
+                }
+            },
+        };
+        transaction.set(node, copied)?;
+        if node % 4096 == 4095 {
+            progress.advance(4096);
+        }
+    }
+    progress.advance(nodes % 4096);
+    progress.finish();
+    transaction.commit(CheckpointPolicy::default())?;
+    Ok(moved.len() as u64)
 }

@@ -55,10 +55,37 @@ pub struct WriteStats {
     pub hash_collisions: u64,
 }
 
+/// Where a commit is made durable: the seam between the writer and a volume kept elsewhere.
+/// A local file needs none (the writer appends to it and switches a header slot); a volume in
+/// an object store takes each commit's bytes as one object and advances its head.
+pub trait Publish: Send + Sync + std::fmt::Debug {
+    /// Makes `appended` (the bytes from offset `from` up to `slot`'s committed length) durable
+    /// and `slot` the head, if the head is still `base`.
+    ///
+    /// # Errors
+    /// [`StoreError::HeadMoved`] when another writer moved the head first; the store fails.
+    fn publish(
+        &self,
+        base: Option<HeaderSlot>,
+        from: u64,
+        appended: &[u8],
+        slot: &HeaderSlot,
+    ) -> Result<(), StoreError>;
+}
+
+/// What a writer appends to.
+#[derive(Debug)]
+enum Target {
+    /// A local file: written as the buffer fills, synced, then a slot switched.
+    File(File),
+    /// A volume elsewhere: a commit's bytes stay in the buffer until it publishes them.
+    Remote(std::sync::Arc<dyn Publish>),
+}
+
 /// An open VOD 2 file being appended to.
 #[derive(Debug)]
 pub struct Vod2Writer {
-    file: File,
+    target: Target,
     path: PathBuf,
     header: FileHeader,
     /// Offset of `buf[0]` in the file; everything below it is written.
@@ -93,7 +120,7 @@ impl Vod2Writer {
         let mut buf = vec![0u8; DATA_START as usize];
         buf[..isovox_proto::vod2::HEADER_LEN].copy_from_slice(&header.encode());
         Ok(Vod2Writer {
-            file,
+            target: Target::File(file),
             path: path.to_path_buf(),
             header,
             buf_at: 0,
@@ -146,7 +173,7 @@ impl Vod2Writer {
                 path,
             ))?;
         Ok(Vod2Writer {
-            file,
+            target: Target::File(file),
             path: path.to_path_buf(),
             header,
             buf_at: head.committed_len,
@@ -157,6 +184,25 @@ impl Vod2Writer {
             first_version: 1,
             stats: WriteStats::default(),
         })
+    }
+
+    /// A writer of one commit on top of `vod`'s head, made durable by `publish` (a volume in an
+    /// object store). It deduplicates against the bricks it stores itself, not the volume's
+    /// (that would read every brick header from the store).
+    pub fn remote(vod: &super::Vod2, publish: std::sync::Arc<dyn Publish>) -> Vod2Writer {
+        let head = vod.head_slot();
+        Vod2Writer {
+            target: Target::Remote(publish),
+            path: vod.path().to_path_buf(),
+            header: vod.header().clone(),
+            buf_at: head.committed_len,
+            buf: Vec::new(),
+            known: HashMap::new(),
+            compression: Compression::default(),
+            head: Some(head),
+            first_version: 1,
+            stats: WriteStats::default(),
+        }
     }
 
     /// The file's fixed header.
@@ -223,9 +269,11 @@ impl Vod2Writer {
     }
 
     fn flush(&mut self) -> Result<(), StoreError> {
+        let Target::File(file) = &self.target else {
+            return Ok(());
+        };
         if !self.buf.is_empty() {
-            self.file
-                .write_all_at(&self.buf, self.buf_at)
+            file.write_all_at(&self.buf, self.buf_at)
                 .map_err(StoreError::io_path("cannot write", &self.path))?;
             self.buf_at += self.buf.len() as u64;
             self.buf.clear();
@@ -238,9 +286,14 @@ impl Vod2Writer {
             let start = (offset - self.buf_at) as usize;
             return Ok(self.buf[start..start + len].to_vec());
         }
+        let Target::File(file) = &self.target else {
+            return Err(StoreError::Internal(format!(
+                "{}: a remote writer read back offset {offset}, below what it appended",
+                self.path.display()
+            )));
+        };
         let mut out = vec![0u8; len];
-        self.file
-            .read_exact_at(&mut out, offset)
+        file.read_exact_at(&mut out, offset)
             .map_err(StoreError::io_path("cannot read back", &self.path))?;
         Ok(out)
     }
@@ -379,28 +432,49 @@ impl Vod2Writer {
         }
         .encode(changes);
         let commit_at = self.append(&record)?;
-        self.flush()?;
-        self.file
-            .sync_data()
-            .map_err(StoreError::io_path("cannot sync", &self.path))?;
         let slot = HeaderSlot {
             seq,
             commit: commit_at,
             committed_len: self.end(),
             version,
         };
-        let slot_at = SLOT_OFFSETS[(seq % 2) as usize];
-        self.file
-            .write_all_at(&slot.encode(), slot_at)
+        match &self.target {
+            Target::File(_) => {
+                self.flush()?;
+                self.switch_slot(&slot)?;
+            }
+            Target::Remote(publish) => {
+                publish.publish(self.head, self.buf_at, &self.buf, &slot)?;
+                self.buf_at = slot.committed_len;
+                self.buf.clear();
+                // What it stored is now below `buf_at`, which it cannot read back.
+                self.known.clear();
+            }
+        }
+        self.head = Some(slot);
+        Ok(slot)
+    }
+}
+
+impl Vod2Writer {
+    /// The local commit's second half: everything appended is synced, then the slot that is not
+    /// the current head's names `slot`, and is synced in turn.
+    fn switch_slot(&self, slot: &HeaderSlot) -> Result<(), StoreError> {
+        let Target::File(file) = &self.target else {
+            return Err(StoreError::Internal(
+                "a remote writer has no header slots".into(),
+            ));
+        };
+        file.sync_data()
+            .map_err(StoreError::io_path("cannot sync", &self.path))?;
+        let slot_at = SLOT_OFFSETS[(slot.seq % 2) as usize];
+        file.write_all_at(&slot.encode(), slot_at)
             .map_err(StoreError::io_path(
                 "cannot write header slot of",
                 &self.path,
             ))?;
-        self.file
-            .sync_data()
-            .map_err(StoreError::io_path("cannot sync", &self.path))?;
-        self.head = Some(slot);
-        Ok(slot)
+        file.sync_data()
+            .map_err(StoreError::io_path("cannot sync", &self.path))
     }
 }
 

@@ -3,13 +3,24 @@
 //! serves.
 
 use super::resolve::DirVolumes;
-use super::{change_event, FeedItem, History, LiveVolume, VolumeError, WriterSlot};
+use super::{History, LiveVolume, VolumeError, WriterSlot};
 use crate::icvg::edit::{apply_edit, Edit, EditOutcome};
 use crate::icvg::term::{TermLimits, VolumeResolver};
 use crate::progress::Silent;
 use crate::store::codec::Compression;
+use crate::store::compact::compact_remote;
 use crate::store::compact::{compact, CompactReport};
+use crate::store::remote::RemoteVolume;
 use crate::store::{CheckpointPolicy, StoreError, Vod2, Vod2Writer};
+use std::time::Duration;
+
+/// Commits an edit tries against other writers of an object-store volume before it answers
+/// that the volume is too busy (503, retry).
+const MAX_REMOTE_ATTEMPTS: u32 = 16;
+
+/// How long objects a compaction of an object-store volume made garbage stay, for replicas
+/// still reading the old head.
+pub const GC_GRACE: Duration = Duration::from_secs(15 * 60);
 use isovox_proto::api::EditResponse;
 use isovox_proto::icvg::EditRequest;
 use std::path::Path;
@@ -84,6 +95,9 @@ impl LiveVolume {
         if_match: Option<u64>,
         policy: CheckpointPolicy,
     ) -> Result<EditResponse, VolumeError> {
+        if let Some(remote) = self.remote() {
+            return self.apply_remote(remote.clone(), slot, edit, if_match, policy);
+        }
         let vod = self.current();
         let head = vod.head();
         if let Some(expected) = if_match.filter(|&v| v != head.version) {
@@ -124,21 +138,7 @@ impl LiveVolume {
                 tracing::warn!(error = %crate::store::error_chain(&e), "cannot extend the head; reopening the file");
                 Vod2::open(vod.path())
             })?;
-        let event = change_event(&next, committed.commit)?;
-        {
-            let mut history = self.history.write().unwrap_or_else(|p| p.into_inner());
-            if history.offsets.is_empty() {
-                history.oldest = committed.version;
-            }
-            history.offsets.push(committed.commit);
-        }
-        self.current.store(Arc::new(next));
-        let json = serde_json::to_string(&event).unwrap_or_default();
-        // No subscriber is not an error.
-        let _ = self.feed.send(Arc::new(FeedItem {
-            version: event.version,
-            json,
-        }));
+        let event = self.publish_commit(next, committed.commit)?;
         Ok(EditResponse {
             version: event.version,
             previous: head.version,
@@ -150,12 +150,72 @@ impl LiveVolume {
         })
     }
 
+    /// [`LiveVolume::apply`] for a volume in an object store: catch up with the head, apply the
+    /// edit on it, publish; when another writer's commit won the head meanwhile, catch up and
+    /// apply the edit again on top of it (a conditional edit is refused instead: its version
+    /// is gone).
+    fn apply_remote(
+        &self,
+        remote: Arc<RemoteVolume>,
+        slot: &mut WriterSlot,
+        edit: &Edit,
+        if_match: Option<u64>,
+        policy: CheckpointPolicy,
+    ) -> Result<EditResponse, VolumeError> {
+        let mut attempt = 0u32;
+        loop {
+            self.catch_up(slot)?;
+            let vod = self.current();
+            let head = vod.head();
+            if let Some(expected) = if_match.filter(|&v| v != head.version) {
+                return Err(VolumeError::Conflict {
+                    expected,
+                    current: head.version,
+                });
+            }
+            let mut writer = Vod2Writer::remote(&vod, remote.clone());
+            match apply_edit(&mut writer, &head, edit, policy) {
+                Ok(outcome) => {
+                    let committed = writer.head().ok_or_else(|| {
+                        StoreError::Internal("a commit left the writer without a head".into())
+                    })?;
+                    let next = remote.after_commit(&vod)?;
+                    let event = self.publish_commit(next, committed.commit)?;
+                    return Ok(EditResponse {
+                        version: event.version,
+                        previous: head.version,
+                        changed: event.changed,
+                        evaluated: outcome.evaluated as u64,
+                        new_records: outcome.new_records,
+                        checkpoint: outcome.checkpoint,
+                        elapsed_us: outcome.elapsed.as_micros() as u64,
+                    });
+                }
+                Err(StoreError::HeadMoved { .. }) if attempt + 1 < MAX_REMOTE_ATTEMPTS => {
+                    attempt += 1;
+                    // Writers that collide again and again back off apart (the retry is
+                    // spread over a few milliseconds, longer each time).
+                    let spread = 1 + (std::process::id() as u64 * 7 + attempt as u64 * 13) % 5;
+                    std::thread::sleep(Duration::from_millis(spread * u64::from(attempt)));
+                }
+                Err(e) => return Err(e.into()),
+            }
+        }
+    }
+
     /// Rewrites the file with only the head version and serves the result, holding the writer.
     /// Blocking: call it off the async runtime.
     ///
     /// # Errors
     /// Compaction failed (the old file is then still served) or the new file does not open.
     pub fn compact(&self, slot: &mut WriterSlot) -> Result<CompactReport, StoreError> {
+        if let Some(remote) = self.remote() {
+            self.catch_up(slot)?;
+            let vod = self.current();
+            let report = compact_remote(remote, &vod, GC_GRACE)?;
+            self.catch_up(slot)?;
+            return Ok(report);
+        }
         let vod = self.current();
         let head = vod.head();
         // The writer's dedup table names offsets of the old file.
