@@ -87,6 +87,15 @@ impl Bucket {
     /// # Errors
     /// The URL is not `s3://bucket[/prefix]`, or the configuration is incomplete.
     pub fn from_url(url: &str) -> Result<Bucket, StoreError> {
+        Self::from_url_at(url, None)
+    }
+
+    /// [`Bucket::from_url`] with the endpoint given here rather than by `AWS_ENDPOINT` (several
+    /// stores in one process: tests, tools).
+    ///
+    /// # Errors
+    /// See [`Bucket::from_url`].
+    pub fn from_url_at(url: &str, endpoint: Option<&str>) -> Result<Bucket, StoreError> {
         let rest = url.strip_prefix("s3://").ok_or_else(|| {
             StoreError::BadInput(format!("{url}: a store is named s3://bucket/prefix"))
         })?;
@@ -99,14 +108,17 @@ impl Bucket {
         }
         // TLS (for https endpoints) runs on rustls with ring, as the HTTPS listener does.
         let _ = tokio_rustls::rustls::crypto::ring::default_provider().install_default();
-        let s3 = object_store::aws::AmazonS3Builder::from_env()
-            .with_bucket_name(bucket)
-            .build()
-            .map_err(|e| {
-                StoreError::BadInput(format!(
-                    "{url}: cannot configure the store from the AWS_* environment: {e}"
-                ))
-            })?;
+        let mut builder = object_store::aws::AmazonS3Builder::from_env().with_bucket_name(bucket);
+        if let Some(endpoint) = endpoint {
+            builder = builder
+                .with_endpoint(endpoint)
+                .with_allow_http(endpoint.starts_with("http://"));
+        }
+        let s3 = builder.build().map_err(|e| {
+            StoreError::BadInput(format!(
+                "{url}: cannot configure the store from the AWS_* environment: {e}"
+            ))
+        })?;
         Ok(Bucket {
             store: Arc::new(s3),
             prefix: prefix.to_string(),

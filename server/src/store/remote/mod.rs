@@ -152,7 +152,7 @@ fn all_segments(bucket: &Bucket, head: &Head) -> Result<Vec<Segment>, StoreError
 ///
 /// # Errors
 /// No head ([`StoreError::Absent`]), or the store fails, or the head is malformed.
-fn read_head(bucket: &Bucket) -> Result<(Head, String), StoreError> {
+pub fn read_head(bucket: &Bucket) -> Result<(Head, String), StoreError> {
     match bucket.get_if_changed(HEAD_KEY, None)? {
         Conditional::Done(Some(bytes), etag) => Ok((Head::decode(&bytes)?, etag)),
         _ => Err(StoreError::Absent(format!(
