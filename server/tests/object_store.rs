@@ -677,3 +677,187 @@ fn a_stalled_writer_cannot_overwrite_a_newer_head() {
         "the refused edit is not there"
     );
 }
+
+/// nginx (Debian's) as a process, with a main configuration written for the test around
+/// `docker/nginx/isovox-locations.conf`, included as it is. Stopped when dropped.
+struct Nginx {
+    child: Child,
+    base: String,
+    _dir: tempfile::TempDir,
+}
+
+impl Nginx {
+    fn start(upstream: &str) -> Nginx {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path().display();
+        let port = free_port();
+        let rules = workspace().join("docker/nginx/isovox-locations.conf");
+        let conf = format!(
+            "daemon off;\nworker_processes 1;\npid {d}/nginx.pid;\nerror_log {d}/error.log;\n\
+             events {{ worker_connections 512; }}\nhttp {{\n  access_log off;\n\
+             client_body_temp_path {d}/body; proxy_temp_path {d}/proxy;\n\
+             fastcgi_temp_path {d}/fcgi; uwsgi_temp_path {d}/uwsgi; scgi_temp_path {d}/scgi;\n\
+             proxy_cache_path {d}/cache levels=1:2 keys_zone=isovox:8m max_size=1g inactive=30d use_temp_path=off;\n\
+             upstream isovox {{ server {upstream}; keepalive 16; }}\n\
+             server {{ listen 127.0.0.1:{port}; include {}; }}\n}}\n",
+            rules.display()
+        );
+        std::fs::write(dir.path().join("nginx.conf"), conf).unwrap();
+        let nginx = ["/usr/sbin/nginx", "/usr/bin/nginx"]
+            .into_iter()
+            .find(|p| Path::new(p).exists())
+            .expect("nginx is installed (.ci/run installs Debian's)");
+        let child = Command::new(nginx)
+            .arg("-c")
+            .arg(dir.path().join("nginx.conf"))
+            .arg("-p")
+            .arg(dir.path())
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+            assert!(Instant::now() < deadline, "nginx does not listen");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        Nginx {
+            child,
+            base: format!("http://127.0.0.1:{port}/v1/volumes/{VOLUME}"),
+            _dir: dir,
+        }
+    }
+}
+
+impl Drop for Nginx {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Requests the replica answered on `route` (its Prometheus counter, every status).
+fn answered(http: &Client, replica: &Server, route: &str) -> u64 {
+    let root = &replica.base[..replica.base.find("/v1/").unwrap()];
+    let text = http
+        .get(format!("{root}/metrics"))
+        .send()
+        .unwrap()
+        .text()
+        .unwrap();
+    text.lines()
+        .filter(|l| {
+            l.starts_with("isovox_requests_total{") && l.contains(&format!("route=\"{route}\""))
+        })
+        .filter_map(|l| l.rsplit(' ').next()?.parse::<u64>().ok())
+        .sum()
+}
+
+#[test]
+fn nginx_in_front_of_a_replica_caches_blobs_for_good_and_revalidates_bricks() {
+    let s3 = S3::start("isovox-nginx");
+    let data = tempfile::tempdir().unwrap();
+    world(&s3, data.path());
+    let http = client();
+    let replica = Server::replica(&s3, None);
+    let upstream = &replica.base["http://".len()..replica.base.find("/v1/").unwrap()];
+    let nginx = Nginx::start(upstream);
+    let blobs = "/v1/volumes/{name}/blobs/{hash}";
+
+    // A stampede of 16 concurrent misses for one blob makes one request to the replica.
+    let (_, direct, etag) = replica.get(&http, "bricks/0/2/2/2", None);
+    let hash = etag.trim_matches('"').to_string();
+    let before = answered(&http, &replica, blobs);
+    let bodies: Vec<Vec<u8>> = std::thread::scope(|scope| {
+        let handles: Vec<_> = (0..16)
+            .map(|_| {
+                let url = format!("{}/blobs/{hash}", nginx.base);
+                scope.spawn(move || client().get(url).send().unwrap().bytes().unwrap().to_vec())
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap()).collect()
+    });
+    assert!(
+        bodies.iter().all(|b| *b == direct),
+        "a cached blob differs from the replica's"
+    );
+    assert_eq!(
+        answered(&http, &replica, blobs) - before,
+        1,
+        "proxy_cache_lock"
+    );
+    let resp = http
+        .get(format!("{}/blobs/{hash}", nginx.base))
+        .send()
+        .unwrap();
+    assert_eq!(resp.headers()["x-cache"], "HIT");
+    assert!(resp.headers()["cache-control"]
+        .to_str()
+        .unwrap()
+        .contains("immutable"));
+
+    // Bricks by position: served through the cache, then revalidated by ETag after an edit.
+    let bricks = "/v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}";
+    let through = http
+        .get(format!("{}/bricks/0/4/3/4", nginx.base))
+        .send()
+        .unwrap()
+        .bytes()
+        .unwrap();
+    let (_, at_replica, _) = replica.get(&http, "bricks/0/4/3/4", None);
+    assert!(through.as_ref() == at_replica.as_slice());
+    let (status, _) = replica.edit(&http, &carve([66, 50, 66]), None);
+    assert_eq!(status, 200);
+    std::thread::sleep(Duration::from_millis(2100));
+    let n = answered(&http, &replica, bricks);
+    let resp = http
+        .get(format!("{}/bricks/0/4/3/4", nginx.base))
+        .send()
+        .unwrap();
+    let status = resp.headers()["x-cache"].to_str().unwrap().to_string();
+    let fresh = resp.bytes().unwrap();
+    let (_, edited, _) = replica.get(&http, "bricks/0/4/3/4", None);
+    assert!(
+        fresh.as_ref() == edited.as_slice(),
+        "nginx served a stale brick ({status})"
+    );
+    assert!(
+        answered(&http, &replica, bricks) > n,
+        "nginx did not ask the replica again"
+    );
+    // An unchanged brick revalidates with a 304 from the replica: nginx says REVALIDATED.
+    let _ = http
+        .get(format!("{}/bricks/0/0/0/0", nginx.base))
+        .send()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(2100));
+    let resp = http
+        .get(format!("{}/bricks/0/0/0/0", nginx.base))
+        .send()
+        .unwrap();
+    assert_eq!(resp.headers()["x-cache"], "REVALIDATED");
+
+    // The change feed passes through unbuffered: an edit's event arrives while the stream is open.
+    let feed = client()
+        .get(format!("{}/events", nginx.base))
+        .send()
+        .unwrap();
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(feed).lines() {
+            let Ok(line) = line else { break };
+            if line.contains("\"version\":3") {
+                let _ = tx.send(line);
+                break;
+            }
+        }
+    });
+    std::thread::sleep(Duration::from_millis(200));
+    let (status, _) = replica.edit(&http, &carve([10, 50, 70]), None);
+    assert_eq!(status, 200);
+    let event = rx
+        .recv_timeout(Duration::from_secs(10))
+        .expect("the commit event through nginx");
+    assert!(event.contains("changed"), "{event}");
+}
