@@ -24,19 +24,20 @@
 #![allow(clippy::unwrap_used)]
 
 mod common;
+mod server_process;
 
 use common::{pyramid, Grid, XorShift};
 use isovox_proto::api::VolumeInfo;
 use isovox_proto::VoxelType;
 use serde_json::{json, Value};
+use server_process::ServerProcess;
 use std::collections::hash_map::DefaultHasher;
 use std::collections::BTreeMap;
 use std::hash::{Hash, Hasher};
-use std::io::{BufRead, BufReader};
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{mpsc, Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 const TOKEN: &str = "durability-3f9c0d7e21b8";
@@ -51,102 +52,50 @@ const DEFAULT_SEED: u64 = 0x5eed_d0c5_1a7e_b00c;
 // The server process
 // ---------------------------------------------------------------------------------------------
 
-/// A running `isovox serve`; killed (SIGKILL) when dropped, so a failing test leaves no server.
+/// A running `isovox serve` over `VOLUME`; killed (SIGKILL) when dropped, so a failing test
+/// leaves no server.
 struct Server {
-    child: Child,
+    process: ServerProcess,
+    /// `http://ADDR/v1/volumes/VOLUME`.
     base: String,
-    log: Arc<Mutex<Vec<String>>>,
 }
 
 impl Server {
     fn start(dir: &Path) -> Server {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_isovox"))
-            .arg("serve")
-            .arg("--data")
-            .arg(dir)
-            .arg("--addr")
-            .arg("127.0.0.1:0")
-            .arg("--token-file")
-            .arg(dir.join("tokens"))
-            .env_remove("ISOVOX_WRITE_TOKEN")
-            .env_remove("ISOVOX_PRIVATE_READS")
-            .env_remove("ISOVOX_EDIT_QUEUE")
-            .env_remove("ISOVOX_MAX_EDIT_VOXELS")
-            // Three editors on one token may well exceed the default 50 edits/s; 429s are handled
-            // (as edits not applied) but would only slow the test down.
-            .env("ISOVOX_EDIT_RATE", "100000")
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("the isovox binary starts");
-        let stderr = child.stderr.take().unwrap();
-        let log = Arc::new(Mutex::new(Vec::new()));
-        let (tx, rx) = mpsc::channel();
-        {
-            let log = log.clone();
-            // Drains stderr for the life of the process (a full pipe would block the server).
-            std::thread::spawn(move || {
-                let mut announced = false;
-                for line in BufReader::new(stderr).lines() {
-                    let Ok(line) = line else { break };
-                    if !announced && line.contains("isovox serving") {
-                        announced = true;
-                        let _ = tx.send(line.clone());
-                    }
-                    log.lock().unwrap().push(line);
-                }
-            });
-        }
-        let mut server = Server {
-            child,
-            base: String::new(),
-            log,
-        };
-        let line = match rx.recv_timeout(Duration::from_secs(60)) {
-            Ok(line) => line,
-            Err(_) => panic!(
-                "the server did not announce its address (the file may not open); exit {:?}\n{}",
-                server.child.try_wait().ok().flatten(),
-                server.log_text()
-            ),
-        };
-        let start = line
-            .find("http://")
-            .unwrap_or_else(|| panic!("no address in {line:?}"));
-        let rest = &line[start + "http://".len()..];
-        let addr = &rest[..rest.find('/').unwrap_or(rest.len())];
-        assert!(
-            line.contains(VOLUME),
-            "the server does not serve {VOLUME:?}: {line:?}\n{}",
-            server.log_text()
+        let process = ServerProcess::start(
+            &[
+                "--data".as_ref(),
+                dir.as_os_str(),
+                "--token-file".as_ref(),
+                dir.join("tokens").as_os_str(),
+            ],
+            // Many editors on one token may well exceed the default 50 edits/s; 429s are
+            // handled (as edits not applied) but would only slow the test down.
+            &[("ISOVOX_EDIT_RATE", "100000")],
         );
-        server.base = format!("http://{addr}/v1/volumes/{VOLUME}");
-        server
+        assert!(
+            process.announced.contains(VOLUME),
+            "the server does not serve {VOLUME:?}: {:?}\n{}",
+            process.announced,
+            process.log_tail(40)
+        );
+        let base = process.url(&format!("/v1/volumes/{VOLUME}"));
+        Server { process, base }
     }
 
     fn log_text(&self) -> String {
-        let log = self.log.lock().unwrap();
-        let from = log.len().saturating_sub(40);
-        format!("server stderr (last lines):\n{}", log[from..].join("\n"))
+        format!("server stderr (last lines):\n{}", self.process.log_tail(40))
     }
 
     fn assert_no_panic(&self) {
-        let log = self.log.lock().unwrap();
-        if let Some(line) = log.iter().find(|l| l.contains("panicked")) {
-            panic!("the server panicked: {line}\n{}", log.join("\n"));
+        let log = self.process.log();
+        if let Some(line) = log.lines().find(|l| l.contains("panicked")) {
+            panic!("the server panicked: {line}\n{log}");
         }
     }
 
     fn kill(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        self.kill();
+        self.process.stop();
     }
 }
 

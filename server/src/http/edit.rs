@@ -3,6 +3,7 @@
 use super::auth::WriteToken;
 use super::cpu::blocking;
 use super::extract::Path;
+use super::request_body::{is_json, read_limited};
 use super::{ApiError, AppState};
 use crate::store::CheckpointPolicy;
 use axum::body::Body;
@@ -56,13 +57,7 @@ async fn edit_request(headers: &HeaderMap, body: Body) -> Result<EditRequest, Ap
             "an edit is JSON: send Content-Type: application/json".into(),
         ));
     }
-    let body = axum::body::to_bytes(body, MAX_EDIT_BODY)
-        .await
-        .map_err(|_| {
-            ApiError::TooLarge(format!(
-                "an edit request takes at most {MAX_EDIT_BODY} bytes (or the body was cut off)"
-            ))
-        })?;
+    let body = read_limited(headers, body, MAX_EDIT_BODY, "an edit request").await?;
     serde_json::from_slice(&body)
         .map_err(|e| ApiError::BadRequest(format!("not an edit request: {e}")))
 }
@@ -80,16 +75,5 @@ fn if_match(headers: &HeaderMap) -> Result<Option<u64>, ApiError> {
         .map(Some)
         .ok_or_else(|| {
             ApiError::BadRequest("If-Match takes a version number, quoted or not".into())
-        })
-}
-
-fn is_json(headers: &HeaderMap) -> bool {
-    headers
-        .get(header::CONTENT_TYPE)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.split(';').next())
-        .is_some_and(|m| {
-            let m = m.trim();
-            m.eq_ignore_ascii_case("application/json") || m.ends_with("+json")
         })
 }

@@ -9,7 +9,7 @@
 use crate::icvg::term::TermError;
 use crate::store::{error_chain, StoreError};
 use crate::volume::VolumeError;
-use axum::extract::rejection::{JsonRejection, PathRejection, QueryRejection};
+use axum::extract::rejection::{PathRejection, QueryRejection};
 use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use isovox_proto::api::Problem;
@@ -109,18 +109,6 @@ impl From<PathRejection> for ApiError {
 impl From<QueryRejection> for ApiError {
     fn from(e: QueryRejection) -> Self {
         ApiError::BadRequest(format!("malformed query: {e}"))
-    }
-}
-
-impl From<JsonRejection> for ApiError {
-    fn from(e: JsonRejection) -> Self {
-        match e.status() {
-            StatusCode::PAYLOAD_TOO_LARGE => ApiError::TooLarge(format!("request body: {e}")),
-            StatusCode::UNSUPPORTED_MEDIA_TYPE => {
-                ApiError::UnsupportedMedia(format!("request body: {e}"))
-            }
-            _ => ApiError::BadRequest(format!("malformed request body: {e}")),
-        }
     }
 }
 

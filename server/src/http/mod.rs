@@ -43,6 +43,7 @@ pub mod handlers;
 pub mod meshes;
 pub mod metrics;
 mod openapi;
+mod request_body;
 mod serve;
 pub mod tls;
 mod web_app;
@@ -246,8 +247,6 @@ pub fn app(
         .layer(TraceLayer::new_for_http())
         .layer(allow_origin)
         .layer(expose_headers)
-        // Request bodies (edit terms, batch key lists) are small; larger ones get 413.
-        .layer(axum::extract::DefaultBodyLimit::max(1 << 20))
         .layer(metrics::MetricsLayer::new(metrics))
         .service(fast_path::BrickFirst::new(fast_state, router))
 }
