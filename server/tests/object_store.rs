@@ -18,6 +18,9 @@
 
 use reqwest::blocking::Client;
 use serde_json::{json, Value};
+mod server_process;
+
+use server_process::ServerProcess;
 use std::io::{BufRead, BufReader};
 use std::net::TcpListener;
 use std::path::{Path, PathBuf};
@@ -153,68 +156,50 @@ impl Drop for S3 {
 /// An `isovox serve` process (a replica on the store, or the local-file server), killed with
 /// SIGKILL when dropped.
 struct Server {
-    child: Child,
+    process: ServerProcess,
     base: String,
     _dir: tempfile::TempDir,
 }
 
 impl Server {
     fn replica(s3: &S3, pause_before_head_ms: Option<u64>) -> Server {
-        let dir = tempfile::tempdir().unwrap();
-        let mut cmd = Command::new(env!("CARGO_BIN_EXE_isovox"));
-        cmd.args(["serve", "--store", &s3.url(), "--follow-ms", "50"]);
-        s3.env(&mut cmd);
-        if let Some(ms) = pause_before_head_ms {
-            cmd.env("ISOVOX_STORE_PAUSE_BEFORE_HEAD_MS", ms.to_string());
+        let store = s3.url();
+        let pause = pause_before_head_ms.map(|ms| ms.to_string());
+        let mut envs = vec![
+            ("AWS_ENDPOINT", s3.endpoint.as_str()),
+            ("AWS_ACCESS_KEY_ID", KEY_ID),
+            ("AWS_SECRET_ACCESS_KEY", SECRET),
+            ("AWS_REGION", "us-east-1"),
+            ("AWS_ALLOW_HTTP", "true"),
+        ];
+        if let Some(ms) = &pause {
+            envs.push(("ISOVOX_STORE_PAUSE_BEFORE_HEAD_MS", ms));
         }
-        Server::start(cmd, dir)
+        Server::start(&["--store", &store, "--follow-ms", "50"], &envs)
     }
 
     fn local(data: &Path) -> Server {
-        let dir = tempfile::tempdir().unwrap();
-        let mut cmd = Command::new(env!("CARGO_BIN_EXE_isovox"));
-        cmd.arg("serve").arg("--data").arg(data);
-        Server::start(cmd, dir)
+        Server::start(&["--data", data.to_str().unwrap()], &[])
     }
 
-    fn start(mut cmd: Command, dir: tempfile::TempDir) -> Server {
+    fn start(args: &[&str], envs: &[(&str, &str)]) -> Server {
+        let dir = tempfile::tempdir().unwrap();
         std::fs::write(dir.path().join("tokens"), format!("t {TOKEN} write\n")).unwrap();
-        let mut child = cmd
-            .arg("--addr")
-            .arg("127.0.0.1:0")
-            .arg("--token-file")
-            .arg(dir.path().join("tokens"))
-            .arg("--cache-dir")
-            .arg(dir.path().join("cache"))
-            .env("ISOVOX_EDIT_RATE", "100000")
-            .env_remove("ISOVOX_WRITE_TOKEN")
-            .env_remove("ISOVOX_STORE")
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap();
-        let stderr = child.stderr.take().unwrap();
-        let (tx, rx) = mpsc::channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stderr).lines() {
-                let Ok(line) = line else { break };
-                if line.contains("isovox serving") {
-                    let _ = tx.send(line.clone());
-                }
-                if line.contains("panicked") || line.contains("ERROR") {
-                    eprintln!("server: {line}");
-                }
-            }
-        });
-        let line = rx
-            .recv_timeout(Duration::from_secs(60))
-            .expect("the server announces its address");
-        let rest = &line[line.find("http://").unwrap() + 7..];
-        let addr = &rest[..rest.find('/').unwrap()];
+        let tokens = dir.path().join("tokens");
+        let cache = dir.path().join("cache");
+        let mut all: Vec<&std::ffi::OsStr> = args.iter().map(std::ffi::OsStr::new).collect();
+        all.extend([
+            std::ffi::OsStr::new("--token-file"),
+            tokens.as_os_str(),
+            std::ffi::OsStr::new("--cache-dir"),
+            cache.as_os_str(),
+        ]);
+        let mut envs = envs.to_vec();
+        envs.push(("ISOVOX_EDIT_RATE", "100000"));
+        let process = ServerProcess::start(&all, &envs);
         Server {
-            child,
-            base: format!("http://{addr}/v1/volumes/{VOLUME}"),
+            base: process.url(&format!("/v1/volumes/{VOLUME}")),
+            process,
             _dir: dir,
         }
     }
@@ -268,15 +253,7 @@ impl Server {
     }
 
     fn kill(mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
+        self.process.stop();
     }
 }
 
