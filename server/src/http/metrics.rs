@@ -303,7 +303,7 @@ fn gauges(state: &AppState, out: &mut String) {
             mirrored += remote.cached_bytes();
         }
     }
-    let gauges: [(&str, &str, &str, u64); 11] = [
+    let gauges: [(&str, &str, &str, u64); 14] = [
         (
             "isovox_response_bytes_total",
             "counter",
