@@ -21,7 +21,7 @@ const MAX_REMOTE_ATTEMPTS: u32 = 16;
 /// How long objects a compaction of an object-store volume made garbage stay, for replicas
 /// still reading the old head.
 pub const GC_GRACE: Duration = Duration::from_secs(15 * 60);
-use isovox_proto::api::EditResponse;
+use isovox_proto::api::{ChangeEvent, EditResponse};
 use isovox_proto::icvg::EditRequest;
 use std::path::Path;
 use std::sync::Arc;
@@ -139,15 +139,7 @@ impl LiveVolume {
                 Vod2::open(vod.path())
             })?;
         let event = self.publish_commit(next, committed.commit)?;
-        Ok(EditResponse {
-            version: event.version,
-            previous: head.version,
-            changed: event.changed,
-            evaluated: outcome.evaluated as u64,
-            new_records: outcome.new_records,
-            checkpoint: outcome.checkpoint,
-            elapsed_us: outcome.elapsed.as_micros() as u64,
-        })
+        Ok(edit_response(event, head.version, &outcome))
     }
 
     /// [`LiveVolume::apply`] for a volume in an object store: catch up with the head, apply the
@@ -181,15 +173,7 @@ impl LiveVolume {
                     })?;
                     let next = remote.after_commit(&vod)?;
                     let event = self.publish_commit(next, committed.commit)?;
-                    return Ok(EditResponse {
-                        version: event.version,
-                        previous: head.version,
-                        changed: event.changed,
-                        evaluated: outcome.evaluated as u64,
-                        new_records: outcome.new_records,
-                        checkpoint: outcome.checkpoint,
-                        elapsed_us: outcome.elapsed.as_micros() as u64,
-                    });
+                    return Ok(edit_response(event, head.version, &outcome));
                 }
                 Err(StoreError::HeadMoved { .. }) if attempt + 1 < MAX_REMOTE_ATTEMPTS => {
                     attempt += 1;
@@ -226,6 +210,19 @@ impl LiveVolume {
         *self.history.write().unwrap_or_else(|p| p.into_inner()) = history;
         self.current.store(Arc::new(fresh));
         Ok(report)
+    }
+}
+
+/// The answer to an edit committed as `event` on top of version `previous`.
+fn edit_response(event: ChangeEvent, previous: u64, outcome: &EditOutcome) -> EditResponse {
+    EditResponse {
+        version: event.version,
+        previous,
+        changed: event.changed,
+        evaluated: outcome.evaluated as u64,
+        new_records: outcome.new_records,
+        checkpoint: outcome.checkpoint,
+        elapsed_us: outcome.elapsed.as_micros() as u64,
     }
 }
 
