@@ -5,7 +5,6 @@ use super::cpu::blocking;
 use super::extract::Path;
 use super::request_body::{is_json, read_limited};
 use super::{ApiError, AppState};
-use crate::store::CheckpointPolicy;
 use axum::body::Body;
 use axum::extract::State;
 use axum::http::{header, HeaderMap};
@@ -16,9 +15,9 @@ use isovox_proto::icvg::EditRequest;
 /// Largest edit request body.
 const MAX_EDIT_BODY: usize = 1 << 20;
 
-/// Checks the token before anything is read, compiles the edit off the async runtime, waits
-/// for the volume's writer (bounded queue), applies and commits, and answers with the new
-/// version.
+/// Checks the token before anything is read, compiles the edit off the async runtime, queues
+/// it for the volume's writer (bounded queue; the writer commits the edits waiting together,
+/// each as its own version), and answers with the new version once it is durable.
 pub async fn edit(
     // First: without a token, nothing else is read.
     WriteToken(token): WriteToken,
@@ -34,11 +33,7 @@ pub async fn edit(
     let (limits, volumes, preparing) = (state.edit_limits(), state.resolver(), vol.clone());
     let edit =
         blocking(move || preparing.prepare_edit(&request, &limits, &volumes, if_match)).await?;
-    let mut writer = vol.wait_for_writer(state.config.edit_queue).await?;
-    let applying = vol.clone();
-    let response =
-        blocking(move || applying.apply(&mut writer, &edit, if_match, CheckpointPolicy::default()))
-            .await?;
+    let response = vol.submit(edit, if_match, state.group_commit()).await?;
     tracing::info!(
         volume = %name,
         token = %token.name,

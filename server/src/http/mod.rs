@@ -55,7 +55,7 @@ use crate::catalog::Catalog;
 use crate::mesh::cache::MeshCache;
 use crate::store::decoded::DecodedBricks;
 use crate::volume::resolve::CatalogVolumes;
-use crate::volume::EditLimits;
+use crate::volume::{EditLimits, GroupCommit};
 use axum::handler::Handler;
 use axum::http::StatusCode;
 use axum::routing::{get, post, MethodRouter};
@@ -82,6 +82,9 @@ pub struct ServerConfig {
     pub edit_rate: f64,
     /// Edits waiting for one volume's writer; beyond it 503.
     pub edit_queue: usize,
+    /// Edits one volume's writer makes durable together at most (one pair of syncs); 1 syncs
+    /// every edit on its own.
+    pub edit_group: usize,
     /// Level-0 voxels one edit may evaluate; beyond it 422.
     pub max_edit_voxels: u64,
     /// Limits on edit terms (depth, nodes, extent).
@@ -103,6 +106,7 @@ impl Default for ServerConfig {
             private_reads: false,
             edit_rate: 50.0,
             edit_queue: 64,
+            edit_group: crate::volume::GroupCommit::default().max_group,
             max_edit_voxels: 1 << 28,
             term_limits: crate::icvg::term::TermLimits::default(),
             mesh_dir: None,
@@ -187,6 +191,15 @@ impl AppState {
         EditLimits {
             term: self.config.term_limits,
             max_voxels: Some(self.config.max_edit_voxels),
+        }
+    }
+
+    /// How a volume's writer takes edits on this server.
+    pub fn group_commit(&self) -> GroupCommit {
+        GroupCommit {
+            max_waiting: self.config.edit_queue,
+            max_group: self.config.edit_group,
+            ..GroupCommit::default()
         }
     }
 

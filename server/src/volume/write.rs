@@ -1,9 +1,8 @@
-//! Writing a served volume: edits (checked against a server's limits, applied by the single
-//! writer, published to readers and the feed) and compaction; and an edit of a file no server
-//! serves.
+//! Writing a served volume: edits checked against a server's limits (applied by the writer in
+//! groups, `group.rs`) and compaction; and an edit of a file no server serves.
 
 use super::resolve::DirVolumes;
-use super::{History, LiveVolume, VolumeError, WriterSlot};
+use super::{LiveVolume, VolumeError, WriterSlot};
 use crate::icvg::edit::{apply_edit, Edit, EditOutcome};
 use crate::icvg::term::{TermLimits, VolumeResolver};
 use crate::progress::Silent;
@@ -12,7 +11,11 @@ use crate::store::compact::compact_remote;
 use crate::store::compact::{compact, CompactReport};
 use crate::store::remote::RemoteVolume;
 use crate::store::{CheckpointPolicy, StoreError, Vod2, Vod2Writer};
-use std::time::Duration;
+use isovox_proto::api::{ChangeEvent, EditResponse};
+use isovox_proto::icvg::EditRequest;
+use std::path::Path;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 /// Commits an edit tries against other writers of an object-store volume before it answers
 /// that the volume is too busy (503, retry).
@@ -21,10 +24,6 @@ const MAX_REMOTE_ATTEMPTS: u32 = 16;
 /// How long objects a compaction of an object-store volume made garbage stay, for replicas
 /// still reading the old head.
 pub const GC_GRACE: Duration = Duration::from_secs(15 * 60);
-use isovox_proto::api::{ChangeEvent, EditResponse};
-use isovox_proto::icvg::EditRequest;
-use std::path::Path;
-use std::sync::Arc;
 use tokio::sync::OwnedMutexGuard;
 
 /// What one edit may ask for.
@@ -42,7 +41,8 @@ impl LiveVolume {
     /// off the async runtime.
     ///
     /// # Errors
-    /// [`VolumeError::InvalidEdit`], [`VolumeError::EditTooLarge`], [`VolumeError::Conflict`].
+    /// [`VolumeError::ReadOnly`], [`VolumeError::InvalidEdit`], [`VolumeError::EditTooLarge`],
+    /// [`VolumeError::Conflict`].
     pub fn prepare_edit(
         &self,
         request: &EditRequest,
@@ -50,6 +50,7 @@ impl LiveVolume {
         volumes: &dyn VolumeResolver,
         if_match: Option<u64>,
     ) -> Result<Edit, VolumeError> {
+        self.check_writable()?;
         let head = self.head();
         let layout = head.layout();
         let edit = Edit::from_request(request, layout.voxel_type(), &limits.term, volumes)?;
@@ -67,7 +68,8 @@ impl LiveVolume {
     }
 
     /// Takes a place in the writer's queue ([`VolumeError::WriterBusy`] when `max_waiting`
-    /// edits already wait) and waits for the writer, in arrival order.
+    /// edits and compactions already wait) and waits for the writer lock, between two groups
+    /// of edits: what a compaction holds.
     ///
     /// # Errors
     /// [`VolumeError::WriterBusy`].
@@ -81,79 +83,50 @@ impl LiveVolume {
         Ok(writer)
     }
 
-    /// Applies `edit` to the head and commits it as the next version, holding the writer.
-    /// Blocking (evaluates on rayon, syncs the file): call it off the async runtime.
+    /// Rewrites the file with only the head version and serves the result, holding the writer.
+    /// Blocking: call it off the async runtime.
     ///
     /// # Errors
-    /// `If-Match` mismatch, or reading or committing failed (the head is then unchanged and
-    /// the writer is reopened on the next edit, cutting off whatever the failed commit
-    /// appended).
-    pub fn apply(
-        &self,
-        slot: &mut WriterSlot,
-        edit: &Edit,
-        if_match: Option<u64>,
-        policy: CheckpointPolicy,
-    ) -> Result<EditResponse, VolumeError> {
+    /// The volume is read-only ([`VolumeError::ReadOnly`]: compacting would rewrite its file
+    /// without the damaged versions; `isovox salvage` writes a new file instead), compaction
+    /// failed (the old file is then still served) or the new file does not open.
+    pub fn compact(&self, slot: &mut WriterSlot) -> Result<CompactReport, VolumeError> {
+        self.check_writable()?;
         if let Some(remote) = self.remote() {
-            return self.apply_remote(remote.clone(), slot, edit, if_match, policy);
+            self.catch_up(slot)?;
+            let vod = self.current();
+            let report = compact_remote(remote, &vod, GC_GRACE)?;
+            self.catch_up(slot)?;
+            return Ok(report);
         }
         let vod = self.current();
         let head = vod.head();
-        if let Some(expected) = if_match.filter(|&v| v != head.version) {
-            return Err(VolumeError::Conflict {
-                expected,
-                current: head.version,
-            });
-        }
-        let writer = match &mut slot.writer {
-            Some(w) => w,
-            empty => empty.insert(Vod2Writer::open_append(vod.path(), Compression::default())?),
-        };
-        if writer.head().map(|h| h.commit) != Some(head.commit_offset()) {
-            slot.writer = None;
-            return Err(StoreError::Internal(
-                "the writer and the served head disagree; reopening the writer".into(),
-            )
-            .into());
-        }
-        let outcome = match apply_edit(writer, &head, edit, policy) {
-            Ok(o) => o,
-            Err(e) => {
-                slot.writer = None;
-                return Err(e.into());
-            }
-        };
-        let Some(committed) = writer.head() else {
-            slot.writer = None;
-            return Err(
-                StoreError::Internal("a commit left the writer without a head".into()).into(),
-            );
-        };
-        // The commit is durable: from here on, failing to publish it would hide an edit that a
-        // restart would show, so fall back to reopening the file.
-        let next = vod
-            .advance(committed)
-            .or_else(|e| {
-                tracing::warn!(error = %crate::store::error_chain(&e), "cannot extend the head; reopening the file");
-                Vod2::open(vod.path())
-            })?;
-        let event = self.publish_commit(next, committed.commit)?;
-        Ok(edit_response(event, head.version, &outcome))
+        // The writer's dedup table names offsets of the old file.
+        slot.writer = None;
+        let report = compact(&vod, &head, &Silent)?;
+        self.reload()?;
+        Ok(report)
     }
+}
 
-    /// [`LiveVolume::apply`] for a volume in an object store: catch up with the head, apply the
-    /// edit on it, publish; when another writer's commit won the head meanwhile, catch up and
-    /// apply the edit again on top of it (a conditional edit is refused instead: its version
-    /// is gone).
-    fn apply_remote(
+impl LiveVolume {
+    /// An edit of a volume in an object store, holding the writer: catch up with the head,
+    /// apply the edit on it, publish; when another writer's commit won the head meanwhile,
+    /// catch up and apply the edit again on top of it (a conditional edit is refused instead:
+    /// its version is gone). Blocking.
+    ///
+    /// # Errors
+    /// [`VolumeError::Conflict`]; [`StoreError::HeadMoved`] after [`MAX_REMOTE_ATTEMPTS`]
+    /// lost races; what applying or the store failed with.
+    pub(crate) fn apply_remote(
         &self,
-        remote: Arc<RemoteVolume>,
+        remote: &Arc<RemoteVolume>,
         slot: &mut WriterSlot,
         edit: &Edit,
         if_match: Option<u64>,
         policy: CheckpointPolicy,
     ) -> Result<EditResponse, VolumeError> {
+        let started = Instant::now();
         let mut attempt = 0u32;
         loop {
             self.catch_up(slot)?;
@@ -173,43 +146,21 @@ impl LiveVolume {
                     })?;
                     let next = remote.after_commit(&vod)?;
                     let event = self.publish_commit(next, committed.commit)?;
-                    return Ok(edit_response(event, head.version, &outcome));
+                    let mut response = edit_response(event, head.version, &outcome);
+                    response.elapsed_us = started.elapsed().as_micros() as u64;
+                    return Ok(response);
                 }
                 Err(StoreError::HeadMoved { .. }) if attempt + 1 < MAX_REMOTE_ATTEMPTS => {
                     attempt += 1;
                     // Writers that collide again and again back off apart (the retry is
                     // spread over a few milliseconds, longer each time).
-                    let spread = 1 + (std::process::id() as u64 * 7 + attempt as u64 * 13) % 5;
+                    let spread =
+                        1 + (u64::from(std::process::id()) * 7 + u64::from(attempt) * 13) % 5;
                     std::thread::sleep(Duration::from_millis(spread * u64::from(attempt)));
                 }
                 Err(e) => return Err(e.into()),
             }
         }
-    }
-
-    /// Rewrites the file with only the head version and serves the result, holding the writer.
-    /// Blocking: call it off the async runtime.
-    ///
-    /// # Errors
-    /// Compaction failed (the old file is then still served) or the new file does not open.
-    pub fn compact(&self, slot: &mut WriterSlot) -> Result<CompactReport, StoreError> {
-        if let Some(remote) = self.remote() {
-            self.catch_up(slot)?;
-            let vod = self.current();
-            let report = compact_remote(remote, &vod, GC_GRACE)?;
-            self.catch_up(slot)?;
-            return Ok(report);
-        }
-        let vod = self.current();
-        let head = vod.head();
-        // The writer's dedup table names offsets of the old file.
-        slot.writer = None;
-        let report = compact(&vod, &head, &Silent)?;
-        let fresh = Vod2::open(vod.path())?;
-        let history = History::read(&fresh)?;
-        *self.history.write().unwrap_or_else(|p| p.into_inner()) = history;
-        self.current.store(Arc::new(fresh));
-        Ok(report)
     }
 }
 
@@ -242,7 +193,7 @@ pub fn edit_file(path: &Path, request: &EditRequest) -> Result<EditOutcome, Volu
         &TermLimits::default(),
         &DirVolumes { dir },
     )?;
-    let mut writer = Vod2Writer::open_append(path, Compression::default())?;
+    let mut writer = Vod2Writer::open_append(path, Compression::for_edits())?;
     Ok(apply_edit(
         &mut writer,
         &snap,

@@ -18,6 +18,7 @@ const SERVE_ENV: &[&str] = &[
     "ISOVOX_PRIVATE_READS",
     "ISOVOX_EDIT_RATE",
     "ISOVOX_EDIT_QUEUE",
+    "ISOVOX_EDIT_GROUP",
     "ISOVOX_MAX_EDIT_VOXELS",
 ];
 
