@@ -1,5 +1,6 @@
 //! The volumes a server serves: every VOD 2 file of its data directory, named after the file.
 
+use crate::store::remote::{Bucket, CacheConfig, RemoteVolume};
 use crate::store::{check, StoreError, Vod2};
 use crate::volume::{LiveVolume, VolumeError};
 use std::collections::BTreeMap;
@@ -83,6 +84,35 @@ impl Catalog {
                 }
                 Err(e) => {
                     tracing::error!(path = %path.display(), error = %crate::store::error_chain(&e), "cannot open volume; not serving it")
+                }
+            }
+        }
+        Ok(Catalog { volumes })
+    }
+
+    /// Opens every volume of an object store (`s3://bucket/prefix`: each `prefix/NAME/` holding
+    /// a head object), with a mirror each in `cache`. A volume that does not open is reported
+    /// and left out.
+    ///
+    /// # Errors
+    /// The store cannot be listed.
+    pub fn open_store(store: &Bucket, cache: &CacheConfig) -> Result<Catalog, StoreError> {
+        let mut volumes = BTreeMap::new();
+        let mut names = store.list_dirs()?;
+        names.sort();
+        for name in names {
+            if !valid_name(&name) {
+                tracing::warn!(store = %store.url(), name, "skipping a volume whose name is not [A-Za-z0-9_.-]");
+                continue;
+            }
+            let opened = RemoteVolume::open(store, &name, cache.clone())
+                .and_then(|(remote, vod)| LiveVolume::with_remote(&name, vod, remote));
+            match opened {
+                Ok(volume) => {
+                    volumes.insert(name, Arc::new(volume));
+                }
+                Err(e) => {
+                    tracing::error!(store = %store.url(), name, error = %crate::store::error_chain(&e), "cannot open volume; not serving it")
                 }
             }
         }

@@ -10,8 +10,9 @@ use isovox_server::store::build::{build_file, sibling, FileFormat};
 use isovox_server::store::codec::{Compression, DEFAULT_ZSTD_LEVEL};
 use isovox_server::store::inspect::inspect as inspect_vod2;
 use isovox_server::store::raw::{export_raw, rawvox_header, RawInput, Region, RAWVOX_MAGIC};
+use isovox_server::store::remote::{upload, Bucket, CacheConfig, RemoteVolume};
 use isovox_server::store::vod1::{write_vod1, Vod1File, Vod1Source};
-use isovox_server::store::{BrickSource, BuildOptions, DenseGrid};
+use isovox_server::store::{BrickSource, BuildOptions, DenseGrid, Vod2};
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
@@ -29,7 +30,7 @@ pub(crate) struct ImportArgs {
     /// field's formats, local or an http(s) URL: OME-Zarr / Zarr v2 or v3, Neuroglancer
     /// precomputed, NIfTI-1 (.nii, .nii.gz), a TIFF stack (multi-page file or folder).
     pub input: PathBuf,
-    /// Output file.
+    /// Output file, or a new volume in an object store (s3://bucket/prefix/NAME).
     #[arg(short, long)]
     pub output: PathBuf,
     /// Voxels per axis of a RAW file: X,Y,Z.
@@ -97,7 +98,7 @@ pub(crate) enum ExportFormat {
 
 #[derive(Debug, Args)]
 pub(crate) struct ExportArgs {
-    /// A VOD 2 file.
+    /// A VOD 2 file, or a volume in an object store (s3://bucket/prefix/NAME).
     pub input: PathBuf,
     /// Output file (a directory for zarr and precomputed).
     #[arg(short, long)]
@@ -225,7 +226,99 @@ fn options(compression: Compression) -> BuildOptions {
     }
 }
 
+/// A volume in an object store named by a path argument, `s3://bucket/prefix/NAME`: the store
+/// and the name.
+fn in_store(path: &Path) -> anyhow::Result<Option<(Bucket, String)>> {
+    let Some(url) = path.to_str().filter(|p| p.starts_with("s3://")) else {
+        return Ok(None);
+    };
+    let (store, name) = url
+        .trim_end_matches('/')
+        .rsplit_once('/')
+        .filter(|(store, _)| store.len() > "s3://".len())
+        .ok_or_else(|| anyhow!("{url}: a volume in a store is s3://bucket/prefix/NAME"))?;
+    if !isovox_server::catalog::valid_name(name) {
+        bail!("{url}: a volume name is [A-Za-z0-9_.-]");
+    }
+    Ok(Some((Bucket::from_url(store)?, name.to_string())))
+}
+
+/// Opens volume `name` of `store` with a mirror in a temporary directory (removed on drop).
+fn open_in_store(
+    store: &Bucket,
+    name: &str,
+) -> anyhow::Result<(Arc<RemoteVolume>, Vod2, TempCache)> {
+    let dir = std::env::temp_dir().join(format!("isovox-cli-{}", std::process::id()));
+    let cache = CacheConfig {
+        dir: dir.clone(),
+        max_bytes: u64::MAX,
+    };
+    let (remote, vod) = RemoteVolume::open(store, name, cache)
+        .with_context(|| format!("cannot open {}/{name}", store.url()))?;
+    Ok((remote, vod, TempCache(dir)))
+}
+
+/// A directory removed when dropped.
+struct TempCache(PathBuf);
+
+impl Drop for TempCache {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
 pub(super) fn import(a: ImportArgs) -> anyhow::Result<()> {
+    let Some((store, name)) = in_store(&a.output)? else {
+        return import_file(a);
+    };
+    if a.format != VodFormat::Vod2 {
+        bail!("a volume in a store is VOD 2 (drop --format vod1)");
+    }
+    let field_format = super::formats::input_format(&a)?.is_some();
+    if !field_format && matches!(sniff(&a.input)?, InputKind::Vod(2)) {
+        // A VOD 2 file goes up as it is (its head version and history with it).
+        let head = upload(&store.child(&name), &a.input, None).with_context(|| {
+            format!(
+                "cannot create {}/{name} (does it exist already?)",
+                store.url()
+            )
+        })?;
+        return uploaded(&store, &name, &head);
+    }
+    // Built locally, then uploaded as the volume's first segment.
+    let tmp = std::env::temp_dir().join(format!("isovox-import-{name}-{}.vod", std::process::id()));
+    let local = ImportArgs {
+        output: tmp.clone(),
+        ..a
+    };
+    let built = import_file(local).and_then(|()| {
+        upload(&store.child(&name), &tmp, None).with_context(|| {
+            format!(
+                "cannot create {}/{name} (does it exist already?)",
+                store.url()
+            )
+        })
+    });
+    let _ = std::fs::remove_file(&tmp);
+    uploaded(&store, &name, &built?)
+}
+
+/// Says what an import put in the store.
+fn uploaded(
+    store: &Bucket,
+    name: &str,
+    head: &isovox_server::store::remote::Head,
+) -> anyhow::Result<()> {
+    out!(
+        "{}/{name}: version {}, {} bytes in one segment",
+        store.url(),
+        head.version,
+        head.committed_len
+    )?;
+    Ok(())
+}
+
+fn import_file(a: ImportArgs) -> anyhow::Result<()> {
     if let Some(format) = super::formats::input_format(&a)? {
         return super::formats::import(&a, format);
     }
@@ -286,15 +379,24 @@ fn parse_region(s: &str) -> anyhow::Result<Region> {
 }
 
 pub(super) fn export(a: ExportArgs) -> anyhow::Result<()> {
-    if let InputKind::Vod(v) = sniff(&a.input)? {
-        if v != 2 {
-            bail!(
-                "{} is a VOD {v} file; export reads VOD 2 (import it first)",
-                a.input.display()
-            );
+    let stored = in_store(&a.input)?;
+    let (vod, _cache) = match &stored {
+        Some((store, name)) => {
+            let (_, vod, cache) = open_in_store(store, name)?;
+            (vod, Some(cache))
         }
-    }
-    let vod = super::open_vod2(&a.input)?;
+        None => {
+            if let InputKind::Vod(v) = sniff(&a.input)? {
+                if v != 2 {
+                    bail!(
+                        "{} is a VOD {v} file; export reads VOD 2 (import it first)",
+                        a.input.display()
+                    );
+                }
+            }
+            (super::open_vod2(&a.input)?, None)
+        }
+    };
     let snap = match a.version {
         Some(v) => vod.version(v)?,
         None => vod.head(),
@@ -536,15 +638,30 @@ pub(super) fn get(a: GetArgs) -> anyhow::Result<()> {
 
 #[derive(Debug, Args)]
 pub(crate) struct CompactArgs {
-    /// The VOD 2 file to compact in place.
+    /// The VOD 2 file to compact in place, or a volume in an object store
+    /// (s3://bucket/prefix/NAME).
     pub input: PathBuf,
+    /// For a volume in a store: objects its head no longer references are deleted once they
+    /// are this old, in seconds (replicas still reading an older head need them until then).
+    #[arg(long, default_value_t = isovox_server::volume::write::GC_GRACE.as_secs())]
+    pub grace_secs: u64,
 }
 
 pub(super) fn compact(a: CompactArgs) -> anyhow::Result<()> {
-    let vod = super::open_vod2(&a.input)?;
-    let head = vod.head();
-    let report = isovox_server::store::compact::compact(&vod, &head, &progress("compacting"))
-        .with_context(|| format!("cannot compact {}", a.input.display()))?;
+    let report = match in_store(&a.input)? {
+        Some((store, name)) => {
+            let (remote, vod, _cache) = open_in_store(&store, &name)?;
+            let grace = std::time::Duration::from_secs(a.grace_secs);
+            isovox_server::store::compact::compact_remote(&remote, &vod, grace)
+                .with_context(|| format!("cannot compact {}", a.input.display()))?
+        }
+        None => {
+            let vod = super::open_vod2(&a.input)?;
+            let head = vod.head();
+            isovox_server::store::compact::compact(&vod, &head, &progress("compacting"))
+                .with_context(|| format!("cannot compact {}", a.input.display()))?
+        }
+    };
     out!(
         "{}: version {} kept, {} distinct bricks, {} -> {} bytes ({:.1}% saved) in {:.2} s",
         a.input.display(),

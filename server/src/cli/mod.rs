@@ -121,7 +121,6 @@ impl From<TypeArg> for VoxelType {
     }
 }
 
-/// Parses `A,B,C` into three numbers.
 /// Opens a VOD 2 file a command names. Its path appears once in any error: the store's I/O
 /// errors carry it already ("cannot open PATH: No such file or directory"), its format errors
 /// name only the record, so those get it here.
@@ -132,6 +131,7 @@ fn open_vod2(path: &std::path::Path) -> anyhow::Result<isovox_server::store::Vod
     })
 }
 
+/// Parses `A,B,C` into three numbers.
 fn parse_triple<T: std::str::FromStr>(s: &str) -> Result<[T; 3], String> {
     let parts: Vec<&str> = s.split(',').map(str::trim).collect();
     if parts.len() != 3 {

@@ -6,6 +6,7 @@ use isovox_server::catalog::Catalog;
 use isovox_server::generate::{build_demo, DEMO_NAME};
 use isovox_server::http::auth::{random_secret, Scope, Tokens};
 use isovox_server::http::{run, run_tls, shutdown_signal, AppState, ServerConfig};
+use isovox_server::store::remote::{Bucket, CacheConfig};
 use isovox_server::store::BuildOptions;
 use std::path::{Path, PathBuf};
 
@@ -60,6 +61,21 @@ pub(crate) struct ServeArgs {
     /// The PEM private key of --tls-cert.
     #[arg(long, env = "ISOVOX_TLS_KEY", requires = "tls_cert")]
     pub tls_key: Option<PathBuf>,
+    /// Serve the volumes of an object store instead of DATA's files: `s3://bucket/prefix`, each
+    /// volume under `prefix/NAME/` (endpoint and credentials from the AWS_* environment:
+    /// AWS_ENDPOINT, AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, AWS_REGION, AWS_ALLOW_HTTP).
+    /// DATA still holds the tokens and uploaded meshes.
+    #[arg(long, env = "ISOVOX_STORE")]
+    pub store: Option<String>,
+    /// How often a replica polls each head in the store (a conditional GET), in milliseconds.
+    #[arg(long, env = "ISOVOX_FOLLOW_MS", default_value_t = 100)]
+    pub follow_ms: u64,
+    /// Where a replica keeps the pages it fetched from the store (default: DATA/cache).
+    #[arg(long, env = "ISOVOX_CACHE_DIR")]
+    pub cache_dir: Option<PathBuf>,
+    /// Disk for fetched pages per volume, in MiB; past it a volume starts a fresh cache.
+    #[arg(long, env = "ISOVOX_CACHE_MB", default_value_t = 1024)]
+    pub cache_mb: u64,
     /// On Ctrl-C or SIGTERM, seconds to let requests in flight finish before closing their
     /// connections (change feeds end at once).
     #[arg(long, env = "ISOVOX_SHUTDOWN_GRACE", default_value_t = 10.0)]
@@ -143,18 +159,42 @@ fn generate_demo(dir: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
-    if !has_volumes(&a.data) {
-        generate_demo(&a.data)?;
-    }
-    let tokens = load_tokens(&a)?;
-    let catalog = Catalog::open_dir(&a.data)?;
+/// The volumes to serve: those of `--store`, or DATA's files (a demo world generated first
+/// when there are none).
+fn open_catalog(a: &ServeArgs) -> anyhow::Result<Catalog> {
+    let Some(url) = &a.store else {
+        if !has_volumes(&a.data) {
+            generate_demo(&a.data)?;
+        }
+        let catalog = Catalog::open_dir(&a.data)?;
+        if catalog.is_empty() {
+            anyhow::bail!(
+                "no volume in {} could be opened (see the errors above)",
+                a.data.display()
+            );
+        }
+        return Ok(catalog);
+    };
+    let bucket = Bucket::from_url(url)?;
+    let cache = CacheConfig {
+        dir: a.cache_dir.clone().unwrap_or_else(|| a.data.join("cache")),
+        max_bytes: a.cache_mb << 20,
+    };
+    let catalog = Catalog::open_store(&bucket, &cache)?;
     if catalog.is_empty() {
         anyhow::bail!(
-            "no volume in {} could be opened (see the errors above)",
-            a.data.display()
+            "no volume in {url} could be opened (import one: isovox import ... -o {url}/NAME)"
         );
     }
+    Ok(catalog)
+}
+
+pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
+    std::fs::create_dir_all(&a.data)
+        .with_context(|| format!("cannot create {}", a.data.display()))?;
+    let catalog = open_catalog(&a)?;
+    let tokens = load_tokens(&a)?;
+    let followed: Vec<_> = catalog.iter().map(|(_, v)| v.clone()).collect();
     let tls = match (&a.tls_cert, &a.tls_key) {
         (Some(cert), Some(key)) => {
             Some(isovox_server::http::tls::config(cert, key).map_err(anyhow::Error::msg)?)
@@ -206,6 +246,8 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             ..ServerConfig::default()
         };
         let state = AppState::with_config(catalog, config);
+        let every = std::time::Duration::from_millis(a.follow_ms.max(1));
+        tokio::spawn(isovox_server::volume::follow::follow(followed, every));
         match tls {
             Some(tls) => run_tls(listener, tls, state, shutdown_signal()).await,
             None => run(listener, state, shutdown_signal()).await,

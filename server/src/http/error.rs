@@ -63,7 +63,10 @@ impl From<StoreError> for ApiError {
                 ApiError::NotFound(detail)
             }
             StoreError::BadInput(detail) => ApiError::BadRequest(detail),
+            // Writers on other replicas kept winning: come back in a second.
+            StoreError::HeadMoved { .. } => ApiError::Overloaded(1),
             StoreError::Io { .. }
+            | StoreError::ObjectStore { .. }
             | StoreError::Format(_)
             | StoreError::Corrupt { .. }
             | StoreError::Internal(_) => ApiError::Internal(error_chain(&e)),

@@ -292,11 +292,18 @@ fn requests(m: &Metrics, out: &mut String) {
 fn gauges(state: &AppState, out: &mut String) {
     let m = &state.metrics;
     let (mut edit_queue, mut subscribers) = (0, 0);
+    let (mut fetches, mut fetched, mut mirrored) = (0, 0, 0);
     for (_, v) in state.catalog.iter() {
         edit_queue += v.queue_depth() as u64;
         subscribers += v.subscribers() as u64;
+        if let Some(remote) = v.remote() {
+            use std::sync::atomic::Ordering::Relaxed;
+            fetches += remote.counters().requests.load(Relaxed);
+            fetched += remote.counters().bytes.load(Relaxed);
+            mirrored += remote.cached_bytes();
+        }
     }
-    let gauges: [(&str, &str, &str, u64); 11] = [
+    let gauges: [(&str, &str, &str, u64); 14] = [
         (
             "isovox_response_bytes_total",
             "counter",
@@ -356,6 +363,24 @@ fn gauges(state: &AppState, out: &mut String) {
             "gauge",
             "Change-feed subscribers connected.",
             subscribers,
+        ),
+        (
+            "isovox_store_fetches_total",
+            "counter",
+            "Range requests to the object store for pages of its volumes.",
+            fetches,
+        ),
+        (
+            "isovox_store_fetched_bytes_total",
+            "counter",
+            "Bytes those range requests returned.",
+            fetched,
+        ),
+        (
+            "isovox_store_mirror_bytes",
+            "gauge",
+            "Bytes of fetched pages held in the local mirrors of the store's volumes.",
+            mirrored,
         ),
         (
             "isovox_volumes",

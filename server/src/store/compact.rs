@@ -8,6 +8,7 @@
 //! A crash at any point leaves either the old file or the new one, each whole. Readers that still
 //! map the old file keep reading it: the rename does not touch its bytes.
 
+use super::remote::{collect_garbage, upload, RemoteVolume};
 use super::transaction::{CheckpointPolicy, Transaction};
 use super::writer::Vod2Writer;
 use super::{Snapshot, StoreError, Vod2};
@@ -15,7 +16,7 @@ use crate::progress::Progress;
 use isovox_proto::vod2::NodeEntry;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 /// What a compaction did.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -56,6 +57,52 @@ pub fn compact(
     Ok(CompactReport {
         version: head.version,
         bytes_before: vod.file_len(),
+        bytes_after,
+        bricks,
+        elapsed: start.elapsed(),
+    })
+}
+
+/// Compacts a volume kept in an object store (`vod`, as `remote` serves it): writes the head
+/// version alone into a local file, uploads it as the volume's only segment and replaces the
+/// head with it (conditional on the head it compacted, so a commit made meanwhile is never
+/// lost: the compaction is refused instead), then deletes the objects nothing references that
+/// are older than `grace`.
+///
+/// # Errors
+/// The head moved ([`StoreError::HeadMoved`]), or reading, writing or the store fails.
+pub fn compact_remote(
+    remote: &RemoteVolume,
+    vod: &Vod2,
+    grace: Duration,
+) -> Result<CompactReport, StoreError> {
+    let start = Instant::now();
+    let head = vod.head();
+    let (stored, etag) = remote.read_head()?;
+    if stored.version != head.version {
+        return Err(StoreError::HeadMoved {
+            url: remote.bucket().url().to_string(),
+        });
+    }
+    let tmp = std::env::temp_dir().join(format!(
+        "isovox-compact-{}-{}.vod",
+        remote.name(),
+        std::process::id()
+    ));
+    let written = write_version(&head, &tmp, &crate::progress::Silent).and_then(|bricks| {
+        let len = std::fs::metadata(&tmp)
+            .map_err(StoreError::io_path("cannot stat", &tmp))?
+            .len();
+        upload(remote.bucket(), &tmp, Some(&etag))?;
+        Ok((bricks, len))
+    });
+    let _ = std::fs::remove_file(&tmp);
+    let (bricks, bytes_after) = written?;
+    let deleted = collect_garbage(remote.bucket(), grace)?;
+    tracing::info!(volume = %remote.name(), deleted, "compacted; unreferenced objects past the grace period deleted");
+    Ok(CompactReport {
+        version: head.version,
+        bytes_before: vod.committed_len(),
         bytes_after,
         bricks,
         elapsed: start.elapsed(),

@@ -17,6 +17,8 @@
 //! - [`inspect`]: whole-file statistics (bricks by codec, unique bricks, garbage bytes).
 //! - [`decoded`]: decoded bricks by content hash, shared by every reader of a process.
 //! - [`lru`]: a content-keyed LRU bounded by bytes (decoded bricks, mesh tiles).
+//! - [`region`]: the committed region readers see (a mapping; for a mirror, what fills it).
+//! - [`remote`]: volumes kept in an object store (S3): objects, the head, replicas' mirrors.
 
 pub mod build;
 pub mod check;
@@ -28,6 +30,8 @@ pub mod lru;
 pub(crate) mod mapping;
 pub mod pyramid;
 pub mod raw;
+pub mod region;
+pub mod remote;
 pub mod salvage;
 pub mod transaction;
 pub mod vod1;
@@ -40,7 +44,7 @@ pub use transaction::{CheckpointPolicy, Committed, Transaction};
 pub use vod2::{
     verify_stored, PayloadCheck, SlotState, Snapshot, SnapshotSource, StoredBrick, Vod2, Vod2File,
 };
-pub use writer::Vod2Writer;
+pub use writer::{Publish, Vod2Writer};
 
 use isovox_proto::FormatError;
 use std::io;
@@ -84,6 +88,22 @@ pub enum StoreError {
     /// outside the level, a VOD 1 file over 4 GiB, ...).
     #[error("{0}")]
     BadInput(String),
+    /// The object store failed (unreachable, refused the credentials, lost an object).
+    #[error("{context}")]
+    ObjectStore {
+        /// What was being done.
+        context: String,
+        /// The store client's error.
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+    /// Another writer advanced the head of a volume in an object store first: this commit was
+    /// not made (its objects are garbage); build on the new head and try again.
+    #[error("{url}: another writer committed first")]
+    HeadMoved {
+        /// The volume.
+        url: String,
+    },
     /// A broken invariant of this program: neither the caller's fault nor the file's.
     #[error("internal error: {0}")]
     Internal(String),

@@ -15,11 +15,12 @@
 
 use super::codec;
 use super::mapping::Mapping;
+use super::region::{Fill, Region};
 use super::StoreError;
 use isovox_proto::vod2::{
     content_hash, payload_check, BrickHeader, Checkpoint, CommitHeader, Fields, FileHeader,
-    HeaderSlot, NodeEntry, BRICK_HEADER_LEN, CHUNK_ENTRIES, DATA_START, HEADER_LEN,
-    PAYLOAD_CHECK_LEN, SLOT_LEN, SLOT_OFFSETS,
+    HeaderSlot, NodeEntry, BRICK_HEADER_LEN, CHECKPOINT_FIXED_LEN, CHUNK_ENTRIES, CHUNK_REF_LEN,
+    DATA_START, HEADER_LEN, PAYLOAD_CHECK_LEN, SLOT_LEN, SLOT_OFFSETS,
 };
 use isovox_proto::{BrickKey, FormatError, VolumeLayout};
 use std::collections::HashMap;
@@ -33,7 +34,7 @@ use std::sync::{Arc, OnceLock};
 pub struct Vod2 {
     path: PathBuf,
     header: Arc<FileHeader>,
-    map: Arc<Mapping>,
+    map: Arc<Region>,
     file_len: u64,
     head_slot: HeaderSlot,
     head: Arc<Snapshot>,
@@ -157,7 +158,7 @@ pub enum SlotState {
 pub struct Vod2File {
     path: PathBuf,
     header: Arc<FileHeader>,
-    map: Arc<Mapping>,
+    map: Arc<Region>,
     file_len: u64,
     slots: [SlotState; 2],
     head_slot: Option<HeaderSlot>,
@@ -207,9 +208,9 @@ impl Vod2File {
             })
             .max_by_key(|s| s.seq);
         let committed = head_slot.map_or(file_len, |s| s.committed_len);
-        let map = Arc::new(
+        let map = Arc::new(Region::whole(
             Mapping::new(&file, committed).map_err(StoreError::io_path("cannot map", path))?,
-        );
+        ));
         Ok(Vod2File {
             path: path.to_path_buf(),
             header: Arc::new(header),
@@ -258,7 +259,7 @@ impl Vod2File {
     /// # Errors
     /// Its header or bounds are invalid.
     pub fn stored_at(&self, offset: u64) -> Result<StoredBrick<'_>, StoreError> {
-        stored_record(self.map.bytes(), &self.header.layout, offset)
+        stored_record(&self.map, &self.header.layout, offset)
     }
 
     /// The file opened at the version the slots name as the newest durable one.
@@ -296,7 +297,7 @@ impl Vod2File {
         let slot = HeaderSlot {
             seq: self.head_slot.map_or(0, |s| s.seq),
             commit: commit_at,
-            committed_len: self.map.bytes().len() as u64,
+            committed_len: self.map.len(),
             version: head.version,
         };
         self.into_vod2(slot, head)
@@ -349,10 +350,10 @@ impl Vod2 {
                 slot.committed_len
             )));
         }
-        let map = Arc::new(
+        let map = Arc::new(Region::whole(
             Mapping::new(&file, slot.committed_len)
                 .map_err(StoreError::io_path("cannot map", &self.path))?,
-        );
+        ));
         let head = Arc::new(self.head.extend(map.clone(), slot.commit)?);
         check_slot(&slot, &head)?;
         Ok(Vod2 {
@@ -363,6 +364,71 @@ impl Vod2 {
             head_slot: slot,
             head,
         })
+    }
+
+    /// A version of a volume kept elsewhere (an object store), read through `map`, a sparse
+    /// local mirror of its committed region whose holes `fill` fetches on first use. `name`
+    /// stands for the file in messages. Reads the head's commit record and the fixed part of
+    /// its index checkpoint, nothing else.
+    ///
+    /// # Errors
+    /// Those records cannot be fetched or are malformed, or `slot` names another version.
+    pub(crate) fn open_mirror(
+        name: PathBuf,
+        header: FileHeader,
+        slot: HeaderSlot,
+        map: Mapping,
+        fill: Arc<dyn Fill>,
+    ) -> Result<Vod2, StoreError> {
+        let map = Arc::new(Region::filled(map, fill));
+        let header = Arc::new(header);
+        let head = Arc::new(Snapshot::load(header.clone(), map.clone(), slot.commit)?);
+        check_slot(&slot, &head)?;
+        Ok(Vod2 {
+            path: name,
+            header,
+            file_len: slot.committed_len,
+            map,
+            head_slot: slot,
+            head,
+        })
+    }
+
+    /// The mirrored volume after its head moved to `slot` (see [`Vod2::open_mirror`]), built
+    /// from the current head as [`Vod2::advance`] does.
+    ///
+    /// # Errors
+    /// The new commit records cannot be fetched or are malformed.
+    pub(crate) fn advance_mirror(
+        &self,
+        slot: HeaderSlot,
+        map: Mapping,
+        fill: Arc<dyn Fill>,
+    ) -> Result<Vod2, StoreError> {
+        let map = Arc::new(Region::filled(map, fill));
+        let head = Arc::new(self.head.extend(map.clone(), slot.commit)?);
+        check_slot(&slot, &head)?;
+        Ok(Vod2 {
+            path: self.path.clone(),
+            header: self.header.clone(),
+            file_len: slot.committed_len,
+            map,
+            head_slot: slot,
+            head,
+        })
+    }
+
+    /// The commit record at `at`, decoded and checked, with its bytes (changes included).
+    ///
+    /// # Errors
+    /// No valid commit record there, or it cannot be fetched.
+    pub fn commit_at(&self, at: u64) -> Result<(CommitHeader, &[u8]), StoreError> {
+        commit_record(&self.map, at)
+    }
+
+    /// The committed length: the bytes versions of this file may reference.
+    pub fn committed_len(&self) -> u64 {
+        self.map.len()
     }
 
     /// The header slot the head version was found through.
@@ -409,9 +475,8 @@ impl Vod2 {
             return Ok(self.head.clone());
         }
         let mut at = self.head.commit_offset;
-        let bytes = self.map.bytes();
         loop {
-            let (h, _) = CommitHeader::decode(&bytes[at as usize..], at)?;
+            let (h, _) = commit_record(&self.map, at)?;
             if h.version == version {
                 return Ok(Arc::new(Snapshot::load(
                     self.header.clone(),
@@ -452,22 +517,13 @@ impl Vod2 {
     /// read: and, when the walk stopped at a record that does not, why (the error names the
     /// record's offset). The versions after the damage are all the history a server can list.
     pub fn commits_until_damage(&self) -> (Vec<(u64, CommitHeader)>, Option<StoreError>) {
-        let bytes = self.map.bytes();
         let mut out: Vec<(u64, CommitHeader)> = Vec::new();
         let mut at = self.head.commit_offset;
         loop {
-            let decoded = bytes
-                .get(at as usize..)
-                .ok_or_else(|| {
-                    FormatError::invalid(
-                        "commit chain",
-                        format!("offset {at} past the committed length {}", bytes.len()),
-                    )
-                })
-                .and_then(|region| CommitHeader::decode(region, at));
+            let decoded = commit_record(&self.map, at);
             let h = match decoded {
                 Ok((h, _)) => h,
-                Err(e) => return (out, Some(e.into())),
+                Err(e) => return (out, Some(e)),
             };
             if let Some((child_at, child)) = out.last() {
                 if h.version.checked_add(1) != Some(child.version) {
@@ -499,7 +555,7 @@ impl Vod2 {
 #[derive(Debug)]
 pub struct Snapshot {
     header: Arc<FileHeader>,
-    map: Arc<Mapping>,
+    map: Arc<Region>,
     /// The version.
     pub version: u64,
     /// When it was committed (Unix milliseconds).
@@ -518,33 +574,22 @@ pub struct Snapshot {
 impl Snapshot {
     fn load(
         header: Arc<FileHeader>,
-        map: Arc<Mapping>,
+        map: Arc<Region>,
         commit_at: u64,
     ) -> Result<Snapshot, StoreError> {
-        let bytes = map.bytes();
         let layout = &header.layout;
-        let committed = bytes.len() as u64;
-        let region = |at: u64| -> Result<&[u8], StoreError> {
-            bytes.get(at as usize..).ok_or_else(|| {
-                FormatError::invalid(
-                    "commit chain",
-                    format!("offset {at} past the committed length {committed}"),
-                )
-                .into()
-            })
-        };
         // Walk back to the newest checkpoint, keeping each commit's changes; every record is
         // decoded (and checksummed) once.
         let mut chain: Vec<&[u8]> = Vec::new();
         let mut at = commit_at;
-        let (head, record) = CommitHeader::decode(region(at)?, at)?;
+        let (head, record) = commit_record(&map, at)?;
         let (mut h, mut record) = (head, record);
         let checkpoint_at = loop {
             chain.push(record);
             if h.checkpoint != 0 {
                 break h.checkpoint;
             }
-            let (parent, parent_record) = CommitHeader::decode(region(h.parent)?, h.parent)?;
+            let (parent, parent_record) = commit_record(&map, h.parent)?;
             if parent.version.checked_add(1) != Some(h.version) {
                 return Err(FormatError::invalid(
                     "commit chain",
@@ -558,11 +603,7 @@ impl Snapshot {
             at = h.parent;
             (h, record) = (parent, parent_record);
         };
-        let index = Arc::new(IndexChunks::open(
-            region(checkpoint_at)?,
-            checkpoint_at,
-            layout.node_count(),
-        )?);
+        let index = Arc::new(IndexChunks::open(&map, checkpoint_at, layout.node_count())?);
         let mut overlay = HashMap::new();
         // The checkpoint holds the state after its own commit: apply only the later ones.
         for record in chain.iter().rev().skip(1) {
@@ -584,18 +625,8 @@ impl Snapshot {
     /// The version whose commit record is at `commit_at` in `map`, a child of this one: this
     /// version's index plus the commit's changes (or, when the commit wrote a checkpoint or is
     /// not a child of this version, loaded from the file as [`Vod2::open`] does).
-    fn extend(&self, map: Arc<Mapping>, commit_at: u64) -> Result<Snapshot, StoreError> {
-        let bytes = map.bytes();
-        let record_bytes = bytes.get(commit_at as usize..).ok_or_else(|| {
-            FormatError::invalid(
-                "commit",
-                format!(
-                    "offset {commit_at} past the committed length {}",
-                    bytes.len()
-                ),
-            )
-        })?;
-        let (h, record) = CommitHeader::decode(record_bytes, commit_at)?;
+    fn extend(&self, map: Arc<Region>, commit_at: u64) -> Result<Snapshot, StoreError> {
+        let (h, record) = commit_record(&map, commit_at)?;
         let child =
             h.parent == self.commit_offset && self.version.checked_add(1) == Some(h.version);
         if h.checkpoint != 0 || !child {
@@ -636,7 +667,7 @@ impl Snapshot {
             return Ok(());
         };
         let mut hashes = parent_hashes.child();
-        let (voxel_type, mapped) = (self.layout().voxel_type(), child.map.bytes().len() as u64);
+        let (voxel_type, mapped) = (self.layout().voxel_type(), child.map.len());
         for raw in added {
             let entry = NodeEntry::decode(raw, voxel_type, mapped)?;
             hashes.insert(child.entry_hash(entry)?, entry);
@@ -666,6 +697,9 @@ impl Snapshot {
     /// # Errors
     /// A chunk reference is invalid.
     pub fn checkpoint_span(&self) -> Result<(u64, u64), StoreError> {
+        let n_nodes = self.layout().node_count();
+        self.map
+            .ensure(self.index.base, Checkpoint::directory_len(n_nodes))?;
         let cp = self.index.checkpoint(self.map.bytes())?;
         Ok((self.index.base, cp.total_len()?))
     }
@@ -695,13 +729,9 @@ impl Snapshot {
         }
         let raw = match self.overlay.get(&node) {
             Some(&raw) => raw,
-            None => self.index.entry(self.map.bytes(), node)?,
+            None => self.index.entry(&self.map, node)?,
         };
-        Ok(NodeEntry::decode(
-            raw,
-            layout.voxel_type(),
-            self.map.bytes().len() as u64,
-        )?)
+        Ok(NodeEntry::decode(raw, layout.voxel_type(), self.map.len())?)
     }
 
     /// The index entry of a brick.
@@ -725,7 +755,7 @@ impl Snapshot {
     pub fn stored_entry(&self, entry: NodeEntry) -> Result<StoredBrick<'_>, StoreError> {
         match entry {
             NodeEntry::Constant(v) => Ok(StoredBrick::Constant(v)),
-            NodeEntry::Stored(offset) => stored_record(self.map.bytes(), self.layout(), offset),
+            NodeEntry::Stored(offset) => stored_record(&self.map, self.layout(), offset),
         }
     }
 
@@ -799,11 +829,10 @@ impl Snapshot {
     /// the oldest version's index plus every entry a commit since then wrote (each version is
     /// the oldest one with those changes applied).
     fn history_hashes(&self) -> Result<HashMap<u64, NodeEntry>, StoreError> {
-        let bytes = self.map.bytes();
         let mut records = Vec::new();
         let mut at = self.commit_offset;
         let oldest = loop {
-            let (h, record) = CommitHeader::decode(&bytes[at as usize..], at)?;
+            let (h, record) = commit_record(&self.map, at)?;
             records.push(record);
             if h.parent == 0 {
                 break at;
@@ -826,7 +855,7 @@ impl Snapshot {
         for node in 0..self.layout().node_count() {
             add(oldest.entry_at(node)?)?;
         }
-        let (voxel_type, mapped) = (self.layout().voxel_type(), bytes.len() as u64);
+        let (voxel_type, mapped) = (self.layout().voxel_type(), self.map.len());
         for record in records.iter().rev() {
             for (_, raw) in CommitHeader::changes(record) {
                 add(NodeEntry::decode(raw, voxel_type, mapped)?)?;
@@ -858,11 +887,14 @@ impl Snapshot {
 /// The brick record at `offset` of the mapped bytes `mapped`: its header checked, its payload
 /// and (in a checked record) the payload's checksum bounds-checked, nothing decoded.
 fn stored_record<'m>(
-    mapped: &'m [u8],
+    map: &'m Region,
     layout: &VolumeLayout,
     offset: u64,
 ) -> Result<StoredBrick<'m>, StoreError> {
-    let fields = Fields::new("brick record", mapped, 0);
+    // A record is its header, its payload and (checked records) the payload's checksum, in a
+    // row: filled in one go when they share a page, which they mostly do.
+    map.ensure(offset, BRICK_HEADER_LEN as u64)?;
+    let fields = Fields::new("brick record", map.bytes(), 0);
     let at = usize::try_from(offset).map_err(|_| {
         FormatError::invalid(
             "brick record",
@@ -871,6 +903,8 @@ fn stored_record<'m>(
     })?;
     let header = BrickHeader::decode(fields.slice(at, BRICK_HEADER_LEN)?, offset, layout)?;
     let start = at + BRICK_HEADER_LEN;
+    let tail = if header.checked { PAYLOAD_CHECK_LEN } else { 0 };
+    map.ensure(start as u64, (header.stored_len as usize + tail) as u64)?;
     let payload = fields.slice(start, header.stored_len as usize)?;
     let checksum = match header.checked {
         false => None,
@@ -885,6 +919,30 @@ fn stored_record<'m>(
         payload,
         checksum,
     })
+}
+
+/// The commit record at `at` (its fixed part fetched first for the change count, then the
+/// whole record), decoded and checked.
+///
+/// # Errors
+/// `at` lies past the committed region, the record cannot be fetched, or it is malformed.
+fn commit_record(map: &Region, at: u64) -> Result<(CommitHeader, &[u8]), StoreError> {
+    let bytes = map.bytes();
+    let avail = bytes.get(at as usize..).ok_or_else(|| {
+        StoreError::from(FormatError::invalid(
+            "commit chain",
+            format!("offset {at} past the committed length {}", bytes.len()),
+        ))
+    })?;
+    map.ensure(at, CommitHeader::record_len(0))?;
+    if let Some(n) = avail.get(40..48) {
+        let n_changes = u64::from_le_bytes([n[0], n[1], n[2], n[3], n[4], n[5], n[6], n[7]]);
+        map.ensure(
+            at,
+            CommitHeader::record_len(n_changes.min(avail.len() as u64)),
+        )?;
+    }
+    Ok(CommitHeader::decode(avail, at)?)
 }
 
 /// Checks that the head loaded through `slot` is the version the slot names.
@@ -975,7 +1033,7 @@ impl HashIndex {
 /// without copying them.
 #[derive(Debug)]
 struct MappedRange {
-    map: Arc<Mapping>,
+    map: Arc<Region>,
     start: usize,
     end: usize,
 }
@@ -1089,7 +1147,14 @@ struct IndexChunks {
 
 impl IndexChunks {
     /// Checks the checkpoint's fixed fields; chunks are checked when first used.
-    fn open(avail: &[u8], base: u64, n_nodes: u64) -> Result<IndexChunks, StoreError> {
+    fn open(map: &Region, base: u64, n_nodes: u64) -> Result<IndexChunks, StoreError> {
+        map.ensure(base, CHECKPOINT_FIXED_LEN as u64)?;
+        let avail = map.bytes().get(base as usize..).ok_or_else(|| {
+            StoreError::from(FormatError::invalid(
+                "index checkpoint",
+                format!("offset {base} past the committed length {}", map.len()),
+            ))
+        })?;
         Checkpoint::decode(avail, base, n_nodes)?;
         Ok(IndexChunks {
             base,
@@ -1108,12 +1173,12 @@ impl IndexChunks {
         )?)
     }
 
-    fn entry(&self, mapped: &[u8], node: u64) -> Result<u64, StoreError> {
+    fn entry(&self, map: &Region, node: u64) -> Result<u64, StoreError> {
         let c = (node / CHUNK_ENTRIES) as usize;
         let chunk = match self.chunks[c].get() {
             Some(chunk) => chunk,
             None => {
-                let decoded = self.decode_chunk(mapped, c as u64)?;
+                let decoded = self.decode_chunk(map, c as u64)?;
                 // Another reader may have decoded it meanwhile: either copy is the same.
                 let _ = self.chunks[c].set(decoded);
                 self.chunks[c]
@@ -1124,9 +1189,15 @@ impl IndexChunks {
         Ok(chunk[(node % CHUNK_ENTRIES) as usize])
     }
 
-    fn decode_chunk(&self, mapped: &[u8], c: u64) -> Result<Box<[u64]>, StoreError> {
-        let cp = self.checkpoint(mapped)?;
+    fn decode_chunk(&self, map: &Region, c: u64) -> Result<Box<[u64]>, StoreError> {
+        map.ensure(self.base, CHECKPOINT_FIXED_LEN as u64)?;
+        let cp = self.checkpoint(map.bytes())?;
+        map.ensure(
+            self.base + (CHECKPOINT_FIXED_LEN + c as usize * CHUNK_REF_LEN) as u64,
+            CHUNK_REF_LEN as u64,
+        )?;
         let (r, payload) = cp.chunk(c)?;
+        map.ensure(self.base + r.offset, r.stored_len as u64)?;
         let mut bytes = vec![0u8; cp.chunk_entries(c) as usize * 8];
         codec::decode(r.codec, payload, &mut bytes, self.base + r.offset)?;
         let hash = xxhash_rust::xxh3::xxh3_64(&bytes);

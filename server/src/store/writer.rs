@@ -64,10 +64,37 @@ pub struct WriteStats {
     pub hash_collisions: u64,
 }
 
+/// Where a commit is made durable: the seam between the writer and a volume kept elsewhere.
+/// A local file needs none (the writer appends to it and switches a header slot); a volume in
+/// an object store takes each sync's bytes as one object and advances its head.
+pub trait Publish: Send + Sync + std::fmt::Debug {
+    /// Makes `appended` (the bytes from offset `from` up to `slot`'s committed length) durable
+    /// and `slot` the head, if the head is still `base`.
+    ///
+    /// # Errors
+    /// [`StoreError::HeadMoved`] when another writer moved the head first; the store fails.
+    fn publish(
+        &self,
+        base: Option<HeaderSlot>,
+        from: u64,
+        appended: &[u8],
+        slot: &HeaderSlot,
+    ) -> Result<(), StoreError>;
+}
+
+/// What a writer appends to.
+#[derive(Debug)]
+enum Target {
+    /// A local file: written as the buffer fills, synced, then a slot switched.
+    File(File),
+    /// A volume elsewhere: what is appended stays in the buffer until a sync publishes it.
+    Remote(std::sync::Arc<dyn Publish>),
+}
+
 /// An open VOD 2 file being appended to.
 #[derive(Debug)]
 pub struct Vod2Writer {
-    file: File,
+    target: Target,
     path: PathBuf,
     header: FileHeader,
     /// Offset of `buf[0]` in the file; everything below it is written.
@@ -119,7 +146,7 @@ impl Vod2Writer {
         let mut buf = vec![0u8; DATA_START as usize];
         buf[..isovox_proto::vod2::HEADER_LEN].copy_from_slice(&header.encode());
         Ok(Vod2Writer {
-            file,
+            target: Target::File(file),
             path: path.to_path_buf(),
             header,
             buf_at: 0,
@@ -175,7 +202,7 @@ impl Vod2Writer {
                 path,
             ))?;
         Ok(Vod2Writer {
-            file,
+            target: Target::File(file),
             path: path.to_path_buf(),
             header,
             buf_at: head.committed_len,
@@ -189,6 +216,28 @@ impl Vod2Writer {
             first_version: 1,
             stats: WriteStats::default(),
         })
+    }
+
+    /// A writer of versions on top of `vod`'s head, made durable by `publish` (a volume in an
+    /// object store), compressing as local edits do. It deduplicates against the bricks it stores itself, not the volume's
+    /// (that would read every brick header from the store).
+    pub fn remote(vod: &super::Vod2, publish: std::sync::Arc<dyn Publish>) -> Vod2Writer {
+        let head = vod.head_slot();
+        Vod2Writer {
+            target: Target::Remote(publish),
+            path: vod.path().to_path_buf(),
+            header: vod.header().clone(),
+            buf_at: head.committed_len,
+            buf: Vec::new(),
+            known: HashMap::new(),
+            compression: Compression::for_edits(),
+            head: Some(head),
+            staged: None,
+            appended: Vec::new(),
+            syncs: 0,
+            first_version: 1,
+            stats: WriteStats::default(),
+        }
     }
 
     /// The file's fixed header.
@@ -294,9 +343,11 @@ impl Vod2Writer {
     }
 
     fn flush(&mut self) -> Result<(), StoreError> {
+        let Target::File(file) = &self.target else {
+            return Ok(());
+        };
         if !self.buf.is_empty() {
-            self.file
-                .write_all_at(&self.buf, self.buf_at)
+            file.write_all_at(&self.buf, self.buf_at)
                 .map_err(StoreError::io_path("cannot write", &self.path))?;
             self.buf_at += self.buf.len() as u64;
             self.buf.clear();
@@ -309,9 +360,14 @@ impl Vod2Writer {
             let start = (offset - self.buf_at) as usize;
             return Ok(self.buf[start..start + len].to_vec());
         }
+        let Target::File(file) = &self.target else {
+            return Err(StoreError::Internal(format!(
+                "{}: a remote writer read back offset {offset}, below what it appended",
+                self.path.display()
+            )));
+        };
         let mut out = vec![0u8; len];
-        self.file
-            .read_exact_at(&mut out, offset)
+        file.read_exact_at(&mut out, offset)
             .map_err(StoreError::io_path("cannot read back", &self.path))?;
         Ok(out)
     }
@@ -505,20 +561,19 @@ impl Vod2Writer {
                 StoreError::Internal(format!("{}: nothing to sync", self.path.display()))
             });
         };
-        self.flush()?;
-        self.file
-            .sync_data()
-            .map_err(StoreError::io_path("cannot sync", &self.path))?;
-        let slot_at = SLOT_OFFSETS[(slot.seq % 2) as usize];
-        self.file
-            .write_all_at(&slot.encode(), slot_at)
-            .map_err(StoreError::io_path(
-                "cannot write header slot of",
-                &self.path,
-            ))?;
-        self.file
-            .sync_data()
-            .map_err(StoreError::io_path("cannot sync", &self.path))?;
+        match &self.target {
+            Target::File(_) => {
+                self.flush()?;
+                self.switch_slot(&slot)?;
+            }
+            Target::Remote(publish) => {
+                publish.publish(self.head, self.buf_at, &self.buf, &slot)?;
+                self.buf_at = slot.committed_len;
+                self.buf.clear();
+                // What it stored is now below `buf_at`, which it cannot read back.
+                self.known.clear();
+            }
+        }
         self.head = Some(slot);
         self.staged = None;
         self.appended.clear();
@@ -555,11 +610,17 @@ impl Vod2Writer {
         if savepoint.end >= self.buf_at {
             self.buf.truncate((savepoint.end - self.buf_at) as usize);
         } else {
+            let Target::File(file) = &self.target else {
+                return Err(StoreError::Internal(format!(
+                    "{}: a remote writer cannot cut back below {}",
+                    self.path.display(),
+                    self.buf_at
+                )));
+            };
+            file.set_len(savepoint.end)
+                .map_err(StoreError::io_path("cannot cut back", &self.path))?;
             self.buf.clear();
             self.buf_at = savepoint.end;
-            self.file
-                .set_len(savepoint.end)
-                .map_err(StoreError::io_path("cannot cut back", &self.path))?;
         }
         for (hash, offset) in self.appended.drain(savepoint.appended..) {
             if let Some(offsets) = self.known.get_mut(&hash) {
@@ -572,6 +633,28 @@ impl Vod2Writer {
         self.staged = savepoint.staged;
         self.stats = savepoint.stats;
         Ok(())
+    }
+}
+
+impl Vod2Writer {
+    /// The local sync's second half: everything appended is synced, then the slot that is not
+    /// the current head's names `slot`, and is synced in turn.
+    fn switch_slot(&self, slot: &HeaderSlot) -> Result<(), StoreError> {
+        let Target::File(file) = &self.target else {
+            return Err(StoreError::Internal(
+                "a remote writer has no header slots".into(),
+            ));
+        };
+        file.sync_data()
+            .map_err(StoreError::io_path("cannot sync", &self.path))?;
+        let slot_at = SLOT_OFFSETS[(slot.seq % 2) as usize];
+        file.write_all_at(&slot.encode(), slot_at)
+            .map_err(StoreError::io_path(
+                "cannot write header slot of",
+                &self.path,
+            ))?;
+        file.sync_data()
+            .map_err(StoreError::io_path("cannot sync", &self.path))
     }
 }
 

@@ -22,7 +22,7 @@
 //!
 //! [`Vod2Writer::sync`]: crate::store::Vod2Writer::sync
 
-use super::{change_event, FeedItem, LiveVolume, VolumeError, WriterSlot};
+use super::{change_event, LiveVolume, VolumeError, WriterSlot};
 use crate::cancel::CancelToken;
 use crate::icvg::edit::{stage_edit, Edit};
 use crate::icvg::term::EvalError;
@@ -214,6 +214,25 @@ impl LiveVolume {
             }
             return;
         }
+        if let Some(remote) = self.remote().cloned() {
+            // A volume in an object store commits each edit with its own conditional PUT of
+            // the head (a lost race re-applies it), one at a time.
+            for mut pending in group {
+                if !pending.answer.is_closed() {
+                    let cancel = pending.cancel.restarted();
+                    let answer = self.apply_remote(
+                        &remote,
+                        slot,
+                        &mut pending.edit,
+                        pending.if_match,
+                        policy,
+                        &cancel,
+                    );
+                    pending.answer(answer);
+                }
+            }
+            return;
+        }
         let mut base = self.current();
         let writer = match writer_at(slot, &base) {
             Ok(w) => w,
@@ -342,7 +361,7 @@ impl LiveVolume {
     }
 
     /// Serves a durable version: readers get it, the history lists it, the feed announces it.
-    fn publish(&self, vod: Arc<Vod2>, event: ChangeEvent) {
+    pub(super) fn publish(&self, vod: Arc<Vod2>, event: ChangeEvent) {
         {
             let mut history = self.history.write().unwrap_or_else(|p| p.into_inner());
             if history.offsets.is_empty() {
@@ -351,12 +370,7 @@ impl LiveVolume {
             history.offsets.push(vod.head_slot().commit);
         }
         self.current.store(vod);
-        let json = serde_json::to_string(&event).unwrap_or_default();
-        // No subscriber is not an error.
-        let _ = self.feed.send(Arc::new(FeedItem {
-            version: event.version,
-            json,
-        }));
+        self.announce(&event);
     }
 }
 

@@ -20,6 +20,7 @@
 //! and meshes edit terms name; [`error`] what can go wrong.
 
 pub mod error;
+pub mod follow;
 pub mod group;
 pub mod read;
 pub mod resolve;
@@ -29,6 +30,7 @@ pub use error::VolumeError;
 pub use group::{GroupCommit, PendingEdit};
 pub use write::{edit_file, EditLimits};
 
+use crate::store::remote::{Refreshed, RemoteVolume};
 use crate::store::{Snapshot, StoreError, Vod2, Vod2Writer};
 use arc_swap::ArcSwap;
 use isovox_proto::api::{ChangeEvent, ChangeList, ChangedBricks};
@@ -130,6 +132,8 @@ pub struct LiveVolume {
     /// a version-pinned view) ask for the same few versions request after request.
     older: Mutex<VecDeque<Arc<Snapshot>>>,
     feed: broadcast::Sender<Arc<FeedItem>>,
+    /// Where the volume is kept when it is not a local file (an object store).
+    remote: Option<Arc<RemoteVolume>>,
 }
 
 /// A place in the writer's queue; dropping it leaves the queue.
@@ -194,7 +198,123 @@ impl LiveVolume {
             history: RwLock::new(history),
             older: Mutex::default(),
             feed: broadcast::channel(FEED_CAPACITY).0,
+            remote: None,
         })
+    }
+
+    /// Serves `vod`, a volume kept in an object store as `remote`, as `name`.
+    ///
+    /// # Errors
+    /// The commit chain is malformed.
+    pub fn with_remote(
+        name: &str,
+        vod: Vod2,
+        remote: Arc<RemoteVolume>,
+    ) -> Result<LiveVolume, StoreError> {
+        let mut volume = LiveVolume::new(name, vod)?;
+        volume.remote = Some(remote);
+        Ok(volume)
+    }
+
+    /// The object-store volume behind it, if it is one.
+    pub fn remote(&self) -> Option<&Arc<RemoteVolume>> {
+        self.remote.as_ref()
+    }
+
+    /// Makes `next` (the file as of a new commit at `at` on top of the current head) current:
+    /// records the version in the history, publishes it to readers, then announces it on the
+    /// change feed. Returns its event.
+    ///
+    /// # Errors
+    /// The commit record cannot be read back.
+    fn publish_commit(&self, next: Vod2, at: u64) -> Result<ChangeEvent, StoreError> {
+        let event = change_event(&next, at)?;
+        self.publish(Arc::new(next), event.clone());
+        Ok(event)
+    }
+
+    fn announce(&self, event: &ChangeEvent) {
+        let json = serde_json::to_string(event).unwrap_or_default();
+        // No subscriber is not an error.
+        let _ = self.feed.send(Arc::new(FeedItem {
+            version: event.version,
+            json,
+        }));
+    }
+
+    /// Follows the head of an object-store volume (nothing for a local file): when other
+    /// writers committed, serves the new head and announces each new version on the change
+    /// feed, oldest first. Holds the writer (`_writer`), so that an edit of this process and
+    /// what others committed are published in commit order. Blocking.
+    ///
+    /// # Errors
+    /// The store fails or what it holds is malformed (the served head stays as it was).
+    pub fn catch_up(&self, _writer: &mut WriterSlot) -> Result<(), StoreError> {
+        let Some(remote) = &self.remote else {
+            return Ok(());
+        };
+        let vod = self.current();
+        let before = vod.head().version;
+        match remote.refresh(&vod)? {
+            Refreshed::Same => {}
+            Refreshed::Advanced(next) => {
+                // The commits between the old head and the new one, newest first.
+                let stop = vod.head().commit_offset();
+                let mut chain = Vec::new();
+                let mut at = next.head().commit_offset();
+                while at != stop {
+                    let (h, _) = next.commit_at(at)?;
+                    chain.push(at);
+                    if h.parent == 0 || h.version <= before + 1 {
+                        break;
+                    }
+                    at = h.parent;
+                }
+                let next = Arc::new(next);
+                let mut events = Vec::with_capacity(chain.len());
+                {
+                    let mut history = self.history.write().unwrap_or_else(|p| p.into_inner());
+                    for &at in chain.iter().rev() {
+                        let event = change_event(&next, at)?;
+                        if history.offsets.is_empty() {
+                            history.oldest = event.version;
+                        }
+                        history.offsets.push(at);
+                        events.push(event);
+                    }
+                }
+                self.current.store(next);
+                for event in &events {
+                    self.announce(event);
+                }
+            }
+            Refreshed::Replaced(next) => {
+                let history = History::read(&self.name, &next);
+                let news: Vec<u64> = (before + 1..=next.head().version)
+                    .filter_map(|v| history.offset(v))
+                    .collect();
+                let next = Arc::new(next);
+                let events = news
+                    .into_iter()
+                    .map(|at| change_event(&next, at))
+                    .collect::<Result<Vec<_>, _>>()?;
+                *self.history.write().unwrap_or_else(|p| p.into_inner()) = history;
+                self.current.store(next);
+                for event in &events {
+                    self.announce(event);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// [`LiveVolume::catch_up`] from a thread that may block, taking the writer first.
+    ///
+    /// # Errors
+    /// See [`LiveVolume::catch_up`].
+    pub fn follow_blocking(&self) -> Result<(), StoreError> {
+        let mut writer = self.writer.blocking_lock();
+        self.catch_up(&mut writer)
     }
 
     /// The name it is served under.
@@ -452,15 +572,7 @@ impl LiveVolume {
 
 /// The change-feed event of the commit record at `at`.
 pub(crate) fn change_event(vod: &Vod2, at: u64) -> Result<ChangeEvent, StoreError> {
-    let bytes = vod.mapped();
-    let record = bytes.get(at as usize..).ok_or_else(|| {
-        StoreError::corrupt(
-            at,
-            format!("a commit record within the {} mapped bytes", bytes.len()),
-            "an offset past them",
-        )
-    })?;
-    let (h, changes) = CommitHeader::decode(record, at)?;
+    let (h, changes) = vod.commit_at(at)?;
     Ok(ChangeEvent {
         version: h.version,
         timestamp_ms: h.timestamp_ms,

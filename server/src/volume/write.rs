@@ -5,13 +5,25 @@ use super::resolve::DirVolumes;
 use super::{LiveVolume, VolumeError, WriterSlot};
 use crate::cancel::CancelToken;
 use crate::icvg::edit::{apply_edit, Edit, EditOutcome};
-use crate::icvg::term::{TermLimits, VolumeResolver};
+use crate::icvg::term::{EvalError, TermLimits, VolumeResolver};
 use crate::progress::Silent;
 use crate::store::codec::Compression;
-use crate::store::compact::{compact, CompactReport};
-use crate::store::{CheckpointPolicy, Vod2, Vod2Writer};
+use crate::store::compact::{compact, compact_remote, CompactReport};
+use crate::store::remote::RemoteVolume;
+use crate::store::{CheckpointPolicy, StoreError, Vod2, Vod2Writer};
+use isovox_proto::api::{ChangeEvent, EditResponse};
 use isovox_proto::icvg::EditRequest;
 use std::path::Path;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// Commits an edit tries against other writers of an object-store volume before it answers
+/// that the volume is too busy (503, retry).
+const MAX_REMOTE_ATTEMPTS: u32 = 16;
+
+/// How long objects a compaction of an object-store volume made garbage stay, for replicas
+/// still reading the old head.
+pub const GC_GRACE: Duration = Duration::from_secs(15 * 60);
 use tokio::sync::OwnedMutexGuard;
 
 /// What one edit may ask for.
@@ -89,6 +101,13 @@ impl LiveVolume {
     /// failed (the old file is then still served) or the new file does not open.
     pub fn compact(&self, slot: &mut WriterSlot) -> Result<CompactReport, VolumeError> {
         self.check_writable()?;
+        if let Some(remote) = self.remote() {
+            self.catch_up(slot)?;
+            let vod = self.current();
+            let report = compact_remote(remote, &vod, GC_GRACE)?;
+            self.catch_up(slot)?;
+            return Ok(report);
+        }
         let vod = self.current();
         let head = vod.head();
         // The writer's dedup table names offsets of the old file.
@@ -96,6 +115,77 @@ impl LiveVolume {
         let report = compact(&vod, &head, &Silent)?;
         self.reload()?;
         Ok(report)
+    }
+}
+
+impl LiveVolume {
+    /// An edit of a volume in an object store, holding the writer: catch up with the head,
+    /// apply the edit on it, publish; when another writer's commit won the head meanwhile,
+    /// catch up and apply the edit again on top of it (a conditional edit is refused instead:
+    /// its version is gone). Blocking.
+    ///
+    /// # Errors
+    /// [`VolumeError::Conflict`]; [`StoreError::HeadMoved`] after [`MAX_REMOTE_ATTEMPTS`]
+    /// lost races; what applying or the store failed with.
+    pub(crate) fn apply_remote(
+        &self,
+        remote: &Arc<RemoteVolume>,
+        slot: &mut WriterSlot,
+        edit: &mut Edit,
+        if_match: Option<u64>,
+        policy: CheckpointPolicy,
+        cancel: &CancelToken,
+    ) -> Result<EditResponse, VolumeError> {
+        let started = Instant::now();
+        let mut attempt = 0u32;
+        loop {
+            self.catch_up(slot)?;
+            let vod = self.current();
+            let head = vod.head();
+            if let Some(expected) = if_match.filter(|&v| v != head.version) {
+                return Err(VolumeError::Conflict {
+                    expected,
+                    current: head.version,
+                });
+            }
+            let mut writer = Vod2Writer::remote(&vod, remote.clone());
+            match apply_edit(&mut writer, &head, edit, policy, cancel) {
+                Ok(outcome) => {
+                    let committed = writer.head().ok_or_else(|| {
+                        StoreError::Internal("a commit left the writer without a head".into())
+                    })?;
+                    let next = remote.after_commit(&vod)?;
+                    let event = self.publish_commit(next, committed.commit)?;
+                    let mut response = edit_response(event, head.version, &outcome);
+                    response.elapsed_us = started.elapsed().as_micros() as u64;
+                    return Ok(response);
+                }
+                Err(EvalError::Store(StoreError::HeadMoved { .. }))
+                    if attempt + 1 < MAX_REMOTE_ATTEMPTS =>
+                {
+                    attempt += 1;
+                    // Writers that collide again and again back off apart (the retry is
+                    // spread over a few milliseconds, longer each time).
+                    let spread =
+                        1 + (u64::from(std::process::id()) * 7 + u64::from(attempt) * 13) % 5;
+                    std::thread::sleep(Duration::from_millis(spread * u64::from(attempt)));
+                }
+                Err(e) => return Err(e.into()),
+            }
+        }
+    }
+}
+
+/// The answer to an edit committed as `event` on top of version `previous`.
+fn edit_response(event: ChangeEvent, previous: u64, outcome: &EditOutcome) -> EditResponse {
+    EditResponse {
+        version: event.version,
+        previous,
+        changed: event.changed,
+        evaluated: outcome.evaluated as u64,
+        new_records: outcome.new_records,
+        checkpoint: outcome.checkpoint,
+        elapsed_us: outcome.elapsed.as_micros() as u64,
     }
 }
 

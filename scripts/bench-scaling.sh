@@ -1,0 +1,179 @@
+#!/usr/bin/env bash
+# The figures of docs/scaling.md: Isovox on an object store (moto's S3 on loopback, served by
+# scripts/s3-server.py), replicas, and nginx in front.
+#
+#   scripts/bench-scaling.sh            # DIMS=2048 (a 2048^3 world, brick 16); DIMS=512 is quicker
+#
+# Prints: the cold start of a replica (until it serves the volume's metadata) and what it fetched
+# doing so; range requests and bytes fetched per cold brick; the delay from an acknowledged edit
+# on one replica to its event on another (p50/p99); edits per second with writers on two
+# replicas; and, during a streaming load from isovox-load, the share of brick and blob requests
+# nginx answers without reaching the replica, with the load's throughput through nginx and
+# against the replica alone (same run).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+DIMS=${DIMS:-2048}
+WORK=${WORK:-$(mktemp -d /tmp/isovox-bench-scaling.XXXXXX)}
+trap 'kill $(jobs -p) 2>/dev/null || true; rm -rf "$WORK"' EXIT
+
+if ! target/s3-venv/bin/python -c 'import moto.server' 2>/dev/null; then
+  python3 -m venv target/s3-venv
+  target/s3-venv/bin/pip install -q 'moto[server]==5.2.5'
+fi
+command -v nginx >/dev/null || { apt-get update -qq && apt-get install -y -qq nginx >/dev/null; }
+CARGO_BUILD_JOBS=2 cargo build --release -q -p isovox-server --bin isovox -p isovox-tools --bin isovox-load
+BIN=target/release
+
+free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
+S3_PORT=$(free_port)
+target/s3-venv/bin/python scripts/s3-server.py "$S3_PORT" isovox-bench > "$WORK/s3.log" 2>&1 &
+until grep -q ready "$WORK/s3.log"; do sleep 0.2; done
+export AWS_ENDPOINT=http://127.0.0.1:$S3_PORT AWS_ACCESS_KEY_ID=isovox AWS_SECRET_ACCESS_KEY=isovox-secret \
+  AWS_REGION=us-east-1 AWS_ALLOW_HTTP=true
+STORE=s3://isovox-bench/vols
+
+echo "generating a ${DIMS}^3 world (brick 16) and importing it into the store"
+$BIN/isovox generate world -o "$WORK/w.vod" --dims "$DIMS,$DIMS,$DIMS" --brick 16 >/dev/null
+$BIN/isovox import "$WORK/w.vod" -o "$STORE/w"
+rm -f "$WORK/w.vod"
+
+TOKEN=bench-scaling-0123456789
+echo "t $TOKEN write" > "$WORK/tokens"
+replica() { # replica NAME PORT
+  mkdir -p "$WORK/$1"
+  $BIN/isovox serve --store "$STORE" --data "$WORK/$1" --token-file "$WORK/tokens" \
+    --addr "127.0.0.1:$2" --follow-ms 50 --edit-rate 100000 > "$WORK/$1.log" 2>&1 &
+}
+A=$(free_port); B=$(free_port)
+
+python3 - "$BIN" "$WORK" "$A" "$B" "$TOKEN" "$DIMS" <<'EOF'
+import json, random, subprocess, sys, threading, time, urllib.error, urllib.request
+bin_, work, a, b, token, dims = sys.argv[1:]
+a, b, dims = int(a), int(b), int(dims)
+
+def get(url, timeout=30):
+    with urllib.request.urlopen(url, timeout=timeout) as r:
+        return r.read()
+
+def metric(port, name):
+    for line in get(f"http://127.0.0.1:{port}/metrics").decode().splitlines():
+        if line.startswith(name + " "):
+            return int(float(line.split()[1]))
+    return 0
+
+def edit(port, origin):
+    body = json.dumps({"op": "union", "term": {"cuboid": {"origin": origin, "size": [8, 8, 8]}}}).encode()
+    req = urllib.request.Request(f"http://127.0.0.1:{port}/v1/volumes/w/edits", body,
+        {"Content-Type": "application/json", "Authorization": f"Bearer {token}"})
+    with urllib.request.urlopen(req, timeout=60) as r:
+        return json.loads(r.read())
+
+def start(name, port):
+    t0 = time.perf_counter()
+    log = open(f"{work}/{name}.log", "w")
+    p = subprocess.Popen([f"{bin_}/isovox", "serve", "--store", "s3://isovox-bench/vols", "--data", f"{work}/{name}",
+        "--token-file", f"{work}/tokens", "--addr", f"127.0.0.1:{port}", "--follow-ms", "50",
+        "--edit-rate", "100000"], stdout=subprocess.DEVNULL, stderr=log)
+    while True:
+        try:
+            get(f"http://127.0.0.1:{port}/v1/volumes/w", timeout=1)
+            return p, time.perf_counter() - t0
+        except Exception:
+            time.sleep(0.005)
+
+subprocess.run(["mkdir", "-p", f"{work}/a", f"{work}/b"])
+pa, cold = start("a", a)
+print(f"cold start: serving the {dims}^3 volume's metadata {cold*1000:.0f} ms after launch; "
+      f"fetched {metric(a, 'isovox_store_fetched_bytes_total')} bytes in "
+      f"{metric(a, 'isovox_store_fetches_total')} range requests (header page, head commit, checkpoint fixed part)")
+
+grid = (dims + 15) // 16
+rng = random.Random(1)
+f0, r0 = metric(a, "isovox_store_fetched_bytes_total"), metric(a, "isovox_store_fetches_total")
+n = 500
+for _ in range(n):
+    get(f"http://127.0.0.1:{a}/v1/volumes/w/bricks/0/{rng.randrange(grid)}/{rng.randrange(grid)}/{rng.randrange(grid)}")
+f1, r1 = metric(a, "isovox_store_fetched_bytes_total"), metric(a, "isovox_store_fetches_total")
+print(f"cold bricks: {n} random level-0 bricks fetched {(f1-f0)/n:.0f} bytes and {(r1-r0)/n:.2f} range requests each")
+
+pb, _ = start("b", b)
+# Edit on a, event on b: delay from a's acknowledgement to b's event.
+events = {}
+def follow():
+    with urllib.request.urlopen(f"http://127.0.0.1:{b}/v1/volumes/w/events", timeout=600) as r:
+        for line in r:
+            if line.startswith(b"data:") and b'"changed"' in line:
+                events[json.loads(line[5:])["version"]] = time.perf_counter()
+threading.Thread(target=follow, daemon=True).start()
+time.sleep(0.5)
+acked = {}
+for i in range(100):
+    res = edit(a, [16 * (i % 20), dims - 10, 16 * (i // 20)])
+    acked[res["version"]] = time.perf_counter()
+    time.sleep(0.02)
+time.sleep(1.0)
+delays = sorted(max(0.0, events[v] - t) * 1000 for v, t in acked.items() if v in events)
+missing = len(acked) - len(delays)
+q = lambda p: delays[min(len(delays) - 1, int(p * len(delays)))]
+print(f"edit on replica a -> event on replica b: p50 {q(0.5):.1f} ms, p99 {q(0.99):.1f} ms "
+      f"({len(delays)} events, {missing} missing; follow interval 50 ms)")
+
+# Writers on both replicas for 10 s.
+count = [0]; busy = [0]; stop = time.perf_counter() + 10
+def writer(port, k):
+    i = 0
+    while time.perf_counter() < stop:
+        try:
+            edit(port, [16 * ((i * 7 + k) % (dims // 16)), dims - 20, 16 * ((i * 3 + k) % (dims // 16))])
+            count[0] += 1
+        except urllib.error.HTTPError as e:
+            if e.code != 503:
+                raise
+            busy[0] += 1  # the writer lost the head race 16 times in a row
+        i += 1
+ts = [threading.Thread(target=writer, args=(p, k)) for k, p in enumerate([a, a, b, b])]
+[t.start() for t in ts]; [t.join() for t in ts]
+print(f"edits with 2 writers on each of 2 replicas: {count[0]/10:.1f} edits/s on one volume "
+      f"({busy[0]} answered 503 after losing the head race 16 times)")
+pa.kill(); pb.kill()
+EOF
+
+# nginx in front of one replica, streaming load through it, then against the replica alone.
+R=$(free_port); N=$(free_port)
+replica r "$R"
+until curl -sf "http://127.0.0.1:$R/v1/volumes/w" >/dev/null; do sleep 0.1; done
+mkdir -p "$WORK/nginx"
+cat > "$WORK/nginx/nginx.conf" <<EOF
+worker_processes 2; daemon off; pid $WORK/nginx/pid; error_log $WORK/nginx/error.log;
+events { worker_connections 4096; }
+http { access_log off;
+  client_body_temp_path $WORK/nginx/b; proxy_temp_path $WORK/nginx/p; fastcgi_temp_path $WORK/nginx/f;
+  uwsgi_temp_path $WORK/nginx/u; scgi_temp_path $WORK/nginx/s;
+  proxy_cache_path $WORK/nginx/cache levels=1:2 keys_zone=isovox:64m max_size=8g inactive=30d use_temp_path=off;
+  upstream isovox { server 127.0.0.1:$R; keepalive 64; }
+  server { listen 127.0.0.1:$N; include $PWD/docker/nginx/isovox-locations.conf; } }
+EOF
+nginx -c "$WORK/nginx/nginx.conf" -p "$WORK/nginx" &
+sleep 0.5
+reached() { curl -s "http://127.0.0.1:$R/metrics" | awk '/^isovox_requests_total\{route="\/v1\/volumes\/\{name\}\/(blobs|bricks)/ {s+=$2} END {print s+0}'; }
+load() { $BIN/isovox-load --url "$1" --volume w --viewers 50 --duration 20 --json "$2" > "$2.txt" 2>&1; }
+before=$(reached)
+load "http://127.0.0.1:$N" "$WORK/through-nginx.json"
+after=$(reached)
+load "http://127.0.0.1:$R" "$WORK/replica-alone.json"
+python3 - "$WORK" "$before" "$after" <<'EOF'
+import json, sys
+work, before, after = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+def summary(name):
+    j = json.load(open(f"{work}/{name}.json"))
+    routes = j.get("routes", {})
+    tiles = sum(r.get("requests", 0) for k, r in routes.items() if k in ("blobs", "bricks"))
+    rate = j.get("all", {}).get("requests_per_s") or sum(r.get("requests_per_s", 0) for r in routes.values())
+    return tiles, rate
+tiles, through = summary("through-nginx")
+_, alone = summary("replica-alone")
+reached = after - before
+share = 100.0 * (1 - reached / tiles) if tiles else float("nan")
+print(f"nginx answered {share:.1f}% of {tiles} brick and blob requests without the replica ({reached} reached it)")
+print(f"isovox-load throughput: {through:.0f} req/s through nginx, {alone:.0f} req/s against the replica alone ({through/alone:.2f}x)")
+EOF

@@ -1,0 +1,339 @@
+//! The object store as the storage engine calls it: blocking calls (the engine's reads are
+//! synchronous, from request handlers, rayon and the blocking pool) carried out on a small
+//! runtime of their own, so a call works from any thread, inside or outside tokio.
+
+use super::super::StoreError;
+use bytes::Bytes;
+use object_store::path::Path as ObjectPath;
+use object_store::{GetOptions, ObjectStore, PutMode, PutOptions, PutPayload, UpdateVersion};
+use std::future::Future;
+use std::ops::Range;
+use std::sync::{Arc, OnceLock};
+use std::time::SystemTime;
+
+/// A place in an object store: a bucket and a key prefix (`s3://bucket/prefix`).
+#[derive(Debug, Clone)]
+pub struct Bucket {
+    store: Arc<dyn ObjectStore>,
+    prefix: String,
+    url: String,
+}
+
+/// An object's listing entry.
+#[derive(Debug, Clone)]
+pub struct Listed {
+    /// Its key below the bucket's prefix.
+    pub key: String,
+    /// When it was last written.
+    pub modified: SystemTime,
+}
+
+/// What a conditional read or write found.
+#[derive(Debug)]
+pub enum Conditional<T> {
+    /// Done (or read): the object's new (or current) ETag, and what was read.
+    Done(T, String),
+    /// The condition did not hold: on a read, unchanged since the ETag given; on a write,
+    /// another writer changed (or created) the object first.
+    Refused,
+}
+
+/// The runtime that carries out store calls (two workers: the calls are network waits).
+fn io_runtime() -> Result<&'static tokio::runtime::Runtime, StoreError> {
+    static RUNTIME: OnceLock<Result<tokio::runtime::Runtime, String>> = OnceLock::new();
+    RUNTIME
+        .get_or_init(|| {
+            tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .thread_name("isovox-store-io")
+                .enable_all()
+                .build()
+                .map_err(|e| e.to_string())
+        })
+        .as_ref()
+        .map_err(|e| StoreError::Internal(format!("cannot start the store's runtime: {e}")))
+}
+
+/// Runs `fut` on the store's runtime and waits for it. On a worker of a multi-threaded tokio
+/// runtime the wait is announced (`block_in_place`), so that runtime moves its other tasks
+/// elsewhere meanwhile.
+fn wait<T: Send + 'static>(fut: impl Future<Output = T> + Send + 'static) -> Result<T, StoreError> {
+    let (tx, rx) = std::sync::mpsc::sync_channel(1);
+    io_runtime()?.spawn(async move {
+        let _ = tx.send(fut.await);
+    });
+    let recv = move || rx.recv();
+    let got = match tokio::runtime::Handle::try_current() {
+        Ok(h) if h.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread => {
+            tokio::task::block_in_place(recv)
+        }
+        _ => recv(),
+    };
+    got.map_err(|_| StoreError::Internal("a store call was dropped unfinished".into()))
+}
+
+fn failed(what: String) -> impl FnOnce(object_store::Error) -> StoreError {
+    move |source| StoreError::ObjectStore {
+        context: what,
+        source: Box::new(source),
+    }
+}
+
+impl Bucket {
+    /// The bucket of an `s3://bucket/prefix` URL. Endpoint, region and credentials come from
+    /// the `AWS_*` environment variables (`AWS_ENDPOINT`, `AWS_ACCESS_KEY_ID`,
+    /// `AWS_SECRET_ACCESS_KEY`, `AWS_REGION`, `AWS_ALLOW_HTTP` for a plain-HTTP endpoint, ...).
+    ///
+    /// # Errors
+    /// The URL is not `s3://bucket[/prefix]`, or the configuration is incomplete.
+    pub fn from_url(url: &str) -> Result<Bucket, StoreError> {
+        Self::from_url_at(url, None)
+    }
+
+    /// [`Bucket::from_url`] with the endpoint given here rather than by `AWS_ENDPOINT` (several
+    /// stores in one process: tests, tools).
+    ///
+    /// # Errors
+    /// See [`Bucket::from_url`].
+    pub fn from_url_at(url: &str, endpoint: Option<&str>) -> Result<Bucket, StoreError> {
+        let rest = url.strip_prefix("s3://").ok_or_else(|| {
+            StoreError::BadInput(format!("{url}: a store is named s3://bucket/prefix"))
+        })?;
+        let (bucket, prefix) = rest.split_once('/').unwrap_or((rest, ""));
+        let prefix = prefix.trim_matches('/');
+        if bucket.is_empty() || prefix.split('/').any(|p| p == "." || p == "..") {
+            return Err(StoreError::BadInput(format!(
+                "{url}: a store is named s3://bucket/prefix"
+            )));
+        }
+        // TLS (for https endpoints) runs on rustls with ring, as the HTTPS listener does.
+        let _ = tokio_rustls::rustls::crypto::ring::default_provider().install_default();
+        let mut builder = object_store::aws::AmazonS3Builder::from_env().with_bucket_name(bucket);
+        if let Some(endpoint) = endpoint {
+            builder = builder
+                .with_endpoint(endpoint)
+                .with_allow_http(endpoint.starts_with("http://"));
+        }
+        let s3 = builder.build().map_err(|e| {
+            StoreError::BadInput(format!(
+                "{url}: cannot configure the store from the AWS_* environment: {e}"
+            ))
+        })?;
+        Ok(Bucket {
+            store: Arc::new(s3),
+            prefix: prefix.to_string(),
+            url: format!("s3://{bucket}/{prefix}"),
+        })
+    }
+
+    /// The same bucket, `sub` further down (`s3://bucket/prefix/sub`).
+    pub fn child(&self, sub: &str) -> Bucket {
+        let prefix = if self.prefix.is_empty() {
+            sub.to_string()
+        } else {
+            format!("{}/{sub}", self.prefix)
+        };
+        Bucket {
+            store: self.store.clone(),
+            url: format!("{}/{sub}", self.url.trim_end_matches('/')),
+            prefix,
+        }
+    }
+
+    /// `s3://bucket/prefix`.
+    pub fn url(&self) -> &str {
+        &self.url
+    }
+
+    fn path(&self, key: &str) -> ObjectPath {
+        if self.prefix.is_empty() {
+            ObjectPath::from(key)
+        } else {
+            ObjectPath::from(format!("{}/{key}", self.prefix))
+        }
+    }
+
+    /// Bytes `range` of object `key`.
+    ///
+    /// # Errors
+    /// The store fails or the object is missing.
+    pub fn get_range(&self, key: &str, range: Range<u64>) -> Result<Bytes, StoreError> {
+        let (store, path) = (self.store.clone(), self.path(key));
+        let what = format!("cannot read bytes {range:?} of {}/{key}", self.url);
+        wait(async move {
+            let options = GetOptions::new().with_range(Some(range));
+            store.get_opts(&path, options).await?.bytes().await
+        })?
+        .map_err(failed(what))
+    }
+
+    /// The whole object `key`, or `None` when there is none.
+    ///
+    /// # Errors
+    /// The store fails.
+    pub fn get(&self, key: &str) -> Result<Option<Bytes>, StoreError> {
+        match self.get_if_changed(key, None)? {
+            Conditional::Done(Some(b), _) => Ok(Some(b)),
+            _ => Ok(None),
+        }
+    }
+
+    /// Object `key` unless its ETag is still `etag` ([`Conditional::Refused`]: unchanged);
+    /// `Done(None, _)` when there is no such object.
+    ///
+    /// # Errors
+    /// The store fails.
+    pub fn get_if_changed(
+        &self,
+        key: &str,
+        etag: Option<&str>,
+    ) -> Result<Conditional<Option<Bytes>>, StoreError> {
+        let (store, path) = (self.store.clone(), self.path(key));
+        let options = GetOptions {
+            if_none_match: etag.map(str::to_string),
+            ..Default::default()
+        };
+        let what = format!("cannot read {}/{key}", self.url);
+        let got = wait(async move {
+            match store.get_opts(&path, options).await {
+                Ok(r) => {
+                    let etag = r.meta.e_tag.clone().unwrap_or_default();
+                    r.bytes().await.map(|b| Conditional::Done(Some(b), etag))
+                }
+                Err(object_store::Error::NotModified { .. }) => Ok(Conditional::Refused),
+                Err(object_store::Error::NotFound { .. }) => {
+                    Ok(Conditional::Done(None, String::new()))
+                }
+                Err(e) => Err(e),
+            }
+        })?
+        .map_err(failed(what))?;
+        // A store that ignores If-None-Match answers in full: the same ETag is no change.
+        match (got, etag) {
+            (Conditional::Done(Some(_), new), Some(old)) if new == old => Ok(Conditional::Refused),
+            (got, _) => Ok(got),
+        }
+    }
+
+    /// Writes object `key` unconditionally.
+    ///
+    /// # Errors
+    /// The store fails.
+    pub fn put(&self, key: &str, body: Bytes) -> Result<(), StoreError> {
+        let (store, path) = (self.store.clone(), self.path(key));
+        let what = format!("cannot write {}/{key}", self.url);
+        wait(async move {
+            let options = PutOptions::default();
+            store.put_opts(&path, PutPayload::from(body), options).await
+        })?
+        .map_err(failed(what))?;
+        Ok(())
+    }
+
+    /// Writes object `key` only if its ETag is still `etag` (`If-Match`), or, with `None`,
+    /// only if there is no such object yet (`If-None-Match: *`).
+    ///
+    /// # Errors
+    /// The store fails (a refused condition is [`Conditional::Refused`], not an error).
+    pub fn put_if(
+        &self,
+        key: &str,
+        body: Bytes,
+        etag: Option<&str>,
+    ) -> Result<Conditional<()>, StoreError> {
+        let (store, path) = (self.store.clone(), self.path(key));
+        let mode = match etag {
+            Some(e) => PutMode::Update(UpdateVersion {
+                e_tag: Some(e.to_string()),
+                version: None,
+            }),
+            None => PutMode::Create,
+        };
+        let what = format!("cannot write {}/{key}", self.url);
+        wait(async move {
+            let options = PutOptions {
+                mode,
+                ..Default::default()
+            };
+            match store.put_opts(&path, PutPayload::from(body), options).await {
+                Ok(r) => Ok(Conditional::Done((), r.e_tag.unwrap_or_default())),
+                Err(
+                    object_store::Error::Precondition { .. }
+                    | object_store::Error::AlreadyExists { .. },
+                ) => Ok(Conditional::Refused),
+                Err(e) => Err(e),
+            }
+        })?
+        .map_err(failed(what))
+    }
+
+    /// Every object whose key starts with `under/`, with its write time.
+    ///
+    /// # Errors
+    /// The store fails.
+    pub fn list(&self, under: &str) -> Result<Vec<Listed>, StoreError> {
+        use futures_util::StreamExt;
+        let (store, path) = (self.store.clone(), self.path(under));
+        let strip = format!("{}/", self.path("").as_ref().trim_end_matches('/'));
+        let strip = if self.prefix.is_empty() {
+            String::new()
+        } else {
+            strip
+        };
+        let what = format!("cannot list {}/{under}", self.url);
+        wait(async move {
+            let mut out = Vec::new();
+            let mut stream = store.list(Some(&path));
+            while let Some(meta) = stream.next().await {
+                let meta = meta?;
+                let key = meta.location.as_ref();
+                out.push(Listed {
+                    key: key.strip_prefix(strip.as_str()).unwrap_or(key).to_string(),
+                    modified: meta.last_modified.into(),
+                });
+            }
+            Ok(out)
+        })?
+        .map_err(failed(what))
+    }
+
+    /// The names just below the prefix (`prefix/NAME/...` gives `NAME`).
+    ///
+    /// # Errors
+    /// The store fails.
+    pub fn list_dirs(&self) -> Result<Vec<String>, StoreError> {
+        let store = self.store.clone();
+        let prefix = (!self.prefix.is_empty()).then(|| ObjectPath::from(self.prefix.as_str()));
+        let what = format!("cannot list {}", self.url);
+        let listed = wait(async move { store.list_with_delimiter(prefix.as_ref()).await })?
+            .map_err(failed(what))?;
+        Ok(listed
+            .common_prefixes
+            .iter()
+            .filter_map(|p| p.filename().map(str::to_string))
+            .collect())
+    }
+
+    /// Deletes object `key` (no error when it is already gone).
+    ///
+    /// # Errors
+    /// The store fails.
+    pub fn delete(&self, key: &str) -> Result<(), StoreError> {
+        let (store, path) = (self.store.clone(), self.path(key));
+        let what = format!("cannot delete {}/{key}", self.url);
+        let deleted = wait(async move {
+            use futures_util::StreamExt;
+            let one = futures_util::stream::once(async move { Ok(path) }).boxed();
+            store
+                .delete_stream(one)
+                .next()
+                .await
+                .transpose()
+                .map(|_| ())
+        })?;
+        match deleted {
+            Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
+            Err(e) => Err(failed(what)(e)),
+        }
+    }
+}

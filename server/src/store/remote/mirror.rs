@@ -1,0 +1,251 @@
+//! A replica's bounded local cache of a volume in an object store: a sparse local file laid out
+//! as the volume's logical VOD 2 file, memory-mapped like a local volume, whose pages are
+//! fetched from their segment objects by range requests the first time a reader needs them.
+//!
+//! Pages are [`PAGE`] bytes of one segment (a segment's last page may be shorter), so a page is
+//! whole once fetched and never changes: segments are immutable. Which pages are here is one bit
+//! each, set after the bytes are written (release) and tested before they are read (acquire).
+//! Two readers missing the same page may both fetch it and write the same bytes; either way the
+//! bytes under the mapping go from a hole (zeros no reader looks at) to the segment's content,
+//! once, through `pwrite`, never through the mapping.
+//!
+//! The bound: the file is unlinked as soon as it is created (a crash leaves nothing behind) and
+//! its pages count against the cache size; past it, the volume starts a fresh file (a new
+//! generation) for new snapshots, and the old one is freed when the last reader of an older
+//! snapshot lets go of it.
+
+use super::super::region::Fill;
+use super::super::StoreError;
+use super::bucket::Bucket;
+use super::head::Segment;
+use std::fs::{File, OpenOptions};
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+
+/// The unit fetched: small enough that a compressed brick costs one or two pages, large enough
+/// that a brick's header and payload mostly share one.
+pub const PAGE: u64 = 4096;
+
+/// What a mirror fetched so far (for metrics and the benchmark).
+#[derive(Debug, Default)]
+pub struct FetchCounters {
+    /// Range requests made.
+    pub requests: AtomicU64,
+    /// Bytes they returned.
+    pub bytes: AtomicU64,
+}
+
+/// The sparse file and what it holds.
+#[derive(Debug)]
+pub struct MirrorFile {
+    file: File,
+    path: PathBuf,
+    bucket: Bucket,
+    /// Bytes of pages present.
+    cached: AtomicU64,
+    counters: Arc<FetchCounters>,
+}
+
+/// One segment's pages in a mirror file.
+#[derive(Debug)]
+pub struct Pages {
+    segment: Segment,
+    present: Box<[AtomicU64]>,
+}
+
+impl Pages {
+    /// No page of `segment` present yet.
+    pub fn new(segment: Segment) -> Pages {
+        let n = segment.len.div_ceil(PAGE).div_ceil(64) as usize;
+        Pages {
+            segment,
+            present: (0..n).map(|_| AtomicU64::new(0)).collect(),
+        }
+    }
+
+    /// The segment.
+    pub fn segment(&self) -> &Segment {
+        &self.segment
+    }
+
+    #[inline]
+    fn has(&self, page: u64) -> bool {
+        let word = self.present[(page / 64) as usize].load(Ordering::Acquire);
+        word & (1 << (page % 64)) != 0
+    }
+
+    /// Marks pages `first..=last` present; returns how many were not.
+    fn mark(&self, first: u64, last: u64) -> u64 {
+        let mut added = 0;
+        for page in first..=last {
+            let bit = 1u64 << (page % 64);
+            let before = self.present[(page / 64) as usize].fetch_or(bit, Ordering::Release);
+            added += u64::from(before & bit == 0);
+        }
+        added
+    }
+
+    fn page_len(&self, page: u64) -> u64 {
+        PAGE.min(self.segment.len - page * PAGE)
+    }
+}
+
+impl MirrorFile {
+    /// A new, empty mirror file in `dir` (unlinked at once: only this process's handle keeps
+    /// it), fetching from `bucket` (the volume's objects).
+    ///
+    /// # Errors
+    /// The file cannot be created.
+    pub fn create(
+        dir: &Path,
+        label: &str,
+        bucket: Bucket,
+        counters: Arc<FetchCounters>,
+    ) -> Result<MirrorFile, StoreError> {
+        std::fs::create_dir_all(dir).map_err(StoreError::io_path(
+            "cannot create the cache directory",
+            dir,
+        ))?;
+        static NEXT: AtomicU64 = AtomicU64::new(0);
+        let path = dir.join(format!(
+            "{label}.{}.{}.mirror",
+            std::process::id(),
+            NEXT.fetch_add(1, Ordering::Relaxed)
+        ));
+        let file = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create_new(true)
+            .open(&path)
+            .map_err(StoreError::io_path("cannot create the cache file", &path))?;
+        let _ = std::fs::remove_file(&path);
+        Ok(MirrorFile {
+            file,
+            path,
+            bucket,
+            cached: AtomicU64::new(0),
+            counters,
+        })
+    }
+
+    /// Grows the file (sparse) to `len` bytes and maps it.
+    ///
+    /// # Errors
+    /// The file cannot be grown or mapped.
+    pub(crate) fn map(&self, len: u64) -> Result<super::super::mapping::Mapping, StoreError> {
+        let now = self
+            .file
+            .metadata()
+            .map_err(StoreError::io_path("cannot stat", &self.path))?
+            .len();
+        if len > now {
+            self.file
+                .set_len(len)
+                .map_err(StoreError::io_path("cannot grow", &self.path))?;
+        }
+        super::super::mapping::Mapping::new(&self.file, len)
+            .map_err(StoreError::io_path("cannot map", &self.path))
+    }
+
+    /// Bytes of pages held.
+    pub fn cached(&self) -> u64 {
+        self.cached.load(Ordering::Relaxed)
+    }
+
+    /// Writes a whole segment this process already has (its own commit) and marks it present.
+    ///
+    /// # Errors
+    /// The file cannot be written.
+    pub fn put_segment(&self, pages: &Pages, bytes: &[u8]) -> Result<(), StoreError> {
+        if bytes.len() as u64 != pages.segment.len {
+            return Err(StoreError::Internal(format!(
+                "segment {} has {} bytes, {} were given",
+                pages.segment.key,
+                pages.segment.len,
+                bytes.len()
+            )));
+        }
+        self.file
+            .write_all_at(bytes, pages.segment.start)
+            .map_err(StoreError::io_path("cannot write", &self.path))?;
+        let n = pages.segment.len.div_ceil(PAGE);
+        if n > 0 {
+            let added = pages.mark(0, n - 1);
+            self.cached.fetch_add(added * PAGE, Ordering::Relaxed);
+        }
+        Ok(())
+    }
+
+    /// Makes pages `first..=last` of `pages` present, fetching the span from the first missing
+    /// to the last missing one in one range request.
+    fn fetch(&self, pages: &Pages, first: u64, last: u64) -> Result<(), StoreError> {
+        let Some(lo) = (first..=last).find(|&p| !pages.has(p)) else {
+            return Ok(());
+        };
+        let hi = (lo..=last).rev().find(|&p| !pages.has(p)).unwrap_or(lo);
+        let from = lo * PAGE;
+        let to = hi * PAGE + pages.page_len(hi);
+        let bytes = self.bucket.get_range(&pages.segment.key, from..to)?;
+        if bytes.len() as u64 != to - from {
+            return Err(StoreError::corrupt(
+                pages.segment.start + from,
+                format!("{} bytes of segment {}", to - from, pages.segment.key),
+                format!("{} bytes", bytes.len()),
+            ));
+        }
+        self.counters.requests.fetch_add(1, Ordering::Relaxed);
+        self.counters
+            .bytes
+            .fetch_add(bytes.len() as u64, Ordering::Relaxed);
+        self.file
+            .write_all_at(&bytes, pages.segment.start + from)
+            .map_err(StoreError::io_path("cannot write", &self.path))?;
+        let added = pages.mark(lo, hi);
+        self.cached.fetch_add(added * PAGE, Ordering::Relaxed);
+        Ok(())
+    }
+}
+
+/// A mirror as of one head: the file and every segment's pages, in order (shared with the
+/// views of earlier heads: a segment's pages are fetched once per file).
+#[derive(Debug)]
+pub struct MirrorView {
+    file: Arc<MirrorFile>,
+    pages: Vec<Arc<Pages>>,
+}
+
+impl MirrorView {
+    /// The view of `pages` (contiguous from offset 0) in `file`.
+    pub fn new(file: Arc<MirrorFile>, pages: Vec<Arc<Pages>>) -> MirrorView {
+        MirrorView { file, pages }
+    }
+}
+
+impl Fill for MirrorView {
+    fn fill(&self, start: u64, len: u64) -> Result<(), StoreError> {
+        let end = start + len;
+        let mut i = self.pages.partition_point(|p| p.segment.end() <= start);
+        while let Some(pages) = self.pages.get(i) {
+            let s = &pages.segment;
+            if s.start >= end {
+                break;
+            }
+            let a = start.max(s.start) - s.start;
+            let b = end.min(s.end()) - s.start;
+            let (first, last) = (a / PAGE, (b - 1) / PAGE);
+            if (first..=last).any(|p| !pages.has(p)) {
+                self.file.fetch(pages, first, last)?;
+            }
+            i += 1;
+        }
+        let covered = self.pages.last().map_or(0, |p| p.segment.end());
+        if end > covered {
+            return Err(StoreError::Internal(format!(
+                "bytes up to {end} asked of a mirror whose segments end at {covered}"
+            )));
+        }
+        Ok(())
+    }
+}

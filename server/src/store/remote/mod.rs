@@ -1,0 +1,487 @@
+//! Volumes kept in an object store (S3): one committed history, any number of replicas.
+//!
+//! A volume `NAME` under `s3://bucket/prefix` is the objects below `prefix/NAME/`:
+//!
+//! - `seg/{start}-{version}-{tag}`: immutable segments, each the bytes one commit appended to
+//!   the volume's logical VOD 2 file (the first: the file's header pages and its first version,
+//!   as an import or a compaction wrote them). Brick records, index checkpoints and commit
+//!   records are where they would be in a local file, at the same offsets.
+//! - `manifests/{end}-{tag}.json`: immutable lists of the segments up to `end` (a head past
+//!   [`head::TAIL_MAX`] segments folds them into one, so the head stays small).
+//! - `head`: the one object that changes: the head version, its commit record's offset, the
+//!   committed length and the segments (JSON, [`head::Head`]).
+//!
+//! A commit writes its segment (and a manifest, when due), then replaces `head` with a
+//! conditional PUT (`If-Match` on the ETag it read). Of two writers that read the same head,
+//! one wins; the other's PUT is refused and it learns the new head ([`StoreError::HeadMoved`]).
+//! A writer that dies between its segment and the head leaves the head as it was: its segment
+//! is garbage that [`collect_garbage`] removes. No lock service is involved.
+//!
+//! A replica reads through a [`mirror`]: a sparse local file laid out as the logical file and
+//! memory-mapped, so a brick read is the same index lookup and slice as for a local file, once
+//! its page is there. It follows the head with conditional GETs (`If-None-Match`), which cost
+//! one small request and no body while nothing changes.
+
+pub mod bucket;
+pub mod head;
+pub mod mirror;
+
+pub use bucket::{Bucket, Conditional};
+pub use head::{Head, Manifest, ManifestRef, Segment};
+pub use mirror::FetchCounters;
+
+use super::region::Fill;
+use super::writer::Publish;
+use super::{StoreError, Vod2};
+use bytes::Bytes;
+use head::{HEAD_FORMAT, TAIL_MAX};
+use isovox_proto::vod2::{FileHeader, HeaderSlot, HEADER_LEN};
+use mirror::{MirrorFile, MirrorView, Pages};
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
+use std::time::{Duration, SystemTime};
+
+/// The head object's key.
+pub const HEAD_KEY: &str = "head";
+
+/// Where replicas keep their mirrors and how large they may grow.
+#[derive(Debug, Clone)]
+pub struct CacheConfig {
+    /// The directory of the mirror files (they are unlinked at creation).
+    pub dir: PathBuf,
+    /// Bytes of fetched pages per volume before a fresh mirror is started.
+    pub max_bytes: u64,
+}
+
+impl Default for CacheConfig {
+    fn default() -> Self {
+        CacheConfig {
+            dir: std::env::temp_dir().join("isovox-cache"),
+            max_bytes: 1 << 30,
+        }
+    }
+}
+
+/// What following the head found.
+#[derive(Debug)]
+pub enum Refreshed {
+    /// Nothing new.
+    Same,
+    /// New commits on top of the version given: the volume as of the new head.
+    Advanced(Vod2),
+    /// A head that does not extend it (a compaction), or a fresh mirror of the same head (the
+    /// cache outgrew its bound): the volume reopened.
+    Replaced(Vod2),
+}
+
+/// The head as this process last saw it, and the mirror that goes with it.
+#[derive(Debug)]
+struct Followed {
+    etag: String,
+    head: Head,
+    pages: Vec<Arc<Pages>>,
+    file: Arc<MirrorFile>,
+}
+
+/// One volume in an object store, as one process reads and writes it.
+#[derive(Debug)]
+pub struct RemoteVolume {
+    name: String,
+    bucket: Bucket,
+    cache: CacheConfig,
+    header: FileHeader,
+    counters: Arc<FetchCounters>,
+    state: Mutex<Followed>,
+}
+
+/// A unique tag for object names: this process and a counter, hashed with the time.
+fn tag() -> String {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static COUNTER: AtomicU64 = AtomicU64::new(0);
+    let nanos = SystemTime::now()
+        .duration_since(SystemTime::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos());
+    let seed = format!(
+        "{}-{}-{nanos}",
+        std::process::id(),
+        COUNTER.fetch_add(1, Ordering::Relaxed)
+    );
+    format!("{:016x}", xxhash_rust::xxh3::xxh3_64(seed.as_bytes()))
+}
+
+fn segment_key(start: u64, version: u64) -> String {
+    format!("seg/{start:016x}-{version:016x}-{}", tag())
+}
+
+/// For fault-injection tests: `ISOVOX_STORE_PAUSE_BEFORE_HEAD_MS` makes a writer wait that long
+/// between writing its segment and advancing the head (the window a crash or a stall of a
+/// writer falls into).
+fn pause_before_head() {
+    static PAUSE: OnceLock<Option<Duration>> = OnceLock::new();
+    let pause = PAUSE.get_or_init(|| {
+        std::env::var("ISOVOX_STORE_PAUSE_BEFORE_HEAD_MS")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .map(Duration::from_millis)
+    });
+    if let Some(pause) = pause {
+        std::thread::sleep(*pause);
+    }
+}
+
+/// Every segment a head names, the manifest's first.
+fn all_segments(bucket: &Bucket, head: &Head) -> Result<Vec<Segment>, StoreError> {
+    let mut out = match &head.manifest {
+        None => Vec::new(),
+        Some(m) => {
+            let bytes = bucket.get(&m.key)?.ok_or_else(|| {
+                StoreError::corrupt(
+                    0,
+                    format!("manifest {} that the head names", m.key),
+                    "no such object",
+                )
+            })?;
+            Manifest::decode(&bytes, m)?.segments
+        }
+    };
+    out.extend(head.segments.iter().cloned());
+    Ok(out)
+}
+
+/// Reads the head object of the volume at `bucket`.
+///
+/// # Errors
+/// No head ([`StoreError::Absent`]), or the store fails, or the head is malformed.
+pub fn read_head(bucket: &Bucket) -> Result<(Head, String), StoreError> {
+    match bucket.get_if_changed(HEAD_KEY, None)? {
+        Conditional::Done(Some(bytes), etag) => Ok((Head::decode(&bytes)?, etag)),
+        _ => Err(StoreError::Absent(format!(
+            "no volume at {} (no head object)",
+            bucket.url()
+        ))),
+    }
+}
+
+impl RemoteVolume {
+    /// Opens volume `name` of `store`: reads its head (and manifest), maps a fresh mirror and
+    /// reads the file header, the head's commit record and the fixed part of its index
+    /// checkpoint, no brick.
+    ///
+    /// # Errors
+    /// No such volume, the store fails, or what it holds is malformed.
+    pub fn open(
+        store: &Bucket,
+        name: &str,
+        cache: CacheConfig,
+    ) -> Result<(Arc<RemoteVolume>, Vod2), StoreError> {
+        let bucket = store.child(name);
+        let (head, etag) = read_head(&bucket)?;
+        let counters = Arc::new(FetchCounters::default());
+        let file = Arc::new(MirrorFile::create(
+            &cache.dir,
+            name,
+            bucket.clone(),
+            counters.clone(),
+        )?);
+        let pages: Vec<Arc<Pages>> = all_segments(&bucket, &head)?
+            .into_iter()
+            .map(|s| Arc::new(Pages::new(s)))
+            .collect();
+        let view = Arc::new(MirrorView::new(file.clone(), pages.clone()));
+        let map = file.map(head.committed_len)?;
+        view.fill(0, HEADER_LEN as u64)?;
+        let header = FileHeader::decode(map.bytes().get(..HEADER_LEN).unwrap_or_default())?;
+        let volume = Arc::new(RemoteVolume {
+            name: name.to_string(),
+            header: header.clone(),
+            cache,
+            counters,
+            state: Mutex::new(Followed {
+                etag,
+                head: head.clone(),
+                pages,
+                file,
+            }),
+            bucket,
+        });
+        let vod = Vod2::open_mirror(
+            PathBuf::from(volume.bucket.url()),
+            header,
+            head.slot(),
+            map,
+            view,
+        )?;
+        Ok((volume, vod))
+    }
+
+    /// The volume's name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// The volume's objects.
+    pub fn bucket(&self) -> &Bucket {
+        &self.bucket
+    }
+
+    /// Range requests made and bytes fetched by this volume's mirrors.
+    pub fn counters(&self) -> &FetchCounters {
+        &self.counters
+    }
+
+    /// Bytes the current mirror holds.
+    pub fn cached_bytes(&self) -> u64 {
+        self.lock().file.cached()
+    }
+
+    fn lock(&self) -> MutexGuard<'_, Followed> {
+        // Every update of the state is a whole assignment: a poisoned lock holds a sound state.
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// The volume as of `state` in a fresh mirror file.
+    fn reopen(&self, state: &mut Followed) -> Result<Vod2, StoreError> {
+        state.file = Arc::new(MirrorFile::create(
+            &self.cache.dir,
+            &self.name,
+            self.bucket.clone(),
+            self.counters.clone(),
+        )?);
+        state.pages = all_segments(&self.bucket, &state.head)?
+            .into_iter()
+            .map(|s| Arc::new(Pages::new(s)))
+            .collect();
+        let map = state.file.map(state.head.committed_len)?;
+        let view = Arc::new(MirrorView::new(state.file.clone(), state.pages.clone()));
+        Vod2::open_mirror(
+            PathBuf::from(self.bucket.url()),
+            self.header.clone(),
+            state.head.slot(),
+            map,
+            view,
+        )
+    }
+
+    /// `current` advanced to the state's head, in the same mirror file.
+    fn advance(&self, state: &Followed, current: &Vod2) -> Result<Vod2, StoreError> {
+        let map = state.file.map(state.head.committed_len)?;
+        let view = Arc::new(MirrorView::new(state.file.clone(), state.pages.clone()));
+        current.advance_mirror(state.head.slot(), map, view)
+    }
+
+    /// Follows the head: one conditional GET; when the head moved, the volume as of the new
+    /// head (`current` is the version this process serves now).
+    ///
+    /// # Errors
+    /// The store fails or the new head is malformed (the old one stays in force).
+    pub fn refresh(&self, current: &Vod2) -> Result<Refreshed, StoreError> {
+        let mut state = self.lock();
+        let got = self.bucket.get_if_changed(HEAD_KEY, Some(&state.etag))?;
+        let (head, etag) = match got {
+            Conditional::Refused => {
+                if state.file.cached() > self.cache.max_bytes {
+                    tracing::info!(volume = %self.name, cached = state.file.cached(), "the mirror outgrew its bound; starting a fresh one");
+                    return Ok(Refreshed::Replaced(self.reopen(&mut state)?));
+                }
+                return Ok(Refreshed::Same);
+            }
+            Conditional::Done(Some(bytes), etag) => (Head::decode(&bytes)?, etag),
+            Conditional::Done(None, _) => {
+                return Err(StoreError::Absent(format!(
+                    "the head object of {} is gone",
+                    self.bucket.url()
+                )))
+            }
+        };
+        let segments = all_segments(&self.bucket, &head)?;
+        let extends = segments.len() >= state.pages.len()
+            && state
+                .pages
+                .iter()
+                .zip(&segments)
+                .all(|(p, s)| p.segment() == s)
+            && head.version >= state.head.version;
+        let outgrown = state.file.cached() > self.cache.max_bytes;
+        let known = state.pages.len();
+        state.head = head;
+        state.etag = etag;
+        if !extends || outgrown {
+            return Ok(Refreshed::Replaced(self.reopen(&mut state)?));
+        }
+        state.pages.extend(
+            segments
+                .into_iter()
+                .skip(known)
+                .map(|s| Arc::new(Pages::new(s))),
+        );
+        Ok(Refreshed::Advanced(self.advance(&state, current)?))
+    }
+
+    /// The volume as of the head this process published last (after a commit through
+    /// [`Publish`]), built from `current`, the version the commit was made on.
+    ///
+    /// # Errors
+    /// The new commit record cannot be read.
+    pub fn after_commit(&self, current: &Vod2) -> Result<Vod2, StoreError> {
+        let state = self.lock();
+        self.advance(&state, current)
+    }
+
+    /// The head object's current content and ETag, read from the store.
+    ///
+    /// # Errors
+    /// See [`read_head`].
+    pub fn read_head(&self) -> Result<(Head, String), StoreError> {
+        read_head(&self.bucket)
+    }
+}
+
+impl Publish for RemoteVolume {
+    /// Writes the commit's segment, then advances the head with a conditional PUT on the ETag
+    /// of `base`, the head the commit was made on.
+    fn publish(
+        &self,
+        base: Option<HeaderSlot>,
+        from: u64,
+        appended: &[u8],
+        slot: &HeaderSlot,
+    ) -> Result<(), StoreError> {
+        let mut state = self.lock();
+        let moved = || StoreError::HeadMoved {
+            url: self.bucket.url().to_string(),
+        };
+        if base.map(|b| b.commit) != Some(state.head.commit) || from != state.head.committed_len {
+            return Err(moved());
+        }
+        let segment = Segment {
+            start: from,
+            len: appended.len() as u64,
+            key: segment_key(from, slot.version),
+        };
+        let bytes = Bytes::copy_from_slice(appended);
+        self.bucket.put(&segment.key, bytes)?;
+        pause_before_head();
+        let mut next = Head {
+            format: HEAD_FORMAT.into(),
+            version: slot.version,
+            commit: slot.commit,
+            committed_len: slot.committed_len,
+            manifest: state.head.manifest.clone(),
+            segments: state.head.segments.clone(),
+        };
+        next.segments.push(segment.clone());
+        if next.segments.len() > TAIL_MAX {
+            let all: Vec<Segment> = state
+                .pages
+                .iter()
+                .map(|p| p.segment().clone())
+                .chain(std::iter::once(segment.clone()))
+                .collect();
+            let end = segment.end();
+            let manifest = Manifest {
+                format: HEAD_FORMAT.into(),
+                segments: all,
+            };
+            let key = format!("manifests/{end:016x}-{}.json", tag());
+            self.bucket.put(
+                &key,
+                Bytes::from(serde_json::to_vec(&manifest).unwrap_or_default()),
+            )?;
+            next.manifest = Some(ManifestRef {
+                key,
+                segments: manifest.segments.len() as u64,
+                end,
+            });
+            next.segments.clear();
+        }
+        match self
+            .bucket
+            .put_if(HEAD_KEY, Bytes::from(next.encode()), Some(&state.etag))?
+        {
+            Conditional::Refused => Err(moved()),
+            Conditional::Done((), etag) => {
+                let pages = Arc::new(Pages::new(segment));
+                // The commit is published; the mirror copy only saves fetching it back.
+                if let Err(e) = state.file.put_segment(&pages, appended) {
+                    tracing::warn!(error = %super::error_chain(&e), "cannot keep a committed segment in the mirror");
+                }
+                state.pages.push(pages);
+                state.head = next;
+                state.etag = etag;
+                Ok(())
+            }
+        }
+    }
+}
+
+/// Uploads the local VOD 2 file `path` as the volume at `bucket` (`store.child(NAME)`; its
+/// first segment is the whole committed file): creates the volume (`If-None-Match: *` on the
+/// head), or, with `replace` (the ETag of the head it was read from, for a compaction),
+/// replaces that head.
+///
+/// # Errors
+/// The file does not open, the store fails, or the head exists (or moved, with `replace`):
+/// [`StoreError::HeadMoved`].
+pub fn upload(
+    bucket: &Bucket,
+    path: &std::path::Path,
+    replace: Option<&str>,
+) -> Result<Head, StoreError> {
+    let vod = Vod2::open(path)?;
+    let slot = vod.head_slot();
+    drop(vod);
+    let mut bytes = std::fs::read(path).map_err(StoreError::io_path("cannot read", path))?;
+    bytes.truncate(slot.committed_len as usize);
+    let segment = Segment {
+        start: 0,
+        len: bytes.len() as u64,
+        key: segment_key(0, slot.version),
+    };
+    bucket.put(&segment.key, Bytes::from(bytes))?;
+    let head = Head {
+        format: HEAD_FORMAT.into(),
+        version: slot.version,
+        commit: slot.commit,
+        committed_len: slot.committed_len,
+        manifest: None,
+        segments: vec![segment],
+    };
+    match bucket.put_if(HEAD_KEY, Bytes::from(head.encode()), replace)? {
+        Conditional::Done((), _) => Ok(head),
+        Conditional::Refused => Err(StoreError::HeadMoved {
+            url: bucket.url().to_string(),
+        }),
+    }
+}
+
+/// Deletes the objects of the volume at `bucket` that its head does not reference (segments of writers
+/// that died before advancing the head, or that lost; what a compaction replaced) and that are
+/// older than `grace`: a replica still reading an older head keeps its objects that long.
+/// Returns how many objects were deleted.
+///
+/// # Errors
+/// The store fails, or the head is malformed.
+pub fn collect_garbage(bucket: &Bucket, grace: Duration) -> Result<usize, StoreError> {
+    let (head, _) = read_head(bucket)?;
+    let mut live: std::collections::HashSet<String> = all_segments(bucket, &head)?
+        .into_iter()
+        .map(|s| s.key)
+        .collect();
+    if let Some(m) = &head.manifest {
+        live.insert(m.key.clone());
+    }
+    let now = SystemTime::now();
+    let mut deleted = 0;
+    for under in ["seg", "manifests"] {
+        for object in bucket.list(under)? {
+            let old = now
+                .duration_since(object.modified)
+                .is_ok_and(|age| age >= grace);
+            if !live.contains(&object.key) && old {
+                bucket.delete(&object.key)?;
+                deleted += 1;
+            }
+        }
+    }
+    Ok(deleted)
+}
