@@ -5,6 +5,7 @@ use clap::Args;
 use isovox_server::catalog::Catalog;
 use isovox_server::generate::{build_demo, DEMO_NAME};
 use isovox_server::http::auth::{random_secret, Scope, Tokens};
+use isovox_server::http::cpu;
 use isovox_server::http::{run, run_tls, shutdown_signal, AppState, ServerConfig};
 use isovox_server::store::BuildOptions;
 use std::net::SocketAddr;
@@ -25,9 +26,14 @@ pub(crate) struct ServeArgs {
     /// Memory for decoded and transcoded brick bodies, in MiB.
     #[arg(long, env = "ISOVOX_BRICK_CACHE_MB", default_value_t = 64)]
     pub brick_cache_mb: usize,
-    /// Meshing jobs running or queued at once; beyond it requests get 503 with Retry-After.
-    #[arg(long, env = "ISOVOX_CPU_QUEUE", default_value_t = 64)]
+    /// CPU jobs (mesh tiles, batches, levels, change lists) running or queued at once; beyond
+    /// it requests get 503 with Retry-After. Default: eight per core.
+    #[arg(long, env = "ISOVOX_CPU_QUEUE", default_value_t = cpu::default_queue())]
     pub cpu_queue: usize,
+    /// Memory for the bodies of those jobs' answers until they are sent, in MiB; beyond it
+    /// 503 (413 for one answer larger than all of it).
+    #[arg(long, env = "ISOVOX_RESPONSE_MEMORY_MB", default_value_t = 256)]
+    pub response_memory_mb: usize,
     /// Tokens, one per line: `NAME TOKEN [write|read]`. Default: DATA/tokens, created with one
     /// random write token on first start when no token is configured.
     #[arg(long, env = "ISOVOX_TOKEN_FILE")]
@@ -172,6 +178,12 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             "isovox serving {} on {scheme}://{addr}/v1/volumes, the viewer on {scheme}://{addr}/",
             names.join(", ")
         );
+        eprintln!(
+            "limits: {} CPU jobs queued on {} threads, {} MiB of answers in flight",
+            a.cpu_queue,
+            cpu::cores(),
+            a.response_memory_mb
+        );
         if tokens.is_empty() {
             tracing::warn!("no write token configured: every edit will be refused");
         }
@@ -179,6 +191,7 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             mesh_cache_bytes: a.mesh_cache_mb << 20,
             brick_cache_bytes: a.brick_cache_mb << 20,
             cpu_queue: a.cpu_queue,
+            response_memory_bytes: a.response_memory_mb << 20,
             tokens,
             private_reads: a.private_reads,
             edit_rate: a.edit_rate,

@@ -296,7 +296,7 @@ fn gauges(state: &AppState, out: &mut String) {
         edit_queue += v.queue_depth() as u64;
         subscribers += v.subscribers() as u64;
     }
-    let gauges: [(&str, &str, &str, u64); 11] = [
+    let gauges: [(&str, &str, &str, u64); 12] = [
         (
             "isovox_response_bytes_total",
             "counter",
@@ -326,6 +326,12 @@ fn gauges(state: &AppState, out: &mut String) {
             "gauge",
             "CPU jobs (meshing, batches, levels) running or queued.",
             state.cpu.depth() as u64,
+        ),
+        (
+            "isovox_response_memory_bytes",
+            "gauge",
+            "Bytes of response bodies built by CPU jobs and not yet sent.",
+            state.cpu.memory.held() as u64,
         ),
         (
             "isovox_brick_cache_hits_total",

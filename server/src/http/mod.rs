@@ -23,9 +23,9 @@
 //! Layout: handlers by concern (`bricks`, `handlers`, `edit`, `compact`, `feed`, `meshes`,
 //! `web_app`); `error` decides every status code; `extract` gives axum's extractors that error;
 //! `cpu` runs CPU work off the async runtime; `compression` makes the zstd bodies inside that
-//! work; `auth` checks tokens and edit rates; `bodies` keeps constant bricks' bodies; `serve`
-//! is the listener loop and the shutdown, `tls` its certificates; `metrics`, `cors` and
-//! `openapi` are what their names say.
+//! work and `held` bounds their memory until they are sent; `auth` checks tokens and edit
+//! rates; `bodies` keeps constant bricks' bodies; `serve` is the listener loop and the
+//! shutdown, `tls` its certificates; `metrics`, `cors` and `openapi` are what their names say.
 
 pub mod auth;
 pub mod bodies;
@@ -40,6 +40,7 @@ pub mod extract;
 mod fast_path;
 pub mod feed;
 pub mod handlers;
+pub mod held;
 pub mod meshes;
 pub mod metrics;
 mod openapi;
@@ -72,8 +73,14 @@ pub struct ServerConfig {
     pub mesh_cache_bytes: usize,
     /// Memory for decoded bricks and their lz4 blocks (brick bodies and meshing share it).
     pub brick_cache_bytes: usize,
-    /// Meshing and batch jobs running or queued at once.
+    /// CPU jobs (meshing, batches, levels, change lists) running or queued at once; beyond it
+    /// 503. Default: eight per core ([`cpu::default_queue`]).
     pub cpu_queue: usize,
+    /// Threads running CPU jobs. Default: one per core.
+    pub cpu_threads: usize,
+    /// Memory for the bodies CPU jobs build, held until they are sent (`held.rs`); beyond it
+    /// 503.
+    pub response_memory_bytes: usize,
     /// Who may write (and, with `private_reads`, read).
     pub tokens: auth::Tokens,
     /// Every `/v1` route needs a token (of either scope).
@@ -101,7 +108,9 @@ impl Default for ServerConfig {
         ServerConfig {
             mesh_cache_bytes: 256 << 20,
             brick_cache_bytes: 64 << 20,
-            cpu_queue: 64,
+            cpu_queue: cpu::default_queue(),
+            cpu_threads: cpu::cores(),
+            response_memory_bytes: 256 << 20,
             tokens: auth::Tokens::default(),
             private_reads: false,
             edit_rate: 50.0,
@@ -137,7 +146,8 @@ pub struct Shared {
     pub meshes: Arc<MeshCache>,
     /// Decoded bricks and their lz4 blocks by content hash, for brick bodies and meshing.
     pub bricks: Arc<DecodedBricks>,
-    /// The bound on CPU work off the async runtime (meshing, batches, levels).
+    /// The bound on CPU work off the async runtime (meshing, batches, levels) and on the
+    /// memory of its answers.
     pub cpu: cpu::CpuQueue,
     /// Requests and latencies per route.
     pub metrics: Arc<metrics::Metrics>,
@@ -155,7 +165,7 @@ pub struct Shared {
 
 impl AppState {
     /// A state serving `catalog` with a mesh cache of `mesh_cache_bytes` and room for
-    /// `cpu_queue` meshing jobs at once (running or queued on the blocking pool).
+    /// `cpu_queue` CPU jobs at once (running or queued for the CPU threads).
     pub fn new(catalog: Catalog, mesh_cache_bytes: usize, cpu_queue: usize) -> Self {
         AppState::with_config(
             catalog,
@@ -173,7 +183,11 @@ impl AppState {
             catalog: Arc::new(catalog),
             meshes: Arc::new(MeshCache::new(config.mesh_cache_bytes)),
             bricks: Arc::new(DecodedBricks::new(config.brick_cache_bytes)),
-            cpu: cpu::CpuQueue::new(config.cpu_queue),
+            cpu: cpu::CpuQueue::new(
+                config.cpu_queue,
+                config.cpu_threads,
+                config.response_memory_bytes,
+            ),
             metrics: Arc::new(metrics::Metrics::new(ROUTES)),
             constants: bodies::ConstantBricks::default(),
             edit_rate: Arc::new(auth::RateLimiter::new(config.edit_rate)),
