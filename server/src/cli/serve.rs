@@ -5,6 +5,7 @@ use clap::Args;
 use isovox_server::catalog::Catalog;
 use isovox_server::generate::{build_demo, DEMO_NAME};
 use isovox_server::http::auth::{random_secret, Scope, Tokens};
+use isovox_server::http::connections::{default_max_connections, raise_fd_limit, Limits};
 use isovox_server::http::cpu;
 use isovox_server::http::{run, run_tls, shutdown_signal, AppState, ServerConfig};
 use isovox_server::store::BuildOptions;
@@ -34,6 +35,18 @@ pub(crate) struct ServeArgs {
     /// 503 (413 for one answer larger than all of it).
     #[arg(long, env = "ISOVOX_RESPONSE_MEMORY_MB", default_value_t = 256)]
     pub response_memory_mb: usize,
+    /// Connections open at once (change feeds included); at the limit a new one closes the
+    /// oldest idle one. Default: the file-descriptor limit less an eighth, at most 10,000.
+    #[arg(long, env = "ISOVOX_MAX_CONNECTIONS")]
+    pub max_connections: Option<usize>,
+    /// Seconds a client has to send a request's head (from its first byte, or from the
+    /// connection's opening for the first request); then the connection is closed.
+    #[arg(long, env = "ISOVOX_HEADER_TIMEOUT", default_value_t = 10.0)]
+    pub header_timeout: f64,
+    /// Seconds a connection may stay open without a request in progress (change feeds are
+    /// requests in progress).
+    #[arg(long, env = "ISOVOX_IDLE_TIMEOUT", default_value_t = 60.0)]
+    pub idle_timeout: f64,
     /// Tokens, one per line: `NAME TOKEN [write|read]`. Default: DATA/tokens, created with one
     /// random write token on first start when no token is configured.
     #[arg(long, env = "ISOVOX_TOKEN_FILE")]
@@ -143,6 +156,12 @@ fn generate_demo(dir: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// `--NAME SECS` as a duration.
+fn seconds(name: &str, secs: f64) -> anyhow::Result<std::time::Duration> {
+    std::time::Duration::try_from_secs_f64(secs)
+        .map_err(|e| anyhow::anyhow!("--{name} {secs}: {e}"))
+}
+
 pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
     if !has_volumes(&a.data) {
         generate_demo(&a.data)?;
@@ -161,8 +180,18 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
         }
         _ => None,
     };
-    let shutdown_grace = std::time::Duration::try_from_secs_f64(a.shutdown_grace)
-        .map_err(|e| anyhow::anyhow!("--shutdown-grace {}: {e}", a.shutdown_grace))?;
+    let shutdown_grace = seconds("shutdown-grace", a.shutdown_grace)?;
+    if let Err(e) = raise_fd_limit() {
+        tracing::warn!("cannot raise the file-descriptor limit: {e}");
+    }
+    let connections = Limits {
+        max_connections: a
+            .max_connections
+            .unwrap_or_else(default_max_connections)
+            .max(1),
+        header_timeout: seconds("header-timeout", a.header_timeout)?,
+        idle_timeout: seconds("idle-timeout", a.idle_timeout)?,
+    };
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -179,7 +208,8 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             names.join(", ")
         );
         eprintln!(
-            "limits: {} CPU jobs queued on {} threads, {} MiB of answers in flight",
+            "limits: {} connections, {} CPU jobs queued on {} threads, {} MiB of answers in flight",
+            connections.max_connections,
             a.cpu_queue,
             cpu::cores(),
             a.response_memory_mb
@@ -192,6 +222,7 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             brick_cache_bytes: a.brick_cache_mb << 20,
             cpu_queue: a.cpu_queue,
             response_memory_bytes: a.response_memory_mb << 20,
+            connections,
             tokens,
             private_reads: a.private_reads,
             edit_rate: a.edit_rate,

@@ -296,7 +296,8 @@ fn gauges(state: &AppState, out: &mut String) {
         edit_queue += v.queue_depth() as u64;
         subscribers += v.subscribers() as u64;
     }
-    let gauges: [(&str, &str, &str, u64); 12] = [
+    let open = &state.connections;
+    let gauges: [(&str, &str, &str, u64); 17] = [
         (
             "isovox_response_bytes_total",
             "counter",
@@ -332,6 +333,36 @@ fn gauges(state: &AppState, out: &mut String) {
             "gauge",
             "Bytes of response bodies built by CPU jobs and not yet sent.",
             state.cpu.memory.held() as u64,
+        ),
+        (
+            "isovox_connections_max",
+            "gauge",
+            "Connections that may be open at once.",
+            open.limits().max_connections as u64,
+        ),
+        (
+            "isovox_connections_open",
+            "gauge",
+            "Connections open (change feeds included).",
+            open.open() as u64,
+        ),
+        (
+            "isovox_connections_refused_total",
+            "counter",
+            "Connections closed on arrival: the limit was reached and none was idle.",
+            open.refused(),
+        ),
+        (
+            "isovox_connections_evicted_total",
+            "counter",
+            "Idle connections closed to make room for new ones.",
+            open.evicted(),
+        ),
+        (
+            "isovox_connections_timed_out_total",
+            "counter",
+            "Connections closed by the header or the idle timeout.",
+            open.timed_out(),
         ),
         (
             "isovox_brick_cache_hits_total",

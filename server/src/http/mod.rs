@@ -25,13 +25,15 @@
 //! `cpu` runs CPU work off the async runtime; `compression` makes the zstd bodies inside that
 //! work and `held` bounds their memory until they are sent; `auth` checks tokens and edit
 //! rates; `bodies` keeps constant bricks' bodies; `serve` is the listener loop and the
-//! shutdown, `tls` its certificates; `metrics`, `cors` and `openapi` are what their names say.
+//! shutdown, `connections` the limits on open connections, `tls` its certificates; `metrics`,
+//! `cors` and `openapi` are what their names say.
 
 pub mod auth;
 pub mod bodies;
 pub mod bricks;
 pub mod compact;
 mod compression;
+pub mod connections;
 mod cors;
 pub mod cpu;
 pub mod edit;
@@ -66,7 +68,7 @@ use std::time::Duration;
 use tower_http::timeout::TimeoutLayer;
 use tower_http::trace::TraceLayer;
 
-/// How a server runs: caches, queues, access control and edit limits.
+/// How a server runs: caches, queues, connections, access control and edit limits.
 #[derive(Debug, Clone)]
 pub struct ServerConfig {
     /// Memory for cached mesh tiles.
@@ -81,6 +83,8 @@ pub struct ServerConfig {
     /// Memory for the bodies CPU jobs build, held until they are sent (`held.rs`); beyond it
     /// 503.
     pub response_memory_bytes: usize,
+    /// Open connections, and how long they may wait for a request head or idle.
+    pub connections: connections::Limits,
     /// Who may write (and, with `private_reads`, read).
     pub tokens: auth::Tokens,
     /// Every `/v1` route needs a token (of either scope).
@@ -111,6 +115,7 @@ impl Default for ServerConfig {
             cpu_queue: cpu::default_queue(),
             cpu_threads: cpu::cores(),
             response_memory_bytes: 256 << 20,
+            connections: connections::Limits::default(),
             tokens: auth::Tokens::default(),
             private_reads: false,
             edit_rate: 50.0,
@@ -149,6 +154,8 @@ pub struct Shared {
     /// The bound on CPU work off the async runtime (meshing, batches, levels) and on the
     /// memory of its answers.
     pub cpu: cpu::CpuQueue,
+    /// The open connections.
+    pub connections: Arc<connections::Connections>,
     /// Requests and latencies per route.
     pub metrics: Arc<metrics::Metrics>,
     /// Content hash and bodies of constant bricks.
@@ -188,6 +195,7 @@ impl AppState {
                 config.cpu_threads,
                 config.response_memory_bytes,
             ),
+            connections: Arc::new(connections::Connections::new(config.connections)),
             metrics: Arc::new(metrics::Metrics::new(ROUTES)),
             constants: bodies::ConstantBricks::default(),
             edit_rate: Arc::new(auth::RateLimiter::new(config.edit_rate)),
