@@ -21,7 +21,7 @@ use tokio_rustls::rustls::pki_types::ServerName;
 mod raw_http;
 mod server_process;
 mod tls;
-use raw_http::{get, get_once, read_to_close, read_until, within};
+use raw_http::{get, get_once, metrics, read_to_close, read_until, sample, within};
 use server_process::{generate_world, ServerProcess};
 
 /// The write token of the servers here.
@@ -147,8 +147,7 @@ async fn twenty_thousand_idle_connections_and_a_slowloris_do_not_starve_a_client
         .unwrap();
     assert!(sent > 0);
     // The server held at most its limit, below its descriptor limit: it closed the others.
-    let metrics = get_once(addr, "/metrics").await.unwrap();
-    let metrics = String::from_utf8(metrics.body).unwrap();
+    let metrics = metrics(addr).await;
     let [max, open, evicted, timed_out, refused] = [
         "isovox_connections_max",
         "isovox_connections_open",
@@ -173,14 +172,6 @@ async fn twenty_thousand_idle_connections_and_a_slowloris_do_not_starve_a_client
          connections ({counts:?}); the slowloris got {sent} bytes through"
     );
     assert!(get_once(addr, "/healthz").await.unwrap().status == 200);
-}
-
-/// The value of an unlabelled sample in Prometheus text.
-fn sample(metrics: &str, name: &str) -> u64 {
-    metrics
-        .lines()
-        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.parse().ok())
-        .unwrap_or_else(|| panic!("no {name} in {metrics}"))
 }
 
 /// `isovox serve` of `dir` with the write token, under `fd_limit`, configured by `env` (not

@@ -1,11 +1,14 @@
 //! A raw HTTP/1.1 client for the tests that need to see the bytes and the connection: what
-//! arrives, when the server closes, how slowly a client reads.
+//! arrives, when the server closes, how slowly a client reads; and what the answers of the load
+//! tests carry (a mesh tile, the server's metrics), checked.
 
-#![allow(dead_code)]
+#![allow(dead_code, clippy::unwrap_used)]
 
 use std::net::SocketAddr;
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+
+use isovox_proto::mesh::{decode_compact, Mesh};
 
 /// An HTTP/1.1 response, read whole.
 #[derive(Debug)]
@@ -38,15 +41,25 @@ pub(crate) async fn read_head<S: AsyncRead + Unpin>(
         .nth(1)
         .and_then(|s| s.parse().ok())
         .ok_or_else(|| std::io::Error::other(format!("not an HTTP response: {head:?}")))?;
-    let length = head
-        .lines()
-        .find_map(|l| {
-            let (name, value) = l.split_once(':')?;
-            name.eq_ignore_ascii_case("content-length")
-                .then(|| value.trim().parse().ok())?
-        })
+    let length = header(&head, "content-length")
+        .and_then(|v| v.parse().ok())
         .unwrap_or(0);
     Ok((status, head, length, bytes[end..].to_vec()))
+}
+
+/// The value of header `name` in a response's `head`, trimmed.
+pub(crate) fn header<'a>(head: &'a str, name: &str) -> Option<&'a str> {
+    head.lines().find_map(|l| {
+        let (n, value) = l.split_once(':')?;
+        n.eq_ignore_ascii_case(name).then(|| value.trim())
+    })
+}
+
+/// The seconds a 503's `Retry-After` asks the client to wait; panics without one.
+pub(crate) fn retry_after(head: &str) -> u64 {
+    header(head, "retry-after")
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("a 503 without a Retry-After in seconds: {head}"))
 }
 
 /// Sends `GET path` on `stream` (kept alive) and reads the whole response (it must carry a
@@ -111,4 +124,36 @@ pub(crate) async fn within<F: std::future::Future>(
     tokio::time::timeout(limit, future)
         .await
         .unwrap_or_else(|_| panic!("{what}: not done after {limit:?}"))
+}
+
+/// The mesh a 200 for `path` carries, checked to be well formed: whole triangles, a normal per
+/// position, every index a position.
+pub(crate) fn assert_mesh(path: &str, response: &Response) -> Mesh {
+    assert_eq!(response.status, 200, "{path}: {}", response.head);
+    let mesh = decode_compact(&response.body).unwrap();
+    assert_eq!(mesh.indices.len() % 3, 0, "{path}");
+    assert_eq!(mesh.normals.len(), mesh.positions.len(), "{path}");
+    assert!(
+        mesh.indices
+            .iter()
+            .all(|&i| (i as usize) < mesh.positions.len()),
+        "{path}"
+    );
+    mesh
+}
+
+/// The server's metrics (`GET /metrics` on a new connection), as Prometheus text.
+pub(crate) async fn metrics(addr: SocketAddr) -> String {
+    let response = get_once(addr, "/metrics").await.unwrap();
+    assert_eq!(response.status, 200, "{}", response.head);
+    String::from_utf8(response.body).unwrap()
+}
+
+/// The value of a sample in Prometheus text, `name` with its labels if it has any; panics
+/// without it.
+pub(crate) fn sample(metrics: &str, name: &str) -> u64 {
+    metrics
+        .lines()
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.parse().ok())
+        .unwrap_or_else(|| panic!("no {name} in {metrics}"))
 }
