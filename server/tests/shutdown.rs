@@ -17,18 +17,15 @@ use isovox_server::http::{run, run_tls, AppState, ServerConfig};
 use isovox_server::store::{build_vod2, BuildOptions};
 use std::net::SocketAddr;
 use std::path::Path;
-use std::sync::Arc;
 use std::time::Duration;
-use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::io::{AsyncRead, AsyncWrite, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
-use tokio_rustls::rustls;
-use tokio_rustls::rustls::client::danger::{
-    HandshakeSignatureValid, ServerCertVerified, ServerCertVerifier,
-};
-use tokio_rustls::rustls::crypto::CryptoProvider;
-use tokio_rustls::rustls::pki_types::pem::PemObject;
-use tokio_rustls::rustls::pki_types::{CertificateDer, ServerName, UnixTime};
-use tokio_rustls::rustls::{DigitallySignedStruct, SignatureScheme};
+use tokio_rustls::rustls::pki_types::ServerName;
+
+mod raw_http;
+mod tls;
+use raw_http::{read_to_close, read_until};
+use tls::{tls, Tls};
 
 /// Far longer than anything here should take: reaching it means the shutdown hangs.
 const HANGS: Duration = Duration::from_secs(60);
@@ -36,111 +33,6 @@ const HANGS: Duration = Duration::from_secs(60);
 /// A byte stream to the server, plain or TLS.
 trait Stream: AsyncRead + AsyncWrite + Unpin + Send {}
 impl<T: AsyncRead + AsyncWrite + Unpin + Send> Stream for T {}
-
-/// The TLS side of a test: the server's settings and a client that trusts its certificate.
-struct Tls {
-    server: Arc<rustls::ServerConfig>,
-    client: tokio_rustls::TlsConnector,
-    _dir: tempfile::TempDir,
-}
-
-fn tls() -> Tls {
-    let dir = tempfile::tempdir().unwrap();
-    let (cert, key) = (dir.path().join("cert.pem"), dir.path().join("key.pem"));
-    let made = std::process::Command::new("openssl")
-        .args(["req", "-x509", "-newkey", "ec", "-pkeyopt"])
-        .args(["ec_paramgen_curve:prime256v1", "-nodes", "-days", "2"])
-        .args([
-            "-subj",
-            "/CN=127.0.0.1",
-            "-addext",
-            "subjectAltName=IP:127.0.0.1",
-        ])
-        .arg("-keyout")
-        .arg(&key)
-        .arg("-out")
-        .arg(&cert)
-        .output()
-        .unwrap_or_else(|e| panic!("cannot run openssl (install it, as .ci/run does): {e}"));
-    assert!(made.status.success(), "openssl: {made:?}");
-    let server = isovox_server::http::tls::config(&cert, &key).unwrap();
-    let provider = Arc::new(rustls::crypto::ring::default_provider());
-    let pinned = Pinned {
-        cert: CertificateDer::from_pem_file(&cert).unwrap(),
-        provider: provider.clone(),
-    };
-    let mut client = rustls::ClientConfig::builder_with_provider(provider)
-        .with_safe_default_protocol_versions()
-        .unwrap()
-        .dangerous()
-        .with_custom_certificate_verifier(Arc::new(pinned))
-        .with_no_client_auth();
-    client.alpn_protocols = vec![b"http/1.1".to_vec()];
-    Tls {
-        server,
-        client: tokio_rustls::TlsConnector::from(Arc::new(client)),
-        _dir: dir,
-    }
-}
-
-/// Trusts one certificate, the test's own (self-signed, so no certificate authority vouches
-/// for it); the handshake's signatures are checked as usual.
-#[derive(Debug)]
-struct Pinned {
-    cert: CertificateDer<'static>,
-    provider: Arc<CryptoProvider>,
-}
-
-impl ServerCertVerifier for Pinned {
-    fn verify_server_cert(
-        &self,
-        end_entity: &CertificateDer<'_>,
-        _: &[CertificateDer<'_>],
-        _: &ServerName<'_>,
-        _: &[u8],
-        _: UnixTime,
-    ) -> Result<ServerCertVerified, rustls::Error> {
-        if end_entity.as_ref() == self.cert.as_ref() {
-            Ok(ServerCertVerified::assertion())
-        } else {
-            Err(rustls::Error::General("not the test's certificate".into()))
-        }
-    }
-
-    fn verify_tls12_signature(
-        &self,
-        message: &[u8],
-        cert: &CertificateDer<'_>,
-        dss: &DigitallySignedStruct,
-    ) -> Result<HandshakeSignatureValid, rustls::Error> {
-        rustls::crypto::verify_tls12_signature(
-            message,
-            cert,
-            dss,
-            &self.provider.signature_verification_algorithms,
-        )
-    }
-
-    fn verify_tls13_signature(
-        &self,
-        message: &[u8],
-        cert: &CertificateDer<'_>,
-        dss: &DigitallySignedStruct,
-    ) -> Result<HandshakeSignatureValid, rustls::Error> {
-        rustls::crypto::verify_tls13_signature(
-            message,
-            cert,
-            dss,
-            &self.provider.signature_verification_algorithms,
-        )
-    }
-
-    fn supported_verify_schemes(&self) -> Vec<SignatureScheme> {
-        self.provider
-            .signature_verification_algorithms
-            .supported_schemes()
-    }
-}
 
 /// A small world `w.vod` in `dir`.
 fn world(dir: &Path) {
@@ -194,25 +86,6 @@ async fn connect(addr: SocketAddr, tls: Option<&Tls>) -> Box<dyn Stream> {
     }
 }
 
-/// Reads until `bytes` holds `needle`.
-async fn read_until(stream: &mut dyn Stream, bytes: &mut Vec<u8>, needle: &str) {
-    let mut buf = [0u8; 4096];
-    while !String::from_utf8_lossy(bytes).contains(needle) {
-        let n = stream.read(&mut buf).await.unwrap();
-        assert!(n > 0, "the connection closed before {needle:?}: {bytes:?}");
-        bytes.extend_from_slice(&buf[..n]);
-    }
-}
-
-/// Reads until the server closes the connection (a TLS connection cut without `close_notify`
-/// ends with an error, which counts as closed too).
-async fn read_to_close(stream: &mut dyn Stream, bytes: &mut Vec<u8>) {
-    let mut buf = [0u8; 4096];
-    while let Ok(n @ 1..) = stream.read(&mut buf).await {
-        bytes.extend_from_slice(&buf[..n]);
-    }
-}
-
 /// Starts the shutdown and waits until the server has stopped.
 async fn stop(server: Running, which: &str) {
     let _ = server.stop.send(());
@@ -227,7 +100,7 @@ async fn stop(server: Running, which: &str) {
 async fn shutdown_ends_open_change_feeds_over_http_and_tls() {
     let dir = tempfile::tempdir().unwrap();
     world(dir.path());
-    let tls = tls();
+    let tls = tls(&[b"http/1.1"]);
     for tls in [None, Some(&tls)] {
         let which = if tls.is_some() { "TLS" } else { "plain HTTP" };
         let server = start(dir.path(), Duration::from_secs(3600), tls).await;
@@ -249,9 +122,10 @@ async fn shutdown_ends_open_change_feeds_over_http_and_tls() {
         // wait for them.
         stop(server, which).await;
         for (mut feed, mut bytes) in feeds {
-            tokio::time::timeout(HANGS, read_to_close(feed.as_mut(), &mut bytes))
+            let rest = tokio::time::timeout(HANGS, read_to_close(feed.as_mut()))
                 .await
                 .unwrap_or_else(|_| panic!("{which}: a feed was still open after {HANGS:?}"));
+            bytes.extend(rest);
             // The chunked response ended with its last chunk: the feed ended, it was not cut.
             let text = String::from_utf8_lossy(&bytes);
             assert!(text.ends_with("\r\n0\r\n\r\n"), "{which}: {text:?}");
@@ -263,7 +137,7 @@ async fn shutdown_ends_open_change_feeds_over_http_and_tls() {
 async fn shutdown_closes_a_request_still_running_when_the_grace_runs_out() {
     let dir = tempfile::tempdir().unwrap();
     world(dir.path());
-    let tls = tls();
+    let tls = tls(&[b"http/1.1"]);
     for tls in [None, Some(&tls)] {
         let which = if tls.is_some() { "TLS" } else { "plain HTTP" };
         let server = start(dir.path(), Duration::from_millis(200), tls).await;
@@ -287,8 +161,7 @@ async fn shutdown_closes_a_request_still_running_when_the_grace_runs_out() {
         read_until(other.as_mut(), &mut answer, "\r\n\r\nok").await;
 
         stop(server, which).await;
-        let mut bytes = Vec::new();
-        tokio::time::timeout(HANGS, read_to_close(stalled.as_mut(), &mut bytes))
+        let bytes = tokio::time::timeout(HANGS, read_to_close(stalled.as_mut()))
             .await
             .unwrap_or_else(|_| panic!("{which}: the stalled request's connection stayed open"));
         // Closed without an answer: the request was cut, not answered.

@@ -5,6 +5,8 @@ use clap::Args;
 use isovox_server::catalog::Catalog;
 use isovox_server::generate::{build_demo, DEMO_NAME};
 use isovox_server::http::auth::{random_secret, Scope, Tokens};
+use isovox_server::http::connections::{default_max_connections, raise_fd_limit, Limits};
+use isovox_server::http::cpu;
 use isovox_server::http::{run, run_tls, shutdown_signal, AppState, ServerConfig};
 use isovox_server::store::remote::{Bucket, CacheConfig};
 use isovox_server::store::BuildOptions;
@@ -27,9 +29,26 @@ pub(crate) struct ServeArgs {
     /// view chunks, meshing), in MiB.
     #[arg(long, env = "ISOVOX_BRICK_CACHE_MB", default_value_t = 64)]
     pub brick_cache_mb: usize,
-    /// Meshing jobs running or queued at once; beyond it requests get 503 with Retry-After.
-    #[arg(long, env = "ISOVOX_CPU_QUEUE", default_value_t = 64)]
+    /// CPU jobs (mesh tiles, batches, levels, change lists) running or queued at once; beyond
+    /// it requests get 503 with Retry-After. Default: eight per core.
+    #[arg(long, env = "ISOVOX_CPU_QUEUE", default_value_t = cpu::default_queue())]
     pub cpu_queue: usize,
+    /// Memory for the bodies of those jobs' answers until they are sent, in MiB; beyond it
+    /// 503 (413 for one answer larger than all of it).
+    #[arg(long, env = "ISOVOX_RESPONSE_MEMORY_MB", default_value_t = 256)]
+    pub response_memory_mb: usize,
+    /// Connections open at once (change feeds included); at the limit a new one closes the
+    /// oldest idle one. Default: the file-descriptor limit less an eighth, at most 10,000.
+    #[arg(long, env = "ISOVOX_MAX_CONNECTIONS")]
+    pub max_connections: Option<usize>,
+    /// Seconds a client has to send a request's head (from its first byte, or from the
+    /// connection's opening for the first request); then the connection is closed.
+    #[arg(long, env = "ISOVOX_HEADER_TIMEOUT", default_value_t = 10.0)]
+    pub header_timeout: f64,
+    /// Seconds a connection may stay open without a request in progress (change feeds are
+    /// requests in progress).
+    #[arg(long, env = "ISOVOX_IDLE_TIMEOUT", default_value_t = 60.0)]
+    pub idle_timeout: f64,
     /// Tokens, one per line: `NAME TOKEN [write|read]`. Default: DATA/tokens, created with one
     /// random write token on first start when no token is configured.
     #[arg(long, env = "ISOVOX_TOKEN_FILE")]
@@ -159,6 +178,12 @@ fn generate_demo(dir: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// `--NAME SECS` as a duration.
+fn seconds(name: &str, secs: f64) -> anyhow::Result<std::time::Duration> {
+    std::time::Duration::try_from_secs_f64(secs)
+        .map_err(|e| anyhow::anyhow!("--{name} {secs}: {e}"))
+}
+
 /// The volumes to serve: those of `--store`, or DATA's files (a demo world generated first
 /// when there are none).
 fn open_catalog(a: &ServeArgs) -> anyhow::Result<Catalog> {
@@ -201,8 +226,6 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
         }
         _ => None,
     };
-    let shutdown_grace = std::time::Duration::try_from_secs_f64(a.shutdown_grace)
-        .map_err(|e| anyhow::anyhow!("--shutdown-grace {}: {e}", a.shutdown_grace))?;
     let edit_timeout = std::time::Duration::try_from_secs_f64(a.edit_timeout)
         .ok()
         .filter(|t| !t.is_zero())
@@ -212,6 +235,18 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
                 a.edit_timeout
             )
         })?;
+    let shutdown_grace = seconds("shutdown-grace", a.shutdown_grace)?;
+    if let Err(e) = raise_fd_limit() {
+        tracing::warn!("cannot raise the file-descriptor limit: {e}");
+    }
+    let connections = Limits {
+        max_connections: a
+            .max_connections
+            .unwrap_or_else(default_max_connections)
+            .max(1),
+        header_timeout: seconds("header-timeout", a.header_timeout)?,
+        idle_timeout: seconds("idle-timeout", a.idle_timeout)?,
+    };
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -227,6 +262,13 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             "isovox serving {} on {scheme}://{addr}/v1/volumes, the viewer on {scheme}://{addr}/",
             names.join(", ")
         );
+        eprintln!(
+            "limits: {} connections, {} CPU jobs queued on {} threads, {} MiB of answers in flight",
+            connections.max_connections,
+            a.cpu_queue,
+            cpu::cores(),
+            a.response_memory_mb
+        );
         if tokens.is_empty() {
             tracing::warn!("no write token configured: every edit will be refused");
         }
@@ -234,6 +276,8 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             mesh_cache_bytes: a.mesh_cache_mb << 20,
             brick_cache_bytes: a.brick_cache_mb << 20,
             cpu_queue: a.cpu_queue,
+            response_memory_bytes: a.response_memory_mb << 20,
+            connections,
             tokens,
             private_reads: a.private_reads,
             edit_rate: a.edit_rate,

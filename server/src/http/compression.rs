@@ -5,10 +5,12 @@
 //!
 //! Compressing is CPU work, so it runs inside the job that built the body (`cpu.rs`), never on
 //! the async runtime: a handler asks [`accepts_zstd`] before its job, and the job ends with
-//! [`Body::new`]. The change feed stays uncompressed (a compressor would hold its events back),
+//! [`Body::new`]. (The job's runner then has the body hold its size of the response memory
+//! budget until it is sent: `cpu.rs`, `held.rs`.) The change feed stays uncompressed (a compressor would hold its events back),
 //! and bricks are not recompressed: the brick and blob routes already send a stored zstd frame
 //! as it is (`bricks.rs`).
 
+use super::held::Reservation;
 use axum::http::{header, HeaderMap, HeaderValue};
 use axum::response::{IntoResponse, Response};
 
@@ -28,6 +30,7 @@ pub(super) fn accepts_zstd(headers: &HeaderMap) -> bool {
 pub(super) struct Body {
     bytes: Vec<u8>,
     zstd: bool,
+    held: Option<Reservation>,
 }
 
 impl Body {
@@ -40,11 +43,29 @@ impl Body {
                     return Body {
                         bytes: packed,
                         zstd: true,
+                        held: None,
                     };
                 }
             }
         }
-        Body { bytes, zstd: false }
+        Body {
+            bytes,
+            zstd: false,
+            held: None,
+        }
+    }
+
+    /// Bytes of the body as sent.
+    pub(super) fn len(&self) -> usize {
+        self.bytes.len()
+    }
+
+    /// The body, holding `reservation` (of at least its length) until it has been sent.
+    pub(super) fn hold(self, reservation: Reservation) -> Body {
+        Body {
+            held: Some(reservation),
+            ..self
+        }
     }
 
     /// `value` as JSON, as [`Body::new`].
@@ -62,6 +83,9 @@ impl Body {
         if self.zstd {
             headers.insert(header::CONTENT_ENCODING, HeaderValue::from_static("zstd"));
         }
-        (headers, self.bytes).into_response()
+        match self.held {
+            Some(held) => (headers, held.body(self.bytes)).into_response(),
+            None => (headers, self.bytes).into_response(),
+        }
     }
 }

@@ -1,38 +1,73 @@
-//! CPU work off the async runtime: decoding many bricks, meshing, compiling and applying edits
-//! run on the blocking pool, never on tokio's workers, so a slow request does not hold up the
-//! brick routes.
+//! CPU work off the async runtime: decoding many bricks, meshing, reading levels and change
+//! lists run on threads of their own, never on tokio's workers, so a slow request does not hold
+//! up the brick routes.
+//!
+//! Three bounds keep that work from growing with the load:
+//! - places: jobs running or waiting for a thread. When all are taken, a request gets 503 with
+//!   Retry-After at once rather than waiting in a queue without bound; the default scales with
+//!   the cores, so a full queue is worked off in a few hundred milliseconds
+//!   ([`default_queue`]).
+//! - threads: jobs run on a fixed set of threads, one per core by default, in the order they
+//!   came. (On tokio's blocking pool every job took a thread of its own, and a thread that
+//!   had just finished one was often not yet idle when the next came, so the pool grew to its
+//!   limit of 512 threads, each keeping its own allocator caches: gigabytes.)
+//! - memory: the bodies jobs build hold their size of the response budget until they are sent
+//!   (`held.rs`).
 
+use super::compression::Body;
+use super::held::ResponseMemory;
 use super::ApiError;
-use std::sync::Arc;
-use tokio::sync::Semaphore;
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::{mpsc, Arc, Mutex};
+use tokio::sync::{oneshot, Semaphore};
 
-/// A bound on the CPU work (meshing, batches, levels) running or queued at once: when it is
-/// reached, a request gets 503 with Retry-After at once instead of waiting in a queue without
-/// bound.
+/// Places per core by default: a full queue holds about this many jobs per thread.
+const PLACES_PER_CORE: usize = 8;
+
+/// The cores this process may use.
+pub fn cores() -> usize {
+    std::thread::available_parallelism().map_or(2, usize::from)
+}
+
+/// The default number of places: [`PLACES_PER_CORE`] per core. A cold mesh tile of a large
+/// world takes 10-50 ms of one core, so a full queue waits a few hundred milliseconds at most;
+/// 64 places on two cores made the 99th percentile 1.3-2.5 s before the first 503.
+pub fn default_queue() -> usize {
+    PLACES_PER_CORE * cores()
+}
+
+/// The bound on CPU work (meshing, batches, levels, change lists) and on the memory of what it
+/// answers; see the module documentation.
 #[derive(Debug)]
 pub struct CpuQueue {
-    permits: Arc<Semaphore>,
+    places: Arc<Semaphore>,
     size: usize,
+    pool: Pool,
+    /// The memory of the bodies jobs build, until they are sent.
+    pub memory: ResponseMemory,
 }
 
 impl CpuQueue {
-    /// Room for `size` jobs.
-    pub fn new(size: usize) -> Self {
+    /// Room for `size` jobs running or waiting, `threads` running at once, and `memory` bytes
+    /// of response bodies.
+    pub fn new(size: usize, threads: usize, memory: usize) -> Self {
         CpuQueue {
-            permits: Arc::new(Semaphore::new(size)),
+            places: Arc::new(Semaphore::new(size)),
             size,
+            pool: Pool::new(threads.max(1)),
+            memory: ResponseMemory::new(memory),
         }
     }
 
-    /// Jobs running or queued now.
+    /// Jobs running or waiting now.
     pub fn depth(&self) -> usize {
-        self.size - self.permits.available_permits()
+        self.size - self.places.available_permits()
     }
 
-    /// Runs `work` on the blocking pool, holding one of the queue's places until it is done.
+    /// Runs `work` on the CPU threads, holding one of the queue's places until it is done.
     ///
     /// # Errors
-    /// 503 when the queue is full; whatever `work` fails with.
+    /// 503 when the queue is full; whatever `work` fails with; 500 if it panicked.
     pub async fn run<T, E>(
         &self,
         work: impl FnOnce() -> Result<T, E> + Send + 'static,
@@ -42,22 +77,134 @@ impl CpuQueue {
         E: Send + 'static,
         ApiError: From<E>,
     {
-        let permit = self
-            .permits
+        let place = self
+            .places
             .clone()
             .try_acquire_owned()
             .map_err(|_| ApiError::Overloaded(1))?;
-        blocking(move || {
-            let _permit = permit;
+        self.run_waiting(move || {
+            let _place = place;
             work()
         })
         .await
     }
+
+    /// Runs `work`, which builds a response body, as [`CpuQueue::run`] does, with `reserve`
+    /// bytes of the response budget set aside first (what the body will take, when that is
+    /// known beforehand; 0 otherwise). The body holds its exact size of the budget until it
+    /// has been sent.
+    ///
+    /// # Errors
+    /// As [`CpuQueue::run`]; 503 when the budget cannot hold the body now, 413 when it never
+    /// could.
+    pub(super) async fn answer<E>(
+        &self,
+        reserve: usize,
+        work: impl FnOnce() -> Result<Body, E> + Send + 'static,
+    ) -> Result<Body, ApiError>
+    where
+        E: Send + 'static,
+        ApiError: From<E>,
+    {
+        let mut reservation = self.memory.reserve(reserve)?;
+        let body = self.run(work).await?;
+        reservation.fit(&self.memory, body.len())?;
+        Ok(body.hold(reservation))
+    }
+
+    /// Runs `work` on the CPU threads without a place in the queue: it waits for a thread
+    /// however long the queue is. For work another bound already limits (a change feed reads
+    /// its backlog one page at a time, one page per subscriber).
+    ///
+    /// # Errors
+    /// Whatever `work` fails with; 500 if it panicked.
+    pub async fn run_waiting<T, E>(
+        &self,
+        work: impl FnOnce() -> Result<T, E> + Send + 'static,
+    ) -> Result<T, ApiError>
+    where
+        T: Send + 'static,
+        E: Send + 'static,
+        ApiError: From<E>,
+    {
+        Ok(self.pool.run(work).await??)
+    }
 }
 
-/// Runs `work` on the blocking pool without a place in the [`CpuQueue`]: for work another
-/// bound already limits (edits wait in their volume's writer queue; a compaction holds the
-/// writer; a feed reads its backlog one page at a time).
+type Job = Box<dyn FnOnce() + Send>;
+
+/// Threads that take jobs from one channel, in the order they were sent.
+#[derive(Debug)]
+struct Pool {
+    jobs: mpsc::Sender<Job>,
+}
+
+impl Pool {
+    /// `threads` threads; they end when the pool is dropped.
+    fn new(threads: usize) -> Pool {
+        let (jobs, queue) = mpsc::channel::<Job>();
+        let queue = Arc::new(Mutex::new(queue));
+        for i in 0..threads {
+            let queue = queue.clone();
+            let started = std::thread::Builder::new()
+                .name(format!("isovox-cpu-{i}"))
+                .spawn(move || loop {
+                    // Jobs catch their own panics, so the lock is never poisoned; should it
+                    // be, this thread ends like the others do when the pool is dropped.
+                    let job = match queue.lock() {
+                        Ok(queue) => queue.recv(),
+                        Err(_) => return,
+                    };
+                    match job {
+                        Ok(job) => job(),
+                        Err(mpsc::RecvError) => return,
+                    }
+                });
+            // Without any thread, the queue's receiver is gone and jobs fail with a 500.
+            if let Err(e) = started {
+                tracing::error!("cannot start CPU thread {i}: {e}");
+            }
+        }
+        Pool { jobs }
+    }
+
+    /// `work`'s result, computed on one of the pool's threads. A job whose caller has gone
+    /// (the client left, the route timed out) before a thread took it is skipped.
+    async fn run<T: Send + 'static>(
+        &self,
+        work: impl FnOnce() -> T + Send + 'static,
+    ) -> Result<T, ApiError> {
+        let (tx, rx) = oneshot::channel();
+        let job: Job = Box::new(move || {
+            if !tx.is_closed() {
+                let _ = tx.send(catch_unwind(AssertUnwindSafe(work)));
+            }
+        });
+        self.jobs
+            .send(job)
+            .map_err(|_| ApiError::Internal("no CPU thread is running".into()))?;
+        match rx.await {
+            Ok(Ok(value)) => Ok(value),
+            Ok(Err(panic)) => Err(ApiError::Internal(format!(
+                "a CPU job panicked: {}",
+                panic_message(&*panic)
+            ))),
+            Err(_) => Err(ApiError::Internal("a CPU job was dropped".into())),
+        }
+    }
+}
+
+fn panic_message(panic: &(dyn std::any::Any + Send)) -> &str {
+    panic
+        .downcast_ref::<&str>()
+        .copied()
+        .or_else(|| panic.downcast_ref::<String>().map(String::as_str))
+        .unwrap_or("(no message)")
+}
+
+/// Runs `work` on tokio's blocking pool, without a place in the [`CpuQueue`]: for work another
+/// bound already limits and that may wait on I/O or on a lock (edits wait in their volume's
+/// writer queue; a compaction holds the writer; a mesh upload needs a write token).
 ///
 /// # Errors
 /// Whatever `work` fails with; 500 if it panicked.
@@ -70,4 +217,73 @@ where
     ApiError: From<E>,
 {
     Ok(tokio::task::spawn_blocking(work).await??)
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::time::Duration;
+
+    #[tokio::test]
+    async fn jobs_run_on_the_pools_threads_only() {
+        let queue = Arc::new(CpuQueue::new(64, 2, 1 << 20));
+        let (running, most) = (Arc::new(AtomicUsize::new(0)), Arc::new(AtomicUsize::new(0)));
+        let mut jobs = Vec::new();
+        for _ in 0..64 {
+            let (queue, running, most) = (queue.clone(), running.clone(), most.clone());
+            jobs.push(tokio::spawn(async move {
+                queue
+                    .run(move || {
+                        let now = running.fetch_add(1, Ordering::SeqCst) + 1;
+                        most.fetch_max(now, Ordering::SeqCst);
+                        std::thread::sleep(Duration::from_millis(2));
+                        running.fetch_sub(1, Ordering::SeqCst);
+                        let name = std::thread::current().name().map(str::to_owned);
+                        Ok::<_, ApiError>(name)
+                    })
+                    .await
+            }));
+        }
+        for job in jobs {
+            let name = job.await.unwrap().unwrap().unwrap();
+            assert!(name.starts_with("isovox-cpu-"), "{name}");
+        }
+        assert!(most.load(Ordering::SeqCst) <= 2);
+        assert_eq!(queue.depth(), 0);
+    }
+
+    #[tokio::test]
+    async fn a_full_queue_answers_503_and_a_panic_500() {
+        let queue = Arc::new(CpuQueue::new(1, 1, 1 << 20));
+        let (release, wait) = std::sync::mpsc::channel::<()>();
+        let holder = {
+            let queue = queue.clone();
+            tokio::spawn(async move {
+                queue
+                    .run(move || Ok::<_, ApiError>(wait.recv().is_ok()))
+                    .await
+            })
+        };
+        while queue.depth() == 0 {
+            tokio::task::yield_now().await;
+        }
+        let refused = queue.run(|| Ok::<_, ApiError>(())).await;
+        assert!(
+            matches!(refused, Err(ApiError::Overloaded(1))),
+            "{refused:?}"
+        );
+        release.send(()).unwrap();
+        assert!(holder.await.unwrap().unwrap());
+        let panicked = queue
+            .run(|| -> Result<(), ApiError> { panic!("on purpose") })
+            .await;
+        assert!(
+            matches!(&panicked, Err(ApiError::Internal(m)) if m.contains("on purpose")),
+            "{panicked:?}"
+        );
+        // The thread survived its job's panic.
+        assert_eq!(queue.run(|| Ok::<_, ApiError>(7)).await.unwrap(), 7);
+    }
 }

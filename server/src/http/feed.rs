@@ -2,7 +2,6 @@
 //! (`GET .../changes?since=N`), both read from the file's commit records (`docs/editing.md`).
 
 use super::compression::{accepts_zstd, Body};
-use super::cpu::blocking;
 use super::extract::{Path, Query};
 use super::{ApiError, AppState};
 use crate::volume::{FeedItem, LiveVolume, VolumeError, DEFAULT_CHANGES};
@@ -27,8 +26,8 @@ pub struct ChangesQuery {
     pub limit: Option<usize>,
 }
 
-/// `GET /v1/volumes/{name}/changes?since=N&limit=K`, read from the file (and compressed) off
-/// the async runtime.
+/// `GET /v1/volumes/{name}/changes?since=N&limit=K`, read from the file (and compressed) on the
+/// CPU threads, with a place in their queue.
 pub async fn changes(
     State(state): State<AppState>,
     Path(name): Path<String>,
@@ -37,11 +36,13 @@ pub async fn changes(
 ) -> Result<Response, ApiError> {
     let vol = state.catalog.get(&name)?.clone();
     let zstd = accepts_zstd(&headers);
-    let body = blocking(move || {
-        let list = vol.change_list(query.since, query.limit)?;
-        Ok::<_, VolumeError>(Body::json(&list, zstd))
-    })
-    .await?;
+    let body = state
+        .cpu
+        .answer(0, move || {
+            let list = vol.change_list(query.since, query.limit)?;
+            Ok::<_, VolumeError>(Body::json(&list, zstd))
+        })
+        .await?;
     Ok(body.respond("application/json", HeaderMap::new()))
 }
 
@@ -55,7 +56,8 @@ pub async fn events(
 ) -> Result<Response, ApiError> {
     let vol = state.catalog.get(&name)?;
     let since = query.since.or(last_event_id(&headers)?);
-    let feed = Feed::start(vol, since, state.closing.closed())?;
+    let closing = state.closing.closed();
+    let feed = Feed::start(vol, since, closing, state.clone())?;
     let stream = futures_util::stream::unfold(feed, |mut feed| async move {
         feed.next()
             .await
@@ -92,6 +94,8 @@ fn last_event_id(headers: &HeaderMap) -> Result<Option<u64>, ApiError> {
 /// Where a feed subscriber is.
 struct Feed {
     vol: Arc<LiveVolume>,
+    /// Where the backlog is read (the CPU threads).
+    state: AppState,
     rx: tokio::sync::broadcast::Receiver<Arc<FeedItem>>,
     /// Resolves when the server shuts down: the stream ends then (subscribers reconnect with
     /// `since=` to the next server and miss nothing), so the shutdown does not wait for it.
@@ -111,6 +115,7 @@ impl Feed {
         vol: &Arc<LiveVolume>,
         since: Option<u64>,
         closing: impl Future<Output = ()> + Send + 'static,
+        state: AppState,
     ) -> Result<Feed, ApiError> {
         // Subscribe before reading the head, so no version falls between the two.
         let rx = vol.subscribe();
@@ -123,6 +128,7 @@ impl Feed {
             .data(format!("{{\"version\":{head}}}"));
         Ok(Feed {
             vol: vol.clone(),
+            state,
             rx,
             closing: Box::pin(closing),
             pending: VecDeque::from([hello]),
@@ -138,7 +144,11 @@ impl Feed {
             }
             if self.last < self.backlog_until {
                 let (vol, since) = (self.vol.clone(), self.last);
-                match blocking(move || vol.changes(since, DEFAULT_CHANGES)).await {
+                let page = self
+                    .state
+                    .cpu
+                    .run_waiting(move || vol.changes(since, DEFAULT_CHANGES));
+                match page.await {
                     Ok((events, _)) if !events.is_empty() => {
                         for c in events
                             .into_iter()

@@ -107,7 +107,7 @@ pub async fn mesh_tile(
     );
     let body = state
         .cpu
-        .run(move || {
+        .answer(0, move || {
             let mesh = tile.mesh(&meshes, bricks)?;
             Ok::<_, VolumeError>(Body::new(
                 if glb {
@@ -140,7 +140,9 @@ pub async fn batch(
     let bricks = state.bricks.clone();
     let body = state
         .cpu
-        .run(move || read.encode(&bricks).map(|bytes| Body::new(bytes, zstd)))
+        .answer(read.known_bytes(), move || {
+            read.encode(&bricks).map(|bytes| Body::new(bytes, zstd))
+        })
         .await?;
     Ok(body.respond(BATCH_MEDIA_TYPE, HeaderMap::new()))
 }
@@ -206,14 +208,16 @@ pub async fn level(
         .get(&name)?
         .level(query.version, level, form, region)?;
     let zstd = accepts_zstd(&headers);
-    let (media, body) = state
+    let media = match form {
+        LevelForm::Grid => "application/json",
+        LevelForm::Voxels => "application/octet-stream",
+    };
+    let body = state
         .cpu
-        .run(move || {
+        .answer(read.known_bytes(), move || {
             Ok::<_, VolumeError>(match read.run()? {
-                LevelAnswer::Grid(grid) => ("application/json", Body::json(&grid, zstd)),
-                LevelAnswer::Voxels(voxels) => {
-                    ("application/octet-stream", Body::new(voxels, zstd))
-                }
+                LevelAnswer::Grid(grid) => Body::json(&grid, zstd),
+                LevelAnswer::Voxels(voxels) => Body::new(voxels, zstd),
             })
         })
         .await?;

@@ -303,7 +303,8 @@ fn gauges(state: &AppState, out: &mut String) {
             mirrored += remote.cached_bytes();
         }
     }
-    let gauges: [(&str, &str, &str, u64); 14] = [
+    let open = &state.connections;
+    let gauges: [(&str, &str, &str, u64); 20] = [
         (
             "isovox_response_bytes_total",
             "counter",
@@ -333,6 +334,42 @@ fn gauges(state: &AppState, out: &mut String) {
             "gauge",
             "CPU jobs (meshing, batches, levels) running or queued.",
             state.cpu.depth() as u64,
+        ),
+        (
+            "isovox_response_memory_bytes",
+            "gauge",
+            "Bytes of response bodies built by CPU jobs and not yet sent.",
+            state.cpu.memory.held() as u64,
+        ),
+        (
+            "isovox_connections_max",
+            "gauge",
+            "Connections that may be open at once.",
+            open.limits().max_connections as u64,
+        ),
+        (
+            "isovox_connections_open",
+            "gauge",
+            "Connections open (change feeds included).",
+            open.open() as u64,
+        ),
+        (
+            "isovox_connections_refused_total",
+            "counter",
+            "Connections closed on arrival: the limit was reached and none was idle.",
+            open.refused(),
+        ),
+        (
+            "isovox_connections_evicted_total",
+            "counter",
+            "Idle connections closed to make room for new ones.",
+            open.evicted(),
+        ),
+        (
+            "isovox_connections_timed_out_total",
+            "counter",
+            "Connections closed by the header or the idle timeout.",
+            open.timed_out(),
         ),
         (
             "isovox_brick_cache_hits_total",

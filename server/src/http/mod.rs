@@ -25,8 +25,9 @@
 //! Layout: handlers by concern (`bricks`, `handlers`, `views`, `edit`, `compact`, `feed`,
 //! `meshes`, `web_app`); `error` decides every status code; `extract` gives axum's extractors
 //! that error; `cpu` runs CPU work off the async runtime; `compression` makes the zstd bodies
-//! inside that work; `auth` checks tokens and edit rates; `bodies` keeps constant bricks'
-//! bodies; `serve` is the listener loop and the shutdown, `tls` its certificates; `metrics`,
+//! inside that work and `held` bounds their memory until they are sent; `auth` checks tokens
+//! and edit rates; `bodies` keeps constant bricks' bodies; `serve` is the listener loop and the
+//! shutdown, `connections` the limits on open connections, `tls` its certificates; `metrics`,
 //! `cors` and `openapi` are what their names say.
 
 pub mod auth;
@@ -34,6 +35,7 @@ pub mod bodies;
 pub mod bricks;
 pub mod compact;
 mod compression;
+pub mod connections;
 mod cors;
 pub mod cpu;
 pub mod edit;
@@ -42,6 +44,7 @@ pub mod extract;
 mod fast_path;
 pub mod feed;
 pub mod handlers;
+pub mod held;
 pub mod meshes;
 pub mod metrics;
 mod openapi;
@@ -68,7 +71,7 @@ use std::time::Duration;
 use tower_http::timeout::TimeoutLayer;
 use tower_http::trace::TraceLayer;
 
-/// How a server runs: caches, queues, access control and edit limits.
+/// How a server runs: caches, queues, connections, access control and edit limits.
 #[derive(Debug, Clone)]
 pub struct ServerConfig {
     /// Memory for cached mesh tiles.
@@ -76,8 +79,16 @@ pub struct ServerConfig {
     /// Memory for decoded bricks and what is made from them (lz4 blocks, the views' zstd
     /// chunks): brick bodies, the formats' views and meshing share it.
     pub brick_cache_bytes: usize,
-    /// Meshing and batch jobs running or queued at once.
+    /// CPU jobs (meshing, batches, levels, change lists) running or queued at once; beyond it
+    /// 503. Default: eight per core ([`cpu::default_queue`]).
     pub cpu_queue: usize,
+    /// Threads running CPU jobs. Default: one per core.
+    pub cpu_threads: usize,
+    /// Memory for the bodies CPU jobs build, held until they are sent (`held.rs`); beyond it
+    /// 503.
+    pub response_memory_bytes: usize,
+    /// Open connections, and how long they may wait for a request head or idle.
+    pub connections: connections::Limits,
     /// Who may write (and, with `private_reads`, read).
     pub tokens: auth::Tokens,
     /// Every `/v1` route needs a token (of either scope).
@@ -109,7 +120,10 @@ impl Default for ServerConfig {
         ServerConfig {
             mesh_cache_bytes: 256 << 20,
             brick_cache_bytes: 64 << 20,
-            cpu_queue: 64,
+            cpu_queue: cpu::default_queue(),
+            cpu_threads: cpu::cores(),
+            response_memory_bytes: 256 << 20,
+            connections: connections::Limits::default(),
             tokens: auth::Tokens::default(),
             private_reads: false,
             edit_rate: 50.0,
@@ -147,8 +161,11 @@ pub struct Shared {
     /// Decoded bricks and the bodies made from them by content hash, for brick bodies, the
     /// formats' views and meshing.
     pub bricks: Arc<DecodedBricks>,
-    /// The bound on CPU work off the async runtime (meshing, batches, levels).
+    /// The bound on CPU work off the async runtime (meshing, batches, levels) and on the
+    /// memory of its answers.
     pub cpu: cpu::CpuQueue,
+    /// The open connections.
+    pub connections: Arc<connections::Connections>,
     /// Requests and latencies per route.
     pub metrics: Arc<metrics::Metrics>,
     /// Content hash and bodies of constant bricks.
@@ -165,7 +182,7 @@ pub struct Shared {
 
 impl AppState {
     /// A state serving `catalog` with a mesh cache of `mesh_cache_bytes` and room for
-    /// `cpu_queue` meshing jobs at once (running or queued on the blocking pool).
+    /// `cpu_queue` CPU jobs at once (running or queued for the CPU threads).
     pub fn new(catalog: Catalog, mesh_cache_bytes: usize, cpu_queue: usize) -> Self {
         AppState::with_config(
             catalog,
@@ -183,7 +200,12 @@ impl AppState {
             catalog: Arc::new(catalog),
             meshes: Arc::new(MeshCache::new(config.mesh_cache_bytes)),
             bricks: Arc::new(DecodedBricks::new(config.brick_cache_bytes)),
-            cpu: cpu::CpuQueue::new(config.cpu_queue),
+            cpu: cpu::CpuQueue::new(
+                config.cpu_queue,
+                config.cpu_threads,
+                config.response_memory_bytes,
+            ),
+            connections: Arc::new(connections::Connections::new(config.connections)),
             metrics: Arc::new(metrics::Metrics::new(ROUTES)),
             constants: bodies::ConstantBricks::default(),
             edit_rate: Arc::new(auth::RateLimiter::new(config.edit_rate)),

@@ -2,29 +2,34 @@
 //! plain HTTP ([`run`]) and HTTPS with HTTP/2 and HTTP/1.1 by ALPN ([`run_tls`]; `tls.rs` reads
 //! the certificate).
 //!
+//! Every connection is admitted, watched and closed by the limits of `connections.rs`: at
+//! most so many open, a deadline for request heads (and the TLS handshake), another for
+//! connections without a request in progress.
+//!
 //! Shutdown, the same on both: stop accepting; end every open change feed at once (a feed never
 //! ends by itself, so a graceful shutdown that waited for it would wait forever; subscribers
 //! reconnect with `since=` and miss nothing); let the other requests in flight finish, for up
 //! to [`ServerConfig::shutdown_grace`](super::ServerConfig::shutdown_grace); then close the
 //! connections still open.
 
+use super::connections::{Admission, Admitted, Tracked, Watched};
 use super::{app, AppState};
 use axum::extract::Request;
 use hyper_util::rt::{TokioExecutor, TokioIo};
 use hyper_util::server::conn::auto;
-use hyper_util::server::graceful::{GracefulShutdown, Watcher};
 use hyper_util::service::TowerToHyperService;
 use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncWrite};
-use tokio::net::TcpListener;
+use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::watch;
 use tokio::task::JoinSet;
 use tokio_rustls::{rustls, TlsAcceptor};
 
-/// A TLS handshake that has not finished by then is dropped (a stalled client holds no task).
-const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
+/// How long an HTTP/2 connection closed for its limits (so without a stream open) may take to
+/// say goodbye (GOAWAY) before it is dropped.
+const GOODBYE: Duration = Duration::from_secs(1);
 
 /// Serves `state` over plain HTTP on `listener` until `shutdown` completes, then shuts down as
 /// the module documentation says.
@@ -60,10 +65,10 @@ async fn serve(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> std::io::Result<()> {
     let (closing, grace) = (state.closing.clone(), state.config.shutdown_grace);
+    let open = state.connections.clone();
     let service = tower::ServiceBuilder::new()
         .map_request(|r: Request<hyper::body::Incoming>| r.map(axum::body::Body::new))
         .service(app(state));
-    let graceful = GracefulShutdown::new();
     let mut connections = JoinSet::new();
     tokio::pin!(shutdown);
     loop {
@@ -81,29 +86,27 @@ async fn serve(
             Some(_) = connections.join_next(), if !connections.is_empty() => continue,
             () = &mut shutdown => break,
         };
+        let admitted = loop {
+            match open.admit() {
+                Admission::Open(admitted) => break Some(admitted),
+                Admission::Refused => break None,
+                Admission::Wait => open.closed().await,
+            }
+        };
+        // At the limit with every connection busy: closed at once (dropped).
+        let Some(admitted) = admitted else {
+            tracing::debug!("connection from {peer} refused: {} open", open.open());
+            continue;
+        };
         let _ = tcp.set_nodelay(true);
         let service = TowerToHyperService::new(service.clone());
-        let watcher = graceful.watcher();
-        let tls = tls.clone();
-        connections.spawn(async move {
-            let Some(acceptor) = tls else {
-                return serve_connection(TokioIo::new(tcp), service, watcher, peer).await;
-            };
-            match tokio::time::timeout(HANDSHAKE_TIMEOUT, acceptor.accept(tcp)).await {
-                Ok(Ok(stream)) => {
-                    serve_connection(TokioIo::new(stream), service, watcher, peer).await
-                }
-                Ok(Err(e)) => tracing::debug!("TLS handshake with {peer} failed: {e}"),
-                Err(_) => tracing::debug!("TLS handshake with {peer} timed out"),
-            }
-        });
+        let (tls, closing) = (tls.clone(), closing.clone());
+        connections.spawn(connection(tcp, peer, tls, service, admitted, closing));
     }
     drop(listener);
     closing.close();
-    if tokio::time::timeout(grace, graceful.shutdown())
-        .await
-        .is_err()
-    {
+    let finished = async { while connections.join_next().await.is_some() {} };
+    if tokio::time::timeout(grace, finished).await.is_err() {
         tracing::info!(
             "closing the {} connections still open after {grace:?}",
             connections.len()
@@ -113,27 +116,114 @@ async fn serve(
     Ok(())
 }
 
-/// HTTP/1.1 or HTTP/2 (by what the client speaks) on one connection, until it closes or a
-/// graceful shutdown has let its requests finish.
-async fn serve_connection<S, I>(
-    io: TokioIo<I>,
-    service: S,
-    watcher: Watcher,
+/// One connection: the TLS handshake (when there is TLS) within the header timeout, then
+/// HTTP/1.1 or HTTP/2 (by what the client speaks) until it closes, its limits close it, or the
+/// server shuts down.
+async fn connection<S>(
+    tcp: TcpStream,
     peer: std::net::SocketAddr,
+    tls: Option<TlsAcceptor>,
+    service: S,
+    admitted: Admitted,
+    closing: Closing,
 ) where
-    I: AsyncRead + AsyncWrite + Unpin + Send + 'static,
+    S: Service,
+{
+    let Some(acceptor) = tls else {
+        let io = Watched::new(tcp, admitted.slot().clone());
+        return serve_connection(io, service, admitted, closing, peer).await;
+    };
+    let stream = tokio::select! {
+        handshake = acceptor.accept(tcp) => match handshake {
+            Ok(stream) => stream,
+            Err(e) => return tracing::debug!("TLS handshake with {peer} failed: {e}"),
+        },
+        why = admitted.expired() => {
+            return tracing::debug!("TLS handshake with {peer} ended: {why:?}");
+        }
+        () = closing.closed() => return,
+    };
+    if stream.get_ref().1.alpn_protocol() == Some(b"h2") {
+        admitted.slot().set_h2();
+    }
+    let io = Watched::new(stream, admitted.slot().clone());
+    serve_connection(io, service, admitted, closing, peer).await;
+}
+
+/// What serves one connection's requests.
+trait Service:
+    hyper::service::Service<
+        hyper::Request<hyper::body::Incoming>,
+        Response = axum::response::Response,
+        Error = std::convert::Infallible,
+        Future: Send + 'static,
+    > + Send
+    + 'static
+{
+}
+
+impl<S> Service for S where
     S: hyper::service::Service<
             hyper::Request<hyper::body::Incoming>,
             Response = axum::response::Response,
             Error = std::convert::Infallible,
+            Future: Send + 'static,
         > + Send
-        + 'static,
-    S::Future: Send + 'static,
+        + 'static
+{
+}
+
+/// HTTP/1.1 or HTTP/2 on one connection, until it closes, its limits close it (gracefully:
+/// they only close connections without a request in progress) or a shutdown has let its
+/// requests finish.
+async fn serve_connection<I, S>(
+    io: Watched<I>,
+    service: S,
+    admitted: Admitted,
+    closing: Closing,
+    peer: std::net::SocketAddr,
+) where
+    I: AsyncRead + AsyncWrite + Unpin + Send + 'static,
+    S: Service,
 {
     let builder = auto::Builder::new(TokioExecutor::new());
-    let conn = builder.serve_connection_with_upgrades(io, service);
-    if let Err(e) = watcher.watch(conn.into_owned()).await {
-        tracing::debug!("connection from {peer} ended: {e}");
+    let service = Tracked::new(service, admitted.slot().clone());
+    let conn = builder.serve_connection_with_upgrades(TokioIo::new(io), service);
+    tokio::pin!(conn);
+    let why = tokio::select! {
+        biased;
+        ended = conn.as_mut() => {
+            if let Err(e) = ended {
+                tracing::debug!("connection from {peer} ended: {e}");
+            }
+            return;
+        }
+        why = admitted.expired() => Some(why),
+        () = closing.closed() => None,
+    };
+    let slot = admitted.slot();
+    let Some(why) = why.filter(|_| slot.idle()) else {
+        // Shutting down, or a request began as the connection was told to make room: the
+        // requests in flight finish (within the server's grace when shutting down).
+        conn.as_mut().graceful_shutdown();
+        let _ = conn.await;
+        return;
+    };
+    tracing::debug!("closing the connection from {peer}: {why:?}");
+    // No request is in progress (none can begin before the drop: requests begin only while
+    // this task polls `conn`). HTTP/1.1 has nothing to finish and nothing to say: drop it now
+    // (a graceful close would wait for the rest of a head that may never come).
+    if !slot.h2() {
+        return;
+    }
+    // HTTP/2 tells the client which streams were not served (GOAWAY); a stream that came just
+    // now still gets its answer; otherwise the connection has a moment for that.
+    conn.as_mut().graceful_shutdown();
+    loop {
+        tokio::select! {
+            _ = conn.as_mut() => return,
+            () = tokio::time::sleep(GOODBYE) => if slot.idle() { return },
+        }
     }
 }
 

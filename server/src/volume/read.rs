@@ -158,6 +158,18 @@ pub struct BatchRead {
 }
 
 impl BatchRead {
+    /// At least the bytes [`BatchRead::encode`] answers with when that follows from the request
+    /// alone (decoded bricks: their size and entry headers), else 0 (stored bricks: their
+    /// payloads' size is known only once read).
+    pub fn known_bytes(&self) -> usize {
+        /// More than a batch's header and one entry's header take (`proto::batch`).
+        const HEADERS: usize = 64;
+        match self.encoding {
+            BatchEncoding::Raw => self.keys.len() * (self.snap.layout().brick_bytes() + HEADERS),
+            BatchEncoding::Stored => 0,
+        }
+    }
+
     /// The batch in its wire encoding (`proto::batch`): each brick as stored (its payload
     /// verified first, see [`DecodedBricks::verify_payload`]), or decoded (and checked).
     ///
@@ -235,6 +247,20 @@ pub struct LevelRead {
 }
 
 impl LevelRead {
+    /// The bytes [`LevelRead::run`] answers with when that follows from the request alone
+    /// (voxels), else 0 (a grid: its JSON's length is known once written).
+    pub fn known_bytes(&self) -> usize {
+        match self.form {
+            LevelForm::Voxels => {
+                (0..3)
+                    .map(|a| (self.max[a] - self.min[a]) as usize)
+                    .product::<usize>()
+                    * self.snap.layout().voxel_type().bytes()
+            }
+            LevelForm::Grid => 0,
+        }
+    }
+
     /// Reads the level's region.
     ///
     /// # Errors

@@ -1,6 +1,11 @@
 //! A real `isovox serve` process for the tests that need one: started on an ephemeral port,
-//! its standard error drained (a full pipe would block the server) and kept for failure
-//! messages, killed (SIGKILL) when dropped so a failing test leaves no server behind.
+//! optionally under a file-descriptor limit, its standard error drained (a full pipe would
+//! block the server) and kept for failure messages, its memory and threads read from
+//! `/proc`, killed (SIGKILL) when dropped so a failing test leaves no server behind.
+//!
+//! `ISOVOX_TEST_BIN=PATH` runs the tests against another build of `isovox` (an older one, to
+//! see a test fail before a fix: configure such servers through `ISOVOX_*` variables, which an
+//! older build ignores, rather than flags, which it refuses).
 
 #![allow(dead_code)]
 
@@ -22,6 +27,11 @@ const SERVE_ENV: &[&str] = &[
     "ISOVOX_MAX_EDIT_VOXELS",
     "ISOVOX_EDIT_TIMEOUT",
     "ISOVOX_SHUTDOWN_GRACE",
+    "ISOVOX_CPU_QUEUE",
+    "ISOVOX_RESPONSE_MEMORY_MB",
+    "ISOVOX_MAX_CONNECTIONS",
+    "ISOVOX_HEADER_TIMEOUT",
+    "ISOVOX_IDLE_TIMEOUT",
 ];
 
 /// A running `isovox serve`.
@@ -39,7 +49,7 @@ impl ServerProcess {
     /// Runs `isovox serve --addr 127.0.0.1:0 ARGS` with `envs` set, and waits (up to 60 s) for
     /// its "isovox serving ... on http://ADDR/..." line.
     pub(crate) fn start(args: &[&std::ffi::OsStr], envs: &[(&str, &str)]) -> ServerProcess {
-        ServerProcess::start_on("127.0.0.1:0", args, envs)
+        ServerProcess::launch("127.0.0.1:0", None, args, envs)
     }
 
     /// [`ServerProcess::start`] listening on `addr` (`HOST:PORT`).
@@ -48,7 +58,35 @@ impl ServerProcess {
         args: &[&std::ffi::OsStr],
         envs: &[(&str, &str)],
     ) -> ServerProcess {
-        let mut command = Command::new(env!("CARGO_BIN_EXE_isovox"));
+        ServerProcess::launch(addr, None, args, envs)
+    }
+
+    /// As [`ServerProcess::start`], under a limit of `fd_limit` open files (soft and hard, set
+    /// by the shell that starts the server) when given.
+    pub(crate) fn start_limited(
+        fd_limit: Option<u32>,
+        args: &[&std::ffi::OsStr],
+        envs: &[(&str, &str)],
+    ) -> ServerProcess {
+        ServerProcess::launch("127.0.0.1:0", fd_limit, args, envs)
+    }
+
+    fn launch(
+        addr: &str,
+        fd_limit: Option<u32>,
+        args: &[&std::ffi::OsStr],
+        envs: &[(&str, &str)],
+    ) -> ServerProcess {
+        let mut command = match fd_limit {
+            None => Command::new(isovox()),
+            Some(n) => {
+                let mut sh = Command::new("sh");
+                sh.arg("-c")
+                    .arg(format!("ulimit -n {n} && exec \"$0\" \"$@\""))
+                    .arg(isovox());
+                sh
+            }
+        };
         command.args(["serve", "--addr", addr]).args(args);
         for name in SERVE_ENV {
             command.env_remove(name);
@@ -107,8 +145,40 @@ impl ServerProcess {
         format!("http://{}{path}", self.addr)
     }
 
+    /// The address, parsed.
+    pub(crate) fn socket_addr(&self) -> std::net::SocketAddr {
+        self.addr.parse().expect("the announced address parses")
+    }
+
     pub(crate) fn pid(&self) -> u32 {
         self.child.id()
+    }
+
+    /// Its memory and threads now, as `/proc/PID/status` says.
+    pub(crate) fn status(&self) -> ProcStatus {
+        let text = std::fs::read_to_string(format!("/proc/{}/status", self.pid()))
+            .expect("the server is running");
+        let field = |name: &str| -> u64 {
+            let line = text
+                .lines()
+                .find_map(|l| l.strip_prefix(name))
+                .unwrap_or_else(|| panic!("no {name} in /proc/PID/status"));
+            let n: u64 = line
+                .split_whitespace()
+                .next()
+                .and_then(|n| n.parse().ok())
+                .unwrap_or_else(|| panic!("{name}{line}"));
+            if line.ends_with("kB") {
+                n << 10
+            } else {
+                n
+            }
+        };
+        ProcStatus {
+            rss: field("VmRSS:"),
+            hwm: field("VmHWM:"),
+            threads: field("Threads:"),
+        }
     }
 
     /// The last `lines` lines the server wrote to standard error.
@@ -159,8 +229,39 @@ impl Drop for ServerProcess {
     }
 }
 
-/// `ADDR` in "isovox serving w on http://ADDR/v1/volumes".
+/// What `/proc/PID/status` says of a process's memory and threads.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct ProcStatus {
+    /// Resident memory now, bytes.
+    pub(crate) rss: u64,
+    /// The most resident memory so far, bytes.
+    pub(crate) hwm: u64,
+    pub(crate) threads: u64,
+}
+
+/// The `isovox` binary under test: this build's, or `ISOVOX_TEST_BIN`.
+pub(crate) fn isovox() -> std::ffi::OsString {
+    std::env::var_os("ISOVOX_TEST_BIN").unwrap_or_else(|| env!("CARGO_BIN_EXE_isovox").into())
+}
+
+/// Runs `isovox ARGS` to completion; panics with its output when it fails.
+pub(crate) fn run_isovox(args: &[&str]) {
+    let out = Command::new(isovox())
+        .args(args)
+        .output()
+        .expect("the isovox binary starts");
+    assert!(out.status.success(), "isovox {args:?}: {out:?}");
+}
+
+/// `isovox generate world` of `dims` ("X,Y,Z") as `dir/world.vod`.
+pub(crate) fn generate_world(dir: &std::path::Path, dims: &str) {
+    let out = dir.join("world.vod");
+    let out = out.to_str().expect("a UTF-8 temporary path");
+    run_isovox(&["generate", "world", "-o", out, "--dims", dims]);
+}
+
+/// `ADDR` in "isovox serving w on http://ADDR/v1/volumes" (or https).
 fn address_in(line: &str) -> Option<&str> {
-    let rest = &line[line.find("http://")? + "http://".len()..];
+    let rest = &line[line.find("://")? + "://".len()..];
     Some(&rest[..rest.find('/').unwrap_or(rest.len())])
 }

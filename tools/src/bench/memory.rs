@@ -6,13 +6,10 @@
 //! holds) and `RssFile` (mapped file pages: the page cache, which the kernel reclaims at will),
 //! sampled every 200 ms.
 
+use super::process::{proc_status, ServeProcess};
 use anyhow::Context;
 use isovox_proto::{VolumeLayout, VoxelType};
-use isovox_server::generate::WorldSource;
-use isovox_server::store::{build_vod2, BuildOptions};
-use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -32,27 +29,9 @@ pub struct MemoryBenchArgs {
     pub concurrency: usize,
 }
 
-/// The server child, killed on drop.
-struct Server(Child);
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
 /// `RssAnon` and `RssFile` of a process, in KiB.
 fn rss(pid: u32) -> Option<(u64, u64)> {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    let field = |name: &str| {
-        status
-            .lines()
-            .find(|l| l.starts_with(name))
-            .and_then(|l| l.split_whitespace().nth(1))
-            .and_then(|v| v.parse::<u64>().ok())
-    };
-    Some((field("RssAnon:")?, field("RssFile:")?))
+    Some((proc_status(pid, "RssAnon")?, proc_status(pid, "RssFile")?))
 }
 
 pub fn run_bench(a: MemoryBenchArgs) -> anyhow::Result<()> {
@@ -60,47 +39,13 @@ pub fn run_bench(a: MemoryBenchArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&data)?;
     let layout = VolumeLayout::new([a.size; 3], a.brick, VoxelType::U8)?;
     let file = data.join("world.vod");
-    if !file.exists() {
-        eprintln!("generating {} (once)", file.display());
-        build_vod2(
-            &file,
-            &layout,
-            [1.0; 3],
-            &WorldSource::new(layout.clone(), 3),
-            &BuildOptions::default(),
-        )?;
-    }
-    let mut child = Command::new(super::isovox_exe()?)
-        .args(["serve", "--addr", "127.0.0.1:0", "--data"])
-        .arg(&data)
-        .stderr(Stdio::piped())
-        .stdout(Stdio::null())
-        .spawn()
-        .context("cannot start the server")?;
-    let stderr = child.stderr.take().context("no stderr")?;
-    let server = Server(child);
-    let pid = server.0.id();
-    let mut lines = BufReader::new(stderr).lines();
-    let base = loop {
-        let line = lines
-            .next()
-            .context("the server exited before listening")??;
-        if let Some(at) = line.find("http://") {
-            let rest = &line[at..];
-            break rest.split("/v1").next().unwrap_or(rest).trim().to_string();
-        }
-    };
-    // Keep draining the server's log.
-    std::thread::spawn(move || for _ in lines {});
+    super::generated_world(&file, &layout, 3)?;
+    let server = ServeProcess::start(&super::isovox_exe()?, &data, &[])?;
+    let (base, pid) = (server.base.clone(), server.pid());
     let (anon_start, file_start) = rss(pid).context("cannot read the server's memory")?;
 
-    // Every brick of every level once, in a random order (Fisher-Yates).
-    let mut nodes: Vec<u64> = (0..layout.node_count()).collect();
-    let mut rng = super::icvg::Rng(0x2545_f491_4f6c_dd1d);
-    for i in (1..nodes.len()).rev() {
-        nodes.swap(i, (rng.next() % (i as u64 + 1)) as usize);
-    }
-    let nodes = Arc::new(nodes);
+    // Every brick of every level once, in a random order.
+    let nodes = Arc::new(super::shuffled_nodes(&layout));
     let next = Arc::new(AtomicUsize::new(0));
     let errors = Arc::new(AtomicU64::new(0));
     let bytes = Arc::new(AtomicU64::new(0));

@@ -4,11 +4,13 @@
 //! Timings are wall-clock on this machine with a warm page cache (the data was just written);
 //! each figure is the median of several runs where a run is short.
 
+pub mod cold_tiles;
 pub mod edits;
 pub mod http;
 pub mod icvg;
 pub mod memory;
 pub mod mesh;
+pub mod process;
 pub mod voxelize;
 
 use crate::args::parse_dims;
@@ -49,6 +51,9 @@ pub enum BenchCommand {
     /// The server's resident memory (RssAnon, beyond the page cache) while a client walks
     /// every brick of a 2048^3 world once in random order.
     Memory(memory::MemoryBenchArgs),
+    /// Random cold mesh tiles of a 1024^3 world from 64, then 1,000 connections: the
+    /// server's peak resident memory and threads against its stated bound, p99, 503s.
+    ColdTiles(cold_tiles::ColdTilesBenchArgs),
     /// Solid voxelization of a ~300k-triangle closed model into 512^3 and 1024^3, next to the
     /// paper's GPU figures.
     Voxelize(voxelize::VoxelizeBenchArgs),
@@ -85,6 +90,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Edits(a) => edits::run_bench(a),
         BenchCommand::Memory(a) => memory::run_bench(a),
         BenchCommand::Voxelize(a) => voxelize::run_bench(a),
+        BenchCommand::ColdTiles(a) => cold_tiles::run_bench(a),
     }
 }
 
@@ -287,6 +293,33 @@ pub fn isovox_exe() -> anyhow::Result<PathBuf> {
         exe.display()
     );
     Ok(exe)
+}
+
+/// Generates the terrain world of `layout` (seed `seed`) at `path`, unless it is there from an
+/// earlier run.
+pub(crate) fn generated_world(path: &Path, layout: &VolumeLayout, seed: u32) -> anyhow::Result<()> {
+    if !path.exists() {
+        eprintln!("generating {} (once)", path.display());
+        build_vod2(
+            path,
+            layout,
+            [1.0; 3],
+            &WorldSource::new(layout.clone(), seed),
+            &BuildOptions::default(),
+        )?;
+    }
+    Ok(())
+}
+
+/// Every node (brick, or mesh tile) of every level of `layout` once, in a random order
+/// (Fisher-Yates, the same order every run).
+pub(crate) fn shuffled_nodes(layout: &VolumeLayout) -> Vec<u64> {
+    let mut nodes: Vec<u64> = (0..layout.node_count()).collect();
+    let mut rng = icvg::Rng(0x2545_f491_4f6c_dd1d);
+    for i in (1..nodes.len()).rev() {
+        nodes.swap(i, (rng.next() % (i as u64 + 1)) as usize);
+    }
+    nodes
 }
 
 /// Median whole-process time of `isovox get FILE 0 x y z` in milliseconds.
