@@ -689,29 +689,62 @@ fn triangle_meets_box(t: &[[f64; 3]; 3], min: [f64; 3]) -> bool {
 /// Edges used by an odd number of triangles (vertices welded by position): the mesh does not
 /// bound a solid in the parity sense there (a hole, or an inner wall meeting the hull).
 /// Returns their number and the total number of distinct edges.
+///
+/// Both steps sort in parallel: vertices by position (equal positions get one id), then the
+/// edges as pairs of ids, whose runs are counted.
 pub fn odd_edges(mesh: &TriMesh) -> (usize, usize) {
-    use std::collections::HashMap;
-    let mut ids: HashMap<[u32; 3], u32> = HashMap::new();
-    let weld: Vec<u32> = mesh
+    // -0.0 and 0.0 are one position.
+    let key = |p: &[f32; 3]| p.map(|c| if c == 0.0 { 0 } else { c.to_bits() });
+    let mut by_position: Vec<([u32; 3], u32)> = mesh
         .positions
-        .iter()
-        .map(|p| {
-            let key = p.map(|c| if c == 0.0 { 0 } else { c.to_bits() });
-            let next = ids.len() as u32;
-            *ids.entry(key).or_insert(next)
-        })
+        .par_iter()
+        .enumerate()
+        .map(|(i, p)| (key(p), i as u32))
         .collect();
-    let mut count: HashMap<(u32, u32), u32> = HashMap::new();
-    for t in &mesh.triangles {
-        let v = t.map(|i| weld[i as usize]);
-        if v[0] == v[1] || v[1] == v[2] || v[0] == v[2] {
-            continue;
+    by_position.par_sort_unstable();
+    let mut weld = vec![0u32; mesh.positions.len()];
+    let mut id = 0;
+    for (k, (position, i)) in by_position.iter().enumerate() {
+        if k > 0 && by_position[k - 1].0 != *position {
+            id += 1;
         }
-        for (a, b) in [(v[0], v[1]), (v[1], v[2]), (v[2], v[0])] {
-            *count.entry((a.min(b), a.max(b))).or_default() += 1;
+        weld[*i as usize] = id;
+    }
+    // Each edge (a, b), a < b, listed under a (a counting sort), then each short list sorted.
+    let ids = by_position.last().map_or(0, |_| id as usize + 1);
+    let edges = || {
+        mesh.triangles.iter().flat_map(|t| {
+            let v = t.map(|i| weld[i as usize]);
+            let degenerate = v[0] == v[1] || v[1] == v[2] || v[0] == v[2];
+            [(v[0], v[1]), (v[1], v[2]), (v[2], v[0])]
+                .into_iter()
+                .filter(move |_| !degenerate)
+                .map(|(a, b)| (a.min(b), a.max(b)))
+        })
+    };
+    let mut start = vec![0u32; ids + 1];
+    for (a, _) in edges() {
+        start[a as usize + 1] += 1;
+    }
+    for a in 0..ids {
+        start[a + 1] += start[a];
+    }
+    let mut next = start.clone();
+    let mut ends = vec![0u32; start[ids] as usize];
+    for (a, b) in edges() {
+        ends[next[a as usize] as usize] = b;
+        next[a as usize] += 1;
+    }
+    let (mut odd, mut distinct) = (0, 0);
+    for a in 0..ids {
+        let list = &mut ends[start[a] as usize..start[a + 1] as usize];
+        list.sort_unstable();
+        for run in list.chunk_by(|x, y| x == y) {
+            distinct += 1;
+            odd += run.len() % 2;
         }
     }
-    (count.values().filter(|&&n| n % 2 == 1).count(), count.len())
+    (odd, distinct)
 }
 
 #[cfg(test)]
