@@ -316,6 +316,7 @@ fn parity_pass(
     let row_words = dims[0] * words;
     let mut rest = &mut grid.bits[..];
     for group in binning.groups(budget) {
+        cancel.check()?;
         let (mine, later) = rest.split_at_mut((group.len() * BAND * row_words).min(rest.len()));
         rest = later;
         let bins = binning.bin(group.clone(), &corners);
@@ -503,8 +504,8 @@ struct Band<'a> {
 /// Toggles, in `band`, the voxels below triangle `t` in every column whose centre its
 /// projection covers.
 fn toggle_below(t: &Projected, band: &mut Band<'_>) {
-    // An edge function at a sample within one step of the bounding box is at most
-    // 2 (w + ONE)(h + ONE) in magnitude (w, h: the box's sides).
+    // At a sample within one step of the triangle's bounding box, an edge function is at most
+    // 2 (W + ONE)(H + ONE) in magnitude (W, H: the box's sides, fixed point).
     let side =
         |c: [i64; 3]| i128::from(c.iter().max().unwrap_or(&0) - c.iter().min().unwrap_or(&0));
     let bound = 2 * (side(t.x) + i128::from(ONE)) * (side(t.y) + i128::from(ONE));
