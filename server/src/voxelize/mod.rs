@@ -5,8 +5,11 @@
 //! Layout:
 //! - [`load`]: STL, OBJ, PLY and glTF/GLB readers.
 //! - [`store`]: uploaded meshes by content hash, for mesh leaves of ICVG terms.
-//! - [`solid`]: bit-packed columns, XOR parity per triangle with exact centre sampling, the
-//!   conservative surface, the watertightness check.
+//! - [`solid`]: bit-packed columns, XOR parity per triangle with exact centre sampling
+//!   (triangles binned by band of rows in parallel), the conservative surface, the
+//!   watertightness check.
+//! - [`reference`]: the previous parity pass and box filter, the tests' oracle and the
+//!   benchmark's baseline.
 //!
 //! Placement: the model's longest bounding-box side spans `size` voxels; `padding` voxels of L
 //! surround it, so the surface is closed inside the volume. With `supersample` s the solid is
@@ -16,6 +19,7 @@
 //! and the mesher's default iso (S - 0.5) put the surface where the density is one half.
 
 pub mod load;
+pub mod reference;
 pub mod solid;
 pub mod store;
 
@@ -182,6 +186,22 @@ pub struct Report {
 /// No triangles, a size out of range, or (unless `allow_open`) a mesh that does not bound a
 /// solid (see [`check_closed`]).
 pub fn voxelize(mesh: &TriMesh, options: &Options) -> Result<Voxelized, VoxelizeError> {
+    voxelize_with(mesh, options, Passes::Current)
+}
+
+/// Which implementation of the parity pass and the box filter runs: the current ones, or the
+/// previous ones, kept in [`reference`] as the tests' oracle and the benchmark's baseline.
+#[derive(Debug, Clone, Copy)]
+enum Passes {
+    Current,
+    Previous,
+}
+
+fn voxelize_with(
+    mesh: &TriMesh,
+    options: &Options,
+    passes: Passes,
+) -> Result<Voxelized, VoxelizeError> {
     let (lo, hi) = mesh.bounds().ok_or(VoxelizeError::Empty)?;
     if !(1..=4096).contains(&options.size)
         || !(1..=4).contains(&options.supersample)
@@ -229,7 +249,10 @@ pub fn voxelize(mesh: &TriMesh, options: &Options) -> Result<Voxelized, Voxelize
         std::array::from_fn(|a| (p[a] as f64 - origin[a]) / voxel_size * s as f64)
     };
     let start = Instant::now();
-    let mut grid = voxelize_solid(mesh, fine, to_fine);
+    let mut grid = match passes {
+        Passes::Current => voxelize_solid(mesh, fine, to_fine),
+        Passes::Previous => reference::voxelize_solid_reference(mesh, fine, to_fine),
+    };
     let mut bit_bytes = grid.bytes();
     let samples_inside = grid.count();
     match options.fill {
@@ -247,7 +270,7 @@ pub fn voxelize(mesh: &TriMesh, options: &Options) -> Result<Voxelized, Voxelize
     }
     let solid_time = start.elapsed();
     let start = Instant::now();
-    let bytes = fill_values(&grid, dims, s, options.voxel_type);
+    let bytes = fill_values(&grid, dims, s, options.voxel_type, passes);
     Ok(Voxelized {
         dims,
         bytes,
@@ -272,14 +295,22 @@ pub fn density_value(inside: u32, total: u32, t: VoxelType) -> u16 {
 }
 
 /// Output voxels from a grid `s` times finer: the count of set samples in each s^3 block.
-fn fill_values(grid: &BitGrid, dims: [u32; 3], s: usize, t: VoxelType) -> Vec<u8> {
+fn fill_values(grid: &BitGrid, dims: [u32; 3], s: usize, t: VoxelType, passes: Passes) -> Vec<u8> {
     let [nx, ny, _] = dims.map(|d| d as usize);
     let total = (s * s * s) as u32;
     let table: Vec<u16> = (0..=total).map(|c| density_value(c, total, t)).collect();
     let bpv = t.bytes();
-    let mut out = vec![0u8; dims.iter().map(|&d| d as usize).product::<usize>() * bpv];
+    let len = dims.iter().map(|&d| d as usize).product::<usize>() * bpv;
+    let mut out = match passes {
+        Passes::Current => solid::zeroed(len),
+        // Zeroed by one thread, as it was.
+        Passes::Previous => vec![0u8; len],
+    };
     if s == 2 {
-        fill_density_2(grid, dims, &table, t, &mut out);
+        match passes {
+            Passes::Current => fill_density_2(grid, dims, &table, t, &mut out),
+            Passes::Previous => reference::fill_density_2(grid, dims, &table, t, &mut out),
+        }
         return out;
     }
     out.par_chunks_mut(nx * ny * bpv)
@@ -305,37 +336,75 @@ fn fill_values(grid: &BitGrid, dims: [u32; 3], s: usize, t: VoxelType) -> Vec<u8
     out
 }
 
+/// The sample counts of 32 output voxels along z from the same word of their four fine columns:
+/// 4-bit fields, those of the even output voxels in the first value, the odd in the second
+/// (field `j` of each is voxel `2j` or `2j + 1`).
+fn box_fields(words: [u64; 4]) -> (u64, u64) {
+    const PAIRS: u64 = 0x5555_5555_5555_5555;
+    const NIBBLES: u64 = 0x3333_3333_3333_3333;
+    let (mut even, mut odd) = (0u64, 0u64);
+    for word in words {
+        let pairs = (word & PAIRS) + ((word >> 1) & PAIRS);
+        even += pairs & NIBBLES;
+        odd += (pairs >> 2) & NIBBLES;
+    }
+    (even, odd)
+}
+
 /// The paper's 2x2x2 box filter, word-parallel: per output column, the four fine columns'
 /// words are summed pairwise along z into 2-bit fields, split into even and odd output voxels
 /// (4-bit fields, room for 0..8), and added up; then each field is one output value.
+///
+/// One fine word holds 32 output planes along z, so slabs of 32 planes are independent. A task
+/// takes up to 8 words of each fine column (a cache line, 256 planes); it sums the fields of
+/// 64 output columns of a row at a time, then writes them plane by plane, so the bits are read
+/// once and every plane gets a run of 64 consecutive values (not bytes a plane apart, which
+/// would all fall in the same cache sets).
 fn fill_density_2(grid: &BitGrid, dims: [u32; 3], table: &[u16], t: VoxelType, out: &mut [u8]) {
-    const PAIRS: u64 = 0x5555_5555_5555_5555;
-    const NIBBLES: u64 = 0x3333_3333_3333_3333;
+    const RUN: usize = 64;
     let [nx, ny, nz] = dims.map(|d| d as usize);
     let bpv = t.bytes();
     let plane = nx * ny * bpv;
-    // One fine word holds 32 output voxels along z: slabs of 32 planes are independent.
-    out.par_chunks_mut(32 * plane)
+    // Fewer words per task when there are too few slabs to keep every thread busy.
+    let per_task = nz
+        .div_ceil(32)
+        .div_ceil(2 * rayon::current_num_threads())
+        .clamp(1, 8);
+    out.par_chunks_mut(32 * per_task * plane)
         .enumerate()
-        .for_each(|(w, slab)| {
-            let planes = (nz - 32 * w).min(32);
+        .for_each(|(task, slab)| {
+            let planes = slab.len() / plane;
+            let first = task * per_task;
+            // (even, odd) fields of word k of output column x0 + i, at k * RUN + i.
+            let mut fields = vec![(0u64, 0u64); per_task * RUN];
             for y in 0..ny {
-                for x in 0..nx {
-                    let (mut even, mut odd) = (0u64, 0u64);
-                    for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                        let word = grid.column_words(2 * x + dx, 2 * y + dy)[w];
-                        let pairs = (word & PAIRS) + ((word >> 1) & PAIRS);
-                        even += pairs & NIBBLES;
-                        odd += (pairs >> 2) & NIBBLES;
+                for x0 in (0..nx).step_by(RUN) {
+                    let run = RUN.min(nx - x0);
+                    for i in 0..run {
+                        let x = x0 + i;
+                        for k in 0..planes.div_ceil(32) {
+                            fields[k * RUN + i] =
+                                box_fields([(0, 0), (1, 0), (0, 1), (1, 1)].map(|(dx, dy)| {
+                                    grid.column_words(2 * x + dx, 2 * y + dy)[first + k]
+                                }));
+                        }
                     }
-                    let at = (y * nx + x) * bpv;
                     for z in 0..planes {
-                        let field = if z % 2 == 0 { even } else { odd };
-                        let v = table[((field >> (4 * (z / 2))) & 0xf) as usize];
-                        let i = z * plane + at;
+                        let (k, shift) = (z / 32, 4 * (z % 32 / 2));
+                        let at = z * plane + (y * nx + x0) * bpv;
+                        let values = fields[k * RUN..k * RUN + run].iter().map(|&(even, odd)| {
+                            let field = if z % 2 == 0 { even } else { odd };
+                            table[(field >> shift & 0xf) as usize]
+                        });
+                        let dest = &mut slab[at..at + run * bpv];
                         match t {
-                            VoxelType::U8 => slab[i] = v as u8,
-                            VoxelType::U16 => slab[i..i + 2].copy_from_slice(&v.to_le_bytes()),
+                            VoxelType::U8 => {
+                                dest.iter_mut().zip(values).for_each(|(d, v)| *d = v as u8)
+                            }
+                            VoxelType::U16 => dest
+                                .chunks_exact_mut(2)
+                                .zip(values)
+                                .for_each(|(d, v)| d.copy_from_slice(&v.to_le_bytes())),
                         }
                     }
                 }
@@ -371,7 +440,7 @@ pub fn density_box(
         cancel,
     )?;
     cancel.check()?;
-    let bytes = fill_values(&grid, dims.map(|d| d as u32), s, t);
+    let bytes = fill_values(&grid, dims.map(|d| d as u32), s, t, Passes::Current);
     Ok(match t {
         VoxelType::U8 => bytes.into_iter().map(u16::from).collect(),
         VoxelType::U16 => bytes
@@ -379,4 +448,47 @@ pub fn density_box(
             .map(|c| u16::from_le_bytes([c[0], c[1]]))
             .collect(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 64, failure_persistence: None, ..ProptestConfig::default() })]
+
+        /// The box filter gives the previous one's values for any bits and thread count (which
+        /// sets how many words a task takes), with rows cut into runs of 64 anywhere.
+        #[test]
+        fn box_filter_matches_the_previous_one(
+            dims in (1u32..150, 1u32..4, 1u32..300),
+            seed in any::<u64>(),
+            threads in 1usize..4,
+            wide in any::<bool>(),
+        ) {
+            let dims = [dims.0, dims.1, dims.2];
+            let t = if wide { VoxelType::U16 } else { VoxelType::U8 };
+            let mut grid = BitGrid::new(dims.map(|d| 2 * d as usize));
+            let mut state = seed;
+            for w in &mut grid.bits {
+                // Knuth's MMIX LCG, high half.
+                state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+                *w = state.rotate_left(32);
+            }
+            let table: Vec<u16> = (0..=8).map(|c| density_value(c, 8, t)).collect();
+            let n = dims.iter().map(|&d| d as usize).product::<usize>() * t.bytes();
+            let (mut got, mut want) = (vec![0u8; n], vec![0u8; n]);
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .map_err(|e| TestCaseError::fail(e.to_string()))?;
+            pool.install(|| {
+                fill_density_2(&grid, dims, &table, t, &mut got);
+                reference::fill_density_2(&grid, dims, &table, t, &mut want);
+            });
+            let differ = got.iter().zip(&want).filter(|(a, b)| a != b).count();
+            prop_assert!(got == want, "{differ} of {n} bytes differ");
+        }
+    }
 }
