@@ -14,3 +14,4 @@ pub mod level;
 pub mod mc;
 pub mod table;
 pub mod tile;
+pub mod transition_table;

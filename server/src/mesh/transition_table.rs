@@ -1,0 +1,530 @@
+//! The transition-cell case table, generated with the face rule of the regular table
+//! ([`super::table`]) instead of copied.
+//!
+//! A transition cell joins a 2x2 block of a tile's boundary cells to the one face of a cell of
+//! the next coarser level (Lengyel 2010, "Voxel-Based Terrain for Real-Time Virtual
+//! Simulations"): 9 samples on its full-resolution face, 4 on its half-resolution face. Here the
+//! coarse samples are the coarser level's own values at the same lattice points as the fine
+//! face's corners, not copies of them (a coarse value is a mean, see `docs/lod-meshes.md`), so
+//! all 13 samples are independent: 8192 cases, and the four edges joining a fine corner to its
+//! coarse twin can be crossed too.
+//!
+//! The cell in its canonical frame (u, v, n), right-handed, n pointing from the fine face to
+//! the coarse one:
+//!
+//! ```text
+//!   fine sample F(i, j), i, j in 0..3, at (i, j, 0): sample i + 3j      (0..9)
+//!   coarse sample C(i, j), i, j in 0..2, at (2i, 2j, 1): sample 9 + i + 2j   (9..13)
+//! ```
+//!
+//! Its nine faces: four fine squares (the outer faces of the four fine boundary cells), one
+//! coarse square (the face of the coarse cell), and four lateral pentagons (three fine samples,
+//! two coarse ones), each shared with the next transition cell or, at a tile's edge, with the
+//! neighbouring tile's strip. The contour is traced face by face with the regular table's rule
+//! (one segment per maximal run of inside corners, counter-clockwise seen from outside), which
+//! depends on a face's samples alone: the coarse square is cut exactly as the coarse tile cuts
+//! it, each fine square exactly as the fine tile's boundary cell cuts it, and a pentagon
+//! identically from both of its cells. The segments chain into closed loops, wound like the
+//! regular table's.
+//!
+//! Each loop is triangulated once, here, by the minimum-area triangulation of its polygon in the
+//! cell's shape as drawn (fine face half a fine cell below the coarse face, vertices at edge
+//! midpoints), refusing triangles whose three vertices lie on one lateral side: where a strip
+//! ends at a tile face shared with a tile of the same level, that side's fine samples are not
+//! moved (`super::transition`), the pentagon collapses onto a line, and such a triangle would
+//! have no area.
+
+use std::sync::OnceLock;
+
+/// Samples of the cell.
+pub const SAMPLES: usize = 13;
+
+/// The canonical position of sample `s`, in fine-cell units, with the coarse face at n = 1.
+pub fn sample_position(s: u8) -> [i32; 3] {
+    if s < 9 {
+        [(s % 3) as i32, (s / 3) as i32, 0]
+    } else {
+        let c = s - 9;
+        [2 * (c & 1) as i32, 2 * (c >> 1) as i32, 1]
+    }
+}
+
+/// Fine sample F(i, j).
+pub const fn fine(i: u8, j: u8) -> u8 {
+    i + 3 * j
+}
+
+/// Coarse sample C(i, j), at the position of F(2i, 2j).
+pub const fn coarse(i: u8, j: u8) -> u8 {
+    9 + i + 2 * j
+}
+
+/// The 20 edges as (lower sample, upper sample): along u or v, the lower end has the smaller
+/// coordinate; a connecting edge runs from the fine corner to its coarse twin.
+pub const EDGES: [(u8, u8); 20] = [
+    // fine, along u
+    (fine(0, 0), fine(1, 0)),
+    (fine(1, 0), fine(2, 0)),
+    (fine(0, 1), fine(1, 1)),
+    (fine(1, 1), fine(2, 1)),
+    (fine(0, 2), fine(1, 2)),
+    (fine(1, 2), fine(2, 2)),
+    // fine, along v
+    (fine(0, 0), fine(0, 1)),
+    (fine(0, 1), fine(0, 2)),
+    (fine(1, 0), fine(1, 1)),
+    (fine(1, 1), fine(1, 2)),
+    (fine(2, 0), fine(2, 1)),
+    (fine(2, 1), fine(2, 2)),
+    // coarse, along u then v
+    (coarse(0, 0), coarse(1, 0)),
+    (coarse(0, 1), coarse(1, 1)),
+    (coarse(0, 0), coarse(0, 1)),
+    (coarse(1, 0), coarse(1, 1)),
+    // connecting
+    (fine(0, 0), coarse(0, 0)),
+    (fine(2, 0), coarse(1, 0)),
+    (fine(0, 2), coarse(0, 1)),
+    (fine(2, 2), coarse(1, 1)),
+];
+
+/// What an edge joins.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum EdgeKind {
+    Fine,
+    Coarse,
+    Connecting,
+}
+
+pub fn edge_kind(e: u8) -> EdgeKind {
+    match e {
+        0..12 => EdgeKind::Fine,
+        12..16 => EdgeKind::Coarse,
+        _ => EdgeKind::Connecting,
+    }
+}
+
+fn edge_between(a: u8, b: u8) -> u8 {
+    let (lo, hi) = (a.min(b), a.max(b));
+    EDGES
+        .iter()
+        .position(|&(x, y)| (x.min(y), x.max(y)) == (lo, hi))
+        .expect("consecutive corners of a face are joined by an edge") as u8
+}
+
+/// The lateral sides of the cell, in the order u = 0, u = 2, v = 0, v = 2.
+pub const SIDES: usize = 4;
+
+/// Whether sample `s` lies on lateral side `side`.
+pub fn on_side(s: u8, side: usize) -> bool {
+    let p = sample_position(s);
+    match side {
+        0 => p[0] == 0,
+        1 => p[0] == 2,
+        2 => p[1] == 0,
+        _ => p[1] == 2,
+    }
+}
+
+/// The nine faces, each as its corners counter-clockwise seen from outside the cell.
+fn faces() -> Vec<Vec<u8>> {
+    let mut faces: Vec<(Vec<u8>, [f64; 3])> = Vec::new();
+    for j in 0..2 {
+        for i in 0..2 {
+            let corners = vec![
+                fine(i, j),
+                fine(i + 1, j),
+                fine(i + 1, j + 1),
+                fine(i, j + 1),
+            ];
+            faces.push((corners, [0.0, 0.0, -1.0]));
+        }
+    }
+    faces.push(((9..13).collect(), [0.0, 0.0, 1.0]));
+    for side in 0..SIDES {
+        let corners: Vec<u8> = (0..SAMPLES as u8).filter(|&s| on_side(s, side)).collect();
+        let normal = match side {
+            0 => [-1.0, 0.0, 0.0],
+            1 => [1.0, 0.0, 0.0],
+            2 => [0.0, -1.0, 0.0],
+            _ => [0.0, 1.0, 0.0],
+        };
+        faces.push((corners, normal));
+    }
+    faces
+        .into_iter()
+        .map(|(mut corners, normal)| {
+            // Sort by angle around the centroid in a frame (a, b) with a x b = the outward normal.
+            let pos = |s: u8| sample_position(s).map(f64::from);
+            let n = corners.len() as f64;
+            let centre = corners.iter().fold([0.0; 3], |acc, &s| {
+                let p = pos(s);
+                [acc[0] + p[0] / n, acc[1] + p[1] / n, acc[2] + p[2] / n]
+            });
+            let a = if normal[2] != 0.0 {
+                [1.0, 0.0, 0.0]
+            } else {
+                [0.0, 0.0, 1.0]
+            };
+            let b = cross(normal, a);
+            let angle = |s: u8| {
+                let p = pos(s);
+                let d = [p[0] - centre[0], p[1] - centre[1], p[2] - centre[2]];
+                dot(d, b).atan2(dot(d, a))
+            };
+            corners.sort_by(|&x, &y| angle(x).total_cmp(&angle(y)));
+            corners
+        })
+        .collect()
+}
+
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// The contour loops of `case` (bit `s` set: sample `s` is inside), as edge indices, each loop
+/// counter-clockwise seen from outside the surface.
+pub fn loops(case: u16) -> Vec<Vec<u8>> {
+    static FACES: OnceLock<Vec<Vec<u8>>> = OnceLock::new();
+    let faces = FACES.get_or_init(faces);
+    let inside = |s: u8| case >> s & 1 == 1;
+    let mut next = [u8::MAX; EDGES.len()];
+    for f in faces {
+        let k = f.len();
+        for i in 0..k {
+            let prev = f[(i + k - 1) % k];
+            if !inside(f[i]) || inside(prev) {
+                continue;
+            }
+            let mut j = i;
+            while inside(f[(j + 1) % k]) {
+                j = (j + 1) % k;
+            }
+            next[edge_between(prev, f[i]) as usize] = edge_between(f[j], f[(j + 1) % k]);
+        }
+    }
+    let mut out = Vec::new();
+    let mut used = [false; EDGES.len()];
+    for start in 0..EDGES.len() as u8 {
+        if next[start as usize] == u8::MAX || used[start as usize] {
+            continue;
+        }
+        let mut lp = vec![start];
+        used[start as usize] = true;
+        let mut e = next[start as usize];
+        while e != start {
+            lp.push(e);
+            used[e as usize] = true;
+            e = next[e as usize];
+        }
+        out.push(lp);
+    }
+    out
+}
+
+/// The transition width the triangulation is chosen for: the fine face sits this far (in fine
+/// cells) inside the coarse face. `super::transition` moves vertices by the same amount.
+pub const WIDTH: f64 = 0.5;
+
+/// Where the vertex on edge `e` sits in the drawn cell when it is at the edge's midpoint.
+fn drawn_midpoint(e: u8) -> [f64; 3] {
+    let (a, b) = EDGES[e as usize];
+    let at = |s: u8| {
+        let p = sample_position(s).map(f64::from);
+        // Coarse face at n = 0, fine face WIDTH below it.
+        [p[0], p[1], if s < 9 { -WIDTH } else { 0.0 }]
+    };
+    let (pa, pb) = (at(a), at(b));
+    [0, 1, 2].map(|i| (pa[i] + pb[i]) / 2.0)
+}
+
+/// Whether the vertices of edges `t` all lie on one lateral side: collinear once that side's
+/// fine samples are not moved.
+fn on_one_side(t: [u8; 3]) -> bool {
+    (0..SIDES).any(|side| {
+        t.iter().all(|&e| {
+            let (a, b) = EDGES[e as usize];
+            on_side(a, side) && on_side(b, side)
+        })
+    })
+}
+
+fn area(t: [u8; 3]) -> f64 {
+    let [a, b, c] = t.map(drawn_midpoint);
+    let n = cross(
+        [b[0] - a[0], b[1] - a[1], b[2] - a[2]],
+        [c[0] - a[0], c[1] - a[1], c[2] - a[2]],
+    );
+    dot(n, n).sqrt() / 2.0
+}
+
+/// The minimum-area triangulation of loop `lp` (indices keep the loop's winding), without a
+/// triangle lying on one lateral side when another exists.
+pub fn triangulate(lp: &[u8]) -> Vec<u8> {
+    let n = lp.len();
+    if n < 3 {
+        return Vec::new();
+    }
+    const REFUSED: f64 = 1e9;
+    let weight = |i: usize, k: usize, j: usize| {
+        let t = [lp[i], lp[k], lp[j]];
+        area(t) + if on_one_side(t) { REFUSED } else { 0.0 }
+    };
+    // cost[i][j]: best triangulation of the sub-polygon i..=j; split[i][j]: its apex.
+    let mut cost = vec![vec![0f64; n]; n];
+    let mut split = vec![vec![0usize; n]; n];
+    for len in 2..n {
+        for i in 0..n - len {
+            let j = i + len;
+            let mut best = (f64::INFINITY, i + 1);
+            for k in i + 1..j {
+                let c = cost[i][k] + cost[k][j] + weight(i, k, j);
+                if c < best.0 {
+                    best = (c, k);
+                }
+            }
+            cost[i][j] = best.0;
+            split[i][j] = best.1;
+        }
+    }
+    let mut out = Vec::with_capacity(3 * (n - 2));
+    let mut stack = vec![(0usize, n - 1)];
+    while let Some((i, j)) = stack.pop() {
+        if j < i + 2 {
+            continue;
+        }
+        let k = split[i][j];
+        out.extend_from_slice(&[lp[i], lp[k], lp[j]]);
+        stack.push((i, k));
+        stack.push((k, j));
+    }
+    out
+}
+
+/// The case table: the triangles of case `c` (edge indices, three per triangle) are
+/// `edges[offsets[c]..offsets[c + 1]]`.
+#[derive(Debug)]
+pub struct Table {
+    pub offsets: Vec<u32>,
+    pub edges: Vec<u8>,
+}
+
+impl Table {
+    pub fn triangles(&self, case: u16) -> &[u8] {
+        let c = case as usize;
+        &self.edges[self.offsets[c] as usize..self.offsets[c + 1] as usize]
+    }
+}
+
+/// The table, generated on first use.
+pub fn table() -> &'static Table {
+    static TABLE: OnceLock<Table> = OnceLock::new();
+    TABLE.get_or_init(|| {
+        let mut offsets = Vec::with_capacity((1 << SAMPLES) + 1);
+        let mut edges = Vec::new();
+        for case in 0..1u16 << SAMPLES {
+            offsets.push(edges.len() as u32);
+            for lp in loops(case) {
+                edges.extend(triangulate(&lp));
+            }
+        }
+        offsets.push(edges.len() as u32);
+        Table { offsets, edges }
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::HashMap;
+
+    fn crossed(case: u16, e: u8) -> bool {
+        let (a, b) = EDGES[e as usize];
+        (case >> a & 1) != (case >> b & 1)
+    }
+
+    #[test]
+    fn faces_are_closed_and_consistently_oriented() {
+        // Every edge lies on exactly two faces, traversed once in each direction: the faces
+        // bound a closed, outward-oriented polyhedron (V - E + F = 13 - 20 + 9 = 2).
+        let faces = faces();
+        assert_eq!(faces.len(), 9);
+        let mut seen: HashMap<(u8, u8), i32> = HashMap::new();
+        for f in &faces {
+            for i in 0..f.len() {
+                let (a, b) = (f[i], f[(i + 1) % f.len()]);
+                let _ = edge_between(a, b);
+                *seen.entry((a, b)).or_default() += 1;
+            }
+        }
+        for &(a, b) in &EDGES {
+            assert_eq!(seen.get(&(a, b)), Some(&1), "{a}->{b}");
+            assert_eq!(seen.get(&(b, a)), Some(&1), "{b}->{a}");
+        }
+        // The coarse square runs counter-clockwise seen from +n, as a regular cell's -n face
+        // does seen from inside that cell: C(0,0), C(1,0), C(1,1), C(0,1).
+        assert_eq!(
+            faces[4],
+            vec![coarse(0, 0), coarse(1, 0), coarse(1, 1), coarse(0, 1)]
+        );
+    }
+
+    #[test]
+    fn every_case_uses_exactly_its_crossed_edges_once_and_closes() {
+        let t = table();
+        for case in 0..1u16 << SAMPLES {
+            let tris = t.triangles(case);
+            assert_eq!(tris.len() % 3, 0);
+            let mut used: Vec<u8> = tris.to_vec();
+            used.sort();
+            used.dedup();
+            let want: Vec<u8> = (0..EDGES.len() as u8)
+                .filter(|&e| crossed(case, e))
+                .collect();
+            assert_eq!(used, want, "case {case:#015b}");
+            // Interior edges of the triangulation are used once each way; the rest (one per
+            // loop segment) once: the pieces are discs bounded by the loops.
+            let mut directed: HashMap<(u8, u8), i32> = HashMap::new();
+            for tri in tris.chunks(3) {
+                assert!(tri[0] != tri[1] && tri[1] != tri[2] && tri[0] != tri[2]);
+                for k in 0..3 {
+                    *directed.entry((tri[k], tri[(k + 1) % 3])).or_default() += 1;
+                }
+            }
+            let loops = loops(case);
+            let boundary: usize = loops.iter().map(Vec::len).sum();
+            let mut unmatched = 0;
+            for (&(a, b), &n) in &directed {
+                assert_eq!(n, 1, "case {case}: edge {a}->{b} twice");
+                if !directed.contains_key(&(b, a)) {
+                    unmatched += 1;
+                }
+            }
+            assert_eq!(unmatched, boundary, "case {case}");
+            // Euler: a disc per loop means triangles = vertices - 2 per loop.
+            assert_eq!(tris.len() / 3, boundary - 2 * loops.len(), "case {case}");
+        }
+    }
+
+    #[test]
+    fn coarse_square_segments_match_the_regular_table() {
+        // The coarse square is a face of a coarse cell. In that cell (corners i at
+        // (i & 1, i >> 1 & 1, i >> 2 & 1)) take it as the face z = 0, which the cell sees from
+        // above; the transition cell sees it from below. For every pattern of its four corners
+        // both tables must draw the same segments on it, in opposite directions.
+        let regular = super::super::table::table();
+        let reg_edges = super::super::table::EDGES;
+        // coarse C(i, j) <-> regular corner i + 2j on the face z = 0 (x = u, y = v).
+        let to_regular = |e: u8| -> u8 {
+            let (a, b) = EDGES[e as usize];
+            let (ra, rb) = (a - 9, b - 9);
+            reg_edges
+                .iter()
+                .position(|&(x, y)| (x, y) == (ra.min(rb), ra.max(rb)))
+                .unwrap_or(99) as u8
+        };
+        for pattern in 0..16u16 {
+            // Regular cell: the four corners of z = 0 as given, the four of z = 1 outside.
+            let reg_case = pattern as usize;
+            // Segments on the face z = 0: consecutive triangle-loop edges both on that face.
+            let face_edges = [0u8, 1, 4, 5];
+            let reg_loops = regular_loops(&regular[reg_case]);
+            let mut reg_segments = Vec::new();
+            for lp in &reg_loops {
+                for k in 0..lp.len() {
+                    let (a, b) = (lp[k], lp[(k + 1) % lp.len()]);
+                    if face_edges.contains(&a) && face_edges.contains(&b) {
+                        reg_segments.push((a, b));
+                    }
+                }
+            }
+            // Transition cell: the coarse corners as given, every fine sample inside, so the
+            // contour on the coarse square is traced by the coarse corners alone.
+            let case = (pattern << 9) | 0x1ff;
+            let mut tr_segments = Vec::new();
+            for lp in loops(case) {
+                for k in 0..lp.len() {
+                    let (a, b) = (lp[k], lp[(k + 1) % lp.len()]);
+                    if edge_kind(a) == EdgeKind::Coarse && edge_kind(b) == EdgeKind::Coarse {
+                        tr_segments.push((to_regular(b), to_regular(a)));
+                    }
+                }
+            }
+            reg_segments.sort();
+            tr_segments.sort();
+            assert_eq!(reg_segments, tr_segments, "pattern {pattern:#06b}");
+        }
+    }
+
+    /// The loops of a regular-table entry, recovered from its fan triangles: the boundary
+    /// edges of the triangulation, chained.
+    fn regular_loops(tris: &[u8]) -> Vec<Vec<u8>> {
+        let mut directed: HashMap<(u8, u8), i32> = HashMap::new();
+        for t in tris.chunks(3) {
+            for k in 0..3 {
+                *directed.entry((t[k], t[(k + 1) % 3])).or_default() += 1;
+            }
+        }
+        let mut next: HashMap<u8, u8> = HashMap::new();
+        for &(a, b) in directed.keys() {
+            if !directed.contains_key(&(b, a)) {
+                next.insert(a, b);
+            }
+        }
+        let mut out = Vec::new();
+        let mut keys: Vec<u8> = next.keys().copied().collect();
+        keys.sort();
+        let mut used = std::collections::HashSet::new();
+        for s in keys {
+            if used.contains(&s) {
+                continue;
+            }
+            let mut lp = vec![s];
+            used.insert(s);
+            let mut e = next[&s];
+            while e != s {
+                lp.push(e);
+                used.insert(e);
+                e = next[&e];
+            }
+            out.push(lp);
+        }
+        out
+    }
+
+    #[test]
+    fn one_inside_coarse_corner_is_a_small_cap() {
+        // Only C(0,0) inside: its three edges (two coarse, one connecting) are crossed, one
+        // triangle, wound with its normal pointing away from C(0,0) (towards +u +v -n).
+        let case = 1u16 << coarse(0, 0);
+        let tris = table().triangles(case);
+        assert_eq!(tris.len(), 3);
+        let [a, b, c] = [tris[0], tris[1], tris[2]].map(drawn_midpoint);
+        let n = cross(
+            [b[0] - a[0], b[1] - a[1], b[2] - a[2]],
+            [c[0] - a[0], c[1] - a[1], c[2] - a[2]],
+        );
+        assert!(n[0] > 0.0 && n[1] > 0.0 && n[2] < 0.0, "{n:?}");
+    }
+
+    #[test]
+    fn no_triangle_lies_on_one_side() {
+        let t = table();
+        for case in 0..1u16 << SAMPLES {
+            for tri in t.triangles(case).chunks(3) {
+                assert!(
+                    !on_one_side([tri[0], tri[1], tri[2]]),
+                    "case {case:#015b}: {tri:?}"
+                );
+            }
+        }
+    }
+}
