@@ -65,6 +65,130 @@ impl Mesh {
     }
 }
 
+/// The six faces of a tile box, in the order of their bits in a face mask: bit 2a is the face at
+/// the low end of axis a (x, y, z), bit 2a + 1 the face at the high end.
+pub const FACE_NAMES: [&str; 6] = ["-x", "+x", "-y", "+y", "-z", "+z"];
+
+/// A secondary position, as a move: vertex `vertex` moves by `offset` when every face in
+/// `faces` (a face mask, never empty) touches a coarser neighbour.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct VertexMove {
+    /// An index into the tile's regular vertices followed by its transition vertices.
+    pub vertex: u32,
+    pub faces: u8,
+    pub offset: [f32; 3],
+}
+
+impl VertexMove {
+    /// Whether the move applies under face mask `mask`.
+    pub fn applies(&self, mask: u8) -> bool {
+        self.faces != 0 && self.faces & !mask == 0
+    }
+}
+
+/// What a tile carries besides its regular mesh so that it can be joined to coarser neighbours
+/// without cracks (see `docs/lod-meshes.md`): the vertices only its transition strips use, the
+/// moves that make room for the strips, and one strip per face.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Transitions {
+    /// Vertices of the strips that are not regular vertices; their indices follow the regular
+    /// mesh's.
+    pub positions: Vec<[f32; 3]>,
+    pub normals: Vec<[f32; 3]>,
+    /// In order; several moves of one vertex add up.
+    pub moves: Vec<VertexMove>,
+    /// The strip of each face (in [`FACE_NAMES`] order): triangles, as indices into the regular
+    /// vertices followed by the transition vertices.
+    pub strips: [Vec<u32>; 6],
+}
+
+impl Transitions {
+    pub fn clear(&mut self) {
+        self.positions.clear();
+        self.normals.clear();
+        self.moves.clear();
+        for s in &mut self.strips {
+            s.clear();
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty() && self.moves.is_empty() && self.strips.iter().all(Vec::is_empty)
+    }
+
+    /// Triangles in all six strips.
+    pub fn triangles(&self) -> usize {
+        self.strips.iter().map(|s| s.len() / 3).sum()
+    }
+}
+
+/// One tile: its regular mesh and its transition data.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct TileMesh {
+    pub mesh: Mesh,
+    pub transitions: Transitions,
+}
+
+/// Writes into `out` (cleared first) tile `tile` as drawn next to its neighbours: `mask` has bit
+/// f set when face f touches a coarser neighbour (`crate::lod::face_masks` computes it). The
+/// regular vertices are moved to their secondary positions, and the strips of those faces are
+/// appended with the transition vertices they use. Mask 0 gives the regular mesh. Indices out of
+/// range (a hand-built tile; decoded ones are checked) are skipped with their triangle.
+pub fn stitch(tile: &TileMesh, mask: u8, out: &mut Mesh) {
+    out.clear();
+    let (regular, tr) = (&tile.mesh, &tile.transitions);
+    let n = regular.positions.len();
+    out.positions.extend_from_slice(&regular.positions);
+    out.normals.extend_from_slice(&regular.normals);
+    out.indices.extend_from_slice(&regular.indices);
+    // Transition vertices the drawn strips use, numbered in order of first use.
+    let mut remap = vec![u32::MAX; tr.positions.len()];
+    for (face, strip) in tr.strips.iter().enumerate() {
+        if mask >> face & 1 == 0 {
+            continue;
+        }
+        for tri in strip.chunks_exact(3) {
+            let mut ids = [0u32; 3];
+            let mut ok = true;
+            for (k, &i) in tri.iter().enumerate() {
+                let i = i as usize;
+                if i < n {
+                    ids[k] = i as u32;
+                } else if let (Some(p), Some(nm)) = (tr.positions.get(i - n), tr.normals.get(i - n))
+                {
+                    if remap[i - n] == u32::MAX {
+                        remap[i - n] = out.positions.len() as u32;
+                        out.positions.push(*p);
+                        out.normals.push(*nm);
+                    }
+                    ids[k] = remap[i - n];
+                } else {
+                    ok = false;
+                }
+            }
+            if ok {
+                out.indices.extend_from_slice(&ids);
+            }
+        }
+    }
+    for m in tr.moves.iter().filter(|m| m.applies(mask)) {
+        let v = m.vertex as usize;
+        let target = if v < n {
+            v
+        } else {
+            match remap.get(v - n) {
+                Some(&r) if r != u32::MAX => r as usize,
+                _ => continue,
+            }
+        };
+        if let Some(p) = out.positions.get_mut(target) {
+            for (c, d) in p.iter_mut().zip(m.offset) {
+                *c += d;
+            }
+        }
+    }
+}
+
 const MAGIC: [u8; 4] = *b"IVMS";
 const HEADER: usize = 40;
 
