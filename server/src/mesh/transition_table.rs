@@ -27,12 +27,11 @@
 //! identically from both of its cells. The segments chain into closed loops, wound like the
 //! regular table's.
 //!
-//! Each loop is triangulated once, here, by the minimum-area triangulation of its polygon in the
-//! cell's shape as drawn (fine face half a fine cell below the coarse face, vertices at edge
-//! midpoints), refusing triangles whose three vertices lie on one lateral side: where a strip
-//! ends at a tile face shared with a tile of the same level, that side's fine samples are not
-//! moved (`super::transition`), the pentagon collapses onto a line, and such a triangle would
-//! have no area.
+//! The table stores each case's loops. They are triangulated where the cell's shape is known
+//! (`super::transition`), by [`triangulate`]: a loop can lie flat on the fine face (a cap), and
+//! one combinatorial triangulation does not fit every position of its vertices. The cells at a
+//! strip's ends have a collapsed side and are traced there too, with [`faces`] and
+//! [`run_segments`].
 
 use std::sync::OnceLock;
 
@@ -104,7 +103,8 @@ pub fn edge_kind(e: u8) -> EdgeKind {
     }
 }
 
-fn edge_between(a: u8, b: u8) -> u8 {
+/// The edge joining samples `a` and `b` (consecutive corners of a face).
+pub fn edge_between(a: u8, b: u8) -> u8 {
     let (lo, hi) = (a.min(b), a.max(b));
     EDGES
         .iter()
@@ -126,8 +126,14 @@ pub fn on_side(s: u8, side: usize) -> bool {
     }
 }
 
-/// The nine faces, each as its corners counter-clockwise seen from outside the cell.
-fn faces() -> Vec<Vec<u8>> {
+/// The nine faces, each as its corners counter-clockwise seen from outside the cell: the four
+/// fine squares, the coarse square, then the lateral sides in [`SIDES`] order.
+pub fn faces() -> &'static [Vec<u8>] {
+    static FACES: OnceLock<Vec<Vec<u8>>> = OnceLock::new();
+    FACES.get_or_init(make_faces)
+}
+
+fn make_faces() -> Vec<Vec<u8>> {
     let mut faces: Vec<(Vec<u8>, [f64; 3])> = Vec::new();
     for j in 0..2 {
         for i in 0..2 {
@@ -193,72 +199,40 @@ fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
 /// The contour loops of `case` (bit `s` set: sample `s` is inside), as edge indices, each loop
 /// counter-clockwise seen from outside the surface.
 pub fn loops(case: u16) -> Vec<Vec<u8>> {
-    static FACES: OnceLock<Vec<Vec<u8>>> = OnceLock::new();
-    let faces = FACES.get_or_init(faces);
-    let inside = |s: u8| case >> s & 1 == 1;
     let mut next = [u8::MAX; EDGES.len()];
-    for f in faces {
-        let k = f.len();
-        for i in 0..k {
-            let prev = f[(i + k - 1) % k];
-            if !inside(f[i]) || inside(prev) {
-                continue;
-            }
-            let mut j = i;
-            while inside(f[(j + 1) % k]) {
-                j = (j + 1) % k;
-            }
-            next[edge_between(prev, f[i]) as usize] = edge_between(f[j], f[(j + 1) % k]);
-        }
+    for f in faces() {
+        run_segments(f, case, &mut next);
     }
-    let mut out = Vec::new();
-    let mut used = [false; EDGES.len()];
-    for start in 0..EDGES.len() as u8 {
-        if next[start as usize] == u8::MAX || used[start as usize] {
-            continue;
-        }
-        let mut lp = vec![start];
-        used[start as usize] = true;
-        let mut e = next[start as usize];
-        while e != start {
-            lp.push(e);
-            used[e as usize] = true;
-            e = next[e as usize];
-        }
-        out.push(lp);
-    }
-    out
+    chain(&next)
 }
+
+/// The face rule of the regular table ([`super::table::run_segments`]) on one face of the cell
+/// (corners counter-clockwise from outside), for `case`.
+pub fn run_segments(face: &[u8], case: u16, next: &mut [u8; EDGES.len()]) {
+    super::table::run_segments(face, |s| case >> s & 1 == 1, edge_between, next);
+}
+
+pub use super::table::chain;
 
 /// The transition width the triangulation is chosen for: the fine face sits this far (in fine
 /// cells) inside the coarse face. `super::transition` moves vertices by the same amount.
 pub const WIDTH: f64 = 0.5;
 
-/// Where the vertex on edge `e` sits in the drawn cell when it is at the edge's midpoint.
+/// Where the vertex on edge `e` sits in the drawn cell when it is at the edge's midpoint: the
+/// coarse face at n = 0, the fine face WIDTH below it.
+#[cfg(test)]
 fn drawn_midpoint(e: u8) -> [f64; 3] {
     let (a, b) = EDGES[e as usize];
     let at = |s: u8| {
         let p = sample_position(s).map(f64::from);
-        // Coarse face at n = 0, fine face WIDTH below it.
         [p[0], p[1], if s < 9 { -WIDTH } else { 0.0 }]
     };
     let (pa, pb) = (at(a), at(b));
     [0, 1, 2].map(|i| (pa[i] + pb[i]) / 2.0)
 }
 
-/// Whether the vertices of edges `t` all lie on one lateral side: collinear once that side's
-/// fine samples are not moved.
-fn on_one_side(t: [u8; 3]) -> bool {
-    (0..SIDES).any(|side| {
-        t.iter().all(|&e| {
-            let (a, b) = EDGES[e as usize];
-            on_side(a, side) && on_side(b, side)
-        })
-    })
-}
-
-fn area(t: [u8; 3]) -> f64 {
-    let [a, b, c] = t.map(drawn_midpoint);
+/// The area of the triangle with corners `a`, `b`, `c`.
+pub fn area(a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> f64 {
     let n = cross(
         [b[0] - a[0], b[1] - a[1], b[2] - a[2]],
         [c[0] - a[0], c[1] - a[1], c[2] - a[2]],
@@ -266,17 +240,25 @@ fn area(t: [u8; 3]) -> f64 {
     dot(n, n).sqrt() / 2.0
 }
 
-/// The minimum-area triangulation of loop `lp` (indices keep the loop's winding), without a
-/// triangle lying on one lateral side when another exists.
-pub fn triangulate(lp: &[u8]) -> Vec<u8> {
-    let n = lp.len();
+/// The minimum-area triangulation of a polygon with corners `points` (in order; the
+/// triangles, as corner indices, keep that winding), refusing, as long as another triangulation
+/// exists, triangles with an area below `flat` and diagonals (i, j) with `refused(i, j)`. On a
+/// flat polygon the minimum is a triangulation without overlap (any overlap adds area).
+pub fn triangulate(
+    points: &[[f64; 3]],
+    flat: f64,
+    refused: impl Fn(usize, usize) -> bool,
+) -> Vec<[usize; 3]> {
+    let n = points.len();
     if n < 3 {
         return Vec::new();
     }
     const REFUSED: f64 = 1e9;
+    let diagonal = |i: usize, j: usize| j != i + 1 && !(i == 0 && j == n - 1) && refused(i, j);
     let weight = |i: usize, k: usize, j: usize| {
-        let t = [lp[i], lp[k], lp[j]];
-        area(t) + if on_one_side(t) { REFUSED } else { 0.0 }
+        let a = area(points[i], points[k], points[j]);
+        let refuse = a < flat || diagonal(i, k) || diagonal(k, j) || diagonal(i, j);
+        a + if refuse { REFUSED } else { 0.0 }
     };
     // cost[i][j]: best triangulation of the sub-polygon i..=j; split[i][j]: its apex.
     let mut cost = vec![vec![0f64; n]; n];
@@ -284,43 +266,55 @@ pub fn triangulate(lp: &[u8]) -> Vec<u8> {
     for len in 2..n {
         for i in 0..n - len {
             let j = i + len;
-            let mut best = (f64::INFINITY, i + 1);
-            for k in i + 1..j {
-                let c = cost[i][k] + cost[k][j] + weight(i, k, j);
-                if c < best.0 {
-                    best = (c, k);
-                }
-            }
-            cost[i][j] = best.0;
-            split[i][j] = best.1;
+            let (c, k) = (i + 1..j)
+                .map(|k| (cost[i][k] + cost[k][j] + weight(i, k, j), k))
+                .min_by(|a, b| a.0.total_cmp(&b.0))
+                .unwrap_or((f64::INFINITY, i + 1));
+            cost[i][j] = c;
+            split[i][j] = k;
         }
     }
-    let mut out = Vec::with_capacity(3 * (n - 2));
+    let mut out = Vec::with_capacity(n - 2);
     let mut stack = vec![(0usize, n - 1)];
     while let Some((i, j)) = stack.pop() {
         if j < i + 2 {
             continue;
         }
         let k = split[i][j];
-        out.extend_from_slice(&[lp[i], lp[k], lp[j]]);
+        out.push([i, k, j]);
         stack.push((i, k));
         stack.push((k, j));
     }
     out
 }
 
-/// The case table: the triangles of case `c` (edge indices, three per triangle) are
-/// `edges[offsets[c]..offsets[c + 1]]`.
+/// [`triangulate`] with the vertices at their edges' midpoints, the triangles as edges.
+#[cfg(test)]
+fn triangulate_loop(lp: &[u8]) -> Vec<u8> {
+    let points: Vec<[f64; 3]> = lp.iter().map(|&e| drawn_midpoint(e)).collect();
+    triangulate(&points, 1e-9, |_, _| false)
+        .into_iter()
+        .flat_map(|t| t.map(|i| lp[i]))
+        .collect()
+}
+
+/// The case table: the loops of every case, as edge indices; the loops of case `c` are
+/// `edges[offsets[c]..offsets[c + 1]]`, each loop ended by [`END`].
 #[derive(Debug)]
 pub struct Table {
     pub offsets: Vec<u32>,
     pub edges: Vec<u8>,
 }
 
+/// Ends a loop in [`Table::edges`].
+pub const END: u8 = u8::MAX;
+
 impl Table {
-    pub fn triangles(&self, case: u16) -> &[u8] {
+    /// The loops of `case`.
+    pub fn loops(&self, case: u16) -> impl Iterator<Item = &[u8]> {
         let c = case as usize;
-        &self.edges[self.offsets[c] as usize..self.offsets[c + 1] as usize]
+        let all = &self.edges[self.offsets[c] as usize..self.offsets[c + 1] as usize];
+        all.split(|&e| e == END).filter(|lp| !lp.is_empty())
     }
 }
 
@@ -333,7 +327,8 @@ pub fn table() -> &'static Table {
         for case in 0..1u16 << SAMPLES {
             offsets.push(edges.len() as u32);
             for lp in loops(case) {
-                edges.extend(triangulate(&lp));
+                edges.extend(lp);
+                edges.push(END);
             }
         }
         offsets.push(edges.len() as u32);
@@ -357,8 +352,12 @@ mod tests {
         // bound a closed, outward-oriented polyhedron (V - E + F = 13 - 20 + 9 = 2).
         let faces = faces();
         assert_eq!(faces.len(), 9);
+        assert!(faces[5..]
+            .iter()
+            .enumerate()
+            .all(|(side, f)| f.iter().all(|&s| on_side(s, side))));
         let mut seen: HashMap<(u8, u8), i32> = HashMap::new();
-        for f in &faces {
+        for f in faces {
             for i in 0..f.len() {
                 let (a, b) = (f[i], f[(i + 1) % f.len()]);
                 let _ = edge_between(a, b);
@@ -381,9 +380,15 @@ mod tests {
     fn every_case_uses_exactly_its_crossed_edges_once_and_closes() {
         let t = table();
         for case in 0..1u16 << SAMPLES {
-            let tris = t.triangles(case);
+            let stored: Vec<&[u8]> = t.loops(case).collect();
+            assert_eq!(
+                stored,
+                loops(case).iter().map(Vec::as_slice).collect::<Vec<_>>()
+            );
+            assert!(stored.iter().all(|lp| lp.len() >= 3), "case {case:#015b}");
+            let tris: Vec<u8> = stored.iter().flat_map(|lp| triangulate_loop(lp)).collect();
             assert_eq!(tris.len() % 3, 0);
-            let mut used: Vec<u8> = tris.to_vec();
+            let mut used: Vec<u8> = tris.clone();
             used.sort();
             used.dedup();
             let want: Vec<u8> = (0..EDGES.len() as u8)
@@ -505,7 +510,9 @@ mod tests {
         // Only C(0,0) inside: its three edges (two coarse, one connecting) are crossed, one
         // triangle, wound with its normal pointing away from C(0,0) (towards +u +v -n).
         let case = 1u16 << coarse(0, 0);
-        let tris = table().triangles(case);
+        let lp = loops(case);
+        assert_eq!(lp.len(), 1);
+        let tris = triangulate_loop(&lp[0]);
         assert_eq!(tris.len(), 3);
         let [a, b, c] = [tris[0], tris[1], tris[2]].map(drawn_midpoint);
         let n = cross(
@@ -516,14 +523,13 @@ mod tests {
     }
 
     #[test]
-    fn no_triangle_lies_on_one_side() {
-        let t = table();
+    fn no_triangle_is_flat_at_midpoints() {
         for case in 0..1u16 << SAMPLES {
-            for tri in t.triangles(case).chunks(3) {
-                assert!(
-                    !on_one_side([tri[0], tri[1], tri[2]]),
-                    "case {case:#015b}: {tri:?}"
-                );
+            for lp in table().loops(case) {
+                for tri in triangulate_loop(lp).chunks(3) {
+                    let [a, b, c] = [tri[0], tri[1], tri[2]].map(drawn_midpoint);
+                    assert!(area(a, b, c) > 1e-9, "case {case:#015b}: {tri:?}");
+                }
             }
         }
     }
