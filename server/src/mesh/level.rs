@@ -79,7 +79,10 @@ pub fn mesh_tiles(
     Ok(out)
 }
 
-/// Merges vertices with bit-identical positions (the seam vertices of neighbouring tiles).
+/// Merges vertices with bit-identical positions (the seam vertices of neighbouring tiles), and
+/// drops the triangles two of whose corners merge: they have no area. (Within a level no two
+/// vertices coincide; a transition strip's end can hold a fine and a coarse crossing that do,
+/// joined by a triangle of zero area, see [`super::transition`].)
 pub fn weld(mesh: &Mesh) -> Mesh {
     let mut index: HashMap<[u32; 3], u32> = HashMap::with_capacity(mesh.positions.len());
     let mut out = Mesh::default();
@@ -93,7 +96,13 @@ pub fn weld(mesh: &Mesh) -> Mesh {
         });
         remap.push(id);
     }
-    out.indices = mesh.indices.iter().map(|&i| remap[i as usize]).collect();
+    out.indices = mesh
+        .indices
+        .chunks_exact(3)
+        .map(|t| [t[0], t[1], t[2]].map(|i| remap[i as usize]))
+        .filter(|t| t[0] != t[1] && t[1] != t[2] && t[0] != t[2])
+        .flatten()
+        .collect();
     out
 }
 

@@ -3,15 +3,20 @@
 //! Layout:
 //! - [`cache`]: tile meshes keyed by the content of their inputs, an LRU bounded by bytes.
 //! - [`files`]: GLB, OBJ and PLY output.
+//! - [`lattice`]: where each level's samples sit: one nested lattice for all levels.
 //! - [`level`]: whole levels and adaptive tile selections, welding, closedness checks.
 //! - [`mc`]: the kernel over a sample grid.
 //! - [`tile`]: one brick's mesh with its halo, in world coordinates (the seam rule).
 //! - [`table`]: the case table, generated with a face-consistent rule.
+//! - [`transition`]: transition strips and secondary positions, the seam rule across levels.
+//! - [`transition_table`]: the transition-cell table, generated with the same face rule.
 
 pub mod cache;
 pub mod files;
+pub mod lattice;
 pub mod level;
 pub mod mc;
 pub mod table;
 pub mod tile;
+pub mod transition;
 pub mod transition_table;

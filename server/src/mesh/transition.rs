@@ -1,0 +1,590 @@
+//! Transition strips: what a tile carries so that it joins a coarser neighbour without cracks.
+//!
+//! A pure kernel over sample grids, writing into caller-owned buffers, run right after
+//! [`super::mc::march`] on the same tile. Everything is in the tile's local lattice frame, as the
+//! regular mesh is.
+//!
+//! # The seam rule across levels
+//!
+//! Levels share one lattice ([`super::lattice`]): lattice point j of level k+1 is lattice point
+//! 2j of level k, and a tile of level k+1 covers exactly its eight children. Tiles that share a
+//! point differ by at most one level (`isovox_proto::lod::balance`). Where a tile of level k
+//! meets a tile of level k+1 across a face, the coarse tile keeps its mesh; the fine tile makes
+//! room and fills it:
+//!
+//! - **Secondary positions.** The fine tile's blocks of 2x2 boundary cells start at even lattice
+//!   coordinates, so its faces are taken over `[lo', hi]`, `lo'` being `lo` rounded down to even
+//!   (-2 for a tile that is first on an axis, whose cells start at -1). A lattice point on exactly
+//!   one face of that box moves inwards by [`WIDTH`] fine cells when that face touches a coarser
+//!   neighbour; points on the box's edges and corners never move. A vertex moves by the
+//!   interpolation of its edge's endpoint moves. So a face shared with a tile of the same or a
+//!   finer level keeps its place, whatever the tiles around know of each other: a tile knows
+//!   its six face neighbours, never the ones across its edges. [`mesh_transitions`] writes the
+//!   moves as [`VertexMove`]s, "move vertex i by d when face f touches a coarser neighbour".
+//! - **Strips.** For each face, one transition cell per 2x2 block of boundary cells (the 13
+//!   samples of [`super::transition_table`]): its fine face is the 3x3 samples of the tile's
+//!   own face plane, at their secondary positions, and its fine-face vertices *are* the regular
+//!   mesh's vertices (same indices), so they move together. Its coarse face is the 2x2 lattice
+//!   values of level k+1 at the block's corners, on the face plane, never moved: a face of the
+//!   coarse tile's cell, cut by the same face rule, with vertices computed by the coarse tile's
+//!   own formula in the coarse tile's frame and then doubled into this tile's frame (exact in
+//!   f32), so they are the coarse tile's vertices bit for bit after the same world transform.
+//!   The edges joining a fine corner to its coarse twin have length [`WIDTH`].
+//! - **Strip ends.** At the box's edges the fine samples stay on the face plane, so the lateral
+//!   side of a strip's last cell collapses onto the edge: three fine and two coarse samples on
+//!   one line. Such a side is cut by its positions, not by the table: the line carries a segment
+//!   wherever exactly one of the fine and the coarse interpolant is inside (their symmetric
+//!   difference, whose intervals start and end at the side's crossings). That depends on the
+//!   side's samples alone, so it is drawn identically by the strip on the other side of the
+//!   edge, which meets the same coarse tile (or its same-level neighbour) with the same fine
+//!   samples: the next strip of this tile, the same face's strip of the tile beside, or the
+//!   strip with which the tile diagonally across meets the coarse tile from its other face.
+//!   The cells at a strip's ends are traced at run time, the others take their loops from the
+//!   table; every loop is triangulated by minimum area in the cell's drawn shape (a loop lying
+//!   flat on the fine face is then always triangulated without overlap), never joining two
+//!   vertices of a collapsed side by a diagonal (it would lie on that side, where the strip
+//!   across the edge draws too).
+//! - **Drawing.** A viewer computes each tile's 6-bit mask of faces touching a coarser
+//!   neighbour (`isovox_proto::lod::face_masks`), applies the moves of those faces and draws
+//!   their strips (`isovox_proto::mesh::stitch`). With mask 0 a tile is its regular mesh,
+//!   unchanged.
+//!
+//! # What a caller gathers (tile.rs)
+//!
+//! For a tile of level k with cells `[lo, hi)` (as given to `march`; `lo` is -1 on the volume's
+//! low faces) and `coarse_frame` = the parent brick's position times the brick edge (in
+//! level-(k+1) lattice units):
+//!
+//! - `fine`: the field `march` meshed: level-k lattice values over `[lo - 1, hi + 1]` (for
+//!   k > 0, [`super::lattice::lattice_field`] of the stored level-k voxels over
+//!   `[lo - 3, hi + 2]`).
+//! - `coarse`: level-(k+1) lattice values over `[c, d]` with `c = floor(lo / 2) - 1` and
+//!   `d = hi / 2 + 1` (`lattice_field` of the stored level-(k+1) voxels over `[c - 2, d + 1]`):
+//!   the coarse lattice points of all six faces and the neighbours their normals read.
+//! - `faces`: the faces that can touch a coarser neighbour: those with a neighbouring tile in
+//!   the grid, when level k+1 exists. Strips are built for all of them, whatever the current
+//!   neighbours are, so the tile stays one cacheable object.
+
+use super::mc::{faces_of, Field, Mesh, Scratch};
+use super::transition_table::{
+    chain, edge_between, edge_kind, faces, on_side, run_segments, sample_position, table,
+    triangulate, EdgeKind, Table, EDGES, SAMPLES, SIDES,
+};
+use isovox_proto::mesh::{Transitions, VertexMove};
+use std::collections::HashMap;
+
+/// How far (in fine cells) the fine face of a transition cell sits inside the coarse face.
+pub const WIDTH: f32 = super::transition_table::WIDTH as f32;
+
+/// The lateral axes (u, v) of each face's transition cells, in face-mask order (-x, +x, -y, +y,
+/// -z, +z): with the face's outward normal n, (u, v, n) is right-handed, so the table's winding
+/// carries over.
+pub const FACE_FRAMES: [(usize, usize); 6] = [(2, 1), (1, 2), (0, 2), (2, 0), (1, 0), (0, 1)];
+
+/// The inputs of [`mesh_transitions`] (see the module doc for what to gather).
+#[derive(Debug, Clone, Copy)]
+pub struct TransitionInput<'a> {
+    /// The tile's level-k lattice values: the field `march` meshed.
+    pub fine: &'a Field<'a>,
+    /// Level-(k+1) lattice values, in level-(k+1) lattice units (coarse point q is fine point
+    /// 2q).
+    pub coarse: &'a Field<'a>,
+    /// The cells `[lo, hi)` and the frame given to `march`.
+    pub lo: [i64; 3],
+    pub hi: [i64; 3],
+    pub frame: [i64; 3],
+    /// The parent tile's frame, in level-(k+1) lattice units: the coarse neighbours' frames on
+    /// every axis along their faces.
+    pub coarse_frame: [i64; 3],
+    pub iso: f32,
+    /// The faces (a face mask) to build strips and moves for.
+    pub faces: u8,
+}
+
+impl TransitionInput<'_> {
+    /// The box whose faces the moves and strips are taken over: `[lo', hi]`.
+    fn box_lo(&self) -> [i64; 3] {
+        self.lo.map(|c| c - c.rem_euclid(2))
+    }
+
+    /// The face lattice point `p` moves with, if it moves: it lies on exactly one face of the
+    /// box, and that face is one of ours.
+    fn moving_face(&self, p: [i64; 3]) -> Option<usize> {
+        let on = faces_of(p, self.box_lo(), self.hi);
+        (on.count_ones() == 1 && on & self.faces != 0).then(|| on.trailing_zeros() as usize)
+    }
+}
+
+/// Reusable memory for [`mesh_transitions`].
+#[derive(Debug, Default)]
+pub struct TransitionScratch {
+    /// Transition vertices already made: on a coarse edge (lower point, axis) or at a fine
+    /// corner's connecting edge (axis 3).
+    made: HashMap<([i64; 3], u8), u32>,
+    /// The move of each regular vertex (zero when it does not move).
+    offsets: Vec<[f32; 3]>,
+    fine_inside: Vec<bool>,
+    coarse_inside: Vec<bool>,
+}
+
+/// The move of a point on face `face`, scaled by `k`.
+fn displacement(face: usize, k: f32) -> [f32; 3] {
+    let mut d = [0f32; 3];
+    d[face / 2] = if face & 1 == 0 { WIDTH } else { -WIDTH } * k;
+    d
+}
+
+/// Builds the transition data of one tile into `out` (cleared first): the moves of the regular
+/// vertices of `regular`, the vertices of the strips (their indices follow the regular ones)
+/// and the strips of the faces in `input.faces`. `march` is the scratch of the `march` call
+/// that meshed `input.fine` over `input.lo..input.hi` into `regular`, just before.
+///
+/// # Panics
+/// A field does not cover what the module doc says to gather, or a face of the tile in
+/// `input.faces` lies off the coarse lattice (an odd plane).
+pub fn mesh_transitions(
+    input: &TransitionInput<'_>,
+    regular: &Mesh,
+    march: &Scratch,
+    out: &mut Transitions,
+    scratch: &mut TransitionScratch,
+) {
+    out.clear();
+    scratch.made.clear();
+    if input.faces == 0 {
+        return;
+    }
+    scratch.offsets.clear();
+    scratch.offsets.resize(regular.positions.len(), [0.0; 3]);
+    for b in &march.border {
+        let mut p1 = b.p0;
+        p1[b.axis as usize] += 1;
+        let (f0, f1) = (input.moving_face(b.p0), input.moving_face(p1));
+        // Both endpoints move only on one face: a point next to a point of face f that lies on
+        // another face lies on f's plane too, on an edge of the box, and stays.
+        let (face, offset) = match (f0, f1) {
+            (Some(f), Some(g)) if f == g => (f, displacement(f, 1.0)),
+            (Some(f), None) => (f, displacement(f, 1.0 - b.t)),
+            (None, Some(g)) => (g, displacement(g, b.t)),
+            _ => continue,
+        };
+        out.moves.push(VertexMove {
+            vertex: b.id,
+            faces: 1 << face,
+            offset,
+        });
+        scratch.offsets[b.id as usize] = offset;
+    }
+    for face in 0..6 {
+        if input.faces >> face & 1 == 1 {
+            strip(input, face, regular, march, out, scratch);
+        }
+    }
+}
+
+/// One transition cell being built: where its samples are.
+struct Cell<'a> {
+    input: &'a TransitionInput<'a>,
+    face: usize,
+    /// The face's normal axis and plane, its lateral axes, the block's lower corner (u, v).
+    axis: usize,
+    plane: i64,
+    ua: usize,
+    va: usize,
+    base: (i64, i64),
+}
+
+impl Cell<'_> {
+    /// The fine lattice point of sample `s` (coarse samples: their fine twin).
+    fn point(&self, s: u8) -> [i64; 3] {
+        let c = sample_position(s);
+        let mut p = [0i64; 3];
+        p[self.axis] = self.plane;
+        p[self.ua] = self.base.0 + i64::from(c[0]);
+        p[self.va] = self.base.1 + i64::from(c[1]);
+        p
+    }
+
+    /// The lower point and axis of edge `e`.
+    fn edge(&self, e: u8) -> ([i64; 3], usize) {
+        let (sa, sb) = EDGES[e as usize];
+        let (pa, pb) = (self.point(sa), self.point(sb));
+        let axis = if pa[self.ua] != pb[self.ua] {
+            self.ua
+        } else if pa[self.va] != pb[self.va] {
+            self.va
+        } else {
+            self.axis
+        };
+        (pa, axis)
+    }
+}
+
+/// The transition cells of one face.
+fn strip(
+    input: &TransitionInput<'_>,
+    face: usize,
+    regular: &Mesh,
+    march: &Scratch,
+    out: &mut Transitions,
+    scratch: &mut TransitionScratch,
+) {
+    let (lo, hi) = (input.box_lo(), input.hi);
+    let axis = face / 2;
+    let (ua, va) = FACE_FRAMES[face];
+    let plane = if face % 2 == 1 {
+        hi[axis]
+    } else {
+        input.lo[axis]
+    };
+    assert!(
+        plane.rem_euclid(2) == 0,
+        "face {face} of the tile lies off the coarse lattice"
+    );
+    let (u0, v0) = (lo[ua], lo[va]);
+    let (nu, nv) = ((hi[ua] - u0) as usize, (hi[va] - v0) as usize);
+    let mut cell = Cell {
+        input,
+        face,
+        axis,
+        plane,
+        ua,
+        va,
+        base: (u0, v0),
+    };
+    // Inside flags of the face's fine and coarse samples, read once.
+    let iso = input.iso;
+    let at = |u: i64, v: i64| {
+        let mut p = [0i64; 3];
+        p[axis] = plane;
+        p[ua] = u0 + u;
+        p[va] = v0 + v;
+        p
+    };
+    scratch.fine_inside.clear();
+    for v in 0..=nv as i64 {
+        for u in 0..=nu as i64 {
+            let inside = input.fine.value(at(u, v)) >= iso;
+            scratch.fine_inside.push(inside);
+        }
+    }
+    scratch.coarse_inside.clear();
+    for v in (0..=nv as i64).step_by(2) {
+        for u in (0..=nu as i64).step_by(2) {
+            let q = at(u, v).map(|c| c.div_euclid(2));
+            scratch.coarse_inside.push(input.coarse.value(q) >= iso);
+        }
+    }
+    let first = scratch.fine_inside[0];
+    if scratch
+        .fine_inside
+        .iter()
+        .chain(&scratch.coarse_inside)
+        .all(|&x| x == first)
+    {
+        return; // every sample on the same side: no surface crosses this face
+    }
+    let table = table();
+    let (fw, cw) = (nu + 1, nu / 2 + 1);
+    for bv in (0..nv).step_by(2) {
+        for bu in (0..nu).step_by(2) {
+            let mut case = 0u16;
+            for j in 0..3 {
+                for i in 0..3 {
+                    let inside = scratch.fine_inside[(bv + j) * fw + bu + i];
+                    case |= u16::from(inside) << (i + 3 * j);
+                }
+            }
+            for j in 0..2 {
+                for i in 0..2 {
+                    let inside = scratch.coarse_inside[(bv / 2 + j) * cw + bu / 2 + i];
+                    case |= u16::from(inside) << (9 + i + 2 * j);
+                }
+            }
+            if case == 0 || case == (1 << SAMPLES) - 1 {
+                continue;
+            }
+            cell.base = (u0 + bu as i64, v0 + bv as i64);
+            // The sides on the box's edges, in SIDES order (u = 0, u = 2, v = 0, v = 2).
+            let collapsed = [bu == 0, bu + 2 == nu, bv == 0, bv + 2 == nv];
+            transition_cell(&cell, case, collapsed, table, regular, march, out, scratch);
+        }
+    }
+}
+
+/// The id and drawn position (local frame) of the vertex on edge `e` of `cell`.
+fn vertex(
+    cell: &Cell<'_>,
+    e: u8,
+    march: &Scratch,
+    out: &mut Transitions,
+    scratch: &mut TransitionScratch,
+) -> (u32, [f32; 3]) {
+    let (p, axis) = cell.edge(e);
+    match edge_kind(e) {
+        EdgeKind::Fine => {
+            let id = march.vertex_on_edge(p, axis).unwrap_or_else(|| {
+                panic!("no regular vertex on the crossed edge {p:?} along {axis}")
+            });
+            (id, [0.0; 3]) // the caller reads the regular position
+        }
+        EdgeKind::Coarse => {
+            coarse_vertex(cell.input, p.map(|c| c.div_euclid(2)), axis, out, scratch)
+        }
+        EdgeKind::Connecting => connecting_vertex(cell.input, p, cell.face, out, scratch),
+    }
+}
+
+/// One transition cell: its loops (from the table, or traced from its faces when a side is
+/// collapsed, that side by position), triangulated in the cell's drawn shape.
+#[allow(clippy::too_many_arguments)]
+fn transition_cell(
+    cell: &Cell<'_>,
+    case: u16,
+    collapsed: [bool; SIDES],
+    table: &Table,
+    regular: &Mesh,
+    march: &Scratch,
+    out: &mut Transitions,
+    scratch: &mut TransitionScratch,
+) {
+    let n_regular = regular.positions.len();
+    // Every crossed edge's vertex, with its drawn position.
+    let mut ids = [u32::MAX; EDGES.len()];
+    let mut drawn = [[0f64; 3]; EDGES.len()];
+    for e in 0..EDGES.len() as u8 {
+        let (a, b) = EDGES[e as usize];
+        if (case >> a & 1) == (case >> b & 1) {
+            continue;
+        }
+        let (id, pos) = vertex(cell, e, march, out, scratch);
+        let pos = if (id as usize) < n_regular {
+            let (p, d) = (regular.positions[id as usize], scratch.offsets[id as usize]);
+            [p[0] + d[0], p[1] + d[1], p[2] + d[2]]
+        } else {
+            pos
+        };
+        ids[e as usize] = id;
+        drawn[e as usize] = pos.map(f64::from);
+    }
+    let traced;
+    let loops: Vec<&[u8]> = if collapsed.contains(&true) {
+        let mut next = [u8::MAX; EDGES.len()];
+        for (f, corners) in faces().iter().enumerate() {
+            match f.checked_sub(5) {
+                Some(side) if collapsed[side] => {
+                    let line = if side < 2 { cell.va } else { cell.ua };
+                    if !interval_segments(corners, side, case, &drawn, line, &mut next) {
+                        run_segments(corners, case, &mut next);
+                    }
+                }
+                _ => run_segments(corners, case, &mut next),
+            }
+        }
+        traced = chain(&next);
+        traced.iter().map(Vec::as_slice).collect()
+    } else {
+        table.loops(case).collect()
+    };
+    for lp in loops {
+        // Consecutive vertices at one position (a fine and a coarse crossing that coincide on a
+        // collapsed side) are one vertex.
+        let mut loop_ids: Vec<u32> = Vec::with_capacity(lp.len());
+        let mut points: Vec<[f64; 3]> = Vec::with_capacity(lp.len());
+        // The collapsed sides each vertex lies on: a diagonal between two vertices of one
+        // collapsed side would lie on it, where the cell across the edge draws too.
+        let mut lines: Vec<u8> = Vec::with_capacity(lp.len());
+        for &e in lp {
+            let p = drawn[e as usize];
+            if points.last() != Some(&p) {
+                loop_ids.push(ids[e as usize]);
+                points.push(p);
+                let (a, b) = EDGES[e as usize];
+                lines.push(
+                    (0..SIDES)
+                        .filter(|&s| collapsed[s] && on_side(a, s) && on_side(b, s))
+                        .fold(0, |m, s| m | 1 << s),
+                );
+            }
+        }
+        if points.len() > 1 && points.first() == points.last() {
+            points.pop();
+            loop_ids.pop();
+            lines.pop();
+        }
+        // Two vertices of the loop at one position (a fine and a coarse crossing where the two
+        // contours cross on a collapsed side) pinch it into two loops that touch there; each is
+        // triangulated on its own, so that no vertex is joined to both.
+        let mut pieces = vec![(0..points.len()).collect::<Vec<usize>>()];
+        while let Some(piece) = pieces.pop() {
+            let twin = (0..piece.len()).find_map(|a| {
+                (a + 2..piece.len())
+                    .find(|&b| {
+                        points[piece[a]] == points[piece[b]] && !(a == 0 && b + 1 == piece.len())
+                    })
+                    .map(|b| (a, b))
+            });
+            if let Some((a, b)) = twin {
+                pieces.push(piece[a..b].to_vec());
+                pieces.push(piece[b..].iter().chain(&piece[..a]).copied().collect());
+                continue;
+            }
+            let pts: Vec<[f64; 3]> = piece.iter().map(|&i| points[i]).collect();
+            let refused = |i: usize, j: usize| lines[piece[i]] & lines[piece[j]] != 0;
+            for t in triangulate(&pts, 1e-12, refused) {
+                out.strips[cell.face].extend(t.map(|i| loop_ids[piece[i]]));
+            }
+        }
+    }
+}
+
+/// The segments of a collapsed side (its corners counter-clockwise from outside; all on one
+/// line along axis `line`): one per interval of the line where exactly one of the fine and the
+/// coarse interpolant is inside, from the crossing where the side's run enters to the one
+/// where it leaves. Returns false (writing nothing) if the crossings do not pair that way,
+/// which only coinciding crossings can cause.
+fn interval_segments(
+    corners: &[u8],
+    side: usize,
+    case: u16,
+    drawn: &[[f64; 3]; EDGES.len()],
+    line: usize,
+    next: &mut [u8; EDGES.len()],
+) -> bool {
+    let inside = |s: u8| case >> s & 1 == 1;
+    // The canonical coordinate along the side: v on the sides u = 0, 2; u on the others.
+    let along = usize::from(side < 2);
+    // (position along the line, rank for ties, edge, enters the side's runs)
+    let mut events: Vec<(f64, u8, u8, bool)> = Vec::with_capacity(5);
+    let k = corners.len();
+    for i in 0..k {
+        let (a, b) = (corners[i], corners[(i + 1) % k]);
+        if inside(a) == inside(b) {
+            continue;
+        }
+        let e = edge_between(a, b);
+        // Connecting edges sit at the line's ends: the one at the lower end first, the one at
+        // the upper end last; at equal positions a fine crossing before a coarse one.
+        let rank = match edge_kind(e) {
+            EdgeKind::Connecting if sample_position(EDGES[e as usize].0)[along] == 0 => 0,
+            EdgeKind::Connecting => 3,
+            EdgeKind::Fine => 1,
+            EdgeKind::Coarse => 2,
+        };
+        events.push((drawn[e as usize][line], rank, e, inside(b)));
+    }
+    events.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
+    let pairs: Vec<(u8, u8)> = events
+        .chunks_exact(2)
+        .filter_map(|p| match (p[0].3, p[1].3) {
+            (true, false) => Some((p[0].2, p[1].2)),
+            (false, true) => Some((p[1].2, p[0].2)),
+            _ => None,
+        })
+        .collect();
+    if pairs.len() * 2 != events.len() {
+        return false;
+    }
+    for (enter, leave) in pairs {
+        next[enter as usize] = leave;
+    }
+    true
+}
+
+/// The vertex on the coarse lattice edge from `q0` along `axis`: computed as the coarse tile's
+/// `march` computes it, in the coarse tile's frame, then doubled into this tile's frame.
+fn coarse_vertex(
+    input: &TransitionInput<'_>,
+    q0: [i64; 3],
+    axis: usize,
+    out: &mut Transitions,
+    scratch: &mut TransitionScratch,
+) -> (u32, [f32; 3]) {
+    let key = (q0, axis as u8);
+    if let Some(&id) = scratch.made.get(&key) {
+        return (id, out.positions[(id as usize) - scratch.offsets.len()]);
+    }
+    let (t, normal) = input.coarse.crossing(q0, axis, input.iso);
+    let (cf, f) = (input.coarse_frame, input.frame);
+    let mut pos = [0f32; 3];
+    for b in 0..3 {
+        pos[b] = if b == axis {
+            // The coarse tile's local coordinate, as march writes it...
+            let local = (q0[b] - cf[b]) as f32 + t;
+            // ...in this tile's frame: 2 local + (2 cf - f). Exact: 2 cf - f is 0 or minus a
+            // brick, and the sum is no larger than 2 local.
+            let offset = (2 * cf[b] - f[b]) as f32;
+            let here = 2.0 * local + offset;
+            debug_assert_eq!(here - offset, 2.0 * local, "inexact frame change");
+            here
+        } else {
+            (2 * q0[b] - f[b]) as f32
+        };
+    }
+    let id = push_vertex(out, scratch, pos, normal);
+    scratch.made.insert(key, id);
+    (id, pos)
+}
+
+/// The vertex on the edge joining fine corner `p` (at its secondary position) to its coarse
+/// twin (at `p`, never moved), with its move; the position returned is the drawn one.
+fn connecting_vertex(
+    input: &TransitionInput<'_>,
+    p: [i64; 3],
+    face: usize,
+    out: &mut Transitions,
+    scratch: &mut TransitionScratch,
+) -> (u32, [f32; 3]) {
+    let primary = [0, 1, 2].map(|b| (p[b] - input.frame[b]) as f32);
+    let q = p.map(|c| c.div_euclid(2));
+    let (vf, vc) = (input.fine.value(p), input.coarse.value(q));
+    let s = (input.iso - vf) / (vc - vf);
+    let moving = input.moving_face(p);
+    let offset = moving.map(|f| displacement(f, 1.0 - s));
+    let drawn = match offset {
+        Some(d) => [0, 1, 2].map(|b| primary[b] + d[b]),
+        None => primary,
+    };
+    let key = (p, 3);
+    if let Some(&id) = scratch.made.get(&key) {
+        return (id, drawn);
+    }
+    // Normals: fine gradient per fine cell, coarse per coarse cell (two fine cells).
+    let gf = input.fine.outward_gradient(p);
+    let gc = input.coarse.outward_gradient(q).map(|c| c * 0.5);
+    let g = [0, 1, 2].map(|k| gf[k] + s * (gc[k] - gf[k]));
+    let len = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
+    let normal = if len > 0.0 {
+        g.map(|c| c / len)
+    } else {
+        // Flat: along the edge, from the inside end to the outside one.
+        let mut d = [0f32; 3];
+        let outward = if face % 2 == 1 { 1.0 } else { -1.0 };
+        d[face / 2] = if vc >= input.iso { -outward } else { outward };
+        d
+    };
+    let id = push_vertex(out, scratch, primary, normal);
+    if let (Some(f), Some(d)) = (moving, offset) {
+        out.moves.push(VertexMove {
+            vertex: id,
+            faces: 1 << f,
+            offset: d,
+        });
+    }
+    scratch.made.insert(key, id);
+    (id, drawn)
+}
+
+/// Appends a transition vertex; its index follows the regular vertices (as many as
+/// `scratch.offsets`) and the transition vertices before it.
+fn push_vertex(
+    out: &mut Transitions,
+    scratch: &TransitionScratch,
+    pos: [f32; 3],
+    normal: [f32; 3],
+) -> u32 {
+    let id = (scratch.offsets.len() + out.positions.len()) as u32;
+    out.positions.push(pos);
+    out.normals.push(normal);
+    id
+}
