@@ -123,6 +123,10 @@ pub struct TransitionScratch {
     made: HashMap<([i64; 3], u8), u32>,
     /// The move of each regular vertex (zero when it does not move).
     offsets: Vec<[f32; 3]>,
+    /// One loop's vertices, drawn positions and collapsed sides.
+    loop_ids: Vec<u32>,
+    points: Vec<[f64; 3]>,
+    lines: Vec<u8>,
     fine_inside: Vec<bool>,
     coarse_inside: Vec<bool>,
 }
@@ -261,20 +265,34 @@ fn strip(
         p[va] = v0 + v;
         p
     };
-    scratch.fine_inside.clear();
-    for v in 0..=nv as i64 {
-        for u in 0..=nu as i64 {
-            let inside = input.fine.value(at(u, v)) >= iso;
-            scratch.fine_inside.push(inside);
+    // Read through strides: the face's first point checked against each field, then steps.
+    let flags = |field: &Field<'_>, first: [i64; 3], n: (usize, usize), out: &mut Vec<bool>| {
+        let mut last = first;
+        last[ua] += n.0 as i64;
+        last[va] += n.1 as i64;
+        assert!(
+            field.contains(first) && field.contains(last),
+            "the field does not cover face {face}"
+        );
+        let stride = [1, field.size[0], field.size[0] * field.size[1]];
+        let base = (0..3)
+            .map(|a| (first[a] - field.origin[a]) as usize * stride[a])
+            .sum::<usize>();
+        out.clear();
+        for v in 0..=n.1 {
+            for u in 0..=n.0 {
+                out.push(field.values[base + u * stride[ua] + v * stride[va]] >= iso);
+            }
         }
-    }
-    scratch.coarse_inside.clear();
-    for v in (0..=nv as i64).step_by(2) {
-        for u in (0..=nu as i64).step_by(2) {
-            let q = at(u, v).map(|c| c.div_euclid(2));
-            scratch.coarse_inside.push(input.coarse.value(q) >= iso);
-        }
-    }
+    };
+    flags(input.fine, at(0, 0), (nu, nv), &mut scratch.fine_inside);
+    let coarse_first = at(0, 0).map(|c| c.div_euclid(2));
+    flags(
+        input.coarse,
+        coarse_first,
+        (nu / 2, nv / 2),
+        &mut scratch.coarse_inside,
+    );
     let first = scratch.fine_inside[0];
     if scratch
         .fine_inside
@@ -386,14 +404,19 @@ fn transition_cell(
     } else {
         table.loops(case).collect()
     };
+    let (loop_ids, points, lines) = (
+        &mut scratch.loop_ids,
+        &mut scratch.points,
+        &mut scratch.lines,
+    );
     for lp in loops {
         // Consecutive vertices at one position (a fine and a coarse crossing that coincide on a
         // collapsed side) are one vertex.
-        let mut loop_ids: Vec<u32> = Vec::with_capacity(lp.len());
-        let mut points: Vec<[f64; 3]> = Vec::with_capacity(lp.len());
+        loop_ids.clear();
+        points.clear();
         // The collapsed sides each vertex lies on: a diagonal between two vertices of one
         // collapsed side would lie on it, where the cell across the edge draws too.
-        let mut lines: Vec<u8> = Vec::with_capacity(lp.len());
+        lines.clear();
         for &e in lp {
             let p = drawn[e as usize];
             if points.last() != Some(&p) {
@@ -415,7 +438,17 @@ fn transition_cell(
         // Two vertices of the loop at one position (a fine and a coarse crossing where the two
         // contours cross on a collapsed side) pinch it into two loops that touch there; each is
         // triangulated on its own, so that no vertex is joined to both.
-        let mut pieces = vec![(0..points.len()).collect::<Vec<usize>>()];
+        let n = points.len();
+        let pinched =
+            (0..n).any(|a| (a + 2..n).any(|b| points[a] == points[b] && !(a == 0 && b + 1 == n)));
+        if !pinched {
+            let refused = |i: usize, j: usize| lines[i] & lines[j] != 0;
+            for t in triangulate(points, 1e-12, refused) {
+                out.strips[cell.face].extend(t.map(|i| loop_ids[i]));
+            }
+            continue;
+        }
+        let mut pieces = vec![(0..n).collect::<Vec<usize>>()];
         while let Some(piece) = pieces.pop() {
             let twin = (0..piece.len()).find_map(|a| {
                 (a + 2..piece.len())

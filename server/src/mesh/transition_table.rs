@@ -253,6 +253,13 @@ pub fn triangulate(
     if n < 3 {
         return Vec::new();
     }
+    assert!(
+        n <= EDGES.len(),
+        "a loop visits each of the cell's edges at most once"
+    );
+    if n == 3 {
+        return vec![[0, 1, 2]];
+    }
     const REFUSED: f64 = 1e9;
     let diagonal = |i: usize, j: usize| j != i + 1 && !(i == 0 && j == n - 1) && refused(i, j);
     let weight = |i: usize, k: usize, j: usize| {
@@ -261,8 +268,9 @@ pub fn triangulate(
         a + if refuse { REFUSED } else { 0.0 }
     };
     // cost[i][j]: best triangulation of the sub-polygon i..=j; split[i][j]: its apex.
-    let mut cost = vec![vec![0f64; n]; n];
-    let mut split = vec![vec![0usize; n]; n];
+    const M: usize = EDGES.len();
+    let mut cost = [[0f64; M]; M];
+    let mut split = [[0u8; M]; M];
     for len in 2..n {
         for i in 0..n - len {
             let j = i + len;
@@ -271,19 +279,24 @@ pub fn triangulate(
                 .min_by(|a, b| a.0.total_cmp(&b.0))
                 .unwrap_or((f64::INFINITY, i + 1));
             cost[i][j] = c;
-            split[i][j] = k;
+            split[i][j] = k as u8;
         }
     }
     let mut out = Vec::with_capacity(n - 2);
-    let mut stack = vec![(0usize, n - 1)];
-    while let Some((i, j)) = stack.pop() {
+    let mut stack = [(0usize, 0usize); M];
+    let mut top = 1;
+    stack[0] = (0, n - 1);
+    while top > 0 {
+        top -= 1;
+        let (i, j) = stack[top];
         if j < i + 2 {
             continue;
         }
-        let k = split[i][j];
+        let k = split[i][j] as usize;
         out.push([i, k, j]);
-        stack.push((i, k));
-        stack.push((k, j));
+        stack[top] = (i, k);
+        stack[top + 1] = (k, j);
+        top += 2;
     }
     out
 }
