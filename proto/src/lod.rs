@@ -48,23 +48,25 @@ pub fn tile_distance(
     d2.sqrt()
 }
 
-/// The tiles the spherical detail bias selects, sorted: with radii `r0 < r1 < ... < r(n-1)`,
-/// level k where the tile's nearest point lies within `r(k)` of the camera, level n (or the
-/// coarsest, if fewer) beyond the last radius. Walking down from the root, a tile of level k+1
-/// is refined into its children when it is within `r(k)`, and always while k+1 > n; then
-/// [`balance`] refines where a tile would touch one two or more levels finer. The result covers
-/// the volume once, and tiles that touch differ by at most one level.
-pub fn adaptive_tiles(
+/// The tiles to stitch for `camera`: [`adaptive_tiles`], then [`balance`] refines where a tile
+/// would touch one two or more levels finer. The result covers the volume once, tiles that touch
+/// differ by at most one level, and [`face_masks`] gives each its strips. Sorted.
+pub fn balanced_tiles(
     layout: &VolumeLayout,
     voxel_scale: [f32; 3],
     camera: [f32; 3],
     radii: &[f32],
 ) -> Vec<BrickKey> {
-    balance(layout, distance_tiles(layout, voxel_scale, camera, radii))
+    balance(layout, adaptive_tiles(layout, voxel_scale, camera, radii))
 }
 
-/// The spherical detail bias alone, before the 2:1 rule.
-fn distance_tiles(
+/// The tiles the spherical detail bias selects, sorted: with radii `r0 < r1 < ... < r(n-1)`,
+/// level k where the tile's nearest point lies within `r(k)` of the camera, level n (or the
+/// coarsest, if fewer) beyond the last radius. Walking down from the root, a tile of level k+1
+/// is refined into its children when it is within `r(k)`, and always while k+1 > n. The result
+/// covers the volume once; neighbours may differ by more than one level (see
+/// [`balanced_tiles`]).
+pub fn adaptive_tiles(
     layout: &VolumeLayout,
     voxel_scale: [f32; 3],
     camera: [f32; 3],
@@ -155,7 +157,7 @@ pub fn balance(layout: &VolumeLayout, tiles: Vec<BrickKey>) -> Vec<BrickKey> {
 }
 
 /// For each tile of `tiles` (a balanced selection covering the volume once, as
-/// [`adaptive_tiles`] returns), its face mask: bit f set when the tile across face f is one
+/// [`balanced_tiles`] returns), its face mask: bit f set when the tile across face f is one
 /// level coarser, so the tile draws its transition strip there and moves its vertices out of
 /// the strip's way. Faces on the volume's boundary, or touching tiles of the same or a finer
 /// level, have no bit.
@@ -274,8 +276,8 @@ mod tests {
                 let camera = [0, 1, 2].map(|a| (next() * 1.6 - 0.3) * dims[a]);
                 let r0 = 4.0 + next() * dims[0] * 0.3;
                 let radii = [r0, r0 * (1.0 + next() * 1.5), r0 * (2.5 + next() * 2.0)];
-                let before = distance_tiles(&layout, [1.0; 3], camera, &radii);
-                let tiles = adaptive_tiles(&layout, [1.0; 3], camera, &radii);
+                let before = adaptive_tiles(&layout, [1.0; 3], camera, &radii);
+                let tiles = balanced_tiles(&layout, [1.0; 3], camera, &radii);
                 let (level, owners) = raster(&layout, &tiles);
                 assert!(
                     owners.iter().all(|&n| n == 1),

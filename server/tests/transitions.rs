@@ -4,7 +4,7 @@
 //! the assembled mesh is checked: closed and 2-manifold after welding equal positions, no
 //! degenerate triangles, no transition triangle crossing another, and the volume of a sphere.
 
-use isovox_proto::lod::{adaptive_tiles, face_masks};
+use isovox_proto::lod::{balanced_tiles, face_masks};
 use isovox_proto::mesh::{stitch, TileMesh};
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use isovox_server::mesh::lattice::lattice_field;
@@ -660,7 +660,7 @@ fn stitched_sphere_is_closed_and_keeps_its_volume_at_every_level_mix() {
     let mut crossing = 0;
     let mut transition_triangles = 0;
     for (camera, radii) in cameras(side as f64, 40, 3) {
-        let tiles = adaptive_tiles(&layout, [1.0; 3], camera, &radii);
+        let tiles = balanced_tiles(&layout, [1.0; 3], camera, &radii);
         let what = format!("camera {camera:?} radii {radii:?}");
         let got = check(&pyramid, &layout, &tiles, &what);
         let error = (got.volume - analytic).abs() / analytic;
@@ -701,7 +701,7 @@ fn stitched_random_fields_are_closed() {
     let mut crossing = 0;
     let mut transition_triangles = 0;
     for (camera, radii) in cameras(side as f64, 30, 5) {
-        let tiles = adaptive_tiles(&layout, [1.0; 3], camera, &radii);
+        let tiles = balanced_tiles(&layout, [1.0; 3], camera, &radii);
         let got = check(
             &pyramid,
             &layout,
