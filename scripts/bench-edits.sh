@@ -5,5 +5,5 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 command -v wrk >/dev/null || { apt-get update -qq && apt-get install -y -qq wrk; }
-cargo build --release --quiet -p isovox-server
-./target/release/isovox bench edits --dir bench-out "$@"
+cargo build --release --quiet -p isovox-server -p isovox-tools
+./target/release/isovox-bench edits --dir bench-out "$@"

@@ -6,5 +6,5 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 command -v wrk >/dev/null && command -v nginx >/dev/null || { apt-get update -qq && apt-get install -y -qq wrk nginx; }
-cargo build --release --quiet -p isovox-server
-./target/release/isovox bench http --dir bench-out/http "$@"
+cargo build --release --quiet -p isovox-server -p isovox-tools
+./target/release/isovox-bench http --dir bench-out/http "$@"

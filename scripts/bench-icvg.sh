@@ -3,5 +3,5 @@
 # radius-16 ellipsoid into 256^3-class and 1024^3-class worlds). Prints Markdown tables.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-cargo build --release --quiet -p isovox-server
-./target/release/isovox bench icvg --dir bench-out "$@"
+cargo build --release --quiet -p isovox-server -p isovox-tools
+./target/release/isovox-bench icvg --dir bench-out "$@"

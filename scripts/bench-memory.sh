@@ -3,5 +3,5 @@
 # of a 2048^3 world once in random order. Generates the world on first run. Prints a table.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-cargo build --release --quiet -p isovox-server
-./target/release/isovox bench memory --dir bench-out "$@"
+cargo build --release --quiet -p isovox-server -p isovox-tools
+./target/release/isovox-bench memory --dir bench-out "$@"

@@ -7,5 +7,5 @@ cd "$(dirname "$0")/.."
 mkdir -p bench-out
 python3 -m pip install --quiet vtk scikit-image numpy
 [ -f bench-out/mni152_t1.raw ] || python3 scripts/mni152_to_raw.py bench-out/mni152_t1.raw
-cargo build --release --quiet -p isovox-server
-./target/release/isovox bench mesh --dir bench-out --peers --mri bench-out/mni152_t1.raw "$@"
+cargo build --release --quiet -p isovox-server -p isovox-tools
+./target/release/isovox-bench mesh --dir bench-out --peers --mri bench-out/mni152_t1.raw "$@"

@@ -6,5 +6,5 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 mkdir -p bench-out
 [ -f bench-out/mni152_t1.raw ] || python3 scripts/mni152_to_raw.py bench-out/mni152_t1.raw
-cargo build --release --quiet -p isovox-server
-./target/release/isovox bench store --dir bench-out --mri bench-out/mni152_t1.raw --mri-dims 197,233,189 "$@"
+cargo build --release --quiet -p isovox-server -p isovox-tools
+./target/release/isovox-bench store --dir bench-out --mri bench-out/mni152_t1.raw --mri-dims 197,233,189 "$@"

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Runs the peers of `isovox bench mesh` on one RAW volume and prints their figures as JSON.
+"""Runs the peers of `isovox-bench mesh` on one RAW volume and prints their figures as JSON.
 
 VTK's vtkFlyingEdges3D (1 and 2 threads on the STDThread SMP backend, normals on) and scikit-image's
 marching_cubes (single-threaded) extract the same iso-surface Isovox does. Timings are the

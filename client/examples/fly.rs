@@ -16,7 +16,6 @@
 //! one pixel, puts all of the demo world at level 0). The camera crosses the world diagonally
 //! at 90% of its height, sinking to 60% half way, and comes back.
 
-use isovox_client::load::tile_bytes;
 use isovox_client::{Client, StreamEvent, Streamer, StreamerConfig, TileKind};
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
@@ -177,7 +176,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
             event = events.recv() => match event {
                 Some(StreamEvent::Ready { key, data, .. }) => {
                     *second.ready.entry(key.level).or_default() += 1;
-                    let n = tile_bytes(&data);
+                    let n = data.bytes();
                     second.bytes += n;
                     total_ready += 1;
                     total_bytes += n;

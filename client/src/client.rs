@@ -25,7 +25,9 @@ pub enum ClientError {
     /// The server answered with an error status (and, normally, problem details).
     #[error("{status}: {}", problem.as_ref().map_or("(no problem details)", |p| p.detail.as_str()))]
     Status {
+        /// The status.
         status: StatusCode,
+        /// The problem details of the body, when it had them.
         problem: Option<Problem>,
     },
     /// The request did not get an answer (connection refused or reset, timeout).
@@ -64,6 +66,7 @@ pub struct RetryPolicy {
     pub attempts: u32,
     /// First backoff; doubled on every retry, with jitter, up to `max_delay`.
     pub base_delay: Duration,
+    /// The longest wait between two tries.
     pub max_delay: Duration,
 }
 
@@ -80,6 +83,7 @@ impl Default for RetryPolicy {
 /// One brick as the server sent it.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Brick {
+    /// The brick.
     pub key: BrickKey,
     /// Content hash (the ETag).
     pub hash: u64,
@@ -91,12 +95,20 @@ pub struct Brick {
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum FeedEvent {
     /// The first event: the version current when the subscription started.
-    Hello { version: u64 },
+    Hello {
+        /// The volume's version then.
+        version: u64,
+    },
     /// A committed version.
     Commit(ChangeEvent),
     /// The subscriber fell behind: versions after `since` up to `version` were skipped; fetch
     /// them with [`Client::changes`].
-    Resync { since: u64, version: u64 },
+    Resync {
+        /// The last version the subscriber had.
+        since: u64,
+        /// The version it is told about now.
+        version: u64,
+    },
 }
 
 /// Sees every HTTP exchange a [`Client`] makes (each attempt of a retried call): load tests
@@ -152,6 +164,7 @@ impl Client {
         self
     }
 
+    /// The same client, retrying as `retry` says.
     pub fn with_retry(mut self, retry: RetryPolicy) -> Client {
         self.retry = retry;
         self
@@ -163,6 +176,7 @@ impl Client {
         self
     }
 
+    /// The server's base URL.
     pub fn base(&self) -> &str {
         &self.base
     }

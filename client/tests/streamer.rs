@@ -20,7 +20,7 @@ use isovox_server::catalog::Catalog;
 use isovox_server::generate::WorldSource;
 use isovox_server::http::auth::Tokens;
 use isovox_server::http::{run, AppState, ServerConfig};
-use isovox_server::store::{build_vod2, BuildOptions, Vod2};
+use isovox_server::store::{build_vod2, BuildOptions, Snapshot, Vod2};
 use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -402,23 +402,9 @@ async fn selection_matches_independent_computation_and_streams_the_file_bricks()
         .all(|e| !matches!(e, StreamEvent::Error { .. })));
     let vod = Vod2::open(&w.path).unwrap();
     let snap = vod.head();
+    assert_bricks_match_file(&events, &snap);
     for e in &events {
-        if let StreamEvent::Ready {
-            key,
-            hash,
-            data,
-            version,
-        } = e
-        {
-            let TileData::Brick(bytes) = data else {
-                panic!("a brick streamer delivered a mesh");
-            };
-            assert_eq!(
-                bytes.as_ref(),
-                snap.read(*key).unwrap().as_slice(),
-                "brick {key}"
-            );
-            assert_eq!(*hash, snap.hash(*key).unwrap(), "hash of {key}");
+        if let StreamEvent::Ready { version, .. } = e {
             assert_eq!(*version, 1);
         }
     }
@@ -568,18 +554,7 @@ async fn a_brick_shared_by_many_positions_is_fetched_once() {
     let stats = streamer.stats();
     assert_eq!(stats.cache_misses, distinct.len() as u64);
     assert_eq!(stats.cache_hits, (expected.len() - distinct.len()) as u64);
-    for e in &events {
-        if let StreamEvent::Ready { key, data, .. } = e {
-            let TileData::Brick(bytes) = data else {
-                panic!("a brick streamer delivered a mesh");
-            };
-            assert_eq!(
-                bytes.as_ref(),
-                snap.read(*key).unwrap().as_slice(),
-                "brick {key}"
-            );
-        }
-    }
+    assert_bricks_match_file(&events, &snap);
     streamer.shutdown().await;
 
     // A cache of 5 bricks holds at most 5 bricks' bytes, and every tile is still delivered right.
@@ -600,18 +575,7 @@ async fn a_brick_shared_by_many_positions_is_fetched_once() {
     let events = settle(&small, &mut rx, 1).await;
     let expected = expected_set(&info, camera, &[10.0, 20.0]);
     assert_eq!(once(&ready_keys(&events), "was ready"), expected);
-    for e in &events {
-        if let StreamEvent::Ready { key, data, .. } = e {
-            let TileData::Brick(bytes) = data else {
-                panic!("a brick streamer delivered a mesh");
-            };
-            assert_eq!(
-                bytes.as_ref(),
-                snap.read(*key).unwrap().as_slice(),
-                "brick {key}"
-            );
-        }
-    }
+    assert_bricks_match_file(&events, &snap);
     let stats = small.stats();
     assert!(stats.cache_bytes <= 5 * brick_bytes, "{stats:?}");
     assert!(stats.cache_bytes > 0);
@@ -638,6 +602,68 @@ fn carve(center: [i64; 3], r: u32) -> EditRequest {
 /// A point on the terrain's surface (level-0 voxels).
 fn ground(w: &World, x: u32, z: u32) -> [i64; 3] {
     [x as i64, w.source.height(x, z).round() as i64, z as i64]
+}
+
+/// Checks every `Ready` brick of `events` against the file's version `snap`: its voxels and its
+/// content hash. Returns the hashes delivered.
+fn assert_bricks_match_file(events: &[StreamEvent], snap: &Snapshot) -> HashSet<u64> {
+    let mut hashes = HashSet::new();
+    for e in events {
+        if let StreamEvent::Ready {
+            key, data, hash, ..
+        } = e
+        {
+            let TileData::Brick(bytes) = data else {
+                panic!("a brick streamer delivered a mesh");
+            };
+            assert_eq!(
+                bytes.as_ref(),
+                snap.read(*key).unwrap().as_slice(),
+                "brick {key}"
+            );
+            assert_eq!(*hash, snap.hash(*key).unwrap(), "hash of {key}");
+            hashes.insert(*hash);
+        }
+    }
+    hashes
+}
+
+/// A served terrain of `dims` (brick 8), a counted client's streamer on it as `config` says,
+/// its camera `above` voxels over the ground at (x, z), settled at version 1.
+struct Scenario {
+    w: World,
+    server: TestServer,
+    counter: Arc<Counter>,
+    streamer: Streamer,
+    rx: Receiver<StreamEvent>,
+    camera: [f32; 3],
+    /// The events up to the first settled state.
+    before: Vec<StreamEvent>,
+}
+
+async fn scenario(
+    dims: [u32; 3],
+    config: StreamerConfig,
+    (x, z): (u32, u32),
+    above: f32,
+) -> Scenario {
+    let w = world(dims, 8, [1.0; 3]);
+    let server = TestServer::start(w.dir.path(), None);
+    let (client, counter) = counted_client(&server.base);
+    let (streamer, mut rx) = Streamer::start(client, NAME, config).await.unwrap();
+    let g = ground(&w, x, z);
+    let camera = [x as f32, g[1] as f32 + above, z as f32];
+    streamer.set_camera(camera);
+    let before = settle(&streamer, &mut rx, 1).await;
+    Scenario {
+        w,
+        server,
+        counter,
+        streamer,
+        rx,
+        camera,
+        before,
+    }
 }
 
 /// The bricks an edit changed, as keys.
@@ -712,24 +738,20 @@ fn assert_stale_then_ready(events: &[StreamEvent], expected: &BTreeSet<BrickKey>
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_edit_by_another_client_refetches_exactly_the_affected_bricks() {
     // Grids 12x8x12, 6x4x6, 3x2x3, 2x1x2, 1x1x1.
-    let w = world([96, 64, 96], 8, [1.0; 3]);
-    let server = TestServer::start(w.dir.path(), None);
-    let (client, counter) = counted_client(&server.base);
     let radii = vec![12.0, 30.0, 60.0, 120.0];
-    let (streamer, mut rx) = Streamer::start(
-        client,
-        NAME,
-        StreamerConfig {
-            radii: radii.clone(),
-            ..StreamerConfig::default()
-        },
-    )
-    .await
-    .unwrap();
-    let g = ground(&w, 30, 40);
-    let camera = [30.0, g[1] as f32 + 4.0, 40.0];
-    streamer.set_camera(camera);
-    let before = settle(&streamer, &mut rx, 1).await;
+    let config = StreamerConfig {
+        radii: radii.clone(),
+        ..StreamerConfig::default()
+    };
+    let Scenario {
+        w,
+        server,
+        counter,
+        streamer,
+        mut rx,
+        camera,
+        before,
+    } = scenario([96, 64, 96], config, (30, 40), 4.0).await;
     let resident: BTreeSet<BrickKey> = streamer.resident().into_iter().collect();
     assert_eq!(resident, expected_set(streamer.info(), camera, &radii));
     let cached: HashSet<u64> = before
@@ -761,24 +783,7 @@ async fn an_edit_by_another_client_refetches_exactly_the_affected_bricks() {
     let events = settle(&streamer, &mut rx, resp.version).await;
     assert_stale_then_ready(&events, &expected, resp.version);
     let snap = Vod2::open(&w.path).unwrap().head();
-    let mut new_hashes = HashSet::new();
-    for e in &events {
-        if let StreamEvent::Ready {
-            key, data, hash, ..
-        } = e
-        {
-            let TileData::Brick(bytes) = data else {
-                panic!("a brick streamer delivered a mesh");
-            };
-            assert_eq!(
-                bytes.as_ref(),
-                snap.read(*key).unwrap().as_slice(),
-                "brick {key}"
-            );
-            assert_eq!(*hash, snap.hash(*key).unwrap());
-            new_hashes.insert(*hash);
-        }
-    }
+    let new_hashes = assert_bricks_match_file(&events, &snap);
     assert!(
         new_hashes.iter().any(|h| !cached.contains(h)),
         "new content"
@@ -830,25 +835,21 @@ fn assert_meshes_match_file(events: &[StreamEvent], path: &Path) -> usize {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_edit_by_another_client_refetches_exactly_the_affected_mesh_tiles() {
     // Grids 8x6x8, 4x3x4, 2x2x2, 1x1x1.
-    let w = world([64, 48, 64], 8, [1.0; 3]);
-    let server = TestServer::start(w.dir.path(), None);
-    let (client, counter) = counted_client(&server.base);
     let radii = vec![14.0, 30.0, 60.0];
-    let (streamer, mut rx) = Streamer::start(
-        client,
-        NAME,
-        StreamerConfig {
-            kind: TileKind::Meshes { iso: None },
-            radii: radii.clone(),
-            ..StreamerConfig::default()
-        },
-    )
-    .await
-    .unwrap();
-    let g = ground(&w, 20, 24);
-    let camera = [20.0, g[1] as f32 + 3.0, 24.0];
-    streamer.set_camera(camera);
-    let before = settle(&streamer, &mut rx, 1).await;
+    let config = StreamerConfig {
+        kind: TileKind::Meshes { iso: None },
+        radii: radii.clone(),
+        ..StreamerConfig::default()
+    };
+    let Scenario {
+        w,
+        server,
+        counter,
+        streamer,
+        mut rx,
+        camera,
+        before,
+    } = scenario([64, 48, 64], config, (20, 24), 3.0).await;
     let resident: BTreeSet<BrickKey> = streamer.resident().into_iter().collect();
     assert_eq!(resident, expected_set(streamer.info(), camera, &radii));
     assert_eq!(once(&ready_keys(&before), "was ready"), resident);
@@ -896,34 +897,26 @@ async fn an_edit_by_another_client_refetches_exactly_the_affected_mesh_tiles() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn after_a_disconnect_the_streamer_catches_up_from_its_last_version() {
-    let w = world([96, 64, 96], 8, [1.0; 3]);
-    let mut server = TestServer::start(w.dir.path(), None);
-    let (client, counter) = counted_client(&server.base);
-    let radii = vec![12.0, 30.0, 60.0, 120.0];
-    let (streamer, mut rx) = Streamer::start(
-        client,
-        NAME,
-        StreamerConfig {
-            radii: radii.clone(),
-            ..StreamerConfig::default()
-        },
-    )
-    .await
-    .unwrap();
-    let g = ground(&w, 60, 30);
-    let camera = [60.0, g[1] as f32 + 4.0, 30.0];
-    streamer.set_camera(camera);
-    settle(&streamer, &mut rx, 1).await;
+    let config = StreamerConfig {
+        radii: vec![12.0, 30.0, 60.0, 120.0],
+        ..StreamerConfig::default()
+    };
+    let Scenario {
+        w,
+        mut server,
+        counter,
+        streamer,
+        mut rx,
+        ..
+    } = scenario([96, 64, 96], config, (60, 30), 4.0).await;
     let resident: BTreeSet<BrickKey> = streamer.resident().into_iter().collect();
 
     // The server goes away (every connection closed, the feed's too); two edits are committed
     // to the file while no server runs; a new server starts on the same port and data.
     let addr = server.addr;
     tokio::task::block_in_place(|| server.stop());
-    let first =
-        isovox_server::cli::edit::edit_file(&w.path, &carve(ground(&w, 62, 33), 5)).unwrap();
-    let second =
-        isovox_server::cli::edit::edit_file(&w.path, &carve(ground(&w, 57, 27), 4)).unwrap();
+    let first = isovox_server::volume::edit_file(&w.path, &carve(ground(&w, 62, 33), 5)).unwrap();
+    let second = isovox_server::volume::edit_file(&w.path, &carve(ground(&w, 57, 27), 4)).unwrap();
     assert_eq!((first.version, second.version), (2, 3));
     let counts = counter.snapshot();
     let _server = TestServer::start(w.dir.path(), Some(addr));
@@ -939,13 +932,20 @@ async fn after_a_disconnect_the_streamer_catches_up_from_its_last_version() {
             .any(|e| matches!(e, StreamEvent::Error { key: None, .. })),
         "the disconnect was reported"
     );
-    // The two versions may be applied in one go or one after the other (a tile changed only by
-    // version 2 may be ready again before version 3 arrives): exactly the changed tiles go
-    // stale, come back, and each one's last event is Ready with the file's current content.
+    // The server replays both versions after the reconnect, and the streamer applies them in
+    // one step: exactly the changed tiles go stale, come back at version 3 only (no content of
+    // the superseded version 2 is fetched), and each one's last event is Ready with the file's
+    // current content.
     let stale: BTreeSet<BrickKey> = stale_keys(&events).into_iter().collect();
     assert_eq!(stale, expected, "the stale tiles");
     let ready: BTreeSet<BrickKey> = ready_keys(&events).into_iter().collect();
     assert_eq!(ready, expected, "the refetched tiles");
+    assert!(
+        events
+            .iter()
+            .all(|e| !matches!(e, StreamEvent::Ready { version, .. } if *version != 3)),
+        "content of version 3 only"
+    );
     assert!(dropped_keys(&events).is_empty());
     for key in &expected {
         let last = events
@@ -982,18 +982,7 @@ async fn after_a_disconnect_the_streamer_catches_up_from_its_last_version() {
     assert_eq!(per_version.get(&2).cloned().unwrap_or_default(), want_2);
     assert_eq!(per_version.get(&3).cloned().unwrap_or_default(), want_3);
     let snap = Vod2::open(&w.path).unwrap().head();
-    for e in &events {
-        if let StreamEvent::Ready { key, data, .. } = e {
-            let TileData::Brick(bytes) = data else {
-                panic!("a brick streamer delivered a mesh");
-            };
-            assert_eq!(
-                bytes.as_ref(),
-                snap.read(*key).unwrap().as_slice(),
-                "brick {key}"
-            );
-        }
-    }
+    assert_bricks_match_file(&events, &snap);
     assert_eq!(streamer.stats().version, 3);
     assert_eq!(
         streamer.resident().into_iter().collect::<BTreeSet<_>>(),
@@ -1011,23 +1000,19 @@ async fn after_a_disconnect_the_streamer_catches_up_from_its_last_version() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn when_the_missed_versions_were_compacted_away_the_streamer_reloads() {
-    let w = world([96, 64, 96], 8, [1.0; 3]);
-    let mut server = TestServer::start(w.dir.path(), None);
-    let (client, counter) = counted_client(&server.base);
-    let radii = vec![12.0, 30.0, 60.0, 120.0];
-    let (streamer, mut rx) = Streamer::start(
-        client,
-        NAME,
-        StreamerConfig {
-            radii: radii.clone(),
-            ..StreamerConfig::default()
-        },
-    )
-    .await
-    .unwrap();
-    let g = ground(&w, 40, 50);
-    streamer.set_camera([40.0, g[1] as f32 + 4.0, 50.0]);
-    let before = settle(&streamer, &mut rx, 1).await;
+    let config = StreamerConfig {
+        radii: vec![12.0, 30.0, 60.0, 120.0],
+        ..StreamerConfig::default()
+    };
+    let Scenario {
+        w,
+        mut server,
+        counter,
+        streamer,
+        mut rx,
+        before,
+        ..
+    } = scenario([96, 64, 96], config, (40, 50), 4.0).await;
     let resident: BTreeSet<BrickKey> = streamer.resident().into_iter().collect();
     let cached: HashSet<u64> = before
         .iter()
@@ -1041,8 +1026,8 @@ async fn when_the_missed_versions_were_compacted_away_the_streamer_reloads() {
     // another port, which the streamer does not know) that keeps only the last one.
     let addr = server.addr;
     tokio::task::block_in_place(|| server.stop());
-    isovox_server::cli::edit::edit_file(&w.path, &carve(ground(&w, 42, 52), 6)).unwrap();
-    isovox_server::cli::edit::edit_file(&w.path, &carve(ground(&w, 38, 47), 5)).unwrap();
+    isovox_server::volume::edit_file(&w.path, &carve(ground(&w, 42, 52), 6)).unwrap();
+    isovox_server::volume::edit_file(&w.path, &carve(ground(&w, 38, 47), 5)).unwrap();
     let mut other = TestServer::start(w.dir.path(), None);
     let compacted = Client::new(&other.base)
         .unwrap()
@@ -1062,24 +1047,7 @@ async fn when_the_missed_versions_were_compacted_away_the_streamer_reloads() {
     assert_eq!(once(&ready_keys(&events), "was ready"), resident);
     assert!(dropped_keys(&events).is_empty());
     let snap = Vod2::open(&w.path).unwrap().head();
-    let mut hashes = HashSet::new();
-    for e in &events {
-        if let StreamEvent::Ready {
-            key, data, hash, ..
-        } = e
-        {
-            let TileData::Brick(bytes) = data else {
-                panic!("a brick streamer delivered a mesh");
-            };
-            assert_eq!(
-                bytes.as_ref(),
-                snap.read(*key).unwrap().as_slice(),
-                "brick {key}"
-            );
-            assert_eq!(*hash, snap.hash(*key).unwrap());
-            hashes.insert(*hash);
-        }
-    }
+    let hashes = assert_bricks_match_file(&events, &snap);
     assert!(hashes.iter().any(|h| !cached.contains(h)), "the edits show");
     assert_eq!(
         counter.since(&counts, "blob"),

@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 /// One level of detail of a volume.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct LevelInfo {
+    /// The level (0 = full resolution).
     pub level: u8,
     /// Bricks per axis.
     pub grid: [u32; 3],
@@ -17,21 +18,30 @@ pub struct LevelInfo {
 /// `GET /v1/volumes/{name}`: what a client needs to address any brick.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct VolumeInfo {
+    /// The name it is served under.
     pub name: String,
+    /// Level-0 size in voxels (x, y, z).
     pub dims: [u32; 3],
+    /// The voxel type (u8 or u16).
     pub voxel_type: VoxelType,
-    /// L, H and S of the voxel type (`spec/icvg.md`).
+    /// L, H and S of the voxel type (`docs/icvg.md`).
     pub low: u16,
+    /// H, the largest value.
     pub high: u16,
+    /// S, the surface threshold: a voxel is inside when its value is at least S.
     pub surface: u16,
+    /// Brick edge in voxels (every level's bricks have it).
     pub brick: u32,
+    /// Every level, finest first.
     pub levels: Vec<LevelInfo>,
+    /// World size of one level-0 voxel (x, y, z).
     pub voxel_scale: [f32; 3],
     /// The current version; edits increase it.
     pub version: u64,
 }
 
 impl VolumeInfo {
+    /// The metadata of volume `name` with `layout`, at `version`.
     pub fn new(name: &str, layout: &VolumeLayout, voxel_scale: [f32; 3], version: u64) -> Self {
         let t = layout.voxel_type();
         VolumeInfo {
@@ -58,6 +68,7 @@ impl VolumeInfo {
 /// `GET /v1/volumes`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct VolumeList {
+    /// Every served volume, by name.
     pub volumes: Vec<VolumeInfo>,
 }
 
@@ -67,8 +78,11 @@ pub struct Problem {
     /// A URI naming the kind of problem (`about:blank` when the status says it all).
     #[serde(rename = "type")]
     pub kind: String,
+    /// The status's reason phrase.
     pub title: String,
+    /// The HTTP status code.
     pub status: u16,
+    /// What went wrong, for a person (generic for server errors).
     pub detail: String,
     /// The volume's current version, on a 409 from a conditional edit (`If-Match`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -80,7 +94,9 @@ pub struct Problem {
 pub struct LevelBrick {
     /// Content hash, 16 hex digits: `GET .../blobs/{hash}` fetches it.
     pub hash: String,
+    /// The brick's smallest voxel value.
     pub min: u16,
+    /// The brick's largest voxel value.
     pub max: u16,
 }
 
@@ -88,11 +104,17 @@ pub struct LevelBrick {
 /// `min..max` (brick coordinates, max exclusive) of it; bricks x fastest, then y, then z.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct LevelGrid {
+    /// The level.
     pub level: u8,
+    /// The level's whole brick grid.
     pub grid: [u32; 3],
+    /// The first brick of the region listed (inclusive).
     pub min: [u32; 3],
+    /// The end of the region listed (exclusive).
     pub max: [u32; 3],
+    /// The version the grid describes.
     pub version: u64,
+    /// The region's bricks, x fastest, then y, then z.
     pub bricks: Vec<LevelBrick>,
 }
 
@@ -106,6 +128,7 @@ pub struct EditResponse {
     pub version: u64,
     /// The version it was applied to.
     pub previous: u64,
+    /// The bricks whose content changed, per level.
     pub changed: ChangedBricks,
     /// Level-0 bricks whose voxels were evaluated.
     pub evaluated: u64,
@@ -120,14 +143,18 @@ pub struct EditResponse {
 /// One committed version as the change feed announces it.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ChangeEvent {
+    /// The version committed.
     pub version: u64,
+    /// When it was committed (Unix milliseconds).
     pub timestamp_ms: u64,
+    /// The bricks whose content changed, per level.
     pub changed: ChangedBricks,
 }
 
 /// `GET /v1/volumes/{name}/changes?since=N`: the versions after `since`, oldest first.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ChangeList {
+    /// The version the list starts after.
     pub since: u64,
     /// The current version.
     pub head: u64,
@@ -135,6 +162,7 @@ pub struct ChangeList {
     pub oldest: u64,
     /// Versions after the last listed one exist: ask again from it.
     pub more: bool,
+    /// The versions after `since`, oldest first.
     pub changes: Vec<ChangeEvent>,
 }
 
@@ -143,9 +171,12 @@ pub struct ChangeList {
 pub struct CompactResponse {
     /// The head version, unchanged by compaction.
     pub version: u64,
+    /// File size before compaction.
     pub bytes_before: u64,
+    /// File size after compaction.
     pub bytes_after: u64,
     /// Distinct brick records in the new file.
     pub bricks: u64,
+    /// How long compaction took, in microseconds.
     pub elapsed_us: u64,
 }

@@ -25,7 +25,9 @@ pub const MAX_BATCH: usize = 4096;
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct BatchRequest {
+    /// The bricks, as (level, x, y, z).
     pub keys: Vec<(u8, u32, u32, u32)>,
+    /// The version to read; the newest when absent.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub version: Option<u64>,
     /// `raw` (default): decoded voxels; `stored`: the payload as stored (lz4, zstd, raw, or a
@@ -34,29 +36,40 @@ pub struct BatchRequest {
     pub encoding: BatchEncoding,
 }
 
+/// How the bricks of a batch are sent.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum BatchEncoding {
+    /// Decoded voxels.
     #[default]
     Raw,
+    /// As stored, for clients that decode themselves.
     Stored,
 }
 
 /// How one brick's payload is encoded in a batch.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum BatchCodec {
+    /// Decoded voxels.
     Raw = 0,
+    /// An lz4 block of the voxels.
     Lz4 = 1,
+    /// A zstd frame of the voxels.
     Zstd = 2,
+    /// A constant brick: the payload is its one value (u16 little endian).
     Constant = 3,
 }
 
 /// One brick of a batch.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct BatchEntry {
+    /// The brick.
     pub key: BrickKey,
+    /// How the payload is encoded.
     pub codec: BatchCodec,
+    /// The brick's content hash (of its decoded voxels).
     pub hash: u64,
+    /// The payload bytes.
     pub payload: Vec<u8>,
 }
 

@@ -11,32 +11,53 @@ pub enum FormatError {
         "{what} is truncated: needs {needed} bytes at offset {offset}, only {available} available"
     )]
     Truncated {
+        /// The record.
         what: &'static str,
+        /// Where it starts in the file.
         offset: u64,
+        /// The bytes it needs.
         needed: u64,
+        /// The bytes there are.
         available: u64,
     },
     /// A magic number or signature does not match.
     #[error("{what} has a bad signature: expected {expected:?}, found {found:?}")]
     BadMagic {
+        /// The record.
         what: &'static str,
+        /// The signature it must have.
         expected: [u8; 4],
+        /// The bytes found instead.
         found: [u8; 4],
     },
     /// A stored checksum does not match the bytes it covers.
     #[error("{what} checksum mismatch at offset {offset}: stored {stored:#018x}, computed {computed:#018x}")]
     Checksum {
+        /// The record.
         what: &'static str,
+        /// Where it starts in the file.
         offset: u64,
+        /// The checksum stored with it.
         stored: u64,
+        /// The checksum of its bytes.
         computed: u64,
     },
     /// A field holds a value outside its allowed range.
     #[error("{what}: {detail}")]
-    Invalid { what: &'static str, detail: String },
+    Invalid {
+        /// The record or field.
+        what: &'static str,
+        /// What is wrong.
+        detail: String,
+    },
     /// The file is a version or variant this build does not read.
     #[error("unsupported {what}: {detail}")]
-    Unsupported { what: &'static str, detail: String },
+    Unsupported {
+        /// The part.
+        what: &'static str,
+        /// What it is.
+        detail: String,
+    },
 }
 
 impl FormatError {

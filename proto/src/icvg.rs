@@ -1,4 +1,4 @@
-//! ICVG terms and edit requests as JSON (`spec/icvg.md`, "Term JSON").
+//! ICVG terms and edit requests as JSON (`docs/icvg.md`, "Term JSON").
 //!
 //! A term is a tree: leaves are primitives placed in the world (level-0 voxel coordinates) or
 //! stored volumes; inner nodes are operators. Every variant below serializes as a one-key object
@@ -13,101 +13,149 @@ pub enum Term {
     /// Extension space `size` (every side > 2) starting at `origin`: L padding layer, S surface
     /// layer, H inside.
     Cuboid {
+        /// The first voxel of its extension space.
         origin: [i64; 3],
+        /// The extension space's size (every side > 2).
         size: [u32; 3],
     },
     /// Radii `R >= 1`; extension `2R + 1` per axis, centred on `center`.
     Ellipsoid {
+        /// The centre voxel.
         center: [i64; 3],
+        /// The radii along x, y, z (each at least 1).
         radii: [u32; 3],
     },
     /// Axis +y; `base` is the centre of the bottom padding layer; extension
     /// `(2 rx + 1, height, 2 rz + 1)`.
     Cylinder {
+        /// The centre of the bottom padding layer.
         base: [i64; 3],
+        /// The radii along x and z.
         radii: [u32; 2],
+        /// The height along +y (at least 3).
         height: u32,
     },
     /// Apex up (+y), otherwise placed like the cylinder.
     Cone {
+        /// The centre of the bottom padding layer.
         base: [i64; 3],
+        /// The base's radii along x and z.
         radii: [u32; 2],
+        /// The height along +y, apex at the top (at least 3).
         height: u32,
     },
     /// Ring around the +y axis through `center`: `major` is the radius of the tube's centre
     /// circle, `minor` the tube's radius; extension `(2(major + minor) + 1, 2 minor + 1, ...)`.
     Torus {
+        /// The centre of the ring.
         center: [i64; 3],
+        /// The radius of the tube's centre circle.
         major: u32,
+        /// The tube's radius (at least 1).
         minor: u32,
     },
     /// A segment along +y of `length` voxels centred on `center`, swept by a ball of `radius`;
     /// extension `(2 r + 1, 2 ceil(length / 2) + 2 r + 1, 2 r + 1)`, symmetric about `center`.
     Capsule {
+        /// The centre of the segment.
         center: [i64; 3],
+        /// The ball's radius (at least 1).
         radius: u32,
+        /// The segment's length along +y.
         length: u32,
     },
     /// A wedge: the cuboid `origin`/`size` cut by the plane through its top-left and
     /// bottom-right edges (x-y cross-section a right triangle, extruded along z).
     Prism {
+        /// The first voxel of its bounding cuboid.
         origin: [i64; 3],
+        /// The bounding cuboid's size (every side at least 4).
         size: [u32; 3],
     },
     /// A square pyramid: base the bottom of the cuboid `origin`/`size`, apex the centre of its
     /// top.
     Pyramid {
+        /// The first voxel of its bounding cuboid.
         origin: [i64; 3],
+        /// The bounding cuboid's size (every side at least 4).
         size: [u32; 3],
     },
     /// Another stored volume's level 0, placed with its voxel (0, 0, 0) at `origin`; with
     /// `region`, only that box of it (min inclusive, max exclusive, in its own voxels), placed
     /// with the region's `min` corner at `origin`.
     Volume {
+        /// The other volume's name (same voxel type).
         name: String,
+        /// Where its first voxel (or the region's `min`) lands.
         origin: [i64; 3],
+        /// Only this box of it; all of it when absent.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         region: Option<Region>,
     },
+    /// max(D1, D2).
     Union(Box<Term>, Box<Term>),
+    /// min(D1, D2).
     Intersection(Box<Term>, Box<Term>),
+    /// D1 where D1 >= D2, else L.
     Trim(Box<Term>, Box<Term>),
+    /// D1 where D1 <= D2, else L.
     Cap(Box<Term>, Box<Term>),
+    /// Carving that keeps the source's visible surface (`docs/icvg.md`).
     Difference(Box<Term>, Box<Term>),
+    /// max(D1 - D2, L).
     DifferenceA(Box<Term>, Box<Term>),
+    /// max(D1 - D2, L) where D2 >= S, else D1.
     DifferenceB(Box<Term>, Box<Term>),
+    /// min(D1 + D2, H).
     Add(Box<Term>, Box<Term>),
+    /// min(D1 * D2, H).
     Modulate(Box<Term>, Box<Term>),
+    /// D1 * D2 / H.
     Product(Box<Term>, Box<Term>),
+    /// D1 / D2 where D2 > 0, else H.
     DivideA(Box<Term>, Box<Term>),
+    /// D1 / (D2 * s_l) where that is positive, else H.
     Divide {
+        /// The scale of the divisor, in (0, 1].
         s_l: f64,
+        /// D1 and D2.
         args: (Box<Term>, Box<Term>),
     },
+    /// H - D1.
     Inverse(Box<Term>),
     /// Same as inverse (CVG's name).
     Complement(Box<Term>),
+    /// D1 + k, clamped to [L, H].
     AddScalar {
+        /// The amount added, within +-H.
         k: i32,
+        /// D1.
         arg: Box<Term>,
     },
     /// An uploaded watertight mesh (`POST /v1/meshes`, named by its content hash), placed so
     /// that model point p lands at voxel `p * scale + offset`, as a density (2x2x2 samples per
     /// voxel: H inside, L outside, the fraction inside near the surface).
     Mesh {
+        /// The upload's content hash, 16 hex digits.
         hash: String,
+        /// Where model point (0, 0, 0) lands, in voxels.
         offset: [f64; 3],
+        /// Voxels per model unit.
         scale: f64,
     },
     /// Grey-value dilation: the maximum over a box of `radius` voxels around each voxel (a
     /// cube of side 2 * radius + 1); on a binary volume, morphological dilation.
     Dilate {
+        /// The window is the cube of side 2 * radius + 1 (at least 1).
         radius: u32,
+        /// The term dilated.
         arg: Box<Term>,
     },
     /// Grey-value erosion: the minimum over the same box.
     Erode {
+        /// The window is the cube of side 2 * radius + 1 (at least 1).
         radius: u32,
+        /// The term eroded.
         arg: Box<Term>,
     },
 }
@@ -116,7 +164,9 @@ pub enum Term {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Region {
+    /// The first voxel (inclusive).
     pub min: [i64; 3],
+    /// The end (exclusive).
     pub max: [i64; 3],
 }
 
@@ -131,13 +181,18 @@ pub struct Region {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct EditRequest {
+    /// The operator: a binary operator's name, or `inverse`, `complement`, `add_scalar`.
     pub op: String,
+    /// The operand of a binary operator.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub term: Option<Term>,
+    /// `divide`'s divisor scale.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub s_l: Option<f64>,
+    /// `add_scalar`'s amount.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub k: Option<i32>,
+    /// Where the edit applies; the whole volume when absent.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub region: Option<Region>,
 }

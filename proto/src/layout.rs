@@ -16,6 +16,7 @@ use std::fmt;
 
 /// Smallest and largest brick edge accepted (a power of two in between).
 pub const MIN_BRICK: u32 = 2;
+/// The largest brick edge accepted.
 pub const MAX_BRICK: u32 = 256;
 /// Upper bound on the number of nodes of a volume's pyramid. It bounds every allocation that
 /// depends on a header's dimensions (2^32 nodes of 8 bytes is already 32 GiB of index).
@@ -35,9 +36,13 @@ pub struct VolumeLayout {
 /// The address of one brick: a level of detail and a position in that level's brick grid.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 pub struct BrickKey {
+    /// The level (0 = full resolution).
     pub level: u8,
+    /// The brick's x in the level's grid.
     pub x: u32,
+    /// The brick's y in the level's grid.
     pub y: u32,
+    /// The brick's z in the level's grid.
     pub z: u32,
 }
 
@@ -97,14 +102,17 @@ impl VolumeLayout {
         })
     }
 
+    /// Level-0 size in voxels.
     pub fn dims(&self) -> [u32; 3] {
         self.dims
     }
 
+    /// Brick edge in voxels.
     pub fn brick(&self) -> u32 {
         self.brick
     }
 
+    /// The voxel type.
     pub fn voxel_type(&self) -> VoxelType {
         self.voxel_type
     }

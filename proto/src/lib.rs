@@ -15,6 +15,8 @@
 //!   and decoded over byte slices with validation. The byte layout is in `docs/vod2.md`.
 //! - [`error`]: [`FormatError`], what a malformed record is.
 
+#![warn(missing_docs)]
+
 pub mod api;
 pub mod batch;
 pub mod error;

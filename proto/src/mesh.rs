@@ -32,22 +32,28 @@ use crate::vod2::Fields;
 /// from outside).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Mesh {
+    /// Vertex positions.
     pub positions: Vec<[f32; 3]>,
+    /// Unit normals, one per vertex.
     pub normals: Vec<[f32; 3]>,
+    /// Triangles, three vertex indices each, counter-clockwise seen from outside.
     pub indices: Vec<u32>,
 }
 
 impl Mesh {
+    /// Empties the mesh, keeping its memory.
     pub fn clear(&mut self) {
         self.positions.clear();
         self.normals.clear();
         self.indices.clear();
     }
 
+    /// The number of triangles.
     pub fn triangles(&self) -> usize {
         self.indices.len() / 3
     }
 
+    /// Whether it has no triangle.
     pub fn is_empty(&self) -> bool {
         self.indices.is_empty()
     }

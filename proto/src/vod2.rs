@@ -91,18 +91,23 @@ impl<'a> Fields<'a> {
         Ok(a)
     }
 
+    /// The u16 at `off`.
     pub fn u16(&self, off: usize) -> Result<u16, FormatError> {
         Ok(u16::from_le_bytes(self.array(off)?))
     }
+    /// The u32 at `off`.
     pub fn u32(&self, off: usize) -> Result<u32, FormatError> {
         Ok(u32::from_le_bytes(self.array(off)?))
     }
+    /// The u64 at `off`.
     pub fn u64(&self, off: usize) -> Result<u64, FormatError> {
         Ok(u64::from_le_bytes(self.array(off)?))
     }
+    /// The f32 at `off`.
     pub fn f32(&self, off: usize) -> Result<f32, FormatError> {
         Ok(f32::from_le_bytes(self.array(off)?))
     }
+    /// The four bytes at `off`.
     pub fn fourcc(&self, off: usize) -> Result<[u8; 4], FormatError> {
         self.array(off)
     }
@@ -154,13 +159,16 @@ fn seal(buf: &mut [u8], stored_at: usize) {
 /// The file header: the volume's shape, fixed when the file is created.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FileHeader {
+    /// Dimensions, brick edge and voxel type.
     pub layout: VolumeLayout,
     /// World size of one level-0 voxel.
     pub voxel_scale: [f32; 3],
+    /// Reserved flags (0).
     pub flags: u32,
 }
 
 impl FileHeader {
+    /// The header of a new file.
     pub fn new(layout: VolumeLayout, voxel_scale: [f32; 3]) -> Self {
         FileHeader {
             layout,
@@ -169,6 +177,7 @@ impl FileHeader {
         }
     }
 
+    /// The header's bytes.
     pub fn encode(&self) -> [u8; HEADER_LEN] {
         let mut b = [0u8; HEADER_LEN];
         let l = &self.layout;
@@ -270,6 +279,7 @@ pub struct HeaderSlot {
 }
 
 impl HeaderSlot {
+    /// The slot's bytes, checksum included.
     pub fn encode(&self) -> [u8; SLOT_LEN] {
         let mut b = [0u8; SLOT_LEN];
         put(&mut b, 0, &SLOT_MAGIC);
@@ -325,6 +335,7 @@ pub enum Codec {
 }
 
 impl Codec {
+    /// The codec's name as the command line and reports spell it.
     pub fn name(self) -> &'static str {
         match self {
             Codec::Raw => "raw",
@@ -341,14 +352,17 @@ pub struct BrickHeader {
     pub hash: u64,
     /// Payload bytes that follow the header.
     pub stored_len: u32,
+    /// How the payload is encoded.
     pub codec: Codec,
     /// Smallest and largest voxel value of the brick (answers "can this hold a surface?"
     /// without decoding).
     pub min: u16,
+    /// The largest voxel value.
     pub max: u16,
 }
 
 impl BrickHeader {
+    /// The header's bytes.
     pub fn encode(&self) -> [u8; BRICK_HEADER_LEN] {
         let mut b = [0u8; BRICK_HEADER_LEN];
         put(&mut b, 0, &self.hash.to_le_bytes());
@@ -430,6 +444,7 @@ pub enum NodeEntry {
 }
 
 impl NodeEntry {
+    /// The entry as stored in the index.
     pub fn encode(self) -> u64 {
         match self {
             NodeEntry::Constant(v) => NODE_CONSTANT | v as u64,
@@ -471,13 +486,16 @@ impl NodeEntry {
 /// (node index u64, [`NodeEntry`] u64) and an xxh3 checksum of everything before it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct CommitHeader {
+    /// The version this commit makes.
     pub version: u64,
     /// Offset of the previous commit record, 0 for the first.
     pub parent: u64,
+    /// When it was committed (Unix milliseconds).
     pub timestamp_ms: u64,
     /// Offset of an index checkpoint holding the full index after this commit, or 0 when the
     /// index is the parent's with this commit's changes applied.
     pub checkpoint: u64,
+    /// Index changes that follow the fixed part.
     pub n_changes: u64,
 }
 
@@ -578,6 +596,7 @@ impl CommitHeader {
 pub struct ChunkRef {
     /// Offset of the payload, relative to the checkpoint's start.
     pub offset: u64,
+    /// Payload bytes.
     pub stored_len: u32,
     /// [`Codec::Raw`] (the little-endian entries) or [`Codec::Zstd`].
     pub codec: Codec,
@@ -607,12 +626,14 @@ pub const CHUNK_REF_LEN: usize = 32;
 /// chunk is first used.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Checkpoint<'a> {
+    /// Index entries the checkpoint holds.
     pub n_nodes: u64,
     base: u64,
     bytes: &'a [u8],
 }
 
 impl<'a> Checkpoint<'a> {
+    /// Chunks of [`CHUNK_ENTRIES`] entries for `n_nodes` entries.
     pub fn n_chunks(n_nodes: u64) -> u64 {
         n_nodes.div_ceil(CHUNK_ENTRIES)
     }

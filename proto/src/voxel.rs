@@ -4,11 +4,13 @@ use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::str::FromStr;
 
-/// The scalar type of a voxel. Values are unsigned integers in `[L, H]` (`spec/icvg.md`).
+/// The scalar type of a voxel. Values are unsigned integers in `[L, H]` (`docs/icvg.md`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum VoxelType {
+    /// 8 bits per voxel: L 0, H 255, S 127.
     U8,
+    /// 16 bits per voxel, little endian: L 0, H 65535, S 32767.
     U16,
 }
 
@@ -85,7 +87,7 @@ mod tests {
 
     #[test]
     fn range_table_matches_the_spec() {
-        // spec/icvg.md: u8 0/255/127, u16 0/65535/32767.
+        // docs/icvg.md: u8 0/255/127, u16 0/65535/32767.
         assert_eq!(
             (
                 VoxelType::U8.low(),

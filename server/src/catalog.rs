@@ -1,7 +1,7 @@
 //! The volumes a server serves: every VOD 2 file of its data directory, named after the file.
 
 use crate::store::{StoreError, Vod2};
-use crate::volume::LiveVolume;
+use crate::volume::{LiveVolume, VolumeError};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -81,14 +81,27 @@ impl Catalog {
         self.volumes.get(name)
     }
 
+    /// The volume `name`, borrowed.
+    ///
+    /// # Errors
+    /// [`VolumeError::NoSuchVolume`].
+    pub fn get(&self, name: &str) -> Result<&Arc<LiveVolume>, VolumeError> {
+        self.volumes
+            .get(name)
+            .ok_or_else(|| VolumeError::NoSuchVolume(name.to_string()))
+    }
+
+    /// The volumes with their names, in name order.
     pub fn iter(&self) -> impl Iterator<Item = (&str, &Arc<LiveVolume>)> {
         self.volumes.iter().map(|(n, v)| (n.as_str(), v))
     }
 
+    /// How many volumes.
     pub fn len(&self) -> usize {
         self.volumes.len()
     }
 
+    /// Whether there is none.
     pub fn is_empty(&self) -> bool {
         self.volumes.is_empty()
     }

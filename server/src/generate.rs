@@ -1,12 +1,18 @@
 //! Synthetic data sets like the thesis's (its Table 2): an ellipsoid filling the volume, and a
 //! terrain from a fractal Perlin-noise height map. Both are [`BrickSource`]s, so any size streams
-//! into a VOD 2 file without holding the volume in memory.
+//! into a VOD 2 file without holding the volume in memory. And the demo scene: the terrain with
+//! tunnels, a crater and a few primitives, made by ICVG edits.
 
-use crate::icvg::primitives::{constant_over, Box3, Ellipsoid, Primitive};
-use crate::store::BrickSource;
+use crate::geometry::Box3;
+use crate::icvg::primitives::{Ellipsoid, Primitive};
+use crate::store::build::{build_file, sibling, FileFormat};
+use crate::store::{BrickSource, BuildOptions, SnapshotSource, StoreError, Vod2};
+use crate::volume::{edit_file, VolumeError};
+use isovox_proto::icvg::{EditRequest, Term};
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use noise::{Fbm, MultiFractal, NoiseFn, Perlin};
 use rayon::prelude::*;
+use std::path::{Path, PathBuf};
 
 /// Writes `value` at voxel `(x, y, z)` of a brick buffer.
 fn put(out: &mut [u8], index: usize, value: u16, voxel_type: VoxelType) {
@@ -16,26 +22,26 @@ fn put(out: &mut [u8], index: usize, value: u16, voxel_type: VoxelType) {
     }
 }
 
-/// The brick's voxel box at level 0, clipped to the volume: `(lo, hi)` inclusive, and whether
-/// the brick lies wholly inside the volume.
-fn brick_box(layout: &VolumeLayout, key: BrickKey) -> ([i64; 3], [i64; 3], bool) {
-    let b = layout.brick() as i64;
-    let dims = layout.dims();
-    let lo = [key.x, key.y, key.z].map(|c| c as i64 * b);
-    let hi = [0, 1, 2].map(|a| (lo[a] + b - 1).min(dims[a] as i64 - 1));
-    let whole = (0..3).all(|a| lo[a] + b <= dims[a] as i64);
-    (lo, hi, whole)
+/// The brick's voxel box at level 0 clipped to the volume, and whether the brick lies wholly
+/// inside the volume.
+fn clipped_brick(layout: &VolumeLayout, key: BrickKey) -> (Box3, bool) {
+    let whole = Box3::of_brick(layout, key);
+    let clipped = whole.intersect(&Box3::of_volume(layout));
+    (clipped, clipped == whole)
 }
 
 /// The ICVG ellipsoid filling the volume: radii `(dims - 1) / 2` (at least 1), centred so that
 /// its extension space `2R + 1` starts at voxel 0.
 #[derive(Debug, Clone)]
 pub struct EllipsoidSource {
+    /// The volume's layout.
     pub layout: VolumeLayout,
+    /// The ellipsoid, placed.
     pub ellipsoid: Ellipsoid,
 }
 
 impl EllipsoidSource {
+    /// The ellipsoid filling `layout`'s volume.
     pub fn new(layout: VolumeLayout) -> Self {
         let radii = layout.dims().map(|d| ((d.saturating_sub(1)) / 2).max(1));
         EllipsoidSource {
@@ -50,12 +56,12 @@ impl EllipsoidSource {
 
 impl BrickSource for EllipsoidSource {
     fn fill(&self, key: BrickKey, out: &mut [u8]) {
-        let (lo, hi, _) = brick_box(&self.layout, key);
+        let (Box3 { min: lo, max: hi }, _) = clipped_brick(&self.layout, key);
         let b = self.layout.brick() as usize;
         let t = self.layout.voxel_type();
-        for z in lo[2]..=hi[2] {
-            for y in lo[1]..=hi[1] {
-                for x in lo[0]..=hi[0] {
+        for z in lo[2]..hi[2] {
+            for y in lo[1]..hi[1] {
+                for x in lo[0]..hi[0] {
                     let i = (((z - lo[2]) as usize * b + (y - lo[1]) as usize) * b)
                         + (x - lo[0]) as usize;
                     put(out, i, self.ellipsoid.sample([x, y, z], t), t);
@@ -65,9 +71,9 @@ impl BrickSource for EllipsoidSource {
     }
 
     fn constant(&self, key: BrickKey) -> Option<u16> {
-        let (lo, hi, whole) = brick_box(&self.layout, key);
+        let (inside, whole) = clipped_brick(&self.layout, key);
         let t = self.layout.voxel_type();
-        match constant_over(&self.ellipsoid, &Box3::new(lo, hi.map(|c| c + 1)), t) {
+        match self.ellipsoid.constant_over(&inside, t) {
             // A partial brick is padded with L: constant only if the inside is L too.
             Some(v) if whole || v == t.low() => Some(v),
             _ => None,
@@ -80,6 +86,7 @@ impl BrickSource for EllipsoidSource {
 /// so marching cubes finds a smooth surface at S.
 #[derive(Debug, Clone)]
 pub struct WorldSource {
+    /// The volume's layout.
     pub layout: VolumeLayout,
     /// Height of the ground at each (x, z) column, x fastest, in voxels.
     heights: Vec<f32>,
@@ -138,14 +145,14 @@ impl WorldSource {
 
 impl BrickSource for WorldSource {
     fn fill(&self, key: BrickKey, out: &mut [u8]) {
-        let (lo, hi, _) = brick_box(&self.layout, key);
+        let (Box3 { min: lo, max: hi }, _) = clipped_brick(&self.layout, key);
         let b = self.layout.brick() as usize;
         let t = self.layout.voxel_type();
         let dx = self.layout.dims()[0] as usize;
-        for z in lo[2]..=hi[2] {
-            for x in lo[0]..=hi[0] {
+        for z in lo[2]..hi[2] {
+            for x in lo[0]..hi[0] {
                 let h = self.heights[z as usize * dx + x as usize];
-                for y in lo[1]..=hi[1] {
+                for y in lo[1]..hi[1] {
                     let i = (((z - lo[2]) as usize * b + (y - lo[1]) as usize) * b)
                         + (x - lo[0]) as usize;
                     put(out, i, Self::value(h, y, t.high()), t);
@@ -155,18 +162,149 @@ impl BrickSource for WorldSource {
     }
 
     fn constant(&self, key: BrickKey) -> Option<u16> {
-        let (lo, hi, whole) = brick_box(&self.layout, key);
+        let (Box3 { min: lo, max: hi }, whole) = clipped_brick(&self.layout, key);
         let (hmin, hmax) = self.column_range[(key.z * self.layout.grid(0)[0] + key.x) as usize];
         let high = self.layout.voxel_type().high();
         // value(h, y) is L when h - y + 0.5 <= 0 and H when h - y + 0.5 >= 1.
         if lo[1] as f32 >= hmax + 0.5 {
             return Some(0);
         }
-        if whole && (hi[1] as f32) <= hmin - 0.5 {
+        if whole && ((hi[1] - 1) as f32) <= hmin - 0.5 {
             return Some(high);
         }
         None
     }
+}
+
+/// The edits that turn a generated world of `dims` into the demo scene: tunnels carved through
+/// the terrain, a crater, and a few primitives standing on it.
+pub fn scene_edits(dims: [u32; 3]) -> Vec<EditRequest> {
+    let [x, y, z] = dims.map(|d| d as i64);
+    let r = |v: i64| v.max(2) as u32;
+    let edit = |op: &str, term: Term| EditRequest {
+        op: op.into(),
+        term: Some(term),
+        s_l: None,
+        k: None,
+        region: None,
+    };
+    vec![
+        // Two tunnels along x and one along z, at two thirds of the terrain's mean height.
+        edit(
+            "difference",
+            Term::Ellipsoid {
+                center: [x / 2, y * 2 / 5, z / 3],
+                radii: [r(x * 9 / 20), r(y / 14), r(y / 14)],
+            },
+        ),
+        edit(
+            "difference",
+            Term::Ellipsoid {
+                center: [x / 2, y / 3, z * 2 / 3],
+                radii: [r(x * 9 / 20), r(y / 12), r(y / 12)],
+            },
+        ),
+        edit(
+            "difference",
+            Term::Ellipsoid {
+                center: [x / 3, y * 3 / 10, z / 2],
+                radii: [r(y / 16), r(y / 16), r(z * 9 / 20)],
+            },
+        ),
+        // A crater.
+        edit(
+            "difference",
+            Term::Ellipsoid {
+                center: [x * 3 / 4, y * 3 / 5, z / 4],
+                radii: [r(x / 10), r(y / 6), r(z / 10)],
+            },
+        ),
+        // A ring, a pyramid and a tower.
+        edit(
+            "union",
+            Term::Torus {
+                center: [x / 4, y * 4 / 5, z * 3 / 4],
+                major: r(x / 12),
+                minor: r(y / 30),
+            },
+        ),
+        edit(
+            "union",
+            Term::Pyramid {
+                origin: [x * 3 / 5, y / 3, z * 3 / 5],
+                size: [r(x / 8), r(y / 2), r(z / 8)],
+            },
+        ),
+        edit(
+            "union",
+            Term::Cylinder {
+                base: [x / 8, y / 5, z / 8],
+                radii: [r(x / 40), r(z / 40)],
+                height: r(y * 7 / 10),
+            },
+        ),
+        edit(
+            "union",
+            Term::Cone {
+                base: [x / 8, y * 9 / 10 - r(y / 5) as i64, z / 8],
+                radii: [r(x / 25), r(z / 25)],
+                height: r(y / 5),
+            },
+        ),
+    ]
+}
+
+/// Builds the demo scene into `output`: the world from `world`, the [`scene_edits`] applied,
+/// then the file rebuilt from the final level 0, so the result is version 1 with no history and
+/// no garbage.
+///
+/// # Errors
+/// A build, an edit or the rebuild fails.
+pub fn build_scene(
+    output: &Path,
+    layout: &VolumeLayout,
+    world: &dyn BrickSource,
+    options: &BuildOptions,
+) -> Result<(), VolumeError> {
+    let work = sibling(output, ".isovox-scene");
+    build_file(&work, layout, [1.0; 3], world, options, FileFormat::Vod2)?;
+    for request in scene_edits(layout.dims()) {
+        edit_file(&work, &request)?;
+    }
+    let edited = Vod2::open(&work)?;
+    let source = SnapshotSource::new(edited.head());
+    build_file(output, layout, [1.0; 3], &source, options, FileFormat::Vod2)?;
+    source.finish()?;
+    drop(edited);
+    let _ = std::fs::remove_file(&work);
+    Ok(())
+}
+
+/// The name of the volume `isovox serve` generates on first start.
+pub const DEMO_NAME: &str = "demo";
+
+/// Generates the demo world as `dir/demo.vod`: a 512 x 256 x 512 terrain with tunnels, a crater
+/// and a few primitives carved and added by ICVG edits (brick 32; about a second, under 2 MB).
+/// Returns the file's path.
+///
+/// # Errors
+/// The directory cannot be created, or the build fails.
+pub fn build_demo(dir: &Path, options: &BuildOptions) -> Result<PathBuf, VolumeError> {
+    std::fs::create_dir_all(dir).map_err(|e| {
+        VolumeError::Store(StoreError::Io {
+            context: format!("cannot create the data directory {}", dir.display()),
+            source: e,
+        })
+    })?;
+    let path = dir.join(format!("{DEMO_NAME}.vod"));
+    let layout = VolumeLayout::new([512, 256, 512], 32, VoxelType::U8).map_err(StoreError::from)?;
+    build_scene(
+        &path,
+        &layout,
+        &WorldSource::new(layout.clone(), 1),
+        options,
+    )?;
+    Ok(path)
 }
 
 #[cfg(test)]

@@ -1,25 +1,32 @@
 //! Isovox: serves large, editable volumes over HTTP.
 //!
-//! This crate is the server side: the storage engine, the volume algebra, and the `isovox`
-//! command-line tool that drives them. Data flows one way: command or request -> handler ->
-//! store / icvg -> bytes.
+//! This crate is the server side: the storage engine, the volume algebra, meshing, and the HTTP
+//! service. Data flows one way: request -> handler -> volume -> store / icvg / mesh -> bytes.
+//! The `isovox` command line is this package's binary (`src/main.rs`, `src/cli/`).
 //!
 //! Layout:
-//! - [`store`]: VOD 1 and VOD 2 files, brick index, deduplication, commits (the foundation).
-//! - [`icvg`]: primitives of the volume algebra (`spec/icvg.md`).
-//! - [`generate`]: synthetic data sets (ellipsoid, Perlin-noise world).
-//! - [`catalog`]: the volumes a server serves.
+//! - [`store`]: VOD 1 and VOD 2 files, brick index, deduplication, transactions (the foundation).
+//! - [`geometry`]: boxes of voxels, shared by the algebra, edits and generators.
+//! - [`icvg`]: the volume algebra: primitives, operators, terms and their compilation, edits.
+//! - [`mesh`]: marching cubes per tile, crack-free across tiles; the tile cache; mesh files.
 //! - [`voxelize`]: meshes into volumes (solid voxelization by parity, density, conservative fills).
-//! - [`volume`]: one served volume: current version, single writer, history, change feed.
-//! - [`http`]: the axum router, thin handlers, errors as responses.
-//! - [`cli`]: the `isovox` subcommands.
+//! - [`generate`]: synthetic data sets (ellipsoid, Perlin-noise world) and the demo scene.
+//! - [`volume`]: one served volume: versions, the single writer, reads and edits with their
+//!   checks, the change feed; [`volume::VolumeError`] says what went wrong.
+//! - [`catalog`]: the volumes a server serves.
+//! - [`http`]: the axum router, thin handlers, errors as responses (`http/error.rs` decides
+//!   every status code).
+//! - [`progress`]: how long jobs report progress.
+
+#![warn(missing_docs)]
 
 pub mod catalog;
-pub mod cli;
 pub mod generate;
+pub mod geometry;
 pub mod http;
 pub mod icvg;
 pub mod mesh;
+pub mod progress;
 pub mod store;
 pub mod volume;
 pub mod voxelize;

@@ -1,7 +1,9 @@
-//! The `isovox` command-line tool (`spec/cli.md`).
+//! The `isovox` command-line tool (`docs/cli.md`).
+
+mod cli;
 
 use clap::Parser;
-use isovox_server::cli::{run, Cli};
+use cli::{run, Cli};
 use std::process::ExitCode;
 
 // The server allocates small, short-lived buffers per request (headers, paths, response

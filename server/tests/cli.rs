@@ -74,7 +74,7 @@ fn inspect_json(path: &Path) -> Value {
     serde_json::from_slice(&out).expect("inspect --json prints JSON")
 }
 
-/// Checks the fields `spec/cli.md` lists against what the test knows.
+/// Checks the fields `docs/cli.md` lists against what the test knows.
 fn check_inspection(j: &Value, path: &Path, dims: [u32; 3], voxel_type: &str, brick: u32) {
     let bytes = if voxel_type == "u16" { 2 } else { 1 };
     assert_eq!(j["dims"], serde_json::json!(dims), "{j}");

@@ -11,12 +11,12 @@
 // unwrap is how a test says "this must work"; clippy exempts only #[test] functions.
 #![allow(clippy::unwrap_used)]
 
-use indicatif::ProgressBar;
 use isovox_proto::vod2::{
     NodeEntry, BRICK_HEADER_LEN, CHECKPOINT_FIXED_LEN, CHUNK_REF_LEN, DATA_START, SLOT_LEN,
     SLOT_OFFSETS,
 };
 use isovox_proto::{VolumeLayout, VoxelType};
+use isovox_server::progress::Silent;
 use isovox_server::store::codec::Compression;
 use isovox_server::store::inspect::inspect;
 use isovox_server::store::{
@@ -53,7 +53,7 @@ fn build(
     let grid = DenseGrid::new(dims, voxel_type, brick, &bytes);
     let options = BuildOptions {
         compression,
-        progress: ProgressBar::hidden(),
+        progress: std::sync::Arc::new(Silent),
     };
     build_vod2(path, &layout, [1.0; 3], &grid, &options).unwrap();
     layout

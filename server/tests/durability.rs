@@ -8,7 +8,7 @@
 //! - the versions listed by `changes?since=0` are consecutive from the first to the head;
 //! - every version's level 0 is exactly what the edits imply: for an acknowledged version, the
 //!   previous version's content with its edit applied, evaluated here independently (cuboid and
-//!   operators written out from `spec/icvg.md`, not the engine's code); for a version that exists
+//!   operators written out from `docs/icvg.md`, not the engine's code); for a version that exists
 //!   but was never acknowledged (committed just before the kill), the previous content with one
 //!   of the edits that were in flight at the kill (each at most once). Anything else is a partial
 //!   or garbage edit and fails;
@@ -280,7 +280,7 @@ fn all_changes(client: &reqwest::blocking::Client, server: &Server) -> (u64, u64
 }
 
 // ---------------------------------------------------------------------------------------------
-// The edits and their expected effect, evaluated independently (spec/icvg.md)
+// The edits and their expected effect, evaluated independently (docs/icvg.md)
 // ---------------------------------------------------------------------------------------------
 
 #[derive(Debug, Clone, Copy)]
@@ -353,7 +353,7 @@ impl Edit {
         let (l, h, s) = (i64::from(r.low), i64::from(r.high), i64::from(r.surface));
         let v = match self.op {
             Op::Union => d1.max(d2),
-            // spec/icvg.md, "Resolved (difference)": the S bound applies where the source is
+            // docs/icvg.md, "Resolved (difference)": the S bound applies where the source is
             // visible and the operand is not.
             Op::Difference => {
                 if d1 >= s && d2 < s {
@@ -813,7 +813,7 @@ fn sigkill_during_concurrent_edits_loses_no_acknowledged_version_and_shows_no_pa
     assert_eq!(
         (range.low, range.high, range.surface),
         (0, 255, 127),
-        "spec/icvg.md's u8 range"
+        "docs/icvg.md's u8 range"
     );
     let level_dims: Vec<[usize; 3]> = info
         .levels

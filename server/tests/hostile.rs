@@ -14,13 +14,13 @@
 // unwrap is how a test says "this must work"; clippy exempts only #[test] functions.
 #![allow(clippy::unwrap_used)]
 
-use indicatif::ProgressBar;
 use isovox_proto::layout::MAX_NODES;
 use isovox_proto::vod2::{
     content_hash, BrickHeader, Checkpoint, CommitHeader, FileHeader, HeaderSlot, NodeEntry,
     CHECKPOINT_FIXED_LEN, CHUNK_REF_LEN, DATA_START, HEADER_LEN, SLOT_LEN, SLOT_OFFSETS,
 };
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
+use isovox_server::progress::Silent;
 use isovox_server::store::codec::Compression;
 use isovox_server::store::inspect::inspect;
 use isovox_server::store::vod1::{write_vod1, Vod1};
@@ -154,7 +154,7 @@ fn fixture() -> &'static Fixture {
         let grid = DenseGrid::new([20, 12, 9], VoxelType::U8, 4, &bytes);
         let options = BuildOptions {
             compression: Compression::Zstd(3),
-            progress: ProgressBar::hidden(),
+            progress: std::sync::Arc::new(Silent),
         };
         build_vod2(&path, &layout, [1.0; 3], &grid, &options).unwrap();
         let levels = pyramid(&volume, 4);

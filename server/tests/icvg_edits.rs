@@ -10,11 +10,12 @@
 
 use isovox_proto::icvg::{EditRequest, Region, Term};
 use isovox_proto::{VolumeLayout, VoxelType};
-use isovox_server::icvg::edit::{apply_edit, CheckpointPolicy, Edit, EditKind, EditOutcome};
+use isovox_server::geometry::Box3;
+use isovox_server::icvg::edit::{apply_edit, Edit, EditKind, EditOutcome};
 use isovox_server::icvg::ops::Outside;
-use isovox_server::icvg::primitives::Box3;
 use isovox_server::icvg::term::{CompiledTerm, NoVolumes, TermError, TermLimits, VolumeResolver};
 use isovox_server::store::codec::Compression;
+use isovox_server::store::CheckpointPolicy;
 use isovox_server::store::{
     build_vod2, BuildOptions, DenseGrid, Snapshot, StoredBrick, Vod2, Vod2Writer,
 };
@@ -1032,7 +1033,7 @@ impl VolumeResolver for Files {
             .0
             .iter()
             .find(|(n, _)| n == name)
-            .ok_or_else(|| TermError(format!("no volume {name:?}")))?;
+            .ok_or_else(|| TermError::Volume(format!("no volume {name:?}")))?;
         Ok(Vod2::open(path).unwrap().head())
     }
 }

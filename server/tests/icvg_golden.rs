@@ -1,4 +1,4 @@
-//! Golden values of the ICVG algebra, computed by hand from `spec/icvg.md` (the computation of
+//! Golden values of the ICVG algebra, computed by hand from `docs/icvg.md` (the computation of
 //! each value is in the comment beside it; none is copied from the code's output).
 //!
 //! Value ranges: u8 L = 0, H = 255, S = floor(255 / 2) = 127; u16 L = 0, H = 65535, S = 32767.
@@ -6,10 +6,11 @@
 
 use isovox_proto::icvg::{EditRequest, Region, Term};
 use isovox_proto::VoxelType;
+use isovox_server::geometry::Box3;
 use isovox_server::icvg::edit::{Edit, EditKind};
 use isovox_server::icvg::ops::{BinaryOp, Outside, UnaryOp};
 use isovox_server::icvg::primitives::{
-    Box3, Capsule, Cone, Cuboid, Cylinder, Ellipsoid, Primitive, Prism, Pyramid, Torus,
+    Capsule, Cone, Cuboid, Cylinder, Ellipsoid, Primitive, Prism, Pyramid, Torus,
 };
 use isovox_server::icvg::term::{CompiledTerm, NoVolumes, TermLimits};
 

@@ -5,8 +5,8 @@
 
 use isovox_proto::icvg::Term;
 use isovox_proto::VoxelType;
+use isovox_server::geometry::Box3;
 use isovox_server::icvg::ops::{BinaryOp, UnaryOp};
-use isovox_server::icvg::primitives::Box3;
 use isovox_server::icvg::term::{CompiledTerm, NoVolumes, TermLimits};
 use proptest::prelude::*;
 

@@ -10,10 +10,11 @@
 
 use isovox_proto::icvg::{EditRequest, Term};
 use isovox_proto::{VolumeLayout, VoxelType};
-use isovox_server::icvg::edit::{apply_edit, CheckpointPolicy, Edit};
-use isovox_server::icvg::primitives::Box3;
+use isovox_server::geometry::Box3;
+use isovox_server::icvg::edit::{apply_edit, Edit};
 use isovox_server::icvg::term::{CompiledTerm, NoVolumes, TermError, TermLimits, VolumeResolver};
 use isovox_server::store::codec::Compression;
+use isovox_server::store::CheckpointPolicy;
 use isovox_server::store::{build_vod2, BuildOptions, DenseGrid, Snapshot, Vod2, Vod2Writer};
 use std::sync::Arc;
 
@@ -127,7 +128,7 @@ fn morphology_arguments_are_validated() {
         &NoVolumes,
     )
     .unwrap_err();
-    assert!(err.0.contains("radius"), "{}", err.0);
+    assert!(err.to_string().contains("radius"), "{err}");
     let json =
         r#"{"dilate": {"radius": 2, "arg": {"cuboid": {"origin": [0, 0, 0], "size": [5, 5, 5]}}}}"#;
     let term: Term = serde_json::from_str(json).unwrap();
@@ -210,7 +211,7 @@ fn an_edit_dilates_a_stored_volume() {
             max: d32,
         },
         &mut out,
-        &indicatif::ProgressBar::hidden(),
+        &isovox_server::progress::Silent,
     )
     .unwrap();
     for z in 0..dims[2] as i64 {

@@ -13,8 +13,9 @@ use isovox_proto::icvg::{EditRequest, Term};
 use isovox_proto::vod2::NodeEntry;
 use isovox_proto::{VolumeLayout, VoxelType};
 use isovox_server::generate::WorldSource;
-use isovox_server::icvg::edit::{CheckpointPolicy, Edit};
+use isovox_server::icvg::edit::Edit;
 use isovox_server::icvg::term::{NoVolumes, TermLimits};
+use isovox_server::store::CheckpointPolicy;
 use isovox_server::store::{build_vod2, BuildOptions, Snapshot, StoredBrick, Vod2};
 use isovox_server::volume::{LiveVolume, WriterSlot};
 use std::path::Path;
@@ -137,26 +138,28 @@ fn advanced_heads_equal_freshly_opened_ones_through_checkpoints() {
         answers.push(answer);
     }
     // Bricks replaced by edits stay findable by hash from the head, across checkpoint commits
-    // too (a client one version behind asks for them), and what is found has that content.
-    let head = vol.head();
+    // too (a client one version behind asks for them), and what is found has that content:
+    // from the live head, whose table was carried over commit by commit, and from the head of
+    // the file opened afresh (a restarted server), whose table is built from the file alone.
     let file = Vod2::open(&path).unwrap();
-    for v in first..=head.version {
-        let old = file.version(v).unwrap();
-        for node in 0..old.layout().node_count() {
-            let key = old.layout().key_of(node).unwrap();
-            let hash = old.hash(key).unwrap();
-            let found = head
-                .find_by_hash(hash)
-                .unwrap()
-                .unwrap_or_else(|| panic!("hash {hash:016x} of version {v} not found"));
-            let mut bytes = vec![0u8; head.layout().brick_bytes()];
-            isovox_server::store::vod2::decode_stored(
-                &head.stored_entry(found).unwrap(),
-                head.layout(),
-                &mut bytes,
-            )
-            .unwrap();
-            assert_eq!(bytes, old.read(key).unwrap());
+    for (head, which) in [(vol.head(), "live"), (file.head(), "reopened")] {
+        for v in first..=head.version {
+            let old = file.version(v).unwrap();
+            for node in 0..old.layout().node_count() {
+                let key = old.layout().key_of(node).unwrap();
+                let hash = old.hash(key).unwrap();
+                let found = head.find_by_hash(hash).unwrap().unwrap_or_else(|| {
+                    panic!("hash {hash:016x} of version {v} not found from the {which} head")
+                });
+                let mut bytes = vec![0u8; head.layout().brick_bytes()];
+                isovox_server::store::vod2::decode_stored(
+                    &head.stored_entry(found).unwrap(),
+                    head.layout(),
+                    &mut bytes,
+                )
+                .unwrap();
+                assert_eq!(bytes, old.read(key).unwrap());
+            }
         }
     }
     // Older versions through the live history equal those found by walking the file.
@@ -238,7 +241,7 @@ fn if_match_refuses_a_moved_head_and_changes_nothing() {
         CheckpointPolicy::default(),
     );
     match refused {
-        Err(isovox_server::volume::EditError::Conflict { expected, current }) => {
+        Err(isovox_server::volume::VolumeError::Conflict { expected, current }) => {
             assert_eq!((expected, current), (v1, v1 + 1));
         }
         other => panic!("expected a conflict, got {other:?}"),

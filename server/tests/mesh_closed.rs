@@ -6,11 +6,12 @@
 
 use isovox_proto::icvg::{EditRequest, Term};
 use isovox_proto::{VolumeLayout, VoxelType};
-use isovox_server::icvg::edit::{apply_edit, CheckpointPolicy, Edit};
+use isovox_server::icvg::edit::{apply_edit, Edit};
 use isovox_server::icvg::term::{NoVolumes, TermLimits};
 use isovox_server::mesh::level::{enclosed_volume, level_tiles, mesh_tiles, open_edges, weld};
 use isovox_server::mesh::tile::default_iso;
 use isovox_server::store::codec::Compression;
+use isovox_server::store::CheckpointPolicy;
 use isovox_server::store::{build_vod2, BuildOptions, DenseGrid, Vod2, Vod2Writer};
 use std::f64::consts::PI;
 
@@ -57,7 +58,7 @@ fn check_closed(name: &str, vod: &Vod2, analytic: f64, tolerance: f64) {
         &snap,
         &level_tiles(&snap, 0),
         default_iso(t),
-        &indicatif::ProgressBar::hidden(),
+        &isovox_server::progress::Silent,
     )
     .unwrap();
     assert!(
@@ -198,7 +199,7 @@ fn carved_compound_is_closed() {
         &snap,
         &level_tiles(&snap, 0),
         default_iso(VoxelType::U16),
-        &indicatif::ProgressBar::hidden(),
+        &isovox_server::progress::Silent,
     )
     .unwrap();
     let mesh = weld(&raw);

@@ -50,7 +50,7 @@ fn glb_loads_in_gltf_with_matching_accessors() {
             &snap,
             &level_tiles(&snap, 0),
             default_iso(VoxelType::U8),
-            &indicatif::ProgressBar::hidden(),
+            &isovox_server::progress::Silent,
         )
         .unwrap(),
     );

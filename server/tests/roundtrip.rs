@@ -10,8 +10,8 @@
 // unwrap is how a test says "this must work"; clippy exempts only #[test] functions.
 #![allow(clippy::unwrap_used)]
 
-use indicatif::ProgressBar;
 use isovox_proto::{VolumeLayout, VoxelType};
+use isovox_server::progress::Silent;
 use isovox_server::store::codec::Compression;
 use isovox_server::store::inspect::inspect;
 use isovox_server::store::raw::{export_raw, RawInput, Region};
@@ -38,7 +38,7 @@ fn build_from_raw_file(
     let vod_path = dir.join("out.vod");
     let options = BuildOptions {
         compression,
-        progress: ProgressBar::hidden(),
+        progress: std::sync::Arc::new(Silent),
     };
     build_vod2(&vod_path, &layout, [1.0; 3], &grid, &options).unwrap();
     Vod2::open(&vod_path).unwrap()
@@ -46,14 +46,7 @@ fn build_from_raw_file(
 
 fn export(snap: &Snapshot, level: u8, min: [u32; 3], max: [u32; 3]) -> Vec<u8> {
     let mut out = Vec::new();
-    export_raw(
-        snap,
-        level,
-        Region { min, max },
-        &mut out,
-        &ProgressBar::hidden(),
-    )
-    .unwrap();
+    export_raw(snap, level, Region { min, max }, &mut out, &Silent).unwrap();
     out
 }
 
@@ -292,13 +285,7 @@ fn export_rejects_empty_and_out_of_range_regions() {
     ];
     for (level, min, max) in bad {
         let mut out = Vec::new();
-        let r = export_raw(
-            &snap,
-            level,
-            Region { min, max },
-            &mut out,
-            &ProgressBar::hidden(),
-        );
+        let r = export_raw(&snap, level, Region { min, max }, &mut out, &Silent);
         let e = r.expect_err("export of an invalid region must fail");
         assert!(!e.to_string().is_empty());
     }

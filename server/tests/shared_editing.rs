@@ -3,7 +3,7 @@
 //! concurrent editors and change-feed subscribers, `If-Match`, token access control, the
 //! edit errors, compaction, and a subscriber that never reads.
 //!
-//! The expected voxels come from an independent evaluator written here from `spec/icvg.md`
+//! The expected voxels come from an independent evaluator written here from `docs/icvg.md`
 //! (the cuboid primitive, `union` and `difference`); nothing here calls the server's library.
 
 use reqwest::blocking::{Client, Response};
@@ -510,7 +510,7 @@ fn check_seen(who: &str, seen: &Seen, first: u64, last: u64, acked: &BTreeMap<u6
 }
 
 // ---------------------------------------------------------------------------------------------
-// The independent evaluator (spec/icvg.md)
+// The independent evaluator (docs/icvg.md)
 // ---------------------------------------------------------------------------------------------
 
 /// L, S, H of the volume as `GET /v1/volumes/w` reports them, and its voxel width.
@@ -602,7 +602,7 @@ impl CuboidEdit {
                     let d2 = self.density([x, y, z], r);
                     let v = match self.op {
                         Op::Union => d1.max(d2),
-                        // spec/icvg.md, "Resolved (difference)": the S bound applies where the
+                        // docs/icvg.md, "Resolved (difference)": the S bound applies where the
                         // source is visible and the operand is not.
                         Op::Difference => {
                             if d1 >= r.surface && d2 < r.surface {

@@ -10,8 +10,8 @@
 // unwrap is how a test says "this must work"; clippy exempts only #[test] functions.
 #![allow(clippy::unwrap_used)]
 
-use indicatif::ProgressBar;
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
+use isovox_server::progress::Silent;
 use isovox_server::store::codec::Compression;
 use isovox_server::store::raw::{export_raw, Region};
 use isovox_server::store::vod1::{write_vod1, Vod1, Vod1Source};
@@ -37,7 +37,7 @@ fn build(path: &Path, volume: &Grid, voxel_type: VoxelType, brick: u32, scale: [
     let grid = DenseGrid::new(dims, voxel_type, brick, &bytes);
     let options = BuildOptions {
         compression: Compression::Zstd(3),
-        progress: ProgressBar::hidden(),
+        progress: std::sync::Arc::new(Silent),
     };
     build_vod2(path, &layout, scale, &grid, &options).unwrap();
     Vod2::open(path).unwrap()
@@ -162,7 +162,7 @@ fn chain(voxel_type: VoxelType, compress: bool) {
     let source = Vod1Source::new(&vod1);
     let options = BuildOptions {
         compression: Compression::Lz4,
-        progress: ProgressBar::hidden(),
+        progress: std::sync::Arc::new(Silent),
     };
     build_vod2(
         &second_path,
@@ -179,14 +179,7 @@ fn chain(voxel_type: VoxelType, compress: bool) {
         min: [0; 3],
         max: dims,
     };
-    export_raw(
-        &second.head(),
-        0,
-        region,
-        &mut exported,
-        &ProgressBar::hidden(),
-    )
-    .unwrap();
+    export_raw(&second.head(), 0, region, &mut exported, &Silent).unwrap();
     assert!(
         exported == volume.to_bytes(voxel_type),
         "{what}: level 0 of the re-imported VOD 2 differs"

@@ -1110,7 +1110,7 @@ fn mesh_of(v: &Voxelized, dir: &Path) -> (usize, f64, usize) {
         &snap,
         &level_tiles(&snap, 0),
         default_iso(t),
-        &indicatif::ProgressBar::hidden(),
+        &isovox_server::progress::Silent,
     )
     .unwrap();
     let mesh = weld(&raw);
@@ -1198,7 +1198,7 @@ fn a_generated_world_mesh_voxelizes_back_to_the_world() {
         &snap,
         &level_tiles(&snap, 0),
         default_iso(t),
-        &indicatif::ProgressBar::hidden(),
+        &isovox_server::progress::Silent,
     )
     .unwrap();
     let mesh = weld(&raw);

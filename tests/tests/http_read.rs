@@ -4,14 +4,16 @@
 
 #![allow(clippy::unwrap_used)] // tests fail loudly on purpose
 
-use isovox_proto::api::{Problem, VolumeInfo, VolumeList};
+use isovox_proto::api::{VolumeInfo, VolumeList};
 use isovox_proto::{VolumeLayout, VoxelType};
-use isovox_server::catalog::Catalog;
 use isovox_server::generate::WorldSource;
 use isovox_server::http::auth::{Scope, Tokens};
-use isovox_server::http::{spawn, AppState, ServerConfig, Spawned};
+use isovox_server::http::{ServerConfig, Spawned};
 use isovox_server::store::{build_vod2, BuildOptions, Vod2};
 use std::path::{Path, PathBuf};
+
+mod common;
+use common::{problem, serve};
 
 struct Server {
     base: String,
@@ -38,10 +40,7 @@ async fn start_with(config: ServerConfig) -> Server {
         &BuildOptions::default(),
     )
     .unwrap();
-    let catalog = Catalog::open_dir(dir.path()).unwrap();
-    let server = spawn("127.0.0.1:0", AppState::with_config(catalog, config))
-        .await
-        .unwrap();
+    let server = serve(dir.path(), config).await;
     Server {
         base: server.base(),
         path,
@@ -55,15 +54,6 @@ fn expected_brick(path: &Path, level: u8, x: u32, y: u32, z: u32) -> Vec<u8> {
     let snap = vod.head();
     snap.read(snap.layout().key(level, x, y, z).unwrap())
         .unwrap()
-}
-
-async fn problem(resp: reqwest::Response, status: u16) -> Problem {
-    assert_eq!(resp.status().as_u16(), status);
-    assert_eq!(resp.headers()["content-type"], "application/problem+json");
-    let p: Problem = serde_json::from_slice(&resp.bytes().await.unwrap()).unwrap();
-    assert_eq!(p.status, status);
-    assert!(!p.detail.is_empty());
-    p
 }
 
 #[tokio::test]

@@ -5,7 +5,7 @@
 
 #![allow(clippy::unwrap_used)] // tests fail loudly on purpose
 
-use isovox_proto::api::{LevelGrid, Problem};
+use isovox_proto::api::LevelGrid;
 use isovox_proto::batch::{decode_batch, BatchCodec, BatchEntry};
 use isovox_proto::vod2::{content_hash, Codec};
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
@@ -17,6 +17,9 @@ use isovox_server::store::{build_vod2, BrickSource, BuildOptions, Snapshot, Stor
 use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+
+mod common;
+use common::problem;
 
 const BRICK_ROUTE: &str = "/v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}";
 const MESH_ROUTE: &str = "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}";
@@ -111,35 +114,6 @@ async fn start(vols: &[Vol], cpu_queue: usize) -> Server {
         _server: server,
         _dir: dir,
     }
-}
-
-/// Checks an RFC 9457 problem-details answer with `status`.
-async fn problem(resp: reqwest::Response, status: u16) -> Problem {
-    let url = resp.url().to_string();
-    let got = resp.status().as_u16();
-    let ctype = resp
-        .headers()
-        .get("content-type")
-        .map(|v| v.to_str().unwrap().to_string());
-    let body = resp.bytes().await.unwrap();
-    assert_eq!(
-        got,
-        status,
-        "{url}: status (body {:?})",
-        String::from_utf8_lossy(&body)
-    );
-    assert_eq!(
-        ctype.as_deref(),
-        Some("application/problem+json"),
-        "{url}: content type (body {:?})",
-        String::from_utf8_lossy(&body)
-    );
-    let p: Problem = serde_json::from_slice(&body).unwrap();
-    assert_eq!(p.status, status);
-    assert_eq!(p.kind, "about:blank");
-    assert!(!p.title.is_empty());
-    assert!(!p.detail.is_empty());
-    p
 }
 
 fn header(resp: &reqwest::Response, name: &str) -> Option<String> {

@@ -1,27 +1,29 @@
 //! The data tools: import, export, generate, inspect, get.
 
-use super::{parse_dims, parse_scale, progress, sibling, TypeArg};
-use crate::generate::{EllipsoidSource, WorldSource};
-use crate::store::codec::{Compression, DEFAULT_ZSTD_LEVEL};
-use crate::store::inspect::inspect as inspect_vod2;
-use crate::store::raw::{export_raw, rawvox_header, RawInput, Region, RAWVOX_MAGIC};
-use crate::store::vod1::{write_vod1, Vod1, Vod1Source};
-use crate::store::{build_vod2, mapping::Mapping, BrickSource, BuildOptions, DenseGrid, Vod2};
+use super::{parse_dims, parse_scale, progress, TypeArg};
 use anyhow::{anyhow, bail, Context};
 use clap::{Args, ValueEnum};
 use isovox_proto::VolumeLayout;
+use isovox_server::generate::{build_scene, EllipsoidSource, WorldSource};
+use isovox_server::store::build::{build_file, sibling, FileFormat};
+use isovox_server::store::codec::{Compression, DEFAULT_ZSTD_LEVEL};
+use isovox_server::store::inspect::inspect as inspect_vod2;
+use isovox_server::store::raw::{export_raw, rawvox_header, RawInput, Region, RAWVOX_MAGIC};
+use isovox_server::store::vod1::{write_vod1, Vod1File, Vod1Source};
+use isovox_server::store::{BrickSource, BuildOptions, DenseGrid, Vod2};
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum VodFormat {
+pub(crate) enum VodFormat {
     Vod2,
     Vod1,
 }
 
 #[derive(Debug, Args)]
-pub struct ImportArgs {
+pub(crate) struct ImportArgs {
     /// Input: .raw (needs --dims), .rawvox (carries its shape), or a VOD 1 file.
     pub input: PathBuf,
     /// Output file.
@@ -48,7 +50,7 @@ pub struct ImportArgs {
 
 /// How bricks are compressed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum CodecArg {
+pub(crate) enum CodecArg {
     /// zstd: the densest (default).
     Zstd,
     /// lz4: the fastest to decode.
@@ -58,7 +60,7 @@ pub enum CodecArg {
 }
 
 #[derive(Debug, Clone, Copy, Args)]
-pub struct CompressionArgs {
+pub(crate) struct CompressionArgs {
     /// Brick compression.
     #[arg(long, value_enum, default_value_t = CodecArg::Zstd)]
     pub codec: CodecArg,
@@ -68,7 +70,7 @@ pub struct CompressionArgs {
 }
 
 impl CompressionArgs {
-    pub fn compression(&self) -> Compression {
+    pub(crate) fn compression(&self) -> Compression {
         match self.codec {
             CodecArg::Zstd => Compression::Zstd(self.zstd_level),
             CodecArg::Lz4 => Compression::Lz4,
@@ -78,14 +80,14 @@ impl CompressionArgs {
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum ExportFormat {
+pub(crate) enum ExportFormat {
     Raw,
     Rawvox,
     Vod1,
 }
 
 #[derive(Debug, Args)]
-pub struct ExportArgs {
+pub(crate) struct ExportArgs {
     /// A VOD 2 file.
     pub input: PathBuf,
     /// Output file.
@@ -106,7 +108,7 @@ pub struct ExportArgs {
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum Dataset {
+pub(crate) enum Dataset {
     /// The ICVG ellipsoid sampling function filling the volume.
     Ellipsoid,
     /// Terrain from a fractal Perlin-noise height map.
@@ -116,7 +118,7 @@ pub enum Dataset {
 }
 
 #[derive(Debug, Args)]
-pub struct GenerateArgs {
+pub(crate) struct GenerateArgs {
     /// What to generate.
     #[arg(value_enum)]
     pub dataset: Dataset,
@@ -139,7 +141,7 @@ pub struct GenerateArgs {
 }
 
 #[derive(Debug, Args)]
-pub struct InspectArgs {
+pub(crate) struct InspectArgs {
     /// A VOD 2 or VOD 1 file.
     pub input: PathBuf,
     /// Print JSON for scripts.
@@ -148,7 +150,7 @@ pub struct InspectArgs {
 }
 
 #[derive(Debug, Args)]
-pub struct GetArgs {
+pub(crate) struct GetArgs {
     /// A VOD 2 or VOD 1 file.
     pub input: PathBuf,
     pub level: u8,
@@ -188,10 +190,8 @@ fn sniff(path: &Path) -> anyhow::Result<InputKind> {
     Ok(InputKind::Raw)
 }
 
-/// Builds `output` from `source` via a temporary file renamed into place, so an interrupted run
-/// never leaves a half-written volume under the final name. With `vod1`, the VOD 2 build is
-/// converted and removed.
-pub(crate) fn build_to(
+/// Builds `output` from `source` (see [`build_file`]) with a progress bar.
+pub(super) fn build_to(
     output: &Path,
     layout: &VolumeLayout,
     scale: [f32; 3],
@@ -199,44 +199,30 @@ pub(crate) fn build_to(
     compression: Compression,
     format: VodFormat,
 ) -> anyhow::Result<()> {
-    let tmp = sibling(output, ".isovox-tmp");
-    let options = BuildOptions {
-        compression,
-        progress: progress("building"),
+    let format = match format {
+        VodFormat::Vod2 => FileFormat::Vod2,
+        VodFormat::Vod1 => FileFormat::Vod1,
     };
-    let report = build_vod2(&tmp, layout, scale, source, &options)
+    build_file(output, layout, scale, source, &options(compression), format)
         .with_context(|| format!("cannot build {}", output.display()))?;
-    if format == VodFormat::Vod1 {
-        let vod = Vod2::open(&tmp)?;
-        let mut out = BufWriter::new(
-            File::create(output).with_context(|| format!("cannot create {}", output.display()))?,
-        );
-        write_vod1(&vod.head(), compression != Compression::None, &mut out)?;
-        out.flush()?;
-        drop(vod);
-        std::fs::remove_file(&tmp).ok();
-    } else {
-        std::fs::rename(&tmp, output)
-            .with_context(|| format!("cannot move the result to {}", output.display()))?;
-    }
-    tracing::info!(
-        output = %output.display(),
-        bytes = report.file_bytes,
-        seconds = report.elapsed.as_secs_f64(),
-        "built volume"
-    );
     Ok(())
 }
 
-pub fn import(a: ImportArgs) -> anyhow::Result<()> {
+/// Build options with `compression` and a progress bar.
+fn options(compression: Compression) -> BuildOptions {
+    BuildOptions {
+        compression,
+        progress: Arc::new(progress("building")),
+    }
+}
+
+pub(super) fn import(a: ImportArgs) -> anyhow::Result<()> {
     let compress = a.compression.compression();
     match sniff(&a.input)? {
         InputKind::Vod(1) => {
-            let file = File::open(&a.input)
-                .with_context(|| format!("cannot open {}", a.input.display()))?;
-            let len = file.metadata()?.len();
-            let map = Mapping::new(&file, len)?;
-            let vod1 = Vod1::parse(map.bytes())
+            let file = Vod1File::open(&a.input)?;
+            let vod1 = file
+                .parse()
                 .with_context(|| format!("{} is not a valid VOD 1 file", a.input.display()))?;
             let source = Vod1Source::new(&vod1);
             build_to(
@@ -287,7 +273,7 @@ fn parse_region(s: &str) -> anyhow::Result<Region> {
     })
 }
 
-pub fn export(a: ExportArgs) -> anyhow::Result<()> {
+pub(super) fn export(a: ExportArgs) -> anyhow::Result<()> {
     if let InputKind::Vod(v) = sniff(&a.input)? {
         if v != 2 {
             bail!(
@@ -343,7 +329,7 @@ pub fn export(a: ExportArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-pub fn generate(a: GenerateArgs) -> anyhow::Result<()> {
+pub(super) fn generate(a: GenerateArgs) -> anyhow::Result<()> {
     let layout = VolumeLayout::new(a.dims, a.brick, a.voxel_type.into())?;
     let compression = a.compression.compression();
     match a.dataset {
@@ -363,42 +349,13 @@ pub fn generate(a: GenerateArgs) -> anyhow::Result<()> {
             compression,
             VodFormat::Vod2,
         ),
-        Dataset::Scene => generate_scene(
+        Dataset::Scene => Ok(build_scene(
             &a.output,
             &layout,
             &WorldSource::new(layout.clone(), a.seed),
-            compression,
-        ),
+            &options(compression),
+        )?),
     }
-}
-
-/// Builds the world, applies the scene's edits, then rebuilds the file from the final level 0,
-/// so the result is version 1 with no history and no garbage.
-pub fn generate_scene(
-    output: &Path,
-    layout: &VolumeLayout,
-    world: &dyn BrickSource,
-    compression: Compression,
-) -> anyhow::Result<()> {
-    let work = sibling(output, ".isovox-scene");
-    build_to(&work, layout, [1.0; 3], world, compression, VodFormat::Vod2)?;
-    for req in super::edit::scene_edits(layout.dims()) {
-        super::edit::edit_file(&work, &req)?;
-    }
-    let edited = Vod2::open(&work)?;
-    let source = crate::store::SnapshotSource::new(edited.head());
-    build_to(
-        output,
-        layout,
-        [1.0; 3],
-        &source,
-        compression,
-        VodFormat::Vod2,
-    )?;
-    source.finish()?;
-    drop(edited);
-    std::fs::remove_file(&work).ok();
-    Ok(())
 }
 
 fn human(bytes: u64) -> String {
@@ -416,7 +373,7 @@ fn human(bytes: u64) -> String {
     }
 }
 
-pub fn inspect(a: InspectArgs) -> anyhow::Result<()> {
+pub(super) fn inspect(a: InspectArgs) -> anyhow::Result<()> {
     match sniff(&a.input)? {
         InputKind::Vod(1) => inspect_vod1(&a),
         InputKind::Vod(2) => {
@@ -473,10 +430,10 @@ pub fn inspect(a: InspectArgs) -> anyhow::Result<()> {
 }
 
 fn inspect_vod1(a: &InspectArgs) -> anyhow::Result<()> {
-    let file = File::open(&a.input)?;
-    let len = file.metadata()?.len();
-    let map = Mapping::new(&file, len)?;
-    let v = Vod1::parse(map.bytes())
+    let file = Vod1File::open(&a.input)?;
+    let len = file.len();
+    let v = file
+        .parse()
         .with_context(|| format!("{} is not a valid VOD 1 file", a.input.display()))?;
     let raw = v.layout.raw_bytes();
     let [x, y, z] = v.layout.dims();
@@ -485,7 +442,7 @@ fn inspect_vod1(a: &InspectArgs) -> anyhow::Result<()> {
             "format": "VOD 1", "dims": v.layout.dims(), "voxel_type": v.layout.voxel_type(),
             "brick": v.layout.brick(), "tree_height": v.height,
             "levels": (0..v.layout.levels()).map(|l| serde_json::json!({"level": l, "grid": v.layout.grid(l)})).collect::<Vec<_>>(), "version": 1,
-            "bricks_total": crate::store::vod1::node_count(v.height), "bricks_unique": v.unique_bricks(),
+            "bricks_total": isovox_server::store::vod1::node_count(v.height), "bricks_unique": v.unique_bricks(),
             "file_bytes": len, "raw_bytes": raw, "ratio": raw as f64 / len as f64,
         });
         println!("{}", serde_json::to_string_pretty(&j)?);
@@ -499,7 +456,7 @@ fn inspect_vod1(a: &InspectArgs) -> anyhow::Result<()> {
         println!(
             "  octree      height {}, {} nodes, {} unique bricks",
             v.height,
-            crate::store::vod1::node_count(v.height),
+            isovox_server::store::vod1::node_count(v.height),
             v.unique_bricks()
         );
         println!(
@@ -512,13 +469,11 @@ fn inspect_vod1(a: &InspectArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-pub fn get(a: GetArgs) -> anyhow::Result<()> {
+pub(super) fn get(a: GetArgs) -> anyhow::Result<()> {
     let bytes = match sniff(&a.input)? {
         InputKind::Vod(1) => {
-            let file = File::open(&a.input)?;
-            let len = file.metadata()?.len();
-            let map = Mapping::new(&file, len)?;
-            let v = Vod1::parse(map.bytes())?;
+            let file = Vod1File::open(&a.input)?;
+            let v = file.parse()?;
             let key = v.layout.key(a.level, a.x, a.y, a.z)?;
             let mut out = vec![0u8; v.layout.brick_bytes()];
             v.read_into(key, &mut out)?;
@@ -548,18 +503,16 @@ pub fn get(a: GetArgs) -> anyhow::Result<()> {
 }
 
 #[derive(Debug, Args)]
-pub struct CompactArgs {
+pub(crate) struct CompactArgs {
     /// The VOD 2 file to compact in place.
     pub input: PathBuf,
 }
 
-pub fn compact(a: CompactArgs) -> anyhow::Result<()> {
+pub(super) fn compact(a: CompactArgs) -> anyhow::Result<()> {
     let vod = Vod2::open(&a.input).with_context(|| format!("cannot open {}", a.input.display()))?;
     let head = vod.head();
-    let bar = super::progress("compacting");
-    let report = crate::store::compact::compact(&vod, &head, &bar)
+    let report = isovox_server::store::compact::compact(&vod, &head, &progress("compacting"))
         .with_context(|| format!("cannot compact {}", a.input.display()))?;
-    bar.finish_and_clear();
     println!(
         "{}: version {} kept, {} distinct bricks, {} -> {} bytes ({:.1}% saved) in {:.2} s",
         a.input.display(),

@@ -1,18 +1,18 @@
 //! `isovox mesh`: mesh a whole level, or the thesis's adaptive LOD around a camera, to a file.
 
 use super::progress;
-use crate::mesh::files::{write_mesh, MeshFormat};
-use crate::mesh::level::{adaptive_tiles, level_tiles, mesh_tiles, weld};
-use crate::mesh::tile::default_iso;
-use crate::store::Vod2;
 use anyhow::{bail, Context};
 use clap::Args;
+use isovox_server::mesh::files::{write_mesh, MeshFormat};
+use isovox_server::mesh::level::{adaptive_tiles, level_tiles, mesh_tiles, weld};
+use isovox_server::mesh::tile::default_iso;
+use isovox_server::store::Vod2;
 use std::io::{BufWriter, Write};
 use std::path::PathBuf;
 use std::time::Instant;
 
 #[derive(Debug, Args)]
-pub struct MeshArgs {
+pub(crate) struct MeshArgs {
     /// A VOD 2 file.
     pub input: PathBuf,
     /// Output: .glb, .obj or .ply.
@@ -36,7 +36,7 @@ pub struct MeshArgs {
     pub version: Option<u64>,
 }
 
-pub fn mesh(a: MeshArgs) -> anyhow::Result<()> {
+pub(super) fn mesh(a: MeshArgs) -> anyhow::Result<()> {
     let format = MeshFormat::from_path(&a.output).with_context(|| {
         format!(
             "{}: the output must end in .glb, .obj or .ply",
@@ -73,7 +73,7 @@ pub fn mesh(a: MeshArgs) -> anyhow::Result<()> {
     let raw = mesh_tiles(&snap, &tiles, iso, &progress("meshing"))?;
     let mesh = weld(&raw);
     let elapsed = start.elapsed();
-    let tmp = super::sibling(&a.output, ".isovox-tmp");
+    let tmp = isovox_server::store::build::sibling(&a.output, ".isovox-tmp");
     let mut out = BufWriter::new(
         std::fs::File::create(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?,
     );

@@ -1,37 +1,31 @@
-//! The `isovox` command line (`spec/cli.md`). Each subcommand is a thin layer: parse, call the
+//! The `isovox` command line (`docs/cli.md`). Each subcommand is a thin layer: parse, call the
 //! library, print. Long jobs show a progress bar on a terminal and stay quiet otherwise.
+//! (Benchmarks are `isovox-bench`, in the `tools` package.)
 
-mod bench;
-mod bench_edits;
-mod bench_http;
-mod bench_icvg;
-mod bench_memory;
-mod bench_mesh;
-mod bench_voxelize;
-pub(crate) mod data;
-pub mod edit;
+mod data;
+mod edit;
 mod mesh;
 mod serve;
 mod voxelize;
 
 use clap::{Parser, Subcommand, ValueEnum};
-use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use isovox_proto::VoxelType;
-use std::io::IsTerminal;
-use std::path::PathBuf;
+use isovox_server::progress::Progress;
+use std::io::{IsTerminal, Write};
+use std::sync::atomic::{AtomicU64, Ordering};
 
 /// Isovox: large, editable volumes as brick octrees, served over HTTP.
 #[derive(Debug, Parser)]
 // Not `propagate_version`: `export`, `get` and `edit` have a `--version N` of their own (a
 // volume version), which an automatic `--version` flag on every subcommand would clash with.
 #[command(name = "isovox", version, about)]
-pub struct Cli {
+pub(crate) struct Cli {
     #[command(subcommand)]
     pub command: Command,
 }
 
 #[derive(Debug, Subcommand)]
-pub enum Command {
+pub(crate) enum Command {
     /// Serve every VOD 2 file of a data directory over HTTP (a demo world is generated on
     /// first start).
     Serve(serve::ServeArgs),
@@ -55,16 +49,13 @@ pub enum Command {
     /// bricks); run it on a file no server is writing (a server compacts with
     /// POST /v1/volumes/{name}/compact).
     Compact(data::CompactArgs),
-    /// Benchmarks that print Markdown tables next to the papers' figures.
-    #[command(subcommand)]
-    Bench(bench::BenchCommand),
 }
 
 /// Runs a parsed command line.
 ///
 /// # Errors
 /// Whatever the subcommand fails with, with context for the user.
-pub fn run(cli: Cli) -> anyhow::Result<()> {
+pub(crate) fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Serve(a) => serve::serve(a),
         Command::Import(a) => data::import(a),
@@ -76,7 +67,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Get(a) => data::get(a),
         Command::Compact(a) => data::compact(a),
         Command::Voxelize(a) => voxelize::voxelize_cmd(a),
-        Command::Bench(b) => bench::run(b),
     }
 }
 
@@ -113,7 +103,7 @@ fn parse_triple<T: std::str::FromStr>(s: &str) -> Result<[T; 3], String> {
         .map_err(|_| "expected three values".to_string())
 }
 
-pub(crate) fn parse_dims(s: &str) -> Result<[u32; 3], String> {
+fn parse_dims(s: &str) -> Result<[u32; 3], String> {
     let d = parse_triple::<u32>(s)?;
     if d.contains(&0) {
         return Err(format!("dimensions must be positive, got {s:?}"));
@@ -121,7 +111,7 @@ pub(crate) fn parse_dims(s: &str) -> Result<[u32; 3], String> {
     Ok(d)
 }
 
-pub(crate) fn parse_scale(s: &str) -> Result<[f32; 3], String> {
+fn parse_scale(s: &str) -> Result<[f32; 3], String> {
     let v = parse_triple::<f32>(s)?;
     if v.iter().any(|x| !x.is_finite() || *x <= 0.0) {
         return Err(format!(
@@ -136,24 +126,61 @@ fn interactive() -> bool {
     std::io::stderr().is_terminal() && std::io::stdout().is_terminal()
 }
 
-/// A progress bar for `what` that draws on a terminal and is hidden otherwise.
-pub(crate) fn progress(what: &str) -> ProgressBar {
-    if !interactive() {
-        return ProgressBar::hidden();
+/// A progress bar for `what` on stderr, drawn only when a person watches.
+fn progress(what: &str) -> Bar {
+    Bar {
+        what: what.to_string(),
+        visible: interactive(),
+        total: AtomicU64::new(0),
+        done: AtomicU64::new(0),
+        drawn: AtomicU64::new(u64::MAX),
     }
-    let bar = ProgressBar::with_draw_target(Some(0), ProgressDrawTarget::stderr());
-    let style =
-        ProgressStyle::with_template("{msg:>12} [{bar:40}] {percent:>3}% {pos}/{len} ({eta} left)")
-            .map(|s| s.progress_chars("=> "))
-            .unwrap_or_else(|_| ProgressStyle::default_bar());
-    bar.set_style(style);
-    bar.set_message(what.to_string());
-    bar
 }
 
-/// A path with a suffix appended (for temporaries beside an output).
-pub(crate) fn sibling(path: &std::path::Path, suffix: &str) -> PathBuf {
-    let mut s = path.as_os_str().to_owned();
-    s.push(suffix);
-    PathBuf::from(s)
+/// A one-line progress bar, redrawn when its percentage changes.
+#[derive(Debug)]
+struct Bar {
+    what: String,
+    visible: bool,
+    total: AtomicU64,
+    done: AtomicU64,
+    /// The percentage last drawn.
+    drawn: AtomicU64,
+}
+
+impl Bar {
+    fn draw(&self, done: u64) {
+        let total = self.total.load(Ordering::Relaxed).max(1);
+        let percent = (done.min(total) * 100 / total).min(100);
+        if !self.visible || self.drawn.swap(percent, Ordering::Relaxed) == percent {
+            return;
+        }
+        let filled = (percent * 40 / 100) as usize;
+        let bar = format!("{}{}", "=".repeat(filled), " ".repeat(40 - filled));
+        let mut err = std::io::stderr().lock();
+        let _ = write!(
+            err,
+            "\r{:>12} [{bar}] {percent:>3}% {done}/{total}",
+            self.what
+        );
+        let _ = err.flush();
+    }
+}
+
+impl Progress for Bar {
+    fn start(&self, total: u64) {
+        self.total.store(total, Ordering::Relaxed);
+        self.draw(self.done.load(Ordering::Relaxed));
+    }
+
+    fn advance(&self, steps: u64) {
+        self.draw(self.done.fetch_add(steps, Ordering::Relaxed) + steps);
+    }
+
+    fn finish(&self) {
+        if self.visible {
+            // Clear the line: the command's own output follows.
+            eprint!("\r\x1b[2K");
+        }
+    }
 }

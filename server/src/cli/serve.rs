@@ -1,18 +1,17 @@
 //! `isovox serve`: serve every VOD 2 file of a data directory over HTTP.
 
-use crate::catalog::Catalog;
-use crate::generate::WorldSource;
-use crate::http::auth::{random_secret, Scope, Tokens};
-use crate::http::{run, shutdown_signal, AppState, ServerConfig};
-use crate::store::codec::Compression;
 use anyhow::Context;
 use clap::Args;
-use isovox_proto::{VolumeLayout, VoxelType};
+use isovox_server::catalog::Catalog;
+use isovox_server::generate::{build_demo, DEMO_NAME};
+use isovox_server::http::auth::{random_secret, Scope, Tokens};
+use isovox_server::http::{run, run_tls, shutdown_signal, AppState, ServerConfig};
+use isovox_server::store::BuildOptions;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 
 #[derive(Debug, Args)]
-pub struct ServeArgs {
+pub(crate) struct ServeArgs {
     /// Directory of VOD 2 files; each is served as a volume named after the file. When it holds
     /// none, a demo world is generated there first.
     #[arg(long, env = "ISOVOX_DATA", default_value = "data")]
@@ -45,6 +44,16 @@ pub struct ServeArgs {
     /// Level-0 voxels one edit may evaluate; beyond it 422.
     #[arg(long, env = "ISOVOX_MAX_EDIT_VOXELS", default_value_t = 1 << 28)]
     pub max_edit_voxels: u64,
+    /// Serve HTTPS (HTTP/2 and HTTP/1.1) with this PEM certificate chain; needs --tls-key.
+    #[arg(long, env = "ISOVOX_TLS_CERT", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// The PEM private key of --tls-cert.
+    #[arg(long, env = "ISOVOX_TLS_KEY", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// On Ctrl-C or SIGTERM, seconds to let requests in flight finish before closing their
+    /// connections (change feeds end at once).
+    #[arg(long, env = "ISOVOX_SHUTDOWN_GRACE", default_value_t = 10.0)]
+    pub shutdown_grace: f64,
 }
 
 /// The tokens the server accepts: the token file (DATA/tokens by default, created with one
@@ -103,9 +112,6 @@ fn write_private(path: &Path, text: &str) -> anyhow::Result<()> {
         .with_context(|| format!("cannot write {}", path.display()))
 }
 
-/// Name of the volume generated on first start.
-pub const DEMO_NAME: &str = "demo";
-
 fn has_volumes(dir: &Path) -> bool {
     std::fs::read_dir(dir)
         .map(|entries| {
@@ -116,27 +122,18 @@ fn has_volumes(dir: &Path) -> bool {
         .unwrap_or(false)
 }
 
-/// Generates the demo world into `dir`: a 512 x 256 x 512 terrain with tunnels, a crater and a
-/// few primitives carved and added by ICVG edits (brick 32; about a second, under 2 MB).
+/// Generates the demo world into `dir` (see [`build_demo`]).
 fn generate_demo(dir: &Path) -> anyhow::Result<()> {
-    std::fs::create_dir_all(dir)
-        .with_context(|| format!("cannot create the data directory {}", dir.display()))?;
-    let path = dir.join(format!("{DEMO_NAME}.vod"));
     eprintln!(
         "{} holds no volume: generating a demo world in {}",
         dir.display(),
-        path.display()
+        dir.join(format!("{DEMO_NAME}.vod")).display()
     );
-    let layout = VolumeLayout::new([512, 256, 512], 32, VoxelType::U8)?;
-    super::data::generate_scene(
-        &path,
-        &layout,
-        &WorldSource::new(layout.clone(), 1),
-        Compression::default(),
-    )
+    build_demo(dir, &BuildOptions::default())?;
+    Ok(())
 }
 
-pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
+pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
     if !has_volumes(&a.data) {
         generate_demo(&a.data)?;
     }
@@ -148,6 +145,14 @@ pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
             a.data.display()
         );
     }
+    let tls = match (&a.tls_cert, &a.tls_key) {
+        (Some(cert), Some(key)) => {
+            Some(isovox_server::http::tls::config(cert, key).map_err(anyhow::Error::msg)?)
+        }
+        _ => None,
+    };
+    let shutdown_grace = std::time::Duration::try_from_secs_f64(a.shutdown_grace)
+        .map_err(|e| anyhow::anyhow!("--shutdown-grace {}: {e}", a.shutdown_grace))?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -158,8 +163,9 @@ pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
             .with_context(|| format!("cannot listen on {}", a.addr))?;
         let addr = listener.local_addr()?;
         let names: Vec<&str> = catalog.iter().map(|(n, _)| n).collect();
+        let scheme = if tls.is_some() { "https" } else { "http" };
         eprintln!(
-            "isovox serving {} on http://{addr}/v1/volumes",
+            "isovox serving {} on {scheme}://{addr}/v1/volumes, the viewer on {scheme}://{addr}/",
             names.join(", ")
         );
         if tokens.is_empty() {
@@ -175,11 +181,14 @@ pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
             edit_queue: a.edit_queue,
             max_edit_voxels: a.max_edit_voxels,
             mesh_dir: Some(a.data.join("meshes")),
+            shutdown_grace,
             ..ServerConfig::default()
         };
         let state = AppState::with_config(catalog, config);
-        run(listener, state, shutdown_signal())
-            .await
-            .context("server failed")
+        match tls {
+            Some(tls) => run_tls(listener, tls, state, shutdown_signal()).await,
+            None => run(listener, state, shutdown_signal()).await,
+        }
+        .context("server failed")
     })
 }

@@ -1,16 +1,17 @@
 //! `isovox voxelize`: a triangle mesh (STL, OBJ, PLY, glTF/GLB) into a VOD 2 volume.
 
 use super::{data, TypeArg};
-use crate::store::codec::Compression;
-use crate::store::DenseGrid;
-use crate::voxelize::{load::load_model, voxelize, Fill, Options};
 use anyhow::Context;
 use clap::{Args, ValueEnum};
 use isovox_proto::VolumeLayout;
+use isovox_server::progress::Progress;
+use isovox_server::store::codec::Compression;
+use isovox_server::store::DenseGrid;
+use isovox_server::voxelize::{load::load_model, voxelize, Fill, Options};
 use std::path::PathBuf;
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
-pub enum FillArg {
+pub(crate) enum FillArg {
     /// Fraction of the supersampled voxel centres inside, as a density (smooth surfaces).
     Density,
     /// Binary: the voxel's centre is inside.
@@ -22,7 +23,7 @@ pub enum FillArg {
 }
 
 #[derive(Debug, Args)]
-pub struct VoxelizeArgs {
+pub(crate) struct VoxelizeArgs {
     /// The model: .stl (binary or ASCII), .obj, .ply, .gltf or .glb; it must be watertight.
     pub model: PathBuf,
     #[arg(short, long)]
@@ -47,7 +48,7 @@ pub struct VoxelizeArgs {
     pub allow_open: bool,
 }
 
-pub fn voxelize_cmd(a: VoxelizeArgs) -> anyhow::Result<()> {
+pub(super) fn voxelize_cmd(a: VoxelizeArgs) -> anyhow::Result<()> {
     let start = std::time::Instant::now();
     let mesh = load_model(&a.model)?;
     let loaded = start.elapsed();
@@ -65,10 +66,10 @@ pub fn voxelize_cmd(a: VoxelizeArgs) -> anyhow::Result<()> {
         allow_open: a.allow_open,
     };
     let bar = super::progress("voxelizing");
-    bar.set_length(1);
-    let v = voxelize(&mesh, &options)
-        .with_context(|| format!("cannot voxelize {}", a.model.display()))?;
-    bar.finish_and_clear();
+    bar.start(1);
+    let v = voxelize(&mesh, &options);
+    bar.finish();
+    let v = v.with_context(|| format!("cannot voxelize {}", a.model.display()))?;
     let layout = VolumeLayout::new(v.dims, a.brick, options.voxel_type)?;
     let grid = DenseGrid::new(v.dims, options.voxel_type, a.brick, &v.bytes);
     let scale = [v.voxel_size as f32; 3];

@@ -4,8 +4,11 @@
 //! `read`); `#` starts a comment. Secrets are compared in constant time and never printed: a
 //! [`Token`]'s `Debug` shows its name and scope only, and logs name the token, not its secret.
 
-use super::ApiError;
+use super::{ApiError, AppState};
+use axum::extract::{Request, State};
 use axum::http::{header, HeaderMap};
+use axum::middleware::Next;
+use axum::response::{IntoResponse, Response};
 use std::collections::HashMap;
 use std::path::Path;
 use std::sync::Mutex;
@@ -14,15 +17,19 @@ use std::time::Instant;
 /// What a token may do.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Scope {
+    /// May read (with `--private-reads`).
     Read,
+    /// May read and write.
     Write,
 }
 
 /// One configured token.
 #[derive(Clone)]
 pub struct Token {
+    /// Its name, for logs and rate limits (never the secret).
     pub name: String,
     secret: String,
+    /// What it may do.
     pub scope: Scope,
 }
 
@@ -113,10 +120,12 @@ impl Tokens {
         Ok(())
     }
 
+    /// How many tokens.
     pub fn len(&self) -> usize {
         self.tokens.len()
     }
 
+    /// Whether there is none.
     pub fn is_empty(&self) -> bool {
         self.tokens.is_empty()
     }
@@ -166,6 +175,44 @@ impl Tokens {
     }
 }
 
+/// The write token a request carries: as the first extractor of a write route, it is checked
+/// before anything else of the request is read (a caller without one learns nothing).
+#[derive(Debug, Clone)]
+pub struct WriteToken(pub Token);
+
+impl axum::extract::FromRequestParts<AppState> for WriteToken {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(
+        parts: &mut axum::http::request::Parts,
+        state: &AppState,
+    ) -> Result<Self, ApiError> {
+        let token = state
+            .config
+            .tokens
+            .authorize(&parts.headers, Scope::Write)?;
+        Ok(WriteToken(token.clone()))
+    }
+}
+
+/// With `--private-reads`: every `/v1` route needs a token of either scope.
+pub async fn require_token(
+    State(state): State<AppState>,
+    request: Request,
+    next: Next,
+) -> Response {
+    if request.uri().path().starts_with("/v1/") {
+        if let Err(e) = state
+            .config
+            .tokens
+            .authorize(request.headers(), Scope::Read)
+        {
+            return e.into_response();
+        }
+    }
+    next.run(request).await
+}
+
 fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
     let mut diff = a.len() ^ b.len();
     for (i, &x) in a.iter().enumerate() {
@@ -194,6 +241,7 @@ pub struct RateLimiter {
 }
 
 impl RateLimiter {
+    /// `rate` edits per second per token, bursts of `rate`.
     pub fn new(rate: f64) -> Self {
         RateLimiter {
             rate: rate.max(f64::MIN_POSITIVE),

@@ -13,7 +13,7 @@ use axum::response::IntoResponse;
 use tower_http::set_header::SetResponseHeaderLayer;
 
 /// The two headers every response carries.
-pub fn layers() -> (
+pub(super) fn layers() -> (
     SetResponseHeaderLayer<HeaderValue>,
     SetResponseHeaderLayer<HeaderValue>,
 ) {
@@ -30,7 +30,7 @@ pub fn layers() -> (
 }
 
 /// The answer to a preflight request on any route.
-pub async fn preflight() -> impl IntoResponse {
+pub(super) async fn preflight() -> impl IntoResponse {
     const HEADERS: [(HeaderName, &str); 3] = [
         (header::ACCESS_CONTROL_ALLOW_METHODS, "GET, POST, OPTIONS"),
         (

@@ -1,6 +1,15 @@
-//! Errors as responses: one place decides every status code (RFC 9457 problem details).
+//! Errors as responses: the one place that decides every status code (RFC 9457 problem
+//! details). The domain's errors ([`VolumeError`], [`StoreError`], [`TermError`]) and axum's
+//! rejections of malformed requests convert into [`ApiError`], so handlers use `?`.
+//!
+//! A caller's mistake is a 4xx whose detail tells what to fix, and is not logged as an error.
+//! Damage (a corrupt record), a failing system and bugs are a 500 with a generic body; the
+//! cause goes to the log.
 
-use crate::store::StoreError;
+use crate::icvg::term::TermError;
+use crate::store::{error_chain, StoreError};
+use crate::volume::VolumeError;
+use axum::extract::rejection::{JsonRejection, PathRejection, QueryRejection};
 use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use isovox_proto::api::Problem;
@@ -9,8 +18,11 @@ use isovox_proto::api::Problem;
 /// logged as errors; server errors (5xx) return a generic body and log the cause.
 #[derive(Debug)]
 pub enum ApiError {
+    /// The request is malformed (400).
     BadRequest(String),
+    /// What the request names is not there (404).
     NotFound(String),
+    /// No representation the request accepts (406).
     NotAcceptable(String),
     /// The request asks for more than a response may carry.
     TooLarge(String),
@@ -24,7 +36,9 @@ pub enum ApiError {
     Forbidden(String),
     /// A conditional edit found another version (409, the current one in the body).
     Conflict {
+        /// What differs.
         detail: String,
+        /// The current version.
         version: u64,
     },
     /// What was asked for existed once and is gone for good (410).
@@ -33,23 +47,91 @@ pub enum ApiError {
     Unprocessable(String),
     /// The caller's rate limit: retry after this many seconds (429).
     TooManyRequests(u32),
+    /// Damage, a failing system or a bug (500): the cause is logged, the body is generic.
     Internal(String),
-}
-
-impl ApiError {
-    pub fn not_found(what: impl Into<String>) -> Self {
-        ApiError::NotFound(what.into())
-    }
 }
 
 impl From<StoreError> for ApiError {
     fn from(e: StoreError) -> Self {
         match e {
-            // Raised by lookups for things that do not exist (a version no longer in the file,
-            // a key outside the volume): the client asked for something absent.
-            StoreError::Invalid(detail) => ApiError::NotFound(detail),
-            other => ApiError::Internal(crate::store::error_chain(&other)),
+            StoreError::Absent(detail) | StoreError::OutOfRange(detail) => {
+                ApiError::NotFound(detail)
+            }
+            StoreError::BadInput(detail) => ApiError::BadRequest(detail),
+            StoreError::Io { .. }
+            | StoreError::Format(_)
+            | StoreError::Corrupt { .. }
+            | StoreError::Internal(_) => ApiError::Internal(error_chain(&e)),
         }
+    }
+}
+
+impl From<VolumeError> for ApiError {
+    fn from(e: VolumeError) -> Self {
+        let detail = e.to_string();
+        match e {
+            VolumeError::NoSuchVolume(_)
+            | VolumeError::NoSuchVersion { .. }
+            | VolumeError::OutOfRange(_) => ApiError::NotFound(detail),
+            VolumeError::BadRequest(_) | VolumeError::SinceAfterHead { .. } => {
+                ApiError::BadRequest(detail)
+            }
+            VolumeError::TooLarge(_) => ApiError::TooLarge(detail),
+            VolumeError::InvalidEdit(_) | VolumeError::EditTooLarge { .. } => {
+                ApiError::Unprocessable(detail)
+            }
+            VolumeError::Conflict { current, .. } => ApiError::Conflict {
+                detail,
+                version: current,
+            },
+            VolumeError::Compacted { .. } => ApiError::Gone(detail),
+            VolumeError::WriterBusy => ApiError::Overloaded(1),
+            VolumeError::Store(e) => e.into(),
+        }
+    }
+}
+
+impl From<TermError> for ApiError {
+    fn from(e: TermError) -> Self {
+        VolumeError::InvalidEdit(e).into()
+    }
+}
+
+impl From<PathRejection> for ApiError {
+    fn from(e: PathRejection) -> Self {
+        ApiError::BadRequest(format!("malformed path: {e}"))
+    }
+}
+
+impl From<QueryRejection> for ApiError {
+    fn from(e: QueryRejection) -> Self {
+        ApiError::BadRequest(format!("malformed query: {e}"))
+    }
+}
+
+impl From<JsonRejection> for ApiError {
+    fn from(e: JsonRejection) -> Self {
+        match e.status() {
+            StatusCode::PAYLOAD_TOO_LARGE => ApiError::TooLarge(format!("request body: {e}")),
+            StatusCode::UNSUPPORTED_MEDIA_TYPE => {
+                ApiError::UnsupportedMedia(format!("request body: {e}"))
+            }
+            _ => ApiError::BadRequest(format!("malformed request body: {e}")),
+        }
+    }
+}
+
+/// Work that cannot fail, run through the same helpers (`cpu.rs`) as work that can.
+impl From<std::convert::Infallible> for ApiError {
+    fn from(e: std::convert::Infallible) -> Self {
+        match e {}
+    }
+}
+
+/// A task on the blocking pool panicked or was cancelled: a bug.
+impl From<tokio::task::JoinError> for ApiError {
+    fn from(e: tokio::task::JoinError) -> Self {
+        ApiError::Internal(format!("a blocking task failed: {e}"))
     }
 }
 

@@ -6,11 +6,11 @@
 //! service and a boxed future per request) cost about a tenth of its throughput. So
 //! [`BrickFirst`] answers plain requests for it itself: `GET`, no query, a volume name without
 //! escapes, numbers in plain digits, reads not private. It answers them with the routed
-//! handler's own [`handlers::brick_at`], and only when that succeeds: every other request,
+//! handler's own [`bricks::brick_at`], and only when that succeeds: every other request,
 //! and every request that would fail, goes to the router, so error responses are decided in
 //! one place.
 
-use super::{handlers, AppState};
+use super::{bricks, AppState};
 use axum::extract::Request;
 use axum::http::Method;
 use axum::response::Response;
@@ -21,13 +21,13 @@ use std::task::{Context, Poll};
 
 /// Answers plain brick requests, hands everything else to `inner` (the router).
 #[derive(Debug, Clone)]
-pub struct BrickFirst<S> {
+pub(super) struct BrickFirst<S> {
     state: AppState,
     inner: S,
 }
 
 impl<S> BrickFirst<S> {
-    pub fn new(state: AppState, inner: S) -> Self {
+    pub(super) fn new(state: AppState, inner: S) -> Self {
         BrickFirst { state, inner }
     }
 }
@@ -92,7 +92,7 @@ fn plain_brick(state: &AppState, request: &Request) -> Option<Response> {
         return None;
     }
     let (name, level, x, y, z) = parse(request)?;
-    handlers::brick_at(state, name, None, (level, x, y, z), request.headers()).ok()
+    bricks::brick_at(state, name, None, (level, x, y, z), request.headers()).ok()
 }
 
 #[cfg(test)]

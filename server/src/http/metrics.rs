@@ -153,6 +153,7 @@ pub struct MetricsLayer {
 }
 
 impl MetricsLayer {
+    /// A layer counting into `metrics`.
     pub fn new(metrics: Arc<Metrics>) -> Self {
         MetricsLayer { metrics }
     }
@@ -238,7 +239,13 @@ where
 /// `GET /metrics` in the Prometheus text format.
 pub async fn metrics(State(state): State<AppState>) -> Response {
     let mut out = String::new();
-    let m = &state.metrics;
+    requests(&state.metrics, &mut out);
+    gauges(&state, &mut out);
+    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], out).into_response()
+}
+
+/// Requests by route and status, and the latency histogram by route.
+fn requests(m: &Metrics, out: &mut String) {
     let _ = writeln!(out, "# HELP isovox_requests_total HTTP requests by route and status.\n# TYPE isovox_requests_total counter");
     for (i, route) in m.names.iter().enumerate() {
         for status in 0..STATUSES {
@@ -279,6 +286,11 @@ pub async fn metrics(State(state): State<AppState>) -> Response {
             "isovox_request_seconds_count{{route=\"{route}\"}} {count}"
         );
     }
+}
+
+/// The counters and gauges of the server's parts: bytes sent, caches, queues, subscribers.
+fn gauges(state: &AppState, out: &mut String) {
+    let m = &state.metrics;
     let (mut edit_queue, mut subscribers) = (0, 0);
     for (_, v) in state.catalog.iter() {
         edit_queue += v.queue_depth() as u64;
@@ -295,43 +307,43 @@ pub async fn metrics(State(state): State<AppState>) -> Response {
             "isovox_mesh_cache_hits_total",
             "counter",
             "Mesh tiles served from the cache.",
-            state.meshes.hits.load(Ordering::Relaxed),
+            state.meshes.hits(),
         ),
         (
             "isovox_mesh_cache_misses_total",
             "counter",
             "Mesh tiles meshed on request.",
-            state.meshes.misses.load(Ordering::Relaxed),
+            state.meshes.misses(),
         ),
         (
             "isovox_mesh_cache_bytes",
             "gauge",
-            "Bytes held by the mesh and decoded-brick caches.",
+            "Bytes held by the mesh cache.",
             state.meshes.bytes() as u64,
         ),
         (
             "isovox_cpu_queue_depth",
             "gauge",
             "CPU jobs (meshing, batches, levels) running or queued.",
-            (state.cpu_permits - state.cpu.available_permits()) as u64,
+            state.cpu.depth() as u64,
         ),
         (
             "isovox_brick_cache_hits_total",
             "counter",
-            "Brick bodies (decoded voxels, lz4 blocks) served from the cache.",
-            state.bodies.hits.load(Ordering::Relaxed),
+            "Decoded bricks and lz4 blocks (for bodies and meshing) found in the cache.",
+            state.bricks.hits(),
         ),
         (
             "isovox_brick_cache_misses_total",
             "counter",
-            "Brick bodies decoded or transcoded on request.",
-            state.bodies.misses.load(Ordering::Relaxed),
+            "Bricks decoded or transcoded on request (for bodies and meshing).",
+            state.bricks.misses(),
         ),
         (
             "isovox_brick_cache_bytes",
             "gauge",
-            "Bytes held by the brick body cache.",
-            state.bodies.bytes() as u64,
+            "Bytes held by the cache of decoded bricks.",
+            state.bricks.bytes() as u64,
         ),
         (
             "isovox_edit_queue_depth",
@@ -358,5 +370,4 @@ pub async fn metrics(State(state): State<AppState>) -> Response {
             "# HELP {name} {help}\n# TYPE {name} {kind}\n{name} {value}"
         );
     }
-    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], out).into_response()
 }

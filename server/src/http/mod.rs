@@ -1,43 +1,66 @@
 //! The HTTP service: an axum router over the [`Catalog`], thin handlers, errors as responses.
 //!
-//! [`app`] builds the service (router and layers) from a state; [`run`] serves it on
-//! a listener until `shutdown` resolves, then finishes in-flight requests.
+//! [`app`] builds the service (router and layers) from a state; [`run`] (plain HTTP) and
+//! [`run_tls`] (HTTPS with HTTP/2) serve it on a listener until `shutdown` resolves, then end the
+//! change feeds and let the other requests in flight finish.
 //!
-//! Routes (all under `/v1` but the probes):
+//! Routes (all under `/v1` but the probes and the viewer):
 //! - `GET /healthz`: liveness; `GET /metrics`: Prometheus text; `GET /openapi.json`: the API.
 //! - `GET /v1/volumes`, `GET /v1/volumes/{name}`: what is served and how to address it.
-//! - `GET /v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}`: one brick (see [`handlers::brick`]).
+//! - `GET /v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}`: one brick (see [`bricks::brick`]).
 //! - `GET /v1/volumes/{name}/blobs/{hash}`: a brick by content hash, cacheable forever.
 //! - `POST /v1/volumes/{name}/batch`: many bricks in one response (`proto::batch`).
 //! - `GET /v1/volumes/{name}/levels/{level}`: a level's brick grid, or its voxels.
 //! - `GET /v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}`: one mesh tile (see
 //!   [`handlers::mesh_tile`]).
+//! - `POST /v1/volumes/{name}/edits` ([`edit`]), `POST .../compact` ([`compact`]),
+//!   `GET .../events` and `GET .../changes` ([`feed`]), `POST /v1/meshes` ([`meshes`]).
+//! - `GET /`, `GET /assets/...`: the web viewer, built into the binary (`web_app.rs`).
 //!
 //! Plain brick requests (no query, nothing escaped) are answered before the router by the same
 //! code the routed handler calls; see `fast_path.rs` for why and for what counts as plain.
+//!
+//! Layout: handlers by concern (`bricks`, `handlers`, `edit`, `compact`, `feed`, `meshes`,
+//! `web_app`); `error` decides every status code; `extract` gives axum's extractors that error;
+//! `cpu` runs CPU work off the async runtime; `compression` makes the zstd bodies inside that
+//! work; `auth` checks tokens and edit rates; `bodies` keeps constant bricks' bodies; `serve`
+//! is the listener loop and the shutdown, `tls` its certificates; `metrics`, `cors` and
+//! `openapi` are what their names say.
 
 pub mod auth;
 pub mod bodies;
+pub mod bricks;
+pub mod compact;
+mod compression;
 mod cors;
-pub mod edits;
+pub mod cpu;
+pub mod edit;
 mod error;
+pub mod extract;
 mod fast_path;
+pub mod feed;
 pub mod handlers;
+pub mod meshes;
 pub mod metrics;
 mod openapi;
+mod serve;
+pub mod tls;
+mod web_app;
 
 pub use error::ApiError;
+pub use serve::{run, run_tls, shutdown_signal, spawn, Closing, Spawned};
 
 use crate::catalog::Catalog;
 use crate::mesh::cache::MeshCache;
+use crate::store::decoded::DecodedBricks;
+use crate::volume::resolve::CatalogVolumes;
+use crate::volume::EditLimits;
 use axum::handler::Handler;
 use axum::http::StatusCode;
 use axum::routing::{get, post, MethodRouter};
 use axum::Router;
-use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::net::TcpListener;
 use tower_http::timeout::TimeoutLayer;
 use tower_http::trace::TraceLayer;
 
@@ -46,7 +69,7 @@ use tower_http::trace::TraceLayer;
 pub struct ServerConfig {
     /// Memory for cached mesh tiles.
     pub mesh_cache_bytes: usize,
-    /// Memory for decoded and transcoded brick bodies.
+    /// Memory for decoded bricks and their lz4 blocks (brick bodies and meshing share it).
     pub brick_cache_bytes: usize,
     /// Meshing and batch jobs running or queued at once.
     pub cpu_queue: usize,
@@ -60,9 +83,13 @@ pub struct ServerConfig {
     pub edit_queue: usize,
     /// Level-0 voxels one edit may evaluate; beyond it 422.
     pub max_edit_voxels: u64,
+    /// Limits on edit terms (depth, nodes, extent).
     pub term_limits: crate::icvg::term::TermLimits,
     /// Where uploaded meshes are kept (`POST /v1/meshes`); none: uploads are refused.
     pub mesh_dir: Option<std::path::PathBuf>,
+    /// How long a shutdown lets requests in flight finish before it closes their connections
+    /// (change feeds end at once).
+    pub shutdown_grace: Duration,
 }
 
 impl Default for ServerConfig {
@@ -78,6 +105,7 @@ impl Default for ServerConfig {
             max_edit_voxels: 1 << 28,
             term_limits: crate::icvg::term::TermLimits::default(),
             mesh_dir: None,
+            shutdown_grace: Duration::from_secs(10),
         }
     }
 }
@@ -98,23 +126,26 @@ impl std::ops::Deref for AppState {
 /// The server's shared parts (see [`AppState`]).
 #[derive(Debug)]
 pub struct Shared {
+    /// The volumes served.
     pub catalog: Arc<Catalog>,
     /// Tile meshes by the content of their inputs.
     pub meshes: Arc<MeshCache>,
-    /// Permits for CPU work off the async runtime (meshing); when none is free the request gets
-    /// 503 with Retry-After instead of waiting in an unbounded queue.
-    pub cpu: Arc<tokio::sync::Semaphore>,
-    /// The semaphore's size.
-    pub cpu_permits: usize,
+    /// Decoded bricks and their lz4 blocks by content hash, for brick bodies and meshing.
+    pub bricks: Arc<DecodedBricks>,
+    /// The bound on CPU work off the async runtime (meshing, batches, levels).
+    pub cpu: cpu::CpuQueue,
+    /// Requests and latencies per route.
     pub metrics: Arc<metrics::Metrics>,
     /// Content hash and bodies of constant bricks.
     pub constants: bodies::ConstantBricks,
+    /// How the server runs.
     pub config: Arc<ServerConfig>,
+    /// Edits per second per token.
     pub edit_rate: Arc<auth::RateLimiter>,
-    /// Decoded and transcoded brick bodies by content hash.
-    pub bodies: Arc<bodies::BodyCache>,
     /// Uploaded meshes for `mesh` leaves of edit terms.
     pub mesh_store: Option<Arc<crate::voxelize::store::MeshStore>>,
+    /// Set when the server starts shutting down: change feeds end.
+    pub closing: Closing,
 }
 
 impl AppState {
@@ -136,18 +167,34 @@ impl AppState {
         AppState(Arc::new(Shared {
             catalog: Arc::new(catalog),
             meshes: Arc::new(MeshCache::new(config.mesh_cache_bytes)),
-            cpu: Arc::new(tokio::sync::Semaphore::new(config.cpu_queue)),
-            cpu_permits: config.cpu_queue,
+            bricks: Arc::new(DecodedBricks::new(config.brick_cache_bytes)),
+            cpu: cpu::CpuQueue::new(config.cpu_queue),
             metrics: Arc::new(metrics::Metrics::new(ROUTES)),
             constants: bodies::ConstantBricks::default(),
             edit_rate: Arc::new(auth::RateLimiter::new(config.edit_rate)),
-            bodies: Arc::new(bodies::BodyCache::new(config.brick_cache_bytes)),
             mesh_store: config
                 .mesh_dir
                 .as_deref()
                 .map(|d| Arc::new(crate::voxelize::store::MeshStore::new(d))),
+            closing: Closing::default(),
             config: Arc::new(config),
         }))
+    }
+
+    /// What one edit may ask for on this server.
+    pub fn edit_limits(&self) -> EditLimits {
+        EditLimits {
+            term: self.config.term_limits,
+            max_voxels: Some(self.config.max_edit_voxels),
+        }
+    }
+
+    /// The volumes and meshes edit terms may name: the catalog's and the uploads.
+    pub fn resolver(&self) -> CatalogVolumes {
+        CatalogVolumes {
+            catalog: self.catalog.clone(),
+            meshes: self.mesh_store.clone(),
+        }
     }
 }
 
@@ -168,6 +215,9 @@ pub const ROUTES: &[&str] = &[
     "/v1/volumes/{name}/events",
     "/v1/volumes/{name}/compact",
     "/v1/meshes",
+    "/",
+    "/index.html",
+    "/assets/{*file}",
 ];
 
 /// The whole service: the router inside the layers every request passes through (request
@@ -216,15 +266,15 @@ fn routes(state: &AppState) -> Router<AppState> {
         )
         .route("/v1/volumes/{name}/batch", write(handlers::batch))
         .route("/v1/volumes/{name}/levels/{level}", read(handlers::level))
-        .route("/v1/volumes/{name}/changes", read(edits::changes))
+        .route("/v1/volumes/{name}/changes", read(feed::changes))
         .route_layer(timeout);
     // Edits wait for their volume's writer (bounded by the edit queue), and the change feed is
     // meant to stay open: neither gets the timeout.
     let write_routes = Router::new()
-        .route("/v1/volumes/{name}/edits", write(edits::edit))
-        .route("/v1/volumes/{name}/compact", write(edits::compact))
-        .route("/v1/meshes", write(edits::upload_mesh))
-        .route("/v1/volumes/{name}/events", read(edits::events));
+        .route("/v1/volumes/{name}/edits", write(edit::edit))
+        .route("/v1/volumes/{name}/compact", write(compact::compact))
+        .route("/v1/meshes", write(meshes::upload_mesh))
+        .route("/v1/volumes/{name}/events", read(feed::events));
     let mut router = Router::new()
         .route("/healthz", read(handlers::healthz))
         .route("/metrics", read(metrics::metrics))
@@ -233,16 +283,17 @@ fn routes(state: &AppState) -> Router<AppState> {
         .route("/v1/volumes/{name}", read(handlers::volume_info))
         .route(
             "/v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}",
-            read(handlers::brick),
+            read(bricks::brick),
         )
-        .route("/v1/volumes/{name}/blobs/{hash}", read(handlers::blob))
+        .route("/v1/volumes/{name}/blobs/{hash}", read(bricks::blob))
         .merge(cpu_routes)
-        .merge(write_routes);
+        .merge(write_routes)
+        .merge(web_app::routes());
     if state.config.private_reads {
         // Only then: a middleware per request costs throughput on the brick routes.
         router = router.route_layer(axum::middleware::from_fn_with_state(
             state.clone(),
-            edits::require_token,
+            auth::require_token,
         ));
     }
     router
@@ -264,93 +315,4 @@ where
     T: 'static,
 {
     post(handler).options(cors::preflight)
-}
-
-/// Serves `state` on `listener` until `shutdown` completes, then lets in-flight requests finish.
-///
-/// # Errors
-/// The listener fails.
-pub async fn run(
-    listener: TcpListener,
-    state: AppState,
-    shutdown: impl Future<Output = ()> + Send + 'static,
-) -> std::io::Result<()> {
-    use axum::ServiceExt;
-    axum::serve(
-        listener,
-        ServiceExt::<axum::extract::Request>::into_make_service(app(state)),
-    )
-    .with_graceful_shutdown(shutdown)
-    .await
-}
-
-/// A server running on the current tokio runtime (see [`spawn`]); dropping it shuts the server
-/// down gracefully.
-#[derive(Debug)]
-pub struct Spawned {
-    /// Where it listens.
-    pub addr: std::net::SocketAddr,
-    shutdown: Option<tokio::sync::oneshot::Sender<()>>,
-}
-
-impl Spawned {
-    /// `http://ADDR`, the base of every URL.
-    pub fn base(&self) -> String {
-        format!("http://{}", self.addr)
-    }
-}
-
-impl Drop for Spawned {
-    fn drop(&mut self) {
-        if let Some(s) = self.shutdown.take() {
-            let _ = s.send(());
-        }
-    }
-}
-
-/// Serves `state` on `addr` (port 0: an ephemeral port) as a task of the current tokio runtime,
-/// until the returned handle is dropped. For tests, benchmarks and embedding; `isovox serve`
-/// uses [`run`].
-///
-/// # Errors
-/// The address cannot be bound.
-pub async fn spawn(addr: &str, state: AppState) -> std::io::Result<Spawned> {
-    let listener = TcpListener::bind(addr).await?;
-    let addr = listener.local_addr()?;
-    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-    tokio::spawn(async move {
-        let stopped = async {
-            let _ = rx.await;
-        };
-        if let Err(e) = run(listener, state, stopped).await {
-            tracing::error!("server on {addr} stopped: {e}");
-        }
-    });
-    Ok(Spawned {
-        addr,
-        shutdown: Some(tx),
-    })
-}
-
-/// Resolves on Ctrl-C or SIGTERM.
-pub async fn shutdown_signal() {
-    let ctrl_c = async {
-        let _ = tokio::signal::ctrl_c().await;
-    };
-    #[cfg(unix)]
-    let term = async {
-        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(mut s) => {
-                s.recv().await;
-            }
-            Err(_) => std::future::pending::<()>().await,
-        }
-    };
-    #[cfg(not(unix))]
-    let term = std::future::pending::<()>();
-    tokio::select! {
-        () = ctrl_c => {},
-        () = term => {},
-    }
-    tracing::info!("shutting down: finishing in-flight requests");
 }

@@ -32,7 +32,7 @@ fn query_param(name: &str, schema: Value, description: &str) -> Value {
 }
 
 /// The document.
-pub fn document() -> Value {
+pub(super) fn document() -> Value {
     let name = path_param(
         "name",
         json!({"type": "string", "pattern": "^[A-Za-z0-9_.-]{1,128}$"}),
@@ -206,6 +206,6 @@ fn write_side(name: Value) -> (Value, Value) {
     (paths, schemas)
 }
 
-pub async fn openapi() -> Response {
+pub(super) async fn openapi() -> Response {
     Json(document()).into_response()
 }

@@ -1,6 +1,6 @@
 //! Edits: `op(volume, term)` applied brick by brick to a stored volume, then committed.
 //!
-//! Only bricks that can change are visited (`spec/icvg.md`): for operators with
+//! Only bricks that can change are visited (`docs/icvg.md`): for operators with
 //! `op(D1, L) = D1` (union, the differences, add, trim) the bricks the term's B-box reaches; for
 //! operators that give a constant outside the term (intersection, cap, modulate, product: L;
 //! divide, divide_a: H) every brick of the region, those outside the B-box pointed at the shared
@@ -8,65 +8,51 @@
 //! evaluated in parallel (rayon), deduplicated, and the coarser levels recomputed only above the
 //! bricks that changed, so the cost is proportional to the change, not to the volume.
 
+use super::compile::check_k;
 use super::ops::{BinaryOp, Outside, UnaryOp};
-use super::primitives::Box3;
 use super::term::{CompiledTerm, TermError, TermLimits, VolumeResolver};
-use crate::store::pyramid::{constant_parent, downsample};
+use crate::geometry::Box3;
+use crate::store::transaction::{ChangedKeys, CheckpointPolicy, Transaction};
 use crate::store::writer::Vod2Writer;
-use crate::store::{BrickVoxels, Snapshot, StoreError, StoredBrick};
+use crate::store::{BrickVoxels, Snapshot, StoreError};
 use isovox_proto::icvg::EditRequest;
-use isovox_proto::vod2::NodeEntry;
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use rayon::prelude::*;
 use serde::Serialize;
-use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
 /// What an edit does.
 #[derive(Debug)]
 pub enum EditKind {
+    /// `op(volume, term)`.
     Binary(BinaryOp, CompiledTerm),
+    /// `op(volume)`.
     Unary(UnaryOp),
 }
 
 /// A validated edit, ready to apply.
 #[derive(Debug)]
 pub struct Edit {
+    /// What the edit does.
     pub kind: EditKind,
     /// Where the edit applies (level-0 voxels, max exclusive); the whole volume when `None`.
     pub region: Option<Box3>,
 }
 
-/// When to write a full index checkpoint instead of a delta: a reader replays the deltas since
-/// the last checkpoint when it opens the file, so their number is bounded.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct CheckpointPolicy {
-    /// Entries changed since the last checkpoint.
-    pub max_overlay: usize,
-    /// Commits since the last checkpoint.
-    pub max_chain: usize,
-}
-
-impl Default for CheckpointPolicy {
-    fn default() -> Self {
-        CheckpointPolicy {
-            max_overlay: 1 << 15,
-            max_chain: 256,
-        }
-    }
-}
-
 /// What an edit changed.
 #[derive(Debug, Clone, Serialize)]
 pub struct EditOutcome {
+    /// The version committed.
     pub version: u64,
     /// Changed bricks per level (level 0 first), as `[x, y, z]`.
-    pub changed: Vec<Vec<[u32; 3]>>,
+    pub changed: ChangedKeys,
     /// Level-0 bricks whose voxels were evaluated.
     pub evaluated: usize,
     /// Brick records appended (new unique content).
     pub new_records: u64,
+    /// Whether the commit wrote a full index checkpoint.
     pub checkpoint: bool,
+    /// How long evaluating, storing and committing took.
     #[serde(serialize_with = "micros")]
     pub elapsed: Duration,
 }
@@ -91,7 +77,7 @@ impl Edit {
             Some(r) => {
                 let b = Box3::new(r.min, r.max);
                 if b.is_empty() {
-                    return Err(TermError(format!(
+                    return Err(TermError::Invalid(format!(
                         "region {:?}..{:?} is empty",
                         r.min, r.max
                     )));
@@ -103,29 +89,27 @@ impl Edit {
         let kind = match req.op.as_str() {
             "inverse" | "complement" | "add_scalar" => {
                 if req.term.is_some() {
-                    return Err(TermError(format!("{} is unary: it takes no term", req.op)));
+                    return Err(TermError::Invalid(format!(
+                        "{} is unary: it takes no term",
+                        req.op
+                    )));
                 }
                 if req.op == "add_scalar" {
                     let k = req
                         .k
-                        .ok_or_else(|| TermError("add_scalar needs \"k\"".into()))?;
-                    if k.unsigned_abs() > t.high() as u32 {
-                        return Err(TermError(format!(
-                            "add_scalar k = {k} is outside [-{h}, {h}]",
-                            h = t.high()
-                        )));
-                    }
+                        .ok_or_else(|| TermError::Invalid("add_scalar needs \"k\"".into()))?;
+                    check_k(k, t)?;
                     EditKind::Unary(UnaryOp::AddScalar(k))
                 } else {
                     EditKind::Unary(UnaryOp::Inverse)
                 }
             }
             name => {
-                let op = BinaryOp::from_name(name, req.s_l).map_err(TermError)?;
+                let op = BinaryOp::from_name(name, req.s_l).map_err(TermError::Invalid)?;
                 let term = req
                     .term
                     .as_ref()
-                    .ok_or_else(|| TermError(format!("{name} needs a \"term\"")))?;
+                    .ok_or_else(|| TermError::Invalid(format!("{name} needs a \"term\"")))?;
                 EditKind::Binary(op, CompiledTerm::compile(term, t, limits, volumes)?)
             }
         };
@@ -133,17 +117,10 @@ impl Edit {
     }
 }
 
-fn brick_box(layout: &VolumeLayout, key: BrickKey) -> Box3 {
-    let b = layout.brick() as i64;
-    let min = [key.x, key.y, key.z].map(|c| c as i64 * b);
-    Box3::new(min, min.map(|c| c + b))
-}
-
-/// Level-0 brick keys whose box meets `b`.
 impl Edit {
     /// The level-0 voxels the edit applies to: its region within the volume.
     pub fn target(&self, layout: &VolumeLayout) -> Box3 {
-        let volume = Box3::new([0; 3], layout.dims().map(|d| d as i64));
+        let volume = Box3::of_volume(layout);
         self.region.map_or(volume, |r| r.intersect(&volume))
     }
 
@@ -200,17 +177,6 @@ fn bricks_meeting(layout: &VolumeLayout, b: &Box3) -> Vec<BrickKey> {
     out
 }
 
-fn read_voxels(stored: &StoredBrick<'_>, layout: &VolumeLayout) -> Result<BrickVoxels, StoreError> {
-    Ok(match stored {
-        StoredBrick::Constant(v) => BrickVoxels::Constant(*v),
-        record => {
-            let mut out = vec![0u8; layout.brick_bytes()];
-            crate::store::vod2::decode_stored(record, layout, &mut out)?;
-            BrickVoxels::Data(out)
-        }
-    })
-}
-
 fn to_u16(v: &BrickVoxels, layout: &VolumeLayout) -> Vec<u16> {
     match v {
         BrickVoxels::Constant(c) => vec![*c; layout.brick_voxels()],
@@ -241,12 +207,12 @@ fn edit_brick(
 ) -> Result<Option<BrickVoxels>, StoreError> {
     let layout = snap.layout();
     let t = layout.voxel_type();
-    let whole = brick_box(layout, key);
+    let whole = Box3::of_brick(layout, key);
     let eff = whole.intersect(target);
     if eff.is_empty() {
         return Ok(None);
     }
-    let old = read_voxels(&snap.stored(key)?, layout)?;
+    let old = snap.voxels(key)?;
     // Without touching voxels when the brick is wholly edited and both sides are constant.
     if eff == whole {
         let d1 = match old {
@@ -308,96 +274,27 @@ pub fn apply_edit(
     policy: CheckpointPolicy,
 ) -> Result<EditOutcome, StoreError> {
     let start = Instant::now();
-    let layout = snap.layout().clone();
-    let t = layout.voxel_type();
-    let target = edit.target(&layout);
-    let keys = bricks_meeting(&layout, &edit.reach(&layout));
+    let layout = snap.layout();
+    let target = edit.target(layout);
+    let keys = bricks_meeting(layout, &edit.reach(layout));
     let results: Vec<(BrickKey, Option<BrickVoxels>)> = keys
         .par_iter()
         .map(|&key| edit_brick(edit, snap, &target, key).map(|r| (key, r)))
         .collect::<Result<_, _>>()?;
     let evaluated = results.len();
-    let records_before = writer.stats().stored.iter().sum::<u64>();
-    let mut level: Vec<(BrickKey, BrickVoxels)> = results
+    let level0 = results
         .into_iter()
         .filter_map(|(k, r)| r.map(|r| (k, r)))
         .collect();
-    let mut changes: Vec<(u64, NodeEntry)> = Vec::new();
-    let mut changed: Vec<Vec<[u32; 3]>> = vec![Vec::new(); layout.levels() as usize];
-    for lvl in 0..layout.levels() {
-        if level.is_empty() {
-            break;
-        }
-        // Store this level's changed bricks; keep only those whose entry really changed.
-        let prepared: Vec<_> = level.par_iter().map(|(_, v)| writer.prepare(v)).collect();
-        let mut kept: HashMap<BrickKey, BrickVoxels> = HashMap::new();
-        for ((key, voxels), p) in level.into_iter().zip(prepared) {
-            let node = layout.node_index(key);
-            let entry = writer.store(&voxels, p)?;
-            if entry != snap.entry_at(node)? {
-                changes.push((node, entry));
-                changed[lvl as usize].push([key.x, key.y, key.z]);
-                kept.insert(key, voxels);
-            }
-        }
-        if lvl + 1 == layout.levels() {
-            break;
-        }
-        // Recompute the parents of what changed.
-        let mut parents: Vec<BrickKey> = kept.keys().filter_map(|&k| layout.parent(k)).collect();
-        parents.sort();
-        parents.dedup();
-        level = parents
-            .par_iter()
-            .map(|&parent| -> Result<(BrickKey, BrickVoxels), StoreError> {
-                let kids = layout.children(parent);
-                let mut owned: Vec<(usize, BrickVoxels)> = Vec::new();
-                for (octant, child) in &kids {
-                    if !kept.contains_key(child) {
-                        owned.push((*octant, read_voxels(&snap.stored(*child)?, &layout)?));
-                    }
-                }
-                let mut slots: [Option<&BrickVoxels>; 8] = [None; 8];
-                for (octant, child) in &kids {
-                    if let Some(v) = kept.get(child) {
-                        slots[*octant] = Some(v);
-                    }
-                }
-                for (octant, v) in &owned {
-                    slots[*octant] = Some(v);
-                }
-                let voxels = match constant_parent(&slots) {
-                    Some(v) => BrickVoxels::Constant(v),
-                    None => {
-                        let mut out = vec![0u8; layout.brick_bytes()];
-                        downsample(&slots, layout.brick(), t, &mut out);
-                        BrickVoxels::from_bytes(out, t)
-                    }
-                };
-                Ok((parent, voxels))
-            })
-            .collect::<Result<_, _>>()?;
-    }
-    let checkpoint = snap.overlay_len() + changes.len() > policy.max_overlay
-        || snap.chain_len() + 1 > policy.max_chain;
-    let full = if checkpoint {
-        let mut entries: Vec<u64> = (0..layout.node_count())
-            .map(|n| snap.entry_at(n).map(NodeEntry::encode))
-            .collect::<Result<_, _>>()?;
-        for (node, entry) in &changes {
-            entries[*node as usize] = entry.encode();
-        }
-        Some(entries)
-    } else {
-        None
-    };
-    let slot = writer.commit(&changes, full.as_deref())?;
+    let mut transaction = Transaction::on(writer, snap);
+    transaction.update_level0(level0)?;
+    let committed = transaction.commit(policy)?;
     Ok(EditOutcome {
-        version: slot.version,
-        changed,
+        version: committed.slot.version,
+        changed: committed.changed,
         evaluated,
-        new_records: writer.stats().stored.iter().sum::<u64>() - records_before,
-        checkpoint,
+        new_records: committed.new_records,
+        checkpoint: committed.checkpoint,
         elapsed: start.elapsed(),
     })
 }

@@ -1,4 +1,4 @@
-//! The operators of the algebra (`spec/icvg.md`, "Operators"). D1 is the existing volume, D2
+//! The operators of the algebra (`docs/icvg.md`, "Operators"). D1 is the existing volume, D2
 //! the operand; every result is clamped to [L, H].
 
 use isovox_proto::VoxelType;
@@ -6,16 +6,27 @@ use isovox_proto::VoxelType;
 /// A binary operator.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum BinaryOp {
+    /// max(D1, D2).
     Union,
+    /// min(D1, D2).
     Intersection,
+    /// D1 where D1 >= D2, else L.
     Trim,
+    /// D1 where D1 <= D2, else L.
     Cap,
+    /// Carving that keeps the source's visible surface (`docs/icvg.md`).
     Difference,
+    /// max(D1 - D2, L).
     DifferenceA,
+    /// max(D1 - D2, L) where D2 >= S, else D1.
     DifferenceB,
+    /// min(D1 + D2, H).
     Add,
+    /// min(D1 * D2, H).
     Modulate,
+    /// D1 * D2 / H.
     Product,
+    /// D1 / D2 where D2 > 0, else H.
     DivideA,
     /// `S_L` real in (0, 1].
     Divide(f64),
@@ -57,6 +68,7 @@ impl BinaryOp {
         })
     }
 
+    /// The operator's name in terms and edit requests.
     pub fn name(self) -> &'static str {
         match self {
             BinaryOp::Union => "union",
@@ -133,7 +145,7 @@ impl BinaryOp {
         r.clamp(l, h) as u16
     }
 
-    /// How the operator treats voxels the operand does not reach (`spec/icvg.md`).
+    /// How the operator treats voxels the operand does not reach (`docs/icvg.md`).
     pub fn outside(self, t: VoxelType) -> Outside {
         match self {
             BinaryOp::Union
@@ -172,6 +184,7 @@ pub enum UnaryOp {
 }
 
 impl UnaryOp {
+    /// The operator applied to one voxel value.
     #[inline]
     pub fn apply(self, d1: u16, t: VoxelType) -> u16 {
         match self {
@@ -208,7 +221,7 @@ mod tests {
         CASES.iter().map(|&(a, b)| op.apply(a, b, U8)).collect()
     }
 
-    // Each expected row is worked out by hand from the table in spec/icvg.md.
+    // Each expected row is worked out by hand from the table in docs/icvg.md.
     #[test]
     fn union_intersection_trim_cap() {
         assert_eq!(

@@ -1,4 +1,4 @@
-//! Virtual volume sampling functions (`spec/icvg.md`, "Virtual volume sampling functions").
+//! Virtual volume sampling functions (`docs/icvg.md`, "Virtual volume sampling functions").
 //!
 //! Each primitive lives in its own extension space, placed in the world (level-0 voxel
 //! coordinates) by an integer offset; outside it the value is L. Bodies, unit vectors and
@@ -12,60 +12,8 @@
 //! padding layer and an S surface layer, as the cuboid does. Slanted flat faces (prism, pyramid)
 //! use the curved rule with `body = 1 - s`, `s` the signed distance inside the face's plane.
 
+use crate::geometry::Box3;
 use isovox_proto::VoxelType;
-
-/// A box of world voxels: `min` inclusive, `max` exclusive.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Box3 {
-    pub min: [i64; 3],
-    pub max: [i64; 3],
-}
-
-impl Box3 {
-    pub fn new(min: [i64; 3], max: [i64; 3]) -> Self {
-        Box3 { min, max }
-    }
-
-    pub fn is_empty(&self) -> bool {
-        (0..3).any(|a| self.min[a] >= self.max[a])
-    }
-
-    pub fn intersect(&self, o: &Box3) -> Box3 {
-        Box3 {
-            min: [0, 1, 2].map(|a| self.min[a].max(o.min[a])),
-            max: [0, 1, 2].map(|a| self.max[a].min(o.max[a])),
-        }
-    }
-
-    pub fn hull(&self, o: &Box3) -> Box3 {
-        Box3 {
-            min: [0, 1, 2].map(|a| self.min[a].min(o.min[a])),
-            max: [0, 1, 2].map(|a| self.max[a].max(o.max[a])),
-        }
-    }
-
-    /// The box grown by `r` voxels on every side.
-    pub fn grow(&self, r: i64) -> Box3 {
-        Box3 {
-            min: self.min.map(|c| c - r),
-            max: self.max.map(|c| c + r),
-        }
-    }
-
-    pub fn contains(&self, v: [i64; 3]) -> bool {
-        (0..3).all(|a| v[a] >= self.min[a] && v[a] < self.max[a])
-    }
-
-    /// Voxels in the box (0 when empty), saturating.
-    pub fn voxels(&self) -> u128 {
-        if self.is_empty() {
-            return 0;
-        }
-        (0..3)
-            .map(|a| (self.max[a] - self.min[a]) as u128)
-            .product()
-    }
-}
 
 /// A primitive: a value for every world voxel, L outside its extension space.
 pub trait Primitive: std::fmt::Debug + Send + Sync {
@@ -84,6 +32,13 @@ pub trait Primitive: std::fmt::Debug + Send + Sync {
     /// certain without sampling; `None` when unsure.
     fn constant_inside(&self, _b: &Box3, _t: VoxelType) -> Option<u16> {
         None
+    }
+
+    /// The one value of every voxel of `b` (any box), when certain without sampling.
+    fn constant_over(&self, b: &Box3, t: VoxelType) -> Option<u16> {
+        crate::geometry::constant_over(&self.bbox(), b, t.low(), |inside| {
+            self.constant_inside(inside, t)
+        })
     }
 
     /// The value at any world voxel.
@@ -162,7 +117,9 @@ fn offsets(b: &Box3, centre: [f64; 3]) -> ([f64; 3], [f64; 3]) {
 /// Cuboid: L on the outer layer, S on the next, H inside (B > 2 on every axis).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Cuboid {
+    /// The first voxel of the extension space.
     pub origin: [i64; 3],
+    /// The extension space's size.
     pub size: [u32; 3],
 }
 
@@ -198,7 +155,9 @@ impl Primitive for Cuboid {
 /// Ellipsoid: radii `R`, centre `C = R` in its extension space `2R + 1`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Ellipsoid {
+    /// The centre voxel.
     pub center: [i64; 3],
+    /// The radii along x, y, z.
     pub radii: [u32; 3],
 }
 
@@ -311,8 +270,11 @@ fn axial_box(base: [i64; 3], radii: [u32; 2], height: u32) -> Box3 {
 /// at the bottom and top.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Cylinder {
+    /// The centre of the bottom padding layer.
     pub base: [i64; 3],
+    /// The radii along x and z.
     pub radii: [u32; 2],
+    /// The height along +y.
     pub height: u32,
 }
 
@@ -370,8 +332,11 @@ impl Primitive for Cylinder {
 /// `h = 1 - Vy / (By - 1)`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Cone {
+    /// The centre of the bottom padding layer.
     pub base: [i64; 3],
+    /// The base's radii along x and z.
     pub radii: [u32; 2],
+    /// The height along +y.
     pub height: u32,
 }
 
@@ -423,8 +388,11 @@ impl Primitive for Cone {
 /// Torus around the +y axis through `center`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Torus {
+    /// The centre of the ring.
     pub center: [i64; 3],
+    /// The radius of the tube's centre circle.
     pub major: u32,
+    /// The tube's radius.
     pub minor: u32,
 }
 
@@ -470,8 +438,11 @@ impl Primitive for Torus {
 /// extension is `(2 r + 1, 2 ceil(length / 2) + 2 r + 1, 2 r + 1)`, symmetric about `center`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Capsule {
+    /// The centre of the segment.
     pub center: [i64; 3],
+    /// The ball's radius.
     pub radius: u32,
+    /// The segment's length along +y.
     pub length: u32,
 }
 
@@ -572,7 +543,9 @@ impl Primitive for CutCuboid {
 /// bottom-right edge (x = right, y = 0), measured between the S layers.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Prism {
+    /// The first voxel of the bounding cuboid.
     pub origin: [i64; 3],
+    /// The bounding cuboid's size.
     pub size: [u32; 3],
 }
 
@@ -596,7 +569,9 @@ impl Prism {
 /// Square pyramid: base on the cuboid's bottom S layer, apex at the centre of its top S layer.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Pyramid {
+    /// The first voxel of the bounding cuboid.
     pub origin: [i64; 3],
+    /// The bounding cuboid's size.
     pub size: [u32; 3],
 }
 
@@ -648,16 +623,6 @@ macro_rules! via_solid {
 }
 via_solid!(Prism);
 via_solid!(Pyramid);
-
-/// The one value of every voxel of `b` (any box), when certain without sampling.
-pub fn constant_over(p: &dyn Primitive, b: &Box3, t: VoxelType) -> Option<u16> {
-    let inside = b.intersect(&p.bbox());
-    if inside.is_empty() {
-        return Some(t.low());
-    }
-    let v = p.constant_inside(&inside, t)?;
-    (inside == *b || v == t.low()).then_some(v)
-}
 
 #[cfg(test)]
 mod tests {

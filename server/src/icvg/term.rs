@@ -1,12 +1,9 @@
 //! CVG terms compiled for evaluation: validated, with B-boxes, evaluated over boxes of voxels.
 
-use super::ops::{check_s_l, BinaryOp, UnaryOp};
-use super::primitives::{
-    constant_over, Box3, Capsule, Cone, Cuboid, Cylinder, Ellipsoid, Primitive, Prism, Pyramid,
-    Torus,
-};
+use super::ops::{BinaryOp, UnaryOp};
+use super::primitives::Primitive;
+use crate::geometry::Box3;
 use crate::store::Snapshot;
-use isovox_proto::icvg::Term;
 use isovox_proto::{BrickKey, VoxelType};
 use std::sync::Arc;
 
@@ -31,10 +28,36 @@ impl Default for TermLimits {
     }
 }
 
-/// Why a term is refused. The message says what and where.
+/// Why a term (or an edit request) is refused. The message says what and where.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("{0}")]
-pub struct TermError(pub String);
+pub enum TermError {
+    /// Operators nested deeper than [`TermLimits::max_depth`].
+    #[error("term is nested deeper than {0} levels")]
+    TooDeep(usize),
+    /// More nodes than [`TermLimits::max_nodes`].
+    #[error("term has more than {0} nodes")]
+    TooManyNodes(usize),
+    /// A primitive wider than [`TermLimits::max_extent`].
+    #[error("{what} spans {extent} voxels, more than the limit of {limit}")]
+    TooWide {
+        /// What is too wide.
+        what: String,
+        /// Its extension in voxels.
+        extent: u64,
+        /// The limit.
+        limit: u32,
+    },
+    /// A size, radius, parameter or operator out of its range, or a missing or superfluous
+    /// part of the request.
+    #[error("{0}")]
+    Invalid(String),
+    /// A volume the term names is not there, or does not fit the edited one.
+    #[error("{0}")]
+    Volume(String),
+    /// A mesh the term names is not there.
+    #[error("{0}")]
+    Mesh(String),
+}
 
 /// Finds the stored volumes a term names (`{"volume": {"name": ...}}`).
 pub trait VolumeResolver {
@@ -47,7 +70,7 @@ pub trait VolumeResolver {
     /// # Errors
     /// No such mesh, or no mesh store here.
     fn mesh(&self, hash: u64) -> Result<Arc<crate::voxelize::solid::TriMesh>, TermError> {
-        Err(TermError(format!(
+        Err(TermError::Mesh(format!(
             "mesh {hash:016x}: meshes are not available here"
         )))
     }
@@ -59,31 +82,44 @@ pub struct NoVolumes;
 
 impl VolumeResolver for NoVolumes {
     fn resolve(&self, name: &str) -> Result<Arc<Snapshot>, TermError> {
-        Err(TermError(format!("unknown volume {name:?} in term")))
+        Err(TermError::Volume(format!(
+            "unknown volume {name:?} in term"
+        )))
     }
 }
 
 /// A compiled term node.
 #[derive(Debug)]
 pub enum Node {
+    /// A primitive, placed.
     Primitive(Box<dyn Primitive>),
     /// A box `source` of another volume's level 0, moved by `shift` (world = source + shift).
     Volume {
+        /// The other volume's version read.
         snap: Arc<Snapshot>,
+        /// World position minus source position.
         shift: [i64; 3],
+        /// The box of the other volume's voxels used.
         source: Box3,
     },
+    /// A binary operator and its operands.
     Binary(BinaryOp, Box<CompiledTerm>, Box<CompiledTerm>),
+    /// A unary operator and its operand.
     Unary(UnaryOp, Box<CompiledTerm>),
     /// Values sampled once into an array over `frame` (a voxelized mesh); L outside.
     Grid {
+        /// The box the values cover.
         frame: Box3,
+        /// The values, x fastest.
         values: Vec<u16>,
     },
     /// Dilation (max) or erosion (min) over a cube of side `2 * radius + 1`.
     Morph {
+        /// Dilation when true, erosion when false.
         dilate: bool,
+        /// The window is the cube of side 2 * radius + 1.
         radius: u32,
+        /// The term filtered.
         arg: Box<CompiledTerm>,
     },
 }
@@ -92,348 +128,15 @@ pub enum Node {
 /// (an operator that maps (L, L) to something else: inverse, divide, add_scalar with k > 0).
 #[derive(Debug)]
 pub struct CompiledTerm {
+    /// The node.
     pub node: Node,
+    /// The B-box (see above).
     pub bbox: Option<Box3>,
+    /// The voxel type it is evaluated for.
     pub voxel_type: VoxelType,
 }
 
-fn positive(what: &str, v: u32) -> Result<(), TermError> {
-    if v == 0 {
-        return Err(TermError(format!("{what} must be at least 1")));
-    }
-    Ok(())
-}
-
 impl CompiledTerm {
-    /// Validates and compiles a term for voxels of type `t`.
-    ///
-    /// # Errors
-    /// A radius or size out of range, an extension over the limit, a tree too deep or too
-    /// large, an unknown volume, a bad operator argument.
-    pub fn compile(
-        term: &Term,
-        t: VoxelType,
-        limits: &TermLimits,
-        volumes: &dyn VolumeResolver,
-    ) -> Result<CompiledTerm, TermError> {
-        let mut nodes = 0;
-        Self::build(term, t, limits, volumes, 0, &mut nodes)
-    }
-
-    fn build(
-        term: &Term,
-        t: VoxelType,
-        limits: &TermLimits,
-        volumes: &dyn VolumeResolver,
-        depth: usize,
-        nodes: &mut usize,
-    ) -> Result<CompiledTerm, TermError> {
-        *nodes += 1;
-        if depth > limits.max_depth {
-            return Err(TermError(format!(
-                "term is nested deeper than {} levels",
-                limits.max_depth
-            )));
-        }
-        if *nodes > limits.max_nodes {
-            return Err(TermError(format!(
-                "term has more than {} nodes",
-                limits.max_nodes
-            )));
-        }
-        let extent = |what: &str, e: u64| -> Result<(), TermError> {
-            if e > limits.max_extent as u64 {
-                return Err(TermError(format!(
-                    "{what} spans {e} voxels, more than the limit of {}",
-                    limits.max_extent
-                )));
-            }
-            Ok(())
-        };
-        let prim = |p: Box<dyn Primitive>| -> Result<CompiledTerm, TermError> {
-            let b = p.bbox();
-            Ok(CompiledTerm {
-                bbox: Some(b),
-                node: Node::Primitive(p),
-                voxel_type: t,
-            })
-        };
-        let child =
-            |c: &Term, nodes: &mut usize| Self::build(c, t, limits, volumes, depth + 1, nodes);
-        let binary = |op: BinaryOp,
-                      a: &Term,
-                      b: &Term,
-                      nodes: &mut usize|
-         -> Result<CompiledTerm, TermError> {
-            let (a, b) = (child(a, nodes)?, child(b, nodes)?);
-            let bbox = binary_bbox(op, a.bbox, b.bbox);
-            Ok(CompiledTerm {
-                node: Node::Binary(op, Box::new(a), Box::new(b)),
-                bbox,
-                voxel_type: t,
-            })
-        };
-        match term {
-            Term::Cuboid { origin, size } => {
-                if size.iter().any(|&s| s <= 2) {
-                    return Err(TermError(format!(
-                        "cuboid size {size:?}: every side must be greater than 2"
-                    )));
-                }
-                extent("cuboid", *size.iter().max().unwrap_or(&0) as u64)?;
-                prim(Box::new(Cuboid {
-                    origin: *origin,
-                    size: *size,
-                }))
-            }
-            Term::Ellipsoid { center, radii } => {
-                for r in radii {
-                    positive("ellipsoid radius", *r)?;
-                }
-                extent(
-                    "ellipsoid",
-                    2 * *radii.iter().max().unwrap_or(&0) as u64 + 1,
-                )?;
-                prim(Box::new(Ellipsoid {
-                    center: *center,
-                    radii: *radii,
-                }))
-            }
-            Term::Cylinder {
-                base,
-                radii,
-                height,
-            }
-            | Term::Cone {
-                base,
-                radii,
-                height,
-            } => {
-                let name = if matches!(term, Term::Cone { .. }) {
-                    "cone"
-                } else {
-                    "cylinder"
-                };
-                for r in radii {
-                    positive(&format!("{name} radius"), *r)?;
-                }
-                if *height < 3 {
-                    return Err(TermError(format!(
-                        "{name} height must be at least 3, got {height}"
-                    )));
-                }
-                extent(
-                    name,
-                    (2 * *radii.iter().max().unwrap_or(&0) as u64 + 1).max(*height as u64),
-                )?;
-                if name == "cone" {
-                    prim(Box::new(Cone {
-                        base: *base,
-                        radii: *radii,
-                        height: *height,
-                    }))
-                } else {
-                    prim(Box::new(Cylinder {
-                        base: *base,
-                        radii: *radii,
-                        height: *height,
-                    }))
-                }
-            }
-            Term::Torus {
-                center,
-                major,
-                minor,
-            } => {
-                positive("torus minor radius", *minor)?;
-                extent("torus", 2 * (*major as u64 + *minor as u64) + 1)?;
-                prim(Box::new(Torus {
-                    center: *center,
-                    major: *major,
-                    minor: *minor,
-                }))
-            }
-            Term::Capsule {
-                center,
-                radius,
-                length,
-            } => {
-                positive("capsule radius", *radius)?;
-                extent("capsule", *length as u64 + 2 * *radius as u64 + 1)?;
-                prim(Box::new(Capsule {
-                    center: *center,
-                    radius: *radius,
-                    length: *length,
-                }))
-            }
-            Term::Prism { origin, size } | Term::Pyramid { origin, size } => {
-                let name = if matches!(term, Term::Prism { .. }) {
-                    "prism"
-                } else {
-                    "pyramid"
-                };
-                if size.iter().any(|&s| s < 4) {
-                    return Err(TermError(format!(
-                        "{name} size {size:?}: every side must be at least 4"
-                    )));
-                }
-                extent(name, *size.iter().max().unwrap_or(&0) as u64)?;
-                if name == "prism" {
-                    prim(Box::new(
-                        Prism {
-                            origin: *origin,
-                            size: *size,
-                        }
-                        .solid(),
-                    ))
-                } else {
-                    prim(Box::new(
-                        Pyramid {
-                            origin: *origin,
-                            size: *size,
-                        }
-                        .solid(),
-                    ))
-                }
-            }
-            Term::Volume {
-                name,
-                origin,
-                region,
-            } => {
-                let snap = volumes.resolve(name)?;
-                if snap.layout().voxel_type() != t {
-                    return Err(TermError(format!(
-                        "volume {name:?} holds {} voxels, the edited volume {t}",
-                        snap.layout().voxel_type()
-                    )));
-                }
-                let whole = Box3::new([0; 3], snap.layout().dims().map(|d| d as i64));
-                let source = match region {
-                    Some(r) => {
-                        let b = Box3::new(r.min, r.max);
-                        if b.is_empty() || b.intersect(&whole) != b {
-                            return Err(TermError(format!(
-                                "region {:?}..{:?} is empty or outside volume {name:?} ({:?})",
-                                r.min, r.max, whole.max
-                            )));
-                        }
-                        b
-                    }
-                    None => whole,
-                };
-                let shift = [0, 1, 2].map(|a| origin[a] - source.min[a]);
-                let bbox = Box3::new(*origin, [0, 1, 2].map(|a| source.max[a] + shift[a]));
-                Ok(CompiledTerm {
-                    node: Node::Volume {
-                        snap,
-                        shift,
-                        source,
-                    },
-                    bbox: Some(bbox),
-                    voxel_type: t,
-                })
-            }
-            Term::Union(a, b) => binary(BinaryOp::Union, a, b, nodes),
-            Term::Intersection(a, b) => binary(BinaryOp::Intersection, a, b, nodes),
-            Term::Trim(a, b) => binary(BinaryOp::Trim, a, b, nodes),
-            Term::Cap(a, b) => binary(BinaryOp::Cap, a, b, nodes),
-            Term::Difference(a, b) => binary(BinaryOp::Difference, a, b, nodes),
-            Term::DifferenceA(a, b) => binary(BinaryOp::DifferenceA, a, b, nodes),
-            Term::DifferenceB(a, b) => binary(BinaryOp::DifferenceB, a, b, nodes),
-            Term::Add(a, b) => binary(BinaryOp::Add, a, b, nodes),
-            Term::Modulate(a, b) => binary(BinaryOp::Modulate, a, b, nodes),
-            Term::Product(a, b) => binary(BinaryOp::Product, a, b, nodes),
-            Term::DivideA(a, b) => binary(BinaryOp::DivideA, a, b, nodes),
-            Term::Divide { s_l, args } => {
-                check_s_l(*s_l).map_err(TermError)?;
-                binary(BinaryOp::Divide(*s_l), &args.0, &args.1, nodes)
-            }
-            Term::Inverse(a) | Term::Complement(a) => {
-                let a = child(a, nodes)?;
-                Ok(CompiledTerm {
-                    node: Node::Unary(UnaryOp::Inverse, Box::new(a)),
-                    bbox: None,
-                    voxel_type: t,
-                })
-            }
-            Term::Mesh {
-                hash,
-                offset,
-                scale,
-            } => {
-                let h = (hash.len() == 16)
-                    .then(|| u64::from_str_radix(hash, 16).ok())
-                    .flatten()
-                    .ok_or_else(|| {
-                        TermError(format!("mesh hash {hash:?}: 16 hex digits expected"))
-                    })?;
-                if !(scale.is_finite() && *scale > 0.0) || offset.iter().any(|o| !o.is_finite()) {
-                    return Err(TermError(format!(
-                        "mesh {hash}: scale must be positive and finite, offset finite"
-                    )));
-                }
-                let mesh = volumes.mesh(h)?;
-                let (lo, hi) = mesh
-                    .bounds()
-                    .ok_or_else(|| TermError(format!("mesh {hash} has no triangles")))?;
-                let place = |p: [f32; 3]| -> [f64; 3] {
-                    std::array::from_fn(|a| p[a] as f64 * scale + offset[a])
-                };
-                let (a, b) = (place(lo), place(hi));
-                let min = a.map(|c| c.floor() as i64 - 1);
-                let max = b.map(|c| c.ceil() as i64 + 1);
-                for axis in 0..3 {
-                    extent("mesh", (max[axis] - min[axis]).max(0) as u64)?;
-                }
-                let frame = Box3::new(min, max);
-                let dims = [0, 1, 2].map(|i| (max[i] - min[i]) as usize);
-                let values = crate::voxelize::density_box(&mesh, min, dims, 2, t, place);
-                Ok(CompiledTerm {
-                    node: Node::Grid { frame, values },
-                    bbox: Some(frame),
-                    voxel_type: t,
-                })
-            }
-            Term::Dilate { radius, arg } | Term::Erode { radius, arg } => {
-                let dilate = matches!(term, Term::Dilate { .. });
-                positive("morphology radius", *radius)?;
-                extent("morphology box", 2 * *radius as u64 + 1)?;
-                let a = child(arg, nodes)?;
-                // Dilation reaches `radius` beyond its argument; erosion stays inside it (the
-                // minimum over a box that leaves the argument's B-box includes an L).
-                let bbox = match (dilate, a.bbox) {
-                    (true, Some(b)) => Some(b.grow(*radius as i64)),
-                    (_, b) => b,
-                };
-                Ok(CompiledTerm {
-                    node: Node::Morph {
-                        dilate,
-                        radius: *radius,
-                        arg: Box::new(a),
-                    },
-                    bbox,
-                    voxel_type: t,
-                })
-            }
-            Term::AddScalar { k, arg } => {
-                if k.unsigned_abs() > t.high() as u32 {
-                    return Err(TermError(format!(
-                        "add_scalar k = {k} is outside [-{h}, {h}]",
-                        h = t.high()
-                    )));
-                }
-                let a = child(arg, nodes)?;
-                let bbox = if *k > 0 { None } else { a.bbox };
-                Ok(CompiledTerm {
-                    node: Node::Unary(UnaryOp::AddScalar(*k), Box::new(a)),
-                    bbox,
-                    voxel_type: t,
-                })
-            }
-        }
-    }
-
     /// The value at one voxel (the reference, voxel by voxel; [`CompiledTerm::eval`] is the fast
     /// path and must agree with it).
     pub fn sample(&self, v: [i64; 3]) -> u16 {
@@ -489,7 +192,7 @@ impl CompiledTerm {
             }
         }
         match &self.node {
-            Node::Primitive(p) => constant_over(p.as_ref(), b, t),
+            Node::Primitive(p) => p.constant_over(b, t),
             Node::Volume { .. } | Node::Grid { .. } => None,
             Node::Binary(op, x, y) => Some(op.apply(x.constant_over(b)?, y.constant_over(b)?, t)),
             Node::Unary(op, x) => Some(op.apply(x.constant_over(b)?, t)),
@@ -569,7 +272,7 @@ fn eval_primitive(p: &dyn Primitive, t: VoxelType, frame: &Box3, b: &Box3, out: 
         (((z - frame.min[2]) as usize * size[1] + (y - frame.min[1]) as usize) * size[0])
             + (x - frame.min[0]) as usize
     };
-    if let Some(v) = constant_over(p, b, t) {
+    if let Some(v) = p.constant_over(b, t) {
         for z in b.min[2]..b.max[2] {
             for y in b.min[1]..b.max[1] {
                 let row = index(b.min[0], y, z);
@@ -609,24 +312,6 @@ fn eval_primitive(p: &dyn Primitive, t: VoxelType, frame: &Box3, b: &Box3, out: 
     hi.min[axis] = mid;
     eval_primitive(p, t, frame, &lo, out);
     eval_primitive(p, t, frame, &hi, out);
-}
-
-/// The B-box of a binary node from its children's (`spec/icvg.md`): union-like operators
-/// cover the hull, intersection-like the overlap, differences the left side; divide maps (L, L)
-/// to H and so has none.
-fn binary_bbox(op: BinaryOp, a: Option<Box3>, b: Option<Box3>) -> Option<Box3> {
-    match op {
-        BinaryOp::Union | BinaryOp::Add => Some(a?.hull(&b?)),
-        BinaryOp::Intersection | BinaryOp::Cap | BinaryOp::Modulate | BinaryOp::Product => {
-            match (a, b) {
-                (Some(a), Some(b)) => Some(a.intersect(&b)),
-                (Some(x), None) | (None, Some(x)) => Some(x),
-                (None, None) => None,
-            }
-        }
-        BinaryOp::Trim | BinaryOp::Difference | BinaryOp::DifferenceA | BinaryOp::DifferenceB => a,
-        BinaryOp::DivideA | BinaryOp::Divide(_) => None,
-    }
 }
 
 /// One voxel of a volume's level 0 (None outside it).

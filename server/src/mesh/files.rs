@@ -7,8 +7,11 @@ use std::path::Path;
 /// The formats `isovox mesh` writes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum MeshFormat {
+    /// glTF binary.
     Glb,
+    /// Wavefront OBJ.
     Obj,
+    /// Binary little-endian PLY.
     Ply,
 }
 

@@ -2,8 +2,9 @@
 
 use super::mc::Mesh;
 use super::tile::{mesh_tile, TileScratch};
+use crate::progress::Progress;
+use crate::store::decoded::DecodedBricks;
 use crate::store::{Snapshot, StoreError};
-use indicatif::ProgressBar;
 use isovox_proto::BrickKey;
 use rayon::prelude::*;
 use std::collections::HashMap;
@@ -39,11 +40,11 @@ pub fn mesh_tile_parts(
     snap: &Snapshot,
     tiles: &[BrickKey],
     iso: f32,
-    progress: &ProgressBar,
+    progress: &dyn Progress,
 ) -> Result<Vec<Mesh>, StoreError> {
-    progress.set_length(tiles.len() as u64);
+    progress.start(tiles.len() as u64);
     // Decoded bricks shared by all tiles of this pass: each is read whole by up to 27 tiles.
-    let bricks = std::sync::Arc::new(super::cache::BrickCache::new(BRICK_CACHE_BYTES));
+    let bricks = std::sync::Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
     let parts = tiles
         .par_iter()
         .map_init(
@@ -51,12 +52,12 @@ pub fn mesh_tile_parts(
             |scratch, &key| {
                 let mut m = Mesh::default();
                 mesh_tile(snap, key, iso, &mut m, scratch)?;
-                progress.inc(1);
+                progress.advance(1);
                 Ok(m)
             },
         )
         .collect::<Result<_, StoreError>>()?;
-    progress.finish_and_clear();
+    progress.finish();
     Ok(parts)
 }
 
@@ -69,7 +70,7 @@ pub fn mesh_tiles(
     snap: &Snapshot,
     tiles: &[BrickKey],
     iso: f32,
-    progress: &ProgressBar,
+    progress: &dyn Progress,
 ) -> Result<Mesh, StoreError> {
     let parts = mesh_tile_parts(snap, tiles, iso, progress)?;
     let mut out = Mesh::default();

@@ -14,8 +14,11 @@ use super::table::{table, EDGES, EDGE_AXIS};
 /// `values[(z * size[1] + y) * size[0] + x]`.
 #[derive(Debug, Clone, Copy)]
 pub struct Field<'a> {
+    /// The grid position of the first sample.
     pub origin: [i64; 3],
+    /// Samples along x, y, z.
     pub size: [usize; 3],
+    /// The samples, x fastest.
     pub values: &'a [f32],
 }
 

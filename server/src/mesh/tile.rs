@@ -13,8 +13,10 @@
 //! `[i 2^k, (i + 1) 2^k)`, at `(i + 0.5) 2^k - 0.5`, times the voxel scale.
 
 use super::mc::{march, Field, Mesh, Scratch};
+use crate::store::decoded::{decode, DecodedBricks};
 use crate::store::{Snapshot, StoreError, StoredBrick};
 use isovox_proto::{BrickKey, VoxelType};
+use std::sync::Arc;
 
 /// Reusable memory for meshing tiles one after another on one thread.
 #[derive(Debug, Default)]
@@ -23,12 +25,12 @@ pub struct TileScratch {
     march: Scratch,
     /// Decoded bricks shared between tiles (and threads); without it each tile decodes its
     /// neighbours itself.
-    pub bricks: Option<std::sync::Arc<super::cache::BrickCache>>,
+    pub bricks: Option<Arc<DecodedBricks>>,
 }
 
 impl TileScratch {
     /// Scratch that shares decoded bricks through `bricks`.
-    pub fn with_bricks(bricks: std::sync::Arc<super::cache::BrickCache>) -> Self {
+    pub fn with_bricks(bricks: Arc<DecodedBricks>) -> Self {
         TileScratch {
             bricks: Some(bricks),
             ..TileScratch::default()
@@ -36,37 +38,16 @@ impl TileScratch {
     }
 }
 
-/// The decoded bytes of a stored brick record (content hash `hash`), through the shared cache
-/// when there is one.
-fn decoded(
-    hash: u64,
-    stored: &StoredBrick<'_>,
-    layout: &isovox_proto::VolumeLayout,
-    cache: Option<&super::cache::BrickCache>,
-) -> Result<std::sync::Arc<Vec<u8>>, StoreError> {
-    // The key mixes in the brick size: equal hashes of different sizes are different content.
-    let hash = (hash as u128) << 32 | layout.brick_bytes() as u128;
-    if let Some(hit) = cache.and_then(|c| c.get(hash)) {
-        return Ok(hit);
-    }
-    let mut out = vec![0u8; layout.brick_bytes()];
-    crate::store::vod2::decode_stored(stored, layout, &mut out)?;
-    let out = std::sync::Arc::new(out);
-    if let Some(c) = cache {
-        c.put(hash, out.clone(), layout.brick_bytes());
-    }
-    Ok(out)
-}
-
 /// What meshing one tile did.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct TileStats {
     /// The tile was skipped from brick min/max alone, without decoding a voxel.
     pub skipped: bool,
+    /// Triangles made.
     pub triangles: usize,
 }
 
-/// The default iso value, S - 0.5 (`spec/icvg.md`).
+/// The default iso value, S - 0.5 (`docs/icvg.md`).
 pub fn default_iso(t: VoxelType) -> f32 {
     t.surface() as f32 - 0.5
 }
@@ -89,7 +70,7 @@ pub struct TileInputs {
 pub fn tile_inputs(snap: &Snapshot, key: BrickKey, iso: f32) -> Result<TileInputs, StoreError> {
     let layout = snap.layout();
     if !layout.contains(key) {
-        return Err(StoreError::Invalid(format!(
+        return Err(StoreError::OutOfRange(format!(
             "tile {key} is outside the volume"
         )));
     }
@@ -265,8 +246,10 @@ pub fn mesh_tile_from(
                         }
                     }
                     StoredBrick::Record { header, .. } => {
-                        let bytes =
-                            decoded(header.hash, &stored, layout, scratch.bricks.as_deref())?;
+                        let bytes = match &scratch.bricks {
+                            Some(cache) => cache.voxels(header.hash, &stored, layout)?,
+                            None => decode(&stored, layout)?,
+                        };
                         for (y, z) in rows {
                             let row = at(y, z);
                             let src = (((z - blo[2]) * b + (y - blo[1])) * b + (from[0] - blo[0]))

@@ -7,30 +7,40 @@
 
 use super::codec::Compression;
 use super::pyramid::{constant_parent, downsample, BrickSource, BrickVoxels};
+use super::transaction::{CheckpointPolicy, Transaction};
 use super::writer::{Vod2Writer, WriteStats};
 use super::StoreError;
-use indicatif::ProgressBar;
+use crate::progress::{Progress, Silent};
 use isovox_proto::vod2::FileHeader;
 use isovox_proto::{BrickKey, VolumeLayout};
 use rayon::prelude::*;
 use std::path::Path;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// How to build.
-#[derive(Debug, Clone)]
+#[derive(Clone)]
 pub struct BuildOptions {
     /// How bricks are compressed (each is stored raw where compression does not shrink it;
     /// constants and deduplication apply in every case).
     pub compression: Compression,
-    /// Advanced once per brick written (all levels); hidden when not on a terminal.
-    pub progress: ProgressBar,
+    /// Advanced once per brick written (all levels).
+    pub progress: Arc<dyn Progress>,
+}
+
+impl std::fmt::Debug for BuildOptions {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("BuildOptions")
+            .field("compression", &self.compression)
+            .finish_non_exhaustive()
+    }
 }
 
 impl Default for BuildOptions {
     fn default() -> Self {
         BuildOptions {
             compression: Compression::default(),
-            progress: ProgressBar::hidden(),
+            progress: Arc::new(Silent),
         }
     }
 }
@@ -38,8 +48,11 @@ impl Default for BuildOptions {
 /// What a build wrote.
 #[derive(Debug, Clone)]
 pub struct BuildReport {
+    /// What the writer stored.
     pub stats: WriteStats,
+    /// The file's size.
     pub file_bytes: u64,
+    /// How long the build took.
     pub elapsed: Duration,
 }
 
@@ -55,23 +68,17 @@ pub fn build_vod2(
     options: &BuildOptions,
 ) -> Result<BuildReport, StoreError> {
     let start = Instant::now();
-    let writer = Vod2Writer::create(
+    let mut writer = Vod2Writer::create(
         path,
         FileHeader::new(layout.clone(), voxel_scale),
         options.compression,
     )?;
-    let mut sink = FileSink {
-        writer,
-        entries: vec![0u64; layout.node_count() as usize],
-    };
-    options.progress.set_length(layout.node_count());
-    stream_pyramid(layout, source, &mut sink, &options.progress)?;
-    let FileSink {
-        mut writer,
-        entries,
-    } = sink;
-    writer.commit(&[], Some(&entries))?;
-    options.progress.finish_and_clear();
+    let mut sink = FileSink(Transaction::first(&mut writer));
+    options.progress.start(layout.node_count());
+    let built = stream_pyramid(layout, source, &mut sink, options.progress.as_ref());
+    options.progress.finish();
+    built?;
+    sink.0.commit(CheckpointPolicy::default())?;
     Ok(BuildReport {
         stats: writer.stats(),
         file_bytes: writer.end(),
@@ -96,6 +103,7 @@ pub trait SlabSink {
 /// octree from RAW costs, as the thesis's Table 5 does).
 #[derive(Debug, Default)]
 pub struct MemorySink {
+    /// Every brick of every level.
     pub bricks: Vec<BrickVoxels>,
 }
 
@@ -113,12 +121,10 @@ impl SlabSink for MemorySink {
     }
 }
 
-struct FileSink {
-    writer: Vod2Writer,
-    entries: Vec<u64>,
-}
+/// Stores every brick as the first version of a new file.
+struct FileSink<'a>(Transaction<'a>);
 
-impl SlabSink for FileSink {
+impl SlabSink for FileSink<'_> {
     fn slab(
         &mut self,
         layout: &VolumeLayout,
@@ -126,7 +132,7 @@ impl SlabSink for FileSink {
         z: u32,
         slab: &[BrickVoxels],
     ) -> Result<(), StoreError> {
-        let writer = &self.writer;
+        let writer = self.0.writer();
         let prepared: Vec<_> = slab.par_iter().map(|v| writer.prepare(v)).collect();
         let first = layout.node_index(BrickKey {
             level,
@@ -135,7 +141,7 @@ impl SlabSink for FileSink {
             z,
         });
         for (i, (voxels, p)) in slab.iter().zip(prepared).enumerate() {
-            self.entries[first as usize + i] = self.writer.store(voxels, p)?.encode();
+            self.0.put(first + i as u64, voxels, p)?;
         }
         Ok(())
     }
@@ -149,7 +155,7 @@ pub fn stream_pyramid(
     layout: &VolumeLayout,
     source: &dyn BrickSource,
     sink: &mut dyn SlabSink,
-    progress: &ProgressBar,
+    progress: &dyn Progress,
 ) -> Result<(), StoreError> {
     let mut b = Builder {
         layout,
@@ -187,7 +193,7 @@ struct Builder<'a> {
     sink: &'a mut dyn SlabSink,
     /// Per level: an even slab waiting for its odd partner.
     pending: Vec<Option<Vec<BrickVoxels>>>,
-    progress: &'a ProgressBar,
+    progress: &'a dyn Progress,
 }
 
 impl Builder<'_> {
@@ -205,7 +211,7 @@ impl Builder<'_> {
             (slab, None)
         } else {
             let lower = self.pending[level as usize].take().ok_or_else(|| {
-                StoreError::Invalid(format!("internal: level {level} slab {z} has no partner"))
+                StoreError::Internal(format!("level {level} slab {z} has no partner"))
             })?;
             (lower, Some(slab))
         };
@@ -253,7 +259,63 @@ impl Builder<'_> {
 
     fn write_slab(&mut self, level: u8, z: u32, slab: &[BrickVoxels]) -> Result<(), StoreError> {
         self.sink.slab(self.layout, level, z, slab)?;
-        self.progress.inc(slab.len() as u64);
+        self.progress.advance(slab.len() as u64);
         Ok(())
     }
+}
+
+/// The layout of a built file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FileFormat {
+    /// VOD 2 (what Isovox serves).
+    Vod2,
+    /// The thesis's VOD 1 (for its tools; read-only here).
+    Vod1,
+}
+
+/// The path `path` with `suffix` appended (for temporaries beside an output).
+pub fn sibling(path: &Path, suffix: &str) -> std::path::PathBuf {
+    let mut s = path.as_os_str().to_owned();
+    s.push(suffix);
+    std::path::PathBuf::from(s)
+}
+
+/// Builds `output` from `source` through a temporary file beside it, renamed into place, so an
+/// interrupted build never leaves a half-written volume under the final name. As VOD 1, the
+/// VOD 2 build is converted (lz4 unless `options` say no compression) and removed.
+///
+/// # Errors
+/// The build, the conversion or the rename fails.
+pub fn build_file(
+    output: &Path,
+    layout: &VolumeLayout,
+    voxel_scale: [f32; 3],
+    source: &dyn BrickSource,
+    options: &BuildOptions,
+    format: FileFormat,
+) -> Result<BuildReport, StoreError> {
+    let tmp = sibling(output, ".isovox-tmp");
+    let report = build_vod2(&tmp, layout, voxel_scale, source, options)?;
+    match format {
+        FileFormat::Vod1 => {
+            let vod = super::Vod2::open(&tmp)?;
+            let file = std::fs::File::create(output)
+                .map_err(StoreError::io_path("cannot create", output))?;
+            let mut out = std::io::BufWriter::new(file);
+            let compress = options.compression != Compression::None;
+            super::vod1::write_vod1(&vod.head(), compress, &mut out)?;
+            std::io::Write::flush(&mut out).map_err(StoreError::io_path("cannot write", output))?;
+            drop(vod);
+            let _ = std::fs::remove_file(&tmp);
+        }
+        FileFormat::Vod2 => std::fs::rename(&tmp, output)
+            .map_err(StoreError::io_path("cannot move the result to", output))?,
+    }
+    tracing::info!(
+        output = %output.display(),
+        bytes = report.file_bytes,
+        seconds = report.elapsed.as_secs_f64(),
+        "built volume"
+    );
+    Ok(report)
 }

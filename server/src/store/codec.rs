@@ -6,13 +6,15 @@
 
 use super::StoreError;
 use isovox_proto::vod2::Codec;
-use isovox_proto::VoxelType;
+use isovox_proto::{VolumeLayout, VoxelType};
 use std::cell::RefCell;
 
 /// How a writer compresses bricks (each brick is stored raw when compression does not shrink it).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Compression {
+    /// Every brick stored raw.
     None,
+    /// lz4 blocks (fast to decode, larger).
     Lz4,
     /// zstd at this level (1-22).
     Zstd(i32),
@@ -68,6 +70,33 @@ pub fn fill_constant(out: &mut [u8], value: u16, voxel_type: VoxelType) {
     }
 }
 
+/// The content hash of the constant brick of `value` in `layout`'s brick shape: the hash of its
+/// expanded bytes, as for any other brick. Remembered per thread (most bricks of a sparse volume
+/// are constant, and hashing 32 KiB for each would dominate a level listing).
+pub fn constant_hash(value: u16, layout: &VolumeLayout) -> u64 {
+    /// Constants remembered per thread at most (a u16 volume may hold thousands of them).
+    const REMEMBERED: usize = 256;
+    let key = (value, layout.brick_bytes(), layout.voxel_type().bytes());
+    CONSTANT_HASHES.with(|cell| {
+        if let Some(&hash) = cell.borrow().get(&key) {
+            return hash;
+        }
+        let mut bytes = vec![0u8; layout.brick_bytes()];
+        fill_constant(&mut bytes, value, layout.voxel_type());
+        let hash = isovox_proto::vod2::content_hash(&bytes);
+        let mut known = cell.borrow_mut();
+        if known.len() < REMEMBERED {
+            known.insert(key, hash);
+        }
+        hash
+    })
+}
+
+thread_local! {
+    static CONSTANT_HASHES: RefCell<std::collections::HashMap<(u16, usize, usize), u64>> =
+        RefCell::default();
+}
+
 fn zstd_compress(bytes: &[u8], level: i32) -> Option<Vec<u8>> {
     ZSTD_ENCODER.with(|cell| {
         let mut slot = cell.borrow_mut();
@@ -106,8 +135,13 @@ pub fn decode(codec: Codec, payload: &[u8], out: &mut [u8], offset: u64) -> Resu
             }
             payload.len()
         }
-        Codec::Lz4 => lz4_flex::block::decompress_into(payload, out)
-            .map_err(|e| StoreError::corrupt(offset, format!("lz4 block does not decode: {e}")))?,
+        Codec::Lz4 => lz4_flex::block::decompress_into(payload, out).map_err(|e| {
+            StoreError::corrupt(
+                offset,
+                "an lz4 block",
+                format!("one that does not decode: {e}"),
+            )
+        })?,
         Codec::Zstd => ZSTD_DECODER
             .with(|cell| {
                 let mut slot = cell.borrow_mut();
@@ -119,16 +153,19 @@ pub fn decode(codec: Codec, payload: &[u8], out: &mut [u8], offset: u64) -> Resu
                     None => Err(std::io::Error::other("no zstd decoder")),
                 }
             })
-            .map_err(|e| StoreError::corrupt(offset, format!("zstd frame does not decode: {e}")))?,
+            .map_err(|e| {
+                StoreError::corrupt(
+                    offset,
+                    "a zstd frame",
+                    format!("one that does not decode: {e}"),
+                )
+            })?,
     };
     if n != out.len() {
         return Err(StoreError::corrupt(
             offset,
-            format!(
-                "{} payload decodes to {n} bytes, expected {}",
-                codec.name(),
-                out.len()
-            ),
+            format!("a {} payload of {} bytes", codec.name(), out.len()),
+            format!("{n} bytes"),
         ));
     }
     Ok(())

@@ -7,8 +7,10 @@
 //! A crash at any point leaves either the old file or the new one, each whole. Readers that still
 //! map the old file keep reading it: the rename does not touch its bytes.
 
+use super::transaction::{CheckpointPolicy, Transaction};
 use super::writer::Vod2Writer;
 use super::{Snapshot, StoreError, StoredBrick, Vod2};
+use crate::progress::Progress;
 use isovox_proto::vod2::NodeEntry;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -19,10 +21,13 @@ use std::time::Instant;
 pub struct CompactReport {
     /// The head version (the compacted file's only one).
     pub version: u64,
+    /// The file's size before.
     pub bytes_before: u64,
+    /// The file's size after.
     pub bytes_after: u64,
     /// Distinct brick records copied.
     pub bricks: u64,
+    /// How long it took.
     pub elapsed: std::time::Duration,
 }
 
@@ -42,7 +47,7 @@ pub fn compact_path(path: &Path) -> PathBuf {
 pub fn compact(
     vod: &Vod2,
     head: &Snapshot,
-    progress: &indicatif::ProgressBar,
+    progress: &dyn Progress,
 ) -> Result<CompactReport, StoreError> {
     let start = Instant::now();
     let path = vod.path();
@@ -51,9 +56,9 @@ pub fn compact(
         let mut writer = Vod2Writer::create(&tmp, vod.header().clone(), Default::default())?;
         writer.start_at_version(head.version)?;
         let nodes = head.layout().node_count();
-        progress.set_length(nodes);
+        progress.start(nodes);
+        let mut transaction = Transaction::first(&mut writer);
         let mut moved: HashMap<u64, NodeEntry> = HashMap::new();
-        let mut entries = Vec::with_capacity(nodes as usize);
         for node in 0..nodes {
             let entry = head.entry_at(node)?;
             let copied = match entry {
@@ -65,23 +70,24 @@ pub fn compact(
                             header, payload, ..
                         } = head.stored_entry(entry)?
                         else {
-                            return Err(StoreError::Invalid(format!(
+                            return Err(StoreError::Internal(format!(
                                 "node {node}: a stored entry read back as a constant"
                             )));
                         };
-                        let e = writer.copy_record(&header, payload)?;
+                        let e = transaction.copy_record(&header, payload)?;
                         moved.insert(offset, e);
                         e
                     }
                 },
             };
-            entries.push(copied.encode());
-            if node % 4096 == 0 {
-                progress.set_position(node);
+            transaction.set(node, copied)?;
+            if node % 4096 == 4095 {
+                progress.advance(4096);
             }
         }
-        progress.set_position(nodes);
-        writer.commit(&[], Some(&entries))?;
+        progress.advance(nodes % 4096);
+        progress.finish();
+        transaction.commit(CheckpointPolicy::default())?;
         moved.len() as u64
     };
     let bytes_after = std::fs::metadata(&tmp)

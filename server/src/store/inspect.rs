@@ -8,23 +8,34 @@ use isovox_proto::VoxelType;
 use serde::Serialize;
 use std::collections::HashSet;
 
-/// What `inspect --json` prints. Field names are an interface scripts rely on (`spec/cli.md`).
+/// What `inspect --json` prints. Field names are an interface scripts rely on (`docs/cli.md`).
 #[derive(Debug, Clone, Serialize)]
 pub struct Inspection {
+    /// "VOD 2".
     pub format: &'static str,
+    /// Level-0 size in voxels.
     pub dims: [u32; 3],
+    /// The voxel type.
     pub voxel_type: VoxelType,
+    /// Brick edge in voxels.
     pub brick: u32,
+    /// World size of one level-0 voxel.
     pub voxel_scale: [f32; 3],
+    /// The head version.
     pub version: u64,
+    /// Commit records on the head's chain.
     pub commits: u64,
+    /// Per level: grid, bricks, constants, records.
     pub levels: Vec<LevelStats>,
     /// Bricks addressed by the index (every level).
     pub bricks_total: u64,
     /// Distinct brick contents: distinct stored records plus distinct constant values.
     pub bricks_unique: u64,
+    /// Bricks and bytes by codec.
     pub codecs: CodecStats,
+    /// The file's size on disk.
     pub file_bytes: u64,
+    /// The size of every voxel as RAW.
     pub raw_bytes: u64,
     /// raw_bytes / file_bytes.
     pub ratio: f64,
@@ -34,27 +45,41 @@ pub struct Inspection {
     /// file_bytes - live_bytes: older versions' bricks and index, and any unfinished commit;
     /// `isovox compact` reclaims them.
     pub garbage_bytes: u64,
+    /// Bytes of index checkpoints and commit records.
     pub index_bytes: u64,
 }
 
+/// One level of an inspected file.
 #[derive(Debug, Clone, Serialize)]
 pub struct LevelStats {
+    /// The level.
     pub level: u8,
+    /// Its brick grid.
     pub grid: [u32; 3],
+    /// Its bricks.
     pub bricks: u64,
+    /// Of them constant (no payload).
     pub constant: u64,
+    /// Of them stored as records.
     pub stored: u64,
 }
 
 /// Bricks and payload bytes by codec, counting each stored record once.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct CodecStats {
+    /// Bricks stored as constants in the index.
     pub constant_bricks: u64,
+    /// Distinct records stored raw.
     pub raw_records: u64,
+    /// Their payload bytes.
     pub raw_bytes: u64,
+    /// Distinct records stored as lz4.
     pub lz4_records: u64,
+    /// Their payload bytes.
     pub lz4_bytes: u64,
+    /// Distinct records stored as zstd.
     pub zstd_records: u64,
+    /// Their payload bytes.
     pub zstd_bytes: u64,
 }
 

@@ -25,6 +25,7 @@ pub struct ByteLru<V> {
 }
 
 impl<V> ByteLru<V> {
+    /// An empty cache of at most `capacity` bytes.
     pub fn new(capacity: usize) -> Self {
         ByteLru {
             shard_capacity: capacity / SHARDS,
@@ -54,6 +55,7 @@ impl<V> ByteLru<V> {
             .sum()
     }
 
+    /// The value of `key`, now the most recently used.
     pub fn get(&self, key: u128) -> Option<Arc<V>> {
         let mut inner = self.shard(key).lock().ok()?;
         inner.clock += 1;

@@ -12,7 +12,7 @@ use std::io;
 
 /// A read-only view of a file's bytes.
 #[derive(Debug)]
-pub struct Mapping {
+pub(crate) struct Mapping {
     map: Option<Mmap>,
 }
 
@@ -21,7 +21,7 @@ impl Mapping {
     ///
     /// # Errors
     /// The system refuses the mapping.
-    pub fn new(file: &File, len: u64) -> io::Result<Mapping> {
+    pub(crate) fn new(file: &File, len: u64) -> io::Result<Mapping> {
         if len == 0 {
             return Ok(Mapping { map: None });
         }
@@ -41,7 +41,7 @@ impl Mapping {
     }
 
     /// The mapped bytes.
-    pub fn bytes(&self) -> &[u8] {
+    pub(crate) fn bytes(&self) -> &[u8] {
         self.map.as_deref().unwrap_or(&[])
     }
 }

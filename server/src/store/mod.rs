@@ -2,31 +2,37 @@
 //!
 //! Layout:
 //! - [`mapping`]: the one memory-mapping module (every `unsafe` block of the project).
-//! - [`codec`]: per-brick payload encoding (constant, raw, lz4).
+//! - [`codec`]: per-brick payload encoding (constant, raw, lz4, zstd).
 //! - [`pyramid`]: bricks of voxels, the level-of-detail mean, sources of level-0 voxels.
 //! - [`vod2`]: opening a VOD 2 file and reading any brick of any version by random access.
 //! - [`writer`]: appending bricks with deduplication, index checkpoints and atomic commits.
+//! - [`transaction`]: the one way a version is written: staged bricks, level-of-detail upkeep,
+//!   the commit.
 //! - [`compact`]: rewriting a file with only its head version.
 //! - [`build`]: building a whole volume (all levels) from a level-0 source, streaming.
 //! - [`vod1`]: the thesis's VOD 1 layout, read and write.
 //! - [`raw`]: RAW and RAWVOX input and output.
 //! - [`inspect`]: whole-file statistics (bricks by codec, unique bricks, garbage bytes).
+//! - [`decoded`]: decoded bricks by content hash, shared by every reader of a process.
 //! - [`lru`]: a content-keyed LRU bounded by bytes (decoded bricks, mesh tiles).
 
 pub mod build;
 pub mod codec;
 pub mod compact;
+pub mod decoded;
 pub mod inspect;
 pub mod lru;
-pub mod mapping;
+pub(crate) mod mapping;
 pub mod pyramid;
 pub mod raw;
+pub mod transaction;
 pub mod vod1;
 pub mod vod2;
 pub mod writer;
 
 pub use build::{build_vod2, stream_pyramid, BuildOptions, BuildReport, MemorySink, SlabSink};
 pub use pyramid::{BrickSource, BrickVoxels, DenseGrid};
+pub use transaction::{CheckpointPolicy, Committed, Transaction};
 pub use vod2::{Snapshot, SnapshotSource, StoredBrick, Vod2};
 pub use writer::Vod2Writer;
 
@@ -35,26 +41,57 @@ use std::io;
 use std::path::Path;
 use thiserror::Error;
 
-/// Errors of the storage engine.
+/// Errors of the storage engine. Each variant says whose fault it is, so that the layers above
+/// can answer a caller's mistake differently from damage or a bug (`docs/errors.md`).
 #[derive(Debug, Error)]
 pub enum StoreError {
     /// An operating-system error, with what was being done.
     #[error("{context}")]
     Io {
+        /// What was being done.
         context: String,
+        /// The system's error.
         #[source]
         source: io::Error,
     },
-    /// A record of the file is malformed.
+    /// A record of the file is malformed (the format error names the record and where).
     #[error("malformed file")]
     Format(#[from] FormatError),
-    /// A brick's payload does not decode to what its header promises.
-    #[error("corrupt brick at offset {offset}: {detail}")]
-    Corrupt { offset: u64, detail: String },
-    /// The request cannot be carried out with these arguments (wrong RAW size, a VOD 1 file
-    /// over 4 GiB, ...).
+    /// Stored bytes are not what they must be: at `offset`, `expected` was expected and `found`
+    /// was found (a payload that does not decode, or decodes to other content than its hash).
+    #[error("corrupt data at offset {offset}: expected {expected}, found {found}")]
+    Corrupt {
+        /// Where the bytes start in the file.
+        offset: u64,
+        /// What they must be.
+        expected: String,
+        /// What they are.
+        found: String,
+    },
+    /// What was asked for is not there (a version the file no longer or not yet holds).
     #[error("{0}")]
-    Invalid(String),
+    Absent(String),
+    /// An address outside the volume: a brick key, a level, a tile.
+    #[error("{0}")]
+    OutOfRange(String),
+    /// The caller's arguments cannot be carried out (a RAW file of the wrong size, a region
+    /// outside the level, a VOD 1 file over 4 GiB, ...).
+    #[error("{0}")]
+    BadInput(String),
+    /// A broken invariant of this program: neither the caller's fault nor the file's.
+    #[error("internal error: {0}")]
+    Internal(String),
+}
+
+impl StoreError {
+    /// Whether the error is the caller's to fix (absent, out of range, bad input), as opposed
+    /// to damage, the system or a bug.
+    pub fn is_caller_error(&self) -> bool {
+        matches!(
+            self,
+            StoreError::Absent(_) | StoreError::OutOfRange(_) | StoreError::BadInput(_)
+        )
+    }
 }
 
 /// An error and all its sources, joined with ": " (what `{:#}` prints for anyhow errors).
@@ -70,10 +107,15 @@ pub fn error_chain(e: &dyn std::error::Error) -> String {
 }
 
 impl StoreError {
-    pub(crate) fn corrupt(offset: u64, detail: impl Into<String>) -> Self {
+    pub(crate) fn corrupt(
+        offset: u64,
+        expected: impl Into<String>,
+        found: impl Into<String>,
+    ) -> Self {
         StoreError::Corrupt {
             offset,
-            detail: detail.into(),
+            expected: expected.into(),
+            found: found.into(),
         }
     }
 

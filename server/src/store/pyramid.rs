@@ -12,7 +12,9 @@ use isovox_proto::{BrickKey, VoxelType};
 /// z; u16 little endian).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum BrickVoxels {
+    /// Every voxel holds this value.
     Constant(u16),
+    /// The voxels' bytes.
     Data(Vec<u8>),
 }
 
@@ -48,6 +50,7 @@ pub trait BrickSource: Sync {
 pub struct FirstError(std::sync::Mutex<Option<super::StoreError>>);
 
 impl FirstError {
+    /// Keeps `e` unless an error was recorded before.
     pub fn record(&self, e: super::StoreError) {
         if let Ok(mut slot) = self.0.lock() {
             slot.get_or_insert(e);
@@ -60,7 +63,7 @@ impl FirstError {
         match self.0.into_inner() {
             Ok(None) => Ok(()),
             Ok(Some(e)) => Err(e),
-            Err(_) => Err(super::StoreError::Invalid(
+            Err(_) => Err(super::StoreError::Internal(
                 "a reader thread panicked".into(),
             )),
         }
@@ -71,9 +74,13 @@ impl FirstError {
 /// or owned.
 #[derive(Debug, Clone, Copy)]
 pub struct DenseGrid<'a> {
+    /// Size in voxels.
     pub dims: [u32; 3],
+    /// The voxel type.
     pub voxel_type: VoxelType,
+    /// The voxels' bytes.
     pub bytes: &'a [u8],
+    /// The brick edge it is cut into.
     pub brick: u32,
 }
 

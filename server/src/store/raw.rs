@@ -7,7 +7,7 @@
 use super::mapping::Mapping;
 use super::vod2::Snapshot;
 use super::StoreError;
-use indicatif::ProgressBar;
+use crate::progress::Progress;
 use isovox_proto::{BrickKey, VoxelType};
 use rayon::prelude::*;
 use std::fs::File;
@@ -16,6 +16,7 @@ use std::path::Path;
 
 /// RAWVOX magic as a little-endian i32.
 pub const RAWVOX_MAGIC: i32 = 0x5256_4F58;
+/// Bytes of a RAWVOX header (magic, three sizes, bits per voxel).
 pub const RAWVOX_HEADER_LEN: usize = 20;
 
 /// A RAW or RAWVOX file, mapped.
@@ -23,7 +24,9 @@ pub const RAWVOX_HEADER_LEN: usize = 20;
 pub struct RawInput {
     map: Mapping,
     data_at: usize,
+    /// Size in voxels.
     pub dims: [u32; 3],
+    /// The voxel type.
     pub voxel_type: VoxelType,
 }
 
@@ -49,7 +52,7 @@ impl RawInput {
         let (dims, voxel_type, data_at) = if rawvox {
             let b = map.bytes();
             if b.len() < RAWVOX_HEADER_LEN {
-                return Err(StoreError::Invalid(format!(
+                return Err(StoreError::BadInput(format!(
                     "{}: shorter than a RAWVOX header (20 bytes)",
                     path.display()
                 )));
@@ -57,7 +60,7 @@ impl RawInput {
             let field =
                 |i: usize| i32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]]);
             if field(0) != RAWVOX_MAGIC {
-                return Err(StoreError::Invalid(format!(
+                return Err(StoreError::BadInput(format!(
                     "{}: not a RAWVOX file (bad magic)",
                     path.display()
                 )));
@@ -65,7 +68,7 @@ impl RawInput {
             let mut header_dims = [0u32; 3];
             for (axis, d) in header_dims.iter_mut().enumerate() {
                 *d = u32::try_from(field(1 + axis)).map_err(|_| {
-                    StoreError::Invalid(format!(
+                    StoreError::BadInput(format!(
                         "{}: negative size {} in the RAWVOX header",
                         path.display(),
                         field(1 + axis)
@@ -76,7 +79,7 @@ impl RawInput {
             let header_type = VoxelType::from_bits(bits as u32)
                 .filter(|_| bits > 0)
                 .ok_or_else(|| {
-                    StoreError::Invalid(format!(
+                    StoreError::BadInput(format!(
                         "{}: {bits} bits per voxel (Isovox reads 8 and 16)",
                         path.display()
                     ))
@@ -84,7 +87,7 @@ impl RawInput {
             if dims.is_some_and(|d| d != header_dims)
                 || voxel_type.is_some_and(|t| t != header_type)
             {
-                return Err(StoreError::Invalid(format!(
+                return Err(StoreError::BadInput(format!(
                     "{}: --dims/--type disagree with the RAWVOX header ({header_dims:?}, {header_type})",
                     path.display()
                 )));
@@ -92,7 +95,7 @@ impl RawInput {
             (header_dims, header_type, RAWVOX_HEADER_LEN)
         } else {
             let dims =
-                dims.ok_or_else(|| StoreError::Invalid("a RAW file needs --dims X,Y,Z".into()))?;
+                dims.ok_or_else(|| StoreError::BadInput("a RAW file needs --dims X,Y,Z".into()))?;
             (dims, voxel_type.unwrap_or(VoxelType::U8), 0)
         };
         let expected = dims
@@ -101,13 +104,13 @@ impl RawInput {
                 acc.checked_mul(d as u64)
             })
             .ok_or_else(|| {
-                StoreError::Invalid(format!(
+                StoreError::BadInput(format!(
                     "{}: dimensions {dims:?} are too large",
                     path.display()
                 ))
             })?;
         if len - data_at as u64 != expected {
-            return Err(StoreError::Invalid(format!(
+            return Err(StoreError::BadInput(format!(
                 "{}: {} voxel bytes, but {}x{}x{} {voxel_type} voxels need {expected}",
                 path.display(),
                 len - data_at as u64,
@@ -149,7 +152,9 @@ pub fn rawvox_header(dims: [u32; 3], voxel_type: VoxelType) -> [u8; RAWVOX_HEADE
 /// A box of voxels at one level: `min` inclusive, `max` exclusive.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Region {
+    /// The first voxel (inclusive).
     pub min: [u32; 3],
+    /// The end (exclusive).
     pub max: [u32; 3],
 }
 
@@ -163,11 +168,11 @@ pub fn export_raw(
     level: u8,
     region: Region,
     out: &mut dyn Write,
-    progress: &ProgressBar,
+    progress: &dyn Progress,
 ) -> Result<(), StoreError> {
     let layout = snap.layout();
     if level >= layout.levels() {
-        return Err(StoreError::Invalid(format!(
+        return Err(StoreError::OutOfRange(format!(
             "level {level} out of range (volume has {} levels)",
             layout.levels()
         )));
@@ -175,7 +180,7 @@ pub fn export_raw(
     let extent = layout.level_dims(level);
     for axis in 0..3 {
         if region.min[axis] >= region.max[axis] || region.max[axis] > extent[axis] {
-            return Err(StoreError::Invalid(format!(
+            return Err(StoreError::BadInput(format!(
                 "region {:?}..{:?} is empty or outside level {level} ({}x{}x{} voxels)",
                 region.min, region.max, extent[0], extent[1], extent[2]
             )));
@@ -188,7 +193,7 @@ pub fn export_raw(
     let (by0, by1) = (region.min[1] / b, (region.max[1] - 1) / b);
     let (bz0, bz1) = (region.min[2] / b, (region.max[2] - 1) / b);
     let (nbx, nby) = ((bx1 - bx0 + 1) as usize, (by1 - by0 + 1) as usize);
-    progress.set_length((region.max[2] - region.min[2]) as u64);
+    progress.start((region.max[2] - region.min[2]) as u64);
     let row_voxels = (region.max[0] - region.min[0]) as usize;
     let mut plane = vec![0u8; row_voxels * (region.max[1] - region.min[1]) as usize * vb];
     for bz in bz0..=bz1 {
@@ -224,11 +229,11 @@ pub fn export_raw(
             }
             out.write_all(&plane)
                 .map_err(StoreError::io("cannot write the export"))?;
-            progress.inc(1);
+            progress.advance(1);
         }
     }
     out.flush()
         .map_err(StoreError::io("cannot write the export"))?;
-    progress.finish_and_clear();
+    progress.finish();
     Ok(())
 }

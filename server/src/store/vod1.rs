@@ -1,4 +1,4 @@
-//! VOD 1: the thesis's file layout (its Figure 24), as resolved in `spec/vod.md`.
+//! VOD 1: the thesis's file layout (its Figure 24), as resolved in `docs/vod1.md`.
 //!
 //! ```text
 //! u32 signature '.VOD' (bytes in file order), u32 fileVersion 1,
@@ -24,6 +24,7 @@ use isovox_proto::{BrickKey, FormatError, VolumeLayout, VoxelType};
 use std::collections::HashMap;
 use std::io::Write;
 
+/// Bytes of the fixed header.
 pub const HEADER_LEN: usize = 64;
 const FLAG_COMPRESSED: u32 = 1 << 0;
 const FLAG_PADDING: u32 = 1 << 1;
@@ -135,7 +136,7 @@ pub fn write_vod1(snap: &Snapshot, compress: bool, out: &mut dyn Write) -> Resul
     let mut offset = table_at + 16 * bricks.len() as u64;
     let total = offset + bricks.iter().map(|(_, p)| 4 + p.len() as u64).sum::<u64>();
     if total > u32::MAX as u64 {
-        return Err(StoreError::Invalid(format!(
+        return Err(StoreError::BadInput(format!(
             "a VOD 1 file of this volume would take {total} bytes; VOD 1's u32 offsets stop at 4 GiB (use VOD 2)"
         )));
     }
@@ -190,12 +191,57 @@ fn decode_payload(
     codec::decode(codec, payload, out, offset)
 }
 
+/// A VOD 1 file on disk, mapped: [`Vod1File::parse`] reads it (the parsed view borrows the
+/// mapping).
+#[derive(Debug)]
+pub struct Vod1File {
+    map: super::mapping::Mapping,
+}
+
+impl Vod1File {
+    /// Maps the file at `path`.
+    ///
+    /// # Errors
+    /// The file cannot be opened or mapped.
+    pub fn open(path: &std::path::Path) -> Result<Vod1File, StoreError> {
+        let file = std::fs::File::open(path).map_err(StoreError::io_path("cannot open", path))?;
+        let len = file
+            .metadata()
+            .map_err(StoreError::io_path("cannot stat", path))?
+            .len();
+        let map = super::mapping::Mapping::new(&file, len)
+            .map_err(StoreError::io_path("cannot map", path))?;
+        Ok(Vod1File { map })
+    }
+
+    /// The file's length in bytes.
+    pub fn len(&self) -> u64 {
+        self.map.bytes().len() as u64
+    }
+
+    /// Whether the file is empty.
+    pub fn is_empty(&self) -> bool {
+        self.map.bytes().is_empty()
+    }
+
+    /// Parses the header and node table.
+    ///
+    /// # Errors
+    /// The file is not a valid VOD 1 file.
+    pub fn parse(&self) -> Result<Vod1<'_>, StoreError> {
+        Vod1::parse(self.map.bytes())
+    }
+}
+
 /// A parsed VOD 1 file (over its bytes, which it borrows).
 #[derive(Debug)]
 pub struct Vod1<'a> {
     bytes: &'a [u8],
+    /// Dimensions, brick edge and voxel type.
     pub layout: VolumeLayout,
+    /// World size of one voxel.
     pub voxel_scale: [f32; 3],
+    /// Levels of the complete octree.
     pub height: u32,
     compressed: bool,
     hash_width: usize,
@@ -359,7 +405,8 @@ impl<'a> Vod1<'a> {
         if computed != hash {
             return Err(StoreError::corrupt(
                 offset,
-                format!("VOD 1 brick {id}: hash {computed:#x} differs from stored {hash:#x}"),
+                format!("VOD 1 brick {id} with hash {hash:#x}"),
+                format!("hash {computed:#x}"),
             ));
         }
         Ok(())
@@ -370,11 +417,13 @@ impl<'a> Vod1<'a> {
 /// reported by [`Vod1Source::finish`] (a source cannot fail mid-build).
 #[derive(Debug)]
 pub struct Vod1Source<'a> {
+    /// The file read.
     pub vod1: &'a Vod1<'a>,
     errors: FirstError,
 }
 
 impl<'a> Vod1Source<'a> {
+    /// A source reading `vod1`'s level 0.
     pub fn new(vod1: &'a Vod1<'a>) -> Self {
         Vod1Source {
             vod1,

@@ -42,15 +42,21 @@ pub struct Vod2 {
 /// the mapping, ready to be sent as it is).
 #[derive(Debug, Clone, Copy)]
 pub enum StoredBrick<'a> {
+    /// Every voxel holds this value (no payload).
     Constant(u16),
+    /// A brick record.
     Record {
+        /// Where the record starts.
         offset: u64,
+        /// Its header.
         header: BrickHeader,
+        /// Its payload, a slice of the mapping.
         payload: &'a [u8],
     },
 }
 
 impl StoredBrick<'_> {
+    /// The brick's smallest and largest voxel value.
     pub fn min_max(&self) -> (u16, u16) {
         match self {
             StoredBrick::Constant(v) => (*v, *v),
@@ -95,16 +101,7 @@ impl Vod2 {
         );
         let header = Arc::new(header);
         let head = Arc::new(Snapshot::load(header.clone(), map.clone(), slot.commit)?);
-        if head.version != slot.version {
-            return Err(FormatError::invalid(
-                "header slot",
-                format!(
-                    "names version {}, its commit record says {}",
-                    slot.version, head.version
-                ),
-            )
-            .into());
-        }
+        check_slot(&slot, &head)?;
         Ok(Vod2 {
             path: path.to_path_buf(),
             header,
@@ -132,7 +129,7 @@ impl Vod2 {
             .map_err(StoreError::io_path("cannot stat", &self.path))?
             .len();
         if slot.committed_len > file_len {
-            return Err(StoreError::Invalid(format!(
+            return Err(StoreError::Internal(format!(
                 "{}: commit names {} bytes, the file has {file_len}",
                 self.path.display(),
                 slot.committed_len
@@ -143,16 +140,7 @@ impl Vod2 {
                 .map_err(StoreError::io_path("cannot map", &self.path))?,
         );
         let head = Arc::new(self.head.extend(map.clone(), slot.commit)?);
-        if head.version != slot.version {
-            return Err(FormatError::invalid(
-                "header slot",
-                format!(
-                    "names version {}, its commit record says {}",
-                    slot.version, head.version
-                ),
-            )
-            .into());
-        }
+        check_slot(&slot, &head)?;
         Ok(Vod2 {
             path: self.path.clone(),
             header: self.header.clone(),
@@ -196,14 +184,17 @@ impl Vod2 {
         })
     }
 
+    /// The file's path.
     pub fn path(&self) -> &Path {
         &self.path
     }
 
+    /// The fixed header.
     pub fn header(&self) -> &FileHeader {
         &self.header
     }
 
+    /// Dimensions, brick edge and voxel type.
     pub fn layout(&self) -> &VolumeLayout {
         &self.header.layout
     }
@@ -243,7 +234,7 @@ impl Vod2 {
                 )?));
             }
             if h.parent == 0 || h.version < version {
-                return Err(StoreError::Invalid(format!(
+                return Err(StoreError::Absent(format!(
                     "version {version} is not in this file (head is {})",
                     self.head.version
                 )));
@@ -289,7 +280,9 @@ impl Vod2 {
 pub struct Snapshot {
     header: Arc<FileHeader>,
     map: Arc<Mapping>,
+    /// The version.
     pub version: u64,
+    /// When it was committed (Unix milliseconds).
     pub timestamp_ms: u64,
     commit_offset: u64,
     index: Arc<IndexChunks>,
@@ -353,19 +346,7 @@ impl Snapshot {
         let mut overlay = HashMap::new();
         // The checkpoint holds the state after its own commit: apply only the later ones.
         for record in chain.iter().rev().skip(1) {
-            for (node, entry) in CommitHeader::changes(record) {
-                if node >= layout.node_count() {
-                    return Err(FormatError::invalid(
-                        "commit record",
-                        format!(
-                            "change to node {node}, the volume has {}",
-                            layout.node_count()
-                        ),
-                    )
-                    .into());
-                }
-                overlay.insert(node, entry);
-            }
+            apply_changes(record, layout, &mut overlay, |_| ())?;
         }
         Ok(Snapshot {
             version: head.version,
@@ -408,20 +389,7 @@ impl Snapshot {
         let layout = self.layout();
         let mut overlay = self.overlay.clone();
         let mut added = Vec::new();
-        for (node, entry) in CommitHeader::changes(record) {
-            if node >= layout.node_count() {
-                return Err(FormatError::invalid(
-                    "commit record",
-                    format!(
-                        "change to node {node}, the volume has {}",
-                        layout.node_count()
-                    ),
-                )
-                .into());
-            }
-            overlay.insert(node, entry);
-            added.push(entry);
-        }
+        apply_changes(record, layout, &mut overlay, |entry| added.push(entry))?;
         let snap = Snapshot {
             version: h.version,
             timestamp_ms: h.timestamp_ms,
@@ -457,10 +425,12 @@ impl Snapshot {
         Ok(())
     }
 
+    /// Dimensions, brick edge and voxel type.
     pub fn layout(&self) -> &VolumeLayout {
         &self.header.layout
     }
 
+    /// The file's fixed header.
     pub fn header(&self) -> &FileHeader {
         &self.header
     }
@@ -521,7 +491,7 @@ impl Snapshot {
     pub fn entry(&self, key: BrickKey) -> Result<NodeEntry, StoreError> {
         let layout = self.layout();
         if !layout.contains(key) {
-            return Err(StoreError::Invalid(format!(
+            return Err(StoreError::OutOfRange(format!(
                 "brick {key} is outside the volume"
             )));
         }
@@ -575,6 +545,21 @@ impl Snapshot {
         decode_stored(&stored, self.layout(), out)
     }
 
+    /// A brick's voxels: a constant as it is stored, anything else decoded (and checked).
+    ///
+    /// # Errors
+    /// See [`Snapshot::read_into`].
+    pub fn voxels(&self, key: BrickKey) -> Result<super::BrickVoxels, StoreError> {
+        Ok(match self.stored(key)? {
+            StoredBrick::Constant(v) => super::BrickVoxels::Constant(v),
+            record => {
+                let mut out = vec![0u8; self.layout().brick_bytes()];
+                decode_stored(&record, self.layout(), &mut out)?;
+                super::BrickVoxels::Data(out)
+            }
+        })
+    }
+
     /// Decodes a brick into a new buffer.
     ///
     /// # Errors
@@ -585,29 +570,23 @@ impl Snapshot {
         Ok(out)
     }
 
-    /// The entry of a brick of this version with content hash `hash`, if any. The first call
-    /// scans the index once (reading brick headers, not payloads) and keeps a hash table.
+    /// An entry with content hash `hash` among the bricks of this version and of every older
+    /// version the file still holds, if any. The first call scans the oldest version's index
+    /// and the commit records since (reading brick headers, not payloads) and keeps a hash
+    /// table; a version built from its parent by [`Vod2::advance`] inherits the parent's.
+    ///
+    /// Why older versions too: a client that learned a hash from a grid at `?version=N` (a
+    /// streamer catching up one version at a time) asks for it by hash, and the answer must not
+    /// depend on whether this process saw the commits after N or opened the file after them.
     ///
     /// # Errors
-    /// An entry or brick header on the way is malformed.
+    /// A commit record, an entry or a brick header on the way is malformed.
     pub fn find_by_hash(&self, hash: u64) -> Result<Option<NodeEntry>, StoreError> {
         if let Some(index) = self.by_hash.get() {
             return Ok(index.get(hash));
         }
-        let mut map = HashMap::new();
-        let mut constants = std::collections::HashSet::new();
-        for node in 0..self.layout().node_count() {
-            let entry = self.entry_at(node)?;
-            let first_sight = match entry {
-                NodeEntry::Constant(v) => constants.insert(v),
-                NodeEntry::Stored(_) => true,
-            };
-            if first_sight {
-                map.entry(self.entry_hash(entry)?).or_insert(entry);
-            }
-        }
         let index = HashIndex {
-            base: Arc::new(map),
+            base: Arc::new(self.history_hashes()?),
             added: HashMap::new(),
         };
         let found = index.get(hash);
@@ -615,15 +594,54 @@ impl Snapshot {
         Ok(found)
     }
 
+    /// Content hash -> entry over every brick of this version and its ancestors in the file:
+    /// the oldest version's index plus every entry a commit since then wrote (each version is
+    /// the oldest one with those changes applied).
+    fn history_hashes(&self) -> Result<HashMap<u64, NodeEntry>, StoreError> {
+        let bytes = self.map.bytes();
+        let mut records = Vec::new();
+        let mut at = self.commit_offset;
+        let oldest = loop {
+            let (h, record) = CommitHeader::decode(&bytes[at as usize..], at)?;
+            records.push(record);
+            if h.parent == 0 {
+                break at;
+            }
+            at = h.parent;
+        };
+        let oldest = Snapshot::load(self.header.clone(), self.map.clone(), oldest)?;
+        let mut map = HashMap::new();
+        let mut constants = std::collections::HashSet::new();
+        let mut add = |entry: NodeEntry| -> Result<(), StoreError> {
+            let first_sight = match entry {
+                NodeEntry::Constant(v) => constants.insert(v),
+                NodeEntry::Stored(_) => true,
+            };
+            if first_sight {
+                map.entry(self.entry_hash(entry)?).or_insert(entry);
+            }
+            Ok(())
+        };
+        for node in 0..self.layout().node_count() {
+            add(oldest.entry_at(node)?)?;
+        }
+        let (voxel_type, mapped) = (self.layout().voxel_type(), bytes.len() as u64);
+        for record in records.iter().rev() {
+            for (_, raw) in CommitHeader::changes(record) {
+                add(NodeEntry::decode(raw, voxel_type, mapped)?)?;
+            }
+        }
+        Ok(map)
+    }
+
     /// The content hash of the brick behind an entry (for a constant, of its expanded bytes).
-    fn entry_hash(&self, entry: NodeEntry) -> Result<u64, StoreError> {
+    ///
+    /// # Errors
+    /// See [`Snapshot::stored_entry`].
+    pub fn entry_hash(&self, entry: NodeEntry) -> Result<u64, StoreError> {
         Ok(match self.stored_entry(entry)? {
             StoredBrick::Record { header, .. } => header.hash,
-            StoredBrick::Constant(v) => {
-                let mut out = vec![0u8; self.layout().brick_bytes()];
-                codec::fill_constant(&mut out, v, self.layout().voxel_type());
-                content_hash(&out)
-            }
+            StoredBrick::Constant(v) => codec::constant_hash(v, self.layout()),
         })
     }
 
@@ -634,6 +652,46 @@ impl Snapshot {
     pub fn hash(&self, key: BrickKey) -> Result<u64, StoreError> {
         self.entry_hash(self.entry(key)?)
     }
+}
+
+/// Checks that the head loaded through `slot` is the version the slot names.
+fn check_slot(slot: &HeaderSlot, head: &Snapshot) -> Result<(), StoreError> {
+    if head.version != slot.version {
+        return Err(FormatError::invalid(
+            "header slot",
+            format!(
+                "names version {}, its commit record says {}",
+                slot.version, head.version
+            ),
+        )
+        .into());
+    }
+    Ok(())
+}
+
+/// Applies a commit record's changes to `overlay` (node index -> raw entry), checking each node
+/// against the layout, and hands each entry to `added`.
+fn apply_changes(
+    record: &[u8],
+    layout: &VolumeLayout,
+    overlay: &mut HashMap<u64, u64>,
+    mut added: impl FnMut(u64),
+) -> Result<(), StoreError> {
+    for (node, entry) in CommitHeader::changes(record) {
+        if node >= layout.node_count() {
+            return Err(FormatError::invalid(
+                "commit record",
+                format!(
+                    "change to node {node}, the volume has {}",
+                    layout.node_count()
+                ),
+            )
+            .into());
+        }
+        overlay.insert(node, entry);
+        added(entry);
+    }
+    Ok(())
 }
 
 /// Content hash -> entry for [`Snapshot::find_by_hash`]: a shared base plus what later versions
@@ -710,9 +768,14 @@ impl Snapshot {
         let start = offset as usize + BRICK_HEADER_LEN;
         let end = start + header.stored_len as usize;
         if end > self.map.bytes().len() {
-            return Err(StoreError::Invalid(format!(
-                "brick record at {offset} ends past the mapped length"
-            )));
+            return Err(StoreError::corrupt(
+                offset,
+                format!(
+                    "a brick record within the {} mapped bytes",
+                    self.map.bytes().len()
+                ),
+                format!("one that ends at {end}"),
+            ));
         }
         if end - start < SHARE_PAYLOADS_FROM {
             return Ok(bytes::Bytes::copy_from_slice(&self.map.bytes()[start..end]));
@@ -740,6 +803,7 @@ pub struct SnapshotSource {
 }
 
 impl SnapshotSource {
+    /// A source reading `snap`'s level 0.
     pub fn new(snap: Arc<Snapshot>) -> Self {
         SnapshotSource {
             snap,
@@ -808,7 +872,7 @@ impl IndexChunks {
                 let _ = self.chunks[c].set(decoded);
                 self.chunks[c]
                     .get()
-                    .ok_or_else(|| StoreError::Invalid("index chunk vanished".into()))?
+                    .ok_or_else(|| StoreError::Internal("index chunk vanished".into()))?
             }
         };
         Ok(chunk[(node % CHUNK_ENTRIES) as usize])
@@ -857,10 +921,8 @@ pub fn decode_stored(
             if hash != header.hash {
                 return Err(StoreError::corrupt(
                     offset,
-                    format!(
-                        "content hash {hash:#018x} differs from the stored {:#018x}",
-                        header.hash
-                    ),
+                    format!("content hash {:#018x}", header.hash),
+                    format!("{hash:#018x}"),
                 ));
             }
         }

@@ -49,6 +49,7 @@ pub struct WriteStats {
     /// Brick records written and their payload bytes (headers not included), by codec:
     /// raw, lz4, zstd.
     pub stored: [u64; 3],
+    /// Their payload bytes, by codec.
     pub stored_bytes: [u64; 3],
     /// Hash matches whose bytes differed (collisions kept apart).
     pub hash_collisions: u64,
@@ -158,6 +159,7 @@ impl Vod2Writer {
         })
     }
 
+    /// The file's fixed header.
     pub fn header(&self) -> &FileHeader {
         &self.header
     }
@@ -169,7 +171,7 @@ impl Vod2Writer {
     /// The file already has a commit, or `version` is 0.
     pub fn start_at_version(&mut self, version: u64) -> Result<(), StoreError> {
         if self.head.is_some() || version == 0 {
-            return Err(StoreError::Invalid(format!(
+            return Err(StoreError::Internal(format!(
                 "cannot start {} at version {version}: it has commits, or 0 was asked",
                 self.path.display()
             )));
@@ -201,6 +203,7 @@ impl Vod2Writer {
         self.head
     }
 
+    /// What it stored so far.
     pub fn stats(&self) -> WriteStats {
         self.stats
     }
@@ -321,7 +324,7 @@ impl Vod2Writer {
             Some(h) => match (h.version.checked_add(1), h.seq.checked_add(1)) {
                 (Some(version), Some(seq)) => (h.commit, version, seq),
                 _ => {
-                    return Err(StoreError::Invalid(format!(
+                    return Err(StoreError::Internal(format!(
                         "{}: version or slot sequence number exhausted (version {}, sequence {}); compact the file",
                         self.path.display(),
                         h.version,
@@ -339,7 +342,7 @@ impl Vod2Writer {
                     NodeEntry::Stored(offset) => offset >= DATA_START && offset < self.end(),
                 };
             if !valid {
-                return Err(StoreError::Invalid(format!(
+                return Err(StoreError::Internal(format!(
                     "invalid change to node {node}: {entry:?}"
                 )));
             }
@@ -347,7 +350,7 @@ impl Vod2Writer {
         let checkpoint_at = match checkpoint {
             Some(entries) => {
                 if entries.len() as u64 != self.header.layout.node_count() {
-                    return Err(StoreError::Invalid(format!(
+                    return Err(StoreError::Internal(format!(
                         "a checkpoint needs {} entries, got {}",
                         self.header.layout.node_count(),
                         entries.len()
@@ -357,7 +360,7 @@ impl Vod2Writer {
             }
             None => {
                 if self.head.is_none() {
-                    return Err(StoreError::Invalid(
+                    return Err(StoreError::Internal(
                         "the first commit of a file needs a checkpoint".into(),
                     ));
                 }

@@ -9,7 +9,14 @@ use std::path::Path;
 #[derive(Debug, thiserror::Error)]
 pub enum LoadError {
     #[error("{path}: {detail}")]
-    Read { path: String, detail: String },
+    /// The file cannot be read or parsed.
+    Read {
+        /// The file.
+        path: String,
+        /// What is wrong.
+        detail: String,
+    },
+    /// The file's extension names no format read here.
     #[error("{0}: unknown model format (expected .stl, .obj, .ply, .gltf or .glb)")]
     UnknownFormat(String),
 }

@@ -49,7 +49,9 @@ pub struct Options {
     pub supersample: u32,
     /// Voxels of L around the model.
     pub padding: u32,
+    /// How voxel values are decided.
     pub fill: Fill,
+    /// The voxel type.
     pub voxel_type: VoxelType,
     /// Voxelize even when some edges are used by an odd number of triangles.
     pub allow_open: bool,
@@ -71,10 +73,18 @@ impl Default for Options {
 /// Why a model could not be voxelized.
 #[derive(Debug, thiserror::Error)]
 pub enum VoxelizeError {
+    /// The model has no triangle.
     #[error("the model has no triangles")]
     Empty,
+    /// Some edges are used by an odd number of triangles: the inside is not defined.
     #[error("the model is not watertight: {odd} of its {edges} edges are used by an odd number of triangles (holes, or inner walls meeting the hull), so its inside is not defined; fix the model, or voxelize it anyway with --allow-open (parity then decides)")]
-    NotWatertight { odd: usize, edges: usize },
+    NotWatertight {
+        /// Edges used by an odd number of triangles.
+        odd: usize,
+        /// Edges in all.
+        edges: usize,
+    },
+    /// An option out of range.
     #[error("{0}")]
     Invalid(String),
 }
@@ -82,6 +92,7 @@ pub enum VoxelizeError {
 /// A voxelized model.
 #[derive(Debug)]
 pub struct Voxelized {
+    /// Size in voxels.
     pub dims: [u32; 3],
     /// Voxels, x fastest, u16 little endian for u16.
     pub bytes: Vec<u8>,
@@ -89,19 +100,24 @@ pub struct Voxelized {
     pub voxel_size: f64,
     /// Where model point `p` lands in voxel coordinates: `(p - origin) / voxel_size`.
     pub origin: [f64; 3],
+    /// What it did and cost.
     pub report: Report,
 }
 
 /// What the voxelization did and cost.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct Report {
+    /// The model's triangles.
     pub triangles: usize,
     /// Samples of the solid (voxels of the fine grid).
     pub samples: u64,
+    /// Of them inside the model.
     pub samples_inside: u64,
     /// Bytes of bit grids held at once during voxelization.
     pub bit_bytes: usize,
+    /// Time of the solid pass.
     pub solid_time: Duration,
+    /// Time of the fill.
     pub fill_time: Duration,
 }
 

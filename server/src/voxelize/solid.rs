@@ -33,7 +33,9 @@ const HALF: i64 = ONE / 2;
 /// A triangle mesh: vertex positions and triangles as vertex indices.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct TriMesh {
+    /// Vertex positions.
     pub positions: Vec<[f32; 3]>,
+    /// Triangles, three vertex indices each.
     pub triangles: Vec<[u32; 3]>,
 }
 
@@ -58,12 +60,14 @@ impl TriMesh {
 /// A grid of bits, one column of `words` u64 per (x, y), z along the bits.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct BitGrid {
+    /// Size in cells.
     pub dims: [usize; 3],
     words: usize,
     bits: Vec<u64>,
 }
 
 impl BitGrid {
+    /// All cells off.
     pub fn new(dims: [usize; 3]) -> BitGrid {
         let words = dims[2].div_ceil(64);
         BitGrid {
@@ -88,10 +92,12 @@ impl BitGrid {
         &self.bits[at..at + self.words]
     }
 
+    /// Whether cell (x, y, z) is on.
     pub fn get(&self, x: usize, y: usize, z: usize) -> bool {
         self.column(x, y)[z / 64] >> (z % 64) & 1 == 1
     }
 
+    /// Sets cell (x, y, z).
     pub fn set(&mut self, x: usize, y: usize, z: usize, on: bool) {
         let at = (y * self.dims[0] + x) * self.words + z / 64;
         let bit = 1u64 << (z % 64);

@@ -16,11 +16,16 @@ pub const FORMATS: [&str; 4] = ["stl", "obj", "ply", "glb"];
 /// What storing a mesh found.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct MeshInfo {
+    /// The model's content hash.
     #[serde(serialize_with = "hex")]
     pub hash: u64,
+    /// Its triangles.
     pub triangles: usize,
+    /// Its vertices.
     pub vertices: usize,
+    /// Its bounds' low corner.
     pub min: [f32; 3],
+    /// Its bounds' high corner.
     pub max: [f32; 3],
 }
 
@@ -36,6 +41,7 @@ pub struct MeshStore {
 }
 
 impl MeshStore {
+    /// Meshes kept in `dir`.
     pub fn new(dir: &Path) -> MeshStore {
         MeshStore {
             dir: dir.to_path_buf(),

@@ -7,10 +7,10 @@ use isovox_proto::VoxelType;
 
 /// Marsaglia's xorshift64: deterministic noise that no codec can shrink.
 #[derive(Debug, Clone)]
-pub struct XorShift(pub u64);
+pub(crate) struct XorShift(pub u64);
 
 impl XorShift {
-    pub fn next(&mut self) -> u64 {
+    pub(crate) fn next(&mut self) -> u64 {
         let mut x = self.0;
         x ^= x << 13;
         x ^= x >> 7;
@@ -20,25 +20,25 @@ impl XorShift {
     }
 
     /// Uniform-enough value in `0..n`.
-    pub fn below(&mut self, n: u64) -> u64 {
+    pub(crate) fn below(&mut self, n: u64) -> u64 {
         self.next() % n
     }
 }
 
 /// A whole level as a plain array of values, x fastest, then y, then z.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Grid {
+pub(crate) struct Grid {
     pub dims: [usize; 3],
     pub values: Vec<u16>,
 }
 
 impl Grid {
-    pub fn at(&self, x: usize, y: usize, z: usize) -> u16 {
+    pub(crate) fn at(&self, x: usize, y: usize, z: usize) -> u16 {
         self.values[(z * self.dims[1] + y) * self.dims[0] + x]
     }
 
     /// Voxel value, 0 (L) outside the grid.
-    pub fn at_or_zero(&self, x: usize, y: usize, z: usize) -> u16 {
+    pub(crate) fn at_or_zero(&self, x: usize, y: usize, z: usize) -> u16 {
         if x < self.dims[0] && y < self.dims[1] && z < self.dims[2] {
             self.at(x, y, z)
         } else {
@@ -46,17 +46,17 @@ impl Grid {
         }
     }
 
-    pub fn dims_u32(&self) -> [u32; 3] {
+    pub(crate) fn dims_u32(&self) -> [u32; 3] {
         self.dims.map(|d| d as u32)
     }
 
-    pub fn to_bytes(&self, voxel_type: VoxelType) -> Vec<u8> {
+    pub(crate) fn to_bytes(&self, voxel_type: VoxelType) -> Vec<u8> {
         to_bytes(&self.values, voxel_type)
     }
 
     /// The next coarser level: ceil(dims / 2) voxels, each (sum of its 2x2x2 voxels + 4) / 8,
     /// voxels outside this level counting as 0.
-    pub fn downsample(&self) -> Grid {
+    pub(crate) fn downsample(&self) -> Grid {
         let dims = self.dims.map(|d| d.div_ceil(2));
         let mut values = Vec::with_capacity(dims.iter().product());
         for z in 0..dims[2] {
@@ -78,7 +78,7 @@ impl Grid {
     }
 
     /// The voxels of the box `[min, max)` as RAW bytes.
-    pub fn slice(&self, min: [usize; 3], max: [usize; 3], voxel_type: VoxelType) -> Vec<u8> {
+    pub(crate) fn slice(&self, min: [usize; 3], max: [usize; 3], voxel_type: VoxelType) -> Vec<u8> {
         let mut v = Vec::new();
         for z in min[2]..max[2] {
             for y in min[1]..max[1] {
@@ -92,7 +92,7 @@ impl Grid {
 
     /// The brick at brick position `pos` of this level: b^3 voxels from `pos * b`, x fastest,
     /// 0 beyond the grid.
-    pub fn brick(&self, pos: [usize; 3], b: usize, voxel_type: VoxelType) -> Vec<u8> {
+    pub(crate) fn brick(&self, pos: [usize; 3], b: usize, voxel_type: VoxelType) -> Vec<u8> {
         let mut v = Vec::with_capacity(b * b * b);
         for z in 0..b {
             for y in 0..b {
@@ -105,7 +105,7 @@ impl Grid {
     }
 }
 
-pub fn to_bytes(values: &[u16], voxel_type: VoxelType) -> Vec<u8> {
+pub(crate) fn to_bytes(values: &[u16], voxel_type: VoxelType) -> Vec<u8> {
     match voxel_type {
         VoxelType::U8 => values
             .iter()
@@ -118,7 +118,7 @@ pub fn to_bytes(values: &[u16], voxel_type: VoxelType) -> Vec<u8> {
 /// A volume with three kinds of content across x: a constant third (L in the lower half of z,
 /// H in the upper), a third of flat steps (compressible, never 0), and a third of xorshift noise
 /// (incompressible).
-pub fn mixed_volume(dims: [u32; 3], voxel_type: VoxelType, seed: u64) -> Grid {
+pub(crate) fn mixed_volume(dims: [u32; 3], voxel_type: VoxelType, seed: u64) -> Grid {
     let d = dims.map(|v| v as usize);
     let high = voxel_type.high();
     let mut rng = XorShift(seed);
@@ -142,7 +142,7 @@ pub fn mixed_volume(dims: [u32; 3], voxel_type: VoxelType, seed: u64) -> Grid {
 
 /// Number of levels, computed by hand: level 0 plus one per halving of the largest brick grid
 /// side until a single brick covers the volume.
-pub fn level_count(dims: [u32; 3], brick: u32) -> usize {
+pub(crate) fn level_count(dims: [u32; 3], brick: u32) -> usize {
     let largest = dims.iter().map(|&d| d.div_ceil(brick)).max().unwrap_or(1);
     let mut levels = 1;
     while (1u64 << (levels - 1)) < largest as u64 {
@@ -152,7 +152,7 @@ pub fn level_count(dims: [u32; 3], brick: u32) -> usize {
 }
 
 /// Total bricks over all levels, computed by hand from the grids ceil(dims / (brick * 2^k)).
-pub fn brick_count(dims: [u32; 3], brick: u32) -> u64 {
+pub(crate) fn brick_count(dims: [u32; 3], brick: u32) -> u64 {
     (0..level_count(dims, brick))
         .map(|k| {
             dims.iter()
@@ -163,7 +163,7 @@ pub fn brick_count(dims: [u32; 3], brick: u32) -> u64 {
 }
 
 /// Every level, computed independently: level 0 is the volume, each next one downsampled.
-pub fn pyramid(level0: &Grid, brick: u32) -> Vec<Grid> {
+pub(crate) fn pyramid(level0: &Grid, brick: u32) -> Vec<Grid> {
     let levels = level_count(level0.dims_u32(), brick);
     let mut out = vec![level0.clone()];
     while out.len() < levels {

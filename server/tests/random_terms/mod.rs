@@ -9,7 +9,7 @@ use proptest::prelude::*;
 /// A random primitive of any of the eight kinds, placed at `pos`, its extents at most about
 /// `extent` voxels (each kind's sizes are fixed fractions of it, so the shapes stay comparable
 /// in volume).
-pub fn leaf<P>(pos: P, extent: u32) -> impl Strategy<Value = Term>
+pub(crate) fn leaf<P>(pos: P, extent: u32) -> impl Strategy<Value = Term>
 where
     P: Strategy<Value = [i64; 3]> + Clone,
 {
@@ -56,7 +56,7 @@ where
 
 /// Binary operator number `which % 12` applied to `a` and `b`, in the order of the spec's table
 /// (11 is the two-sided division with threshold `s_l`).
-pub fn binary(which: u8, a: Term, b: Term, s_l: f64) -> Term {
+pub(crate) fn binary(which: u8, a: Term, b: Term, s_l: f64) -> Term {
     let (a, b) = (Box::new(a), Box::new(b));
     match which % 12 {
         0 => Term::Union(a, b),

@@ -1,0 +1,466 @@
+//! The camera-distance streamer: keeps the tiles a viewer at a camera position needs, nearest
+//! first, and keeps them current while other users edit the volume.
+//!
+//! # What it selects
+//!
+//! The thesis's spherical detail bias, exactly as the server's offline selection
+//! (`isovox_server::mesh::level::adaptive_tiles`) computes it: with radii `r0 < r1 < ... <
+//! r(n-1)` (world units, `voxel_scale` applied), a tile of level k is used where its nearest
+//! point lies within `r(k)` of the camera, and level n (or the coarsest, if the volume has fewer
+//! levels) beyond the last radius. Walking down from the root, a tile of level k+1 is refined into
+//! its children when its box (the brick's cell, `brick * 2^(k+1)` level-0 voxels per side, times
+//! the voxel scale) is within `r(k)`, and always while k+1 > n. [`select_tiles`] is that walk, on
+//! the metadata alone, with the same `f32` arithmetic, so it selects the same set for the same
+//! radii. Empty radii select level 0 everywhere. [`StreamerConfig::radii_for_screen_error`]
+//! derives radii from a screen-space error target; an empty [`StreamerConfig::radii`] means
+//! "derive them" with a 60 degree vertical field of view, a 1080-pixel viewport and one pixel of
+//! error (see [`StreamerConfig`]).
+//!
+//! # Tiles and their content keys
+//!
+//! A tile is a [`BrickKey`]. With [`TileKind::Bricks`] its content is the brick's voxels and its
+//! content key is the brick's content hash (xxh3-64, as the server names it). With
+//! [`TileKind::Meshes`] its content is the server's marching-cubes tile, which reads the 3x3x3
+//! bricks around it at the same level (`server/src/mesh/tile.rs`: its cells reach into the +1
+//! neighbours, its normals' central differences one sample further on every side); its content
+//! key hashes the tile's position, the iso value, the brick shape and the content hashes of those
+//! 27 inputs (absent ones marked). A tile is stale exactly when one of its inputs changed.
+//!
+//! Content hashes come from the levels' brick grids (`GET .../levels/{l}?format=grid&region=`),
+//! fetched in regions of 8x8x8 bricks as tiles need them and kept per brick. Brick content is then
+//! fetched by hash (`GET .../blobs/{hash}`), once per hash: a brick shared by many positions (air,
+//! solid rock) costs one request. Mesh tiles are fetched by position (`GET .../meshes/...`) when
+//! their content key is not cached. The cache holds content by key, LRU, bounded by
+//! [`StreamerConfig::cache_bytes`] (brick: its voxel bytes; mesh: positions, normals, indices).
+//!
+//! # Versions
+//!
+//! The streamer works at one version at a time: the version of the last commit it applied from
+//! the change feed (at start, the version the metadata reported). Grid regions and mesh tiles are
+//! requested at that version (`?version=N`), so every content key it holds describes that
+//! version, whatever the server's head is meanwhile. Blobs are immutable. Without
+//! `follow_edits` the streamer stays at the start version (a consistent snapshot, readable until
+//! a compaction drops that version).
+//!
+//! # The task
+//!
+//! [`Streamer::start`] fetches the metadata, subscribes to the change feed from that version (so
+//! no commit falls between the two), and spawns one task that owns all state: the desired set,
+//! per tile whether its current content was delivered, the known brick hashes, the cache, and the
+//! requests in flight (a [`JoinSet`] with one abort handle per request). The camera reaches it
+//! through a `watch` (only the latest position matters); events leave through a bounded channel
+//! of 4,096 (`send().await`: a slow consumer slows the streamer down; a dropped receiver is
+//! ignored and the streamer keeps working). A second task follows the change feed and forwards
+//! commits in order.
+//!
+//! Each time the camera, the feed or a grid region changes what is known, the task plans again:
+//! for every desired tile not yet current it finds what is missing (a grid region, a blob, a
+//! mesh), cached content makes tiles ready at once, requests no desired tile needs any more are
+//! aborted (their results are never delivered), and the rest are queued by the distance from the
+//! camera to the nearest tile box that needs them. At most [`StreamerConfig::max_in_flight`]
+//! requests run at once (the feed's connection is not counted). A failed request is reported as
+//! [`StreamEvent::Error`] and retried after a backoff (250 ms doubling to 10 s) while a tile still
+//! needs it.
+//!
+//! # Events
+//!
+//! - [`StreamEvent::Ready`] when a tile of the desired set gets its content: the first time, and
+//!   again after it went stale.
+//! - [`StreamEvent::Dropped`] when a tile that was delivered (`Ready`) leaves the desired set.
+//!   Tiles that leave before their content arrived are cancelled silently.
+//! - [`StreamEvent::Stale`] when a commit changes an input of a delivered tile; it is refetched at
+//!   once and followed by `Ready` with the new content. The old content stays usable meanwhile, so
+//!   the tile stays in [`Streamer::resident`].
+//! - [`StreamEvent::Version`] after each applied commit (and once at start).
+//! - [`StreamEvent::Error`] for failed requests and feed disconnects (the streamer retries).
+//!
+//! # Edits and reconnects
+//!
+//! For each commit, in version order: every brick in `changed[level]` forgets its hash; the
+//! desired tiles whose inputs include one of them (bricks: the brick itself; meshes: the tiles
+//! at offsets -1..=1 around it) lose their current content, and the delivered ones get `Stale`.
+//! Requests in flight whose answers predate the commit and touch a changed brick are aborted. One
+//! grid region per level, the bounding box of the changed bricks that some desired tile reads,
+//! brings the new hashes; content then comes from the cache or one request per new content key.
+//! Tiles whose inputs did not change are not refetched.
+//!
+//! When the feed ends or fails, the follower reconnects with `since` = the last version it
+//! forwarded (backoff 100 ms doubling to 2 s); the server replays the versions in between from
+//! the file, which the streamer applies like live ones but all in one step: it then fetches
+//! only the newest content of what they changed, not that of versions already superseded. A `resync` event (the subscriber fell
+//! behind) reconnects the same way. When the server answers 410 Gone (the history after that
+//! version was compacted away) or 400 (the volume is now behind the streamer), the streamer
+//! reloads: new metadata, every hash forgotten, every delivered tile stale and refetched (content
+//! already cached by key is reused).
+
+use crate::client::{Client, ClientError, Feed, FeedEvent};
+use bytes::Bytes;
+use isovox_proto::api::{ChangeEvent, LevelGrid, VolumeInfo};
+use isovox_proto::mesh::Mesh;
+use isovox_proto::{BrickKey, VolumeLayout};
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
+use std::hash::{DefaultHasher, Hash, Hasher};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio::sync::{mpsc, oneshot, watch};
+use tokio::task::{AbortHandle, JoinError, JoinSet};
+use tokio::time::Instant;
+
+/// Capacity of the event channel.
+mod engine;
+
+use engine::{follow, Engine};
+
+const EVENT_CAPACITY: usize = 4096;
+/// Bricks per axis of the grid regions fetched to learn content hashes.
+const CHUNK: u32 = 8;
+/// Backoff of a failed request: first delay, doubled per failure up to the last.
+const RETRY_MIN: Duration = Duration::from_millis(250);
+const RETRY_MAX: Duration = Duration::from_secs(10);
+/// Backoff of the change feed's reconnects.
+const FEED_RETRY_MIN: Duration = Duration::from_millis(100);
+const FEED_RETRY_MAX: Duration = Duration::from_secs(2);
+
+/// What the tiles are.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum TileKind {
+    /// Bricks' voxels (raw, x fastest, u16 little endian).
+    Bricks,
+    /// Marching-cubes tiles at `iso` (the server's default, S - 0.5, when `None`).
+    Meshes {
+        /// The iso value; the server's default when `None`.
+        iso: Option<f32>,
+    },
+}
+
+/// How a [`Streamer`] runs.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StreamerConfig {
+    /// Bricks or mesh tiles.
+    pub kind: TileKind,
+    /// World units (voxel_scale applied); r_0 < r_1 < ...; level k within r_k, coarser beyond.
+    /// Empty: derived at start with [`StreamerConfig::radii_for_screen_error`] for a 60 degree
+    /// vertical field of view, a 1080-pixel viewport and one pixel of error.
+    pub radii: Vec<f32>,
+    /// Requests running at once (at least 1). Default 16.
+    pub max_in_flight: usize,
+    /// Bytes of tile content kept by content key. Default 256 MiB.
+    pub cache_bytes: usize,
+    /// Follow the change feed. Default true. Without it the streamer stays at the start version.
+    pub follow_edits: bool,
+}
+
+impl Default for StreamerConfig {
+    fn default() -> Self {
+        StreamerConfig {
+            kind: TileKind::Bricks,
+            radii: Vec::new(),
+            max_in_flight: 16,
+            cache_bytes: 256 << 20,
+            follow_edits: true,
+        }
+    }
+}
+
+impl StreamerConfig {
+    /// Radii from a screen-space error target: level k's tiles have a geometric error of about
+    /// 2^k voxels; choose r_k so that error projects to at most max_error_px pixels.
+    ///
+    /// An error of `e` world units at distance `d` covers `e * H / (2 d tan(fov/2))` pixels of a
+    /// viewport `H` pixels high. Level k+1 (error `2^(k+1)` voxels of the largest voxel-scale
+    /// component) is therefore good enough beyond `r_k = 2^(k+1) s H / (2 tan(fov/2) max_error_px)`,
+    /// and level k is used within it. One radius per level but the coarsest. Arguments that are
+    /// not positive and finite give no radii (level 0 everywhere).
+    pub fn radii_for_screen_error(
+        info: &VolumeInfo,
+        fov_y_radians: f32,
+        viewport_height_px: f32,
+        max_error_px: f32,
+    ) -> Vec<f32> {
+        let s = info.voxel_scale.iter().fold(0f32, |a, &b| a.max(b.abs()));
+        let per_world = viewport_height_px / (2.0 * (fov_y_radians / 2.0).tan() * max_error_px);
+        if !(per_world.is_finite() && per_world > 0.0 && s.is_finite() && s > 0.0) {
+            return Vec::new();
+        }
+        (0..info.levels.len().saturating_sub(1))
+            .map(|k| (2f32).powi(k as i32 + 1) * s * per_world)
+            .collect()
+    }
+}
+
+/// The desired set for a camera (sorted), from metadata only.
+///
+/// Level k where the tile's nearest point lies within `radii[k]` of `camera`, coarser beyond
+/// (see the module documentation): [`isovox_proto::lod::adaptive_tiles`], as the server's
+/// adaptive meshes select them.
+pub fn select_tiles(info: &VolumeInfo, camera: [f32; 3], radii: &[f32]) -> Vec<BrickKey> {
+    match VolumeLayout::new(info.dims, info.brick, info.voxel_type) {
+        Ok(layout) => isovox_proto::lod::adaptive_tiles(&layout, info.voxel_scale, camera, radii),
+        // Metadata no server sends (it describes a valid layout); nothing to select.
+        Err(_) => Vec::new(),
+    }
+}
+
+/// A tile's content.
+#[derive(Debug, Clone)]
+pub enum TileData {
+    /// The brick's voxels (raw, x fastest, u16 little endian).
+    Brick(Bytes),
+    /// The tile's mesh in world coordinates, as the server encodes it (normals quantized).
+    Mesh(Arc<Mesh>),
+}
+
+impl TileData {
+    /// The tile's size in memory: voxel bytes, or the mesh's arrays.
+    pub fn bytes(&self) -> u64 {
+        match self {
+            TileData::Brick(b) => b.len() as u64,
+            TileData::Mesh(m) => {
+                (m.positions.len() * 12 + m.normals.len() * 12 + m.indices.len() * 4) as u64
+            }
+        }
+    }
+}
+
+/// What the streamer reports.
+#[derive(Debug, Clone)]
+pub enum StreamEvent {
+    /// `key` has content `data` (content key `hash`: the brick's content hash, or for a mesh
+    /// tile the hash of its position, iso and inputs), current as of `version`.
+    Ready {
+        /// The tile.
+        key: BrickKey,
+        /// Its content key.
+        hash: u64,
+        /// Its content.
+        data: TileData,
+        /// The version it is current as of.
+        version: u64,
+    },
+    /// `key` left the desired set; it had been delivered.
+    Dropped {
+        /// The tile.
+        key: BrickKey,
+    },
+    /// Commit `version` changed an input of `key`; new content follows as `Ready`.
+    Stale {
+        /// The tile.
+        key: BrickKey,
+        /// The commit that changed it.
+        version: u64,
+    },
+    /// The streamer applied every commit up to `version`.
+    Version {
+        /// The version.
+        version: u64,
+    },
+    /// A request (for `key`, when it served one tile) or the change feed failed; retried.
+    Error {
+        /// The tile the request was for, if one.
+        key: Option<BrickKey>,
+        /// What failed.
+        error: String,
+    },
+}
+
+/// Counters of a [`Streamer`].
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct StreamerStats {
+    /// HTTP requests started (grid regions, blobs, mesh tiles; not the change feed).
+    pub requests: u64,
+    /// Payload bytes received: brick voxels, and mesh tiles' compact encodings.
+    pub bytes: u64,
+    /// Tiles made ready without a request of their own (cached, or shared with another tile).
+    pub cache_hits: u64,
+    /// Content requests completed (blobs, mesh tiles).
+    pub cache_misses: u64,
+    /// Requests running now.
+    pub in_flight: usize,
+    /// Delivered tiles of the desired set (see [`Streamer::resident`]).
+    pub resident: usize,
+    /// Bytes held by the content cache.
+    pub cache_bytes: usize,
+    /// The version the streamer is at.
+    pub version: u64,
+    /// Delivered tiles refetched because a commit changed their inputs.
+    pub stale_refetches: u64,
+}
+
+/// The camera as the task sees it: a sequence number per [`Streamer::set_camera`].
+#[derive(Debug, Clone, Copy, Default)]
+struct CameraMsg {
+    seq: u64,
+    position: Option<[f32; 3]>,
+}
+
+/// What the task last published.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+struct Status {
+    /// The camera (sequence number) the desired set was computed for.
+    camera_seq: u64,
+    /// Every desired tile has current content.
+    idle: bool,
+    version: u64,
+}
+
+#[derive(Debug, Default)]
+struct Shared {
+    stats: StreamerStats,
+    resident: BTreeSet<BrickKey>,
+}
+
+fn lock(shared: &Mutex<Shared>) -> std::sync::MutexGuard<'_, Shared> {
+    // The task never panics while holding the lock; a poisoned lock still holds whole values.
+    shared.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// A running streamer (see the module documentation). Dropping it stops the task.
+#[derive(Debug)]
+pub struct Streamer {
+    info: VolumeInfo,
+    radii: Vec<f32>,
+    camera: watch::Sender<CameraMsg>,
+    status: watch::Receiver<Status>,
+    shared: Arc<Mutex<Shared>>,
+    shutdown: Option<oneshot::Sender<()>>,
+    task: Option<tokio::task::JoinHandle<()>>,
+}
+
+impl Streamer {
+    /// Fetches the volume's metadata, subscribes to the feed (if follow_edits), starts the task.
+    ///
+    /// # Errors
+    /// The metadata or the subscription fails; `Decode` when the metadata is inconsistent.
+    pub async fn start(
+        client: Client,
+        volume: &str,
+        config: StreamerConfig,
+    ) -> Result<(Streamer, mpsc::Receiver<StreamEvent>), ClientError> {
+        let info = client.volume(volume).await?;
+        let layout = VolumeLayout::new(info.dims, info.brick, info.voxel_type)
+            .map_err(|e| ClientError::Decode(format!("volume {volume}: {e}")))?;
+        if layout.levels() as usize != info.levels.len() {
+            return Err(ClientError::Decode(format!(
+                "volume {volume}: {} levels listed, its dimensions give {}",
+                info.levels.len(),
+                layout.levels()
+            )));
+        }
+        let radii = if config.radii.is_empty() {
+            StreamerConfig::radii_for_screen_error(&info, 60f32.to_radians(), 1080.0, 1.0)
+        } else {
+            config.radii.clone()
+        };
+        let feed = if config.follow_edits {
+            Some(client.events(volume, Some(info.version)).await?)
+        } else {
+            None
+        };
+        let (events_tx, events_rx) = mpsc::channel(EVENT_CAPACITY);
+        let (camera_tx, camera_rx) = watch::channel(CameraMsg::default());
+        let (status_tx, status_rx) = watch::channel(Status {
+            camera_seq: 0,
+            idle: true,
+            version: info.version,
+        });
+        let (shutdown_tx, shutdown_rx) = oneshot::channel();
+        let shared = Arc::new(Mutex::new(Shared::default()));
+        let (feed_rx, follower) = match feed {
+            Some(feed) => {
+                let (tx, rx) = mpsc::channel(1024);
+                let follower = tokio::spawn(follow(
+                    client.clone(),
+                    volume.to_string(),
+                    feed,
+                    info.version,
+                    tx,
+                ));
+                (Some(rx), Some(follower))
+            }
+            None => (None, None),
+        };
+        let engine = Engine::new(
+            client,
+            volume,
+            &config,
+            layout,
+            info.clone(),
+            radii.clone(),
+            events_tx,
+            shared.clone(),
+            status_tx,
+        );
+        let task = tokio::spawn(engine.run(camera_rx, feed_rx, follower, shutdown_rx));
+        Ok((
+            Streamer {
+                info,
+                radii,
+                camera: camera_tx,
+                status: status_rx,
+                shared,
+                shutdown: Some(shutdown_tx),
+                task: Some(task),
+            },
+            events_rx,
+        ))
+    }
+
+    /// The volume's metadata as fetched at start (its `version` is the start version;
+    /// [`Streamer::stats`] has the current one).
+    pub fn info(&self) -> &VolumeInfo {
+        &self.info
+    }
+
+    /// The radii in use (derived at start when the configuration gave none).
+    pub fn radii(&self) -> &[f32] {
+        &self.radii
+    }
+
+    /// Moves the camera (world units). Cheap: call it every frame.
+    pub fn set_camera(&self, camera: [f32; 3]) {
+        self.camera.send_modify(|c| {
+            c.seq += 1;
+            c.position = Some(camera);
+        });
+    }
+
+    /// What the streamer has done so far.
+    pub fn stats(&self) -> StreamerStats {
+        lock(&self.shared).stats.clone()
+    }
+
+    /// Tiles currently ready for the current camera: delivered (`Ready`) and not dropped,
+    /// sorted. A stale tile being refetched stays in (its old content is still shown).
+    pub fn resident(&self) -> Vec<BrickKey> {
+        lock(&self.shared).resident.iter().copied().collect()
+    }
+
+    /// Resolves when every tile of the current camera's set is ready and none is stale.
+    /// (Returns at once if the streamer's task has stopped.)
+    pub async fn wait_idle(&self) {
+        self.wait(0).await;
+    }
+
+    /// [`Streamer::wait_idle`], and the streamer has applied every commit up to `version`.
+    pub async fn wait_version(&self, version: u64) {
+        self.wait(version).await;
+    }
+
+    async fn wait(&self, version: u64) {
+        let target = self.camera.borrow().seq;
+        let mut rx = self.status.clone();
+        let _ = rx
+            .wait_for(|s| s.camera_seq >= target && s.idle && s.version >= version)
+            .await;
+    }
+
+    /// Stops the task (requests in flight are aborted) and waits for it.
+    pub async fn shutdown(mut self) {
+        if let Some(s) = self.shutdown.take() {
+            let _ = s.send(());
+        }
+        if let Some(t) = self.task.take() {
+            let _ = t.await;
+        }
+    }
+}

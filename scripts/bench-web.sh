@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# The web viewer's cold load (web/bench/load.mjs): headless Chromium (Debian's, SwiftShader)
+# loads the demo world from an empty cache over HTTP/1.1 and over HTTP/2 with TLS (a
+# self-signed certificate made here), and reports time to first frame, time until every tile
+# the camera needs is on screen, requests and bytes. Goals: first frame under 1 s, complete
+# under 3 s on loopback.
+#
+#   scripts/bench-web.sh [--runs N] [--width W --height H] [--screenshot docs/viewer.png]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+command -v chromium >/dev/null || { apt-get update -qq && apt-get install -y -qq chromium >/dev/null; }
+command -v openssl >/dev/null || { apt-get update -qq && apt-get install -y -qq openssl >/dev/null; }
+(cd web && [ -d node_modules ] || npm ci --no-audit --no-fund)
+cargo build --release -p isovox-server --bin isovox
+
+tls=$(mktemp -d)
+trap 'rm -rf "$tls"' EXIT
+openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:prime256v1 -nodes -days 2 \
+  -subj /CN=127.0.0.1 -addext "subjectAltName=IP:127.0.0.1" \
+  -keyout "$tls/key.pem" -out "$tls/cert.pem" 2>/dev/null
+
+node web/bench/load.mjs --bin "$PWD/target/release/isovox" --cert "$tls/cert.pem" --key "$tls/key.pem" "$@"

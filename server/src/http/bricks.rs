@@ -1,0 +1,253 @@
+//! The brick routes: one brick by position, one brick by content hash.
+//!
+//! Both answer through [`brick_response`]: `ETag` = content hash (304 on a match); the stored
+//! zstd frame as `Content-Encoding: zstd` to clients that accept it, an lz4 block for
+//! `Accept: application/x-lz4`, else the raw voxels. These are the hottest routes by far, so
+//! the code avoids per-request work the other routes do not mind (see the comments).
+
+use super::extract::{Path, Query};
+use super::{ApiError, AppState};
+use crate::store::decoded::Form;
+use crate::store::{Snapshot, StoredBrick};
+use axum::extract::{Request, State};
+use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
+use axum::response::{IntoResponse, Response};
+use isovox_proto::vod2::Codec;
+use isovox_proto::VolumeLayout;
+use serde::Deserialize;
+
+/// The media type of an lz4 block (lz4_flex block format, decoding to one brick).
+pub const LZ4_MEDIA_TYPE: &str = "application/x-lz4";
+
+/// `{name}/bricks/{level}/{x}/{y}/{z}`.
+pub type BrickPath = (String, u8, u32, u32, u32);
+
+/// `?version=N`.
+#[derive(Debug, Deserialize)]
+pub struct VersionQuery {
+    /// The version to read; the newest when absent.
+    pub version: Option<u64>,
+}
+
+/// One brick.
+///
+/// - Default: the decoded voxels (`application/octet-stream`, x fastest, u16 little endian).
+///   A brick stored as zstd goes out as it is, with `Content-Encoding: zstd`, to clients that
+///   send `Accept-Encoding: zstd` (browsers decode it transparently).
+/// - `Accept: application/x-lz4`: an lz4 block of the voxels (the stored block when the brick is
+///   stored as lz4, else compressed on the fly).
+/// - `ETag` is the content hash; `If-None-Match` with it answers 304.
+/// - `?version=N` reads an older version while the file still holds it.
+pub async fn brick(
+    State(state): State<AppState>,
+    Path((name, level, x, y, z)): Path<BrickPath>,
+    Query(query): Query<VersionQuery>,
+    // The request itself, not a `HeaderMap` extractor (which clones every header).
+    request: Request,
+) -> Result<Response, ApiError> {
+    brick_at(
+        &state,
+        &name,
+        query.version,
+        (level, x, y, z),
+        request.headers(),
+    )
+}
+
+/// The response for brick (level, x, y, z) of volume `name` at `version` (the head if `None`):
+/// the brick route's work once its request is parsed, shared with the fast path.
+pub(super) fn brick_at(
+    state: &AppState,
+    name: &str,
+    version: Option<u64>,
+    (level, x, y, z): (u8, u32, u32, u32),
+    headers: &HeaderMap,
+) -> Result<Response, ApiError> {
+    let vol = state.catalog.get(name)?;
+    // The head is borrowed from the volume's current file (no reference count touched).
+    let (current, older);
+    let snap: &Snapshot = match version {
+        Some(v) => {
+            older = vol.version(v)?;
+            &older
+        }
+        None => {
+            current = vol.load();
+            current.head_ref()
+        }
+    };
+    let key = snap
+        .layout()
+        .key(level, x, y, z)
+        .map_err(|e| ApiError::NotFound(e.to_string()))?;
+    let stored = snap.stored(key)?;
+    brick_response(state, snap, stored, headers, "no-cache")
+}
+
+/// A brick by content hash (16 hex digits): immutable, so any HTTP cache or CDN may keep it
+/// forever. A brick of any version the file still holds is found (a client that read a grid at
+/// `?version=N` asks for its hashes), whether or not this process saw the commits since.
+pub async fn blob(
+    State(state): State<AppState>,
+    Path((name, hex)): Path<(String, String)>,
+    request: Request,
+) -> Result<Response, ApiError> {
+    let hash = (hex.len() == 16 && hex.bytes().all(|b| b.is_ascii_hexdigit()))
+        .then(|| u64::from_str_radix(&hex, 16).ok())
+        .flatten()
+        .ok_or_else(|| {
+            ApiError::BadRequest(format!("{hex:?} is not a content hash (16 hex digits)"))
+        })?;
+    let snap = state.catalog.get(&name)?.head();
+    let entry = snap
+        .find_by_hash(hash)?
+        .ok_or_else(|| ApiError::NotFound(format!("no brick with hash {hex} in {name:?}")))?;
+    let stored = snap.stored_entry(entry)?;
+    brick_response(
+        &state,
+        &snap,
+        stored,
+        request.headers(),
+        "public, max-age=31536000, immutable",
+    )
+}
+
+/// Whether a header of `name` lists `token` (and does not refuse it with `q=0`).
+pub(super) fn accepts(headers: &HeaderMap, name: header::HeaderName, token: &str) -> bool {
+    headers
+        .get_all(name)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(','))
+        .any(|item| {
+            let mut parts = item.split(';');
+            let value = parts.next().unwrap_or("").trim();
+            let refused = parts.any(|p| p.trim().replace(' ', "") == "q=0");
+            value.eq_ignore_ascii_case(token) && !refused
+        })
+}
+
+/// Whether `If-None-Match` names `etag` (or `*`).
+pub(super) fn if_none_match(headers: &HeaderMap, etag: &str) -> bool {
+    headers
+        .get_all(header::IF_NONE_MATCH)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(','))
+        // If-None-Match compares weakly (RFC 9110 13.1.2): W/"x" matches "x".
+        .map(|t| t.trim().trim_start_matches("W/"))
+        .any(|t| t == etag || t == "*")
+}
+
+/// The response for one stored brick, shared by the position and the content-hash routes.
+///
+/// Stored payloads go out as they are stored (small ones copied, large ones as shared slices of
+/// the mapping: see `Snapshot::payload_bytes`); decoded voxels and transcoded lz4 blocks come
+/// from the shared cache of decoded bricks, keyed by content hash, so a hot brick is decoded
+/// once.
+fn brick_response(
+    state: &AppState,
+    snap: &Snapshot,
+    stored: StoredBrick<'_>,
+    headers: &HeaderMap,
+    cache_control: &'static str,
+) -> Result<Response, ApiError> {
+    let layout = snap.layout();
+    let hash = match stored {
+        StoredBrick::Record { header, .. } => header.hash,
+        StoredBrick::Constant(v) => state.constants.hash(v, layout),
+    };
+    let mut etag = [0u8; 18];
+    let etag = format_etag(hash, &mut etag);
+    // Room for every header the response will carry (these, CORS, length, date): growing the
+    // map rehashes it.
+    let mut response_headers = HeaderMap::with_capacity(12);
+    response_headers.insert(
+        header::ETAG,
+        HeaderValue::from_str(etag).map_err(|e| ApiError::Internal(e.to_string()))?,
+    );
+    response_headers.insert(
+        header::CACHE_CONTROL,
+        HeaderValue::from_static(cache_control),
+    );
+    response_headers.insert(
+        header::VARY,
+        HeaderValue::from_static("Accept, Accept-Encoding"),
+    );
+    if if_none_match(headers, etag) {
+        return Ok((StatusCode::NOT_MODIFIED, response_headers).into_response());
+    }
+    let want_lz4 = accepts(headers, header::ACCEPT, LZ4_MEDIA_TYPE);
+    let (media, encoding, body) = match stored {
+        StoredBrick::Record {
+            offset, header: h, ..
+        } if want_lz4 && h.codec == Codec::Lz4 => {
+            (LZ4_MEDIA_TYPE, None, snap.payload_bytes(offset, &h)?)
+        }
+        StoredBrick::Record {
+            offset, header: h, ..
+        } if !want_lz4
+            && h.codec == Codec::Zstd
+            && accepts(headers, header::ACCEPT_ENCODING, "zstd") =>
+        {
+            (
+                "application/octet-stream",
+                Some("zstd"),
+                snap.payload_bytes(offset, &h)?,
+            )
+        }
+        StoredBrick::Constant(v) if want_lz4 => (
+            LZ4_MEDIA_TYPE,
+            None,
+            state.constants.body(v, layout, Form::Lz4),
+        ),
+        _ if want_lz4 => (
+            LZ4_MEDIA_TYPE,
+            None,
+            state
+                .bricks
+                .get_or_make(hash, layout.brick_bytes(), Form::Lz4, || {
+                    Ok::<_, ApiError>(
+                        lz4_flex::block::compress(&voxels(state, layout, stored, hash)?).into(),
+                    )
+                })?,
+        ),
+        _ => (
+            "application/octet-stream",
+            None,
+            voxels(state, layout, stored, hash)?,
+        ),
+    };
+    response_headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(media));
+    if let Some(e) = encoding {
+        response_headers.insert(header::CONTENT_ENCODING, HeaderValue::from_static(e));
+    }
+    // Built in place: `(headers, body).into_response()` would copy the headers into a new map.
+    let mut response = Response::new(axum::body::Body::from(body));
+    *response.headers_mut() = response_headers;
+    Ok(response)
+}
+
+/// `"` + 16 hex digits + `"`, without allocating.
+fn format_etag(hash: u64, out: &mut [u8; 18]) -> &str {
+    const HEX: &[u8; 16] = b"0123456789abcdef";
+    out[0] = b'"';
+    out[17] = b'"';
+    for i in 0..16 {
+        out[1 + i] = HEX[((hash >> (60 - 4 * i)) & 0xf) as usize];
+    }
+    std::str::from_utf8(out).unwrap_or("\"0\"")
+}
+
+/// A brick's voxels: constants from the constant table, records from the brick cache.
+fn voxels(
+    state: &AppState,
+    layout: &VolumeLayout,
+    stored: StoredBrick<'_>,
+    hash: u64,
+) -> Result<bytes::Bytes, ApiError> {
+    if let StoredBrick::Constant(v) = stored {
+        return Ok(state.constants.body(v, layout, Form::Raw));
+    }
+    Ok(state.bricks.voxels(hash, &stored, layout)?)
+}

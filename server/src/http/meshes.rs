@@ -1,0 +1,48 @@
+//! `POST /v1/meshes?format=stl|obj|ply|glb`: keeps a watertight model by its content hash, for
+//! `mesh` leaves of edit terms.
+
+use super::auth::WriteToken;
+use super::cpu::blocking;
+use super::extract::Query;
+use super::{ApiError, AppState};
+use crate::voxelize::store::MeshInfo;
+use axum::body::Body;
+use axum::extract::State;
+use axum::Json;
+use serde::Deserialize;
+
+/// Largest mesh upload.
+const MAX_MESH_BODY: usize = 256 << 20;
+
+/// `?format=`.
+#[derive(Debug, Deserialize)]
+pub struct UploadQuery {
+    /// The model's file format: stl, obj, ply or glb.
+    pub format: Option<String>,
+}
+
+/// Reads the model (after the token check), checks and stores it off the async runtime.
+pub async fn upload_mesh(
+    WriteToken(token): WriteToken,
+    State(state): State<AppState>,
+    Query(query): Query<UploadQuery>,
+    body: Body,
+) -> Result<Json<MeshInfo>, ApiError> {
+    let store = state
+        .mesh_store
+        .clone()
+        .ok_or_else(|| ApiError::NotFound("this server keeps no meshes".into()))?;
+    let format = query
+        .format
+        .ok_or_else(|| {
+            ApiError::BadRequest("give the model's ?format= (stl, obj, ply or glb)".into())
+        })?
+        .to_ascii_lowercase();
+    let body = axum::body::to_bytes(body, MAX_MESH_BODY)
+        .await
+        .map_err(|_| ApiError::TooLarge(format!("a model takes at most {MAX_MESH_BODY} bytes")))?;
+    let info =
+        blocking(move || store.store(&body, &format).map_err(ApiError::Unprocessable)).await?;
+    tracing::info!(token = %token.name, hash = %format!("{:016x}", info.hash), triangles = info.triangles, "mesh stored");
+    Ok(Json(info))
+}

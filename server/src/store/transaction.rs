@@ -1,0 +1,277 @@
+//! A transaction: the one way a version is written. Bricks are staged (stored through the
+//! writer's deduplication, their index entries kept aside), the levels above changed level-0
+//! bricks are recomputed, and the commit makes it all durable as the next version.
+//!
+//! Edits stage level-0 bricks on top of the head ([`Transaction::on`]); a build and a compaction
+//! fill every entry of a new file ([`Transaction::first`]), whose first commit is a checkpoint.
+
+use super::pyramid::{constant_parent, downsample, BrickVoxels};
+use super::writer::{PreparedBrick, Vod2Writer};
+use super::{Snapshot, StoreError};
+use isovox_proto::vod2::{BrickHeader, HeaderSlot, NodeEntry};
+use isovox_proto::BrickKey;
+use rayon::prelude::*;
+use std::collections::HashMap;
+
+/// When to write a full index checkpoint instead of a delta: a reader replays the deltas since
+/// the last checkpoint when it opens the file, so their number is bounded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CheckpointPolicy {
+    /// Entries changed since the last checkpoint.
+    pub max_overlay: usize,
+    /// Commits since the last checkpoint.
+    pub max_chain: usize,
+}
+
+impl Default for CheckpointPolicy {
+    fn default() -> Self {
+        CheckpointPolicy {
+            max_overlay: 1 << 15,
+            max_chain: 256,
+        }
+    }
+}
+
+/// Changed bricks per level (level 0 first), as `[x, y, z]`.
+pub type ChangedKeys = Vec<Vec<[u32; 3]>>;
+
+/// What a commit wrote.
+#[derive(Debug, Clone)]
+pub struct Committed {
+    /// The header slot naming the new version.
+    pub slot: HeaderSlot,
+    /// The bricks whose entries changed, per level (empty for the first commit of a file).
+    pub changed: ChangedKeys,
+    /// Brick records appended (new unique content).
+    pub new_records: u64,
+    /// Whether the commit wrote a full index checkpoint.
+    pub checkpoint: bool,
+}
+
+/// What a transaction builds on.
+#[derive(Debug)]
+enum Base<'a> {
+    /// A version of the file: entries not staged stay as they are there.
+    Version {
+        snap: &'a Snapshot,
+        changes: Vec<(u64, NodeEntry)>,
+        changed: ChangedKeys,
+    },
+    /// Nothing (a new file): every entry is staged.
+    Empty { entries: Vec<u64> },
+}
+
+/// Staged changes to one file, committed at once.
+#[derive(Debug)]
+pub struct Transaction<'a> {
+    writer: &'a mut Vod2Writer,
+    base: Base<'a>,
+    records_before: u64,
+}
+
+fn records(writer: &Vod2Writer) -> u64 {
+    writer.stats().stored.iter().sum()
+}
+
+impl<'a> Transaction<'a> {
+    /// A transaction on top of `snap`, which must be the writer's head.
+    pub fn on(writer: &'a mut Vod2Writer, snap: &'a Snapshot) -> Self {
+        Transaction {
+            records_before: records(writer),
+            base: Base::Version {
+                snap,
+                changes: Vec::new(),
+                changed: vec![Vec::new(); snap.layout().levels() as usize],
+            },
+            writer,
+        }
+    }
+
+    /// The first transaction of a new file: stage every entry before committing.
+    pub fn first(writer: &'a mut Vod2Writer) -> Self {
+        let nodes = writer.header().layout.node_count() as usize;
+        Transaction {
+            records_before: records(writer),
+            base: Base::Empty {
+                entries: vec![0; nodes],
+            },
+            writer,
+        }
+    }
+
+    /// The writer, for preparing bricks in parallel ([`Vod2Writer::prepare`]) before they are
+    /// [`put`](Transaction::put) in order.
+    pub fn writer(&self) -> &Vod2Writer {
+        self.writer
+    }
+
+    /// Sets the index entry of `node`; returns whether it differs from the base's.
+    ///
+    /// # Errors
+    /// The base's entry cannot be read.
+    pub fn set(&mut self, node: u64, entry: NodeEntry) -> Result<bool, StoreError> {
+        match &mut self.base {
+            Base::Version {
+                snap,
+                changes,
+                changed,
+            } => {
+                if entry == snap.entry_at(node)? {
+                    return Ok(false);
+                }
+                let key = snap.layout().key_of(node)?;
+                changes.push((node, entry));
+                changed[key.level as usize].push([key.x, key.y, key.z]);
+                Ok(true)
+            }
+            Base::Empty { entries } => {
+                let slot = entries.get_mut(node as usize).ok_or_else(|| {
+                    StoreError::Internal(format!("node {node} is outside the volume"))
+                })?;
+                *slot = entry.encode();
+                Ok(true)
+            }
+        }
+    }
+
+    /// Stores a prepared brick (deduplicated) as the content of `node`; returns whether the
+    /// entry changed.
+    ///
+    /// # Errors
+    /// Storing fails, or the base's entry cannot be read.
+    pub fn put(
+        &mut self,
+        node: u64,
+        voxels: &BrickVoxels,
+        prepared: PreparedBrick,
+    ) -> Result<bool, StoreError> {
+        let entry = self.writer.store(voxels, prepared)?;
+        self.set(node, entry)
+    }
+
+    /// Copies a brick record of another file as it is (no decoding) and returns its new entry
+    /// (not yet set on any node: records shared by several nodes are copied once).
+    ///
+    /// # Errors
+    /// Appending fails.
+    pub fn copy_record(
+        &mut self,
+        header: &BrickHeader,
+        payload: &[u8],
+    ) -> Result<NodeEntry, StoreError> {
+        self.writer.copy_record(header, payload)
+    }
+
+    /// Stages new contents of level-0 bricks and recomputes every coarser brick above those
+    /// whose entry changed (the others' children are read from the base).
+    ///
+    /// # Errors
+    /// A brick of the base fails to read, storing fails, or this is the first transaction of a
+    /// file (there is no base to read siblings from).
+    pub fn update_level0(
+        &mut self,
+        mut level: Vec<(BrickKey, BrickVoxels)>,
+    ) -> Result<(), StoreError> {
+        let Base::Version { snap, .. } = self.base else {
+            return Err(StoreError::Internal(
+                "level-of-detail upkeep needs a base version".into(),
+            ));
+        };
+        let layout = snap.layout();
+        let t = layout.voxel_type();
+        for lvl in 0..layout.levels() {
+            if level.is_empty() {
+                break;
+            }
+            // Store this level's bricks; keep only those whose entry really changed.
+            let writer = &*self.writer;
+            let prepared: Vec<_> = level.par_iter().map(|(_, v)| writer.prepare(v)).collect();
+            let mut kept: HashMap<BrickKey, BrickVoxels> = HashMap::new();
+            for ((key, voxels), p) in level.into_iter().zip(prepared) {
+                if self.put(layout.node_index(key), &voxels, p)? {
+                    kept.insert(key, voxels);
+                }
+            }
+            if lvl + 1 == layout.levels() {
+                break;
+            }
+            let mut parents: Vec<BrickKey> =
+                kept.keys().filter_map(|&k| layout.parent(k)).collect();
+            parents.sort();
+            parents.dedup();
+            level = parents
+                .par_iter()
+                .map(|&parent| -> Result<(BrickKey, BrickVoxels), StoreError> {
+                    let kids = layout.children(parent);
+                    let mut owned: Vec<(usize, BrickVoxels)> = Vec::new();
+                    for (octant, child) in &kids {
+                        if !kept.contains_key(child) {
+                            owned.push((*octant, snap.voxels(*child)?));
+                        }
+                    }
+                    let mut slots: [Option<&BrickVoxels>; 8] = [None; 8];
+                    for (octant, child) in &kids {
+                        if let Some(v) = kept.get(child) {
+                            slots[*octant] = Some(v);
+                        }
+                    }
+                    for (octant, v) in &owned {
+                        slots[*octant] = Some(v);
+                    }
+                    let voxels = match constant_parent(&slots) {
+                        Some(v) => BrickVoxels::Constant(v),
+                        None => {
+                            let mut out = vec![0u8; layout.brick_bytes()];
+                            downsample(&slots, layout.brick(), t, &mut out);
+                            BrickVoxels::from_bytes(out, t)
+                        }
+                    };
+                    Ok((parent, voxels))
+                })
+                .collect::<Result<_, _>>()?;
+        }
+        Ok(())
+    }
+
+    /// Makes everything staged durable as the next version: a delta on the base, or a full
+    /// index checkpoint when `policy` says the chain of deltas is long enough (always for the
+    /// first commit of a file).
+    ///
+    /// # Errors
+    /// Reading the base's index or writing the commit fails (the head is then unchanged).
+    pub fn commit(self, policy: CheckpointPolicy) -> Result<Committed, StoreError> {
+        let (slot, changed, checkpoint) = match self.base {
+            Base::Version {
+                snap,
+                changes,
+                changed,
+            } => {
+                let checkpoint = snap.overlay_len() + changes.len() > policy.max_overlay
+                    || snap.chain_len() + 1 > policy.max_chain;
+                let full = if checkpoint {
+                    let mut entries: Vec<u64> = (0..snap.layout().node_count())
+                        .map(|n| snap.entry_at(n).map(NodeEntry::encode))
+                        .collect::<Result<_, _>>()?;
+                    for (node, entry) in &changes {
+                        entries[*node as usize] = entry.encode();
+                    }
+                    Some(entries)
+                } else {
+                    None
+                };
+                let slot = self.writer.commit(&changes, full.as_deref())?;
+                (slot, changed, checkpoint)
+            }
+            Base::Empty { entries } => {
+                let slot = self.writer.commit(&[], Some(&entries))?;
+                (slot, ChangedKeys::new(), true)
+            }
+        };
+        Ok(Committed {
+            slot,
+            changed,
+            new_records: records(self.writer) - self.records_before,
+            checkpoint,
+        })
+    }
+}

@@ -1,0 +1,348 @@
+//! A served volume: its current version, its single writer, its history and its change feed.
+//!
+//! Readers call [`LiveVolume::current`] and get the open file as of the newest commit (an
+//! `Arc` swapped atomically): they never wait for the writer. Edits are serialized by the
+//! writer lock; each one is evaluated against the head snapshot, committed (durable before the
+//! call returns), turned into the next [`Vod2`] by [`Vod2::advance`], recorded in the version
+//! history, published to readers, and announced on the change feed, in that order.
+//!
+//! The change feed is a `tokio::sync::broadcast` channel: sending never waits, and a subscriber
+//! that falls more than [`FEED_CAPACITY`] versions behind learns it (`Lagged`) instead of
+//! slowing anyone down. What it announces is read back from the commit record, the same
+//! source `changes?since=N` reads, so the live feed and the catch-up list cannot disagree.
+//!
+//! Layout: this file holds the volume's versions, history and feed; [`read`] the reads a
+//! server answers (batches, levels, mesh tiles), checked first and run later off the async
+//! runtime; [`write`] edits (with a server's limits) and compaction; [`resolve`] the volumes
+//! and meshes edit terms name; [`error`] what can go wrong.
+
+pub mod error;
+pub mod read;
+pub mod resolve;
+pub mod write;
+
+pub use error::VolumeError;
+pub use write::{edit_file, EditLimits};
+
+use crate::store::{Snapshot, StoreError, Vod2, Vod2Writer};
+use arc_swap::ArcSwap;
+use isovox_proto::api::{ChangeEvent, ChangeList, ChangedBricks};
+use isovox_proto::vod2::CommitHeader;
+use isovox_proto::{FormatError, VolumeLayout};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, RwLock};
+use tokio::sync::broadcast;
+
+/// Versions a subscriber may fall behind before it is told to resync.
+pub const FEED_CAPACITY: usize = 1024;
+
+/// One committed version on the change feed, with its JSON made once for every subscriber.
+#[derive(Debug)]
+pub struct FeedItem {
+    /// The version.
+    pub version: u64,
+    /// Its change event as JSON.
+    pub json: String,
+}
+
+/// Versions listed by one `changes` answer, by default and at most.
+pub const DEFAULT_CHANGES: usize = 1000;
+/// See [`DEFAULT_CHANGES`].
+pub const MAX_CHANGES: usize = 10_000;
+
+/// Commit offsets by version: `offsets[v - oldest]` is version `v`'s commit record.
+#[derive(Debug, Clone, Default)]
+struct History {
+    oldest: u64,
+    offsets: Vec<u64>,
+}
+
+impl History {
+    /// Walks the commit chain of `vod` once (at start and after compaction).
+    fn read(vod: &Vod2) -> Result<History, StoreError> {
+        let mut commits = vod.commits()?;
+        commits.reverse();
+        let oldest = commits.first().map_or(0, |(_, h)| h.version);
+        for (i, (_, h)) in commits.iter().enumerate() {
+            if h.version != oldest + i as u64 {
+                return Err(FormatError::invalid(
+                    "commit chain",
+                    format!(
+                        "version {} where {} was expected",
+                        h.version,
+                        oldest + i as u64
+                    ),
+                )
+                .into());
+            }
+        }
+        Ok(History {
+            oldest,
+            offsets: commits.into_iter().map(|(at, _)| at).collect(),
+        })
+    }
+
+    fn offset(&self, version: u64) -> Option<u64> {
+        let i = version.checked_sub(self.oldest)?;
+        self.offsets.get(usize::try_from(i).ok()?).copied()
+    }
+}
+
+/// The single writer of a volume, opened on the first edit (opening rebuilds its
+/// deduplication table from the index).
+#[derive(Debug, Default)]
+pub struct WriterSlot {
+    writer: Option<Vod2Writer>,
+}
+
+/// A volume the server serves and edits.
+#[derive(Debug)]
+pub struct LiveVolume {
+    name: String,
+    current: ArcSwap<Vod2>,
+    writer: Arc<tokio::sync::Mutex<WriterSlot>>,
+    /// Edits waiting for the writer lock.
+    waiting: AtomicUsize,
+    history: RwLock<History>,
+    feed: broadcast::Sender<Arc<FeedItem>>,
+}
+
+/// A place in the writer's queue; dropping it leaves the queue.
+#[derive(Debug)]
+pub struct QueueTicket<'a>(&'a AtomicUsize);
+
+impl Drop for QueueTicket<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::AcqRel);
+    }
+}
+
+/// The changed bricks of a commit, by level, each level sorted by z, then y, then x.
+pub fn changed_bricks(layout: &VolumeLayout, nodes: impl Iterator<Item = u64>) -> ChangedBricks {
+    let mut changed: ChangedBricks = vec![Vec::new(); layout.levels() as usize];
+    for node in nodes {
+        if let Ok(k) = layout.key_of(node) {
+            changed[k.level as usize].push([k.x, k.y, k.z]);
+        }
+    }
+    for level in &mut changed {
+        level.sort_by_key(|k| (k[2], k[1], k[0]));
+        level.dedup();
+    }
+    changed
+}
+
+impl LiveVolume {
+    /// Serves `vod` as `name`.
+    ///
+    /// # Errors
+    /// The commit chain is malformed.
+    pub fn new(name: &str, vod: Vod2) -> Result<LiveVolume, StoreError> {
+        let history = History::read(&vod)?;
+        Ok(LiveVolume {
+            name: name.to_string(),
+            current: ArcSwap::from_pointee(vod),
+            writer: Arc::default(),
+            waiting: AtomicUsize::new(0),
+            history: RwLock::new(history),
+            feed: broadcast::channel(FEED_CAPACITY).0,
+        })
+    }
+
+    /// The name it is served under.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// The file as of the newest commit.
+    pub fn current(&self) -> Arc<Vod2> {
+        self.current.load_full()
+    }
+
+    /// The current file, borrowed for as long as the guard lives (cheaper than [`Self::current`]:
+    /// no shared reference count is touched).
+    pub fn load(&self) -> arc_swap::Guard<Arc<Vod2>> {
+        self.current.load()
+    }
+
+    /// The head snapshot.
+    pub fn head(&self) -> Arc<Snapshot> {
+        self.current.load().head()
+    }
+
+    /// Version `version`, while the file holds it.
+    ///
+    /// # Errors
+    /// [`VolumeError::NoSuchVersion`] when the file no longer (or not yet) holds it; a
+    /// malformed commit record.
+    pub fn version(&self, version: u64) -> Result<Arc<Snapshot>, VolumeError> {
+        let vod = self.current();
+        let head = vod.head();
+        if version == head.version {
+            return Ok(head);
+        }
+        let at = self
+            .history_read()
+            .offset(version)
+            .filter(|_| version < head.version);
+        match at {
+            Some(at) => Ok(Arc::new(vod.snapshot_at(at)?)),
+            None => Err(VolumeError::NoSuchVersion {
+                version,
+                oldest: self.oldest(),
+                head: head.version,
+            }),
+        }
+    }
+
+    /// Version `version`, or the head when `None`.
+    ///
+    /// # Errors
+    /// See [`LiveVolume::version`].
+    pub fn snapshot(&self, version: Option<u64>) -> Result<Arc<Snapshot>, VolumeError> {
+        match version {
+            Some(v) => self.version(v),
+            None => Ok(self.head()),
+        }
+    }
+
+    /// The oldest version the file holds.
+    pub fn oldest(&self) -> u64 {
+        self.history_read().oldest
+    }
+
+    fn history_read(&self) -> std::sync::RwLockReadGuard<'_, History> {
+        // A panic while holding the lock cannot leave the history half-written (every update
+        // is one push or one assignment), so a poisoned lock is still sound to read.
+        self.history.read().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// The versions after `since`, oldest first, at most `limit` of them, read from their
+    /// commit records; and whether more follow.
+    ///
+    /// # Errors
+    /// `since` is not in `oldest - 1 ..= head` (the caller checks first), or a record is
+    /// malformed.
+    pub fn changes(
+        &self,
+        since: u64,
+        limit: usize,
+    ) -> Result<(Vec<ChangeEvent>, bool), StoreError> {
+        let vod = self.current();
+        let head = vod.head().version;
+        let last = head.min(since.saturating_add(limit as u64));
+        // Only the offsets asked for are copied (the history grows with every commit).
+        let offsets: Vec<u64> = {
+            let history = self.history_read();
+            (since + 1..=last)
+                .map(|version| {
+                    history.offset(version).ok_or_else(|| {
+                        StoreError::Absent(format!("version {version} is not in this volume"))
+                    })
+                })
+                .collect::<Result<_, _>>()?
+        };
+        let out = offsets
+            .into_iter()
+            .map(|at| change_event(&vod, at))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok((out, last < head))
+    }
+
+    /// Checks that the versions after `since` can be listed.
+    ///
+    /// # Errors
+    /// [`VolumeError::SinceAfterHead`] past the head, [`VolumeError::Compacted`] when
+    /// compaction dropped some of them.
+    pub fn check_since(&self, since: u64) -> Result<(), VolumeError> {
+        let head = self.head().version;
+        let oldest = self.oldest();
+        if since > head {
+            return Err(VolumeError::SinceAfterHead { since, head });
+        }
+        if since.saturating_add(1) < oldest {
+            return Err(VolumeError::Compacted { oldest, head });
+        }
+        Ok(())
+    }
+
+    /// The catch-up list: the versions after `since` (everything the file holds when `None`),
+    /// at most `limit` of them ([`DEFAULT_CHANGES`] when `None`). Blocking: it reads commit
+    /// records.
+    ///
+    /// # Errors
+    /// A limit outside `1..=MAX_CHANGES`, a `since` that cannot be listed (see
+    /// [`LiveVolume::check_since`]), or a malformed commit record.
+    pub fn change_list(
+        &self,
+        since: Option<u64>,
+        limit: Option<usize>,
+    ) -> Result<ChangeList, VolumeError> {
+        let since = since.unwrap_or_else(|| self.oldest().saturating_sub(1));
+        let limit = limit.unwrap_or(DEFAULT_CHANGES);
+        if !(1..=MAX_CHANGES).contains(&limit) {
+            return Err(VolumeError::BadRequest(format!(
+                "limit must be in 1..={MAX_CHANGES}"
+            )));
+        }
+        self.check_since(since)?;
+        let (changes, more) = self.changes(since, limit)?;
+        // Read after the listing: the head is at least the last version listed.
+        let head = self.head().version;
+        Ok(ChangeList {
+            since,
+            head: changes.last().map_or(head, |c| c.version.max(head)),
+            oldest: self.oldest(),
+            more,
+            changes,
+        })
+    }
+
+    /// Subscribes to the change feed: every version committed from now on.
+    pub fn subscribe(&self) -> broadcast::Receiver<Arc<FeedItem>> {
+        self.feed.subscribe()
+    }
+
+    /// Joins the queue for the writer unless `max_waiting` edits already wait.
+    pub fn enqueue(&self, max_waiting: usize) -> Option<QueueTicket<'_>> {
+        let before = self.waiting.fetch_add(1, Ordering::AcqRel);
+        let ticket = QueueTicket(&self.waiting);
+        (before < max_waiting).then_some(ticket)
+    }
+
+    /// Change-feed subscribers connected now.
+    pub fn subscribers(&self) -> usize {
+        self.feed.receiver_count()
+    }
+
+    /// Edits waiting for the writer now.
+    pub fn queue_depth(&self) -> usize {
+        self.waiting.load(Ordering::Acquire)
+    }
+
+    /// Waits for the writer lock (in queue order).
+    pub async fn lock_writer(&self) -> tokio::sync::OwnedMutexGuard<WriterSlot> {
+        self.writer.clone().lock_owned().await
+    }
+}
+
+/// The change-feed event of the commit record at `at`.
+pub(crate) fn change_event(vod: &Vod2, at: u64) -> Result<ChangeEvent, StoreError> {
+    let bytes = vod.mapped();
+    let record = bytes.get(at as usize..).ok_or_else(|| {
+        StoreError::corrupt(
+            at,
+            format!("a commit record within the {} mapped bytes", bytes.len()),
+            "an offset past them",
+        )
+    })?;
+    let (h, changes) = CommitHeader::decode(record, at)?;
+    Ok(ChangeEvent {
+        version: h.version,
+        timestamp_ms: h.timestamp_ms,
+        changed: changed_bricks(
+            vod.layout(),
+            CommitHeader::changes(changes).map(|(node, _)| node),
+        ),
+    })
+}

@@ -1,0 +1,315 @@
+//! The reads a server answers beyond single bricks: many bricks at once, a whole level (or a
+//! region of it), a mesh tile. Each is checked first (cheap: index lookups, no voxel decoded),
+//! so a caller's mistake is told apart from a busy server, and run afterwards, off the async
+//! runtime (decoding, encoding, meshing).
+
+use super::{LiveVolume, VolumeError};
+use crate::mesh::cache::MeshCache;
+use crate::mesh::tile::{default_iso, tile_inputs, to_world, TileInputs, TileScratch};
+use crate::store::codec::constant_hash;
+use crate::store::decoded::{decode, DecodedBricks};
+use crate::store::raw::{export_raw, Region};
+use crate::store::{Snapshot, StoredBrick};
+use isovox_proto::api::{LevelBrick, LevelGrid};
+use isovox_proto::batch::MAX_BATCH;
+use isovox_proto::batch::{encode_batch, BatchCodec, BatchEncoding, BatchEntry, BatchRequest};
+use isovox_proto::mesh::Mesh;
+use isovox_proto::vod2::Codec;
+use isovox_proto::BrickKey;
+use std::sync::Arc;
+
+/// Most decoded bytes one batch or level answer may carry.
+pub const MAX_RESPONSE_BYTES: usize = 64 << 20;
+
+impl LiveVolume {
+    /// Checks a batch request: at most [`MAX_BATCH`] keys, all in the volume, raw answers up
+    /// to [`MAX_RESPONSE_BYTES`].
+    ///
+    /// # Errors
+    /// [`VolumeError::TooLarge`], [`VolumeError::NoSuchVersion`], [`VolumeError::OutOfRange`].
+    pub fn batch(&self, request: &BatchRequest) -> Result<BatchRead, VolumeError> {
+        if request.keys.len() > MAX_BATCH {
+            return Err(VolumeError::TooLarge(format!(
+                "{} keys; a batch takes at most {MAX_BATCH}",
+                request.keys.len()
+            )));
+        }
+        let snap = self.snapshot(request.version)?;
+        let layout = snap.layout();
+        if request.encoding == BatchEncoding::Raw
+            && request.keys.len() * layout.brick_bytes() > MAX_RESPONSE_BYTES
+        {
+            return Err(VolumeError::TooLarge(format!(
+                "{} raw bricks of {} bytes exceed {MAX_RESPONSE_BYTES} bytes; ask for fewer or for \"encoding\": \"stored\"",
+                request.keys.len(),
+                layout.brick_bytes()
+            )));
+        }
+        let keys = request
+            .keys
+            .iter()
+            .map(|&(l, x, y, z)| layout.key(l, x, y, z))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| VolumeError::OutOfRange(e.to_string()))?;
+        Ok(BatchRead {
+            snap,
+            keys,
+            encoding: request.encoding,
+        })
+    }
+
+    /// Checks a level read: the level exists, the region (max exclusive; bricks for a grid,
+    /// voxels for voxels; the whole level when `None`) lies in it, voxels up to
+    /// [`MAX_RESPONSE_BYTES`].
+    ///
+    /// # Errors
+    /// [`VolumeError::NoSuchVersion`], [`VolumeError::OutOfRange`],
+    /// [`VolumeError::BadRequest`], [`VolumeError::TooLarge`].
+    pub fn level(
+        &self,
+        version: Option<u64>,
+        level: u8,
+        form: LevelForm,
+        region: Option<([u32; 3], [u32; 3])>,
+    ) -> Result<LevelRead, VolumeError> {
+        let snap = self.snapshot(version)?;
+        let layout = snap.layout();
+        if level >= layout.levels() {
+            return Err(VolumeError::OutOfRange(format!(
+                "level {level}: the volume has levels 0..{}",
+                layout.levels() - 1
+            )));
+        }
+        let extent = match form {
+            LevelForm::Grid => layout.grid(level),
+            LevelForm::Voxels => layout.level_dims(level),
+        };
+        let (min, max) = region.unwrap_or(([0; 3], extent));
+        if (0..3).any(|a| min[a] >= max[a] || max[a] > extent[a]) {
+            return Err(VolumeError::BadRequest(format!(
+                "region {min:?}..{max:?} is empty or outside {extent:?}"
+            )));
+        }
+        let count: u64 = (0..3).map(|a| (max[a] - min[a]) as u64).product();
+        if form == LevelForm::Voxels
+            && count * layout.voxel_type().bytes() as u64 > MAX_RESPONSE_BYTES as u64
+        {
+            return Err(VolumeError::TooLarge(format!(
+                "{count} voxels exceed {MAX_RESPONSE_BYTES} bytes; ask for a region or a coarser level"
+            )));
+        }
+        Ok(LevelRead {
+            snap,
+            level,
+            form,
+            min,
+            max,
+        })
+    }
+
+    /// Checks a mesh tile read and computes the tile's inputs (27 index lookups, no voxel
+    /// decoded): enough to name the result before meshing it.
+    ///
+    /// # Errors
+    /// [`VolumeError::NoSuchVersion`], [`VolumeError::OutOfRange`], an iso value that is not
+    /// finite ([`VolumeError::BadRequest`]), a brick header that does not read.
+    pub fn mesh_tile(
+        &self,
+        version: Option<u64>,
+        (level, x, y, z): (u8, u32, u32, u32),
+        iso: Option<f32>,
+    ) -> Result<TileRead, VolumeError> {
+        let snap = self.snapshot(version)?;
+        let key = snap
+            .layout()
+            .key(level, x, y, z)
+            .map_err(|e| VolumeError::OutOfRange(e.to_string()))?;
+        let iso = iso.unwrap_or_else(|| default_iso(snap.layout().voxel_type()));
+        if !iso.is_finite() {
+            return Err(VolumeError::BadRequest(format!(
+                "iso must be a finite number, got {iso}"
+            )));
+        }
+        let inputs = tile_inputs(&snap, key, iso)?;
+        Ok(TileRead {
+            snap,
+            key,
+            iso,
+            inputs,
+        })
+    }
+}
+
+/// A checked batch of bricks (see [`LiveVolume::batch`]).
+#[derive(Debug)]
+pub struct BatchRead {
+    snap: Arc<Snapshot>,
+    keys: Vec<BrickKey>,
+    encoding: BatchEncoding,
+}
+
+impl BatchRead {
+    /// The batch in its wire encoding (`proto::batch`): each brick as stored, or decoded.
+    ///
+    /// # Errors
+    /// A brick fails to read or decode.
+    pub fn encode(self) -> Result<Vec<u8>, VolumeError> {
+        let layout = self.snap.layout();
+        let mut entries = Vec::with_capacity(self.keys.len());
+        for key in self.keys {
+            let stored = self.snap.stored(key)?;
+            let entry = match (self.encoding, stored) {
+                (BatchEncoding::Stored, StoredBrick::Constant(v)) => BatchEntry {
+                    key,
+                    codec: BatchCodec::Constant,
+                    hash: constant_hash(v, layout),
+                    payload: v.to_le_bytes().to_vec(),
+                },
+                (
+                    BatchEncoding::Stored,
+                    StoredBrick::Record {
+                        header, payload, ..
+                    },
+                ) => BatchEntry {
+                    key,
+                    codec: match header.codec {
+                        Codec::Raw => BatchCodec::Raw,
+                        Codec::Lz4 => BatchCodec::Lz4,
+                        Codec::Zstd => BatchCodec::Zstd,
+                    },
+                    hash: header.hash,
+                    payload: payload.to_vec(),
+                },
+                (BatchEncoding::Raw, stored) => BatchEntry {
+                    key,
+                    codec: BatchCodec::Raw,
+                    hash: match stored {
+                        StoredBrick::Record { header, .. } => header.hash,
+                        StoredBrick::Constant(v) => constant_hash(v, layout),
+                    },
+                    payload: decode(&stored, layout)?.to_vec(),
+                },
+            };
+            entries.push(entry);
+        }
+        Ok(encode_batch(&entries))
+    }
+}
+
+/// What a level read answers with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LevelForm {
+    /// The brick grid: each brick's content hash and value range.
+    Grid,
+    /// The voxels as one array (x fastest).
+    Voxels,
+}
+
+/// The answer to a level read.
+#[derive(Debug)]
+pub enum LevelAnswer {
+    /// The brick grid.
+    Grid(LevelGrid),
+    /// The voxels.
+    Voxels(Vec<u8>),
+}
+
+/// A checked level read (see [`LiveVolume::level`]).
+#[derive(Debug)]
+pub struct LevelRead {
+    snap: Arc<Snapshot>,
+    level: u8,
+    form: LevelForm,
+    min: [u32; 3],
+    max: [u32; 3],
+}
+
+impl LevelRead {
+    /// Reads the level's region.
+    ///
+    /// # Errors
+    /// A brick fails to read or decode.
+    pub fn run(self) -> Result<LevelAnswer, VolumeError> {
+        let (snap, level, min, max) = (&self.snap, self.level, self.min, self.max);
+        let layout = snap.layout();
+        let count = (0..3)
+            .map(|a| (max[a] - min[a]) as usize)
+            .product::<usize>();
+        if self.form == LevelForm::Voxels {
+            let mut out = Vec::with_capacity(count * layout.voxel_type().bytes());
+            export_raw(
+                snap,
+                level,
+                Region { min, max },
+                &mut out,
+                &crate::progress::Silent,
+            )?;
+            return Ok(LevelAnswer::Voxels(out));
+        }
+        let mut bricks = Vec::with_capacity(count);
+        for z in min[2]..max[2] {
+            for y in min[1]..max[1] {
+                for x in min[0]..max[0] {
+                    let stored = snap.stored(BrickKey { level, x, y, z })?;
+                    let (lo, hi) = stored.min_max();
+                    let hash = match stored {
+                        StoredBrick::Record { header, .. } => header.hash,
+                        StoredBrick::Constant(v) => constant_hash(v, layout),
+                    };
+                    bricks.push(LevelBrick {
+                        hash: format!("{hash:016x}"),
+                        min: lo,
+                        max: hi,
+                    });
+                }
+            }
+        }
+        Ok(LevelAnswer::Grid(LevelGrid {
+            level,
+            grid: layout.grid(level),
+            min,
+            max,
+            version: snap.version,
+            bricks,
+        }))
+    }
+}
+
+/// A checked mesh tile read (see [`LiveVolume::mesh_tile`]).
+#[derive(Debug)]
+pub struct TileRead {
+    snap: Arc<Snapshot>,
+    key: BrickKey,
+    iso: f32,
+    inputs: TileInputs,
+}
+
+impl TileRead {
+    /// A hash of everything the tile's encoded mesh depends on (its inputs, position and the
+    /// volume's voxel scale) and of `variant` (which encoding): equal tags, equal bytes.
+    pub fn tag(&self, variant: u8) -> u64 {
+        let mut tag = Vec::with_capacity(64);
+        tag.extend_from_slice(&self.inputs.key.to_le_bytes());
+        for c in [self.key.x, self.key.y, self.key.z] {
+            tag.extend_from_slice(&c.to_le_bytes());
+        }
+        for s in self.snap.header().voxel_scale {
+            tag.extend_from_slice(&s.to_le_bytes());
+        }
+        tag.push(variant);
+        xxhash_rust::xxh3::xxh3_64(&tag)
+    }
+
+    /// The tile's mesh in world coordinates: from `meshes` when it holds a tile with the same
+    /// inputs, else meshed now (reading decoded bricks through `bricks`) and kept there.
+    ///
+    /// # Errors
+    /// A brick fails to read or decode.
+    pub fn mesh(self, meshes: &MeshCache, bricks: Arc<DecodedBricks>) -> Result<Mesh, VolumeError> {
+        let mut scratch = TileScratch::with_bricks(bricks);
+        let tile = meshes.tile(&self.snap, self.key, self.iso, &self.inputs, &mut scratch)?;
+        let mut mesh = (*tile.mesh).clone();
+        to_world(&mut mesh, self.key, &self.snap);
+        Ok(mesh)
+    }
+}

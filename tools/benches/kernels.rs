@@ -1,0 +1,137 @@
+//! Micro-benchmarks of the kernels a regression would hide in (criterion; `cargo bench -p
+//! isovox-tools`): marching cubes on one tile, term evaluation on one brick, brick decoding
+//! (zstd, lz4) and index lookups. The data is a generated terrain, built once per run.
+
+#![allow(clippy::unwrap_used)] // a benchmark that cannot set up should stop loudly
+
+use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use isovox_proto::icvg::Term;
+use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
+use isovox_server::generate::WorldSource;
+use isovox_server::geometry::Box3;
+use isovox_server::icvg::term::{CompiledTerm, NoVolumes, TermLimits};
+use isovox_server::mesh::mc::Mesh;
+use isovox_server::mesh::tile::{default_iso, mesh_tile, TileScratch};
+use isovox_server::store::codec::{decode, encode, Compression};
+use isovox_server::store::decoded::DecodedBricks;
+use isovox_server::store::{build_vod2, BuildOptions, StoredBrick, Vod2};
+use std::hint::black_box;
+use std::sync::Arc;
+
+const BRICK: u32 = 32;
+
+/// A 256 x 128 x 256 terrain, brick 32, and a level-0 brick the surface crosses.
+fn world(dir: &std::path::Path) -> (Vod2, BrickKey) {
+    let path = dir.join("world.vod");
+    let layout = VolumeLayout::new([256, 128, 256], BRICK, VoxelType::U8).unwrap();
+    build_vod2(
+        &path,
+        &layout,
+        [1.0; 3],
+        &WorldSource::new(layout.clone(), 7),
+        &BuildOptions::default(),
+    )
+    .unwrap();
+    let vod = Vod2::open(&path).unwrap();
+    let snap = vod.head();
+    let iso = default_iso(VoxelType::U8);
+    let g = layout.grid(0);
+    let crossing = (0..g[1])
+        .map(|y| BrickKey {
+            level: 0,
+            x: g[0] / 2,
+            y,
+            z: g[2] / 2,
+        })
+        .find(|&k| match snap.stored(k).unwrap() {
+            StoredBrick::Record { header, .. } => {
+                (header.min as f32) < iso && (header.max as f32) >= iso
+            }
+            StoredBrick::Constant(_) => false,
+        })
+        .unwrap();
+    (vod, crossing)
+}
+
+fn kernels(c: &mut Criterion) {
+    let dir = tempfile::tempdir().unwrap();
+    let (vod, key) = world(dir.path());
+    let snap = vod.head();
+    let layout = snap.layout().clone();
+    let voxels = (BRICK as u64).pow(3);
+
+    let mut group = c.benchmark_group("marching cubes");
+    group.throughput(Throughput::Elements(voxels));
+    // Decoded bricks are cached, as in a server: the figure is gathering and marching.
+    let mut scratch = TileScratch::with_bricks(Arc::new(DecodedBricks::new(64 << 20)));
+    let mut mesh = Mesh::default();
+    let iso = default_iso(VoxelType::U8);
+    group.bench_function("tile 32^3 (terrain)", |b| {
+        b.iter(|| {
+            mesh_tile(&snap, key, iso, &mut mesh, &mut scratch).unwrap();
+            black_box(mesh.triangles())
+        })
+    });
+    group.finish();
+
+    let mut group = c.benchmark_group("term evaluation");
+    group.throughput(Throughput::Elements(voxels));
+    let term: Term = serde_json::from_str(
+        r#"{"difference": [
+            {"union": [{"ellipsoid": {"center": [16, 16, 16], "radii": [14, 10, 12]}},
+                       {"torus": {"center": [16, 16, 16], "major": 10, "minor": 4}}]},
+            {"cylinder": {"base": [16, 0, 16], "radii": [4, 4], "height": 32}}]}"#,
+    )
+    .unwrap();
+    let compiled =
+        CompiledTerm::compile(&term, VoxelType::U8, &TermLimits::default(), &NoVolumes).unwrap();
+    let brick = Box3::new([0; 3], [BRICK as i64; 3]);
+    let mut out = vec![0u16; voxels as usize];
+    group.bench_function("brick 32^3 (ellipsoid, torus, cylinder)", |b| {
+        b.iter(|| {
+            compiled.eval(&brick, &mut out).unwrap();
+            black_box(out[out.len() / 2])
+        })
+    });
+    group.finish();
+
+    let mut group = c.benchmark_group("brick decode");
+    let raw = snap.read(key).unwrap();
+    group.throughput(Throughput::Bytes(raw.len() as u64));
+    let mut decoded = vec![0u8; raw.len()];
+    for (name, compression) in [("zstd 5", Compression::Zstd(5)), ("lz4", Compression::Lz4)] {
+        let (codec, payload) = encode(&raw, compression);
+        group.bench_function(name, |b| {
+            b.iter(|| {
+                decode(codec, &payload, &mut decoded, 0).unwrap();
+                black_box(decoded[0])
+            })
+        });
+    }
+    group.finish();
+
+    let mut group = c.benchmark_group("index lookup");
+    let keys: Vec<BrickKey> = (0..layout.levels())
+        .flat_map(|level| {
+            let g = layout.grid(level);
+            (0..g[0] * g[1] * g[2]).map(move |i| BrickKey {
+                level,
+                x: i % g[0],
+                y: i / g[0] % g[1],
+                z: i / (g[0] * g[1]),
+            })
+        })
+        .collect();
+    group.throughput(Throughput::Elements(keys.len() as u64));
+    group.bench_function("every brick's stored form", |b| {
+        b.iter(|| {
+            for &k in &keys {
+                black_box(snap.stored(k).unwrap());
+            }
+        })
+    });
+    group.finish();
+}
+
+criterion_group!(benches, kernels);
+criterion_main!(benches);

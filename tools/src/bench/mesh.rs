@@ -1,0 +1,239 @@
+//! `isovox-bench mesh`: marching-cubes throughput next to VTK's Flying Edges and scikit-image,
+//! and the thesis's Tables 6-8 (speed-up by threads, by level, triangles per level, adaptive LOD).
+
+use super::median;
+use anyhow::Context;
+use clap::Args;
+use isovox_proto::{VolumeLayout, VoxelType};
+use isovox_server::generate::{EllipsoidSource, WorldSource};
+use isovox_server::mesh::level::{adaptive_tiles, level_tiles, mesh_tile_parts, mesh_tiles};
+use isovox_server::mesh::tile::default_iso;
+use isovox_server::progress::Silent;
+use isovox_server::store::raw::RawInput;
+use isovox_server::store::{build_vod2, BrickSource, BuildOptions, DenseGrid, Snapshot, Vod2};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::Arc;
+use std::time::Instant;
+
+#[derive(Debug, Args)]
+pub struct MeshBenchArgs {
+    /// Working directory.
+    #[arg(long, default_value = "bench-out")]
+    pub dir: PathBuf,
+    /// A real scan as RAW (scripts/bench-store.sh fetches the MNI152 T1 template).
+    #[arg(long)]
+    pub mri: Option<PathBuf>,
+    #[arg(long, value_delimiter = ',', default_value = "197,233,189")]
+    pub mri_dims: Vec<u32>,
+    /// Voxel type of the --mri RAW (u8 or u16).
+    #[arg(long, default_value = "u8")]
+    pub mri_type: VoxelType,
+    /// Run the peers (python3 scripts/bench_mesh_peers.py: VTK and scikit-image must be
+    /// installed; scripts/bench-mesh.sh installs them).
+    #[arg(long)]
+    pub peers: bool,
+    /// Brick (tile) edge.
+    #[arg(long, default_value_t = 32)]
+    pub brick: u32,
+}
+
+/// A benchmark input: name, RAW path (for the peers), the volume, its dims and voxel type.
+type DataSet = (String, PathBuf, Arc<Snapshot>, [u32; 3], VoxelType);
+
+struct Run {
+    seconds: f64,
+    triangles: usize,
+}
+
+fn mesh_with_threads(snap: &Snapshot, level: u8, threads: usize) -> anyhow::Result<Run> {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()?;
+    let tiles = level_tiles(snap, level);
+    let iso = default_iso(snap.layout().voxel_type());
+    let mut times = Vec::new();
+    let mut triangles = 0;
+    // One warm-up run (page cache, allocator), then the median of five.
+    pool.install(|| mesh_tile_parts(snap, &tiles, iso, &Silent))?;
+    for _ in 0..5 {
+        let start = Instant::now();
+        let parts = pool.install(|| mesh_tile_parts(snap, &tiles, iso, &Silent))?;
+        times.push(start.elapsed().as_secs_f64());
+        triangles = parts.iter().map(|m| m.triangles()).sum();
+    }
+    Ok(Run {
+        seconds: median(times),
+        triangles,
+    })
+}
+
+fn peers(raw: &Path, dims: [u32; 3], t: VoxelType) -> anyhow::Result<serde_json::Value> {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/bench_mesh_peers.py");
+    let iso = default_iso(t);
+    let out = Command::new("python3")
+        .arg(&script)
+        .arg(raw)
+        .args(dims.map(|d| d.to_string()))
+        .arg(t.name())
+        .arg(iso.to_string())
+        .output()
+        .context("cannot run python3 scripts/bench_mesh_peers.py")?;
+    if !out.status.success() {
+        anyhow::bail!(
+            "the peers script failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    Ok(serde_json::from_slice(&out.stdout)?)
+}
+
+pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
+    std::fs::create_dir_all(&a.dir)?;
+    let mut sets: Vec<DataSet> = Vec::new();
+    let mut keep = Vec::new();
+    for (name, world) in [("Large Ellipsoid", false), ("Large World", true)] {
+        let layout = VolumeLayout::new([512; 3], a.brick, VoxelType::U8)?;
+        let source: Box<dyn BrickSource> = if world {
+            Box::new(WorldSource::new(layout.clone(), 1))
+        } else {
+            Box::new(EllipsoidSource::new(layout.clone()))
+        };
+        let file = a.dir.join(format!(
+            "mesh-{}.vod",
+            name.to_lowercase().replace(' ', "-")
+        ));
+        build_vod2(
+            &file,
+            &layout,
+            [1.0; 3],
+            source.as_ref(),
+            &BuildOptions::default(),
+        )?;
+        let vod = Vod2::open(&file)?;
+        let raw = file.with_extension("raw");
+        if a.peers {
+            super::write_level0_raw(&vod, &raw)?;
+        }
+        sets.push((
+            name.to_string(),
+            raw,
+            vod.head(),
+            layout.dims(),
+            VoxelType::U8,
+        ));
+        keep.push(vod);
+    }
+    if let Some(mri) = &a.mri {
+        let dims = [a.mri_dims[0], a.mri_dims[1], a.mri_dims[2]];
+        let t = a.mri_type;
+        let input = RawInput::open(mri, false, Some(dims), Some(t))?;
+        let layout = VolumeLayout::new(dims, a.brick, t)?;
+        let file = a.dir.join("mesh-mri.vod");
+        build_vod2(
+            &file,
+            &layout,
+            [1.0; 3],
+            &DenseGrid::new(dims, t, a.brick, input.voxels()),
+            &BuildOptions::default(),
+        )?;
+        let vod = Vod2::open(&file)?;
+        sets.push(("MRI (MNI152 T1)".into(), mri.clone(), vod.head(), dims, t));
+        keep.push(vod);
+    }
+
+    println!("### Marching cubes, level 0, iso = S - 0.5 (Isovox: every tile's mesh, tiles of {0}^3, including reading and decoding the bricks; the peers: one mesh from an array in memory)\n", a.brick);
+    println!("| data set | voxels | triangles | Isovox 1 thread: Mvoxel/s | 2 threads: Mvoxel/s | 2-thread speed-up | VTK FlyingEdges3D 1 thread | VTK 2 threads | scikit-image | Isovox / VTK, 1 thread | Isovox / VTK, 2 threads |");
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for (name, raw, snap, dims, t) in &sets {
+        eprintln!("bench mesh: {name}");
+        let voxels = dims.iter().map(|&d| d as f64).product::<f64>();
+        let one = mesh_with_threads(snap, 0, 1)?;
+        let two = mesh_with_threads(snap, 0, 2)?;
+        let mv = |s: f64| voxels / s / 1e6;
+        let (mut vtk1, mut vtk2, mut sk, mut r1, mut r2) = (
+            "-".to_string(),
+            "-".to_string(),
+            "-".to_string(),
+            "-".to_string(),
+            "-".to_string(),
+        );
+        if a.peers {
+            let p = peers(raw, *dims, *t)?;
+            let get = |k: &str| {
+                p.get(k)
+                    .and_then(|v| v.get("seconds"))
+                    .and_then(serde_json::Value::as_f64)
+            };
+            let tris = |k: &str| {
+                p.get(k)
+                    .and_then(|v| v.get("triangles"))
+                    .and_then(serde_json::Value::as_u64)
+                    .unwrap_or(0)
+            };
+            if let (Some(v1), Some(v2)) = (get("vtk_1"), get("vtk_2")) {
+                vtk1 = format!("{:.0} Mvoxel/s ({} tri)", mv(v1), tris("vtk_1"));
+                vtk2 = format!("{:.0} Mvoxel/s", mv(v2));
+                r1 = format!("{:.2}x", v1 / one.seconds);
+                r2 = format!("{:.2}x", v2 / two.seconds);
+            }
+            if let Some(s) = get("skimage") {
+                sk = format!("{:.0} Mvoxel/s ({} tri)", mv(s), tris("skimage"));
+            }
+        }
+        println!(
+            "| {name} | {} | {} | {:.0} | {:.0} | {:.2}x | {vtk1} | {vtk2} | {sk} | {r1} | {r2} |",
+            voxels as u64,
+            one.triangles,
+            mv(one.seconds),
+            mv(two.seconds),
+            one.seconds / two.seconds
+        );
+    }
+
+    println!("\n### By level (thesis Tables 7 and 8), 2 threads\n");
+    println!("| data set | level | voxels | tiles | triangles | ms | speed-up vs level 0 |");
+    println!("|---|---:|---:|---:|---:|---:|---:|");
+    for (name, _, snap, _, _) in &sets {
+        let layout = snap.layout();
+        let mut base = None;
+        for level in 0..layout.levels().min(4) {
+            let run = mesh_with_threads(snap, level, 2)?;
+            let base_s = *base.get_or_insert(run.seconds);
+            let d = layout.level_dims(level);
+            println!(
+                "| {name} | {level} | {} | {} | {} | {:.1} | {:.1}x |",
+                d.iter().map(|&v| v as u64).product::<u64>(),
+                level_tiles(snap, level).len(),
+                run.triangles,
+                run.seconds * 1e3,
+                base_s / run.seconds
+            );
+        }
+    }
+
+    println!(
+        "\n### Adaptive LOD (thesis Table 8): camera at a corner, level k within radius r_k\n"
+    );
+    println!(
+        "| data set | radii (voxels) | tiles | triangles | level-0 triangles | fewer triangles |"
+    );
+    println!("|---|---|---:|---:|---:|---:|");
+    for (name, _, snap, dims, _) in &sets {
+        let max = *dims.iter().max().unwrap_or(&1) as f32;
+        let radii = [max / 4.0, max / 2.0, max];
+        let tiles = adaptive_tiles(snap, [0.0, dims[1] as f32, 0.0], &radii);
+        let iso = default_iso(snap.layout().voxel_type());
+        let adaptive = mesh_tiles(snap, &tiles, iso, &Silent)?.triangles();
+        let full = mesh_tiles(snap, &level_tiles(snap, 0), iso, &Silent)?.triangles();
+        println!(
+            "| {name} | {:.0}, {:.0}, {:.0} | {} | {adaptive} | {full} | {:.0}% |",
+            radii[0],
+            radii[1],
+            radii[2],
+            tiles.len(),
+            100.0 * (1.0 - adaptive as f64 / full as f64)
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,34 @@
+//! `isovox-bench`: the benchmarks behind the README's figures (`docs/cli.md`).
+
+use clap::Parser;
+use isovox_tools::bench::{run, BenchCommand};
+use std::process::ExitCode;
+
+// As in the `isovox` binary, so the servers benchmarked in-process allocate as it does.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+/// Benchmarks that print Markdown tables next to the papers' figures and the peers'.
+#[derive(Debug, Parser)]
+#[command(name = "isovox-bench", version, about)]
+struct Cli {
+    #[command(subcommand)]
+    command: BenchCommand,
+}
+
+fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_env("ISOVOX_LOG")
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    match run(Cli::parse().command) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

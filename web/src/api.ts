@@ -1,0 +1,256 @@
+// The server's HTTP API as the viewer uses it: JSON types (`proto/src/api.rs`), requests, and
+// errors (RFC 9457 problem details) put into words a person can act on.
+
+export type Vec3 = [number, number, number];
+
+export interface LevelInfo {
+  level: number;
+  grid: Vec3;
+  dims: Vec3;
+}
+
+export interface VolumeInfo {
+  name: string;
+  dims: Vec3;
+  voxel_type: "u8" | "u16";
+  low: number;
+  high: number;
+  surface: number;
+  brick: number;
+  levels: LevelInfo[];
+  voxel_scale: Vec3;
+  version: number;
+}
+
+export interface LevelBrick {
+  hash: string;
+  min: number;
+  max: number;
+}
+
+export interface LevelGrid {
+  level: number;
+  grid: Vec3;
+  min: Vec3;
+  max: Vec3;
+  version: number;
+  bricks: LevelBrick[];
+}
+
+/** Changed bricks per level, level 0 first. */
+export type ChangedBricks = Vec3[][];
+
+export interface ChangeEvent {
+  version: number;
+  timestamp_ms: number;
+  changed: ChangedBricks;
+}
+
+export interface ChangeList {
+  since: number;
+  head: number;
+  oldest: number;
+  more: boolean;
+  changes: ChangeEvent[];
+}
+
+export interface EditResponse {
+  version: number;
+  previous: number;
+  changed: ChangedBricks;
+  evaluated: number;
+  new_records: number;
+  checkpoint: boolean;
+  elapsed_us: number;
+}
+
+interface Problem {
+  title?: string;
+  status?: number;
+  detail?: string;
+  version?: number;
+}
+
+/** A failed request: the HTTP status (0 when the server could not be reached) and words. */
+export class ApiError extends Error {
+  readonly status: number;
+  readonly detail: string;
+  /** Seconds from `Retry-After`, when the server sent it. */
+  readonly retryAfter: number | null;
+  /** The volume's current version, on a 409. */
+  readonly version: number | null;
+
+  constructor(status: number, detail: string, retryAfter: number | null, version: number | null) {
+    super(`${status}: ${detail}`);
+    this.status = status;
+    this.detail = detail;
+    this.retryAfter = retryAfter;
+    this.version = version;
+  }
+}
+
+/** Whether an error is the cancellation of a request the viewer no longer needs. */
+export function isAbort(e: unknown): boolean {
+  return e instanceof DOMException && e.name === "AbortError";
+}
+
+async function failure(response: Response): Promise<ApiError> {
+  let problem: Problem = {};
+  try {
+    problem = (await response.json()) as Problem;
+  } catch {
+    // Not JSON (a proxy's page, an empty body): the status says what there is to say.
+  }
+  const retry = Number(response.headers.get("retry-after"));
+  return new ApiError(
+    response.status,
+    problem.detail ?? problem.title ?? response.statusText,
+    Number.isFinite(retry) && retry > 0 ? retry : null,
+    problem.version ?? null,
+  );
+}
+
+/** The words shown to a person for a failed edit (the statuses of docs/editing.md). */
+export function editErrorWords(e: unknown): string {
+  if (!(e instanceof ApiError)) {
+    return `The edit could not be sent: ${e instanceof Error ? e.message : String(e)}.`;
+  }
+  const retry = e.retryAfter === null ? "" : ` Try again in ${e.retryAfter} s.`;
+  switch (e.status) {
+    case 0:
+      return "The server cannot be reached; the edit was not applied.";
+    case 401:
+      return "The server refused the write token (401 Unauthorized): nothing was changed. Enter the token from the server's token file (data/tokens).";
+    case 403:
+      return "This token may only read (403 Forbidden): nothing was changed.";
+    case 409:
+      return `Someone else edited first: the volume is now at version ${e.version ?? "?"} (409 Conflict). Nothing was changed; look again and retry.`;
+    case 413:
+      return "The edit is too large for the server (413 Payload Too Large): nothing was changed.";
+    case 422:
+      return `The server cannot apply this edit (422): ${e.detail}`;
+    case 429:
+      return `Too many edits from this token (429 Too Many Requests): nothing was changed.${retry}`;
+    case 503:
+      return `The server is busy with other edits (503 Service Unavailable): nothing was changed.${retry}`;
+    default:
+      return `The edit failed (${e.status}): ${e.detail}`;
+  }
+}
+
+/** Requests to one server (`base` is its origin, empty for the page's own). */
+export class Api {
+  readonly base: string;
+
+  constructor(base = "") {
+    this.base = base;
+  }
+
+  private async send(path: string, init: RequestInit = {}): Promise<Response> {
+    let response: Response;
+    try {
+      response = await fetch(this.base + path, init);
+    } catch (e) {
+      if (isAbort(e)) throw e;
+      throw new ApiError(0, `cannot reach the server (${String(e)})`, null, null);
+    }
+    if (!response.ok) throw await failure(response);
+    return response;
+  }
+
+  private async json<T>(path: string, signal?: AbortSignal): Promise<T> {
+    const r = await this.send(path, signal ? { signal } : {});
+    return (await r.json()) as T;
+  }
+
+  volumes(signal?: AbortSignal): Promise<{ volumes: VolumeInfo[] }> {
+    return this.json("/v1/volumes", signal);
+  }
+
+  volume(name: string, signal?: AbortSignal): Promise<VolumeInfo> {
+    return this.json(`/v1/volumes/${encodeURIComponent(name)}`, signal);
+  }
+
+  /** The brick grid of a box of `level` (brick coordinates, max exclusive) at `version`. */
+  async levelGrid(
+    name: string,
+    level: number,
+    min: Vec3,
+    max: Vec3,
+    version: number,
+    signal?: AbortSignal,
+  ): Promise<{ grid: LevelGrid; bytes: number }> {
+    const region = [...min, ...max].join(",");
+    const path = `/v1/volumes/${encodeURIComponent(name)}/levels/${level}?region=${region}&version=${version}`;
+    const text = await (await this.send(path, signal ? { signal } : {})).text();
+    return { grid: JSON.parse(text) as LevelGrid, bytes: text.length };
+  }
+
+  /** One mesh tile in the compact encoding (`proto/src/mesh.rs`). */
+  async meshTile(
+    name: string,
+    key: { level: number; x: number; y: number; z: number },
+    version: number,
+    signal?: AbortSignal,
+  ): Promise<ArrayBuffer> {
+    const path = `/v1/volumes/${encodeURIComponent(name)}/meshes/${key.level}/${key.x}/${key.y}/${key.z}?version=${version}`;
+    const r = await this.send(path, signal ? { signal } : {});
+    return r.arrayBuffer();
+  }
+
+  /** One brick's voxels (raw, x fastest, u16 little endian). */
+  async brick(
+    name: string,
+    key: { level: number; x: number; y: number; z: number },
+    signal?: AbortSignal,
+  ): Promise<ArrayBuffer> {
+    const path = `/v1/volumes/${encodeURIComponent(name)}/bricks/${key.level}/${key.x}/${key.y}/${key.z}`;
+    const r = await this.send(path, signal ? { signal } : {});
+    return r.arrayBuffer();
+  }
+
+  /** Many bricks' voxels in one response (`proto/src/batch.rs`, encoding raw). */
+  async batch(
+    name: string,
+    keys: Array<[number, number, number, number]>,
+    version: number,
+    signal?: AbortSignal,
+  ): Promise<ArrayBuffer> {
+    const r = await this.send(`/v1/volumes/${encodeURIComponent(name)}/batch`, {
+      method: "POST",
+      headers: { "content-type": "application/json" },
+      body: JSON.stringify({ keys, version, encoding: "raw" }),
+      ...(signal ? { signal } : {}),
+    });
+    return r.arrayBuffer();
+  }
+
+  /** The versions after `since` (410 when the history was compacted away). */
+  changes(name: string, since: number, signal?: AbortSignal): Promise<ChangeList> {
+    return this.json(`/v1/volumes/${encodeURIComponent(name)}/changes?since=${since}`, signal);
+  }
+
+  /** Applies an edit (`docs/editing.md`); `ifMatch` makes it conditional on a version. */
+  async edit(
+    name: string,
+    request: unknown,
+    token: string,
+    ifMatch: number | null,
+  ): Promise<EditResponse> {
+    const headers: Record<string, string> = {
+      "content-type": "application/json",
+      authorization: `Bearer ${token}`,
+    };
+    if (ifMatch !== null) headers["if-match"] = String(ifMatch);
+    const r = await this.send(`/v1/volumes/${encodeURIComponent(name)}/edits`, {
+      method: "POST",
+      headers,
+      body: JSON.stringify(request),
+    });
+    return (await r.json()) as EditResponse;
+  }
+
+  eventsUrl(name: string, since: number): string {
+    return `${this.base}/v1/volumes/${encodeURIComponent(name)}/events?since=${since}`;
+  }
+}

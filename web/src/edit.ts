@@ -1,0 +1,109 @@
+// Edits from the viewer: a primitive of a chosen size placed at a picked point, combined with
+// the volume by a chosen operator (docs/icvg.md), applied only within the primitive's box (the
+// edit's `region`), so that operators which change everything outside their term (intersection,
+// modulate, ...) act as a local brush instead of clearing the rest of the volume.
+
+export const OPERATORS: ReadonlyArray<{ op: string; label: string }> = [
+  { op: "union", label: "union (add)" },
+  { op: "difference", label: "difference (carve)" },
+  { op: "intersection", label: "intersection (keep inside)" },
+  { op: "add", label: "add (densify)" },
+  { op: "difference_a", label: "difference_a" },
+  { op: "difference_b", label: "difference_b" },
+  { op: "trim", label: "trim" },
+  { op: "cap", label: "cap" },
+  { op: "modulate", label: "modulate" },
+  { op: "product", label: "product" },
+  { op: "divide_a", label: "divide_a" },
+  { op: "divide", label: "divide (s_l 0.5)" },
+];
+
+export const PRIMITIVES = [
+  "ellipsoid",
+  "cuboid",
+  "cylinder",
+  "cone",
+  "torus",
+  "capsule",
+  "prism",
+  "pyramid",
+] as const;
+export type Primitive = (typeof PRIMITIVES)[number];
+
+type V3 = [number, number, number];
+
+/**
+ * The leaf for `primitive` of size `s` (voxels, >= 2; about its half extent) centred on `c`
+ * (level-0 voxel indices), within the limits docs/icvg.md states (cuboid sides > 2, prism and
+ * pyramid sides >= 4, cylinder and cone heights >= 3).
+ */
+export function primitiveTerm(primitive: Primitive, c: V3, s: number): Record<string, unknown> {
+  const r = Math.max(2, Math.round(s));
+  const side = 2 * r + 1;
+  const corner: V3 = [c[0] - r, c[1] - r, c[2] - r];
+  switch (primitive) {
+    case "ellipsoid":
+      return { ellipsoid: { center: c, radii: [r, r, r] } };
+    case "cuboid":
+      return { cuboid: { origin: corner, size: [side, side, side] } };
+    case "prism":
+      return { prism: { origin: corner, size: [side, side, side] } };
+    case "pyramid":
+      return { pyramid: { origin: corner, size: [side, side, side] } };
+    case "cylinder":
+      return { cylinder: { base: [c[0], c[1] - r, c[2]], radii: [r, r], height: side } };
+    case "cone":
+      return { cone: { base: [c[0], c[1] - r, c[2]], radii: [r, r], height: side } };
+    case "torus": {
+      const minor = Math.max(1, Math.round(r / 3));
+      return { torus: { center: c, major: Math.max(1, r - minor), minor } };
+    }
+    case "capsule": {
+      const radius = Math.max(1, Math.round(r / 2));
+      return { capsule: { center: c, radius, length: Math.max(1, 2 * (r - radius)) } };
+    }
+  }
+}
+
+/**
+ * The edit request: `op(volume, primitive)` within the primitive's box grown by two voxels and
+ * clipped to the volume; null when that box misses the volume.
+ */
+export function editRequest(
+  op: string,
+  primitive: Primitive,
+  center: V3,
+  size: number,
+  dims: V3,
+): Record<string, unknown> | null {
+  const c = center.map(Math.round) as V3;
+  const r = Math.max(2, Math.round(size));
+  const min = c.map((v, a) => Math.min(dims[a] ?? 0, Math.max(0, v - r - 2)));
+  const max = c.map((v, a) => Math.min(dims[a] ?? 0, Math.max(0, v + r + 3)));
+  if (min.some((v, a) => v >= (max[a] ?? 0))) return null;
+  const request: Record<string, unknown> = {
+    op,
+    term: primitiveTerm(primitive, c, r),
+    region: { min, max },
+  };
+  if (op === "divide") request["s_l"] = 0.5;
+  return request;
+}
+
+const TOKEN_KEY = "isovox-write-token";
+
+/** The write token, asked once per browser session and kept in its session storage. */
+export class TokenStore {
+  get(): string | null {
+    return sessionStorage.getItem(TOKEN_KEY);
+  }
+
+  set(token: string): void {
+    sessionStorage.setItem(TOKEN_KEY, token.trim());
+  }
+
+  /** Forgets a token the server refused, so the next edit asks again. */
+  forget(): void {
+    sessionStorage.removeItem(TOKEN_KEY);
+  }
+}

@@ -1,0 +1,210 @@
+// Which tiles a camera needs: a port of `proto/src/lod.rs` (the spherical detail bias), kept
+// equal to it by the vectors the Rust tests write to `web/test-vectors/lod.json`.
+//
+// The Rust code computes in f32. JavaScript numbers are f64, so every operation below is
+// rounded back to f32 with `Math.fround`: for +, -, *, / and sqrt of f32 operands, rounding the
+// exact f64 result once more to f32 gives the f32 result bit for bit (f64 has more than twice
+// f32's precision plus two bits), so the comparisons against the radii agree with Rust's even on
+// the boundary.
+
+const f = Math.fround;
+
+/** The address of one brick (and of one mesh tile): a level and a position in its grid. */
+export interface TileKey {
+  level: number;
+  x: number;
+  y: number;
+  z: number;
+}
+
+/** `level/x/y/z`, the key's text form (as in the API's paths). */
+export function keyText(k: TileKey): string {
+  return `${k.level}/${k.x}/${k.y}/${k.z}`;
+}
+
+/** The order of `BrickKey` in Rust: level, then x, y, z. */
+export function compareKeys(a: TileKey, b: TileKey): number {
+  return a.level - b.level || a.x - b.x || a.y - b.y || a.z - b.z;
+}
+
+/** The shape of a volume's brick octree (`proto/src/layout.rs`): levels and their grids. */
+export class Layout {
+  readonly dims: readonly [number, number, number];
+  readonly brick: number;
+  readonly grids: ReadonlyArray<readonly [number, number, number]>;
+
+  constructor(dims: readonly [number, number, number], brick: number) {
+    if (dims.some((d) => !Number.isInteger(d) || d <= 0)) {
+      throw new Error(`volume dimensions ${dims.join("x")} are not positive integers`);
+    }
+    if (!Number.isInteger(brick) || brick < 2 || brick > 256 || (brick & (brick - 1)) !== 0) {
+      throw new Error(`brick size ${brick} is not a power of two in [2, 256]`);
+    }
+    this.dims = dims;
+    this.brick = brick;
+    const grids: Array<[number, number, number]> = [];
+    for (let level = 0; ; level++) {
+      const span = brick * 2 ** level;
+      const g: [number, number, number] = [
+        Math.ceil(dims[0] / span),
+        Math.ceil(dims[1] / span),
+        Math.ceil(dims[2] / span),
+      ];
+      grids.push(g);
+      if (g[0] === 1 && g[1] === 1 && g[2] === 1) break;
+    }
+    this.grids = grids;
+  }
+
+  /** Levels of detail, level 0 up to the single root brick. */
+  get levels(): number {
+    return this.grids.length;
+  }
+
+  grid(level: number): readonly [number, number, number] {
+    const g = this.grids[level];
+    if (g === undefined) throw new Error(`level ${level} out of range`);
+    return g;
+  }
+
+  contains(k: TileKey): boolean {
+    const g = this.grids[k.level];
+    return (
+      g !== undefined &&
+      k.x >= 0 && k.y >= 0 && k.z >= 0 &&
+      k.x < g[0] && k.y < g[1] && k.z < g[2]
+    );
+  }
+
+  /** The up to 8 bricks of the next finer level that `k` is made from (none at level 0). */
+  children(k: TileKey): TileKey[] {
+    if (k.level === 0) return [];
+    const out: TileKey[] = [];
+    for (let octant = 0; octant < 8; octant++) {
+      const c = {
+        level: k.level - 1,
+        x: k.x * 2 + (octant & 1),
+        y: k.y * 2 + ((octant >> 1) & 1),
+        z: k.z * 2 + (octant >> 2),
+      };
+      if (this.contains(c)) out.push(c);
+    }
+    return out;
+  }
+
+  /** The brick of `level` (>= k.level) that covers `k`. */
+  ancestor(k: TileKey, level: number): TileKey {
+    const s = 2 ** (level - k.level);
+    return { level, x: Math.floor(k.x / s), y: Math.floor(k.y / s), z: Math.floor(k.z / s) };
+  }
+}
+
+/**
+ * The distance from `camera` to the nearest point of tile `k`'s box, in world units (voxel
+ * coordinates times `voxelScale`); 0 inside the box. `lod::tile_distance` in f32.
+ */
+export function tileDistance(
+  layout: Layout,
+  voxelScale: readonly number[],
+  k: TileKey,
+  camera: readonly number[],
+): number {
+  const span = f(f(layout.brick) * f(2 ** k.level));
+  let d2 = f(0);
+  const pos = [k.x, k.y, k.z];
+  for (let a = 0; a < 3; a++) {
+    const c = f(pos[a] ?? 0);
+    const s = f(voxelScale[a] ?? 1);
+    const cam = f(camera[a] ?? 0);
+    const lo = f(f(c * span) * s);
+    const hi = f(f(f(c + 1) * span) * s);
+    const d = cam < lo ? f(lo - cam) : cam > hi ? f(cam - hi) : 0;
+    d2 = f(d2 + f(d * d));
+  }
+  return f(Math.sqrt(d2));
+}
+
+/**
+ * The tiles the spherical detail bias selects, sorted: with radii `r0 < r1 < ... < r(n-1)`,
+ * level k where the tile's nearest point lies within `r(k)` of the camera, level n (or the
+ * coarsest) beyond the last radius. `lod::adaptive_tiles`: walking down from the root, a tile of
+ * level k+1 is refined when it is within `r(k)`, and always while k+1 > n.
+ */
+export function adaptiveTiles(
+  layout: Layout,
+  voxelScale: readonly number[],
+  camera: readonly number[],
+  radii: readonly number[],
+): TileKey[] {
+  const top = layout.levels - 1;
+  const g = layout.grid(top);
+  const stack: TileKey[] = [];
+  for (let z = 0; z < g[2]; z++) {
+    for (let y = 0; y < g[1]; y++) {
+      for (let x = 0; x < g[0]; x++) stack.push({ level: top, x, y, z });
+    }
+  }
+  const r = radii.map(f);
+  const out: TileKey[] = [];
+  for (let k = stack.pop(); k !== undefined; k = stack.pop()) {
+    const refine =
+      k.level > r.length ||
+      (k.level > 0 && tileDistance(layout, voxelScale, k, camera) <= (r[k.level - 1] ?? NaN));
+    if (refine) stack.push(...layout.children(k));
+    else out.push(k);
+  }
+  return out.sort(compareKeys);
+}
+
+/**
+ * Radii from a screen-space error target, as the Rust streamer derives them
+ * (`StreamerConfig::radii_for_screen_error`): level k's tiles have a geometric error of about
+ * 2^k voxels, so level k+1 is good enough beyond `2^(k+1) s H / (2 tan(fov/2) maxErrorPx)`.
+ */
+export function radiiForScreenError(
+  levels: number,
+  voxelScale: readonly number[],
+  fovYRadians: number,
+  viewportHeightPx: number,
+  maxErrorPx: number,
+): number[] {
+  const s = voxelScale.reduce((a, b) => Math.max(a, Math.abs(b)), 0);
+  const perWorld = viewportHeightPx / (2 * Math.tan(fovYRadians / 2) * maxErrorPx);
+  if (!(Number.isFinite(perWorld) && perWorld > 0 && Number.isFinite(s) && s > 0)) return [];
+  const out: number[] = [];
+  for (let k = 0; k + 1 < levels; k++) out.push(2 ** (k + 1) * s * perWorld);
+  return out;
+}
+
+/** Faces of a tile in the order of the stitch mask's bits: -x, +x, -y, +y, -z, +z. */
+export const FACES: ReadonlyArray<readonly [number, number, number]> = [
+  [-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1],
+];
+
+/**
+ * For each selected tile, the 6-bit mask of its faces that touch a coarser selected tile (bit i
+ * for `FACES[i]`): where a mesh tile carries transition data (crack-free level-of-detail
+ * meshes), the renderer moves the vertices along those faces to their secondary positions and
+ * draws those faces' transition strips. Faces on the volume's boundary, or touching tiles of
+ * the same or a finer level, are 0. `tiles` must cover the volume once (as `adaptiveTiles`
+ * returns it).
+ */
+export function stitchMasks(layout: Layout, tiles: readonly TileKey[]): Map<string, number> {
+  const selected = new Set(tiles.map(keyText));
+  const out = new Map<string, number>();
+  for (const k of tiles) {
+    let mask = 0;
+    FACES.forEach(([dx, dy, dz], bit) => {
+      const n = { level: k.level, x: k.x + dx, y: k.y + dy, z: k.z + dz };
+      if (!layout.contains(n)) return;
+      for (let level = k.level + 1; level < layout.levels; level++) {
+        if (selected.has(keyText(layout.ancestor(n, level)))) {
+          mask |= 1 << bit;
+          return;
+        }
+      }
+    });
+    out.set(keyText(k), mask);
+  }
+  return out;
+}

@@ -1,0 +1,446 @@
+// The viewer's page: wires the API, the streamer, the change feed, the 3D view, editing, the
+// slice view, the overlay and the URL together.
+
+import "./style.css";
+import * as THREE from "three";
+import { Api, ApiError, editErrorWords, type VolumeInfo } from "./api";
+import { editRequest, OPERATORS, PRIMITIVES, TokenStore, type Primitive } from "./edit";
+import { Feed, type FeedState } from "./feed";
+import { radiiForScreenError, stitchMasks, Layout } from "./lod";
+import { Viewport, type Navigation } from "./scene";
+import { AXIS, SliceView, type Axis } from "./slice";
+import { Streamer } from "./streamer";
+import { readUrl, writeUrl, type UrlState } from "./url";
+
+const $ = <T extends HTMLElement>(id: string) => document.getElementById(id) as T;
+
+const api = new Api();
+const viewport = new Viewport($<HTMLCanvasElement>("view"));
+const slice = new SliceView(api, $<HTMLCanvasElement>("slice"));
+const tokens = new TokenStore();
+const overlay = $<HTMLPreElement>("overlay");
+const editStatus = $<HTMLParagraphElement>("edit-status");
+
+let info: VolumeInfo | null = null;
+let streamer: Streamer | null = null;
+let feed: Feed | null = null;
+let feedState: FeedState = "connecting";
+let protocol = "http/1.1";
+let frames = 0;
+let firstFrameMs: number | null = null;
+let completeMs: number | null = null;
+let lastEdit: { version: number; sent: number; answerMs: number; screenMs: number | null } | null =
+  null;
+const wire = { requests: 0, bytes: 0 };
+
+// Bytes on the wire and requests, as the browser counts them (headers and compression
+// included, cached answers as 0).
+performance.setResourceTimingBufferSize(100_000);
+new PerformanceObserver((list) => {
+  for (const e of list.getEntries() as PerformanceResourceTiming[]) {
+    if (!e.name.includes("/v1/")) continue;
+    wire.requests++;
+    wire.bytes += e.transferSize;
+    if (e.nextHopProtocol && e.nextHopProtocol !== protocol) {
+      protocol = e.nextHopProtocol;
+      if (streamer) {
+        streamer.maxInFlight = inFlightBudget();
+        streamer.plan();
+      }
+    }
+  }
+}).observe({ type: "resource", buffered: true });
+
+// --- the volume --------------------------------------------------------------------------
+
+/**
+ * Requests a browser runs at once per host: about six over HTTP/1.1, of which the change feed
+ * holds one and edits and the slice view need one; many more share one HTTP/2 connection.
+ */
+function inFlightBudget(): number {
+  return protocol === "h2" || protocol === "h3" ? 16 : 4;
+}
+
+function radii(v: VolumeInfo): number[] {
+  const detail = Number($<HTMLInputElement>("detail").value);
+  const h = viewport.renderer.domElement.clientHeight || 720;
+  return radiiForScreenError(v.levels.length, v.voxel_scale, (viewport.camera.fov * Math.PI) / 180, h, detail);
+}
+
+function cameraPosition(): [number, number, number] {
+  const p = viewport.camera.position;
+  return [p.x, p.y, p.z];
+}
+
+async function openVolume(name: string, state: UrlState | null): Promise<void> {
+  streamer?.stop();
+  feed?.close();
+  const v = await api.volume(name);
+  info = v;
+  const view = state?.camera && {
+    position: new THREE.Vector3(...state.camera.position),
+    target: new THREE.Vector3(...state.camera.target),
+  };
+  viewport.setVolume(v, view ?? undefined);
+  if (state?.detail) $<HTMLInputElement>("detail").value = String(state.detail);
+  if (state?.navigation) setNavigation(state.navigation);
+  const s = new Streamer({
+    api,
+    info: v,
+    sink: viewport,
+    radii: radii(v),
+    maxInFlight: inFlightBudget(),
+    onChange: changed,
+  });
+  streamer = s;
+  s.setCamera(cameraPosition());
+  feed = new Feed(api, name, v.version, {
+    commit: (ev) => {
+      s.applyCommit(ev);
+      if (slice.touches(ev.changed)) void loadSlice();
+    },
+    reload: async () => {
+      const fresh = await api.volume(name);
+      s.reload(fresh);
+      void loadSlice();
+      return fresh.version;
+    },
+    state: (st) => {
+      feedState = st;
+      updateOverlay();
+    },
+  });
+  setupSlice(v, state);
+  writeUrl(urlState());
+}
+
+let changePending = false;
+
+/** The streamer changed what it shows or knows: update the rest once per frame. */
+function changed(): void {
+  if (changePending) return;
+  changePending = true;
+  requestAnimationFrame(() => {
+    changePending = false;
+    afterChange();
+  });
+}
+
+function afterChange(): void {
+  const s = streamer;
+  if (!s) return;
+  if (lastEdit && lastEdit.screenMs === null) {
+    const st = s.stats();
+    if (st.version >= lastEdit.version && st.stale === 0) {
+      // Drawn with the next frame.
+      const edit = lastEdit;
+      requestAnimationFrame(() => {
+        edit.screenMs = performance.now() - edit.sent;
+        updateOverlay();
+      });
+    }
+  }
+  applyStitchMasks();
+  viewport.requestRender();
+  updateOverlay();
+}
+
+/** Tells each drawn tile which faces touch a coarser one (used by tiles with transitions). */
+function applyStitchMasks(): void {
+  if (!info || !streamer) return;
+  const layout = new Layout(info.dims, info.brick);
+  const masks = stitchMasks(layout, streamer.selection());
+  for (const [id, mask] of masks) viewport.setStitchMask(id, mask);
+}
+
+viewport.onFrame = (tiles) => {
+  frames++;
+  const now = performance.now();
+  if (firstFrameMs === null && tiles > 0) {
+    firstFrameMs = now;
+    performance.mark("isovox:first-frame");
+  }
+  if (completeMs === null && streamer?.stats().complete) {
+    completeMs = now;
+    performance.mark("isovox:complete");
+  }
+  updateOverlay();
+};
+
+let cameraTimer: ReturnType<typeof setTimeout> | null = null;
+viewport.onCameraChange = () => {
+  // The selection is planned again at most every 100 ms while the camera moves.
+  if (cameraTimer !== null) return;
+  cameraTimer = setTimeout(() => {
+    cameraTimer = null;
+    streamer?.setCamera(cameraPosition());
+    writeUrl(urlState());
+  }, 100);
+};
+
+// --- overlay -----------------------------------------------------------------------------
+
+function mb(bytes: number): string {
+  return `${(bytes / 1e6).toFixed(2)} MB`;
+}
+
+function updateOverlay(): void {
+  const s = streamer?.stats();
+  if (!s || !info) return;
+  const lines = [
+    `${info.name}  version ${s.version}  feed ${feedState}`,
+    `tiles ${s.ready}/${s.desired} ready, ${s.drawn} drawn, ${s.triangles.toLocaleString("en")} triangles`,
+    `in flight ${s.inFlight} of ${streamer?.maxInFlight} (${protocol})`,
+    `${mb(s.bytes)} received in ${s.requests} requests, ${mb(wire.bytes)} on the wire`,
+  ];
+  if (lastEdit) {
+    const screen = lastEdit.screenMs === null ? "..." : `${lastEdit.screenMs.toFixed(0)} ms`;
+    lines.push(`last edit: answered in ${lastEdit.answerMs.toFixed(0)} ms, on screen in ${screen}`);
+  }
+  if (s.lastError) lines.push(`last error: ${s.lastError}`);
+  overlay.textContent = lines.join("\n");
+}
+
+// --- URL ---------------------------------------------------------------------------------
+
+function urlState(): UrlState {
+  return {
+    volume: info?.name ?? null,
+    camera: {
+      position: cameraPosition(),
+      target: [viewport.target.x, viewport.target.y, viewport.target.z],
+    },
+    navigation: viewport.navigation,
+    detail: Number($<HTMLInputElement>("detail").value),
+    slice: $<HTMLInputElement>("slice-on").checked
+      ? { axis: slice.state.axis, position: slice.state.position }
+      : null,
+  };
+}
+
+// --- controls ----------------------------------------------------------------------------
+
+function setNavigation(n: Navigation): void {
+  $<HTMLSelectElement>("navigation").value = n;
+  viewport.setNavigation(n);
+}
+
+$<HTMLSelectElement>("navigation").addEventListener("change", (e) => {
+  setNavigation((e.target as HTMLSelectElement).value as Navigation);
+  writeUrl(urlState());
+});
+$<HTMLInputElement>("detail").addEventListener("change", () => {
+  if (info) streamer?.setRadii(radii(info));
+  writeUrl(urlState());
+});
+$<HTMLSelectElement>("volume").addEventListener("change", (e) => {
+  void openVolume((e.target as HTMLSelectElement).value, null);
+});
+
+// --- editing -----------------------------------------------------------------------------
+
+for (const { op, label } of OPERATORS) $<HTMLSelectElement>("op").add(new Option(label, op));
+for (const p of PRIMITIVES) $<HTMLSelectElement>("primitive").add(new Option(p, p));
+$<HTMLSelectElement>("op").value = "difference";
+
+let pendingEdit: Record<string, unknown> | null = null;
+
+function say(text: string, error = false): void {
+  editStatus.textContent = text;
+  editStatus.classList.toggle("error", error);
+}
+
+async function sendEdit(request: Record<string, unknown>): Promise<void> {
+  if (!info || !streamer) return;
+  const token = tokens.get();
+  if (!token) {
+    pendingEdit = request;
+    $<HTMLFormElement>("token-form").hidden = false;
+    $<HTMLInputElement>("token").focus();
+    say("Enter the write token (asked once for this session).");
+    return;
+  }
+  const ifMatch = $<HTMLInputElement>("if-match").checked ? streamer.version : null;
+  const sent = performance.now();
+  say("Applying...");
+  try {
+    const r = await api.edit(info.name, request, token, ifMatch);
+    lastEdit = { version: r.version, sent, answerMs: performance.now() - sent, screenMs: null };
+    say(`Applied as version ${r.version}.`);
+    changed();
+  } catch (e) {
+    if (e instanceof ApiError && (e.status === 401 || e.status === 403)) {
+      tokens.forget();
+    }
+    say(editErrorWords(e), true);
+  }
+}
+
+$<HTMLFormElement>("token-form").addEventListener("submit", (e) => {
+  e.preventDefault();
+  const input = $<HTMLInputElement>("token");
+  if (!input.value.trim()) return;
+  tokens.set(input.value);
+  input.value = "";
+  $<HTMLFormElement>("token-form").hidden = true;
+  const r = pendingEdit;
+  pendingEdit = null;
+  if (r) void sendEdit(r);
+});
+
+/** Edits at canvas pixel (x, y): picks the surface and sends the edit. */
+function editAt(x: number, y: number): void {
+  if (!info) return;
+  const p = viewport.pick(x, y);
+  if (!p) {
+    say("No surface under the pointer.", true);
+    return;
+  }
+  const s = info.voxel_scale;
+  const request = editRequest(
+    $<HTMLSelectElement>("op").value,
+    $<HTMLSelectElement>("primitive").value as Primitive,
+    [p.x / s[0], p.y / s[1], p.z / s[2]],
+    Number($<HTMLInputElement>("size").value),
+    info.dims,
+  );
+  if (!request) {
+    say("The shape lies outside the volume.", true);
+    return;
+  }
+  void sendEdit(request);
+}
+
+{
+  const canvas = viewport.renderer.domElement;
+  let down: { x: number; y: number; t: number } | null = null;
+  canvas.addEventListener("pointerdown", (e) => (down = { x: e.clientX, y: e.clientY, t: e.timeStamp }));
+  canvas.addEventListener("pointerup", (e) => {
+    const d = down;
+    down = null;
+    if (!d || !$<HTMLInputElement>("edit-mode").checked) return;
+    // A click, not the end of a drag that moved the camera.
+    if (Math.hypot(e.clientX - d.x, e.clientY - d.y) > 4 || e.timeStamp - d.t > 600) return;
+    const r = canvas.getBoundingClientRect();
+    editAt(e.clientX - r.left, e.clientY - r.top);
+  });
+}
+
+// --- slice -------------------------------------------------------------------------------
+
+async function loadSlice(): Promise<void> {
+  if (!$<HTMLInputElement>("slice-on").checked || !streamer) return;
+  try {
+    await slice.load(streamer.version);
+  } catch (e) {
+    if (!(e instanceof DOMException && e.name === "AbortError")) say(`Slice: ${String(e)}`, true);
+  }
+}
+
+function setupSlice(v: VolumeInfo, state: UrlState | null): void {
+  slice.setVolume(v, state?.slice ?? undefined);
+  $<HTMLInputElement>("slice-on").checked = state?.slice != null;
+  const levels = $<HTMLSelectElement>("slice-level");
+  levels.replaceChildren(new Option("auto", "auto"), ...v.levels.map((l) => new Option(String(l.level))));
+  const width = $<HTMLInputElement>("slice-width");
+  const center = $<HTMLInputElement>("slice-center");
+  for (const input of [width, center]) input.max = String(v.high - v.low);
+  width.min = "1";
+  center.min = String(v.low);
+  width.value = String(slice.state.width);
+  center.value = String(slice.state.center);
+  $<HTMLSelectElement>("slice-axis").value = slice.state.axis;
+  syncSlicePosition();
+  $<HTMLCanvasElement>("slice").hidden = !$<HTMLInputElement>("slice-on").checked;
+  void loadSlice();
+}
+
+function syncSlicePosition(): void {
+  if (!info) return;
+  const pos = $<HTMLInputElement>("slice-pos");
+  pos.max = String(info.dims[AXIS[slice.state.axis]] - 1);
+  pos.value = String(slice.state.position);
+}
+
+$<HTMLInputElement>("slice-on").addEventListener("change", (e) => {
+  const on = (e.target as HTMLInputElement).checked;
+  $<HTMLCanvasElement>("slice").hidden = !on;
+  void loadSlice();
+  writeUrl(urlState());
+});
+$<HTMLSelectElement>("slice-axis").addEventListener("change", (e) => {
+  slice.state.axis = (e.target as HTMLSelectElement).value as Axis;
+  if (info) slice.state.position = Math.floor(info.dims[AXIS[slice.state.axis]] / 2);
+  syncSlicePosition();
+  void loadSlice();
+  writeUrl(urlState());
+});
+$<HTMLInputElement>("slice-pos").addEventListener("change", (e) => {
+  slice.state.position = Number((e.target as HTMLInputElement).value);
+  void loadSlice();
+  writeUrl(urlState());
+});
+$<HTMLSelectElement>("slice-level").addEventListener("change", (e) => {
+  const v = (e.target as HTMLSelectElement).value;
+  slice.state.level = v === "auto" ? "auto" : Number(v);
+  void loadSlice();
+});
+for (const id of ["slice-width", "slice-center"]) {
+  $<HTMLInputElement>(id).addEventListener("input", () => {
+    slice.state.width = Number($<HTMLInputElement>("slice-width").value);
+    slice.state.center = Number($<HTMLInputElement>("slice-center").value);
+    slice.draw();
+  });
+}
+
+// --- start -------------------------------------------------------------------------------
+
+/** For the browser tests and the benchmark: what the page shows, read without scraping. */
+const hook = {
+  stats: () => ({
+    ...(streamer?.stats() ?? null),
+    volume: info?.name ?? null,
+    feed: feedState,
+    protocol,
+    webgl2: viewport.webgl2,
+    frames,
+    tilesOnScreen: viewport.tileCount,
+    firstFrameMs,
+    completeMs,
+    wireRequests: wire.requests,
+    wireBytes: wire.bytes,
+    lastEdit,
+    editStatus: editStatus.textContent,
+  }),
+  /** Where world point (x, y, z) appears on the canvas, in CSS pixels. */
+  project: (x: number, y: number, z: number) => viewport.project(new THREE.Vector3(x, y, z)),
+  /** The ray from the camera through canvas pixel (x, y): origin and unit direction. */
+  ray: (x: number, y: number) => {
+    const r = viewport.ray(x, y).ray;
+    return { origin: r.origin.toArray(), direction: r.direction.toArray() };
+  },
+  /** The surface point under canvas pixel (x, y), or null. */
+  pick: (x: number, y: number) => viewport.pick(x, y)?.toArray() ?? null,
+};
+(window as unknown as { isovox: typeof hook }).isovox = hook;
+
+async function start(): Promise<void> {
+  const state = readUrl();
+  const { volumes } = await api.volumes();
+  const picker = $<HTMLSelectElement>("volume");
+  for (const v of volumes) picker.add(new Option(`${v.name} (${v.dims.join("x")} ${v.voxel_type})`, v.name));
+  const name =
+    volumes.find((v) => v.name === state.volume)?.name ??
+    volumes.find((v) => v.name === "demo")?.name ??
+    volumes[0]?.name;
+  if (!name) {
+    overlay.textContent = "The server serves no volume.";
+    return;
+  }
+  picker.value = name;
+  await openVolume(name, state);
+}
+
+start().catch((e: unknown) => {
+  overlay.textContent = `Cannot load: ${e instanceof Error ? e.message : String(e)}`;
+});

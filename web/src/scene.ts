@@ -1,0 +1,328 @@
+// The 3D view: three.js with one WebGL2 renderer, the streamed tiles as meshes, orbit and fly
+// navigation, and picking a point on the surface. Frames are drawn on demand (the camera moved,
+// a tile came or went), not in a loop: software rendering (no GPU) stays cheap when nothing
+// changes.
+
+import * as THREE from "three";
+import { OrbitControls } from "three/addons/controls/OrbitControls.js";
+import type { VolumeInfo } from "./api";
+import type { TileKey } from "./lod";
+import type { TileMesh, TriangleSet } from "./mesh";
+import type { TileSink } from "./streamer";
+
+const VERTEX = /* glsl */ `
+#ifdef TRANSITIONS
+attribute vec3 secondary;
+attribute float vertexFaces;
+uniform float stitchMask;
+#endif
+varying vec3 vNormal;
+varying float vHeight;
+uniform float heightScale;
+void main() {
+  vec3 p = position;
+#ifdef TRANSITIONS
+  // Vertices along a face that touches a coarser tile move to their secondary position.
+  if ((int(vertexFaces) & int(stitchMask)) != 0) p = secondary;
+#endif
+  vNormal = normal;
+  vHeight = p.y * heightScale;
+  gl_Position = projectionMatrix * modelViewMatrix * vec4(p, 1.0);
+}`;
+
+const FRAGMENT = /* glsl */ `
+varying vec3 vNormal;
+varying float vHeight;
+uniform vec3 sun;
+void main() {
+  vec3 n = normalize(vNormal);
+  float light = 0.38 + 0.62 * max(dot(n, sun), 0.0);
+  vec3 rock = mix(vec3(0.45, 0.36, 0.28), vec3(0.62, 0.60, 0.58), clamp(vHeight, 0.0, 1.0));
+  vec3 grass = mix(vec3(0.30, 0.52, 0.20), vec3(0.55, 0.62, 0.30), clamp(vHeight, 0.0, 1.0));
+  vec3 base = mix(rock, grass, smoothstep(0.55, 0.8, n.y));
+  gl_FragColor = vec4(base * light, 1.0);
+}`;
+
+/** The sky behind the volume (also what the browser tests tell from the surface). */
+export const SKY = 0x9cc4e4;
+
+interface TileView {
+  mesh: THREE.Mesh;
+  data: TileMesh;
+  /** One per face, when the tile carries transition data. */
+  strips: THREE.Mesh[];
+  mask: number;
+}
+
+export type Navigation = "orbit" | "fly";
+
+export class Viewport implements TileSink {
+  readonly renderer: THREE.WebGLRenderer;
+  readonly camera: THREE.PerspectiveCamera;
+  private readonly scene = new THREE.Scene();
+  private readonly tiles = new Map<string, TileView>();
+  private readonly material: THREE.ShaderMaterial;
+  private readonly orbit: OrbitControls;
+  private readonly fly: FlyNavigation;
+  private frameRequested = false;
+  navigation: Navigation = "orbit";
+  /** Called after each frame with the number of tiles drawn. */
+  onFrame: (tiles: number) => void = () => {};
+  /** Called when the person moved the camera. */
+  onCameraChange: () => void = () => {};
+
+  constructor(canvas: HTMLCanvasElement) {
+    this.renderer = new THREE.WebGLRenderer({ canvas, antialias: false, powerPreference: "high-performance" });
+    this.renderer.setPixelRatio(1);
+    this.renderer.setClearColor(SKY);
+    this.camera = new THREE.PerspectiveCamera(60, 1, 1, 10_000);
+    const uniforms = {
+      sun: { value: new THREE.Vector3(0.4, 0.8, 0.45).normalize() },
+      heightScale: { value: 1 / 256 },
+    };
+    this.material = new THREE.ShaderMaterial({ vertexShader: VERTEX, fragmentShader: FRAGMENT, uniforms });
+    this.orbit = new OrbitControls(this.camera, canvas);
+    this.orbit.addEventListener("change", () => {
+      this.requestRender();
+      this.onCameraChange();
+    });
+    this.fly = new FlyNavigation(this.camera, canvas, () => {
+      this.requestRender();
+      this.onCameraChange();
+    });
+    this.fly.enabled = false;
+    new ResizeObserver(() => this.resize()).observe(canvas);
+    this.resize();
+  }
+
+  /** Whether the canvas got a WebGL2 context (three.js requires one). */
+  get webgl2(): boolean {
+    return this.renderer.getContext() instanceof WebGL2RenderingContext;
+  }
+
+  get target(): THREE.Vector3 {
+    return this.orbit.target;
+  }
+
+  setNavigation(n: Navigation): void {
+    this.navigation = n;
+    this.orbit.enabled = n === "orbit";
+    this.fly.enabled = n === "fly";
+    if (n === "orbit") {
+      // Orbit around the point the fly camera was looking at, as far away as before.
+      const d = this.camera.position.distanceTo(this.orbit.target);
+      const dir = new THREE.Vector3();
+      this.camera.getWorldDirection(dir);
+      this.orbit.target.copy(this.camera.position).addScaledVector(dir, d);
+      this.orbit.update();
+    }
+  }
+
+  /** Frames the volume: its scale for colours and clipping, and, unless given, a default view. */
+  setVolume(info: VolumeInfo, view?: { position: THREE.Vector3; target: THREE.Vector3 }): void {
+    const size = new THREE.Vector3(...info.dims).multiply(new THREE.Vector3(...info.voxel_scale));
+    const extent = Math.max(size.x, size.y, size.z);
+    this.material.uniforms["heightScale"]!.value = 1 / Math.max(size.y, 1);
+    this.camera.near = extent / 2000;
+    this.camera.far = extent * 20;
+    this.camera.updateProjectionMatrix();
+    this.fly.speed = extent / 4;
+    // By default: the whole volume in view, seen from above one corner.
+    const target = view?.target ?? size.clone().multiplyScalar(0.5);
+    const radius = size.length() / 2;
+    const fovY = THREE.MathUtils.degToRad(this.camera.fov);
+    const fovX = 2 * Math.atan(Math.tan(fovY / 2) * this.camera.aspect);
+    const distance = (0.72 * radius) / Math.sin(Math.min(fovX, fovY) / 2);
+    const position =
+      view?.position ??
+      target.clone().add(new THREE.Vector3(-0.45, 0.6, 0.85).normalize().multiplyScalar(distance));
+    this.camera.position.copy(position);
+    this.orbit.target.copy(target);
+    this.camera.lookAt(target);
+    this.orbit.update();
+    this.requestRender();
+  }
+
+  // --- tiles (the streamer's sink) ----------------------------------------------------------
+
+  show(id: string, _key: TileKey, data: TileMesh): void {
+    this.hide(id);
+    const mesh = new THREE.Mesh(geometry(data), this.material);
+    mesh.matrixAutoUpdate = false;
+    const strips: THREE.Mesh[] = [];
+    if (data.transitions) {
+      const g = mesh.geometry;
+      g.setAttribute("secondary", new THREE.BufferAttribute(data.transitions.secondary, 3));
+      g.setAttribute("vertexFaces", new THREE.BufferAttribute(data.transitions.vertexFaces, 1));
+      mesh.material = this.transitionMaterial();
+      data.transitions.strips.forEach((s) => {
+        const strip = new THREE.Mesh(geometry(s), this.material);
+        strip.visible = false;
+        strip.matrixAutoUpdate = false;
+        mesh.add(strip);
+        strips.push(strip);
+      });
+    }
+    this.scene.add(mesh);
+    this.tiles.set(id, { mesh, data, strips, mask: 0 });
+    this.requestRender();
+  }
+
+  hide(id: string): void {
+    const t = this.tiles.get(id);
+    if (!t) return;
+    this.scene.remove(t.mesh);
+    t.mesh.geometry.dispose();
+    for (const s of t.strips) s.geometry.dispose();
+    if (t.mesh.material !== this.material) (t.mesh.material as THREE.Material).dispose();
+    this.tiles.delete(id);
+    this.requestRender();
+  }
+
+  /**
+   * The faces of tile `id` that touch a coarser tile (`lod.ts` `stitchMasks`). A tile without
+   * transition data ignores it; one with it moves those faces' vertices and shows their strips.
+   */
+  setStitchMask(id: string, mask: number): void {
+    const t = this.tiles.get(id);
+    if (!t || t.mask === mask || !t.data.transitions) return;
+    t.mask = mask;
+    (t.mesh.material as THREE.ShaderMaterial).uniforms["stitchMask"]!.value = mask;
+    t.strips.forEach((s, face) => (s.visible = (mask & (1 << face)) !== 0));
+    this.requestRender();
+  }
+
+  private transitionMaterial(): THREE.ShaderMaterial {
+    const m = this.material.clone();
+    m.defines = { TRANSITIONS: 1 };
+    m.uniforms = { ...this.material.uniforms, stitchMask: { value: 0 } };
+    return m;
+  }
+
+  get tileCount(): number {
+    return this.tiles.size;
+  }
+
+  // --- frames, picking --------------------------------------------------------------------
+
+  requestRender(): void {
+    if (this.frameRequested) return;
+    this.frameRequested = true;
+    requestAnimationFrame(() => {
+      this.frameRequested = false;
+      if (this.fly.enabled && this.fly.step()) this.requestRender();
+      this.renderer.render(this.scene, this.camera);
+      this.onFrame(this.tiles.size);
+    });
+  }
+
+  private resize(): void {
+    const c = this.renderer.domElement;
+    const w = Math.max(1, c.clientWidth);
+    const h = Math.max(1, c.clientHeight);
+    this.renderer.setSize(w, h, false);
+    this.camera.aspect = w / h;
+    this.camera.updateProjectionMatrix();
+    this.requestRender();
+  }
+
+  /** The ray from the camera through canvas pixel (x, y) (CSS pixels). */
+  ray(x: number, y: number): THREE.Raycaster {
+    const c = this.renderer.domElement;
+    const ndc = new THREE.Vector2((x / c.clientWidth) * 2 - 1, -(y / c.clientHeight) * 2 + 1);
+    const ray = new THREE.Raycaster();
+    ray.setFromCamera(ndc, this.camera);
+    return ray;
+  }
+
+  /** The point of the surface under canvas pixel (x, y), if any. */
+  pick(x: number, y: number): THREE.Vector3 | null {
+    const hits = this.ray(x, y).intersectObjects([...this.tiles.values()].map((t) => t.mesh), false);
+    return hits[0]?.point ?? null;
+  }
+
+  /** Where a world point appears on the canvas, in CSS pixels. */
+  project(p: THREE.Vector3): { x: number; y: number } {
+    const c = this.renderer.domElement;
+    const v = p.clone().project(this.camera);
+    return { x: ((v.x + 1) / 2) * c.clientWidth, y: ((1 - v.y) / 2) * c.clientHeight };
+  }
+}
+
+/** A tile's triangles as GPU buffers, with bounds from the header (no scan of the positions). */
+function geometry(t: TriangleSet & { min?: number[]; max?: number[] }): THREE.BufferGeometry {
+  const g = new THREE.BufferGeometry();
+  g.setAttribute("position", new THREE.BufferAttribute(t.positions, 3));
+  g.setAttribute("normal", new THREE.BufferAttribute(t.normals, 3, true));
+  g.setIndex(new THREE.BufferAttribute(t.indices, 1));
+  if (t.min && t.max) {
+    g.boundingBox = new THREE.Box3(new THREE.Vector3(...t.min), new THREE.Vector3(...t.max));
+    g.boundingSphere = g.boundingBox.getBoundingSphere(new THREE.Sphere());
+  }
+  return g;
+}
+
+/** Fly navigation: drag to look, W/A/S/D (or arrows) to move, Q/E down and up, Shift faster. */
+class FlyNavigation {
+  enabled = true;
+  speed = 100;
+  private readonly keys = new Set<string>();
+  private last = 0;
+  private yaw = 0;
+  private pitch = 0;
+
+  constructor(
+    private readonly camera: THREE.PerspectiveCamera,
+    canvas: HTMLCanvasElement,
+    private readonly changed: () => void,
+  ) {
+    let drag: { x: number; y: number } | null = null;
+    canvas.addEventListener("pointerdown", (e) => {
+      if (!this.enabled) return;
+      drag = { x: e.clientX, y: e.clientY };
+      this.syncAngles();
+    });
+    window.addEventListener("pointerup", () => (drag = null));
+    window.addEventListener("pointermove", (e) => {
+      if (!this.enabled || !drag) return;
+      this.yaw -= (e.clientX - drag.x) * 0.004;
+      this.pitch = Math.max(-1.5, Math.min(1.5, this.pitch - (e.clientY - drag.y) * 0.004));
+      drag = { x: e.clientX, y: e.clientY };
+      this.camera.quaternion.setFromEuler(new THREE.Euler(this.pitch, this.yaw, 0, "YXZ"));
+      this.changed();
+    });
+    window.addEventListener("keydown", (e) => {
+      if (!this.enabled || (e.target as HTMLElement | null)?.closest?.("input, select, textarea")) return;
+      this.keys.add(e.key.toLowerCase());
+      this.last = performance.now();
+      this.changed();
+    });
+    window.addEventListener("keyup", (e) => this.keys.delete(e.key.toLowerCase()));
+    window.addEventListener("blur", () => this.keys.clear());
+  }
+
+  private syncAngles(): void {
+    const e = new THREE.Euler().setFromQuaternion(this.camera.quaternion, "YXZ");
+    this.yaw = e.y;
+    this.pitch = e.x;
+  }
+
+  /** Moves the camera for the time since the last step; whether keys are still held. */
+  step(): boolean {
+    if (this.keys.size === 0) return false;
+    const now = performance.now();
+    const dt = Math.min(0.1, (now - this.last) / 1000);
+    this.last = now;
+    const k = (...names: string[]) => (names.some((n) => this.keys.has(n)) ? 1 : 0);
+    const move = new THREE.Vector3(
+      k("d", "arrowright") - k("a", "arrowleft"),
+      k("e") - k("q"),
+      k("s", "arrowdown") - k("w", "arrowup"),
+    );
+    if (move.lengthSq() === 0) return false;
+    move.normalize().multiplyScalar(this.speed * dt * (this.keys.has("shift") ? 4 : 1));
+    this.camera.position.add(move.applyQuaternion(this.camera.quaternion));
+    this.changed();
+    return true;
+  }
+}

@@ -1,0 +1,510 @@
+// The camera-distance streamer of the viewer: which mesh tiles the camera needs (`lod.ts`, the
+// same selection as the server and the Rust client), in which order to fetch them, what is on
+// screen meanwhile, and what an edit made stale.
+//
+// Content keys. A mesh tile reads the 3x3x3 bricks around it at its level (its cells reach into
+// the +1 neighbours, its normals one sample further on every side: `server/src/mesh/tile.rs`).
+// Its content key is its position and the content hashes of those 27 bricks, learnt from the
+// levels' brick grids (`GET .../levels/{l}?region=`, in chunks of 8x8x8 bricks). Meshes are
+// cached by content key, so a tile whose inputs did not change is never fetched again, and the
+// bricks' value ranges tell, without a request, which tiles no surface crosses (most of a
+// terrain's air and rock).
+//
+// Order. Requests go coarse first, then nearest first: every tile of the selection's coarsest
+// level that covers a selected tile is fetched first (a stand-in for the finer tiles under it
+// until they are all there), then the selection by level, coarse to fine, and within a level by
+// distance from the camera. At most `maxInFlight` requests run at once (a browser opens about six
+// HTTP/1.1 connections per host and the change feed holds one), and a request no tile needs any
+// more (the camera moved on) is aborted.
+//
+// Edits. `applyCommit` forgets the hashes of the changed bricks, aborts the requests they make
+// stale, and plans again: the chunks holding them are fetched at the new version, and exactly the
+// tiles whose inputs changed get a new content key and are refetched; until then they keep
+// showing their old mesh.
+
+import { Api, ApiError, isAbort, type ChangeEvent, type LevelBrick, type LevelGrid, type VolumeInfo } from "./api";
+import { adaptiveTiles, keyText, Layout, tileDistance, type TileKey } from "./lod";
+import { decodeCompact, type TileMesh } from "./mesh";
+
+/** Bricks per axis of the grid chunks fetched to learn content hashes. */
+const CHUNK = 8;
+const RETRY_MIN_MS = 250;
+const RETRY_MAX_MS = 10_000;
+/** Commits remembered to check answers that started at an older version. */
+const COMMIT_LOG = 256;
+
+/** Where the streamer puts what is to be drawn. */
+export interface TileSink {
+  show(id: string, key: TileKey, mesh: TileMesh): void;
+  hide(id: string): void;
+}
+
+export interface StreamerStats {
+  version: number;
+  /** Tiles of the camera's selection, and how many of them show their current content. */
+  desired: number;
+  ready: number;
+  /** Tiles drawn, and triangles in them. */
+  drawn: number;
+  triangles: number;
+  inFlight: number;
+  requests: number;
+  /** Response bytes received (decoded). */
+  bytes: number;
+  /** Every tile of the selection shows its current content; nothing is in flight for it. */
+  complete: boolean;
+  /** Delivered tiles waiting for the content an edit gave them. */
+  stale: number;
+  lastError: string | null;
+}
+
+interface Job {
+  id: string;
+  priority: [number, number];
+  controller: AbortController;
+  version: number;
+}
+
+type BrickState = LevelBrick | "absent" | undefined;
+
+export interface StreamerOptions {
+  api: Api;
+  info: VolumeInfo;
+  sink: TileSink;
+  radii: number[];
+  maxInFlight: number;
+  cacheBytes?: number;
+  onChange?: () => void;
+}
+
+export class Streamer {
+  private readonly api: Api;
+  private info: VolumeInfo;
+  private layout: Layout;
+  private readonly sink: TileSink;
+  private readonly onChange: () => void;
+  radii: number[];
+  maxInFlight: number;
+  version: number;
+
+  private camera: [number, number, number] = [0, 0, 0];
+  /** Per level: brick index -> what the grid said. */
+  private hashes: Array<Map<number, LevelBrick>> = [];
+  private readonly cache = new Map<string, TileMesh | null>();
+  private cacheBytes = 0;
+  private readonly cacheLimit: number;
+  private readonly jobs = new Map<string, Job>();
+  private readonly retryAt = new Map<string, { at: number; delay: number }>();
+  private readonly commitLog: Array<{ version: number; bricks: Set<string> }> = [];
+  private readonly displayed = new Map<string, TileMesh>();
+  /** Per tile of the selection: the content key it last showed ("" for no surface). */
+  private readonly lastShown = new Map<string, string>();
+  private readyCount = 0;
+  private staleCount = 0;
+  private desired: TileKey[] = [];
+  private selectionKey = "";
+  private planned = false;
+  private retryTimer: ReturnType<typeof setTimeout> | null = null;
+  private stopped = false;
+  private readonly counters = { requests: 0, bytes: 0 };
+  private lastError: string | null = null;
+  private statsCache: StreamerStats | null = null;
+
+  constructor(o: StreamerOptions) {
+    this.api = o.api;
+    this.info = o.info;
+    this.layout = new Layout(o.info.dims, o.info.brick);
+    this.sink = o.sink;
+    this.radii = o.radii;
+    this.maxInFlight = Math.max(1, o.maxInFlight);
+    this.cacheLimit = o.cacheBytes ?? 256 << 20;
+    this.version = o.info.version;
+    this.onChange = o.onChange ?? (() => {});
+    this.hashes = this.layout.grids.map(() => new Map());
+  }
+
+  get volume(): VolumeInfo {
+    return this.info;
+  }
+
+  /** The tiles the camera needs now (sorted as `adaptiveTiles` returns them). */
+  selection(): readonly TileKey[] {
+    return this.desired;
+  }
+
+  setCamera(camera: [number, number, number]): void {
+    this.camera = camera;
+    this.plan();
+  }
+
+  setRadii(radii: number[]): void {
+    this.radii = radii;
+    this.plan();
+  }
+
+  /** Applies one committed version of the change feed (versions in order, each once). */
+  applyCommit(ev: ChangeEvent): void {
+    if (ev.version <= this.version) return;
+    const changed = new Set<string>();
+    ev.changed.forEach((bricks, level) => {
+      const known = this.hashes[level];
+      for (const [x, y, z] of bricks) {
+        changed.add(`${level}/${x}/${y}/${z}`);
+        known?.delete(this.brickIndex(level, x, y, z));
+      }
+    });
+    this.commitLog.push({ version: ev.version, bricks: changed });
+    if (this.commitLog.length > COMMIT_LOG) this.commitLog.shift();
+    this.version = ev.version;
+    // Chunk requests still running answer for the old version; the chunks holding changed
+    // bricks are asked again at the new one (mesh requests are by content key: still valid).
+    for (const job of this.jobs.values()) {
+      if (job.id.startsWith("g:")) this.abort(job);
+    }
+    this.plan();
+  }
+
+  /** Starts over from new metadata (the history was compacted, or the server went back). */
+  reload(info: VolumeInfo): void {
+    for (const job of this.jobs.values()) this.abort(job);
+    this.info = info;
+    this.layout = new Layout(info.dims, info.brick);
+    this.selectionKey = "";
+    this.hashes = this.layout.grids.map(() => new Map());
+    this.commitLog.length = 0;
+    this.version = info.version;
+    this.plan();
+  }
+
+  stop(): void {
+    this.stopped = true;
+    for (const job of this.jobs.values()) this.abort(job);
+    if (this.retryTimer !== null) clearTimeout(this.retryTimer);
+    for (const id of this.displayed.keys()) this.sink.hide(id);
+    this.displayed.clear();
+  }
+
+  stats(): StreamerStats {
+    if (this.statsCache) return this.statsCache;
+    let triangles = 0;
+    for (const m of this.displayed.values()) triangles += m.indices.length / 3;
+    this.statsCache = {
+      version: this.version,
+      desired: this.desired.length,
+      ready: this.readyCount,
+      drawn: this.displayed.size,
+      triangles,
+      inFlight: this.jobs.size,
+      requests: this.counters.requests,
+      bytes: this.counters.bytes,
+      complete:
+        this.planned && this.readyCount === this.desired.length && this.jobs.size === 0,
+      stale: this.staleCount,
+      lastError: this.lastError,
+    };
+    return this.statsCache;
+  }
+
+  // --- planning ---------------------------------------------------------------------------
+
+  private brickIndex(level: number, x: number, y: number, z: number): number {
+    const g = this.layout.grid(level);
+    return x + g[0] * (y + g[1] * z);
+  }
+
+  private brick(level: number, x: number, y: number, z: number): BrickState {
+    if (!this.layout.contains({ level, x, y, z })) return "absent";
+    return this.hashes[level]?.get(this.brickIndex(level, x, y, z));
+  }
+
+  /**
+   * The tile's content key (its position and its 27 inputs' hashes), or null while a hash is
+   * unknown; "" when no surface can cross the tile (`tile_inputs`'s `may_cross` rule: only the
+   * bricks the cells read, at offsets 0 and +1, and -1 for a first tile, count; outside the
+   * volume every sample is L = 0).
+   */
+  private contentKey(k: TileKey): string | null {
+    const iso = this.info.surface - 0.5;
+    let below = false;
+    let above = false;
+    const parts: string[] = [keyText(k)];
+    for (let dz = -1; dz <= 1; dz++) {
+      for (let dy = -1; dy <= 1; dy++) {
+        for (let dx = -1; dx <= 1; dx++) {
+          const b = this.brick(k.level, k.x + dx, k.y + dy, k.z + dz);
+          if (b === undefined) return null;
+          const [min, max] = b === "absent" ? [0, 0] : [b.min, b.max];
+          parts.push(b === "absent" ? "-" : b.hash);
+          const reads =
+            (dx >= 0 || k.x === 0) && (dy >= 0 || k.y === 0) && (dz >= 0 || k.z === 0);
+          if (reads) {
+            below ||= min < iso;
+            above ||= max >= iso;
+          }
+        }
+      }
+    }
+    return below && above ? parts.join(":") : "";
+  }
+
+  /** The grid chunks whose hashes tile `k`'s content key needs and does not have. */
+  private missingChunks(k: TileKey, out: Set<string>): void {
+    for (let dz = -1; dz <= 1; dz++) {
+      for (let dy = -1; dy <= 1; dy++) {
+        for (let dx = -1; dx <= 1; dx++) {
+          const x = k.x + dx;
+          const y = k.y + dy;
+          const z = k.z + dz;
+          if (this.brick(k.level, x, y, z) === undefined) {
+            out.add(
+              `${k.level}/${Math.floor(x / CHUNK)}/${Math.floor(y / CHUNK)}/${Math.floor(z / CHUNK)}`,
+            );
+          }
+        }
+      }
+    }
+  }
+
+  /** What tile `k` can show now: its current content, else what it showed before an edit. */
+  private showable(k: TileKey): { content: string; mesh: TileMesh | null } | undefined {
+    const available = (c: string | null | undefined) =>
+      c === "" ? null : c ? this.cache.get(c) : undefined;
+    const content = this.contentKey(k);
+    const now = available(content);
+    if (content !== null && now !== undefined) return { content, mesh: now };
+    const old = this.lastShown.get(keyText(k));
+    const then = available(old);
+    if (old !== undefined && then !== undefined) return { content: old, mesh: then };
+    return undefined;
+  }
+
+  /** Plans again: the selection, what is drawn, and which requests run. */
+  plan(): void {
+    if (this.stopped) return;
+    this.planned = true;
+    this.statsCache = null;
+    const scale = this.info.voxel_scale;
+    // The selection depends on the camera, the radii and the layout only.
+    const selectionKey = `${this.camera.join(",")}|${this.radii.join(",")}|${this.layout.grids.length}`;
+    if (selectionKey !== this.selectionKey) {
+      this.selectionKey = selectionKey;
+      this.desired = adaptiveTiles(this.layout, scale, this.camera, this.radii);
+    }
+    // Stand-ins: the tiles of the selection's coarsest level over selected tiles that have
+    // nothing to show yet.
+    const coarsest = this.desired.reduce((a, k) => Math.max(a, k.level), 0);
+    const standIns = new Map<string, TileKey>();
+    for (const k of this.desired) {
+      if (k.level < coarsest && this.showable(k) === undefined) {
+        const a = this.layout.ancestor(k, coarsest);
+        standIns.set(keyText(a), a);
+      }
+    }
+
+    // What each tile needs, with its priority: coarse first, then nearest.
+    const wanted = new Map<string, { priority: [number, number]; start: () => void }>();
+    const want = (id: string, priority: [number, number], start: () => void) => {
+      const w = wanted.get(id);
+      if (!w || compare(priority, w.priority) < 0) wanted.set(id, { priority, start });
+    };
+    const need = (k: TileKey) => {
+      const priority: [number, number] = [-k.level, tileDistance(this.layout, scale, k, this.camera)];
+      const content = this.contentKey(k);
+      if (content === null) {
+        const chunks = new Set<string>();
+        this.missingChunks(k, chunks);
+        for (const c of chunks) want(`g:${c}`, priority, () => this.fetchChunk(c));
+      } else if (content !== "" && !this.cache.has(content)) {
+        want(`m:${content}`, priority, () => this.fetchMesh(k, content));
+      }
+    };
+    for (const a of standIns.values()) need(a);
+    for (const k of this.desired) need(k);
+
+    // Cancel what nobody needs any more; start the most urgent of the rest.
+    for (const job of this.jobs.values()) {
+      const w = wanted.get(job.id);
+      if (w) job.priority = w.priority;
+      else this.abort(job);
+    }
+    const now = performance.now();
+    let nextRetry = Infinity;
+    const queue = [...wanted.entries()]
+      .filter(([id]) => !this.jobs.has(id))
+      .filter(([id]) => {
+        const r = this.retryAt.get(id);
+        if (r && r.at > now) {
+          nextRetry = Math.min(nextRetry, r.at);
+          return false;
+        }
+        return true;
+      })
+      .sort((a, b) => compare(a[1].priority, b[1].priority));
+    for (const [id, w] of queue) {
+      if (this.jobs.size >= this.maxInFlight) break;
+      this.jobs.set(id, {
+        id,
+        priority: w.priority,
+        controller: new AbortController(),
+        version: this.version,
+      });
+      w.start();
+    }
+    if (this.retryTimer !== null) clearTimeout(this.retryTimer);
+    this.retryTimer =
+      nextRetry < Infinity ? setTimeout(() => this.plan(), nextRetry - now + 1) : null;
+
+    this.draw(standIns);
+    this.onChange();
+  }
+
+  /**
+   * What is on screen: each selected tile that has something to show, except under a stand-in:
+   * where a selected tile has nothing yet, the stand-in over it is drawn instead of every
+   * selected tile under it (they would overlap).
+   */
+  private draw(standIns: Map<string, TileKey>): void {
+    const coarsest = this.desired.reduce((a, k) => Math.max(a, k.level), 0);
+    const covering = new Map<string, { key: TileKey; mesh: TileMesh | null }>();
+    for (const [id, s] of standIns) {
+      const m = this.showable(s);
+      if (m) covering.set(id, { key: s, mesh: m.mesh });
+    }
+    const next = new Map<string, { key: TileKey; mesh: TileMesh }>();
+    const desiredIds = new Set<string>();
+    let ready = 0;
+    let stale = 0;
+    for (const k of this.desired) {
+      const id = keyText(k);
+      desiredIds.add(id);
+      if (k.level < coarsest && covering.has(keyText(this.layout.ancestor(k, coarsest)))) continue;
+      const m = this.showable(k);
+      if (!m) continue;
+      this.lastShown.set(id, m.content);
+      if (m.content === this.contentKey(k)) ready++;
+      else stale++;
+      if (m.mesh) next.set(id, { key: k, mesh: m.mesh });
+    }
+    for (const [id, c] of covering) {
+      if (c.mesh) next.set(`s:${id}`, { key: c.key, mesh: c.mesh });
+    }
+    for (const id of this.lastShown.keys()) {
+      if (!desiredIds.has(id)) this.lastShown.delete(id);
+    }
+    for (const [id, mesh] of this.displayed) {
+      if (next.get(id)?.mesh !== mesh) {
+        this.sink.hide(id);
+        this.displayed.delete(id);
+      }
+    }
+    for (const [id, { key, mesh }] of next) {
+      if (!this.displayed.has(id)) {
+        this.sink.show(id, key, mesh);
+        this.displayed.set(id, mesh);
+      }
+    }
+    this.readyCount = ready;
+    this.staleCount = stale;
+  }
+
+  // --- requests ---------------------------------------------------------------------------
+
+  private abort(job: Job): void {
+    job.controller.abort();
+    this.jobs.delete(job.id);
+  }
+
+  private finish(id: string, job: Job | undefined, error: unknown): void {
+    if (!job || this.jobs.get(id) !== job) return;
+    this.jobs.delete(id);
+    if (error !== null) {
+      if (isAbort(error)) return;
+      const r = this.retryAt.get(id);
+      const delay = r ? Math.min(r.delay * 2, RETRY_MAX_MS) : RETRY_MIN_MS;
+      this.retryAt.set(id, { at: performance.now() + delay, delay });
+      this.lastError = error instanceof ApiError ? error.message : String(error);
+    } else {
+      this.retryAt.delete(id);
+    }
+    this.plan();
+  }
+
+  private fetchChunk(chunk: string): void {
+    const id = `g:${chunk}`;
+    const job = this.jobs.get(id);
+    if (!job) return;
+    const [level, cx, cy, cz] = chunk.split("/").map(Number) as [number, number, number, number];
+    const g = this.layout.grid(level);
+    const min: [number, number, number] = [cx * CHUNK, cy * CHUNK, cz * CHUNK];
+    const max: [number, number, number] = [
+      Math.min(g[0], min[0] + CHUNK),
+      Math.min(g[1], min[1] + CHUNK),
+      Math.min(g[2], min[2] + CHUNK),
+    ];
+    this.counters.requests++;
+    this.api
+      .levelGrid(this.info.name, level, min, max, job.version, job.controller.signal)
+      .then(({ grid, bytes }) => {
+        if (this.jobs.get(id) !== job) return;
+        this.counters.bytes += bytes;
+        this.learn(grid, job.version);
+        this.finish(id, job, null);
+      })
+      .catch((e: unknown) => this.finish(id, job, e));
+  }
+
+  /** Takes a grid answer for `version`, but not the bricks a later commit changed. */
+  private learn(grid: LevelGrid, version: number): void {
+    const later = this.commitLog.filter((c) => c.version > version);
+    if (version < this.version && later.length < this.version - version) return; // log too short
+    const known = this.hashes[grid.level];
+    if (!known) return;
+    let i = 0;
+    for (let z = grid.min[2]; z < grid.max[2]; z++) {
+      for (let y = grid.min[1]; y < grid.max[1]; y++) {
+        for (let x = grid.min[0]; x < grid.max[0]; x++) {
+          const b = grid.bricks[i++];
+          const text = `${grid.level}/${x}/${y}/${z}`;
+          if (b && !later.some((c) => c.bricks.has(text))) {
+            known.set(this.brickIndex(grid.level, x, y, z), b);
+          }
+        }
+      }
+    }
+  }
+
+  private fetchMesh(k: TileKey, content: string): void {
+    const id = `m:${content}`;
+    const job = this.jobs.get(id);
+    if (!job) return;
+    this.counters.requests++;
+    this.api
+      .meshTile(this.info.name, k, job.version, job.controller.signal)
+      .then((buffer) => {
+        if (this.jobs.get(id) !== job) return;
+        this.counters.bytes += buffer.byteLength;
+        const mesh = decodeCompact(buffer);
+        this.remember(content, mesh.indices.length === 0 ? null : mesh);
+        this.finish(id, job, null);
+      })
+      .catch((e: unknown) => this.finish(id, job, e));
+  }
+
+  /** Keeps a tile's mesh by content key, least recently stored first out past the budget. */
+  private remember(content: string, mesh: TileMesh | null): void {
+    this.cache.set(content, mesh);
+    this.cacheBytes += mesh?.bytes ?? 0;
+    if (this.cacheBytes <= this.cacheLimit) return;
+    const inUse = new Set(this.displayed.values());
+    for (const [key, m] of this.cache) {
+      if (this.cacheBytes <= this.cacheLimit) break;
+      if (m && inUse.has(m)) continue;
+      this.cache.delete(key);
+      this.cacheBytes -= m?.bytes ?? 0;
+    }
+  }
+}
+
+function compare(a: [number, number], b: [number, number]): number {
+  return a[0] - b[0] || a[1] - b[1];
+}

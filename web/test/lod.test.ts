@@ -1,0 +1,113 @@
+import { readFileSync } from "node:fs";
+import { describe, expect, it } from "vitest";
+import {
+  adaptiveTiles,
+  keyText,
+  Layout,
+  radiiForScreenError,
+  stitchMasks,
+  tileDistance,
+  type TileKey,
+} from "../src/lod";
+
+type Vec3 = [number, number, number];
+interface Case {
+  dims: Vec3;
+  brick: number;
+  voxel_scale: Vec3;
+  camera: Vec3;
+  radii: number[];
+  tiles: [number, number, number, number][];
+}
+interface DistanceCase {
+  dims: Vec3;
+  brick: number;
+  voxel_scale: Vec3;
+  key: [number, number, number, number];
+  camera: Vec3;
+  distance: number;
+}
+
+// Written by the Rust test proto/tests/lod_vectors.rs from proto's own lod.rs.
+const vectors = JSON.parse(
+  readFileSync(new URL("../test-vectors/lod.json", import.meta.url), "utf8"),
+) as { cases: Case[]; distances: DistanceCase[] };
+
+const key = ([level, x, y, z]: number[]): TileKey => ({
+  level: level ?? 0,
+  x: x ?? 0,
+  y: y ?? 0,
+  z: z ?? 0,
+});
+
+describe("tile selection equals proto/src/lod.rs", () => {
+  it("has vectors", () => {
+    expect(vectors.cases.length).toBeGreaterThan(100);
+    expect(vectors.distances.length).toBeGreaterThan(100);
+  });
+
+  it("selects the same tiles, in the same order, for every case", () => {
+    for (const c of vectors.cases) {
+      const layout = new Layout(c.dims, c.brick);
+      const got = adaptiveTiles(layout, c.voxel_scale, c.camera, c.radii).map(keyText);
+      const want = c.tiles.map((t) => keyText(key(t)));
+      expect(got, JSON.stringify({ dims: c.dims, camera: c.camera, radii: c.radii })).toEqual(want);
+    }
+  });
+
+  it("measures the same f32 distances, bit for bit", () => {
+    for (const d of vectors.distances) {
+      const layout = new Layout(d.dims, d.brick);
+      const got = tileDistance(layout, d.voxel_scale, key(d.key), d.camera);
+      expect(got).toBe(Math.fround(d.distance));
+    }
+  });
+});
+
+describe("layout", () => {
+  it("has the grids of proto's layout tests", () => {
+    // 200x160x160, brick 16: 13x10x10, 7x5x5, 4x3x3, 2x2x2, 1x1x1 (layout.rs).
+    const l = new Layout([200, 160, 160], 16);
+    expect(l.grids).toEqual([
+      [13, 10, 10],
+      [7, 5, 5],
+      [4, 3, 3],
+      [2, 2, 2],
+      [1, 1, 1],
+    ]);
+    // Brick (1,1,1) of a 2x2x2 level over a 3x3x3 one has only child (2,2,2).
+    const m = new Layout([40, 40, 40], 16);
+    expect(m.children({ level: 1, x: 1, y: 1, z: 1 })).toEqual([{ level: 0, x: 2, y: 2, z: 2 }]);
+  });
+
+  it("rejects bad shapes", () => {
+    expect(() => new Layout([0, 1, 1], 16)).toThrow();
+    expect(() => new Layout([8, 8, 8], 12)).toThrow();
+  });
+});
+
+describe("radii for a screen error", () => {
+  it("follows 2^(k+1) s H / (2 tan(fov/2) e)", () => {
+    // 90 degrees: tan(45) = 1; H 1000, e 10: 50 per world unit; s = 2.
+    const r = radiiForScreenError(4, [1, 2, 1], Math.PI / 2, 1000, 10);
+    expect(r.map((x) => Math.round(x * 1e6) / 1e6)).toEqual([200, 400, 800]);
+    expect(radiiForScreenError(4, [1, 1, 1], Math.PI / 2, 1000, 0)).toEqual([]);
+  });
+});
+
+describe("stitch masks", () => {
+  it("marks the faces that touch a coarser tile", () => {
+    // Grids 4x1x1 (brick 8, 32x8x8) and 2x1x1, 1x1x1: select level-0 tiles 0 and 1 and the
+    // level-1 tile 1 (covering level-0 tiles 2 and 3).
+    const l = new Layout([32, 8, 8], 8);
+    const tiles = [
+      { level: 0, x: 0, y: 0, z: 0 },
+      { level: 0, x: 1, y: 0, z: 0 },
+      { level: 1, x: 1, y: 0, z: 0 },
+    ];
+    const m = stitchMasks(l, tiles);
+    expect(m.get("0/0/0/0")).toBe(0); // its +x neighbour is level 0
+    expect(m.get("0/1/0/0")).toBe(0b10); // +x touches the level-1 tile
+    expect(m.get("1/1/0/0")).toBe(0); // coarser side: nothing to stitch
+  });
+});

@@ -1,0 +1,464 @@
+// Browser tests of the viewer: Debian's chromium (playwright-core, SwiftShader WebGL2) against a
+// real `isovox serve` (the binary named by ISOVOX_BIN) on the demo world.
+//
+//   ISOVOX_BIN=target/debug/isovox node --test tests/browser.test.mjs     (in web/)
+//
+// `cargo test -p isovox-server --test web` runs this with the binary it built.
+
+import { execFileSync } from "node:child_process";
+import { copyFileSync, mkdtempSync, rmSync, writeFileSync } from "node:fs";
+import { tmpdir } from "node:os";
+import { join } from "node:path";
+import { after, before, test } from "node:test";
+import assert from "node:assert/strict";
+import { launch } from "./chromium.mjs";
+import { decodePng, pixel } from "./png.mjs";
+import { demoToken, startServer } from "./server.mjs";
+
+const BIN = process.env.ISOVOX_BIN;
+const VIEW = { width: 800, height: 500 };
+/** The sky colour of scene.ts (0x9cc4e4). */
+const SKY = [0x9c, 0xc4, 0xe4];
+/** Where the overlay text and the control panel are: left out of pixel comparisons. */
+const OVERLAY = { x: 0, y: 0, w: 520, h: 110 };
+const PANEL_W = 270;
+/** A pixel of the default view on the terrain in front (edits there are in plain sight). */
+const FRONT = { x: Math.round((VIEW.width - PANEL_W) * 0.42), y: Math.round(VIEW.height * 0.72) };
+
+let dataDir;
+let server;
+let browser;
+let token;
+
+before(async () => {
+  assert.ok(BIN, "set ISOVOX_BIN to the isovox binary");
+  dataDir = mkdtempSync(join(tmpdir(), "isovox-browser-"));
+  // The first start generates the demo world and a write token; a u16 volume joins it after.
+  const first = await startServer(BIN, dataDir);
+  await first.kill();
+  execFileSync(BIN, [
+    "generate", "ellipsoid", "-o", join(dataDir, "ell16.vod"),
+    "--dims", "96,80,64", "--brick", "16", "--type", "u16",
+  ]);
+  server = await startServer(BIN, dataDir);
+  token = demoToken(dataDir);
+  browser = await launch();
+});
+
+after(async () => {
+  await browser?.close();
+  await server?.kill();
+  if (dataDir) rmSync(dataDir, { recursive: true, force: true });
+});
+
+// --- helpers -------------------------------------------------------------------------------
+
+async function api(path, init) {
+  const r = await fetch(server.base + path, init);
+  assert.ok(r.ok, `${path}: ${r.status} ${await r.clone().text()}`);
+  return r;
+}
+
+/** A page of its own (own session storage) on `query`, with its console errors collected. */
+async function openPage(query = "") {
+  const context = await browser.newContext({ viewport: VIEW });
+  const page = await context.newPage();
+  const errors = [];
+  page.on("console", (m) => {
+    if (m.type() === "error") errors.push(m.text());
+  });
+  page.on("pageerror", (e) => errors.push(e.message));
+  await page.goto(`${server.base}/${query}`);
+  return { context, page, errors };
+}
+
+const stats = (page) => page.evaluate(() => window.isovox?.stats() ?? null);
+
+async function waitFor(page, what, predicate, timeoutMs = 60_000) {
+  const start = Date.now();
+  let last = null;
+  while (Date.now() - start < timeoutMs) {
+    last = await stats(page);
+    if (last && predicate(last)) return last;
+    await page.waitForTimeout(100);
+  }
+  throw new Error(`timed out waiting for ${what}; last stats ${JSON.stringify(last)}`);
+}
+
+/** Waits until every tile the camera needs shows its current content, and a frame drew it. */
+async function waitComplete(page, version = 0) {
+  const s = await waitFor(
+    page,
+    `the view to be complete at version ${version}`,
+    (s) => s.complete && s.completeMs !== null && s.version >= version && s.stale === 0,
+  );
+  await page.evaluate(() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r))));
+  return s;
+}
+
+let shots = 0;
+
+/** The page as on screen; also written to ISOVOX_TEST_SHOTS/ when that is set (for a failure). */
+async function screenshot(page) {
+  const png = await page.screenshot();
+  if (process.env.ISOVOX_TEST_SHOTS) {
+    writeFileSync(join(process.env.ISOVOX_TEST_SHOTS, `shot-${String(++shots).padStart(2, "0")}.png`), png);
+  }
+  return decodePng(png);
+}
+
+const isSky = (p) => Math.abs(p[0] - SKY[0]) + Math.abs(p[1] - SKY[1]) + Math.abs(p[2] - SKY[2]) < 24;
+
+function inUi(x, y) {
+  const inOverlay = x < OVERLAY.x + OVERLAY.w && y < OVERLAY.y + OVERLAY.h;
+  return inOverlay || x >= VIEW.width - PANEL_W || x < 0 || y < 0 || x >= VIEW.width || y >= VIEW.height;
+}
+
+/** Pixels of the 3D view (outside the overlay and panel) that differ by more than 24 in a channel. */
+function changedPixels(a, b, inside) {
+  let changed = 0;
+  let total = 0;
+  for (let y = 0; y < a.height; y++) {
+    for (let x = 0; x < a.width; x++) {
+      if (inUi(x, y) || !inside(x, y)) continue;
+      total++;
+      const p = pixel(a, x, y);
+      const q = pixel(b, x, y);
+      if (Math.max(...p.map((c, i) => Math.abs(c - q[i]))) > 24) changed++;
+    }
+  }
+  return { changed, total };
+}
+
+/** The demo world's voxels at a coarse level, from the API, to know where its surface is. */
+async function surfaceTops(level) {
+  const info = await (await api("/v1/volumes/demo")).json();
+  const dims = info.levels[level].dims;
+  const voxels = new Uint8Array(await (await api(`/v1/volumes/demo/levels/${level}?format=voxels`)).arrayBuffer());
+  const step = 2 ** level;
+  const world = (i, a) => ((i + 0.5) * step - 0.5) * info.voxel_scale[a];
+  /** The top surface voxel of column (i, k), as a world point, or null for an empty column. */
+  const top = (i, k) => {
+    for (let j = dims[1] - 1; j >= 0; j--) {
+      if (voxels[i + dims[0] * (j + dims[1] * k)] >= info.surface) return [world(i, 0), world(j, 1), world(k, 2)];
+    }
+    return null;
+  };
+  return { info, dims, top };
+}
+
+/** Whether the ray (origin o, direction d) meets the box [[x0, x1], [y0, y1], [z0, z1]]. */
+function hitsBox(o, d, box) {
+  let near = -Infinity;
+  let far = Infinity;
+  for (let a = 0; a < 3; a++) {
+    const [lo, hi] = box[a];
+    if (Math.abs(d[a]) < 1e-12) {
+      if (o[a] < lo || o[a] > hi) return false;
+      continue;
+    }
+    const t1 = (lo - o[a]) / d[a];
+    const t2 = (hi - o[a]) / d[a];
+    near = Math.max(near, Math.min(t1, t2));
+    far = Math.min(far, Math.max(t1, t2));
+  }
+  return near <= far && far >= 0;
+}
+
+const project = (page, p) => page.evaluate(([x, y, z]) => window.isovox.project(x, y, z), p);
+
+/** Mesh tiles the page requested after `since` (ms on its clock), as [level, x, y, z]. */
+async function meshRequests(page, since) {
+  const names = await page.evaluate(
+    (t) => performance.getEntriesByType("resource").filter((e) => e.startTime >= t).map((e) => e.name),
+    since,
+  );
+  return names
+    .map((n) => /\/meshes\/(\d+)\/(\d+)\/(\d+)\/(\d+)/.exec(n))
+    .filter(Boolean)
+    .map((m) => m.slice(1).map(Number));
+}
+
+/** Whether tile [l, x, y, z] reads a brick that `changed` (per level) lists: its 3x3x3 inputs. */
+function isStale(tile, changed) {
+  const [l, x, y, z] = tile;
+  return (changed[l] ?? []).some(([bx, by, bz]) => Math.abs(bx - x) <= 1 && Math.abs(by - y) <= 1 && Math.abs(bz - z) <= 1);
+}
+
+/** Clicks the surface at screen point `at` in edit mode, giving `tokenText` when asked. */
+async function editThroughUi(page, at, { op, primitive, size, tokenText }) {
+  await page.check("#edit-mode");
+  await page.selectOption("#op", op);
+  await page.selectOption("#primitive", primitive);
+  await page.fill("#size", String(size));
+  await page.mouse.click(at.x, at.y);
+  await page.waitForSelector("#token-form:not([hidden])");
+  await page.fill("#token", tokenText);
+  await page.click("#token-form button");
+  await page.waitForFunction(() => !/^(Applying|Enter)/.test(document.querySelector("#edit-status").textContent) && document.querySelector("#edit-status").textContent !== "");
+  return page.textContent("#edit-status");
+}
+
+// --- tests ---------------------------------------------------------------------------------
+
+test("the page loads without console errors, with WebGL2, and shows the demo world", { timeout: 120_000 }, async () => {
+  const { context, page, errors } = await openPage();
+  const s = await waitComplete(page);
+  assert.equal(s.webgl2, true, "WebGL2 context");
+  assert.equal(s.volume, "demo");
+  assert.ok(s.drawn > 0 && s.triangles > 10_000, `tiles drawn: ${JSON.stringify(s)}`);
+  const img = await screenshot(page);
+
+  // Every sampled point of the terrain's top surface (from the voxels, not from the page) is
+  // drawn as terrain, not sky.
+  const { info, dims, top } = await surfaceTops(2);
+  let onScreen = 0;
+  let terrain = 0;
+  for (let i = 4; i < dims[0]; i += 12) {
+    for (let k = 4; k < dims[2]; k += 12) {
+      const p = top(i, k);
+      if (!p) continue;
+      // A little below the top: inside the surface, not on a silhouette edge.
+      const at = await project(page, [p[0], p[1] - 3 * info.voxel_scale[1], p[2]]);
+      if (inUi(at.x, at.y)) continue;
+      onScreen++;
+      if (!isSky(pixel(img, at.x, at.y))) terrain++;
+    }
+  }
+  assert.ok(onScreen >= 20, `${onScreen} sampled surface points on screen`);
+  assert.ok(terrain >= onScreen * 0.95, `${terrain} of ${onScreen} surface points drawn as terrain`);
+
+  // Wherever the ray through a pixel misses the volume's box (grown by a coarse voxel, where
+  // the outermost vertices may lie), the pixel is sky: nothing is drawn where nothing is.
+  const margin = 2 ** info.levels.length;
+  const box = info.dims.map((d, a) => [-margin, d * info.voxel_scale[a] + margin]);
+  const rays = await page.evaluate(({ w, h }) => {
+    const out = [];
+    for (let y = 2; y < h; y += 6) for (let x = 2; x < w; x += 6) out.push({ x, y, ...window.isovox.ray(x, y) });
+    return out;
+  }, { w: VIEW.width - PANEL_W, h: VIEW.height });
+  let misses = 0;
+  for (const r of rays) {
+    if (inUi(r.x, r.y) || hitsBox(r.origin, r.direction, box)) continue;
+    misses++;
+    assert.ok(isSky(pixel(img, r.x, r.y)), `pixel (${r.x}, ${r.y}) off the volume is ${pixel(img, r.x, r.y)}, not sky`);
+  }
+  assert.ok(misses > 50, `${misses} sampled pixels look past the volume`);
+
+  // The terrain fills a good part of the view, in its own colours.
+  let ground = 0;
+  let all = 0;
+  for (let y = 0; y < img.height; y += 4) {
+    for (let x = 0; x < img.width; x += 4) {
+      if (inUi(x, y)) continue;
+      all++;
+      if (!isSky(pixel(img, x, y))) ground++;
+    }
+  }
+  assert.ok(ground > all * 0.2 && ground < all * 0.95, `terrain covers ${ground} of ${all} samples`);
+  assert.deepEqual(errors, [], "console errors");
+  await context.close();
+});
+
+test("an edit in one page changes the picture in another page at the edited place", { timeout: 180_000 }, async () => {
+  const a = await openPage();
+  const b = await openPage();
+  await waitComplete(a.page);
+  const before = await waitComplete(b.page);
+  const beforeImg = await screenshot(b.page);
+  const since = await b.page.evaluate(() => performance.now());
+
+  // A point of the terrain in front, where the edit's box shows.
+  const at = FRONT;
+  assert.ok(!isSky(pixel(beforeImg, at.x, at.y)), "the edit point is on the terrain");
+  const status = await editThroughUi(a.page, at, { op: "union", primitive: "cuboid", size: 24, tokenText: token });
+  const m = /Applied as version (\d+)/.exec(status);
+  assert.ok(m, `edit status: ${status}`);
+  const version = Number(m[1]);
+  assert.ok(version > before.version);
+
+  const after = await waitComplete(b.page, version);
+  const afterImg = await screenshot(b.page);
+  const near = changedPixels(beforeImg, afterImg, (x, y) => Math.hypot(x - at.x, y - at.y) < 20);
+  const far = changedPixels(beforeImg, afterImg, (x, y) => Math.hypot(x - at.x, y - at.y) > 150);
+  assert.ok(near.changed > near.total * 0.2, `near the edit ${near.changed} of ${near.total} pixels changed`);
+  assert.ok(far.changed <= far.total * 0.002, `far from the edit ${far.changed} of ${far.total} pixels changed`);
+
+  // Page B fetched exactly tiles the edit made stale.
+  const changes = await (await api(`/v1/volumes/demo/changes?since=${before.version}`)).json();
+  // Changed bricks per level, over every version since.
+  const changed = [];
+  for (const c of changes.changes) c.changed.forEach((bricks, level) => (changed[level] = [...(changed[level] ?? []), ...bricks]));
+  const fetched = await meshRequests(b.page, since);
+  assert.ok(fetched.length > 0, "the stale tiles were fetched");
+  for (const t of fetched) assert.ok(isStale(t, changed), `tile ${t} was fetched but not stale`);
+  assert.equal(after.stale, 0);
+  await a.context.close();
+  await b.context.close();
+});
+
+test("the slice view's pixels are the voxels GET /bricks returns (u8, and u16 through window/level)", { timeout: 120_000 }, async () => {
+  for (const { query, volume, window: wl } of [
+    { query: "?volume=demo&slice=z:200", volume: "demo", window: null },
+    { query: "?volume=ell16&slice=y:37", volume: "ell16", window: { width: 20000, center: 30000 } },
+  ]) {
+    const { context, page, errors } = await openPage(query);
+    await page.waitForSelector("#slice[data-version]");
+    if (wl) {
+      await page.evaluate(({ width, center }) => {
+        for (const [id, v] of [["slice-width", width], ["slice-center", center]]) {
+          const input = document.getElementById(id);
+          input.value = String(v);
+          input.dispatchEvent(new Event("input"));
+        }
+      }, wl);
+    }
+    const shown = await page.evaluate(() => {
+      const c = document.getElementById("slice");
+      const d = c.getContext("2d").getImageData(0, 0, c.width, c.height).data;
+      return { ...c.dataset, w: c.width, h: c.height, red: Array.from(d.filter((_, i) => i % 4 === 0)) };
+    });
+    const info = await (await api(`/v1/volumes/${volume}`)).json();
+    const level = Number(shown.level);
+    const index = Number(shown.index);
+    const axis = { x: 0, y: 1, z: 2 }[shown.axis];
+    assert.equal(shown.axis, query.includes("slice=z") ? "z" : "y");
+    const l = info.levels[level];
+    // Columns and rows of the plane (see slice.ts): z: x right, y up; y: x right, z down.
+    const [col, row, rowDown] = axis === 2 ? [0, 1, false] : [0, 2, true];
+    assert.equal(shown.w, l.dims[col]);
+    assert.equal(shown.h, l.dims[row]);
+    const b = info.brick;
+    const u16 = info.voxel_type === "u16";
+    const grey = (v) => {
+      const width = wl?.width ?? info.high - info.low;
+      const center = wl?.center ?? info.low + (info.high - info.low) / 2;
+      return Math.min(255, Math.max(0, Math.round(((v - (center - width / 2)) * 255) / width)));
+    };
+    let compared = 0;
+    for (let bj = 0; bj < l.grid[row]; bj++) {
+      for (let bi = 0; bi < l.grid[col]; bi++) {
+        const key = [0, 0, 0];
+        key[axis] = Math.floor(index / b);
+        key[col] = bi;
+        key[row] = bj;
+        const body = await (await api(`/v1/volumes/${volume}/bricks/${level}/${key.join("/")}`)).arrayBuffer();
+        const voxels = u16 ? new Uint16Array(body) : new Uint8Array(body);
+        assert.equal(voxels.length, b ** 3);
+        for (let v = 0; v < b; v++) {
+          for (let u = 0; u < b; u++) {
+            const cu = bi * b + u;
+            const rv = bj * b + v;
+            if (cu >= shown.w || rv >= shown.h) continue;
+            const q = [0, 0, 0];
+            q[axis] = index % b;
+            q[col] = u;
+            q[row] = v;
+            const value = voxels[q[0] + b * (q[1] + b * q[2])];
+            const y = rowDown ? rv : shown.h - 1 - rv;
+            const got = shown.red[y * shown.w + cu];
+            if (got !== grey(value)) {
+              assert.fail(`${volume} pixel (${cu}, ${y}) is ${got}, voxel ${value} gives ${grey(value)}`);
+            }
+            compared++;
+          }
+        }
+      }
+    }
+    assert.equal(compared, shown.w * shown.h);
+    assert.deepEqual(errors, []);
+    await context.close();
+  }
+});
+
+test("a wrong token shows an error in words and changes nothing", { timeout: 120_000 }, async () => {
+  const { context, page } = await openPage();
+  const s = await waitComplete(page);
+  const beforeImg = await screenshot(page);
+  const at = FRONT;
+  const status = await editThroughUi(page, at, {
+    op: "difference",
+    primitive: "ellipsoid",
+    size: 20,
+    tokenText: "not-the-write-token-0123456789",
+  });
+  assert.match(status, /refused the write token \(401 Unauthorized\): nothing was changed/);
+  assert.equal(await page.getAttribute("#edit-status", "class"), "error");
+  const info = await (await api("/v1/volumes/demo")).json();
+  assert.equal(info.version, s.version, "the volume's version did not move");
+  await page.waitForTimeout(500);
+  const afterImg = await screenshot(page);
+  const diff = changedPixels(beforeImg, afterImg, () => true);
+  assert.equal(diff.changed, 0, `${diff.changed} pixels of the view changed`);
+  // The refused token is forgotten: the next edit asks for one again.
+  await page.mouse.click(at.x, at.y);
+  await page.waitForSelector("#token-form:not([hidden])");
+  await context.close();
+});
+
+test("the page survives a server restart and catches up with what changed meanwhile", { timeout: 180_000 }, async () => {
+  const { context, page } = await openPage();
+  const before = await waitComplete(page);
+  const beforeImg = await screenshot(page);
+  // The surface point under a pixel of the terrain in front, where the carving shows.
+  const at = FRONT;
+  const p = await page.evaluate(({ x, y }) => window.isovox.pick(x, y), at);
+  assert.ok(p, "a surface point under the pixel");
+
+  await server.kill();
+  await waitFor(page, "the feed to notice", (s) => s.feed === "reconnecting");
+  // While no server runs, an edit is committed to the file from the command line.
+  const since = await page.evaluate(() => performance.now());
+  execFileSync(BIN, [
+    "edit", join(dataDir, "demo.vod"), "--op", "difference",
+    "--ellipsoid", `${Math.round(p[0])},${Math.round(p[1])},${Math.round(p[2])},32,32,32`,
+  ]);
+  server = await startServer(BIN, dataDir, { addr: server.addr });
+
+  const after = await waitComplete(page, before.version + 1);
+  assert.equal(after.version, before.version + 1);
+  assert.equal(after.feed, "live");
+  const afterImg = await screenshot(page);
+  const near = changedPixels(beforeImg, afterImg, (x, y) => Math.hypot(x - at.x, y - at.y) < 15);
+  assert.ok(near.changed > near.total * 0.15, `near the carved place ${near.changed} of ${near.total} pixels changed`);
+  const changes = await (await api(`/v1/volumes/demo/changes?since=${before.version}`)).json();
+  const fetched = await meshRequests(page, since);
+  assert.ok(fetched.length > 0);
+  for (const t of fetched) assert.ok(isStale(t, changes.changes[0].changed), `tile ${t} was fetched but not stale`);
+  await context.close();
+});
+
+test("over HTTPS the page loads with HTTP/2, its requests sharing one connection", { timeout: 120_000 }, async () => {
+  // A server of its own on a copy of the demo world, with a self-signed certificate.
+  const dir = mkdtempSync(join(tmpdir(), "isovox-tls-"));
+  copyFileSync(join(dataDir, "demo.vod"), join(dir, "demo.vod"));
+  const [cert, key] = [join(dir, "cert.pem"), join(dir, "key.pem")];
+  execFileSync("openssl", [
+    "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-days", "2",
+    "-subj", "/CN=127.0.0.1", "-addext", "subjectAltName=IP:127.0.0.1", "-keyout", key, "-out", cert,
+  ], { stdio: "ignore" });
+  const tls = await startServer(BIN, dir, { extraArgs: ["--tls-cert", cert, "--tls-key", key] });
+  const secure = await launch(["--ignore-certificate-errors"]);
+  try {
+    assert.match(tls.base, /^https:/);
+    const context = await secure.newContext({ viewport: VIEW });
+    const page = await context.newPage();
+    await page.goto(`${tls.base}/`);
+    const s = await waitComplete(page);
+    assert.equal(s.protocol, "h2");
+    assert.ok(s.triangles > 10_000 && s.webgl2);
+    // Every answered API request (requests the viewer cancelled have no status and no protocol).
+    const protocols = await page.evaluate(() =>
+      performance
+        .getEntriesByType("resource")
+        .filter((e) => e.name.includes("/v1/") && e.responseStatus > 0)
+        .map((e) => e.nextHopProtocol),
+    );
+    assert.ok(protocols.length > 10);
+    assert.deepEqual([...new Set(protocols)], ["h2"]);
+  } finally {
+    await secure.close();
+    await tls.kill();
+    rmSync(dir, { recursive: true, force: true });
+  }
+});
