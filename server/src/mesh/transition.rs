@@ -14,13 +14,20 @@
 //!
 //! - **Secondary positions.** The fine tile's blocks of 2x2 boundary cells start at even lattice
 //!   coordinates, so its faces are taken over `[lo', hi]`, `lo'` being `lo` rounded down to even
-//!   (-2 for a tile that is first on an axis, whose cells start at -1). A lattice point on exactly
-//!   one face of that box moves inwards by [`WIDTH`] fine cells when that face touches a coarser
-//!   neighbour; points on the box's edges and corners never move. A vertex moves by the
-//!   interpolation of its edge's endpoint moves. So a face shared with a tile of the same or a
-//!   finer level keeps its place, whatever the tiles around know of each other: a tile knows
-//!   its six face neighbours, never the ones across its edges. [`mesh_transitions`] writes the
-//!   moves as [`VertexMove`]s, "move vertex i by d when face f touches a coarser neighbour".
+//!   (-2 for a tile that is first on an axis, whose cells start at -1). A lattice point of face
+//!   f moves inwards by [`WIDTH`] fine cells when f touches a coarser neighbour, unless it also
+//!   lies on another face g beyond which that coarser tile ends: then it stays. The coarser
+//!   tile across f goes on beyond g exactly when the tile across g is this tile's sibling (in
+//!   the same parent; or when no tile lies across g), which a tile knows from its own position.
+//!   Then every tile sharing the point sees the same coarser tile across f and moves the point
+//!   alike (the 2:1 rule makes the sibling the same level); otherwise the tiles around that
+//!   edge may be of either level, and only staying is safe. So a face shared with a tile of the
+//!   same or a finer level keeps its place, whatever the tiles around know of each other: a
+//!   tile knows its six face neighbours, never the ones across its edges. No point moves with
+//!   two faces at once (when f touches a coarser tile, the tiles beyond f's edges that move
+//!   with f are siblings, and a sibling is never coarser). A vertex moves by the interpolation
+//!   of its edge's endpoint moves. [`mesh_transitions`] writes the moves as [`VertexMove`]s,
+//!   "move vertex i by d when face f touches a coarser neighbour".
 //! - **Strips.** For each face, one transition cell per 2x2 block of boundary cells (the 13
 //!   samples of [`super::transition_table`]): its fine face is the 3x3 samples of the tile's
 //!   own face plane, at their secondary positions, and its fine-face vertices *are* the regular
@@ -30,20 +37,22 @@
 //!   own formula in the coarse tile's frame and then doubled into this tile's frame (exact in
 //!   f32), so they are the coarse tile's vertices bit for bit after the same world transform.
 //!   The edges joining a fine corner to its coarse twin have length [`WIDTH`].
-//! - **Strip ends.** At the box's edges the fine samples stay on the face plane, so the lateral
-//!   side of a strip's last cell collapses onto the edge: three fine and two coarse samples on
-//!   one line. Such a side is cut by its positions, not by the table: the line carries a segment
-//!   wherever exactly one of the fine and the coarse interpolant is inside (their symmetric
-//!   difference, whose intervals start and end at the side's crossings). That depends on the
-//!   side's samples alone, so it is drawn identically by the strip on the other side of the
-//!   edge, which meets the same coarse tile (or its same-level neighbour) with the same fine
-//!   samples: the next strip of this tile, the same face's strip of the tile beside, or the
-//!   strip with which the tile diagonally across meets the coarse tile from its other face.
-//!   The cells at a strip's ends are traced at run time, the others take their loops from the
-//!   table; every loop is triangulated by minimum area in the cell's drawn shape (a loop lying
-//!   flat on the fine face is then always triangulated without overlap), never joining two
-//!   vertices of a collapsed side by a diagonal (it would lie on that side, where the strip
-//!   across the edge draws too).
+//! - **Strip ends.** Where the coarser tile's face ends on an edge of the box, the fine samples
+//!   on that edge stay on the face plane, so the lateral side of the strip's last cell
+//!   collapses onto the edge: three fine and two coarse samples on one line. Such a side is cut
+//!   by its positions, not by the table: the line carries a segment wherever exactly one of the
+//!   fine and the coarse interpolant is inside (their symmetric difference, whose intervals
+//!   start and end at the side's crossings). That depends on the side's samples alone, so it
+//!   is drawn identically by the strip on the other side of the edge, which meets the same
+//!   coarse tile (or its same-level neighbour) with the same fine samples: the same face's
+//!   strip of the tile beside, or the strip with which the tile diagonally across meets the
+//!   coarse tile from its other face. Where the coarser tile goes on beyond the edge, the
+//!   side is an ordinary one, shared with the strip of the sibling beside. The cells at a
+//!   strip's ends are traced at run time, the others take their loops from the table; every
+//!   loop is triangulated by minimum area in the cell's drawn shape (a loop lying flat on the
+//!   fine face is then always triangulated without overlap), never joining two vertices of a
+//!   collapsed side by a diagonal (it would lie on that side, where the strip across the edge
+//!   draws too).
 //! - **Drawing.** A viewer computes each tile's 6-bit mask of faces touching a coarser
 //!   neighbour (`isovox_proto::lod::face_masks`), applies the moves of those faces and draws
 //!   their strips (`isovox_proto::mesh::stitch`). With mask 0 a tile is its regular mesh,
@@ -107,11 +116,33 @@ impl TransitionInput<'_> {
         self.lo.map(|c| c - c.rem_euclid(2))
     }
 
-    /// The face lattice point `p` moves with, if it moves: it lies on exactly one face of the
-    /// box, and that face is one of ours.
-    fn moving_face(&self, p: [i64; 3]) -> Option<usize> {
+    /// Whether the tile is the upper child of its parent on each axis (its frame is not twice
+    /// its parent's).
+    fn upper_child(&self, axis: usize) -> bool {
+        self.frame[axis] != 2 * self.coarse_frame[axis]
+    }
+
+    /// Whether a coarser tile across any other face reaches on beyond face `g` of the tile: no
+    /// tile lies across `g` (the volume ends there), or the tile across `g` is this tile's
+    /// sibling, in the same parent, so that a level-(k+1) tile across a face f covers the slot
+    /// across f and `g` too.
+    fn reaches_past(&self, g: usize) -> bool {
+        let high = g & 1 == 1;
+        self.faces >> g & 1 == 0 || high != self.upper_child(g / 2)
+    }
+
+    /// The faces lattice point `p` of the box moves with (a face mask): face `f` when `p` lies
+    /// on `f` and the coarser tile across `f` reaches beyond every other face `p` lies on (see
+    /// the module doc). At most one of them can touch a coarser tile at a time.
+    fn moving_faces(&self, p: [i64; 3]) -> u8 {
         let on = faces_of(p, self.box_lo(), self.hi);
-        (on.count_ones() == 1 && on & self.faces != 0).then(|| on.trailing_zeros() as usize)
+        let mut moving = 0;
+        for f in (0..6).filter(|&f| (on & self.faces) >> f & 1 == 1) {
+            if (0..6).all(|g| g == f || on >> g & 1 == 0 || self.reaches_past(g)) {
+                moving |= 1 << f;
+            }
+        }
+        moving
     }
 }
 
@@ -121,7 +152,9 @@ pub struct TransitionScratch {
     /// Transition vertices already made: on a coarse edge (lower point, axis) or at a fine
     /// corner's connecting edge (axis 3).
     made: HashMap<([i64; 3], u8), u32>,
-    /// The move of each regular vertex (zero when it does not move).
+    /// The number of regular vertices; transition vertices are numbered after them.
+    regular: usize,
+    /// The move of each regular vertex with the face whose strip is being built.
     offsets: Vec<[f32; 3]>,
     /// One loop's vertices, drawn positions and collapsed sides.
     loop_ids: Vec<u32>,
@@ -158,30 +191,44 @@ pub fn mesh_transitions(
     if input.faces == 0 {
         return;
     }
+    scratch.regular = regular.positions.len();
     scratch.offsets.clear();
     scratch.offsets.resize(regular.positions.len(), [0.0; 3]);
     for b in &march.border {
         let mut p1 = b.p0;
         p1[b.axis as usize] += 1;
-        let (f0, f1) = (input.moving_face(b.p0), input.moving_face(p1));
-        // Both endpoints move only on one face: a point next to a point of face f that lies on
-        // another face lies on f's plane too, on an edge of the box, and stays.
-        let (face, offset) = match (f0, f1) {
-            (Some(f), Some(g)) if f == g => (f, displacement(f, 1.0)),
-            (Some(f), None) => (f, displacement(f, 1.0 - b.t)),
-            (None, Some(g)) => (g, displacement(g, b.t)),
-            _ => continue,
-        };
-        out.moves.push(VertexMove {
-            vertex: b.id,
-            faces: 1 << face,
-            offset,
-        });
-        scratch.offsets[b.id as usize] = offset;
+        let (f0, f1) = (input.moving_faces(b.p0), input.moving_faces(p1));
+        // A vertex moves with a face by the interpolation of its endpoints' moves with it.
+        for face in (0..6).filter(|&f| (f0 | f1) >> f & 1 == 1) {
+            let k = match (f0 >> face & 1, f1 >> face & 1) {
+                (1, 1) => 1.0,
+                (1, _) => 1.0 - b.t,
+                _ => b.t,
+            };
+            out.moves.push(VertexMove {
+                vertex: b.id,
+                faces: 1 << face,
+                offset: displacement(face, k),
+            });
+        }
     }
+    let regular_moves = out.moves.len();
     for face in 0..6 {
-        if input.faces >> face & 1 == 1 {
-            strip(input, face, regular, march, out, scratch);
+        if input.faces >> face & 1 == 0 {
+            continue;
+        }
+        // The strip is drawn with the moves of its own face only: when face f touches a
+        // coarser tile, no point of f moves with another face (`moving_faces`).
+        let own = |m: &&VertexMove| m.faces == 1 << face;
+        for m in out.moves[..regular_moves].iter().filter(own) {
+            scratch.offsets[m.vertex as usize] = m.offset;
+        }
+        strip(input, face, regular, march, out, scratch);
+        for i in 0..regular_moves {
+            let m = out.moves[i];
+            if m.faces == 1 << face {
+                scratch.offsets[m.vertex as usize] = [0.0; 3];
+            }
         }
     }
 }
@@ -323,8 +370,14 @@ fn strip(
                 continue;
             }
             cell.base = (u0 + bu as i64, v0 + bv as i64);
-            // The sides on the box's edges, in SIDES order (u = 0, u = 2, v = 0, v = 2).
-            let collapsed = [bu == 0, bu + 2 == nu, bv == 0, bv + 2 == nv];
+            // The sides on the box's edges where the coarser tile's face ends, in SIDES order
+            // (u = 0, u = 2, v = 0, v = 2): their fine samples stay on the face plane.
+            let collapsed = [
+                bu == 0 && !input.reaches_past(2 * ua),
+                bu + 2 == nu && !input.reaches_past(2 * ua + 1),
+                bv == 0 && !input.reaches_past(2 * va),
+                bv + 2 == nv && !input.reaches_past(2 * va + 1),
+            ];
             transition_cell(&cell, case, collapsed, table, regular, march, out, scratch);
         }
     }
@@ -404,52 +457,43 @@ fn transition_cell(
     } else {
         table.loops(case).collect()
     };
-    let (loop_ids, points, lines) = (
-        &mut scratch.loop_ids,
-        &mut scratch.points,
-        &mut scratch.lines,
-    );
+    let mut pieces: Vec<Vec<usize>> = Vec::new();
     for lp in loops {
         // Consecutive vertices at one position (a fine and a coarse crossing that coincide on a
         // collapsed side) are one vertex.
-        loop_ids.clear();
-        points.clear();
+        scratch.loop_ids.clear();
+        scratch.points.clear();
         // The collapsed sides each vertex lies on: a diagonal between two vertices of one
         // collapsed side would lie on it, where the cell across the edge draws too.
-        lines.clear();
+        scratch.lines.clear();
         for &e in lp {
             let p = drawn[e as usize];
-            if points.last() != Some(&p) {
-                loop_ids.push(ids[e as usize]);
-                points.push(p);
+            if scratch.points.last() != Some(&p) {
+                scratch.loop_ids.push(ids[e as usize]);
+                scratch.points.push(p);
                 let (a, b) = EDGES[e as usize];
-                lines.push(
+                scratch.lines.push(
                     (0..SIDES)
                         .filter(|&s| collapsed[s] && on_side(a, s) && on_side(b, s))
                         .fold(0, |m, s| m | 1 << s),
                 );
             }
         }
-        if points.len() > 1 && points.first() == points.last() {
-            points.pop();
-            loop_ids.pop();
-            lines.pop();
+        if scratch.points.len() > 1 && scratch.points.first() == scratch.points.last() {
+            scratch.points.pop();
+            scratch.loop_ids.pop();
+            scratch.lines.pop();
         }
+        let points = &scratch.points;
         // Two vertices of the loop at one position (a fine and a coarse crossing where the two
         // contours cross on a collapsed side) pinch it into two loops that touch there; each is
         // triangulated on its own, so that no vertex is joined to both.
         let n = points.len();
-        let pinched =
-            (0..n).any(|a| (a + 2..n).any(|b| points[a] == points[b] && !(a == 0 && b + 1 == n)));
-        if !pinched {
-            let refused = |i: usize, j: usize| lines[i] & lines[j] != 0;
-            for t in triangulate(points, 1e-12, refused) {
-                out.strips[cell.face].extend(t.map(|i| loop_ids[i]));
-            }
-            continue;
-        }
-        let mut pieces = vec![(0..n).collect::<Vec<usize>>()];
-        while let Some(piece) = pieces.pop() {
+        pieces.clear();
+        pieces.push((0..n).collect());
+        let mut at = 0;
+        while at < pieces.len() {
+            let piece = &pieces[at];
             let twin = (0..piece.len()).find_map(|a| {
                 (a + 2..piece.len())
                     .find(|&b| {
@@ -457,17 +501,46 @@ fn transition_cell(
                     })
                     .map(|b| (a, b))
             });
-            if let Some((a, b)) = twin {
-                pieces.push(piece[a..b].to_vec());
-                pieces.push(piece[b..].iter().chain(&piece[..a]).copied().collect());
-                continue;
-            }
-            let pts: Vec<[f64; 3]> = piece.iter().map(|&i| points[i]).collect();
-            let refused = |i: usize, j: usize| lines[piece[i]] & lines[piece[j]] != 0;
-            for t in triangulate(&pts, 1e-12, refused) {
-                out.strips[cell.face].extend(t.map(|i| loop_ids[piece[i]]));
+            match twin {
+                Some((a, b)) => {
+                    let piece = std::mem::take(&mut pieces[at]);
+                    pieces.push(piece[a..b].to_vec());
+                    pieces.push(piece[b..].iter().chain(&piece[..a]).copied().collect());
+                }
+                None => at += 1,
             }
         }
+        for piece in pieces.iter().filter(|p| p.len() >= 3) {
+            let ids: Vec<u32> = piece.iter().map(|&i| scratch.loop_ids[i]).collect();
+            let pts: Vec<[f64; 3]> = piece.iter().map(|&i| points[i]).collect();
+            let lines: Vec<u8> = piece.iter().map(|&i| scratch.lines[i]).collect();
+            let shape = LoopShape {
+                ids: &ids,
+                points: &pts,
+                lines: &lines,
+            };
+            triangulate_loop(cell.face, &shape, out);
+        }
+    }
+}
+
+/// One loop (or a piece of a pinched one) of a transition cell: its vertices, their drawn
+/// positions, and the collapsed sides each lies on (a bit per side).
+struct LoopShape<'a> {
+    ids: &'a [u32],
+    points: &'a [[f64; 3]],
+    lines: &'a [u8],
+}
+
+/// Triangulates one loop of a transition cell into the strip of `face` by minimum area,
+/// never joining two vertices of one collapsed side by a diagonal (it would lie on that line,
+/// where the strip across the edge draws too).
+fn triangulate_loop(face: usize, shape: &LoopShape<'_>, out: &mut Transitions) {
+    let (ids, lines) = (shape.ids, shape.lines);
+    let refused = |i: usize, j: usize| lines[i] & lines[j] != 0;
+    let (tris, _) = triangulate(shape.points, 1e-12, refused, |_, _, _| false);
+    for t in tris {
+        out.strips[face].extend(t.map(|i| ids[i]));
     }
 }
 
@@ -535,7 +608,7 @@ fn coarse_vertex(
 ) -> (u32, [f32; 3]) {
     let key = (q0, axis as u8);
     if let Some(&id) = scratch.made.get(&key) {
-        return (id, out.positions[(id as usize) - scratch.offsets.len()]);
+        return (id, out.positions[(id as usize) - scratch.regular]);
     }
     let (t, normal) = input.coarse.crossing(q0, axis, input.iso);
     let (cf, f) = (input.coarse_frame, input.frame);
@@ -572,11 +645,14 @@ fn connecting_vertex(
     let q = p.map(|c| c.div_euclid(2));
     let (vf, vc) = (input.fine.value(p), input.coarse.value(q));
     let s = (input.iso - vf) / (vc - vf);
-    let moving = input.moving_face(p);
-    let offset = moving.map(|f| displacement(f, 1.0 - s));
-    let drawn = match offset {
-        Some(d) => [0, 1, 2].map(|b| primary[b] + d[b]),
-        None => primary,
+    // It moves with each face its fine corner moves with; drawn in this strip with the moves
+    // of this strip's face.
+    let moving = input.moving_faces(p);
+    let drawn = if moving >> face & 1 == 1 {
+        let d = displacement(face, 1.0 - s);
+        [0, 1, 2].map(|b| primary[b] + d[b])
+    } else {
+        primary
     };
     let key = (p, 3);
     if let Some(&id) = scratch.made.get(&key) {
@@ -597,26 +673,26 @@ fn connecting_vertex(
         d
     };
     let id = push_vertex(out, scratch, primary, normal);
-    if let (Some(f), Some(d)) = (moving, offset) {
+    for f in (0..6).filter(|&f| moving >> f & 1 == 1) {
         out.moves.push(VertexMove {
             vertex: id,
             faces: 1 << f,
-            offset: d,
+            offset: displacement(f, 1.0 - s),
         });
     }
     scratch.made.insert(key, id);
     (id, drawn)
 }
 
-/// Appends a transition vertex; its index follows the regular vertices (as many as
-/// `scratch.offsets`) and the transition vertices before it.
+/// Appends a transition vertex; its index follows the regular vertices and the transition
+/// vertices before it.
 fn push_vertex(
     out: &mut Transitions,
     scratch: &TransitionScratch,
     pos: [f32; 3],
     normal: [f32; 3],
 ) -> u32 {
-    let id = (scratch.offsets.len() + out.positions.len()) as u32;
+    let id = (scratch.regular + out.positions.len()) as u32;
     out.positions.push(pos);
     out.normals.push(normal);
     id

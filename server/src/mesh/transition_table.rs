@@ -242,29 +242,36 @@ pub fn area(a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> f64 {
 
 /// The minimum-area triangulation of a polygon with corners `points` (in order; the
 /// triangles, as corner indices, keep that winding), refusing, as long as another triangulation
-/// exists, triangles with an area below `flat` and diagonals (i, j) with `refused(i, j)`. On a
-/// flat polygon the minimum is a triangulation without overlap (any overlap adds area).
+/// exists, triangles with an area below `flat`, diagonals (i, j) with `refused(i, j)` and
+/// triangles (i, k, j) with `refused_triangle(i, k, j)`; and whether it could refuse them all.
+/// On a flat polygon the minimum is a triangulation without overlap (any overlap adds area).
 pub fn triangulate(
     points: &[[f64; 3]],
     flat: f64,
     refused: impl Fn(usize, usize) -> bool,
-) -> Vec<[usize; 3]> {
+    refused_triangle: impl Fn(usize, usize, usize) -> bool,
+) -> (Vec<[usize; 3]>, bool) {
     let n = points.len();
     if n < 3 {
-        return Vec::new();
+        return (Vec::new(), true);
     }
     assert!(
         n <= EDGES.len(),
         "a loop visits each of the cell's edges at most once"
     );
     if n == 3 {
-        return vec![[0, 1, 2]];
+        let clean = area(points[0], points[1], points[2]) >= flat && !refused_triangle(0, 1, 2);
+        return (vec![[0, 1, 2]], clean);
     }
     const REFUSED: f64 = 1e9;
     let diagonal = |i: usize, j: usize| j != i + 1 && !(i == 0 && j == n - 1) && refused(i, j);
     let weight = |i: usize, k: usize, j: usize| {
         let a = area(points[i], points[k], points[j]);
-        let refuse = a < flat || diagonal(i, k) || diagonal(k, j) || diagonal(i, j);
+        let refuse = a < flat
+            || diagonal(i, k)
+            || diagonal(k, j)
+            || diagonal(i, j)
+            || refused_triangle(i, k, j);
         a + if refuse { REFUSED } else { 0.0 }
     };
     // cost[i][j]: best triangulation of the sub-polygon i..=j; split[i][j]: its apex.
@@ -298,14 +305,15 @@ pub fn triangulate(
         stack[top + 1] = (k, j);
         top += 2;
     }
-    out
+    (out, cost[0][n - 1] < REFUSED)
 }
 
 /// [`triangulate`] with the vertices at their edges' midpoints, the triangles as edges.
 #[cfg(test)]
 fn triangulate_loop(lp: &[u8]) -> Vec<u8> {
     let points: Vec<[f64; 3]> = lp.iter().map(|&e| drawn_midpoint(e)).collect();
-    triangulate(&points, 1e-9, |_, _| false)
+    triangulate(&points, 1e-9, |_, _| false, |_, _, _| false)
+        .0
         .into_iter()
         .flat_map(|t| t.map(|i| lp[i]))
         .collect()
