@@ -93,7 +93,9 @@ pub const FACE_NAMES: [&str; 6] = ["-x", "+x", "-y", "+y", "-z", "+z"];
 pub struct VertexMove {
     /// An index into the tile's regular vertices followed by its transition vertices.
     pub vertex: u32,
+    /// The faces (a face mask) that must all touch a coarser neighbour for the move to apply.
     pub faces: u8,
+    /// What is added to the vertex's position.
     pub offset: [f32; 3],
 }
 
@@ -112,6 +114,7 @@ pub struct Transitions {
     /// Vertices of the strips that are not regular vertices; their indices follow the regular
     /// mesh's.
     pub positions: Vec<[f32; 3]>,
+    /// Their unit normals.
     pub normals: Vec<[f32; 3]>,
     /// In order; several moves of one vertex add up.
     pub moves: Vec<VertexMove>,
@@ -121,6 +124,7 @@ pub struct Transitions {
 }
 
 impl Transitions {
+    /// Empties it, keeping its memory.
     pub fn clear(&mut self) {
         self.positions.clear();
         self.normals.clear();
@@ -130,6 +134,7 @@ impl Transitions {
         }
     }
 
+    /// Whether it holds nothing: no vertex, no move, no strip.
     pub fn is_empty(&self) -> bool {
         self.positions.is_empty() && self.moves.is_empty() && self.strips.iter().all(Vec::is_empty)
     }
@@ -143,7 +148,9 @@ impl Transitions {
 /// One tile: its regular mesh and its transition data.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct TileMesh {
+    /// The mesh drawn when no face touches a coarser neighbour.
     pub mesh: Mesh,
+    /// What joins it to coarser neighbours.
     pub transitions: Transitions,
 }
 

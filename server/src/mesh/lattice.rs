@@ -33,6 +33,22 @@ pub fn weights(level: u8) -> [f64; 4] {
     ]
 }
 
+/// Bounds of the lattice values of `level` computed from stored voxels within `[min, max]`:
+/// Catmull-Rom's negative weights let a value overshoot the range by a fraction of its width
+/// (none when the voxels are all equal), and rounding adds at most a half. Level 0 is exact.
+pub fn value_range(level: u8, min: f32, max: f32) -> (f32, f32) {
+    if level == 0 {
+        return (min, max);
+    }
+    let w = weights(level);
+    let negative: f64 = w.iter().filter(|&&x| x < 0.0).map(|x| -x).sum();
+    let positive = 1.0 + negative;
+    // The weights of three axes multiply: the products with an odd number of negative factors.
+    let overshoot = 3.0 * positive * positive * negative + negative.powi(3);
+    let spill = (overshoot * f64::from(max - min)) as f32;
+    (min - spill - 0.5, max + spill + 0.5)
+}
+
 /// Resamples stored voxels of `level` onto the level's lattice: for a field of stored voxels
 /// covering `[s, e]` (inclusive) on each axis, writes into `out` the lattice values of
 /// `[s + 2, e - 1]` and returns them as a field. Level 0 copies the voxels of `[s + 2, e - 1]`.
@@ -137,6 +153,36 @@ mod tests {
         // A constant stays itself; level 0 copies.
         assert_eq!(one_point(&[200.0; 64], 3), 200.0);
         assert_eq!(one_point(&values, 0), 128.0);
+    }
+
+    #[test]
+    fn value_ranges_bound_every_lattice_value() {
+        // Level 1 by hand: the negative weights sum to 12/128 per axis, the positive ones to
+        // 140/128; three axes overshoot by 3 (140/128)^2 (12/128) + (12/128)^3 = 0.337280 of
+        // the width, plus a half for rounding.
+        let (lo, hi) = value_range(1, 0.0, 100.0);
+        assert!(
+            (lo + 34.228).abs() < 1e-3 && (hi - 134.228).abs() < 1e-3,
+            "{lo} {hi}"
+        );
+        assert_eq!(value_range(0, 3.0, 9.0), (3.0, 9.0));
+        assert_eq!(value_range(2, 7.0, 7.0), (6.5, 7.5));
+        // The worst pattern for one lattice point reaches the bound (0 where a product of
+        // weights is negative, 100 where it is positive).
+        let w = weights(1);
+        let values: Vec<f32> = (0..64)
+            .map(|i| {
+                let p = w[i % 4] * w[i / 4 % 4] * w[i / 16];
+                if p > 0.0 {
+                    100.0
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let v = one_point(&values, 1);
+        assert_eq!(v, 134.0);
+        assert!(v <= hi);
     }
 
     #[test]

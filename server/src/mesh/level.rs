@@ -1,10 +1,11 @@
-//! Whole levels and adaptive selections of tiles, meshed in parallel and welded.
+//! Whole levels and adaptive selections of tiles, meshed in parallel, stitched and welded.
 
 use super::mc::Mesh;
-use super::tile::{mesh_tile, TileScratch};
+use super::tile::{mesh_tile, mesh_tile_with_transitions, TileScratch};
 use crate::progress::Progress;
 use crate::store::decoded::DecodedBricks;
 use crate::store::{Snapshot, StoreError};
+use isovox_proto::mesh::{stitch, TileMesh};
 use isovox_proto::BrickKey;
 use rayon::prelude::*;
 use std::collections::HashMap;
@@ -27,9 +28,16 @@ pub fn level_tiles(snap: &Snapshot, level: u8) -> Vec<BrickKey> {
 }
 
 /// The tiles the thesis's spherical detail bias selects for `camera` (see
-/// [`isovox_proto::lod::adaptive_tiles`], which the client's streamer uses too).
+/// [`isovox_proto::lod::adaptive_tiles`]); neighbours may differ by more than one level.
 pub fn adaptive_tiles(snap: &Snapshot, camera: [f32; 3], radii: &[f32]) -> Vec<BrickKey> {
     isovox_proto::lod::adaptive_tiles(snap.layout(), snap.header().voxel_scale, camera, radii)
+}
+
+/// The tiles to stitch for `camera`: the adaptive selection refined until neighbours differ by
+/// at most one level ([`isovox_proto::lod::balanced_tiles`], which the client's streamer and
+/// the web viewer use too).
+pub fn balanced_tiles(snap: &Snapshot, camera: [f32; 3], radii: &[f32]) -> Vec<BrickKey> {
+    isovox_proto::lod::balanced_tiles(snap.layout(), snap.header().voxel_scale, camera, radii)
 }
 
 /// Meshes `tiles` in parallel, one mesh per tile (world coordinates), in the order given.
@@ -76,6 +84,58 @@ pub fn mesh_tiles(
     let mut out = Mesh::default();
     for p in &parts {
         out.append(p);
+    }
+    Ok(out)
+}
+
+/// Meshes `tiles` (a balanced selection, as [`balanced_tiles`] gives) in parallel with their
+/// transition data, one tile per key (world coordinates), in the order given.
+///
+/// # Errors
+/// A brick fails to read.
+pub fn mesh_stitchable_parts(
+    snap: &Snapshot,
+    tiles: &[BrickKey],
+    iso: f32,
+    progress: &dyn Progress,
+) -> Result<Vec<TileMesh>, StoreError> {
+    progress.start(tiles.len() as u64);
+    let bricks = std::sync::Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
+    let parts = tiles
+        .par_iter()
+        .map_init(
+            || TileScratch::with_bricks(bricks.clone()),
+            |scratch, &key| {
+                let mut tile = TileMesh::default();
+                mesh_tile_with_transitions(snap, key, iso, &mut tile, scratch)?;
+                progress.advance(1);
+                Ok(tile)
+            },
+        )
+        .collect::<Result<_, StoreError>>()?;
+    progress.finish();
+    Ok(parts)
+}
+
+/// Meshes `tiles` (a balanced selection covering the volume once, as [`balanced_tiles`] gives)
+/// and stitches them: each tile drawn with the face mask [`isovox_proto::lod::face_masks`]
+/// gives it, all concatenated (see [`weld`]).
+///
+/// # Errors
+/// A brick fails to read.
+pub fn mesh_stitched(
+    snap: &Snapshot,
+    tiles: &[BrickKey],
+    iso: f32,
+    progress: &dyn Progress,
+) -> Result<Mesh, StoreError> {
+    let parts = mesh_stitchable_parts(snap, tiles, iso, progress)?;
+    let masks = isovox_proto::lod::face_masks(snap.layout(), tiles);
+    let mut out = Mesh::default();
+    let mut drawn = Mesh::default();
+    for (tile, &mask) in parts.iter().zip(&masks) {
+        stitch(tile, mask, &mut drawn);
+        out.append(&drawn);
     }
     Ok(out)
 }

@@ -109,8 +109,9 @@ pub struct Scratch {
 pub struct BorderVertex {
     /// Its index in the mesh.
     pub id: u32,
-    /// The edge's lower endpoint and direction.
+    /// The edge's lower endpoint.
     pub p0: [i64; 3],
+    /// The edge's direction (0, 1, 2: x, y, z).
     pub axis: u8,
     /// Where the vertex lies on the edge, from `p0`.
     pub t: f32,

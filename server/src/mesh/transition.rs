@@ -98,13 +98,16 @@ pub struct TransitionInput<'a> {
     /// Level-(k+1) lattice values, in level-(k+1) lattice units (coarse point q is fine point
     /// 2q).
     pub coarse: &'a Field<'a>,
-    /// The cells `[lo, hi)` and the frame given to `march`.
+    /// The lower end of the cells `[lo, hi)` given to `march`.
     pub lo: [i64; 3],
+    /// Their upper end.
     pub hi: [i64; 3],
+    /// The frame given to `march`.
     pub frame: [i64; 3],
     /// The parent tile's frame, in level-(k+1) lattice units: the coarse neighbours' frames on
     /// every axis along their faces.
     pub coarse_frame: [i64; 3],
+    /// The iso value.
     pub iso: f32,
     /// The faces (a face mask) to build strips and moves for.
     pub faces: u8,

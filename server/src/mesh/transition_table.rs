@@ -90,11 +90,15 @@ pub const EDGES: [(u8, u8); 20] = [
 /// What an edge joins.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum EdgeKind {
+    /// Two fine samples.
     Fine,
+    /// Two coarse samples.
     Coarse,
+    /// A fine corner and its coarse twin.
     Connecting,
 }
 
+/// What edge `e` joins.
 pub fn edge_kind(e: u8) -> EdgeKind {
     match e {
         0..12 => EdgeKind::Fine,
@@ -323,7 +327,9 @@ fn triangulate_loop(lp: &[u8]) -> Vec<u8> {
 /// `edges[offsets[c]..offsets[c + 1]]`, each loop ended by [`END`].
 #[derive(Debug)]
 pub struct Table {
+    /// Where each case's loops start in `edges`; one more at the end.
     pub offsets: Vec<u32>,
+    /// The loops' edges, each loop ended by [`END`].
     pub edges: Vec<u8>,
 }
 
