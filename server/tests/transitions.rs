@@ -7,8 +7,11 @@
 use isovox_proto::lod::{balance, balanced_tiles, face_masks};
 use isovox_proto::mesh::{stitch, TileMesh};
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
+use isovox_server::mesh::check::{
+    crossing_triangles, degenerate_triangles, enclosed_volume, open_edges,
+};
 use isovox_server::mesh::lattice::lattice_field;
-use isovox_server::mesh::level::{enclosed_volume, open_edges, weld};
+use isovox_server::mesh::level::weld;
 use isovox_server::mesh::mc::{march, Field, Mesh, Scratch};
 use isovox_server::mesh::transition::{mesh_transitions, TransitionInput, TransitionScratch};
 use isovox_server::store::pyramid::{downsample, BrickVoxels};
@@ -209,22 +212,6 @@ fn assemble(samples: &dyn Samples, layout: &VolumeLayout, tiles: &[BrickKey]) ->
     (out, transition)
 }
 
-fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
 /// [`weld`], with the per-triangle flags of the triangles it keeps and the number it drops
 /// (those two of whose corners are at one position).
 fn weld_keeping(mesh: &Mesh, flags: &[bool]) -> (Mesh, Vec<bool>, usize) {
@@ -246,111 +233,6 @@ fn weld_keeping(mesh: &Mesh, flags: &[bool]) -> (Mesh, Vec<bool>, usize) {
     let welded = weld(mesh);
     assert_eq!(welded.triangles(), flags.len());
     (welded, flags, kept.iter().filter(|&&k| !k).count())
-}
-
-/// Triangles of a welded mesh with (almost) no area: two equal corners, or collinear ones.
-fn degenerate(mesh: &Mesh, min_area: f64) -> usize {
-    mesh.indices
-        .chunks_exact(3)
-        .filter(|t| {
-            let [a, b, c] = [t[0], t[1], t[2]].map(|i| mesh.positions[i as usize].map(f64::from));
-            let n = cross(sub(b, a), sub(c, a));
-            t[0] == t[1] || t[1] == t[2] || t[0] == t[2] || dot(n, n).sqrt() / 2.0 < min_area
-        })
-        .count()
-}
-
-/// Whether segment `p q` passes through the interior of triangle `t` (not merely touching its
-/// edges or corners, nor lying in its plane).
-fn segment_pierces(p: [f64; 3], q: [f64; 3], t: [[f64; 3]; 3]) -> bool {
-    const EPS: f64 = 1e-9;
-    let n = cross(sub(t[1], t[0]), sub(t[2], t[0]));
-    let (dp, dq) = (dot(sub(p, t[0]), n), dot(sub(q, t[0]), n));
-    let scale = dot(n, n).sqrt();
-    if dp.abs() <= EPS * scale || dq.abs() <= EPS * scale || (dp > 0.0) == (dq > 0.0) {
-        return false;
-    }
-    let s = dp / (dp - dq);
-    let x = [0, 1, 2].map(|i| p[i] + s * (q[i] - p[i]));
-    // Strictly inside: on the inner side of every edge by a margin.
-    (0..3).all(|i| {
-        let e = sub(t[(i + 1) % 3], t[i]);
-        dot(cross(e, sub(x, t[i])), n) > EPS * scale * dot(e, e).sqrt()
-    })
-}
-
-/// Pairs of triangles, at least one of them a transition triangle, that cross each other:
-/// an edge of one through the interior of the other (edges that share a corner with the other
-/// triangle are only tested when the corner is not on them), or two triangles sharing an edge
-/// folded flat onto each other.
-fn crossings(mesh: &Mesh, transition: &[bool]) -> usize {
-    let tri = |t: usize| {
-        let i = &mesh.indices[3 * t..3 * t + 3];
-        let p = [0, 1, 2].map(|k| mesh.positions[i[k] as usize].map(f64::from));
-        ([i[0], i[1], i[2]], p)
-    };
-    let n = mesh.triangles();
-    let boxes: Vec<([f64; 3], [f64; 3])> = (0..n)
-        .map(|t| {
-            let (_, p) = tri(t);
-            let lo = [0, 1, 2].map(|a| p.iter().map(|v| v[a]).fold(f64::INFINITY, f64::min));
-            let hi = [0, 1, 2].map(|a| p.iter().map(|v| v[a]).fold(f64::NEG_INFINITY, f64::max));
-            (lo, hi)
-        })
-        .collect();
-    // Triangles by the 2-voxel grid cells their boxes overlap.
-    let cell = |x: f64| (x / 2.0).floor() as i64;
-    let cells = |(lo, hi): ([f64; 3], [f64; 3])| {
-        let (l, h) = (lo.map(cell), hi.map(cell));
-        (l[2]..=h[2]).flat_map(move |z| {
-            (l[1]..=h[1]).flat_map(move |y| (l[0]..=h[0]).map(move |x| [x, y, z]))
-        })
-    };
-    let mut grid: HashMap<[i64; 3], Vec<usize>> = HashMap::new();
-    for (t, &b) in boxes.iter().enumerate() {
-        for c in cells(b) {
-            grid.entry(c).or_default().push(t);
-        }
-    }
-    let mut count = 0;
-    for a in (0..n).filter(|&t| transition[t]) {
-        let (la, ha) = boxes[a];
-        let mut near: Vec<usize> = cells(boxes[a])
-            .flat_map(|c| grid.get(&c).into_iter().flatten().copied())
-            .collect();
-        near.sort_unstable();
-        near.dedup();
-        for b in near {
-            if a == b || (transition[b] && b < a) {
-                continue;
-            }
-            let (lb, hb) = boxes[b];
-            if (0..3).any(|k| ha[k] < lb[k] || hb[k] < la[k]) {
-                continue;
-            }
-            let ((ia, pa), (ib, pb)) = (tri(a), tri(b));
-            let shared: Vec<u32> = ia.iter().copied().filter(|v| ib.contains(v)).collect();
-            let mut hit = false;
-            for (ids, pts, other) in [(ia, pa, pb), (ib, pb, pa)] {
-                for k in 0..3 {
-                    let (u, v) = (ids[k], ids[(k + 1) % 3]);
-                    if shared.contains(&u) || shared.contains(&v) {
-                        continue;
-                    }
-                    hit |= segment_pierces(pts[k], pts[(k + 1) % 3], other);
-                }
-            }
-            if shared.len() == 2 {
-                // Folded: the third corners on the same side of the shared edge, in one plane.
-                let na = cross(sub(pa[1], pa[0]), sub(pa[2], pa[0]));
-                let nb = cross(sub(pb[1], pb[0]), sub(pb[2], pb[0]));
-                let cos = dot(na, nb) / (dot(na, na) * dot(nb, nb)).sqrt();
-                hit |= cos < -1.0 + 1e-12;
-            }
-            count += usize::from(hit);
-        }
-    }
-    count
 }
 
 fn key(level: u8, x: u32, y: u32, z: u32) -> BrickKey {
@@ -541,11 +423,11 @@ fn exhaustive(brick: i64) -> Vec<(Scene, [usize; 2])> {
                 assert_eq!(open_edges(&welded), 0, "{what}: not closed");
                 let min_area = if pass == 0 { 1e-4 } else { 1e-12 };
                 assert_eq!(
-                    degenerate(&welded, min_area),
+                    degenerate_triangles(&welded, min_area),
                     0,
                     "{what}: degenerate triangles"
                 );
-                if crossings(&welded, &transition) > 0 {
+                if crossing_triangles(&welded, &transition) > 0 {
                     *found += 1;
                 }
             }
@@ -620,7 +502,7 @@ fn check(pyramid: &Pyramid, layout: &VolumeLayout, tiles: &[BrickKey], what: &st
     let (welded, transition, _) = weld_keeping(&mesh, &transition);
     assert_eq!(open_edges(&welded), 0, "{what}: not closed");
     assert_eq!(
-        degenerate(&welded, 1e-12),
+        degenerate_triangles(&welded, 1e-12),
         0,
         "{what}: degenerate triangles"
     );
@@ -632,7 +514,7 @@ fn check(pyramid: &Pyramid, layout: &VolumeLayout, tiles: &[BrickKey], what: &st
         levels,
         triangles: welded.triangles(),
         transition_triangles: transition.iter().filter(|&&t| t).count(),
-        crossing: crossings(&welded, &transition),
+        crossing: crossing_triangles(&welded, &transition),
         volume: enclosed_volume(&welded),
     }
 }

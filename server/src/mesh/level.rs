@@ -166,32 +166,3 @@ pub fn weld(mesh: &Mesh) -> Mesh {
         .collect();
     out
 }
-
-/// Checks a welded mesh is closed and 2-manifold: every edge in exactly two triangles, once in
-/// each direction. Returns the number of offending edges.
-pub fn open_edges(mesh: &Mesh) -> usize {
-    let mut count: HashMap<(u32, u32), i32> = HashMap::new();
-    for t in mesh.indices.chunks_exact(3) {
-        for k in 0..3 {
-            let (a, b) = (t[k], t[(k + 1) % 3]);
-            *count.entry((a, b)).or_default() += 1;
-        }
-    }
-    count
-        .iter()
-        .filter(|(&(a, b), &n)| n != 1 || count.get(&(b, a)) != Some(&1))
-        .count()
-}
-
-/// The volume a closed, outward-wound mesh encloses (divergence theorem).
-pub fn enclosed_volume(mesh: &Mesh) -> f64 {
-    mesh.indices
-        .chunks_exact(3)
-        .map(|t| {
-            let [a, b, c] = [t[0], t[1], t[2]].map(|i| mesh.positions[i as usize].map(f64::from));
-            (a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0])
-                + a[2] * (b[0] * c[1] - b[1] * c[0]))
-                / 6.0
-        })
-        .sum()
-}

@@ -2,9 +2,10 @@
 //!
 //! Layout:
 //! - [`cache`]: tile meshes keyed by the content of their inputs, an LRU bounded by bytes.
+//! - [`check`]: checks of assembled meshes (closed, enclosed volume, crossing triangles).
 //! - [`files`]: GLB, OBJ and PLY output.
 //! - [`lattice`]: where each level's samples sit: one nested lattice for all levels.
-//! - [`level`]: whole levels and adaptive tile selections, welding, closedness checks.
+//! - [`level`]: whole levels and adaptive selections of tiles, stitching, welding.
 //! - [`mc`]: the kernel over a sample grid.
 //! - [`tile`]: one brick's mesh with its halo, in world coordinates (the seam rule).
 //! - [`table`]: the case table, generated with a face-consistent rule.
@@ -12,6 +13,7 @@
 //! - [`transition_table`]: the transition-cell table, generated with the same face rule.
 
 pub mod cache;
+pub mod check;
 pub mod files;
 pub mod lattice;
 pub mod level;

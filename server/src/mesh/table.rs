@@ -90,12 +90,32 @@ fn triangles(case: u8, faces: &[[u8; 4]]) -> Vec<u8> {
     for f in faces {
         run_segments(f, inside, edge_between, &mut next);
     }
+    // The faces each edge lies on, as bits in the order of `faces`.
+    let on: [u8; 12] = std::array::from_fn(|e| {
+        let (a, b) = EDGES[e];
+        faces
+            .iter()
+            .enumerate()
+            .filter(|(_, f)| f.contains(&a) && f.contains(&b))
+            .fold(0, |m, (i, _)| m | 1 << i)
+    });
     let mut out = Vec::new();
     for lp in chain(&next) {
         // Fan, in loop order: the loop runs counter-clockwise seen from outside the surface, so
-        // the triangles' normals point outwards (checked by `single_corner_faces_out`).
-        for k in 1..lp.len() - 1 {
-            out.extend_from_slice(&[lp[0], lp[k], lp[k + 1]]);
+        // the triangles' normals point outwards (checked by `single_corner_faces_out`). From
+        // the first vertex whose fan has no triangle lying in a face of the cell: a loop that
+        // crosses an ambiguous face twice has four vertices there, and a triangle on three of
+        // them would lie where the cell across that face may draw one too.
+        let n = lp.len();
+        let flat = |i: usize, k: usize| {
+            let t = [lp[i], lp[(i + k) % n], lp[(i + k + 1) % n]];
+            on[t[0] as usize] & on[t[1] as usize] & on[t[2] as usize] != 0
+        };
+        let apex = (0..n)
+            .find(|&i| (1..n - 1).all(|k| !flat(i, k)))
+            .unwrap_or(0);
+        for k in 1..n - 1 {
+            out.extend_from_slice(&[lp[apex], lp[(apex + k) % n], lp[(apex + k + 1) % n]]);
         }
     }
     out
@@ -224,6 +244,29 @@ mod tests {
                     n.abs() <= 1,
                     "case {case:#010b}: edge {a}-{b} used {n} times one way"
                 );
+            }
+        }
+    }
+
+    #[test]
+    fn no_triangle_lies_in_a_face_of_the_cell() {
+        // Three crossed edges of one face: each face's edges by hand (x, y, z faces).
+        let face_edges: [[u8; 4]; 6] = [
+            [4, 6, 8, 10],
+            [5, 7, 9, 11],
+            [0, 2, 8, 9],
+            [1, 3, 10, 11],
+            [0, 1, 4, 5],
+            [2, 3, 6, 7],
+        ];
+        for case in 0..=255u8 {
+            for t in table()[case as usize].chunks(3) {
+                for f in &face_edges {
+                    assert!(
+                        !t.iter().all(|e| f.contains(e)),
+                        "case {case:#010b}: triangle {t:?} lies in a face"
+                    );
+                }
             }
         }
     }

@@ -466,8 +466,8 @@ fn transition_cell(
         // collapsed side) are one vertex.
         scratch.loop_ids.clear();
         scratch.points.clear();
-        // The collapsed sides each vertex lies on: a diagonal between two vertices of one
-        // collapsed side would lie on it, where the cell across the edge draws too.
+        // The lateral sides each vertex lies on (bits 0-3), and which of them are collapsed
+        // (bits 4-7).
         scratch.lines.clear();
         for &e in lp {
             let p = drawn[e as usize];
@@ -475,11 +475,10 @@ fn transition_cell(
                 scratch.loop_ids.push(ids[e as usize]);
                 scratch.points.push(p);
                 let (a, b) = EDGES[e as usize];
-                scratch.lines.push(
-                    (0..SIDES)
-                        .filter(|&s| collapsed[s] && on_side(a, s) && on_side(b, s))
-                        .fold(0, |m, s| m | 1 << s),
-                );
+                let on = (0..SIDES).filter(|&s| on_side(a, s) && on_side(b, s));
+                scratch
+                    .lines
+                    .push(on.fold(0, |m, s| m | 1 << s | u8::from(collapsed[s]) << (s + SIDES)));
             }
         }
         if scratch.points.len() > 1 && scratch.points.first() == scratch.points.last() {
@@ -522,28 +521,78 @@ fn transition_cell(
                 points: &pts,
                 lines: &lines,
             };
-            triangulate_loop(cell.face, &shape, out);
+            triangulate_loop(cell.face, &shape, regular, out, scratch.regular);
         }
     }
 }
 
 /// One loop (or a piece of a pinched one) of a transition cell: its vertices, their drawn
-/// positions, and the collapsed sides each lies on (a bit per side).
+/// positions, and the lateral sides each lies on (bits 0-3: the sides, bits 4-7: those of them
+/// collapsed).
 struct LoopShape<'a> {
     ids: &'a [u32],
     points: &'a [[f64; 3]],
     lines: &'a [u8],
 }
 
-/// Triangulates one loop of a transition cell into the strip of `face` by minimum area,
-/// never joining two vertices of one collapsed side by a diagonal (it would lie on that line,
-/// where the strip across the edge draws too).
-fn triangulate_loop(face: usize, shape: &LoopShape<'_>, out: &mut Transitions) {
-    let (ids, lines) = (shape.ids, shape.lines);
-    let refused = |i: usize, j: usize| lines[i] & lines[j] != 0;
-    let (tris, _) = triangulate(shape.points, 1e-12, refused, |_, _, _| false);
-    for t in tris {
-        out.strips[face].extend(t.map(|i| ids[i]));
+/// Triangulates one loop of a transition cell into the strip of `face`: by minimum area, never
+/// joining two vertices of one collapsed side by a diagonal (it would lie on that line, where
+/// the strip across the edge draws too). A loop that passes a lateral side twice (a tube
+/// through it) could get a diagonal across that side, and the next cell of the strip, whose
+/// loop passes it twice too, the same one: four triangles on one edge. Such a loop is drawn as
+/// a cone from a new vertex at its centroid instead, which lies inside the cell (the loop does
+/// not lie on one side), so that no edge of it lies on a side but the loop's own.
+fn triangulate_loop(
+    face: usize,
+    shape: &LoopShape<'_>,
+    regular: &Mesh,
+    out: &mut Transitions,
+    n_regular: usize,
+) {
+    let (ids, points, lines) = (shape.ids, shape.points, shape.lines);
+    let n = points.len();
+    let refused = |i: usize, j: usize| (lines[i] & lines[j]) >> SIDES != 0;
+    let (tris, _) = triangulate(points, 1e-12, refused, |_, _, _| false);
+    let on_side = |i: usize, j: usize| {
+        let edge = j == (i + 1) % n || i == (j + 1) % n;
+        !edge && lines[i] & lines[j] & 0xf != 0
+    };
+    let across_a_side = tris
+        .iter()
+        .any(|t| on_side(t[0], t[1]) || on_side(t[1], t[2]) || on_side(t[2], t[0]));
+    if !across_a_side {
+        for t in tris {
+            out.strips[face].extend(t.map(|i| ids[i]));
+        }
+        return;
+    }
+    let mut centre = [0f64; 3];
+    let mut normal = [0f32; 3];
+    for (&id, p) in ids.iter().zip(points) {
+        for a in 0..3 {
+            centre[a] += p[a] / n as f64;
+        }
+        let nm = match (id as usize).checked_sub(n_regular) {
+            None => regular.normals[id as usize],
+            Some(t) => out.normals[t],
+        };
+        for a in 0..3 {
+            normal[a] += nm[a];
+        }
+    }
+    let len = (normal[0] * normal[0] + normal[1] * normal[1] + normal[2] * normal[2]).sqrt();
+    let normal = if len > 0.0 {
+        normal.map(|c| c / len)
+    } else {
+        [0.0; 3]
+    };
+    // The apex belongs to this strip alone, drawn only with its face's moves: it is stored at
+    // its drawn position, with no move.
+    let apex = (n_regular + out.positions.len()) as u32;
+    out.positions.push(centre.map(|c| c as f32));
+    out.normals.push(normal);
+    for i in 0..n {
+        out.strips[face].extend([ids[i], ids[(i + 1) % n], apex]);
     }
 }
 
