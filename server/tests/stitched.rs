@@ -18,7 +18,7 @@ use isovox_server::icvg::term::{NoVolumes, TermLimits};
 use isovox_server::mesh::check::{
     crossing_triangles, degenerate_triangles, enclosed_volume, open_edges,
 };
-use isovox_server::mesh::level::{balanced_tiles, mesh_stitchable_parts, weld};
+use isovox_server::mesh::level::{balanced_tiles, mesh_stitchable_parts, weld_flagged};
 use isovox_server::mesh::mc::Mesh;
 use isovox_server::mesh::tile::default_iso;
 use isovox_server::progress::Silent;
@@ -99,25 +99,7 @@ fn stitched(snap: &Snapshot, camera: [f32; 3], radii: &[f32], what: &str) -> Sti
         transition.extend((0..drawn.triangles()).map(|t| t >= regular));
         mesh.append(&drawn);
     }
-    // Weld, keeping each kept triangle's flag (welding drops the triangles two of whose
-    // corners are at one position).
-    let kept: Vec<bool> = mesh
-        .indices
-        .chunks_exact(3)
-        .map(|t| {
-            let [a, b, c] =
-                [t[0], t[1], t[2]].map(|i| mesh.positions[i as usize].map(f32::to_bits));
-            a != b && b != c && a != c
-        })
-        .collect();
-    let transition: Vec<bool> = transition
-        .into_iter()
-        .zip(&kept)
-        .filter(|(_, &k)| k)
-        .map(|(f, _)| f)
-        .collect();
-    let welded = weld(&mesh);
-    assert_eq!(welded.triangles(), transition.len());
+    let (welded, transition, _) = weld_flagged(&mesh, &transition);
     assert_eq!(
         open_edges(&welded),
         0,

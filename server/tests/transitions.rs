@@ -10,8 +10,8 @@ use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use isovox_server::mesh::check::{
     crossing_triangles, degenerate_triangles, enclosed_volume, open_edges,
 };
-use isovox_server::mesh::lattice::lattice_field;
-use isovox_server::mesh::level::weld;
+use isovox_server::mesh::lattice::{lattice_field, LatticeScratch};
+use isovox_server::mesh::level::weld_flagged;
 use isovox_server::mesh::mc::{march, Field, Mesh, Scratch};
 use isovox_server::mesh::transition::{mesh_transitions, TransitionInput, TransitionScratch};
 use isovox_server::store::pyramid::{downsample, BrickVoxels};
@@ -100,7 +100,7 @@ impl Samples for Pyramid {
             values: &stored,
         };
         let mut values = Vec::new();
-        let f = lattice_field(&field, level, &mut values);
+        let f = lattice_field(&field, level, &mut LatticeScratch::default(), &mut values);
         assert_eq!((f.origin, f.size[0]), (lo, (hi[0] - lo[0] + 1) as usize));
         out.clear();
         out.extend_from_slice(&values);
@@ -210,29 +210,6 @@ fn assemble(samples: &dyn Samples, layout: &VolumeLayout, tiles: &[BrickKey]) ->
         out.append(&part);
     }
     (out, transition)
-}
-
-/// [`weld`], with the per-triangle flags of the triangles it keeps and the number it drops
-/// (those two of whose corners are at one position).
-fn weld_keeping(mesh: &Mesh, flags: &[bool]) -> (Mesh, Vec<bool>, usize) {
-    let kept: Vec<bool> = mesh
-        .indices
-        .chunks_exact(3)
-        .map(|t| {
-            let [a, b, c] =
-                [t[0], t[1], t[2]].map(|i| mesh.positions[i as usize].map(f32::to_bits));
-            a != b && b != c && a != c
-        })
-        .collect();
-    let flags: Vec<bool> = flags
-        .iter()
-        .zip(&kept)
-        .filter(|(_, &k)| k)
-        .map(|(&f, _)| f)
-        .collect();
-    let welded = weld(mesh);
-    assert_eq!(welded.triangles(), flags.len());
-    (welded, flags, kept.iter().filter(|&&k| !k).count())
 }
 
 fn key(level: u8, x: u32, y: u32, z: u32) -> BrickKey {
@@ -410,7 +387,7 @@ fn exhaustive(brick: i64) -> Vec<(Scene, [usize; 2])> {
                     samples.0.insert(p, v as f32);
                 }
                 let (mesh, transition) = assemble(&samples, &layout, &scene.tiles);
-                let (welded, transition, collapsed) = weld_keeping(&mesh, &transition);
+                let (welded, transition, collapsed) = weld_flagged(&mesh, &transition);
                 let what = format!(
                     "{} (brick {brick}): case {case:#015b} pass {pass}",
                     scene.name
@@ -499,7 +476,7 @@ struct Checked {
 
 fn check(pyramid: &Pyramid, layout: &VolumeLayout, tiles: &[BrickKey], what: &str) -> Checked {
     let (mesh, transition) = assemble(pyramid, layout, tiles);
-    let (welded, transition, _) = weld_keeping(&mesh, &transition);
+    let (welded, transition, _) = weld_flagged(&mesh, &transition);
     assert_eq!(open_edges(&welded), 0, "{what}: not closed");
     assert_eq!(
         degenerate_triangles(&welded, 1e-12),

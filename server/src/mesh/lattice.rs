@@ -49,13 +49,30 @@ pub fn value_range(level: u8, min: f32, max: f32) -> (f32, f32) {
     (min - spill - 0.5, max + spill + 0.5)
 }
 
+/// Reusable memory for [`lattice_field`]: the passes along x and along y.
+#[derive(Debug, Default)]
+pub struct LatticeScratch {
+    along_x: Vec<f64>,
+    along_y: Vec<f64>,
+}
+
 /// Resamples stored voxels of `level` onto the level's lattice: for a field of stored voxels
 /// covering `[s, e]` (inclusive) on each axis, writes into `out` the lattice values of
 /// `[s + 2, e - 1]` and returns them as a field. Level 0 copies the voxels of `[s + 2, e - 1]`.
 ///
+/// Separable: along x, then y, then z, each output from its four inputs in one fixed order, so
+/// a lattice point gets the same value whatever box it is computed in (tiles of neighbouring
+/// levels compute the same points from differently placed boxes). The loops run over whole rows
+/// so that they vectorize.
+///
 /// # Panics
 /// `level > 30`, or the stored field is less than 4 voxels wide on an axis.
-pub fn lattice_field<'o>(stored: &Field<'_>, level: u8, out: &'o mut Vec<f32>) -> Field<'o> {
+pub fn lattice_field<'o>(
+    stored: &Field<'_>,
+    level: u8,
+    scratch: &mut LatticeScratch,
+    out: &'o mut Vec<f32>,
+) -> Field<'o> {
     assert!(level <= 30, "level {level} out of range");
     assert!(
         stored.size.iter().all(|&s| s >= 4),
@@ -65,9 +82,10 @@ pub fn lattice_field<'o>(stored: &Field<'_>, level: u8, out: &'o mut Vec<f32>) -
     let size = n.map(|s| s - 3);
     let origin = stored.origin.map(|o| o + 2);
     out.clear();
-    out.reserve(size[0] * size[1] * size[2]);
     let v = stored.values;
+    assert_eq!(v.len(), n[0] * n[1] * n[2]);
     if level == 0 {
+        out.reserve(size[0] * size[1] * size[2]);
         for z in 0..size[2] {
             for y in 0..size[1] {
                 let row = ((z + 2) * n[1] + y + 2) * n[0] + 2;
@@ -75,33 +93,51 @@ pub fn lattice_field<'o>(stored: &Field<'_>, level: u8, out: &'o mut Vec<f32>) -
             }
         }
     } else {
-        // Separable: along x, then y, then z.
-        let w = weights(level);
-        let tap = |a: f64, b: f64, c: f64, d: f64| w[0] * a + w[1] * b + w[2] * c + w[3] * d;
-        let mut along_x = Vec::with_capacity(size[0] * n[1] * n[2]);
-        for row in v.chunks_exact(n[0]) {
-            for x in 0..size[0] {
-                let r = &row[x..x + 4];
-                let r = [r[0], r[1], r[2], r[3]].map(f64::from);
-                along_x.push(tap(r[0], r[1], r[2], r[3]));
+        let [w0, w1, w2, w3] = weights(level);
+        // Along x: every stored row, size[0] outputs each.
+        let ax = &mut scratch.along_x;
+        ax.clear();
+        ax.resize(size[0] * n[1] * n[2], 0.0);
+        for (dst, src) in ax.chunks_exact_mut(size[0]).zip(v.chunks_exact(n[0])) {
+            let taps = src
+                .iter()
+                .zip(&src[1..])
+                .zip(src[2..].iter().zip(&src[3..]));
+            for (d, ((a, b), (c, e))) in dst.iter_mut().zip(taps) {
+                *d = w0 * f64::from(*a)
+                    + w1 * f64::from(*b)
+                    + w2 * f64::from(*c)
+                    + w3 * f64::from(*e);
             }
         }
-        let mut along_y = Vec::with_capacity(size[0] * size[1] * n[2]);
+        // Along y: for each z, size[1] rows from four rows each.
+        let ay = &mut scratch.along_y;
+        ay.clear();
+        ay.resize(size[0] * size[1] * n[2], 0.0);
+        let row = size[0];
         for z in 0..n[2] {
             for y in 0..size[1] {
-                for x in 0..size[0] {
-                    let at = |dy: usize| along_x[(z * n[1] + y + dy) * size[0] + x];
-                    along_y.push(tap(at(0), at(1), at(2), at(3)));
+                let at = |dy: usize| &ax[((z * n[1]) + y + dy) * row..][..row];
+                let (a, b, c, e) = (at(0), at(1), at(2), at(3));
+                let dst = &mut ay[(z * size[1] + y) * row..][..row];
+                for (i, d) in dst.iter_mut().enumerate() {
+                    *d = w0 * a[i] + w1 * b[i] + w2 * c[i] + w3 * e[i];
                 }
             }
         }
+        // Along z, rounded half up.
+        out.resize(size[0] * size[1] * size[2], 0.0);
+        let plane = size[0] * size[1];
         for z in 0..size[2] {
-            for y in 0..size[1] {
-                for x in 0..size[0] {
-                    let at = |dz: usize| along_y[((z + dz) * size[1] + y) * size[0] + x];
-                    let value = tap(at(0), at(1), at(2), at(3));
-                    out.push((value + 0.5).floor() as f32);
-                }
+            let at = |dz: usize| &ay[(z + dz) * plane..][..plane];
+            let (a, b, c, e) = (at(0), at(1), at(2), at(3));
+            let dst = &mut out[z * plane..][..plane];
+            for (i, d) in dst.iter_mut().enumerate() {
+                let value = w0 * a[i] + w1 * b[i] + w2 * c[i] + w3 * e[i] + 0.5;
+                // floor, without the libm call: truncate, then one down where that rounded up
+                // (negative values).
+                let t = value as i64 as f64;
+                *d = (if t > value { t - 1.0 } else { t }) as f32;
             }
         }
     }
@@ -137,7 +173,7 @@ mod tests {
             values,
         };
         let mut out = Vec::new();
-        let f = lattice_field(&stored, level, &mut out);
+        let f = lattice_field(&stored, level, &mut LatticeScratch::default(), &mut out);
         assert_eq!((f.origin, f.size), ([0; 3], [1; 3]));
         f.values[0]
     }
@@ -199,7 +235,7 @@ mod tests {
             values: &values,
         };
         let mut out = Vec::new();
-        let f = lattice_field(&stored, 1, &mut out);
+        let f = lattice_field(&stored, 1, &mut LatticeScratch::default(), &mut out);
         assert_eq!((f.origin, f.size), ([2; 3], [4, 1, 1]));
         for j in 2..6 {
             assert_eq!(f.value([j, 2, 2]), 16.0 * j as f32, "lattice {j}");

@@ -40,6 +40,30 @@ pub fn balanced_tiles(snap: &Snapshot, camera: [f32; 3], radii: &[f32]) -> Vec<B
     isovox_proto::lod::balanced_tiles(snap.layout(), snap.header().voxel_scale, camera, radii)
 }
 
+/// Runs `mesh` on every tile of `tiles` in parallel, each thread with its own scratch sharing
+/// one cache of decoded bricks (each brick is read whole by up to 27 tiles), in the order given.
+fn in_parallel<T: Send>(
+    tiles: &[BrickKey],
+    progress: &dyn Progress,
+    mesh: impl Fn(&mut TileScratch, BrickKey) -> Result<T, StoreError> + Sync,
+) -> Result<Vec<T>, StoreError> {
+    progress.start(tiles.len() as u64);
+    let bricks = std::sync::Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
+    let parts = tiles
+        .par_iter()
+        .map_init(
+            || TileScratch::with_bricks(bricks.clone()),
+            |scratch, &key| {
+                let part = mesh(scratch, key)?;
+                progress.advance(1);
+                Ok(part)
+            },
+        )
+        .collect::<Result<_, StoreError>>()?;
+    progress.finish();
+    Ok(parts)
+}
+
 /// Meshes `tiles` in parallel, one mesh per tile (world coordinates), in the order given.
 ///
 /// # Errors
@@ -50,23 +74,11 @@ pub fn mesh_tile_parts(
     iso: f32,
     progress: &dyn Progress,
 ) -> Result<Vec<Mesh>, StoreError> {
-    progress.start(tiles.len() as u64);
-    // Decoded bricks shared by all tiles of this pass: each is read whole by up to 27 tiles.
-    let bricks = std::sync::Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
-    let parts = tiles
-        .par_iter()
-        .map_init(
-            || TileScratch::with_bricks(bricks.clone()),
-            |scratch, &key| {
-                let mut m = Mesh::default();
-                mesh_tile(snap, key, iso, &mut m, scratch)?;
-                progress.advance(1);
-                Ok(m)
-            },
-        )
-        .collect::<Result<_, StoreError>>()?;
-    progress.finish();
-    Ok(parts)
+    in_parallel(tiles, progress, |scratch, key| {
+        let mut m = Mesh::default();
+        mesh_tile(snap, key, iso, &mut m, scratch)?;
+        Ok(m)
+    })
 }
 
 /// Meshes `tiles` in parallel and concatenates the results (vertices on tile seams appear once
@@ -99,22 +111,11 @@ pub fn mesh_stitchable_parts(
     iso: f32,
     progress: &dyn Progress,
 ) -> Result<Vec<TileMesh>, StoreError> {
-    progress.start(tiles.len() as u64);
-    let bricks = std::sync::Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
-    let parts = tiles
-        .par_iter()
-        .map_init(
-            || TileScratch::with_bricks(bricks.clone()),
-            |scratch, &key| {
-                let mut tile = TileMesh::default();
-                mesh_tile_with_transitions(snap, key, iso, &mut tile, scratch)?;
-                progress.advance(1);
-                Ok(tile)
-            },
-        )
-        .collect::<Result<_, StoreError>>()?;
-    progress.finish();
-    Ok(parts)
+    in_parallel(tiles, progress, |scratch, key| {
+        let mut tile = TileMesh::default();
+        mesh_tile_with_transitions(snap, key, iso, &mut tile, scratch)?;
+        Ok(tile)
+    })
 }
 
 /// Meshes `tiles` (a balanced selection covering the volume once, as [`balanced_tiles`] gives)
@@ -165,4 +166,32 @@ pub fn weld(mesh: &Mesh) -> Mesh {
         .flatten()
         .collect();
     out
+}
+
+/// [`weld`], carrying one flag per triangle (which tile or strip it came from, say) over to the
+/// triangles it keeps; also returns how many it dropped.
+///
+/// # Panics
+/// `flags` does not have one flag per triangle.
+pub fn weld_flagged(mesh: &Mesh, flags: &[bool]) -> (Mesh, Vec<bool>, usize) {
+    assert_eq!(flags.len(), mesh.triangles(), "one flag per triangle");
+    let kept: Vec<bool> = mesh
+        .indices
+        .chunks_exact(3)
+        .map(|t| {
+            let [a, b, c] =
+                [t[0], t[1], t[2]].map(|i| mesh.positions[i as usize].map(f32::to_bits));
+            a != b && b != c && a != c
+        })
+        .collect();
+    let flags: Vec<bool> = flags
+        .iter()
+        .zip(&kept)
+        .filter(|(_, &k)| k)
+        .map(|(&f, _)| f)
+        .collect();
+    let welded = weld(mesh);
+    debug_assert_eq!(welded.triangles(), flags.len());
+    let dropped = kept.iter().filter(|&&k| !k).count();
+    (welded, flags, dropped)
 }

@@ -121,6 +121,16 @@ pub struct BorderVertex {
 }
 
 impl Scratch {
+    /// Forgets the last [`march`]: as if it had marched cells without a surface.
+    pub fn forget(&mut self) {
+        self.stamp = self.stamp.wrapping_add(1);
+        if self.stamp == 0 {
+            self.edge_vertex.clear();
+            self.stamp = 1;
+        }
+        self.border.clear();
+    }
+
     /// The id of the vertex the last [`march`] made on the grid edge from `p0` along `axis`, if
     /// it made one (the edge is crossed and lies within the cells it marched).
     pub fn vertex_on_edge(&self, p0: [i64; 3], axis: usize) -> Option<u32> {

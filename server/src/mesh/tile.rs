@@ -20,13 +20,16 @@
 //! times the voxel scale. Every tile goes through that one formula ([`to_world`]), so shared
 //! vertices stay bit-identical, across levels too.
 
-use super::lattice::{lattice_field, value_range};
+use super::lattice::{lattice_field, value_range, LatticeScratch};
 use super::mc::{march, Field, Mesh, Scratch};
 use super::transition::{mesh_transitions, TransitionInput, TransitionScratch};
 use crate::store::decoded::{decode, DecodedBricks};
 use crate::store::{Snapshot, StoreError, StoredBrick};
 use isovox_proto::lod::FACE_DIRECTIONS;
 use isovox_proto::mesh::{TileMesh, Transitions};
+use isovox_proto::tile::{
+    bricks_of, cells, coarse_box, field_box, has_transitions, stored_box, GridBox,
+};
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use std::sync::Arc;
 
@@ -36,6 +39,8 @@ pub struct TileScratch {
     stored: Vec<f32>,
     field: Vec<f32>,
     coarse: Vec<f32>,
+    region: Vec<f32>,
+    lattice: LatticeScratch,
     march: Scratch,
     transitions: TransitionScratch,
     /// Decoded bricks shared between tiles (and threads); without it each tile decodes its
@@ -86,39 +91,22 @@ pub enum Stitching {
 pub struct TileInputs {
     /// Content key: equal keys give equal local meshes.
     pub key: u128,
-    /// Whether the iso value can lie between the samples the tile reads (from brick min/max).
+    /// Whether the iso value can lie between the samples the tile reads (from brick min/max):
+    /// whether the tile can hold anything.
     pub may_cross: bool,
+    /// Whether the iso value can lie between the samples its cells read (its level's alone):
+    /// whether its regular mesh can hold anything; when not, [`TileInputs::fine_inside`] says
+    /// on which side all of them are.
+    pub fine_may_cross: bool,
+    /// Without a crossing in the cells: whether all their samples are inside.
+    pub fine_inside: bool,
     /// The faces to build strips for (a face mask; 0 without transitions).
     pub faces: u8,
 }
 
-/// The cells `[lo, hi)` of tile `key` (grid points of its level) and its frame.
-fn cells(layout: &VolumeLayout, key: BrickKey) -> ([i64; 3], [i64; 3], [i64; 3]) {
-    let b = layout.brick() as i64;
-    let pos = [key.x, key.y, key.z].map(|c| c as i64);
-    let lo = pos.map(|c| c * b - i64::from(c == 0));
-    let hi = pos.map(|c| (c + 1) * b);
-    (lo, hi, pos.map(|c| c * b))
-}
-
-/// The stored voxels of `level` whose lattice values cover `[lo, hi]` (inclusive).
-fn stored_box(level: u8, lo: [i64; 3], hi: [i64; 3]) -> ([i64; 3], [i64; 3]) {
-    if level == 0 {
-        (lo, hi)
-    } else {
-        (lo.map(|c| c - 2), hi.map(|c| c + 1))
-    }
-}
-
-/// The level-(k+1) lattice points a tile's strips read, `[c, d]`, for cells `[lo, hi)` (see
-/// [`super::transition`]).
-fn coarse_box(lo: [i64; 3], hi: [i64; 3]) -> ([i64; 3], [i64; 3]) {
-    (lo.map(|c| c.div_euclid(2) - 1), hi.map(|c| c / 2 + 1))
-}
-
 /// The faces of tile `key` with a neighbouring tile of its level, when a coarser level exists.
 fn transition_faces(layout: &VolumeLayout, key: BrickKey) -> u8 {
-    if key.level + 1 >= layout.levels() {
+    if !has_transitions(layout, key) {
         return 0;
     }
     FACE_DIRECTIONS.iter().enumerate().fold(0, |m, (f, d)| {
@@ -132,17 +120,14 @@ fn transition_faces(layout: &VolumeLayout, key: BrickKey) -> u8 {
 fn describe_bricks(
     snap: &Snapshot,
     level: u8,
-    read: ([i64; 3], [i64; 3]),
-    crossing: ([i64; 3], [i64; 3]),
+    read: GridBox,
+    crossing: GridBox,
     desc: &mut Vec<u8>,
 ) -> Result<(u16, u16), StoreError> {
     let layout = snap.layout();
-    let b = layout.brick() as i64;
     let grid = layout.grid(level).map(|g| g as i64);
-    let bricks =
-        |(lo, hi): ([i64; 3], [i64; 3])| (lo.map(|c| c.div_euclid(b)), hi.map(|c| c.div_euclid(b)));
-    let (first, last) = bricks(read);
-    let (cross_first, cross_last) = bricks(crossing);
+    let (first, last) = bricks_of(layout.brick(), read);
+    let (cross_first, cross_last) = bricks_of(layout.brick(), crossing);
     let (mut min, mut max) = (u16::MAX, u16::MIN);
     for z in first[2]..=last[2] {
         for y in first[1]..=last[1] {
@@ -211,16 +196,16 @@ pub fn tile_inputs(
     desc.push(faces);
     // The field march reads (its cells' corners and the normals' halo); the corners alone
     // decide whether a surface crosses the cells.
-    let field = stored_box(key.level, lo.map(|c| c - 1), hi.map(|c| c + 1));
-    let corners = stored_box(key.level, lo, hi);
+    let field = stored_box(key.level, field_box(layout, key));
+    let corners = stored_box(key.level, (lo, hi));
     let (min, max) = describe_bricks(snap, key.level, field, corners, &mut desc)?;
-    let (mut low, mut high) = value_range(key.level, f32::from(min), f32::from(max));
+    let (fine_low, fine_high) = value_range(key.level, f32::from(min), f32::from(max));
+    let (mut low, mut high) = (fine_low, fine_high);
     if faces != 0 {
         // Which side of its parent the tile lies on fixes where its strips' coarse vertices
         // and moves are; the coarser voxels the strips read.
         desc.extend([key.x, key.y, key.z].map(|c| (c % 2) as u8));
-        let (c, d) = coarse_box(lo, hi);
-        let coarse = stored_box(key.level + 1, c, d);
+        let coarse = stored_box(key.level + 1, coarse_box(layout, key));
         let (min, max) = describe_bricks(snap, key.level + 1, coarse, coarse, &mut desc)?;
         let (l, h) = value_range(key.level + 1, f32::from(min), f32::from(max));
         low = low.min(l);
@@ -229,6 +214,8 @@ pub fn tile_inputs(
     Ok(TileInputs {
         key: xxhash_rust::xxh3::xxh3_128(&desc),
         may_cross: low < iso && high >= iso,
+        fine_may_cross: fine_low < iso && fine_high >= iso,
+        fine_inside: fine_low >= iso,
         faces,
     })
 }
@@ -286,8 +273,8 @@ pub fn tile_to_world(tile: &mut TileMesh, key: BrickKey, snap: &Snapshot) {
     let step = (1u64 << key.level) as f32;
     let scale = snap.header().voxel_scale;
     for m in &mut tr.moves {
-        for a in 0..3 {
-            m.offset[a] = m.offset[a] * step * scale[a];
+        for (c, s) in m.offset.iter_mut().zip(scale) {
+            *c = *c * step * s;
         }
     }
 }
@@ -347,10 +334,10 @@ fn mesh_into(
     scratch: &mut TileScratch,
 ) -> Result<TileStats, StoreError> {
     mesh.clear();
-    let transitions = transitions.map(|t| {
+    let mut transitions = transitions;
+    if let Some(t) = transitions.as_deref_mut() {
         t.clear();
-        t
-    });
+    }
     if !inputs.may_cross {
         return Ok(TileStats {
             skipped: true,
@@ -360,47 +347,204 @@ fn mesh_into(
     let layout = snap.layout();
     let (lo, hi, frame) = cells(layout, key);
     let bricks = scratch.bricks.clone();
-    let fine = lattice(
-        snap,
-        key.level,
-        (lo.map(|c| c - 1), hi.map(|c| c + 1)),
-        bricks.as_deref(),
-        &mut scratch.stored,
-        &mut scratch.field,
-    )?;
-    march(&fine, lo, frame, hi, iso, mesh, &mut scratch.march);
-    if let Some(transitions) = transitions.filter(|_| inputs.faces != 0) {
-        let (c, d) = coarse_box(lo, hi);
-        let coarse = lattice(
+    let fine_box = field_box(layout, key);
+    // The regular mesh, where the cells' samples can straddle the iso value.
+    if inputs.fine_may_cross {
+        let fine = lattice(
             snap,
-            key.level + 1,
-            (c, d),
+            key.level,
+            fine_box,
             bricks.as_deref(),
-            &mut scratch.stored,
-            &mut scratch.coarse,
+            (&mut scratch.stored, &mut scratch.lattice),
+            &mut scratch.field,
         )?;
-        let input = TransitionInput {
-            fine: &fine,
-            coarse: &coarse,
-            lo,
-            hi,
-            frame,
-            coarse_frame: [key.x, key.y, key.z].map(|c| i64::from(c / 2) * layout.brick() as i64),
-            iso,
-            faces: inputs.faces,
-        };
-        mesh_transitions(
-            &input,
-            mesh,
-            &scratch.march,
-            transitions,
-            &mut scratch.transitions,
-        );
+        march(&fine, lo, frame, hi, iso, mesh, &mut scratch.march);
+    } else {
+        scratch.march.forget();
     }
+    let Some(transitions) = transitions.filter(|_| inputs.faces != 0) else {
+        return Ok(TileStats {
+            skipped: false,
+            triangles: mesh.triangles(),
+        });
+    };
+    // The coarser level's lattice on the faces' planes; around the planes (the strips'
+    // vertices and normals read one point on each side) only where a face's samples straddle
+    // the iso value: most faces of a tile near a surface have no strip.
+    let (c, d) = coarse_box(layout, key);
+    let size = [0, 1, 2].map(|a| (d[a] - c[a] + 1) as usize);
+    scratch.coarse.clear();
+    scratch.coarse.resize(size[0] * size[1] * size[2], f32::NAN);
+    let mut strips = 0u8;
+    for face in (0..6).filter(|f| inputs.faces >> f & 1 == 1) {
+        let plane = coarse_plane(face, (c, d));
+        // The fine face's samples, when they straddle the iso value, decide alone; else the
+        // coarse plane does, against the side they are all on.
+        let fine_side = if inputs.fine_may_cross {
+            fine_face_side(&scratch.field, fine_box, plane, face, iso)
+        } else {
+            Some(inputs.fine_inside)
+        };
+        let mixed = match fine_side {
+            None => true,
+            Some(inside) => {
+                let bricks = bricks.as_deref();
+                coarse_region(snap, key.level + 1, plane, (c, size), bricks, scratch)?;
+                any_in_region(&scratch.coarse, (c, size), plane, |v| (v >= iso) != inside)
+            }
+        };
+        if mixed {
+            strips |= 1 << face;
+            let (mut lo_s, mut hi_s) = plane;
+            lo_s[face / 2] -= 1;
+            hi_s[face / 2] += 1;
+            coarse_region(
+                snap,
+                key.level + 1,
+                (lo_s, hi_s),
+                (c, size),
+                bricks.as_deref(),
+                scratch,
+            )?;
+        }
+    }
+    if strips != 0 && !inputs.fine_may_cross {
+        // The strips read the fine face samples too (all on one side, no regular vertex).
+        lattice(
+            snap,
+            key.level,
+            fine_box,
+            bricks.as_deref(),
+            (&mut scratch.stored, &mut scratch.lattice),
+            &mut scratch.field,
+        )?;
+    }
+    if strips == 0 && !inputs.fine_may_cross {
+        return Ok(TileStats {
+            skipped: false,
+            triangles: 0,
+        });
+    }
+    let field_size = |(lo, hi): GridBox| [0, 1, 2].map(|a| (hi[a] - lo[a] + 1) as usize);
+    let fine = Field {
+        origin: fine_box.0,
+        size: field_size(fine_box),
+        values: &scratch.field,
+    };
+    let coarse = Field {
+        origin: c,
+        size,
+        values: &scratch.coarse,
+    };
+    let input = TransitionInput {
+        fine: &fine,
+        coarse: &coarse,
+        lo,
+        hi,
+        frame,
+        coarse_frame: [key.x, key.y, key.z].map(|c| i64::from(c / 2) * layout.brick() as i64),
+        iso,
+        faces: inputs.faces,
+    };
+    mesh_transitions(
+        &input,
+        mesh,
+        &scratch.march,
+        transitions,
+        &mut scratch.transitions,
+    );
     Ok(TileStats {
         skipped: false,
         triangles: mesh.triangles(),
     })
+}
+
+/// The coarser level's lattice points of face `face` of a tile whose strips read `(c, d)`:
+/// its plane (c + 1 on the low side, d - 1 on the high one), across the whole box.
+fn coarse_plane(face: usize, (c, d): GridBox) -> GridBox {
+    let a = face / 2;
+    let at = if face & 1 == 1 { d[a] - 1 } else { c[a] + 1 };
+    let (mut lo, mut hi) = (c, d);
+    lo[a] = at;
+    hi[a] = at;
+    (lo, hi)
+}
+
+/// Whether some value of `region` in a buffer over the box from `origin` (`size` points per
+/// axis) satisfies `test`.
+fn any_in_region(
+    buffer: &[f32],
+    (origin, size): ([i64; 3], [usize; 3]),
+    (lo, hi): GridBox,
+    test: impl Fn(f32) -> bool,
+) -> bool {
+    (lo[2]..=hi[2]).any(|z| {
+        (lo[1]..=hi[1]).any(|y| {
+            let row = (((z - origin[2]) as usize * size[1]) + (y - origin[1]) as usize) * size[0];
+            let from = row + (lo[0] - origin[0]) as usize;
+            let to = row + (hi[0] - origin[0]) as usize;
+            buffer[from..=to].iter().any(|&v| test(v))
+        })
+    })
+}
+
+/// Computes the coarser level's lattice values of `region` into `scratch.coarse` (a buffer over
+/// the box from `origin`, `size` points per axis).
+fn coarse_region(
+    snap: &Snapshot,
+    level: u8,
+    region: GridBox,
+    (origin, size): ([i64; 3], [usize; 3]),
+    bricks: Option<&DecodedBricks>,
+    scratch: &mut TileScratch,
+) -> Result<(), StoreError> {
+    let values = lattice(
+        snap,
+        level,
+        region,
+        bricks,
+        (&mut scratch.stored, &mut scratch.lattice),
+        &mut scratch.region,
+    )?;
+    let (lo, hi) = region;
+    let width = (hi[0] - lo[0] + 1) as usize;
+    let mut rows = values.values.chunks_exact(width);
+    for z in lo[2]..=hi[2] {
+        for y in lo[1]..=hi[1] {
+            let row = (((z - origin[2]) as usize * size[1]) + (y - origin[1]) as usize) * size[0];
+            let x0 = row + (lo[0] - origin[0]) as usize;
+            if let Some(src) = rows.next() {
+                scratch.coarse[x0..x0 + width].copy_from_slice(src);
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The side of the iso value all the fine samples of face `face` lie on (inside: true), or
+/// `None` when they straddle it: the fine lattice points of the face plane (twice the coarse
+/// `plane`) across the box's face, read from `fine` over `fine_box`.
+fn fine_face_side(
+    fine: &[f32],
+    fine_box: GridBox,
+    plane: GridBox,
+    face: usize,
+    iso: f32,
+) -> Option<bool> {
+    let a = face / 2;
+    let (flo, fhi) = fine_box;
+    let fsize = [0, 1, 2].map(|k| (fhi[k] - flo[k] + 1) as usize);
+    // The coarse plane reaches one coarse point beyond the box's face on each side.
+    let (mut lo, mut hi) = (plane.0.map(|v| 2 * (v + 1)), plane.1.map(|v| 2 * (v - 1)));
+    lo[a] = 2 * plane.0[a];
+    hi[a] = 2 * plane.0[a];
+    let at = |p: [i64; 3]| {
+        (((p[2] - flo[2]) as usize * fsize[1]) + (p[1] - flo[1]) as usize) * fsize[0]
+            + (p[0] - flo[0]) as usize
+    };
+    let first = fine[at(lo)] >= iso;
+    let mixed = any_in_region(fine, (flo, fsize), (lo, hi), |v| (v >= iso) != first);
+    (!mixed).then_some(first)
 }
 
 /// The lattice values of `level` over `[lo, hi]` (inclusive), as a field over `out`: the stored
@@ -410,7 +554,7 @@ fn lattice<'o>(
     level: u8,
     (lo, hi): ([i64; 3], [i64; 3]),
     bricks: Option<&DecodedBricks>,
-    stored: &mut Vec<f32>,
+    (stored, scratch): (&mut Vec<f32>, &mut LatticeScratch),
     out: &'o mut Vec<f32>,
 ) -> Result<Field<'o>, StoreError> {
     let size = |lo: [i64; 3], hi: [i64; 3]| [0, 1, 2].map(|a| (hi[a] - lo[a] + 1) as usize);
@@ -423,14 +567,14 @@ fn lattice<'o>(
             values: out,
         });
     }
-    let (slo, shi) = stored_box(level, lo, hi);
+    let (slo, shi) = stored_box(level, (lo, hi));
     gather(snap, level, slo, size(slo, shi), bricks, stored)?;
     let field = Field {
         origin: slo,
         size: size(slo, shi),
         values: stored,
     };
-    Ok(lattice_field(&field, level, out))
+    Ok(lattice_field(&field, level, scratch, out))
 }
 
 /// Writes into `out` the stored voxels of `level` over the box `origin .. origin + size`

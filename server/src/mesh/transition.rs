@@ -81,6 +81,36 @@ use super::transition_table::{
 };
 use isovox_proto::mesh::{Transitions, VertexMove};
 use std::collections::HashMap;
+use std::hash::{BuildHasherDefault, Hasher};
+
+/// A hasher for small keys of lattice points: multiply and rotate per word (the std SipHash
+/// showed in profiles of strip building, and these keys need no flood resistance).
+#[derive(Debug, Default)]
+struct PointHasher(u64);
+
+impl Hasher for PointHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u64(u64::from(b));
+        }
+    }
+
+    fn write_u8(&mut self, v: u8) {
+        self.write_u64(u64::from(v));
+    }
+
+    fn write_i64(&mut self, v: i64) {
+        self.write_u64(v as u64);
+    }
+
+    fn write_u64(&mut self, v: u64) {
+        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
+    }
+}
 
 /// How far (in fine cells) the fine face of a transition cell sits inside the coarse face.
 pub const WIDTH: f32 = super::transition_table::WIDTH as f32;
@@ -154,7 +184,7 @@ impl TransitionInput<'_> {
 pub struct TransitionScratch {
     /// Transition vertices already made: on a coarse edge (lower point, axis) or at a fine
     /// corner's connecting edge (axis 3).
-    made: HashMap<([i64; 3], u8), u32>,
+    made: HashMap<([i64; 3], u8), u32, BuildHasherDefault<PointHasher>>,
     /// The number of regular vertices; transition vertices are numbered after them.
     regular: usize,
     /// The move of each regular vertex with the face whose strip is being built.
@@ -442,7 +472,9 @@ fn transition_cell(
         drawn[e as usize] = pos.map(f64::from);
     }
     let traced;
-    let loops: Vec<&[u8]> = if collapsed.contains(&true) {
+    let mut traced_loops;
+    let mut table_loops;
+    let loops: &mut dyn Iterator<Item = &[u8]> = if collapsed.contains(&true) {
         let mut next = [u8::MAX; EDGES.len()];
         for (f, corners) in faces().iter().enumerate() {
             match f.checked_sub(5) {
@@ -456,11 +488,12 @@ fn transition_cell(
             }
         }
         traced = chain(&next);
-        traced.iter().map(Vec::as_slice).collect()
+        traced_loops = traced.iter().map(Vec::as_slice);
+        &mut traced_loops
     } else {
-        table.loops(case).collect()
+        table_loops = table.loops(case);
+        &mut table_loops
     };
-    let mut pieces: Vec<Vec<usize>> = Vec::new();
     for lp in loops {
         // Consecutive vertices at one position (a fine and a coarse crossing that coincide on a
         // collapsed side) are one vertex.
@@ -491,8 +524,20 @@ fn transition_cell(
         // contours cross on a collapsed side) pinch it into two loops that touch there; each is
         // triangulated on its own, so that no vertex is joined to both.
         let n = points.len();
-        pieces.clear();
-        pieces.push((0..n).collect());
+        let pinched =
+            (0..n).any(|a| (a + 2..n).any(|b| points[a] == points[b] && !(a == 0 && b + 1 == n)));
+        if !pinched {
+            if n >= 3 {
+                let shape = LoopShape {
+                    ids: &scratch.loop_ids,
+                    points,
+                    lines: &scratch.lines,
+                };
+                triangulate_loop(cell.face, &shape, regular, out, scratch.regular);
+            }
+            continue;
+        }
+        let mut pieces: Vec<Vec<usize>> = vec![(0..n).collect()];
         let mut at = 0;
         while at < pieces.len() {
             let piece = &pieces[at];

@@ -267,6 +267,32 @@ pub fn triangulate(
         let clean = area(points[0], points[1], points[2]) >= flat && !refused_triangle(0, 1, 2);
         return (vec![[0, 1, 2]], clean);
     }
+    if n == 4 {
+        // Two diagonals: the one with less area (and nothing refused), without the tables.
+        let cost = |t: [[usize; 3]; 2], d: (usize, usize)| {
+            let a: f64 = t
+                .iter()
+                .map(|&[i, k, j]| area(points[i], points[k], points[j]))
+                .sum();
+            let bad = refused(d.0, d.1)
+                || t.iter().any(|&[i, k, j]| {
+                    area(points[i], points[k], points[j]) < flat || refused_triangle(i, k, j)
+                });
+            (bad, a)
+        };
+        let first = [[0, 1, 2], [0, 2, 3]];
+        let second = [[0, 1, 3], [1, 2, 3]];
+        let (b1, a1) = cost(first, (0, 2));
+        let (b2, a2) = cost(second, (1, 3));
+        // Ties go to the diagonal 1-3, as the general case resolves them.
+        let take_first = (b1, a1) < (b2, a2);
+        let (t, bad) = if take_first {
+            (first, b1)
+        } else {
+            (second, b2)
+        };
+        return (t.to_vec(), !bad);
+    }
     const REFUSED: f64 = 1e9;
     let diagonal = |i: usize, j: usize| j != i + 1 && !(i == 0 && j == n - 1) && refused(i, j);
     let weight = |i: usize, k: usize, j: usize| {
