@@ -34,6 +34,13 @@ pub const SLOT_LEN: usize = 48;
 pub const DATA_START: u64 = 12288;
 /// Size of the header in front of every stored brick payload.
 pub const BRICK_HEADER_LEN: usize = 24;
+/// Brick record flag (header byte 13): the payload is followed by its checksum
+/// ([`payload_check`], [`PAYLOAD_CHECK_LEN`] bytes), so that it can be verified without
+/// decoding before it is sent as it is. Every record written since this revision of the format
+/// has it; records written before have no flag and no checksum.
+pub const RECORD_PAYLOAD_CHECKED: u8 = 1;
+/// Size of the checksum that follows a checked payload.
+pub const PAYLOAD_CHECK_LEN: usize = 4;
 /// Size of a commit record without its changes.
 pub const COMMIT_FIXED_LEN: usize = 56;
 /// Bytes per change entry in a commit record: (node index, node entry).
@@ -53,6 +60,12 @@ const NODE_CONSTANT: u64 = 1 << 63;
 /// The content hash of a decoded brick: xxh3-64 of its bytes (u16 little endian).
 pub fn content_hash(bytes: &[u8]) -> u64 {
     xxh3_64(bytes)
+}
+
+/// The checksum stored after a brick payload: the low 32 bits of xxh3-64 of the stored
+/// (compressed) bytes.
+pub fn payload_check(payload: &[u8]) -> u32 {
+    xxh3_64(payload) as u32
 }
 
 /// Bounds-checked little-endian reads from a record.
@@ -359,15 +372,27 @@ pub struct BrickHeader {
     pub min: u16,
     /// The largest voxel value.
     pub max: u16,
+    /// Whether the payload is followed by its checksum ([`RECORD_PAYLOAD_CHECKED`]); false
+    /// only in records written before payload checksums.
+    pub checked: bool,
 }
 
 impl BrickHeader {
+    /// Bytes of the whole record: header, payload and, when checked, the payload's checksum.
+    pub fn record_len(&self) -> u64 {
+        let check = if self.checked { PAYLOAD_CHECK_LEN } else { 0 };
+        (BRICK_HEADER_LEN + check) as u64 + self.stored_len as u64
+    }
+
     /// The header's bytes.
     pub fn encode(&self) -> [u8; BRICK_HEADER_LEN] {
         let mut b = [0u8; BRICK_HEADER_LEN];
         put(&mut b, 0, &self.hash.to_le_bytes());
         put(&mut b, 8, &self.stored_len.to_le_bytes());
         b[12] = self.codec as u8;
+        if self.checked {
+            b[13] = RECORD_PAYLOAD_CHECKED;
+        }
         put(&mut b, 14, &self.min.to_le_bytes());
         put(&mut b, 16, &self.max.to_le_bytes());
         let check = xxh3_64(&b[..20]) as u32;
@@ -379,7 +404,7 @@ impl BrickHeader {
     /// be plausible for the codec and the brick size.
     ///
     /// # Errors
-    /// Checksum mismatch, unknown codec, impossible length or value range.
+    /// Checksum mismatch, unknown codec or flags, impossible length or value range.
     pub fn decode(bytes: &[u8], base: u64, layout: &VolumeLayout) -> Result<Self, FormatError> {
         let f = Fields::new("brick header", bytes, base);
         let stored = f.u32(20)?;
@@ -403,12 +428,20 @@ impl BrickHeader {
                 })
             }
         };
+        let flags = f.slice(13, 1)?[0];
+        if flags & !RECORD_PAYLOAD_CHECKED != 0 {
+            return Err(FormatError::Unsupported {
+                what: "brick record flags",
+                detail: format!("{flags:#04x} at offset {base}"),
+            });
+        }
         let h = BrickHeader {
             hash: f.u64(0)?,
             stored_len: f.u32(8)?,
             codec,
             min: f.u16(14)?,
             max: f.u16(16)?,
+            checked: flags & RECORD_PAYLOAD_CHECKED != 0,
         };
         let brick_bytes = layout.brick_bytes() as u64;
         let len_ok = match codec {
@@ -837,8 +870,26 @@ mod tests {
             codec: Codec::Lz4,
             min: 0,
             max: 65535,
+            checked: true,
         };
         assert_eq!(BrickHeader::decode(&h.encode(), 0, &l).unwrap(), h);
+        assert_eq!(h.record_len(), 24 + 100 + 4);
+        // A record written before payload checksums: byte 13 zero, no checksum after the payload.
+        let legacy = BrickHeader {
+            checked: false,
+            ..h
+        };
+        let bytes = legacy.encode();
+        assert_eq!((h.encode()[13], bytes[13]), (1, 0));
+        assert_eq!(BrickHeader::decode(&bytes, 0, &l).unwrap(), legacy);
+        assert_eq!(legacy.record_len(), 24 + 100);
+        // Flags this reader does not know are refused, not ignored (the header checksum is
+        // made right, so only the flag is wrong).
+        let mut unknown = h.encode();
+        unknown[13] = 0x03;
+        let check = xxh3_64(&unknown[..20]) as u32;
+        unknown[20..24].copy_from_slice(&check.to_le_bytes());
+        assert!(BrickHeader::decode(&unknown, 0, &l).is_err());
         let raw_wrong_len = BrickHeader {
             codec: Codec::Raw,
             ..h
@@ -850,6 +901,13 @@ mod tests {
             ..h
         };
         assert!(BrickHeader::decode(&inverted.encode(), 0, &l).is_err());
+    }
+
+    #[test]
+    fn payload_check_is_the_low_half_of_xxh3() {
+        // xxHash's published test vector: XXH3_64bits of no bytes is 0x2D06800538D394C2.
+        assert_eq!(payload_check(&[]), 0x38D3_94C2);
+        assert_ne!(payload_check(&[1, 2, 3]), payload_check(&[1, 2, 4]));
     }
 
     #[test]

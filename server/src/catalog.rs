@@ -1,6 +1,6 @@
 //! The volumes a server serves: every VOD 2 file of its data directory, named after the file.
 
-use crate::store::{StoreError, Vod2};
+use crate::store::{check, StoreError, Vod2};
 use crate::volume::{LiveVolume, VolumeError};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -22,9 +22,37 @@ pub fn valid_name(name: &str) -> bool {
             .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-' || b == b'.')
 }
 
+/// Opens the file at `path` as the volume `name`: at its newest durable version, or, when
+/// that version is damaged, read-only at the newest version that reads (with a loud warning):
+/// a damaged commit record or checkpoint costs the versions that need it, not the volume.
+///
+/// # Errors
+/// The file cannot be read, is not VOD 2, or no version of it reads.
+pub fn open_volume(name: &str, path: &Path) -> Result<LiveVolume, StoreError> {
+    let damage = match Vod2::open(path) {
+        Ok(vod) => return LiveVolume::new(name, vod),
+        Err(e) if e.is_damage() => e,
+        Err(e) => return Err(e),
+    };
+    let (vod, report) = check::open_newest_readable(path).inspect_err(|_| {
+        tracing::error!(path = %path.display(), error = %crate::store::error_chain(&damage), "the newest version is damaged, and no older one reads");
+    })?;
+    let served = vod.head_ref().version;
+    let head = report
+        .head
+        .map_or("the newest version".to_string(), |v| format!("version {v}"));
+    // Clients see this (edits answer 409 with it): no path of the server's.
+    let cause = format!(
+        "{head} is damaged ({}); version {served}, the newest that reads, is served read-only; an operator lists the damage with `isovox check` and writes a repaired copy with `isovox salvage`",
+        crate::store::error_chain(&damage),
+    );
+    tracing::error!(volume = name, path = %path.display(), damaged_records = report.damage.len(), "SERVING READ-ONLY: {cause}");
+    LiveVolume::read_only(name, vod, cause)
+}
+
 impl Catalog {
-    /// Opens every `*.vod` VOD 2 file in `dir`. A file that does not open is reported and left
-    /// out, so one damaged volume does not take the others down.
+    /// Opens every `*.vod` VOD 2 file in `dir` (see [`open_volume`]). A file that does not
+    /// open is reported and left out, so one damaged volume does not take the others down.
     ///
     /// # Errors
     /// The directory cannot be read.
@@ -49,7 +77,7 @@ impl Catalog {
                 tracing::warn!(path = %path.display(), "skipping a volume whose name is not [A-Za-z0-9_.-]");
                 continue;
             }
-            match Vod2::open(&path).and_then(|vod| LiveVolume::new(&name, vod)) {
+            match open_volume(&name, &path) {
                 Ok(volume) => {
                     volumes.insert(name, Arc::new(volume));
                 }

@@ -545,3 +545,35 @@ fn dimensions_whose_voxel_count_overflows_are_an_error() {
     std::fs::write(&rawvox, b).unwrap();
     fails(&["import", s(&rawvox), "-o", s(&out)]);
 }
+
+#[test]
+fn output_to_a_reader_that_has_gone_ends_quietly() {
+    // `isovox inspect f.vod | head -1` used to panic when `head` had exited before the next
+    // line was written. Here the reader is gone before the first: every write fails.
+    let dir = tempfile::tempdir().unwrap();
+    let vod = small_vod(dir.path());
+    let f = s(&vod);
+    for args in [
+        vec!["inspect", f],
+        vec!["inspect", "--json", f],
+        vec!["check", f],
+        vec!["check", "--json", f],
+        vec!["get", f, "0", "0", "0", "0"],
+    ] {
+        for _ in 0..3 {
+            let mut child = Command::new(env!("CARGO_BIN_EXE_isovox"))
+                .args(&args)
+                .env_remove("ISOVOX_LOG")
+                .stdout(std::process::Stdio::piped())
+                .stderr(std::process::Stdio::piped())
+                .spawn()
+                .unwrap();
+            drop(child.stdout.take());
+            let o = child.wait_with_output().unwrap();
+            let stderr = String::from_utf8_lossy(&o.stderr);
+            assert!(!stderr.contains("panicked"), "isovox {args:?}: {stderr}");
+            assert!(stderr.is_empty(), "isovox {args:?}: {stderr}");
+            assert!(o.status.success(), "isovox {args:?}: {}", show(&o));
+        }
+    }
+}

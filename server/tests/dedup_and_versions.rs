@@ -12,8 +12,8 @@
 #![allow(clippy::unwrap_used)]
 
 use isovox_proto::vod2::{
-    NodeEntry, BRICK_HEADER_LEN, CHECKPOINT_FIXED_LEN, CHUNK_REF_LEN, DATA_START, SLOT_LEN,
-    SLOT_OFFSETS,
+    NodeEntry, BRICK_HEADER_LEN, CHECKPOINT_FIXED_LEN, CHUNK_REF_LEN, DATA_START,
+    PAYLOAD_CHECK_LEN, SLOT_LEN, SLOT_OFFSETS,
 };
 use isovox_proto::{VolumeLayout, VoxelType};
 use isovox_server::progress::Silent;
@@ -226,7 +226,8 @@ fn repeated_brick_content_is_stored_once() {
         "index of {} bytes",
         i.index_bytes
     );
-    let records = distinct_records * (BRICK_HEADER_LEN as u64 + 512);
+    // Each record: its 24-byte header, 512 payload bytes, the payload's 4-byte checksum.
+    let records = distinct_records * (BRICK_HEADER_LEN as u64 + 512 + PAYLOAD_CHECK_LEN as u64);
     assert_eq!(vod.file_len(), DATA_START + records + i.index_bytes + 56);
     assert_version_reads(&vod, 1, &expected, "tiled");
 }
@@ -323,7 +324,10 @@ fn appended_versions_keep_older_versions_readable() {
                 old.stored_entry(old.entry_at(n).unwrap()).unwrap()
             {
                 if !live.contains(&offset) {
-                    dropped.insert(offset, BRICK_HEADER_LEN as u64 + header.stored_len as u64);
+                    dropped.insert(
+                        offset,
+                        (BRICK_HEADER_LEN + PAYLOAD_CHECK_LEN) as u64 + header.stored_len as u64,
+                    );
                 }
             }
         }

@@ -6,16 +6,18 @@
 //! The expected voxels come from an independent evaluator written here from `docs/icvg.md`
 //! (the cuboid primitive, `union` and `difference`); nothing here calls the server's library.
 
+mod server_process;
+
 use reqwest::blocking::{Client, Response};
 use reqwest::header::{HeaderMap, AUTHORIZATION, CONTENT_TYPE};
 use reqwest::StatusCode;
 use serde_json::{json, Value};
+use server_process::ServerProcess;
 use std::collections::{BTreeMap, BTreeSet};
 use std::io::{BufRead, BufReader, Read};
 use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::sync::mpsc;
-use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
@@ -35,17 +37,15 @@ const VOLUME_DIMS: [usize; 3] = [64, 48, 64];
 /// A running `isovox serve` on an ephemeral port over a fresh data directory holding `w.vod`.
 /// Dropping it kills the child.
 struct Server {
-    child: Child,
+    process: ServerProcess,
     base: String,
-    log: Arc<Mutex<String>>,
-    drain: Option<JoinHandle<()>>,
-    // Dropped after the child is killed (fields drop after `Drop::drop`).
+    // Dropped after the process is killed (fields drop in declaration order).
     dir: tempfile::TempDir,
 }
 
 impl Server {
     /// Generates the volume and the token file, starts the server with `--edit-rate edit_rate`
-    /// and waits for its "isovox serving ... on http://ADDR/v1/volumes" line.
+    /// and waits for it to announce its address.
     fn start(edit_rate: u32) -> Server {
         let dir = tempfile::tempdir().unwrap();
         let vod = dir.path().join("w.vod");
@@ -60,81 +60,28 @@ impl Server {
             "isovox generate failed: {}",
             String::from_utf8_lossy(&out.stderr)
         );
+        let tokens = dir.path().join("tokens");
         std::fs::write(
-            dir.path().join("tokens"),
+            &tokens,
             format!(
                 "# NAME TOKEN [SCOPE]\nwriter1 {SECRET1} write\nwriter2 {SECRET2}\nviewer {VIEWSECRET} read\n"
             ),
         )
         .unwrap();
-
-        let mut child = Command::new(env!("CARGO_BIN_EXE_isovox"))
-            .arg("serve")
-            .arg("--data")
-            .arg(dir.path())
-            .args(["--addr", "127.0.0.1:0", "--token-file"])
-            .arg(dir.path().join("tokens"))
-            .args(["--edit-rate", &edit_rate.to_string()])
-            .env("RUST_LOG", "debug")
-            .env("ISOVOX_LOG", "debug")
-            .env_remove("ISOVOX_WRITE_TOKEN")
-            .env_remove("ISOVOX_TOKEN_FILE")
-            .env_remove("ISOVOX_PRIVATE_READS")
-            .env_remove("ISOVOX_EDIT_RATE")
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap();
-
-        let stderr = child.stderr.take().unwrap();
-        let log = Arc::new(Mutex::new(String::new()));
-        let (addr_tx, addr_rx) = mpsc::channel::<String>();
-        let drain = {
-            let log = Arc::clone(&log);
-            std::thread::spawn(move || {
-                let mut reader = BufReader::new(stderr);
-                let mut line = String::new();
-                let mut addr_tx = Some(addr_tx);
-                loop {
-                    line.clear();
-                    match reader.read_line(&mut line) {
-                        Ok(0) | Err(_) => break,
-                        Ok(_) => {}
-                    }
-                    if line.contains("isovox serving") {
-                        if let Some(tx) = addr_tx.take() {
-                            if let Some(addr) = parse_addr(&line) {
-                                let _ = tx.send(addr);
-                            }
-                        }
-                    }
-                    log.lock().unwrap().push_str(&line);
-                }
-            })
-        };
-        let mut server = Server {
-            child,
-            base: String::new(),
-            log,
-            drain: Some(drain),
-            dir,
-        };
-        match addr_rx.recv_timeout(Duration::from_secs(60)) {
-            Ok(addr) => server.base = format!("http://{addr}"),
-            Err(_) => {
-                let _ = server.child.kill();
-                let _ = server.child.wait();
-                if let Some(d) = server.drain.take() {
-                    let _ = d.join();
-                }
-                panic!(
-                    "the server did not report its address; its stderr:\n{}",
-                    server.log.lock().unwrap()
-                );
-            }
-        }
-        server
+        let edit_rate = edit_rate.to_string();
+        let process = ServerProcess::start(
+            &[
+                "--data".as_ref(),
+                dir.path().as_os_str(),
+                "--token-file".as_ref(),
+                tokens.as_os_str(),
+                "--edit-rate".as_ref(),
+                edit_rate.as_ref(),
+            ],
+            &[("RUST_LOG", "debug"), ("ISOVOX_LOG", "debug")],
+        );
+        let base = process.url("");
+        Server { process, base, dir }
     }
 
     fn url(&self, path: &str) -> String {
@@ -147,28 +94,8 @@ impl Server {
 
     /// Kills the server and returns everything it wrote to stderr.
     fn stop(mut self) -> String {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-        if let Some(d) = self.drain.take() {
-            let _ = d.join();
-        }
-        let log = self.log.lock().unwrap().clone();
-        log
+        self.process.stop()
     }
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-/// `ADDR` from "isovox serving w on http://ADDR/v1/volumes".
-fn parse_addr(line: &str) -> Option<String> {
-    let rest = &line[line.find("http://")? + "http://".len()..];
-    let end = rest.find('/')?;
-    Some(rest[..end].to_string())
 }
 
 fn client() -> Client {
@@ -1089,19 +1016,51 @@ fn edit_body_too_large() {
             .unwrap(),
     );
     a.expect_problem(413, "a body over 1 MiB");
-    // Without a token the body is not even read: 401, not 413. The server then closes the
-    // connection (the unread body is still on it), so this request does not offer it back to
-    // the client's pool: the next request would otherwise race the close.
-    let a = Answer::read(
-        c.post(s.url("/v1/volumes/w/edits"))
-            .header(CONTENT_TYPE, "application/json")
-            .header("connection", "close")
-            .body(" ".repeat((1 << 20) + 64))
-            .send()
-            .unwrap(),
+    // The server read the rest of that body before answering, so the client heard its 413
+    // (not a reset) and the same client edits on.
+    edit_ok(
+        &c,
+        &s,
+        SECRET1,
+        &json!({"op":"union","term":{"cuboid":{"origin":[4,4,4],"size":[6,6,6]}}}),
     );
-    a.expect_problem(401, "a big body without a token");
-    assert_eq!(head_version(&c, &s), v0);
+    let v1 = head_version(&c, &s);
+    assert_eq!(v1, v0 + 1);
+
+    // Without a token the body is not even read: the 401 comes back before the client has
+    // sent a byte of the megabyte it announced.
+    let (status, text) = headers_only(&s, None, (1 << 20) + 64);
+    assert_eq!(status, 401, "a big body without a token: {text}");
+    assert!(text.contains("application/problem+json"), "{text}");
+    // With a token, a body announced far over the limit is refused before it is sent.
+    let (status, text) = headers_only(&s, Some(SECRET1), 100 << 20);
+    assert_eq!(status, 413, "a body announced at 100 MiB: {text}");
+    assert!(text.contains("application/problem+json"), "{text}");
+    assert_eq!(head_version(&c, &s), v1);
+}
+
+/// Sends an edit request's head with `Content-Length: length` and no body, and reads the
+/// answer until the server closes the connection or 5 s pass: the status and the whole text.
+fn headers_only(s: &Server, token: Option<&str>, length: u64) -> (u16, String) {
+    let addr = s.process.addr.clone();
+    let mut tcp = std::net::TcpStream::connect(&addr).unwrap();
+    tcp.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    let auth = token.map_or(String::new(), |t| format!("Authorization: Bearer {t}\r\n"));
+    let head = format!(
+        "POST /v1/volumes/w/edits HTTP/1.1\r\nHost: {addr}\r\n{auth}\
+         Content-Type: application/json\r\nContent-Length: {length}\r\n\r\n"
+    );
+    std::io::Write::write_all(&mut tcp, head.as_bytes()).unwrap();
+    let mut text = Vec::new();
+    // A read timeout after the answer is fine: the server may keep the connection open.
+    let _ = tcp.read_to_end(&mut text);
+    let text = String::from_utf8_lossy(&text).into_owned();
+    let status = text
+        .split(' ')
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(0);
+    (status, text)
 }
 
 /// Compaction keeps the head's version and voxels, drops the history, does not grow the file,

@@ -1,12 +1,14 @@
 //! Micro-benchmarks of the kernels a regression would hide in (criterion; `cargo bench -p
 //! isovox-tools`): marching cubes on one tile (with and without its transition data), term
-//! evaluation on one brick, brick decoding (zstd, lz4) and index lookups. The data is a generated terrain, built once per run.
+//! evaluation on one brick, brick decoding (zstd, lz4), the check of a stored payload before it
+//! is sent as it is, and index lookups. The data is a generated terrain, built once per run.
 
 #![allow(clippy::unwrap_used)] // a benchmark that cannot set up should stop loudly
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use isovox_proto::icvg::Term;
 use isovox_proto::mesh::TileMesh;
+use isovox_proto::vod2::payload_check;
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use isovox_server::generate::WorldSource;
 use isovox_server::geometry::Box3;
@@ -116,6 +118,28 @@ fn kernels(c: &mut Criterion) {
                 black_box(decoded[0])
             })
         });
+    }
+    group.finish();
+
+    // What checking a stored payload before sending it as it is costs (`Accept-Encoding:
+    // zstd`, `Accept: application/x-lz4`, stored batches): one xxh3 pass over its bytes.
+    let mut group = c.benchmark_group("payload verification");
+    let bricks = DecodedBricks::new(64 << 20);
+    let stored = snap.stored(key).unwrap();
+    let StoredBrick::Record { payload, .. } = stored else {
+        panic!("the crossing brick is a record");
+    };
+    group.throughput(Throughput::Bytes(payload.len() as u64));
+    group.bench_function(format!("stored zstd payload, {} B", payload.len()), |b| {
+        b.iter(|| bricks.verify_payload(black_box(&stored), &layout).unwrap())
+    });
+    for (name, compression) in [("lz4", Compression::Lz4), ("raw", Compression::None)] {
+        let (_, payload) = encode(&raw, compression);
+        group.throughput(Throughput::Bytes(payload.len() as u64));
+        group.bench_function(
+            format!("{name} payload checksum, {} B", payload.len()),
+            |b| b.iter(|| black_box(payload_check(black_box(&payload)))),
+        );
     }
     group.finish();
 

@@ -382,46 +382,49 @@ pub(super) fn inspect(a: InspectArgs) -> anyhow::Result<()> {
             let i =
                 inspect_vod2(&vod).with_context(|| format!("{} is damaged", a.input.display()))?;
             if a.json {
-                println!("{}", serde_json::to_string_pretty(&i)?);
+                out!("{}", serde_json::to_string_pretty(&i)?)?;
                 return Ok(());
             }
             let [x, y, z] = i.dims;
-            println!(
+            out!(
                 "{}: {} file, version {} ({} commits)",
                 a.input.display(),
                 i.format,
                 i.version,
                 i.commits
-            );
-            println!(
+            )?;
+            out!(
                 "  volume      {x} x {y} x {z} {} voxels, brick {}^3, voxel scale {:?}",
-                i.voxel_type, i.brick, i.voxel_scale
-            );
-            println!("  levels      {}", i.levels.len());
+                i.voxel_type,
+                i.brick,
+                i.voxel_scale
+            )?;
+            out!("  levels      {}", i.levels.len())?;
             for l in &i.levels {
                 let [gx, gy, gz] = l.grid;
-                println!("    level {:>2}  grid {gx:>5} x {gy:>5} x {gz:>5}  {:>10} bricks  {:>10} constant  {:>10} stored", l.level, l.bricks, l.constant, l.stored);
+                out!("    level {:>2}  grid {gx:>5} x {gy:>5} x {gz:>5}  {:>10} bricks  {:>10} constant  {:>10} stored", l.level, l.bricks, l.constant, l.stored)?;
             }
-            println!(
+            out!(
                 "  bricks      {} total, {} unique",
-                i.bricks_total, i.bricks_unique
-            );
+                i.bricks_total,
+                i.bricks_unique
+            )?;
             let c = &i.codecs;
-            println!(
+            out!(
                 "  by codec    constant {} bricks (no payload); zstd {} records, {}; lz4 {} records, {}; raw {} records, {}",
                 c.constant_bricks, c.zstd_records, human(c.zstd_bytes), c.lz4_records, human(c.lz4_bytes), c.raw_records, human(c.raw_bytes)
-            );
-            println!("  index       {}", human(i.index_bytes));
-            println!(
+            )?;
+            out!("  index       {}", human(i.index_bytes))?;
+            out!(
                 "  size        {} on disk, {} as RAW: ratio {:.2}:1",
                 human(i.file_bytes),
                 human(i.raw_bytes),
                 i.ratio
-            );
-            println!(
+            )?;
+            out!(
                 "  garbage     {} not referenced by the head version",
                 human(i.garbage_bytes)
-            );
+            )?;
             Ok(())
         }
         InputKind::Vod(v) => bail!("{}: VOD version {v} is not supported", a.input.display()),
@@ -445,26 +448,26 @@ fn inspect_vod1(a: &InspectArgs) -> anyhow::Result<()> {
             "bricks_total": isovox_server::store::vod1::node_count(v.height), "bricks_unique": v.unique_bricks(),
             "file_bytes": len, "raw_bytes": raw, "ratio": raw as f64 / len as f64,
         });
-        println!("{}", serde_json::to_string_pretty(&j)?);
+        out!("{}", serde_json::to_string_pretty(&j)?)?;
     } else {
-        println!("{}: VOD 1 file (thesis layout)", a.input.display());
-        println!(
+        out!("{}: VOD 1 file (thesis layout)", a.input.display())?;
+        out!(
             "  volume      {x} x {y} x {z} {} voxels, brick {}^3",
             v.layout.voxel_type(),
             v.layout.brick()
-        );
-        println!(
+        )?;
+        out!(
             "  octree      height {}, {} nodes, {} unique bricks",
             v.height,
             isovox_server::store::vod1::node_count(v.height),
             v.unique_bricks()
-        );
-        println!(
+        )?;
+        out!(
             "  size        {} on disk, {} as RAW: ratio {:.2}:1",
             human(len),
             human(raw),
             raw as f64 / len as f64
-        );
+        )?;
     }
     Ok(())
 }
@@ -513,7 +516,7 @@ pub(super) fn compact(a: CompactArgs) -> anyhow::Result<()> {
     let head = vod.head();
     let report = isovox_server::store::compact::compact(&vod, &head, &progress("compacting"))
         .with_context(|| format!("cannot compact {}", a.input.display()))?;
-    println!(
+    out!(
         "{}: version {} kept, {} distinct bricks, {} -> {} bytes ({:.1}% saved) in {:.2} s",
         a.input.display(),
         report.version,
@@ -522,6 +525,6 @@ pub(super) fn compact(a: CompactArgs) -> anyhow::Result<()> {
         report.bytes_after,
         100.0 * (1.0 - report.bytes_after as f64 / report.bytes_before.max(1) as f64),
         report.elapsed.as_secs_f64()
-    );
+    )?;
     Ok(())
 }

@@ -80,6 +80,6 @@ pub(super) fn edit(a: EditArgs) -> anyhow::Result<()> {
     let req = request(&a)?;
     let outcome =
         edit_file(&a.input, &req).with_context(|| format!("cannot edit {}", a.input.display()))?;
-    println!("{}", serde_json::to_string(&outcome)?);
+    out!("{}", serde_json::to_string(&outcome)?)?;
     Ok(())
 }

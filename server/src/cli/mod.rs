@@ -1,10 +1,24 @@
 //! The `isovox` command line (`docs/cli.md`). Each subcommand is a thin layer: parse, call the
 //! library, print. Long jobs show a progress bar on a terminal and stay quiet otherwise.
 //! (Benchmarks are `isovox-bench`, in the `tools` package.)
+//!
+//! Standard output is written with [`out!`], never `println!`: `println!` panics when the
+//! reader has gone (`isovox inspect f.vod | head -1`), `out!` returns the error, and `main`
+//! ends quietly on a broken pipe. The lint below keeps it that way.
+#![deny(clippy::print_stdout)]
+
+/// `println!` that returns the write's error instead of panicking on it.
+macro_rules! out {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        writeln!(std::io::stdout().lock(), $($arg)*)
+    }};
+}
 
 mod data;
 mod edit;
 mod mesh;
+mod repair;
 mod serve;
 mod voxelize;
 
@@ -49,6 +63,12 @@ pub(crate) enum Command {
     /// bricks); run it on a file no server is writing (a server compacts with
     /// POST /v1/volumes/{name}/compact).
     Compact(data::CompactArgs),
+    /// Verify every record of every version of a file; list what is damaged (exit status 1
+    /// when anything is) and which versions are intact.
+    Check(repair::CheckArgs),
+    /// Write a new file from the newest intact version of a damaged one (the damaged file is
+    /// not touched).
+    Salvage(repair::SalvageArgs),
 }
 
 /// Runs a parsed command line.
@@ -67,7 +87,19 @@ pub(crate) fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Get(a) => data::get(a),
         Command::Compact(a) => data::compact(a),
         Command::Voxelize(a) => voxelize::voxelize_cmd(a),
+        Command::Check(a) => repair::check(a),
+        Command::Salvage(a) => repair::salvage(a),
     }
+}
+
+/// Whether `e` is, at bottom, a write to a pipe whose reader has gone: not a failure of the
+/// command (the reader took what it wanted), so `main` ends quietly.
+pub(crate) fn is_broken_pipe(e: &anyhow::Error) -> bool {
+    e.chain().any(|cause| {
+        cause
+            .downcast_ref::<std::io::Error>()
+            .is_some_and(|io| io.kind() == std::io::ErrorKind::BrokenPipe)
+    })
 }
 
 /// Voxel type as a command-line value.

@@ -41,6 +41,10 @@ pub(crate) struct ServeArgs {
     /// Edits waiting for one volume's writer; beyond it 503.
     #[arg(long, env = "ISOVOX_EDIT_QUEUE", default_value_t = 64)]
     pub edit_queue: usize,
+    /// Edits one volume's writer makes durable together at most, with one pair of syncs
+    /// (each is still its own version, answered once durable); 1 syncs every edit on its own.
+    #[arg(long, env = "ISOVOX_EDIT_GROUP", default_value_t = isovox_server::volume::group::DEFAULT_MAX_GROUP as u64, value_parser = clap::value_parser!(u64).range(1..=4096))]
+    pub edit_group: u64,
     /// Level-0 voxels one edit may evaluate; beyond it 422.
     #[arg(long, env = "ISOVOX_MAX_EDIT_VOXELS", default_value_t = 1 << 28)]
     pub max_edit_voxels: u64,
@@ -179,6 +183,7 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             private_reads: a.private_reads,
             edit_rate: a.edit_rate,
             edit_queue: a.edit_queue,
+            edit_group: usize::try_from(a.edit_group).unwrap_or(usize::MAX),
             max_edit_voxels: a.max_edit_voxels,
             mesh_dir: Some(a.data.join("meshes")),
             shutdown_grace,

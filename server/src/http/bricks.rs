@@ -141,10 +141,11 @@ pub(super) fn if_none_match(headers: &HeaderMap, etag: &str) -> bool {
 
 /// The response for one stored brick, shared by the position and the content-hash routes.
 ///
-/// Stored payloads go out as they are stored (small ones copied, large ones as shared slices of
-/// the mapping: see `Snapshot::payload_bytes`); decoded voxels and transcoded lz4 blocks come
-/// from the shared cache of decoded bricks, keyed by content hash, so a hot brick is decoded
-/// once.
+/// Stored payloads go out as they are stored, verified first (small ones copied, large ones as
+/// shared slices of the mapping: see `Snapshot::verified_payload`); decoded voxels and
+/// transcoded lz4 blocks come from the shared cache of decoded bricks, keyed by content hash
+/// and verified when made, so a hot brick is decoded once. A brick that fails verification is
+/// a 500 for that brick only.
 fn brick_response(
     state: &AppState,
     snap: &Snapshot,
@@ -179,21 +180,20 @@ fn brick_response(
     }
     let want_lz4 = accepts(headers, header::ACCEPT, LZ4_MEDIA_TYPE);
     let (media, encoding, body) = match stored {
-        StoredBrick::Record {
-            offset, header: h, ..
-        } if want_lz4 && h.codec == Codec::Lz4 => {
-            (LZ4_MEDIA_TYPE, None, snap.payload_bytes(offset, &h)?)
-        }
-        StoredBrick::Record {
-            offset, header: h, ..
-        } if !want_lz4
-            && h.codec == Codec::Zstd
-            && accepts(headers, header::ACCEPT_ENCODING, "zstd") =>
+        StoredBrick::Record { header: h, .. } if want_lz4 && h.codec == Codec::Lz4 => (
+            LZ4_MEDIA_TYPE,
+            None,
+            snap.verified_payload(&stored, &state.bricks)?,
+        ),
+        StoredBrick::Record { header: h, .. }
+            if !want_lz4
+                && h.codec == Codec::Zstd
+                && accepts(headers, header::ACCEPT_ENCODING, "zstd") =>
         {
             (
                 "application/octet-stream",
                 Some("zstd"),
-                snap.payload_bytes(offset, &h)?,
+                snap.verified_payload(&stored, &state.bricks)?,
             )
         }
         StoredBrick::Constant(v) if want_lz4 => (

@@ -3,8 +3,8 @@
 use super::auth::WriteToken;
 use super::cpu::blocking;
 use super::extract::Path;
+use super::request_body::{is_json, read_limited};
 use super::{ApiError, AppState};
-use crate::store::CheckpointPolicy;
 use axum::body::Body;
 use axum::extract::State;
 use axum::http::{header, HeaderMap};
@@ -15,9 +15,9 @@ use isovox_proto::icvg::EditRequest;
 /// Largest edit request body.
 const MAX_EDIT_BODY: usize = 1 << 20;
 
-/// Checks the token before anything is read, compiles the edit off the async runtime, waits
-/// for the volume's writer (bounded queue), applies and commits, and answers with the new
-/// version.
+/// Checks the token before anything is read, compiles the edit off the async runtime, queues
+/// it for the volume's writer (bounded queue; the writer commits the edits waiting together,
+/// each as its own version), and answers with the new version once it is durable.
 pub async fn edit(
     // First: without a token, nothing else is read.
     WriteToken(token): WriteToken,
@@ -33,11 +33,7 @@ pub async fn edit(
     let (limits, volumes, preparing) = (state.edit_limits(), state.resolver(), vol.clone());
     let edit =
         blocking(move || preparing.prepare_edit(&request, &limits, &volumes, if_match)).await?;
-    let mut writer = vol.wait_for_writer(state.config.edit_queue).await?;
-    let applying = vol.clone();
-    let response =
-        blocking(move || applying.apply(&mut writer, &edit, if_match, CheckpointPolicy::default()))
-            .await?;
+    let response = vol.submit(edit, if_match, state.group_commit()).await?;
     tracing::info!(
         volume = %name,
         token = %token.name,
@@ -56,13 +52,7 @@ async fn edit_request(headers: &HeaderMap, body: Body) -> Result<EditRequest, Ap
             "an edit is JSON: send Content-Type: application/json".into(),
         ));
     }
-    let body = axum::body::to_bytes(body, MAX_EDIT_BODY)
-        .await
-        .map_err(|_| {
-            ApiError::TooLarge(format!(
-                "an edit request takes at most {MAX_EDIT_BODY} bytes (or the body was cut off)"
-            ))
-        })?;
+    let body = read_limited(headers, body, MAX_EDIT_BODY, "an edit request").await?;
     serde_json::from_slice(&body)
         .map_err(|e| ApiError::BadRequest(format!("not an edit request: {e}")))
 }
@@ -80,16 +70,5 @@ fn if_match(headers: &HeaderMap) -> Result<Option<u64>, ApiError> {
         .map(Some)
         .ok_or_else(|| {
             ApiError::BadRequest("If-Match takes a version number, quoted or not".into())
-        })
-}
-
-fn is_json(headers: &HeaderMap) -> bool {
-    headers
-        .get(header::CONTENT_TYPE)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.split(';').next())
-        .is_some_and(|m| {
-            let m = m.trim();
-            m.eq_ignore_ascii_case("application/json") || m.ends_with("+json")
         })
 }

@@ -9,7 +9,7 @@
 use crate::icvg::term::TermError;
 use crate::store::{error_chain, StoreError};
 use crate::volume::VolumeError;
-use axum::extract::rejection::{JsonRejection, PathRejection, QueryRejection};
+use axum::extract::rejection::{PathRejection, QueryRejection};
 use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use isovox_proto::api::Problem;
@@ -34,12 +34,14 @@ pub enum ApiError {
     Unauthorized(String),
     /// Valid credentials without the right (403).
     Forbidden(String),
-    /// A conditional edit found another version (409, the current one in the body).
+    /// The request conflicts with the volume's state (409): a conditional edit found another
+    /// version (the current one in the body), or the volume is read-only (no version: there is
+    /// nothing to retry against).
     Conflict {
         /// What differs.
         detail: String,
-        /// The current version.
-        version: u64,
+        /// The current version, for a conditional edit.
+        version: Option<u64>,
     },
     /// What was asked for existed once and is gone for good (410).
     Gone(String),
@@ -82,7 +84,11 @@ impl From<VolumeError> for ApiError {
             }
             VolumeError::Conflict { current, .. } => ApiError::Conflict {
                 detail,
-                version: current,
+                version: Some(current),
+            },
+            VolumeError::ReadOnly { .. } => ApiError::Conflict {
+                detail,
+                version: None,
             },
             VolumeError::Compacted { .. } => ApiError::Gone(detail),
             VolumeError::WriterBusy => ApiError::Overloaded(1),
@@ -106,18 +112,6 @@ impl From<PathRejection> for ApiError {
 impl From<QueryRejection> for ApiError {
     fn from(e: QueryRejection) -> Self {
         ApiError::BadRequest(format!("malformed query: {e}"))
-    }
-}
-
-impl From<JsonRejection> for ApiError {
-    fn from(e: JsonRejection) -> Self {
-        match e.status() {
-            StatusCode::PAYLOAD_TOO_LARGE => ApiError::TooLarge(format!("request body: {e}")),
-            StatusCode::UNSUPPORTED_MEDIA_TYPE => {
-                ApiError::UnsupportedMedia(format!("request body: {e}"))
-            }
-            _ => ApiError::BadRequest(format!("malformed request body: {e}")),
-        }
     }
 }
 
@@ -183,7 +177,7 @@ impl IntoResponse for ApiError {
             }
             ApiError::Forbidden(d) => problem(StatusCode::FORBIDDEN, d),
             ApiError::Conflict { detail, version } => {
-                problem_with_version(StatusCode::CONFLICT, detail, Some(version))
+                problem_with_version(StatusCode::CONFLICT, detail, version)
             }
             ApiError::Gone(d) => problem(StatusCode::GONE, d),
             ApiError::Unprocessable(d) => problem(StatusCode::UNPROCESSABLE_ENTITY, d),

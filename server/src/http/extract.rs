@@ -2,6 +2,7 @@
 //! answered as problem details by `http/error.rs` like every other error, and handlers take
 //! their arguments directly.
 
+use super::request_body::{is_json, read_limited};
 use super::ApiError;
 use axum::extract::{FromRequest, FromRequestParts, Request};
 use axum::http::request::Parts;
@@ -43,8 +44,11 @@ where
     }
 }
 
-/// A JSON body ([`axum::Json`]); 400, 413 or 415 as the body is malformed, too large or not
-/// JSON.
+/// Largest JSON request body (batch key lists are the biggest: well under this).
+pub const MAX_JSON_BODY: usize = 1 << 20;
+
+/// A JSON body of at most [`MAX_JSON_BODY`] bytes; 400, 413 or 415 as the body is malformed,
+/// too large or not JSON.
 #[derive(Debug)]
 pub struct Json<T>(pub T);
 
@@ -55,8 +59,17 @@ where
 {
     type Rejection = ApiError;
 
-    async fn from_request(request: Request, state: &S) -> Result<Self, ApiError> {
-        let axum::Json(value) = axum::Json::<T>::from_request(request, state).await?;
-        Ok(Json(value))
+    async fn from_request(request: Request, _state: &S) -> Result<Self, ApiError> {
+        let (parts, body) = request.into_parts();
+        if !is_json(&parts.headers) {
+            return Err(ApiError::UnsupportedMedia(
+                "the request body is JSON: send Content-Type: application/json".into(),
+            ));
+        }
+        let bytes =
+            read_limited(&parts.headers, body, MAX_JSON_BODY, "a JSON request body").await?;
+        serde_json::from_slice(&bytes)
+            .map(Json)
+            .map_err(|e| ApiError::BadRequest(format!("malformed request body: {e}")))
     }
 }

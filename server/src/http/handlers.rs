@@ -138,9 +138,10 @@ pub async fn batch(
 ) -> Result<Response, ApiError> {
     let read = state.catalog.get(&name)?.batch(&request)?;
     let zstd = accepts_zstd(&headers);
+    let bricks = state.bricks.clone();
     let body = state
         .cpu
-        .run(move || read.encode().map(|bytes| Body::new(bytes, zstd)))
+        .run(move || read.encode(&bricks).map(|bytes| Body::new(bytes, zstd)))
         .await?;
     Ok(body.respond(BATCH_MEDIA_TYPE, HeaderMap::new()))
 }

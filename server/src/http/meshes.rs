@@ -4,10 +4,12 @@
 use super::auth::WriteToken;
 use super::cpu::blocking;
 use super::extract::Query;
+use super::request_body::read_limited;
 use super::{ApiError, AppState};
 use crate::voxelize::store::MeshInfo;
 use axum::body::Body;
 use axum::extract::State;
+use axum::http::HeaderMap;
 use axum::Json;
 use serde::Deserialize;
 
@@ -26,6 +28,7 @@ pub async fn upload_mesh(
     WriteToken(token): WriteToken,
     State(state): State<AppState>,
     Query(query): Query<UploadQuery>,
+    headers: HeaderMap,
     body: Body,
 ) -> Result<Json<MeshInfo>, ApiError> {
     let store = state
@@ -38,9 +41,7 @@ pub async fn upload_mesh(
             ApiError::BadRequest("give the model's ?format= (stl, obj, ply or glb)".into())
         })?
         .to_ascii_lowercase();
-    let body = axum::body::to_bytes(body, MAX_MESH_BODY)
-        .await
-        .map_err(|_| ApiError::TooLarge(format!("a model takes at most {MAX_MESH_BODY} bytes")))?;
+    let body = read_limited(&headers, body, MAX_MESH_BODY, "a model").await?;
     let info =
         blocking(move || store.store(&body, &format).map_err(ApiError::Unprocessable)).await?;
     tracing::info!(token = %token.name, hash = %format!("{:016x}", info.hash), triangles = info.triangles, "mesh stored");

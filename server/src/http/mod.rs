@@ -43,6 +43,7 @@ pub mod handlers;
 pub mod meshes;
 pub mod metrics;
 mod openapi;
+mod request_body;
 mod serve;
 pub mod tls;
 mod web_app;
@@ -54,7 +55,7 @@ use crate::catalog::Catalog;
 use crate::mesh::cache::MeshCache;
 use crate::store::decoded::DecodedBricks;
 use crate::volume::resolve::CatalogVolumes;
-use crate::volume::EditLimits;
+use crate::volume::{EditLimits, GroupCommit};
 use axum::handler::Handler;
 use axum::http::StatusCode;
 use axum::routing::{get, post, MethodRouter};
@@ -81,6 +82,9 @@ pub struct ServerConfig {
     pub edit_rate: f64,
     /// Edits waiting for one volume's writer; beyond it 503.
     pub edit_queue: usize,
+    /// Edits one volume's writer makes durable together at most (one pair of syncs); 1 syncs
+    /// every edit on its own.
+    pub edit_group: usize,
     /// Level-0 voxels one edit may evaluate; beyond it 422.
     pub max_edit_voxels: u64,
     /// Limits on edit terms (depth, nodes, extent).
@@ -102,6 +106,7 @@ impl Default for ServerConfig {
             private_reads: false,
             edit_rate: 50.0,
             edit_queue: 64,
+            edit_group: crate::volume::GroupCommit::default().max_group,
             max_edit_voxels: 1 << 28,
             term_limits: crate::icvg::term::TermLimits::default(),
             mesh_dir: None,
@@ -189,6 +194,15 @@ impl AppState {
         }
     }
 
+    /// How a volume's writer takes edits on this server.
+    pub fn group_commit(&self) -> GroupCommit {
+        GroupCommit {
+            max_waiting: self.config.edit_queue,
+            max_group: self.config.edit_group,
+            ..GroupCommit::default()
+        }
+    }
+
     /// The volumes and meshes edit terms may name: the catalog's and the uploads.
     pub fn resolver(&self) -> CatalogVolumes {
         CatalogVolumes {
@@ -246,8 +260,6 @@ pub fn app(
         .layer(TraceLayer::new_for_http())
         .layer(allow_origin)
         .layer(expose_headers)
-        // Request bodies (edit terms, batch key lists) are small; larger ones get 413.
-        .layer(axum::extract::DefaultBodyLimit::max(1 << 20))
         .layer(metrics::MetricsLayer::new(metrics))
         .service(fast_path::BrickFirst::new(fast_state, router))
 }

@@ -104,7 +104,7 @@ pub(super) fn document() -> Value {
         "components": {"securitySchemes": {"bearer": {"type": "http", "scheme": "bearer"}}, "schemas": {
             "Problem": {"type": "object", "required": ["type", "title", "status", "detail"],
                 "properties": {"type": {"type": "string"}, "title": {"type": "string"}, "status": {"type": "integer"}, "detail": {"type": "string"},
-                    "version": {"type": "integer", "description": "the current version, on 409"}}},
+                    "version": {"type": "integer", "description": "the current version, on a 409 from If-Match (absent on a 409 from a read-only volume)"}}},
             "LevelInfo": {"type": "object", "required": ["level", "grid", "dims"],
                 "properties": {"level": {"type": "integer"}, "grid": {"$ref": "#/components/schemas/Triple"}, "dims": {"$ref": "#/components/schemas/Triple"}}},
             "Triple": {"type": "array", "items": {"type": "integer", "minimum": 0}, "minItems": 3, "maxItems": 3},
@@ -164,7 +164,7 @@ fn write_side(name: Value) -> (Value, Value) {
             "security": bearer,
             "parameters": [name],
             "responses": merge(json!({"200": {"description": "what compaction did", "content": json_body("CompactResponse")}}),
-                problem_responses(&["400", "401", "403", "404", "500", "503"]))}},
+                problem_responses(&["400", "401", "403", "404", "409", "500", "503"]))}},
         "/v1/meshes": {"post": {
             "summary": "keep a watertight model (the file's bytes) by its content hash, for mesh leaves of edit terms",
             "security": bearer,

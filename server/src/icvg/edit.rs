@@ -42,7 +42,7 @@ pub struct Edit {
 /// What an edit changed.
 #[derive(Debug, Clone, Serialize)]
 pub struct EditOutcome {
-    /// The version committed.
+    /// The version committed (or staged).
     pub version: u64,
     /// Changed bricks per level (level 0 first), as `[x, y, z]`.
     pub changed: ChangedKeys,
@@ -274,6 +274,26 @@ pub fn apply_edit(
     policy: CheckpointPolicy,
 ) -> Result<EditOutcome, StoreError> {
     let start = Instant::now();
+    let mut outcome = stage_edit(writer, snap, edit, policy)?;
+    writer.sync()?;
+    outcome.elapsed = start.elapsed();
+    Ok(outcome)
+}
+
+/// Applies `edit` to the version `snap` and stages the result as the next version, not yet
+/// durable (the writer's next sync makes it so, with every other version staged until then).
+/// `snap` must be the writer's newest version, staged or durable.
+///
+/// # Errors
+/// Reading a brick fails, or appending fails: what was appended is then still in the writer
+/// (roll it back to a savepoint taken before, or drop it).
+pub fn stage_edit(
+    writer: &mut Vod2Writer,
+    snap: &Snapshot,
+    edit: &Edit,
+    policy: CheckpointPolicy,
+) -> Result<EditOutcome, StoreError> {
+    let start = Instant::now();
     let layout = snap.layout();
     let target = edit.target(layout);
     let keys = bricks_meeting(layout, &edit.reach(layout));
@@ -288,13 +308,13 @@ pub fn apply_edit(
         .collect();
     let mut transaction = Transaction::on(writer, snap);
     transaction.update_level0(level0)?;
-    let committed = transaction.commit(policy)?;
+    let staged = transaction.stage(policy)?;
     Ok(EditOutcome {
-        version: committed.slot.version,
-        changed: committed.changed,
+        version: staged.slot.version,
+        changed: staged.changed,
         evaluated,
-        new_records: committed.new_records,
-        checkpoint: committed.checkpoint,
+        new_records: staged.new_records,
+        checkpoint: staged.checkpoint,
         elapsed: start.elapsed(),
     })
 }

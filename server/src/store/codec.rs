@@ -29,6 +29,19 @@ impl Default for Compression {
 /// The zstd level imports use unless told otherwise.
 pub const DEFAULT_ZSTD_LEVEL: i32 = 5;
 
+/// The zstd level of the bricks an edit writes. An edit compresses every brick it changes,
+/// on every level of detail (about 15 for a small carve in a 1024^3 world), while its editor
+/// waits: at level 3 that takes a quarter less CPU per edit than at level 5, for edited bricks
+/// about 3% larger. Imports and builds, written once, keep the stronger default.
+pub const EDIT_ZSTD_LEVEL: i32 = 3;
+
+impl Compression {
+    /// What edits compress new bricks with ([`EDIT_ZSTD_LEVEL`]).
+    pub fn for_edits() -> Compression {
+        Compression::Zstd(EDIT_ZSTD_LEVEL)
+    }
+}
+
 thread_local! {
     static ZSTD_ENCODER: RefCell<Option<(i32, zstd::bulk::Compressor<'static>)>> = const { RefCell::new(None) };
     static ZSTD_DECODER: RefCell<Option<zstd::bulk::Decompressor<'static>>> = const { RefCell::new(None) };

@@ -1,7 +1,8 @@
 //! Compaction: rewriting a file with only its head version, so that the bricks older versions
 //! and edits left behind stop taking space.
 //!
-//! The head's distinct brick records are copied as they are (no decoding, no recompression) into
+//! The head's distinct brick records are copied as they are (no recompression; each payload
+//! verified first, so damage is never copied, and given a checksum if it had none) into
 //! `NAME.vod.compact` beside the file, with one full index checkpoint and one commit numbered like
 //! the head; that file is synced and renamed over the original, then the directory is synced.
 //! A crash at any point leaves either the old file or the new one, each whole. Readers that still
@@ -9,7 +10,7 @@
 
 use super::transaction::{CheckpointPolicy, Transaction};
 use super::writer::Vod2Writer;
-use super::{Snapshot, StoreError, StoredBrick, Vod2};
+use super::{Snapshot, StoreError, Vod2};
 use crate::progress::Progress;
 use isovox_proto::vod2::NodeEntry;
 use std::collections::HashMap;
@@ -42,8 +43,8 @@ pub fn compact_path(path: &Path) -> PathBuf {
 /// and renames the result over it. The caller makes sure no writer appends meanwhile.
 ///
 /// # Errors
-/// Reading the index or a brick record fails, or the new file cannot be written, synced or
-/// renamed (the original is then untouched).
+/// Reading the index or a brick record fails (a damaged payload is not copied), or the new
+/// file cannot be written, synced or renamed (the original is then untouched).
 pub fn compact(
     vod: &Vod2,
     head: &Snapshot,
@@ -51,55 +52,7 @@ pub fn compact(
 ) -> Result<CompactReport, StoreError> {
     let start = Instant::now();
     let path = vod.path();
-    let tmp = compact_path(path);
-    let bricks = {
-        let mut writer = Vod2Writer::create(&tmp, vod.header().clone(), Default::default())?;
-        writer.start_at_version(head.version)?;
-        let nodes = head.layout().node_count();
-        progress.start(nodes);
-        let mut transaction = Transaction::first(&mut writer);
-        let mut moved: HashMap<u64, NodeEntry> = HashMap::new();
-        for node in 0..nodes {
-            let entry = head.entry_at(node)?;
-            let copied = match entry {
-                NodeEntry::Constant(_) => entry,
-                NodeEntry::Stored(offset) => match moved.get(&offset) {
-                    Some(&e) => e,
-                    None => {
-                        let StoredBrick::Record {
-                            header, payload, ..
-                        } = head.stored_entry(entry)?
-                        else {
-                            return Err(StoreError::Internal(format!(
-                                "node {node}: a stored entry read back as a constant"
-                            )));
-                        };
-                        let e = transaction.copy_record(&header, payload)?;
-                        moved.insert(offset, e);
-                        e
-                    }
-                },
-            };
-            transaction.set(node, copied)?;
-            if node % 4096 == 4095 {
-                progress.advance(4096);
-            }
-        }
-        progress.advance(nodes % 4096);
-        progress.finish();
-        transaction.commit(CheckpointPolicy::default())?;
-        moved.len() as u64
-    };
-    let bytes_after = std::fs::metadata(&tmp)
-        .map_err(StoreError::io_path("cannot stat", &tmp))?
-        .len();
-    std::fs::rename(&tmp, path).map_err(StoreError::io_path("cannot rename over", path))?;
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        // The rename is durable once the directory entry is.
-        std::fs::File::open(dir)
-            .and_then(|d| d.sync_all())
-            .map_err(StoreError::io_path("cannot sync the directory", dir))?;
-    }
+    let (bricks, bytes_after) = write_version_as(head, path, &compact_path(path), progress)?;
     Ok(CompactReport {
         version: head.version,
         bytes_before: vod.file_len(),
@@ -107,4 +60,75 @@ pub fn compact(
         bricks,
         elapsed: start.elapsed(),
     })
+}
+
+/// Writes `version` as the only version of a new file named `dest`, numbered like it: its
+/// distinct brick records copied with their payloads as they are (each verified first, and
+/// given a payload checksum if it had none), one full index checkpoint and one commit. The
+/// file is written as `tmp` (beside `dest`), synced, and renamed over `dest`, so a crash leaves
+/// `dest` as it was or whole. Returns the records copied and the new file's size. Compaction
+/// and salvage both write through it.
+///
+/// # Errors
+/// Reading the index or a brick record fails, a payload is damaged, or writing, syncing or
+/// renaming fails (`dest` is then untouched).
+pub fn write_version_as(
+    version: &Snapshot,
+    dest: &Path,
+    tmp: &Path,
+    progress: &dyn Progress,
+) -> Result<(u64, u64), StoreError> {
+    let records = write_version(version, tmp, progress)?;
+    let bytes = std::fs::metadata(tmp)
+        .map_err(StoreError::io_path("cannot stat", tmp))?
+        .len();
+    rename_durably(tmp, dest)?;
+    Ok((records, bytes))
+}
+
+fn write_version(
+    version: &Snapshot,
+    out: &Path,
+    progress: &dyn Progress,
+) -> Result<u64, StoreError> {
+    let mut writer = Vod2Writer::create(out, version.header().clone(), Default::default())?;
+    writer.start_at_version(version.version)?;
+    let nodes = version.layout().node_count();
+    progress.start(nodes);
+    let mut transaction = Transaction::first(&mut writer);
+    let mut moved: HashMap<u64, NodeEntry> = HashMap::new();
+    for node in 0..nodes {
+        let entry = version.entry_at(node)?;
+        let copied = match entry {
+            NodeEntry::Constant(_) => entry,
+            NodeEntry::Stored(offset) => match moved.get(&offset) {
+                Some(&e) => e,
+                None => {
+                    let e = transaction.copy_record(&version.stored_entry(entry)?)?;
+                    moved.insert(offset, e);
+                    e
+                }
+            },
+        };
+        transaction.set(node, copied)?;
+        if node % 4096 == 4095 {
+            progress.advance(4096);
+        }
+    }
+    progress.advance(nodes % 4096);
+    progress.finish();
+    transaction.commit(CheckpointPolicy::default())?;
+    Ok(moved.len() as u64)
+}
+
+/// Renames `from` over `to` and syncs the directory, so the rename is durable.
+fn rename_durably(from: &Path, to: &Path) -> Result<(), StoreError> {
+    std::fs::rename(from, to).map_err(StoreError::io_path("cannot rename over", to))?;
+    if let Some(dir) = to.parent().filter(|d| !d.as_os_str().is_empty()) {
+        // The rename is durable once the directory entry is.
+        std::fs::File::open(dir)
+            .and_then(|d| d.sync_all())
+            .map_err(StoreError::io_path("cannot sync the directory", dir))?;
+    }
+    Ok(())
 }

@@ -3,9 +3,13 @@
 //! neighbours of each tile and would otherwise decode them again for every tile.
 //!
 //! Keys are content, so an entry never goes stale: an edit makes new hashes, and the entries
-//! of replaced bricks age out.
+//! of replaced bricks age out. Everything cached was verified when it was made: voxels are
+//! decoded and checked against their content hash, lz4 blocks are made from such voxels, and
+//! the payloads of records without a checksum are remembered only once they decoded to their
+//! hash ([`DecodedBricks::verify_payload`]).
 
 use super::lru::ByteLru;
+use super::vod2::PayloadCheck;
 use super::{StoreError, StoredBrick};
 use bytes::Bytes;
 use isovox_proto::VolumeLayout;
@@ -20,6 +24,15 @@ pub enum Form {
     /// An lz4 block of them.
     Lz4 = 1,
 }
+
+/// The cache's third kind of entry, beside the two [`Form`]s: a stored payload without a
+/// checksum that decoded to its content hash. The key is the payload's xxh3-64 (seeded with its
+/// codec), the value the content hash it decoded to.
+const VERIFIED_PAYLOAD: u8 = 2;
+
+/// What one remembered payload verification is counted as against the cache's byte budget:
+/// about what its entry costs (the key, the 8-byte value, the LRU's bookkeeping).
+const VERIFIED_PAYLOAD_COST: usize = 128;
 
 /// Brick contents by (content hash, brick size, form), bounded by bytes; thread-safe.
 #[derive(Debug)]
@@ -66,18 +79,79 @@ impl DecodedBricks {
         form: Form,
         make: impl FnOnce() -> Result<Bytes, E>,
     ) -> Result<Bytes, E> {
+        self.get_or_make_sized(hash, brick_bytes, form as u8, make, Bytes::len)
+    }
+
+    fn get_or_make_sized<E>(
+        &self,
+        hash: u64,
+        brick_bytes: usize,
+        kind: u8,
+        make: impl FnOnce() -> Result<Bytes, E>,
+        cost: impl FnOnce(&Bytes) -> usize,
+    ) -> Result<Bytes, E> {
         // The hash is uniform in its low bits (they pick the LRU's shard). The brick size goes
-        // above it: equal hashes of different sizes are different content.
-        let key = (hash as u128) | ((brick_bytes as u128) << 64) | ((form as u128) << 127);
+        // above it (equal hashes of different sizes are different content), the kind of entry
+        // on top (the brick size takes at most 25 bits).
+        let key = (hash as u128) | ((brick_bytes as u128) << 64) | ((kind as u128) << 126);
         if let Some(body) = self.lru.get(key) {
             self.hits.fetch_add(1, Ordering::Relaxed);
             return Ok((*body).clone());
         }
         self.misses.fetch_add(1, Ordering::Relaxed);
         let body = make()?;
-        let size = body.len();
+        let size = cost(&body);
         self.lru.put(key, Arc::new(body.clone()), size);
         Ok(body)
+    }
+
+    /// Verifies a stored payload before it is sent as it is: against the checksum stored after
+    /// it (no decoding); a record written before payload checksums is decoded and checked
+    /// against its content hash the first time, and the result remembered by the xxh3-64 of
+    /// its payload bytes (and codec), so that a hot brick of an old file is decoded once, not on every
+    /// request (the same payload bytes always decode to the same content).
+    ///
+    /// # Errors
+    /// [`StoreError::Corrupt`]: the payload is not what was stored.
+    pub fn verify_payload(
+        &self,
+        stored: &StoredBrick<'_>,
+        layout: &VolumeLayout,
+    ) -> Result<(), StoreError> {
+        let StoredBrick::Record {
+            offset,
+            header,
+            payload,
+            ..
+        } = *stored
+        else {
+            return Ok(());
+        };
+        if stored.check_payload()? == PayloadCheck::Verified {
+            return Ok(());
+        }
+        // Seeded with the codec: the same bytes under another codec are other content.
+        let payload_hash = xxhash_rust::xxh3::xxh3_64_with_seed(payload, header.codec as u64);
+        let decoded_to = self.get_or_make_sized(
+            payload_hash,
+            layout.brick_bytes(),
+            VERIFIED_PAYLOAD,
+            || {
+                decode(stored, layout)?;
+                Ok::<_, StoreError>(Bytes::copy_from_slice(&header.hash.to_le_bytes()))
+            },
+            |_| VERIFIED_PAYLOAD_COST,
+        )?;
+        // These payload bytes decoded to this content once; a record claiming other content
+        // for them is damaged.
+        if decoded_to[..] != header.hash.to_le_bytes() {
+            return Err(StoreError::corrupt(
+                offset,
+                format!("a payload of content hash {:#018x}", header.hash),
+                "one that decodes to other content",
+            ));
+        }
+        Ok(())
     }
 
     /// The decoded voxels of a stored brick record with content hash `hash`, decoded (and

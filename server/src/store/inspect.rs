@@ -3,7 +3,7 @@
 
 use super::vod2::{StoredBrick, Vod2};
 use super::StoreError;
-use isovox_proto::vod2::{Codec, CommitHeader, BRICK_HEADER_LEN, DATA_START};
+use isovox_proto::vod2::{Codec, CommitHeader, DATA_START};
 use isovox_proto::VoxelType;
 use serde::Serialize;
 use std::collections::HashSet;
@@ -114,7 +114,7 @@ pub fn inspect(vod: &Vod2) -> Result<Inspection, StoreError> {
                 StoredBrick::Record { offset, header, .. } => {
                     stats.stored += 1;
                     if records.insert(offset) {
-                        live += BRICK_HEADER_LEN as u64 + header.stored_len as u64;
+                        live += header.record_len();
                         let len = header.stored_len as u64;
                         let (records, bytes) = match header.codec {
                             Codec::Raw => (&mut codecs.raw_records, &mut codecs.raw_bytes),

@@ -9,6 +9,8 @@
 //! - [`transaction`]: the one way a version is written: staged bricks, level-of-detail upkeep,
 //!   the commit.
 //! - [`compact`]: rewriting a file with only its head version.
+//! - [`check`]: verifying every record of every version of a file; which versions are intact.
+//! - [`salvage`]: writing a new file from the newest intact version of a damaged one.
 //! - [`build`]: building a whole volume (all levels) from a level-0 source, streaming.
 //! - [`vod1`]: the thesis's VOD 1 layout, read and write.
 //! - [`raw`]: RAW and RAWVOX input and output.
@@ -17,6 +19,7 @@
 //! - [`lru`]: a content-keyed LRU bounded by bytes (decoded bricks, mesh tiles).
 
 pub mod build;
+pub mod check;
 pub mod codec;
 pub mod compact;
 pub mod decoded;
@@ -25,6 +28,7 @@ pub mod lru;
 pub(crate) mod mapping;
 pub mod pyramid;
 pub mod raw;
+pub mod salvage;
 pub mod transaction;
 pub mod vod1;
 pub mod vod2;
@@ -33,7 +37,9 @@ pub mod writer;
 pub use build::{build_vod2, stream_pyramid, BuildOptions, BuildReport, MemorySink, SlabSink};
 pub use pyramid::{BrickSource, BrickVoxels, DenseGrid};
 pub use transaction::{CheckpointPolicy, Committed, Transaction};
-pub use vod2::{Snapshot, SnapshotSource, StoredBrick, Vod2};
+pub use vod2::{
+    verify_stored, PayloadCheck, SlotState, Snapshot, SnapshotSource, StoredBrick, Vod2, Vod2File,
+};
 pub use writer::Vod2Writer;
 
 use isovox_proto::FormatError;
@@ -91,6 +97,12 @@ impl StoreError {
             self,
             StoreError::Absent(_) | StoreError::OutOfRange(_) | StoreError::BadInput(_)
         )
+    }
+
+    /// Whether the error is damage to the file (a malformed record, bytes that are not what
+    /// they must be), as opposed to the caller, the system or a bug.
+    pub fn is_damage(&self) -> bool {
+        matches!(self, StoreError::Format(_) | StoreError::Corrupt { .. })
     }
 }
 

@@ -131,18 +131,46 @@ pub fn downsample(
     voxel_type: VoxelType,
     out: &mut [u8],
 ) {
+    for (octant, child) in children.iter().enumerate() {
+        downsample_octant(octant, *child, brick, voxel_type, out);
+    }
+}
+
+/// Rewrites in `out`, a parent brick's bytes, only the octants whose child is given: the
+/// others keep what `out` holds. A parent of which a few children changed is its old content
+/// with those octants downsampled again (each octant of a parent depends on its own child
+/// only), without reading the children that did not change.
+pub fn downsample_changed(
+    changed: &[Option<&BrickVoxels>; 8],
+    brick: u32,
+    voxel_type: VoxelType,
+    out: &mut [u8],
+) {
+    for (octant, child) in changed.iter().enumerate() {
+        if child.is_some() {
+            downsample_octant(octant, *child, brick, voxel_type, out);
+        }
+    }
+}
+
+/// The octant `octant` (x fastest) of a parent brick from its child (`None`: all L).
+fn downsample_octant(
+    octant: usize,
+    child: Option<&BrickVoxels>,
+    brick: u32,
+    voxel_type: VoxelType,
+    out: &mut [u8],
+) {
     let b = brick as usize;
     let h = b / 2;
-    for (octant, child) in children.iter().enumerate() {
-        let (ox, oy, oz) = ((octant & 1) * h, (octant >> 1 & 1) * h, (octant >> 2) * h);
-        match child {
-            None => fill_subcube(out, b, [ox, oy, oz], 0, voxel_type),
-            Some(BrickVoxels::Constant(v)) => fill_subcube(out, b, [ox, oy, oz], *v, voxel_type),
-            Some(BrickVoxels::Data(d)) => match voxel_type {
-                VoxelType::U8 => mean_subcube_u8(d, out, b, [ox, oy, oz]),
-                VoxelType::U16 => mean_subcube_u16(d, out, b, [ox, oy, oz]),
-            },
-        }
+    let (ox, oy, oz) = ((octant & 1) * h, (octant >> 1 & 1) * h, (octant >> 2) * h);
+    match child {
+        None => fill_subcube(out, b, [ox, oy, oz], 0, voxel_type),
+        Some(BrickVoxels::Constant(v)) => fill_subcube(out, b, [ox, oy, oz], *v, voxel_type),
+        Some(BrickVoxels::Data(d)) => match voxel_type {
+            VoxelType::U8 => mean_subcube_u8(d, out, b, [ox, oy, oz]),
+            VoxelType::U16 => mean_subcube_u16(d, out, b, [ox, oy, oz]),
+        },
     }
 }
 
@@ -305,5 +333,56 @@ mod tests {
             &mut out,
         );
         assert_eq!(out, vec![3, 0, 6, 0, 0, 0, 0, 0]);
+    }
+
+    proptest::proptest! {
+        /// A parent updated only where children changed equals the parent downsampled from
+        /// all its children again, whatever the children (data, constant, absent) and whichever
+        /// of them changed.
+        #[test]
+        fn updating_changed_octants_equals_downsampling_all(
+            seed in proptest::prelude::any::<u64>(),
+            wide in proptest::prelude::any::<bool>(),
+            kinds in proptest::collection::vec(0u8..3, 8),
+            changed_mask in 0u8..=255,
+        ) {
+            let t = if wide { VoxelType::U16 } else { VoxelType::U8 };
+            let b = 4u32;
+            let bytes = (b * b * b) as usize * t.bytes();
+            let mut state = seed | 1;
+            let mut noise = move || {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                state
+            };
+            let mut brick = |kind: u64| match kind {
+                0 => Some(BrickVoxels::Data((0..bytes).map(|_| noise() as u8).collect())),
+                1 => Some(BrickVoxels::Constant(noise() as u16 & 0xff)),
+                _ => None,
+            };
+            let old: Vec<Option<BrickVoxels>> =
+                kinds.iter().map(|&k| brick(u64::from(k))).collect();
+            // Changed children are new bricks (data or constant, by the seed); an absent child
+            // stays absent (outside the volume).
+            let new: Vec<Option<BrickVoxels>> = (0..8)
+                .map(|o| match &old[o] {
+                    Some(_) if changed_mask >> o & 1 == 1 => brick((seed >> o) & 1),
+                    other => other.clone(),
+                })
+                .collect();
+            fn refs(v: &[Option<BrickVoxels>]) -> [Option<&BrickVoxels>; 8] {
+                std::array::from_fn(|o| v[o].as_ref())
+            }
+            let mut parent = vec![0u8; bytes];
+            downsample(&refs(&old), b, t, &mut parent);
+            let mut expected = vec![0u8; bytes];
+            downsample(&refs(&new), b, t, &mut expected);
+            let changed: [Option<&BrickVoxels>; 8] = std::array::from_fn(|o| {
+                new[o].as_ref().filter(|_| old[o].is_some() && changed_mask >> o & 1 == 1)
+            });
+            downsample_changed(&changed, b, t, &mut parent);
+            proptest::prop_assert_eq!(parent, expected);
+        }
     }
 }

@@ -5,10 +5,11 @@
 //! Edits stage level-0 bricks on top of the head ([`Transaction::on`]); a build and a compaction
 //! fill every entry of a new file ([`Transaction::first`]), whose first commit is a checkpoint.
 
-use super::pyramid::{constant_parent, downsample, BrickVoxels};
+use super::codec::fill_constant;
+use super::pyramid::{constant_parent, downsample, downsample_changed, BrickVoxels};
 use super::writer::{PreparedBrick, Vod2Writer};
-use super::{Snapshot, StoreError};
-use isovox_proto::vod2::{BrickHeader, HeaderSlot, NodeEntry};
+use super::{Snapshot, StoreError, StoredBrick};
+use isovox_proto::vod2::{HeaderSlot, NodeEntry};
 use isovox_proto::BrickKey;
 use rayon::prelude::*;
 use std::collections::HashMap;
@@ -35,10 +36,10 @@ impl Default for CheckpointPolicy {
 /// Changed bricks per level (level 0 first), as `[x, y, z]`.
 pub type ChangedKeys = Vec<Vec<[u32; 3]>>;
 
-/// What a commit wrote.
+/// What a commit wrote (or staged).
 #[derive(Debug, Clone)]
 pub struct Committed {
-    /// The header slot naming the new version.
+    /// The header slot naming the new version (once it is durable).
     pub slot: HeaderSlot,
     /// The bricks whose entries changed, per level (empty for the first commit of a file).
     pub changed: ChangedKeys,
@@ -74,7 +75,8 @@ fn records(writer: &Vod2Writer) -> u64 {
 }
 
 impl<'a> Transaction<'a> {
-    /// A transaction on top of `snap`, which must be the writer's head.
+    /// A transaction on top of `snap`, which must be the writer's newest version (its head, or
+    /// the version it staged last).
     pub fn on(writer: &'a mut Vod2Writer, snap: &'a Snapshot) -> Self {
         Transaction {
             records_before: records(writer),
@@ -149,21 +151,20 @@ impl<'a> Transaction<'a> {
         self.set(node, entry)
     }
 
-    /// Copies a brick record of another file as it is (no decoding) and returns its new entry
-    /// (not yet set on any node: records shared by several nodes are copied once).
+    /// Copies a brick record of another file with its payload as it is (verified first, see
+    /// [`Vod2Writer::copy_record`]) and returns its new entry (not yet set on any node: records
+    /// shared by several nodes are copied once).
     ///
     /// # Errors
-    /// Appending fails.
-    pub fn copy_record(
-        &mut self,
-        header: &BrickHeader,
-        payload: &[u8],
-    ) -> Result<NodeEntry, StoreError> {
-        self.writer.copy_record(header, payload)
+    /// The payload is damaged, or appending fails.
+    pub fn copy_record(&mut self, stored: &StoredBrick<'_>) -> Result<NodeEntry, StoreError> {
+        self.writer.copy_record(stored)
     }
 
     /// Stages new contents of level-0 bricks and recomputes every coarser brick above those
-    /// whose entry changed (the others' children are read from the base).
+    /// whose entry changed: a parent is its base content with the octants under changed
+    /// children downsampled again (a parent is the downsampling of its children, octant by
+    /// octant, in every version this writer or a build wrote).
     ///
     /// # Errors
     /// A brick of the base fails to read, storing fails, or this is the first transaction of a
@@ -203,28 +204,33 @@ impl<'a> Transaction<'a> {
                 .par_iter()
                 .map(|&parent| -> Result<(BrickKey, BrickVoxels), StoreError> {
                     let kids = layout.children(parent);
-                    let mut owned: Vec<(usize, BrickVoxels)> = Vec::new();
+                    let mut changed: [Option<&BrickVoxels>; 8] = [None; 8];
                     for (octant, child) in &kids {
-                        if !kept.contains_key(child) {
-                            owned.push((*octant, snap.voxels(*child)?));
-                        }
+                        changed[*octant] = kept.get(child);
                     }
-                    let mut slots: [Option<&BrickVoxels>; 8] = [None; 8];
-                    for (octant, child) in &kids {
-                        if let Some(v) = kept.get(child) {
-                            slots[*octant] = Some(v);
+                    let voxels = if kids.iter().all(|(_, child)| kept.contains_key(child)) {
+                        // Every child is new (octants without a child are outside: L).
+                        match constant_parent(&changed) {
+                            Some(v) => BrickVoxels::Constant(v),
+                            None => {
+                                let mut out = vec![0u8; layout.brick_bytes()];
+                                downsample(&changed, layout.brick(), t, &mut out);
+                                BrickVoxels::from_bytes(out, t)
+                            }
                         }
-                    }
-                    for (octant, v) in &owned {
-                        slots[*octant] = Some(v);
-                    }
-                    let voxels = match constant_parent(&slots) {
-                        Some(v) => BrickVoxels::Constant(v),
-                        None => {
-                            let mut out = vec![0u8; layout.brick_bytes()];
-                            downsample(&slots, layout.brick(), t, &mut out);
-                            BrickVoxels::from_bytes(out, t)
-                        }
+                    } else {
+                        // The other octants are those of the parent as it was: one brick read
+                        // instead of each unchanged child.
+                        let mut out = match snap.voxels(parent)? {
+                            BrickVoxels::Data(bytes) => bytes,
+                            BrickVoxels::Constant(v) => {
+                                let mut bytes = vec![0u8; layout.brick_bytes()];
+                                fill_constant(&mut bytes, v, t);
+                                bytes
+                            }
+                        };
+                        downsample_changed(&changed, layout.brick(), t, &mut out);
+                        BrickVoxels::from_bytes(out, t)
                     };
                     Ok((parent, voxels))
                 })
@@ -240,6 +246,21 @@ impl<'a> Transaction<'a> {
     /// # Errors
     /// Reading the base's index or writing the commit fails (the head is then unchanged).
     pub fn commit(self, policy: CheckpointPolicy) -> Result<Committed, StoreError> {
+        self.finish(policy, true)
+    }
+
+    /// Appends the next version as [`Transaction::commit`] does, without making it durable:
+    /// the writer's next [`Vod2Writer::sync`] does, for every version staged until then (group
+    /// commit). The base must be the writer's newest staged version, or its head.
+    ///
+    /// # Errors
+    /// Reading the base's index or appending fails: roll the writer back to a savepoint taken
+    /// before the transaction began, or drop it.
+    pub fn stage(self, policy: CheckpointPolicy) -> Result<Committed, StoreError> {
+        self.finish(policy, false)
+    }
+
+    fn finish(self, policy: CheckpointPolicy, durable: bool) -> Result<Committed, StoreError> {
         let (slot, changed, checkpoint) = match self.base {
             Base::Version {
                 snap,
@@ -259,14 +280,15 @@ impl<'a> Transaction<'a> {
                 } else {
                     None
                 };
-                let slot = self.writer.commit(&changes, full.as_deref())?;
+                let slot = self.writer.stage(&changes, full.as_deref())?;
                 (slot, changed, checkpoint)
             }
             Base::Empty { entries } => {
-                let slot = self.writer.commit(&[], Some(&entries))?;
+                let slot = self.writer.stage(&[], Some(&entries))?;
                 (slot, ChangedKeys::new(), true)
             }
         };
+        let slot = if durable { self.writer.sync()? } else { slot };
         Ok(Committed {
             slot,
             changed,

@@ -17,8 +17,9 @@ use super::codec;
 use super::mapping::Mapping;
 use super::StoreError;
 use isovox_proto::vod2::{
-    content_hash, BrickHeader, Checkpoint, CommitHeader, FileHeader, HeaderSlot, NodeEntry,
-    BRICK_HEADER_LEN, CHUNK_ENTRIES, DATA_START, HEADER_LEN, SLOT_LEN, SLOT_OFFSETS,
+    content_hash, payload_check, BrickHeader, Checkpoint, CommitHeader, Fields, FileHeader,
+    HeaderSlot, NodeEntry, BRICK_HEADER_LEN, CHUNK_ENTRIES, DATA_START, HEADER_LEN,
+    PAYLOAD_CHECK_LEN, SLOT_LEN, SLOT_OFFSETS,
 };
 use isovox_proto::{BrickKey, FormatError, VolumeLayout};
 use std::collections::HashMap;
@@ -52,7 +53,21 @@ pub enum StoredBrick<'a> {
         header: BrickHeader,
         /// Its payload, a slice of the mapping.
         payload: &'a [u8],
+        /// The checksum stored after the payload; `None` in records written before payload
+        /// checksums.
+        checksum: Option<u32>,
     },
+}
+
+/// What checking a stored payload against its checksum found (see
+/// [`StoredBrick::check_payload`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PayloadCheck {
+    /// The payload is what was stored (or there is none: a constant).
+    Verified,
+    /// The record has no checksum (written before payload checksums): only decoding it and
+    /// comparing the content hash tells.
+    NoChecksum,
 }
 
 impl StoredBrick<'_> {
@@ -61,6 +76,49 @@ impl StoredBrick<'_> {
         match self {
             StoredBrick::Constant(v) => (*v, *v),
             StoredBrick::Record { header, .. } => (header.min, header.max),
+        }
+    }
+
+    /// Checks the payload against the checksum stored after it (one xxh3 pass over the stored
+    /// bytes, no decoding).
+    ///
+    /// # Errors
+    /// [`StoreError::Corrupt`]: the payload differs from what was stored.
+    pub fn check_payload(&self) -> Result<PayloadCheck, StoreError> {
+        match *self {
+            StoredBrick::Constant(_) => Ok(PayloadCheck::Verified),
+            StoredBrick::Record { checksum: None, .. } => Ok(PayloadCheck::NoChecksum),
+            StoredBrick::Record {
+                offset,
+                payload,
+                checksum: Some(stored),
+                ..
+            } => {
+                let computed = payload_check(payload);
+                if computed != stored {
+                    return Err(StoreError::corrupt(
+                        offset,
+                        format!("a brick payload with checksum {stored:#010x}"),
+                        format!("one with checksum {computed:#010x}"),
+                    ));
+                }
+                Ok(PayloadCheck::Verified)
+            }
+        }
+    }
+}
+
+/// Verifies a stored brick before its payload is copied or sent as it is: against its
+/// checksum, or (a record without one) by decoding it and comparing the content hash.
+///
+/// # Errors
+/// [`StoreError::Corrupt`]: the payload is not what was stored.
+pub fn verify_stored(stored: &StoredBrick<'_>, layout: &VolumeLayout) -> Result<(), StoreError> {
+    match stored.check_payload()? {
+        PayloadCheck::Verified => Ok(()),
+        PayloadCheck::NoChecksum => {
+            let mut out = vec![0u8; layout.brick_bytes()];
+            decode_stored(stored, layout, &mut out)
         }
     }
 }
@@ -72,13 +130,38 @@ fn read_exact_at(file: &File, path: &Path, offset: u64, len: usize) -> Result<Ve
     Ok(buf)
 }
 
-impl Vod2 {
-    /// Opens the newest durable version of a VOD 2 file.
+/// What one header slot holds, as read.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum SlotState {
+    /// A valid slot (magic, checksum, offsets inside a file of this length).
+    Valid(HeaderSlot),
+    /// All zero: never written (a file with one commit has written one slot).
+    Unused,
+    /// Written, but not valid: why.
+    Invalid(String),
+}
+
+/// A VOD 2 file opened without choosing a version: its header, both header slots as read, and
+/// its committed region mapped (the newest valid slot's committed length; the whole file when
+/// no slot is valid). [`Vod2::open`] goes through it to the version the slots name; checking
+/// and recovery (`store::check`) read versions the slots do not name through it.
+#[derive(Debug)]
+pub struct Vod2File {
+    path: PathBuf,
+    header: Arc<FileHeader>,
+    map: Arc<Mapping>,
+    file_len: u64,
+    slots: [SlotState; 2],
+    head_slot: Option<HeaderSlot>,
+}
+
+impl Vod2File {
+    /// Reads the header and both slots with `pread`, and maps the committed region.
     ///
     /// # Errors
-    /// The file cannot be read, is not VOD 2, or its header, slots, head commit or index
-    /// checkpoint are malformed.
-    pub fn open(path: &Path) -> Result<Vod2, StoreError> {
+    /// The file cannot be read or mapped, is shorter than the fixed pages, or its file header
+    /// is not a valid VOD 2 header (nothing of the file can be read without it).
+    pub fn open(path: &Path) -> Result<Vod2File, StoreError> {
         let file = File::open(path).map_err(StoreError::io_path("cannot open", path))?;
         let file_len = file
             .metadata()
@@ -94,22 +177,145 @@ impl Vod2 {
             .into());
         }
         let header = FileHeader::decode(&read_exact_at(&file, path, 0, HEADER_LEN)?)?;
-        let slot = Self::find_head_slot(&file, path, file_len)?;
+        let mut slots = [SlotState::Unused, SlotState::Unused];
+        for (state, at) in slots.iter_mut().zip(SLOT_OFFSETS) {
+            let bytes = read_exact_at(&file, path, at, SLOT_LEN)?;
+            *state = match HeaderSlot::decode(&bytes, at) {
+                Ok(s) if s.committed_len > file_len => SlotState::Invalid(format!(
+                    "slot at {at} names {} committed bytes, the file has {file_len}",
+                    s.committed_len
+                )),
+                Ok(s) => SlotState::Valid(s),
+                Err(_) if bytes.iter().all(|&b| b == 0) => SlotState::Unused,
+                Err(e) => SlotState::Invalid(e.to_string()),
+            };
+        }
+        // The valid slot with the highest sequence number names the head.
+        let head_slot = slots
+            .iter()
+            .filter_map(|s| match s {
+                SlotState::Valid(s) => Some(*s),
+                _ => None,
+            })
+            .max_by_key(|s| s.seq);
+        let committed = head_slot.map_or(file_len, |s| s.committed_len);
         let map = Arc::new(
-            Mapping::new(&file, slot.committed_len)
-                .map_err(StoreError::io_path("cannot map", path))?,
+            Mapping::new(&file, committed).map_err(StoreError::io_path("cannot map", path))?,
         );
-        let header = Arc::new(header);
-        let head = Arc::new(Snapshot::load(header.clone(), map.clone(), slot.commit)?);
-        check_slot(&slot, &head)?;
-        Ok(Vod2 {
+        Ok(Vod2File {
             path: path.to_path_buf(),
-            header,
+            header: Arc::new(header),
             map,
             file_len,
+            slots,
+            head_slot,
+        })
+    }
+
+    /// The fixed header.
+    pub fn header(&self) -> &FileHeader {
+        &self.header
+    }
+
+    /// The file's length on disk.
+    pub fn file_len(&self) -> u64 {
+        self.file_len
+    }
+
+    /// Slots A and B as read.
+    pub fn slots(&self) -> &[SlotState; 2] {
+        &self.slots
+    }
+
+    /// The valid slot with the highest sequence number, if any.
+    pub fn head_slot(&self) -> Option<HeaderSlot> {
+        self.head_slot
+    }
+
+    /// The mapped committed region (from offset 0).
+    pub fn mapped(&self) -> &[u8] {
+        self.map.bytes()
+    }
+
+    /// The version whose commit record is at `commit_at`.
+    ///
+    /// # Errors
+    /// Its commit chain or index checkpoint is malformed.
+    pub fn snapshot_at(&self, commit_at: u64) -> Result<Snapshot, StoreError> {
+        Snapshot::load(self.header.clone(), self.map.clone(), commit_at)
+    }
+
+    /// The stored brick record at `offset`, whatever version points at it.
+    ///
+    /// # Errors
+    /// Its header or bounds are invalid.
+    pub fn stored_at(&self, offset: u64) -> Result<StoredBrick<'_>, StoreError> {
+        stored_record(self.map.bytes(), &self.header.layout, offset)
+    }
+
+    /// The file opened at the version the slots name as the newest durable one.
+    ///
+    /// # Errors
+    /// No slot is valid, or the head's commit chain or index checkpoint is malformed.
+    pub fn into_head(self) -> Result<Vod2, StoreError> {
+        let slot = self.head_slot.ok_or_else(|| {
+            let problems: Vec<String> = self
+                .slots
+                .iter()
+                .zip(SLOT_OFFSETS)
+                .map(|(s, at)| match s {
+                    SlotState::Invalid(why) => why.clone(),
+                    _ => format!("slot at {at} was never written"),
+                })
+                .collect();
+            StoreError::from(FormatError::invalid(
+                "header slots",
+                format!("no valid slot: {}", problems.join("; ")),
+            ))
+        })?;
+        let head = self.snapshot_at(slot.commit)?;
+        self.into_vod2(slot, head)
+    }
+
+    /// The file opened at the version whose commit record is at `commit_at`, as if it were
+    /// the head: to read (never to append to) a version the slots do not name, such as the
+    /// newest intact one of a damaged file.
+    ///
+    /// # Errors
+    /// No valid commit record there, or its chain or index checkpoint is malformed.
+    pub fn into_version(self, commit_at: u64) -> Result<Vod2, StoreError> {
+        let head = self.snapshot_at(commit_at)?;
+        let slot = HeaderSlot {
+            seq: self.head_slot.map_or(0, |s| s.seq),
+            commit: commit_at,
+            committed_len: self.map.bytes().len() as u64,
+            version: head.version,
+        };
+        self.into_vod2(slot, head)
+    }
+
+    fn into_vod2(self, slot: HeaderSlot, head: Snapshot) -> Result<Vod2, StoreError> {
+        let head = Arc::new(head);
+        check_slot(&slot, &head)?;
+        Ok(Vod2 {
+            path: self.path,
+            header: self.header,
+            map: self.map,
+            file_len: self.file_len,
             head_slot: slot,
             head,
         })
+    }
+}
+
+impl Vod2 {
+    /// Opens the newest durable version of a VOD 2 file.
+    ///
+    /// # Errors
+    /// The file cannot be read, is not VOD 2, or its header, slots, head commit or index
+    /// checkpoint are malformed.
+    pub fn open(path: &Path) -> Result<Vod2, StoreError> {
+        Vod2File::open(path)?.into_head()
     }
 
     /// The file after a commit this process appended (`slot`, as [`Vod2Writer::commit`]
@@ -154,34 +360,6 @@ impl Vod2 {
     /// The header slot the head version was found through.
     pub fn head_slot(&self) -> HeaderSlot {
         self.head_slot
-    }
-
-    /// The valid slot with the highest sequence number whose committed length fits the file.
-    fn find_head_slot(file: &File, path: &Path, file_len: u64) -> Result<HeaderSlot, StoreError> {
-        let mut best: Option<HeaderSlot> = None;
-        let mut problems = Vec::new();
-        for at in SLOT_OFFSETS {
-            let bytes = read_exact_at(file, path, at, SLOT_LEN)?;
-            match HeaderSlot::decode(&bytes, at) {
-                Ok(s) if s.committed_len > file_len => problems.push(format!(
-                    "slot at {at} names {} committed bytes, the file has {file_len}",
-                    s.committed_len
-                )),
-                Ok(s) => {
-                    if best.is_none_or(|b| s.seq > b.seq) {
-                        best = Some(s);
-                    }
-                }
-                Err(e) => problems.push(e.to_string()),
-            }
-        }
-        best.ok_or_else(|| {
-            FormatError::invalid(
-                "header slots",
-                format!("no valid slot: {}", problems.join("; ")),
-            )
-            .into()
-        })
     }
 
     /// The file's path.
@@ -256,14 +434,48 @@ impl Vod2 {
     /// # Errors
     /// A record on the chain is malformed.
     pub fn commits(&self) -> Result<Vec<(u64, CommitHeader)>, StoreError> {
+        match self.commits_until_damage() {
+            (commits, None) => Ok(commits),
+            (_, Some(e)) => Err(e),
+        }
+    }
+
+    /// The commit records from the head back to the first, newest first, as far as they
+    /// read: and, when the walk stopped at a record that does not, why (the error names the
+    /// record's offset). The versions after the damage are all the history a server can list.
+    pub fn commits_until_damage(&self) -> (Vec<(u64, CommitHeader)>, Option<StoreError>) {
         let bytes = self.map.bytes();
-        let mut out = Vec::new();
+        let mut out: Vec<(u64, CommitHeader)> = Vec::new();
         let mut at = self.head.commit_offset;
         loop {
-            let (h, _) = CommitHeader::decode(&bytes[at as usize..], at)?;
+            let decoded = bytes
+                .get(at as usize..)
+                .ok_or_else(|| {
+                    FormatError::invalid(
+                        "commit chain",
+                        format!("offset {at} past the committed length {}", bytes.len()),
+                    )
+                })
+                .and_then(|region| CommitHeader::decode(region, at));
+            let h = match decoded {
+                Ok((h, _)) => h,
+                Err(e) => return (out, Some(e.into())),
+            };
+            if let Some((child_at, child)) = out.last() {
+                if h.version.checked_add(1) != Some(child.version) {
+                    let e = FormatError::invalid(
+                        "commit chain",
+                        format!(
+                            "commit at {child_at} is version {}, its parent at {at} is version {}",
+                            child.version, h.version
+                        ),
+                    );
+                    return (out, Some(e.into()));
+                }
+            }
             out.push((at, h));
             if h.parent == 0 {
-                return Ok(out);
+                return (out, None);
             }
             at = h.parent;
         }
@@ -505,26 +717,7 @@ impl Snapshot {
     pub fn stored_entry(&self, entry: NodeEntry) -> Result<StoredBrick<'_>, StoreError> {
         match entry {
             NodeEntry::Constant(v) => Ok(StoredBrick::Constant(v)),
-            NodeEntry::Stored(offset) => {
-                let bytes = self.map.bytes();
-                let at = offset as usize;
-                let header =
-                    BrickHeader::decode(&bytes[at..at + BRICK_HEADER_LEN], offset, self.layout())?;
-                let start = at + BRICK_HEADER_LEN;
-                let payload = bytes.get(start..start + header.stored_len as usize).ok_or(
-                    FormatError::Truncated {
-                        what: "brick payload",
-                        offset: start as u64,
-                        needed: header.stored_len as u64,
-                        available: (bytes.len() - start) as u64,
-                    },
-                )?;
-                Ok(StoredBrick::Record {
-                    offset,
-                    header,
-                    payload,
-                })
-            }
+            NodeEntry::Stored(offset) => stored_record(self.map.bytes(), self.layout(), offset),
         }
     }
 
@@ -654,6 +847,38 @@ impl Snapshot {
     }
 }
 
+/// The brick record at `offset` of the mapped bytes `mapped`: its header checked, its payload
+/// and (in a checked record) the payload's checksum bounds-checked, nothing decoded.
+fn stored_record<'m>(
+    mapped: &'m [u8],
+    layout: &VolumeLayout,
+    offset: u64,
+) -> Result<StoredBrick<'m>, StoreError> {
+    let fields = Fields::new("brick record", mapped, 0);
+    let at = usize::try_from(offset).map_err(|_| {
+        FormatError::invalid(
+            "brick record",
+            format!("offset {offset} is not addressable"),
+        )
+    })?;
+    let header = BrickHeader::decode(fields.slice(at, BRICK_HEADER_LEN)?, offset, layout)?;
+    let start = at + BRICK_HEADER_LEN;
+    let payload = fields.slice(start, header.stored_len as usize)?;
+    let checksum = match header.checked {
+        false => None,
+        true => {
+            let check = fields.slice(start + payload.len(), PAYLOAD_CHECK_LEN)?;
+            Some(u32::from_le_bytes([check[0], check[1], check[2], check[3]]))
+        }
+    };
+    Ok(StoredBrick::Record {
+        offset,
+        header,
+        payload,
+        checksum,
+    })
+}
+
 /// Checks that the head loaded through `slot` is the version the slot names.
 fn check_slot(slot: &HeaderSlot, head: &Snapshot) -> Result<(), StoreError> {
     if head.version != slot.version {
@@ -754,31 +979,44 @@ impl AsRef<[u8]> for MappedRange {
 }
 
 impl Snapshot {
-    /// The stored payload of a brick record (from [`Snapshot::stored`]) as bytes: payloads up
-    /// to [`SHARE_PAYLOADS_FROM`] are copied, larger ones are shared slices of the mapping (no
-    /// copy; the mapping lives as long as the bytes do).
+    /// The payload of a brick record of this snapshot (from [`Snapshot::stored`]), verified,
+    /// as bytes to send as they are: checked against the checksum stored after it, or, in a
+    /// record written before payload checksums, decoded and checked against its content hash
+    /// the first time and then remembered by `verified` (see
+    /// [`DecodedBricks::verify_payload`]). Payloads up to [`SHARE_PAYLOADS_FROM`] are copied,
+    /// larger ones are shared slices of the mapping (no copy; the mapping lives as long as the
+    /// bytes do).
+    ///
+    /// [`DecodedBricks::verify_payload`]: super::decoded::DecodedBricks::verify_payload
     ///
     /// # Errors
-    /// The record lies outside this snapshot's mapping.
-    pub fn payload_bytes(
+    /// [`StoreError::Corrupt`]: the payload is not what was stored. [`StoreError::Internal`]:
+    /// a constant (no payload), or a record read from another snapshot's mapping.
+    pub fn verified_payload(
         &self,
-        offset: u64,
-        header: &BrickHeader,
+        stored: &StoredBrick<'_>,
+        verified: &super::decoded::DecodedBricks,
     ) -> Result<bytes::Bytes, StoreError> {
-        let start = offset as usize + BRICK_HEADER_LEN;
-        let end = start + header.stored_len as usize;
-        if end > self.map.bytes().len() {
-            return Err(StoreError::corrupt(
-                offset,
-                format!(
-                    "a brick record within the {} mapped bytes",
-                    self.map.bytes().len()
-                ),
-                format!("one that ends at {end}"),
+        let StoredBrick::Record {
+            offset, payload, ..
+        } = *stored
+        else {
+            return Err(StoreError::Internal(
+                "a constant brick has no payload to send".into(),
             ));
+        };
+        let mapped = self.map.bytes();
+        let start = offset as usize + BRICK_HEADER_LEN;
+        let end = start + payload.len();
+        // The bytes checked must be the bytes sent: the payload is this mapping's slice.
+        if mapped.get(start..end).map(<[u8]>::as_ptr) != Some(payload.as_ptr()) {
+            return Err(StoreError::Internal(format!(
+                "the brick record at {offset} was not read from this snapshot's mapping"
+            )));
         }
+        verified.verify_payload(stored, self.layout())?;
         if end - start < SHARE_PAYLOADS_FROM {
-            return Ok(bytes::Bytes::copy_from_slice(&self.map.bytes()[start..end]));
+            return Ok(bytes::Bytes::copy_from_slice(payload));
         }
         Ok(bytes::Bytes::from_owner(MappedRange {
             map: self.map.clone(),
@@ -915,6 +1153,7 @@ pub fn decode_stored(
             offset,
             header,
             payload,
+            ..
         } => {
             codec::decode(header.codec, payload, out, offset)?;
             let hash = content_hash(out);

@@ -9,13 +9,22 @@
 //! A crash before 3 completes leaves the old slot as the valid one with the highest sequence
 //! number: the old version, intact. A torn slot fails its checksum and is ignored. Nothing ever
 //! overwrites a byte below the committed length.
+//!
+//! Group commit splits step 1 from steps 2-4: [`Vod2Writer::stage`] appends one version's
+//! commit record (its parent the previous staged one), [`Vod2Writer::sync`] makes every version
+//! staged since the last sync durable with one pair of syncs and one slot naming the newest.
+//! Until then none of them is visible to a reader opening the file, so a crash anywhere in a
+//! group leaves either all of its versions or none. A [`Savepoint`] taken before staging a
+//! version lets the writer drop that version's bytes again ([`Vod2Writer::rollback`]) without
+//! touching the versions staged before it.
 
 use super::codec::{self, Compression};
 use super::pyramid::BrickVoxels;
 use super::StoreError;
+use super::StoredBrick;
 use isovox_proto::vod2::{
-    content_hash, BrickHeader, Checkpoint, Codec, CommitHeader, FileHeader, HeaderSlot, NodeEntry,
-    BRICK_HEADER_LEN, CHUNK_ENTRIES, DATA_START, SLOT_OFFSETS,
+    content_hash, payload_check, BrickHeader, Checkpoint, Codec, CommitHeader, FileHeader,
+    HeaderSlot, NodeEntry, BRICK_HEADER_LEN, CHUNK_ENTRIES, DATA_START, SLOT_OFFSETS,
 };
 use isovox_proto::VoxelType;
 use std::collections::HashMap;
@@ -68,8 +77,25 @@ pub struct Vod2Writer {
     known: HashMap<u64, Vec<u64>>,
     compression: Compression,
     head: Option<HeaderSlot>,
+    /// The newest version staged since the last sync, as the slot that will name it.
+    staged: Option<HeaderSlot>,
+    /// `(hash, offset)` of every brick record appended since the last sync, in order: what a
+    /// rollback takes out of `known` again.
+    appended: Vec<(u64, u64)>,
+    /// Syncs so far: a savepoint does not outlive the next one.
+    syncs: u64,
     /// Version number of the first commit when the file has none yet.
     first_version: u64,
+    stats: WriteStats,
+}
+
+/// Where a writer stood before a version was staged (see [`Vod2Writer::rollback`]).
+#[derive(Debug, Clone, Copy)]
+pub struct Savepoint {
+    syncs: u64,
+    end: u64,
+    staged: Option<HeaderSlot>,
+    appended: usize,
     stats: WriteStats,
 }
 
@@ -101,6 +127,9 @@ impl Vod2Writer {
             known: HashMap::new(),
             compression,
             head: None,
+            staged: None,
+            appended: Vec::new(),
+            syncs: 0,
             first_version: 1,
             stats: WriteStats::default(),
         })
@@ -154,6 +183,9 @@ impl Vod2Writer {
             known,
             compression,
             head: Some(head),
+            staged: None,
+            appended: Vec::new(),
+            syncs: 0,
             first_version: 1,
             stats: WriteStats::default(),
         })
@@ -180,27 +212,66 @@ impl Vod2Writer {
         Ok(())
     }
 
-    /// Appends a brick record exactly as another file stores it (header and payload), for
-    /// copying distinct records between files without decoding them.
+    /// Appends a brick record of another file (of the same shape) with its payload as it is,
+    /// for copying distinct records between files without recompressing them. The payload is
+    /// verified first ([`verify_stored`]: its checksum, or, in a record written before payload
+    /// checksums, its decoded content), so damage is never copied, and the copy has a
+    /// checksum whatever the original had. A constant is returned as it is.
+    ///
+    /// [`verify_stored`]: super::vod2::verify_stored
     ///
     /// # Errors
-    /// Appending fails.
-    pub fn copy_record(
+    /// The payload is not what was stored ([`StoreError::Corrupt`]), or appending fails.
+    pub fn copy_record(&mut self, stored: &StoredBrick<'_>) -> Result<NodeEntry, StoreError> {
+        match *stored {
+            StoredBrick::Constant(v) => Ok(NodeEntry::Constant(v)),
+            StoredBrick::Record {
+                header, payload, ..
+            } => {
+                super::vod2::verify_stored(stored, &self.header.layout)?;
+                self.append_record(header, payload)
+            }
+        }
+    }
+
+    /// Appends a brick record with a payload checksum; returns its offset.
+    fn append_record(
         &mut self,
-        header: &BrickHeader,
+        header: BrickHeader,
         payload: &[u8],
     ) -> Result<NodeEntry, StoreError> {
+        let header = BrickHeader {
+            checked: true,
+            ..header
+        };
         let offset = self.append(&header.encode())?;
         self.append(payload)?;
+        self.append(&payload_check(payload).to_le_bytes())?;
         self.stats.stored[header.codec as usize] += 1;
         self.stats.stored_bytes[header.codec as usize] += payload.len() as u64;
-        self.known.entry(header.hash).or_default().push(offset);
+        self.remember(header.hash, offset);
         Ok(NodeEntry::Stored(offset))
     }
 
-    /// The slot naming the newest commit this writer made or found.
+    /// The slot naming the newest durable commit this writer made or found.
     pub fn head(&self) -> Option<HeaderSlot> {
         self.head
+    }
+
+    /// The newest version this writer appended, durable or only staged: what the next staged
+    /// version's parent is.
+    pub fn tip(&self) -> Option<HeaderSlot> {
+        self.staged.or(self.head)
+    }
+
+    /// Whether versions are staged that are not durable yet.
+    pub fn has_staged(&self) -> bool {
+        self.staged.is_some()
+    }
+
+    fn remember(&mut self, hash: u64, offset: u64) {
+        self.known.entry(hash).or_default().push(offset);
+        self.appended.push((hash, offset));
     }
 
     /// What it stored so far.
@@ -289,50 +360,81 @@ impl Vod2Writer {
             codec,
             min: brick.min,
             max: brick.max,
+            checked: true,
         };
-        let offset = self.append(&header.encode())?;
-        self.append(&payload)?;
-        self.stats.stored[codec as usize] += 1;
-        self.stats.stored_bytes[codec as usize] += payload.len() as u64;
-        self.known.entry(brick.hash).or_default().push(offset);
-        Ok(NodeEntry::Stored(offset))
+        self.append_record(header, &payload)
     }
 
+    /// Whether the record at `offset` holds `bytes`. A damaged record holds nothing: the
+    /// brick is then stored anew, so later versions do not depend on the damage.
     fn stored_equals(&self, offset: u64, bytes: &[u8]) -> Result<bool, StoreError> {
         let head = self.read_at(offset, BRICK_HEADER_LEN)?;
-        let h = BrickHeader::decode(&head, offset, &self.header.layout)?;
+        let h = match BrickHeader::decode(&head, offset, &self.header.layout) {
+            Ok(h) => h,
+            Err(e) => return Ok(damaged(offset, &e.into())),
+        };
         let payload = self.read_at(offset + BRICK_HEADER_LEN as u64, h.stored_len as usize)?;
         let mut decoded = vec![0u8; bytes.len()];
-        codec::decode(h.codec, &payload, &mut decoded, offset)?;
+        if let Err(e) = codec::decode(h.codec, &payload, &mut decoded, offset) {
+            return Ok(damaged(offset, &e));
+        }
         Ok(decoded == bytes)
     }
 
-    /// Makes everything appended so far durable and switches the head to a new commit.
-    /// `checkpoint` is the full index after the commit (written as a checkpoint), or `None`
-    /// to record only `changes` relative to the current head.
+    /// Makes everything appended so far durable and switches the head to a new commit:
+    /// [`Vod2Writer::stage`] then [`Vod2Writer::sync`].
     ///
     /// # Errors
-    /// A change names a node outside the volume, a constant out of range or a brick offset
-    /// outside the appended region; the version or slot sequence is exhausted; writing or
-    /// syncing fails. The head is then unchanged.
+    /// See [`Vod2Writer::stage`] and [`Vod2Writer::sync`]. The head is then unchanged.
     pub fn commit(
         &mut self,
         changes: &[(u64, NodeEntry)],
         checkpoint: Option<&[u64]>,
     ) -> Result<HeaderSlot, StoreError> {
-        let (parent, version, seq) = match self.head {
-            Some(h) => match (h.version.checked_add(1), h.seq.checked_add(1)) {
-                (Some(version), Some(seq)) => (h.commit, version, seq),
+        self.stage(changes, checkpoint)?;
+        self.sync()
+    }
+
+    /// Appends the next version's commit record (after the newest staged one, or the head):
+    /// `checkpoint` is the full index after the commit (written as a checkpoint), or `None` to
+    /// record only `changes` relative to its parent. The bytes reach the file (so a mapping of
+    /// it can read the new version) but are not durable and not named by a slot until
+    /// [`Vod2Writer::sync`]. Returns the slot that will name the version, its committed length
+    /// ending with this record.
+    ///
+    /// # Errors
+    /// A change names a node outside the volume, a constant out of range or a brick offset
+    /// outside the appended region; the version or slot sequence is exhausted; writing fails.
+    /// What was appended is then still there: roll back to a savepoint, or drop the writer.
+    pub fn stage(
+        &mut self,
+        changes: &[(u64, NodeEntry)],
+        checkpoint: Option<&[u64]>,
+    ) -> Result<HeaderSlot, StoreError> {
+        // Every version of a group is named by one slot write, to the slot that does not hold
+        // the durable head: the sequence number moves by one per sync, not per version.
+        let (parent, version, seq) = match (self.tip(), self.head) {
+            (Some(tip), Some(head)) => match (tip.version.checked_add(1), head.seq.checked_add(1)) {
+                (Some(version), Some(seq)) => (tip.commit, version, seq),
                 _ => {
                     return Err(StoreError::Internal(format!(
                         "{}: version or slot sequence number exhausted (version {}, sequence {}); compact the file",
                         self.path.display(),
-                        h.version,
-                        h.seq
+                        tip.version,
+                        head.seq
                     )))
                 }
             },
-            None => (0, self.first_version, 1),
+            (Some(tip), None) => match tip.version.checked_add(1) {
+                Some(version) => (tip.commit, version, 1),
+                None => {
+                    return Err(StoreError::Internal(format!(
+                        "{}: version numbers exhausted",
+                        self.path.display()
+                    )))
+                }
+            },
+            (None, _) => (0, self.first_version, 1),
         };
         let layout = &self.header.layout;
         for (node, entry) in changes {
@@ -359,7 +461,7 @@ impl Vod2Writer {
                 self.append(&encode_checkpoint(entries))?
             }
             None => {
-                if self.head.is_none() {
+                if parent == 0 {
                     return Err(StoreError::Internal(
                         "the first commit of a file needs a checkpoint".into(),
                     ));
@@ -380,16 +482,34 @@ impl Vod2Writer {
         .encode(changes);
         let commit_at = self.append(&record)?;
         self.flush()?;
-        self.file
-            .sync_data()
-            .map_err(StoreError::io_path("cannot sync", &self.path))?;
         let slot = HeaderSlot {
             seq,
             commit: commit_at,
             committed_len: self.end(),
             version,
         };
-        let slot_at = SLOT_OFFSETS[(seq % 2) as usize];
+        self.staged = Some(slot);
+        Ok(slot)
+    }
+
+    /// Makes every version staged since the last sync durable: `fdatasync`, the slot naming
+    /// the newest of them, `fdatasync` again. Returns the new head (the old one when nothing
+    /// was staged).
+    ///
+    /// # Errors
+    /// Writing or syncing fails. The head is then unchanged in this writer, but the slot may
+    /// or may not have reached the disk: drop the writer and reopen the file.
+    pub fn sync(&mut self) -> Result<HeaderSlot, StoreError> {
+        let Some(slot) = self.staged else {
+            return self.head.ok_or_else(|| {
+                StoreError::Internal(format!("{}: nothing to sync", self.path.display()))
+            });
+        };
+        self.flush()?;
+        self.file
+            .sync_data()
+            .map_err(StoreError::io_path("cannot sync", &self.path))?;
+        let slot_at = SLOT_OFFSETS[(slot.seq % 2) as usize];
         self.file
             .write_all_at(&slot.encode(), slot_at)
             .map_err(StoreError::io_path(
@@ -400,8 +520,65 @@ impl Vod2Writer {
             .sync_data()
             .map_err(StoreError::io_path("cannot sync", &self.path))?;
         self.head = Some(slot);
+        self.staged = None;
+        self.appended.clear();
+        self.syncs += 1;
         Ok(slot)
     }
+
+    /// Where the writer stands now, to [`rollback`](Vod2Writer::rollback) to.
+    pub fn savepoint(&self) -> Savepoint {
+        Savepoint {
+            syncs: self.syncs,
+            end: self.end(),
+            staged: self.staged,
+            appended: self.appended.len(),
+            stats: self.stats,
+        }
+    }
+
+    /// Drops everything appended since `savepoint` (brick records, a checkpoint, a staged
+    /// version): the writer is as it was then, the versions staged before it untouched. The
+    /// file is cut back to the savepoint; no mapping reaches past it, because the versions
+    /// after it were never handed out.
+    ///
+    /// # Errors
+    /// The savepoint is older than the last sync, or the file cannot be cut (drop the writer).
+    pub fn rollback(&mut self, savepoint: Savepoint) -> Result<(), StoreError> {
+        if savepoint.syncs != self.syncs || savepoint.end > self.end() {
+            return Err(StoreError::Internal(format!(
+                "{}: cannot roll back to offset {}: a sync came between, or it lies past the end",
+                self.path.display(),
+                savepoint.end,
+            )));
+        }
+        if savepoint.end >= self.buf_at {
+            self.buf.truncate((savepoint.end - self.buf_at) as usize);
+        } else {
+            self.buf.clear();
+            self.buf_at = savepoint.end;
+            self.file
+                .set_len(savepoint.end)
+                .map_err(StoreError::io_path("cannot cut back", &self.path))?;
+        }
+        for (hash, offset) in self.appended.drain(savepoint.appended..) {
+            if let Some(offsets) = self.known.get_mut(&hash) {
+                offsets.retain(|&o| o != offset);
+                if offsets.is_empty() {
+                    self.known.remove(&hash);
+                }
+            }
+        }
+        self.staged = savepoint.staged;
+        self.stats = savepoint.stats;
+        Ok(())
+    }
+}
+
+/// Logs a stored record found damaged while deduplicating, and says it holds nothing.
+fn damaged(offset: u64, e: &StoreError) -> bool {
+    tracing::warn!(offset, error = %super::error_chain(e), "a stored brick record is damaged; storing the brick anew");
+    false
 }
 
 /// Encodes a full index as a checkpoint: chunks of 512 entries, each zstd-compressed when that

@@ -64,6 +64,15 @@ pub enum VolumeError {
         /// The head.
         head: u64,
     },
+    /// The volume is served read-only (its newest durable version is damaged): no edit, no
+    /// compaction.
+    #[error("volume {volume:?} is read-only: {cause}")]
+    ReadOnly {
+        /// The volume.
+        volume: String,
+        /// Why: what is damaged, what is served, how to recover.
+        cause: String,
+    },
     /// Too many edits already wait for the volume's writer.
     #[error("too many edits are waiting for this volume")]
     WriterBusy,

@@ -1,10 +1,12 @@
 //! A served volume: its current version, its single writer, its history and its change feed.
 //!
 //! Readers call [`LiveVolume::current`] and get the open file as of the newest commit (an
-//! `Arc` swapped atomically): they never wait for the writer. Edits are serialized by the
-//! writer lock; each one is evaluated against the head snapshot, committed (durable before the
-//! call returns), turned into the next [`Vod2`] by [`Vod2::advance`], recorded in the version
-//! history, published to readers, and announced on the change feed, in that order.
+//! `Arc` swapped atomically): they never wait for the writer. Edits wait in the volume's queue
+//! and are applied by its single writer in arrival order, several at a time ([`group`]): each
+//! is evaluated against the version before it, staged as the next version and turned into the
+//! next [`Vod2`] by [`Vod2::advance`]; the group is made durable at once; then each version is
+//! recorded in the history, published to readers, announced on the change feed and answered,
+//! in that order.
 //!
 //! The change feed is a `tokio::sync::broadcast` channel: sending never waits, and a subscriber
 //! that falls more than [`FEED_CAPACITY`] versions behind learns it (`Lagged`) instead of
@@ -13,22 +15,25 @@
 //!
 //! Layout: this file holds the volume's versions, history and feed; [`read`] the reads a
 //! server answers (batches, levels, mesh tiles), checked first and run later off the async
-//! runtime; [`write`] edits (with a server's limits) and compaction; [`resolve`] the volumes
+//! runtime; [`write`] checking edits against a server's limits, and compaction; [`group`] the
+//! edit queue and group commit; [`resolve`] the volumes
 //! and meshes edit terms name; [`error`] what can go wrong.
 
 pub mod error;
+pub mod group;
 pub mod read;
 pub mod resolve;
 pub mod write;
 
 pub use error::VolumeError;
+pub use group::{GroupCommit, PendingEdit};
 pub use write::{edit_file, EditLimits};
 
 use crate::store::{Snapshot, StoreError, Vod2, Vod2Writer};
 use arc_swap::ArcSwap;
 use isovox_proto::api::{ChangeEvent, ChangeList, ChangedBricks};
 use isovox_proto::vod2::CommitHeader;
-use isovox_proto::{FormatError, VolumeLayout};
+use isovox_proto::VolumeLayout;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, RwLock};
 use tokio::sync::broadcast;
@@ -55,31 +60,38 @@ pub const MAX_CHANGES: usize = 10_000;
 struct History {
     oldest: u64,
     offsets: Vec<u64>,
+    /// Why the versions before `oldest` cannot be listed when a damaged commit record ended
+    /// the walk (they are not compacted away: asking for them is a server error, not a 410).
+    damaged: Option<String>,
 }
 
 impl History {
-    /// Walks the commit chain of `vod` once (at start and after compaction).
-    fn read(vod: &Vod2) -> Result<History, StoreError> {
-        let mut commits = vod.commits()?;
+    /// Walks the commit chain of `vod` once (at start and after compaction), as far as the
+    /// records read: damage in an old commit record costs the versions before it, not the
+    /// volume.
+    fn read(name: &str, vod: &Vod2) -> History {
+        let (mut commits, damage) = vod.commits_until_damage();
         commits.reverse();
-        let oldest = commits.first().map_or(0, |(_, h)| h.version);
-        for (i, (_, h)) in commits.iter().enumerate() {
-            if h.version != oldest + i as u64 {
-                return Err(FormatError::invalid(
-                    "commit chain",
-                    format!(
-                        "version {} where {} was expected",
-                        h.version,
-                        oldest + i as u64
-                    ),
-                )
-                .into());
-            }
-        }
-        Ok(History {
-            oldest,
+        let damaged = damage.map(|e| {
+            let cause = crate::store::error_chain(&e);
+            tracing::error!(volume = name, error = %cause, "a commit record is damaged: the versions before it cannot be listed or read (`isovox check` reports every damaged record)");
+            cause
+        });
+        History {
+            oldest: commits.first().map_or(0, |(_, h)| h.version),
             offsets: commits.into_iter().map(|(at, _)| at).collect(),
-        })
+            damaged,
+        }
+    }
+
+    /// The error for versions before the oldest one listed, when damage is why.
+    fn damage_before(&self, version: u64) -> Option<StoreError> {
+        let cause = self.damaged.as_ref().filter(|_| version < self.oldest)?;
+        Some(StoreError::corrupt(
+            self.offsets.first().copied().unwrap_or(0),
+            format!("the commit records before version {}", self.oldest),
+            cause.clone(),
+        ))
     }
 
     fn offset(&self, version: u64) -> Option<u64> {
@@ -99,9 +111,14 @@ pub struct WriterSlot {
 #[derive(Debug)]
 pub struct LiveVolume {
     name: String,
+    /// Why the volume takes no edits, when it is served read-only (its newest durable version
+    /// is damaged and an older, intact one is served).
+    read_only: Option<String>,
     current: ArcSwap<Vod2>,
     writer: Arc<tokio::sync::Mutex<WriterSlot>>,
-    /// Edits waiting for the writer lock.
+    /// Edits waiting for the writer.
+    edits: std::sync::Mutex<group::EditQueue>,
+    /// Compactions waiting for the writer lock.
     waiting: AtomicUsize,
     history: RwLock<History>,
     feed: broadcast::Sender<Arc<FeedItem>>,
@@ -133,16 +150,38 @@ pub fn changed_bricks(layout: &VolumeLayout, nodes: impl Iterator<Item = u64>) -
 }
 
 impl LiveVolume {
-    /// Serves `vod` as `name`.
+    /// Serves `vod` as `name`. A damaged commit record on its chain costs the versions before
+    /// it (logged), not the volume.
     ///
     /// # Errors
-    /// The commit chain is malformed.
+    /// None today; the signature leaves room for checks at opening.
     pub fn new(name: &str, vod: Vod2) -> Result<LiveVolume, StoreError> {
-        let history = History::read(&vod)?;
+        Self::with_state(name, vod, None)
+    }
+
+    /// Serves `vod` as `name`, read-only: every edit and compaction is refused with
+    /// [`VolumeError::ReadOnly`] and `cause` (for a file whose newest durable version is
+    /// damaged, opened at an older intact one; writing on top of it would bury the damaged
+    /// versions under new ones).
+    ///
+    /// # Errors
+    /// See [`LiveVolume::new`].
+    pub fn read_only(name: &str, vod: Vod2, cause: String) -> Result<LiveVolume, StoreError> {
+        Self::with_state(name, vod, Some(cause))
+    }
+
+    fn with_state(
+        name: &str,
+        vod: Vod2,
+        read_only: Option<String>,
+    ) -> Result<LiveVolume, StoreError> {
+        let history = History::read(name, &vod);
         Ok(LiveVolume {
             name: name.to_string(),
+            read_only,
             current: ArcSwap::from_pointee(vod),
             writer: Arc::default(),
+            edits: Default::default(),
             waiting: AtomicUsize::new(0),
             history: RwLock::new(history),
             feed: broadcast::channel(FEED_CAPACITY).0,
@@ -152,6 +191,25 @@ impl LiveVolume {
     /// The name it is served under.
     pub fn name(&self) -> &str {
         &self.name
+    }
+
+    /// Why the volume is served read-only, if it is.
+    pub fn read_only_cause(&self) -> Option<&str> {
+        self.read_only.as_deref()
+    }
+
+    /// Refuses a write to a read-only volume.
+    ///
+    /// # Errors
+    /// [`VolumeError::ReadOnly`].
+    pub fn check_writable(&self) -> Result<(), VolumeError> {
+        match &self.read_only {
+            Some(cause) => Err(VolumeError::ReadOnly {
+                volume: self.name.clone(),
+                cause: cause.clone(),
+            }),
+            None => Ok(()),
+        }
     }
 
     /// The file as of the newest commit.
@@ -181,10 +239,12 @@ impl LiveVolume {
         if version == head.version {
             return Ok(head);
         }
-        let at = self
-            .history_read()
-            .offset(version)
-            .filter(|_| version < head.version);
+        let history = self.history_read();
+        if let Some(damage) = history.damage_before(version) {
+            return Err(damage.into());
+        }
+        let at = history.offset(version).filter(|_| version < head.version);
+        drop(history);
         match at {
             Some(at) => Ok(Arc::new(vod.snapshot_at(at)?)),
             None => Err(VolumeError::NoSuchVersion {
@@ -253,7 +313,8 @@ impl LiveVolume {
     ///
     /// # Errors
     /// [`VolumeError::SinceAfterHead`] past the head, [`VolumeError::Compacted`] when
-    /// compaction dropped some of them.
+    /// compaction dropped some of them, a storage error when a damaged commit record hides
+    /// them.
     pub fn check_since(&self, since: u64) -> Result<(), VolumeError> {
         let head = self.head().version;
         let oldest = self.oldest();
@@ -261,6 +322,9 @@ impl LiveVolume {
             return Err(VolumeError::SinceAfterHead { since, head });
         }
         if since.saturating_add(1) < oldest {
+            if let Some(damage) = self.history_read().damage_before(since.saturating_add(1)) {
+                return Err(damage.into());
+            }
             return Err(VolumeError::Compacted { oldest, head });
         }
         Ok(())
@@ -298,16 +362,35 @@ impl LiveVolume {
         })
     }
 
+    /// Serves the file as it is on disk now: its head and history read afresh (after a
+    /// compaction replaced it, or when the served head fell behind the file).
+    ///
+    /// # Errors
+    /// The file does not open, or its commit chain is malformed (the served state is then
+    /// unchanged).
+    pub fn reload(&self) -> Result<Arc<Vod2>, StoreError> {
+        let fresh = Arc::new(Vod2::open(self.current.load().path())?);
+        let history = History::read(&self.name, &fresh);
+        *self.history.write().unwrap_or_else(|p| p.into_inner()) = history;
+        self.current.store(fresh.clone());
+        Ok(fresh)
+    }
+
     /// Subscribes to the change feed: every version committed from now on.
     pub fn subscribe(&self) -> broadcast::Receiver<Arc<FeedItem>> {
         self.feed.subscribe()
     }
 
-    /// Joins the queue for the writer unless `max_waiting` edits already wait.
+    /// Joins the queue for the writer lock (a compaction) unless `max_waiting` edits and
+    /// compactions already wait.
     pub fn enqueue(&self, max_waiting: usize) -> Option<QueueTicket<'_>> {
         let before = self.waiting.fetch_add(1, Ordering::AcqRel);
         let ticket = QueueTicket(&self.waiting);
-        (before < max_waiting).then_some(ticket)
+        (before + self.queue().len() < max_waiting).then_some(ticket)
+    }
+
+    pub(super) fn compactions_waiting(&self) -> usize {
+        self.waiting.load(Ordering::Acquire)
     }
 
     /// Change-feed subscribers connected now.
@@ -315,9 +398,9 @@ impl LiveVolume {
         self.feed.receiver_count()
     }
 
-    /// Edits waiting for the writer now.
+    /// Edits (and compactions) waiting for the writer now.
     pub fn queue_depth(&self) -> usize {
-        self.waiting.load(Ordering::Acquire)
+        self.queue().len() + self.compactions_waiting()
     }
 
     /// Waits for the writer lock (in queue order).

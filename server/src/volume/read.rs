@@ -151,11 +151,12 @@ pub struct BatchRead {
 }
 
 impl BatchRead {
-    /// The batch in its wire encoding (`proto::batch`): each brick as stored, or decoded.
+    /// The batch in its wire encoding (`proto::batch`): each brick as stored (its payload
+    /// verified first, see [`DecodedBricks::verify_payload`]), or decoded (and checked).
     ///
     /// # Errors
-    /// A brick fails to read or decode.
-    pub fn encode(self) -> Result<Vec<u8>, VolumeError> {
+    /// A brick fails to read, verify or decode.
+    pub fn encode(self, verified: &DecodedBricks) -> Result<Vec<u8>, VolumeError> {
         let layout = self.snap.layout();
         let mut entries = Vec::with_capacity(self.keys.len());
         for key in self.keys {
@@ -180,7 +181,10 @@ impl BatchRead {
                         Codec::Zstd => BatchCodec::Zstd,
                     },
                     hash: header.hash,
-                    payload: payload.to_vec(),
+                    payload: {
+                        verified.verify_payload(&stored, layout)?;
+                        payload.to_vec()
+                    },
                 },
                 (BatchEncoding::Raw, stored) => BatchEntry {
                     key,

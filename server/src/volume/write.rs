@@ -1,19 +1,16 @@
-//! Writing a served volume: edits (checked against a server's limits, applied by the single
-//! writer, published to readers and the feed) and compaction; and an edit of a file no server
-//! serves.
+//! Writing a served volume: edits checked against a server's limits (applied by the writer in
+//! groups, `group.rs`) and compaction; and an edit of a file no server serves.
 
 use super::resolve::DirVolumes;
-use super::{change_event, FeedItem, History, LiveVolume, VolumeError, WriterSlot};
+use super::{LiveVolume, VolumeError, WriterSlot};
 use crate::icvg::edit::{apply_edit, Edit, EditOutcome};
 use crate::icvg::term::{TermLimits, VolumeResolver};
 use crate::progress::Silent;
 use crate::store::codec::Compression;
 use crate::store::compact::{compact, CompactReport};
-use crate::store::{CheckpointPolicy, StoreError, Vod2, Vod2Writer};
-use isovox_proto::api::EditResponse;
+use crate::store::{CheckpointPolicy, Vod2, Vod2Writer};
 use isovox_proto::icvg::EditRequest;
 use std::path::Path;
-use std::sync::Arc;
 use tokio::sync::OwnedMutexGuard;
 
 /// What one edit may ask for.
@@ -31,7 +28,8 @@ impl LiveVolume {
     /// off the async runtime.
     ///
     /// # Errors
-    /// [`VolumeError::InvalidEdit`], [`VolumeError::EditTooLarge`], [`VolumeError::Conflict`].
+    /// [`VolumeError::ReadOnly`], [`VolumeError::InvalidEdit`], [`VolumeError::EditTooLarge`],
+    /// [`VolumeError::Conflict`].
     pub fn prepare_edit(
         &self,
         request: &EditRequest,
@@ -39,6 +37,7 @@ impl LiveVolume {
         volumes: &dyn VolumeResolver,
         if_match: Option<u64>,
     ) -> Result<Edit, VolumeError> {
+        self.check_writable()?;
         let head = self.head();
         let layout = head.layout();
         let edit = Edit::from_request(request, layout.voxel_type(), &limits.term, volumes)?;
@@ -56,7 +55,8 @@ impl LiveVolume {
     }
 
     /// Takes a place in the writer's queue ([`VolumeError::WriterBusy`] when `max_waiting`
-    /// edits already wait) and waits for the writer, in arrival order.
+    /// edits and compactions already wait) and waits for the writer lock, between two groups
+    /// of edits: what a compaction holds.
     ///
     /// # Errors
     /// [`VolumeError::WriterBusy`].
@@ -70,101 +70,21 @@ impl LiveVolume {
         Ok(writer)
     }
 
-    /// Applies `edit` to the head and commits it as the next version, holding the writer.
-    /// Blocking (evaluates on rayon, syncs the file): call it off the async runtime.
-    ///
-    /// # Errors
-    /// `If-Match` mismatch, or reading or committing failed (the head is then unchanged and
-    /// the writer is reopened on the next edit, cutting off whatever the failed commit
-    /// appended).
-    pub fn apply(
-        &self,
-        slot: &mut WriterSlot,
-        edit: &Edit,
-        if_match: Option<u64>,
-        policy: CheckpointPolicy,
-    ) -> Result<EditResponse, VolumeError> {
-        let vod = self.current();
-        let head = vod.head();
-        if let Some(expected) = if_match.filter(|&v| v != head.version) {
-            return Err(VolumeError::Conflict {
-                expected,
-                current: head.version,
-            });
-        }
-        let writer = match &mut slot.writer {
-            Some(w) => w,
-            empty => empty.insert(Vod2Writer::open_append(vod.path(), Compression::default())?),
-        };
-        if writer.head().map(|h| h.commit) != Some(head.commit_offset()) {
-            slot.writer = None;
-            return Err(StoreError::Internal(
-                "the writer and the served head disagree; reopening the writer".into(),
-            )
-            .into());
-        }
-        let outcome = match apply_edit(writer, &head, edit, policy) {
-            Ok(o) => o,
-            Err(e) => {
-                slot.writer = None;
-                return Err(e.into());
-            }
-        };
-        let Some(committed) = writer.head() else {
-            slot.writer = None;
-            return Err(
-                StoreError::Internal("a commit left the writer without a head".into()).into(),
-            );
-        };
-        // The commit is durable: from here on, failing to publish it would hide an edit that a
-        // restart would show, so fall back to reopening the file.
-        let next = vod
-            .advance(committed)
-            .or_else(|e| {
-                tracing::warn!(error = %crate::store::error_chain(&e), "cannot extend the head; reopening the file");
-                Vod2::open(vod.path())
-            })?;
-        let event = change_event(&next, committed.commit)?;
-        {
-            let mut history = self.history.write().unwrap_or_else(|p| p.into_inner());
-            if history.offsets.is_empty() {
-                history.oldest = committed.version;
-            }
-            history.offsets.push(committed.commit);
-        }
-        self.current.store(Arc::new(next));
-        let json = serde_json::to_string(&event).unwrap_or_default();
-        // No subscriber is not an error.
-        let _ = self.feed.send(Arc::new(FeedItem {
-            version: event.version,
-            json,
-        }));
-        Ok(EditResponse {
-            version: event.version,
-            previous: head.version,
-            changed: event.changed,
-            evaluated: outcome.evaluated as u64,
-            new_records: outcome.new_records,
-            checkpoint: outcome.checkpoint,
-            elapsed_us: outcome.elapsed.as_micros() as u64,
-        })
-    }
-
     /// Rewrites the file with only the head version and serves the result, holding the writer.
     /// Blocking: call it off the async runtime.
     ///
     /// # Errors
-    /// Compaction failed (the old file is then still served) or the new file does not open.
-    pub fn compact(&self, slot: &mut WriterSlot) -> Result<CompactReport, StoreError> {
+    /// The volume is read-only ([`VolumeError::ReadOnly`]: compacting would rewrite its file
+    /// without the damaged versions; `isovox salvage` writes a new file instead), compaction
+    /// failed (the old file is then still served) or the new file does not open.
+    pub fn compact(&self, slot: &mut WriterSlot) -> Result<CompactReport, VolumeError> {
+        self.check_writable()?;
         let vod = self.current();
         let head = vod.head();
         // The writer's dedup table names offsets of the old file.
         slot.writer = None;
         let report = compact(&vod, &head, &Silent)?;
-        let fresh = Vod2::open(vod.path())?;
-        let history = History::read(&fresh)?;
-        *self.history.write().unwrap_or_else(|p| p.into_inner()) = history;
-        self.current.store(Arc::new(fresh));
+        self.reload()?;
         Ok(report)
     }
 }
@@ -185,7 +105,7 @@ pub fn edit_file(path: &Path, request: &EditRequest) -> Result<EditOutcome, Volu
         &TermLimits::default(),
         &DirVolumes { dir },
     )?;
-    let mut writer = Vod2Writer::open_append(path, Compression::default())?;
+    let mut writer = Vod2Writer::open_append(path, Compression::for_edits())?;
     Ok(apply_edit(
         &mut writer,
         &snap,

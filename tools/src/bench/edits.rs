@@ -2,9 +2,15 @@
 //!
 //! One server (in this process, on an ephemeral port) serves a copy of a world; `--editors`
 //! clients carve small ellipsoids at random places on its terrain as fast as they are answered,
-//! while `--subscribers` clients follow the change feed. Reported: edit throughput and latency,
-//! the delay from each edit's acknowledgement (at its editor) to its arrival at every
-//! subscriber, and brick-read throughput (wrk) with and without paced edits running.
+//! while `--subscribers` clients follow the change feed; then one editor edits alone. Reported:
+//! edit throughput and latency, the delay from each edit's acknowledgement (at its editor) to
+//! its arrival at every subscriber, one editor's latency, and brick-read throughput (wrk) with
+//! and without paced edits running.
+//!
+//! The strategies of `--groups` (how many edits the server makes durable with one pair of
+//! syncs; 1 is one pair per edit) run in turn, `--runs` times each, in this one process, so
+//! their ratio comes from the same conditions: this machine's speed drifts by 20-30% from one
+//! invocation to the next, and other builds share its cores.
 //!
 //! Everything shares this machine's cores: the clients' own work is in every figure.
 
@@ -18,7 +24,7 @@ use isovox_proto::{VolumeLayout, VoxelType};
 use isovox_server::catalog::Catalog;
 use isovox_server::generate::WorldSource;
 use isovox_server::http::auth::{random_secret, Scope, Tokens};
-use isovox_server::http::{run, AppState, ServerConfig};
+use isovox_server::http::{spawn, AppState, ServerConfig, Spawned};
 use isovox_server::store::{build_vod2, BuildOptions};
 use std::collections::HashMap;
 use std::path::PathBuf;
@@ -45,6 +51,16 @@ pub struct EditsBenchArgs {
     /// Length of each phase.
     #[arg(long, default_value_t = 10)]
     pub seconds: u64,
+    /// Length of the single-editor phase of each run.
+    #[arg(long, default_value_t = 5)]
+    pub single_seconds: u64,
+    /// Runs of each strategy (alternating); the tables show the medians.
+    #[arg(long, default_value_t = 3)]
+    pub runs: usize,
+    /// The strategies compared: edits made durable together at most (`--edit-group`); 1 is
+    /// one pair of syncs per edit, what the server did before group commit.
+    #[arg(long, value_delimiter = ',', default_values_t = [1, isovox_server::volume::group::DEFAULT_MAX_GROUP])]
+    pub groups: Vec<usize>,
     /// Radius of the carved ellipsoids.
     #[arg(long, default_value_t = 8)]
     pub radius: u32,
@@ -68,8 +84,77 @@ struct Acks {
 /// Arrival times of versions at one subscriber.
 type Arrivals = Arc<Mutex<Vec<(u64, Instant)>>>;
 
+/// One run of editors flat out with the subscribers listening.
+#[derive(Debug, Clone, Copy)]
+struct Figures {
+    edits: usize,
+    per_second: f64,
+    p50_ms: f64,
+    p99_ms: f64,
+    errors: usize,
+    deliveries: usize,
+    missing: usize,
+    out_of_order: usize,
+    early_percent: f64,
+    propagation_p50_ms: f64,
+    propagation_p99_ms: f64,
+    propagation_max_ms: f64,
+    /// One editor alone: its median and p99 latency.
+    single_p50_ms: f64,
+    single_p99_ms: f64,
+}
+
+impl Figures {
+    /// The medians of `runs`; the counts (errors, deliveries, missing, out of order) summed.
+    fn summary(runs: &[Figures]) -> Figures {
+        let m = |f: fn(&Figures) -> f64| median(runs.iter().map(f).collect());
+        let sum = |f: fn(&Figures) -> usize| runs.iter().map(f).sum::<usize>();
+        Figures {
+            edits: m(|f| f.edits as f64).round() as usize,
+            per_second: m(|f| f.per_second),
+            p50_ms: m(|f| f.p50_ms),
+            p99_ms: m(|f| f.p99_ms),
+            errors: sum(|f| f.errors),
+            deliveries: sum(|f| f.deliveries),
+            missing: sum(|f| f.missing),
+            out_of_order: sum(|f| f.out_of_order),
+            early_percent: m(|f| f.early_percent),
+            propagation_p50_ms: m(|f| f.propagation_p50_ms),
+            propagation_p99_ms: m(|f| f.propagation_p99_ms),
+            propagation_max_ms: m(|f| f.propagation_max_ms),
+            single_p50_ms: m(|f| f.single_p50_ms),
+            single_p99_ms: m(|f| f.single_p99_ms),
+        }
+    }
+
+    /// One row of the table.
+    fn row(&self, label: &str) -> String {
+        let f = self;
+        format!(
+            "| {label} | {} | {:.0} | {:.2} | {:.2} | {} | {} | {} | {} | {:.0}% | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} |",
+            f.edits, f.per_second, f.p50_ms, f.p99_ms, f.errors, f.deliveries, f.missing,
+            f.out_of_order, f.early_percent, f.propagation_p50_ms, f.propagation_p99_ms,
+            f.propagation_max_ms, f.single_p50_ms, f.single_p99_ms,
+        )
+    }
+}
+
+/// The world and what every run shares.
+struct Bench {
+    a: EditsBenchArgs,
+    layout: VolumeLayout,
+    world: Arc<WorldSource>,
+    source: PathBuf,
+    secret: String,
+    runtime: tokio::runtime::Runtime,
+    client: reqwest::Client,
+}
+
 pub fn run_bench(a: EditsBenchArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&a.dir)?;
+    if a.groups.is_empty() || a.groups.contains(&0) || a.runs == 0 {
+        anyhow::bail!("--groups takes sizes of at least 1, --runs at least 1");
+    }
     let layout = VolumeLayout::new([a.size; 3], a.brick, VoxelType::U8)?;
     let world = Arc::new(WorldSource::new(layout.clone(), 7));
     let source = a
@@ -85,150 +170,300 @@ pub fn run_bench(a: EditsBenchArgs) -> anyhow::Result<()> {
             &BuildOptions::default(),
         )?;
     }
-    let data = a.dir.join("edits");
-    let _ = std::fs::remove_dir_all(&data);
-    std::fs::create_dir_all(&data)?;
-    std::fs::copy(&source, data.join("world.vod"))?;
-    let secret = random_secret()?;
-    let mut tokens = Tokens::default();
-    tokens
-        .add("bench", &secret, Scope::Write)
-        .map_err(anyhow::Error::msg)?;
-    let config = ServerConfig {
-        tokens,
-        edit_rate: 1e9,
-        edit_queue: 4096,
-        ..ServerConfig::default()
+    let bench = Bench {
+        layout,
+        world,
+        source,
+        secret: random_secret()?,
+        runtime: tokio::runtime::Builder::new_multi_thread()
+            .enable_all()
+            .build()?,
+        client: reqwest::Client::builder()
+            .pool_max_idle_per_host(64)
+            .build()?,
+        a,
     };
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()?;
-    let base = runtime.block_on(async {
-        let catalog = Catalog::open_dir(&data)?;
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
-        let addr = listener.local_addr()?;
-        tokio::spawn(run(
-            listener,
-            AppState::with_config(catalog, config),
-            std::future::pending(),
-        ));
-        anyhow::Ok(format!("http://{addr}"))
-    })?;
-    let client = reqwest::Client::builder()
-        .pool_max_idle_per_host(64)
-        .build()?;
+    let a = &bench.a;
 
-    // Phase 1: editors flat out, subscribers listening.
-    let arrivals: Vec<Arrivals> = (0..a.subscribers).map(|_| Arrivals::default()).collect();
-    let (acks, elapsed) = runtime.block_on(async {
-        let ready = Arc::new(AtomicUsize::new(0));
+    // Phase 1: each strategy in turn, `runs` times, on a fresh copy of the world each time.
+    let mut figures: Vec<Vec<Figures>> = vec![Vec::new(); a.groups.len()];
+    for run in 0..a.runs {
+        for (i, &group) in a.groups.iter().enumerate() {
+            eprintln!("run {}/{}: edit group {group}", run + 1, a.runs);
+            figures[i].push(bench.edit_run(group)?);
+        }
+    }
+    println!(
+        "### Shared editing: {} editors carving radius-{} ellipsoids into a {}^3 world (brick {}), {} change-feed subscribers, {} s; then one editor alone for {} s\n",
+        a.editors, a.radius, a.size, a.brick, a.subscribers, a.seconds, a.single_seconds
+    );
+    println!("Strategies alternate run by run, each on a fresh copy of the world; medians of {} runs (errors, deliveries, missing and out of order: their sums), every run below.\n", a.runs);
+    println!("| edit group | edits | edits/s | edit p50 ms | edit p99 ms | errors | deliveries | missing | out of order | before the ack | propagation p50 ms | propagation p99 ms | max ms | one editor p50 ms | one editor p99 ms |");
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for (group, runs) in a.groups.iter().zip(&figures) {
+        println!(
+            "{}",
+            Figures::summary(runs).row(&format!("**{group}** (median)"))
+        );
+        for f in runs {
+            println!("{}", f.row(&group.to_string()));
+        }
+    }
+    if let (Some(first), Some(last)) = (figures.first(), figures.last()) {
+        if a.groups.len() > 1 {
+            let ratio = |f: fn(&Figures) -> f64| {
+                median(first.iter().zip(last).map(|(x, y)| f(y) / f(x)).collect())
+            };
+            println!(
+                "\nEdit group {} against {} (median of the run-by-run ratios): edits/s {:.2}x, edit p99 {:.2}x, one editor's p50 {:.2}x and p99 {:.2}x (below 1: faster).",
+                a.groups[a.groups.len() - 1],
+                a.groups[0],
+                ratio(|f| f.per_second),
+                ratio(|f| f.p99_ms),
+                ratio(|f| f.single_p50_ms),
+                ratio(|f| f.single_p99_ms),
+            );
+        }
+    }
+    bench.read_runs()
+}
+
+impl Bench {
+    /// A fresh copy of the world served in this process with edits grouped by `group`.
+    fn serve(&self, group: usize) -> anyhow::Result<Spawned> {
+        let data = self.a.dir.join("edits");
+        let _ = std::fs::remove_dir_all(&data);
+        std::fs::create_dir_all(&data)?;
+        std::fs::copy(&self.source, data.join("world.vod"))?;
+        let mut tokens = Tokens::default();
+        tokens
+            .add("bench", &self.secret, Scope::Write)
+            .map_err(anyhow::Error::msg)?;
+        let config = ServerConfig {
+            tokens,
+            edit_rate: 1e9,
+            edit_queue: 4096,
+            edit_group: group,
+            ..ServerConfig::default()
+        };
+        let catalog = Catalog::open_dir(&data)?;
+        let state = AppState::with_config(catalog, config);
+        Ok(self
+            .runtime
+            .block_on(async { spawn("127.0.0.1:0", state).await })?)
+    }
+
+    /// Editors flat out while the subscribers listen, then one editor alone.
+    fn edit_run(&self, group: usize) -> anyhow::Result<Figures> {
+        let a = &self.a;
+        let server = self.serve(group)?;
+        let base = server.base();
+        let arrivals: Vec<Arrivals> = (0..a.subscribers).map(|_| Arrivals::default()).collect();
+        let (acks, elapsed, single) = self.runtime.block_on(async {
+            let ready = Arc::new(AtomicUsize::new(0));
+            let subscribers: Vec<_> = arrivals
+                .iter()
+                .map(|sink| {
+                    tokio::spawn(subscribe(
+                        self.client.clone(),
+                        format!("{base}/v1/volumes/world/events"),
+                        sink.clone(),
+                        ready.clone(),
+                    ))
+                })
+                .collect();
+            while ready.load(Ordering::Acquire) < a.subscribers {
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+            let start = Instant::now();
+            let acks = self.edit_for(&base, a.editors, a.seconds, None).await;
+            let elapsed = start.elapsed();
+            // Let the last events arrive.
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            for s in subscribers {
+                s.abort();
+            }
+            let single = self.edit_for(&base, 1, a.single_seconds, None).await;
+            (acks, elapsed, single)
+        });
+        drop(server);
+        let edits = acks.latency_ms.len();
+        if edits == 0 || single.latency_ms.is_empty() {
+            anyhow::bail!(
+                "no edit was acknowledged ({} errors)",
+                acks.errors + single.errors
+            );
+        }
+        let mut delays = Vec::new();
+        let (mut missing, mut early, mut out_of_order) = (0, 0, 0);
         for sink in &arrivals {
-            tokio::spawn(subscribe(
-                client.clone(),
-                format!("{base}/v1/volumes/world/events"),
-                sink.clone(),
-                ready.clone(),
-            ));
-        }
-        while ready.load(Ordering::Acquire) < a.subscribers {
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-        let start = Instant::now();
-        let acks = edit_for(&a, &client, &base, &secret, &world, None).await;
-        let elapsed = start.elapsed();
-        // Let the last events arrive.
-        tokio::time::sleep(Duration::from_millis(500)).await;
-        (acks, elapsed)
-    });
-    let edits = acks.latency_ms.len();
-    let mut delays = Vec::new();
-    let mut missing = 0usize;
-    let mut early = 0usize;
-    let mut out_of_order = 0usize;
-    for sink in &arrivals {
-        let got = sink.lock().map(|g| g.clone()).unwrap_or_default();
-        if got.windows(2).any(|w| w[1].0 <= w[0].0) {
-            out_of_order += 1;
-        }
-        let by_version: HashMap<u64, Instant> = got.into_iter().collect();
-        for (v, acked) in &acks.at {
-            match by_version.get(v) {
-                // The event is sent right after the commit, before the editor's answer is
-                // written: it often arrives first, which counts as no delay (and is reported).
-                Some(arrived) => {
-                    early += usize::from(arrived < acked);
-                    delays.push(arrived.saturating_duration_since(*acked).as_secs_f64() * 1e3)
+            let got = sink.lock().map(|g| g.clone()).unwrap_or_default();
+            if got.windows(2).any(|w| w[1].0 <= w[0].0) {
+                out_of_order += 1;
+            }
+            let by_version: HashMap<u64, Instant> = got.into_iter().collect();
+            for (v, acked) in &acks.at {
+                match by_version.get(v) {
+                    // The event is sent right after the commit, before the editor's answer is
+                    // written: it often arrives first, which counts as no delay (and is
+                    // reported).
+                    Some(arrived) => {
+                        early += usize::from(arrived < acked);
+                        delays.push(arrived.saturating_duration_since(*acked).as_secs_f64() * 1e3)
+                    }
+                    None => missing += 1,
                 }
-                None => missing += 1,
             }
         }
-    }
-    println!(
-        "### Shared editing: {} editors carving radius-{} ellipsoids into a {}^3 world (brick {}), {} change-feed subscribers, {} s\n",
-        a.editors, a.radius, a.size, a.brick, a.subscribers, a.seconds
-    );
-    println!("| edits | edits/s | edit p50 ms | edit p99 ms | errors | deliveries | missing | out of order | before the ack | propagation p50 ms | propagation p99 ms | max ms |");
-    println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
-    if edits == 0 || delays.is_empty() {
-        anyhow::bail!("no edit was acknowledged ({} errors)", acks.errors);
-    }
-    println!(
-        "| {edits} | {:.0} | {:.2} | {:.2} | {} | {} | {missing} | {out_of_order} | {:.0}% | {:.2} | {:.2} | {:.2} |",
-        edits as f64 / elapsed.as_secs_f64(),
-        median(acks.latency_ms.clone()),
-        percentile(acks.latency_ms.clone(), 0.99),
-        acks.errors,
-        delays.len(),
-        100.0 * early as f64 / delays.len() as f64,
-        median(delays.clone()),
-        percentile(delays.clone(), 0.99),
-        percentile(delays, 1.0),
-    );
-
-    // Phase 2: brick reads with wrk, alone and with paced edits.
-    let wrk_dir = a.dir.join("wrk");
-    std::fs::create_dir_all(&wrk_dir)?;
-    let script = wrk_script(
-        &wrk_dir,
-        "edits-read",
-        "/v1/volumes/world/bricks/0",
-        layout.grid(0),
-        None,
-    )?;
-    let seconds = a.seconds as u32;
-    let alone = wrk(&base, &script, seconds, a.connections)?;
-    let (with_edits, paced) = runtime.block_on(async {
-        let (script, base2, connections) = (script.clone(), base.clone(), a.connections);
-        let reads = tokio::task::spawn_blocking(move || wrk(&base2, &script, seconds, connections));
-        let acks = edit_for(&a, &client, &base, &secret, &world, Some(a.paced_rate)).await;
-        let reads = reads.await.context("wrk task failed")?;
-        anyhow::Ok((reads?, acks))
-    })?;
-    println!("\n### Brick reads (wrk, 2 threads, {} connections, {} s, random level-0 bricks) with and without {} editors at {} edits/s each\n", a.connections, a.seconds, a.editors, a.paced_rate);
-    println!("| reads | requests/s | p50 ms | p99 ms | errors | edits during | edit p99 ms |");
-    println!("|---|---:|---:|---:|---|---:|---:|");
-    println!(
-        "| alone | {:.0} | {:.2} | {:.2} | {} | - | - |",
-        alone.rps, alone.p50_ms, alone.p99_ms, alone.errors
-    );
-    println!(
-        "| with edits | {:.0} | {:.2} | {:.2} | {} | {} | {:.2} |",
-        with_edits.rps,
-        with_edits.p50_ms,
-        with_edits.p99_ms,
-        with_edits.errors,
-        paced.latency_ms.len(),
-        if paced.latency_ms.is_empty() {
-            f64::NAN
-        } else {
-            percentile(paced.latency_ms.clone(), 0.99)
+        if delays.is_empty() {
+            anyhow::bail!("no subscriber received an acknowledged version");
         }
-    );
-    println!(
-        "\nRead throughput with edits: {:.1}% of alone (goal: a drop under 20%).",
-        100.0 * with_edits.rps / alone.rps.max(1.0)
-    );
-    Ok(())
+        Ok(Figures {
+            edits,
+            per_second: edits as f64 / elapsed.as_secs_f64(),
+            p50_ms: median(acks.latency_ms.clone()),
+            p99_ms: percentile(acks.latency_ms, 0.99),
+            errors: acks.errors,
+            deliveries: delays.len(),
+            missing,
+            out_of_order,
+            early_percent: 100.0 * early as f64 / delays.len() as f64,
+            propagation_p50_ms: median(delays.clone()),
+            propagation_p99_ms: percentile(delays.clone(), 0.99),
+            propagation_max_ms: percentile(delays, 1.0),
+            single_p50_ms: median(single.latency_ms.clone()),
+            single_p99_ms: percentile(single.latency_ms, 0.99),
+        })
+    }
+
+    /// Phase 2: brick reads with wrk, alone and with paced edits (the last strategy).
+    fn read_runs(&self) -> anyhow::Result<()> {
+        let a = &self.a;
+        let group = a.groups[a.groups.len() - 1];
+        let server = self.serve(group)?;
+        let base = server.base();
+        let wrk_dir = a.dir.join("wrk");
+        std::fs::create_dir_all(&wrk_dir)?;
+        let script = wrk_script(
+            &wrk_dir,
+            "edits-read",
+            "/v1/volumes/world/bricks/0",
+            self.layout.grid(0),
+            None,
+        )?;
+        let seconds = a.seconds as u32;
+        let alone = wrk(&base, &script, seconds, a.connections)?;
+        let (with_edits, paced) = self.runtime.block_on(async {
+            let (script, base2, connections) = (script.clone(), base.clone(), a.connections);
+            let reads =
+                tokio::task::spawn_blocking(move || wrk(&base2, &script, seconds, connections));
+            let acks = self
+                .edit_for(&base, a.editors, a.seconds, Some(a.paced_rate))
+                .await;
+            let reads = reads.await.context("wrk task failed")?;
+            anyhow::Ok((reads?, acks))
+        })?;
+        drop(server);
+        println!("\n### Brick reads (wrk, 2 threads, {} connections, {} s, random level-0 bricks) with and without {} editors at {} edits/s each (edit group {group})\n", a.connections, a.seconds, a.editors, a.paced_rate);
+        println!("| reads | requests/s | p50 ms | p99 ms | errors | edits during | edit p99 ms |");
+        println!("|---|---:|---:|---:|---|---:|---:|");
+        println!(
+            "| alone | {:.0} | {:.2} | {:.2} | {} | - | - |",
+            alone.rps, alone.p50_ms, alone.p99_ms, alone.errors
+        );
+        println!(
+            "| with edits | {:.0} | {:.2} | {:.2} | {} | {} | {:.2} |",
+            with_edits.rps,
+            with_edits.p50_ms,
+            with_edits.p99_ms,
+            with_edits.errors,
+            paced.latency_ms.len(),
+            if paced.latency_ms.is_empty() {
+                f64::NAN
+            } else {
+                percentile(paced.latency_ms.clone(), 0.99)
+            }
+        );
+        println!(
+            "\nRead throughput with edits: {:.1}% of alone (goal: a drop under 20%).",
+            100.0 * with_edits.rps / alone.rps.max(1.0)
+        );
+        Ok(())
+    }
+
+    /// Runs `editors` editors for `seconds`, each as fast as it is answered or at `rate`
+    /// edits/s.
+    async fn edit_for(&self, base: &str, editors: usize, seconds: u64, rate: Option<f64>) -> Acks {
+        let deadline = Instant::now() + Duration::from_secs(seconds);
+        let acks = Arc::new(Mutex::new(Acks::default()));
+        let mut tasks = Vec::new();
+        for e in 0..editors {
+            let (client, acks, world) = (self.client.clone(), acks.clone(), self.world.clone());
+            let url = format!("{base}/v1/volumes/world/edits");
+            let auth = format!("Bearer {}", self.secret);
+            let (size, radius) = (self.a.size, self.a.radius);
+            tasks.push(tokio::spawn(async move {
+                let mut rng = Rng(0x9e37_79b9_7f4a_7c15 ^ ((e as u64 + 1) * 0x1000_0001));
+                let mut next = Instant::now();
+                while Instant::now() < deadline {
+                    if let Some(rate) = rate {
+                        tokio::time::sleep_until(next.into()).await;
+                        next += Duration::from_secs_f64(1.0 / rate);
+                    }
+                    let margin = 2 * radius;
+                    let (x, z) = (
+                        margin + rng.below(size - 2 * margin),
+                        margin + rng.below(size - 2 * margin),
+                    );
+                    let y = world.height(x, z) as i64;
+                    let request = EditRequest {
+                        op: "difference".into(),
+                        term: Some(Term::Ellipsoid {
+                            center: [x as i64, y, z as i64],
+                            radii: [radius; 3],
+                        }),
+                        s_l: None,
+                        k: None,
+                        region: None,
+                    };
+                    let body = serde_json::to_vec(&request).unwrap_or_default();
+                    let start = Instant::now();
+                    let answer = client
+                        .post(&url)
+                        .header("content-type", "application/json")
+                        .header("authorization", &auth)
+                        .body(body)
+                        .send()
+                        .await;
+                    let ok = match answer {
+                        Ok(r) if r.status().is_success() => r
+                            .bytes()
+                            .await
+                            .ok()
+                            .and_then(|b| serde_json::from_slice::<EditResponse>(&b).ok()),
+                        _ => None,
+                    };
+                    let now = Instant::now();
+                    if let Ok(mut acks) = acks.lock() {
+                        match ok {
+                            Some(r) => {
+                                acks.at.insert(r.version, now);
+                                acks.latency_ms.push((now - start).as_secs_f64() * 1e3);
+                            }
+                            None => acks.errors += 1,
+                        }
+                    }
+                }
+            }));
+        }
+        for t in tasks {
+            let _ = t.await;
+        }
+        Arc::try_unwrap(acks)
+            .ok()
+            .and_then(|m| m.into_inner().ok())
+            .unwrap_or_default()
+    }
 }
 
 /// Follows the change feed, recording when each version arrives.
@@ -258,84 +493,4 @@ async fn subscribe(client: reqwest::Client, url: String, sink: Arrivals, ready: 
             }
         }
     }
-}
-
-/// Runs the editors for `a.seconds`, each as fast as it is answered or at `rate` edits/s.
-async fn edit_for(
-    a: &EditsBenchArgs,
-    client: &reqwest::Client,
-    base: &str,
-    secret: &str,
-    world: &Arc<WorldSource>,
-    rate: Option<f64>,
-) -> Acks {
-    let deadline = Instant::now() + Duration::from_secs(a.seconds);
-    let acks = Arc::new(Mutex::new(Acks::default()));
-    let mut tasks = Vec::new();
-    for e in 0..a.editors {
-        let (client, acks, world) = (client.clone(), acks.clone(), world.clone());
-        let url = format!("{base}/v1/volumes/world/edits");
-        let auth = format!("Bearer {secret}");
-        let (size, radius) = (a.size, a.radius);
-        tasks.push(tokio::spawn(async move {
-            let mut rng = Rng(0x9e37_79b9_7f4a_7c15 ^ ((e as u64 + 1) * 0x1000_0001));
-            let mut next = Instant::now();
-            while Instant::now() < deadline {
-                if let Some(rate) = rate {
-                    tokio::time::sleep_until(next.into()).await;
-                    next += Duration::from_secs_f64(1.0 / rate);
-                }
-                let margin = 2 * radius;
-                let (x, z) = (
-                    margin + rng.below(size - 2 * margin),
-                    margin + rng.below(size - 2 * margin),
-                );
-                let y = world.height(x, z) as i64;
-                let request = EditRequest {
-                    op: "difference".into(),
-                    term: Some(Term::Ellipsoid {
-                        center: [x as i64, y, z as i64],
-                        radii: [radius; 3],
-                    }),
-                    s_l: None,
-                    k: None,
-                    region: None,
-                };
-                let body = serde_json::to_vec(&request).unwrap_or_default();
-                let start = Instant::now();
-                let answer = client
-                    .post(&url)
-                    .header("content-type", "application/json")
-                    .header("authorization", &auth)
-                    .body(body)
-                    .send()
-                    .await;
-                let ok = match answer {
-                    Ok(r) if r.status().is_success() => r
-                        .bytes()
-                        .await
-                        .ok()
-                        .and_then(|b| serde_json::from_slice::<EditResponse>(&b).ok()),
-                    _ => None,
-                };
-                let now = Instant::now();
-                if let Ok(mut acks) = acks.lock() {
-                    match ok {
-                        Some(r) => {
-                            acks.at.insert(r.version, now);
-                            acks.latency_ms.push((now - start).as_secs_f64() * 1e3);
-                        }
-                        None => acks.errors += 1,
-                    }
-                }
-            }
-        }));
-    }
-    for t in tasks {
-        let _ = t.await;
-    }
-    Arc::try_unwrap(acks)
-        .ok()
-        .and_then(|m| m.into_inner().ok())
-        .unwrap_or_default()
 }

@@ -187,7 +187,7 @@ pub fn run(a: IcvgArgs) -> anyhow::Result<()> {
         let world = WorldSource::new(layout.clone(), 7);
         let path = a.dir.join(format!("edit-world-{size}.vod"));
         build_vod2(&path, &layout, [1.0; 3], &world, &BuildOptions::default())?;
-        let mut writer = Vod2Writer::open_append(&path, Compression::default())?;
+        let mut writer = Vod2Writer::open_append(&path, Compression::for_edits())?;
         let mut snap = Vod2::open(&path)?.head();
         let mut rng = Rng(0x1234_5678_9abc_def1 ^ size as u64);
         let (mut latency, mut reopen, mut changed) = (Vec::new(), Vec::new(), Vec::new());

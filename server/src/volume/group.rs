@@ -1,0 +1,436 @@
+//! Group commit: the edits waiting for a volume's writer are applied in arrival order and made
+//! durable together, with one pair of syncs.
+//!
+//! An edit joins the volume's queue ([`LiveVolume::submit`]); while the queue is not empty, one
+//! task per volume takes up to [`GroupCommit::max_group`] edits from its front and commits them
+//! as a group ([`LiveVolume::commit_group`]):
+//!
+//! 1. each edit in turn is checked against `If-Match` (the version the edits before it in the
+//!    group produced, so a conflict is as exact as without groups), evaluated against that
+//!    version, and staged as the next version: its bricks and its own commit record appended,
+//!    its parent the record before it. An edit that fails is rolled back to the savepoint taken
+//!    before it and answered with its error; the others do not notice;
+//! 2. one `fdatasync`, one header slot naming the group's last version, one `fdatasync`
+//!    ([`Vod2Writer::sync`]): the whole group is durable, or (crash, failed sync) none of it;
+//! 3. each version in order is published to readers, announced on the change feed and
+//!    answered: every edit is still its own version with its own event, acknowledged only once
+//!    durable, and versions are answered in the order they were made.
+//!
+//! Nothing of a staged version is visible before step 2 completes: readers are handed the new
+//! versions only in step 3, and a reader opening the file finds the slot of the previous group.
+//!
+//! [`Vod2Writer::sync`]: crate::store::Vod2Writer::sync
+
+use super::{change_event, FeedItem, LiveVolume, VolumeError, WriterSlot};
+use crate::icvg::edit::{stage_edit, Edit};
+use crate::store::codec::Compression;
+use crate::store::{error_chain, CheckpointPolicy, StoreError, Vod2, Vod2Writer};
+use isovox_proto::api::{ChangeEvent, EditResponse};
+use std::collections::VecDeque;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio::sync::oneshot;
+
+/// Edits made durable together at most, by default: enough for many editors at once, few
+/// enough that the last edit of a group does not wait long for the others' evaluation.
+pub const DEFAULT_MAX_GROUP: usize = 32;
+
+/// How a volume's writer takes its edits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct GroupCommit {
+    /// Edits waiting for the writer at most; beyond it an edit is refused
+    /// ([`VolumeError::WriterBusy`]).
+    pub max_waiting: usize,
+    /// Edits made durable together at most. 1 is one pair of syncs per edit.
+    pub max_group: usize,
+    /// When a version writes a full index checkpoint.
+    pub policy: CheckpointPolicy,
+}
+
+impl Default for GroupCommit {
+    fn default() -> Self {
+        GroupCommit {
+            max_waiting: 64,
+            max_group: DEFAULT_MAX_GROUP,
+            policy: CheckpointPolicy::default(),
+        }
+    }
+}
+
+/// What an edit is answered with.
+pub type EditAnswer = Result<EditResponse, VolumeError>;
+
+/// An edit waiting for the writer, with where its answer goes.
+#[derive(Debug)]
+pub struct PendingEdit {
+    edit: Edit,
+    if_match: Option<u64>,
+    answer: oneshot::Sender<EditAnswer>,
+}
+
+impl PendingEdit {
+    /// `edit`, to apply only if the volume is then at version `if_match` (when given), and the
+    /// receiver of its answer. Dropping the receiver before the writer reaches the edit
+    /// withdraws it (it is then never applied).
+    pub fn new(edit: Edit, if_match: Option<u64>) -> (PendingEdit, oneshot::Receiver<EditAnswer>) {
+        let (answer, receiver) = oneshot::channel();
+        (
+            PendingEdit {
+                edit,
+                if_match,
+                answer,
+            },
+            receiver,
+        )
+    }
+
+    fn answer(self, answer: EditAnswer) {
+        // A receiver that is gone had its client leave: nobody to tell.
+        let _ = self.answer.send(answer);
+    }
+}
+
+/// The edits waiting for a volume's writer.
+#[derive(Debug, Default)]
+pub(super) struct EditQueue {
+    edits: VecDeque<PendingEdit>,
+    /// Whether a task is taking groups from the queue (at most one per volume).
+    writing: bool,
+}
+
+impl EditQueue {
+    pub(super) fn len(&self) -> usize {
+        self.edits.len()
+    }
+}
+
+/// A version staged in a group, not yet durable.
+struct Staged {
+    pending: PendingEdit,
+    vod: Arc<Vod2>,
+    event: ChangeEvent,
+    response: EditResponse,
+    started: Instant,
+}
+
+impl LiveVolume {
+    pub(super) fn queue(&self) -> std::sync::MutexGuard<'_, EditQueue> {
+        // Every update of the queue is one push, one drain or one flag: a panic cannot leave
+        // it half-changed, so a poisoned lock is still sound to use.
+        self.edits.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Queues `edit` for the writer and waits until it is durable (or refused). The volume's
+    /// writer task is started when it is not running; it takes groups from the queue as
+    /// `settings` say until the queue is empty.
+    ///
+    /// # Errors
+    /// [`VolumeError::WriterBusy`] when `settings.max_waiting` edits already wait;
+    /// [`VolumeError::Conflict`] when `if_match` is not the version the edit would follow;
+    /// what applying or committing failed with.
+    pub async fn submit(
+        self: &Arc<Self>,
+        edit: Edit,
+        if_match: Option<u64>,
+        settings: GroupCommit,
+    ) -> Result<EditResponse, VolumeError> {
+        let (pending, answer) = PendingEdit::new(edit, if_match);
+        {
+            let mut queue = self.queue();
+            if queue.len() + self.compactions_waiting() >= settings.max_waiting {
+                return Err(VolumeError::WriterBusy);
+            }
+            queue.edits.push_back(pending);
+            if !queue.writing {
+                queue.writing = true;
+                tokio::spawn(self.clone().write_groups(settings));
+            }
+        }
+        answer.await.map_err(|_| {
+            VolumeError::Store(StoreError::Internal(
+                "the writer stopped before answering this edit (see the log)".into(),
+            ))
+        })?
+    }
+
+    /// The volume's writer task: takes groups from the queue until it is empty.
+    async fn write_groups(self: Arc<Self>, settings: GroupCommit) {
+        loop {
+            // Compaction takes the writer between groups.
+            let mut slot = self.lock_writer().await;
+            let group: Vec<PendingEdit> = {
+                let mut queue = self.queue();
+                if queue.edits.is_empty() {
+                    queue.writing = false;
+                    return;
+                }
+                let n = queue.edits.len().min(settings.max_group.max(1));
+                queue.edits.drain(..n).collect()
+            };
+            let vol = self.clone();
+            let done = tokio::task::spawn_blocking(move || {
+                vol.commit_group(&mut slot, group, settings.policy)
+            })
+            .await;
+            if let Err(e) = done {
+                // The group's edits are answered with an error when their senders drop; the
+                // writer is reopened by the next group (it finds versions staged).
+                tracing::error!(volume = %self.name, error = %e, "an edit group failed");
+            }
+        }
+    }
+
+    /// Applies `group` in order and commits it with one pair of syncs, holding the writer;
+    /// answers every edit (see the module's documentation). Edits whose receiver is gone
+    /// before the writer reaches them are skipped. Blocking (evaluates on rayon, syncs the
+    /// file): call it off the async runtime.
+    pub fn commit_group(
+        &self,
+        slot: &mut WriterSlot,
+        group: Vec<PendingEdit>,
+        policy: CheckpointPolicy,
+    ) {
+        let began = Instant::now();
+        if let Some(cause) = self.read_only_cause() {
+            // Never open a writer on a file served read-only: opening cuts off what lies past
+            // the version it serves, and the damaged versions are there.
+            for pending in group {
+                pending.answer(Err(VolumeError::ReadOnly {
+                    volume: self.name.clone(),
+                    cause: cause.to_string(),
+                }));
+            }
+            return;
+        }
+        let mut base = self.current();
+        let writer = match writer_at(slot, &base) {
+            Ok(w) => w,
+            Err(e) => {
+                for pending in group {
+                    pending.answer(Err(copy_of(&e).into()));
+                }
+                return;
+            }
+        };
+        if writer.head().map(|h| h.commit) != Some(base.head_ref().commit_offset()) {
+            // The file holds versions the volume does not serve (a group that stopped after
+            // its sync): serve the file as it is before building on it.
+            tracing::error!(volume = %self.name, "the served head is behind the file; reloading it");
+            match self.reload() {
+                Ok(fresh) => base = fresh,
+                Err(e) => {
+                    slot.writer = None;
+                    for pending in group {
+                        pending.answer(Err(copy_of(&e).into()));
+                    }
+                    return;
+                }
+            }
+        }
+        // The newest version so far: the served head, then each staged one.
+        let mut tip = base;
+        let mut staged: Vec<Staged> = Vec::new();
+        // Answers not given by a version of this group (conflicts, failures), by position.
+        let mut refused: Vec<(usize, PendingEdit, VolumeError)> = Vec::new();
+        let mut edits = group.into_iter();
+        while let Some(pending) = edits.next() {
+            if pending.answer.is_closed() {
+                continue;
+            }
+            let started = Instant::now();
+            let head = tip.head_ref();
+            if let Some(expected) = pending.if_match.filter(|&v| v != head.version) {
+                let current = head.version;
+                refused.push((
+                    staged.len(),
+                    pending,
+                    VolumeError::Conflict { expected, current },
+                ));
+                continue;
+            }
+            let savepoint = writer.savepoint();
+            // On a worker of the rayon pool: the edit's many small parallel loops then run
+            // there, instead of each being handed over from this thread and waited for.
+            match rayon::scope(|_| stage(writer, &tip, &pending.edit, policy)) {
+                Ok((vod, event, response)) => {
+                    tip = vod.clone();
+                    staged.push(Staged {
+                        pending,
+                        vod,
+                        event,
+                        response,
+                        started,
+                    });
+                }
+                Err(e) => {
+                    if let Err(cut) = writer.rollback(savepoint) {
+                        // The writer no longer knows what its file holds: fail the group; the
+                        // next one reopens the file (cutting off everything staged).
+                        tracing::error!(volume = %self.name, error = %error_chain(&cut), "cannot roll back a failed edit");
+                        slot.writer = None;
+                        pending.answer(Err(e.into()));
+                        fail_all(staged, refused, edits, &cut);
+                        return;
+                    }
+                    refused.push((staged.len(), pending, e.into()));
+                }
+            }
+        }
+        if !staged.is_empty() {
+            let synced = Instant::now();
+            if let Err(e) = writer.sync() {
+                tracing::error!(volume = %self.name, error = %error_chain(&e), "cannot make an edit group durable");
+                // The slot may or may not have reached the disk: reopen to learn which.
+                slot.writer = None;
+                fail_all(staged, refused, std::iter::empty(), &e);
+                return;
+            }
+            tracing::debug!(
+                volume = %self.name,
+                edits = staged.len(),
+                staging_us = micros(synced - began),
+                sync_us = micros(synced.elapsed()),
+                "edit group durable"
+            );
+        }
+        // Publish and answer in order: the refused edits at their places among the versions.
+        let mut refused = refused.into_iter().peekable();
+        for (i, s) in staged.into_iter().enumerate() {
+            while let Some((_, pending, e)) = refused.next_if(|(at, _, _)| *at <= i) {
+                pending.answer(Err(e));
+            }
+            self.publish(s.vod, s.event);
+            let mut response = s.response;
+            response.elapsed_us = micros(s.started.elapsed());
+            s.pending.answer(Ok(response));
+        }
+        for (_, pending, e) in refused {
+            pending.answer(Err(e));
+        }
+    }
+
+    /// Applies one edit as a group of its own (one pair of syncs), holding the writer; what
+    /// the edits of a file served by no task take. Blocking.
+    ///
+    /// # Errors
+    /// See [`LiveVolume::submit`].
+    pub fn apply(
+        &self,
+        slot: &mut WriterSlot,
+        edit: Edit,
+        if_match: Option<u64>,
+        policy: CheckpointPolicy,
+    ) -> Result<EditResponse, VolumeError> {
+        let (pending, mut answer) = PendingEdit::new(edit, if_match);
+        self.commit_group(slot, vec![pending], policy);
+        answer.try_recv().map_err(|_| {
+            VolumeError::Store(StoreError::Internal("the edit was not answered".into()))
+        })?
+    }
+
+    /// Serves a durable version: readers get it, the history lists it, the feed announces it.
+    fn publish(&self, vod: Arc<Vod2>, event: ChangeEvent) {
+        {
+            let mut history = self.history.write().unwrap_or_else(|p| p.into_inner());
+            if history.offsets.is_empty() {
+                history.oldest = event.version;
+            }
+            history.offsets.push(vod.head_slot().commit);
+        }
+        self.current.store(vod);
+        let json = serde_json::to_string(&event).unwrap_or_default();
+        // No subscriber is not an error.
+        let _ = self.feed.send(Arc::new(FeedItem {
+            version: event.version,
+            json,
+        }));
+    }
+}
+
+/// The volume's writer, opened if needed, with nothing staged: reopened when a failed group
+/// left versions staged or the writer is not at the served head (opening cuts off what was
+/// appended past the file's durable head).
+fn writer_at<'a>(slot: &'a mut WriterSlot, base: &Vod2) -> Result<&'a mut Vod2Writer, StoreError> {
+    let at_head = slot.writer.as_ref().is_some_and(|w| {
+        !w.has_staged() && w.head().map(|h| h.commit) == Some(base.head_ref().commit_offset())
+    });
+    if !at_head {
+        if slot.writer.is_some() {
+            tracing::warn!(path = %base.path().display(), "the writer and the served head disagree; reopening the writer");
+        }
+        slot.writer = None;
+    }
+    match &mut slot.writer {
+        Some(w) => Ok(w),
+        empty => Ok(empty.insert(Vod2Writer::open_append(
+            base.path(),
+            Compression::for_edits(),
+        )?)),
+    }
+}
+
+/// Evaluates `edit` on `tip` and stages it: the next version's file (mapped up to its commit
+/// record, not yet durable), its change event read back from the record, and the answer.
+fn stage(
+    writer: &mut Vod2Writer,
+    tip: &Vod2,
+    edit: &Edit,
+    policy: CheckpointPolicy,
+) -> Result<(Arc<Vod2>, ChangeEvent, EditResponse), StoreError> {
+    let head = tip.head_ref();
+    let outcome = stage_edit(writer, head, edit, policy)?;
+    let slot = writer
+        .tip()
+        .ok_or_else(|| StoreError::Internal("staging left the writer without a version".into()))?;
+    let next = tip.advance(slot)?;
+    let event = change_event(&next, slot.commit)?;
+    let response = EditResponse {
+        version: event.version,
+        previous: head.version,
+        changed: event.changed.clone(),
+        evaluated: outcome.evaluated as u64,
+        new_records: outcome.new_records,
+        checkpoint: outcome.checkpoint,
+        elapsed_us: micros(outcome.elapsed),
+    };
+    Ok((Arc::new(next), event, response))
+}
+
+fn micros(d: Duration) -> u64 {
+    u64::try_from(d.as_micros()).unwrap_or(u64::MAX)
+}
+
+/// An error like `e` for each of several edits that share it.
+fn copy_of(e: &StoreError) -> StoreError {
+    match e {
+        StoreError::Io { context, source } => StoreError::Io {
+            context: context.clone(),
+            source: std::io::Error::new(source.kind(), source.to_string()),
+        },
+        other => StoreError::Internal(error_chain(other)),
+    }
+}
+
+/// Answers every edit of a group that failed as a whole (a failed sync, a writer that could
+/// not be rolled back) with `e`: none of its versions is served. What was refused before
+/// stays refused, but a conflict with a version of the group names a version never made.
+fn fail_all(
+    staged: Vec<Staged>,
+    refused: Vec<(usize, PendingEdit, VolumeError)>,
+    unreached: impl Iterator<Item = PendingEdit>,
+    e: &StoreError,
+) {
+    for s in staged {
+        s.pending.answer(Err(copy_of(e).into()));
+    }
+    for (at, pending, error) in refused {
+        let error = match error {
+            VolumeError::Conflict { .. } if at > 0 => copy_of(e).into(),
+            other => other,
+        };
+        pending.answer(Err(error));
+    }
+    for pending in unreached {
+        pending.answer(Err(copy_of(e).into()));
+    }
+}
