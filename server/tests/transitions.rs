@@ -100,7 +100,8 @@ impl Samples for Pyramid {
             values: &stored,
         };
         let mut values = Vec::new();
-        let f = lattice_field(&field, level, &mut LatticeScratch::default(), &mut values);
+        let scratch = &mut LatticeScratch::default();
+        let f = lattice_field(&field, (lo, hi), level, scratch, &mut values);
         assert_eq!((f.origin, f.size[0]), (lo, (hi[0] - lo[0] + 1) as usize));
         out.clear();
         out.extend_from_slice(&values);
@@ -170,6 +171,7 @@ fn mesh_tile(samples: &dyn Samples, layout: &VolumeLayout, key: BrickKey) -> Til
             coarse_frame: pos.map(|c| c / 2 * b),
             iso: ISO,
             faces,
+            strips: faces,
         };
         mesh_transitions(
             &input,

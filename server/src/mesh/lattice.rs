@@ -18,6 +18,7 @@
 //! exactly its eight children, and its face is a face of theirs.
 
 use super::mc::Field;
+use isovox_proto::tile::{stored_box, GridBox};
 
 /// The interpolation weights of stored voxels j - 2, j - 1, j, j + 1 in lattice value j of
 /// `level`: Catmull-Rom at the lattice point, which lies at `s = 1/2 + 2^-(level+1)` of the way
@@ -56,93 +57,103 @@ pub struct LatticeScratch {
     along_y: Vec<f64>,
 }
 
-/// Resamples stored voxels of `level` onto the level's lattice: for a field of stored voxels
-/// covering `[s, e]` (inclusive) on each axis, writes into `out` the lattice values of
-/// `[s + 2, e - 1]` and returns them as a field. Level 0 copies the voxels of `[s + 2, e - 1]`.
+/// One Catmull-Rom tap sum, in the one order every lattice value is computed in.
+#[inline(always)]
+fn taps([w0, w1, w2, w3]: [f64; 4], a: f64, b: f64, c: f64, e: f64) -> f64 {
+    w0 * a + w1 * b + w2 * c + w3 * e
+}
+
+/// Resamples stored voxels of `level` onto the level's lattice: writes into `out` the lattice
+/// values of the points `[lo, hi]` (inclusive) and returns them as a field. `stored` must
+/// cover the stored voxels `[lo - 2, hi + 1]` (`isovox_proto::tile::stored_box`); it may be
+/// larger. Level 0 copies the voxels of `[lo, hi]`.
 ///
 /// Separable: along x, then y, then z, each output from its four inputs in one fixed order, so
 /// a lattice point gets the same value whatever box it is computed in (tiles of neighbouring
 /// levels compute the same points from differently placed boxes). The loops run over whole rows
-/// so that they vectorize.
+/// so that they vectorize, and write each buffer once (no clearing pass).
 ///
 /// # Panics
-/// `level > 30`, or the stored field is less than 4 voxels wide on an axis.
+/// `level > 30`, or `stored` does not cover what the points read.
 pub fn lattice_field<'o>(
     stored: &Field<'_>,
+    (lo, hi): GridBox,
     level: u8,
     scratch: &mut LatticeScratch,
     out: &'o mut Vec<f32>,
 ) -> Field<'o> {
     assert!(level <= 30, "level {level} out of range");
-    assert!(
-        stored.size.iter().all(|&s| s >= 4),
-        "a lattice value needs four stored voxels per axis"
-    );
+    let (slo, shi) = stored_box(level, (lo, hi));
     let n = stored.size;
-    let size = n.map(|s| s - 3);
-    let origin = stored.origin.map(|o| o + 2);
-    out.clear();
+    assert!(
+        (0..3).all(|a| lo[a] <= hi[a]
+            && slo[a] >= stored.origin[a]
+            && shi[a] < stored.origin[a] + n[a] as i64),
+        "the stored voxels do not cover the lattice points"
+    );
     let v = stored.values;
     assert_eq!(v.len(), n[0] * n[1] * n[2]);
+    let size = [0, 1, 2].map(|a| (hi[a] - lo[a] + 1) as usize);
+    // The stored voxels read, from `slo`: `sn` per axis.
+    let sn = [0, 1, 2].map(|a| (shi[a] - slo[a] + 1) as usize);
+    let row_at = |y: usize, z: usize| {
+        let l = [0, 1, 2].map(|a| (slo[a] - stored.origin[a]) as usize);
+        ((l[2] + z) * n[1] + l[1] + y) * n[0] + l[0]
+    };
     if level == 0 {
+        out.clear();
         out.reserve(size[0] * size[1] * size[2]);
         for z in 0..size[2] {
             for y in 0..size[1] {
-                let row = ((z + 2) * n[1] + y + 2) * n[0] + 2;
-                out.extend_from_slice(&v[row..row + size[0]]);
+                out.extend_from_slice(&v[row_at(y, z)..][..size[0]]);
             }
         }
-    } else {
-        let [w0, w1, w2, w3] = weights(level);
-        // Along x: every stored row, size[0] outputs each.
-        let ax = &mut scratch.along_x;
-        ax.clear();
-        ax.resize(size[0] * n[1] * n[2], 0.0);
-        for (dst, src) in ax.chunks_exact_mut(size[0]).zip(v.chunks_exact(n[0])) {
-            let taps = src
-                .iter()
-                .zip(&src[1..])
-                .zip(src[2..].iter().zip(&src[3..]));
-            for (d, ((a, b), (c, e))) in dst.iter_mut().zip(taps) {
-                *d = w0 * f64::from(*a)
-                    + w1 * f64::from(*b)
-                    + w2 * f64::from(*c)
-                    + w3 * f64::from(*e);
-            }
+        return Field {
+            origin: lo,
+            size,
+            values: out,
+        };
+    }
+    let w = weights(level);
+    let m = size[0];
+    // Buffers are resized, not cleared: every value is written below.
+    // Along x: every stored row read, m outputs each.
+    let ax = &mut scratch.along_x;
+    ax.resize(m * sn[1] * sn[2], 0.0);
+    for (r, dst) in ax.chunks_exact_mut(m).enumerate() {
+        let src = &v[row_at(r % sn[1], r / sn[1])..][..m + 3];
+        let (a, b, c, e) = (&src[..m], &src[1..m + 1], &src[2..m + 2], &src[3..m + 3]);
+        for i in 0..m {
+            let t = [a[i], b[i], c[i], e[i]].map(f64::from);
+            dst[i] = taps(w, t[0], t[1], t[2], t[3]);
         }
-        // Along y: for each z, size[1] rows from four rows each.
-        let ay = &mut scratch.along_y;
-        ay.clear();
-        ay.resize(size[0] * size[1] * n[2], 0.0);
-        let row = size[0];
-        for z in 0..n[2] {
-            for y in 0..size[1] {
-                let at = |dy: usize| &ax[((z * n[1]) + y + dy) * row..][..row];
-                let (a, b, c, e) = (at(0), at(1), at(2), at(3));
-                let dst = &mut ay[(z * size[1] + y) * row..][..row];
-                for (i, d) in dst.iter_mut().enumerate() {
-                    *d = w0 * a[i] + w1 * b[i] + w2 * c[i] + w3 * e[i];
-                }
-            }
+    }
+    // Along y: for each z, size[1] rows from four rows each.
+    let ay = &mut scratch.along_y;
+    ay.resize(m * size[1] * sn[2], 0.0);
+    for (r, dst) in ay.chunks_exact_mut(m).enumerate() {
+        let first = (r / size[1]) * sn[1] + r % size[1];
+        let [a, b, c, e] = [0, 1, 2, 3].map(|d| &ax[(first + d) * m..][..m]);
+        for i in 0..m {
+            dst[i] = taps(w, a[i], b[i], c[i], e[i]);
         }
-        // Along z, rounded half up.
-        out.resize(size[0] * size[1] * size[2], 0.0);
-        let plane = size[0] * size[1];
-        for z in 0..size[2] {
-            let at = |dz: usize| &ay[(z + dz) * plane..][..plane];
-            let (a, b, c, e) = (at(0), at(1), at(2), at(3));
-            let dst = &mut out[z * plane..][..plane];
-            for (i, d) in dst.iter_mut().enumerate() {
-                let value = w0 * a[i] + w1 * b[i] + w2 * c[i] + w3 * e[i] + 0.5;
-                // floor, without the libm call: truncate, then one down where that rounded up
-                // (negative values).
-                let t = value as i64 as f64;
-                *d = (if t > value { t - 1.0 } else { t }) as f32;
-            }
+    }
+    // Along z, rounded half up.
+    let plane = m * size[1];
+    out.resize(plane * size[2], 0.0);
+    for (z, dst) in out.chunks_exact_mut(plane).enumerate() {
+        let [a, b, c, e] = [0, 1, 2, 3].map(|d| &ay[(z + d) * plane..][..plane]);
+        for i in 0..plane {
+            let value = taps(w, a[i], b[i], c[i], e[i]) + 0.5;
+            // floor, without the libm call: truncate, then one down where that rounded up
+            // (negative values). Lattice values are far inside i32 (voxels are at most 16-bit,
+            // and the weights' absolute values sum to less than 2 per axis).
+            let t = f64::from(value as i32);
+            dst[i] = (if t > value { t - 1.0 } else { t }) as f32;
         }
     }
     Field {
-        origin,
+        origin: lo,
         size,
         values: out,
     }
@@ -173,7 +184,14 @@ mod tests {
             values,
         };
         let mut out = Vec::new();
-        let f = lattice_field(&stored, level, &mut LatticeScratch::default(), &mut out);
+        let points = ([0; 3], [0; 3]);
+        let f = lattice_field(
+            &stored,
+            points,
+            level,
+            &mut LatticeScratch::default(),
+            &mut out,
+        );
         assert_eq!((f.origin, f.size), ([0; 3], [1; 3]));
         f.values[0]
     }
@@ -235,10 +253,60 @@ mod tests {
             values: &values,
         };
         let mut out = Vec::new();
-        let f = lattice_field(&stored, 1, &mut LatticeScratch::default(), &mut out);
+        let points = ([2; 3], [5, 2, 2]);
+        let f = lattice_field(&stored, points, 1, &mut LatticeScratch::default(), &mut out);
         assert_eq!((f.origin, f.size), ([2; 3], [4, 1, 1]));
         for j in 2..6 {
             assert_eq!(f.value([j, 2, 2]), 16.0 * j as f32, "lattice {j}");
+        }
+    }
+
+    #[test]
+    fn a_point_gets_one_value_whatever_box_it_is_computed_in() {
+        // Stored voxels of a 12^3 field with a surface-like ramp and noise; the lattice values of
+        // the whole box they cover and of sub-boxes (a tile's plane, a thin slab, one point)
+        // must be the same bits, at every level the weights differ.
+        let n = 12usize;
+        let mut x = 7u64;
+        let values: Vec<f32> = (0..n * n * n)
+            .map(|i| {
+                x = x
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                let ramp = (i % n + 2 * (i / n % n)) as f32 * 9.0;
+                (ramp + (x >> 59) as f32).min(255.0)
+            })
+            .collect();
+        let stored = Field {
+            origin: [-3, 0, 5],
+            size: [n; 3],
+            values: &values,
+        };
+        let whole = ([-1, 2, 7], [6, 9, 14]);
+        for level in 1..4 {
+            let mut all = Vec::new();
+            let mut s = LatticeScratch::default();
+            let reference = lattice_field(&stored, whole, level, &mut s, &mut all);
+            for part in [
+                ([0, 3, 8], [4, 3, 12]),
+                ([-1, 2, 10], [6, 9, 12]),
+                ([6, 9, 14], [6, 9, 14]),
+            ] {
+                let mut out = Vec::new();
+                let f = lattice_field(&stored, part, level, &mut s, &mut out);
+                for z in part.0[2]..=part.1[2] {
+                    for y in part.0[1]..=part.1[1] {
+                        for x in part.0[0]..=part.1[0] {
+                            let p = [x, y, z];
+                            assert_eq!(
+                                f.value(p).to_bits(),
+                                reference.value(p).to_bits(),
+                                "level {level}, {p:?} in {part:?}"
+                            );
+                        }
+                    }
+                }
+            }
         }
     }
 }

@@ -23,7 +23,8 @@ pub struct Field<'a> {
 }
 
 impl Field<'_> {
-    fn index(&self, p: [i64; 3]) -> usize {
+    /// The index in `values` of point `p` (inside the field).
+    pub fn index(&self, p: [i64; 3]) -> usize {
         let l = [0, 1, 2].map(|a| (p[a] - self.origin[a]) as usize);
         (l[2] * self.size[1] + l[1]) * self.size[0] + l[0]
     }

@@ -23,6 +23,7 @@
 use super::lattice::{lattice_field, value_range, LatticeScratch};
 use super::mc::{march, Field, Mesh, Scratch};
 use super::transition::{mesh_transitions, TransitionInput, TransitionScratch};
+use crate::store::codec::min_max;
 use crate::store::decoded::{decode, DecodedBricks};
 use crate::store::{Snapshot, StoreError, StoredBrick};
 use isovox_proto::lod::FACE_DIRECTIONS;
@@ -39,6 +40,7 @@ pub struct TileScratch {
     stored: Vec<f32>,
     field: Vec<f32>,
     coarse: Vec<f32>,
+    coarse_voxels: Vec<f32>,
     region: Vec<f32>,
     lattice: LatticeScratch,
     march: Scratch,
@@ -368,45 +370,84 @@ fn mesh_into(
             triangles: mesh.triangles(),
         });
     };
-    // The coarser level's lattice on the faces' planes; around the planes (the strips'
-    // vertices and normals read one point on each side) only where a face's samples straddle
-    // the iso value: most faces of a tile near a surface have no strip.
+    // The coarser level's lattice values a strip reads: the face's plane and one point on
+    // each side of it (normals), only for the faces whose strips can hold a triangle. Most
+    // faces of a tile near a surface have none: their fine samples are all on one side, and
+    // so are the coarse ones, which the range of the coarse voxels under the face usually
+    // shows without computing a lattice value.
+    let coarse_level = key.level + 1;
     let (c, d) = coarse_box(layout, key);
-    let size = [0, 1, 2].map(|a| (d[a] - c[a] + 1) as usize);
+    let size = field_size((c, d));
     scratch.coarse.clear();
     scratch.coarse.resize(size[0] * size[1] * size[2], f32::NAN);
+    // Which faces' fine samples straddle the iso value: march makes a vertex on every crossed
+    // edge between the corners [lo, hi] and lists those on the boundary, so a face is mixed
+    // exactly when one of them lies in its plane (both ends on it). The faces' samples are
+    // corners, unless the tile is first on an axis: its faces start one point lower there,
+    // and are read one by one.
+    let fine = |values| Field {
+        origin: fine_box.0,
+        size: field_size(fine_box),
+        values,
+    };
+    let fine_mixed = if !inputs.fine_may_cross {
+        Some(0)
+    } else if lo.iter().all(|c| c.rem_euclid(2) == 0) {
+        let border = &scratch.march.border;
+        Some(
+            border
+                .iter()
+                .fold(0u8, |m, b| m | (b.faces[0] & b.faces[1])),
+        )
+    } else {
+        None
+    };
     let mut strips = 0u8;
     for face in (0..6).filter(|f| inputs.faces >> f & 1 == 1) {
-        let plane = coarse_plane(face, (c, d));
+        let points = face_points(face, (c, d));
         // The fine face's samples, when they straddle the iso value, decide alone; else the
         // coarse plane does, against the side they are all on.
-        let fine_side = if inputs.fine_may_cross {
-            fine_face_side(&scratch.field, fine_box, plane, face, iso)
-        } else {
-            Some(inputs.fine_inside)
+        let fine_side = match fine_mixed {
+            _ if !inputs.fine_may_cross => Some(inputs.fine_inside),
+            Some(mixed) if mixed >> face & 1 == 1 => None,
+            Some(_) => Some(fine(&scratch.field).value(points.0.map(|v| 2 * v)) >= iso),
+            None => fine_face_side(&fine(&scratch.field), points, face, iso),
         };
-        let mixed = match fine_side {
-            None => true,
-            Some(inside) => {
-                let bricks = bricks.as_deref();
-                coarse_region(snap, key.level + 1, plane, (c, size), bricks, scratch)?;
-                any_in_region(&scratch.coarse, (c, size), plane, |v| (v >= iso) != inside)
+        let bricks = bricks.as_deref();
+        let memory = (&mut scratch.coarse_voxels, &mut scratch.lattice);
+        if let Some(inside) = fine_side {
+            // All on one side (the stored voxels' range bounds the lattice values), or the
+            // plane's own values say.
+            let read = stored_box(coarse_level, points);
+            let (min, max) = voxel_range(snap, coarse_level, read, bricks)?;
+            let (low, high) = value_range(coarse_level, f32::from(min), f32::from(max));
+            if (inside && low >= iso) || (!inside && high < iso) {
+                continue;
             }
-        };
-        if mixed {
-            strips |= 1 << face;
-            let (mut lo_s, mut hi_s) = plane;
-            lo_s[face / 2] -= 1;
-            hi_s[face / 2] += 1;
-            coarse_region(
+            let plane = lattice(
                 snap,
-                key.level + 1,
-                (lo_s, hi_s),
-                (c, size),
-                bricks.as_deref(),
-                scratch,
+                coarse_level,
+                points,
+                bricks,
+                memory,
+                &mut scratch.region,
             )?;
+            if plane.values.iter().all(|&v| (v >= iso) == inside) {
+                continue;
+            }
         }
+        let slab = face_slab(face, (c, d));
+        let memory = (&mut scratch.coarse_voxels, &mut scratch.lattice);
+        let values = lattice(
+            snap,
+            coarse_level,
+            slab,
+            bricks,
+            memory,
+            &mut scratch.region,
+        )?;
+        strips |= 1 << face;
+        copy_into(&mut scratch.coarse, (c, size), &values);
     }
     if strips != 0 && !inputs.fine_may_cross {
         // The strips read the fine face samples too (all on one side, no regular vertex).
@@ -425,7 +466,6 @@ fn mesh_into(
             triangles: 0,
         });
     }
-    let field_size = |(lo, hi): GridBox| [0, 1, 2].map(|a| (hi[a] - lo[a] + 1) as usize);
     let fine = Field {
         origin: fine_box.0,
         size: field_size(fine_box),
@@ -445,6 +485,7 @@ fn mesh_into(
         coarse_frame: [key.x, key.y, key.z].map(|c| i64::from(c / 2) * layout.brick() as i64),
         iso,
         faces: inputs.faces,
+        strips,
     };
     mesh_transitions(
         &input,
@@ -459,91 +500,73 @@ fn mesh_into(
     })
 }
 
-/// The coarser level's lattice points of face `face` of a tile whose strips read `(c, d)`:
-/// its plane (c + 1 on the low side, d - 1 on the high one), across the whole box.
-fn coarse_plane(face: usize, (c, d): GridBox) -> GridBox {
+/// The number of points of a box on each axis.
+fn field_size((lo, hi): GridBox) -> [usize; 3] {
+    [0, 1, 2].map(|a| (hi[a] - lo[a] + 1) as usize)
+}
+
+/// The coarser level's lattice points on face `face` of a tile whose strips read `(c, d)`
+/// (see [`coarse_box`]): the plane c + 1 on the low side, d - 1 on the high one, over the
+/// face's extent `[c + 1, d - 1]`; these decide the strip's cells.
+fn face_points(face: usize, (c, d): GridBox) -> GridBox {
     let a = face / 2;
+    let (mut lo, mut hi) = (c.map(|v| v + 1), d.map(|v| v - 1));
     let at = if face & 1 == 1 { d[a] - 1 } else { c[a] + 1 };
-    let (mut lo, mut hi) = (c, d);
     lo[a] = at;
     hi[a] = at;
     (lo, hi)
 }
 
-/// Whether some value of `region` in a buffer over the box from `origin` (`size` points per
-/// axis) satisfies `test`.
-fn any_in_region(
-    buffer: &[f32],
-    (origin, size): ([i64; 3], [usize; 3]),
-    (lo, hi): GridBox,
-    test: impl Fn(f32) -> bool,
-) -> bool {
-    (lo[2]..=hi[2]).any(|z| {
-        (lo[1]..=hi[1]).any(|y| {
-            let row = (((z - origin[2]) as usize * size[1]) + (y - origin[1]) as usize) * size[0];
-            let from = row + (lo[0] - origin[0]) as usize;
-            let to = row + (hi[0] - origin[0]) as usize;
-            buffer[from..=to].iter().any(|&v| test(v))
-        })
-    })
+/// The coarser level's lattice points a strip of face `face` reads: its plane across the
+/// whole box `(c, d)` and the planes on either side (the normals' central differences).
+fn face_slab(face: usize, (c, d): GridBox) -> GridBox {
+    let a = face / 2;
+    let at = if face & 1 == 1 { d[a] - 1 } else { c[a] + 1 };
+    let (mut lo, mut hi) = (c, d);
+    lo[a] = at - 1;
+    hi[a] = at + 1;
+    (lo, hi)
 }
 
-/// Computes the coarser level's lattice values of `region` into `scratch.coarse` (a buffer over
-/// the box from `origin`, `size` points per axis).
-fn coarse_region(
-    snap: &Snapshot,
-    level: u8,
-    region: GridBox,
-    (origin, size): ([i64; 3], [usize; 3]),
-    bricks: Option<&DecodedBricks>,
-    scratch: &mut TileScratch,
-) -> Result<(), StoreError> {
-    let values = lattice(
-        snap,
-        level,
-        region,
-        bricks,
-        (&mut scratch.stored, &mut scratch.lattice),
-        &mut scratch.region,
-    )?;
-    let (lo, hi) = region;
-    let width = (hi[0] - lo[0] + 1) as usize;
-    let mut rows = values.values.chunks_exact(width);
-    for z in lo[2]..=hi[2] {
-        for y in lo[1]..=hi[1] {
-            let row = (((z - origin[2]) as usize * size[1]) + (y - origin[1]) as usize) * size[0];
-            let x0 = row + (lo[0] - origin[0]) as usize;
+/// Copies the values of `part` into `buffer`, a field over the box from `origin` with `size`
+/// points per axis that holds `part`'s box.
+fn copy_into(buffer: &mut [f32], (origin, size): ([i64; 3], [usize; 3]), part: &Field<'_>) {
+    let width = part.size[0];
+    let mut rows = part.values.chunks_exact(width);
+    for z in 0..part.size[2] as i64 {
+        for y in 0..part.size[1] as i64 {
+            let p = [part.origin[0], part.origin[1] + y, part.origin[2] + z];
+            let at = (((p[2] - origin[2]) as usize * size[1]) + (p[1] - origin[1]) as usize)
+                * size[0]
+                + (p[0] - origin[0]) as usize;
             if let Some(src) = rows.next() {
-                scratch.coarse[x0..x0 + width].copy_from_slice(src);
+                buffer[at..at + width].copy_from_slice(src);
             }
         }
     }
-    Ok(())
 }
 
 /// The side of the iso value all the fine samples of face `face` lie on (inside: true), or
-/// `None` when they straddle it: the fine lattice points of the face plane (twice the coarse
-/// `plane`) across the box's face, read from `fine` over `fine_box`.
-fn fine_face_side(
-    fine: &[f32],
-    fine_box: GridBox,
-    plane: GridBox,
-    face: usize,
-    iso: f32,
-) -> Option<bool> {
-    let a = face / 2;
-    let (flo, fhi) = fine_box;
-    let fsize = [0, 1, 2].map(|k| (fhi[k] - flo[k] + 1) as usize);
-    // The coarse plane reaches one coarse point beyond the box's face on each side.
-    let (mut lo, mut hi) = (plane.0.map(|v| 2 * (v + 1)), plane.1.map(|v| 2 * (v - 1)));
-    lo[a] = 2 * plane.0[a];
-    hi[a] = 2 * plane.0[a];
-    let at = |p: [i64; 3]| {
-        (((p[2] - flo[2]) as usize * fsize[1]) + (p[1] - flo[1]) as usize) * fsize[0]
-            + (p[0] - flo[0]) as usize
+/// `None` when they straddle it: the fine lattice points twice the coarse face `points`, read
+/// from `fine`.
+fn fine_face_side(fine: &Field<'_>, points: GridBox, face: usize, iso: f32) -> Option<bool> {
+    let (lo, hi) = (points.0.map(|v| 2 * v), points.1.map(|v| 2 * v));
+    let base = fine.index(lo);
+    let first = fine.values[base] >= iso;
+    // Along the face's two lateral axes; its normal axis has one point.
+    let (ua, va) = match face / 2 {
+        0 => (1, 2),
+        1 => (0, 2),
+        _ => (0, 1),
     };
-    let first = fine[at(lo)] >= iso;
-    let mixed = any_in_region(fine, (flo, fsize), (lo, hi), |v| (v >= iso) != first);
+    let n = fine.size;
+    let stride = |a: usize| [1, n[0], n[0] * n[1]][a];
+    let (su, sv) = (stride(ua), stride(va));
+    let (nu, nv) = ((hi[ua] - lo[ua]) as usize, (hi[va] - lo[va]) as usize);
+    let mixed = (0..=nv).any(|v| {
+        let row = base + v * sv;
+        (0..=nu).any(|u| (fine.values[row + u * su] >= iso) != first)
+    });
     (!mixed).then_some(first)
 }
 
@@ -574,40 +597,37 @@ fn lattice<'o>(
         size: size(slo, shi),
         values: stored,
     };
-    Ok(lattice_field(&field, level, scratch, out))
+    Ok(lattice_field(&field, (lo, hi), level, scratch, out))
 }
 
-/// Writes into `out` the stored voxels of `level` over the box `origin .. origin + size`
-/// (L outside the volume), x fastest.
-fn gather(
+/// One row of stored voxels, as its brick holds it.
+enum Row<'a> {
+    /// One value across the row: a constant brick, or L outside the volume.
+    Constant(u16),
+    /// The row's voxels as stored (little-endian for u16).
+    Voxels(&'a [u8]),
+}
+
+/// Visits the stored voxels of `level` over the box `origin .. origin + size` row by row,
+/// brick by brick: `visit(at, width, row)` for each row piece, `at` its first voxel's index in
+/// a buffer over the box (x fastest). Together the pieces cover the box once.
+fn for_each_row(
     snap: &Snapshot,
     level: u8,
     origin: [i64; 3],
     size: [usize; 3],
     bricks: Option<&DecodedBricks>,
-    out: &mut Vec<f32>,
+    mut visit: impl FnMut(usize, usize, Row<'_>),
 ) -> Result<(), StoreError> {
     let layout = snap.layout();
     let b = layout.brick() as i64;
     let grid = layout.grid(level).map(|g| g as i64);
-    out.clear();
-    out.resize(size[0] * size[1] * size[2], 0.0);
-    let t = layout.voxel_type();
+    let bytes_per_voxel = layout.voxel_type().bytes();
     let end = [0, 1, 2].map(|a| origin[a] + size[a] as i64); // exclusive
     for bz in origin[2].div_euclid(b)..=(end[2] - 1).div_euclid(b) {
         for by in origin[1].div_euclid(b)..=(end[1] - 1).div_euclid(b) {
             for bx in origin[0].div_euclid(b)..=(end[0] - 1).div_euclid(b) {
                 let c = [bx, by, bz];
-                if (0..3).any(|a| c[a] < 0 || c[a] >= grid[a]) {
-                    continue; // outside the volume: L, already 0
-                }
-                let k = BrickKey {
-                    level,
-                    x: bx as u32,
-                    y: by as u32,
-                    z: bz as u32,
-                };
-                let stored = snap.stored(k)?;
                 let blo = c.map(|v| v * b);
                 let from = [0, 1, 2].map(|a| blo[a].max(origin[a]));
                 let to = [0, 1, 2].map(|a| (blo[a] + b).min(end[a]));
@@ -617,39 +637,32 @@ fn gather(
                     ((((z - origin[2]) as usize * size[1]) + (y - origin[1]) as usize) * size[0])
                         + (from[0] - origin[0]) as usize
                 };
+                let stored = if (0..3).all(|a| c[a] >= 0 && c[a] < grid[a]) {
+                    let k = BrickKey {
+                        level,
+                        x: bx as u32,
+                        y: by as u32,
+                        z: bz as u32,
+                    };
+                    Some(snap.stored(k)?)
+                } else {
+                    None // outside the volume: L
+                };
                 match stored {
-                    StoredBrick::Constant(0) => {} // L: the field is already 0
-                    StoredBrick::Constant(v) => {
-                        for (y, z) in rows {
-                            let row = at(y, z);
-                            out[row..row + width].fill(v as f32);
-                        }
+                    None => rows.for_each(|(y, z)| visit(at(y, z), width, Row::Constant(0))),
+                    Some(StoredBrick::Constant(v)) => {
+                        rows.for_each(|(y, z)| visit(at(y, z), width, Row::Constant(v)));
                     }
-                    StoredBrick::Record { header, .. } => {
-                        let bytes = match bricks {
-                            Some(cache) => cache.voxels(header.hash, &stored, layout)?,
-                            None => decode(&stored, layout)?,
+                    Some(record @ StoredBrick::Record { header, .. }) => {
+                        let voxels = match bricks {
+                            Some(cache) => cache.voxels(header.hash, &record, layout)?,
+                            None => decode(&record, layout)?,
                         };
                         for (y, z) in rows {
-                            let row = at(y, z);
                             let src = (((z - blo[2]) * b + (y - blo[1])) * b + (from[0] - blo[0]))
                                 as usize;
-                            let dst = &mut out[row..row + width];
-                            match t {
-                                VoxelType::U8 => {
-                                    for (d, s) in dst.iter_mut().zip(&bytes[src..src + width]) {
-                                        *d = *s as f32;
-                                    }
-                                }
-                                VoxelType::U16 => {
-                                    for (d, s) in dst
-                                        .iter_mut()
-                                        .zip(bytes[2 * src..2 * (src + width)].chunks_exact(2))
-                                    {
-                                        *d = u16::from_le_bytes([s[0], s[1]]) as f32;
-                                    }
-                                }
-                            }
+                            let row = &voxels[src * bytes_per_voxel..][..width * bytes_per_voxel];
+                            visit(at(y, z), width, Row::Voxels(row));
                         }
                     }
                 }
@@ -657,4 +670,61 @@ fn gather(
         }
     }
     Ok(())
+}
+
+/// Writes into `out` the stored voxels of `level` over the box `origin .. origin + size`
+/// (L outside the volume), x fastest. Every value is written once (no clearing pass).
+fn gather(
+    snap: &Snapshot,
+    level: u8,
+    origin: [i64; 3],
+    size: [usize; 3],
+    bricks: Option<&DecodedBricks>,
+    out: &mut Vec<f32>,
+) -> Result<(), StoreError> {
+    out.resize(size[0] * size[1] * size[2], 0.0);
+    let t = snap.layout().voxel_type();
+    for_each_row(snap, level, origin, size, bricks, |at, width, row| {
+        let dst = &mut out[at..at + width];
+        match (row, t) {
+            (Row::Constant(v), _) => dst.fill(f32::from(v)),
+            (Row::Voxels(bytes), VoxelType::U8) => {
+                for (d, s) in dst.iter_mut().zip(bytes) {
+                    *d = f32::from(*s);
+                }
+            }
+            (Row::Voxels(bytes), VoxelType::U16) => {
+                for (d, s) in dst.iter_mut().zip(bytes.chunks_exact(2)) {
+                    *d = f32::from(u16::from_le_bytes([s[0], s[1]]));
+                }
+            }
+        }
+    })
+}
+
+/// The least and greatest stored voxel of `level` over the box `(lo, hi)` (L outside the
+/// volume), read from the bricks as they are.
+fn voxel_range(
+    snap: &Snapshot,
+    level: u8,
+    (lo, hi): GridBox,
+    bricks: Option<&DecodedBricks>,
+) -> Result<(u16, u16), StoreError> {
+    let t = snap.layout().voxel_type();
+    let mut range = (u16::MAX, u16::MIN);
+    for_each_row(
+        snap,
+        level,
+        lo,
+        field_size((lo, hi)),
+        bricks,
+        |_, _, row| {
+            let (l, h) = match row {
+                Row::Constant(v) => (v, v),
+                Row::Voxels(bytes) => min_max(bytes, t),
+            };
+            range = (range.0.min(l), range.1.max(h));
+        },
+    )?;
+    Ok(range)
 }

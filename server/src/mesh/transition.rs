@@ -80,38 +80,6 @@ use super::transition_table::{
     triangulate, EdgeKind, Table, EDGES, SAMPLES, SIDES,
 };
 use isovox_proto::mesh::{Transitions, VertexMove};
-use std::collections::HashMap;
-use std::hash::{BuildHasherDefault, Hasher};
-
-/// A hasher for small keys of lattice points: multiply and rotate per word (the std SipHash
-/// showed in profiles of strip building, and these keys need no flood resistance).
-#[derive(Debug, Default)]
-struct PointHasher(u64);
-
-impl Hasher for PointHasher {
-    fn finish(&self) -> u64 {
-        self.0
-    }
-
-    fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.write_u64(u64::from(b));
-        }
-    }
-
-    fn write_u8(&mut self, v: u8) {
-        self.write_u64(u64::from(v));
-    }
-
-    fn write_i64(&mut self, v: i64) {
-        self.write_u64(v as u64);
-    }
-
-    fn write_u64(&mut self, v: u64) {
-        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
-    }
-}
-
 /// How far (in fine cells) the fine face of a transition cell sits inside the coarse face.
 pub const WIDTH: f32 = super::transition_table::WIDTH as f32;
 
@@ -141,6 +109,10 @@ pub struct TransitionInput<'a> {
     pub iso: f32,
     /// The faces (a face mask) to build strips and moves for.
     pub faces: u8,
+    /// Those of `faces` whose strips may hold a triangle: the others are known to be empty
+    /// (every sample of the face, fine and coarse, on one side) and are not looked at; their
+    /// coarse values need not be gathered.
+    pub strips: u8,
 }
 
 impl TransitionInput<'_> {
@@ -169,9 +141,15 @@ impl TransitionInput<'_> {
     /// the module doc). At most one of them can touch a coarser tile at a time.
     fn moving_faces(&self, p: [i64; 3]) -> u8 {
         let on = faces_of(p, self.box_lo(), self.hi);
+        if on & self.faces == 0 {
+            return 0;
+        }
+        // The faces p lies on beyond which a coarser tile across another face ends.
+        let reach = (0..6).fold(0u8, |m, g| m | u8::from(self.reaches_past(g)) << g);
+        let blocked = on & !reach;
         let mut moving = 0;
         for f in (0..6).filter(|&f| (on & self.faces) >> f & 1 == 1) {
-            if (0..6).all(|g| g == f || on >> g & 1 == 0 || self.reaches_past(g)) {
+            if blocked & !(1 << f) == 0 {
                 moving |= 1 << f;
             }
         }
@@ -182,9 +160,13 @@ impl TransitionInput<'_> {
 /// Reusable memory for [`mesh_transitions`].
 #[derive(Debug, Default)]
 pub struct TransitionScratch {
-    /// Transition vertices already made: on a coarse edge (lower point, axis) or at a fine
-    /// corner's connecting edge (axis 3).
-    made: HashMap<([i64; 3], u8), u32, BuildHasherDefault<PointHasher>>,
+    /// Transition vertices already made, four slots per point of the coarse field: on the
+    /// coarse edge from that point along axis 0, 1, 2, or (slot 3) on the connecting edge of
+    /// its fine twin. Each slot holds the call that wrote it and the vertex, so that the table
+    /// never needs clearing between tiles.
+    made: Vec<(u32, u32)>,
+    /// The current call's stamp in `made`.
+    stamp: u32,
     /// The number of regular vertices; transition vertices are numbered after them.
     regular: usize,
     /// The move of each regular vertex with the face whose strip is being built.
@@ -195,6 +177,18 @@ pub struct TransitionScratch {
     lines: Vec<u8>,
     fine_inside: Vec<bool>,
     coarse_inside: Vec<bool>,
+    /// One loop's triangles, as indices into it.
+    tris: Vec<[usize; 3]>,
+}
+
+impl TransitionScratch {
+    /// The vertex this call made in slot `slot` of `made`, if it made one.
+    fn made_at(&self, slot: usize) -> Option<u32> {
+        match self.made[slot] {
+            (stamp, id) if stamp == self.stamp => Some(id),
+            _ => None,
+        }
+    }
 }
 
 /// The move of a point on face `face`, scaled by `k`.
@@ -220,9 +214,16 @@ pub fn mesh_transitions(
     scratch: &mut TransitionScratch,
 ) {
     out.clear();
-    scratch.made.clear();
     if input.faces == 0 {
         return;
+    }
+    let slots = 4 * input.coarse.values.len();
+    scratch.stamp = scratch.stamp.wrapping_add(1);
+    if scratch.stamp == 0 || scratch.made.len() < slots {
+        // First use, a larger field, or the stamp wrapped: start from a clean table.
+        scratch.made.clear();
+        scratch.made.resize(slots, (0, 0));
+        scratch.stamp = 1;
     }
     scratch.regular = regular.positions.len();
     scratch.offsets.clear();
@@ -247,7 +248,7 @@ pub fn mesh_transitions(
     }
     let regular_moves = out.moves.len();
     for face in 0..6 {
-        if input.faces >> face & 1 == 0 {
+        if (input.faces & input.strips) >> face & 1 == 0 {
             continue;
         }
         // The strip is drawn with the moves of its own face only: when face f touches a
@@ -358,11 +359,12 @@ fn strip(
         let base = (0..3)
             .map(|a| (first[a] - field.origin[a]) as usize * stride[a])
             .sum::<usize>();
+        let (su, sv) = (stride[ua], stride[va]);
+        let values = &field.values[base..=base + n.0 * su + n.1 * sv];
         out.clear();
         for v in 0..=n.1 {
-            for u in 0..=n.0 {
-                out.push(field.values[base + u * stride[ua] + v * stride[va]] >= iso);
-            }
+            let row = &values[v * sv..];
+            out.extend((0..=n.0).map(|u| row[u * su] >= iso));
         }
     };
     flags(input.fine, at(0, 0), (nu, nv), &mut scratch.fine_inside);
@@ -533,7 +535,8 @@ fn transition_cell(
                     points,
                     lines: &scratch.lines,
                 };
-                triangulate_loop(cell.face, &shape, regular, out, scratch.regular);
+                let tris = &mut scratch.tris;
+                triangulate_loop(cell.face, &shape, regular, out, scratch.regular, tris);
             }
             continue;
         }
@@ -566,7 +569,8 @@ fn transition_cell(
                 points: &pts,
                 lines: &lines,
             };
-            triangulate_loop(cell.face, &shape, regular, out, scratch.regular);
+            let tris = &mut scratch.tris;
+            triangulate_loop(cell.face, &shape, regular, out, scratch.regular, tris);
         }
     }
 }
@@ -593,11 +597,13 @@ fn triangulate_loop(
     regular: &Mesh,
     out: &mut Transitions,
     n_regular: usize,
+    tris: &mut Vec<[usize; 3]>,
 ) {
     let (ids, points, lines) = (shape.ids, shape.points, shape.lines);
     let n = points.len();
     let refused = |i: usize, j: usize| (lines[i] & lines[j]) >> SIDES != 0;
-    let (tris, _) = triangulate(points, 1e-12, refused, |_, _, _| false);
+    tris.clear();
+    triangulate(points, 1e-12, refused, tris);
     let on_side = |i: usize, j: usize| {
         let edge = j == (i + 1) % n || i == (j + 1) % n;
         !edge && lines[i] & lines[j] & 0xf != 0
@@ -606,7 +612,7 @@ fn triangulate_loop(
         .iter()
         .any(|t| on_side(t[0], t[1]) || on_side(t[1], t[2]) || on_side(t[2], t[0]));
     if !across_a_side {
-        for t in tris {
+        for t in tris.iter() {
             out.strips[face].extend(t.map(|i| ids[i]));
         }
         return;
@@ -703,8 +709,8 @@ fn coarse_vertex(
     out: &mut Transitions,
     scratch: &mut TransitionScratch,
 ) -> (u32, [f32; 3]) {
-    let key = (q0, axis as u8);
-    if let Some(&id) = scratch.made.get(&key) {
+    let slot = 4 * input.coarse.index(q0) + axis;
+    if let Some(id) = scratch.made_at(slot) {
         return (id, out.positions[(id as usize) - scratch.regular]);
     }
     let (t, normal) = input.coarse.crossing(q0, axis, input.iso);
@@ -725,7 +731,7 @@ fn coarse_vertex(
         };
     }
     let id = push_vertex(out, scratch, pos, normal);
-    scratch.made.insert(key, id);
+    scratch.made[slot] = (scratch.stamp, id);
     (id, pos)
 }
 
@@ -751,8 +757,8 @@ fn connecting_vertex(
     } else {
         primary
     };
-    let key = (p, 3);
-    if let Some(&id) = scratch.made.get(&key) {
+    let slot = 4 * input.coarse.index(q) + 3;
+    if let Some(id) = scratch.made_at(slot) {
         return (id, drawn);
     }
     // Normals: fine gradient per fine cell, coarse per coarse cell (two fine cells).
@@ -777,7 +783,7 @@ fn connecting_vertex(
             offset: displacement(f, 1.0 - s),
         });
     }
-    scratch.made.insert(key, id);
+    scratch.made[slot] = (scratch.stamp, id);
     (id, drawn)
 }
 

@@ -245,40 +245,34 @@ pub fn area(a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> f64 {
 }
 
 /// The minimum-area triangulation of a polygon with corners `points` (in order; the
-/// triangles, as corner indices, keep that winding), refusing, as long as another triangulation
-/// exists, triangles with an area below `flat`, diagonals (i, j) with `refused(i, j)` and
-/// triangles (i, k, j) with `refused_triangle(i, k, j)`; and whether it could refuse them all.
-/// On a flat polygon the minimum is a triangulation without overlap (any overlap adds area).
+/// triangles, as corner indices, keep that winding), appended to `out`, refusing, as long as
+/// another triangulation exists, triangles with an area below `flat` and diagonals (i, j) with
+/// `refused(i, j)`; returns whether it could refuse them all. On a flat polygon the minimum is
+/// a triangulation without overlap (any overlap adds area).
 pub fn triangulate(
     points: &[[f64; 3]],
     flat: f64,
     refused: impl Fn(usize, usize) -> bool,
-    refused_triangle: impl Fn(usize, usize, usize) -> bool,
-) -> (Vec<[usize; 3]>, bool) {
+    out: &mut Vec<[usize; 3]>,
+) -> bool {
     let n = points.len();
     if n < 3 {
-        return (Vec::new(), true);
+        return true;
     }
     assert!(
         n <= EDGES.len(),
         "a loop visits each of the cell's edges at most once"
     );
     if n == 3 {
-        let clean = area(points[0], points[1], points[2]) >= flat && !refused_triangle(0, 1, 2);
-        return (vec![[0, 1, 2]], clean);
+        out.push([0, 1, 2]);
+        return area(points[0], points[1], points[2]) >= flat;
     }
     if n == 4 {
         // Two diagonals: the one with less area (and nothing refused), without the tables.
         let cost = |t: [[usize; 3]; 2], d: (usize, usize)| {
-            let a: f64 = t
-                .iter()
-                .map(|&[i, k, j]| area(points[i], points[k], points[j]))
-                .sum();
-            let bad = refused(d.0, d.1)
-                || t.iter().any(|&[i, k, j]| {
-                    area(points[i], points[k], points[j]) < flat || refused_triangle(i, k, j)
-                });
-            (bad, a)
+            let areas = t.map(|[i, k, j]| area(points[i], points[k], points[j]));
+            let bad = refused(d.0, d.1) || areas.iter().any(|&a| a < flat);
+            (bad, areas[0] + areas[1])
         };
         let first = [[0, 1, 2], [0, 2, 3]];
         let second = [[0, 1, 3], [1, 2, 3]];
@@ -291,21 +285,43 @@ pub fn triangulate(
         } else {
             (second, b2)
         };
-        return (t.to_vec(), !bad);
+        out.extend(t);
+        return !bad;
     }
+    // Loops of a transition cell are short: the tables sized for the common case on the
+    // stack, the longest ones (up to every edge of the cell) in larger ones.
+    if n <= 8 {
+        min_area::<8>(points, flat, refused, out)
+    } else {
+        min_area::<{ EDGES.len() }>(points, flat, refused, out)
+    }
+}
+
+/// The dynamic programme of [`triangulate`] for polygons of at most `M` corners.
+fn min_area<const M: usize>(
+    points: &[[f64; 3]],
+    flat: f64,
+    refused: impl Fn(usize, usize) -> bool,
+    out: &mut Vec<[usize; 3]>,
+) -> bool {
     const REFUSED: f64 = 1e9;
-    let diagonal = |i: usize, j: usize| j != i + 1 && !(i == 0 && j == n - 1) && refused(i, j);
+    let n = points.len();
+    // The refused diagonals, one bit per corner (polygon edges are never refused).
+    let mut refused_from = [0u32; M];
+    for (i, row) in refused_from.iter_mut().enumerate().take(n) {
+        for j in i + 2..n {
+            if !(i == 0 && j == n - 1) && refused(i, j) {
+                *row |= 1 << j;
+            }
+        }
+    }
+    let diagonal = |i: usize, j: usize| refused_from[i] >> j & 1 == 1;
     let weight = |i: usize, k: usize, j: usize| {
         let a = area(points[i], points[k], points[j]);
-        let refuse = a < flat
-            || diagonal(i, k)
-            || diagonal(k, j)
-            || diagonal(i, j)
-            || refused_triangle(i, k, j);
+        let refuse = a < flat || diagonal(i, k) || diagonal(k, j) || diagonal(i, j);
         a + if refuse { REFUSED } else { 0.0 }
     };
     // cost[i][j]: best triangulation of the sub-polygon i..=j; split[i][j]: its apex.
-    const M: usize = EDGES.len();
     let mut cost = [[0f64; M]; M];
     let mut split = [[0u8; M]; M];
     for len in 2..n {
@@ -319,7 +335,6 @@ pub fn triangulate(
             split[i][j] = k as u8;
         }
     }
-    let mut out = Vec::with_capacity(n - 2);
     let mut stack = [(0usize, 0usize); M];
     let mut top = 1;
     stack[0] = (0, n - 1);
@@ -335,18 +350,16 @@ pub fn triangulate(
         stack[top + 1] = (k, j);
         top += 2;
     }
-    (out, cost[0][n - 1] < REFUSED)
+    cost[0][n - 1] < REFUSED
 }
 
 /// [`triangulate`] with the vertices at their edges' midpoints, the triangles as edges.
 #[cfg(test)]
 fn triangulate_loop(lp: &[u8]) -> Vec<u8> {
     let points: Vec<[f64; 3]> = lp.iter().map(|&e| drawn_midpoint(e)).collect();
-    triangulate(&points, 1e-9, |_, _| false, |_, _, _| false)
-        .0
-        .into_iter()
-        .flat_map(|t| t.map(|i| lp[i]))
-        .collect()
+    let mut tris = Vec::new();
+    triangulate(&points, 1e-9, |_, _| false, &mut tris);
+    tris.into_iter().flat_map(|t| t.map(|i| lp[i])).collect()
 }
 
 /// The case table: the loops of every case, as edge indices; the loops of case `c` are
