@@ -402,6 +402,28 @@ fn mesh_into(
     } else {
         None
     };
+    // A tile without a vertex has all its samples on one side; most such tiles lie far enough
+    // from a surface that the coarse voxels around it are all on that side too: one range over
+    // them decides every face.
+    let one_side = if !inputs.fine_may_cross {
+        Some(inputs.fine_inside)
+    } else if mesh.positions.is_empty() && fine_mixed.is_some() {
+        Some(fine(&scratch.field).value(lo) >= iso)
+    } else {
+        None
+    };
+    if let Some(inside) = one_side {
+        let read = stored_box(coarse_level, (c, d));
+        let (min, max) = voxel_range(snap, coarse_level, read, bricks.as_deref())?;
+        let (low, high) = value_range(coarse_level, f32::from(min), f32::from(max));
+        if (inside && low >= iso) || (!inside && high < iso) {
+            // No vertex, no strip: nothing to move or add.
+            return Ok(TileStats {
+                skipped: false,
+                triangles: 0,
+            });
+        }
+    }
     let mut strips = 0u8;
     for face in (0..6).filter(|f| inputs.faces >> f & 1 == 1) {
         let points = face_points(face, (c, d));

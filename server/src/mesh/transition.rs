@@ -76,8 +76,8 @@
 
 use super::mc::{faces_of, Field, Mesh, Scratch};
 use super::transition_table::{
-    chain, edge_between, edge_kind, faces, on_side, run_segments, sample_position, table,
-    triangulate, EdgeKind, Table, EDGES, SAMPLES, SIDES,
+    chain, edge_between, edge_kind, faces, run_segments, sample_position, table, triangulate,
+    EdgeKind, Table, EDGES, EDGE_SIDES, SAMPLES, SIDES,
 };
 use isovox_proto::mesh::{Transitions, VertexMove};
 /// How far (in fine cells) the fine face of a transition cell sits inside the coarse face.
@@ -140,20 +140,23 @@ impl TransitionInput<'_> {
     /// on `f` and the coarser tile across `f` reaches beyond every other face `p` lies on (see
     /// the module doc). At most one of them can touch a coarser tile at a time.
     fn moving_faces(&self, p: [i64; 3]) -> u8 {
-        let on = faces_of(p, self.box_lo(), self.hi);
+        self.moving_faces_on(faces_of(p, self.box_lo(), self.hi))
+    }
+
+    /// [`Self::moving_faces`] of a point on the faces `on` of the box.
+    fn moving_faces_on(&self, on: u8) -> u8 {
         if on & self.faces == 0 {
             return 0;
         }
         // The faces p lies on beyond which a coarser tile across another face ends.
         let reach = (0..6).fold(0u8, |m, g| m | u8::from(self.reaches_past(g)) << g);
         let blocked = on & !reach;
-        let mut moving = 0;
-        for f in (0..6).filter(|&f| (on & self.faces) >> f & 1 == 1) {
-            if blocked & !(1 << f) == 0 {
-                moving |= 1 << f;
-            }
+        // Face f moves when no face but f itself blocks.
+        match blocked.count_ones() {
+            0 => on & self.faces,
+            1 => on & self.faces & blocked,
+            _ => 0,
         }
-        moving
     }
 }
 
@@ -228,10 +231,19 @@ pub fn mesh_transitions(
     scratch.regular = regular.positions.len();
     scratch.offsets.clear();
     scratch.offsets.resize(regular.positions.len(), [0.0; 3]);
+    let same_box = input.box_lo() == input.lo;
     for b in &march.border {
         let mut p1 = b.p0;
         p1[b.axis as usize] += 1;
-        let (f0, f1) = (input.moving_faces(b.p0), input.moving_faces(p1));
+        // march's faces are those of [lo, hi]; the box's are the same unless it starts lower.
+        let (f0, f1) = if same_box {
+            (
+                input.moving_faces_on(b.faces[0]),
+                input.moving_faces_on(b.faces[1]),
+            )
+        } else {
+            (input.moving_faces(b.p0), input.moving_faces(p1))
+        };
         // A vertex moves with a face by the interpolation of its endpoints' moves with it.
         for face in (0..6).filter(|&f| (f0 | f1) >> f & 1 == 1) {
             let k = match (f0 >> face & 1, f1 >> face & 1) {
@@ -280,30 +292,37 @@ struct Cell<'a> {
 }
 
 impl Cell<'_> {
-    /// The fine lattice point of sample `s` (coarse samples: their fine twin).
-    fn point(&self, s: u8) -> [i64; 3] {
-        let c = sample_position(s);
-        let mut p = [0i64; 3];
-        p[self.axis] = self.plane;
-        p[self.ua] = self.base.0 + i64::from(c[0]);
-        p[self.va] = self.base.1 + i64::from(c[1]);
-        p
-    }
-
     /// The lower point and axis of edge `e`.
     fn edge(&self, e: u8) -> ([i64; 3], usize) {
-        let (sa, sb) = EDGES[e as usize];
-        let (pa, pb) = (self.point(sa), self.point(sb));
-        let axis = if pa[self.ua] != pb[self.ua] {
-            self.ua
-        } else if pa[self.va] != pb[self.va] {
-            self.va
-        } else {
-            self.axis
-        };
-        (pa, axis)
+        let (u, v, direction) = EDGE_FRAME[e as usize];
+        let mut p = [0i64; 3];
+        p[self.axis] = self.plane;
+        p[self.ua] = self.base.0 + u;
+        p[self.va] = self.base.1 + v;
+        (p, [self.ua, self.va, self.axis][direction])
     }
 }
+
+/// Per edge of a transition cell: its lower sample's offsets (u, v) in the block (a coarse
+/// sample: its fine twin's) and its direction (0: u, 1: v, 2: the face's normal, a connecting
+/// edge).
+const EDGE_FRAME: [(i64, i64, usize); EDGES.len()] = {
+    let mut out = [(0, 0, 0); EDGES.len()];
+    let mut e = 0;
+    while e < EDGES.len() {
+        let (a, b) = (sample_position(EDGES[e].0), sample_position(EDGES[e].1));
+        let direction = if a[0] != b[0] {
+            0
+        } else if a[1] != b[1] {
+            1
+        } else {
+            2
+        };
+        out[e] = (a[0] as i64, a[1] as i64, direction);
+        e += 1;
+    }
+    out
+};
 
 /// The transition cells of one face.
 fn strip(
@@ -496,6 +515,7 @@ fn transition_cell(
         table_loops = table.loops(case);
         &mut table_loops
     };
+    let collapsed_sides = (0..SIDES).fold(0u8, |m, s| m | u8::from(collapsed[s]) << s);
     for lp in loops {
         // Consecutive vertices at one position (a fine and a coarse crossing that coincide on a
         // collapsed side) are one vertex.
@@ -509,11 +529,8 @@ fn transition_cell(
             if scratch.points.last() != Some(&p) {
                 scratch.loop_ids.push(ids[e as usize]);
                 scratch.points.push(p);
-                let (a, b) = EDGES[e as usize];
-                let on = (0..SIDES).filter(|&s| on_side(a, s) && on_side(b, s));
-                scratch
-                    .lines
-                    .push(on.fold(0, |m, s| m | 1 << s | u8::from(collapsed[s]) << (s + SIDES)));
+                let on = EDGE_SIDES[e as usize];
+                scratch.lines.push(on | (on & collapsed_sides) << SIDES);
             }
         }
         if scratch.points.len() > 1 && scratch.points.first() == scratch.points.last() {

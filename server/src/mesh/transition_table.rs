@@ -39,7 +39,7 @@ use std::sync::OnceLock;
 pub const SAMPLES: usize = 13;
 
 /// The canonical position of sample `s`, in fine-cell units, with the coarse face at n = 1.
-pub fn sample_position(s: u8) -> [i32; 3] {
+pub const fn sample_position(s: u8) -> [i32; 3] {
     if s < 9 {
         [(s % 3) as i32, (s / 3) as i32, 0]
     } else {
@@ -120,7 +120,7 @@ pub fn edge_between(a: u8, b: u8) -> u8 {
 pub const SIDES: usize = 4;
 
 /// Whether sample `s` lies on lateral side `side`.
-pub fn on_side(s: u8, side: usize) -> bool {
+pub const fn on_side(s: u8, side: usize) -> bool {
     let p = sample_position(s);
     match side {
         0 => p[0] == 0,
@@ -129,6 +129,23 @@ pub fn on_side(s: u8, side: usize) -> bool {
         _ => p[1] == 2,
     }
 }
+
+/// The lateral sides each edge lies on (both its samples on it), as bits in [`SIDES`] order.
+pub const EDGE_SIDES: [u8; EDGES.len()] = {
+    let mut out = [0u8; EDGES.len()];
+    let mut e = 0;
+    while e < EDGES.len() {
+        let mut side = 0;
+        while side < SIDES {
+            if on_side(EDGES[e].0, side) && on_side(EDGES[e].1, side) {
+                out[e] |= 1 << side;
+            }
+            side += 1;
+        }
+        e += 1;
+    }
+    out
+};
 
 /// The nine faces, each as its corners counter-clockwise seen from outside the cell: the four
 /// fine squares, the coarse square, then the lateral sides in [`SIDES`] order.
