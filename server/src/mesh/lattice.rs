@@ -50,11 +50,14 @@ pub fn value_range(level: u8, min: f32, max: f32) -> (f32, f32) {
     (min - spill - 0.5, max + spill + 0.5)
 }
 
-/// Reusable memory for [`lattice_field`]: the passes along x and along y.
+/// Reusable memory for [`lattice_field`]: the passes along x and along y, one chunk's values,
+/// and each chunk's one value (when its stored voxels hold one).
 #[derive(Debug, Default)]
 pub struct LatticeScratch {
     along_x: Vec<f64>,
     along_y: Vec<f64>,
+    chunk: Vec<f32>,
+    constants: Vec<Option<f32>>,
 }
 
 /// One Catmull-Rom tap sum, in the one order every lattice value is computed in.
@@ -63,6 +66,20 @@ fn taps([w0, w1, w2, w3]: [f64; 4], a: f64, b: f64, c: f64, e: f64) -> f64 {
     w0 * a + w1 * b + w2 * c + w3 * e
 }
 
+/// `value + 0.5` rounded down, as f32, without the libm call: truncate, then one down where
+/// that rounded up (negative values). Lattice values are far inside i32 (voxels are at most
+/// 16-bit, and the weights' absolute values sum to less than 2 per axis).
+#[inline(always)]
+fn round(value: f64) -> f32 {
+    let value = value + 0.5;
+    let t = f64::from(value as i32);
+    (if t > value { t - 1.0 } else { t }) as f32
+}
+
+/// Lattice points per chunk edge at most: the unit in which [`lattice_field`] notices that the
+/// stored voxels a region reads hold one value (away from a surface most do).
+const CHUNK: usize = 8;
+
 /// Resamples stored voxels of `level` onto the level's lattice: writes into `out` the lattice
 /// values of the points `[lo, hi]` (inclusive) and returns them as a field. `stored` must
 /// cover the stored voxels `[lo - 2, hi + 1]` (`isovox_proto::tile::stored_box`); it may be
@@ -70,8 +87,10 @@ fn taps([w0, w1, w2, w3]: [f64; 4], a: f64, b: f64, c: f64, e: f64) -> f64 {
 ///
 /// Separable: along x, then y, then z, each output from its four inputs in one fixed order, so
 /// a lattice point gets the same value whatever box it is computed in (tiles of neighbouring
-/// levels compute the same points from differently placed boxes). The loops run over whole rows
-/// so that they vectorize, and write each buffer once (no clearing pass).
+/// levels compute the same points from differently placed boxes). The box is taken in chunks
+/// of up to 8^3 points: a chunk whose stored voxels all hold one value gets the value those
+/// operations give for it, computed once. When fewer than a third of the chunks are like that,
+/// the box is computed whole (chunks read their neighbours' voxels again).
 ///
 /// # Panics
 /// `level > 30`, or `stored` does not cover what the points read.
@@ -91,21 +110,15 @@ pub fn lattice_field<'o>(
             && shi[a] < stored.origin[a] + n[a] as i64),
         "the stored voxels do not cover the lattice points"
     );
-    let v = stored.values;
-    assert_eq!(v.len(), n[0] * n[1] * n[2]);
+    assert_eq!(stored.values.len(), n[0] * n[1] * n[2]);
     let size = [0, 1, 2].map(|a| (hi[a] - lo[a] + 1) as usize);
-    // The stored voxels read, from `slo`: `sn` per axis.
-    let sn = [0, 1, 2].map(|a| (shi[a] - slo[a] + 1) as usize);
-    let row_at = |y: usize, z: usize| {
-        let l = [0, 1, 2].map(|a| (slo[a] - stored.origin[a]) as usize);
-        ((l[2] + z) * n[1] + l[1] + y) * n[0] + l[0]
-    };
     if level == 0 {
         out.clear();
         out.reserve(size[0] * size[1] * size[2]);
-        for z in 0..size[2] {
-            for y in 0..size[1] {
-                out.extend_from_slice(&v[row_at(y, z)..][..size[0]]);
+        for z in lo[2]..=hi[2] {
+            for y in lo[1]..=hi[1] {
+                let at = stored.index([lo[0], y, z]);
+                out.extend_from_slice(&stored.values[at..][..size[0]]);
             }
         }
         return Field {
@@ -115,13 +128,118 @@ pub fn lattice_field<'o>(
         };
     }
     let w = weights(level);
+    // Chunks: each axis cut into pieces of at most CHUNK points, as even as can be.
+    let pieces = size.map(|s| s.div_ceil(CHUNK));
+    let piece = |a: usize, i: usize| {
+        let at = |i: usize| lo[a] + (i * size[a] / pieces[a]) as i64;
+        (at(i), at(i + 1) - 1)
+    };
+    let chunk = |i: [usize; 3]| {
+        let ends = [0, 1, 2].map(|a| piece(a, i[a]));
+        (ends.map(|e| e.0), ends.map(|e| e.1))
+    };
+    let all = (0..pieces[2])
+        .flat_map(|z| (0..pieces[1]).flat_map(move |y| (0..pieces[0]).map(move |x| [x, y, z])));
+    scratch.constants.clear();
+    scratch.constants.extend(
+        all.clone()
+            .map(|i| one_value(stored, stored_box(level, chunk(i)))),
+    );
+    let constant = scratch.constants.iter().filter(|c| c.is_some()).count();
+    if constant * 3 < scratch.constants.len() {
+        resample(stored, (lo, hi), w, scratch, out);
+        return Field {
+            origin: lo,
+            size,
+            values: out,
+        };
+    }
+    out.resize(size[0] * size[1] * size[2], 0.0);
+    let whole = Field {
+        origin: lo,
+        size,
+        values: &[],
+    };
+    for (k, i) in all.enumerate() {
+        let (clo, chi) = chunk(i);
+        let width = (chi[0] - clo[0] + 1) as usize;
+        match scratch.constants[k] {
+            Some(v) => {
+                // What the passes compute from four equal inputs each, three times over.
+                let x = taps(w, f64::from(v), f64::from(v), f64::from(v), f64::from(v));
+                let y = taps(w, x, x, x, x);
+                let value = round(taps(w, y, y, y, y));
+                for z in clo[2]..=chi[2] {
+                    for y in clo[1]..=chi[1] {
+                        let at = whole.index([clo[0], y, z]);
+                        out[at..at + width].fill(value);
+                    }
+                }
+            }
+            None => {
+                let mut values = std::mem::take(&mut scratch.chunk);
+                resample(stored, (clo, chi), w, scratch, &mut values);
+                let mut rows = values.chunks_exact(width);
+                for z in clo[2]..=chi[2] {
+                    for y in clo[1]..=chi[1] {
+                        let at = whole.index([clo[0], y, z]);
+                        if let Some(row) = rows.next() {
+                            out[at..at + width].copy_from_slice(row);
+                        }
+                    }
+                }
+                scratch.chunk = values;
+            }
+        }
+    }
+    Field {
+        origin: lo,
+        size,
+        values: out,
+    }
+}
+
+/// The one value the stored voxels of the box `(lo, hi)` hold, if they hold one (same bits).
+fn one_value(stored: &Field<'_>, (lo, hi): GridBox) -> Option<f32> {
+    let first = stored.values[stored.index(lo)];
+    let k = first.to_bits();
+    let width = (hi[0] - lo[0] + 1) as usize;
+    let same = (lo[2]..=hi[2]).all(|z| {
+        (lo[1]..=hi[1]).all(|y| {
+            let at = stored.index([lo[0], y, z]);
+            let row = &stored.values[at..at + width];
+            // Any differing bit, over the whole row at once (this loop vectorizes).
+            row.iter().fold(0, |d, v| d | (v.to_bits() ^ k)) == 0
+        })
+    });
+    same.then_some(first)
+}
+
+/// The lattice values of `[lo, hi]` from `stored` (which covers what they read) into `out`,
+/// pass by pass over whole rows, so that the loops vectorize; every buffer is written once
+/// (no clearing pass).
+fn resample(
+    stored: &Field<'_>,
+    (lo, hi): GridBox,
+    w: [f64; 4],
+    scratch: &mut LatticeScratch,
+    out: &mut Vec<f32>,
+) {
+    let (slo, shi) = (lo.map(|c| c - 2), hi.map(|c| c + 1));
+    let size = [0, 1, 2].map(|a| (hi[a] - lo[a] + 1) as usize);
+    let sn = [0, 1, 2].map(|a| (shi[a] - slo[a] + 1) as usize);
     let m = size[0];
-    // Buffers are resized, not cleared: every value is written below.
+    let v = stored.values;
     // Along x: every stored row read, m outputs each.
     let ax = &mut scratch.along_x;
     ax.resize(m * sn[1] * sn[2], 0.0);
     for (r, dst) in ax.chunks_exact_mut(m).enumerate() {
-        let src = &v[row_at(r % sn[1], r / sn[1])..][..m + 3];
+        let at = stored.index([
+            slo[0],
+            slo[1] + (r % sn[1]) as i64,
+            slo[2] + (r / sn[1]) as i64,
+        ]);
+        let src = &v[at..][..m + 3];
         let (a, b, c, e) = (&src[..m], &src[1..m + 1], &src[2..m + 2], &src[3..m + 3]);
         for i in 0..m {
             let t = [a[i], b[i], c[i], e[i]].map(f64::from);
@@ -144,18 +262,8 @@ pub fn lattice_field<'o>(
     for (z, dst) in out.chunks_exact_mut(plane).enumerate() {
         let [a, b, c, e] = [0, 1, 2, 3].map(|d| &ay[(z + d) * plane..][..plane]);
         for i in 0..plane {
-            let value = taps(w, a[i], b[i], c[i], e[i]) + 0.5;
-            // floor, without the libm call: truncate, then one down where that rounded up
-            // (negative values). Lattice values are far inside i32 (voxels are at most 16-bit,
-            // and the weights' absolute values sum to less than 2 per axis).
-            let t = f64::from(value as i32);
-            dst[i] = (if t > value { t - 1.0 } else { t }) as f32;
+            dst[i] = round(taps(w, a[i], b[i], c[i], e[i]));
         }
-    }
-    Field {
-        origin: lo,
-        size,
-        values: out,
     }
 }
 
@@ -303,6 +411,69 @@ mod tests {
                                 reference.value(p).to_bits(),
                                 "level {level}, {p:?} in {part:?}"
                             );
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// Lattice value `p` of `level` by its definition, point by point: along x over each of the
+    /// 16 rows it reads, then along y, then along z, rounded half up.
+    fn by_definition(stored: &Field<'_>, p: [i64; 3], level: u8) -> f32 {
+        let w = weights(level);
+        let v = |x: i64, y: i64, z: i64| f64::from(stored.value([x, y, z]));
+        let along_x = |y: i64, z: i64| {
+            let [x0, x1, x2, x3] = [-2, -1, 0, 1].map(|d| v(p[0] + d, y, z));
+            w[0] * x0 + w[1] * x1 + w[2] * x2 + w[3] * x3
+        };
+        let along_y = |z: i64| {
+            let [y0, y1, y2, y3] = [-2, -1, 0, 1].map(|d| along_x(p[1] + d, z));
+            w[0] * y0 + w[1] * y1 + w[2] * y2 + w[3] * y3
+        };
+        let [z0, z1, z2, z3] = [-2, -1, 0, 1].map(|d| along_y(p[2] + d));
+        ((w[0] * z0 + w[1] * z1 + w[2] * z2 + w[3] * z3) + 0.5).floor() as f32
+    }
+
+    #[test]
+    fn regions_of_one_value_and_the_rest_match_the_definition() {
+        // A 40^3 block of stored voxels: 0 below a tilted plane, 255 above it, a band of
+        // values between (most chunks hold one value, those along the band do not), and a
+        // second block of noise (no chunk holds one value: the whole-box path).
+        let n = 40usize;
+        let plane: Vec<f32> = (0..n * n * n)
+            .map(|i| {
+                let (x, y, z) = (i % n, i / n % n, i / (n * n));
+                let d = x as i64 + 2 * y as i64 - z as i64 - 30;
+                (128 - 120 * d).clamp(0, 255) as f32
+            })
+            .collect();
+        let mut r = 3u64;
+        let noise: Vec<f32> = (0..n * n * n)
+            .map(|_| {
+                r = r
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                (r >> 56) as f32
+            })
+            .collect();
+        for values in [&plane, &noise] {
+            let stored = Field {
+                origin: [0; 3],
+                size: [n; 3],
+                values,
+            };
+            for level in 1..4 {
+                let points = ([2; 3], [37, 30, 35]);
+                let mut out = Vec::new();
+                let scratch = &mut LatticeScratch::default();
+                let f = lattice_field(&stored, points, level, scratch, &mut out);
+                for z in (2..=35).step_by(3) {
+                    for y in 2..=30 {
+                        for x in 2..=37 {
+                            let p = [x, y, z];
+                            let expected = by_definition(&stored, p, level);
+                            assert_eq!(f.value(p).to_bits(), expected.to_bits(), "{p:?}");
                         }
                     }
                 }
