@@ -369,6 +369,14 @@ mod tests {
         }
     }
 
+    /// The next number of a linear congruential sequence (Knuth's MMIX constants).
+    fn next(state: &mut u64) -> u64 {
+        *state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        *state
+    }
+
     #[test]
     fn a_point_gets_one_value_whatever_box_it_is_computed_in() {
         // Stored voxels of a 12^3 field with a surface-like ramp and noise; the lattice values of
@@ -378,11 +386,8 @@ mod tests {
         let mut x = 7u64;
         let values: Vec<f32> = (0..n * n * n)
             .map(|i| {
-                x = x
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
                 let ramp = (i % n + 2 * (i / n % n)) as f32 * 9.0;
-                (ramp + (x >> 59) as f32).min(255.0)
+                (ramp + (next(&mut x) >> 59) as f32).min(255.0)
             })
             .collect();
         let stored = Field {
@@ -450,12 +455,7 @@ mod tests {
             .collect();
         let mut r = 3u64;
         let noise: Vec<f32> = (0..n * n * n)
-            .map(|_| {
-                r = r
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                (r >> 56) as f32
-            })
+            .map(|_| (next(&mut r) >> 56) as f32)
             .collect();
         for values in [&plane, &noise] {
             let stored = Field {
