@@ -69,10 +69,15 @@
 //!   `[lo - 3, hi + 2]`).
 //! - `coarse`: level-(k+1) lattice values over `[c, d]` with `c = floor(lo / 2) - 1` and
 //!   `d = hi / 2 + 1` (`lattice_field` of the stored level-(k+1) voxels over `[c - 2, d + 1]`):
-//!   the coarse lattice points of all six faces and the neighbours their normals read.
+//!   the coarse lattice points of all six faces and the neighbours their normals read. Only
+//!   the faces in `strips` are read: the plane of each and the planes on either side of it.
 //! - `faces`: the faces that can touch a coarser neighbour: those with a neighbouring tile in
 //!   the grid, when level k+1 exists. Strips are built for all of them, whatever the current
 //!   neighbours are, so the tile stays one cacheable object.
+//! - `strips`: those of `faces` whose strips can hold a triangle; the others are empty (every
+//!   fine and coarse sample of the face on one side), and the caller need not compute their
+//!   coarse values (`tile.rs` decides this from `march`'s boundary vertices and the range of the
+//!   coarse voxels under a face).
 
 use super::mc::{faces_of, Field, Mesh, Scratch};
 use super::transition_table::{
