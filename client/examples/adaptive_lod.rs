@@ -44,7 +44,7 @@ async fn stream(
             } = e
             {
                 tiles += 1;
-                triangles += m.indices.len() as u64 / 3;
+                triangles += m.mesh.indices.len() as u64 / 3;
             }
         }
         (tiles, triangles)

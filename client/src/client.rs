@@ -13,7 +13,7 @@ use isovox_proto::api::{
 };
 use isovox_proto::batch::{decode_batch, BatchEncoding, BatchEntry, BatchRequest};
 use isovox_proto::icvg::EditRequest;
-use isovox_proto::mesh::{decode_compact, Mesh};
+use isovox_proto::mesh::{decode_tile, TileMesh};
 use isovox_proto::BrickKey;
 use reqwest::header::{HeaderMap, HeaderValue};
 use reqwest::{Method, RequestBuilder, StatusCode};
@@ -440,7 +440,9 @@ impl Client {
             .await?)
     }
 
-    /// One mesh tile (compact encoding, world coordinates). `iso` defaults to the server's.
+    /// One mesh tile in world coordinates, with its transition data (the compact encoding,
+    /// version 2; `isovox_proto::mesh::stitch` draws it next to coarser neighbours). `iso`
+    /// defaults to the server's.
     ///
     /// # Errors
     /// See [`ClientError`].
@@ -450,7 +452,7 @@ impl Client {
         key: BrickKey,
         iso: Option<f32>,
         version: Option<u64>,
-    ) -> Result<Mesh, ClientError> {
+    ) -> Result<TileMesh, ClientError> {
         let mut path = format!(
             "/v1/volumes/{name}/meshes/{}/{}/{}/{}?format=compact",
             key.level, key.x, key.y, key.z
@@ -466,7 +468,7 @@ impl Client {
             .await?
             .bytes()
             .await?;
-        decode_compact(&bytes).map_err(|e| ClientError::Decode(format!("tile {key}: {e}")))
+        decode_tile(&bytes).map_err(|e| ClientError::Decode(format!("tile {key}: {e}")))
     }
 
     /// Applies an edit (needs a write token); with `if_match`, only at that version.

@@ -18,5 +18,6 @@ pub mod streamer;
 pub use client::{Brick, Client, ClientError, Feed, FeedEvent, Observer, RetryPolicy};
 pub use isovox_proto as proto;
 pub use streamer::{
-    select_tiles, StreamEvent, Streamer, StreamerConfig, StreamerStats, TileData, TileKind,
+    select_stitched_tiles, select_tiles, MeshTile, StreamEvent, Streamer, StreamerConfig,
+    StreamerStats, TileData, TileKind,
 };

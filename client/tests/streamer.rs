@@ -7,14 +7,17 @@
 //! Golden values come from elsewhere than the code under test: the selection from a brute force
 //! over every tile of every level written here from the rule's statement; brick content and
 //! hashes from the VOD 2 file itself; mesh tiles from the server's offline mesher on the file;
-//! what an edit changed from the server's answer (or the offline edit's outcome).
+//! what an edit changed from the server's answer (or the offline edit's outcome); the balanced
+//! selection and the face masks from a raster of level-0 bricks; closedness of the streamed,
+//! stitched meshes from the welded assembly.
 
 use isovox_client::proto::api::VolumeInfo;
 use isovox_client::proto::icvg::{EditRequest, Term};
-use isovox_client::proto::mesh::{decode_compact, encode_compact, Mesh};
+use isovox_client::proto::mesh::{decode_tile, encode_tile, stitch, Mesh, TileMesh};
 use isovox_client::proto::{BrickKey, VolumeLayout, VoxelType};
 use isovox_client::{
-    select_tiles, Client, Observer, StreamEvent, Streamer, StreamerConfig, TileData, TileKind,
+    select_stitched_tiles, select_tiles, Client, Observer, StreamEvent, Streamer, StreamerConfig,
+    TileData, TileKind,
 };
 use isovox_server::catalog::Catalog;
 use isovox_server::generate::WorldSource;
@@ -682,10 +685,36 @@ fn changed_keys(changed: &[Vec<[u32; 3]>]) -> BTreeSet<BrickKey> {
         .collect()
 }
 
-/// Mesh tiles whose inputs include a changed brick: per `server/src/mesh/tile.rs`, tile (x, y, z)
-/// reads the bricks at offsets -1..=1 around it at its level.
+/// Mesh tiles whose inputs include a changed brick (brick 8), per `server/src/mesh/tile.rs`: tile
+/// (x, y, z) reads the bricks at offsets -1..=1 around it at its level; and its transition strips
+/// read the next coarser level's voxels `[4 x - 3, 4 (x + 1) + 2]` on each axis (one less below
+/// for a first tile), bricks `(4 x - 3) / 8 ..= (4 x + 6) / 8`.
 fn mesh_readers(changed: &BTreeSet<BrickKey>) -> BTreeSet<BrickKey> {
     let mut out = BTreeSet::new();
+    for b in changed.iter().filter(|b| b.level > 0) {
+        // Finer tiles t whose coarse reads hold b: (4 t - 3) / 8 <= b <= (4 t + 6) / 8.
+        let range = |p: u32| {
+            let p = i64::from(p);
+            (0..=2 * p + 2)
+                .filter(move |&t| {
+                    let first = if t == 0 { -4 } else { 4 * t - 3 };
+                    first.div_euclid(8) <= p && p <= (4 * t + 6).div_euclid(8)
+                })
+                .map(|t| t as u32)
+        };
+        for z in range(b.z) {
+            for y in range(b.y) {
+                for x in range(b.x) {
+                    out.insert(BrickKey {
+                        level: b.level - 1,
+                        x,
+                        y,
+                        z,
+                    });
+                }
+            }
+        }
+    }
     for b in changed {
         for dz in -1i64..=1 {
             for dy in -1i64..=1 {
@@ -808,28 +837,120 @@ async fn an_edit_by_another_client_refetches_exactly_the_affected_bricks() {
     streamer.shutdown().await;
 }
 
-/// The server's offline mesher on the file, through the compact encoding the route sends.
-fn offline_mesh(path: &Path, key: BrickKey) -> Mesh {
-    use isovox_server::mesh::tile::{default_iso, mesh_tile, TileScratch};
+/// The server's offline mesher on the file, with transition data, through the compact encoding
+/// the route sends.
+fn offline_tile(path: &Path, key: BrickKey) -> TileMesh {
+    use isovox_server::mesh::tile::{default_iso, mesh_tile_with_transitions, TileScratch};
     let snap = Vod2::open(path).unwrap().head();
-    let mut m = Mesh::default();
+    let mut t = TileMesh::default();
     let iso = default_iso(snap.layout().voxel_type());
-    mesh_tile(&snap, key, iso, &mut m, &mut TileScratch::default()).unwrap();
-    decode_compact(&encode_compact(&m)).unwrap()
+    mesh_tile_with_transitions(&snap, key, iso, &mut t, &mut TileScratch::default()).unwrap();
+    decode_tile(&encode_tile(&t)).unwrap()
 }
 
+/// Checks every `Ready` mesh tile of `events` against the offline mesher, and its drawn mesh
+/// against the tile stitched with its mask. Returns the regular triangles delivered.
 fn assert_meshes_match_file(events: &[StreamEvent], path: &Path) -> usize {
     let mut triangles = 0;
     for e in events {
         if let StreamEvent::Ready { key, data, .. } = e {
-            let TileData::Mesh(mesh) = data else {
+            let TileData::Mesh(m) = data else {
                 panic!("a mesh streamer delivered a brick");
             };
-            assert_eq!(**mesh, offline_mesh(path, *key), "mesh tile {key}");
-            triangles += mesh.triangles();
+            assert_eq!(*m.tile, offline_tile(path, *key), "mesh tile {key}");
+            let mut drawn = Mesh::default();
+            stitch(&m.tile, m.mask, &mut drawn);
+            assert_eq!(*m.mesh, drawn, "mesh tile {key} stitched");
+            triangles += m.tile.mesh.triangles();
         }
     }
     triangles
+}
+
+/// The selection a mesh streamer uses, computed from [`expected_set`] on a raster of level-0
+/// bricks: a tile is split while a tile two or more levels finer touches it (by a face, an edge
+/// or a corner).
+fn expected_balanced(info: &VolumeInfo, camera: [f32; 3], radii: &[f32]) -> BTreeSet<BrickKey> {
+    let mut set = expected_set(info, camera, radii);
+    let g = info.levels[0].grid.map(i64::from);
+    loop {
+        let level_at = raster(info, &set);
+        let split = set.iter().copied().find(|t| {
+            let span = 1i64 << t.level;
+            let lo = [t.x, t.y, t.z].map(|c| i64::from(c) * span);
+            // The level-0 bricks around the tile's region, one layer thick.
+            let mut finest = u8::MAX;
+            for z in lo[2] - 1..=lo[2] + span {
+                for y in lo[1] - 1..=lo[1] + span {
+                    for x in lo[0] - 1..=lo[0] + span {
+                        let p = [x, y, z];
+                        let inside = (0..3).all(|a| p[a] >= lo[a] && p[a] < lo[a] + span);
+                        if inside || (0..3).any(|a| p[a] < 0 || p[a] >= g[a]) {
+                            continue;
+                        }
+                        finest = finest.min(level_at[&[x, y, z]]);
+                    }
+                }
+            }
+            finest != u8::MAX && t.level >= finest + 2
+        });
+        let Some(t) = split else {
+            return set;
+        };
+        set.remove(&t);
+        let lg = info.levels[t.level as usize - 1].grid;
+        for o in 0..8u32 {
+            let c = [
+                2 * t.x + (o & 1),
+                2 * t.y + (o >> 1 & 1),
+                2 * t.z + (o >> 2),
+            ];
+            if (0..3).all(|a| c[a] < lg[a]) {
+                set.insert(BrickKey {
+                    level: t.level - 1,
+                    x: c[0],
+                    y: c[1],
+                    z: c[2],
+                });
+            }
+        }
+    }
+}
+
+/// The level of the tile covering each level-0 brick.
+fn raster(info: &VolumeInfo, set: &BTreeSet<BrickKey>) -> HashMap<[i64; 3], u8> {
+    let g = info.levels[0].grid;
+    let mut out = HashMap::new();
+    for t in set {
+        let span = 1u32 << t.level;
+        for z in t.z * span..((t.z + 1) * span).min(g[2]) {
+            for y in t.y * span..((t.y + 1) * span).min(g[1]) {
+                for x in t.x * span..((t.x + 1) * span).min(g[0]) {
+                    out.insert([x, y, z].map(i64::from), t.level);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Each tile's face mask on the raster: bit f when the level-0 bricks just across face f belong
+/// to a coarser tile (faces -x, +x, -y, +y, -z, +z).
+fn expected_mask(info: &VolumeInfo, set: &BTreeSet<BrickKey>, t: BrickKey) -> u8 {
+    let level_at = raster(info, set);
+    let span = 1i64 << t.level;
+    let lo = [t.x, t.y, t.z].map(|c| i64::from(c) * span);
+    let mut mask = 0;
+    for f in 0..6 {
+        let a = f / 2;
+        let across = if f % 2 == 1 { lo[a] + span } else { lo[a] - 1 };
+        let mut p = lo;
+        p[a] = across;
+        if level_at.get(&p).is_some_and(|&l| l > t.level) {
+            mask |= 1 << f;
+        }
+    }
+    mask
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -851,10 +972,13 @@ async fn an_edit_by_another_client_refetches_exactly_the_affected_mesh_tiles() {
         before,
     } = scenario([64, 48, 64], config, (20, 24), 3.0).await;
     let resident: BTreeSet<BrickKey> = streamer.resident().into_iter().collect();
-    assert_eq!(resident, expected_set(streamer.info(), camera, &radii));
+    assert_eq!(resident, expected_balanced(streamer.info(), camera, &radii));
     assert_eq!(once(&ready_keys(&before), "was ready"), resident);
     let triangles = assert_meshes_match_file(&before, &w.path);
     assert!(triangles > 100, "the tiles hold the terrain's surface");
+    let mut drawn = HashMap::new();
+    collect_drawn(&before, &mut drawn);
+    assert_stitched_closed(streamer.info(), &resident, &drawn, "before the edit");
     assert_eq!(
         counter.snapshot().get("mesh").copied(),
         Some(resident.len() as u64)
@@ -882,12 +1006,167 @@ async fn an_edit_by_another_client_refetches_exactly_the_affected_mesh_tiles() {
     let events = settle(&streamer, &mut rx, resp.version).await;
     assert_stale_then_ready(&events, &expected, resp.version);
     assert_meshes_match_file(&events, &w.path);
+    collect_drawn(&events, &mut drawn);
+    assert_stitched_closed(streamer.info(), &resident, &drawn, "after the edit");
     assert_eq!(counter.since(&counts, "mesh"), expected.len() as u64);
     assert_eq!(counter.since(&counts, "blob"), 0);
     assert_eq!(counter.since(&counts, "brick"), 0);
-    let levels: BTreeSet<u8> = expected.iter().map(|k| k.level).collect();
-    assert_eq!(counter.since(&counts, "level"), levels.len() as u64);
+    // One grid region per level whose changed bricks a resident tile reads (its own level's,
+    // or the next coarser one's for its strips).
+    let read_levels: BTreeSet<u8> = changed
+        .iter()
+        .filter(|b| {
+            let one: BTreeSet<BrickKey> = [**b].into_iter().collect();
+            mesh_readers(&one).iter().any(|t| resident.contains(t))
+        })
+        .map(|b| b.level)
+        .collect();
+    assert!(
+        read_levels.len()
+            > expected
+                .iter()
+                .map(|k| k.level)
+                .collect::<BTreeSet<_>>()
+                .len()
+    );
+    assert_eq!(counter.since(&counts, "level"), read_levels.len() as u64);
     assert_eq!(streamer.stats().stale_refetches, expected.len() as u64);
+    streamer.shutdown().await;
+}
+
+/// The latest drawn mesh and mask of each tile, from `Ready` events (`Dropped` ones removed).
+fn collect_drawn(events: &[StreamEvent], drawn: &mut HashMap<BrickKey, (u8, Arc<Mesh>)>) {
+    for e in events {
+        match e {
+            StreamEvent::Ready {
+                key,
+                data: TileData::Mesh(m),
+                ..
+            } => {
+                drawn.insert(*key, (m.mask, m.mesh.clone()));
+            }
+            StreamEvent::Dropped { key } => {
+                drawn.remove(key);
+            }
+            _ => {}
+        }
+    }
+}
+
+/// The drawn tiles are exactly the `resident` set, each with the mask the raster gives it, and
+/// together, welded, a closed 2-manifold without degenerate triangles. Returns (triangles,
+/// pairs of crossing triangles).
+fn assert_stitched_closed(
+    info: &VolumeInfo,
+    resident: &BTreeSet<BrickKey>,
+    drawn: &HashMap<BrickKey, (u8, Arc<Mesh>)>,
+    what: &str,
+) -> (usize, usize) {
+    use isovox_server::mesh::check::{crossing_triangles, degenerate_triangles, open_edges};
+    use isovox_server::mesh::level::weld;
+    assert_eq!(
+        drawn.keys().copied().collect::<BTreeSet<_>>(),
+        *resident,
+        "{what}: the drawn tiles"
+    );
+    let mut all = Mesh::default();
+    for (key, (mask, mesh)) in drawn {
+        assert_eq!(
+            *mask,
+            expected_mask(info, resident, *key),
+            "{what}: mask of {key}"
+        );
+        all.append(mesh);
+    }
+    let welded = weld(&all);
+    assert_eq!(
+        open_edges(&welded),
+        0,
+        "{what}: the streamed tiles are not closed"
+    );
+    assert_eq!(
+        degenerate_triangles(&welded, 1e-12),
+        0,
+        "{what}: degenerate triangles"
+    );
+    let every = vec![true; welded.triangles()];
+    (welded.triangles(), crossing_triangles(&welded, &every))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn streamed_mesh_tiles_stitch_closed_wherever_the_camera_goes() {
+    // Grids 12x8x12, 6x4x6, 3x2x3, 2x1x2, 1x1x1: levels 0-4.
+    let w = world([96, 64, 96], 8, [1.0; 3]);
+    let server = TestServer::start(w.dir.path(), None);
+    let (client, counter) = counted_client(&server.base);
+    let radii = vec![10.0, 22.0, 45.0];
+    let config = StreamerConfig {
+        kind: TileKind::Meshes { iso: None },
+        radii: radii.clone(),
+        follow_edits: false,
+        ..StreamerConfig::default()
+    };
+    let (streamer, mut rx) = Streamer::start(client, NAME, config).await.unwrap();
+    let info = streamer.info().clone();
+    let mut drawn = HashMap::new();
+    let mut next = 0x9e37_79b9_7f4a_7c15u64;
+    let mut random = move || {
+        next ^= next << 13;
+        next ^= next >> 7;
+        next ^= next << 17;
+        (next >> 11) as f32 / (1u64 << 53) as f32
+    };
+    let (mut restitched, mut crossing, mut triangles) = (0, 0, 0);
+    let mut hashes: HashMap<BrickKey, u64> = HashMap::new();
+    for step in 0..8 {
+        let camera = [random() * 96.0, 20.0 + random() * 50.0, random() * 96.0];
+        let requests = counter.snapshot().get("mesh").copied().unwrap_or(0);
+        streamer.set_camera(camera);
+        let events = settle(&streamer, &mut rx, 1).await;
+        // A tile delivered again with the content key it had was stitched anew (a neighbour's
+        // level changed), without a request.
+        let mut again = 0;
+        for e in &events {
+            match e {
+                StreamEvent::Ready { key, hash, .. } => {
+                    again += usize::from(hashes.insert(*key, *hash) == Some(*hash));
+                }
+                StreamEvent::Dropped { key } => {
+                    hashes.remove(key);
+                }
+                _ => {}
+            }
+        }
+        restitched += again;
+        collect_drawn(&events, &mut drawn);
+        let resident: BTreeSet<BrickKey> = streamer.resident().into_iter().collect();
+        assert_eq!(resident, expected_balanced(&info, camera, &radii));
+        assert_eq!(
+            resident,
+            select_stitched_tiles(&info, camera, &radii)
+                .into_iter()
+                .collect()
+        );
+        let what = format!("step {step}, camera {camera:?}");
+        let (t, c) = assert_stitched_closed(&info, &resident, &drawn, &what);
+        triangles += t;
+        crossing += c;
+        let fetched = counter.snapshot().get("mesh").copied().unwrap_or(0) - requests;
+        let delivered = events
+            .iter()
+            .filter(|e| matches!(e, StreamEvent::Ready { .. }))
+            .count();
+        assert!(
+            fetched as usize <= delivered - again,
+            "a restitched tile was fetched"
+        );
+    }
+    eprintln!(
+        "{triangles} triangles over 8 views, {crossing} crossing pairs; {restitched} tiles \
+         stitched again as their neighbours' levels changed"
+    );
+    assert!(restitched > 0, "the camera's moves change some masks");
+    assert_eq!(crossing, 0, "triangles of the streamed meshes cross");
     streamer.shutdown().await;
 }
 

@@ -9,8 +9,11 @@
 //! - [`icvg`]: ICVG terms and edit requests (JSON).
 //! - [`voxel`]: voxel types and the ICVG value range (L, H, S).
 //! - [`layout`]: the brick octree's geometry: levels, brick grids, [`BrickKey`], node indices.
-//! - [`lod`]: which tiles a camera needs (the spherical detail bias).
-//! - [`mesh`]: triangle meshes and their wire encodings (compact binary, GLB).
+//! - [`lod`]: which tiles a camera needs (the spherical detail bias), balanced so that
+//!   neighbours differ by one level at most, and each tile's face mask.
+//! - [`mesh`]: triangle meshes and their wire encodings (compact binary, GLB), and stitching a
+//!   tile to coarser neighbours.
+//! - [`tile`]: which cells a mesh tile owns and which bricks it reads.
 //! - [`vod2`]: the VOD 2 file's on-disk records (header, slots, commits, index, bricks), encoded
 //!   and decoded over byte slices with validation. The byte layout is in `docs/vod2.md`.
 //! - [`error`]: [`FormatError`], what a malformed record is.
@@ -24,6 +27,7 @@ pub mod icvg;
 pub mod layout;
 pub mod lod;
 pub mod mesh;
+pub mod tile;
 pub mod vod2;
 pub mod voxel;
 

@@ -1,8 +1,25 @@
 //! Which tiles a camera needs: the thesis's spherical detail bias, computed from the layout
 //! alone, so the server (adaptive meshes) and the client (the streamer's desired set) select
-//! the same tiles by the same arithmetic.
+//! the same tiles by the same arithmetic; and how those tiles are stitched: face-adjacent tiles
+//! differ by at most one level (the 2:1 rule, [`balance`]), and each tile's 6-bit
+//! [`face_masks`] says which of its faces touch a coarser neighbour, the faces whose transition
+//! strips it draws (`crate::mesh::stitch`).
+//!
+//! Face mask bits: bit 2a is the face at the low end of axis a (x, y, z), bit 2a + 1 the face at
+//! the high end (`crate::mesh::FACE_NAMES`).
 
 use crate::{BrickKey, VolumeLayout};
+use std::collections::HashSet;
+
+/// The face directions in face-mask order: -x, +x, -y, +y, -z, +z.
+pub const FACE_DIRECTIONS: [[i32; 3]; 6] = [
+    [-1, 0, 0],
+    [1, 0, 0],
+    [0, -1, 0],
+    [0, 1, 0],
+    [0, 0, -1],
+    [0, 0, 1],
+];
 
 /// The distance from `camera` to the nearest point of tile `key`'s box, in world units (voxel
 /// coordinates times `voxel_scale`); 0 inside the box.
@@ -31,11 +48,24 @@ pub fn tile_distance(
     d2.sqrt()
 }
 
+/// The tiles to stitch for `camera`: [`adaptive_tiles`], then [`balance`] refines where a tile
+/// would touch one two or more levels finer. The result covers the volume once, tiles that touch
+/// differ by at most one level, and [`face_masks`] gives each its strips. Sorted.
+pub fn balanced_tiles(
+    layout: &VolumeLayout,
+    voxel_scale: [f32; 3],
+    camera: [f32; 3],
+    radii: &[f32],
+) -> Vec<BrickKey> {
+    balance(layout, adaptive_tiles(layout, voxel_scale, camera, radii))
+}
+
 /// The tiles the spherical detail bias selects, sorted: with radii `r0 < r1 < ... < r(n-1)`,
 /// level k where the tile's nearest point lies within `r(k)` of the camera, level n (or the
 /// coarsest, if fewer) beyond the last radius. Walking down from the root, a tile of level k+1
-/// is refined into its children when it is within `r(k)`, and always while k+1 > n. The
-/// result covers the volume once.
+/// is refined into its children when it is within `r(k)`, and always while k+1 > n. The result
+/// covers the volume once; neighbours may differ by more than one level (see
+/// [`balanced_tiles`]).
 pub fn adaptive_tiles(
     layout: &VolumeLayout,
     voxel_scale: [f32; 3],
@@ -70,6 +100,83 @@ pub fn adaptive_tiles(
     }
     out.sort();
     out
+}
+
+/// The tile of `tiles` whose region contains tile `key`'s: `key` itself or an ancestor; `None`
+/// when that region is divided into finer tiles.
+fn covering(layout: &VolumeLayout, tiles: &HashSet<BrickKey>, key: BrickKey) -> Option<BrickKey> {
+    let mut k = key;
+    loop {
+        if tiles.contains(&k) {
+            return Some(k);
+        }
+        k = layout.parent(k)?;
+    }
+}
+
+/// Refines `tiles` (a set covering the volume once) until no two tiles that touch, across a
+/// face, an edge or a corner, differ by more than one level: a tile with a neighbour two or more
+/// levels finer is split into its children, repeatedly. Splitting only adds detail, so every
+/// tile is at most as coarse as it was. Returns the tiles sorted.
+///
+/// Edges and corners count because at most two levels may meet at any point for the stitching
+/// to close: a tile's transition strips end on its edges, where they meet the strips of the
+/// tiles around that edge, all of them one level finer than the coarse tile they border.
+pub fn balance(layout: &VolumeLayout, tiles: Vec<BrickKey>) -> Vec<BrickKey> {
+    let mut set: HashSet<BrickKey> = tiles.iter().copied().collect();
+    let mut work = tiles;
+    let around: Vec<[i32; 3]> = (0..27)
+        .map(|i| [i % 3 - 1, i / 3 % 3 - 1, i / 9 - 1])
+        .filter(|d| *d != [0, 0, 0])
+        .collect();
+    while let Some(fine) = work.pop() {
+        if !set.contains(&fine) {
+            continue;
+        }
+        for &d in &around {
+            let Some(n) = layout.neighbour(fine, d) else {
+                continue;
+            };
+            let Some(coarse) = covering(layout, &set, n) else {
+                continue;
+            };
+            if coarse.level >= fine.level + 2 {
+                set.remove(&coarse);
+                for (_, child) in layout.children(coarse) {
+                    set.insert(child);
+                    work.push(child);
+                }
+                work.push(fine); // its neighbour across d may still be too coarse
+                break;
+            }
+        }
+    }
+    let mut out: Vec<BrickKey> = set.into_iter().collect();
+    out.sort();
+    out
+}
+
+/// For each tile of `tiles` (a balanced selection covering the volume once, as
+/// [`balanced_tiles`] returns), its face mask: bit f set when the tile across face f is one
+/// level coarser, so the tile draws its transition strip there and moves its vertices out of
+/// the strip's way. Faces on the volume's boundary, or touching tiles of the same or a finer
+/// level, have no bit.
+pub fn face_masks(layout: &VolumeLayout, tiles: &[BrickKey]) -> Vec<u8> {
+    let set: HashSet<BrickKey> = tiles.iter().copied().collect();
+    tiles
+        .iter()
+        .map(|&tile| {
+            let mut mask = 0u8;
+            for (f, d) in FACE_DIRECTIONS.into_iter().enumerate() {
+                let coarser = layout
+                    .neighbour(tile, d)
+                    .and_then(|n| covering(layout, &set, n))
+                    .is_some_and(|c| c.level > tile.level);
+                mask |= u8::from(coarser) << f;
+            }
+            mask
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -117,5 +224,166 @@ mod tests {
         assert_eq!(mixed.iter().filter(|k| k.level == 0).count(), 8);
         assert_eq!(mixed.iter().filter(|k| k.level == 1).count(), 5);
         assert_eq!(mixed.len(), 13);
+    }
+
+    /// A deterministic xorshift for the random cameras.
+    fn rng(seed: u64) -> impl FnMut() -> f32 {
+        let mut s = seed | 1;
+        move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 40) as f32 / (1u64 << 24) as f32
+        }
+    }
+
+    /// Each level-0 brick of the grid, the level of the tile owning it (or 255 when none),
+    /// and how many tiles own it: a raster of the selection computed from the keys alone.
+    fn raster(layout: &VolumeLayout, tiles: &[BrickKey]) -> (Vec<u8>, Vec<u8>) {
+        let g = layout.grid(0).map(|c| c as usize);
+        let mut level = vec![255u8; g[0] * g[1] * g[2]];
+        let mut owners = vec![0u8; g[0] * g[1] * g[2]];
+        for t in tiles {
+            let span = 1usize << t.level;
+            let lo = [t.x, t.y, t.z].map(|c| c as usize * span);
+            for z in lo[2]..(lo[2] + span).min(g[2]) {
+                for y in lo[1]..(lo[1] + span).min(g[1]) {
+                    for x in lo[0]..(lo[0] + span).min(g[0]) {
+                        let i = (z * g[1] + y) * g[0] + x;
+                        level[i] = t.level;
+                        owners[i] += 1;
+                    }
+                }
+            }
+        }
+        (level, owners)
+    }
+
+    #[test]
+    fn random_cameras_give_balanced_covers_and_consistent_masks() {
+        // Odd grids too: 13x10x7 bricks of 8 has levels 0..=4 with partial parents.
+        let layouts = [
+            VolumeLayout::new([512, 512, 512], 16, VoxelType::U8),
+            VolumeLayout::new([104, 80, 56], 8, VoxelType::U8),
+        ];
+        let mut next = rng(0x15);
+        let mut unbalanced_before = 0;
+        for layout in layouts {
+            let layout = layout.unwrap_or_else(|e| panic!("{e}"));
+            let g = layout.grid(0).map(|c| c as usize);
+            let dims = layout.dims().map(|d| d as f32);
+            for _ in 0..150 {
+                let camera = [0, 1, 2].map(|a| (next() * 1.6 - 0.3) * dims[a]);
+                let r0 = 4.0 + next() * dims[0] * 0.3;
+                let radii = [r0, r0 * (1.0 + next() * 1.5), r0 * (2.5 + next() * 2.0)];
+                let before = adaptive_tiles(&layout, [1.0; 3], camera, &radii);
+                let tiles = balanced_tiles(&layout, [1.0; 3], camera, &radii);
+                let (level, owners) = raster(&layout, &tiles);
+                assert!(
+                    owners.iter().all(|&n| n == 1),
+                    "the tiles cover the grid once"
+                );
+                // Balancing only refines: every level-0 brick is at most as coarse as before.
+                let (level_before, _) = raster(&layout, &before);
+                assert!(level.iter().zip(&level_before).all(|(a, b)| a <= b));
+                // 2:1 between level-0 bricks touching by a face, an edge or a corner, read off
+                // the raster.
+                let mut worst_before = 0;
+                for z in 0..g[2] {
+                    for y in 0..g[1] {
+                        for x in 0..g[0] {
+                            let i = (z * g[1] + y) * g[0] + x;
+                            for d in (0..27usize).filter(|&d| d != 13) {
+                                let o = [d % 3, d / 3 % 3, d / 9];
+                                let p = [x + o[0], y + o[1], z + o[2]];
+                                if (0..3).any(|a| p[a] < 1 || p[a] > g[a]) {
+                                    continue;
+                                }
+                                let j = ((p[2] - 1) * g[1] + p[1] - 1) * g[0] + p[0] - 1;
+                                assert!(level[i].abs_diff(level[j]) <= 1, "2:1 broken");
+                                worst_before =
+                                    worst_before.max(level_before[i].abs_diff(level_before[j]));
+                            }
+                        }
+                    }
+                }
+                if worst_before > 1 {
+                    unbalanced_before += 1;
+                }
+                // Masks: bit f of a tile is set exactly when the level-0 bricks just across
+                // face f belong to tiles one level coarser (all of them: a face touches one
+                // coarser tile, or same-level or finer ones).
+                let masks = face_masks(&layout, &tiles);
+                for (t, &mask) in tiles.iter().zip(&masks) {
+                    let span = 1i64 << t.level;
+                    let lo = [t.x, t.y, t.z].map(|c| c as i64 * span);
+                    for (f, d) in FACE_DIRECTIONS.iter().enumerate() {
+                        let a = f / 2;
+                        let across = if d[a] > 0 { lo[a] + span } else { lo[a] - 1 };
+                        if across < 0 || across >= g[a] as i64 {
+                            assert_eq!(mask >> f & 1, 0, "no bit on the volume's boundary");
+                            continue;
+                        }
+                        let (b, c) = ((a + 1) % 3, (a + 2) % 3);
+                        let mut levels = Vec::new();
+                        for u in lo[b]..(lo[b] + span).min(g[b] as i64) {
+                            for v in lo[c]..(lo[c] + span).min(g[c] as i64) {
+                                let mut p = [0i64; 3];
+                                p[a] = across;
+                                p[b] = u;
+                                p[c] = v;
+                                let p = p.map(|x| x as usize);
+                                levels.push(level[(p[2] * g[1] + p[1]) * g[0] + p[0]]);
+                            }
+                        }
+                        let coarser = levels.iter().all(|&l| l == t.level + 1);
+                        assert!(coarser || levels.iter().all(|&l| l <= t.level));
+                        assert_eq!(mask >> f & 1 == 1, coarser, "tile {t}, face {f}");
+                    }
+                }
+            }
+        }
+        // The cameras exercise the rule: without it some selections break 2:1.
+        assert!(unbalanced_before > 0);
+    }
+
+    #[test]
+    fn balance_and_masks_by_hand() {
+        // 64^3, brick 8: grids 8^3, 4^3, 2^3, 1. A cover with level 0 in one corner: the 8
+        // level-0 children of level-1 tile (0,0,0), the other 7 level-1 children of level-2
+        // tile (0,0,0), the other 7 level-2 tiles. Neighbours differ by one level: balanced.
+        let layout = VolumeLayout::new([64, 64, 64], 8, VoxelType::U8).unwrap_or_else(|e| {
+            panic!("{e}");
+        });
+        let key = |level, x, y, z| BrickKey { level, x, y, z };
+        let children = |k: BrickKey| layout.children(k).into_iter().map(|(_, c)| c);
+        let mut tiles: Vec<BrickKey> = children(key(1, 0, 0, 0)).collect();
+        tiles.extend(children(key(2, 0, 0, 0)).skip(1));
+        tiles.extend(children(key(3, 0, 0, 0)).skip(1));
+        assert_eq!(tiles.len(), 8 + 7 + 7);
+        assert_eq!(balance(&layout, tiles.clone()).len(), tiles.len());
+        // Refine level-1 tile (1,0,0) too: level-0 tile (3,0,0) now touches level-2 tile
+        // (1,0,0) across +x, two levels coarser, which splits into its 8 level-1 children.
+        tiles.retain(|k| *k != key(1, 1, 0, 0));
+        tiles.extend(children(key(1, 1, 0, 0)));
+        let balanced = balance(&layout, tiles);
+        assert!(!balanced.contains(&key(2, 1, 0, 0)));
+        let count = |l| balanced.iter().filter(|k| k.level == l).count();
+        assert_eq!((count(0), count(1), count(2)), (16, 6 + 8, 6));
+        // Level-0 tile (3,1,1): level 0 across -x, -y, -z; across +x level-1 (2,0,0), across
+        // +y level-1 (1,1,0), across +z level-1 (1,0,1): bits 1, 3 and 5.
+        let masks = face_masks(&layout, &balanced);
+        let i = balanced
+            .iter()
+            .position(|k| *k == key(0, 3, 1, 1))
+            .unwrap_or(usize::MAX);
+        assert_eq!(masks[i], 0b10_1010);
+        // Level-1 tile (2,1,0), a child of the split tile: level 1 across -x, +x, -y and +z,
+        // the volume's boundary across -z, level-2 tile (1,1,0) across +y: bit 3 alone.
+        let j = balanced
+            .iter()
+            .position(|k| *k == key(1, 2, 1, 0))
+            .unwrap_or(usize::MAX);
+        assert_eq!(masks[j], 0b00_1000);
     }
 }

@@ -1,11 +1,16 @@
-//! Test vectors of the tile selection (`proto::lod`) for the web viewer's TypeScript port
-//! (`web/src/lod.ts`), which its unit tests check against `web/test-vectors/lod.json`.
+//! Test vectors of the tile selection (`proto::lod`) and of stitching mesh tiles
+//! (`proto::mesh`) for the web viewer's TypeScript ports (`web/src/lod.ts`, `web/src/mesh.ts`),
+//! which its unit tests check against `web/test-vectors/lod.json` and `mesh.json`.
 //!
-//! This test computes the vectors and fails when the committed file differs, so a change to the
-//! selection cannot land without the vectors (and then the TypeScript port) following it.
-//! `ISOVOX_WRITE_VECTORS=1 cargo test -p isovox-proto --test lod_vectors` rewrites the file.
+//! These tests compute the vectors and fail when the committed files differ, so a change to the
+//! selection or the encoding cannot land without the vectors (and then the TypeScript ports)
+//! following it. `ISOVOX_WRITE_VECTORS=1 cargo test -p isovox-proto --test lod_vectors`
+//! rewrites the files.
 
-use isovox_proto::lod::{adaptive_tiles, tile_distance};
+use isovox_proto::lod::{adaptive_tiles, balanced_tiles, face_masks, tile_distance};
+use isovox_proto::mesh::{
+    decode_tile, encode_tile, stitch, Mesh, TileMesh, Transitions, VertexMove,
+};
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use std::fmt::Write as _;
 
@@ -135,14 +140,23 @@ fn vectors() -> String {
                     continue;
                 }
                 let keys: Vec<String> = tiles.iter().map(|&k| json_key(k)).collect();
+                // The balanced selection and its face masks, in the same order.
+                let balanced = balanced_tiles(&layout, v.scale, *camera, &radii);
+                let masks = face_masks(&layout, &balanced);
+                let stitched: Vec<String> = balanced
+                    .iter()
+                    .zip(&masks)
+                    .map(|(&k, m)| format!("[{},{},{},{},{m}]", k.level, k.x, k.y, k.z))
+                    .collect();
                 cases.push(format!(
-                    "{{\"dims\":{:?},\"brick\":{},\"voxel_scale\":{},\"camera\":{},\"radii\":{},\"tiles\":[{}]}}",
+                    "{{\"dims\":{:?},\"brick\":{},\"voxel_scale\":{},\"camera\":{},\"radii\":{},\"tiles\":[{}],\"balanced\":[{}]}}",
                     v.dims,
                     v.brick,
                     json_f32s(&v.scale),
                     json_f32s(camera),
                     json_f32s(&radii),
-                    keys.join(",")
+                    keys.join(","),
+                    stitched.join(",")
                 ));
             }
         }
@@ -176,25 +190,140 @@ fn vectors() -> String {
     out
 }
 
-#[test]
-fn web_lod_vectors_are_current() {
-    let path =
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../web/test-vectors/lod.json");
-    let fresh = vectors();
-    // Parses as JSON, so the TypeScript side can read it.
-    let parsed: serde_json::Value =
-        serde_json::from_str(&fresh).unwrap_or_else(|e| panic!("vectors are not JSON: {e}"));
-    assert!(parsed["cases"].as_array().is_some_and(|c| c.len() > 100));
+/// Checks the committed vectors file `name` equals `fresh` (or rewrites it).
+fn check_vectors(name: &str, fresh: &str) {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../web/test-vectors")
+        .join(name);
     if std::env::var_os("ISOVOX_WRITE_VECTORS").is_some() {
-        std::fs::write(&path, &fresh).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        std::fs::write(&path, fresh).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
         return;
     }
     let committed = std::fs::read_to_string(&path).unwrap_or_default();
     assert!(
         committed == fresh,
-        "{} is stale: the tile selection changed. Rewrite it with \
+        "{} is stale: the code it was written from changed. Rewrite it with \
          ISOVOX_WRITE_VECTORS=1 cargo test -p isovox-proto --test lod_vectors, \
-         then make web/src/lod.ts pass `npm test` in web/ again",
+         then make web/src pass `npm test` in web/ again",
         path.display()
     );
+}
+
+/// Deterministic tiles of the shapes stitching meets: regular vertices with moves for one and
+/// for two faces, transition vertices with moves, strips on every face.
+fn tiles() -> Vec<TileMesh> {
+    let mut rng = Rng(0x7e57_0001_5717_c400);
+    let mut out = Vec::new();
+    for (n, t) in [(12usize, 5usize), (40, 17), (200, 30)] {
+        let point = |rng: &mut Rng| [0; 3].map(|_| rng.range(-40.0, 40.0));
+        let unit = |rng: &mut Rng| {
+            let v = [0; 3].map(|_| rng.range(-1.0, 1.0));
+            let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-3);
+            v.map(|c| c / len)
+        };
+        let mesh = Mesh {
+            positions: (0..n).map(|_| point(&mut rng)).collect(),
+            normals: (0..n).map(|_| unit(&mut rng)).collect(),
+            indices: (0..3 * n.min(50))
+                .map(|_| (rng.next() % n as u64) as u32)
+                .collect(),
+        };
+        let all = (n + t) as u64;
+        let moves = (0..2 * t)
+            .map(|i| {
+                // Every vertex index near the end of the regular ones and among the transition
+                // ones, one or two faces.
+                let vertex = (n as u64 - 6 + rng.next() % (t as u64 + 6)) as u32;
+                let face = (rng.next() % 6) as u8;
+                let faces = if i % 5 == 4 {
+                    1 << face | 1 << ((face + 2) % 6)
+                } else {
+                    1 << face
+                };
+                VertexMove {
+                    vertex,
+                    faces,
+                    offset: [0; 3].map(|_| rng.range(-0.6, 0.6)),
+                }
+            })
+            .collect();
+        let transitions = Transitions {
+            positions: (0..t).map(|_| point(&mut rng)).collect(),
+            normals: (0..t).map(|_| unit(&mut rng)).collect(),
+            moves,
+            strips: std::array::from_fn(|f| {
+                (0..3 * (f + 1))
+                    .map(|_| (n as u64 - 8 + rng.next() % (all - n as u64 + 8)) as u32)
+                    .collect()
+            }),
+        };
+        out.push(TileMesh { mesh, transitions });
+    }
+    out
+}
+
+fn json_f32_list(v: &[[f32; 3]]) -> String {
+    let parts: Vec<String> = v
+        .iter()
+        .flat_map(|p| p.iter().map(|&c| json_f32(c)))
+        .collect();
+    format!("[{}]", parts.join(","))
+}
+
+/// The mesh vectors: each tile's compact encoding (hex), and the tile stitched with several
+/// masks, from the decoded tile (normals as their i16 values).
+fn mesh_vectors() -> String {
+    let mut cases = Vec::new();
+    for tile in tiles() {
+        let bytes = encode_tile(&tile);
+        let decoded = decode_tile(&bytes).unwrap_or_else(|e| panic!("{e}"));
+        let hex: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
+        let mut stitched = Vec::new();
+        for mask in [0u8, 1, 2, 0b1010, 0b10_0101, 63] {
+            let mut m = Mesh::default();
+            stitch(&decoded, mask, &mut m);
+            let normals: Vec<String> = m
+                .normals
+                .iter()
+                .flat_map(|n| {
+                    n.iter()
+                        .map(|&c| ((c * 32767.0).round() as i16).to_string())
+                })
+                .collect();
+            let indices: Vec<String> = m.indices.iter().map(u32::to_string).collect();
+            stitched.push(format!(
+                "{{\"mask\":{mask},\"positions\":{},\"normals\":[{}],\"indices\":[{}]}}",
+                json_f32_list(&m.positions),
+                normals.join(","),
+                indices.join(",")
+            ));
+        }
+        cases.push(format!(
+            "{{\"bytes\":\"{hex}\",\"stitched\":[{}]}}",
+            stitched.join(",\n")
+        ));
+    }
+    format!(
+        "{{\"generated_by\":\"proto/tests/lod_vectors.rs\",\n\"tiles\":[\n{}\n]}}\n",
+        cases.join(",\n")
+    )
+}
+
+#[test]
+fn web_mesh_vectors_are_current() {
+    let fresh = mesh_vectors();
+    let parsed: serde_json::Value =
+        serde_json::from_str(&fresh).unwrap_or_else(|e| panic!("vectors are not JSON: {e}"));
+    assert_eq!(parsed["tiles"].as_array().map(Vec::len), Some(3));
+    check_vectors("mesh.json", &fresh);
+}
+
+#[test]
+fn web_lod_vectors_are_current() {
+    let fresh = vectors();
+    // Parses as JSON, so the TypeScript side can read it.
+    let parsed: serde_json::Value =
+        serde_json::from_str(&fresh).unwrap_or_else(|e| panic!("vectors are not JSON: {e}"));
+    assert!(parsed["cases"].as_array().is_some_and(|c| c.len() > 100));
+    check_vectors("lod.json", &fresh);
 }

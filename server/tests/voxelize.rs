@@ -36,7 +36,8 @@
 use isovox_proto::mesh::{encode_glb, Mesh};
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use isovox_server::generate::WorldSource;
-use isovox_server::mesh::level::{enclosed_volume, level_tiles, mesh_tiles, open_edges, weld};
+use isovox_server::mesh::check::{enclosed_volume, open_edges};
+use isovox_server::mesh::level::{level_tiles, mesh_tiles, weld};
 use isovox_server::mesh::tile::default_iso;
 use isovox_server::store::{build_vod2, BrickSource, BuildOptions, DenseGrid, Vod2};
 use isovox_server::voxelize::load::{load_model, LoadError};

@@ -1,18 +1,20 @@
 //! Micro-benchmarks of the kernels a regression would hide in (criterion; `cargo bench -p
-//! isovox-tools`): marching cubes on one tile, term evaluation on one brick, brick decoding
-//! (zstd, lz4), the check of a stored payload before it is sent as it is, and index lookups. The data is a generated terrain, built once per run.
+//! isovox-tools`): marching cubes on one tile (with and without its transition data), term
+//! evaluation on one brick, brick decoding (zstd, lz4), the check of a stored payload before it
+//! is sent as it is, and index lookups. The data is a generated terrain, built once per run.
 
 #![allow(clippy::unwrap_used)] // a benchmark that cannot set up should stop loudly
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use isovox_proto::icvg::Term;
+use isovox_proto::mesh::TileMesh;
 use isovox_proto::vod2::payload_check;
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use isovox_server::generate::WorldSource;
 use isovox_server::geometry::Box3;
 use isovox_server::icvg::term::{CompiledTerm, NoVolumes, TermLimits};
 use isovox_server::mesh::mc::Mesh;
-use isovox_server::mesh::tile::{default_iso, mesh_tile, TileScratch};
+use isovox_server::mesh::tile::{default_iso, mesh_tile, mesh_tile_with_transitions, TileScratch};
 use isovox_server::store::codec::{decode, encode, Compression};
 use isovox_server::store::decoded::DecodedBricks;
 use isovox_server::store::{build_vod2, BuildOptions, StoredBrick, Vod2};
@@ -71,6 +73,14 @@ fn kernels(c: &mut Criterion) {
         b.iter(|| {
             mesh_tile(&snap, key, iso, &mut mesh, &mut scratch).unwrap();
             black_box(mesh.triangles())
+        })
+    });
+    // The same tile as served: with its secondary positions and six transition strips.
+    let mut tile = TileMesh::default();
+    group.bench_function("tile 32^3 (terrain) with transitions", |b| {
+        b.iter(|| {
+            mesh_tile_with_transitions(&snap, key, iso, &mut tile, &mut scratch).unwrap();
+            black_box(tile.transitions.triangles())
         })
     });
     group.finish();

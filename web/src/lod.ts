@@ -1,5 +1,6 @@
-// Which tiles a camera needs: a port of `proto/src/lod.rs` (the spherical detail bias), kept
-// equal to it by the vectors the Rust tests write to `web/test-vectors/lod.json`.
+// Which tiles a camera needs: a port of `proto/src/lod.rs` (the spherical detail bias, balanced
+// so that tiles that touch differ by at most one level, and each tile's face mask), kept equal
+// to it by the vectors the Rust tests write to `web/test-vectors/lod.json`.
 //
 // The Rust code computes in f32. JavaScript numbers are f64, so every operation below is
 // rounded back to f32 with `Math.fround`: for +, -, *, / and sqrt of f32 operands, rounding the
@@ -92,6 +93,12 @@ export class Layout {
     return out;
   }
 
+  /** The tile of `k`'s level displaced by `d`, if it lies in the grid. */
+  neighbour(k: TileKey, d: readonly number[]): TileKey | null {
+    const n = { level: k.level, x: k.x + (d[0] ?? 0), y: k.y + (d[1] ?? 0), z: k.z + (d[2] ?? 0) };
+    return this.contains(n) ? n : null;
+  }
+
   /** The brick of `level` (>= k.level) that covers `k`. */
   ancestor(k: TileKey, level: number): TileKey {
     const s = 2 ** (level - k.level);
@@ -157,6 +164,55 @@ export function adaptiveTiles(
 }
 
 /**
+ * The tiles to stitch for a camera (`lod::balanced_tiles`): `adaptiveTiles`, refined until no
+ * two tiles that touch (by a face, an edge or a corner) differ by more than one level: a tile
+ * with a neighbour two or more levels finer is split into its children, repeatedly. Sorted.
+ */
+export function balancedTiles(
+  layout: Layout,
+  voxelScale: readonly number[],
+  camera: readonly number[],
+  radii: readonly number[],
+): TileKey[] {
+  return balance(layout, adaptiveTiles(layout, voxelScale, camera, radii));
+}
+
+/** `lod::balance`: refines `tiles` (covering the volume once) until it is 2:1 balanced. */
+export function balance(layout: Layout, tiles: readonly TileKey[]): TileKey[] {
+  const set = new Map(tiles.map((k) => [keyText(k), k]));
+  const covering = (k: TileKey): TileKey | undefined => {
+    for (let level = k.level; level < layout.levels; level++) {
+      const a = set.get(keyText(layout.ancestor(k, level)));
+      if (a) return a;
+    }
+    return undefined;
+  };
+  const around: number[][] = [];
+  for (let i = 0; i < 27; i++) {
+    const d = [(i % 3) - 1, (Math.floor(i / 3) % 3) - 1, Math.floor(i / 9) - 1];
+    if (d.some((c) => c !== 0)) around.push(d);
+  }
+  const work = [...tiles];
+  for (let fine = work.pop(); fine !== undefined; fine = work.pop()) {
+    if (!set.has(keyText(fine))) continue;
+    for (const d of around) {
+      const n = layout.neighbour(fine, d);
+      const coarse = n && covering(n);
+      if (coarse && coarse.level >= fine.level + 2) {
+        set.delete(keyText(coarse));
+        for (const c of layout.children(coarse)) {
+          set.set(keyText(c), c);
+          work.push(c);
+        }
+        work.push(fine);
+        break;
+      }
+    }
+  }
+  return [...set.values()].sort(compareKeys);
+}
+
+/**
  * Radii from a screen-space error target, as the Rust streamer derives them
  * (`StreamerConfig::radii_for_screen_error`): level k's tiles have a geometric error of about
  * 2^k voxels, so level k+1 is good enough beyond `2^(k+1) s H / (2 tan(fov/2) maxErrorPx)`.
@@ -185,9 +241,9 @@ export const FACES: ReadonlyArray<readonly [number, number, number]> = [
  * For each selected tile, the 6-bit mask of its faces that touch a coarser selected tile (bit i
  * for `FACES[i]`): where a mesh tile carries transition data (crack-free level-of-detail
  * meshes), the renderer moves the vertices along those faces to their secondary positions and
- * draws those faces' transition strips. Faces on the volume's boundary, or touching tiles of
- * the same or a finer level, are 0. `tiles` must cover the volume once (as `adaptiveTiles`
- * returns it).
+ * draws those faces' transition strips (`mesh.ts` `stitch`). Faces on the volume's boundary, or
+ * touching tiles of the same or a finer level, are 0. `lod::face_masks`; `tiles` must be a
+ * balanced selection covering the volume once (as `balancedTiles` returns it).
  */
 export function stitchMasks(layout: Layout, tiles: readonly TileKey[]): Map<string, number> {
   const selected = new Set(tiles.map(keyText));

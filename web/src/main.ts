@@ -151,6 +151,7 @@ function applyStitchMasks(): void {
   const layout = new Layout(info.dims, info.brick);
   const masks = stitchMasks(layout, streamer.selection());
   for (const [id, mask] of masks) viewport.setStitchMask(id, mask);
+  viewport.keepMasks(new Set(masks.keys()));
 }
 
 viewport.onFrame = (tiles) => {

@@ -7,24 +7,15 @@ import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import type { VolumeInfo } from "./api";
 import type { TileKey } from "./lod";
-import type { TileMesh, TriangleSet } from "./mesh";
+import { stitch, type TileMesh, type TriangleSet } from "./mesh";
 import type { TileSink } from "./streamer";
 
 const VERTEX = /* glsl */ `
-#ifdef TRANSITIONS
-attribute vec3 secondary;
-attribute float vertexFaces;
-uniform float stitchMask;
-#endif
 varying vec3 vNormal;
 varying float vHeight;
 uniform float heightScale;
 void main() {
   vec3 p = position;
-#ifdef TRANSITIONS
-  // Vertices along a face that touches a coarser tile move to their secondary position.
-  if ((int(vertexFaces) & int(stitchMask)) != 0) p = secondary;
-#endif
   vNormal = normal;
   vHeight = p.y * heightScale;
   gl_Position = projectionMatrix * modelViewMatrix * vec4(p, 1.0);
@@ -49,8 +40,7 @@ export const SKY = 0x9cc4e4;
 interface TileView {
   mesh: THREE.Mesh;
   data: TileMesh;
-  /** One per face, when the tile carries transition data. */
-  strips: THREE.Mesh[];
+  /** The faces whose strips are drawn (and whose moves are applied). */
   mask: number;
 }
 
@@ -61,6 +51,8 @@ export class Viewport implements TileSink {
   readonly camera: THREE.PerspectiveCamera;
   private readonly scene = new THREE.Scene();
   private readonly tiles = new Map<string, TileView>();
+  /** The last face mask given for each tile id, shown or not yet. */
+  private readonly masks = new Map<string, number>();
   private readonly material: THREE.ShaderMaterial;
   private readonly orbit: OrbitControls;
   private readonly fly: FlyNavigation;
@@ -147,24 +139,11 @@ export class Viewport implements TileSink {
 
   show(id: string, _key: TileKey, data: TileMesh): void {
     this.hide(id);
-    const mesh = new THREE.Mesh(geometry(data), this.material);
+    const mask = data.transitions ? (this.masks.get(id) ?? 0) : 0;
+    const mesh = new THREE.Mesh(geometry(stitch(data, mask), mask === 0 ? data : undefined), this.material);
     mesh.matrixAutoUpdate = false;
-    const strips: THREE.Mesh[] = [];
-    if (data.transitions) {
-      const g = mesh.geometry;
-      g.setAttribute("secondary", new THREE.BufferAttribute(data.transitions.secondary, 3));
-      g.setAttribute("vertexFaces", new THREE.BufferAttribute(data.transitions.vertexFaces, 1));
-      mesh.material = this.transitionMaterial();
-      data.transitions.strips.forEach((s) => {
-        const strip = new THREE.Mesh(geometry(s), this.material);
-        strip.visible = false;
-        strip.matrixAutoUpdate = false;
-        mesh.add(strip);
-        strips.push(strip);
-      });
-    }
     this.scene.add(mesh);
-    this.tiles.set(id, { mesh, data, strips, mask: 0 });
+    this.tiles.set(id, { mesh, data, mask });
     this.requestRender();
   }
 
@@ -173,30 +152,28 @@ export class Viewport implements TileSink {
     if (!t) return;
     this.scene.remove(t.mesh);
     t.mesh.geometry.dispose();
-    for (const s of t.strips) s.geometry.dispose();
-    if (t.mesh.material !== this.material) (t.mesh.material as THREE.Material).dispose();
     this.tiles.delete(id);
     this.requestRender();
   }
 
   /**
-   * The faces of tile `id` that touch a coarser tile (`lod.ts` `stitchMasks`). A tile without
-   * transition data ignores it; one with it moves those faces' vertices and shows their strips.
+   * The faces of tile `id` that touch a coarser tile (`lod.ts` `stitchMasks`), kept for when it
+   * is shown. A tile with transition data is drawn stitched with it (`mesh.ts` `stitch`: those
+   * faces' vertices moved, their strips drawn); one without ignores it.
    */
   setStitchMask(id: string, mask: number): void {
+    this.masks.set(id, mask);
     const t = this.tiles.get(id);
     if (!t || t.mask === mask || !t.data.transitions) return;
     t.mask = mask;
-    (t.mesh.material as THREE.ShaderMaterial).uniforms["stitchMask"]!.value = mask;
-    t.strips.forEach((s, face) => (s.visible = (mask & (1 << face)) !== 0));
+    t.mesh.geometry.dispose();
+    t.mesh.geometry = geometry(stitch(t.data, mask), mask === 0 ? t.data : undefined);
     this.requestRender();
   }
 
-  private transitionMaterial(): THREE.ShaderMaterial {
-    const m = this.material.clone();
-    m.defines = { TRANSITIONS: 1 };
-    m.uniforms = { ...this.material.uniforms, stitchMask: { value: 0 } };
-    return m;
+  /** Forgets the masks of tiles that left the selection. */
+  keepMasks(ids: ReadonlySet<string>): void {
+    for (const id of this.masks.keys()) if (!ids.has(id)) this.masks.delete(id);
   }
 
   get tileCount(): number {
@@ -250,13 +227,16 @@ export class Viewport implements TileSink {
 }
 
 /** A tile's triangles as GPU buffers, with bounds from the header (no scan of the positions). */
-function geometry(t: TriangleSet & { min?: number[]; max?: number[] }): THREE.BufferGeometry {
+/** A tile's triangles on the GPU; `bounds` (the decoder's, of the regular mesh drawn alone)
+ * spares computing them; three.js computes those of a stitched tile (its strips can reach beyond
+ * the regular mesh's bounds). */
+function geometry(t: TriangleSet, bounds?: { min: number[]; max: number[] }): THREE.BufferGeometry {
   const g = new THREE.BufferGeometry();
   g.setAttribute("position", new THREE.BufferAttribute(t.positions, 3));
   g.setAttribute("normal", new THREE.BufferAttribute(t.normals, 3, true));
   g.setIndex(new THREE.BufferAttribute(t.indices, 1));
-  if (t.min && t.max) {
-    g.boundingBox = new THREE.Box3(new THREE.Vector3(...t.min), new THREE.Vector3(...t.max));
+  if (bounds) {
+    g.boundingBox = new THREE.Box3(new THREE.Vector3(...bounds.min), new THREE.Vector3(...bounds.max));
     g.boundingSphere = g.boundingBox.getBoundingSphere(new THREE.Sphere());
   }
   return g;

@@ -2,13 +2,18 @@
 // same selection as the server and the Rust client), in which order to fetch them, what is on
 // screen meanwhile, and what an edit made stale.
 //
-// Content keys. A mesh tile reads the 3x3x3 bricks around it at its level (its cells reach into
-// the +1 neighbours, its normals one sample further on every side: `server/src/mesh/tile.rs`).
-// Its content key is its position and the content hashes of those 27 bricks, learnt from the
-// levels' brick grids (`GET .../levels/{l}?region=`, in chunks of 8x8x8 bricks). Meshes are
-// cached by content key, so a tile whose inputs did not change is never fetched again, and the
-// bricks' value ranges tell, without a request, which tiles no surface crosses (most of a
-// terrain's air and rock).
+// Selection. Tiles of neighbouring levels are stitched where they meet, so the selection is
+// balanced (`lod.ts` `balancedTiles`: tiles that touch differ by at most one level) and the
+// renderer draws each tile with its face mask (`stitchMasks`, `mesh.ts` `stitch`).
+//
+// Content keys. A mesh tile reads the bricks around it at its level (its cells reach into the +1
+// neighbours, its normals one sample further on every side) and, for its transition strips, the
+// next coarser level's bricks around its faces (`tile.ts` `meshTileReads`, as
+// `server/src/mesh/tile.rs` reads them). Its content key is its position and the content hashes
+// of those bricks, learnt from the levels' brick grids (`GET .../levels/{l}?region=`, in chunks
+// of 8x8x8 bricks). Meshes are cached by content key, so a tile whose inputs did not change is
+// never fetched again, and the bricks' value ranges tell, without a request, which tiles no
+// surface crosses (most of a terrain's air and rock).
 //
 // Order. Requests go coarse first, then nearest first: every tile of the selection's coarsest
 // level that covers a selected tile is fetched first (a stand-in for the finer tiles under it
@@ -23,8 +28,9 @@
 // showing their old mesh.
 
 import { Api, ApiError, isAbort, type ChangeEvent, type LevelBrick, type LevelGrid, type VolumeInfo } from "./api";
-import { adaptiveTiles, keyText, Layout, tileDistance, type TileKey } from "./lod";
-import { decodeCompact, type TileMesh } from "./mesh";
+import { balancedTiles, keyText, Layout, tileDistance, type TileKey } from "./lod";
+import { decodeTile, type TileMesh } from "./mesh";
+import { meshTileReads, valueRange } from "./tile";
 
 /** Bricks per axis of the grid chunks fetched to learn content hashes. */
 const CHUNK = 8;
@@ -127,7 +133,7 @@ export class Streamer {
     return this.info;
   }
 
-  /** The tiles the camera needs now (sorted as `adaptiveTiles` returns them). */
+  /** The tiles the camera needs now (sorted as `balancedTiles` returns them). */
   selection(): readonly TileKey[] {
     return this.desired;
   }
@@ -218,47 +224,55 @@ export class Streamer {
   }
 
   /**
-   * The tile's content key (its position and its 27 inputs' hashes), or null while a hash is
-   * unknown; "" when no surface can cross the tile (`tile_inputs`'s `may_cross` rule: only the
-   * bricks the cells read, at offsets 0 and +1, and -1 for a first tile, count; outside the
-   * volume every sample is L = 0).
+   * The tile's content key (its position and the hashes of the bricks it reads), or null while
+   * a hash is unknown; "" when no surface can cross the tile or its faces (`tile_inputs`'s
+   * `may_cross` rule: the voxels its cells and strips read, bounded through the coarser levels'
+   * interpolation; outside the volume every voxel is L = 0).
    */
   private contentKey(k: TileKey): string | null {
     const iso = this.info.surface - 0.5;
-    let below = false;
-    let above = false;
+    let low = Infinity;
+    let high = -Infinity;
     const parts: string[] = [keyText(k)];
-    for (let dz = -1; dz <= 1; dz++) {
-      for (let dy = -1; dy <= 1; dy++) {
-        for (let dx = -1; dx <= 1; dx++) {
-          const b = this.brick(k.level, k.x + dx, k.y + dy, k.z + dz);
-          if (b === undefined) return null;
-          const [min, max] = b === "absent" ? [0, 0] : [b.min, b.max];
-          parts.push(b === "absent" ? "-" : b.hash);
-          const reads =
-            (dx >= 0 || k.x === 0) && (dy >= 0 || k.y === 0) && (dz >= 0 || k.z === 0);
-          if (reads) {
-            below ||= min < iso;
-            above ||= max >= iso;
+    for (const read of meshTileReads(this.layout, k)) {
+      const [lo, hi] = read.bricks;
+      const [clo, chi] = read.crossing;
+      let min = Infinity;
+      let max = -Infinity;
+      for (let z = lo[2]; z <= hi[2]; z++) {
+        for (let y = lo[1]; y <= hi[1]; y++) {
+          for (let x = lo[0]; x <= hi[0]; x++) {
+            const b = this.brick(read.level, x, y, z);
+            if (b === undefined) return null;
+            parts.push(b === "absent" ? "-" : b.hash);
+            const crossing =
+              x >= clo[0] && x <= chi[0] && y >= clo[1] && y <= chi[1] && z >= clo[2] && z <= chi[2];
+            if (crossing) {
+              min = Math.min(min, b === "absent" ? 0 : b.min);
+              max = Math.max(max, b === "absent" ? 0 : b.max);
+            }
           }
         }
       }
+      const [l, h] = valueRange(read.level, min, max);
+      low = Math.min(low, l);
+      high = Math.max(high, h);
     }
-    return below && above ? parts.join(":") : "";
+    return low < iso && high >= iso ? parts.join(":") : "";
   }
 
   /** The grid chunks whose hashes tile `k`'s content key needs and does not have. */
   private missingChunks(k: TileKey, out: Set<string>): void {
-    for (let dz = -1; dz <= 1; dz++) {
-      for (let dy = -1; dy <= 1; dy++) {
-        for (let dx = -1; dx <= 1; dx++) {
-          const x = k.x + dx;
-          const y = k.y + dy;
-          const z = k.z + dz;
-          if (this.brick(k.level, x, y, z) === undefined) {
-            out.add(
-              `${k.level}/${Math.floor(x / CHUNK)}/${Math.floor(y / CHUNK)}/${Math.floor(z / CHUNK)}`,
-            );
+    for (const { level, bricks } of meshTileReads(this.layout, k)) {
+      const [lo, hi] = bricks;
+      for (let z = lo[2]; z <= hi[2]; z++) {
+        for (let y = lo[1]; y <= hi[1]; y++) {
+          for (let x = lo[0]; x <= hi[0]; x++) {
+            if (this.brick(level, x, y, z) === undefined) {
+              out.add(
+                `${level}/${Math.floor(x / CHUNK)}/${Math.floor(y / CHUNK)}/${Math.floor(z / CHUNK)}`,
+              );
+            }
           }
         }
       }
@@ -288,7 +302,7 @@ export class Streamer {
     const selectionKey = `${this.camera.join(",")}|${this.radii.join(",")}|${this.layout.grids.length}`;
     if (selectionKey !== this.selectionKey) {
       this.selectionKey = selectionKey;
-      this.desired = adaptiveTiles(this.layout, scale, this.camera, this.radii);
+      this.desired = balancedTiles(this.layout, scale, this.camera, this.radii);
     }
     // Stand-ins: the tiles of the selection's coarsest level over selected tiles that have
     // nothing to show yet.
@@ -483,8 +497,9 @@ export class Streamer {
       .then((buffer) => {
         if (this.jobs.get(id) !== job) return;
         this.counters.bytes += buffer.byteLength;
-        const mesh = decodeCompact(buffer);
-        this.remember(content, mesh.indices.length === 0 ? null : mesh);
+        const mesh = decodeTile(buffer);
+        const strips = mesh.transitions?.strips.some((s) => s.length > 0) ?? false;
+        this.remember(content, mesh.indices.length === 0 && !strips ? null : mesh);
         this.finish(id, job, null);
       })
       .catch((e: unknown) => this.finish(id, job, e));

@@ -2,6 +2,7 @@ import { readFileSync } from "node:fs";
 import { describe, expect, it } from "vitest";
 import {
   adaptiveTiles,
+  balancedTiles,
   keyText,
   Layout,
   radiiForScreenError,
@@ -9,6 +10,7 @@ import {
   tileDistance,
   type TileKey,
 } from "../src/lod";
+import { meshTileReads, valueRange } from "../src/tile";
 
 type Vec3 = [number, number, number];
 interface Case {
@@ -18,6 +20,8 @@ interface Case {
   camera: Vec3;
   radii: number[];
   tiles: [number, number, number, number][];
+  /** The balanced selection, each tile with its face mask: level, x, y, z, mask. */
+  balanced: [number, number, number, number, number][];
 }
 interface DistanceCase {
   dims: Vec3;
@@ -51,6 +55,17 @@ describe("tile selection equals proto/src/lod.rs", () => {
       const layout = new Layout(c.dims, c.brick);
       const got = adaptiveTiles(layout, c.voxel_scale, c.camera, c.radii).map(keyText);
       const want = c.tiles.map((t) => keyText(key(t)));
+      expect(got, JSON.stringify({ dims: c.dims, camera: c.camera, radii: c.radii })).toEqual(want);
+    }
+  });
+
+  it("balances the same selection, with the same face masks", () => {
+    for (const c of vectors.cases) {
+      const layout = new Layout(c.dims, c.brick);
+      const tiles = balancedTiles(layout, c.voxel_scale, c.camera, c.radii);
+      const masks = stitchMasks(layout, tiles);
+      const got = tiles.map((k) => `${keyText(k)}:${masks.get(keyText(k))}`);
+      const want = c.balanced.map(([l, x, y, z, m]) => `${keyText(key([l, x, y, z]))}:${m}`);
       expect(got, JSON.stringify({ dims: c.dims, camera: c.camera, radii: c.radii })).toEqual(want);
     }
   });
@@ -109,5 +124,28 @@ describe("stitch masks", () => {
     expect(m.get("0/0/0/0")).toBe(0); // its +x neighbour is level 0
     expect(m.get("0/1/0/0")).toBe(0b10); // +x touches the level-1 tile
     expect(m.get("1/1/0/0")).toBe(0); // coarser side: nothing to stitch
+  });
+});
+
+describe("what a mesh tile reads", () => {
+  it("matches proto/src/tile.rs's hand-computed example", () => {
+    // 64^3, brick 8. Level-0 tile (2, 0, 5): bricks x 1..=3, y -1..=1, z 4..=6 of level 0;
+    // level-1 bricks x 0..=1, y -1..=0, z 2..=3 for its strips.
+    const l = new Layout([64, 64, 64], 8);
+    const reads = meshTileReads(l, { level: 0, x: 2, y: 0, z: 5 });
+    expect(reads.map((r) => [r.level, r.bricks])).toEqual([
+      [0, [[1, -1, 4], [3, 1, 6]]],
+      [1, [[0, -1, 2], [1, 0, 3]]],
+    ]);
+    // The cells' corners alone decide whether a surface crosses: bricks x 2..=3, y -1..=1.
+    expect(reads[0]?.crossing).toEqual([[2, -1, 5], [3, 1, 6]]);
+    expect(meshTileReads(l, { level: 3, x: 0, y: 0, z: 0 }).length).toBe(1);
+  });
+
+  it("bounds interpolated values as lattice.rs does", () => {
+    const [lo, hi] = valueRange(1, 0, 100);
+    expect(lo).toBeCloseTo(-34.228, 3);
+    expect(hi).toBeCloseTo(134.228, 3);
+    expect(valueRange(0, 3, 9)).toEqual([3, 9]);
   });
 });

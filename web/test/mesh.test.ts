@@ -1,5 +1,6 @@
 import { describe, expect, it } from "vitest";
-import { decodeCompact, MeshFormatError } from "../src/mesh";
+import { readFileSync } from "node:fs";
+import { decodeTile, MeshFormatError, stitch, stitchedTriangles } from "../src/mesh";
 import { compactMesh, triangle } from "./compact";
 
 // The quad of proto/src/mesh.rs's golden test: 4 vertices, 2 triangles, 124 bytes.
@@ -25,7 +26,7 @@ describe("compact mesh decoding", () => {
     const b = quad();
     expect(b.byteLength).toBe(124);
     expect([...new Uint8Array(b, 0, 16)]).toEqual([73, 86, 77, 83, 1, 0, 0, 0, 4, 0, 0, 0, 6, 0, 0, 0]);
-    const m = decodeCompact(b);
+    const m = decodeTile(b);
     expect([...m.positions]).toEqual([0, 0, 0, 1, 0, 0, 1, 1, 0, 0, 1, 0.5]);
     expect([...m.normals]).toEqual([0, 0, 32767, 0, 0, 32767, 0, 0, 32767, 0, 0, 32767]);
     expect([...m.indices]).toEqual([0, 1, 2, 0, 2, 3]);
@@ -37,22 +38,86 @@ describe("compact mesh decoding", () => {
   it("refuses what the Rust decoder refuses", () => {
     const b = quad();
     for (let cut = 0; cut < b.byteLength - 12; cut++) {
-      expect(() => decodeCompact(b.slice(0, cut)), `cut at ${cut}`).toThrow(MeshFormatError);
+      expect(() => decodeTile(b.slice(0, cut)), `cut at ${cut}`).toThrow(MeshFormatError);
     }
     const badIndex = b.slice(0);
     new DataView(badIndex).setUint16(40 + 48 + 24, 9, true);
-    expect(() => decodeCompact(badIndex)).toThrow(/index 9/);
+    expect(() => decodeTile(badIndex)).toThrow(/index 9/);
     const huge = b.slice(0);
     new DataView(huge).setUint32(8, 0xffffffff, true);
-    expect(() => decodeCompact(huge)).toThrow(MeshFormatError);
-    expect(() => decodeCompact(compactMesh([], [], [], { version: 2 }))).toThrow(/version 2/);
+    expect(() => decodeTile(huge)).toThrow(MeshFormatError);
+    // Version 2 without its transition section, and an unknown version.
+    expect(() => decodeTile(compactMesh([], [], [], { version: 2 }))).toThrow(/transition section/);
+    expect(() => decodeTile(compactMesh([], [], [], { version: 3 }))).toThrow(/version 3/);
   });
 
   it("reads u32 indices at an unaligned offset", () => {
     // 3 vertices with wide indices: the indices start at 40 + 54 = 94, not a multiple of 4.
     const b = triangle([2, 1, 0], { wide: true });
-    const m = decodeCompact(b);
+    const m = decodeTile(b);
     expect(m.indices).toBeInstanceOf(Uint32Array);
     expect([...m.indices]).toEqual([2, 1, 0]);
+  });
+});
+
+interface Stitched {
+  mask: number;
+  positions: number[];
+  normals: number[];
+  indices: number[];
+}
+// Written by the Rust test proto/tests/lod_vectors.rs from proto's own encoder and stitch.
+const vectors = JSON.parse(
+  readFileSync(new URL("../test-vectors/mesh.json", import.meta.url), "utf8"),
+) as { tiles: { bytes: string; stitched: Stitched[] }[] };
+
+const bytesOf = (hex: string): ArrayBuffer => {
+  const out = new Uint8Array(hex.length / 2);
+  for (let i = 0; i < out.length; i++) out[i] = parseInt(hex.slice(2 * i, 2 * i + 2), 16);
+  return out.buffer;
+};
+
+describe("tiles with transition data equal proto/src/mesh.rs", () => {
+  it("has vectors", () => {
+    expect(vectors.tiles.length).toBe(3);
+  });
+
+  it("decodes version 2 and stitches every mask as stitch() does", () => {
+    for (const v of vectors.tiles) {
+      const tile = decodeTile(bytesOf(v.bytes));
+      expect(tile.transitions).not.toBeNull();
+      for (const want of v.stitched) {
+        const got = stitch(tile, want.mask);
+        expect([...got.positions], `mask ${want.mask}`).toEqual(want.positions.map(Math.fround));
+        expect([...got.normals], `mask ${want.mask}`).toEqual(want.normals);
+        expect([...got.indices], `mask ${want.mask}`).toEqual(want.indices);
+        expect(stitchedTriangles(tile, want.mask)).toBe(want.indices.length / 3);
+      }
+    }
+  });
+
+  it("refuses a cut or patched transition section", () => {
+    const b = bytesOf(vectors.tiles[0]?.bytes ?? "");
+    const tile = decodeTile(b);
+    const n = tile.positions.length / 3;
+    const at = Math.ceil((40 + n * 18 + tile.indices.length * 2) / 4) * 4;
+    for (let cut = at; cut < b.byteLength - 2; cut++) {
+      expect(() => decodeTile(b.slice(0, cut)), `cut at ${cut}`).toThrow(MeshFormatError);
+    }
+    const patched = (offset: number, value: number, width: 1 | 2 | 4) => {
+      const c = b.slice(0);
+      const v = new DataView(c);
+      if (width === 1) v.setUint8(offset, value);
+      else if (width === 2) v.setUint16(offset, value, true);
+      else v.setUint32(offset, value, true);
+      return () => decodeTile(c);
+    };
+    const t = new DataView(b).getUint32(at, true);
+    const moves = at + 32 + Math.ceil((t * 18) / 4) * 4;
+    expect(patched(at, 0xffffffff, 4)).toThrow(MeshFormatError); // vertex count
+    expect(patched(at + 8, 2, 4)).toThrow(/multiple of 3/); // a strip not of triangles
+    expect(patched(moves, n + t, 4)).toThrow(/moved vertex/);
+    expect(patched(moves + 4, 0, 1)).toThrow(/face mask/);
+    expect(patched(moves + 4, 64, 1)).toThrow(/face mask/);
   });
 });

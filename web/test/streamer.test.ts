@@ -1,6 +1,6 @@
 import { describe, expect, it } from "vitest";
 import type { Api, LevelGrid, Vec3 } from "../src/api";
-import { adaptiveTiles, keyText, Layout, tileDistance, type TileKey } from "../src/lod";
+import { balancedTiles, keyText, Layout, tileDistance, type TileKey } from "../src/lod";
 import type { TileMesh } from "../src/mesh";
 import { Streamer } from "../src/streamer";
 import { triangle } from "./compact";
@@ -111,7 +111,7 @@ describe("the streamer", () => {
       if (!c) break;
       order.push(c.key);
     }
-    const desired = adaptiveTiles(layout, [1, 1, 1], camera, [12, 24, 48]);
+    const desired = balancedTiles(layout, [1, 1, 1], camera, [12, 24, 48]);
     const coarsest = Math.max(...desired.map((k) => k.level));
     // Every tile of the selection, and no tile twice.
     const fetched = new Set(order.map(keyText));
@@ -145,7 +145,7 @@ describe("the streamer", () => {
     expect(inFlight.some((c) => c.key.level === 0)).toBe(true);
     s.setCamera([64, 40, 64]); // the far corner
     await settle();
-    const wanted = new Set(adaptiveTiles(layout, [1, 1, 1], [64, 40, 64], [12, 24, 48]).map(keyText));
+    const wanted = new Set(balancedTiles(layout, [1, 1, 1], [64, 40, 64], [12, 24, 48]).map(keyText));
     for (const c of inFlight) {
       expect(c.signal.aborted).toBe(!wanted.has(keyText(c.key)) && c.key.level < 3);
     }
@@ -161,23 +161,42 @@ describe("the streamer", () => {
     while (await server.answerOne());
     expect(s.stats().complete).toBe(true);
     const before = server.meshCalls.length;
-    const changed: Vec3[][] = [[[2, 1, 2]], [[1, 0, 1]], [[0, 0, 0]], [[0, 0, 0]]];
+    const changed: Vec3[][] = [[[2, 1, 2]], [[1, 1, 1]], [[0, 0, 0]], [[0, 0, 0]]];
     changed.forEach((bricks, level) => server.edit(level, bricks));
     s.applyCommit({ version: 2, timestamp_ms: 0, changed });
     await settle();
     while (await server.answerOne());
     const refetched = server.meshCalls.slice(before);
-    const desired = adaptiveTiles(layout, [1, 1, 1], camera, [12, 24, 48]);
-    const stale = desired.filter((k) =>
-      (changed[k.level] ?? []).some(([x, y, z]) => Math.abs(x - k.x) <= 1 && Math.abs(y - k.y) <= 1 && Math.abs(z - k.z) <= 1),
-    );
+    const desired = balancedTiles(layout, [1, 1, 1], camera, [12, 24, 48]);
+    // What a tile reads (server/src/mesh/tile.rs, brick 8): the bricks of its level at offsets
+    // -1..=1, and for its strips the next level's voxels [4 t - 3, 4 t + 6] on each axis
+    // (from -4 for a first tile): bricks floor(first / 8) ..= floor((4 t + 6) / 8).
+    const readsCoarse = (t: number, p: number) =>
+      Math.floor((t === 0 ? -4 : 4 * t - 3) / 8) <= p && p <= Math.floor((4 * t + 6) / 8);
+    const readLevels = new Set<number>();
+    let coarseOnly = 0;
+    const stale = desired.filter((k) => {
+      const same = (changed[k.level] ?? []).some(
+        ([x, y, z]) => Math.abs(x - k.x) <= 1 && Math.abs(y - k.y) <= 1 && Math.abs(z - k.z) <= 1,
+      );
+      const coarse =
+        k.level + 1 < layout.levels &&
+        (changed[k.level + 1] ?? []).some(
+          ([x, y, z]) => readsCoarse(k.x, x) && readsCoarse(k.y, y) && readsCoarse(k.z, z),
+        );
+      if (same) readLevels.add(k.level);
+      if (coarse) readLevels.add(k.level + 1);
+      if (coarse && !same) coarseOnly++;
+      return same || coarse;
+    });
+    expect(coarseOnly).toBeGreaterThan(0); // the strips' inputs count
     expect(refetched.map((c) => keyText(c.key)).sort()).toEqual(stale.map(keyText).sort());
     expect(refetched.every((c) => c.version === 2)).toBe(true);
     expect(s.stats()).toMatchObject({ version: 2, complete: true, stale: 0 });
     // Grids were asked again at the new version, once per level whose changed bricks a
     // selected tile reads (each level's changes lie in one chunk here).
     const regridded = server.gridCalls.filter((g) => g.version === 2).map((g) => g.level);
-    expect(regridded.sort()).toEqual([...new Set(stale.map((k) => k.level))].sort());
+    expect(regridded.sort()).toEqual([...readLevels].sort());
     s.stop();
   });
 });

@@ -153,7 +153,7 @@ enum Output {
     Region(Result<LevelGrid, ClientError>),
     Blob(Result<Bytes, ClientError>),
     /// The content key the tile was requested under, and the tile.
-    Mesh(u64, Result<Mesh, ClientError>),
+    Mesh(u64, Result<TileMesh, ClientError>),
 }
 
 #[derive(Debug)]
@@ -177,6 +177,15 @@ struct Tile {
     shown: bool,
     /// `Stale` was emitted and the new content has not been delivered yet.
     stale: bool,
+    /// A mesh tile's delivered content and the face mask it was stitched with.
+    drawn: Option<(Arc<TileMesh>, u8)>,
+}
+
+/// What the cache keeps by content key.
+#[derive(Debug, Clone)]
+enum Content {
+    Brick(Bytes),
+    Mesh(Arc<TileMesh>),
 }
 
 /// Tile content by content key, least recently used first out, bounded by bytes.
@@ -191,7 +200,7 @@ struct Lru {
 
 #[derive(Debug)]
 struct LruEntry {
-    data: TileData,
+    data: Content,
     size: usize,
     tick: u64,
 }
@@ -211,7 +220,7 @@ impl Lru {
         self.map.contains_key(&key)
     }
 
-    fn get(&mut self, key: u64) -> Option<TileData> {
+    fn get(&mut self, key: u64) -> Option<Content> {
         let e = self.map.get_mut(&key)?;
         self.order.remove(&e.tick);
         self.tick += 1;
@@ -220,7 +229,7 @@ impl Lru {
         Some(e.data.clone())
     }
 
-    fn put(&mut self, key: u64, data: TileData, size: usize) {
+    fn put(&mut self, key: u64, data: Content, size: usize) {
         if size > self.cap {
             return;
         }
@@ -248,18 +257,6 @@ impl Lru {
             }
         }
     }
-}
-
-/// Memory a mesh holds (the cache's measure).
-fn mesh_size(m: &Mesh) -> usize {
-    m.positions.len() * 24 + m.indices.len() * 4
-}
-
-/// Bytes of a mesh's compact encoding (`proto::mesh`).
-fn compact_size(m: &Mesh) -> u64 {
-    let n = m.positions.len() as u64;
-    let index = if n > 65536 { 4 } else { 2 };
-    (40 + n * 18 + m.indices.len() as u64 * index).next_multiple_of(4)
 }
 
 /// The task's state: what it serves, and its four parts.
@@ -294,6 +291,8 @@ struct Desired {
     camera: Option<[f32; 3]>,
     camera_seq: u64,
     tiles: HashMap<BrickKey, Tile>,
+    /// Mesh tiles: each desired tile's face mask in the desired set.
+    masks: HashMap<BrickKey, u8>,
     /// Desired tiles without current content.
     missing: usize,
 }
@@ -453,12 +452,18 @@ impl Engine {
         }
     }
 
-    /// The desired set for the current camera; tiles that leave it are dropped.
+    /// The desired set for the current camera; tiles that leave it are dropped, mesh tiles
+    /// whose face mask changed are stitched again.
     fn update_desired(&mut self) {
-        let new = match self.desired.camera {
-            Some(c) => select_tiles(&self.info, c, &self.radii),
-            None => Vec::new(),
+        let new = match (self.desired.camera, self.kind) {
+            (Some(c), TileKind::Bricks) => select_tiles(&self.info, c, &self.radii),
+            (Some(c), TileKind::Meshes { .. }) => select_stitched_tiles(&self.info, c, &self.radii),
+            (None, _) => Vec::new(),
         };
+        if matches!(self.kind, TileKind::Meshes { .. }) {
+            let masks = isovox_proto::lod::face_masks(&self.layout, &new);
+            self.desired.masks = new.iter().copied().zip(masks).collect();
+        }
         let keep: HashSet<BrickKey> = new.iter().copied().collect();
         let mut gone: Vec<BrickKey> = self
             .desired
@@ -480,11 +485,21 @@ impl Engine {
                 self.outbox.push(StreamEvent::Dropped { key });
             }
         }
+        let mut restitch = Vec::new();
         for key in new {
-            self.desired.tiles.entry(key).or_insert_with(|| {
+            let t = self.desired.tiles.entry(key).or_insert_with(|| {
                 self.desired.missing += 1;
                 Tile::default()
             });
+            let mask = self.desired.masks.get(&key).copied().unwrap_or(0);
+            if let (Some(content), Some((tile, drawn))) = (t.ready, &t.drawn) {
+                if *drawn != mask {
+                    restitch.push((key, content, tile.clone()));
+                }
+            }
+        }
+        for (key, content, tile) in restitch {
+            self.mark_ready(key, content, Content::Mesh(tile));
         }
         self.scheduler.replan_needed = true;
     }
@@ -507,32 +522,33 @@ impl Engine {
     /// A mesh tile's content key, or the input bricks whose hashes are unknown.
     fn mesh_content(&self, key: BrickKey, iso: Option<f32>) -> Result<u64, Vec<BrickKey>> {
         let mut h = DefaultHasher::new();
-        "isovox mesh tile".hash(&mut h);
+        "isovox mesh tile with transitions".hash(&mut h);
         key.hash(&mut h);
         iso.map(f32::to_bits).hash(&mut h);
         self.info.brick.hash(&mut h);
         self.layout.voxel_type().bytes().hash(&mut h);
         self.info.voxel_scale.map(f32::to_bits).hash(&mut h);
-        let g = self.layout.grid(key.level);
-        let pos = [key.x, key.y, key.z].map(i64::from);
         let mut unknown = Vec::new();
-        for dz in -1i64..=1 {
-            for dy in -1i64..=1 {
-                for dx in -1i64..=1 {
-                    let c = [pos[0] + dx, pos[1] + dy, pos[2] + dz];
-                    if (0..3).any(|a| c[a] < 0 || c[a] >= i64::from(g[a])) {
-                        0u8.hash(&mut h);
-                        continue;
-                    }
-                    let b = BrickKey {
-                        level: key.level,
-                        x: c[0] as u32,
-                        y: c[1] as u32,
-                        z: c[2] as u32,
-                    };
-                    match self.book.hashes.get(&b) {
-                        Some(v) => (1u8, *v).hash(&mut h),
-                        None => unknown.push(b),
+        for (level, (lo, hi)) in isovox_proto::tile::mesh_tile_reads(&self.layout, key) {
+            let g = self.layout.grid(level).map(i64::from);
+            for z in lo[2]..=hi[2] {
+                for y in lo[1]..=hi[1] {
+                    for x in lo[0]..=hi[0] {
+                        let c = [x, y, z];
+                        if (0..3).any(|a| c[a] < 0 || c[a] >= g[a]) {
+                            0u8.hash(&mut h);
+                            continue;
+                        }
+                        let b = BrickKey {
+                            level,
+                            x: x as u32,
+                            y: y as u32,
+                            z: z as u32,
+                        };
+                        match self.book.hashes.get(&b) {
+                            Some(v) => (1u8, *v).hash(&mut h),
+                            None => unknown.push(b),
+                        }
                     }
                 }
             }
@@ -736,9 +752,23 @@ impl Engine {
         }
     }
 
-    fn mark_ready(&mut self, key: BrickKey, content: u64, data: TileData) {
+    fn mark_ready(&mut self, key: BrickKey, content: u64, data: Content) {
         let Some(t) = self.desired.tiles.get_mut(&key) else {
             return;
+        };
+        let data = match data {
+            Content::Brick(b) => TileData::Brick(b),
+            Content::Mesh(tile) => {
+                let mask = self.desired.masks.get(&key).copied().unwrap_or(0);
+                let mut mesh = Mesh::default();
+                isovox_proto::mesh::stitch(&tile, mask, &mut mesh);
+                t.drawn = Some((tile.clone(), mask));
+                TileData::Mesh(MeshTile {
+                    tile,
+                    mask,
+                    mesh: Arc::new(mesh),
+                })
+            }
         };
         if t.ready.is_none() {
             self.desired.missing -= 1;
@@ -873,7 +903,7 @@ impl Engine {
         self.scheduler.failures.remove(&job);
         self.stats.bytes += bytes.len() as u64;
         self.stats.misses += 1;
-        let data = TileData::Brick(bytes);
+        let data = Content::Brick(bytes);
         self.cache.put(h, data.clone(), self.layout.brick_bytes());
         let mut first = true;
         for key in self.scheduler.waiting.remove(&h).unwrap_or_default() {
@@ -893,22 +923,22 @@ impl Engine {
         }
     }
 
-    fn on_mesh(&mut self, job: JobKey, content: u64, result: Result<Mesh, ClientError>) {
+    fn on_mesh(&mut self, job: JobKey, content: u64, result: Result<TileMesh, ClientError>) {
         let JobKey::Mesh(key) = job else {
             return;
         };
-        let mesh = match result {
-            Ok(m) => m,
+        let tile = match result {
+            Ok(t) => t,
             Err(e) => {
                 self.fail(job, Some(key), format!("mesh tile {key}: {e}"));
                 return;
             }
         };
         self.scheduler.failures.remove(&job);
-        self.stats.bytes += compact_size(&mesh);
+        self.stats.bytes += isovox_proto::mesh::encode_tile(&tile).len() as u64;
         self.stats.misses += 1;
-        let size = mesh_size(&mesh);
-        let data = TileData::Mesh(Arc::new(mesh));
+        let size = tile_size(&tile);
+        let data = Content::Mesh(Arc::new(tile));
         self.cache.put(content, data.clone(), size);
         let mut first = true;
         for k in self.scheduler.waiting.remove(&content).unwrap_or_default() {
@@ -969,6 +999,17 @@ impl Engine {
             let g = self.layout.grid(level);
             let mut affected = BTreeSet::new();
             let mut read = Vec::new();
+            // Mesh tiles read bricks of their level and of the next coarser one.
+            let readers: Vec<(BrickKey, Vec<(u8, isovox_proto::tile::GridBox)>)> = match self.kind {
+                TileKind::Bricks => Vec::new(),
+                TileKind::Meshes { .. } => self
+                    .desired
+                    .tiles
+                    .keys()
+                    .filter(|t| t.level == level || t.level + 1 == level)
+                    .map(|&t| (t, isovox_proto::tile::mesh_tile_reads(&self.layout, t)))
+                    .collect(),
+            };
             for &p in changed {
                 if (0..3).any(|a| p[a] >= g[a]) {
                     continue;
@@ -990,25 +1031,14 @@ impl Engine {
                         }
                     }
                     TileKind::Meshes { .. } => {
-                        // The tiles that read brick p: those at p - 1 ..= p + 1.
-                        for dz in -1i64..=1 {
-                            for dy in -1i64..=1 {
-                                for dx in -1i64..=1 {
-                                    let c = [p[0] as i64 + dx, p[1] as i64 + dy, p[2] as i64 + dz];
-                                    if (0..3).any(|a| c[a] < 0 || c[a] >= i64::from(g[a])) {
-                                        continue;
-                                    }
-                                    let t = BrickKey {
-                                        level,
-                                        x: c[0] as u32,
-                                        y: c[1] as u32,
-                                        z: c[2] as u32,
-                                    };
-                                    if self.desired.tiles.contains_key(&t) {
-                                        affected.insert(t);
-                                        is_read = true;
-                                    }
-                                }
+                        let p = p.map(i64::from);
+                        for (t, reads) in &readers {
+                            let reads_p = reads.iter().any(|&(l, (lo, hi))| {
+                                l == level && (0..3).all(|a| lo[a] <= p[a] && p[a] <= hi[a])
+                            });
+                            if reads_p {
+                                affected.insert(*t);
+                                is_read = true;
                             }
                         }
                     }

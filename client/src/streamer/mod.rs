@@ -4,7 +4,7 @@
 //! # What it selects
 //!
 //! The thesis's spherical detail bias, exactly as the server's offline selection
-//! (`isovox_server::mesh::level::adaptive_tiles`) computes it: with radii `r0 < r1 < ... <
+//! (`isovox_proto::lod::adaptive_tiles`) computes it: with radii `r0 < r1 < ... <
 //! r(n-1)` (world units, `voxel_scale` applied), a tile of level k is used where its nearest
 //! point lies within `r(k)` of the camera, and level n (or the coarsest, if the volume has fewer
 //! levels) beyond the last radius. Walking down from the root, a tile of level k+1 is refined into
@@ -16,22 +16,31 @@
 //! "derive them" with a 60 degree vertical field of view, a 1080-pixel viewport and one pixel of
 //! error (see [`StreamerConfig`]).
 //!
+//! Mesh tiles are stitched where levels meet, so the selection for them is balanced first
+//! ([`select_stitched_tiles`], `isovox_proto::lod::balanced_tiles`: refined until tiles that
+//! touch differ by at most one level), and each tile is drawn with the face mask
+//! `isovox_proto::lod::face_masks` gives it in that selection: the faces touching a coarser
+//! tile, whose transition strips it draws (`docs/lod-meshes.md`). When a neighbour's level
+//! changes (the camera moved), a delivered tile whose mask changed is stitched again and
+//! delivered again (`Ready` with the same content key), without a request.
+//!
 //! # Tiles and their content keys
 //!
 //! A tile is a [`BrickKey`]. With [`TileKind::Bricks`] its content is the brick's voxels and its
 //! content key is the brick's content hash (xxh3-64, as the server names it). With
-//! [`TileKind::Meshes`] its content is the server's marching-cubes tile, which reads the 3x3x3
-//! bricks around it at the same level (`server/src/mesh/tile.rs`: its cells reach into the +1
-//! neighbours, its normals' central differences one sample further on every side); its content
-//! key hashes the tile's position, the iso value, the brick shape and the content hashes of those
-//! 27 inputs (absent ones marked). A tile is stale exactly when one of its inputs changed.
+//! [`TileKind::Meshes`] its content is the server's marching-cubes tile with its transition data,
+//! which reads the bricks around it at its level and the next coarser level's bricks around its
+//! faces (`isovox_proto::tile::mesh_tile_reads`); its content key hashes the tile's position,
+//! the iso value, the brick shape and the content hashes of those inputs (absent ones marked). A
+//! tile is stale exactly when one of its inputs changed.
 //!
 //! Content hashes come from the levels' brick grids (`GET .../levels/{l}?format=grid&region=`),
 //! fetched in regions of 8x8x8 bricks as tiles need them and kept per brick. Brick content is then
 //! fetched by hash (`GET .../blobs/{hash}`), once per hash: a brick shared by many positions (air,
 //! solid rock) costs one request. Mesh tiles are fetched by position (`GET .../meshes/...`) when
 //! their content key is not cached. The cache holds content by key, LRU, bounded by
-//! [`StreamerConfig::cache_bytes`] (brick: its voxel bytes; mesh: positions, normals, indices).
+//! [`StreamerConfig::cache_bytes`] (brick: its voxel bytes; mesh: positions, normals, indices,
+//! transition data).
 //!
 //! # Versions
 //!
@@ -78,7 +87,8 @@
 //!
 //! For each commit, in version order: every brick in `changed[level]` forgets its hash; the
 //! desired tiles whose inputs include one of them (bricks: the brick itself; meshes: the tiles
-//! at offsets -1..=1 around it) lose their current content, and the delivered ones get `Stale`.
+//! that read it, of its level and the next finer one) lose their current content, and the
+//! delivered ones get `Stale`.
 //! Requests in flight whose answers predate the commit and touch a changed brick are aborted. One
 //! grid region per level, the bounding box of the changed bricks that some desired tile reads,
 //! brings the new hashes; content then comes from the cache or one request per new content key.
@@ -96,7 +106,7 @@
 use crate::client::{Client, ClientError, Feed, FeedEvent};
 use bytes::Bytes;
 use isovox_proto::api::{ChangeEvent, LevelGrid, VolumeInfo};
-use isovox_proto::mesh::Mesh;
+use isovox_proto::mesh::{Mesh, TileMesh};
 use isovox_proto::{BrickKey, VolumeLayout};
 use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 use std::hash::{DefaultHasher, Hash, Hasher};
@@ -201,32 +211,69 @@ pub fn select_tiles(info: &VolumeInfo, camera: [f32; 3], radii: &[f32]) -> Vec<B
     }
 }
 
+/// The tiles to stitch for a camera (sorted), from metadata only: [`select_tiles`] refined until
+/// tiles that touch differ by at most one level ([`isovox_proto::lod::balanced_tiles`], as the
+/// server's `isovox mesh --camera` and the web viewer select them).
+pub fn select_stitched_tiles(info: &VolumeInfo, camera: [f32; 3], radii: &[f32]) -> Vec<BrickKey> {
+    match VolumeLayout::new(info.dims, info.brick, info.voxel_type) {
+        Ok(layout) => isovox_proto::lod::balanced_tiles(&layout, info.voxel_scale, camera, radii),
+        Err(_) => Vec::new(),
+    }
+}
+
+/// A mesh tile as drawn next to its neighbours of the current selection.
+#[derive(Debug, Clone)]
+pub struct MeshTile {
+    /// The tile as the server sends it, in world coordinates (normals quantized): its regular
+    /// mesh and its transition data.
+    pub tile: Arc<TileMesh>,
+    /// The faces touching a coarser tile in the current selection (bit f: face f, in the order
+    /// -x, +x, -y, +y, -z, +z).
+    pub mask: u8,
+    /// `tile` stitched with `mask` (`isovox_proto::mesh::stitch`): what to draw.
+    pub mesh: Arc<Mesh>,
+}
+
 /// A tile's content.
 #[derive(Debug, Clone)]
 pub enum TileData {
     /// The brick's voxels (raw, x fastest, u16 little endian).
     Brick(Bytes),
-    /// The tile's mesh in world coordinates, as the server encodes it (normals quantized).
-    Mesh(Arc<Mesh>),
+    /// The mesh tile, and how it is drawn now.
+    Mesh(MeshTile),
 }
 
 impl TileData {
-    /// The tile's size in memory: voxel bytes, or the mesh's arrays.
+    /// The tile's size in memory: voxel bytes, or the mesh's arrays (the tile's, with its
+    /// transition data, and the stitched mesh's).
     pub fn bytes(&self) -> u64 {
         match self {
             TileData::Brick(b) => b.len() as u64,
-            TileData::Mesh(m) => {
-                (m.positions.len() * 12 + m.normals.len() * 12 + m.indices.len() * 4) as u64
-            }
+            TileData::Mesh(m) => (tile_size(&m.tile) + mesh_size(&m.mesh)) as u64,
         }
     }
+}
+
+/// Memory a mesh holds.
+fn mesh_size(m: &Mesh) -> usize {
+    m.positions.len() * 24 + m.indices.len() * 4
+}
+
+/// Memory a tile holds: its regular mesh and its transition data.
+fn tile_size(t: &TileMesh) -> usize {
+    let tr = &t.transitions;
+    mesh_size(&t.mesh)
+        + tr.positions.len() * 24
+        + tr.moves.len() * std::mem::size_of::<isovox_proto::mesh::VertexMove>()
+        + tr.strips.iter().map(Vec::len).sum::<usize>() * 4
 }
 
 /// What the streamer reports.
 #[derive(Debug, Clone)]
 pub enum StreamEvent {
     /// `key` has content `data` (content key `hash`: the brick's content hash, or for a mesh
-    /// tile the hash of its position, iso and inputs), current as of `version`.
+    /// tile the hash of its position, iso and inputs), current as of `version`. A mesh tile is
+    /// delivered again with the same `hash` when its face mask changed (see [`MeshTile`]).
     Ready {
         /// The tile.
         key: BrickKey,
@@ -268,7 +315,8 @@ pub enum StreamEvent {
 pub struct StreamerStats {
     /// HTTP requests started (grid regions, blobs, mesh tiles; not the change feed).
     pub requests: u64,
-    /// Payload bytes received: brick voxels, and mesh tiles' compact encodings.
+    /// Payload bytes received: brick voxels, and mesh tiles' compact encodings (with their
+    /// transition data).
     pub bytes: u64,
     /// Tiles made ready without a request of their own (cached, or shared with another tile).
     pub cache_hits: u64,

@@ -1,10 +1,11 @@
-//! `isovox mesh`: mesh a whole level, or the thesis's adaptive LOD around a camera, to a file.
+//! `isovox mesh`: mesh a whole level, or the thesis's adaptive LOD around a camera (tiles of
+//! neighbouring levels stitched without cracks), to a file.
 
 use super::progress;
 use anyhow::{bail, Context};
 use clap::Args;
 use isovox_server::mesh::files::{write_mesh, MeshFormat};
-use isovox_server::mesh::level::{adaptive_tiles, level_tiles, mesh_tiles, weld};
+use isovox_server::mesh::level::{balanced_tiles, level_tiles, mesh_stitched, mesh_tiles, weld};
 use isovox_server::mesh::tile::iso_value;
 use std::io::{BufWriter, Write};
 use std::path::PathBuf;
@@ -49,12 +50,12 @@ pub(super) fn mesh(a: MeshArgs) -> anyhow::Result<()> {
     };
     let layout = snap.layout();
     let iso = iso_value(a.iso, layout.voxel_type()).map_err(anyhow::Error::msg)?;
-    let tiles = match (&a.camera, &a.radii) {
+    let (tiles, stitched) = match (&a.camera, &a.radii) {
         (Some(c), Some(r)) => {
             if c.len() != 3 {
                 bail!("--camera takes X,Y,Z");
             }
-            adaptive_tiles(&snap, [c[0], c[1], c[2]], r)
+            (balanced_tiles(&snap, [c[0], c[1], c[2]], r), true)
         }
         (None, None) => {
             if a.level >= layout.levels() {
@@ -64,12 +65,16 @@ pub(super) fn mesh(a: MeshArgs) -> anyhow::Result<()> {
                     layout.levels() - 1
                 );
             }
-            level_tiles(&snap, a.level)
+            (level_tiles(&snap, a.level), false)
         }
         _ => bail!("--camera and --radii go together"),
     };
     let start = Instant::now();
-    let raw = mesh_tiles(&snap, &tiles, iso, &progress("meshing"))?;
+    let raw = if stitched {
+        mesh_stitched(&snap, &tiles, iso, &progress("meshing"))?
+    } else {
+        mesh_tiles(&snap, &tiles, iso, &progress("meshing"))?
+    };
     let mesh = weld(&raw);
     let elapsed = start.elapsed();
     let tmp = isovox_server::store::build::sibling(&a.output, ".isovox-tmp");

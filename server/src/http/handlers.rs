@@ -66,10 +66,11 @@ pub struct MeshQuery {
     pub format: Option<String>,
 }
 
-/// One mesh tile: marching cubes over the brick and its halo, through the content-keyed mesh
-/// cache, meshed, encoded and (for clients that take it) zstd-compressed off the async runtime.
-/// `ETag` names the tile's inputs and position, so a revalidation costs 27 index lookups and no
-/// meshing.
+/// One mesh tile with its transition data (`docs/mesh-encoding.md`): marching cubes over the
+/// brick and its halo, through the content-keyed mesh cache, meshed, encoded and (for clients
+/// that take it) zstd-compressed off the async runtime. `ETag` names the tile's inputs and
+/// position, so a revalidation costs index lookups (27 bricks and the coarser ones its strips
+/// read) and no meshing.
 pub async fn mesh_tile(
     State(state): State<AppState>,
     Path((name, level, x, y, z)): Path<BrickPath>,
@@ -108,12 +109,12 @@ pub async fn mesh_tile(
     let body = state
         .cpu
         .answer(0, move || {
-            let mesh = tile.mesh(&meshes, bricks)?;
+            let tile = tile.mesh(&meshes, bricks)?;
             Ok::<_, VolumeError>(Body::new(
                 if glb {
-                    isovox_proto::mesh::encode_glb(&mesh)
+                    isovox_proto::mesh::encode_glb_tile(&tile)
                 } else {
-                    isovox_proto::mesh::encode_compact(&mesh)
+                    isovox_proto::mesh::encode_tile(&tile)
                 },
                 zstd,
             ))

@@ -170,13 +170,13 @@ pub(super) fn document(limits: &TermLimits) -> Value {
                 "responses": merge(json!({"200": {"description": "the grid or the voxels", "content": merge(json!({"application/json": {"schema": schema_ref("LevelGrid")}}), binary("application/octet-stream"))}}),
                     problem_responses(&["400", "404", "413", "500", "503"]))}},
             "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}": {"get": {
-                "summary": "the marching-cubes mesh of one tile, in world coordinates",
+                "summary": "the marching-cubes mesh of one tile, in world coordinates, with its transition data: secondary positions and one strip per face, to join tiles one level coarser without cracks (docs/mesh-encoding.md, docs/lod-meshes.md)",
                 "parameters": [name, level, coord("x"), coord("y"), coord("z"), version,
                     query_param("iso", json!({"type": "number", "minimum": 0, "maximum": u16::MAX}),
                         "iso value, default S - 0.5; within the volume's [L, H] (0..255 for u8 voxels, 0..65535 for u16: 400 beyond)"),
-                    query_param("format", json!({"type": "string", "enum": ["compact", "glb"]}), "compact (default, see proto/src/mesh.rs) or glb")],
+                    query_param("format", json!({"type": "string", "enum": ["compact", "glb"]}), "compact (default: format version 2 with the transition section, docs/mesh-encoding.md) or glb (the regular mesh as a plain glTF primitive, the transition section in a buffer view named by the mesh's extras)")],
                 "responses": merge(json!({
-                    "200": {"description": "the mesh", "content": merge(binary("application/x-isovox-mesh"), binary("model/gltf-binary"))},
+                    "200": {"description": "the tile: its regular mesh and transition data", "content": merge(binary("application/x-isovox-mesh"), binary("model/gltf-binary"))},
                     "304": {"description": "not modified"}}), problem_responses(&["400", "404", "500", "503"]))}},
         },
         "components": {"securitySchemes": {"bearer": {"type": "http", "scheme": "bearer"}}, "schemas": {

@@ -1,27 +1,28 @@
 //! The mesh cache: tiles keyed by the content of their inputs.
 //!
-//! The tile key ([`super::tile::tile_inputs`]) is a hash of the 27 bricks' content hashes (or
-//! constant values), the level, the iso value and the tile's shape, and the cached mesh is in
-//! tile-local coordinates. So identical tiles anywhere, in any volume, are meshed once, and an
+//! The tile key ([`super::tile::tile_inputs`]) is a hash of the content hashes (or constant
+//! values) of the bricks the tile reads, of its level and of the next coarser one (its
+//! transition strips read those), the level, the iso value and the tile's shape, and the cached
+//! tile (regular mesh and transition data) is in tile-local coordinates. So identical tiles anywhere, in any volume, are meshed once, and an
 //! edit invalidates exactly the tiles whose inputs changed: their key changes; the old entry
 //! ages out. The decoded bricks a tile reads come from the scratch's shared brick cache
 //! ([`crate::store::decoded`]).
 
-use super::mc::Mesh;
 use super::tile::{mesh_tile_from, TileInputs, TileScratch};
 use crate::store::lru::ByteLru;
 use crate::store::{Snapshot, StoreError};
+use isovox_proto::mesh::TileMesh;
 use isovox_proto::BrickKey;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
-/// A tile's mesh from the cache: local coordinates (see [`super::tile::to_world`]).
+/// A tile from the cache: local coordinates (see [`super::tile::tile_to_world`]).
 #[derive(Debug, Clone)]
 pub struct CachedTile {
     /// The tile's content key.
     pub key: u128,
-    /// The mesh, in tile-local coordinates.
-    pub mesh: Arc<Mesh>,
+    /// The regular mesh and transition data, in tile-local coordinates.
+    pub tile: Arc<TileMesh>,
     /// Whether it came from the cache.
     pub hit: bool,
 }
@@ -29,13 +30,18 @@ pub struct CachedTile {
 /// Tile meshes, bounded by bytes; thread-safe.
 #[derive(Debug)]
 pub struct MeshCache {
-    tiles: ByteLru<Mesh>,
+    tiles: ByteLru<TileMesh>,
     hits: AtomicU64,
     misses: AtomicU64,
 }
 
-fn mesh_bytes(m: &Mesh) -> usize {
-    m.positions.len() * 24 + m.indices.len() * 4 + 64
+fn tile_bytes(t: &TileMesh) -> usize {
+    let tr = &t.transitions;
+    let strips: usize = tr.strips.iter().map(Vec::len).sum();
+    (t.mesh.positions.len() + tr.positions.len()) * 24
+        + (t.mesh.indices.len() + strips) * 4
+        + tr.moves.len() * std::mem::size_of::<isovox_proto::mesh::VertexMove>()
+        + 128
 }
 
 impl MeshCache {
@@ -63,8 +69,8 @@ impl MeshCache {
         self.misses.load(Ordering::Relaxed)
     }
 
-    /// The local mesh of tile `key` with inputs `inputs` (from [`super::tile::tile_inputs`]),
-    /// from the cache or meshed now with `scratch` (and then cached).
+    /// The local tile `key` with inputs `inputs` (from [`super::tile::tile_inputs`]), from the
+    /// cache or meshed now with `scratch` (and then cached).
     ///
     /// # Errors
     /// A brick fails to read.
@@ -76,22 +82,22 @@ impl MeshCache {
         inputs: &TileInputs,
         scratch: &mut TileScratch,
     ) -> Result<CachedTile, StoreError> {
-        if let Some(mesh) = self.tiles.get(inputs.key) {
+        if let Some(tile) = self.tiles.get(inputs.key) {
             self.hits.fetch_add(1, Ordering::Relaxed);
             return Ok(CachedTile {
                 key: inputs.key,
-                mesh,
+                tile,
                 hit: true,
             });
         }
         self.misses.fetch_add(1, Ordering::Relaxed);
-        let mut mesh = Mesh::default();
-        mesh_tile_from(snap, key, iso, inputs, &mut mesh, scratch)?;
-        let mesh = Arc::new(mesh);
-        self.tiles.put(inputs.key, mesh.clone(), mesh_bytes(&mesh));
+        let mut tile = TileMesh::default();
+        mesh_tile_from(snap, key, iso, inputs, &mut tile, scratch)?;
+        let tile = Arc::new(tile);
+        self.tiles.put(inputs.key, tile.clone(), tile_bytes(&tile));
         Ok(CachedTile {
             key: inputs.key,
-            mesh,
+            tile,
             hit: false,
         })
     }

@@ -1,10 +1,11 @@
-//! Whole levels and adaptive selections of tiles, meshed in parallel and welded.
+//! Whole levels and adaptive selections of tiles, meshed in parallel, stitched and welded.
 
 use super::mc::Mesh;
-use super::tile::{mesh_tile, TileScratch};
+use super::tile::{mesh_tile, mesh_tile_with_transitions, TileScratch};
 use crate::progress::Progress;
 use crate::store::decoded::DecodedBricks;
 use crate::store::{Snapshot, StoreError};
+use isovox_proto::mesh::{stitch, TileMesh};
 use isovox_proto::BrickKey;
 use rayon::prelude::*;
 use std::collections::HashMap;
@@ -27,9 +28,40 @@ pub fn level_tiles(snap: &Snapshot, level: u8) -> Vec<BrickKey> {
 }
 
 /// The tiles the thesis's spherical detail bias selects for `camera` (see
-/// [`isovox_proto::lod::adaptive_tiles`], which the client's streamer uses too).
+/// [`isovox_proto::lod::adaptive_tiles`]); neighbours may differ by more than one level.
 pub fn adaptive_tiles(snap: &Snapshot, camera: [f32; 3], radii: &[f32]) -> Vec<BrickKey> {
     isovox_proto::lod::adaptive_tiles(snap.layout(), snap.header().voxel_scale, camera, radii)
+}
+
+/// The tiles to stitch for `camera`: the adaptive selection refined until neighbours differ by
+/// at most one level ([`isovox_proto::lod::balanced_tiles`], which the client's streamer and
+/// the web viewer use too).
+pub fn balanced_tiles(snap: &Snapshot, camera: [f32; 3], radii: &[f32]) -> Vec<BrickKey> {
+    isovox_proto::lod::balanced_tiles(snap.layout(), snap.header().voxel_scale, camera, radii)
+}
+
+/// Runs `mesh` on every tile of `tiles` in parallel, each thread with its own scratch sharing
+/// one cache of decoded bricks (each brick is read whole by up to 27 tiles), in the order given.
+fn in_parallel<T: Send>(
+    tiles: &[BrickKey],
+    progress: &dyn Progress,
+    mesh: impl Fn(&mut TileScratch, BrickKey) -> Result<T, StoreError> + Sync,
+) -> Result<Vec<T>, StoreError> {
+    progress.start(tiles.len() as u64);
+    let bricks = std::sync::Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
+    let parts = tiles
+        .par_iter()
+        .map_init(
+            || TileScratch::with_bricks(bricks.clone()),
+            |scratch, &key| {
+                let part = mesh(scratch, key)?;
+                progress.advance(1);
+                Ok(part)
+            },
+        )
+        .collect::<Result<_, StoreError>>()?;
+    progress.finish();
+    Ok(parts)
 }
 
 /// Meshes `tiles` in parallel, one mesh per tile (world coordinates), in the order given.
@@ -42,23 +74,11 @@ pub fn mesh_tile_parts(
     iso: f32,
     progress: &dyn Progress,
 ) -> Result<Vec<Mesh>, StoreError> {
-    progress.start(tiles.len() as u64);
-    // Decoded bricks shared by all tiles of this pass: each is read whole by up to 27 tiles.
-    let bricks = std::sync::Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
-    let parts = tiles
-        .par_iter()
-        .map_init(
-            || TileScratch::with_bricks(bricks.clone()),
-            |scratch, &key| {
-                let mut m = Mesh::default();
-                mesh_tile(snap, key, iso, &mut m, scratch)?;
-                progress.advance(1);
-                Ok(m)
-            },
-        )
-        .collect::<Result<_, StoreError>>()?;
-    progress.finish();
-    Ok(parts)
+    in_parallel(tiles, progress, |scratch, key| {
+        let mut m = Mesh::default();
+        mesh_tile(snap, key, iso, &mut m, scratch)?;
+        Ok(m)
+    })
 }
 
 /// Meshes `tiles` in parallel and concatenates the results (vertices on tile seams appear once
@@ -80,7 +100,51 @@ pub fn mesh_tiles(
     Ok(out)
 }
 
-/// Merges vertices with bit-identical positions (the seam vertices of neighbouring tiles).
+/// Meshes `tiles` (a balanced selection, as [`balanced_tiles`] gives) in parallel with their
+/// transition data, one tile per key (world coordinates), in the order given.
+///
+/// # Errors
+/// A brick fails to read.
+pub fn mesh_stitchable_parts(
+    snap: &Snapshot,
+    tiles: &[BrickKey],
+    iso: f32,
+    progress: &dyn Progress,
+) -> Result<Vec<TileMesh>, StoreError> {
+    in_parallel(tiles, progress, |scratch, key| {
+        let mut tile = TileMesh::default();
+        mesh_tile_with_transitions(snap, key, iso, &mut tile, scratch)?;
+        Ok(tile)
+    })
+}
+
+/// Meshes `tiles` (a balanced selection covering the volume once, as [`balanced_tiles`] gives)
+/// and stitches them: each tile drawn with the face mask [`isovox_proto::lod::face_masks`]
+/// gives it, all concatenated (see [`weld`]).
+///
+/// # Errors
+/// A brick fails to read.
+pub fn mesh_stitched(
+    snap: &Snapshot,
+    tiles: &[BrickKey],
+    iso: f32,
+    progress: &dyn Progress,
+) -> Result<Mesh, StoreError> {
+    let parts = mesh_stitchable_parts(snap, tiles, iso, progress)?;
+    let masks = isovox_proto::lod::face_masks(snap.layout(), tiles);
+    let mut out = Mesh::default();
+    let mut drawn = Mesh::default();
+    for (tile, &mask) in parts.iter().zip(&masks) {
+        stitch(tile, mask, &mut drawn);
+        out.append(&drawn);
+    }
+    Ok(out)
+}
+
+/// Merges vertices with bit-identical positions (the seam vertices of neighbouring tiles), and
+/// drops the triangles two of whose corners merge: they have no area. (Within a level no two
+/// vertices coincide; a transition strip's end can hold a fine and a coarse crossing that do,
+/// joined by a triangle of zero area, see [`super::transition`].)
 pub fn weld(mesh: &Mesh) -> Mesh {
     let mut index: HashMap<[u32; 3], u32> = HashMap::with_capacity(mesh.positions.len());
     let mut out = Mesh::default();
@@ -94,33 +158,40 @@ pub fn weld(mesh: &Mesh) -> Mesh {
         });
         remap.push(id);
     }
-    out.indices = mesh.indices.iter().map(|&i| remap[i as usize]).collect();
+    out.indices = mesh
+        .indices
+        .chunks_exact(3)
+        .map(|t| [t[0], t[1], t[2]].map(|i| remap[i as usize]))
+        .filter(|t| t[0] != t[1] && t[1] != t[2] && t[0] != t[2])
+        .flatten()
+        .collect();
     out
 }
 
-/// Checks a welded mesh is closed and 2-manifold: every edge in exactly two triangles, once in
-/// each direction. Returns the number of offending edges.
-pub fn open_edges(mesh: &Mesh) -> usize {
-    let mut count: HashMap<(u32, u32), i32> = HashMap::new();
-    for t in mesh.indices.chunks_exact(3) {
-        for k in 0..3 {
-            let (a, b) = (t[k], t[(k + 1) % 3]);
-            *count.entry((a, b)).or_default() += 1;
-        }
-    }
-    count
-        .iter()
-        .filter(|(&(a, b), &n)| n != 1 || count.get(&(b, a)) != Some(&1))
-        .count()
-}
-
-/// The volume a closed, outward-wound mesh encloses (divergence theorem).
-pub fn enclosed_volume(mesh: &Mesh) -> f64 {
-    mesh.indices
+/// [`weld`], carrying one flag per triangle (which tile or strip it came from, say) over to the
+/// triangles it keeps; also returns how many it dropped.
+///
+/// # Panics
+/// `flags` does not have one flag per triangle.
+pub fn weld_flagged(mesh: &Mesh, flags: &[bool]) -> (Mesh, Vec<bool>, usize) {
+    assert_eq!(flags.len(), mesh.triangles(), "one flag per triangle");
+    let kept: Vec<bool> = mesh
+        .indices
         .chunks_exact(3)
         .map(|t| {
-            let [a, b, c] = [t[0], t[1], t[2]].map(|i| mesh.positions[i as usize].map(f64::from));
-            crate::geometry::tetra_volume(a, b, c)
+            let [a, b, c] =
+                [t[0], t[1], t[2]].map(|i| mesh.positions[i as usize].map(f32::to_bits));
+            a != b && b != c && a != c
         })
-        .sum()
+        .collect();
+    let flags: Vec<bool> = flags
+        .iter()
+        .zip(&kept)
+        .filter(|(_, &k)| k)
+        .map(|(&f, _)| f)
+        .collect();
+    let welded = weld(mesh);
+    debug_assert_eq!(welded.triangles(), flags.len());
+    let dropped = kept.iter().filter(|&&k| !k).count();
+    (welded, flags, dropped)
 }

@@ -23,9 +23,57 @@ pub struct Field<'a> {
 }
 
 impl Field<'_> {
-    fn index(&self, p: [i64; 3]) -> usize {
+    /// The index in `values` of point `p` (inside the field).
+    pub fn index(&self, p: [i64; 3]) -> usize {
         let l = [0, 1, 2].map(|a| (p[a] - self.origin[a]) as usize);
         (l[2] * self.size[1] + l[1]) * self.size[0] + l[0]
+    }
+
+    /// Whether point `p` lies in the field.
+    pub fn contains(&self, p: [i64; 3]) -> bool {
+        (0..3).all(|a| p[a] >= self.origin[a] && p[a] < self.origin[a] + self.size[a] as i64)
+    }
+
+    /// The value at point `p`. Panics if `p` is outside the field.
+    pub fn value(&self, p: [i64; 3]) -> f32 {
+        assert!(self.contains(p), "point {p:?} outside the field");
+        self.values[self.index(p)]
+    }
+
+    /// The negated central-difference gradient at `p` (pointing from inside to outside), not
+    /// normalized. `p` and its six neighbours must lie in the field.
+    pub fn outward_gradient(&self, p: [i64; 3]) -> [f32; 3] {
+        self.gradient_at(self.index(p)).map(|c| -c)
+    }
+
+    /// Where the iso-surface crosses the grid edge from `p0` along `axis` (its endpoint values
+    /// straddle `iso`): the parameter t from `p0`, and the unit normal, computed exactly as
+    /// [`march`] computes them, so a caller meshing the same edge from the same field gets the
+    /// same bits. `p0`, `p0 + axis` and their neighbours must lie in the field.
+    pub fn crossing(&self, p0: [i64; 3], axis: usize, iso: f32) -> (f32, [f32; 3]) {
+        let i0 = self.index(p0);
+        let stride = [1, self.size[0], self.size[0] * self.size[1]][axis];
+        let (v0, v1) = (self.values[i0], self.values[i0 + stride]);
+        let t = (iso - v0) / (v1 - v0);
+        (t, self.crossing_normal(i0, axis, t, v1 >= iso))
+    }
+
+    /// The unit normal of a crossing at parameter `t` on the edge from flat index `i0` along
+    /// `axis` (see [`Field::crossing`]).
+    #[inline]
+    fn crossing_normal(&self, i0: usize, axis: usize, t: f32, upper_inside: bool) -> [f32; 3] {
+        let stride = [1, self.size[0], self.size[0] * self.size[1]][axis];
+        let (g0, g1) = (self.gradient_at(i0), self.gradient_at(i0 + stride));
+        let g = [0, 1, 2].map(|a| g0[a] + t * (g1[a] - g0[a]));
+        let len = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
+        if len > 0.0 {
+            g.map(|c| -c / len)
+        } else {
+            // Flat gradient: point along the edge, from inside to outside.
+            let mut d = [0f32; 3];
+            d[axis] = if upper_inside { -1.0 } else { 1.0 };
+            d
+        }
     }
 
     /// Central differences at the point with flat index `i` (strides 1, size x, size x * y).
@@ -44,11 +92,70 @@ impl Field<'_> {
 pub use isovox_proto::mesh::Mesh;
 
 /// Reusable per-call memory: the vertex id of each grid edge already visited, stamped with the
-/// call that wrote it so the table never needs clearing between calls.
+/// call that wrote it so the table never needs clearing between calls; and the vertices the last
+/// call made on edges that touch the boundary of its cells (the transition kernel moves them).
 #[derive(Debug, Default)]
 pub struct Scratch {
     edge_vertex: Vec<(u32, u32)>,
     stamp: u32,
+    /// The last call's `lo` and cell counts, to find its edges again.
+    lo: [i64; 3],
+    n: [usize; 3],
+    /// Vertices of the last call whose edge has an endpoint on the boundary of `[lo, hi]`.
+    pub border: Vec<BorderVertex>,
+}
+
+/// A vertex on a grid edge with an endpoint on the boundary of the marched cells.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BorderVertex {
+    /// Its index in the mesh.
+    pub id: u32,
+    /// The edge's lower endpoint.
+    pub p0: [i64; 3],
+    /// The edge's direction (0, 1, 2: x, y, z).
+    pub axis: u8,
+    /// Where the vertex lies on the edge, from `p0`.
+    pub t: f32,
+    /// The faces of `[lo, hi]` each endpoint lies on (bit 2a: the face at `lo[a]`, bit 2a + 1:
+    /// the face at `hi[a]`).
+    pub faces: [u8; 2],
+}
+
+impl Scratch {
+    /// Forgets the last [`march`]: as if it had marched cells without a surface.
+    pub fn forget(&mut self) {
+        self.stamp = self.stamp.wrapping_add(1);
+        if self.stamp == 0 {
+            self.edge_vertex.clear();
+            self.stamp = 1;
+        }
+        self.border.clear();
+    }
+
+    /// The id of the vertex the last [`march`] made on the grid edge from `p0` along `axis`, if
+    /// it made one (the edge is crossed and lies within the cells it marched).
+    pub fn vertex_on_edge(&self, p0: [i64; 3], axis: usize) -> Option<u32> {
+        let l = [0, 1, 2].map(|a| p0[a] - self.lo[a]);
+        if (0..3).any(|a| l[a] < 0 || l[a] as usize > self.n[a]) {
+            return None;
+        }
+        let l = l.map(|c| c as usize);
+        let slot = (((l[2] * (self.n[1] + 1) + l[1]) * (self.n[0] + 1) + l[0]) * 3) + axis;
+        match self.edge_vertex.get(slot) {
+            Some(&(stamp, id)) if stamp == self.stamp && self.stamp != 0 => Some(id),
+            _ => None,
+        }
+    }
+}
+
+/// The faces of the box `[lo, hi]` that point `p` lies on (bit 2a: `p[a] == lo[a]`, bit 2a + 1:
+/// `p[a] == hi[a]`).
+pub fn faces_of(p: [i64; 3], lo: [i64; 3], hi: [i64; 3]) -> u8 {
+    let mut f = 0;
+    for a in 0..3 {
+        f |= u8::from(p[a] == lo[a]) << (2 * a) | u8::from(p[a] == hi[a]) << (2 * a + 1);
+    }
+    f
 }
 
 /// Marches the cells whose lower corners lie in `[lo, hi)` and appends their triangles to `out`,
@@ -90,6 +197,9 @@ pub fn march(
         scratch.stamp = 1;
     }
     let stamp = scratch.stamp;
+    scratch.lo = lo;
+    scratch.n = n;
+    scratch.border.clear();
     let table = table();
     let row = |y: i64, z: i64| {
         let start = (((z - field.origin[2]) as usize * field.size[1])
@@ -139,23 +249,23 @@ pub fn march(
                         let t = (iso - v0) / (v1 - v0);
                         let mut pos = [0, 1, 2].map(|a| (p0[a] - frame[a]) as f32);
                         pos[axis] += t;
-                        let i0 = field.index(p0);
-                        let stride = [1, field.size[0], field.size[0] * field.size[1]][axis];
-                        let (g0, g1) = (field.gradient_at(i0), field.gradient_at(i0 + stride));
-                        let g = [0, 1, 2].map(|a| g0[a] + t * (g1[a] - g0[a]));
-                        let len = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
-                        let normal = if len > 0.0 {
-                            g.map(|c| -c / len)
-                        } else {
-                            // Flat gradient: point along the edge, from inside to outside.
-                            let mut d = [0f32; 3];
-                            d[axis] = if v1 >= iso { -1.0 } else { 1.0 };
-                            d
-                        };
+                        let normal = field.crossing_normal(field.index(p0), axis, t, v1 >= iso);
                         id = out.positions.len() as u32;
                         out.positions.push(pos);
                         out.normals.push(normal);
                         scratch.edge_vertex[slot] = (stamp, id);
+                        let mut p1 = p0;
+                        p1[axis] += 1;
+                        let faces = [faces_of(p0, lo, hi), faces_of(p1, lo, hi)];
+                        if faces != [0, 0] {
+                            scratch.border.push(BorderVertex {
+                                id,
+                                p0,
+                                axis: axis as u8,
+                                t,
+                                faces,
+                            });
+                        }
                     }
                     out.indices.push(id);
                 }

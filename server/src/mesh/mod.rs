@@ -2,15 +2,23 @@
 //!
 //! Layout:
 //! - [`cache`]: tile meshes keyed by the content of their inputs, an LRU bounded by bytes.
+//! - [`check`]: checks of assembled meshes (closed, enclosed volume, crossing triangles).
 //! - [`files`]: GLB, OBJ and PLY output.
-//! - [`level`]: whole levels and adaptive tile selections, welding, closedness checks.
+//! - [`lattice`]: where each level's samples sit: one nested lattice for all levels.
+//! - [`level`]: whole levels and adaptive selections of tiles, stitching, welding.
 //! - [`mc`]: the kernel over a sample grid.
 //! - [`tile`]: one brick's mesh with its halo, in world coordinates (the seam rule).
 //! - [`table`]: the case table, generated with a face-consistent rule.
+//! - [`transition`]: transition strips and secondary positions, the seam rule across levels.
+//! - [`transition_table`]: the transition-cell table, generated with the same face rule.
 
 pub mod cache;
+pub mod check;
 pub mod files;
+pub mod lattice;
 pub mod level;
 pub mod mc;
 pub mod table;
 pub mod tile;
+pub mod transition;
+pub mod transition_table;

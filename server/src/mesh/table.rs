@@ -88,24 +88,70 @@ fn triangles(case: u8, faces: &[[u8; 4]]) -> Vec<u8> {
     // next[e] = the edge the contour goes to after edge e.
     let mut next = [u8::MAX; 12];
     for f in faces {
-        for i in 0..4 {
-            // A run starts at corner f[i] when it is inside and its predecessor is not.
-            let prev = f[(i + 3) % 4];
-            if !inside(f[i]) || inside(prev) {
-                continue;
-            }
-            let mut j = i;
-            while inside(f[(j + 1) % 4]) {
-                j = (j + 1) % 4;
-            }
-            let enter = edge_between(prev, f[i]);
-            let leave = edge_between(f[j], f[(j + 1) % 4]);
-            next[enter as usize] = leave;
+        run_segments(f, inside, edge_between, &mut next);
+    }
+    // The faces each edge lies on, as bits in the order of `faces`.
+    let on: [u8; 12] = std::array::from_fn(|e| {
+        let (a, b) = EDGES[e];
+        faces
+            .iter()
+            .enumerate()
+            .filter(|(_, f)| f.contains(&a) && f.contains(&b))
+            .fold(0, |m, (i, _)| m | 1 << i)
+    });
+    let mut out = Vec::new();
+    for lp in chain(&next) {
+        // Fan, in loop order: the loop runs counter-clockwise seen from outside the surface, so
+        // the triangles' normals point outwards (checked by `single_corner_faces_out`). From
+        // the first vertex whose fan has no triangle lying in a face of the cell: a loop that
+        // crosses an ambiguous face twice has four vertices there, and a triangle on three of
+        // them would lie where the cell across that face may draw one too.
+        let n = lp.len();
+        let flat = |i: usize, k: usize| {
+            let t = [lp[i], lp[(i + k) % n], lp[(i + k + 1) % n]];
+            on[t[0] as usize] & on[t[1] as usize] & on[t[2] as usize] != 0
+        };
+        let apex = (0..n)
+            .find(|&i| (1..n - 1).all(|k| !flat(i, k)))
+            .unwrap_or(0);
+        for k in 1..n - 1 {
+            out.extend_from_slice(&[lp[apex], lp[(apex + k) % n], lp[(apex + k + 1) % n]]);
         }
     }
+    out
+}
+
+/// The face rule, shared with the transition table: on a face given by its corners
+/// counter-clockwise seen from outside the cell, each maximal run of inside corners gives one
+/// segment, from the edge entering the run to the edge leaving it, written `next[enter] =
+/// leave`. `edge(a, b)` names the edge joining consecutive corners a and b.
+pub fn run_segments<const N: usize>(
+    face: &[u8],
+    inside: impl Fn(u8) -> bool,
+    edge: impl Fn(u8, u8) -> u8,
+    next: &mut [u8; N],
+) {
+    let k = face.len();
+    for i in 0..k {
+        // A run starts at corner face[i] when it is inside and its predecessor is not.
+        let prev = face[(i + k - 1) % k];
+        if !inside(face[i]) || inside(prev) {
+            continue;
+        }
+        let mut j = i;
+        while inside(face[(j + 1) % k]) {
+            j = (j + 1) % k;
+        }
+        next[edge(prev, face[i]) as usize] = edge(face[j], face[(j + 1) % k]);
+    }
+}
+
+/// The loops of a segment map (`next[e]`: the edge after `e`, `u8::MAX` where `e` is not
+/// crossed), each starting at its smallest edge.
+pub fn chain<const N: usize>(next: &[u8; N]) -> Vec<Vec<u8>> {
     let mut out = Vec::new();
-    let mut used = [false; 12];
-    for start in 0..12u8 {
+    let mut used = [false; N];
+    for start in 0..N as u8 {
         if next[start as usize] == u8::MAX || used[start as usize] {
             continue;
         }
@@ -117,11 +163,7 @@ fn triangles(case: u8, faces: &[[u8; 4]]) -> Vec<u8> {
             used[e as usize] = true;
             e = next[e as usize];
         }
-        // Fan, in loop order: the loop runs counter-clockwise seen from outside the surface, so
-        // the triangles' normals point outwards (checked by `single_corner_faces_out`).
-        for k in 1..lp.len() - 1 {
-            out.extend_from_slice(&[lp[0], lp[k], lp[k + 1]]);
-        }
+        out.push(lp);
     }
     out
 }
@@ -202,6 +244,29 @@ mod tests {
                     n.abs() <= 1,
                     "case {case:#010b}: edge {a}-{b} used {n} times one way"
                 );
+            }
+        }
+    }
+
+    #[test]
+    fn no_triangle_lies_in_a_face_of_the_cell() {
+        // Three crossed edges of one face: each face's edges by hand (x, y, z faces).
+        let face_edges: [[u8; 4]; 6] = [
+            [4, 6, 8, 10],
+            [5, 7, 9, 11],
+            [0, 2, 8, 9],
+            [1, 3, 10, 11],
+            [0, 1, 4, 5],
+            [2, 3, 6, 7],
+        ];
+        for case in 0..=255u8 {
+            for t in table()[case as usize].chunks(3) {
+                for f in &face_edges {
+                    assert!(
+                        !t.iter().all(|e| f.contains(e)),
+                        "case {case:#010b}: triangle {t:?} lies in a face"
+                    );
+                }
             }
         }
     }

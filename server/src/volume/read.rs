@@ -5,7 +5,9 @@
 
 use super::{LiveVolume, VolumeError};
 use crate::mesh::cache::MeshCache;
-use crate::mesh::tile::{iso_value, tile_inputs, to_world, TileInputs, TileScratch};
+use crate::mesh::tile::{
+    iso_value, tile_inputs, tile_to_world, Stitching, TileInputs, TileScratch,
+};
 use crate::store::codec::constant_hash;
 use crate::store::decoded::{decode, DecodedBricks};
 use crate::store::raw::{export_raw, Region};
@@ -13,7 +15,7 @@ use crate::store::{Snapshot, StoredBrick};
 use isovox_proto::api::{LevelBrick, LevelGrid};
 use isovox_proto::batch::MAX_BATCH;
 use isovox_proto::batch::{encode_batch, BatchCodec, BatchEncoding, BatchEntry, BatchRequest};
-use isovox_proto::mesh::Mesh;
+use isovox_proto::mesh::TileMesh;
 use isovox_proto::vod2::Codec;
 use isovox_proto::BrickKey;
 use std::sync::Arc;
@@ -139,7 +141,7 @@ impl LiveVolume {
             .key(level, x, y, z)
             .map_err(|e| VolumeError::OutOfRange(e.to_string()))?;
         let iso = iso_value(iso, snap.layout().voxel_type()).map_err(VolumeError::BadRequest)?;
-        let inputs = tile_inputs(&snap, key, iso)?;
+        let inputs = tile_inputs(&snap, key, iso, Stitching::Transitions)?;
         Ok(TileRead {
             snap,
             key,
@@ -335,16 +337,21 @@ impl TileRead {
         xxhash_rust::xxh3::xxh3_64(&tag)
     }
 
-    /// The tile's mesh in world coordinates: from `meshes` when it holds a tile with the same
-    /// inputs, else meshed now (reading decoded bricks through `bricks`) and kept there.
+    /// The tile in world coordinates, its regular mesh and transition data: from `meshes` when
+    /// it holds a tile with the same inputs, else meshed now (reading decoded bricks through
+    /// `bricks`) and kept there.
     ///
     /// # Errors
     /// A brick fails to read or decode.
-    pub fn mesh(self, meshes: &MeshCache, bricks: Arc<DecodedBricks>) -> Result<Mesh, VolumeError> {
+    pub fn mesh(
+        self,
+        meshes: &MeshCache,
+        bricks: Arc<DecodedBricks>,
+    ) -> Result<TileMesh, VolumeError> {
         let mut scratch = TileScratch::with_bricks(bricks);
-        let tile = meshes.tile(&self.snap, self.key, self.iso, &self.inputs, &mut scratch)?;
-        let mut mesh = (*tile.mesh).clone();
-        to_world(&mut mesh, self.key, &self.snap);
-        Ok(mesh)
+        let cached = meshes.tile(&self.snap, self.key, self.iso, &self.inputs, &mut scratch)?;
+        let mut tile = (*cached.tile).clone();
+        tile_to_world(&mut tile, self.key, &self.snap);
+        Ok(tile)
     }
 }

@@ -1,12 +1,19 @@
 //! `isovox-bench mesh`: marching-cubes throughput next to VTK's Flying Edges and scikit-image,
-//! and the thesis's Tables 6-8 (speed-up by threads, by level, triangles per level, adaptive LOD).
+//! the thesis's Tables 6-8 (speed-up by threads, by level, triangles per level, adaptive LOD),
+//! and what crack-free stitching costs: tiles with their transition data against without
+//! (meshing time, triangles, bytes), and the adaptive LOD's savings once stitched.
 
 use super::median;
 use anyhow::Context;
 use clap::Args;
+use isovox_proto::mesh::{encode_compact, encode_tile, TileMesh};
 use isovox_proto::{VolumeLayout, VoxelType};
 use isovox_server::generate::{EllipsoidSource, WorldSource};
-use isovox_server::mesh::level::{adaptive_tiles, level_tiles, mesh_tile_parts, mesh_tiles};
+use isovox_server::mesh::check::{crossing_triangles, open_edges};
+use isovox_server::mesh::level::{
+    adaptive_tiles, balanced_tiles, level_tiles, mesh_stitchable_parts, mesh_stitched,
+    mesh_tile_parts, mesh_tiles, weld,
+};
 use isovox_server::mesh::tile::default_iso;
 use isovox_server::progress::Silent;
 use isovox_server::store::raw::RawInput;
@@ -41,6 +48,9 @@ pub struct MeshBenchArgs {
 /// A benchmark input: name, RAW path (for the peers), the volume, its dims and voxel type.
 type DataSet = (String, PathBuf, Arc<Snapshot>, [u32; 3], VoxelType);
 
+/// Runs of each side in the transition-data comparison.
+const TRANSITION_RUNS: usize = 5;
+
 struct Run {
     seconds: f64,
     triangles: usize,
@@ -66,6 +76,31 @@ fn mesh_with_threads(snap: &Snapshot, level: u8, threads: usize) -> anyhow::Resu
         seconds: median(times),
         triangles,
     })
+}
+
+/// Level-0 tiles meshed with their transition data against the same tiles without, on one
+/// thread: one warm-up of each, then the two alternate so that a machine whose load changes
+/// slows both alike; the medians (seconds) and the tiles of the last run with transitions.
+fn transitions_against_plain(
+    snap: &Snapshot,
+    runs: usize,
+) -> anyhow::Result<(f64, f64, Vec<TileMesh>)> {
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
+    let tiles = level_tiles(snap, 0);
+    let iso = default_iso(snap.layout().voxel_type());
+    pool.install(|| mesh_tile_parts(snap, &tiles, iso, &Silent))?;
+    pool.install(|| mesh_stitchable_parts(snap, &tiles, iso, &Silent))?;
+    let (mut with, mut without) = (Vec::new(), Vec::new());
+    let mut parts = Vec::new();
+    for _ in 0..runs {
+        let start = Instant::now();
+        pool.install(|| mesh_tile_parts(snap, &tiles, iso, &Silent))?;
+        without.push(start.elapsed().as_secs_f64());
+        let start = Instant::now();
+        parts = pool.install(|| mesh_stitchable_parts(snap, &tiles, iso, &Silent))?;
+        with.push(start.elapsed().as_secs_f64());
+    }
+    Ok((median(with), median(without), parts))
 }
 
 fn peers(raw: &Path, dims: [u32; 3], t: VoxelType) -> anyhow::Result<serde_json::Value> {
@@ -212,6 +247,33 @@ pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
         }
     }
 
+    println!("\n### Transition data (crack-free LOD), level 0, 1 thread\n");
+    println!("Every level-0 tile meshed as served: its regular mesh, the secondary positions of its boundary vertices and one transition strip per face with a neighbour (docs/lod-meshes.md), against the regular mesh alone, in alternating runs (median of {TRANSITION_RUNS} each); bytes in the compact encoding (version 2 against version 1), over the tiles with a surface.\n");
+    println!("| data set | without: Mvoxel/s | with: Mvoxel/s | with / without (time) | tiles with a surface | regular triangles | strip triangles (6 faces) | moves | bytes without | bytes with | bytes more |");
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for (name, _, snap, dims, _) in &sets {
+        eprintln!("bench mesh: transitions, {name}");
+        let voxels = dims.iter().map(|&d| d as f64).product::<f64>();
+        let (with, without, parts) = transitions_against_plain(snap, TRANSITION_RUNS)?;
+        let surfaced: Vec<&TileMesh> = parts
+            .iter()
+            .filter(|t| !t.mesh.is_empty() || !t.transitions.is_empty())
+            .collect();
+        let regular: usize = surfaced.iter().map(|t| t.mesh.triangles()).sum();
+        let strips: usize = surfaced.iter().map(|t| t.transitions.triangles()).sum();
+        let moves: usize = surfaced.iter().map(|t| t.transitions.moves.len()).sum();
+        let bytes_without: usize = surfaced.iter().map(|t| encode_compact(&t.mesh).len()).sum();
+        let bytes_with: usize = surfaced.iter().map(|t| encode_tile(t).len()).sum();
+        println!(
+            "| {name} | {:.0} | {:.0} | {:.2}x | {} | {regular} | {strips} | {moves} | {bytes_without} | {bytes_with} | {:.1}% |",
+            voxels / without / 1e6,
+            voxels / with / 1e6,
+            with / without,
+            surfaced.len(),
+            100.0 * (bytes_with as f64 / bytes_without as f64 - 1.0)
+        );
+    }
+
     println!(
         "\n### Adaptive LOD (thesis Table 8): camera at a corner, level k within radius r_k\n"
     );
@@ -219,21 +281,47 @@ pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
         "| data set | radii (voxels) | tiles | triangles | level-0 triangles | fewer triangles |"
     );
     println!("|---|---|---:|---:|---:|---:|");
+    let mut stitched_rows = Vec::new();
     for (name, _, snap, dims, _) in &sets {
         let max = *dims.iter().max().unwrap_or(&1) as f32;
         let radii = [max / 4.0, max / 2.0, max];
-        let tiles = adaptive_tiles(snap, [0.0, dims[1] as f32, 0.0], &radii);
+        let camera = [0.0, dims[1] as f32, 0.0];
+        let tiles = adaptive_tiles(snap, camera, &radii);
         let iso = default_iso(snap.layout().voxel_type());
         let adaptive = mesh_tiles(snap, &tiles, iso, &Silent)?.triangles();
-        let full = mesh_tiles(snap, &level_tiles(snap, 0), iso, &Silent)?.triangles();
+        let full = weld(&mesh_tiles(snap, &level_tiles(snap, 0), iso, &Silent)?);
         println!(
-            "| {name} | {:.0}, {:.0}, {:.0} | {} | {adaptive} | {full} | {:.0}% |",
+            "| {name} | {:.0}, {:.0}, {:.0} | {} | {adaptive} | {} | {:.0}% |",
             radii[0],
             radii[1],
             radii[2],
             tiles.len(),
-            100.0 * (1.0 - adaptive as f64 / full as f64)
+            full.triangles(),
+            100.0 * (1.0 - adaptive as f64 / full.triangles() as f64)
         );
+        // The same view stitched: the selection balanced (neighbours one level apart at most),
+        // each tile drawn with its face mask, welded.
+        let balanced = balanced_tiles(snap, camera, &radii);
+        let start = Instant::now();
+        let stitched = weld(&mesh_stitched(snap, &balanced, iso, &Silent)?);
+        let seconds = start.elapsed().as_secs_f64();
+        let all = vec![true; stitched.triangles()];
+        stitched_rows.push(format!(
+            "| {name} | {} | {} | {} | {:.0}% | {} | {} | {:.0} |",
+            balanced.len(),
+            stitched.triangles(),
+            full.triangles(),
+            100.0 * (1.0 - stitched.triangles() as f64 / full.triangles() as f64),
+            open_edges(&stitched),
+            crossing_triangles(&stitched, &all),
+            seconds * 1e3
+        ));
+    }
+    println!("\nThe same views stitched across levels: the selection balanced so that neighbouring tiles differ by at most one level, each tile drawn with its face mask, welded; open edges (every edge in exactly two triangles, once each way) and pairs of crossing triangles counted over the whole mesh.\n");
+    println!("| data set | tiles | triangles | level-0 triangles | fewer triangles | open edges | crossing pairs | ms (2 threads) |");
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|");
+    for row in stitched_rows {
+        println!("{row}");
     }
     Ok(())
 }

@@ -1,0 +1,90 @@
+// What a mesh tile reads: a port of `proto/src/tile.rs` (the seam rule's arithmetic) and of the
+// bound `server/src/mesh/lattice.rs` puts on a coarse level's lattice values, for the viewer's
+// content keys (`streamer.ts`): a tile's key names every brick it reads, of its level and, for
+// its transition strips, of the next coarser one; and whether a surface can cross it at all.
+
+import type { Layout, TileKey } from "./lod";
+
+type Vec3 = [number, number, number];
+/** A box of grid points or voxels of one level, both ends included. */
+export type GridBox = [Vec3, Vec3];
+
+/** The cells `[lo, hi)` of tile `k` (lattice points of its level): `tile::cells`. */
+export function cells(layout: Layout, k: TileKey): { lo: Vec3; hi: Vec3 } {
+  const b = layout.brick;
+  const pos: Vec3 = [k.x, k.y, k.z];
+  return {
+    lo: pos.map((c) => c * b - (c === 0 ? 1 : 0)) as Vec3,
+    hi: pos.map((c) => (c + 1) * b) as Vec3,
+  };
+}
+
+/** The stored voxels of `level` whose lattice values cover `points`: `tile::stored_box`. */
+export function storedBox(level: number, [lo, hi]: GridBox): GridBox {
+  if (level === 0) return [lo, hi];
+  return [lo.map((c) => c - 2) as Vec3, hi.map((c) => c + 1) as Vec3];
+}
+
+/** The lattice points marching reads: cells' corners and the normals' halo. */
+export function fieldBox(layout: Layout, k: TileKey): GridBox {
+  const { lo, hi } = cells(layout, k);
+  return [lo.map((c) => c - 1) as Vec3, hi.map((c) => c + 1) as Vec3];
+}
+
+/** The next coarser level's lattice points the strips read, in that level's units. */
+export function coarseBox(layout: Layout, k: TileKey): GridBox {
+  const { lo, hi } = cells(layout, k);
+  return [lo.map((c) => Math.floor(c / 2) - 1) as Vec3, hi.map((c) => c / 2 + 1) as Vec3];
+}
+
+/** The bricks holding `voxels`: first and last brick position per axis (maybe outside the grid). */
+export function bricksOf(brick: number, [lo, hi]: GridBox): GridBox {
+  return [lo.map((c) => Math.floor(c / brick)) as Vec3, hi.map((c) => Math.floor(c / brick)) as Vec3];
+}
+
+/** What a mesh tile with its transition data reads (`tile::mesh_tile_reads`), per level. */
+export interface TileRead {
+  level: number;
+  /** The bricks read. */
+  bricks: GridBox;
+  /** The bricks whose voxels decide whether a surface crosses the tile. */
+  crossing: GridBox;
+}
+
+export function meshTileReads(layout: Layout, k: TileKey): TileRead[] {
+  const { lo, hi } = cells(layout, k);
+  const reads: TileRead[] = [
+    {
+      level: k.level,
+      bricks: bricksOf(layout.brick, storedBox(k.level, fieldBox(layout, k))),
+      crossing: bricksOf(layout.brick, storedBox(k.level, [lo, hi])),
+    },
+  ];
+  if (k.level + 1 < layout.levels) {
+    const coarse = bricksOf(layout.brick, storedBox(k.level + 1, coarseBox(layout, k)));
+    reads.push({ level: k.level + 1, bricks: coarse, crossing: coarse });
+  }
+  return reads;
+}
+
+/**
+ * Bounds of the lattice values of `level` computed from stored voxels within `[min, max]`
+ * (`lattice::value_range`): Catmull-Rom's negative weights overshoot the range by a fraction of
+ * its width, rounding adds a half; level 0 is exact.
+ */
+export function valueRange(level: number, min: number, max: number): [number, number] {
+  if (level === 0) return [min, max];
+  const s = 0.5 + 1 / 2 ** (level + 1);
+  const w = [
+    (-(s ** 3) + 2 * s * s - s) / 2,
+    (3 * s ** 3 - 5 * s * s + 2) / 2,
+    (-3 * s ** 3 + 4 * s * s + s) / 2,
+    (s ** 3 - s * s) / 2,
+  ];
+  const negative = w.filter((x) => x < 0).reduce((a, x) => a - x, 0);
+  const positive = 1 + negative;
+  const overshoot = 3 * positive * positive * negative + negative ** 3;
+  // A hair more than the Rust bound: float32 rounding there, float64 here.
+  const spill = overshoot * (max - min) * (1 + 1e-6);
+  return [min - spill - 0.5, max + spill + 0.5];
+}
