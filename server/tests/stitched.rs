@@ -21,7 +21,7 @@ use isovox_server::mesh::check::{
 };
 use isovox_server::mesh::level::{balanced_tiles, mesh_stitchable_parts, weld_flagged};
 use isovox_server::mesh::mc::Mesh;
-use isovox_server::mesh::tile::default_iso;
+use isovox_server::mesh::tile::{default_iso, mesh_tile_with_transitions, TileScratch};
 use isovox_server::progress::Silent;
 use isovox_server::store::codec::Compression;
 use isovox_server::store::{
@@ -401,4 +401,38 @@ fn stitching_a_single_level_changes_nothing() {
     let got = stitched(&snap, [16.0; 3], &[1e6, 1e6, 1e6], "level 0");
     assert_eq!(got.transition_triangles, 0);
     assert!((got.volume - 2.0 * PI * PI * 9.0 * 16.0).abs() / got.volume < 0.08);
+}
+
+/// At the iso value L every voxel, and the padding outside the volume, is inside: no tile has a
+/// surface, and none fails. (A bright solid against the volume's low faces makes the coarser
+/// lattice dip below L in the padding; strips once met that and reached past the finer field.)
+#[test]
+fn at_the_lowest_iso_value_every_tile_is_empty() {
+    let dir = tempfile::tempdir().unwrap();
+    // 64^3, brick 8: levels 0-3; the cuboid fills the low corner up to the volume's faces.
+    let term = Term::Cuboid {
+        origin: [0, 0, 0],
+        size: [40, 40, 40],
+    };
+    let vod = volume_with(dir.path(), [64, 64, 64], 8, term);
+    let snap = vod.head();
+    let layout = snap.layout().clone();
+    let mut scratch = TileScratch::default();
+    let mut out = isovox_proto::mesh::TileMesh::default();
+    for level in 0..layout.levels() {
+        let grid = layout.grid(level);
+        for z in 0..grid[2] {
+            for y in 0..grid[1] {
+                for x in 0..grid[0] {
+                    let key = BrickKey { level, x, y, z };
+                    mesh_tile_with_transitions(&snap, key, 0.0, &mut out, &mut scratch).unwrap();
+                    assert_eq!(out.mesh.triangles(), 0, "tile {key} at iso 0");
+                    assert!(out.transitions.positions.is_empty(), "tile {key} at iso 0");
+                    // Just above L the cuboid's faces are a surface, inside the volume and on
+                    // its low faces (against the padding).
+                    mesh_tile_with_transitions(&snap, key, 0.5, &mut out, &mut scratch).unwrap();
+                }
+            }
+        }
+    }
 }

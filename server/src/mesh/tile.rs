@@ -230,10 +230,15 @@ pub fn tile_inputs(
         low = low.min(l);
         high = high.max(h);
     }
+    // At or below L every voxel, and the padding outside the volume, is inside: there is no
+    // surface. The coarser lattice values can still dip below L (Catmull-Rom's negative
+    // weights next to bright voxels), which would draw rings of that undershoot, and strips
+    // reaching into the padding where the finer field has no halo for their normals.
+    let surface_possible = iso > layout.voxel_type().low() as f32;
     Ok(TileInputs {
         key: xxhash_rust::xxh3::xxh3_128(&desc),
-        may_cross: low < iso && high >= iso,
-        fine_may_cross: fine_low < iso && fine_high >= iso,
+        may_cross: surface_possible && low < iso && high >= iso,
+        fine_may_cross: surface_possible && fine_low < iso && fine_high >= iso,
         fine_inside: fine_low >= iso,
         faces,
     })
@@ -610,7 +615,8 @@ fn fine_face_side(fine: &Field<'_>, points: GridBox, face: usize, iso: f32) -> O
 }
 
 /// The lattice values of `level` over `[lo, hi]` (inclusive), as a field over `out`: the stored
-/// voxels themselves at level 0, resampled from the stored voxels around them above.
+/// voxels themselves at level 0, resampled from the stored voxels around them above; L outside
+/// the volume at every level.
 fn lattice<'o>(
     snap: &Snapshot,
     level: u8,
@@ -636,7 +642,48 @@ fn lattice<'o>(
         size: size(slo, shi),
         values: stored,
     };
-    Ok(lattice_field(&field, (lo, hi), level, scratch, out))
+    let lattice = lattice_field(&field, (lo, hi), level, scratch, &mut *out);
+    let (origin, size) = (lattice.origin, lattice.size);
+    let low = snap.layout().voxel_type().low() as f32;
+    pad_outside(out, (origin, size), snap.layout().dims(), level, low);
+    let out: &'o Vec<f32> = out;
+    Ok(Field {
+        origin,
+        size,
+        values: out,
+    })
+}
+
+/// Sets the lattice points of `level` that lie outside the volume (level-0 position `2^k j`
+/// outside `[0, dims)`) to `low`, as level 0's padding is. Resampled there, they would ring
+/// past L next to bright voxels (Catmull-Rom's negative weights, squared across an edge of the
+/// volume), drawing surfaces in the padding that the finer level, all L there, cannot meet:
+/// its transition strips would find crossings where it has no vertices.
+fn pad_outside(
+    values: &mut [f32],
+    (origin, size): ([i64; 3], [usize; 3]),
+    dims: [u32; 3],
+    level: u8,
+    low: f32,
+) {
+    let step = 1i64 << level;
+    let inside = |a: usize, j: i64| (0..i64::from(dims[a])).contains(&(j * step));
+    let last = [0, 1, 2].map(|a| origin[a] + size[a] as i64 - 1);
+    if (0..3).all(|a| inside(a, origin[a]) && inside(a, last[a])) {
+        return;
+    }
+    for z in 0..size[2] {
+        let z_in = inside(2, origin[2] + z as i64);
+        for y in 0..size[1] {
+            let yz_in = z_in && inside(1, origin[1] + y as i64);
+            let row = &mut values[(z * size[1] + y) * size[0]..][..size[0]];
+            for (x, v) in row.iter_mut().enumerate() {
+                if !(yz_in && inside(0, origin[0] + x as i64)) {
+                    *v = low;
+                }
+            }
+        }
+    }
 }
 
 /// One row of stored voxels, as its brick holds it.
