@@ -427,6 +427,21 @@ async fn mesh_tiles_match_the_offline_mesher() {
         400,
     )
     .await;
+    let p = problem(
+        get(format!(
+            "{}/v1/volumes/terrain/meshes/0/0/0/0?format=obj",
+            s.base
+        ))
+        .await
+        .unwrap(),
+        400,
+    )
+    .await;
+    assert!(
+        p.detail.contains("compact") && p.detail.contains("glb"),
+        "{}",
+        p.detail
+    );
     // An iso outside the u8 volume's [0, 255] would put every voxel on one side of the
     // surface: 400 naming the range, not an empty tile. Its ends are values like any other.
     for iso in ["256", "-0.5", "65535", "1e39", "NaN", "inf"] {
@@ -442,9 +457,16 @@ async fn mesh_tiles_match_the_offline_mesher() {
         .await;
         assert!(p.detail.contains("[0, 255]"), "iso={iso}: {}", p.detail);
     }
-    for iso in ["0", "255", "127.5"] {
+    // Tile 0/0/0/0 too: its strips reach into the padding below the volume.
+    for (tile, iso) in [
+        ("2/1/2", "0"),
+        ("2/1/2", "255"),
+        ("2/1/2", "127.5"),
+        ("0/0/0", "0"),
+        ("0/0/0", "0.5"),
+    ] {
         let r = get(format!(
-            "{}/v1/volumes/terrain/meshes/0/2/1/2?iso={iso}",
+            "{}/v1/volumes/terrain/meshes/0/{tile}?iso={iso}",
             s.base
         ))
         .await

@@ -62,8 +62,37 @@ pub struct MeshQuery {
     pub version: Option<u64>,
     /// Iso value; default S - 0.5.
     pub iso: Option<f32>,
-    /// `compact` (default, `application/x-isovox-mesh`) or `glb` (`model/gltf-binary`).
-    pub format: Option<String>,
+    /// `compact` (the default) or `glb`.
+    #[serde(default)]
+    pub format: TileFormat,
+}
+
+/// How a mesh tile is encoded.
+#[derive(Debug, Clone, Copy, Default, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TileFormat {
+    /// `application/x-isovox-mesh` (`docs/mesh-encoding.md`).
+    #[default]
+    Compact,
+    /// `model/gltf-binary`: the regular mesh as a glTF primitive, the transition data in a
+    /// buffer view.
+    Glb,
+}
+
+impl TileFormat {
+    fn encode(self, tile: &isovox_proto::mesh::TileMesh) -> Vec<u8> {
+        match self {
+            TileFormat::Compact => isovox_proto::mesh::encode_tile(tile),
+            TileFormat::Glb => isovox_proto::mesh::encode_glb_tile(tile),
+        }
+    }
+
+    fn media_type(self) -> &'static str {
+        match self {
+            TileFormat::Compact => MESH_MEDIA_TYPE,
+            TileFormat::Glb => "model/gltf-binary",
+        }
+    }
 }
 
 /// One mesh tile with its transition data (`docs/mesh-encoding.md`): marching cubes over the
@@ -77,20 +106,12 @@ pub async fn mesh_tile(
     Query(query): Query<MeshQuery>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    let glb = match query.format.as_deref() {
-        None | Some("compact") => false,
-        Some("glb") => true,
-        Some(other) => {
-            return Err(ApiError::BadRequest(format!(
-                "unknown mesh format {other:?} (compact or glb)"
-            )))
-        }
-    };
+    let format = query.format;
     let tile = state
         .catalog
         .get(&name)?
         .mesh_tile(query.version, (level, x, y, z), query.iso)?;
-    let etag = format!("\"{:016x}\"", tile.tag(glb as u8));
+    let etag = format!("\"{:016x}\"", tile.tag(format as u8));
     let mut response_headers = HeaderMap::new();
     response_headers.insert(
         header::ETAG,
@@ -110,22 +131,10 @@ pub async fn mesh_tile(
         .cpu
         .answer(0, move || {
             let tile = tile.mesh(&meshes, bricks)?;
-            Ok::<_, VolumeError>(Body::new(
-                if glb {
-                    isovox_proto::mesh::encode_glb_tile(&tile)
-                } else {
-                    isovox_proto::mesh::encode_tile(&tile)
-                },
-                zstd,
-            ))
+            Ok::<_, VolumeError>(Body::new(format.encode(&tile), zstd))
         })
         .await?;
-    let media = if glb {
-        "model/gltf-binary"
-    } else {
-        MESH_MEDIA_TYPE
-    };
-    Ok(body.respond(media, response_headers))
+    Ok(body.respond(format.media_type(), response_headers))
 }
 
 /// Many bricks in one response (`proto::batch`), decoded (and compressed) off the async
