@@ -3,6 +3,7 @@
 # scripts/s3-server.py), replicas, and nginx in front.
 #
 #   scripts/bench-scaling.sh            # DIMS=2048 (a 2048^3 world, brick 16); DIMS=512 is quicker
+#   PROFILE=dev DIMS=256 scripts/bench-scaling.sh   # a quick check of the script, no figures
 #
 # Prints: the cold start of a replica (until it serves the volume's metadata) and what it fetched
 # doing so; range requests and bytes fetched per cold brick; the delay from an acknowledged edit
@@ -15,14 +16,17 @@ cd "$(dirname "$0")/.."
 DIMS=${DIMS:-2048}
 WORK=${WORK:-$(mktemp -d /tmp/isovox-bench-scaling.XXXXXX)}
 trap 'kill $(jobs -p) 2>/dev/null || true; rm -rf "$WORK"' EXIT
+# A failing command stops the script (set -e); say which, so that no stage ends in silence.
+trap 'status=$?; echo "bench-scaling.sh: line $LINENO: \`$BASH_COMMAND\` exited with status $status" >&2' ERR
 
 if ! target/s3-venv/bin/python -c 'import moto.server' 2>/dev/null; then
   python3 -m venv target/s3-venv
   target/s3-venv/bin/pip install -q 'moto[server]==5.2.5'
 fi
 command -v nginx >/dev/null || { apt-get update -qq && apt-get install -y -qq nginx >/dev/null; }
-CARGO_BUILD_JOBS=2 cargo build --release -q -p isovox-server --bin isovox -p isovox-tools --bin isovox-load
-BIN=target/release
+PROFILE=${PROFILE:-release}
+CARGO_BUILD_JOBS=2 cargo build --profile "$PROFILE" -q -p isovox-server --bin isovox -p isovox-tools --bin isovox-load
+BIN=target/$([ "$PROFILE" = dev ] && echo debug || echo "$PROFILE")
 
 free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
 S3_PORT=$(free_port)
@@ -143,7 +147,11 @@ R=$(free_port); N=$(free_port)
 replica r "$R"
 until curl -sf "http://127.0.0.1:$R/v1/volumes/w" >/dev/null; do sleep 0.1; done
 mkdir -p "$WORK/nginx"
+# Run as root, nginx's workers would be "nobody", who cannot enter the private work directory
+# (mktemp -d makes it 0700): every cached location then answers 500 (cache files: permission
+# denied). They run as this user instead (nginx ignores the directive when not run as root).
 cat > "$WORK/nginx/nginx.conf" <<EOF
+user $(id -un) $(id -gn);
 worker_processes 2; daemon off; pid $WORK/nginx/pid; error_log $WORK/nginx/error.log;
 events { worker_connections 4096; }
 http { access_log off;
@@ -153,27 +161,58 @@ http { access_log off;
   upstream isovox { server 127.0.0.1:$R; keepalive 64; }
   server { listen 127.0.0.1:$N; include $PWD/docker/nginx/isovox-locations.conf; } }
 EOF
-nginx -c "$WORK/nginx/nginx.conf" -p "$WORK/nginx" &
-sleep 0.5
-reached() { curl -s "http://127.0.0.1:$R/metrics" | awk '/^isovox_requests_total\{route="\/v1\/volumes\/\{name\}\/(blobs|bricks)/ {s+=$2} END {print s+0}'; }
-load() { $BIN/isovox-load --url "$1" --volume w --viewers 50 --duration 20 --json "$2" > "$2.txt" 2>&1; }
+nginx -c "$WORK/nginx/nginx.conf" -p "$WORK/nginx/" -e "$WORK/nginx/error.log" &
+NGINX=$!
+until curl -sf "http://127.0.0.1:$N/v1/volumes/w" >/dev/null; do
+  kill -0 "$NGINX" 2>/dev/null || { echo "nginx did not start:" >&2; cat "$WORK/nginx/error.log" >&2; exit 1; }
+  sleep 0.1
+done
+
+# Requests for bricks and blobs that reached the replica, from its /metrics.
+reached() {
+  curl -sf "http://127.0.0.1:$R/metrics" | python3 -c '
+import re, sys
+total = 0
+for line in sys.stdin:
+    m = re.match(r"isovox_requests_total\{route=\"/v1/volumes/\{name\}/(blobs|bricks)/[^\"]*\",[^}]*\} (\S+)", line)
+    if m:
+        total += int(float(m.group(2)))
+print(total)'
+}
+# isovox-load exits 1 when any request failed during the run: its figures still count, printed
+# with the errors it saw, so a failing run is visible rather than silently fatal.
+load() { # load URL NAME
+  local status=0
+  $BIN/isovox-load --url "$1" --volume w --viewers 50 --duration 20 --json "$WORK/$2.json" > "$WORK/$2.txt" 2>&1 || status=$?
+  if [ "$status" -eq 1 ] && [ -s "$WORK/$2.json" ]; then
+    echo "isovox-load against $1 counted errors:" >&2
+    python3 - "$WORK/$2.json" >&2 <<'EOF'
+import json, sys
+for e in json.load(open(sys.argv[1]))["errors"]:
+    print(f"  {e['count']} x {e['source']}: {e['kind']}")
+EOF
+  elif [ "$status" -ne 0 ]; then
+    echo "isovox-load against $1 failed (status $status):" >&2
+    cat "$WORK/$2.txt" >&2
+    exit "$status"
+  fi
+}
 before=$(reached)
-load "http://127.0.0.1:$N" "$WORK/through-nginx.json"
+load "http://127.0.0.1:$N" through-nginx
 after=$(reached)
-load "http://127.0.0.1:$R" "$WORK/replica-alone.json"
+load "http://127.0.0.1:$R" replica-alone
 python3 - "$WORK" "$before" "$after" <<'EOF'
 import json, sys
 work, before, after = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
-def summary(name):
-    j = json.load(open(f"{work}/{name}.json"))
-    routes = j.get("routes", {})
-    tiles = sum(r.get("requests", 0) for k, r in routes.items() if k in ("blobs", "bricks"))
-    rate = j.get("all", {}).get("requests_per_s") or sum(r.get("requests_per_s", 0) for r in routes.values())
-    return tiles, rate
-tiles, through = summary("through-nginx")
-_, alone = summary("replica-alone")
-reached = after - before
-share = 100.0 * (1 - reached / tiles) if tiles else float("nan")
-print(f"nginx answered {share:.1f}% of {tiles} brick and blob requests without the replica ({reached} reached it)")
-print(f"isovox-load throughput: {through:.0f} req/s through nginx, {alone:.0f} req/s against the replica alone ({through/alone:.2f}x)")
+def report(name):
+    return json.load(open(f"{work}/{name}.json"))
+def tiles(r):
+    return sum(x["requests"] for x in r["routes"] if x["route"] in ("brick", "blob"))
+through, alone = report("through-nginx"), report("replica-alone")
+asked, reached = tiles(through), after - before
+share = 100.0 * (1 - reached / asked) if asked else float("nan")
+print(f"nginx answered {share:.1f}% of {asked} brick and blob requests without the replica ({reached} reached it)")
+t, a = through["total"]["requests_per_s"], alone["total"]["requests_per_s"]
+print(f"isovox-load, 50 viewers for 20 s: {t:.0f} req/s through nginx, {a:.0f} req/s against the replica alone "
+      f"({t / a:.2f}x); errors: {through['errors_total']} through nginx, {alone['errors_total']} alone")
 EOF

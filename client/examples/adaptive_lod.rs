@@ -79,6 +79,8 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
     let base = format!("http://{}", listener.local_addr()?);
     let state = AppState::new(Catalog::open_dir(&dir)?, 1 << 30, 64);
     tokio::spawn(run(listener, state, std::future::pending()));
+    // reqwest has the server's rustls without a built-in provider (isovox_server::client_tls).
+    isovox_server::client_tls::install_provider();
     let client = Client::new(&base)?;
     println!("### Adaptive LOD with the streamer (mesh tiles, camera at a corner (0, 512, 0), radii 128 / 256 / 512 voxels)\n");
     println!("| data set | adaptive: tiles | triangles | bytes | level 0: tiles | triangles | bytes | fewer triangles | fewer bytes |");

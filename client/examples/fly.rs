@@ -85,6 +85,9 @@ fn by_level(m: &BTreeMap<u8, u64>) -> String {
 #[tokio::main]
 async fn main() -> Result<(), Box<dyn std::error::Error>> {
     let a = args()?;
+    // Examples build with the dev-dependencies, the server among them: reqwest then has rustls
+    // without a built-in crypto provider (isovox_server::client_tls), and needs one installed.
+    isovox_server::client_tls::install_provider();
     let client = Client::new(&a.url)?;
     let info = client.volume(&a.volume).await?;
     let config = StreamerConfig {

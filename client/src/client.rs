@@ -144,6 +144,12 @@ impl Client {
     ///
     /// # Errors
     /// The HTTP client cannot be built (TLS or resolver setup).
+    ///
+    /// # Panics
+    /// This crate speaks plain HTTP and enables no TLS in reqwest. A program that also links
+    /// something enabling reqwest's `rustls-no-provider` (the server library does) must install
+    /// a rustls crypto provider first (`isovox_server::client_tls::install_provider`), or
+    /// reqwest panics here.
     pub fn new(base: &str) -> Result<Client, ClientError> {
         let http = reqwest::Client::builder()
             .pool_max_idle_per_host(POOL_PER_HOST)

@@ -146,6 +146,7 @@ impl Counter {
 
 fn counted_client(base: &str) -> (Client, Arc<Counter>) {
     let counter = Arc::new(Counter::default());
+    isovox_server::client_tls::install_provider();
     let client = Client::new(base).unwrap().with_observer(counter.clone());
     (client, counter)
 }
@@ -791,6 +792,7 @@ async fn an_edit_by_another_client_refetches_exactly_the_affected_bricks() {
         })
         .collect();
 
+    isovox_server::client_tls::install_provider();
     let editor = Client::new(&server.base).unwrap().with_token(TOKEN);
     let counts = counter.snapshot();
     let resp = editor
@@ -985,6 +987,7 @@ async fn an_edit_by_another_client_refetches_exactly_the_affected_mesh_tiles() {
     );
     assert_eq!(counter.snapshot().get("blob"), None);
 
+    isovox_server::client_tls::install_provider();
     let editor = Client::new(&server.base).unwrap().with_token(TOKEN);
     let counts = counter.snapshot();
     let resp = editor
@@ -1308,6 +1311,7 @@ async fn when_the_missed_versions_were_compacted_away_the_streamer_reloads() {
     isovox_server::volume::edit_file(&w.path, &carve(ground(&w, 42, 52), 6)).unwrap();
     isovox_server::volume::edit_file(&w.path, &carve(ground(&w, 38, 47), 5)).unwrap();
     let mut other = TestServer::start(w.dir.path(), None);
+    isovox_server::client_tls::install_provider();
     let compacted = Client::new(&other.base)
         .unwrap()
         .with_token(TOKEN)

@@ -106,6 +106,7 @@ impl Server {
 }
 
 fn client() -> reqwest::blocking::Client {
+    isovox_server::client_tls::install_provider();
     reqwest::blocking::Client::builder()
         .timeout(Duration::from_secs(10))
         .build()

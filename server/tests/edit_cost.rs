@@ -49,6 +49,7 @@ fn serve(dir: &Path, flags: &[&str]) -> ServerProcess {
 }
 
 fn client() -> reqwest::blocking::Client {
+    isovox_server::client_tls::install_provider();
     reqwest::blocking::Client::builder()
         .timeout(HANGS)
         .build()
@@ -307,6 +308,7 @@ fn an_edit_whose_client_leaves_is_stopped() {
         &["--edit-timeout", "3600", "--max-edit-voxels", &budget],
     );
     let v0 = version(&server);
+    isovox_server::client_tls::install_provider();
     let impatient = reqwest::blocking::Client::builder()
         .timeout(Duration::from_millis(500))
         .build()

@@ -86,6 +86,7 @@ async fn start() -> Server {
 }
 
 async fn get(url: &str) -> reqwest::Response {
+    isovox_server::client_tls::install_provider();
     reqwest::get(url).await.unwrap()
 }
 
@@ -250,6 +251,7 @@ async fn bad_paths_are_400_or_404_problems() {
 #[tokio::test]
 async fn live_views_revalidate_and_pinned_views_never_change() {
     let s = start().await;
+    isovox_server::client_tls::install_provider();
     let client = reqwest::Client::new();
     let live = get(&format!("{}/zarr/0/c/1/1/2", s.base)).await;
     assert_eq!(live.status(), 200);

@@ -258,6 +258,7 @@ impl Server {
 }
 
 fn client() -> Client {
+    isovox_server::client_tls::install_provider();
     Client::builder()
         .timeout(Duration::from_secs(60))
         .build()

@@ -444,6 +444,7 @@ fn a_server_serves_the_newest_readable_version_read_only() {
         "a loud warning: {}",
         server.log
     );
+    isovox_server::client_tls::install_provider();
     let c = reqwest::blocking::Client::new();
     let url = |p: &str| format!("{}/v1/volumes/w{p}", server.base);
     let info: Value = c.get(url("")).send().unwrap().json().unwrap();
@@ -502,6 +503,7 @@ fn damage_before_the_last_checkpoint_costs_only_the_history_before_it() {
     assert_eq!(Vod2::open(&h.path).unwrap().head().version, HEAD);
     let server = serve(dir.path());
     assert!(!server.log.contains("READ-ONLY"), "{}", server.log);
+    isovox_server::client_tls::install_provider();
     let c = reqwest::blocking::Client::new();
     let url = |p: &str| format!("{}/v1/volumes/w{p}", server.base);
     let edit = post_edit(&c, &url("/edits"), dir.path());

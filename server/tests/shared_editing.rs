@@ -105,6 +105,7 @@ impl Server {
 }
 
 fn client() -> Client {
+    isovox_server::client_tls::install_provider();
     Client::builder()
         .timeout(Duration::from_secs(30))
         .build()

@@ -134,6 +134,7 @@ fn serve_world() -> Served {
 }
 
 fn get(url: &str, headers: &[(&str, &str)]) -> reqwest::blocking::Response {
+    isovox_server::client_tls::install_provider();
     let mut r = reqwest::blocking::Client::new().get(url);
     for (k, v) in headers {
         r = r.header(*k, *v);
@@ -238,6 +239,7 @@ fn mesh_tiles_level_grids_and_batches_go_out_as_zstd_to_clients_that_accept_it()
         .collect();
     let body = format!("{{\"keys\":[{}]}}", keys.join(","));
     let batch = |accept: Option<&str>| {
+        isovox_server::client_tls::install_provider();
         let mut r = reqwest::blocking::Client::new()
             .post(format!("{}/v1/volumes/w/batch", s.base))
             .header("content-type", "application/json")

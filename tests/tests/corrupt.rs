@@ -163,7 +163,7 @@ async fn corrupt_records_answer_500_and_the_rest_is_served() {
     );
     let server = serve(dir.path(), ServerConfig::default()).await;
     let base = format!("{}/v1/volumes/w", server.base());
-    let c = reqwest::Client::new();
+    let c = common::http();
     let get = |p: String| c.get(format!("{base}{p}")).send();
     let voxels_of = |k: BrickKey| voxels_of(k, layout.brick());
     let views_of = |k: BrickKey| views_of(k, layout.brick(), 4);
@@ -363,7 +363,7 @@ async fn one_flipped_payload_byte(compression: Compression, codec: isovox_proto:
 
     let server = serve(dir.path(), ServerConfig::default()).await;
     let base = format!("{}/v1/volumes/w", server.base());
-    let c = reqwest::Client::new();
+    let c = common::http();
     let what = format!("{codec:?} file");
     let voxels_of = |k: BrickKey| voxels_of(k, layout.brick());
     let batch = |keys: &[BrickKey], encoding: &str| {
@@ -586,7 +586,7 @@ async fn files_written_before_payload_checksums_are_verified_by_decoding() {
         flip_payload(&path, bad_offset, &bad_header);
         let server = serve(dir.path(), ServerConfig::default()).await;
         let base = format!("{}/v1/volumes/w", server.base());
-        let c = reqwest::Client::new();
+        let c = common::http();
         let (name, value) = encoding.1.unwrap();
         for _ in 0..2 {
             // The good brick's stored payload goes out as it is (twice: the second time from

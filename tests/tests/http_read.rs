@@ -59,7 +59,7 @@ fn expected_brick(path: &Path, level: u8, x: u32, y: u32, z: u32) -> Vec<u8> {
 #[tokio::test]
 async fn health_list_and_metadata() {
     let s = start().await;
-    let c = reqwest::Client::new();
+    let c = common::http();
     let r = c.get(format!("{}/healthz", s.base)).send().await.unwrap();
     assert_eq!(r.status().as_u16(), 200);
     assert_eq!(r.text().await.unwrap(), "ok");
@@ -101,7 +101,7 @@ async fn health_list_and_metadata() {
 #[tokio::test]
 async fn bricks_are_byte_exact_in_every_encoding() {
     let s = start().await;
-    let c = reqwest::Client::new();
+    let c = common::http();
     let mut checked = 0;
     for (level, x, y, z) in [
         (0u8, 0u32, 0u32, 0u32),
@@ -185,7 +185,7 @@ async fn bricks_are_byte_exact_in_every_encoding() {
 #[tokio::test]
 async fn plain_brick_requests_are_answered_as_the_router_answers_them() {
     let s = start().await;
-    let c = reqwest::Client::new();
+    let c = common::http();
     let vod = Vod2::open(&s.path).unwrap();
     let head = vod.head();
     let layout = head.layout().clone();
@@ -279,7 +279,7 @@ async fn private_reads_guard_bricks() {
         ..ServerConfig::default()
     })
     .await;
-    let c = reqwest::Client::new();
+    let c = common::http();
     for url in [
         "/v1/volumes/terrain/bricks/0/1/1/1",
         "/v1/volumes/terrain/bricks/0/1/1/1?version=1",
@@ -305,7 +305,7 @@ async fn private_reads_guard_bricks() {
 #[tokio::test]
 async fn errors_are_problem_details() {
     let s = start().await;
-    let c = reqwest::Client::new();
+    let c = common::http();
     let get = |p: &str| c.get(format!("{}{p}", s.base)).send();
     let p = problem(get("/v1/volumes/nope").await.unwrap(), 404).await;
     assert!(p.detail.contains("nope"));
@@ -353,7 +353,7 @@ async fn mesh_tiles_match_the_offline_mesher() {
     use isovox_proto::mesh::{decode_compact, Mesh};
     use isovox_server::mesh::tile::{default_iso, mesh_tile, TileScratch};
     let s = start().await;
-    let c = reqwest::Client::new();
+    let c = common::http();
     let vod = Vod2::open(&s.path).unwrap();
     let snap = vod.head();
     let mut nonempty = 0;

@@ -188,7 +188,7 @@ fn blob_samples(snap: &Snapshot) -> Vec<BrickKey> {
 #[tokio::test]
 async fn blobs_by_content_hash() {
     let s = start(&[Vol::Terrain, Vol::Dunes, Vol::Plain], 16).await;
-    let c = reqwest::Client::new();
+    let c = common::http();
     let mut seen_codecs = HashSet::new();
     let (mut constants, mut coarse, mut zstd_sent, mut lz4_as_stored) = (0, 0, 0, 0);
     for vol in [Vol::Terrain, Vol::Dunes, Vol::Plain] {
@@ -383,7 +383,7 @@ async fn blobs_by_content_hash() {
 #[tokio::test]
 async fn blob_hash_with_a_sign_is_malformed() {
     let s = start(&[Vol::Plain], 16).await;
-    let c = reqwest::Client::new();
+    let c = common::http();
     let r = c
         .get(s.url("/v1/volumes/plain/blobs/+123456789abcdef"))
         .send()
@@ -397,7 +397,7 @@ async fn blob_hash_with_a_sign_is_malformed() {
 #[tokio::test]
 async fn weak_if_none_match_revalidates() {
     let s = start(&[Vol::Plain], 16).await;
-    let c = reqwest::Client::new();
+    let c = common::http();
     let snap = s.snap(Vol::Plain);
     let root = all_keys(snap.layout()).pop().unwrap();
     let hash = format!("{:016x}", snap.hash(root).unwrap());
@@ -469,7 +469,7 @@ async fn batch_ok(c: &reqwest::Client, s: &Server, name: &str, body: String) -> 
 #[tokio::test]
 async fn batches_match_the_file() {
     let s = start(&[Vol::Terrain, Vol::Dunes, Vol::Plain], 16).await;
-    let c = reqwest::Client::new();
+    let c = common::http();
     let mut by_codec: HashMap<u8, usize> = HashMap::new();
     for vol in [Vol::Terrain, Vol::Dunes, Vol::Plain] {
         let snap = s.snap(vol);
@@ -563,7 +563,7 @@ async fn batches_match_the_file() {
 #[tokio::test]
 async fn batch_errors_are_problem_details() {
     let s = start(&[Vol::Terrain, Vol::Big], 16).await;
-    let c = reqwest::Client::new();
+    let c = common::http();
     // Malformed JSON, of every kind.
     for body in [
         "",
@@ -648,7 +648,7 @@ async fn batch_errors_are_problem_details() {
 #[tokio::test]
 async fn cors_for_browsers() {
     let s = start(&[Vol::Plain], 16).await;
-    let c = reqwest::Client::new();
+    let c = common::http();
     for url in [
         "/v1/volumes",
         "/v1/volumes/plain/bricks/0/0/0/0",
@@ -708,7 +708,7 @@ async fn cors_for_browsers() {
 #[tokio::test]
 async fn batch_of_the_wrong_media_type_is_415() {
     let s = start(&[Vol::Plain], 16).await;
-    let c = reqwest::Client::new();
+    let c = common::http();
     // Not JSON by content type: the body is fine, the media type is not.
     for ctype in [
         Some("text/plain"),
@@ -801,7 +801,7 @@ async fn level_voxels(c: &reqwest::Client, s: &Server, query: &str) -> Vec<u8> {
 #[tokio::test]
 async fn levels_match_the_file() {
     let s = start(&[Vol::Terrain, Vol::Dunes, Vol::Big], 16).await;
-    let c = reqwest::Client::new();
+    let c = common::http();
     let snap = s.snap(Vol::Terrain);
     let layout = snap.layout();
     // Grids by hand: 100x40x70 with brick 16.
@@ -979,7 +979,7 @@ async fn metrics(c: &reqwest::Client, s: &Server) -> String {
 #[tokio::test]
 async fn metrics_count_requests_and_mesh_cache() {
     let s = start(&[Vol::Terrain], 16).await;
-    let c = reqwest::Client::new();
+    let c = common::http();
     let n = 7;
     for i in 0..n {
         let r = c
@@ -1070,7 +1070,7 @@ async fn metrics_count_requests_and_mesh_cache() {
 #[tokio::test]
 async fn metrics_count_response_bytes() {
     let s = start(&[Vol::Terrain], 16).await;
-    let c = reqwest::Client::new();
+    let c = common::http();
     let mut sent = 0;
     for i in 0..7 {
         let r = c
@@ -1123,7 +1123,7 @@ const ROUTES: [(&str, &str); 19] = [
 #[tokio::test]
 async fn openapi_lists_every_route() {
     let s = start(&[Vol::Plain], 16).await;
-    let c = reqwest::Client::new();
+    let c = common::http();
     let r = c.get(s.url("/openapi.json")).send().await.unwrap();
     assert_eq!(r.status().as_u16(), 200);
     assert_eq!(
@@ -1209,7 +1209,7 @@ async fn openapi_lists_every_route() {
 #[tokio::test]
 async fn no_cpu_permits_means_503_with_retry_after() {
     let s = start(&[Vol::Terrain], 0).await;
-    let c = reqwest::Client::new();
+    let c = common::http();
     let requests = [
         c.get(s.url("/v1/volumes/terrain/meshes/0/2/1/2")),
         c.get(s.url("/v1/volumes/terrain/meshes/1/1/0/1?format=glb")),

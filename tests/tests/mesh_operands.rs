@@ -74,6 +74,8 @@ async fn an_uploaded_mesh_is_unioned_into_a_volume_where_placed() {
     let base = format!("http://{}", listener.local_addr().unwrap());
     let state = AppState::with_config(Catalog::open_dir(dir.path()).unwrap(), config);
     tokio::spawn(run(listener, state, std::future::pending()));
+    // Linked with the server, reqwest's rustls needs a crypto provider installed.
+    isovox_server::client_tls::install_provider();
     let c = reqwest::Client::new();
 
     // Upload: needs a token and a format; a cube missing a face is refused.

@@ -1118,6 +1118,8 @@ pub async fn run_until(
     let started = Instant::now();
     let recorder = Arc::new(Recorder::default());
     let config = Arc::new(config);
+    // Linked with the server library, reqwest's rustls needs ring installed as its provider.
+    isovox_server::client_tls::install_provider();
     let make_client = || -> Result<Client, ClientError> {
         let c = Client::new(&config.url)?.with_observer(recorder.clone());
         Ok(match &config.token {

@@ -80,6 +80,7 @@ fn template(route: &str) -> &'static str {
 
 /// `/metrics`: requests by (route template, status), and the response bytes counted.
 async fn server_metrics(base: &str) -> (BTreeMap<(String, String), u64>, u64) {
+    isovox_server::client_tls::install_provider();
     let text = reqwest::get(format!("{base}/metrics"))
         .await
         .unwrap()

@@ -1,36 +1,60 @@
 //! Following the heads of object-store volumes: each is polled with a conditional GET at a
 //! short interval, and what other writers committed is served and announced on the change feed.
+//!
+//! Each volume is followed on its own schedule: the interval is jittered (replicas started
+//! together drift apart instead of polling in lockstep), and while following fails the waits
+//! grow exponentially with jitter, up to [`MAX_FAILING_WAIT`], then return to the interval at
+//! the first success.
 
 use super::LiveVolume;
+use crate::store::remote::backoff::{jittered, Backoff};
 use std::sync::Arc;
 use std::time::Duration;
 
-/// Polls each volume kept in an object store every `every`, for as long as the task runs
+/// The longest wait between two tries while following a volume keeps failing.
+pub const MAX_FAILING_WAIT: Duration = Duration::from_secs(30);
+
+/// Polls each volume kept in an object store about every `every`, for as long as the task runs
 /// (local volumes are left out: their writer is this process).
 pub async fn follow(volumes: Vec<Arc<LiveVolume>>, every: Duration) {
-    let volumes: Vec<_> = volumes
+    let followers: Vec<_> = volumes
         .into_iter()
         .filter(|v| v.remote().is_some())
+        .map(|volume| tokio::spawn(follow_one(volume, every)))
         .collect();
-    if volumes.is_empty() {
-        return;
+    for follower in followers {
+        if let Err(e) = follower.await {
+            tracing::error!(error = %e, "a follower failed");
+        }
     }
-    let mut tick = tokio::time::interval(every);
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+}
+
+/// Follows one volume: the next poll after a jittered `every`, or, while polls fail, after the
+/// next wait of a backoff starting from `every`.
+async fn follow_one(volume: Arc<LiveVolume>, every: Duration) {
+    let mut failures = Backoff::new(every, MAX_FAILING_WAIT);
+    let mut wait = jittered(every);
     loop {
-        tick.tick().await;
-        for volume in &volumes {
-            let following = volume.clone();
-            match tokio::task::spawn_blocking(move || following.follow_blocking()).await {
-                Ok(Ok(())) => {}
-                Ok(Err(e)) => tracing::warn!(
+        tokio::time::sleep(wait).await;
+        let following = volume.clone();
+        let failure = match tokio::task::spawn_blocking(move || following.follow_blocking()).await {
+            Ok(Ok(())) => None,
+            Ok(Err(e)) => Some(crate::store::error_chain(&e)),
+            Err(e) => Some(format!("the follower failed: {e}")),
+        };
+        match failure {
+            None => {
+                failures.reset();
+                wait = jittered(every);
+            }
+            Some(error) => {
+                wait = failures.next_wait();
+                tracing::warn!(
                     volume = %volume.name(),
-                    error = %crate::store::error_chain(&e),
+                    %error,
+                    retry_in_ms = wait.as_millis() as u64,
                     "cannot follow the head; serving the last one seen"
-                ),
-                Err(e) => {
-                    tracing::error!(volume = %volume.name(), error = %e, "the follower failed")
-                }
+                );
             }
         }
     }

@@ -9,6 +9,7 @@ use crate::icvg::term::{EvalError, TermLimits, VolumeResolver};
 use crate::progress::Silent;
 use crate::store::codec::Compression;
 use crate::store::compact::{compact, compact_remote, CompactReport};
+use crate::store::remote::backoff::Backoff;
 use crate::store::remote::RemoteVolume;
 use crate::store::{CheckpointPolicy, StoreError, Vod2, Vod2Writer};
 use isovox_proto::api::{ChangeEvent, EditResponse};
@@ -20,6 +21,13 @@ use std::time::{Duration, Instant};
 /// Commits an edit tries against other writers of an object-store volume before it answers
 /// that the volume is too busy (503, retry).
 const MAX_REMOTE_ATTEMPTS: u32 = 16;
+
+/// The wait after a first lost head race is drawn from [1, 2] ms; each further loss doubles the
+/// range, up to [50, 100] ms (at most about 1 s over all the attempts). A race is lost to a
+/// commit that just landed, so the next try soon after usually wins.
+const LOST_RACE_FIRST_WAIT: Duration = Duration::from_millis(2);
+/// See [`LOST_RACE_FIRST_WAIT`].
+const LOST_RACE_MAX_WAIT: Duration = Duration::from_millis(100);
 
 /// How long objects a compaction of an object-store volume made garbage stay, for replicas
 /// still reading the old head.
@@ -138,6 +146,7 @@ impl LiveVolume {
     ) -> Result<EditResponse, VolumeError> {
         let started = Instant::now();
         let mut attempt = 0u32;
+        let mut lost_races = Backoff::new(LOST_RACE_FIRST_WAIT, LOST_RACE_MAX_WAIT);
         loop {
             self.catch_up(slot)?;
             let vod = self.current();
@@ -164,11 +173,9 @@ impl LiveVolume {
                     if attempt + 1 < MAX_REMOTE_ATTEMPTS =>
                 {
                     attempt += 1;
-                    // Writers that collide again and again back off apart (the retry is
-                    // spread over a few milliseconds, longer each time).
-                    let spread =
-                        1 + (u64::from(std::process::id()) * 7 + u64::from(attempt) * 13) % 5;
-                    std::thread::sleep(Duration::from_millis(spread * u64::from(attempt)));
+                    // Writers that collide again and again back off apart: exponentially,
+                    // with jitter, so the losers do not all come back at the same instant.
+                    std::thread::sleep(lost_races.next_wait());
                 }
                 Err(e) => return Err(e.into()),
             }

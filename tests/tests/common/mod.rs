@@ -15,6 +15,13 @@ pub(crate) async fn serve(dir: &Path, config: ServerConfig) -> Spawned {
         .unwrap()
 }
 
+/// An HTTP client. Linked with the server, reqwest has rustls without a built-in crypto provider
+/// ([`isovox_server::client_tls`]), so the provider is installed first.
+pub(crate) fn http() -> reqwest::Client {
+    isovox_server::client_tls::install_provider();
+    reqwest::Client::new()
+}
+
 /// Checks an RFC 9457 problem-details answer with `status`.
 pub(crate) async fn problem(resp: reqwest::Response, status: u16) -> Problem {
     let url = resp.url().to_string();

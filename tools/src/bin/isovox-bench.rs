@@ -24,6 +24,8 @@ fn main() -> ExitCode {
         )
         .with_writer(std::io::stderr)
         .init();
+    // The benchmarks' HTTP clients: rustls with ring (see `isovox_server::client_tls`).
+    isovox_server::client_tls::install_provider();
     match run(Cli::parse().command) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {

@@ -49,6 +49,7 @@ impl Location {
     /// A scheme other than http, https and file.
     pub fn parse(input: &str) -> Result<Location, FormatsError> {
         if input.starts_with("http://") || input.starts_with("https://") {
+            crate::client_tls::install_provider();
             let client = reqwest::blocking::Client::builder()
                 .connect_timeout(Duration::from_secs(10))
                 .timeout(Duration::from_secs(120))

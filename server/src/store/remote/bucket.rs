@@ -107,7 +107,7 @@ impl Bucket {
             )));
         }
         // TLS (for https endpoints) runs on rustls with ring, as the HTTPS listener does.
-        let _ = tokio_rustls::rustls::crypto::ring::default_provider().install_default();
+        crate::client_tls::install_provider();
         let mut builder = object_store::aws::AmazonS3Builder::from_env().with_bucket_name(bucket);
         if let Some(endpoint) = endpoint {
             builder = builder

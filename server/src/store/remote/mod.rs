@@ -22,6 +22,7 @@
 //! its page is there. It follows the head with conditional GETs (`If-None-Match`), which cost
 //! one small request and no body while nothing changes.
 
+pub mod backoff;
 pub mod bucket;
 pub mod head;
 pub mod mirror;
