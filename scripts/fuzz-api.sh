@@ -143,12 +143,17 @@ if [ "$checks" = all ]; then
     checks+=,allow_header_conformance,use_after_free,ensure_resource_availability,ignored_auth
     checks+=,object_level_authorization
 fi
+# One worker. Schemathesis's workers are threads, and Hypothesis raises and restores the
+# interpreter-wide recursion limit around each example: with two threads, one thread's restore
+# can land under the other's `ast.parse` (Hypothesis parses sources to describe filters), which
+# then fails, and Python 3.11 reports that failure as "SystemError: AST constructor recursion
+# depth mismatch" (CPython gh-106905). CI failed on it once. FUZZ_WORKERS overrides.
 "$venv/bin/schemathesis" --config-file "$work/schemathesis.toml" run "$base/openapi.json" \
     --header "Authorization: Bearer $token" \
     --checks "$checks" \
     --max-examples "$examples" \
     --seed "$seed" \
-    --workers 2 \
+    --workers "${FUZZ_WORKERS:-1}" \
     --request-timeout 30 \
     --report junit \
     --report-dir "$out" \
