@@ -141,14 +141,10 @@ impl TransitionInput<'_> {
         self.faces >> g & 1 == 0 || high != self.upper_child(g / 2)
     }
 
-    /// The faces lattice point `p` of the box moves with (a face mask): face `f` when `p` lies
-    /// on `f` and the coarser tile across `f` reaches beyond every other face `p` lies on (see
-    /// the module doc). At most one of them can touch a coarser tile at a time.
-    fn moving_faces(&self, p: [i64; 3]) -> u8 {
-        self.moving_faces_on(faces_of(p, self.box_lo(), self.hi))
-    }
-
-    /// [`Self::moving_faces`] of a point on the faces `on` of the box.
+    /// The faces a lattice point of the box on the faces `on` moves with (a face mask): face
+    /// `f` when the point lies on `f` and the coarser tile across `f` reaches beyond every
+    /// other face the point lies on (see the module doc). At most one of them can touch a
+    /// coarser tile at a time.
     fn moving_faces_on(&self, on: u8) -> u8 {
         if on & self.faces == 0 {
             return 0;
@@ -187,9 +183,25 @@ pub struct TransitionScratch {
     coarse_inside: Vec<bool>,
     /// One loop's triangles, as indices into it.
     tris: Vec<[usize; 3]>,
+    /// [`TransitionInput::moving_faces_on`] of every face mask (64), for the current call.
+    moving: Vec<u8>,
+    /// The current call's `box_lo`.
+    box_lo: [i64; 3],
+    /// The transition data being built.
+    work: Transitions,
+    /// One row of blocks of a strip: per fine column its three samples' inside flags (bits 0,
+    /// 3, 6), per coarse column its two (bits 0, 2).
+    fine_columns: Vec<u16>,
+    coarse_columns: Vec<u16>,
 }
 
 impl TransitionScratch {
+    /// The faces lattice point `p` of the box moves with ([`TransitionInput::moving_faces_on`]
+    /// of the faces it lies on).
+    fn moving_faces(&self, p: [i64; 3], hi: [i64; 3]) -> u8 {
+        self.moving[usize::from(faces_of(p, self.box_lo, hi))]
+    }
+
     /// The vertex this call made in slot `slot` of `made`, if it made one.
     fn made_at(&self, slot: usize) -> Option<u32> {
         match self.made[slot] {
@@ -225,6 +237,28 @@ pub fn mesh_transitions(
     if input.faces == 0 {
         return;
     }
+    // Built in the scratch's buffers (grown once, for every tile after), then copied out at
+    // their final sizes: one allocation per buffer instead of a growing one.
+    let mut work = std::mem::take(&mut scratch.work);
+    work.clear();
+    build(input, regular, march, &mut work, scratch);
+    out.positions.clone_from(&work.positions);
+    out.normals.clone_from(&work.normals);
+    out.moves.clone_from(&work.moves);
+    for (to, from) in out.strips.iter_mut().zip(&work.strips) {
+        to.clone_from(from);
+    }
+    scratch.work = work;
+}
+
+/// [`mesh_transitions`] into `out` (empty).
+fn build(
+    input: &TransitionInput<'_>,
+    regular: &Mesh,
+    march: &Scratch,
+    out: &mut Transitions,
+    scratch: &mut TransitionScratch,
+) {
     let slots = 4 * input.coarse.values.len();
     scratch.stamp = scratch.stamp.wrapping_add(1);
     if scratch.stamp == 0 || scratch.made.len() < slots {
@@ -233,6 +267,11 @@ pub fn mesh_transitions(
         scratch.made.resize(slots, (0, 0));
         scratch.stamp = 1;
     }
+    scratch.moving.clear();
+    scratch
+        .moving
+        .extend((0..64).map(|on| input.moving_faces_on(on)));
+    scratch.box_lo = input.box_lo();
     scratch.regular = regular.positions.len();
     scratch.offsets.clear();
     scratch.offsets.resize(regular.positions.len(), [0.0; 3]);
@@ -243,11 +282,14 @@ pub fn mesh_transitions(
         // march's faces are those of [lo, hi]; the box's are the same unless it starts lower.
         let (f0, f1) = if same_box {
             (
-                input.moving_faces_on(b.faces[0]),
-                input.moving_faces_on(b.faces[1]),
+                scratch.moving[usize::from(b.faces[0])],
+                scratch.moving[usize::from(b.faces[1])],
             )
         } else {
-            (input.moving_faces(b.p0), input.moving_faces(p1))
+            (
+                scratch.moving_faces(b.p0, input.hi),
+                scratch.moving_faces(p1, input.hi),
+            )
         };
         // A vertex moves with a face by the interpolation of its endpoints' moves with it.
         for face in (0..6).filter(|&f| (f0 | f1) >> f & 1 == 1) {
@@ -269,7 +311,7 @@ pub fn mesh_transitions(
             continue;
         }
         // The strip is drawn with the moves of its own face only: when face f touches a
-        // coarser tile, no point of f moves with another face (`moving_faces`).
+        // coarser tile, no point of f moves with another face (`moving_faces_on`).
         let own = |m: &&VertexMove| m.faces == 1 << face;
         for m in out.moves[..regular_moves].iter().filter(own) {
             scratch.offsets[m.vertex as usize] = m.offset;
@@ -410,21 +452,30 @@ fn strip(
     }
     let table = table();
     let (fw, cw) = (nu + 1, nu / 2 + 1);
+    // A cell's case from its three fine and two coarse columns: fine sample (i, j) is bit
+    // i + 3j, coarse sample (i, j) bit 9 + i + 2j.
+    let mut fine_columns = std::mem::take(&mut scratch.fine_columns);
+    let mut coarse_columns = std::mem::take(&mut scratch.coarse_columns);
     for bv in (0..nv).step_by(2) {
+        let (fine, coarse) = (&scratch.fine_inside, &scratch.coarse_inside);
+        fine_columns.clear();
+        fine_columns.extend((0..fw).map(|u| {
+            (0..3).fold(0u16, |c, j| {
+                c | u16::from(fine[(bv + j) * fw + u]) << (3 * j)
+            })
+        }));
+        coarse_columns.clear();
+        coarse_columns.extend((0..cw).map(|u| {
+            (0..2).fold(0u16, |c, j| {
+                c | u16::from(coarse[(bv / 2 + j) * cw + u]) << (2 * j)
+            })
+        }));
         for bu in (0..nu).step_by(2) {
-            let mut case = 0u16;
-            for j in 0..3 {
-                for i in 0..3 {
-                    let inside = scratch.fine_inside[(bv + j) * fw + bu + i];
-                    case |= u16::from(inside) << (i + 3 * j);
-                }
-            }
-            for j in 0..2 {
-                for i in 0..2 {
-                    let inside = scratch.coarse_inside[(bv / 2 + j) * cw + bu / 2 + i];
-                    case |= u16::from(inside) << (9 + i + 2 * j);
-                }
-            }
+            let (f, c) = (
+                &fine_columns[bu..bu + 3],
+                &coarse_columns[bu / 2..bu / 2 + 2],
+            );
+            let case = f[0] | f[1] << 1 | f[2] << 2 | (c[0] | c[1] << 1) << 9;
             if case == 0 || case == (1 << SAMPLES) - 1 {
                 continue;
             }
@@ -440,6 +491,8 @@ fn strip(
             transition_cell(&cell, case, collapsed, table, regular, march, out, scratch);
         }
     }
+    scratch.fine_columns = fine_columns;
+    scratch.coarse_columns = coarse_columns;
 }
 
 /// The id and drawn position (local frame) of the vertex on edge `e` of `cell`.
@@ -772,7 +825,7 @@ fn connecting_vertex(
     let s = (input.iso - vf) / (vc - vf);
     // It moves with each face its fine corner moves with; drawn in this strip with the moves
     // of this strip's face.
-    let moving = input.moving_faces(p);
+    let moving = scratch.moving_faces(p, input.hi);
     let drawn = if moving >> face & 1 == 1 {
         let d = displacement(face, 1.0 - s);
         [0, 1, 2].map(|b| primary[b] + d[b])
