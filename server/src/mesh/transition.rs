@@ -175,6 +175,8 @@ pub struct TransitionScratch {
     regular: usize,
     /// The move of each regular vertex with the face whose strip is being built.
     offsets: Vec<[f32; 3]>,
+    /// Whether some of `offsets` are not zero (a strip is being built).
+    offsets_set: bool,
     /// One loop's vertices, drawn positions and collapsed sides.
     loop_ids: Vec<u32>,
     points: Vec<[f64; 3]>,
@@ -273,8 +275,14 @@ fn build(
         .extend((0..64).map(|on| input.moving_faces_on(on)));
     scratch.box_lo = input.box_lo();
     scratch.regular = regular.positions.len();
-    scratch.offsets.clear();
-    scratch.offsets.resize(regular.positions.len(), [0.0; 3]);
+    // Zero but for the vertices of the face whose strip is being built (set and reset around
+    // it), so that it needs no clearing between tiles; cleared if a call left it midway.
+    if scratch.offsets_set {
+        scratch.offsets.clear();
+    }
+    if scratch.offsets.len() < regular.positions.len() {
+        scratch.offsets.resize(regular.positions.len(), [0.0; 3]);
+    }
     let same_box = input.box_lo() == input.lo;
     for b in &march.border {
         let mut p1 = b.p0;
@@ -313,6 +321,7 @@ fn build(
         // The strip is drawn with the moves of its own face only: when face f touches a
         // coarser tile, no point of f moves with another face (`moving_faces_on`).
         let own = |m: &&VertexMove| m.faces == 1 << face;
+        scratch.offsets_set = true;
         for m in out.moves[..regular_moves].iter().filter(own) {
             scratch.offsets[m.vertex as usize] = m.offset;
         }
@@ -323,6 +332,7 @@ fn build(
                 scratch.offsets[m.vertex as usize] = [0.0; 3];
             }
         }
+        scratch.offsets_set = false;
     }
 }
 
@@ -430,7 +440,11 @@ fn strip(
         out.clear();
         for v in 0..=n.1 {
             let row = &values[v * sv..];
-            out.extend((0..=n.0).map(|u| row[u * su] >= iso));
+            if su == 1 {
+                out.extend(row[..=n.0].iter().map(|&x| x >= iso));
+            } else {
+                out.extend((0..=n.0).map(|u| row[u * su] >= iso));
+            }
         }
     };
     flags(input.fine, at(0, 0), (nu, nv), &mut scratch.fine_inside);
