@@ -51,8 +51,9 @@ pub fn value_range(level: u8, min: f32, max: f32) -> (f32, f32) {
     (min - spill - 0.5, max + spill + 0.5)
 }
 
-/// Reusable memory for [`lattice_field`]: the passes along x and along y, one chunk's values,
-/// and each chunk's one value (when its stored voxels hold one).
+/// Reusable memory for [`lattice_field`] and [`lattice_plane`]: the first two passes (in f64 or
+/// f32, [`exact_passes`]), one chunk's values, and each chunk's one value (when its stored
+/// voxels hold one).
 #[derive(Debug, Default)]
 pub struct LatticeScratch {
     along_x: Vec<f64>,
@@ -61,6 +62,18 @@ pub struct LatticeScratch {
     along_y_f32: Vec<f32>,
     chunk: Vec<f32>,
     constants: Vec<Option<f32>>,
+}
+
+impl LatticeScratch {
+    /// The buffers of the passes along the first two axes, in f64 and in f32.
+    fn passes(&mut self) -> (&mut Vec<f64>, &mut Vec<f64>, &mut Vec<f32>, &mut Vec<f32>) {
+        (
+            &mut self.along_x,
+            &mut self.along_y,
+            &mut self.along_x_f32,
+            &mut self.along_y_f32,
+        )
+    }
 }
 
 /// One Catmull-Rom tap sum, in the one order every lattice value is computed in.
@@ -289,13 +302,7 @@ pub fn lattice_plane<'o>(
         "the stored voxels do not cover the lattice points"
     );
     let w = weights(level);
-    let LatticeScratch {
-        along_x,
-        along_y,
-        along_x_f32,
-        along_y_f32,
-        ..
-    } = scratch;
+    let (along_x, along_y, along_x_f32, along_y_f32) = scratch.passes();
     match exact_passes(level, high, 24) {
         0 => plane_passes(stored, (lo, hi), normal, w, along_x, along_y, out),
         1 => plane_passes(stored, (lo, hi), normal, w, along_x_f32, along_y, out),
@@ -430,13 +437,7 @@ fn resample(
     out: &mut Vec<f32>,
 ) {
     let size = [0, 1, 2].map(|a| (hi[a] - lo[a] + 1) as usize);
-    let LatticeScratch {
-        along_x,
-        along_y,
-        along_x_f32,
-        along_y_f32,
-        ..
-    } = scratch;
+    let (along_x, along_y, along_x_f32, along_y_f32) = scratch.passes();
     match exact {
         0 => {
             along_x_pass(stored, (lo, hi), w, along_x);

@@ -70,7 +70,10 @@
 //! - `coarse`: level-(k+1) lattice values over `[c, d]` with `c = floor(lo / 2) - 1` and
 //!   `d = hi / 2 + 1` (`lattice_field` of the stored level-(k+1) voxels over `[c - 2, d + 1]`):
 //!   the coarse lattice points of all six faces and the neighbours their normals read. Only
-//!   the faces in `strips` are read: the plane of each and the planes on either side of it.
+//!   the faces in `strips` are read: the plane of each across `[c, d]`, and beside the plane
+//!   the points next to a point of the face where an edge of its cells' coarse face, or a
+//!   connecting edge, is crossed (the normals of coarse and connecting vertices read those;
+//!   nothing else off the plane is read, and `tile.rs` computes nothing else).
 //! - `faces`: the faces that can touch a coarser neighbour: those with a neighbouring tile in
 //!   the grid, when level k+1 exists. Strips are built for all of them, whatever the current
 //!   neighbours are, so the tile stays one cacheable object.
