@@ -101,7 +101,7 @@ impl Samples for Pyramid {
         };
         let mut values = Vec::new();
         let scratch = &mut LatticeScratch::default();
-        let f = lattice_field(&field, (lo, hi), level, scratch, &mut values);
+        let f = lattice_field(&field, (lo, hi), level, VoxelType::U8, scratch, &mut values);
         assert_eq!((f.origin, f.size[0]), (lo, (hi[0] - lo[0] + 1) as usize));
         out.clear();
         out.extend_from_slice(&values);

@@ -20,12 +20,15 @@
 //! times the voxel scale. Every tile goes through that one formula ([`to_world`]), so shared
 //! vertices stay bit-identical, across levels too.
 
-use super::lattice::{lattice_field, value_range, LatticeScratch};
+use super::lattice::{
+    lattice_field, lattice_plane, lattice_point, value_range, weights, LatticeScratch,
+};
 use super::mc::{march, Field, Mesh, Scratch};
 use super::transition::{mesh_transitions, TransitionInput, TransitionScratch};
 use crate::store::codec::min_max;
 use crate::store::decoded::{decode, DecodedBricks};
 use crate::store::{Snapshot, StoreError, StoredBrick};
+use bytes::Bytes;
 use isovox_proto::lod::FACE_DIRECTIONS;
 use isovox_proto::mesh::{TileMesh, Transitions};
 use isovox_proto::tile::{
@@ -42,6 +45,13 @@ pub struct TileScratch {
     coarse: Vec<f32>,
     coarse_voxels: Vec<f32>,
     region: Vec<f32>,
+    /// The coarser level's bricks a tile's strips read, and the points beside a face's plane
+    /// its strip reads.
+    coarse_bricks: BrickWindow,
+    beside: Vec<[i64; 3]>,
+    flags: Vec<[bool; 2]>,
+    /// The bricks of a tile's own level.
+    fine_bricks: BrickWindow,
     lattice: LatticeScratch,
     march: Scratch,
     transitions: TransitionScratch,
@@ -379,7 +389,11 @@ fn mesh_into(
             key.level,
             fine_box,
             bricks.as_deref(),
-            (&mut scratch.stored, &mut scratch.lattice),
+            (
+                &mut scratch.fine_bricks,
+                &mut scratch.stored,
+                &mut scratch.lattice,
+            ),
             &mut scratch.field,
         )?;
         march(&fine, lo, frame, hi, iso, mesh, &mut scratch.march);
@@ -402,6 +416,11 @@ fn mesh_into(
     let size = field_size((c, d));
     scratch.coarse.clear();
     scratch.coarse.resize(size[0] * size[1] * size[2], f32::NAN);
+    // The coarser bricks the strips can read, looked up once for all the faces.
+    let read = stored_box(coarse_level, (c, d));
+    scratch
+        .coarse_bricks
+        .open(snap, coarse_level, read, bricks.as_deref())?;
     // Which faces' fine samples straddle the iso value: march makes a vertex on every crossed
     // edge between the corners [lo, hi] and lists those on the boundary, so a face is mixed
     // exactly when one of them lies in its plane (both ends on it). The faces' samples are
@@ -435,8 +454,7 @@ fn mesh_into(
         None
     };
     if let Some(inside) = one_side {
-        let read = stored_box(coarse_level, (c, d));
-        let (min, max) = voxel_range(snap, coarse_level, read, bricks.as_deref())?;
+        let (min, max) = voxel_range(&scratch.coarse_bricks, layout, read);
         let (low, high) = value_range(coarse_level, f32::from(min), f32::from(max));
         if (inside && low >= iso) || (!inside && high < iso) {
             // No vertex, no strip: nothing to move or add.
@@ -447,6 +465,8 @@ fn mesh_into(
         }
     }
     let mut strips = 0u8;
+    let weights = weights(coarse_level);
+    let outside = layout.voxel_type().low() as f32;
     for face in (0..6).filter(|f| inputs.faces >> f & 1 == 1) {
         let points = face_points(face, (c, d));
         // The fine face's samples, when they straddle the iso value, decide alone; else the
@@ -457,41 +477,94 @@ fn mesh_into(
             Some(_) => Some(fine(&scratch.field).value(points.0.map(|v| 2 * v)) >= iso),
             None => fine_face_side(&fine(&scratch.field), points, face, iso),
         };
-        let bricks = bricks.as_deref();
-        let memory = (&mut scratch.coarse_voxels, &mut scratch.lattice);
         if let Some(inside) = fine_side {
-            // All on one side (the stored voxels' range bounds the lattice values), or the
-            // plane's own values say.
+            // All on one side: the stored voxels' range bounds the lattice values.
             let read = stored_box(coarse_level, points);
-            let (min, max) = voxel_range(snap, coarse_level, read, bricks)?;
+            let (min, max) = voxel_range(&scratch.coarse_bricks, layout, read);
             let (low, high) = value_range(coarse_level, f32::from(min), f32::from(max));
             if (inside && low >= iso) || (!inside && high < iso) {
                 continue;
             }
-            let plane = lattice(
-                snap,
-                coarse_level,
-                points,
-                bricks,
-                memory,
-                &mut scratch.region,
-            )?;
-            if plane.values.iter().all(|&v| (v >= iso) == inside) {
+        }
+        // One read of the stored voxels under the face's plane and the planes beside it, then
+        // the plane's values (with the ring around the face the normals read).
+        let (slo, shi) = stored_box(coarse_level, face_slab(face, (c, d)));
+        let stored_size = field_size((slo, shi));
+        gather(
+            &scratch.coarse_bricks,
+            layout,
+            slo,
+            stored_size,
+            &mut scratch.coarse_voxels,
+        );
+        let stored = Field {
+            origin: slo,
+            size: stored_size,
+            values: &scratch.coarse_voxels,
+        };
+        let plane_box = face_plane(face, (c, d));
+        lattice_plane(
+            &stored,
+            plane_box,
+            face / 2,
+            coarse_level,
+            layout.voxel_type(),
+            &mut scratch.lattice,
+            &mut scratch.region,
+        );
+        let plane_size = field_size(plane_box);
+        pad_outside(
+            &mut scratch.region,
+            (plane_box.0, plane_size),
+            layout.dims(),
+            coarse_level,
+            outside,
+        );
+        let plane = Field {
+            origin: plane_box.0,
+            size: plane_size,
+            values: &scratch.region,
+        };
+        if let Some(inside) = fine_side {
+            // The plane's own values say.
+            if all_on_side(&plane, points, iso, inside) {
                 continue;
             }
         }
-        let slab = face_slab(face, (c, d));
-        let memory = (&mut scratch.coarse_voxels, &mut scratch.lattice);
-        let values = lattice(
-            snap,
-            coarse_level,
-            slab,
-            bricks,
-            memory,
-            &mut scratch.region,
-        )?;
         strips |= 1 << face;
-        copy_into(&mut scratch.coarse, (c, size), &values);
+        copy_into(&mut scratch.coarse, (c, size), &plane);
+        // The points beside the plane, for the normals the strip computes: where a coarse or
+        // connecting edge of the face is crossed, at both ends. Computed point by point: the
+        // few the strip reads, not the two planes.
+        let fine_field = fine(&scratch.field);
+        let fine_flags = match fine_side {
+            Some(inside) => Err(inside),
+            None => Ok(&fine_field),
+        };
+        scratch.beside.clear();
+        crossed_points(
+            &plane,
+            points,
+            face,
+            iso,
+            fine_flags,
+            &mut scratch.flags,
+            &mut scratch.beside,
+        );
+        for &q in &scratch.beside {
+            for step in [-1, 1] {
+                let mut p = q;
+                p[face / 2] += step;
+                let at = index_in((c, size), p);
+                if scratch.coarse[at].is_nan() {
+                    scratch.coarse[at] = if lattice_inside(p, layout.dims(), coarse_level) {
+                        lattice_point(&stored, p, weights)
+                    } else {
+                        outside
+                    };
+                }
+            }
+        }
     }
     if strips != 0 && !inputs.fine_may_cross {
         // The strips read the fine face samples too (all on one side, no regular vertex).
@@ -500,7 +573,11 @@ fn mesh_into(
             key.level,
             fine_box,
             bricks.as_deref(),
-            (&mut scratch.stored, &mut scratch.lattice),
+            (
+                &mut scratch.fine_bricks,
+                &mut scratch.stored,
+                &mut scratch.lattice,
+            ),
             &mut scratch.field,
         )?;
     }
@@ -572,6 +649,98 @@ fn face_slab(face: usize, (c, d): GridBox) -> GridBox {
     (lo, hi)
 }
 
+/// The coarser level's lattice points on the plane of face `face` across the whole box
+/// `(c, d)`: the face's points and the ring around them that the normals read.
+fn face_plane(face: usize, (c, d): GridBox) -> GridBox {
+    let a = face / 2;
+    let at = if face & 1 == 1 { d[a] - 1 } else { c[a] + 1 };
+    let (mut lo, mut hi) = (c, d);
+    lo[a] = at;
+    hi[a] = at;
+    (lo, hi)
+}
+
+/// The index of point `p` in a buffer over the box from `origin` with `size` points per axis.
+fn index_in((origin, size): ([i64; 3], [usize; 3]), p: [i64; 3]) -> usize {
+    let l = [0, 1, 2].map(|a| (p[a] - origin[a]) as usize);
+    (l[2] * size[1] + l[1]) * size[0] + l[0]
+}
+
+/// Whether every value of `field` over the box `points` lies on the side `inside` of `iso`.
+fn all_on_side(field: &Field<'_>, (lo, hi): GridBox, iso: f32, inside: bool) -> bool {
+    let width = (hi[0] - lo[0] + 1) as usize;
+    (lo[2]..=hi[2]).all(|z| {
+        (lo[1]..=hi[1]).all(|y| {
+            let at = field.index([lo[0], y, z]);
+            field.values[at..at + width]
+                .iter()
+                .all(|&v| (v >= iso) == inside)
+        })
+    })
+}
+
+/// The points of a face (`points`, a box one point thick across `face`'s axis, held by
+/// `plane`) where an edge of its transition cells' coarse face or a connecting edge is
+/// crossed, at either end: where a point's side of `iso` differs from a neighbour's on the
+/// face, or from its fine twin's (read from `fine` at twice the point, or `fine_side` for all
+/// of them). The strip computes normals there, which read the points beside the plane.
+fn crossed_points(
+    plane: &Field<'_>,
+    (lo, hi): GridBox,
+    face: usize,
+    iso: f32,
+    fine: Result<&Field<'_>, bool>,
+    flags: &mut Vec<[bool; 2]>,
+    out: &mut Vec<[i64; 3]>,
+) {
+    // The face's two lateral axes, and the strides along them in each field.
+    let (ua, va) = [(1, 2), (0, 2), (0, 1)][face / 2];
+    let (nu, nv) = (
+        (hi[ua] - lo[ua] + 1) as usize,
+        (hi[va] - lo[va] + 1) as usize,
+    );
+    let stride = |f: &Field<'_>, a: usize| [1, f.size[0], f.size[0] * f.size[1]][a];
+    flags.clear();
+    let first = plane.index(lo);
+    let (su, sv) = (stride(plane, ua), stride(plane, va));
+    for v in 0..nv {
+        let row = first + v * sv;
+        flags.extend((0..nu).map(|u| [plane.values[row + u * su] >= iso, false]));
+    }
+    match fine {
+        Ok(f) => {
+            // The fine twins, every other fine point.
+            let first = f.index(lo.map(|c| 2 * c));
+            let (su, sv) = (2 * stride(f, ua), 2 * stride(f, va));
+            for v in 0..nv {
+                let row = first + v * sv;
+                for (u, flag) in flags[v * nu..][..nu].iter_mut().enumerate() {
+                    flag[1] = f.values[row + u * su] >= iso;
+                }
+            }
+        }
+        Err(side) => flags.iter_mut().for_each(|flag| flag[1] = side),
+    }
+    for v in 0..nv {
+        for u in 0..nu {
+            let at = v * nu + u;
+            let here = flags[at][0];
+            let differs = |other: usize| flags[other][0] != here;
+            let crossed = here != flags[at][1]
+                || (u > 0 && differs(at - 1))
+                || (u + 1 < nu && differs(at + 1))
+                || (v > 0 && differs(at - nu))
+                || (v + 1 < nv && differs(at + nu));
+            if crossed {
+                let mut p = lo;
+                p[ua] += u as i64;
+                p[va] += v as i64;
+                out.push(p);
+            }
+        }
+    }
+}
+
 /// Copies the values of `part` into `buffer`, a field over the box from `origin` with `size`
 /// points per axis that holds `part`'s box.
 fn copy_into(buffer: &mut [f32], (origin, size): ([i64; 3], [usize; 3]), part: &Field<'_>) {
@@ -622,36 +791,44 @@ fn lattice<'o>(
     level: u8,
     (lo, hi): ([i64; 3], [i64; 3]),
     bricks: Option<&DecodedBricks>,
-    (stored, scratch): (&mut Vec<f32>, &mut LatticeScratch),
+    (window, stored, scratch): (&mut BrickWindow, &mut Vec<f32>, &mut LatticeScratch),
     out: &'o mut Vec<f32>,
 ) -> Result<Field<'o>, StoreError> {
-    let size = |lo: [i64; 3], hi: [i64; 3]| [0, 1, 2].map(|a| (hi[a] - lo[a] + 1) as usize);
+    let layout = snap.layout();
+    let (slo, shi) = stored_box(level, (lo, hi));
+    window.open(snap, level, (slo, shi), bricks)?;
     if level == 0 {
-        gather(snap, level, lo, size(lo, hi), bricks, out)?;
+        gather(window, layout, lo, field_size((lo, hi)), out);
         let out: &'o Vec<f32> = out;
         return Ok(Field {
             origin: lo,
-            size: size(lo, hi),
+            size: field_size((lo, hi)),
             values: out,
         });
     }
-    let (slo, shi) = stored_box(level, (lo, hi));
-    gather(snap, level, slo, size(slo, shi), bricks, stored)?;
+    gather(window, layout, slo, field_size((slo, shi)), stored);
     let field = Field {
         origin: slo,
-        size: size(slo, shi),
+        size: field_size((slo, shi)),
         values: stored,
     };
-    let lattice = lattice_field(&field, (lo, hi), level, scratch, &mut *out);
+    let t = layout.voxel_type();
+    let lattice = lattice_field(&field, (lo, hi), level, t, scratch, &mut *out);
     let (origin, size) = (lattice.origin, lattice.size);
-    let low = snap.layout().voxel_type().low() as f32;
-    pad_outside(out, (origin, size), snap.layout().dims(), level, low);
+    let low = layout.voxel_type().low() as f32;
+    pad_outside(out, (origin, size), layout.dims(), level, low);
     let out: &'o Vec<f32> = out;
     Ok(Field {
         origin,
         size,
         values: out,
     })
+}
+
+/// Whether lattice point `j` of `level` lies in the volume (level-0 position `2^k j` inside
+/// `[0, dims)` on every axis).
+fn lattice_inside(j: [i64; 3], dims: [u32; 3], level: u8) -> bool {
+    (0..3).all(|a| (0..i64::from(dims[a])).contains(&(j[a] << level)))
 }
 
 /// Sets the lattice points of `level` that lie outside the volume (level-0 position `2^k j`
@@ -686,6 +863,78 @@ fn pad_outside(
     }
 }
 
+/// What one brick holds, looked up once.
+#[derive(Debug, Clone)]
+enum BrickVoxels {
+    /// One value throughout: a constant brick, or L outside the volume.
+    Constant(u16),
+    /// The brick's voxels as stored (little-endian for u16).
+    Voxels(Bytes),
+}
+
+/// The bricks of one level holding a box of voxels, each looked up (and decoded, or taken from
+/// the shared cache) once, so that the many small reads of a tile's strips do not repeat the
+/// index lookups.
+#[derive(Debug, Default)]
+struct BrickWindow {
+    /// The first brick position on each axis, and the number of bricks.
+    first: [i64; 3],
+    count: [usize; 3],
+    /// x fastest.
+    bricks: Vec<BrickVoxels>,
+}
+
+impl BrickWindow {
+    /// Looks up the bricks of `level` holding the voxels `(lo, hi)` (inclusive).
+    fn open(
+        &mut self,
+        snap: &Snapshot,
+        level: u8,
+        voxels: GridBox,
+        cache: Option<&DecodedBricks>,
+    ) -> Result<(), StoreError> {
+        let layout = snap.layout();
+        let grid = layout.grid(level).map(i64::from);
+        let (first, last) = bricks_of(layout.brick(), voxels);
+        self.first = first;
+        self.count = [0, 1, 2].map(|a| (last[a] - first[a] + 1) as usize);
+        self.bricks.clear();
+        for z in first[2]..=last[2] {
+            for y in first[1]..=last[1] {
+                for x in first[0]..=last[0] {
+                    let c = [x, y, z];
+                    if !(0..3).all(|a| c[a] >= 0 && c[a] < grid[a]) {
+                        self.bricks.push(BrickVoxels::Constant(0)); // outside: L
+                        continue;
+                    }
+                    let key = BrickKey {
+                        level,
+                        x: x as u32,
+                        y: y as u32,
+                        z: z as u32,
+                    };
+                    self.bricks.push(match snap.stored(key)? {
+                        StoredBrick::Constant(v) => BrickVoxels::Constant(v),
+                        record @ StoredBrick::Record { header, .. } => {
+                            BrickVoxels::Voxels(match cache {
+                                Some(cache) => cache.voxels(header.hash, &record, layout)?,
+                                None => decode(&record, layout)?,
+                            })
+                        }
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The brick at position `c` (inside the window).
+    fn brick(&self, c: [i64; 3]) -> &BrickVoxels {
+        let l = [0, 1, 2].map(|a| (c[a] - self.first[a]) as usize);
+        &self.bricks[(l[2] * self.count[1] + l[1]) * self.count[0] + l[0]]
+    }
+}
+
 /// One row of stored voxels, as its brick holds it.
 enum Row<'a> {
     /// One value across the row: a constant brick, or L outside the volume.
@@ -694,20 +943,17 @@ enum Row<'a> {
     Voxels(&'a [u8]),
 }
 
-/// Visits the stored voxels of `level` over the box `origin .. origin + size` row by row,
-/// brick by brick: `visit(at, width, row)` for each row piece, `at` its first voxel's index in
-/// a buffer over the box (x fastest). Together the pieces cover the box once.
+/// Visits the stored voxels over the box `origin .. origin + size` (within `window`) row by
+/// row, brick by brick: `visit(at, width, row)` for each row piece, `at` its first voxel's
+/// index in a buffer over the box (x fastest). Together the pieces cover the box once.
 fn for_each_row(
-    snap: &Snapshot,
-    level: u8,
+    window: &BrickWindow,
+    layout: &VolumeLayout,
     origin: [i64; 3],
     size: [usize; 3],
-    bricks: Option<&DecodedBricks>,
     mut visit: impl FnMut(usize, usize, Row<'_>),
-) -> Result<(), StoreError> {
-    let layout = snap.layout();
+) {
     let b = layout.brick() as i64;
-    let grid = layout.grid(level).map(|g| g as i64);
     let bytes_per_voxel = layout.voxel_type().bytes();
     let end = [0, 1, 2].map(|a| origin[a] + size[a] as i64); // exclusive
     for bz in origin[2].div_euclid(b)..=(end[2] - 1).div_euclid(b) {
@@ -723,27 +969,11 @@ fn for_each_row(
                     ((((z - origin[2]) as usize * size[1]) + (y - origin[1]) as usize) * size[0])
                         + (from[0] - origin[0]) as usize
                 };
-                let stored = if (0..3).all(|a| c[a] >= 0 && c[a] < grid[a]) {
-                    let k = BrickKey {
-                        level,
-                        x: bx as u32,
-                        y: by as u32,
-                        z: bz as u32,
-                    };
-                    Some(snap.stored(k)?)
-                } else {
-                    None // outside the volume: L
-                };
-                match stored {
-                    None => rows.for_each(|(y, z)| visit(at(y, z), width, Row::Constant(0))),
-                    Some(StoredBrick::Constant(v)) => {
-                        rows.for_each(|(y, z)| visit(at(y, z), width, Row::Constant(v)));
+                match window.brick(c) {
+                    BrickVoxels::Constant(v) => {
+                        rows.for_each(|(y, z)| visit(at(y, z), width, Row::Constant(*v)));
                     }
-                    Some(record @ StoredBrick::Record { header, .. }) => {
-                        let voxels = match bricks {
-                            Some(cache) => cache.voxels(header.hash, &record, layout)?,
-                            None => decode(&record, layout)?,
-                        };
+                    BrickVoxels::Voxels(voxels) => {
                         for (y, z) in rows {
                             let src = (((z - blo[2]) * b + (y - blo[1])) * b + (from[0] - blo[0]))
                                 as usize;
@@ -755,22 +985,20 @@ fn for_each_row(
             }
         }
     }
-    Ok(())
 }
 
-/// Writes into `out` the stored voxels of `level` over the box `origin .. origin + size`
-/// (L outside the volume), x fastest. Every value is written once (no clearing pass).
+/// Writes into `out` the stored voxels over the box `origin .. origin + size` (within
+/// `window`; L outside the volume), x fastest. Every value is written once (no clearing pass).
 fn gather(
-    snap: &Snapshot,
-    level: u8,
+    window: &BrickWindow,
+    layout: &VolumeLayout,
     origin: [i64; 3],
     size: [usize; 3],
-    bricks: Option<&DecodedBricks>,
     out: &mut Vec<f32>,
-) -> Result<(), StoreError> {
+) {
     out.resize(size[0] * size[1] * size[2], 0.0);
-    let t = snap.layout().voxel_type();
-    for_each_row(snap, level, origin, size, bricks, |at, width, row| {
+    let t = layout.voxel_type();
+    for_each_row(window, layout, origin, size, |at, width, row| {
         let dst = &mut out[at..at + width];
         match (row, t) {
             (Row::Constant(v), _) => dst.fill(f32::from(v)),
@@ -785,32 +1013,20 @@ fn gather(
                 }
             }
         }
-    })
+    });
 }
 
-/// The least and greatest stored voxel of `level` over the box `(lo, hi)` (L outside the
-/// volume), read from the bricks as they are.
-fn voxel_range(
-    snap: &Snapshot,
-    level: u8,
-    (lo, hi): GridBox,
-    bricks: Option<&DecodedBricks>,
-) -> Result<(u16, u16), StoreError> {
-    let t = snap.layout().voxel_type();
+/// The least and greatest stored voxel over the box `(lo, hi)` (within `window`; L outside
+/// the volume), read from the bricks as they are.
+fn voxel_range(window: &BrickWindow, layout: &VolumeLayout, (lo, hi): GridBox) -> (u16, u16) {
+    let t = layout.voxel_type();
     let mut range = (u16::MAX, u16::MIN);
-    for_each_row(
-        snap,
-        level,
-        lo,
-        field_size((lo, hi)),
-        bricks,
-        |_, _, row| {
-            let (l, h) = match row {
-                Row::Constant(v) => (v, v),
-                Row::Voxels(bytes) => min_max(bytes, t),
-            };
-            range = (range.0.min(l), range.1.max(h));
-        },
-    )?;
-    Ok(range)
+    for_each_row(window, layout, lo, field_size((lo, hi)), |_, _, row| {
+        let (l, h) = match row {
+            Row::Constant(v) => (v, v),
+            Row::Voxels(bytes) => min_max(bytes, t),
+        };
+        range = (range.0.min(l), range.1.max(h));
+    });
+    range
 }

@@ -70,7 +70,10 @@
 //! - `coarse`: level-(k+1) lattice values over `[c, d]` with `c = floor(lo / 2) - 1` and
 //!   `d = hi / 2 + 1` (`lattice_field` of the stored level-(k+1) voxels over `[c - 2, d + 1]`):
 //!   the coarse lattice points of all six faces and the neighbours their normals read. Only
-//!   the faces in `strips` are read: the plane of each and the planes on either side of it.
+//!   the faces in `strips` are read: the plane of each across `[c, d]`, and beside the plane
+//!   the points next to a point of the face where an edge of its cells' coarse face, or a
+//!   connecting edge, is crossed (the normals of coarse and connecting vertices read those;
+//!   nothing else off the plane is read, and `tile.rs` computes nothing else).
 //! - `faces`: the faces that can touch a coarser neighbour: those with a neighbouring tile in
 //!   the grid, when level k+1 exists. Strips are built for all of them, whatever the current
 //!   neighbours are, so the tile stays one cacheable object.
@@ -141,14 +144,10 @@ impl TransitionInput<'_> {
         self.faces >> g & 1 == 0 || high != self.upper_child(g / 2)
     }
 
-    /// The faces lattice point `p` of the box moves with (a face mask): face `f` when `p` lies
-    /// on `f` and the coarser tile across `f` reaches beyond every other face `p` lies on (see
-    /// the module doc). At most one of them can touch a coarser tile at a time.
-    fn moving_faces(&self, p: [i64; 3]) -> u8 {
-        self.moving_faces_on(faces_of(p, self.box_lo(), self.hi))
-    }
-
-    /// [`Self::moving_faces`] of a point on the faces `on` of the box.
+    /// The faces a lattice point of the box on the faces `on` moves with (a face mask): face
+    /// `f` when the point lies on `f` and the coarser tile across `f` reaches beyond every
+    /// other face the point lies on (see the module doc). At most one of them can touch a
+    /// coarser tile at a time.
     fn moving_faces_on(&self, on: u8) -> u8 {
         if on & self.faces == 0 {
             return 0;
@@ -179,6 +178,8 @@ pub struct TransitionScratch {
     regular: usize,
     /// The move of each regular vertex with the face whose strip is being built.
     offsets: Vec<[f32; 3]>,
+    /// Whether some of `offsets` are not zero (a strip is being built).
+    offsets_set: bool,
     /// One loop's vertices, drawn positions and collapsed sides.
     loop_ids: Vec<u32>,
     points: Vec<[f64; 3]>,
@@ -187,9 +188,25 @@ pub struct TransitionScratch {
     coarse_inside: Vec<bool>,
     /// One loop's triangles, as indices into it.
     tris: Vec<[usize; 3]>,
+    /// [`TransitionInput::moving_faces_on`] of every face mask (64), for the current call.
+    moving: Vec<u8>,
+    /// The current call's `box_lo`.
+    box_lo: [i64; 3],
+    /// The transition data being built.
+    work: Transitions,
+    /// One row of blocks of a strip: per fine column its three samples' inside flags (bits 0,
+    /// 3, 6), per coarse column its two (bits 0, 2).
+    fine_columns: Vec<u16>,
+    coarse_columns: Vec<u16>,
 }
 
 impl TransitionScratch {
+    /// The faces lattice point `p` of the box moves with ([`TransitionInput::moving_faces_on`]
+    /// of the faces it lies on).
+    fn moving_faces(&self, p: [i64; 3], hi: [i64; 3]) -> u8 {
+        self.moving[usize::from(faces_of(p, self.box_lo, hi))]
+    }
+
     /// The vertex this call made in slot `slot` of `made`, if it made one.
     fn made_at(&self, slot: usize) -> Option<u32> {
         match self.made[slot] {
@@ -225,6 +242,28 @@ pub fn mesh_transitions(
     if input.faces == 0 {
         return;
     }
+    // Built in the scratch's buffers (grown once, for every tile after), then copied out at
+    // their final sizes: one allocation per buffer instead of a growing one.
+    let mut work = std::mem::take(&mut scratch.work);
+    work.clear();
+    build(input, regular, march, &mut work, scratch);
+    out.positions.clone_from(&work.positions);
+    out.normals.clone_from(&work.normals);
+    out.moves.clone_from(&work.moves);
+    for (to, from) in out.strips.iter_mut().zip(&work.strips) {
+        to.clone_from(from);
+    }
+    scratch.work = work;
+}
+
+/// [`mesh_transitions`] into `out` (empty).
+fn build(
+    input: &TransitionInput<'_>,
+    regular: &Mesh,
+    march: &Scratch,
+    out: &mut Transitions,
+    scratch: &mut TransitionScratch,
+) {
     let slots = 4 * input.coarse.values.len();
     scratch.stamp = scratch.stamp.wrapping_add(1);
     if scratch.stamp == 0 || scratch.made.len() < slots {
@@ -233,9 +272,20 @@ pub fn mesh_transitions(
         scratch.made.resize(slots, (0, 0));
         scratch.stamp = 1;
     }
+    scratch.moving.clear();
+    scratch
+        .moving
+        .extend((0..64).map(|on| input.moving_faces_on(on)));
+    scratch.box_lo = input.box_lo();
     scratch.regular = regular.positions.len();
-    scratch.offsets.clear();
-    scratch.offsets.resize(regular.positions.len(), [0.0; 3]);
+    // Zero but for the vertices of the face whose strip is being built (set and reset around
+    // it), so that it needs no clearing between tiles; cleared if a call left it midway.
+    if scratch.offsets_set {
+        scratch.offsets.clear();
+    }
+    if scratch.offsets.len() < regular.positions.len() {
+        scratch.offsets.resize(regular.positions.len(), [0.0; 3]);
+    }
     let same_box = input.box_lo() == input.lo;
     for b in &march.border {
         let mut p1 = b.p0;
@@ -243,11 +293,14 @@ pub fn mesh_transitions(
         // march's faces are those of [lo, hi]; the box's are the same unless it starts lower.
         let (f0, f1) = if same_box {
             (
-                input.moving_faces_on(b.faces[0]),
-                input.moving_faces_on(b.faces[1]),
+                scratch.moving[usize::from(b.faces[0])],
+                scratch.moving[usize::from(b.faces[1])],
             )
         } else {
-            (input.moving_faces(b.p0), input.moving_faces(p1))
+            (
+                scratch.moving_faces(b.p0, input.hi),
+                scratch.moving_faces(p1, input.hi),
+            )
         };
         // A vertex moves with a face by the interpolation of its endpoints' moves with it.
         for face in (0..6).filter(|&f| (f0 | f1) >> f & 1 == 1) {
@@ -269,8 +322,9 @@ pub fn mesh_transitions(
             continue;
         }
         // The strip is drawn with the moves of its own face only: when face f touches a
-        // coarser tile, no point of f moves with another face (`moving_faces`).
+        // coarser tile, no point of f moves with another face (`moving_faces_on`).
         let own = |m: &&VertexMove| m.faces == 1 << face;
+        scratch.offsets_set = true;
         for m in out.moves[..regular_moves].iter().filter(own) {
             scratch.offsets[m.vertex as usize] = m.offset;
         }
@@ -281,6 +335,7 @@ pub fn mesh_transitions(
                 scratch.offsets[m.vertex as usize] = [0.0; 3];
             }
         }
+        scratch.offsets_set = false;
     }
 }
 
@@ -388,7 +443,11 @@ fn strip(
         out.clear();
         for v in 0..=n.1 {
             let row = &values[v * sv..];
-            out.extend((0..=n.0).map(|u| row[u * su] >= iso));
+            if su == 1 {
+                out.extend(row[..=n.0].iter().map(|&x| x >= iso));
+            } else {
+                out.extend((0..=n.0).map(|u| row[u * su] >= iso));
+            }
         }
     };
     flags(input.fine, at(0, 0), (nu, nv), &mut scratch.fine_inside);
@@ -410,21 +469,30 @@ fn strip(
     }
     let table = table();
     let (fw, cw) = (nu + 1, nu / 2 + 1);
+    // A cell's case from its three fine and two coarse columns: fine sample (i, j) is bit
+    // i + 3j, coarse sample (i, j) bit 9 + i + 2j.
+    let mut fine_columns = std::mem::take(&mut scratch.fine_columns);
+    let mut coarse_columns = std::mem::take(&mut scratch.coarse_columns);
     for bv in (0..nv).step_by(2) {
+        let (fine, coarse) = (&scratch.fine_inside, &scratch.coarse_inside);
+        fine_columns.clear();
+        fine_columns.extend((0..fw).map(|u| {
+            (0..3).fold(0u16, |c, j| {
+                c | u16::from(fine[(bv + j) * fw + u]) << (3 * j)
+            })
+        }));
+        coarse_columns.clear();
+        coarse_columns.extend((0..cw).map(|u| {
+            (0..2).fold(0u16, |c, j| {
+                c | u16::from(coarse[(bv / 2 + j) * cw + u]) << (2 * j)
+            })
+        }));
         for bu in (0..nu).step_by(2) {
-            let mut case = 0u16;
-            for j in 0..3 {
-                for i in 0..3 {
-                    let inside = scratch.fine_inside[(bv + j) * fw + bu + i];
-                    case |= u16::from(inside) << (i + 3 * j);
-                }
-            }
-            for j in 0..2 {
-                for i in 0..2 {
-                    let inside = scratch.coarse_inside[(bv / 2 + j) * cw + bu / 2 + i];
-                    case |= u16::from(inside) << (9 + i + 2 * j);
-                }
-            }
+            let (f, c) = (
+                &fine_columns[bu..bu + 3],
+                &coarse_columns[bu / 2..bu / 2 + 2],
+            );
+            let case = f[0] | f[1] << 1 | f[2] << 2 | (c[0] | c[1] << 1) << 9;
             if case == 0 || case == (1 << SAMPLES) - 1 {
                 continue;
             }
@@ -440,6 +508,8 @@ fn strip(
             transition_cell(&cell, case, collapsed, table, regular, march, out, scratch);
         }
     }
+    scratch.fine_columns = fine_columns;
+    scratch.coarse_columns = coarse_columns;
 }
 
 /// The id and drawn position (local frame) of the vertex on edge `e` of `cell`.
@@ -772,7 +842,7 @@ fn connecting_vertex(
     let s = (input.iso - vf) / (vc - vf);
     // It moves with each face its fine corner moves with; drawn in this strip with the moves
     // of this strip's face.
-    let moving = input.moving_faces(p);
+    let moving = scratch.moving_faces(p, input.hi);
     let drawn = if moving >> face & 1 == 1 {
         let d = displacement(face, 1.0 - s);
         [0, 1, 2].map(|b| primary[b] + d[b])

@@ -43,13 +43,21 @@ pub struct MeshBenchArgs {
     /// Brick (tile) edge.
     #[arg(long, default_value_t = 32)]
     pub brick: u32,
+    /// Only the transition-data comparison (for measuring a change to the strips).
+    #[arg(long)]
+    pub transitions_only: bool,
+    /// Alternating runs of each side in the transition-data comparison.
+    #[arg(long, default_value_t = 5)]
+    pub transition_runs: usize,
+    /// Print a digest of every tile with its transition data at every level (its content, and
+    /// its compact bytes) instead of timing: equal digests before and after a change to the
+    /// meshing code show that it changed no tile.
+    #[arg(long)]
+    pub digest: bool,
 }
 
 /// A benchmark input: name, RAW path (for the peers), the volume, its dims and voxel type.
 type DataSet = (String, PathBuf, Arc<Snapshot>, [u32; 3], VoxelType);
-
-/// Runs of each side in the transition-data comparison.
-const TRANSITION_RUNS: usize = 5;
 
 struct Run {
     seconds: f64,
@@ -78,29 +86,77 @@ fn mesh_with_threads(snap: &Snapshot, level: u8, threads: usize) -> anyhow::Resu
     })
 }
 
+/// The transition-data comparison: medians of alternating runs, in seconds.
+struct TransitionTimes {
+    /// Every level-0 tile with its transition data.
+    with: f64,
+    /// The same tiles' regular meshes alone.
+    without: f64,
+    /// What the transition data adds: the median of each pair's difference.
+    added: f64,
+}
+
 /// Level-0 tiles meshed with their transition data against the same tiles without, on one
 /// thread: one warm-up of each, then the two alternate so that a machine whose load changes
-/// slows both alike; the medians (seconds) and the tiles of the last run with transitions.
+/// slows both alike; the medians and the tiles of the last run with transitions.
 fn transitions_against_plain(
     snap: &Snapshot,
     runs: usize,
-) -> anyhow::Result<(f64, f64, Vec<TileMesh>)> {
+) -> anyhow::Result<(TransitionTimes, Vec<TileMesh>)> {
     let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
     let tiles = level_tiles(snap, 0);
     let iso = default_iso(snap.layout().voxel_type());
     pool.install(|| mesh_tile_parts(snap, &tiles, iso, &Silent))?;
     pool.install(|| mesh_stitchable_parts(snap, &tiles, iso, &Silent))?;
-    let (mut with, mut without) = (Vec::new(), Vec::new());
+    let (mut with, mut without, mut added) = (Vec::new(), Vec::new(), Vec::new());
     let mut parts = Vec::new();
-    for _ in 0..runs {
+    for _ in 0..runs.max(1) {
         let start = Instant::now();
         pool.install(|| mesh_tile_parts(snap, &tiles, iso, &Silent))?;
-        without.push(start.elapsed().as_secs_f64());
+        let plain = start.elapsed().as_secs_f64();
         let start = Instant::now();
         parts = pool.install(|| mesh_stitchable_parts(snap, &tiles, iso, &Silent))?;
-        with.push(start.elapsed().as_secs_f64());
+        let stitchable = start.elapsed().as_secs_f64();
+        without.push(plain);
+        with.push(stitchable);
+        added.push(stitchable - plain);
     }
-    Ok((median(with), median(without), parts))
+    let times = TransitionTimes {
+        with: median(with),
+        without: median(without),
+        added: median(added),
+    };
+    Ok((times, parts))
+}
+
+/// Digests of every tile of every level of `snap` meshed with its transition data: of its
+/// content (regular mesh, transition vertices, moves, strips: independent of the encoding) and
+/// of its compact bytes.
+fn tile_digests(snap: &Snapshot) -> anyhow::Result<Vec<(u8, usize, u64, u64)>> {
+    use std::hash::{DefaultHasher, Hash, Hasher};
+    let iso = default_iso(snap.layout().voxel_type());
+    let mut out = Vec::new();
+    for level in 0..snap.layout().levels() {
+        let tiles = level_tiles(snap, level);
+        let parts = mesh_stitchable_parts(snap, &tiles, iso, &Silent)?;
+        let (mut content, mut bytes) = (DefaultHasher::new(), DefaultHasher::new());
+        for tile in &parts {
+            let (m, t) = (&tile.mesh, &tile.transitions);
+            let bits = |v: &[[f32; 3]]| v.iter().flatten().map(|c| c.to_bits()).collect::<Vec<_>>();
+            bits(&m.positions).hash(&mut content);
+            bits(&m.normals).hash(&mut content);
+            m.indices.hash(&mut content);
+            bits(&t.positions).hash(&mut content);
+            bits(&t.normals).hash(&mut content);
+            for mv in &t.moves {
+                (mv.vertex, mv.faces, mv.offset.map(f32::to_bits)).hash(&mut content);
+            }
+            t.strips.hash(&mut content);
+            encode_tile(tile).hash(&mut bytes);
+        }
+        out.push((level, tiles.len(), content.finish(), bytes.finish()));
+    }
+    Ok(out)
 }
 
 fn peers(raw: &Path, dims: [u32; 3], t: VoxelType) -> anyhow::Result<serde_json::Value> {
@@ -177,6 +233,20 @@ pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
         keep.push(vod);
     }
 
+    if a.digest {
+        println!("| data set | level | tiles | content digest | bytes digest |");
+        println!("|---|---:|---:|---|---|");
+        for (name, _, snap, _, _) in &sets {
+            for (level, tiles, content, bytes) in tile_digests(snap)? {
+                println!("| {name} | {level} | {tiles} | {content:016x} | {bytes:016x} |");
+            }
+        }
+        return Ok(());
+    }
+    if a.transitions_only {
+        return transition_table(&sets, a.transition_runs);
+    }
+
     println!("### Marching cubes, level 0, iso = S - 0.5 (Isovox: every tile's mesh, tiles of {0}^3, including reading and decoding the bricks; the peers: one mesh from an array in memory)\n", a.brick);
     println!("| data set | voxels | triangles | Isovox 1 thread: Mvoxel/s | 2 threads: Mvoxel/s | 2-thread speed-up | VTK FlyingEdges3D 1 thread | VTK 2 threads | scikit-image | Isovox / VTK, 1 thread | Isovox / VTK, 2 threads |");
     println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
@@ -247,32 +317,7 @@ pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
         }
     }
 
-    println!("\n### Transition data (crack-free LOD), level 0, 1 thread\n");
-    println!("Every level-0 tile meshed as served: its regular mesh, the secondary positions of its boundary vertices and one transition strip per face with a neighbour (docs/lod-meshes.md), against the regular mesh alone, in alternating runs (median of {TRANSITION_RUNS} each); bytes in the compact encoding (version 2 against version 1), over the tiles with a surface.\n");
-    println!("| data set | without: Mvoxel/s | with: Mvoxel/s | with / without (time) | tiles with a surface | regular triangles | strip triangles (6 faces) | moves | bytes without | bytes with | bytes more |");
-    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
-    for (name, _, snap, dims, _) in &sets {
-        eprintln!("bench mesh: transitions, {name}");
-        let voxels = dims.iter().map(|&d| d as f64).product::<f64>();
-        let (with, without, parts) = transitions_against_plain(snap, TRANSITION_RUNS)?;
-        let surfaced: Vec<&TileMesh> = parts
-            .iter()
-            .filter(|t| !t.mesh.is_empty() || !t.transitions.is_empty())
-            .collect();
-        let regular: usize = surfaced.iter().map(|t| t.mesh.triangles()).sum();
-        let strips: usize = surfaced.iter().map(|t| t.transitions.triangles()).sum();
-        let moves: usize = surfaced.iter().map(|t| t.transitions.moves.len()).sum();
-        let bytes_without: usize = surfaced.iter().map(|t| encode_compact(&t.mesh).len()).sum();
-        let bytes_with: usize = surfaced.iter().map(|t| encode_tile(t).len()).sum();
-        println!(
-            "| {name} | {:.0} | {:.0} | {:.2}x | {} | {regular} | {strips} | {moves} | {bytes_without} | {bytes_with} | {:.1}% |",
-            voxels / without / 1e6,
-            voxels / with / 1e6,
-            with / without,
-            surfaced.len(),
-            100.0 * (bytes_with as f64 / bytes_without as f64 - 1.0)
-        );
-    }
+    transition_table(&sets, a.transition_runs)?;
 
     println!(
         "\n### Adaptive LOD (thesis Table 8): camera at a corner, level k within radius r_k\n"
@@ -322,6 +367,37 @@ pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
     println!("|---|---:|---:|---:|---:|---:|---:|---:|");
     for row in stitched_rows {
         println!("{row}");
+    }
+    Ok(())
+}
+
+/// The transition-data table: every level-0 tile with its transition data against without.
+fn transition_table(sets: &[DataSet], runs: usize) -> anyhow::Result<()> {
+    println!("\n### Transition data (crack-free LOD), level 0, 1 thread\n");
+    println!("Every level-0 tile meshed as served: its regular mesh, the secondary positions of its boundary vertices and one transition strip per face with a neighbour (docs/lod-meshes.md), against the regular mesh alone, in alternating runs (median of {runs} each; the transition part is the median of each pair's difference); bytes in the compact encoding (version 2 against version 1), over the tiles with a surface.\n");
+    println!("| data set | without: ms | with: ms | transition part: ms | with / without (time) | tiles with a surface | regular triangles | strip triangles (6 faces) | moves | bytes without | bytes with | bytes more |");
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for (name, _, snap, _, _) in sets {
+        eprintln!("bench mesh: transitions, {name}");
+        let (times, parts) = transitions_against_plain(snap, runs)?;
+        let surfaced: Vec<&TileMesh> = parts
+            .iter()
+            .filter(|t| !t.mesh.is_empty() || !t.transitions.is_empty())
+            .collect();
+        let regular: usize = surfaced.iter().map(|t| t.mesh.triangles()).sum();
+        let strips: usize = surfaced.iter().map(|t| t.transitions.triangles()).sum();
+        let moves: usize = surfaced.iter().map(|t| t.transitions.moves.len()).sum();
+        let bytes_without: usize = surfaced.iter().map(|t| encode_compact(&t.mesh).len()).sum();
+        let bytes_with: usize = surfaced.iter().map(|t| encode_tile(t).len()).sum();
+        println!(
+            "| {name} | {:.1} | {:.1} | {:.1} | {:.2}x | {} | {regular} | {strips} | {moves} | {bytes_without} | {bytes_with} | {:.1}% |",
+            times.without * 1e3,
+            times.with * 1e3,
+            times.added * 1e3,
+            times.with / times.without,
+            surfaced.len(),
+            100.0 * (bytes_with as f64 / bytes_without as f64 - 1.0)
+        );
     }
     Ok(())
 }
