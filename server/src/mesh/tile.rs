@@ -21,7 +21,7 @@
 //! vertices stay bit-identical, across levels too.
 
 use super::lattice::{lattice_field, value_range, LatticeScratch};
-use super::mc::{march, Field, Mesh, Scratch};
+use super::mc::{march, Field, Kernel, Mesh, Scratch};
 use super::transition::{mesh_transitions, TransitionInput, TransitionScratch};
 use crate::store::codec::min_max;
 use crate::store::decoded::{decode, DecodedBricks};
@@ -57,6 +57,12 @@ impl TileScratch {
             bricks: Some(bricks),
             ..TileScratch::default()
         }
+    }
+
+    /// This scratch, marching with `kernel` (the benchmark times the previous kernel with it).
+    pub fn with_kernel(mut self, kernel: Kernel) -> Self {
+        self.march.kernel = kernel;
+        self
     }
 }
 
