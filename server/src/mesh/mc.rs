@@ -155,6 +155,14 @@ impl Scratch {
     }
 }
 
+/// Point `p` relative to `lo`, if it lies in the box `[lo, lo + n]`.
+pub(super) fn local_point(p: [i64; 3], lo: [i64; 3], n: [usize; 3]) -> Option<[usize; 3]> {
+    let l = [0, 1, 2].map(|a| p[a] - lo[a]);
+    (0..3)
+        .all(|a| l[a] >= 0 && l[a] as usize <= n[a])
+        .then(|| l.map(|c| c as usize))
+}
+
 /// The faces of the box `[lo, hi]` that point `p` lies on (bit 2a: `p[a] == lo[a]`, bit 2a + 1:
 /// `p[a] == hi[a]`).
 pub fn faces_of(p: [i64; 3], lo: [i64; 3], hi: [i64; 3]) -> u8 {

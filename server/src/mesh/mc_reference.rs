@@ -4,7 +4,7 @@
 //! and as the baseline `isovox-bench mesh` times next to it; [`super::mc::Kernel::Reference`]
 //! selects it.
 
-use super::mc::{faces_of, BorderVertex, Field, Mesh};
+use super::mc::{faces_of, local_point, BorderVertex, Field, Mesh};
 use super::table::{table, EDGES, EDGE_AXIS};
 
 /// The vertex id of each grid edge already visited, stamped with the call that wrote it so the
@@ -21,11 +21,7 @@ pub(super) struct ReferenceScratch {
 impl ReferenceScratch {
     /// The id of the vertex the last [`march`] made on the grid edge from `p0` along `axis`.
     pub(super) fn vertex_on_edge(&self, p0: [i64; 3], axis: usize) -> Option<u32> {
-        let l = [0, 1, 2].map(|a| p0[a] - self.lo[a]);
-        if (0..3).any(|a| l[a] < 0 || l[a] as usize > self.n[a]) {
-            return None;
-        }
-        let l = l.map(|c| c as usize);
+        let l = local_point(p0, self.lo, self.n)?;
         let slot = (((l[2] * (self.n[1] + 1) + l[1]) * (self.n[0] + 1) + l[0]) * 3) + axis;
         match self.edge_vertex.get(slot) {
             Some(&(stamp, id)) if stamp == self.stamp && self.stamp != 0 => Some(id),

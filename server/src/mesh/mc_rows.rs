@@ -21,7 +21,7 @@
 //! and each mixed cell's triangles use all its crossed edges), in another order; the triangles
 //! are the same, in the same order.
 
-use super::mc::{BorderVertex, Field, Mesh};
+use super::mc::{local_point, BorderVertex, Field, Mesh};
 use super::table::{table, EDGES, EDGE_AXIS};
 use std::sync::OnceLock;
 
@@ -58,11 +58,10 @@ pub(super) struct RowsScratch {
 impl RowsScratch {
     /// The id of the vertex the last [`march`] made on the grid edge from `p0` along `axis`.
     pub(super) fn vertex_on_edge(&self, p0: [i64; 3], axis: usize) -> Option<u32> {
-        let l = [0, 1, 2].map(|a| p0[a] - self.lo[a]);
-        if self.width == 0 || (0..3).any(|a| l[a] < 0 || l[a] as usize > self.n[a]) {
+        if self.width == 0 {
             return None;
         }
-        let l = l.map(|c| c as usize);
+        let l = local_point(p0, self.lo, self.n)?;
         let row = l[2] * (self.n[1] + 1) + l[1];
         let w = (l[0] / CELLS).min(self.width - 1);
         let word = &self.words[row * self.width + w];
