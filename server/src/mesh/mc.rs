@@ -8,7 +8,8 @@
 //! Normals are the negated, interpolated central-difference gradient (they point from inside to
 //! outside, as the triangles' winding does).
 
-use super::table::{table, EDGES, EDGE_AXIS};
+use super::mc_reference::{self, ReferenceScratch};
+use super::mc_rows::{self, RowsScratch};
 
 /// A scalar field sampled on integer grid points: the value of point `origin + (x, y, z)` is
 /// `values[(z * size[1] + y) * size[0] + x]`.
@@ -61,7 +62,13 @@ impl Field<'_> {
     /// The unit normal of a crossing at parameter `t` on the edge from flat index `i0` along
     /// `axis` (see [`Field::crossing`]).
     #[inline]
-    fn crossing_normal(&self, i0: usize, axis: usize, t: f32, upper_inside: bool) -> [f32; 3] {
+    pub(super) fn crossing_normal(
+        &self,
+        i0: usize,
+        axis: usize,
+        t: f32,
+        upper_inside: bool,
+    ) -> [f32; 3] {
         let stride = [1, self.size[0], self.size[0] * self.size[1]][axis];
         let (g0, g1) = (self.gradient_at(i0), self.gradient_at(i0 + stride));
         let g = [0, 1, 2].map(|a| g0[a] + t * (g1[a] - g0[a]));
@@ -91,16 +98,18 @@ impl Field<'_> {
 
 pub use isovox_proto::mesh::Mesh;
 
-/// Reusable per-call memory: the vertex id of each grid edge already visited, stamped with the
-/// call that wrote it so the table never needs clearing between calls; and the vertices the last
-/// call made on edges that touch the boundary of its cells (the transition kernel moves them).
+/// Reusable per-call memory, and what the last [`march`] left for the transition strips: the
+/// vertex on each crossed edge, and the vertices on edges that touch the boundary of its cells
+/// (the transition kernel moves them).
 #[derive(Debug, Default)]
 pub struct Scratch {
-    edge_vertex: Vec<(u32, u32)>,
-    stamp: u32,
-    /// The last call's `lo` and cell counts, to find its edges again.
-    lo: [i64; 3],
-    n: [usize; 3],
+    /// The implementation [`march`] runs with this scratch.
+    pub kernel: Kernel,
+    /// The kernel that made the last [`march`]'s mesh; `None` before one, or after
+    /// [`Scratch::forget`].
+    last: Option<Kernel>,
+    rows: RowsScratch,
+    reference: ReferenceScratch,
     /// Vertices of the last call whose edge has an endpoint on the boundary of `[lo, hi]`.
     pub border: Vec<BorderVertex>,
 }
@@ -122,30 +131,36 @@ pub struct BorderVertex {
 }
 
 impl Scratch {
+    /// Scratch for marching with `kernel`.
+    pub fn new(kernel: Kernel) -> Self {
+        Scratch {
+            kernel,
+            ..Scratch::default()
+        }
+    }
+
     /// Forgets the last [`march`]: as if it had marched cells without a surface.
     pub fn forget(&mut self) {
-        self.stamp = self.stamp.wrapping_add(1);
-        if self.stamp == 0 {
-            self.edge_vertex.clear();
-            self.stamp = 1;
-        }
+        self.last = None;
         self.border.clear();
     }
 
     /// The id of the vertex the last [`march`] made on the grid edge from `p0` along `axis`, if
     /// it made one (the edge is crossed and lies within the cells it marched).
     pub fn vertex_on_edge(&self, p0: [i64; 3], axis: usize) -> Option<u32> {
-        let l = [0, 1, 2].map(|a| p0[a] - self.lo[a]);
-        if (0..3).any(|a| l[a] < 0 || l[a] as usize > self.n[a]) {
-            return None;
-        }
-        let l = l.map(|c| c as usize);
-        let slot = (((l[2] * (self.n[1] + 1) + l[1]) * (self.n[0] + 1) + l[0]) * 3) + axis;
-        match self.edge_vertex.get(slot) {
-            Some(&(stamp, id)) if stamp == self.stamp && self.stamp != 0 => Some(id),
-            _ => None,
+        match self.last? {
+            Kernel::Rows => self.rows.vertex_on_edge(p0, axis),
+            Kernel::Reference => self.reference.vertex_on_edge(p0, axis),
         }
     }
+}
+
+/// Point `p` relative to `lo`, if it lies in the box `[lo, lo + n]`.
+pub(super) fn local_point(p: [i64; 3], lo: [i64; 3], n: [usize; 3]) -> Option<[usize; 3]> {
+    let l = [0, 1, 2].map(|a| p[a] - lo[a]);
+    (0..3)
+        .all(|a| l[a] >= 0 && l[a] as usize <= n[a])
+        .then(|| l.map(|c| c as usize))
 }
 
 /// The faces of the box `[lo, hi]` that point `p` lies on (bit 2a: `p[a] == lo[a]`, bit 2a + 1:
@@ -158,9 +173,24 @@ pub fn faces_of(p: [i64; 3], lo: [i64; 3], hi: [i64; 3]) -> u8 {
     f
 }
 
+/// Which implementation [`march`] runs. Both give the same mesh: the same vertices (bit for
+/// bit), the same triangles and border vertices; only the order of the vertices differs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Kernel {
+    /// Rows of cells classified 63 at a time, vertices made once per crossed edge
+    /// ([`super::mc_rows`]).
+    #[default]
+    Rows,
+    /// Cell by cell, as before ([`super::mc_reference`]): the tests' oracle and the
+    /// benchmark's baseline.
+    Reference,
+}
+
 /// Marches the cells whose lower corners lie in `[lo, hi)` and appends their triangles to `out`,
 /// with positions in grid coordinates relative to `frame` (so a tile's mesh does not depend on
-/// where the tile is, and identical tiles can share one cached mesh).
+/// where the tile is, and identical tiles can share one cached mesh). Every crossed grid edge
+/// between the points of `[lo, hi]` gets one vertex; [`Scratch::vertex_on_edge`] finds it and
+/// [`Scratch::border`] lists those on the boundary.
 ///
 /// The field must cover `[lo - 1, hi + 1]` on every axis (inclusive): `hi` for the cells' upper
 /// corners, one more on each side for the central differences of the normals. Checked once up
@@ -186,92 +216,26 @@ pub fn march(
         );
     }
     assert_eq!(field.values.len(), field.size.iter().product::<usize>());
-    let n = [0, 1, 2].map(|a| (hi[a] - lo[a]) as usize);
-    // Edge slots: one per grid point of [lo, hi] and axis.
-    let points = (n[0] + 1) * (n[1] + 1) * (n[2] + 1);
-    scratch.stamp = scratch.stamp.wrapping_add(1);
-    if scratch.stamp == 0 || scratch.edge_vertex.len() < points * 3 {
-        // First use, a larger grid, or the stamp wrapped: start from a clean table.
-        scratch.edge_vertex.clear();
-        scratch.edge_vertex.resize(points * 3, (0, 0));
-        scratch.stamp = 1;
+    let border = &mut scratch.border;
+    match scratch.kernel {
+        Kernel::Rows => mc_rows::march(
+            field,
+            (lo, hi),
+            frame,
+            iso,
+            out,
+            (&mut scratch.rows, border),
+        ),
+        Kernel::Reference => mc_reference::march(
+            field,
+            (lo, hi),
+            frame,
+            iso,
+            out,
+            (&mut scratch.reference, border),
+        ),
     }
-    let stamp = scratch.stamp;
-    scratch.lo = lo;
-    scratch.n = n;
-    scratch.border.clear();
-    let table = table();
-    let row = |y: i64, z: i64| {
-        let start = (((z - field.origin[2]) as usize * field.size[1])
-            + (y - field.origin[1]) as usize)
-            * field.size[0];
-        let x0 = (lo[0] - field.origin[0]) as usize;
-        &field.values[start + x0..start + x0 + n[0] + 1]
-    };
-    for z in lo[2]..hi[2] {
-        for y in lo[1]..hi[1] {
-            // The four rows of samples the cells of this row read (x fastest): corner c of cell x
-            // is rows[c >> 1][x + (c & 1)].
-            let rows = [row(y, z), row(y + 1, z), row(y, z + 1), row(y + 1, z + 1)];
-            // Inside flags of the cells' x-side corners, as the bits of corners 0, 2, 4, 6.
-            let side = |i: usize| -> usize {
-                (rows[0][i] >= iso) as usize
-                    | ((rows[1][i] >= iso) as usize) << 2
-                    | ((rows[2][i] >= iso) as usize) << 4
-                    | ((rows[3][i] >= iso) as usize) << 6
-            };
-            let mut low_side = side(0);
-            for (i, x) in (lo[0]..hi[0]).enumerate() {
-                let high_side = side(i + 1);
-                let case = low_side | high_side << 1;
-                low_side = high_side;
-                if case == 0 || case == 255 {
-                    continue;
-                }
-                let corners: [f32; 8] = std::array::from_fn(|c| rows[c >> 1][i + (c & 1)]);
-                let tris = &table[case];
-                if tris.is_empty() {
-                    continue;
-                }
-                for &e in tris.iter() {
-                    let (c0, c1) = EDGES[e as usize];
-                    let axis = EDGE_AXIS[e as usize] as usize;
-                    let p0 = [
-                        x + (c0 & 1) as i64,
-                        y + (c0 >> 1 & 1) as i64,
-                        z + (c0 >> 2 & 1) as i64,
-                    ];
-                    let l = [0, 1, 2].map(|a| (p0[a] - lo[a]) as usize);
-                    let slot = (((l[2] * (n[1] + 1) + l[1]) * (n[0] + 1) + l[0]) * 3) + axis;
-                    let (seen, mut id) = scratch.edge_vertex[slot];
-                    if seen != stamp {
-                        let (v0, v1) = (corners[c0 as usize], corners[c1 as usize]);
-                        let t = (iso - v0) / (v1 - v0);
-                        let mut pos = [0, 1, 2].map(|a| (p0[a] - frame[a]) as f32);
-                        pos[axis] += t;
-                        let normal = field.crossing_normal(field.index(p0), axis, t, v1 >= iso);
-                        id = out.positions.len() as u32;
-                        out.positions.push(pos);
-                        out.normals.push(normal);
-                        scratch.edge_vertex[slot] = (stamp, id);
-                        let mut p1 = p0;
-                        p1[axis] += 1;
-                        let faces = [faces_of(p0, lo, hi), faces_of(p1, lo, hi)];
-                        if faces != [0, 0] {
-                            scratch.border.push(BorderVertex {
-                                id,
-                                p0,
-                                axis: axis as u8,
-                                t,
-                                faces,
-                            });
-                        }
-                    }
-                    out.indices.push(id);
-                }
-            }
-        }
-    }
+    scratch.last = Some(scratch.kernel);
 }
 
 #[cfg(test)]

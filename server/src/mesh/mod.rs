@@ -6,7 +6,8 @@
 //! - [`files`]: GLB, OBJ and PLY output.
 //! - [`lattice`]: where each level's samples sit: one nested lattice for all levels.
 //! - [`level`]: whole levels and adaptive selections of tiles, stitching, welding.
-//! - [`mc`]: the kernel over a sample grid.
+//! - [`mc`]: the kernel over a sample grid: [`mc_rows`] a row of cells at a time, [`mc_reference`]
+//!   cell by cell (the previous kernel, the tests' oracle).
 //! - [`tile`]: one brick's mesh with its halo, in world coordinates (the seam rule).
 //! - [`table`]: the case table, generated with a face-consistent rule.
 //! - [`transition`]: transition strips and secondary positions, the seam rule across levels.
@@ -18,6 +19,8 @@ pub mod files;
 pub mod lattice;
 pub mod level;
 pub mod mc;
+mod mc_reference;
+mod mc_rows;
 pub mod table;
 pub mod tile;
 pub mod transition;

@@ -23,7 +23,7 @@
 use super::lattice::{
     lattice_field, lattice_plane, lattice_point, value_range, weights, LatticeScratch,
 };
-use super::mc::{march, Field, Mesh, Scratch};
+use super::mc::{march, Field, Kernel, Mesh, Scratch};
 use super::transition::{mesh_transitions, TransitionInput, TransitionScratch};
 use crate::store::codec::min_max;
 use crate::store::decoded::{decode, DecodedBricks};
@@ -67,6 +67,12 @@ impl TileScratch {
             bricks: Some(bricks),
             ..TileScratch::default()
         }
+    }
+
+    /// This scratch, marching with `kernel` (the benchmark times the previous kernel with it).
+    pub fn with_kernel(mut self, kernel: Kernel) -> Self {
+        self.march.kernel = kernel;
+        self
     }
 }
 

@@ -7,17 +7,20 @@ use super::median;
 use anyhow::Context;
 use clap::Args;
 use isovox_proto::mesh::{encode_compact, encode_tile, TileMesh};
-use isovox_proto::{VolumeLayout, VoxelType};
+use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use isovox_server::generate::{EllipsoidSource, WorldSource};
 use isovox_server::mesh::check::{crossing_triangles, open_edges};
 use isovox_server::mesh::level::{
     adaptive_tiles, balanced_tiles, level_tiles, mesh_stitchable_parts, mesh_stitched,
     mesh_tile_parts, mesh_tiles, weld,
 };
-use isovox_server::mesh::tile::default_iso;
+use isovox_server::mesh::mc::{Kernel, Mesh};
+use isovox_server::mesh::tile::{default_iso, mesh_tile, TileScratch};
 use isovox_server::progress::Silent;
+use isovox_server::store::decoded::DecodedBricks;
 use isovox_server::store::raw::RawInput;
 use isovox_server::store::{build_vod2, BrickSource, BuildOptions, DenseGrid, Snapshot, Vod2};
+use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::Arc;
@@ -54,36 +57,89 @@ pub struct MeshBenchArgs {
     /// meshing code show that it changed no tile.
     #[arg(long)]
     pub digest: bool,
+    /// Only the marching-cubes table (the kernels and the peers), not the levels, the
+    /// transition data and the adaptive LOD.
+    #[arg(long)]
+    pub kernels_only: bool,
 }
 
 /// A benchmark input: name, RAW path (for the peers), the volume, its dims and voxel type.
 type DataSet = (String, PathBuf, Arc<Snapshot>, [u32; 3], VoxelType);
+
+/// Runs of each kernel (and thread count) in the marching-cubes table; the peers script runs
+/// each peer three times.
+const KERNEL_RUNS: usize = 5;
+
+/// Memory for decoded bricks during one pass, as `mesh_tile_parts` gives it.
+const BRICK_CACHE_BYTES: usize = 256 << 20;
 
 struct Run {
     seconds: f64,
     triangles: usize,
 }
 
-fn mesh_with_threads(snap: &Snapshot, level: u8, threads: usize) -> anyhow::Result<Run> {
+/// Every tile of `tiles` meshed with `kernel` on the current thread pool exactly as
+/// `mesh_tile_parts` does it (one scratch per thread, one cache of decoded bricks per pass,
+/// one mesh per tile, all kept), with the kernel chosen.
+fn mesh_pass(
+    snap: &Snapshot,
+    tiles: &[BrickKey],
+    iso: f32,
+    kernel: Kernel,
+) -> anyhow::Result<Vec<Mesh>> {
+    let bricks = Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
+    let parts = tiles
+        .par_iter()
+        .map_init(
+            || TileScratch::with_bricks(bricks.clone()).with_kernel(kernel),
+            |scratch, &key| {
+                let mut mesh = Mesh::default();
+                mesh_tile(snap, key, iso, &mut mesh, scratch).map(|_| mesh)
+            },
+        )
+        .collect::<Result<_, _>>()?;
+    Ok(parts)
+}
+
+/// The tiles of `level` meshed with each of `kernels` on `threads` threads: one warm-up pass of
+/// each (page cache, allocator), then `runs` rounds in which they take turns, so that a machine
+/// whose load changes slows all alike; each kernel's median, in the order of `kernels`.
+fn kernels_in_turn(
+    snap: &Snapshot,
+    level: u8,
+    threads: usize,
+    kernels: &[Kernel],
+    runs: usize,
+) -> anyhow::Result<Vec<Run>> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()?;
     let tiles = level_tiles(snap, level);
     let iso = default_iso(snap.layout().voxel_type());
-    let mut times = Vec::new();
-    let mut triangles = 0;
-    // One warm-up run (page cache, allocator), then the median of five.
-    pool.install(|| mesh_tile_parts(snap, &tiles, iso, &Silent))?;
-    for _ in 0..5 {
-        let start = Instant::now();
-        let parts = pool.install(|| mesh_tile_parts(snap, &tiles, iso, &Silent))?;
-        times.push(start.elapsed().as_secs_f64());
-        triangles = parts.iter().map(|m| m.triangles()).sum();
+    let mut times = vec![Vec::new(); kernels.len()];
+    let mut triangles = vec![0; kernels.len()];
+    for &kernel in kernels {
+        pool.install(|| mesh_pass(snap, &tiles, iso, kernel))?;
     }
-    Ok(Run {
-        seconds: median(times),
-        triangles,
-    })
+    for _ in 0..runs {
+        for (k, &kernel) in kernels.iter().enumerate() {
+            let start = Instant::now();
+            let parts = pool.install(|| mesh_pass(snap, &tiles, iso, kernel))?;
+            times[k].push(start.elapsed().as_secs_f64());
+            triangles[k] = parts.iter().map(Mesh::triangles).sum();
+        }
+    }
+    if triangles.iter().any(|&t| t != triangles[0]) {
+        anyhow::bail!("the kernels made different meshes: {triangles:?} triangles");
+    }
+    Ok(times
+        .into_iter()
+        .zip(triangles)
+        .map(|(t, triangles)| Run {
+            seconds: median(t),
+            triangles,
+        })
+        .collect())
 }
 
 /// The transition-data comparison: medians of alternating runs, in seconds.
@@ -247,22 +303,20 @@ pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
         return transition_table(&sets, a.transition_runs);
     }
 
-    println!("### Marching cubes, level 0, iso = S - 0.5 (Isovox: every tile's mesh, tiles of {0}^3, including reading and decoding the bricks; the peers: one mesh from an array in memory)\n", a.brick);
-    println!("| data set | voxels | triangles | Isovox 1 thread: Mvoxel/s | 2 threads: Mvoxel/s | 2-thread speed-up | VTK FlyingEdges3D 1 thread | VTK 2 threads | scikit-image | Isovox / VTK, 1 thread | Isovox / VTK, 2 threads |");
-    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    println!("### Marching cubes, level 0, iso = S - 0.5 (Isovox: every tile's mesh, tiles of {0}^3, including reading and decoding the bricks, the current kernel and the previous one taking turns, median of {KERNEL_RUNS} each; the peers: one mesh from an array in memory, median of 3)\n", a.brick);
+    println!("| data set | voxels | triangles | Isovox 1 thread | previous kernel 1 thread | Isovox 2 threads | previous 2 threads | 2-thread speed-up (previous) | VTK FlyingEdges3D 1 thread | VTK 2 threads | scikit-image | Isovox / VTK, 1 thread | previous / VTK, 1 thread | Isovox / VTK, 2 threads | Isovox / previous, 1 thread |");
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let mut goals = Vec::new();
     for (name, raw, snap, dims, t) in &sets {
         eprintln!("bench mesh: {name}");
         let voxels = dims.iter().map(|&d| d as f64).product::<f64>();
-        let one = mesh_with_threads(snap, 0, 1)?;
-        let two = mesh_with_threads(snap, 0, 2)?;
+        let kernels = [Kernel::Rows, Kernel::Reference];
+        let one = kernels_in_turn(snap, 0, 1, &kernels, KERNEL_RUNS)?;
+        let two = kernels_in_turn(snap, 0, 2, &kernels, KERNEL_RUNS)?;
         let mv = |s: f64| voxels / s / 1e6;
-        let (mut vtk1, mut vtk2, mut sk, mut r1, mut r2) = (
-            "-".to_string(),
-            "-".to_string(),
-            "-".to_string(),
-            "-".to_string(),
-            "-".to_string(),
-        );
+        let (mut vtk1, mut vtk2, mut sk) = ("-".to_string(), "-".to_string(), "-".to_string());
+        let (mut r1, mut r1_previous, mut r2) = ("-".to_string(), "-".to_string(), "-".to_string());
+        let mut vtk_ratio = None;
         if a.peers {
             let p = peers(raw, *dims, *t)?;
             let get = |k: &str| {
@@ -279,21 +333,41 @@ pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
             if let (Some(v1), Some(v2)) = (get("vtk_1"), get("vtk_2")) {
                 vtk1 = format!("{:.0} Mvoxel/s ({} tri)", mv(v1), tris("vtk_1"));
                 vtk2 = format!("{:.0} Mvoxel/s", mv(v2));
-                r1 = format!("{:.2}x", v1 / one.seconds);
-                r2 = format!("{:.2}x", v2 / two.seconds);
+                r1 = format!("**{:.2}x**", v1 / one[0].seconds);
+                r1_previous = format!("{:.2}x", v1 / one[1].seconds);
+                r2 = format!("{:.2}x", v2 / two[0].seconds);
+                vtk_ratio = Some(v1 / one[0].seconds);
             }
             if let Some(s) = get("skimage") {
                 sk = format!("{:.0} Mvoxel/s ({} tri)", mv(s), tris("skimage"));
             }
         }
+        let speed_up = one[0].seconds / two[0].seconds;
         println!(
-            "| {name} | {} | {} | {:.0} | {:.0} | {:.2}x | {vtk1} | {vtk2} | {sk} | {r1} | {r2} |",
+            "| {name} | {} | {} | {:.0} Mvoxel/s | {:.0} Mvoxel/s | {:.0} Mvoxel/s | {:.0} Mvoxel/s | {speed_up:.2}x ({:.2}x) | {vtk1} | {vtk2} | {sk} | {r1} | {r1_previous} | {r2} | {:.2}x |",
             voxels as u64,
-            one.triangles,
-            mv(one.seconds),
-            mv(two.seconds),
-            one.seconds / two.seconds
+            one[0].triangles,
+            mv(one[0].seconds),
+            mv(one[1].seconds),
+            mv(two[0].seconds),
+            mv(two[1].seconds),
+            one[1].seconds / two[1].seconds,
+            one[1].seconds / one[0].seconds,
         );
+        // The goals of the faster kernel: 2x VTK on one thread (1.5x on the scan), and two
+        // threads 1.8x one.
+        let want = if name.starts_with("MRI") { 1.5 } else { 2.0 };
+        let verdict = |ok: bool| if ok { "met" } else { "not met" };
+        goals.push(format!(
+            "- {name}: Isovox / VTK on one thread {} (goal {want:.1}x: {}); two threads / one {speed_up:.2}x (goal 1.8x: {})",
+            vtk_ratio.map_or("-".into(), |r| format!("{r:.2}x")),
+            vtk_ratio.map_or("no peer", |r| verdict(r >= want)),
+            verdict(speed_up >= 1.8),
+        ));
+    }
+    println!("\n{}", goals.join("\n"));
+    if a.kernels_only {
+        return Ok(());
     }
 
     println!("\n### By level (thesis Tables 7 and 8), 2 threads\n");
@@ -303,7 +377,7 @@ pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
         let layout = snap.layout();
         let mut base = None;
         for level in 0..layout.levels().min(4) {
-            let run = mesh_with_threads(snap, level, 2)?;
+            let run = kernels_in_turn(snap, level, 2, &[Kernel::Rows], KERNEL_RUNS)?.remove(0);
             let base_s = *base.get_or_insert(run.seconds);
             let d = layout.level_dims(level);
             println!(
