@@ -15,7 +15,7 @@ use isovox_server::mesh::level::{
     mesh_tile_parts, mesh_tiles, weld,
 };
 use isovox_server::mesh::mc::{Kernel, Mesh};
-use isovox_server::mesh::tile::{default_iso, mesh_tile, TileScratch};
+use isovox_server::mesh::tile::{default_iso, mesh_tile, mesh_tile_with_transitions, TileScratch};
 use isovox_server::progress::Silent;
 use isovox_server::store::decoded::DecodedBricks;
 use isovox_server::store::raw::RawInput;
@@ -186,17 +186,32 @@ fn transitions_against_plain(
 }
 
 /// Digests of every tile of every level of `snap` meshed with its transition data: of its
-/// content (regular mesh, transition vertices, moves, strips: independent of the encoding) and
-/// of its compact bytes.
-fn tile_digests(snap: &Snapshot) -> anyhow::Result<Vec<(u8, usize, u64, u64)>> {
+/// content (regular mesh, transition vertices, moves, strips: independent of the encoding), of
+/// the same content free of order ([`order_free_digest`]) and of its compact bytes.
+fn tile_digests(
+    snap: &Snapshot,
+    kernel: Kernel,
+) -> anyhow::Result<Vec<(u8, usize, u64, u64, u64)>> {
     use std::hash::{DefaultHasher, Hash, Hasher};
     let iso = default_iso(snap.layout().voxel_type());
+    let bricks = Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
     let mut out = Vec::new();
     for level in 0..snap.layout().levels() {
         let tiles = level_tiles(snap, level);
-        let parts = mesh_stitchable_parts(snap, &tiles, iso, &Silent)?;
+        let parts: Vec<TileMesh> = tiles
+            .par_iter()
+            .map_init(
+                || TileScratch::with_bricks(bricks.clone()).with_kernel(kernel),
+                |scratch, &key| {
+                    let mut tile = TileMesh::default();
+                    mesh_tile_with_transitions(snap, key, iso, &mut tile, scratch).map(|_| tile)
+                },
+            )
+            .collect::<Result<_, _>>()?;
         let (mut content, mut bytes) = (DefaultHasher::new(), DefaultHasher::new());
+        let mut order_free = DefaultHasher::new();
         for tile in &parts {
+            order_free_digest(tile).hash(&mut order_free);
             let (m, t) = (&tile.mesh, &tile.transitions);
             let bits = |v: &[[f32; 3]]| v.iter().flatten().map(|c| c.to_bits()).collect::<Vec<_>>();
             bits(&m.positions).hash(&mut content);
@@ -210,9 +225,67 @@ fn tile_digests(snap: &Snapshot) -> anyhow::Result<Vec<(u8, usize, u64, u64)>> {
             t.strips.hash(&mut content);
             encode_tile(tile).hash(&mut bytes);
         }
-        out.push((level, tiles.len(), content.finish(), bytes.finish()));
+        out.push((
+            level,
+            tiles.len(),
+            content.finish(),
+            order_free.finish(),
+            bytes.finish(),
+        ));
     }
     Ok(out)
+}
+
+/// A digest of a tile's content that does not depend on the order of its vertices, triangles
+/// or moves: every index is replaced by its vertex (position and normal bits), every triangle
+/// is rotated to start at its least vertex (its winding kept) and the lists are sorted. Two
+/// meshing kernels that number vertices differently give equal digests exactly when they make
+/// the same surface, strips and moves.
+fn order_free_digest(tile: &TileMesh) -> u64 {
+    use std::hash::{DefaultHasher, Hash, Hasher};
+    type Vertex = [u32; 6];
+    let (m, t) = (&tile.mesh, &tile.transitions);
+    let vertex = |(p, n): (&[f32; 3], &[f32; 3])| -> Vertex {
+        let [a, b, c] = p.map(f32::to_bits);
+        let [d, e, f] = n.map(f32::to_bits);
+        [a, b, c, d, e, f]
+    };
+    let vertices: Vec<Vertex> = m
+        .positions
+        .iter()
+        .zip(&m.normals)
+        .chain(t.positions.iter().zip(&t.normals))
+        .map(vertex)
+        .collect();
+    let triangles = |indices: &[u32]| {
+        let mut out: Vec<[Vertex; 3]> = indices
+            .chunks_exact(3)
+            .map(|tri| {
+                let mut v = [0, 1, 2].map(|k| vertices[tri[k] as usize]);
+                let least = (0..3).min_by_key(|&k| v[k]).unwrap_or(0);
+                v.rotate_left(least);
+                v
+            })
+            .collect();
+        out.sort_unstable();
+        out
+    };
+    let mut moves: Vec<(Vertex, u8, [u32; 3])> = t
+        .moves
+        .iter()
+        .map(|mv| {
+            let offset = mv.offset.map(f32::to_bits);
+            (vertices[mv.vertex as usize], mv.faces, offset)
+        })
+        .collect();
+    moves.sort_unstable();
+    let mut hasher = DefaultHasher::new();
+    triangles(&m.indices).hash(&mut hasher);
+    for strip in &t.strips {
+        triangles(strip).hash(&mut hasher);
+    }
+    moves.hash(&mut hasher);
+    hasher.finish()
 }
 
 fn peers(raw: &Path, dims: [u32; 3], t: VoxelType) -> anyhow::Result<serde_json::Value> {
@@ -290,11 +363,15 @@ pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
     }
 
     if a.digest {
-        println!("| data set | level | tiles | content digest | bytes digest |");
-        println!("|---|---:|---:|---|---|");
+        println!("| data set | kernel | level | tiles | content digest | order-free digest | bytes digest |");
+        println!("|---|---|---:|---:|---|---|---|");
         for (name, _, snap, _, _) in &sets {
-            for (level, tiles, content, bytes) in tile_digests(snap)? {
-                println!("| {name} | {level} | {tiles} | {content:016x} | {bytes:016x} |");
+            for kernel in [Kernel::Rows, Kernel::Reference] {
+                for (level, tiles, content, order_free, bytes) in tile_digests(snap, kernel)? {
+                    println!(
+                        "| {name} | {kernel:?} | {level} | {tiles} | {content:016x} | {order_free:016x} | {bytes:016x} |"
+                    );
+                }
             }
         }
         return Ok(());

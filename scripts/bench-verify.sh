@@ -1,0 +1,79 @@
+#!/usr/bin/env bash
+# What checking stored payloads costs on the path that sends them as they are: brick requests
+# per second with wrk (2 threads, 64 connections, random keys over a 512^3 world, lz4 bricks,
+# `Accept: application/x-lz4`, the same request `isovox bench http` makes for its lz4 row),
+# against this build and against the last commit before payload checksums (8f9f679, built in
+# target/bench-verify/), each on a world it generated itself. The two servers take turns,
+# ROUNDS times, so that a machine whose load drifts slows both alike; prints each run, the
+# medians and the ratio. Installs wrk from Debian's packages (never CI).
+#
+#   scripts/bench-verify.sh             # ROUNDS=5, SECONDS_PER_RUN=10
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROUNDS=${ROUNDS:-5}
+SECONDS_PER_RUN=${SECONDS_PER_RUN:-10}
+BEFORE=8f9f67919b8c4b7f08cf47534a1dbf3f3524939c
+OLD_SRC=target/bench-verify/src
+OLD_TARGET=target/bench-verify/target
+WORK=$(mktemp -d /tmp/isovox-bench-verify.XXXXXX)
+trap 'kill $(jobs -p) 2>/dev/null || true; rm -rf "$WORK"' EXIT
+
+command -v wrk >/dev/null || { apt-get update -qq && apt-get install -y -qq wrk; }
+CARGO_BUILD_JOBS=${CARGO_BUILD_JOBS:-2} cargo build --release -q -p isovox-server --bin isovox
+if [ ! -x "$OLD_TARGET/release/isovox" ]; then
+  echo "building the commit before payload checksums ($BEFORE) in $OLD_SRC"
+  rm -rf "$OLD_SRC"
+  mkdir -p "$OLD_SRC"
+  git archive "$BEFORE" | tar -x -C "$OLD_SRC"
+  (cd "$OLD_SRC" && CARGO_TARGET_DIR="$PWD/../target" CARGO_BUILD_JOBS=${CARGO_BUILD_JOBS:-2} \
+    cargo build --release -q -p isovox-server --bin isovox)
+fi
+
+free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
+start() { # start NAME BINARY: generates the world with that binary and serves it
+  mkdir -p "$WORK/$1"
+  "$2" generate world -o "$WORK/$1/world.vod" --dims 512,512,512 --brick 32 --codec lz4 >/dev/null
+  local port
+  port=$(free_port)
+  "$2" serve --data "$WORK/$1" --addr "127.0.0.1:$port" > "$WORK/$1.log" 2>&1 &
+  until curl -sf "http://127.0.0.1:$port/v1/volumes" >/dev/null; do sleep 0.2; done
+  echo "$port"
+}
+NEW_PORT=$(start after target/release/isovox)
+OLD_PORT=$(start before "$OLD_TARGET/release/isovox")
+
+cat > "$WORK/lz4.lua" <<'EOF'
+wrk.headers["Accept"] = "application/x-lz4"
+math.randomseed(42)
+request = function()
+  local x, y, z = math.random(0, 15), math.random(0, 15), math.random(0, 15)
+  return wrk.format("GET", "/v1/volumes/world/bricks/0/" .. x .. "/" .. y .. "/" .. z)
+end
+EOF
+rps() { # rps PORT -> requests/s of one wrk run (fails on any non-2xx answer)
+  local out
+  out=$(wrk -t2 -c64 -d"${SECONDS_PER_RUN}s" -s "$WORK/lz4.lua" "http://127.0.0.1:$1")
+  if grep -q "Non-2xx\|Socket errors" <<<"$out"; then
+    echo "wrk saw errors against port $1:" >&2
+    echo "$out" >&2
+    return 1
+  fi
+  awk '/Requests\/sec:/ {print $2}' <<<"$out"
+}
+# One warm-up run each (page cache, the servers' caches).
+rps "$NEW_PORT" >/dev/null
+rps "$OLD_PORT" >/dev/null
+after=(); before=()
+for round in $(seq "$ROUNDS"); do
+  a=$(rps "$NEW_PORT"); b=$(rps "$OLD_PORT")
+  after+=("$a"); before+=("$b")
+  echo "round $round: with checksums $a requests/s, before checksums $b requests/s"
+done
+python3 - "${after[*]}" "${before[*]}" <<'EOF'
+import statistics, sys
+after = [float(v) for v in sys.argv[1].split()]
+before = [float(v) for v in sys.argv[2].split()]
+a, b = statistics.median(after), statistics.median(before)
+print(f"median: with checksums {a:.0f} requests/s, before {b:.0f} requests/s; "
+      f"with / before = {a / b:.3f} (overhead {100 * (1 - a / b):.1f}%)")
+EOF
