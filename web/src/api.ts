@@ -138,18 +138,42 @@ export function editErrorWords(e: unknown): string {
   }
 }
 
-/** Requests to one server (`base` is its origin, empty for the page's own). */
+/**
+ * The words shown to a person when the volume cannot be read: above all a server whose reads
+ * are private (`isovox serve --private-reads`) answering 401, with or without a token sent.
+ */
+export function readErrorWords(e: unknown, tokenSent: boolean): string {
+  if (!(e instanceof ApiError)) return `Cannot load: ${e instanceof Error ? e.message : String(e)}.`;
+  if (e.status === 401) {
+    return tokenSent
+      ? "The server refused the token (401 Unauthorized): nothing can be shown. Enter a token from the server's token file (data/tokens)."
+      : "This server's volumes are private (401 Unauthorized): enter a token from the server's token file (data/tokens) to see them.";
+  }
+  if (e.status === 0) return "The server cannot be reached.";
+  return `Cannot load (${e.status}): ${e.detail}`;
+}
+
+/**
+ * Requests to one server (`base` is its origin, empty for the page's own). When `token` gives
+ * one, every request carries it (`Authorization: Bearer`): a server with private reads wants it
+ * on reads too, the change feed included.
+ */
 export class Api {
   readonly base: string;
+  private readonly token: () => string | null;
 
-  constructor(base = "") {
+  constructor(base = "", token: () => string | null = () => null) {
     this.base = base;
+    this.token = token;
   }
 
   private async send(path: string, init: RequestInit = {}): Promise<Response> {
+    const headers = new Headers(init.headers);
+    const token = this.token();
+    if (token && !headers.has("authorization")) headers.set("authorization", `Bearer ${token}`);
     let response: Response;
     try {
-      response = await fetch(this.base + path, init);
+      response = await fetch(this.base + path, { ...init, headers });
     } catch (e) {
       if (isAbort(e)) throw e;
       throw new ApiError(0, `cannot reach the server (${String(e)})`, null, null);
@@ -250,7 +274,17 @@ export class Api {
     return (await r.json()) as EditResponse;
   }
 
-  eventsUrl(name: string, since: number): string {
-    return `${this.base}/v1/volumes/${encodeURIComponent(name)}/events?since=${since}`;
+  /**
+   * The change feed's server-sent events after `since`, as a byte stream. Read with `fetch`, not
+   * `EventSource`: an `EventSource` cannot send the `Authorization` header private reads need.
+   */
+  async events(name: string, since: number, signal: AbortSignal): Promise<ReadableStream<Uint8Array>> {
+    const r = await this.send(`/v1/volumes/${encodeURIComponent(name)}/events?since=${since}`, {
+      headers: { accept: "text/event-stream" },
+      cache: "no-store",
+      signal,
+    });
+    if (!r.body) throw new ApiError(0, "the change feed has no body", null, null);
+    return r.body;
   }
 }

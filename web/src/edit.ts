@@ -90,9 +90,12 @@ export function editRequest(
   return request;
 }
 
-const TOKEN_KEY = "isovox-write-token";
+const TOKEN_KEY = "isovox-token";
 
-/** The write token, asked once per browser session and kept in its session storage. */
+/**
+ * The token, asked once per browser session and kept in its session storage: the write token
+ * for edits, and on a server with private reads the token every request carries.
+ */
 export class TokenStore {
   get(): string | null {
     return sessionStorage.getItem(TOKEN_KEY);
@@ -102,7 +105,7 @@ export class TokenStore {
     sessionStorage.setItem(TOKEN_KEY, token.trim());
   }
 
-  /** Forgets a token the server refused, so the next edit asks again. */
+  /** Forgets a token the server refused, so that it is asked for again. */
   forget(): void {
     sessionStorage.removeItem(TOKEN_KEY);
   }

@@ -2,10 +2,11 @@
 // docs/editing.md): every committed version once, in order, across lost connections and
 // server restarts.
 //
-// The page keeps the last version it applied. When the stream breaks it does not let the
-// browser's EventSource retry on its own (a fixed 3 s, and a server that restarted with a
-// compacted or replaced file would answer it with an error the page cannot read): it closes the
-// stream, asks `changes?since=LAST` until that answers (backoff 100 ms doubling to 2 s), applies
+// The stream is read with `fetch` (`sse.ts` parses it), not `EventSource`: a server with private
+// reads wants the token in an `Authorization` header, which an `EventSource` cannot send (and
+// its own retry, a fixed 3 s with errors the page cannot read, is not wanted either).
+//
+// The page keeps the last version it applied. When the stream breaks (or ends) it closes it, asks `changes?since=LAST` until that answers (backoff 100 ms doubling to 2 s), applies
 // the versions listed there, and opens the stream again with `?since=` the last of them, which
 // is what `Last-Event-ID` would carry: the server replays anything committed in between. A 410
 // (the history after LAST was compacted away) or a 409 (the server is now behind the page: its
@@ -14,6 +15,7 @@
 // is filled the same way from `changes`.
 
 import { Api, ApiError, isAbort, type ChangeEvent } from "./api";
+import { SseParser, type ServerEvent } from "./sse";
 
 const RETRY_MIN_MS = 100;
 const RETRY_MAX_MS = 2_000;
@@ -32,7 +34,10 @@ export class Feed {
   private readonly api: Api;
   private readonly volume: string;
   private readonly handlers: FeedHandlers;
-  private source: EventSource | null = null;
+  /** Aborts the stream being read; null while none is open. */
+  private stream: AbortController | null = null;
+  /** Whether the open stream said `hello` (one refused at once is retried with backoff). */
+  private heard = false;
   private last: number;
   private delay = RETRY_MIN_MS;
   private timer: ReturnType<typeof setTimeout> | null = null;
@@ -55,8 +60,8 @@ export class Feed {
 
   close(): void {
     this.closed = true;
-    this.source?.close();
-    this.source = null;
+    this.stream?.abort();
+    this.stream = null;
     if (this.timer !== null) clearTimeout(this.timer);
   }
 
@@ -67,27 +72,55 @@ export class Feed {
   private open(): void {
     if (this.closed) return;
     this.setState(this.delay === RETRY_MIN_MS ? "connecting" : "reconnecting");
-    const source = new EventSource(this.api.eventsUrl(this.volume, this.last));
-    this.source = source;
-    source.addEventListener("hello", (e) => {
-      const { version } = JSON.parse((e as MessageEvent<string>).data) as { version: number };
+    const stream = new AbortController();
+    this.stream = stream;
+    this.heard = false;
+    void this.read(stream).then(
+      () => this.broke(stream),
+      (e: unknown) => (isAbort(e) ? undefined : this.broke(stream)),
+    );
+  }
+
+  /** Reads the stream until it ends, handing each event on. */
+  private async read(stream: AbortController): Promise<void> {
+    const body = await this.api.events(this.volume, this.last, stream.signal);
+    const reader = body.getReader();
+    const decoder = new TextDecoder();
+    const parser = new SseParser();
+    for (;;) {
+      const { done, value } = await reader.read();
+      if (done || this.stream !== stream) return;
+      for (const e of parser.push(decoder.decode(value, { stream: true }))) this.dispatch(e);
+    }
+  }
+
+  /** The stream ended, was refused or was cut: catch up and open it again. */
+  private async broke(stream: AbortController): Promise<void> {
+    if (this.stream !== stream) return;
+    if (!this.heard) {
+      // Refused before it began (a 503, a token the feed does not take): do not hammer.
+      this.setState("reconnecting");
+      await new Promise((r) => (this.timer = setTimeout(r, this.delay)));
+      this.delay = Math.min(this.delay * 2, RETRY_MAX_MS);
+      if (this.stream !== stream) return;
+    }
+    await this.restart(() => this.catchUp());
+  }
+
+  private dispatch(e: ServerEvent): void {
+    if (e.event === "hello") {
+      const { version } = JSON.parse(e.data) as { version: number };
+      this.heard = true;
       this.delay = RETRY_MIN_MS;
       this.setState("live");
       if (version < this.last) void this.restart(() => this.reloadVolume());
-    });
-    source.addEventListener("commit", (e) => {
-      const ev = JSON.parse((e as MessageEvent<string>).data) as ChangeEvent;
+    } else if (e.event === "commit") {
+      const ev = JSON.parse(e.data) as ChangeEvent;
       if (this.catchingUp) void this.catchingUp.then(() => this.apply(ev));
       else this.apply(ev);
-    });
-    source.addEventListener("resync", () => {
+    } else if (e.event === "resync") {
       void this.restart(() => this.catchUp());
-    });
-    source.onerror = () => {
-      // Closed by the server, refused, or cut: take over from the browser's own retry.
-      if (this.source !== source) return;
-      void this.restart(() => this.catchUp());
-    };
+    }
   }
 
   private apply(ev: ChangeEvent): void {
@@ -104,8 +137,8 @@ export class Feed {
   /** Closes the stream, runs `step` until it succeeds (with backoff), and opens it again. */
   private async restart(step: () => Promise<void>): Promise<void> {
     if (this.catchingUp || this.closed) return;
-    this.source?.close();
-    this.source = null;
+    this.stream?.abort();
+    this.stream = null;
     this.setState("reconnecting");
     let done!: () => void;
     this.catchingUp = new Promise((r) => (done = r));

@@ -3,7 +3,7 @@
 
 import "./style.css";
 import * as THREE from "three";
-import { Api, ApiError, editErrorWords, type VolumeInfo } from "./api";
+import { Api, ApiError, editErrorWords, readErrorWords, type VolumeInfo } from "./api";
 import { editRequest, OPERATORS, PRIMITIVES, TokenStore, type Primitive } from "./edit";
 import { Feed, type FeedState } from "./feed";
 import { radiiForScreenError, stitchMasks, Layout } from "./lod";
@@ -14,10 +14,11 @@ import { readUrl, writeUrl, type UrlState } from "./url";
 
 const $ = <T extends HTMLElement>(id: string) => document.getElementById(id) as T;
 
-const api = new Api();
+const tokens = new TokenStore();
+// Every request carries the session's token once there is one (private reads need it).
+const api = new Api("", () => tokens.get());
 const viewport = new Viewport($<HTMLCanvasElement>("view"));
 const slice = new SliceView(api, $<HTMLCanvasElement>("slice"));
-const tokens = new TokenStore();
 const overlay = $<HTMLPreElement>("overlay");
 const editStatus = $<HTMLParagraphElement>("edit-status");
 
@@ -245,6 +246,16 @@ for (const p of PRIMITIVES) $<HTMLSelectElement>("primitive").add(new Option(p, 
 $<HTMLSelectElement>("op").value = "difference";
 
 let pendingEdit: Record<string, unknown> | null = null;
+/** The server refused to read without a (right) token: the page starts once one is given. */
+let awaitingReadToken = false;
+/** The session's token may only read (403): the next edit asks for a write token. */
+let writeRefused = false;
+
+/** Shows the token prompt (one token per session, for reads and edits alike). */
+function askToken(): void {
+  $<HTMLFormElement>("token-form").hidden = false;
+  $<HTMLInputElement>("token").focus();
+}
 
 function say(text: string, error = false): void {
   editStatus.textContent = text;
@@ -254,10 +265,9 @@ function say(text: string, error = false): void {
 async function sendEdit(request: Record<string, unknown>): Promise<void> {
   if (!info || !streamer) return;
   const token = tokens.get();
-  if (!token) {
+  if (!token || writeRefused) {
     pendingEdit = request;
-    $<HTMLFormElement>("token-form").hidden = false;
-    $<HTMLInputElement>("token").focus();
+    askToken();
     say("Enter the write token (asked once for this session).");
     return;
   }
@@ -270,9 +280,10 @@ async function sendEdit(request: Record<string, unknown>): Promise<void> {
     say(`Applied as version ${r.version}.`);
     changed();
   } catch (e) {
-    if (e instanceof ApiError && (e.status === 401 || e.status === 403)) {
-      tokens.forget();
-    }
+    // A wrong token is forgotten. A read-only one still serves the page's reads until a write
+    // token replaces it.
+    if (e instanceof ApiError && e.status === 401) tokens.forget();
+    if (e instanceof ApiError && e.status === 403) writeRefused = true;
     say(editErrorWords(e), true);
   }
 }
@@ -282,8 +293,13 @@ $<HTMLFormElement>("token-form").addEventListener("submit", (e) => {
   const input = $<HTMLInputElement>("token");
   if (!input.value.trim()) return;
   tokens.set(input.value);
+  writeRefused = false;
   input.value = "";
   $<HTMLFormElement>("token-form").hidden = true;
+  if (awaitingReadToken) {
+    awaitingReadToken = false;
+    begin();
+  }
   const r = pendingEdit;
   pendingEdit = null;
   if (r) void sendEdit(r);
@@ -422,13 +438,35 @@ const hook = {
   },
   /** The surface point under canvas pixel (x, y), or null. */
   pick: (x: number, y: number) => viewport.pick(x, y)?.toArray() ?? null,
+  /** The camera: where it is, where it looks (a unit vector), and how it is steered. */
+  camera: () => ({
+    position: cameraPosition(),
+    direction: viewport.camera.getWorldDirection(new THREE.Vector3()).toArray(),
+    navigation: viewport.navigation,
+  }),
+  /** The tiles the camera needs now, as [level, x, y, z]. */
+  selection: () => (streamer?.selection() ?? []).map((k) => [k.level, k.x, k.y, k.z]),
 };
 (window as unknown as { isovox: typeof hook }).isovox = hook;
 
 async function start(): Promise<void> {
   const state = readUrl();
-  const { volumes } = await api.volumes();
+  const tokenSent = tokens.get() !== null;
+  let volumes: VolumeInfo[];
+  try {
+    ({ volumes } = await api.volumes());
+  } catch (e) {
+    overlay.textContent = readErrorWords(e, tokenSent);
+    if (e instanceof ApiError && e.status === 401) {
+      // Private reads: ask for the token, and start again when it is given.
+      if (tokenSent) tokens.forget();
+      awaitingReadToken = true;
+      askToken();
+    }
+    return;
+  }
   const picker = $<HTMLSelectElement>("volume");
+  picker.replaceChildren();
   for (const v of volumes) picker.add(new Option(`${v.name} (${v.dims.join("x")} ${v.voxel_type})`, v.name));
   const name =
     volumes.find((v) => v.name === state.volume)?.name ??
@@ -442,6 +480,10 @@ async function start(): Promise<void> {
   await openVolume(name, state);
 }
 
-start().catch((e: unknown) => {
-  overlay.textContent = `Cannot load: ${e instanceof Error ? e.message : String(e)}`;
-});
+function begin(): void {
+  start().catch((e: unknown) => {
+    overlay.textContent = readErrorWords(e, tokens.get() !== null);
+  });
+}
+
+begin();
