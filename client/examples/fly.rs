@@ -1,5 +1,6 @@
 //! Flies a camera over the demo world with a [`Streamer`] and prints, once a second, what it
-//! streams: tiles ready and dropped (by level), requests and bytes, cache hits, tiles resident.
+//! streams: tiles ready and dropped (by level), requests and bytes, the requests it may have in
+//! flight now (fewer after the server answered 503), tiles resident, cache hits.
 //!
 //! Start a server (it generates the demo world on first start), then fly:
 //!
@@ -130,8 +131,8 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
         ]
     };
     println!(
-        "{:>4}  {:>22}  {:>26}  {:>20}  {:>5}  {:>9}  {:>8}  {:>8}  {:>5}",
-        "s", "camera", "ready", "dropped", "stale", "MiB", "requests", "resident", "hits"
+        "{:>4}  {:>22}  {:>26}  {:>20}  {:>5}  {:>9}  {:>8}  {:>5}  {:>8}  {:>5}",
+        "s", "camera", "ready", "dropped", "stale", "MiB", "requests", "limit", "resident", "hits"
     );
     let start = Instant::now();
     let mut tick = tokio::time::interval(Duration::from_millis(33));
@@ -158,7 +159,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
                     };
                     let c = camera(t);
                     println!(
-                        "{:>4.0}  {:>22}  {:>26}  {:>20}  {:>5}  {:>9.1}  {:>8}  {:>8}  {:>5}",
+                        "{:>4.0}  {:>22}  {:>26}  {:>20}  {:>5}  {:>9.1}  {:>8}  {:>5}  {:>8}  {:>5}",
                         t,
                         format!("{:.0},{:.0},{:.0}", c[0], c[1], c[2]),
                         by_level(&second.ready),
@@ -166,6 +167,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
                         second.stale,
                         second.bytes as f64 / f64::from(1u32 << 20),
                         s.requests - last_requests,
+                        s.in_flight_limit,
                         s.resident,
                         hits,
                     );

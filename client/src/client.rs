@@ -182,6 +182,11 @@ impl Client {
         self
     }
 
+    /// The observer [`Client::with_observer`] set.
+    pub(crate) fn observer(&self) -> Option<std::sync::Arc<dyn Observer>> {
+        self.observer.clone()
+    }
+
     /// The server's base URL.
     pub fn base(&self) -> &str {
         &self.base

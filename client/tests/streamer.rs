@@ -68,6 +68,11 @@ impl TestServer {
     /// Serves every volume of `dir` on `addr` (an ephemeral port when `None`), with one write
     /// token.
     fn start(dir: &Path, addr: Option<SocketAddr>) -> TestServer {
+        TestServer::start_with(dir, addr, ServerConfig::default())
+    }
+
+    /// [`TestServer::start`] with `config` (its tokens replaced by the one write token).
+    fn start_with(dir: &Path, addr: Option<SocketAddr>, config: ServerConfig) -> TestServer {
         let dir = dir.to_path_buf();
         let (addr_tx, addr_rx) = std::sync::mpsc::channel();
         let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
@@ -87,7 +92,7 @@ impl TestServer {
                 addr_tx.send(listener.local_addr().unwrap()).unwrap();
                 let config = ServerConfig {
                     tokens: Tokens::parse(&format!("t {TOKEN} write")).unwrap(),
-                    ..ServerConfig::default()
+                    ..config
                 };
                 let state = AppState::with_config(Catalog::open_dir(&dir).unwrap(), config);
                 tokio::select! {
@@ -1480,4 +1485,144 @@ async fn requests_the_camera_no_longer_needs_are_cancelled() {
     );
     assert_eq!(streamer.stats().in_flight, 0);
     streamer.shutdown().await;
+}
+
+// ---------------------------------------------------------------------------------------------
+// 9. Sharing an overloaded server: fewer requests in flight after 503s
+// ---------------------------------------------------------------------------------------------
+
+/// Counts a client's answers with status 503.
+#[derive(Debug, Default)]
+struct Refusals(std::sync::atomic::AtomicU64);
+
+impl Observer for Refusals {
+    fn exchange(&self, _: &'static str, outcome: Result<u16, &str>, _: Duration, _: u64) {
+        if outcome == Ok(503) {
+            self.0.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn streamers_sharing_a_tiny_cpu_queue_lower_their_limit_and_get_every_tile() {
+    // Grids 4x4x4, 2x2x2, 1x1x1; one radius beyond every tile's distance: the 64 level-0 tiles.
+    let w = world([128, 128, 128], 32, [1.0; 3]);
+    // Two places for CPU work (every mesh tile and grid region takes one), against four
+    // streamers of up to 16 requests each.
+    let server = TestServer::start_with(
+        w.dir.path(),
+        None,
+        ServerConfig {
+            cpu_queue: 2,
+            ..ServerConfig::default()
+        },
+    );
+    const MAX: usize = 16;
+    let radii = vec![1.0e6];
+    let camera = [64.0, 64.0, 64.0];
+    let mut streamers = Vec::new();
+    let mut receivers = Vec::new();
+    let mut refusals = Vec::new();
+    for _ in 0..4 {
+        isovox_server::client_tls::install_provider();
+        let counted = Arc::new(Refusals::default());
+        let client = Client::new(&server.base)
+            .unwrap()
+            .with_observer(counted.clone());
+        let (streamer, rx) = Streamer::start(
+            client,
+            NAME,
+            StreamerConfig {
+                kind: TileKind::Meshes { iso: None },
+                radii: radii.clone(),
+                max_in_flight: MAX,
+                ..StreamerConfig::default()
+            },
+        )
+        .await
+        .unwrap();
+        assert_eq!(
+            streamer.stats().in_flight_limit,
+            MAX,
+            "starts at the maximum"
+        );
+        streamers.push(streamer);
+        receivers.push(rx);
+        refusals.push(counted);
+    }
+    for s in &streamers {
+        s.set_camera(camera);
+    }
+
+    // Every streamer settles; meanwhile each one's limit is sampled.
+    let mut lowest = [MAX; 4];
+    let events = {
+        let settled = async {
+            let mut all = Vec::new();
+            for (s, rx) in streamers.iter().zip(receivers.iter_mut()) {
+                all.push(settle(s, rx, 0).await);
+            }
+            all
+        };
+        tokio::pin!(settled);
+        loop {
+            tokio::select! {
+                all = &mut settled => break all,
+                () = tokio::time::sleep(Duration::from_millis(1)) => {
+                    for (i, s) in streamers.iter().enumerate() {
+                        let st = s.stats();
+                        assert!((1..=MAX).contains(&st.in_flight_limit), "{st:?}");
+                        assert!(st.in_flight <= MAX, "{st:?}");
+                        lowest[i] = lowest[i].min(st.in_flight_limit);
+                    }
+                }
+            }
+        }
+    };
+
+    let expected: BTreeSet<BrickKey> = (0..64)
+        .map(|i| BrickKey {
+            level: 0,
+            x: i % 4,
+            y: i / 4 % 4,
+            z: i / 16,
+        })
+        .collect();
+    for (i, (s, events)) in streamers.iter().zip(&events).enumerate() {
+        // Every tile came, once, and is the offline mesher's.
+        assert_eq!(
+            once(&ready_keys(events), "was ready"),
+            expected,
+            "streamer {i}"
+        );
+        assert_eq!(s.resident().into_iter().collect::<BTreeSet<_>>(), expected);
+        assert!(assert_meshes_match_file(events, &w.path) > 100);
+        // What failed was refused for load, and retried.
+        for e in events {
+            if let StreamEvent::Error { error, .. } = e {
+                assert!(error.contains("503 Service Unavailable"), "{error}");
+            }
+        }
+        // The server refused this streamer's requests, and it lowered its limit. Its requests'
+        // answers reach the observer its client already had.
+        let refused = refusals[i].0.load(std::sync::atomic::Ordering::SeqCst);
+        let st = s.stats();
+        eprintln!(
+            "streamer {i}: {refused} answers 503, limit lowest {} (sampled), {} at the end, {} requests",
+            lowest[i], st.in_flight_limit, st.requests
+        );
+        assert!(
+            refused > 0,
+            "streamer {i}: no 503 with two places for four streamers"
+        );
+        assert!(lowest[i] < MAX, "streamer {i}: the limit stayed {MAX}");
+        // And it is still below the maximum: after a cut to 8 at most, growing back to 16 takes
+        // 8 + 9 + ... + 15 = 92 successes, and a streamer has at most 66 (64 tiles, the grid
+        // regions of levels 0 and 1).
+        assert!(st.in_flight_limit < MAX, "{st:?}");
+        assert_eq!(st.in_flight, 0);
+    }
+    for s in streamers {
+        s.shutdown().await;
+    }
 }

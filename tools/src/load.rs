@@ -675,6 +675,9 @@ pub struct StreamerReport {
     pub stale_refetches: u64,
     pub resident_at_end: u64,
     pub in_flight_at_end: u64,
+    /// The streamers' limits on requests in flight at the end, summed: `max_in_flight` each,
+    /// less where the server answered 503 and the limit has not grown back yet.
+    pub in_flight_limit_at_end: u64,
     /// The newest version any streamer had reached at the end.
     pub max_version: u64,
     /// The oldest version a streamer had reached at the end.
@@ -1475,6 +1478,7 @@ fn report(
             st.stale_refetches += s.stale_refetches;
             st.resident_at_end += s.resident as u64;
             st.in_flight_at_end += s.in_flight as u64;
+            st.in_flight_limit_at_end += s.in_flight_limit as u64;
             st.max_version = st.max_version.max(s.version);
             st.min_version = st.min_version.min(s.version);
         }
@@ -1597,13 +1601,15 @@ impl LoadReport {
         let radii: Vec<String> = self.radii.iter().map(|r| format!("{r:.0}")).collect();
         let _ = writeln!(
             s,
-            "Server {}, versions {} -> {}. Streamers: radii {}, {} requests in flight, {} MiB cache \
-             each. Latency: time to the response's headers, every attempt.\n",
+            "Server {}, versions {} -> {}. Streamers: radii {}, at most {} requests in flight (halved \
+             on a 503; {} in all at the end), {} MiB cache each. Latency: time to the response's \
+             headers, every attempt.\n",
             self.url,
             self.version_start,
             self.version_end,
             radii.join(", "),
             self.max_in_flight,
+            self.streamers.in_flight_limit_at_end,
             self.cache_bytes >> 20
         );
         let _ = writeln!(

@@ -2,6 +2,7 @@
 //! scheduler, the statistics) and the content cache, driven by the camera, finished requests,
 //! the change feed and retry timers.
 
+use super::limit::{lock_limit, InFlightLimit, Pacer, SharedLimit};
 use super::*;
 
 /// What the change-feed follower forwards to the task.
@@ -310,7 +311,8 @@ struct HashBook {
 /// The scheduler: the plan (requests to start, nearest first), what runs, what failed and when
 /// to retry it.
 struct Scheduler {
-    max_in_flight: usize,
+    /// Requests that may run at once (the requests' [`Pacer`]s adapt it to 503s).
+    limit: SharedLimit,
     /// Content keys of the mesh tiles waiting for a request (from the last plan).
     mesh_keys: HashMap<BrickKey, u64>,
     /// Tiles waiting for content by content key (from the last plan).
@@ -328,7 +330,7 @@ struct Scheduler {
 impl Scheduler {
     fn new(max_in_flight: usize) -> Scheduler {
         Scheduler {
-            max_in_flight: max_in_flight.max(1),
+            limit: Arc::new(Mutex::new(InFlightLimit::new(max_in_flight))),
             mesh_keys: HashMap::new(),
             waiting: HashMap::new(),
             jobs: JoinSet::new(),
@@ -652,7 +654,8 @@ impl Engine {
 
     /// Starts queued requests up to the concurrency bound.
     fn fill(&mut self) {
-        while self.scheduler.running.len() < self.scheduler.max_in_flight {
+        let limit = lock_limit(&self.scheduler.limit).get();
+        while self.scheduler.running.len() < limit {
             let Some((_, job)) = self.scheduler.queue.pop() else {
                 break;
             };
@@ -680,7 +683,12 @@ impl Engine {
     fn start(&mut self, job: JobKey) {
         let id = self.scheduler.next_id;
         self.scheduler.next_id += 1;
-        let client = self.client.clone();
+        let pacer = Pacer {
+            started: Instant::now(),
+            limit: self.scheduler.limit.clone(),
+            next: self.client.observer(),
+        };
+        let client = self.client.clone().with_observer(Arc::new(pacer));
         let name = self.name.clone();
         let version = Some(self.version);
         let abort = match job {
@@ -1140,6 +1148,7 @@ impl Engine {
                 cache_hits: self.stats.hits,
                 cache_misses: self.stats.misses,
                 in_flight: self.scheduler.running.len(),
+                in_flight_limit: lock_limit(&self.scheduler.limit).get(),
                 resident,
                 cache_bytes: self.cache.bytes,
                 version: self.version,

@@ -66,10 +66,23 @@
 //! for every desired tile not yet current it finds what is missing (a grid region, a blob, a
 //! mesh), cached content makes tiles ready at once, requests no desired tile needs any more are
 //! aborted (their results are never delivered), and the rest are queued by the distance from the
-//! camera to the nearest tile box that needs them. At most [`StreamerConfig::max_in_flight`]
-//! requests run at once (the feed's connection is not counted). A failed request is reported as
+//! camera to the nearest tile box that needs them. A failed request is reported as
 //! [`StreamEvent::Error`] and retried after a backoff (250 ms doubling to 10 s) while a tile still
 //! needs it.
+//!
+//! # Requests in flight
+//!
+//! At most [`StreamerConfig::max_in_flight`] requests run at once (the feed's connection is not
+//! counted), fewer while the server is overloaded. The server answers 503 with `Retry-After`
+//! when its queue of CPU work (mesh tiles, grid regions) is full, and that queue is small (8
+//! places per core): three streamers at 16 requests each already fill a two-core server's. So
+//! the limit is additive-increase, multiplicative-decrease, as TCP's congestion window: it
+//! starts at the maximum; a 503 (or 429) halves it, not below 1; after as many successful
+//! answers as the limit, it grows by one, up to the maximum. A 503 to a request started before
+//! the last cut does not cut again (it answers load that cut already relieved). Requests
+//! already running are not cancelled when it drops; no new one starts until fewer than the
+//! limit run. The refused request itself waits the `Retry-After` pause and is asked again by
+//! the [`Client`]'s retries. [`StreamerStats::in_flight_limit`] is the limit now.
 //!
 //! # Events
 //!
@@ -116,11 +129,12 @@ use tokio::sync::{mpsc, oneshot, watch};
 use tokio::task::{AbortHandle, JoinError, JoinSet};
 use tokio::time::Instant;
 
-/// Capacity of the event channel.
 mod engine;
+mod limit;
 
 use engine::{follow, Engine};
 
+/// Capacity of the event channel.
 const EVENT_CAPACITY: usize = 4096;
 /// Bricks per axis of the grid regions fetched to learn content hashes.
 const CHUNK: u32 = 8;
@@ -152,7 +166,9 @@ pub struct StreamerConfig {
     /// Empty: derived at start with [`StreamerConfig::radii_for_screen_error`] for a 60 degree
     /// vertical field of view, a 1080-pixel viewport and one pixel of error.
     pub radii: Vec<f32>,
-    /// Requests running at once (at least 1). Default 16.
+    /// The most requests running at once (at least 1). Default 16. Fewer run while the server
+    /// is overloaded: the limit halves on each 503 and grows back by one per window of
+    /// successes (see the module documentation).
     pub max_in_flight: usize,
     /// Bytes of tile content kept by content key. Default 256 MiB.
     pub cache_bytes: usize,
@@ -324,6 +340,9 @@ pub struct StreamerStats {
     pub cache_misses: u64,
     /// Requests running now.
     pub in_flight: usize,
+    /// Requests that may run at once now: [`StreamerConfig::max_in_flight`], less while the
+    /// server answers 503.
+    pub in_flight_limit: usize,
     /// Delivered tiles of the desired set (see [`Streamer::resident`]).
     pub resident: usize,
     /// Bytes held by the content cache.
@@ -412,7 +431,9 @@ impl Streamer {
             version: info.version,
         });
         let (shutdown_tx, shutdown_rx) = oneshot::channel();
-        let shared = Arc::new(Mutex::new(Shared::default()));
+        let mut shared = Shared::default();
+        shared.stats.in_flight_limit = config.max_in_flight.max(1);
+        let shared = Arc::new(Mutex::new(shared));
         let (feed_rx, follower) = match feed {
             Some(feed) => {
                 let (tx, rx) = mpsc::channel(1024);

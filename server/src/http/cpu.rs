@@ -36,6 +36,18 @@ pub fn default_queue() -> usize {
     PLACES_PER_CORE * cores()
 }
 
+/// How a job gets to the CPU threads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Admission {
+    /// With one of the queue's places, held until the job is done; 503 at once when every
+    /// place is taken.
+    Place,
+    /// Without a place: the job waits for a thread however long the queue is. For work another
+    /// bound already limits (a change feed reads its backlog one page at a time, one page per
+    /// subscriber).
+    Wait,
+}
+
 /// The bound on CPU work (meshing, batches, levels, change lists) and on the memory of what it
 /// answers; see the module documentation.
 #[derive(Debug)]
@@ -64,12 +76,14 @@ impl CpuQueue {
         self.size - self.places.available_permits()
     }
 
-    /// Runs `work` on the CPU threads, holding one of the queue's places until it is done.
+    /// Runs `work` on the CPU threads, admitted as `admission` says.
     ///
     /// # Errors
-    /// 503 when the queue is full; whatever `work` fails with; 500 if it panicked.
+    /// 503 when `admission` needs a place and the queue is full; whatever `work` fails with;
+    /// 500 if it panicked.
     pub async fn run<T, E>(
         &self,
+        admission: Admission,
         work: impl FnOnce() -> Result<T, E> + Send + 'static,
     ) -> Result<T, ApiError>
     where
@@ -77,22 +91,29 @@ impl CpuQueue {
         E: Send + 'static,
         ApiError: From<E>,
     {
-        let place = self
-            .places
-            .clone()
-            .try_acquire_owned()
-            .map_err(|_| ApiError::Overloaded(1))?;
-        self.run_waiting(move || {
-            let _place = place;
-            work()
-        })
-        .await
+        let place = match admission {
+            Admission::Place => Some(
+                self.places
+                    .clone()
+                    .try_acquire_owned()
+                    .map_err(|_| ApiError::Overloaded(1))?,
+            ),
+            Admission::Wait => None,
+        };
+        // The place is held until the job is done, or dropped with it when it is skipped.
+        Ok(self
+            .pool
+            .run(move || {
+                let _place = place;
+                work()
+            })
+            .await??)
     }
 
-    /// Runs `work`, which builds a response body, as [`CpuQueue::run`] does, with `reserve`
-    /// bytes of the response budget set aside first (what the body will take, when that is
-    /// known beforehand; 0 otherwise). The body holds its exact size of the budget until it
-    /// has been sent.
+    /// Runs `work`, which builds a response body, with a place in the queue
+    /// ([`Admission::Place`]) and `reserve` bytes of the response budget set aside first (what
+    /// the body will take, when that is known beforehand; 0 otherwise). The body holds its
+    /// exact size of the budget until it has been sent.
     ///
     /// # Errors
     /// As [`CpuQueue::run`]; 503 when the budget cannot hold the body now, 413 when it never
@@ -107,27 +128,9 @@ impl CpuQueue {
         ApiError: From<E>,
     {
         let mut reservation = self.memory.reserve(reserve)?;
-        let body = self.run(work).await?;
+        let body = self.run(Admission::Place, work).await?;
         reservation.fit(&self.memory, body.len())?;
         Ok(body.hold(reservation))
-    }
-
-    /// Runs `work` on the CPU threads without a place in the queue: it waits for a thread
-    /// however long the queue is. For work another bound already limits (a change feed reads
-    /// its backlog one page at a time, one page per subscriber).
-    ///
-    /// # Errors
-    /// Whatever `work` fails with; 500 if it panicked.
-    pub async fn run_waiting<T, E>(
-        &self,
-        work: impl FnOnce() -> Result<T, E> + Send + 'static,
-    ) -> Result<T, ApiError>
-    where
-        T: Send + 'static,
-        E: Send + 'static,
-        ApiError: From<E>,
-    {
-        Ok(self.pool.run(work).await??)
     }
 }
 
@@ -235,7 +238,7 @@ mod tests {
             let (queue, running, most) = (queue.clone(), running.clone(), most.clone());
             jobs.push(tokio::spawn(async move {
                 queue
-                    .run(move || {
+                    .run(Admission::Place, move || {
                         let now = running.fetch_add(1, Ordering::SeqCst) + 1;
                         most.fetch_max(now, Ordering::SeqCst);
                         std::thread::sleep(Duration::from_millis(2));
@@ -254,36 +257,71 @@ mod tests {
         assert_eq!(queue.depth(), 0);
     }
 
-    #[tokio::test]
-    async fn a_full_queue_answers_503_and_a_panic_500() {
-        let queue = Arc::new(CpuQueue::new(1, 1, 1 << 20));
+    /// Fills the one place of `queue` with a job that runs until the returned sender sends;
+    /// checks that a job needing a place is then refused.
+    async fn fill_the_one_place(
+        queue: &Arc<CpuQueue>,
+    ) -> (
+        std::sync::mpsc::Sender<()>,
+        tokio::task::JoinHandle<Result<bool, ApiError>>,
+    ) {
         let (release, wait) = std::sync::mpsc::channel::<()>();
         let holder = {
             let queue = queue.clone();
             tokio::spawn(async move {
                 queue
-                    .run(move || Ok::<_, ApiError>(wait.recv().is_ok()))
+                    .run(Admission::Place, move || {
+                        Ok::<_, ApiError>(wait.recv().is_ok())
+                    })
                     .await
             })
         };
         while queue.depth() == 0 {
             tokio::task::yield_now().await;
         }
-        let refused = queue.run(|| Ok::<_, ApiError>(())).await;
+        let refused = queue.run(Admission::Place, || Ok::<_, ApiError>(())).await;
         assert!(
             matches!(refused, Err(ApiError::Overloaded(1))),
             "{refused:?}"
         );
+        (release, holder)
+    }
+
+    #[tokio::test]
+    async fn a_full_queue_answers_503_and_a_panic_500() {
+        let queue = Arc::new(CpuQueue::new(1, 1, 1 << 20));
+        let (release, holder) = fill_the_one_place(&queue).await;
         release.send(()).unwrap();
         assert!(holder.await.unwrap().unwrap());
         let panicked = queue
-            .run(|| -> Result<(), ApiError> { panic!("on purpose") })
+            .run(Admission::Place, || -> Result<(), ApiError> {
+                panic!("on purpose")
+            })
             .await;
         assert!(
             matches!(&panicked, Err(ApiError::Internal(m)) if m.contains("on purpose")),
             "{panicked:?}"
         );
         // The thread survived its job's panic.
-        assert_eq!(queue.run(|| Ok::<_, ApiError>(7)).await.unwrap(), 7);
+        assert_eq!(
+            queue
+                .run(Admission::Place, || Ok::<_, ApiError>(7))
+                .await
+                .unwrap(),
+            7
+        );
+    }
+
+    #[tokio::test]
+    async fn a_job_without_a_place_runs_while_the_queue_is_full() {
+        let queue = Arc::new(CpuQueue::new(1, 2, 1 << 20));
+        let (release, holder) = fill_the_one_place(&queue).await;
+        // The queue is full, the other thread free: a job without a place runs, and takes none.
+        let ran = queue.run(Admission::Wait, || Ok::<_, ApiError>(8));
+        assert_eq!(ran.await.unwrap(), 8);
+        assert_eq!(queue.depth(), 1);
+        release.send(()).unwrap();
+        assert!(holder.await.unwrap().unwrap());
+        assert_eq!(queue.depth(), 0);
     }
 }

@@ -2,6 +2,7 @@
 //! (`GET .../changes?since=N`), both read from the file's commit records (`docs/editing.md`).
 
 use super::compression::{accepts_zstd, Body};
+use super::cpu::Admission;
 use super::extract::{Path, Query};
 use super::{ApiError, AppState};
 use crate::volume::{FeedItem, LiveVolume, VolumeError, DEFAULT_CHANGES};
@@ -147,7 +148,7 @@ impl Feed {
                 let page = self
                     .state
                     .cpu
-                    .run_waiting(move || vol.changes(since, DEFAULT_CHANGES));
+                    .run(Admission::Wait, move || vol.changes(since, DEFAULT_CHANGES));
                 match page.await {
                     Ok((events, _)) if !events.is_empty() => {
                         for c in events

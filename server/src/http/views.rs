@@ -14,6 +14,7 @@
 //! frame that goes out as it is, not in the shared cache) is made on the CPU queue.
 
 use super::bricks::{format_etag, if_none_match};
+use super::cpu::Admission;
 use super::extract::Path;
 use super::{ApiError, AppState};
 use crate::formats::view::{read, ViewAnswer, ViewBody, ViewRead};
@@ -83,7 +84,10 @@ async fn view(
         ViewRead::Ready(answer) => answer,
         ViewRead::Make(chunk) => {
             let bricks = state.bricks.clone();
-            state.cpu.run(move || chunk.run(&bricks)).await?
+            state
+                .cpu
+                .run(Admission::Place, move || chunk.run(&bricks))
+                .await?
         }
     };
     respond(kind, name, version, path, answer, request.headers())
