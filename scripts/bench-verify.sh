@@ -2,32 +2,45 @@
 # What checking stored payloads costs on the path that sends them as they are: brick requests
 # per second with wrk (2 threads, 64 connections, random keys over a 512^3 world, lz4 bricks,
 # `Accept: application/x-lz4`, the same request `isovox bench http` makes for its lz4 row),
-# against this build and against the last commit before payload checksums (8f9f679, built in
-# target/bench-verify/), each on a world it generated itself. The two servers take turns,
-# ROUNDS times, so that a machine whose load drifts slows both alike; prints each run, the
-# medians and the ratio. Installs wrk from Debian's packages (never CI).
+# against a baseline built in target/bench-verify/, each server on a world it generated itself.
+# The two servers take turns, ROUNDS times, so that a machine whose load drifts slows both
+# alike; prints each run, the medians and the ratio. Installs wrk from Debian's packages (never
+# CI). Baselines:
+#   BASELINE=unchecked (default)  this commit with the checksum comparison taken out (the payload
+#                                 is not hashed): the cost of the check alone
+#   BASELINE=before               the last commit before payload checksums (8f9f679): the cost of
+#                                 everything that changed since on this path
 #
 #   scripts/bench-verify.sh             # ROUNDS=5, SECONDS_PER_RUN=10
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROUNDS=${ROUNDS:-5}
 SECONDS_PER_RUN=${SECONDS_PER_RUN:-10}
-BEFORE=8f9f67919b8c4b7f08cf47534a1dbf3f3524939c
-OLD_SRC=target/bench-verify/src
+BASELINE=${BASELINE:-unchecked}
+OLD_SRC=target/bench-verify/$BASELINE-src
 OLD_TARGET=target/bench-verify/target
 WORK=$(mktemp -d /tmp/isovox-bench-verify.XXXXXX)
 trap 'kill $(jobs -p) 2>/dev/null || true; rm -rf "$WORK"' EXIT
 
 command -v wrk >/dev/null || { apt-get update -qq && apt-get install -y -qq wrk; }
 CARGO_BUILD_JOBS=${CARGO_BUILD_JOBS:-2} cargo build --release -q -p isovox-server --bin isovox
-if [ ! -x "$OLD_TARGET/release/isovox" ]; then
-  echo "building the commit before payload checksums ($BEFORE) in $OLD_SRC"
-  rm -rf "$OLD_SRC"
-  mkdir -p "$OLD_SRC"
-  git archive "$BEFORE" | tar -x -C "$OLD_SRC"
-  (cd "$OLD_SRC" && CARGO_TARGET_DIR="$PWD/../target" CARGO_BUILD_JOBS=${CARGO_BUILD_JOBS:-2} \
-    cargo build --release -q -p isovox-server --bin isovox)
-fi
+echo "building the baseline ($BASELINE) in $OLD_SRC"
+rm -rf "$OLD_SRC"
+mkdir -p "$OLD_SRC"
+case "$BASELINE" in
+  unchecked)
+    # The working tree as it is, with the one line that hashes a payload before it is sent as
+    # it is replaced by "the checksum matches".
+    git ls-files -z | xargs -0 tar -c | tar -x -C "$OLD_SRC"
+    check='let computed = payload_check(payload);'
+    grep -qF "$check" "$OLD_SRC/server/src/store/vod2.rs" \
+      || { echo "server/src/store/vod2.rs no longer has \`$check\`: update this script" >&2; exit 1; }
+    sed -i "s/$check/let computed = stored;/" "$OLD_SRC/server/src/store/vod2.rs" ;;
+  before) git archive 8f9f67919b8c4b7f08cf47534a1dbf3f3524939c | tar -x -C "$OLD_SRC" ;;
+  *) echo "BASELINE is unchecked or before, not $BASELINE" >&2; exit 2 ;;
+esac
+(cd "$OLD_SRC" && CARGO_TARGET_DIR="$PWD/../target" CARGO_BUILD_JOBS=${CARGO_BUILD_JOBS:-2} \
+  cargo build --release -q -p isovox-server --bin isovox)
 
 free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
 start() { # start NAME BINARY: generates the world with that binary and serves it
@@ -40,7 +53,7 @@ start() { # start NAME BINARY: generates the world with that binary and serves i
   echo "$port"
 }
 NEW_PORT=$(start after target/release/isovox)
-OLD_PORT=$(start before "$OLD_TARGET/release/isovox")
+OLD_PORT=$(start "$BASELINE" "$OLD_TARGET/release/isovox")
 
 cat > "$WORK/lz4.lua" <<'EOF'
 wrk.headers["Accept"] = "application/x-lz4"
@@ -67,13 +80,13 @@ after=(); before=()
 for round in $(seq "$ROUNDS"); do
   a=$(rps "$NEW_PORT"); b=$(rps "$OLD_PORT")
   after+=("$a"); before+=("$b")
-  echo "round $round: with checksums $a requests/s, before checksums $b requests/s"
+  echo "round $round: this build $a requests/s, $BASELINE $b requests/s"
 done
-python3 - "${after[*]}" "${before[*]}" <<'EOF'
+python3 - "${after[*]}" "${before[*]}" "$BASELINE" <<'EOF'
 import statistics, sys
 after = [float(v) for v in sys.argv[1].split()]
 before = [float(v) for v in sys.argv[2].split()]
 a, b = statistics.median(after), statistics.median(before)
-print(f"median: with checksums {a:.0f} requests/s, before {b:.0f} requests/s; "
-      f"with / before = {a / b:.3f} (overhead {100 * (1 - a / b):.1f}%)")
+print(f"median: this build {a:.0f} requests/s, {sys.argv[3]} {b:.0f} requests/s; "
+      f"this / {sys.argv[3]} = {a / b:.3f} (overhead {100 * (1 - a / b):.1f}%)")
 EOF
