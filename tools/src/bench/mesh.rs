@@ -185,13 +185,19 @@ fn transitions_against_plain(
     Ok((times, parts))
 }
 
+/// The digests of one level's tiles ([`tile_digests`]).
+struct LevelDigests {
+    level: u8,
+    tiles: usize,
+    content: u64,
+    order_free: u64,
+    bytes: u64,
+}
+
 /// Digests of every tile of every level of `snap` meshed with its transition data: of its
 /// content (regular mesh, transition vertices, moves, strips: independent of the encoding), of
 /// the same content free of order ([`order_free_digest`]) and of its compact bytes.
-fn tile_digests(
-    snap: &Snapshot,
-    kernel: Kernel,
-) -> anyhow::Result<Vec<(u8, usize, u64, u64, u64)>> {
+fn tile_digests(snap: &Snapshot, kernel: Kernel) -> anyhow::Result<Vec<LevelDigests>> {
     use std::hash::{DefaultHasher, Hash, Hasher};
     let iso = default_iso(snap.layout().voxel_type());
     let bricks = Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
@@ -225,13 +231,13 @@ fn tile_digests(
             t.strips.hash(&mut content);
             encode_tile(tile).hash(&mut bytes);
         }
-        out.push((
+        out.push(LevelDigests {
             level,
-            tiles.len(),
-            content.finish(),
-            order_free.finish(),
-            bytes.finish(),
-        ));
+            tiles: tiles.len(),
+            content: content.finish(),
+            order_free: order_free.finish(),
+            bytes: bytes.finish(),
+        });
     }
     Ok(out)
 }
@@ -367,9 +373,10 @@ pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
         println!("|---|---|---:|---:|---|---|---|");
         for (name, _, snap, _, _) in &sets {
             for kernel in [Kernel::Rows, Kernel::Reference] {
-                for (level, tiles, content, order_free, bytes) in tile_digests(snap, kernel)? {
+                for d in tile_digests(snap, kernel)? {
                     println!(
-                        "| {name} | {kernel:?} | {level} | {tiles} | {content:016x} | {order_free:016x} | {bytes:016x} |"
+                        "| {name} | {kernel:?} | {} | {} | {:016x} | {:016x} | {:016x} |",
+                        d.level, d.tiles, d.content, d.order_free, d.bytes
                     );
                 }
             }
