@@ -1,5 +1,6 @@
 //! The `isovox` command-line tool (`docs/cli.md`).
 
+mod allocator;
 mod cli;
 
 use clap::Parser;
@@ -7,13 +8,8 @@ use cli::{run, Cli};
 use std::io::IsTerminal;
 use std::process::ExitCode;
 
-// The server allocates small, short-lived buffers per request (headers, paths, response
-// parts) from every worker thread; mimalloc's thread-local free lists serve that pattern with
-// less locking than glibc's malloc.
-#[global_allocator]
-static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
 fn main() -> ExitCode {
+    allocator::purge_freed_arenas_at_once();
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_env("ISOVOX_LOG")

@@ -1,4 +1,5 @@
-//! The one memory-mapping module: every `unsafe` block of the project lives here.
+//! The one memory-mapping module: every `unsafe` block of the library lives here (the binary
+//! has one more, in `allocator.rs`).
 //!
 //! A [`Mapping`] is a read-only, shared mapping of a file's first `len` bytes, taken at open.
 //! Writers only ever append past the mapped length, or write the header slots with ordinary

@@ -1,7 +1,7 @@
 //! The storage engine: VOD 1 and VOD 2 files, the brick index, deduplication and commits.
 //!
 //! Layout:
-//! - [`mapping`]: the one memory-mapping module (every `unsafe` block of the project).
+//! - [`mapping`]: the one memory-mapping module (every `unsafe` block of the library).
 //! - [`codec`]: per-brick payload encoding (constant, raw, lz4, zstd).
 //! - [`pyramid`]: bricks of voxels, the level-of-detail mean, sources of level-0 voxels.
 //! - [`vod2`]: opening a VOD 2 file and reading any brick of any version by random access.
