@@ -715,6 +715,31 @@ impl Drop for Nginx {
     }
 }
 
+/// The cache deployment: the world in the S3 server, one replica on it, nginx in front.
+/// (Fields drop in order: nginx, the replica, then the store.)
+struct Cached {
+    nginx: Nginx,
+    replica: Server,
+    _data: tempfile::TempDir,
+    _s3: S3,
+}
+
+impl Cached {
+    fn start(bucket: &str) -> Cached {
+        let s3 = S3::start(bucket);
+        let data = tempfile::tempdir().unwrap();
+        world(&s3, data.path());
+        let replica = Server::replica(&s3, None);
+        let upstream = &replica.base["http://".len()..replica.base.find("/v1/").unwrap()];
+        Cached {
+            nginx: Nginx::start(upstream),
+            replica,
+            _data: data,
+            _s3: s3,
+        }
+    }
+}
+
 /// Requests the replica answered on `route` with `status` (every status when `None`), from its
 /// Prometheus counter.
 fn answered(http: &Client, replica: &Server, route: &str, status: Option<u16>) -> u64 {
@@ -737,34 +762,21 @@ fn answered(http: &Client, replica: &Server, route: &str, status: Option<u16>) -
 
 #[test]
 fn nginx_in_front_of_a_replica_caches_blobs_for_good_and_revalidates_bricks() {
-    let s3 = S3::start("isovox-nginx");
-    let data = tempfile::tempdir().unwrap();
-    world(&s3, data.path());
+    let Cached { nginx, replica, .. } = &Cached::start("isovox-nginx");
     let http = client();
-    let replica = Server::replica(&s3, None);
-    let upstream = &replica.base["http://".len()..replica.base.find("/v1/").unwrap()];
-    let nginx = Nginx::start(upstream);
     let blobs = "/v1/volumes/{name}/blobs/{hash}";
 
     // A stampede of 16 concurrent misses for one blob makes one request to the replica.
     let (_, direct, etag) = replica.get(&http, "bricks/0/2/2/2", None);
     let hash = etag.trim_matches('"').to_string();
-    let before = answered(&http, &replica, blobs, None);
-    let bodies: Vec<Vec<u8>> = std::thread::scope(|scope| {
-        let handles: Vec<_> = (0..16)
-            .map(|_| {
-                let url = format!("{}/blobs/{hash}", nginx.base);
-                scope.spawn(move || client().get(url).send().unwrap().bytes().unwrap().to_vec())
-            })
-            .collect();
-        handles.into_iter().map(|h| h.join().unwrap()).collect()
-    });
+    let before = answered(&http, replica, blobs, None);
+    let bodies = stampede(nginx, &format!("blobs/{hash}"), 16);
     assert!(
         bodies.iter().all(|b| *b == direct),
         "a cached blob differs from the replica's"
     );
     assert_eq!(
-        answered(&http, &replica, blobs, None) - before,
+        answered(&http, replica, blobs, None) - before,
         1,
         "proxy_cache_lock"
     );
@@ -791,7 +803,7 @@ fn nginx_in_front_of_a_replica_caches_blobs_for_good_and_revalidates_bricks() {
     let (status, _) = replica.edit(&http, &carve([66, 50, 66]), None);
     assert_eq!(status, 200);
     std::thread::sleep(Duration::from_millis(2100));
-    let n = answered(&http, &replica, bricks, None);
+    let n = answered(&http, replica, bricks, None);
     let resp = http
         .get(format!("{}/bricks/0/4/3/4", nginx.base))
         .send()
@@ -804,7 +816,7 @@ fn nginx_in_front_of_a_replica_caches_blobs_for_good_and_revalidates_bricks() {
         "nginx served a stale brick ({status})"
     );
     assert!(
-        answered(&http, &replica, bricks, None) > n,
+        answered(&http, replica, bricks, None) > n,
         "nginx did not ask the replica again"
     );
     // An unchanged brick revalidates with a 304 from the replica: nginx says REVALIDATED.
@@ -865,13 +877,8 @@ fn stampede(nginx: &Nginx, path: &str, n: usize) -> Vec<Vec<u8>> {
 /// replica, and after an edit nginx asks again with the ETag and serves the new answer.
 #[test]
 fn nginx_in_front_of_a_replica_makes_each_level_and_tile_once_and_revalidates_them() {
-    let s3 = S3::start("isovox-nginx-levels");
-    let data = tempfile::tempdir().unwrap();
-    world(&s3, data.path());
+    let Cached { nginx, replica, .. } = &Cached::start("isovox-nginx-levels");
     let http = client();
-    let replica = Server::replica(&s3, None);
-    let upstream = &replica.base["http://".len()..replica.base.find("/v1/").unwrap()];
-    let nginx = Nginx::start(upstream);
     let levels = "/v1/volumes/{name}/levels/{level}";
     let meshes = "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}";
 
@@ -912,14 +919,14 @@ fn nginx_in_front_of_a_replica_makes_each_level_and_tile_once_and_revalidates_th
         (meshes, "meshes/0/2/2/2?version=1"),
     ] {
         let (_, direct, _) = replica.get(&http, path, None);
-        let before = answered(&http, &replica, route, Some(200));
-        let bodies = stampede(&nginx, path, 16);
+        let before = answered(&http, replica, route, Some(200));
+        let bodies = stampede(nginx, path, 16);
         assert!(
             bodies.iter().all(|b| *b == direct),
             "{path}: a cached answer differs from the replica's"
         );
         assert_eq!(
-            answered(&http, &replica, route, Some(200)) - before,
+            answered(&http, replica, route, Some(200)) - before,
             1,
             "{path}: answers made on the replica for 16 concurrent requests through nginx"
         );
