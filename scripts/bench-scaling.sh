@@ -10,7 +10,7 @@
 # on one replica to its event on another (p50/p99); edits per second with writers on two
 # replicas; and, during a streaming load from isovox-load, the share of brick and blob requests
 # nginx answers without reaching the replica, with the load's throughput through nginx and
-# against the replica alone (same run).
+# against a replica alone (same run), and what the replica answered on the level route.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DIMS=${DIMS:-2048}
@@ -142,10 +142,16 @@ print(f"edits with 2 writers on each of 2 replicas: {count[0]/10:.1f} edits/s on
 pa.kill(); pb.kill()
 EOF
 
-# nginx in front of one replica, streaming load through it, then against the replica alone.
-R=$(free_port); N=$(free_port)
+# nginx in front of one replica, streaming load through it, then against another replica alone.
+# Both replicas are warmed first by the same load run against each directly (nginx's cache
+# stays empty), so the two runs differ by nginx alone: run in turn on one replica, the second
+# found the store's pages the first had fetched, and the figures compared a cold replica
+# through nginx with a warm one alone.
+R=$(free_port); R2=$(free_port); N=$(free_port)
 replica r "$R"
+replica r2 "$R2"
 until curl -sf "http://127.0.0.1:$R/v1/volumes/w" >/dev/null; do sleep 0.1; done
+until curl -sf "http://127.0.0.1:$R2/v1/volumes/w" >/dev/null; do sleep 0.1; done
 mkdir -p "$WORK/nginx"
 # Run as root, nginx's workers would be "nobody", who cannot enter the private work directory
 # (mktemp -d makes it 0700): every cached location then answers 500 (cache files: permission
@@ -168,21 +174,35 @@ until curl -sf "http://127.0.0.1:$N/v1/volumes/w" >/dev/null; do
   sleep 0.1
 done
 
-# Requests for bricks and blobs that reached the replica, from its /metrics.
-reached() {
-  curl -sf "http://127.0.0.1:$R/metrics" | python3 -c '
-import re, sys
-total = 0
+# A replica's counters, from its /metrics, as JSON: requests for bricks and blobs ("tiles",
+# any status) and level requests by status ("levels_200", "levels_503", ...).
+counters() { # counters PORT
+  curl -sf "http://127.0.0.1:$1/metrics" | python3 -c '
+import json, re, sys
+c = {"tiles": 0}
 for line in sys.stdin:
-    m = re.match(r"isovox_requests_total\{route=\"/v1/volumes/\{name\}/(blobs|bricks)/[^\"]*\",[^}]*\} (\S+)", line)
+    m = re.match(r"isovox_requests_total\{route=\"/v1/volumes/\{name\}/([a-z]+)/[^\"]*\",status=\"(\d+)\"\} (\S+)", line)
     if m:
-        total += int(float(m.group(2)))
-print(total)'
+        route, status, n = m.group(1), m.group(2), int(float(m.group(3)))
+        if route in ("blobs", "bricks"):
+            c["tiles"] += n
+        elif route == "levels":
+            c["levels_" + status] = c.get("levels_" + status, 0) + n
+print(json.dumps(c))'
+}
+# A replica's open connections every half second while a load runs (one number a line).
+sample_connections() { # sample_connections PORT FILE
+  while :; do
+    curl -sf "http://127.0.0.1:$1/metrics" | awk '/^isovox_connections_open /{print $2}' >> "$2" || true
+    sleep 0.5
+  done
 }
 # isovox-load exits 1 when any request failed during the run: its figures still count, printed
 # with the errors it saw, so a failing run is visible rather than silently fatal.
-load() { # load URL NAME
+load() { # load URL NAME REPLICA_PORT
   local status=0
+  sample_connections "$3" "$WORK/$2.connections" &
+  local sampler=$!
   $BIN/isovox-load --url "$1" --volume w --viewers 50 --duration 20 --json "$WORK/$2.json" > "$WORK/$2.txt" 2>&1 || status=$?
   if [ "$status" -eq 1 ] && [ -s "$WORK/$2.json" ]; then
     echo "isovox-load against $1 counted errors:" >&2
@@ -196,23 +216,44 @@ EOF
     cat "$WORK/$2.txt" >&2
     exit "$status"
   fi
+  kill "$sampler"
 }
-before=$(reached)
-load "http://127.0.0.1:$N" through-nginx
-after=$(reached)
-load "http://127.0.0.1:$R" replica-alone
-python3 - "$WORK" "$before" "$after" <<'EOF'
+load "http://127.0.0.1:$R" warm-up-1 "$R"
+load "http://127.0.0.1:$R2" warm-up-2 "$R2"
+counters "$R" > "$WORK/c0.json"
+load "http://127.0.0.1:$N" through-nginx "$R"
+counters "$R" > "$WORK/c1.json"
+counters "$R2" > "$WORK/d0.json"
+load "http://127.0.0.1:$R2" replica-alone "$R2"
+counters "$R2" > "$WORK/d1.json"
+python3 - "$WORK" <<'EOF'
 import json, sys
-work, before, after = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
-def report(name):
-    return json.load(open(f"{work}/{name}.json"))
+work = sys.argv[1]
+def read(name):
+    return json.load(open(f"{work}/{name}"))
+c0, c1, d0, d1 = read("c0.json"), read("c1.json"), read("d0.json"), read("d1.json")
 def tiles(r):
     return sum(x["requests"] for x in r["routes"] if x["route"] in ("brick", "blob"))
-through, alone = report("through-nginx"), report("replica-alone")
-asked, reached = tiles(through), after - before
-share = 100.0 * (1 - reached / asked) if asked else float("nan")
-print(f"nginx answered {share:.1f}% of {asked} brick and blob requests without the replica ({reached} reached it)")
+through, alone = read("through-nginx.json"), read("replica-alone.json")
+asked, reached = tiles(through), c1["tiles"] - c0["tiles"]
+if asked:
+    print(f"nginx answered {100.0 * (1 - reached / asked):.1f}% of {asked} brick and blob requests "
+          f"without the replica ({reached} reached it)")
+else:
+    asked_for = ", ".join(f"{x['requests']} {x['route']} ({x['outcomes'].get('503', 0)} answered 503)"
+                          for x in through["routes"] if x["requests"])
+    print(f"no share of brick and blob requests to report: through nginx the viewers asked for no "
+          f"brick or blob in 20 s, only: {asked_for}")
 t, a = through["total"]["requests_per_s"], alone["total"]["requests_per_s"]
 print(f"isovox-load, 50 viewers for 20 s: {t:.0f} req/s through nginx, {a:.0f} req/s against the replica alone "
       f"({t / a:.2f}x); errors: {through['errors_total']} through nginx, {alone['errors_total']} alone")
+def levels(before, after):
+    d = {k[len("levels_"):]: after[k] - before.get(k, 0) for k in after if k.startswith("levels_")}
+    return ", ".join(f"{n} x {s}" for s, n in sorted(d.items()) if n) or "none"
+def peak(name):
+    seen = [int(float(l)) for l in open(f"{work}/{name}.connections") if l.strip()]
+    return max(seen, default=0)
+print(f"level requests at the replica: {levels(c0, c1)} through nginx, {levels(d0, d1)} alone; "
+      f"open connections at the replica, at most: {peak('through-nginx')} through nginx, "
+      f"{peak('replica-alone')} alone")
 EOF

@@ -715,8 +715,34 @@ impl Drop for Nginx {
     }
 }
 
-/// Requests the replica answered on `route` (its Prometheus counter, every status).
-fn answered(http: &Client, replica: &Server, route: &str) -> u64 {
+/// The cache deployment: the world in the S3 server, one replica on it, nginx in front.
+/// (Fields drop in order: nginx, the replica, then the store.)
+struct Cached {
+    nginx: Nginx,
+    replica: Server,
+    _data: tempfile::TempDir,
+    _s3: S3,
+}
+
+impl Cached {
+    fn start(bucket: &str) -> Cached {
+        let s3 = S3::start(bucket);
+        let data = tempfile::tempdir().unwrap();
+        world(&s3, data.path());
+        let replica = Server::replica(&s3, None);
+        let upstream = &replica.base["http://".len()..replica.base.find("/v1/").unwrap()];
+        Cached {
+            nginx: Nginx::start(upstream),
+            replica,
+            _data: data,
+            _s3: s3,
+        }
+    }
+}
+
+/// Requests the replica answered on `route` with `status` (every status when `None`), from its
+/// Prometheus counter.
+fn answered(http: &Client, replica: &Server, route: &str, status: Option<u16>) -> u64 {
     let root = &replica.base[..replica.base.find("/v1/").unwrap()];
     let text = http
         .get(format!("{root}/metrics"))
@@ -726,7 +752,9 @@ fn answered(http: &Client, replica: &Server, route: &str) -> u64 {
         .unwrap();
     text.lines()
         .filter(|l| {
-            l.starts_with("isovox_requests_total{") && l.contains(&format!("route=\"{route}\""))
+            l.starts_with("isovox_requests_total{")
+                && l.contains(&format!("route=\"{route}\""))
+                && status.is_none_or(|s| l.contains(&format!("status=\"{s}\"")))
         })
         .filter_map(|l| l.rsplit(' ').next()?.parse::<u64>().ok())
         .sum()
@@ -734,34 +762,21 @@ fn answered(http: &Client, replica: &Server, route: &str) -> u64 {
 
 #[test]
 fn nginx_in_front_of_a_replica_caches_blobs_for_good_and_revalidates_bricks() {
-    let s3 = S3::start("isovox-nginx");
-    let data = tempfile::tempdir().unwrap();
-    world(&s3, data.path());
+    let Cached { nginx, replica, .. } = &Cached::start("isovox-nginx");
     let http = client();
-    let replica = Server::replica(&s3, None);
-    let upstream = &replica.base["http://".len()..replica.base.find("/v1/").unwrap()];
-    let nginx = Nginx::start(upstream);
     let blobs = "/v1/volumes/{name}/blobs/{hash}";
 
     // A stampede of 16 concurrent misses for one blob makes one request to the replica.
     let (_, direct, etag) = replica.get(&http, "bricks/0/2/2/2", None);
     let hash = etag.trim_matches('"').to_string();
-    let before = answered(&http, &replica, blobs);
-    let bodies: Vec<Vec<u8>> = std::thread::scope(|scope| {
-        let handles: Vec<_> = (0..16)
-            .map(|_| {
-                let url = format!("{}/blobs/{hash}", nginx.base);
-                scope.spawn(move || client().get(url).send().unwrap().bytes().unwrap().to_vec())
-            })
-            .collect();
-        handles.into_iter().map(|h| h.join().unwrap()).collect()
-    });
+    let before = answered(&http, replica, blobs, None);
+    let bodies = stampede(nginx, &format!("blobs/{hash}"), 16);
     assert!(
         bodies.iter().all(|b| *b == direct),
         "a cached blob differs from the replica's"
     );
     assert_eq!(
-        answered(&http, &replica, blobs) - before,
+        answered(&http, replica, blobs, None) - before,
         1,
         "proxy_cache_lock"
     );
@@ -788,7 +803,7 @@ fn nginx_in_front_of_a_replica_caches_blobs_for_good_and_revalidates_bricks() {
     let (status, _) = replica.edit(&http, &carve([66, 50, 66]), None);
     assert_eq!(status, 200);
     std::thread::sleep(Duration::from_millis(2100));
-    let n = answered(&http, &replica, bricks);
+    let n = answered(&http, replica, bricks, None);
     let resp = http
         .get(format!("{}/bricks/0/4/3/4", nginx.base))
         .send()
@@ -801,7 +816,7 @@ fn nginx_in_front_of_a_replica_caches_blobs_for_good_and_revalidates_bricks() {
         "nginx served a stale brick ({status})"
     );
     assert!(
-        answered(&http, &replica, bricks) > n,
+        answered(&http, replica, bricks, None) > n,
         "nginx did not ask the replica again"
     );
     // An unchanged brick revalidates with a 304 from the replica: nginx says REVALIDATED.
@@ -838,4 +853,103 @@ fn nginx_in_front_of_a_replica_caches_blobs_for_good_and_revalidates_bricks() {
         .recv_timeout(Duration::from_secs(10))
         .expect("the commit event through nginx");
     assert!(event.contains("changed"), "{event}");
+}
+
+/// `path` (under the volume) asked by `n` clients at once through `nginx`: their bodies.
+fn stampede(nginx: &Nginx, path: &str, n: usize) -> Vec<Vec<u8>> {
+    std::thread::scope(|scope| {
+        let handles: Vec<_> = (0..n)
+            .map(|_| {
+                let url = format!("{}/{path}", nginx.base);
+                scope.spawn(move || {
+                    let resp = client().get(url).send().unwrap();
+                    assert_eq!(resp.status(), 200);
+                    resp.bytes().unwrap().to_vec()
+                })
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap()).collect()
+    })
+}
+
+/// Level grids and mesh tiles are CPU work on a replica (a bounded queue, 503 beyond it) that
+/// every viewer asks first: through nginx a stampede for one answer makes it once on the
+/// replica, and after an edit nginx asks again with the ETag and serves the new answer.
+#[test]
+fn nginx_in_front_of_a_replica_makes_each_level_and_tile_once_and_revalidates_them() {
+    let Cached { nginx, replica, .. } = &Cached::start("isovox-nginx-levels");
+    let http = client();
+    let levels = "/v1/volumes/{name}/levels/{level}";
+    let meshes = "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}";
+
+    // The replica names levels and tiles with a strong ETag and answers If-None-Match with 304;
+    // the newest version's answers are no-cache, a pinned version's immutable.
+    for path in ["levels/1", "levels/0?format=voxels", "meshes/0/2/2/2"] {
+        let (status, _, etag) = replica.get(&http, path, None);
+        assert_eq!(status, 200, "{path}");
+        assert!(
+            etag.len() > 2 && etag.starts_with('"') && etag.ends_with('"'),
+            "{path}: a strong ETag, not {etag:?}"
+        );
+        let again = http
+            .get(format!("{}/{path}", replica.base))
+            .header("If-None-Match", &etag)
+            .send()
+            .unwrap();
+        assert_eq!(again.status(), 304, "{path}");
+        assert_eq!(again.headers()["cache-control"], "no-cache", "{path}");
+        let sep = if path.contains('?') { '&' } else { '?' };
+        let pinned = http
+            .get(format!("{}/{path}{sep}version=1", replica.base))
+            .send()
+            .unwrap();
+        assert_eq!(pinned.headers()["etag"].to_str().unwrap(), etag, "{path}");
+        assert_eq!(
+            pinned.headers()["cache-control"],
+            "public, max-age=31536000, immutable",
+            "{path}"
+        );
+    }
+
+    // A stampede of 16 concurrent misses for one answer makes it once on the replica (the
+    // 200s it answered; proxy_cache_lock), and every viewer gets the replica's bytes.
+    for (route, path) in [
+        (levels, "levels/1"),
+        (levels, "levels/0?region=0,0,0,6,4,6&version=1"),
+        (meshes, "meshes/0/2/2/2?version=1"),
+    ] {
+        let (_, direct, _) = replica.get(&http, path, None);
+        let before = answered(&http, replica, route, Some(200));
+        let bodies = stampede(nginx, path, 16);
+        assert!(
+            bodies.iter().all(|b| *b == direct),
+            "{path}: a cached answer differs from the replica's"
+        );
+        assert_eq!(
+            answered(&http, replica, route, Some(200)) - before,
+            1,
+            "{path}: answers made on the replica for 16 concurrent requests through nginx"
+        );
+    }
+
+    // After an edit nginx asks the replica again (the second it keeps an answer has passed)
+    // with the old ETag, and serves the new grid, not the one it cached above.
+    let (_, old, _) = replica.get(&http, "levels/1", None);
+    let (status, _) = replica.edit(&http, &carve([66, 50, 66]), None);
+    assert_eq!(status, 200);
+    std::thread::sleep(Duration::from_millis(2100));
+    let resp = http.get(format!("{}/levels/1", nginx.base)).send().unwrap();
+    let cache = resp.headers()["x-cache"].to_str().unwrap().to_string();
+    let fresh = resp.bytes().unwrap();
+    let (_, edited, _) = replica.get(&http, "levels/1", None);
+    assert_ne!(old, edited, "the edit changed level 1's grid");
+    assert!(
+        fresh.as_ref() == edited.as_slice(),
+        "nginx served a stale level ({cache})"
+    );
+    // Unchanged since: nginx revalidates with a 304 from the replica.
+    std::thread::sleep(Duration::from_millis(2100));
+    let resp = http.get(format!("{}/levels/1", nginx.base)).send().unwrap();
+    assert_eq!(resp.headers()["x-cache"], "REVALIDATED");
+    assert!(resp.bytes().unwrap().as_ref() == edited.as_slice());
 }

@@ -1,7 +1,7 @@
 //! The read handlers beyond single bricks (those are in `bricks.rs`): what is served, many
 //! bricks at once, levels, mesh tiles. Each extracts, calls the volume and maps the result.
 
-use super::bricks::{if_none_match, BrickPath};
+use super::bricks::{format_etag, if_none_match, BrickPath};
 use super::compression::{accepts_zstd, Body};
 use super::extract::{Json, Path, Query};
 use super::{ApiError, AppState};
@@ -99,7 +99,7 @@ impl TileFormat {
 /// brick and its halo, through the content-keyed mesh cache, meshed, encoded and (for clients
 /// that take it) zstd-compressed off the async runtime. `ETag` names the tile's inputs and
 /// position, so a revalidation costs index lookups (27 bricks and the coarser ones its strips
-/// read) and no meshing.
+/// read) and no meshing; caching headers as [`validate`] says.
 pub async fn mesh_tile(
     State(state): State<AppState>,
     Path((name, level, x, y, z)): Path<BrickPath>,
@@ -111,17 +111,10 @@ pub async fn mesh_tile(
         .catalog
         .get(&name)?
         .mesh_tile(query.version, (level, x, y, z), query.iso)?;
-    let etag = format!("\"{:016x}\"", tile.tag(format as u8));
-    let mut response_headers = HeaderMap::new();
-    response_headers.insert(
-        header::ETAG,
-        HeaderValue::from_str(&etag).map_err(|e| ApiError::Internal(e.to_string()))?,
-    );
-    response_headers.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-cache"));
-    response_headers.insert(header::VARY, HeaderValue::from_static("Accept-Encoding"));
-    if if_none_match(&headers, &etag) {
-        return Ok((StatusCode::NOT_MODIFIED, response_headers).into_response());
-    }
+    let response_headers = match validate(tile.tag(format as u8), query.version, &headers) {
+        Validated::NotModified(response) => return Ok(response),
+        Validated::Changed(response_headers) => response_headers,
+    };
     let (meshes, bricks, zstd) = (
         state.meshes.clone(),
         state.bricks.clone(),
@@ -135,6 +128,42 @@ pub async fn mesh_tile(
         })
         .await?;
     Ok(body.respond(format.media_type(), response_headers))
+}
+
+/// Of a computed answer named by a tag (`tag` hashes everything its bytes depend on).
+enum Validated {
+    /// The client holds it: 304 with the caching headers.
+    NotModified(Response),
+    /// It must be made: the caching headers for its response.
+    Changed(HeaderMap),
+}
+
+/// The caching headers of a computed answer (mesh tile, level) and whether `If-None-Match`
+/// already names it, asked before the CPU job so a revalidation costs none.
+///
+/// `ETag` is the tag (strong: equal tags, equal bytes). The newest version's answer changes
+/// with edits: `no-cache`, revalidated on every use. A pinned answer (`?version=N`) never
+/// changes: immutable, cached for good.
+fn validate(tag: u64, version: Option<u64>, headers: &HeaderMap) -> Validated {
+    let mut etag = [0u8; 18];
+    let etag = format_etag(tag, &mut etag);
+    let mut out = HeaderMap::with_capacity(8);
+    // Sixteen hex digits in quotes: always a valid header value.
+    if let Ok(v) = HeaderValue::from_str(etag) {
+        out.insert(header::ETAG, v);
+    }
+    out.insert(
+        header::CACHE_CONTROL,
+        HeaderValue::from_static(match version {
+            Some(_) => "public, max-age=31536000, immutable",
+            None => "no-cache",
+        }),
+    );
+    out.insert(header::VARY, HeaderValue::from_static("Accept-Encoding"));
+    if if_none_match(headers, etag) {
+        return Validated::NotModified((StatusCode::NOT_MODIFIED, out).into_response());
+    }
+    Validated::Changed(out)
 }
 
 /// Many bricks in one response (`proto::batch`), decoded (and compressed) off the async
@@ -196,7 +225,9 @@ fn parse_region(s: &str) -> Result<([u64; 3], [u64; 3]), ApiError> {
 }
 
 /// A whole level (or a region of it): its brick grid with each brick's content hash and value
-/// range, or its voxels as one array; read (and compressed) off the async runtime.
+/// range, or its voxels as one array; read (and compressed) off the async runtime. `ETag`
+/// names the version and the request, so a revalidation reads no brick; caching headers as
+/// [`validate`] says.
 pub async fn level(
     State(state): State<AppState>,
     Path((name, level)): Path<(String, u8)>,
@@ -217,6 +248,10 @@ pub async fn level(
         .catalog
         .get(&name)?
         .level(query.version, level, form, region)?;
+    let response_headers = match validate(read.tag(), query.version, &headers) {
+        Validated::NotModified(response) => return Ok(response),
+        Validated::Changed(response_headers) => response_headers,
+    };
     let zstd = accepts_zstd(&headers);
     let media = match form {
         LevelForm::Grid => "application/json",
@@ -231,5 +266,5 @@ pub async fn level(
             })
         })
         .await?;
-    Ok(body.respond(media, HeaderMap::new()))
+    Ok(body.respond(media, response_headers))
 }

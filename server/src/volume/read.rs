@@ -263,6 +263,27 @@ impl LevelRead {
         }
     }
 
+    /// A hash of everything the answer depends on: the version read (its number, commit time
+    /// and commit record's offset, which tell versions of one volume apart even across a
+    /// rewrite), the level, the form and the region. Equal tags, equal bytes; computed without
+    /// reading a brick, so a revalidation costs no CPU job.
+    pub fn tag(&self) -> u64 {
+        let mut tag = Vec::with_capacity(64);
+        for n in [
+            self.snap.version,
+            self.snap.timestamp_ms,
+            self.snap.commit_offset(),
+        ] {
+            tag.extend_from_slice(&n.to_le_bytes());
+        }
+        tag.push(self.level);
+        tag.push(self.form as u8);
+        for c in self.min.iter().chain(&self.max) {
+            tag.extend_from_slice(&c.to_le_bytes());
+        }
+        xxhash_rust::xxh3::xxh3_64(&tag)
+    }
+
     /// Reads the level's region.
     ///
     /// # Errors
