@@ -34,6 +34,7 @@ pub use mirror::FetchCounters;
 use super::region::Fill;
 use super::writer::Publish;
 use super::{StoreError, Vod2};
+use arc_swap::ArcSwap;
 use bytes::Bytes;
 use head::{HEAD_FORMAT, TAIL_MAX};
 use isovox_proto::vod2::{FileHeader, HeaderSlot, HEADER_LEN};
@@ -93,6 +94,9 @@ pub struct RemoteVolume {
     header: FileHeader,
     counters: Arc<FetchCounters>,
     state: Mutex<Followed>,
+    /// The state's mirror file, readable without the state's lock: a follower holds that lock
+    /// across a request to the store, and `/metrics` must not wait for the store.
+    mirror: ArcSwap<MirrorFile>,
 }
 
 /// A unique tag for object names: this process and a counter, hashed with the time.
@@ -197,6 +201,7 @@ impl RemoteVolume {
             header: header.clone(),
             cache,
             counters,
+            mirror: ArcSwap::new(file.clone()),
             state: Mutex::new(Followed {
                 etag,
                 head: head.clone(),
@@ -232,7 +237,7 @@ impl RemoteVolume {
 
     /// Bytes the current mirror holds.
     pub fn cached_bytes(&self) -> u64 {
-        self.lock().file.cached()
+        self.mirror.load().cached()
     }
 
     fn lock(&self) -> MutexGuard<'_, Followed> {
@@ -248,6 +253,7 @@ impl RemoteVolume {
             self.bucket.clone(),
             self.counters.clone(),
         )?);
+        self.mirror.store(state.file.clone());
         state.pages = all_segments(&self.bucket, &state.head)?
             .into_iter()
             .map(|s| Arc::new(Pages::new(s)))
