@@ -19,7 +19,9 @@ use isovox_server::mesh::tile::{default_iso, mesh_tile, mesh_tile_with_transitio
 use isovox_server::progress::Silent;
 use isovox_server::store::decoded::DecodedBricks;
 use isovox_server::store::raw::RawInput;
-use isovox_server::store::{build_vod2, BrickSource, BuildOptions, DenseGrid, Snapshot, Vod2};
+use isovox_server::store::{
+    build_vod2, BrickSource, BuildOptions, DenseGrid, Snapshot, StoreError, Vod2,
+};
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -87,14 +89,27 @@ fn mesh_pass(
     iso: f32,
     kernel: Kernel,
 ) -> anyhow::Result<Vec<Mesh>> {
+    mesh_each(tiles, kernel, |key, mesh: &mut Mesh, scratch| {
+        mesh_tile(snap, key, iso, mesh, scratch)
+    })
+}
+
+/// Each of `tiles` meshed into a fresh `T` by `mesh`, in parallel on the current rayon pool,
+/// marching with `kernel`: one scratch per thread, all sharing one cache of decoded bricks (as
+/// `mesh_tile_parts` gives them).
+fn mesh_each<T: Default + Send, S>(
+    tiles: &[BrickKey],
+    kernel: Kernel,
+    mesh: impl Fn(BrickKey, &mut T, &mut TileScratch) -> Result<S, StoreError> + Sync,
+) -> anyhow::Result<Vec<T>> {
     let bricks = Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
     let parts = tiles
         .par_iter()
         .map_init(
             || TileScratch::with_bricks(bricks.clone()).with_kernel(kernel),
             |scratch, &key| {
-                let mut mesh = Mesh::default();
-                mesh_tile(snap, key, iso, &mut mesh, scratch).map(|_| mesh)
+                let mut out = T::default();
+                mesh(key, &mut out, scratch).map(|_| out)
             },
         )
         .collect::<Result<_, _>>()?;
@@ -200,20 +215,12 @@ struct LevelDigests {
 fn tile_digests(snap: &Snapshot, kernel: Kernel) -> anyhow::Result<Vec<LevelDigests>> {
     use std::hash::{DefaultHasher, Hash, Hasher};
     let iso = default_iso(snap.layout().voxel_type());
-    let bricks = Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
     let mut out = Vec::new();
     for level in 0..snap.layout().levels() {
         let tiles = level_tiles(snap, level);
-        let parts: Vec<TileMesh> = tiles
-            .par_iter()
-            .map_init(
-                || TileScratch::with_bricks(bricks.clone()).with_kernel(kernel),
-                |scratch, &key| {
-                    let mut tile = TileMesh::default();
-                    mesh_tile_with_transitions(snap, key, iso, &mut tile, scratch).map(|_| tile)
-                },
-            )
-            .collect::<Result<_, _>>()?;
+        let parts = mesh_each(&tiles, kernel, |key, tile: &mut TileMesh, scratch| {
+            mesh_tile_with_transitions(snap, key, iso, tile, scratch)
+        })?;
         let (mut content, mut bytes) = (DefaultHasher::new(), DefaultHasher::new());
         let mut order_free = DefaultHasher::new();
         for tile in &parts {
