@@ -20,7 +20,8 @@ BASELINE=${BASELINE:-unchecked}
 OLD_SRC=target/bench-verify/$BASELINE-src
 OLD_TARGET=target/bench-verify/target
 WORK=$(mktemp -d /tmp/isovox-bench-verify.XXXXXX)
-trap 'kill $(jobs -p) 2>/dev/null || true; rm -rf "$WORK"' EXIT
+SERVERS=()
+trap 'kill "${SERVERS[@]}" 2>/dev/null || true; rm -rf "$WORK"' EXIT
 
 command -v wrk >/dev/null || { apt-get update -qq && apt-get install -y -qq wrk; }
 CARGO_BUILD_JOBS=${CARGO_BUILD_JOBS:-2} cargo build --release -q -p isovox-server --bin isovox
@@ -43,17 +44,20 @@ esac
   cargo build --release -q -p isovox-server --bin isovox)
 
 free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
-start() { # start NAME BINARY: generates the world with that binary and serves it
+# start NAME BINARY: generates the world with that binary and serves it; sets PORT. (Not called
+# in a command substitution: a server started in that subshell would escape the EXIT trap.)
+start() {
   mkdir -p "$WORK/$1"
   "$2" generate world -o "$WORK/$1/world.vod" --dims 512,512,512 --brick 32 --codec lz4 >/dev/null
-  local port
-  port=$(free_port)
-  "$2" serve --data "$WORK/$1" --addr "127.0.0.1:$port" > "$WORK/$1.log" 2>&1 &
-  until curl -sf "http://127.0.0.1:$port/v1/volumes" >/dev/null; do sleep 0.2; done
-  echo "$port"
+  PORT=$(free_port)
+  "$2" serve --data "$WORK/$1" --addr "127.0.0.1:$PORT" > "$WORK/$1.log" 2>&1 &
+  SERVERS+=($!)
+  until curl -sf "http://127.0.0.1:$PORT/v1/volumes" >/dev/null; do sleep 0.2; done
 }
-NEW_PORT=$(start after target/release/isovox)
-OLD_PORT=$(start "$BASELINE" "$OLD_TARGET/release/isovox")
+start after target/release/isovox
+NEW_PORT=$PORT
+start "$BASELINE" "$OLD_TARGET/release/isovox"
+OLD_PORT=$PORT
 
 cat > "$WORK/lz4.lua" <<'EOF'
 wrk.headers["Accept"] = "application/x-lz4"
