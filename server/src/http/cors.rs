@@ -10,23 +10,15 @@
 
 use axum::http::{header, HeaderName, HeaderValue, StatusCode};
 use axum::response::IntoResponse;
-use tower_http::set_header::SetResponseHeaderLayer;
 
-/// The two headers every response carries.
-pub(super) fn layers() -> (
-    SetResponseHeaderLayer<HeaderValue>,
-    SetResponseHeaderLayer<HeaderValue>,
-) {
-    (
-        SetResponseHeaderLayer::if_not_present(
-            header::ACCESS_CONTROL_ALLOW_ORIGIN,
-            HeaderValue::from_static("*"),
-        ),
-        SetResponseHeaderLayer::if_not_present(
-            header::ACCESS_CONTROL_EXPOSE_HEADERS,
-            HeaderValue::from_static("*"),
-        ),
-    )
+/// Adds the two headers every response carries (unless the handler set them).
+pub(super) fn add_headers(headers: &mut axum::http::HeaderMap) {
+    for name in [
+        header::ACCESS_CONTROL_ALLOW_ORIGIN,
+        header::ACCESS_CONTROL_EXPOSE_HEADERS,
+    ] {
+        headers.entry(name).or_insert(HeaderValue::from_static("*"));
+    }
 }
 
 /// The answer to a preflight request on any route.

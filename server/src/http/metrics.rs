@@ -109,6 +109,11 @@ impl Metrics {
             .map_or(self.names.len() - 1, |m| *m.value)
     }
 
+    /// The template of route `route` ("unmatched" for requests matching none).
+    fn route_name(&self, route: usize) -> &'static str {
+        self.names.get(route).copied().unwrap_or("unmatched")
+    }
+
     fn record(&self, route: usize, status: u16, seconds: f64, bytes: u64) {
         let shard = &self.shards[THREAD.with(|t| *t) % self.shards.len()];
         let Some(m) = shard.routes.get(route) else {
@@ -225,11 +230,16 @@ where
             let bytes = axum::body::HttpBody::size_hint(response.body())
                 .exact()
                 .unwrap_or(0);
-            this.metrics.record(
-                *this.route,
+            let (status, seconds) = (
                 response.status().as_u16(),
                 this.start.elapsed().as_secs_f64(),
-                bytes,
+            );
+            this.metrics.record(*this.route, status, seconds, bytes);
+            tracing::debug!(
+                route = this.metrics.route_name(*this.route),
+                status,
+                seconds,
+                "request"
             );
         }
         Poll::Ready(result)

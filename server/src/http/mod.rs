@@ -69,7 +69,6 @@ use axum::Router;
 use std::sync::Arc;
 use std::time::Duration;
 use tower_http::timeout::TimeoutLayer;
-use tower_http::trace::TraceLayer;
 
 /// How a server runs: caches, queues, connections, access control and edit limits.
 #[derive(Debug, Clone)]
@@ -270,10 +269,12 @@ pub const ROUTES: &[&str] = &[
     "/assets/{*file}",
 ];
 
-/// The whole service: the router inside the layers every request passes through (request
-/// spans, CORS headers, the body limit, metrics). They wrap the router once, not each route:
-/// `Router::layer` wraps and boxes every route's service once more per layer, which cost the
-/// brick routes about a tenth of their throughput.
+/// The whole service: the router inside what every request passes through (metrics, which
+/// also log each request at debug level, and the CORS headers). They wrap the router once, not
+/// each route: `Router::layer` wraps and boxes every route's service once more per layer, which
+/// cost the brick routes about a tenth of their throughput. (tower-http's `TraceLayer` was
+/// here too: it timed every request and body frame again and logged every 5xx, shed 503s
+/// included, as an error; internal errors log their cause where they are mapped, `error.rs`.)
 pub fn app(
     state: AppState,
 ) -> impl tower::Service<
@@ -290,12 +291,12 @@ pub fn app(
     let router = routes(&state)
         .fallback(handlers::not_found)
         .with_state(state);
-    let (allow_origin, expose_headers) = cors::layers();
     tower::ServiceBuilder::new()
-        .map_response(|r: axum::http::Response<_>| r.map(axum::body::Body::new))
-        .layer(TraceLayer::new_for_http())
-        .layer(allow_origin)
-        .layer(expose_headers)
+        .map_response(|r: axum::http::Response<_>| {
+            let mut r = r.map(axum::body::Body::new);
+            cors::add_headers(r.headers_mut());
+            r
+        })
         .layer(metrics::MetricsLayer::new(metrics))
         .service(fast_path::BrickFirst::new(fast_state, router))
 }
