@@ -1,4 +1,5 @@
-//! The brick route, answered before the router when the request is plain.
+//! The brick route and the live views' chunks, answered before the router when the request is
+//! plain.
 //!
 //! `GET /v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}` is the hottest route by far (a viewer
 //! streams thousands of bricks a second), and its handler is a few index lookups. Routing it
@@ -9,8 +10,15 @@
 //! handler's own [`bricks::brick_at`], and only when that succeeds: every other request,
 //! and every request that would fail, goes to the router, so error responses are decided in
 //! one place.
+//!
+//! The live OME-Zarr and precomputed views are read the same way (tensorstore reading a level
+//! whole asks for every chunk, a third of them absent): a plain `GET` of a document that takes
+//! no work is answered by the views' own [`views::answer_ready`] (a chunk of fill values
+//! included: its 404 is the handler's own, mapped in `error.rs`); one that must be made, and
+//! every failure, goes to the router.
 
-use super::{bricks, AppState};
+use super::{bricks, views, AppState};
+use crate::formats::ViewKind;
 use axum::extract::Request;
 use axum::http::Method;
 use axum::response::Response;
@@ -45,7 +53,7 @@ where
     }
 
     fn call(&mut self, request: Request) -> Self::Future {
-        match plain_brick(&self.state, &request) {
+        match plain_brick(&self.state, &request).or_else(|| plain_view(&self.state, &request)) {
             Some(response) => Either::Left(ready(Ok(response))),
             None => Either::Right(self.inner.call(request)),
         }
@@ -95,6 +103,35 @@ fn plain_brick(state: &AppState, request: &Request) -> Option<Response> {
     bricks::brick_at(state, name, None, (level, x, y, z), request.headers()).ok()
 }
 
+/// A plain request of a live view: `GET /v1/volumes/{name}/zarr/{*path}` (or `precomputed`),
+/// no query, no escapes in the name or the path: (volume, view, path within the view).
+fn parse_view(request: &Request) -> Option<(&str, ViewKind, &str)> {
+    if request.method() != Method::GET || request.uri().query().is_some() {
+        return None;
+    }
+    let rest = request.uri().path().strip_prefix("/v1/volumes/")?;
+    if rest.contains('%') {
+        return None;
+    }
+    let (name, rest) = rest.split_once('/')?;
+    let (view, path) = rest.split_once('/')?;
+    let kind = match view {
+        "zarr" => ViewKind::Zarr,
+        "precomputed" => ViewKind::Precomputed,
+        _ => return None,
+    };
+    (!name.is_empty() && !path.is_empty()).then_some((name, kind, path))
+}
+
+/// The response to a plain view request that takes no work, else `None`.
+fn plain_view(state: &AppState, request: &Request) -> Option<Response> {
+    if state.config.private_reads {
+        return None;
+    }
+    let (name, kind, path) = parse_view(request)?;
+    views::answer_ready(state, kind, name, path, request.headers())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -135,5 +172,25 @@ mod tests {
         let mut head = get("/v1/volumes/world/bricks/0/0/0/0");
         *head.method_mut() = Method::HEAD;
         assert_eq!(parse(&head), None);
+    }
+
+    #[test]
+    fn plain_view_requests_parse() {
+        let r = get("/v1/volumes/world/zarr/0/c/1/2/3");
+        assert_eq!(parse_view(&r), Some(("world", ViewKind::Zarr, "0/c/1/2/3")));
+        let r = get("/v1/volumes/ell/precomputed/info");
+        assert_eq!(parse_view(&r), Some(("ell", ViewKind::Precomputed, "info")));
+        for uri in [
+            "/v1/volumes/world/zarr/0/c/1/2/3?x=1",
+            "/v1/volumes/world/zarr/",
+            "/v1/volumes/world/zarr",
+            "/v1/volumes//zarr/zarr.json",
+            "/v1/volumes/w%6Frld/zarr/zarr.json",
+            "/v1/volumes/world/zarr/0/c/%31/2/3",
+            "/v1/volumes/world/versions/1/zarr/zarr.json",
+            "/v1/volumes/world/bricks/0/0/0/0",
+        ] {
+            assert_eq!(parse_view(&get(uri)), None, "{uri}");
+        }
     }
 }

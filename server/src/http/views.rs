@@ -93,6 +93,23 @@ async fn view(
     respond(kind, name, version, path, answer, request.headers())
 }
 
+/// The response to a request of a live view that takes no work (metadata, a stored frame, a
+/// cached chunk, a chunk of fill values), else `None`: the request then goes to the router
+/// (see `fast_path.rs`), which answers it (and any error) as [`zarr`] and [`precomputed`] do.
+pub(super) fn answer_ready(
+    state: &AppState,
+    kind: ViewKind,
+    name: &str,
+    path: &str,
+    headers: &HeaderMap,
+) -> Option<Response> {
+    let volume = state.catalog.get(name).ok()?;
+    match read(volume, kind, None, path, &state.bricks).ok()? {
+        ViewRead::Ready(answer) => respond(kind, name, None, path, answer, headers).ok(),
+        ViewRead::Make(_) => None,
+    }
+}
+
 /// The response for a document of a view, with the view's caching headers.
 fn respond(
     kind: ViewKind,
