@@ -29,7 +29,7 @@ def read_level(url, level=0):
     return data, time.perf_counter() - start
 
 
-def bench_reads(isovox, nginx, rounds):
+def bench_reads(isovox, nginx, rounds, placement):
     a, _ = read_level(isovox)
     b, _ = read_level(nginx)
     if not np.array_equal(a, b):
@@ -39,7 +39,7 @@ def bench_reads(isovox, nginx, rounds):
     for _ in range(rounds):
         for name, url in (("isovox serve (Zarr view)", isovox), ("nginx (exported chunks)", nginx)):
             times[name].append(read_level(url)[1])
-    print(f"\ntensorstore zarr3, level 0 whole ({a.shape[2]}x{a.shape[1]}x{a.shape[0]} u8, {mb:.0f} MB decoded), {rounds} rounds each\n")
+    print(f"\ntensorstore zarr3, level 0 whole ({a.shape[2]}x{a.shape[1]}x{a.shape[0]} u8, {mb:.0f} MB decoded), {rounds} rounds each, {placement}\n")
     print("| server | median s | MB/s | best MB/s |")
     print("|---|---:|---:|---:|")
     medians = {}
@@ -114,9 +114,12 @@ def main():
     p.add_argument("--bin", required=True)
     p.add_argument("--work", required=True)
     p.add_argument("--raw-from", required=True)
+    p.add_argument("--placement", default="client and servers sharing every core")
+    p.add_argument("--reads-only", action="store_true")
     a = p.parse_args()
-    bench_reads(a.isovox, a.nginx, a.rounds)
-    bench_imports(a.bin, a.work, a.raw_from)
+    bench_reads(a.isovox, a.nginx, a.rounds, a.placement)
+    if not a.reads_only:
+        bench_imports(a.bin, a.work, a.raw_from)
 
 
 if __name__ == "__main__":
