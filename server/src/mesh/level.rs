@@ -48,8 +48,19 @@ fn in_parallel<I: Copy + Sync, T: Send>(
     progress: &dyn Progress,
     mesh: impl Fn(&mut TileScratch, I) -> Result<T, StoreError> + Sync,
 ) -> Result<Vec<T>, StoreError> {
-    progress.start(tiles.len() as u64);
     let bricks = std::sync::Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
+    in_parallel_with(&bricks, tiles, progress, mesh)
+}
+
+/// [`in_parallel`] with the cache of decoded bricks `bricks` (shared with other passes, as the
+/// server shares one between requests).
+fn in_parallel_with<I: Copy + Sync, T: Send>(
+    bricks: &std::sync::Arc<DecodedBricks>,
+    tiles: &[I],
+    progress: &dyn Progress,
+    mesh: impl Fn(&mut TileScratch, I) -> Result<T, StoreError> + Sync,
+) -> Result<Vec<T>, StoreError> {
+    progress.start(tiles.len() as u64);
     let parts = tiles
         .par_iter()
         .map_init(
@@ -171,7 +182,8 @@ pub fn mask_faces(masks: &[u8]) -> Vec<(usize, usize)> {
 }
 
 /// Meshes `tiles` (a balanced selection, as [`balanced_tiles`] gives) in parallel with their
-/// moves, then the strips their face masks need.
+/// moves, then the strips their face masks need, the two passes sharing one cache of decoded
+/// bricks (as the server's requests share one).
 ///
 /// # Errors
 /// A brick fails to read.
@@ -181,11 +193,19 @@ pub fn mesh_stitchable_parts(
     iso: f32,
     progress: &dyn Progress,
 ) -> Result<StitchableParts, StoreError> {
-    let meshed = mesh_tiles_with_moves(snap, tiles, iso, progress)?;
+    let bricks = std::sync::Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
+    let meshed = in_parallel_with(&bricks, tiles, progress, |scratch, key| {
+        let mut tile = TileMesh::default();
+        mesh_tile_with_moves(snap, key, iso, &mut tile, scratch)?;
+        Ok(tile)
+    })?;
     let masks = isovox_proto::lod::face_masks(snap.layout(), tiles);
     let faces = mask_faces(&masks);
-    let wanted: Vec<(BrickKey, usize)> = faces.iter().map(|&(i, f)| (tiles[i], f)).collect();
-    let made = mesh_strips(snap, &wanted, iso, progress)?;
+    let made = in_parallel_with(&bricks, &faces, progress, |scratch, (i, face)| {
+        let mut strip = Mesh::default();
+        mesh_strip_world(snap, tiles[i], face, iso, &mut strip, scratch)?;
+        Ok(strip)
+    })?;
     let mut strips = vec![[(); 6].map(|_| None); tiles.len()];
     for ((i, face), strip) in faces.into_iter().zip(made) {
         strips[i][face] = Some(strip);

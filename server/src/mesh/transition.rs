@@ -26,7 +26,7 @@
 //!   tile knows its six face neighbours, never the ones across its edges. No point moves with
 //!   two faces at once (when f touches a coarser tile, the tiles beyond f's edges that move
 //!   with f are siblings, and a sibling is never coarser). A vertex moves by the interpolation
-//!   of its edge's endpoint moves. [`mesh_transitions`] writes the moves as [`VertexMove`]s,
+//!   of its edge's endpoint moves. [`tile_moves`] writes the moves as [`VertexMove`]s,
 //!   "move vertex i by d when face f touches a coarser neighbour".
 //! - **Strips.** For each face, one transition cell per 2x2 block of boundary cells (the 13
 //!   samples of [`super::transition_table`]): its fine face is the 3x3 samples of the tile's
@@ -58,29 +58,34 @@
 //!   their strips (`isovox_proto::mesh::stitch`). With mask 0 a tile is its regular mesh,
 //!   unchanged.
 //!
-//! # What a caller gathers (tile.rs)
+//! # What a tile and a strip are
 //!
-//! For a tile of level k with cells `[lo, hi)` (as given to `march`; `lo` is -1 on the volume's
-//! low faces) and `coarse_frame` = the parent brick's position times the brick edge (in
-//! level-(k+1) lattice units):
+//! A tile carries its regular mesh and the moves of its boundary vertices for every face that
+//! can touch a coarser tile ([`tile_moves`], from `march`'s border alone: no coarser sample is
+//! read), whatever its neighbours are now, so it stays one cacheable object. The strip of a face
+//! is an object of its own, made only when asked ([`mesh_strip`]): a mesh whose vertices along
+//! the tile's face are copies of the tile's vertices there, with their moves with that face, so
+//! that applying them as a viewer applies the tile's gives the same bits, and welding joins the
+//! strip to the moved tile.
 //!
-//! - `fine`: the field `march` meshed: level-k lattice values over `[lo - 1, hi + 1]` (for
-//!   k > 0, [`super::lattice::lattice_field`] of the stored level-k voxels over
-//!   `[lo - 3, hi + 2]`).
-//! - `coarse`: level-(k+1) lattice values over `[c, d]` with `c = floor(lo / 2) - 1` and
-//!   `d = hi / 2 + 1` (`lattice_field` of the stored level-(k+1) voxels over `[c - 2, d + 1]`):
-//!   the coarse lattice points of all six faces and the neighbours their normals read. Only
-//!   the faces in `strips` are read: the plane of each across `[c, d]`, and beside the plane
+//! # What a caller gathers for a strip (tile.rs)
+//!
+//! For a tile of level k with cells `[lo, hi)` (`lo` is -1 on the volume's low faces) and
+//! `coarse_frame` = the parent brick's position times the brick edge (in level-(k+1) lattice
+//! units), and face f:
+//!
+//! - a `march` of the layer of the tile's cells along f (or of the whole tile) with the tile's
+//!   frame, and `fine`, the field it meshed: level-k lattice values over the layer's cells and
+//!   one point around them (for k > 0, [`super::lattice::lattice_field`] of the stored level-k
+//!   voxels 2 below and 1 above). The layer's vertices on f's plane are the tile's, bit for bit.
+//! - `coarse`: a field of level-(k+1) lattice values over `[c, d]` with `c = floor(lo / 2) - 1`
+//!   and `d = hi / 2 + 1`, of which only f's plane across `[c, d]` is read, and beside the plane
 //!   the points next to a point of the face where an edge of its cells' coarse face, or a
 //!   connecting edge, is crossed (the normals of coarse and connecting vertices read those;
 //!   nothing else off the plane is read, and `tile.rs` computes nothing else).
-//! - `faces`: the faces that can touch a coarser neighbour: those with a neighbouring tile in
-//!   the grid, when level k+1 exists. Strips are built for all of them, whatever the current
-//!   neighbours are, so the tile stays one cacheable object.
-//! - `strips`: those of `faces` whose strips can hold a triangle; the others are empty (every
-//!   fine and coarse sample of the face on one side), and the caller need not compute their
-//!   coarse values (`tile.rs` decides this from `march`'s boundary vertices and the range of the
-//!   coarse voxels under a face).
+//! - `tile.faces`: the faces that can touch a coarser neighbour: those with a neighbouring tile
+//!   in the grid, when level k+1 exists. The moves depend on all of them (a coarser tile across
+//!   f reaches past another face g exactly when no tile, or a sibling, lies across g).
 
 use super::mc::{faces_of, BorderVertex, Field, Mesh, Scratch};
 use super::transition_table::{
