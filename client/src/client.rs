@@ -464,21 +464,11 @@ impl Client {
         iso: Option<f32>,
         version: Option<u64>,
     ) -> Result<TileMesh, ClientError> {
-        let mut path = format!(
-            "/v1/volumes/{name}/meshes/{}/{}/{}/{}?format=compact",
+        let path = format!(
+            "/v1/volumes/{name}/meshes/{}/{}/{}/{}",
             key.level, key.x, key.y, key.z
         );
-        if let Some(iso) = iso {
-            path.push_str(&format!("&iso={iso}"));
-        }
-        if let Some(v) = version {
-            path.push_str(&format!("&version={v}"));
-        }
-        let bytes = self
-            .send("mesh", || self.request(Method::GET, &path), true)
-            .await?
-            .bytes()
-            .await?;
+        let bytes = self.mesh_bytes("mesh", path, iso, version).await?;
         decode_tile(&bytes).map_err(|e| ClientError::Decode(format!("tile {key}: {e}")))
     }
 
@@ -499,23 +489,36 @@ impl Client {
         let Some(face_name) = FACE_NAMES.get(face) else {
             return Err(ClientError::Decode(format!("tile {key}: no face {face}")));
         };
-        let mut path = format!(
-            "/v1/volumes/{name}/meshes/{}/{}/{}/{}/strips/{face_name}?format=compact",
+        let path = format!(
+            "/v1/volumes/{name}/meshes/{}/{}/{}/{}/strips/{face_name}",
             key.level, key.x, key.y, key.z
         );
+        let bytes = self.mesh_bytes("strip", path, iso, version).await?;
+        decode_strip(&bytes)
+            .map_err(|e| ClientError::Decode(format!("strip {face_name} of tile {key}: {e}")))
+    }
+
+    /// The compact encoding of the mesh answer at `path` (a tile's or a strip's), at `iso` and
+    /// `version` when given; `route` names it for the observer.
+    async fn mesh_bytes(
+        &self,
+        route: &'static str,
+        mut path: String,
+        iso: Option<f32>,
+        version: Option<u64>,
+    ) -> Result<Bytes, ClientError> {
+        path.push_str("?format=compact");
         if let Some(iso) = iso {
             path.push_str(&format!("&iso={iso}"));
         }
         if let Some(v) = version {
             path.push_str(&format!("&version={v}"));
         }
-        let bytes = self
-            .send("strip", || self.request(Method::GET, &path), true)
+        Ok(self
+            .send(route, || self.request(Method::GET, &path), true)
             .await?
             .bytes()
-            .await?;
-        decode_strip(&bytes)
-            .map_err(|e| ClientError::Decode(format!("strip {face_name} of tile {key}: {e}")))
+            .await?)
     }
 
     /// Applies an edit (needs a write token); with `if_match`, only at that version.

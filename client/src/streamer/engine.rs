@@ -517,6 +517,14 @@ impl Engine {
         self.scheduler.replan_needed = true;
     }
 
+    /// The iso value mesh tiles are asked at (the server's default when `None`).
+    fn mesh_iso(&self) -> Option<f32> {
+        match self.kind {
+            TileKind::Meshes { iso } => iso,
+            TileKind::Bricks => None,
+        }
+    }
+
     /// The grid region that brings `brick`'s hash: a designated one, or its chunk.
     fn source_of(&self, brick: BrickKey) -> JobKey {
         if let Some(&s) = self.book.sources.get(&brick) {
@@ -816,10 +824,7 @@ impl Engine {
                     .get(&key)
                     .copied()
                     .unwrap_or_default();
-                let iso = match self.kind {
-                    TileKind::Meshes { iso } => iso,
-                    TileKind::Bricks => None,
-                };
+                let iso = self.mesh_iso();
                 self.scheduler.jobs.spawn(async move {
                     let r = client.mesh_tile(&name, key, iso, version).await;
                     (id, job, Output::Mesh(content, r))
@@ -832,10 +837,7 @@ impl Engine {
                     .get(&(key, face))
                     .copied()
                     .unwrap_or_default();
-                let iso = match self.kind {
-                    TileKind::Meshes { iso } => iso,
-                    TileKind::Bricks => None,
-                };
+                let iso = self.mesh_iso();
                 self.scheduler.jobs.spawn(async move {
                     let r = client
                         .mesh_strip(&name, key, usize::from(face), iso, version)

@@ -82,23 +82,8 @@ impl MeshCache {
         inputs: &TileInputs,
         scratch: &mut TileScratch,
     ) -> Result<CachedTile, StoreError> {
-        if let Some(tile) = self.tiles.get(inputs.key) {
-            self.hits.fetch_add(1, Ordering::Relaxed);
-            return Ok(CachedTile {
-                key: inputs.key,
-                tile,
-                hit: true,
-            });
-        }
-        self.misses.fetch_add(1, Ordering::Relaxed);
-        let mut tile = TileMesh::default();
-        mesh_tile_from(snap, key, iso, inputs, &mut tile, scratch)?;
-        let tile = Arc::new(tile);
-        self.tiles.put(inputs.key, tile.clone(), tile_bytes(&tile));
-        Ok(CachedTile {
-            key: inputs.key,
-            tile,
-            hit: false,
+        self.cached(inputs.key, |tile| {
+            mesh_tile_from(snap, key, iso, inputs, tile, scratch).map(drop)
         })
     }
 
@@ -118,23 +103,33 @@ impl MeshCache {
         inputs: &StripInputs,
         scratch: &mut TileScratch,
     ) -> Result<CachedTile, StoreError> {
-        if let Some(tile) = self.tiles.get(inputs.key) {
+        self.cached(inputs.key, |strip| {
+            mesh_strip_from(snap, key, face, iso, inputs, strip, scratch)
+        })
+    }
+
+    /// The entry under content key `key`, or `make`'s (then cached).
+    fn cached(
+        &self,
+        key: u128,
+        make: impl FnOnce(&mut TileMesh) -> Result<(), StoreError>,
+    ) -> Result<CachedTile, StoreError> {
+        if let Some(tile) = self.tiles.get(key) {
             self.hits.fetch_add(1, Ordering::Relaxed);
             return Ok(CachedTile {
-                key: inputs.key,
+                key,
                 tile,
                 hit: true,
             });
         }
         self.misses.fetch_add(1, Ordering::Relaxed);
-        let mut strip = TileMesh::default();
-        mesh_strip_from(snap, key, face, iso, inputs, &mut strip, scratch)?;
-        let strip = Arc::new(strip);
-        self.tiles
-            .put(inputs.key, strip.clone(), tile_bytes(&strip));
+        let mut tile = TileMesh::default();
+        make(&mut tile)?;
+        let tile = Arc::new(tile);
+        self.tiles.put(key, tile.clone(), tile_bytes(&tile));
         Ok(CachedTile {
-            key: inputs.key,
-            tile: strip,
+            key,
+            tile,
             hit: false,
         })
     }

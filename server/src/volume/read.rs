@@ -363,6 +363,21 @@ impl LevelRead {
     }
 }
 
+/// A hash of a mesh answer's content key `inputs`, the tile's position (world coordinates
+/// depend on it), the volume's voxel scale and `variant`.
+fn mesh_tag(inputs: u128, key: BrickKey, snap: &Snapshot, variant: &[u8]) -> u64 {
+    let mut tag = Vec::with_capacity(64);
+    tag.extend_from_slice(&inputs.to_le_bytes());
+    for c in [key.x, key.y, key.z] {
+        tag.extend_from_slice(&c.to_le_bytes());
+    }
+    for s in snap.header().voxel_scale {
+        tag.extend_from_slice(&s.to_le_bytes());
+    }
+    tag.extend_from_slice(variant);
+    xxhash_rust::xxh3::xxh3_64(&tag)
+}
+
 /// A checked mesh tile read (see [`LiveVolume::mesh_tile`]).
 #[derive(Debug)]
 pub struct TileRead {
@@ -376,19 +391,10 @@ impl TileRead {
     /// A hash of everything the tile's encoded mesh depends on (its inputs, position and the
     /// volume's voxel scale) and of `variant` (which encoding): equal tags, equal bytes.
     pub fn tag(&self, variant: u8) -> u64 {
-        let mut tag = Vec::with_capacity(64);
-        tag.extend_from_slice(&self.inputs.key.to_le_bytes());
-        for c in [self.key.x, self.key.y, self.key.z] {
-            tag.extend_from_slice(&c.to_le_bytes());
-        }
-        for s in self.snap.header().voxel_scale {
-            tag.extend_from_slice(&s.to_le_bytes());
-        }
-        tag.push(variant);
-        xxhash_rust::xxh3::xxh3_64(&tag)
+        mesh_tag(self.inputs.key, self.key, &self.snap, &[variant])
     }
 
-    /// The tile in world coordinates, its regular mesh and transition data: from `meshes` when
+    /// The tile in world coordinates, its regular mesh and moves: from `meshes` when
     /// it holds a tile with the same inputs, else meshed now (reading decoded bricks through
     /// `bricks`) and kept there.
     ///
@@ -422,17 +428,7 @@ impl StripRead {
     /// face, the tile's position and the volume's voxel scale) and of `variant` (which
     /// encoding): equal tags, equal bytes.
     pub fn tag(&self, variant: u8) -> u64 {
-        let mut tag = Vec::with_capacity(64);
-        tag.extend_from_slice(&self.inputs.key.to_le_bytes());
-        for c in [self.key.x, self.key.y, self.key.z] {
-            tag.extend_from_slice(&c.to_le_bytes());
-        }
-        for s in self.snap.header().voxel_scale {
-            tag.extend_from_slice(&s.to_le_bytes());
-        }
-        tag.push(variant);
-        tag.push(b's');
-        xxhash_rust::xxh3::xxh3_64(&tag)
+        mesh_tag(self.inputs.key, self.key, &self.snap, &[variant, b's'])
     }
 
     /// The strip in world coordinates, as drawn: from `meshes` when it holds one with the same
