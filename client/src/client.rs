@@ -13,7 +13,7 @@ use isovox_proto::api::{
 };
 use isovox_proto::batch::{decode_batch, BatchEncoding, BatchEntry, BatchRequest};
 use isovox_proto::icvg::EditRequest;
-use isovox_proto::mesh::{decode_tile, TileMesh};
+use isovox_proto::mesh::{decode_strip, decode_tile, Mesh, TileMesh, FACE_NAMES};
 use isovox_proto::BrickKey;
 use reqwest::header::{HeaderMap, HeaderValue};
 use reqwest::{Method, RequestBuilder, StatusCode};
@@ -451,9 +451,9 @@ impl Client {
             .await?)
     }
 
-    /// One mesh tile in world coordinates, with its transition data (the compact encoding,
-    /// version 2; `isovox_proto::mesh::stitch` draws it next to coarser neighbours). `iso`
-    /// defaults to the server's.
+    /// One mesh tile in world coordinates, with its moves (the compact encoding, version 3;
+    /// `isovox_proto::mesh::stitch` draws it with the strips of the faces that touch a coarser
+    /// neighbour, [`Client::mesh_strip`]). `iso` defaults to the server's.
     ///
     /// # Errors
     /// See [`ClientError`].
@@ -464,22 +464,61 @@ impl Client {
         iso: Option<f32>,
         version: Option<u64>,
     ) -> Result<TileMesh, ClientError> {
-        let mut path = format!(
-            "/v1/volumes/{name}/meshes/{}/{}/{}/{}?format=compact",
+        let path = format!(
+            "/v1/volumes/{name}/meshes/{}/{}/{}/{}",
             key.level, key.x, key.y, key.z
         );
+        let bytes = self.mesh_bytes("mesh", path, iso, version).await?;
+        decode_tile(&bytes).map_err(|e| ClientError::Decode(format!("tile {key}: {e}")))
+    }
+
+    /// The transition strip of face `face` (0..6, in `FACE_NAMES` order) of a mesh tile, in
+    /// world coordinates as drawn (a plain mesh, the compact encoding's version 1). `iso`
+    /// defaults to the server's.
+    ///
+    /// # Errors
+    /// See [`ClientError`]; a face beyond 5 is a decode error, before any request.
+    pub async fn mesh_strip(
+        &self,
+        name: &str,
+        key: BrickKey,
+        face: usize,
+        iso: Option<f32>,
+        version: Option<u64>,
+    ) -> Result<Mesh, ClientError> {
+        let Some(face_name) = FACE_NAMES.get(face) else {
+            return Err(ClientError::Decode(format!("tile {key}: no face {face}")));
+        };
+        let path = format!(
+            "/v1/volumes/{name}/meshes/{}/{}/{}/{}/strips/{face_name}",
+            key.level, key.x, key.y, key.z
+        );
+        let bytes = self.mesh_bytes("strip", path, iso, version).await?;
+        decode_strip(&bytes)
+            .map_err(|e| ClientError::Decode(format!("strip {face_name} of tile {key}: {e}")))
+    }
+
+    /// The compact encoding of the mesh answer at `path` (a tile's or a strip's), at `iso` and
+    /// `version` when given; `route` names it for the observer.
+    async fn mesh_bytes(
+        &self,
+        route: &'static str,
+        mut path: String,
+        iso: Option<f32>,
+        version: Option<u64>,
+    ) -> Result<Bytes, ClientError> {
+        path.push_str("?format=compact");
         if let Some(iso) = iso {
             path.push_str(&format!("&iso={iso}"));
         }
         if let Some(v) = version {
             path.push_str(&format!("&version={v}"));
         }
-        let bytes = self
-            .send("mesh", || self.request(Method::GET, &path), true)
+        Ok(self
+            .send(route, || self.request(Method::GET, &path), true)
             .await?
             .bytes()
-            .await?;
-        decode_tile(&bytes).map_err(|e| ClientError::Decode(format!("tile {key}: {e}")))
+            .await?)
     }
 
     /// Applies an edit (needs a write token); with `if_match`, only at that version.

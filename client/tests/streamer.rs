@@ -13,7 +13,9 @@
 
 use isovox_client::proto::api::VolumeInfo;
 use isovox_client::proto::icvg::{EditRequest, Term};
-use isovox_client::proto::mesh::{decode_tile, encode_tile, stitch, Mesh, TileMesh};
+use isovox_client::proto::mesh::{
+    decode_strip, decode_tile, encode_compact, encode_tile, stitch, Mesh, TileMesh,
+};
 use isovox_client::proto::{BrickKey, VolumeLayout, VoxelType};
 use isovox_client::{
     select_stitched_tiles, select_tiles, Client, Observer, StreamEvent, Streamer, StreamerConfig,
@@ -691,36 +693,10 @@ fn changed_keys(changed: &[Vec<[u32; 3]>]) -> BTreeSet<BrickKey> {
         .collect()
 }
 
-/// Mesh tiles whose inputs include a changed brick (brick 8), per `server/src/mesh/tile.rs`: tile
-/// (x, y, z) reads the bricks at offsets -1..=1 around it at its level; and its transition strips
-/// read the next coarser level's voxels `[4 x - 3, 4 (x + 1) + 2]` on each axis (one less below
-/// for a first tile), bricks `(4 x - 3) / 8 ..= (4 x + 6) / 8`.
+/// Mesh tiles whose own inputs include a changed brick (brick 8), per `server/src/mesh/tile.rs`:
+/// tile (x, y, z) reads the bricks at offsets -1..=1 around it at its level.
 fn mesh_readers(changed: &BTreeSet<BrickKey>) -> BTreeSet<BrickKey> {
     let mut out = BTreeSet::new();
-    for b in changed.iter().filter(|b| b.level > 0) {
-        // Finer tiles t whose coarse reads hold b: (4 t - 3) / 8 <= b <= (4 t + 6) / 8.
-        let range = |p: u32| {
-            let p = i64::from(p);
-            (0..=2 * p + 2)
-                .filter(move |&t| {
-                    let first = if t == 0 { -4 } else { 4 * t - 3 };
-                    first.div_euclid(8) <= p && p <= (4 * t + 6).div_euclid(8)
-                })
-                .map(|t| t as u32)
-        };
-        for z in range(b.z) {
-            for y in range(b.y) {
-                for x in range(b.x) {
-                    out.insert(BrickKey {
-                        level: b.level - 1,
-                        x,
-                        y,
-                        z,
-                    });
-                }
-            }
-        }
-    }
     for b in changed {
         for dz in -1i64..=1 {
             for dy in -1i64..=1 {
@@ -735,6 +711,62 @@ fn mesh_readers(changed: &BTreeSet<BrickKey>) -> BTreeSet<BrickKey> {
                         });
                     }
                 }
+            }
+        }
+    }
+    out
+}
+
+/// Whether the transition strip of face `face` of tile `t` (brick 8) reads brick `b`, per
+/// `server/src/mesh/tile.rs`. Of the tile's level, the layer of cells along the face: on the
+/// face's axis lattice points 8 t + 6 ..= 8 t + 9 on a high face, 8 t - 1 ..= 8 t + 2 on a low
+/// one, across it the tile's field 8 t - 1 ..= 8 t + 9 (from -2 for a first tile). Of the next
+/// coarser level, stored voxels: on the face's axis the plane 4 t + 4 (high) or 4 t (low) and
+/// one lattice point on either side, 2 below and 1 above for the interpolation: 4 t + 1 ..=
+/// 4 t + 6 or 4 t - 3 ..= 4 t + 2; across it 4 t - 3 ..= 4 t + 6 (from -4 for a first tile).
+fn strip_reads_brick(t: BrickKey, face: usize, b: BrickKey) -> bool {
+    let tp = [t.x, t.y, t.z].map(i64::from);
+    let bp = [b.x, b.y, b.z].map(i64::from);
+    let axis = face / 2;
+    let high = face % 2 == 1;
+    let within = |lo: i64, hi: i64, p: i64| lo.div_euclid(8) <= p && p <= hi.div_euclid(8);
+    if b.level == t.level {
+        (0..3).all(|a| {
+            let t = tp[a];
+            let (lo, hi) = match (a == axis, high) {
+                (true, true) => (8 * t + 6, 8 * t + 9),
+                (true, false) => (8 * t - 1, 8 * t + 2),
+                _ => (if t == 0 { -2 } else { 8 * t - 1 }, 8 * t + 9),
+            };
+            within(lo, hi, bp[a])
+        })
+    } else if b.level == t.level + 1 {
+        (0..3).all(|a| {
+            let t = tp[a];
+            let (lo, hi) = match (a == axis, high) {
+                (true, true) => (4 * t + 1, 4 * t + 6),
+                (true, false) => (4 * t - 3, 4 * t + 2),
+                _ => (if t == 0 { -4 } else { 4 * t - 3 }, 4 * t + 6),
+            };
+            within(lo, hi, bp[a])
+        })
+    } else {
+        false
+    }
+}
+
+/// The strips (tile, face) of the resident tiles' masks that read a changed brick.
+fn strip_readers(
+    info: &VolumeInfo,
+    resident: &BTreeSet<BrickKey>,
+    changed: &BTreeSet<BrickKey>,
+) -> BTreeSet<(BrickKey, usize)> {
+    let mut out = BTreeSet::new();
+    for &t in resident {
+        let mask = expected_mask(info, resident, t);
+        for face in (0..6).filter(|f| mask >> f & 1 == 1) {
+            if changed.iter().any(|&b| strip_reads_brick(t, face, b)) {
+                out.insert((t, face));
             }
         }
     }
@@ -844,19 +876,31 @@ async fn an_edit_by_another_client_refetches_exactly_the_affected_bricks() {
     streamer.shutdown().await;
 }
 
-/// The server's offline mesher on the file, with transition data, through the compact encoding
-/// the route sends.
+/// The server's offline mesher on the file, with its moves, through the compact encoding the
+/// route sends.
 fn offline_tile(path: &Path, key: BrickKey) -> TileMesh {
-    use isovox_server::mesh::tile::{default_iso, mesh_tile_with_transitions, TileScratch};
+    use isovox_server::mesh::tile::{default_iso, mesh_tile_with_moves, TileScratch};
     let snap = Vod2::open(path).unwrap().head();
     let mut t = TileMesh::default();
     let iso = default_iso(snap.layout().voxel_type());
-    mesh_tile_with_transitions(&snap, key, iso, &mut t, &mut TileScratch::default()).unwrap();
+    mesh_tile_with_moves(&snap, key, iso, &mut t, &mut TileScratch::default()).unwrap();
     decode_tile(&encode_tile(&t)).unwrap()
 }
 
-/// Checks every `Ready` mesh tile of `events` against the offline mesher, and its drawn mesh
-/// against the tile stitched with its mask. Returns the regular triangles delivered.
+/// The server's offline mesher's strip of face `face` of tile `key`, through the compact
+/// encoding the route sends.
+fn offline_strip(path: &Path, key: BrickKey, face: usize) -> Mesh {
+    use isovox_server::mesh::tile::{default_iso, mesh_strip_world, TileScratch};
+    let snap = Vod2::open(path).unwrap().head();
+    let mut s = Mesh::default();
+    let iso = default_iso(snap.layout().voxel_type());
+    mesh_strip_world(&snap, key, face, iso, &mut s, &mut TileScratch::default()).unwrap();
+    decode_strip(&encode_compact(&s)).unwrap()
+}
+
+/// Checks every `Ready` mesh tile of `events` against the offline mesher, its strips (those of
+/// its mask's faces, and no other) too, and its drawn mesh against the tile stitched with its
+/// mask and strips. Returns the regular triangles delivered.
 fn assert_meshes_match_file(events: &[StreamEvent], path: &Path) -> usize {
     let mut triangles = 0;
     for e in events {
@@ -865,8 +909,29 @@ fn assert_meshes_match_file(events: &[StreamEvent], path: &Path) -> usize {
                 panic!("a mesh streamer delivered a brick");
             };
             assert_eq!(*m.tile, offline_tile(path, *key), "mesh tile {key}");
+            for face in 0..6 {
+                match &m.strips[face] {
+                    Some(s) if m.mask >> face & 1 == 1 => {
+                        assert_eq!(
+                            **s,
+                            offline_strip(path, *key, face),
+                            "strip {face} of {key}"
+                        );
+                    }
+                    None if m.mask >> face & 1 == 0 => {}
+                    _ => panic!(
+                        "tile {key}, mask {:#b}: strip {face} delivered or not",
+                        m.mask
+                    ),
+                }
+            }
             let mut drawn = Mesh::default();
-            stitch(&m.tile, m.mask, &mut drawn);
+            stitch(
+                &m.tile,
+                m.mask,
+                std::array::from_fn(|f| m.strips[f].as_deref()),
+                &mut drawn,
+            );
             assert_eq!(*m.mesh, drawn, "mesh tile {key} stitched");
             triangles += m.tile.mesh.triangles();
         }
@@ -990,6 +1055,16 @@ async fn an_edit_by_another_client_refetches_exactly_the_affected_mesh_tiles() {
         counter.snapshot().get("mesh").copied(),
         Some(resident.len() as u64)
     );
+    // One strip request per face of a mask: the masks of proto's face_masks, and the raster's.
+    let info = streamer.info().clone();
+    let list: Vec<BrickKey> = resident.iter().copied().collect();
+    let masks = isovox_client::proto::lod::face_masks(&layout_of(&info), &list);
+    for (t, m) in list.iter().zip(&masks) {
+        assert_eq!(*m, expected_mask(&info, &resident, *t), "mask of {t}");
+    }
+    let faces: u64 = masks.iter().map(|m| u64::from(m.count_ones())).sum();
+    assert!(faces > 0, "some tiles touch a coarser one");
+    assert_eq!(counter.snapshot().get("strip").copied(), Some(faces));
     assert_eq!(counter.snapshot().get("blob"), None);
 
     isovox_server::client_tls::install_provider();
@@ -1000,10 +1075,20 @@ async fn an_edit_by_another_client_refetches_exactly_the_affected_mesh_tiles() {
         .await
         .unwrap();
     let changed = changed_keys(&resp.changed);
-    let expected: BTreeSet<BrickKey> = resident
+    let tiles: BTreeSet<BrickKey> = resident
         .intersection(&mesh_readers(&changed))
         .copied()
         .collect();
+    let strips = strip_readers(&info, &resident, &changed);
+    let expected: BTreeSet<BrickKey> = tiles
+        .iter()
+        .copied()
+        .chain(strips.iter().map(|&(t, _)| t))
+        .collect();
+    assert!(
+        strips.iter().any(|(t, _)| !tiles.contains(t)),
+        "a tile goes stale for its strip alone"
+    );
     assert!(expected.iter().any(|k| k.level == 0));
     assert!(
         expected.len() > changed.intersection(&resident).count(),
@@ -1016,7 +1101,8 @@ async fn an_edit_by_another_client_refetches_exactly_the_affected_mesh_tiles() {
     assert_meshes_match_file(&events, &w.path);
     collect_drawn(&events, &mut drawn);
     assert_stitched_closed(streamer.info(), &resident, &drawn, "after the edit");
-    assert_eq!(counter.since(&counts, "mesh"), expected.len() as u64);
+    assert_eq!(counter.since(&counts, "mesh"), tiles.len() as u64);
+    assert_eq!(counter.since(&counts, "strip"), strips.len() as u64);
     assert_eq!(counter.since(&counts, "blob"), 0);
     assert_eq!(counter.since(&counts, "brick"), 0);
     // One grid region per level whose changed bricks a resident tile reads (its own level's,
@@ -1026,17 +1112,15 @@ async fn an_edit_by_another_client_refetches_exactly_the_affected_mesh_tiles() {
         .filter(|b| {
             let one: BTreeSet<BrickKey> = [**b].into_iter().collect();
             mesh_readers(&one).iter().any(|t| resident.contains(t))
+                || strips.iter().any(|&(t, f)| strip_reads_brick(t, f, **b))
         })
         .map(|b| b.level)
         .collect();
-    assert!(
-        read_levels.len()
-            > expected
-                .iter()
-                .map(|k| k.level)
-                .collect::<BTreeSet<_>>()
-                .len()
-    );
+    // The strips' reads of the next coarser level count: some stale strip reads a changed brick
+    // of the level above its tile's.
+    assert!(strips.iter().any(|&(t, f)| changed
+        .iter()
+        .any(|b| b.level == t.level + 1 && strip_reads_brick(t, f, *b))));
     assert_eq!(counter.since(&counts, "level"), read_levels.len() as u64);
     assert_eq!(streamer.stats().stale_refetches, expected.len() as u64);
     streamer.shutdown().await;
@@ -1126,9 +1210,13 @@ async fn streamed_mesh_tiles_stitch_closed_wherever_the_camera_goes() {
     };
     let (mut restitched, mut crossing, mut triangles) = (0, 0, 0);
     let mut hashes: HashMap<BrickKey, u64> = HashMap::new();
+    // Every strip (tile, face) a mask has needed so far: each is fetched once.
+    let mut asked: BTreeSet<(BrickKey, usize)> = BTreeSet::new();
+    let layout = layout_of(&info);
     for step in 0..8 {
         let camera = [random() * 96.0, 20.0 + random() * 50.0, random() * 96.0];
         let requests = counter.snapshot().get("mesh").copied().unwrap_or(0);
+        let strip_requests = counter.snapshot().get("strip").copied().unwrap_or(0);
         streamer.set_camera(camera);
         let events = settle(&streamer, &mut rx, 1).await;
         // A tile delivered again with the content key it had was stitched anew (a neighbour's
@@ -1159,6 +1247,22 @@ async fn streamed_mesh_tiles_stitch_closed_wherever_the_camera_goes() {
         let (t, c) = assert_stitched_closed(&info, &resident, &drawn, &what);
         triangles += t;
         crossing += c;
+        // The strips fetched are exactly those of the new selection's masks (proto's
+        // face_masks) not fetched before: none for faces without a coarser neighbour.
+        let list: Vec<BrickKey> = resident.iter().copied().collect();
+        let masks = isovox_client::proto::lod::face_masks(&layout, &list);
+        let wanted: BTreeSet<(BrickKey, usize)> = list
+            .iter()
+            .zip(&masks)
+            .flat_map(|(&t, &m)| (0..6).filter(move |f| m >> f & 1 == 1).map(move |f| (t, f)))
+            .collect();
+        let new = wanted.difference(&asked).count() as u64;
+        asked.extend(wanted);
+        assert_eq!(
+            counter.snapshot().get("strip").copied().unwrap_or(0) - strip_requests,
+            new,
+            "{what}: strip requests"
+        );
         let fetched = counter.snapshot().get("mesh").copied().unwrap_or(0) - requests;
         let delivered = events
             .iter()
@@ -1625,4 +1729,9 @@ async fn streamers_sharing_a_tiny_cpu_queue_lower_their_limit_and_get_every_tile
     for s in streamers {
         s.shutdown().await;
     }
+}
+
+/// The layout of a volume's metadata.
+fn layout_of(info: &VolumeInfo) -> VolumeLayout {
+    VolumeLayout::new(info.dims, info.brick, info.voxel_type).unwrap()
 }

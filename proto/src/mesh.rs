@@ -1,29 +1,27 @@
 //! Triangle meshes and their wire encodings: a compact binary one for the Rust client, and glTF
 //! 2.0 binary (GLB) that three.js, Blender and trimesh open as they are; and what a tile
-//! carries to be stitched to coarser neighbours ([`Transitions`], [`stitch`]).
+//! carries to be stitched to coarser neighbours ([`TileMesh`]'s moves, [`stitch`]).
 //!
 //! Compact encoding (`application/x-isovox-mesh`), little endian; the full layout is
 //! `docs/mesh-encoding.md`:
 //!
 //! ```text
 //! 0    magic "IVMS"
-//! 4    u16 format version (1, or 2 with transition data), u16 flags (bit 0: indices are
-//!      u32, else u16)
+//! 4    u16 format version (1: a mesh; 3: a tile, with its moves), u16 flags (bit 0: indices
+//!      are u32, else u16)
 //! 8    u32 vertex count n, u32 index count m (a multiple of 3)
 //! 16   f32[3] bounds min, f32[3] bounds max (0 when empty)
 //! 40   n x f32[3] positions
 //!      n x i16[3] normals, each component round(c * 32767)
 //!      m x u16 or u32 indices, then zero padding to 4 bytes
-//! version 2 only, the transition section:
-//!      u32 transition vertex count t, u32 move count k, u32[6] strip index counts
-//!      t x f32[3] positions, t x i16[3] normals, zero padding to 4 bytes
-//!      k x (u32 vertex, u8 faces, 3 zero bytes, f32[3] offset)
-//!      the six strips' indices (u16 or u32 as bit 0 says), zero padding to 4 bytes
+//! version 3 only, the move section:
+//!      u32[6] move counts, one per face (-x, +x, -y, +y, -z, +z)
+//!      per face in that order, its moves: u32 vertex (< n), f32 distance along the face's axis
 //! ```
 //!
-//! Version 1 indices are u32 when n > 65536; version 2 indices (regular and strips) are u32
-//! when n + t > 65536. Strip indices and move vertices count the regular vertices first, then
-//! the transition vertices.
+//! Indices are u32 when n > 65536. A transition strip is a plain mesh (version 1) whose
+//! vertices are at their drawn positions. Version 2 (a tile with its six strips inside) is no
+//! longer written; [`decode_compact`] still reads its regular mesh.
 
 use crate::error::FormatError;
 use crate::vod2::Fields;
@@ -87,138 +85,75 @@ impl Mesh {
 /// the low end of axis a (x, y, z), bit 2a + 1 the face at the high end.
 pub const FACE_NAMES: [&str; 6] = ["-x", "+x", "-y", "+y", "-z", "+z"];
 
-/// A secondary position, as a move: vertex `vertex` moves by `offset` when every face in
-/// `faces` (a face mask, never empty) touches a coarser neighbour.
+/// A secondary position, as a move: vertex `vertex` moves by `distance` along the axis of face
+/// `face` (`face / 2`: x, y, z) when that face touches a coarser neighbour. Moves always go
+/// inwards, so `distance` is positive on a low face and negative on a high one.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct VertexMove {
-    /// An index into the tile's regular vertices followed by its transition vertices.
+    /// An index into the tile's vertices.
     pub vertex: u32,
-    /// The faces (a face mask) that must all touch a coarser neighbour for the move to apply.
-    pub faces: u8,
-    /// What is added to the vertex's position.
-    pub offset: [f32; 3],
+    /// The face (0..6, in [`FACE_NAMES`] order) that must touch a coarser neighbour.
+    pub face: u8,
+    /// What is added to the vertex's coordinate on axis `face / 2`.
+    pub distance: f32,
 }
 
 impl VertexMove {
     /// Whether the move applies under face mask `mask`.
     pub fn applies(&self, mask: u8) -> bool {
-        self.faces != 0 && self.faces & !mask == 0
+        self.face < 6 && mask >> self.face & 1 == 1
     }
 }
 
-/// What a tile carries besides its regular mesh so that it can be joined to coarser neighbours
-/// without cracks (see `docs/lod-meshes.md`): the vertices only its transition strips use, the
-/// moves that make room for the strips, and one strip per face.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct Transitions {
-    /// Vertices of the strips that are not regular vertices; their indices follow the regular
-    /// mesh's.
-    pub positions: Vec<[f32; 3]>,
-    /// Their unit normals.
-    pub normals: Vec<[f32; 3]>,
-    /// In order; several moves of one vertex add up.
-    pub moves: Vec<VertexMove>,
-    /// The strip of each face (in [`FACE_NAMES`] order): triangles, as indices into the regular
-    /// vertices followed by the transition vertices.
-    pub strips: [Vec<u32>; 6],
-}
-
-impl Transitions {
-    /// Empties it, keeping its memory.
-    pub fn clear(&mut self) {
-        self.positions.clear();
-        self.normals.clear();
-        self.moves.clear();
-        for s in &mut self.strips {
-            s.clear();
-        }
-    }
-
-    /// Whether it holds nothing: no vertex, no move, no strip.
-    pub fn is_empty(&self) -> bool {
-        self.positions.is_empty() && self.moves.is_empty() && self.strips.iter().all(Vec::is_empty)
-    }
-
-    /// Triangles in all six strips.
-    pub fn triangles(&self) -> usize {
-        self.strips.iter().map(|s| s.len() / 3).sum()
-    }
-}
-
-/// One tile: its regular mesh and its transition data.
+/// One tile: its regular mesh and the moves that make room for the transition strips of the
+/// faces that touch a coarser neighbour (`docs/lod-meshes.md`). The strips themselves are
+/// objects of their own, one per face: plain meshes whose vertices are already at their drawn
+/// positions (see [`stitch`]).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct TileMesh {
     /// The mesh drawn when no face touches a coarser neighbour.
     pub mesh: Mesh,
-    /// What joins it to coarser neighbours.
-    pub transitions: Transitions,
+    /// Grouped by face, in face order; a vertex has at most one move per face.
+    pub moves: Vec<VertexMove>,
+}
+
+/// Adds to `positions` the moves of `moves` that apply under `mask`, in their order, each on
+/// its face's axis. Indices out of range (a hand-built tile; decoded ones are checked) are
+/// skipped.
+pub fn apply_moves(positions: &mut [[f32; 3]], moves: &[VertexMove], mask: u8) {
+    for m in moves.iter().filter(|m| m.applies(mask)) {
+        if let Some(p) = positions.get_mut(m.vertex as usize) {
+            p[usize::from(m.face / 2)] += m.distance;
+        }
+    }
 }
 
 /// Writes into `out` (cleared first) tile `tile` as drawn next to its neighbours: `mask` has bit
 /// f set when face f touches a coarser neighbour (`crate::lod::face_masks` computes it). The
-/// regular vertices are moved to their secondary positions, and the strips of those faces are
-/// appended with the transition vertices they use. Mask 0 gives the regular mesh. Indices out of
-/// range (a hand-built tile; decoded ones are checked) are skipped with their triangle.
-pub fn stitch(tile: &TileMesh, mask: u8, out: &mut Mesh) {
+/// regular vertices of those faces are moved to their secondary positions, and the strips of
+/// those faces (`strips[f]`, fetched for the faces in `mask`; `None`: not there yet, skipped)
+/// are appended as they are. Mask 0 gives the regular mesh. A strip's vertices along the tile's
+/// face are copies of the tile's moved vertices, bit for bit, so welding equal positions joins
+/// them.
+pub fn stitch(tile: &TileMesh, mask: u8, strips: [Option<&Mesh>; 6], out: &mut Mesh) {
     out.clear();
-    let (regular, tr) = (&tile.mesh, &tile.transitions);
-    let n = regular.positions.len();
-    out.positions.extend_from_slice(&regular.positions);
-    out.normals.extend_from_slice(&regular.normals);
-    out.indices.extend_from_slice(&regular.indices);
-    // Transition vertices the drawn strips use, numbered in order of first use.
-    let mut remap = vec![u32::MAX; tr.positions.len()];
-    for (face, strip) in tr.strips.iter().enumerate() {
-        if mask >> face & 1 == 0 {
-            continue;
-        }
-        for tri in strip.chunks_exact(3) {
-            let mut ids = [0u32; 3];
-            let mut ok = true;
-            for (k, &i) in tri.iter().enumerate() {
-                let i = i as usize;
-                if i < n {
-                    ids[k] = i as u32;
-                } else if let (Some(p), Some(nm)) = (tr.positions.get(i - n), tr.normals.get(i - n))
-                {
-                    if remap[i - n] == u32::MAX {
-                        remap[i - n] = out.positions.len() as u32;
-                        out.positions.push(*p);
-                        out.normals.push(*nm);
-                    }
-                    ids[k] = remap[i - n];
-                } else {
-                    ok = false;
-                }
-            }
-            if ok {
-                out.indices.extend_from_slice(&ids);
-            }
-        }
-    }
-    for m in tr.moves.iter().filter(|m| m.applies(mask)) {
-        let v = m.vertex as usize;
-        let target = if v < n {
-            v
-        } else {
-            match remap.get(v - n) {
-                Some(&r) if r != u32::MAX => r as usize,
-                _ => continue,
-            }
-        };
-        if let Some(p) = out.positions.get_mut(target) {
-            for (c, d) in p.iter_mut().zip(m.offset) {
-                *c += d;
-            }
+    out.positions.extend_from_slice(&tile.mesh.positions);
+    out.normals.extend_from_slice(&tile.mesh.normals);
+    out.indices.extend_from_slice(&tile.mesh.indices);
+    apply_moves(&mut out.positions, &tile.moves, mask);
+    for (face, strip) in strips.iter().enumerate() {
+        if let Some(strip) = strip.filter(|_| mask >> face & 1 == 1) {
+            out.append(strip);
         }
     }
 }
 
 const MAGIC: [u8; 4] = *b"IVMS";
 const HEADER: usize = 40;
-/// The fixed part of the transition section: t, k, six strip counts.
-const SECTION_HEADER: usize = 32;
-const MOVE_BYTES: usize = 20;
+/// The fixed part of the move section: six per-face move counts.
+const MOVES_HEADER: usize = 24;
+/// One move: u32 vertex, f32 distance.
+const MOVE_BYTES: usize = 8;
 
 fn wide(n_vertices: usize) -> bool {
     n_vertices > 65536
@@ -273,30 +208,25 @@ fn put_regular(b: &mut Vec<u8>, mesh: &Mesh, version: u16, wide: bool) {
     pad4(b);
 }
 
-/// The transition section (see the module doc), its indices `wide` or not.
-fn put_section(b: &mut Vec<u8>, tr: &Transitions, wide: bool) {
-    b.extend_from_slice(&(tr.positions.len() as u32).to_le_bytes());
-    b.extend_from_slice(&(tr.moves.len() as u32).to_le_bytes());
-    for s in &tr.strips {
-        b.extend_from_slice(&(s.len() as u32).to_le_bytes());
+/// The move section (see the module doc): six per-face counts, then each face's moves.
+fn put_moves(b: &mut Vec<u8>, moves: &[VertexMove]) {
+    let mut counts = [0u32; 6];
+    for m in moves {
+        counts[usize::from(m.face.min(5))] += 1;
     }
-    put_positions(b, &tr.positions);
-    put_normals(b, &tr.normals);
-    pad4(b);
-    for m in &tr.moves {
-        b.extend_from_slice(&m.vertex.to_le_bytes());
-        b.extend_from_slice(&[m.faces, 0, 0, 0]);
-        for c in m.offset {
-            b.extend_from_slice(&c.to_le_bytes());
+    for c in counts {
+        b.extend_from_slice(&c.to_le_bytes());
+    }
+    for face in 0..6u8 {
+        for m in moves.iter().filter(|m| m.face.min(5) == face) {
+            b.extend_from_slice(&m.vertex.to_le_bytes());
+            b.extend_from_slice(&m.distance.to_le_bytes());
         }
     }
-    for s in &tr.strips {
-        put_indices(b, s, wide);
-    }
-    pad4(b);
 }
 
-/// Encodes a mesh compactly, format version 1 (see the module doc).
+/// Encodes a mesh compactly, format version 1 (see the module doc). A transition strip is
+/// served this way: a plain mesh.
 pub fn encode_compact(mesh: &Mesh) -> Vec<u8> {
     let n = mesh.positions.len();
     let mut b = Vec::with_capacity(HEADER + n * 18 + mesh.indices.len() * 4 + 4);
@@ -304,21 +234,16 @@ pub fn encode_compact(mesh: &Mesh) -> Vec<u8> {
     b
 }
 
-/// Encodes a tile with its transition data, format version 2 (see the module doc).
+/// Encodes a tile with its moves, format version 3 (see the module doc). Moves are written
+/// grouped by face (in their order within a face).
 pub fn encode_tile(tile: &TileMesh) -> Vec<u8> {
-    let (mesh, tr) = (&tile.mesh, &tile.transitions);
-    let wide = wide(mesh.positions.len() + tr.positions.len());
-    let strips: usize = tr.strips.iter().map(Vec::len).sum();
+    let mesh = &tile.mesh;
+    let n = mesh.positions.len();
     let mut b = Vec::with_capacity(
-        HEADER
-            + (mesh.positions.len() + tr.positions.len()) * 18
-            + (mesh.indices.len() + strips) * 4
-            + SECTION_HEADER
-            + tr.moves.len() * MOVE_BYTES
-            + 8,
+        HEADER + n * 18 + mesh.indices.len() * 4 + 4 + MOVES_HEADER + tile.moves.len() * MOVE_BYTES,
     );
-    put_regular(&mut b, mesh, 2, wide);
-    put_section(&mut b, tr, wide);
+    put_regular(&mut b, mesh, 3, wide(n));
+    put_moves(&mut b, &tile.moves);
     b
 }
 
@@ -372,7 +297,7 @@ fn too_small(detail: String) -> FormatError {
     FormatError::invalid("compact mesh", detail)
 }
 
-/// Decodes the compact encoding, version 1 or 2; of version 2 the regular mesh alone.
+/// Decodes the compact encoding, version 1, 2 or 3; of versions 2 and 3 the regular mesh alone.
 ///
 /// # Errors
 /// Bad magic or version, counts the bytes cannot hold, an index out of range.
@@ -380,12 +305,27 @@ pub fn decode_compact(bytes: &[u8]) -> Result<Mesh, FormatError> {
     decode_regular(bytes).map(|(mesh, ..)| mesh)
 }
 
+/// Decodes a transition strip: a plain mesh, version 1 ([`decode_compact`] of version 1 only;
+/// a tile is not a strip).
+///
+/// # Errors
+/// As [`decode_compact`], and a version other than 1.
+pub fn decode_strip(bytes: &[u8]) -> Result<Mesh, FormatError> {
+    match decode_regular(bytes)? {
+        (mesh, 1, ..) => Ok(mesh),
+        (_, version, ..) => Err(FormatError::invalid(
+            "compact mesh",
+            format!("a strip is version 1, not {version}"),
+        )),
+    }
+}
+
 /// The header's regular mesh, the version, the index width and where the rest starts.
 fn decode_regular(bytes: &[u8]) -> Result<(Mesh, u16, bool, usize), FormatError> {
     let f = Fields::new("compact mesh", bytes, 0);
     f.magic(0, MAGIC)?;
     let version = f.u16(4)?;
-    if version != 1 && version != 2 {
+    if !(1..=3).contains(&version) {
         return Err(FormatError::Unsupported {
             what: "compact mesh version",
             detail: version.to_string(),
@@ -414,76 +354,63 @@ fn decode_regular(bytes: &[u8]) -> Result<(Mesh, u16, bool, usize), FormatError>
     Ok((mesh, version, wide, at.next_multiple_of(4)))
 }
 
-/// Decodes a tile, version 2 with its transition data, or version 1 (no transition data).
+/// Decodes a tile: version 3 with its moves, or version 1 (a regular mesh, no moves). Version 2
+/// (strips inside the tile) is no longer served; its regular mesh still reads with
+/// [`decode_compact`].
 ///
 /// # Errors
-/// As [`decode_compact`]; in the transition section, counts the bytes cannot hold, a strip
-/// length not a multiple of 3, an index or a moved vertex out of range, a move's face mask
-/// empty or with bits above the six faces.
+/// As [`decode_compact`]; version 2; in the move section, counts the bytes cannot hold, a
+/// moved vertex out of range, a distance that is not finite.
 pub fn decode_tile(bytes: &[u8]) -> Result<TileMesh, FormatError> {
-    let (mesh, version, wide, at) = decode_regular(bytes)?;
-    if version == 1 {
-        return Ok(TileMesh {
-            mesh,
-            transitions: Transitions::default(),
-        });
-    }
-    let transitions = decode_section(&bytes[at.min(bytes.len())..], mesh.positions.len(), wide)?;
-    Ok(TileMesh { mesh, transitions })
+    let (mesh, version, _, at) = decode_regular(bytes)?;
+    let moves = match version {
+        1 => Vec::new(),
+        3 => decode_moves(&bytes[at.min(bytes.len())..], mesh.positions.len())?,
+        _ => {
+            return Err(FormatError::Unsupported {
+                what: "compact mesh tile version",
+                detail: format!("{version} (tiles with their strips inside; now 3)"),
+            })
+        }
+    };
+    Ok(TileMesh { mesh, moves })
 }
 
-/// Decodes a transition section (see the module doc) for a tile of `n` regular vertices.
-fn decode_section(bytes: &[u8], n: usize, wide: bool) -> Result<Transitions, FormatError> {
-    let f = Fields::new("mesh transition section", bytes, 0);
-    let t = f.u32(0)? as usize;
-    let k = f.u32(4)? as usize;
-    let mut counts = [0usize; 6];
+/// Decodes a move section (see the module doc) for a tile of `n` vertices.
+fn decode_moves(bytes: &[u8], n: usize) -> Result<Vec<VertexMove>, FormatError> {
+    let f = Fields::new("mesh move section", bytes, 0);
+    let mut counts = [0u64; 6];
     for (i, c) in counts.iter_mut().enumerate() {
-        *c = f.u32(8 + 4 * i)? as usize;
+        *c = u64::from(f.u32(4 * i)?);
     }
-    let index_bytes: u64 = if wide { 4 } else { 2 };
-    let strips: u64 = counts.iter().map(|&c| c as u64).sum();
-    let need = (SECTION_HEADER as u64 + (t as u64) * 18).next_multiple_of(4)
-        + (k as u64) * MOVE_BYTES as u64
-        + strips * index_bytes;
-    if counts.iter().any(|c| !c.is_multiple_of(3)) || need > bytes.len() as u64 {
+    let k: u64 = counts.iter().sum();
+    if MOVES_HEADER as u64 + k * MOVE_BYTES as u64 > bytes.len() as u64 {
         return Err(too_small(format!(
-            "{t} transition vertices, {k} moves and {strips} strip indices do not fit {} bytes",
+            "{k} moves do not fit {} bytes",
             bytes.len()
         )));
     }
-    let mut tr = Transitions {
-        positions: Vec::with_capacity(t),
-        normals: Vec::with_capacity(t),
-        moves: Vec::with_capacity(k),
-        strips: Default::default(),
-    };
-    let mut at = SECTION_HEADER;
-    get_vertices(&f, &mut at, t, &mut tr.positions, &mut tr.normals)?;
-    at = at.next_multiple_of(4);
-    let limit = n + t;
-    for _ in 0..k {
-        let vertex = f.u32(at)?;
-        let faces = f.slice(at + 4, 1)?[0];
-        if vertex as usize >= limit || faces == 0 || faces >= 1 << 6 {
-            return Err(FormatError::invalid(
-                "mesh transition section",
-                format!("move of vertex {vertex} (of {limit}) on faces {faces:#b}"),
-            ));
+    let mut moves = Vec::with_capacity(k as usize);
+    let mut at = MOVES_HEADER;
+    for (face, &count) in counts.iter().enumerate() {
+        for _ in 0..count {
+            let vertex = f.u32(at)?;
+            let distance = f.f32(at + 4)?;
+            if vertex as usize >= n || !distance.is_finite() {
+                return Err(FormatError::invalid(
+                    "mesh move section",
+                    format!("move of vertex {vertex} (of {n}) by {distance} on face {face}"),
+                ));
+            }
+            moves.push(VertexMove {
+                vertex,
+                face: face as u8,
+                distance,
+            });
+            at += MOVE_BYTES;
         }
-        let offset = [f.f32(at + 8)?, f.f32(at + 12)?, f.f32(at + 16)?];
-        tr.moves.push(VertexMove {
-            vertex,
-            faces,
-            offset,
-        });
-        at += MOVE_BYTES;
     }
-    for (strip, &count) in tr.strips.iter_mut().zip(&counts) {
-        strip.reserve(count);
-        get_indices(&f, &mut at, count, wide, limit, strip)?;
-    }
-    Ok(tr)
+    Ok(moves)
 }
 
 /// Encodes a mesh as glTF 2.0 binary: one node, one mesh, one triangle primitive with POSITION
@@ -492,17 +419,17 @@ pub fn encode_glb(mesh: &Mesh) -> Vec<u8> {
     glb(mesh, None)
 }
 
-/// [`encode_glb`] of a tile's regular mesh, its transition data riding along: the transition
-/// section of the compact encoding (see the module doc) in a buffer view of its own, named by
-/// the mesh's `extras`: `{"isovox": {"transitions": {"bufferView": v, "wideIndices": w}}}`.
-/// Viewers that do not know it draw the regular mesh; [`glb_transitions`] reads it back.
+/// [`encode_glb`] of a tile's regular mesh, its moves riding along: the move section of the
+/// compact encoding (see the module doc) in a buffer view of its own, named by the mesh's
+/// `extras`: `{"isovox": {"moves": {"bufferView": v}}}`. Viewers that do not know it draw the
+/// regular mesh; [`glb_moves`] reads it back. A strip's GLB is [`encode_glb`] of the strip.
 pub fn encode_glb_tile(tile: &TileMesh) -> Vec<u8> {
-    glb(&tile.mesh, Some(&tile.transitions))
+    glb(&tile.mesh, Some(&tile.moves))
 }
 
-fn glb(mesh: &Mesh, transitions: Option<&Transitions>) -> Vec<u8> {
+fn glb(mesh: &Mesh, moves: Option<&[VertexMove]>) -> Vec<u8> {
     let n = mesh.positions.len();
-    let wide = wide(n + transitions.map_or(0, |t| t.positions.len()));
+    let wide = wide(n);
     let mut bin = Vec::with_capacity(n * 24 + mesh.indices.len() * 4);
     put_positions(&mut bin, &mesh.positions);
     for nm in &mesh.normals {
@@ -530,11 +457,10 @@ fn glb(mesh: &Mesh, transitions: Option<&Transitions>) -> Vec<u8> {
         views.push(serde_json::json!({"buffer": 0, "byteOffset": index_at, "byteLength": index_len, "target": 34963}));
     }
     let mut gltf_mesh = serde_json::json!({"primitives": [primitive]});
-    if let Some(tr) = transitions {
+    if let Some(moves) = moves {
         let at = bin.len();
-        put_section(&mut bin, tr, wide);
-        gltf_mesh["extras"] = serde_json::json!({"isovox": {"transitions": {
-            "bufferView": views.len(), "wideIndices": wide}}});
+        put_moves(&mut bin, moves);
+        gltf_mesh["extras"] = serde_json::json!({"isovox": {"moves": {"bufferView": views.len()}}});
         views
             .push(serde_json::json!({"buffer": 0, "byteOffset": at, "byteLength": bin.len() - at}));
     }
@@ -566,12 +492,12 @@ fn glb(mesh: &Mesh, transitions: Option<&Transitions>) -> Vec<u8> {
     out
 }
 
-/// The transition data of a GLB written by [`encode_glb_tile`] (`None` when it has none).
+/// The moves of a GLB tile written by [`encode_glb_tile`] (`None` when it has none).
 ///
 /// # Errors
 /// Not a GLB, its JSON or buffer views out of shape, or the section malformed (as in
 /// [`decode_tile`]).
-pub fn glb_transitions(bytes: &[u8]) -> Result<Option<Transitions>, FormatError> {
+pub fn glb_moves(bytes: &[u8]) -> Result<Option<Vec<VertexMove>>, FormatError> {
     let f = Fields::new("glb", bytes, 0);
     f.magic(0, *b"glTF")?;
     let json_len = f.u32(12)? as usize;
@@ -582,17 +508,14 @@ pub fn glb_transitions(bytes: &[u8]) -> Result<Option<Transitions>, FormatError>
     let bin_len = f.u32(bin_at)? as usize;
     f.magic(bin_at + 4, *b"BIN\0")?;
     let bin = f.slice(bin_at + 8, bin_len)?;
-    let Some(tr) = json.pointer("/meshes/0/extras/isovox/transitions") else {
+    let Some(moves) = json.pointer("/meshes/0/extras/isovox/moves") else {
         return Ok(None);
     };
-    let bad = |what: &str| FormatError::invalid("glb", format!("transitions: {what}"));
-    let view = tr["bufferView"]
+    let bad = |what: &str| FormatError::invalid("glb", format!("moves: {what}"));
+    let view = moves["bufferView"]
         .as_u64()
         .ok_or_else(|| bad("no buffer view"))?;
-    let wide = tr["wideIndices"]
-        .as_bool()
-        .ok_or_else(|| bad("no index width"))?;
-    let view = &json["bufferViews"][view as usize];
+    let view = &json["bufferViews"][view.min(u64::from(u32::MAX)) as usize];
     let (at, len) = (
         view["byteOffset"].as_u64().unwrap_or(0) as usize,
         view["byteLength"]
@@ -603,7 +526,7 @@ pub fn glb_transitions(bytes: &[u8]) -> Result<Option<Transitions>, FormatError>
         .as_u64()
         .ok_or_else(|| bad("no positions"))? as usize;
     let section = Fields::new("glb", bin, 0).slice(at, len)?;
-    decode_section(section, n, wide).map(Some)
+    decode_moves(section, n).map(Some)
 }
 
 #[cfg(test)]
@@ -656,28 +579,44 @@ mod tests {
         assert!(decode_compact(&bad_index).is_err());
     }
 
-    /// A tile: the quad as its regular mesh, one transition vertex, a strip on +x joining the
-    /// quad's edge (1,0)-(1,1) to it, two moves.
+    /// A tile: the quad as its regular mesh, three moves on two faces (given out of face order:
+    /// the encoding groups them by face).
     fn tile() -> TileMesh {
         TileMesh {
             mesh: quad(),
-            transitions: Transitions {
-                positions: vec![[1.5, 0.5, 0.0]],
-                normals: vec![[1.0, 0.0, 0.0]],
-                moves: vec![
-                    VertexMove {
-                        vertex: 1,
-                        faces: 0b10,
-                        offset: [-0.25, 0.0, 0.0],
-                    },
-                    VertexMove {
-                        vertex: 4,
-                        faces: 0b1010,
-                        offset: [0.0, -0.5, 0.0],
-                    },
-                ],
-                strips: [vec![], vec![1, 4, 2], vec![], vec![], vec![], vec![]],
-            },
+            moves: vec![
+                VertexMove {
+                    vertex: 1,
+                    face: 1,
+                    distance: -0.25,
+                },
+                VertexMove {
+                    vertex: 3,
+                    face: 3,
+                    distance: -0.5,
+                },
+                VertexMove {
+                    vertex: 2,
+                    face: 1,
+                    distance: -0.125,
+                },
+            ],
+        }
+    }
+
+    /// `tile()`'s moves in the order the encoding gives them back: by face.
+    fn by_face(mut moves: Vec<VertexMove>) -> Vec<VertexMove> {
+        moves.sort_by_key(|m| m.face);
+        moves
+    }
+
+    /// A strip for face +x of `tile()`: copies of the quad's vertices 1 and 2 moved by the +x
+    /// moves, and a vertex of its own.
+    fn strip() -> Mesh {
+        Mesh {
+            positions: vec![[0.75, 0.0, 0.0], [1.5, 0.5, 0.0], [0.875, 1.0, 0.0]],
+            normals: vec![[1.0, 0.0, 0.0]; 3],
+            indices: vec![0, 1, 2],
         }
     }
 
@@ -685,33 +624,36 @@ mod tests {
     fn tile_round_trip_and_golden_section() {
         let t = tile();
         let b = encode_tile(&t);
-        // Regular part as version 1 but version 2: 124 bytes. Section: 32 + 1 * 18 = 50,
-        // padded to 52; 2 moves of 20; 3 u16 indices = 6, padded to 8. 124 + 52 + 40 + 8.
-        assert_eq!(b.len(), 124 + 52 + 40 + 8);
-        assert_eq!(&b[4..6], &[2, 0]);
+        // Regular part as version 1 but version 3: 124 bytes. Moves: 24 + 3 * 8.
+        assert_eq!(b.len(), 124 + 24 + 24);
+        assert_eq!(&b[4..6], &[3, 0]);
+        // Counts per face: +x 2, +y 1.
         assert_eq!(
-            &b[124..156],
-            &[
-                1, 0, 0, 0, 2, 0, 0, 0, 0, 0, 0, 0, 3, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0,
-                0, 0, 0, 0
-            ]
+            &b[124..148],
+            &[0, 0, 0, 0, 2, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]
         );
-        // The first move: vertex 1, faces 0b10, offset -0.25 (0xbe800000).
-        assert_eq!(&b[176..188], &[1, 0, 0, 0, 2, 0, 0, 0, 0, 0, 0x80, 0xbe]);
+        // The first +x move: vertex 1, -0.25 (0xbe800000); then vertex 2, -0.125 (0xbe000000);
+        // then the +y move, vertex 3, -0.5 (0xbf000000).
+        assert_eq!(
+            &b[148..172],
+            &[1, 0, 0, 0, 0, 0, 0x80, 0xbe, 2, 0, 0, 0, 0, 0, 0, 0xbe, 3, 0, 0, 0, 0, 0, 0, 0xbf]
+        );
         let d = decode_tile(&b).unwrap();
         assert_eq!(d.mesh, t.mesh);
-        assert_eq!(d.transitions, t.transitions);
+        assert_eq!(d.moves, by_face(t.moves.clone()));
         // The regular mesh alone, as a version-1 reader of the header would take it.
         assert_eq!(decode_compact(&b).unwrap(), t.mesh);
-        // A version-1 payload is a tile without transition data.
+        // A version-1 payload is a tile without moves; a tile is no strip.
         let v1 = decode_tile(&encode_compact(&t.mesh)).unwrap();
-        assert_eq!((v1.mesh, v1.transitions), (t.mesh, Transitions::default()));
+        assert_eq!((v1.mesh, v1.moves), (t.mesh, vec![]));
+        assert!(decode_strip(&b).is_err());
+        assert_eq!(decode_strip(&encode_compact(&strip())).unwrap(), strip());
     }
 
     #[test]
     fn tile_rejects_hostile_input() {
         let b = encode_tile(&tile());
-        for cut in 124..b.len() - 2 {
+        for cut in 124..b.len() {
             assert!(decode_tile(&b[..cut]).is_err(), "cut at {cut}");
         }
         let patched = |at: usize, bytes: &[u8]| {
@@ -719,86 +661,89 @@ mod tests {
             c[at..at + bytes.len()].copy_from_slice(bytes);
             decode_tile(&c)
         };
-        assert!(patched(124, &u32::MAX.to_le_bytes()).is_err()); // vertex count
-        assert!(patched(128, &u32::MAX.to_le_bytes()).is_err()); // move count
-        assert!(patched(136, &2u32.to_le_bytes()).is_err()); // strip not of triangles
-        assert!(patched(176, &5u32.to_le_bytes()).is_err()); // moved vertex out of range
-        assert!(patched(180, &[0]).is_err()); // move without faces
-        assert!(patched(180, &[0x40]).is_err()); // a seventh face
-        assert!(patched(216, &5u16.to_le_bytes()).is_err()); // strip index out of range
-        assert!(patched(216, &4u16.to_le_bytes()).is_ok());
+        assert!(patched(124, &u32::MAX.to_le_bytes()).is_err()); // -x count
+        assert!(patched(128, &u32::MAX.to_le_bytes()).is_err()); // +x count
+        assert!(patched(128, &3u32.to_le_bytes()).is_err()); // one move more than the bytes
+        assert!(patched(148, &4u32.to_le_bytes()).is_err()); // moved vertex out of range
+        assert!(patched(148, &3u32.to_le_bytes()).is_ok());
+        assert!(patched(152, &f32::NAN.to_le_bytes()).is_err()); // distance not finite
+        assert!(patched(152, &f32::INFINITY.to_le_bytes()).is_err());
+        assert!(patched(4, &[2, 0]).is_err()); // a version-2 tile is no longer read
+        assert!(patched(4, &[4, 0]).is_err());
     }
 
     #[test]
     fn stitch_by_hand() {
         let t = tile();
+        let s = strip();
         let mut out = Mesh::default();
-        // Mask 0: the regular mesh.
-        stitch(&t, 0, &mut out);
+        // Mask 0: the regular mesh, whatever strips are given.
+        stitch(&t, 0, [None, Some(&s), None, None, None, None], &mut out);
         assert_eq!(out, t.mesh);
-        // +x: vertex 1 moves by -0.25 in x; the strip joins vertices 1, 2 and the transition
-        // vertex (appended as vertex 4); its move needs +y too, so it stays.
-        stitch(&t, 0b10, &mut out);
+        // +x: vertices 1 and 2 move in x; the strip is appended as it is (vertices 4-6).
+        stitch(&t, 0b10, [None, Some(&s), None, None, None, None], &mut out);
         assert_eq!(out.positions[1], [0.75, 0.0, 0.0]);
-        assert_eq!(out.positions[4], [1.5, 0.5, 0.0]);
-        assert_eq!(out.indices[6..], [1, 4, 2]);
-        assert_eq!(out.normals.len(), 5);
-        // +x and +y: both moves.
-        stitch(&t, 0b1010, &mut out);
-        assert_eq!(out.positions[4], [1.5, 0.0, 0.0]);
-        // -x alone: no strip there, nothing moves, no transition vertex appended.
-        stitch(&t, 0b01, &mut out);
-        assert_eq!(out, t.mesh);
+        assert_eq!(out.positions[2], [0.875, 1.0, 0.0]);
+        assert_eq!(out.positions[3], [0.0, 1.0, 0.5]);
+        assert_eq!(&out.positions[4..], &s.positions[..]);
+        assert_eq!(out.indices[6..], [4, 5, 6]);
+        // The strip's copies are the moved vertices, bit for bit.
+        assert_eq!(out.positions[4], out.positions[1]);
+        assert_eq!(out.positions[6], out.positions[2]);
+        // +x without its strip fetched yet: moved, nothing appended.
+        stitch(&t, 0b10, [None; 6], &mut out);
+        assert_eq!(out.positions.len(), 4);
+        assert_eq!(out.positions[1], [0.75, 0.0, 0.0]);
+        // +y: vertex 3 moves in y, and the +x strip is not drawn.
+        stitch(
+            &t,
+            0b1000,
+            [None, Some(&s), None, None, None, None],
+            &mut out,
+        );
+        assert_eq!(out.positions[3], [0.0, 0.5, 0.5]);
+        assert_eq!(out.positions[1], [1.0, 0.0, 0.0]);
+        assert_eq!(out.indices.len(), 6);
     }
 
     #[test]
-    fn glb_tile_carries_the_section() {
+    fn glb_tile_carries_the_moves() {
         let t = tile();
         let g = encode_glb_tile(&t);
         assert_eq!(g.len() % 4, 0);
-        assert_eq!(glb_transitions(&g).unwrap(), Some(t.transitions.clone()));
-        assert_eq!(glb_transitions(&encode_glb(&t.mesh)).unwrap(), None);
+        assert_eq!(glb_moves(&g).unwrap(), Some(by_face(t.moves.clone())));
+        assert_eq!(glb_moves(&encode_glb(&t.mesh)).unwrap(), None);
         let json_len = u32::from_le_bytes([g[12], g[13], g[14], g[15]]) as usize;
         let json: serde_json::Value = serde_json::from_slice(&g[20..20 + json_len]).unwrap();
         assert_eq!(
-            json["meshes"][0]["extras"]["isovox"]["transitions"]["bufferView"],
+            json["meshes"][0]["extras"]["isovox"]["moves"]["bufferView"],
             3
         );
-        assert!(glb_transitions(&g[..g.len() - 8]).is_err());
+        assert!(glb_moves(&g[..g.len() - 8]).is_err());
     }
 
     fn arbitrary_tile() -> impl Strategy<Value = TileMesh> {
         let point = || [-1e4f32..1e4, -1e4f32..1e4, -1e4f32..1e4];
-        (1usize..40, 0usize..20).prop_flat_map(move |(n, t)| {
-            let all = (n + t) as u32;
+        (1usize..40).prop_flat_map(move |n| {
             (
                 proptest::collection::vec(point(), n),
                 proptest::collection::vec(0u32..n as u32, 0..30),
-                proptest::collection::vec(point(), t),
-                proptest::collection::vec((0u32..all, 1u8..64, point()), 0..10),
-                proptest::collection::vec(proptest::collection::vec(0u32..all, 0..4), 6),
+                proptest::collection::vec((0u32..n as u32, 0u8..6, -2f32..2.0), 0..20),
             )
-                .prop_map(move |(positions, regular, extra, moves, strips)| TileMesh {
+                .prop_map(move |(positions, regular, moves)| TileMesh {
                     mesh: Mesh {
                         normals: vec![[0.0, 0.0, 1.0]; positions.len()],
                         positions,
                         indices: regular.iter().flat_map(|&i| [i, i, i]).collect(),
                     },
-                    transitions: Transitions {
-                        normals: vec![[1.0, 0.0, 0.0]; extra.len()],
-                        positions: extra,
-                        moves: moves
-                            .into_iter()
-                            .map(|(vertex, faces, offset)| VertexMove {
-                                vertex,
-                                faces,
-                                offset,
-                            })
-                            .collect(),
-                        strips: std::array::from_fn(|f| {
-                            strips[f].iter().flat_map(|&i| [i, i, i]).collect()
-                        }),
-                    },
+                    moves: moves
+                        .into_iter()
+                        .map(|(vertex, face, distance)| VertexMove {
+                            vertex,
+                            face,
+                            distance,
+                        })
+                        .collect(),
                 })
         })
     }
@@ -810,17 +755,25 @@ mod tests {
         fn decoding_any_bytes_never_panics(bytes in proptest::collection::vec(any::<u8>(), 0..300)) {
             let _ = decode_tile(&bytes);
             let _ = decode_compact(&bytes);
-            let _ = glb_transitions(&bytes);
+            let _ = decode_strip(&bytes);
+            let _ = glb_moves(&bytes);
         }
 
         #[test]
-        fn a_changed_byte_never_panics_and_stitches(at in 0usize..224, byte in any::<u8>(), mask in 0u8..64) {
+        fn a_changed_byte_never_panics_and_stitches(at in 0usize..172, byte in any::<u8>(), mask in 0u8..64) {
             let mut b = encode_tile(&tile());
             b[at] = byte;
             if let Ok(t) = decode_tile(&b) {
                 let mut out = Mesh::default();
-                stitch(&t, mask, &mut out);
+                let s = strip();
+                stitch(&t, mask, [Some(&s); 6], &mut out);
                 prop_assert!(out.indices.iter().all(|&i| (i as usize) < out.positions.len()));
+            }
+            let mut s = encode_compact(&strip());
+            let at = at % s.len();
+            s[at] = byte;
+            if let Ok(m) = decode_strip(&s) {
+                prop_assert!(m.indices.iter().all(|&i| (i as usize) < m.positions.len()));
             }
         }
 
@@ -830,11 +783,9 @@ mod tests {
             let d = decode_tile(&b).map_err(|e| TestCaseError::fail(e.to_string()))?;
             prop_assert_eq!(&d.mesh.positions, &t.mesh.positions);
             prop_assert_eq!(&d.mesh.indices, &t.mesh.indices);
-            prop_assert_eq!(&d.transitions.positions, &t.transitions.positions);
-            prop_assert_eq!(&d.transitions.moves, &t.transitions.moves);
-            prop_assert_eq!(&d.transitions.strips, &t.transitions.strips);
+            prop_assert_eq!(&d.moves, &by_face(t.moves.clone()));
             prop_assert_eq!(encode_tile(&d), b);
-            prop_assert_eq!(glb_transitions(&encode_glb_tile(&t)).ok().flatten(), Some(d.transitions));
+            prop_assert_eq!(glb_moves(&encode_glb_tile(&t)).ok().flatten(), Some(d.moves));
         }
     }
 

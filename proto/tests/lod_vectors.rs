@@ -9,7 +9,7 @@
 
 use isovox_proto::lod::{adaptive_tiles, balanced_tiles, face_masks, tile_distance};
 use isovox_proto::mesh::{
-    decode_tile, encode_tile, stitch, Mesh, TileMesh, Transitions, VertexMove,
+    decode_strip, decode_tile, encode_compact, encode_tile, stitch, Mesh, TileMesh, VertexMove,
 };
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use std::fmt::Write as _;
@@ -209,9 +209,9 @@ fn check_vectors(name: &str, fresh: &str) {
     );
 }
 
-/// Deterministic tiles of the shapes stitching meets: regular vertices with moves for one and
-/// for two faces, transition vertices with moves, strips on every face.
-fn tiles() -> Vec<TileMesh> {
+/// Deterministic tiles of the shapes stitching meets: regular vertices with moves on every
+/// face (some vertices on two faces), and a strip per face (a mesh of its own).
+fn tiles() -> Vec<(TileMesh, [Mesh; 6])> {
     let mut rng = Rng(0x7e57_0001_5717_c400);
     let mut out = Vec::new();
     for (n, t) in [(12usize, 5usize), (40, 17), (200, 30)] {
@@ -228,36 +228,26 @@ fn tiles() -> Vec<TileMesh> {
                 .map(|_| (rng.next() % n as u64) as u32)
                 .collect(),
         };
-        let all = (n + t) as u64;
-        let moves = (0..2 * t)
-            .map(|i| {
-                // Every vertex index near the end of the regular ones and among the transition
-                // ones, one or two faces.
-                let vertex = (n as u64 - 6 + rng.next() % (t as u64 + 6)) as u32;
-                let face = (rng.next() % 6) as u8;
-                let faces = if i % 5 == 4 {
-                    1 << face | 1 << ((face + 2) % 6)
-                } else {
-                    1 << face
-                };
-                VertexMove {
-                    vertex,
-                    faces,
-                    offset: [0; 3].map(|_| rng.range(-0.6, 0.6)),
-                }
+        // Grouped by face, as the encoding gives them back; a vertex may move on two faces.
+        let mut moves: Vec<VertexMove> = (0..2 * t)
+            .map(|_| VertexMove {
+                vertex: (rng.next() % n as u64) as u32,
+                face: (rng.next() % 6) as u8,
+                distance: rng.range(-0.6, 0.6),
             })
             .collect();
-        let transitions = Transitions {
-            positions: (0..t).map(|_| point(&mut rng)).collect(),
-            normals: (0..t).map(|_| unit(&mut rng)).collect(),
-            moves,
-            strips: std::array::from_fn(|f| {
-                (0..3 * (f + 1))
-                    .map(|_| (n as u64 - 8 + rng.next() % (all - n as u64 + 8)) as u32)
-                    .collect()
-            }),
-        };
-        out.push(TileMesh { mesh, transitions });
+        moves.sort_by_key(|m| m.face);
+        let strips = std::array::from_fn(|f| {
+            let k = t / 3 + f;
+            Mesh {
+                positions: (0..k).map(|_| point(&mut rng)).collect(),
+                normals: (0..k).map(|_| unit(&mut rng)).collect(),
+                indices: (0..3 * (f + 1))
+                    .map(|_| (rng.next() % k as u64) as u32)
+                    .collect(),
+            }
+        });
+        out.push((TileMesh { mesh, moves }, strips));
     }
     out
 }
@@ -270,18 +260,30 @@ fn json_f32_list(v: &[[f32; 3]]) -> String {
     format!("[{}]", parts.join(","))
 }
 
-/// The mesh vectors: each tile's compact encoding (hex), and the tile stitched with several
-/// masks, from the decoded tile (normals as their i16 values).
+/// The mesh vectors: each tile's compact encoding (hex), its six strips' (hex), and the tile
+/// stitched with several masks and its strips, from the decoded tile and strips (normals as
+/// their i16 values).
 fn mesh_vectors() -> String {
+    let hex = |bytes: &[u8]| -> String { bytes.iter().map(|b| format!("{b:02x}")).collect() };
     let mut cases = Vec::new();
-    for tile in tiles() {
+    for (tile, strips) in tiles() {
         let bytes = encode_tile(&tile);
         let decoded = decode_tile(&bytes).unwrap_or_else(|e| panic!("{e}"));
-        let hex: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
+        assert_eq!(decoded.moves, tile.moves);
+        let strip_bytes: Vec<Vec<u8>> = strips.iter().map(encode_compact).collect();
+        let decoded_strips: Vec<Mesh> = strip_bytes
+            .iter()
+            .map(|b| decode_strip(b).unwrap_or_else(|e| panic!("{e}")))
+            .collect();
         let mut stitched = Vec::new();
         for mask in [0u8, 1, 2, 0b1010, 0b10_0101, 63] {
             let mut m = Mesh::default();
-            stitch(&decoded, mask, &mut m);
+            stitch(
+                &decoded,
+                mask,
+                std::array::from_fn(|f| Some(&decoded_strips[f])),
+                &mut m,
+            );
             let normals: Vec<String> = m
                 .normals
                 .iter()
@@ -298,8 +300,14 @@ fn mesh_vectors() -> String {
                 indices.join(",")
             ));
         }
+        let strips: Vec<String> = strip_bytes
+            .iter()
+            .map(|b| format!("\"{}\"", hex(b)))
+            .collect();
         cases.push(format!(
-            "{{\"bytes\":\"{hex}\",\"stitched\":[{}]}}",
+            "{{\"bytes\":\"{}\",\"strips\":[{}],\"stitched\":[{}]}}",
+            hex(&bytes),
+            strips.join(","),
             stitched.join(",\n")
         ));
     }

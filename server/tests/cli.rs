@@ -617,3 +617,78 @@ fn output_to_a_reader_that_has_gone_ends_quietly() {
         }
     }
 }
+
+/// `isovox mesh --camera` writes one stitched mesh: a GLB with one plain primitive (no extras),
+/// tiles of several levels joined by their transition strips, closed once equal positions are
+/// welded (every edge in exactly two triangles, once each way).
+#[test]
+fn mesh_with_a_camera_writes_one_closed_stitched_glb() {
+    let dir = tempfile::tempdir().unwrap();
+    let vod = dir.path().join("w.vod");
+    ok(&[
+        "generate",
+        "world",
+        "-o",
+        s(&vod),
+        "--dims",
+        "96,64,96",
+        "--brick",
+        "8",
+        "--seed",
+        "5",
+    ]);
+    let glb = dir.path().join("w.glb");
+    ok(&[
+        "mesh",
+        s(&vod),
+        "-o",
+        s(&glb),
+        "--camera",
+        "0,64,0",
+        "--radii",
+        "16,32,64",
+    ]);
+    let bytes = std::fs::read(&glb).unwrap();
+    let gltf = gltf::Gltf::from_slice(&bytes).unwrap();
+    let doc = &gltf.document;
+    assert_eq!(doc.meshes().count(), 1);
+    let mesh = doc.meshes().next().unwrap();
+    let json_len = u32::from_le_bytes([bytes[12], bytes[13], bytes[14], bytes[15]]) as usize;
+    let json: Value = serde_json::from_slice(&bytes[20..20 + json_len]).unwrap();
+    assert!(
+        json["meshes"][0].get("extras").is_none(),
+        "a stitched GLB is a plain mesh"
+    );
+    assert_eq!(mesh.primitives().count(), 1);
+    let prim = mesh.primitives().next().unwrap();
+    let blob = gltf.blob.as_deref().unwrap();
+    let reader = prim.reader(|_| Some(blob));
+    let positions: Vec<[f32; 3]> = reader.read_positions().unwrap().collect();
+    let indices: Vec<u32> = reader.read_indices().unwrap().into_u32().collect();
+    assert!(indices.len() > 3000, "{} indices", indices.len());
+    // Welded here by bits, independently of the server's weld.
+    let mut ids = std::collections::HashMap::new();
+    let id: Vec<usize> = positions
+        .iter()
+        .map(|p| {
+            let n = ids.len();
+            *ids.entry(p.map(f32::to_bits)).or_insert(n)
+        })
+        .collect();
+    let mut edges = std::collections::HashMap::new();
+    for t in indices.chunks_exact(3) {
+        let v = [0, 1, 2].map(|k| id[t[k] as usize]);
+        assert!(
+            v[0] != v[1] && v[1] != v[2] && v[0] != v[2],
+            "a degenerate triangle"
+        );
+        for k in 0..3 {
+            *edges.entry((v[k], v[(k + 1) % 3])).or_insert(0u32) += 1;
+        }
+    }
+    let open = edges
+        .iter()
+        .filter(|(&(a, b), &n)| n != 1 || edges.get(&(b, a)) != Some(&1))
+        .count();
+    assert_eq!(open, 0, "open or repeated edges in the stitched mesh");
+}

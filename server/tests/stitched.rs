@@ -1,6 +1,6 @@
 //! Crack-free meshes across levels, on real files through the real tile pipeline: every ICVG
 //! primitive, an ellipsoid, the demo world and an MRI-like scan are meshed tile by tile with
-//! their transition data (`mesh_tile_with_transitions`), selected for many random cameras and
+//! their moves (`mesh_tile_with_moves`) and the transition strips their masks need (`mesh_strip_world`), selected for many random cameras and
 //! radii (`balanced_tiles`, levels 0-3 mixed), stitched with `face_masks` and `stitch`, welded,
 //! and checked: closed and 2-manifold (every edge in exactly two triangles, once each way), no
 //! triangle without area, no transition triangle crossing another triangle; and the enclosed
@@ -10,7 +10,6 @@
 
 use isovox_proto::icvg::{EditRequest, Term};
 use isovox_proto::lod::face_masks;
-use isovox_proto::mesh::stitch;
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use isovox_server::cancel::CancelToken;
 use isovox_server::generate::{build_demo, EllipsoidSource};
@@ -21,7 +20,7 @@ use isovox_server::mesh::check::{
 };
 use isovox_server::mesh::level::{balanced_tiles, mesh_stitchable_parts, weld_flagged};
 use isovox_server::mesh::mc::Mesh;
-use isovox_server::mesh::tile::{default_iso, mesh_tile_with_transitions, TileScratch};
+use isovox_server::mesh::tile::{default_iso, mesh_strip_world, mesh_tile_with_moves, TileScratch};
 use isovox_server::progress::Silent;
 use isovox_server::store::codec::Compression;
 use isovox_server::store::{
@@ -90,12 +89,12 @@ fn stitched(snap: &Snapshot, camera: [f32; 3], radii: &[f32], what: &str) -> Sti
     let iso = default_iso(snap.layout().voxel_type());
     let tiles = balanced_tiles(snap, camera, radii);
     let parts = mesh_stitchable_parts(snap, &tiles, iso, &Silent).unwrap();
-    let masks = face_masks(snap.layout(), &tiles);
+    assert_eq!(parts.masks, face_masks(snap.layout(), &tiles));
     let mut mesh = Mesh::default();
     let mut transition = Vec::new();
     let mut drawn = Mesh::default();
-    for (tile, &mask) in parts.iter().zip(&masks) {
-        stitch(tile, mask, &mut drawn);
+    for (i, tile) in parts.tiles.iter().enumerate() {
+        parts.drawn(i, &mut drawn);
         let regular = tile.mesh.triangles();
         transition.extend((0..drawn.triangles()).map(|t| t >= regular));
         mesh.append(&drawn);
@@ -419,18 +418,29 @@ fn at_the_lowest_iso_value_every_tile_is_empty() {
     let layout = snap.layout().clone();
     let mut scratch = TileScratch::default();
     let mut out = isovox_proto::mesh::TileMesh::default();
+    let mut strip = Mesh::default();
     for level in 0..layout.levels() {
         let grid = layout.grid(level);
         for z in 0..grid[2] {
             for y in 0..grid[1] {
                 for x in 0..grid[0] {
                     let key = BrickKey { level, x, y, z };
-                    mesh_tile_with_transitions(&snap, key, 0.0, &mut out, &mut scratch).unwrap();
+                    mesh_tile_with_moves(&snap, key, 0.0, &mut out, &mut scratch).unwrap();
                     assert_eq!(out.mesh.triangles(), 0, "tile {key} at iso 0");
-                    assert!(out.transitions.positions.is_empty(), "tile {key} at iso 0");
+                    assert!(out.moves.is_empty(), "tile {key} at iso 0");
+                    for face in 0..6 {
+                        mesh_strip_world(&snap, key, face, 0.0, &mut strip, &mut scratch).unwrap();
+                        assert!(
+                            strip.positions.is_empty(),
+                            "tile {key} face {face} at iso 0"
+                        );
+                    }
                     // Just above L the cuboid's faces are a surface, inside the volume and on
                     // its low faces (against the padding).
-                    mesh_tile_with_transitions(&snap, key, 0.5, &mut out, &mut scratch).unwrap();
+                    mesh_tile_with_moves(&snap, key, 0.5, &mut out, &mut scratch).unwrap();
+                    for face in 0..6 {
+                        mesh_strip_world(&snap, key, face, 0.5, &mut strip, &mut scratch).unwrap();
+                    }
                 }
             }
         }

@@ -1,11 +1,12 @@
 //! Crack-free meshes across levels, at the kernel level: tiles of a small volume held in
-//! memory are meshed with `march` and `mesh_transitions` the way a tile server gathers them,
+//! memory are meshed with `march`, `tile_moves` and `mesh_strip` the way a tile server gathers
+//! them,
 //! selected and masked by `isovox_proto::lod`, stitched by `isovox_proto::mesh::stitch`, and
 //! the assembled mesh is checked: closed and 2-manifold after welding equal positions, no
 //! degenerate triangles, no transition triangle crossing another, and the volume of a sphere.
 
 use isovox_proto::lod::{balance, balanced_tiles, face_masks};
-use isovox_proto::mesh::{stitch, TileMesh};
+use isovox_proto::mesh::{apply_moves, stitch, TileMesh};
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use isovox_server::mesh::check::{
     crossing_triangles, degenerate_triangles, enclosed_volume, open_edges,
@@ -13,7 +14,9 @@ use isovox_server::mesh::check::{
 use isovox_server::mesh::lattice::{lattice_field, LatticeScratch};
 use isovox_server::mesh::level::weld_flagged;
 use isovox_server::mesh::mc::{march, Field, Mesh, Scratch};
-use isovox_server::mesh::transition::{mesh_transitions, TransitionInput, TransitionScratch};
+use isovox_server::mesh::transition::{
+    mesh_strip, tile_moves, TileFaces, TransitionInput, TransitionScratch,
+};
 use isovox_server::store::pyramid::{downsample, BrickVoxels};
 use std::collections::HashMap;
 
@@ -127,9 +130,9 @@ impl Samples for Explicit {
     }
 }
 
-/// One tile, meshed as a tile server would: its regular mesh and transition data, in level-0
-/// units (lattice point j of level k at 2^k j).
-fn mesh_tile(samples: &dyn Samples, layout: &VolumeLayout, key: BrickKey) -> TileMesh {
+/// One tile, meshed as a tile server would: its regular mesh and moves, and the strip of each
+/// face as drawn, in level-0 units (lattice point j of level k at 2^k j).
+fn mesh_tile(samples: &dyn Samples, layout: &VolumeLayout, key: BrickKey) -> (TileMesh, [Mesh; 6]) {
     let b = layout.brick() as i64;
     let k = key.level;
     let pos = [key.x, key.y, key.z].map(|c| c as i64);
@@ -144,6 +147,7 @@ fn mesh_tile(samples: &dyn Samples, layout: &VolumeLayout, key: BrickKey) -> Til
         values: &fine_values,
     };
     let mut tile = TileMesh::default();
+    let mut strips: [Mesh; 6] = Default::default();
     let mut scratch = Scratch::default();
     march(&fine, lo, frame, hi, ISO, &mut tile.mesh, &mut scratch);
     let mut faces = 0u8;
@@ -152,6 +156,28 @@ fn mesh_tile(samples: &dyn Samples, layout: &VolumeLayout, key: BrickKey) -> Til
             faces |= u8::from(layout.neighbour(key, *d).is_some()) << f;
         }
     }
+    let where_ = TileFaces {
+        lo,
+        hi,
+        frame,
+        coarse_frame: pos.map(|c| c / 2 * b),
+        faces,
+    };
+    tile_moves(&where_, &scratch, &mut tile.moves);
+    // To level-0 units, one formula for every position of every tile.
+    let step = (1u64 << k) as f32;
+    let origin = frame.map(|c| c as f32);
+    let world = |p: &mut [f32; 3]| {
+        for a in 0..3 {
+            p[a] = (p[a] + origin[a]) * step;
+        }
+    };
+    let to_world = |t: &mut TileMesh| {
+        t.mesh.positions.iter_mut().for_each(world);
+        for m in &mut t.moves {
+            m.distance *= step;
+        }
+    };
     if faces != 0 {
         let c = lo.map(|v| v.div_euclid(2) - 1);
         let d = hi.map(|v| v / 2 + 1);
@@ -163,50 +189,47 @@ fn mesh_tile(samples: &dyn Samples, layout: &VolumeLayout, key: BrickKey) -> Til
             values: &coarse_values,
         };
         let input = TransitionInput {
+            tile: where_,
             fine: &fine,
             coarse: &coarse,
-            lo,
-            hi,
-            frame,
-            coarse_frame: pos.map(|c| c / 2 * b),
             iso: ISO,
-            faces,
-            strips: faces,
         };
-        mesh_transitions(
-            &input,
-            &tile.mesh,
-            &scratch,
-            &mut tile.transitions,
-            &mut TransitionScratch::default(),
-        );
-    }
-    // To level-0 units, one formula for every position of every tile.
-    let step = (1u64 << k) as f32;
-    let origin = frame.map(|c| c as f32);
-    let world = |p: &mut [f32; 3]| {
-        for a in 0..3 {
-            p[a] = (p[a] + origin[a]) * step;
+        let mut transitions = TransitionScratch::default();
+        for (face, drawn) in strips.iter_mut().enumerate() {
+            let mut strip = TileMesh::default();
+            mesh_strip(
+                &input,
+                face,
+                &tile.mesh,
+                &scratch,
+                &mut strip,
+                &mut transitions,
+            );
+            assert!(strip.moves.iter().all(|m| usize::from(m.face) == face));
+            to_world(&mut strip);
+            apply_moves(&mut strip.mesh.positions, &strip.moves, 0x3f);
+            *drawn = strip.mesh;
         }
-    };
-    tile.mesh.positions.iter_mut().for_each(world);
-    tile.transitions.positions.iter_mut().for_each(world);
-    for m in &mut tile.transitions.moves {
-        m.offset = m.offset.map(|c| c * step);
     }
-    tile
+    to_world(&mut tile);
+    (tile, strips)
 }
 
-/// The tiles stitched with their masks and concatenated; also the index of the first
-/// transition triangle of each tile's part (the regular triangles come first).
+/// The tiles stitched with their masks and concatenated; also, per triangle, whether it is a
+/// transition triangle (the regular triangles of each tile's part come first).
 fn assemble(samples: &dyn Samples, layout: &VolumeLayout, tiles: &[BrickKey]) -> (Mesh, Vec<bool>) {
     let masks = face_masks(layout, tiles);
     let mut out = Mesh::default();
     let mut transition = Vec::new();
     let mut part = Mesh::default();
     for (&key, &mask) in tiles.iter().zip(&masks) {
-        let tile = mesh_tile(samples, layout, key);
-        stitch(&tile, mask, &mut part);
+        let (tile, strips) = mesh_tile(samples, layout, key);
+        stitch(
+            &tile,
+            mask,
+            std::array::from_fn(|f| Some(&strips[f])),
+            &mut part,
+        );
         let regular = tile.mesh.triangles();
         transition.extend((0..part.triangles()).map(|t| t >= regular));
         out.append(&part);

@@ -1095,7 +1095,7 @@ async fn metrics_count_response_bytes() {
 // 5. OpenAPI.
 
 /// Every route the router serves, with its method (from `server/src/http/mod.rs`).
-const ROUTES: [(&str, &str); 19] = [
+const ROUTES: [(&str, &str); 20] = [
     ("/healthz", "get"),
     ("/metrics", "get"),
     ("/openapi.json", "get"),
@@ -1106,6 +1106,10 @@ const ROUTES: [(&str, &str); 19] = [
     ("/v1/volumes/{name}/batch", "post"),
     ("/v1/volumes/{name}/levels/{level}", "get"),
     ("/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}", "get"),
+    (
+        "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}/strips/{face}",
+        "get",
+    ),
     ("/v1/volumes/{name}/edits", "post"),
     ("/v1/volumes/{name}/compact", "post"),
     ("/v1/volumes/{name}/changes", "get"),
@@ -1176,6 +1180,7 @@ async fn openapi_lists_every_route() {
                     .replace("{level}", "0")
                     .replace(['{', '}'], "")
                     .replace("/x/y/z", "/0/0/0")
+                    .replace("/strips/face", "/strips/+x")
                     .replace("/versions/version/", "/versions/1/")
                     .replace("/zarr/path", "/zarr/zarr.json")
                     .replace("/precomputed/path", "/precomputed/info")

@@ -14,7 +14,9 @@ use isovox_server::generate::WorldSource;
 use isovox_server::geometry::Box3;
 use isovox_server::icvg::term::{CompiledTerm, NoVolumes, TermLimits};
 use isovox_server::mesh::mc::Mesh;
-use isovox_server::mesh::tile::{default_iso, mesh_tile, mesh_tile_with_transitions, TileScratch};
+use isovox_server::mesh::tile::{
+    default_iso, mesh_strip_world, mesh_tile, mesh_tile_with_moves, TileScratch,
+};
 use isovox_server::store::codec::{decode, encode, Compression};
 use isovox_server::store::decoded::DecodedBricks;
 use isovox_server::store::{build_vod2, BuildOptions, StoredBrick, Vod2};
@@ -75,12 +77,20 @@ fn kernels(c: &mut Criterion) {
             black_box(mesh.triangles())
         })
     });
-    // The same tile as served: with its secondary positions and six transition strips.
+    // The same tile as served: with the secondary positions of its boundary vertices.
     let mut tile = TileMesh::default();
-    group.bench_function("tile 32^3 (terrain) with transitions", |b| {
+    group.bench_function("tile 32^3 (terrain) with moves", |b| {
         b.iter(|| {
-            mesh_tile_with_transitions(&snap, key, iso, &mut tile, &mut scratch).unwrap();
-            black_box(tile.transitions.triangles())
+            mesh_tile_with_moves(&snap, key, iso, &mut tile, &mut scratch).unwrap();
+            black_box(tile.moves.len())
+        })
+    });
+    // One of its transition strips, as served.
+    let mut strip = Mesh::default();
+    group.bench_function("strip +x of tile 32^3 (terrain)", |b| {
+        b.iter(|| {
+            mesh_strip_world(&snap, key, 1, iso, &mut strip, &mut scratch).unwrap();
+            black_box(strip.triangles())
         })
     });
     group.finish();

@@ -71,6 +71,7 @@ fn template(route: &str) -> &'static str {
         "batch" => "/v1/volumes/{name}/batch",
         "level" => "/v1/volumes/{name}/levels/{level}",
         "mesh" => "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}",
+        "strip" => "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}/strips/{face}",
         "edit" => "/v1/volumes/{name}/edits",
         "changes" => "/v1/volumes/{name}/changes",
         "events" => "/v1/volumes/{name}/events",
@@ -102,7 +103,7 @@ async fn server_metrics(base: &str) -> (BTreeMap<(String, String), u64>, u64) {
 }
 
 /// The routes a streamer requests (and may abort).
-const STREAMER_ROUTES: [&str; 3] = ["level", "blob", "mesh"];
+const STREAMER_ROUTES: [&str; 4] = ["level", "blob", "mesh", "strip"];
 
 /// Everything a clean run must show, and the report's numbers against the server's.
 async fn check(s: &Server, report: &LoadReport, users: usize) {

@@ -222,6 +222,23 @@ export class Api {
     return r.arrayBuffer();
   }
 
+  /**
+   * The transition strip of face `face` (0..5: -x, +x, -y, +y, -z, +z) of a mesh tile: a plain
+   * mesh in the compact encoding, version 1 (`docs/lod-meshes.md`).
+   */
+  async meshStrip(
+    name: string,
+    key: { level: number; x: number; y: number; z: number },
+    face: number,
+    version: number,
+    signal?: AbortSignal,
+  ): Promise<ArrayBuffer> {
+    const faceName = encodeURIComponent(["-x", "+x", "-y", "+y", "-z", "+z"][face] ?? "?");
+    const path = `/v1/volumes/${encodeURIComponent(name)}/meshes/${key.level}/${key.x}/${key.y}/${key.z}/strips/${faceName}?version=${version}`;
+    const r = await this.send(path, signal ? { signal } : {});
+    return r.arrayBuffer();
+  }
+
   /** One brick's voxels (raw, x fastest, u16 little endian). */
   async brick(
     name: string,

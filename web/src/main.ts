@@ -6,7 +6,7 @@ import * as THREE from "three";
 import { Api, ApiError, editErrorWords, readErrorWords, type VolumeInfo } from "./api";
 import { editRequest, OPERATORS, PRIMITIVES, TokenStore, type Primitive } from "./edit";
 import { Feed, type FeedState } from "./feed";
-import { radiiForScreenError, stitchMasks, Layout } from "./lod";
+import { radiiForScreenError } from "./lod";
 import { Viewport, type Navigation } from "./scene";
 import { AXIS, SliceView, type Axis } from "./slice";
 import { Streamer } from "./streamer";
@@ -141,18 +141,8 @@ function afterChange(): void {
       });
     }
   }
-  applyStitchMasks();
   viewport.requestRender();
   updateOverlay();
-}
-
-/** Tells each drawn tile which faces touch a coarser one (used by tiles with transitions). */
-function applyStitchMasks(): void {
-  if (!info || !streamer) return;
-  const layout = new Layout(info.dims, info.brick);
-  const masks = stitchMasks(layout, streamer.selection());
-  for (const [id, mask] of masks) viewport.setStitchMask(id, mask);
-  viewport.keepMasks(new Set(masks.keys()));
 }
 
 viewport.onFrame = (tiles) => {

@@ -51,8 +51,6 @@ export class Viewport implements TileSink {
   readonly camera: THREE.PerspectiveCamera;
   private readonly scene = new THREE.Scene();
   private readonly tiles = new Map<string, TileView>();
-  /** The last face mask given for each tile id, shown or not yet. */
-  private readonly masks = new Map<string, number>();
   private readonly material: THREE.ShaderMaterial;
   private readonly orbit: OrbitControls;
   private readonly fly: FlyNavigation;
@@ -137,10 +135,15 @@ export class Viewport implements TileSink {
 
   // --- tiles (the streamer's sink) ----------------------------------------------------------
 
-  show(id: string, _key: TileKey, data: TileMesh): void {
+  show(
+    id: string,
+    _key: TileKey,
+    data: TileMesh,
+    mask = 0,
+    strips: ReadonlyArray<TileMesh | null> = [],
+  ): void {
     this.hide(id);
-    const mask = data.transitions ? (this.masks.get(id) ?? 0) : 0;
-    const mesh = new THREE.Mesh(geometry(stitch(data, mask), mask === 0 ? data : undefined), this.material);
+    const mesh = new THREE.Mesh(geometry(stitch(data, mask, strips), mask === 0 ? data : undefined), this.material);
     mesh.matrixAutoUpdate = false;
     this.scene.add(mesh);
     this.tiles.set(id, { mesh, data, mask });
@@ -154,26 +157,6 @@ export class Viewport implements TileSink {
     t.mesh.geometry.dispose();
     this.tiles.delete(id);
     this.requestRender();
-  }
-
-  /**
-   * The faces of tile `id` that touch a coarser tile (`lod.ts` `stitchMasks`), kept for when it
-   * is shown. A tile with transition data is drawn stitched with it (`mesh.ts` `stitch`: those
-   * faces' vertices moved, their strips drawn); one without ignores it.
-   */
-  setStitchMask(id: string, mask: number): void {
-    this.masks.set(id, mask);
-    const t = this.tiles.get(id);
-    if (!t || t.mask === mask || !t.data.transitions) return;
-    t.mask = mask;
-    t.mesh.geometry.dispose();
-    t.mesh.geometry = geometry(stitch(t.data, mask), mask === 0 ? t.data : undefined);
-    this.requestRender();
-  }
-
-  /** Forgets the masks of tiles that left the selection. */
-  keepMasks(ids: ReadonlySet<string>): void {
-    for (const id of this.masks.keys()) if (!ids.has(id)) this.masks.delete(id);
   }
 
   get tileCount(): number {

@@ -7,13 +7,15 @@
 // renderer draws each tile with its face mask (`stitchMasks`, `mesh.ts` `stitch`).
 //
 // Content keys. A mesh tile reads the bricks around it at its level (its cells reach into the +1
-// neighbours, its normals one sample further on every side) and, for its transition strips, the
-// next coarser level's bricks around its faces (`tile.ts` `meshTileReads`, as
-// `server/src/mesh/tile.rs` reads them). Its content key is its position and the content hashes
-// of those bricks, learnt from the levels' brick grids (`GET .../levels/{l}?region=`, in chunks
-// of 8x8x8 bricks). Meshes are cached by content key, so a tile whose inputs did not change is
-// never fetched again, and the bricks' value ranges tell, without a request, which tiles no
-// surface crosses (most of a terrain's air and rock).
+// neighbours, its normals one sample further on every side; `tile.ts` `meshTileReads`, as
+// `server/src/mesh/tile.rs` reads them); the transition strip of a face, fetched only while the
+// face touches a coarser tile (the tile's mask, `stitchMasks`), reads the tile's level along the
+// face and the next coarser level around it (`stripReads`). A content key is the position (and
+// face) and the content hashes of those bricks, learnt from the levels' brick grids (`GET
+// .../levels/{l}?region=`, in chunks of 8x8x8 bricks). Tiles and strips are cached by content
+// key, so one whose inputs did not change is never fetched again (a neighbour's level change
+// fetches the newly needed strips, not the tile), and the bricks' value ranges tell, without a
+// request, which tiles and strips no surface crosses (most of a terrain's air and rock).
 //
 // Order. Requests go coarse first, then nearest first: every tile of the selection's coarsest
 // level that covers a selected tile is fetched first (a stand-in for the finer tiles under it
@@ -28,9 +30,9 @@
 // showing their old mesh.
 
 import { Api, ApiError, isAbort, type ChangeEvent, type LevelBrick, type LevelGrid, type VolumeInfo } from "./api";
-import { balancedTiles, keyText, Layout, tileDistance, type TileKey } from "./lod";
-import { decodeTile, type TileMesh } from "./mesh";
-import { meshTileReads, valueRange } from "./tile";
+import { balancedTiles, keyText, Layout, stitchMasks, tileDistance, type TileKey } from "./lod";
+import { decodeStrip, decodeTile, stitchedTriangles, type TileMesh } from "./mesh";
+import { meshTileReads, stripReads, valueRange, type TileRead } from "./tile";
 
 /** Bricks per axis of the grid chunks fetched to learn content hashes. */
 const CHUNK = 8;
@@ -39,11 +41,33 @@ const RETRY_MAX_MS = 10_000;
 /** Commits remembered to check answers that started at an older version. */
 const COMMIT_LOG = 256;
 
-/** Where the streamer puts what is to be drawn. */
+/**
+ * Where the streamer puts what is to be drawn: a tile, its face mask and the strips of the faces
+ * in the mask (`mesh.ts` `stitch` draws them together).
+ */
 export interface TileSink {
-  show(id: string, key: TileKey, mesh: TileMesh): void;
+  show(id: string, key: TileKey, mesh: TileMesh, mask: number, strips: ReadonlyArray<TileMesh | null>): void;
   hide(id: string): void;
 }
+
+/** What a tile shows: its content, mask and strips, named by `content`. */
+interface Drawing {
+  content: string;
+  mesh: TileMesh;
+  mask: number;
+  strips: Array<TileMesh | null>;
+}
+
+/** A tile no surface crosses, drawn only for its strips. */
+const EMPTY: TileMesh = {
+  positions: new Float32Array(0),
+  normals: new Int16Array(0),
+  indices: new Uint16Array(0),
+  min: [0, 0, 0],
+  max: [0, 0, 0],
+  moves: null,
+  bytes: 0,
+};
 
 export interface StreamerStats {
   version: number;
@@ -102,9 +126,11 @@ export class Streamer {
   private readonly jobs = new Map<string, Job>();
   private readonly retryAt = new Map<string, { at: number; delay: number }>();
   private readonly commitLog: Array<{ version: number; bricks: Set<string> }> = [];
-  private readonly displayed = new Map<string, TileMesh>();
-  /** Per tile of the selection: the content key it last showed ("" for no surface). */
-  private readonly lastShown = new Map<string, string>();
+  private readonly displayed = new Map<string, Drawing>();
+  /** Per tile of the selection: what it last showed. */
+  private readonly lastShown = new Map<string, Drawing | null>();
+  /** Per tile of the selection: its face mask. */
+  private masks = new Map<string, number>();
   private readyCount = 0;
   private staleCount = 0;
   private desired: TileKey[] = [];
@@ -193,7 +219,7 @@ export class Streamer {
   stats(): StreamerStats {
     if (this.statsCache) return this.statsCache;
     let triangles = 0;
-    for (const m of this.displayed.values()) triangles += m.indices.length / 3;
+    for (const d of this.displayed.values()) triangles += stitchedTriangles(d.mesh, d.mask, d.strips);
     this.statsCache = {
       version: this.version,
       desired: this.desired.length,
@@ -224,17 +250,17 @@ export class Streamer {
   }
 
   /**
-   * The tile's content key (its position and the hashes of the bricks it reads), or null while
-   * a hash is unknown; "" when no surface can cross the tile or its faces (`tile_inputs`'s
-   * `may_cross` rule: the voxels its cells and strips read, bounded through the coarser levels'
+   * A content key (`name` and the hashes of the bricks `reads` reads), or null while a hash is
+   * unknown; "" when no surface can cross what they decide (`tile_inputs`'s and
+   * `strip_inputs`'s `may_cross` rule: the voxels read, bounded through the coarser levels'
    * interpolation; outside the volume every voxel is L = 0).
    */
-  private contentKey(k: TileKey): string | null {
+  private keyOf(name: string, reads: TileRead[]): string | null {
     const iso = this.info.surface - 0.5;
     let low = Infinity;
     let high = -Infinity;
-    const parts: string[] = [keyText(k)];
-    for (const read of meshTileReads(this.layout, k)) {
+    const parts: string[] = [name];
+    for (const read of reads) {
       const [lo, hi] = read.bricks;
       const [clo, chi] = read.crossing;
       let min = Infinity;
@@ -261,9 +287,25 @@ export class Streamer {
     return low < iso && high >= iso ? parts.join(":") : "";
   }
 
-  /** The grid chunks whose hashes tile `k`'s content key needs and does not have. */
-  private missingChunks(k: TileKey, out: Set<string>): void {
-    for (const { level, bricks } of meshTileReads(this.layout, k)) {
+  /** The tile's content key (`keyOf` of what it reads). */
+  private contentKey(k: TileKey): string | null {
+    return this.keyOf(keyText(k), meshTileReads(this.layout, k));
+  }
+
+  /** The content key of the strip of face `face` of tile `k`. */
+  private stripKey(k: TileKey, face: number): string | null {
+    return this.keyOf(`${keyText(k)}/${face}`, stripReads(this.layout, k, face));
+  }
+
+  /** The faces of tile `k`'s mask. */
+  private maskFaces(k: TileKey): number[] {
+    const mask = this.masks.get(keyText(k)) ?? 0;
+    return [0, 1, 2, 3, 4, 5].filter((f) => (mask & (1 << f)) !== 0);
+  }
+
+  /** The grid chunks whose hashes `reads` needs and does not have. */
+  private missingChunks(reads: TileRead[], out: Set<string>): void {
+    for (const { level, bricks } of reads) {
       const [lo, hi] = bricks;
       for (let z = lo[2]; z <= hi[2]; z++) {
         for (let y = lo[1]; y <= hi[1]; y++) {
@@ -279,16 +321,35 @@ export class Streamer {
     }
   }
 
-  /** What tile `k` can show now: its current content, else what it showed before an edit. */
-  private showable(k: TileKey): { content: string; mesh: TileMesh | null } | undefined {
-    const available = (c: string | null | undefined) =>
-      c === "" ? null : c ? this.cache.get(c) : undefined;
+  /**
+   * Tile `k` drawn with its current content and the strips of its mask, when all are there
+   * (null: nothing to draw); undefined while something is missing.
+   */
+  private current(k: TileKey, mask: number): Drawing | null | undefined {
+    const available = (c: string | null) => (c === "" ? null : c ? this.cache.get(c) : undefined);
     const content = this.contentKey(k);
-    const now = available(content);
-    if (content !== null && now !== undefined) return { content, mesh: now };
+    const mesh = available(content);
+    if (content === null || mesh === undefined) return undefined;
+    const keys = [content, String(mask)];
+    const strips: Array<TileMesh | null> = [null, null, null, null, null, null];
+    for (let f = 0; f < 6; f++) {
+      if ((mask & (1 << f)) === 0) continue;
+      const key = this.stripKey(k, f);
+      const strip = available(key);
+      if (key === null || strip === undefined) return undefined;
+      strips[f] = strip;
+      keys.push(key);
+    }
+    if (mesh === null && strips.every((s) => s === null)) return null;
+    return { content: keys.join("|"), mesh: mesh ?? EMPTY, mask, strips };
+  }
+
+  /** What tile `k` can show now: its current drawing, else what it showed before. */
+  private showable(k: TileKey, mask: number): { drawing: Drawing | null; current: boolean } | undefined {
+    const now = this.current(k, mask);
+    if (now !== undefined) return { drawing: now, current: true };
     const old = this.lastShown.get(keyText(k));
-    const then = available(old);
-    if (old !== undefined && then !== undefined) return { content: old, mesh: then };
+    if (old !== undefined) return { drawing: old, current: false };
     return undefined;
   }
 
@@ -303,13 +364,14 @@ export class Streamer {
     if (selectionKey !== this.selectionKey) {
       this.selectionKey = selectionKey;
       this.desired = balancedTiles(this.layout, scale, this.camera, this.radii);
+      this.masks = stitchMasks(this.layout, this.desired);
     }
     // Stand-ins: the tiles of the selection's coarsest level over selected tiles that have
     // nothing to show yet.
     const coarsest = this.desired.reduce((a, k) => Math.max(a, k.level), 0);
     const standIns = new Map<string, TileKey>();
     for (const k of this.desired) {
-      if (k.level < coarsest && this.showable(k) === undefined) {
+      if (k.level < coarsest && this.showable(k, this.masks.get(keyText(k)) ?? 0) === undefined) {
         const a = this.layout.ancestor(k, coarsest);
         standIns.set(keyText(a), a);
       }
@@ -321,19 +383,26 @@ export class Streamer {
       const w = wanted.get(id);
       if (!w || compare(priority, w.priority) < 0) wanted.set(id, { priority, start });
     };
-    const need = (k: TileKey) => {
+    const need = (k: TileKey, faces: number[]) => {
       const priority: [number, number] = [-k.level, tileDistance(this.layout, scale, k, this.camera)];
       const content = this.contentKey(k);
+      const chunks = new Set<string>();
       if (content === null) {
-        const chunks = new Set<string>();
-        this.missingChunks(k, chunks);
-        for (const c of chunks) want(`g:${c}`, priority, () => this.fetchChunk(c));
+        this.missingChunks(meshTileReads(this.layout, k), chunks);
       } else if (content !== "" && !this.cache.has(content)) {
         want(`m:${content}`, priority, () => this.fetchMesh(k, content));
       }
+      for (const face of faces) {
+        const strip = this.stripKey(k, face);
+        if (strip === null) this.missingChunks(stripReads(this.layout, k, face), chunks);
+        else if (strip !== "" && !this.cache.has(strip)) {
+          want(`s:${strip}`, priority, () => this.fetchStrip(k, face, strip));
+        }
+      }
+      for (const c of chunks) want(`g:${c}`, priority, () => this.fetchChunk(c));
     };
-    for (const a of standIns.values()) need(a);
-    for (const k of this.desired) need(k);
+    for (const a of standIns.values()) need(a, []);
+    for (const k of this.desired) need(k, this.maskFaces(k));
 
     // Cancel what nobody needs any more; start the most urgent of the rest.
     for (const job of this.jobs.values()) {
@@ -379,12 +448,12 @@ export class Streamer {
    */
   private draw(standIns: Map<string, TileKey>): void {
     const coarsest = this.desired.reduce((a, k) => Math.max(a, k.level), 0);
-    const covering = new Map<string, { key: TileKey; mesh: TileMesh | null }>();
+    const covering = new Map<string, { key: TileKey; drawing: Drawing | null }>();
     for (const [id, s] of standIns) {
-      const m = this.showable(s);
-      if (m) covering.set(id, { key: s, mesh: m.mesh });
+      const m = this.showable(s, 0);
+      if (m) covering.set(id, { key: s, drawing: m.drawing });
     }
-    const next = new Map<string, { key: TileKey; mesh: TileMesh }>();
+    const next = new Map<string, { key: TileKey; drawing: Drawing }>();
     const desiredIds = new Set<string>();
     let ready = 0;
     let stale = 0;
@@ -392,29 +461,29 @@ export class Streamer {
       const id = keyText(k);
       desiredIds.add(id);
       if (k.level < coarsest && covering.has(keyText(this.layout.ancestor(k, coarsest)))) continue;
-      const m = this.showable(k);
+      const m = this.showable(k, this.masks.get(id) ?? 0);
       if (!m) continue;
-      this.lastShown.set(id, m.content);
-      if (m.content === this.contentKey(k)) ready++;
+      this.lastShown.set(id, m.drawing);
+      if (m.current) ready++;
       else stale++;
-      if (m.mesh) next.set(id, { key: k, mesh: m.mesh });
+      if (m.drawing) next.set(id, { key: k, drawing: m.drawing });
     }
     for (const [id, c] of covering) {
-      if (c.mesh) next.set(`s:${id}`, { key: c.key, mesh: c.mesh });
+      if (c.drawing) next.set(`s:${id}`, { key: c.key, drawing: c.drawing });
     }
     for (const id of this.lastShown.keys()) {
       if (!desiredIds.has(id)) this.lastShown.delete(id);
     }
-    for (const [id, mesh] of this.displayed) {
-      if (next.get(id)?.mesh !== mesh) {
+    for (const [id, drawing] of this.displayed) {
+      if (next.get(id)?.drawing.content !== drawing.content) {
         this.sink.hide(id);
         this.displayed.delete(id);
       }
     }
-    for (const [id, { key, mesh }] of next) {
+    for (const [id, { key, drawing }] of next) {
       if (!this.displayed.has(id)) {
-        this.sink.show(id, key, mesh);
-        this.displayed.set(id, mesh);
+        this.sink.show(id, key, drawing.mesh, drawing.mask, drawing.strips);
+        this.displayed.set(id, drawing);
       }
     }
     this.readyCount = ready;
@@ -498,8 +567,24 @@ export class Streamer {
         if (this.jobs.get(id) !== job) return;
         this.counters.bytes += buffer.byteLength;
         const mesh = decodeTile(buffer);
-        const strips = mesh.transitions?.strips.some((s) => s.length > 0) ?? false;
-        this.remember(content, mesh.indices.length === 0 && !strips ? null : mesh);
+        this.remember(content, mesh.indices.length === 0 ? null : mesh);
+        this.finish(id, job, null);
+      })
+      .catch((e: unknown) => this.finish(id, job, e));
+  }
+
+  private fetchStrip(k: TileKey, face: number, content: string): void {
+    const id = `s:${content}`;
+    const job = this.jobs.get(id);
+    if (!job) return;
+    this.counters.requests++;
+    this.api
+      .meshStrip(this.info.name, k, face, job.version, job.controller.signal)
+      .then((buffer) => {
+        if (this.jobs.get(id) !== job) return;
+        this.counters.bytes += buffer.byteLength;
+        const strip = decodeStrip(buffer);
+        this.remember(content, strip.indices.length === 0 ? null : strip);
         this.finish(id, job, null);
       })
       .catch((e: unknown) => this.finish(id, job, e));
@@ -510,7 +595,11 @@ export class Streamer {
     this.cache.set(content, mesh);
     this.cacheBytes += mesh?.bytes ?? 0;
     if (this.cacheBytes <= this.cacheLimit) return;
-    const inUse = new Set(this.displayed.values());
+    const inUse = new Set<TileMesh>();
+    for (const d of this.displayed.values()) {
+      inUse.add(d.mesh);
+      for (const s of d.strips) if (s) inUse.add(s);
+    }
     for (const [key, m] of this.cache) {
       if (this.cacheBytes <= this.cacheLimit) break;
       if (m && inUse.has(m)) continue;

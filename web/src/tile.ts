@@ -1,7 +1,8 @@
-// What a mesh tile reads: a port of `proto/src/tile.rs` (the seam rule's arithmetic) and of the
-// bound `server/src/mesh/lattice.rs` puts on a coarse level's lattice values, for the viewer's
-// content keys (`streamer.ts`): a tile's key names every brick it reads, of its level and, for
-// its transition strips, of the next coarser one; and whether a surface can cross it at all.
+// What a mesh tile and its transition strips read: a port of `proto/src/tile.rs` (the seam
+// rule's arithmetic) and of the bound `server/src/mesh/lattice.rs` puts on a coarse level's
+// lattice values, for the viewer's content keys (`streamer.ts`): a tile's key names every brick
+// it reads, of its level; a strip's, those of the tile's level along its face and of the next
+// coarser one; and whether a surface can cross them at all.
 
 import type { Layout, TileKey } from "./lod";
 
@@ -42,29 +43,67 @@ export function bricksOf(brick: number, [lo, hi]: GridBox): GridBox {
   return [lo.map((c) => Math.floor(c / brick)) as Vec3, hi.map((c) => Math.floor(c / brick)) as Vec3];
 }
 
-/** What a mesh tile with its transition data reads (`tile::mesh_tile_reads`), per level. */
+/** What a mesh tile or strip reads (`tile::mesh_tile_reads`, `tile::strip_reads`), per level. */
 export interface TileRead {
   level: number;
   /** The bricks read. */
   bricks: GridBox;
-  /** The bricks whose voxels decide whether a surface crosses the tile. */
+  /** The bricks whose voxels decide whether a surface crosses the tile or strip. */
   crossing: GridBox;
 }
 
 export function meshTileReads(layout: Layout, k: TileKey): TileRead[] {
   const { lo, hi } = cells(layout, k);
-  const reads: TileRead[] = [
+  return [
     {
       level: k.level,
       bricks: bricksOf(layout.brick, storedBox(k.level, fieldBox(layout, k))),
       crossing: bricksOf(layout.brick, storedBox(k.level, [lo, hi])),
     },
   ];
-  if (k.level + 1 < layout.levels) {
-    const coarse = bricksOf(layout.brick, storedBox(k.level + 1, coarseBox(layout, k)));
-    reads.push({ level: k.level + 1, bricks: coarse, crossing: coarse });
-  }
-  return reads;
+}
+
+/** Whether face `face` of tile `k` can ever touch a coarser tile (`tile::has_strip`). */
+export function hasStrip(layout: Layout, k: TileKey, face: number): boolean {
+  if (k.level + 1 >= layout.levels || face < 0 || face > 5) return false;
+  const axis = face >> 1;
+  const p: Vec3 = [k.x, k.y, k.z];
+  p[axis] = (p[axis] ?? 0) + (face & 1 ? 1 : -1);
+  return layout.contains({ level: k.level, x: p[0], y: p[1], z: p[2] });
+}
+
+/** The lattice points of the tile's level the strip of `face` reads (`tile::strip_field_box`). */
+export function stripFieldBox(layout: Layout, k: TileKey, face: number): GridBox {
+  const { lo, hi } = cells(layout, k);
+  const a: Vec3 = [...lo];
+  const b: Vec3 = [...hi];
+  const axis = face >> 1;
+  if (face & 1) a[axis] = (hi[axis] ?? 0) - 1;
+  else b[axis] = (lo[axis] ?? 0) + 1;
+  return [a.map((c) => c - 1) as Vec3, b.map((c) => c + 1) as Vec3];
+}
+
+/** The next coarser level's lattice points the strip of `face` reads (`tile::strip_coarse_box`). */
+export function stripCoarseBox(layout: Layout, k: TileKey, face: number): GridBox {
+  const [c, d] = coarseBox(layout, k);
+  const axis = face >> 1;
+  const at = face & 1 ? (d[axis] ?? 0) - 1 : (c[axis] ?? 0) + 1;
+  const lo: Vec3 = [...c];
+  const hi: Vec3 = [...d];
+  lo[axis] = at - 1;
+  hi[axis] = at + 1;
+  return [lo, hi];
+}
+
+/** What the strip of `face` of tile `k` reads (`tile::strip_reads`); none without a strip. */
+export function stripReads(layout: Layout, k: TileKey, face: number): TileRead[] {
+  if (!hasStrip(layout, k, face)) return [];
+  const fine = bricksOf(layout.brick, storedBox(k.level, stripFieldBox(layout, k, face)));
+  const coarse = bricksOf(layout.brick, storedBox(k.level + 1, stripCoarseBox(layout, k, face)));
+  return [
+    { level: k.level, bricks: fine, crossing: fine },
+    { level: k.level + 1, bricks: coarse, crossing: coarse },
+  ];
 }
 
 /**

@@ -10,7 +10,7 @@ import {
   tileDistance,
   type TileKey,
 } from "../src/lod";
-import { meshTileReads, valueRange } from "../src/tile";
+import { hasStrip, meshTileReads, stripReads, valueRange } from "../src/tile";
 
 type Vec3 = [number, number, number];
 interface Case {
@@ -129,16 +129,27 @@ describe("stitch masks", () => {
 
 describe("what a mesh tile reads", () => {
   it("matches proto/src/tile.rs's hand-computed example", () => {
-    // 64^3, brick 8. Level-0 tile (2, 0, 5): bricks x 1..=3, y -1..=1, z 4..=6 of level 0;
-    // level-1 bricks x 0..=1, y -1..=0, z 2..=3 for its strips.
+    // 64^3, brick 8. Level-0 tile (2, 0, 5): bricks x 1..=3, y -1..=1, z 4..=6 of level 0.
     const l = new Layout([64, 64, 64], 8);
-    const reads = meshTileReads(l, { level: 0, x: 2, y: 0, z: 5 });
-    expect(reads.map((r) => [r.level, r.bricks])).toEqual([
-      [0, [[1, -1, 4], [3, 1, 6]]],
-      [1, [[0, -1, 2], [1, 0, 3]]],
-    ]);
+    const k = { level: 0, x: 2, y: 0, z: 5 };
+    const reads = meshTileReads(l, k);
+    expect(reads.map((r) => [r.level, r.bricks])).toEqual([[0, [[1, -1, 4], [3, 1, 6]]]]);
     // The cells' corners alone decide whether a surface crosses: bricks x 2..=3, y -1..=1.
     expect(reads[0]?.crossing).toEqual([[2, -1, 5], [3, 1, 6]]);
+    // Its +x strip: level-0 bricks x 2..=3 (the layer of cells along the face), level-1
+    // bricks x 1, y -1..=0, z 2..=3; its -x strip: x 1..=2 and x 0..=1.
+    expect(stripReads(l, k, 1).map((r) => [r.level, r.bricks])).toEqual([
+      [0, [[2, -1, 4], [3, 1, 6]]],
+      [1, [[1, -1, 2], [1, 0, 3]]],
+    ]);
+    expect(stripReads(l, k, 0).map((r) => [r.level, r.bricks])).toEqual([
+      [0, [[1, -1, 4], [2, 1, 6]]],
+      [1, [[0, -1, 2], [1, 0, 3]]],
+    ]);
+    // -y of a first tile, and every face of the root: no strip.
+    expect(hasStrip(l, k, 2)).toBe(false);
+    expect(stripReads(l, k, 2)).toEqual([]);
+    expect([0, 1, 2, 3, 4, 5].some((f) => hasStrip(l, { level: 3, x: 0, y: 0, z: 0 }, f))).toBe(false);
     expect(meshTileReads(l, { level: 3, x: 0, y: 0, z: 0 }).length).toBe(1);
   });
 

@@ -1,6 +1,6 @@
 import { describe, expect, it } from "vitest";
 import { readFileSync } from "node:fs";
-import { decodeTile, MeshFormatError, stitch, stitchedTriangles } from "../src/mesh";
+import { decodeStrip, decodeTile, MeshFormatError, stitch, stitchedTriangles } from "../src/mesh";
 import { compactMesh, triangle } from "./compact";
 
 // The quad of proto/src/mesh.rs's golden test: 4 vertices, 2 triangles, 124 bytes.
@@ -32,7 +32,8 @@ describe("compact mesh decoding", () => {
     expect([...m.indices]).toEqual([0, 1, 2, 0, 2, 3]);
     expect(m.min).toEqual([0, 0, 0]);
     expect(m.max).toEqual([1, 1, 0.5]);
-    expect(m.transitions).toBeNull();
+    expect(m.moves).toBeNull();
+    expect([...decodeStrip(b).indices]).toEqual([0, 1, 2, 0, 2, 3]);
   });
 
   it("refuses what the Rust decoder refuses", () => {
@@ -46,9 +47,12 @@ describe("compact mesh decoding", () => {
     const huge = b.slice(0);
     new DataView(huge).setUint32(8, 0xffffffff, true);
     expect(() => decodeTile(huge)).toThrow(MeshFormatError);
-    // Version 2 without its transition section, and an unknown version.
-    expect(() => decodeTile(compactMesh([], [], [], { version: 2 }))).toThrow(/transition section/);
-    expect(() => decodeTile(compactMesh([], [], [], { version: 3 }))).toThrow(/version 3/);
+    // Version 3 without its move section; version 2 (strips inside) and unknown versions; a
+    // tile is no strip.
+    expect(() => decodeTile(compactMesh([], [], [], { version: 3 }))).toThrow(/move section/);
+    expect(() => decodeTile(compactMesh([], [], [], { version: 2 }))).toThrow(/version 2/);
+    expect(() => decodeTile(compactMesh([], [], [], { version: 4 }))).toThrow(/version 4/);
+    expect(() => decodeStrip(compactMesh([], [], [], { version: 3 }))).toThrow(/version 3/);
   });
 
   it("reads u32 indices at an unaligned offset", () => {
@@ -66,10 +70,10 @@ interface Stitched {
   normals: number[];
   indices: number[];
 }
-// Written by the Rust test proto/tests/lod_vectors.rs from proto's own encoder and stitch.
+// Written by the Rust test proto/tests/lod_vectors.rs from proto's own encoders and stitch.
 const vectors = JSON.parse(
   readFileSync(new URL("../test-vectors/mesh.json", import.meta.url), "utf8"),
-) as { tiles: { bytes: string; stitched: Stitched[] }[] };
+) as { tiles: { bytes: string; strips: string[]; stitched: Stitched[] }[] };
 
 const bytesOf = (hex: string): ArrayBuffer => {
   const out = new Uint8Array(hex.length / 2);
@@ -77,47 +81,53 @@ const bytesOf = (hex: string): ArrayBuffer => {
   return out.buffer;
 };
 
-describe("tiles with transition data equal proto/src/mesh.rs", () => {
+describe("tiles with moves and their strips equal proto/src/mesh.rs", () => {
   it("has vectors", () => {
     expect(vectors.tiles.length).toBe(3);
   });
 
-  it("decodes version 2 and stitches every mask as stitch() does", () => {
+  it("decodes version 3 and the strips, and stitches every mask as stitch() does", () => {
     for (const v of vectors.tiles) {
       const tile = decodeTile(bytesOf(v.bytes));
-      expect(tile.transitions).not.toBeNull();
+      expect(tile.moves).not.toBeNull();
+      const strips = v.strips.map((s) => decodeStrip(bytesOf(s)));
+      expect(strips.length).toBe(6);
       for (const want of v.stitched) {
-        const got = stitch(tile, want.mask);
+        const got = stitch(tile, want.mask, strips);
         expect([...got.positions], `mask ${want.mask}`).toEqual(want.positions.map(Math.fround));
         expect([...got.normals], `mask ${want.mask}`).toEqual(want.normals);
         expect([...got.indices], `mask ${want.mask}`).toEqual(want.indices);
-        expect(stitchedTriangles(tile, want.mask)).toBe(want.indices.length / 3);
+        expect(stitchedTriangles(tile, want.mask, strips)).toBe(want.indices.length / 3);
       }
     }
   });
 
-  it("refuses a cut or patched transition section", () => {
+  it("refuses a cut or patched move section", () => {
     const b = bytesOf(vectors.tiles[0]?.bytes ?? "");
     const tile = decodeTile(b);
     const n = tile.positions.length / 3;
     const at = Math.ceil((40 + n * 18 + tile.indices.length * 2) / 4) * 4;
-    for (let cut = at; cut < b.byteLength - 2; cut++) {
+    for (let cut = at; cut < b.byteLength; cut++) {
       expect(() => decodeTile(b.slice(0, cut)), `cut at ${cut}`).toThrow(MeshFormatError);
     }
-    const patched = (offset: number, value: number, width: 1 | 2 | 4) => {
+    const patched = (offset: number, value: number, float = false) => {
       const c = b.slice(0);
       const v = new DataView(c);
-      if (width === 1) v.setUint8(offset, value);
-      else if (width === 2) v.setUint16(offset, value, true);
+      if (float) v.setFloat32(offset, value, true);
       else v.setUint32(offset, value, true);
       return () => decodeTile(c);
     };
-    const t = new DataView(b).getUint32(at, true);
-    const moves = at + 32 + Math.ceil((t * 18) / 4) * 4;
-    expect(patched(at, 0xffffffff, 4)).toThrow(MeshFormatError); // vertex count
-    expect(patched(at + 8, 2, 4)).toThrow(/multiple of 3/); // a strip not of triangles
-    expect(patched(moves, n + t, 4)).toThrow(/moved vertex/);
-    expect(patched(moves + 4, 0, 1)).toThrow(/face mask/);
-    expect(patched(moves + 4, 64, 1)).toThrow(/face mask/);
+    const firstFace = [0, 1, 2, 3, 4, 5].find((f) => new DataView(b).getUint32(at + 4 * f, true) > 0) ?? 0;
+    const moves = at + 24;
+    expect(patched(at + 4 * firstFace, 0xffffffff)).toThrow(/moves do not fit/);
+    expect(patched(moves, n)).toThrow(/moved vertex/);
+    expect(patched(moves, n - 1)).not.toThrow();
+    expect(patched(moves + 4, NaN, true)).toThrow(/not finite/);
+    expect(patched(moves + 4, Infinity, true)).toThrow(/not finite/);
+    // A strip refuses what decode_strip refuses.
+    const strip = bytesOf(vectors.tiles[0]?.strips[0] ?? "");
+    for (let cut = 0; cut < strip.byteLength - 2; cut++) {
+      expect(() => decodeStrip(strip.slice(0, cut)), `strip cut at ${cut}`).toThrow(MeshFormatError);
+    }
   });
 });

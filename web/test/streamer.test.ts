@@ -1,6 +1,6 @@
 import { describe, expect, it } from "vitest";
 import type { Api, LevelGrid, Vec3 } from "../src/api";
-import { balancedTiles, keyText, Layout, tileDistance, type TileKey } from "../src/lod";
+import { balancedTiles, keyText, Layout, stitchMasks, tileDistance, type TileKey } from "../src/lod";
 import type { TileMesh } from "../src/mesh";
 import { Streamer } from "../src/streamer";
 import { triangle } from "./compact";
@@ -27,6 +27,8 @@ const TRIANGLE = triangle();
 
 interface MeshCall {
   key: TileKey;
+  /** The face, for a strip request. */
+  face?: number;
   version: number;
   signal: AbortSignal;
   answer: () => void;
@@ -35,6 +37,9 @@ interface MeshCall {
 /** A server whose bricks all straddle the surface; `edit` changes bricks' content hashes. */
 class ScriptedServer {
   meshCalls: MeshCall[] = [];
+  stripCalls: MeshCall[] = [];
+  /** Mesh tile and strip requests, in the order they came. */
+  calls: MeshCall[] = [];
   gridCalls: Array<{ level: number; version: number }> = [];
   private revision = new Map<string, number>();
 
@@ -63,18 +68,32 @@ class ScriptedServer {
         new Promise<ArrayBuffer>((resolve, reject) => {
           const s = signal ?? new AbortController().signal;
           s.addEventListener("abort", () => reject(new DOMException("aborted", "AbortError")));
-          this.meshCalls.push({ key, version, signal: s, answer: () => resolve(TRIANGLE.slice(0)) });
+          this.calls.push({ key, version, signal: s, answer: () => resolve(TRIANGLE.slice(0)) });
+          this.meshCalls.push(this.calls[this.calls.length - 1]!);
+        }),
+      meshStrip: (_name: string, key: TileKey, face: number, version: number, signal?: AbortSignal) =>
+        new Promise<ArrayBuffer>((resolve, reject) => {
+          const s = signal ?? new AbortController().signal;
+          s.addEventListener("abort", () => reject(new DOMException("aborted", "AbortError")));
+          this.calls.push({ key, face, version, signal: s, answer: () => resolve(TRIANGLE.slice(0)) });
+          this.stripCalls.push(this.calls[this.calls.length - 1]!);
         }),
     } as unknown as Api;
   }
 
+  /** Mesh tile requests in flight. */
   pending(): MeshCall[] {
     return this.meshCalls.filter((c) => !c.signal.aborted && !(c as { done?: boolean }).done);
   }
 
-  /** Answers the oldest pending mesh request. */
+  /** Mesh tile and strip requests in flight. */
+  pendingAll(): MeshCall[] {
+    return this.calls.filter((c) => !c.signal.aborted && !(c as { done?: boolean }).done);
+  }
+
+  /** Answers the oldest pending mesh tile or strip request. */
   async answerOne(): Promise<MeshCall | undefined> {
-    const c = this.pending()[0];
+    const c = this.pendingAll()[0];
     if (!c) return undefined;
     (c as { done?: boolean }).done = true;
     c.answer();
@@ -106,10 +125,10 @@ describe("the streamer", () => {
     await settle();
     const order: TileKey[] = [];
     for (;;) {
-      expect(server.pending().length).toBeLessThanOrEqual(3);
+      expect(server.pendingAll().length).toBeLessThanOrEqual(3);
       const c = await server.answerOne();
       if (!c) break;
-      order.push(c.key);
+      if (c.face === undefined) order.push(c.key);
     }
     const desired = balancedTiles(layout, [1, 1, 1], camera, [12, 24, 48]);
     const coarsest = Math.max(...desired.map((k) => k.level));
@@ -126,10 +145,46 @@ describe("the streamer", () => {
     for (let i = 3; i < order.length; i++) {
       if (order[i]!.level === order[i - 3]!.level) expect(dist(order[i]!)).toBeGreaterThanOrEqual(dist(order[i - 3]!));
     }
+    // Strips: exactly those of the faces in the selection's masks (lod.rs face_masks), each
+    // once.
+    const masks = stitchMasks(layout, desired);
+    const wantStrips = desired.flatMap((k) =>
+      [0, 1, 2, 3, 4, 5].filter((f) => ((masks.get(keyText(k)) ?? 0) & (1 << f)) !== 0).map((f) => `${keyText(k)}/${f}`),
+    );
+    expect(wantStrips.length).toBeGreaterThan(0);
+    const gotStrips = server.stripCalls.map((c) => `${keyText(c.key)}/${c.face}`);
+    expect(gotStrips.sort()).toEqual(wantStrips.sort());
     const st = s.stats();
     expect(st.complete).toBe(true);
     expect(st.ready).toBe(desired.length);
     expect(shown.size).toBe(desired.length);
+    s.stop();
+  });
+
+  it("fetches only the newly needed strips when the camera moves, and tiles only once", async () => {
+    const server = new ScriptedServer();
+    const { s } = start(server, [0, 40, 0]);
+    await settle();
+    while (await server.answerOne());
+    const asked = new Set(server.stripCalls.map((c) => `${keyText(c.key)}/${c.face}`));
+    const meshes = new Set(server.meshCalls.map((c) => keyText(c.key)));
+    const [before, beforeStrips] = [server.meshCalls.length, server.stripCalls.length];
+    const camera: Vec3 = [12, 40, 4];
+    s.setCamera(camera);
+    await settle();
+    while (await server.answerOne());
+    const desired = balancedTiles(layout, [1, 1, 1], camera, [12, 24, 48]);
+    const masks = stitchMasks(layout, desired);
+    const wanted = desired.flatMap((k) =>
+      [0, 1, 2, 3, 4, 5].filter((f) => ((masks.get(keyText(k)) ?? 0) & (1 << f)) !== 0).map((f) => `${keyText(k)}/${f}`),
+    );
+    const fresh = wanted.filter((w) => !asked.has(w));
+    expect(fresh.length).toBeGreaterThan(0);
+    expect(server.stripCalls.slice(beforeStrips).map((c) => `${keyText(c.key)}/${c.face}`).sort()).toEqual(fresh.sort());
+    // Tiles fetched: only those not fetched before.
+    const newTiles = desired.map(keyText).filter((k) => !meshes.has(k));
+    expect(server.meshCalls.slice(before).map((c) => keyText(c.key)).sort()).toEqual(newTiles.sort());
+    expect(s.stats()).toMatchObject({ complete: true, ready: desired.length });
     s.stop();
   });
 
@@ -160,38 +215,64 @@ describe("the streamer", () => {
     await settle();
     while (await server.answerOne());
     expect(s.stats().complete).toBe(true);
-    const before = server.meshCalls.length;
+    const [before, beforeStrips] = [server.meshCalls.length, server.stripCalls.length];
     const changed: Vec3[][] = [[[2, 1, 2]], [[1, 1, 1]], [[0, 0, 0]], [[0, 0, 0]]];
     changed.forEach((bricks, level) => server.edit(level, bricks));
     s.applyCommit({ version: 2, timestamp_ms: 0, changed });
     await settle();
     while (await server.answerOne());
     const refetched = server.meshCalls.slice(before);
+    const restripped = server.stripCalls.slice(beforeStrips);
     const desired = balancedTiles(layout, [1, 1, 1], camera, [12, 24, 48]);
+    const masks = stitchMasks(layout, desired);
     // What a tile reads (server/src/mesh/tile.rs, brick 8): the bricks of its level at offsets
-    // -1..=1, and for its strips the next level's voxels [4 t - 3, 4 t + 6] on each axis
-    // (from -4 for a first tile): bricks floor(first / 8) ..= floor((4 t + 6) / 8).
-    const readsCoarse = (t: number, p: number) =>
-      Math.floor((t === 0 ? -4 : 4 * t - 3) / 8) <= p && p <= Math.floor((4 * t + 6) / 8);
+    // -1..=1. What the strip of face f reads: of the tile's level the layer of cells along the
+    // face (lattice 8 t + 6 ..= 8 t + 9 on a high face, 8 t - 1 ..= 8 t + 2 on a low one, the
+    // tile's field 8 t - 1 ..= 8 t + 9 across, from -2 for a first tile); of the next level the
+    // stored voxels 4 t + 1 ..= 4 t + 6 (high) or 4 t - 3 ..= 4 t + 2 (low) on the face's axis
+    // and 4 t - 3 ..= 4 t + 6 across (from -4 for a first tile).
+    const within = (lo: number, hi: number, p: number) => Math.floor(lo / 8) <= p && p <= Math.floor(hi / 8);
+    const stripReads = (k: TileKey, f: number, level: number, b: Vec3) => {
+      const t = [k.x, k.y, k.z];
+      return [0, 1, 2].every((a) => {
+        const c = t[a] ?? 0;
+        const along = a === f >> 1;
+        const high = (f & 1) === 1;
+        if (level === k.level) {
+          if (along) return high ? within(8 * c + 6, 8 * c + 9, b[a]!) : within(8 * c - 1, 8 * c + 2, b[a]!);
+          return within(c === 0 ? -2 : 8 * c - 1, 8 * c + 9, b[a]!);
+        }
+        if (along) return high ? within(4 * c + 1, 4 * c + 6, b[a]!) : within(4 * c - 3, 4 * c + 2, b[a]!);
+        return within(c === 0 ? -4 : 4 * c - 3, 4 * c + 6, b[a]!);
+      });
+    };
     const readLevels = new Set<number>();
-    let coarseOnly = 0;
+    const staleStrips: string[] = [];
     const stale = desired.filter((k) => {
       const same = (changed[k.level] ?? []).some(
         ([x, y, z]) => Math.abs(x - k.x) <= 1 && Math.abs(y - k.y) <= 1 && Math.abs(z - k.z) <= 1,
       );
-      const coarse =
-        k.level + 1 < layout.levels &&
-        (changed[k.level + 1] ?? []).some(
-          ([x, y, z]) => readsCoarse(k.x, x) && readsCoarse(k.y, y) && readsCoarse(k.z, z),
-        );
       if (same) readLevels.add(k.level);
-      if (coarse) readLevels.add(k.level + 1);
-      if (coarse && !same) coarseOnly++;
-      return same || coarse;
+      for (let f = 0; f < 6; f++) {
+        if (((masks.get(keyText(k)) ?? 0) & (1 << f)) === 0) continue;
+        let reads = false;
+        for (const level of [k.level, k.level + 1]) {
+          for (const b of changed[level] ?? []) {
+            if (stripReads(k, f, level, b)) {
+              reads = true;
+              readLevels.add(level);
+            }
+          }
+        }
+        if (reads) staleStrips.push(`${keyText(k)}/${f}`);
+      }
+      return same;
     });
-    expect(coarseOnly).toBeGreaterThan(0); // the strips' inputs count
+    expect(staleStrips.length).toBeGreaterThan(0); // the strips' inputs count
     expect(refetched.map((c) => keyText(c.key)).sort()).toEqual(stale.map(keyText).sort());
+    expect(restripped.map((c) => `${keyText(c.key)}/${c.face}`).sort()).toEqual(staleStrips.sort());
     expect(refetched.every((c) => c.version === 2)).toBe(true);
+    expect(restripped.every((c) => c.version === 2)).toBe(true);
     expect(s.stats()).toMatchObject({ version: 2, complete: true, stale: 0 });
     // Grids were asked again at the new version, once per level whose changed bricks a
     // selected tile reads (each level's changes lie in one chunk here).

@@ -238,15 +238,62 @@ const requestedUrls = (page, since) =>
 async function meshRequests(page, since) {
   const names = await requestedUrls(page, since);
   return names
-    .map((n) => /\/meshes\/(\d+)\/(\d+)\/(\d+)\/(\d+)/.exec(n))
+    .map((n) => /\/meshes\/(\d+)\/(\d+)\/(\d+)\/(\d+)(?:\?|$)/.exec(n))
     .filter(Boolean)
     .map((m) => m.slice(1).map(Number));
+}
+
+/** The transition strips requested since `since`: [l, x, y, z, face]. */
+async function stripRequests(page, since) {
+  const faces = ["-x", "+x", "-y", "+y", "-z", "+z"];
+  const names = await requestedUrls(page, since);
+  return names
+    .map((n) => /\/meshes\/(\d+)\/(\d+)\/(\d+)\/(\d+)\/strips\/([^?]+)/.exec(n))
+    .filter(Boolean)
+    .map((m) => [...m.slice(1, 5).map(Number), faces.indexOf(decodeURIComponent(m[5]))]);
 }
 
 /** Whether tile [l, x, y, z] reads a brick that `changed` (per level) lists: its 3x3x3 inputs. */
 function isStale(tile, changed) {
   const [l, x, y, z] = tile;
   return (changed[l] ?? []).some(([bx, by, bz]) => Math.abs(bx - x) <= 1 && Math.abs(by - y) <= 1 && Math.abs(bz - z) <= 1);
+}
+
+/**
+ * Whether the strip of face f of tile [l, x, y, z] (brick edge b) reads a brick `changed` lists
+ * (server/src/mesh/tile.rs): of level l, the lattice points of the layer of cells along the face
+ * (b (t + 1) - 2 ..= b (t + 1) + 1 on a high face, b t - 1 ..= b t + 2 on a low one, the tile's
+ * b t - 1 ..= b (t + 1) + 1 across, from -2 for a first tile); of level l + 1, the face's plane
+ * P (b (t + 1) / 2 or b t / 2) with a point on either side, and across c = floor(lo / 2) - 1 ..=
+ * d = b (t + 1) / 2 + 1; stored voxels of a level above 0 reach 2 below and 1 above a point.
+ */
+function isStripStale([l, x, y, z, f], changed, b) {
+  const t = [x, y, z];
+  const axis = f >> 1;
+  const high = (f & 1) === 1;
+  const reads = (level, lattice) =>
+    (changed[level] ?? []).some((c) =>
+      [0, 1, 2].every((a) => {
+        let [lo, hi] = lattice(a);
+        if (level > 0) [lo, hi] = [lo - 2, hi + 1];
+        return Math.floor(lo / b) <= c[a] && c[a] <= Math.floor(hi / b);
+      }),
+    );
+  const fine = (a) => {
+    const lo = t[a] === 0 ? -1 : b * t[a];
+    const hi = b * (t[a] + 1);
+    if (a !== axis) return [lo - 1, hi + 1];
+    return high ? [hi - 2, hi + 1] : [lo - 1, lo + 2];
+  };
+  const coarse = (a) => {
+    const lo = t[a] === 0 ? -1 : b * t[a];
+    const hi = b * (t[a] + 1);
+    const [c, d] = [Math.floor(lo / 2) - 1, hi / 2 + 1];
+    if (a !== axis) return [c, d];
+    const p = high ? d - 1 : c + 1;
+    return [p - 1, p + 1];
+  };
+  return reads(l, fine) || reads(l + 1, coarse);
 }
 
 /** Clicks the surface at screen point `at` in edit mode, giving `tokenText` when asked. */
@@ -321,6 +368,12 @@ test("an edit in one page changes the picture in another page at the edited plac
   const fetched = await meshRequests(b.page, since);
   assert.ok(fetched.length > 0, "the stale tiles were fetched");
   for (const t of fetched) assert.ok(isStale(t, changed), `tile ${t} was fetched but not stale`);
+  // And exactly strips the edit made stale.
+  const info = await (await api(`/v1/volumes/demo`)).json();
+  for (const s of await stripRequests(b.page, since)) {
+    assert.ok(s[4] >= 0, `strip ${s}: a face name`);
+    assert.ok(isStripStale(s, changed, info.brick), `strip ${s} was fetched but not stale`);
+  }
   assert.equal(after.stale, 0);
   await a.context.close();
   await b.context.close();
@@ -550,8 +603,11 @@ test("fly navigation: keys move the camera, and tiles near where it went are fet
       `new finest tile ${[0, x, y, z]} is not nearer the new camera position`,
     );
   }
-  // And those with a surface were requested after the move.
+  // And those with a surface were requested after the move: the tile, or the transition strip
+  // of a face touching a coarser tile (a tile whose own level holds no surface is not fetched,
+  // its strips can be).
   const requested = new Set((await meshRequests(page, since)).map(String));
+  for (const s of await stripRequests(page, since)) requested.add(String(s.slice(0, 4)));
   const fetched = fresh.filter((k) => requested.has(String(k)));
   assert.ok(fetched.length > 0, `none of the ${fresh.length} new finest tiles was requested`);
   assert.deepEqual(errors, []);

@@ -135,6 +135,8 @@ enum JobKey {
     Blob(u64),
     /// A mesh tile.
     Mesh(BrickKey),
+    /// The transition strip of a face (0..6) of a mesh tile.
+    Strip(BrickKey, u8),
 }
 
 impl JobKey {
@@ -155,6 +157,8 @@ enum Output {
     Blob(Result<Bytes, ClientError>),
     /// The content key the tile was requested under, and the tile.
     Mesh(u64, Result<TileMesh, ClientError>),
+    /// The content key the strip was requested under, and the strip.
+    Strip(u64, Result<Mesh, ClientError>),
 }
 
 #[derive(Debug)]
@@ -180,6 +184,9 @@ struct Tile {
     stale: bool,
     /// A mesh tile's delivered content and the face mask it was stitched with.
     drawn: Option<(Arc<TileMesh>, u8)>,
+    /// A mesh tile's delivered drawing: a hash of its content key, mask and strips' content
+    /// keys, while current.
+    drawn_key: Option<u64>,
 }
 
 /// What the cache keeps by content key.
@@ -187,6 +194,7 @@ struct Tile {
 enum Content {
     Brick(Bytes),
     Mesh(Arc<TileMesh>),
+    Strip(Arc<Mesh>),
 }
 
 /// Tile content by content key, least recently used first out, bounded by bytes.
@@ -315,6 +323,8 @@ struct Scheduler {
     limit: SharedLimit,
     /// Content keys of the mesh tiles waiting for a request (from the last plan).
     mesh_keys: HashMap<BrickKey, u64>,
+    /// Content keys of the strips (tile, face) waiting for a request (from the last plan).
+    strip_keys: HashMap<(BrickKey, u8), u64>,
     /// Tiles waiting for content by content key (from the last plan).
     waiting: HashMap<u64, Vec<BrickKey>>,
     jobs: JoinSet<(u64, JobKey, Output)>,
@@ -332,6 +342,7 @@ impl Scheduler {
         Scheduler {
             limit: Arc::new(Mutex::new(InFlightLimit::new(max_in_flight))),
             mesh_keys: HashMap::new(),
+            strip_keys: HashMap::new(),
             waiting: HashMap::new(),
             jobs: JoinSet::new(),
             running: HashMap::new(),
@@ -487,23 +498,31 @@ impl Engine {
                 self.outbox.push(StreamEvent::Dropped { key });
             }
         }
-        let mut restitch = Vec::new();
         for key in new {
             let t = self.desired.tiles.entry(key).or_insert_with(|| {
                 self.desired.missing += 1;
                 Tile::default()
             });
+            // A mesh tile whose mask changed is drawn again (its tile from the cache, the
+            // strips of its new faces from the cache or a request; the old drawing stays until
+            // then).
             let mask = self.desired.masks.get(&key).copied().unwrap_or(0);
-            if let (Some(content), Some((tile, drawn))) = (t.ready, &t.drawn) {
+            if let (Some(_), Some((_, drawn))) = (t.ready, &t.drawn) {
                 if *drawn != mask {
-                    restitch.push((key, content, tile.clone()));
+                    t.ready = None;
+                    self.desired.missing += 1;
                 }
             }
         }
-        for (key, content, tile) in restitch {
-            self.mark_ready(key, content, Content::Mesh(tile));
-        }
         self.scheduler.replan_needed = true;
+    }
+
+    /// The iso value mesh tiles are asked at (the server's default when `None`).
+    fn mesh_iso(&self) -> Option<f32> {
+        match self.kind {
+            TileKind::Meshes { iso } => iso,
+            TileKind::Bricks => None,
+        }
     }
 
     /// The grid region that brings `brick`'s hash: a designated one, or its chunk.
@@ -523,15 +542,42 @@ impl Engine {
 
     /// A mesh tile's content key, or the input bricks whose hashes are unknown.
     fn mesh_content(&self, key: BrickKey, iso: Option<f32>) -> Result<u64, Vec<BrickKey>> {
+        let reads = isovox_proto::tile::mesh_tile_reads(&self.layout, key);
+        self.content_of("isovox mesh tile with moves", key, None, iso, &reads)
+    }
+
+    /// The content key of the strip of face `face` of mesh tile `key`, or the input bricks
+    /// whose hashes are unknown.
+    fn strip_content(
+        &self,
+        key: BrickKey,
+        face: u8,
+        iso: Option<f32>,
+    ) -> Result<u64, Vec<BrickKey>> {
+        let reads = isovox_proto::tile::strip_reads(&self.layout, key, usize::from(face));
+        self.content_of("isovox transition strip", key, Some(face), iso, &reads)
+    }
+
+    /// A content key over what a tile or strip depends on: `what`, the tile, the face, the iso
+    /// value, the volume's shape and the hashes of the bricks of `reads`.
+    fn content_of(
+        &self,
+        what: &str,
+        key: BrickKey,
+        face: Option<u8>,
+        iso: Option<f32>,
+        reads: &[(u8, isovox_proto::tile::GridBox)],
+    ) -> Result<u64, Vec<BrickKey>> {
         let mut h = DefaultHasher::new();
-        "isovox mesh tile with transitions".hash(&mut h);
+        what.hash(&mut h);
         key.hash(&mut h);
+        face.hash(&mut h);
         iso.map(f32::to_bits).hash(&mut h);
         self.info.brick.hash(&mut h);
         self.layout.voxel_type().bytes().hash(&mut h);
         self.info.voxel_scale.map(f32::to_bits).hash(&mut h);
         let mut unknown = Vec::new();
-        for (level, (lo, hi)) in isovox_proto::tile::mesh_tile_reads(&self.layout, key) {
+        for &(level, (lo, hi)) in reads {
             let g = self.layout.grid(level).map(i64::from);
             for z in lo[2]..=hi[2] {
                 for y in lo[1]..=hi[1] {
@@ -562,18 +608,31 @@ impl Engine {
         }
     }
 
+    /// The bricks a desired mesh tile's drawing reads: its own, and those of the strips of the
+    /// faces in its mask.
+    fn drawing_reads(&self, key: BrickKey) -> Vec<(u8, isovox_proto::tile::GridBox)> {
+        let mask = self.desired.masks.get(&key).copied().unwrap_or(0);
+        let mut reads = isovox_proto::tile::mesh_tile_reads(&self.layout, key);
+        for face in (0..6).filter(|f| mask >> f & 1 == 1) {
+            reads.extend(isovox_proto::tile::strip_reads(&self.layout, key, face));
+        }
+        reads
+    }
+
     /// Works out what every desired tile without current content needs, makes cached ones
     /// ready, aborts requests nobody needs, and queues the rest nearest first.
     fn replan(&mut self) {
         self.scheduler.replan_needed = false;
         self.scheduler.waiting.clear();
         self.scheduler.mesh_keys.clear();
+        self.scheduler.strip_keys.clear();
         let mut needed: HashMap<JobKey, f32> = HashMap::new();
         let need = |needed: &mut HashMap<JobKey, f32>, job: JobKey, d: f32| {
             let e = needed.entry(job).or_insert(d);
             *e = e.min(d);
         };
         let mut from_cache = Vec::new();
+        let mut drawings = Vec::new();
         let missing: Vec<BrickKey> = self
             .desired
             .tiles
@@ -592,19 +651,52 @@ impl Engine {
                     }
                     None => need(&mut needed, self.source_of(key), d),
                 },
-                TileKind::Meshes { iso } => match self.mesh_content(key, iso) {
-                    Ok(content) if self.cache.contains(content) => from_cache.push((key, content)),
-                    Ok(content) => {
+                TileKind::Meshes { iso } => {
+                    // The tile and the strips of its mask's faces, each from the cache or a
+                    // request; drawn once all are there.
+                    let mask = self.desired.masks.get(&key).copied().unwrap_or(0);
+                    let mut unknown = Vec::new();
+                    let content = match self.mesh_content(key, iso) {
+                        Ok(c) => Some(c),
+                        Err(u) => {
+                            unknown.extend(u);
+                            None
+                        }
+                    };
+                    let mut strips = [None; 6];
+                    for face in (0..6u8).filter(|f| mask >> f & 1 == 1) {
+                        match self.strip_content(key, face, iso) {
+                            Ok(c) => strips[usize::from(face)] = Some(c),
+                            Err(u) => unknown.extend(u),
+                        }
+                    }
+                    let (Some(content), true) = (content, unknown.is_empty()) else {
+                        for b in unknown {
+                            need(&mut needed, self.source_of(b), d);
+                        }
+                        continue;
+                    };
+                    let mut complete = true;
+                    if !self.cache.contains(content) {
+                        complete = false;
                         need(&mut needed, JobKey::Mesh(key), d);
                         self.scheduler.waiting.entry(content).or_default().push(key);
                         self.scheduler.mesh_keys.insert(key, content);
                     }
-                    Err(unknown) => {
-                        for b in unknown {
-                            need(&mut needed, self.source_of(b), d);
+                    for (face, strip) in strips.iter().enumerate() {
+                        let Some(strip) = *strip else { continue };
+                        if !self.cache.contains(strip) {
+                            complete = false;
+                            let job = JobKey::Strip(key, face as u8);
+                            need(&mut needed, job, d);
+                            self.scheduler.waiting.entry(strip).or_default().push(key);
+                            self.scheduler.strip_keys.insert((key, face as u8), strip);
                         }
                     }
-                },
+                    if complete {
+                        drawings.push((key, content, strips));
+                    }
+                }
             }
         }
         for (key, content) in from_cache {
@@ -612,6 +704,9 @@ impl Engine {
                 self.stats.hits += 1;
                 self.mark_ready(key, content, data);
             }
+        }
+        for (key, content, strips) in drawings {
+            self.draw(key, content, strips);
         }
         let unneeded: Vec<JobKey> = self
             .scheduler
@@ -673,6 +768,14 @@ impl Engine {
                             .get(&k)
                             .is_some_and(|t| t.ready.is_none())
                 }
+                JobKey::Strip(k, f) => {
+                    self.scheduler.strip_keys.contains_key(&(k, f))
+                        && self
+                            .desired
+                            .tiles
+                            .get(&k)
+                            .is_some_and(|t| t.ready.is_none())
+                }
             };
             if still_needed {
                 self.start(job);
@@ -721,13 +824,25 @@ impl Engine {
                     .get(&key)
                     .copied()
                     .unwrap_or_default();
-                let iso = match self.kind {
-                    TileKind::Meshes { iso } => iso,
-                    TileKind::Bricks => None,
-                };
+                let iso = self.mesh_iso();
                 self.scheduler.jobs.spawn(async move {
                     let r = client.mesh_tile(&name, key, iso, version).await;
                     (id, job, Output::Mesh(content, r))
+                })
+            }
+            JobKey::Strip(key, face) => {
+                let content = self
+                    .scheduler
+                    .strip_keys
+                    .get(&(key, face))
+                    .copied()
+                    .unwrap_or_default();
+                let iso = self.mesh_iso();
+                self.scheduler.jobs.spawn(async move {
+                    let r = client
+                        .mesh_strip(&name, key, usize::from(face), iso, version)
+                        .await;
+                    (id, job, Output::Strip(content, r))
                 })
             }
         };
@@ -761,22 +876,60 @@ impl Engine {
     }
 
     fn mark_ready(&mut self, key: BrickKey, content: u64, data: Content) {
+        let data = match data {
+            Content::Brick(b) => TileData::Brick(b),
+            // Mesh tiles and strips are delivered through `draw`.
+            Content::Mesh(_) | Content::Strip(_) => return,
+        };
+        self.deliver(key, content, data);
+    }
+
+    /// Delivers mesh tile `key` drawn with its mask: its content (key `content`) and the strips
+    /// of its mask's faces (content keys `strips`), all in the cache. Delivered again only when
+    /// the drawing changed (another mask, another strip).
+    fn draw(&mut self, key: BrickKey, content: u64, strips: [Option<u64>; 6]) {
+        let Some(Content::Mesh(tile)) = self.cache.get(content) else {
+            return;
+        };
+        let mut parts: [Option<Arc<Mesh>>; 6] = Default::default();
+        for (face, strip) in strips.iter().enumerate() {
+            if let Some(c) = *strip {
+                match self.cache.get(c) {
+                    Some(Content::Strip(s)) => parts[face] = Some(s),
+                    _ => return,
+                }
+            }
+        }
+        let mask = self.desired.masks.get(&key).copied().unwrap_or(0);
+        let mut h = DefaultHasher::new();
+        (content, mask, strips).hash(&mut h);
+        let drawn_key = h.finish();
         let Some(t) = self.desired.tiles.get_mut(&key) else {
             return;
         };
-        let data = match data {
-            Content::Brick(b) => TileData::Brick(b),
-            Content::Mesh(tile) => {
-                let mask = self.desired.masks.get(&key).copied().unwrap_or(0);
-                let mut mesh = Mesh::default();
-                isovox_proto::mesh::stitch(&tile, mask, &mut mesh);
-                t.drawn = Some((tile.clone(), mask));
-                TileData::Mesh(MeshTile {
-                    tile,
-                    mask,
-                    mesh: Arc::new(mesh),
-                })
-            }
+        if t.drawn_key == Some(drawn_key) && t.ready.is_none() && t.shown && !t.stale {
+            // The same drawing as delivered (a mask that changed and changed back).
+            t.ready = Some(content);
+            self.desired.missing -= 1;
+            return;
+        }
+        let mut mesh = Mesh::default();
+        let drawn_strips = std::array::from_fn(|f| parts[f].as_deref());
+        isovox_proto::mesh::stitch(&tile, mask, drawn_strips, &mut mesh);
+        t.drawn = Some((tile.clone(), mask));
+        t.drawn_key = Some(drawn_key);
+        let data = TileData::Mesh(MeshTile {
+            tile,
+            mask,
+            strips: parts,
+            mesh: Arc::new(mesh),
+        });
+        self.deliver(key, content, data);
+    }
+
+    fn deliver(&mut self, key: BrickKey, content: u64, data: TileData) {
+        let Some(t) = self.desired.tiles.get_mut(&key) else {
+            return;
         };
         if t.ready.is_none() {
             self.desired.missing -= 1;
@@ -836,6 +989,7 @@ impl Engine {
             Output::Region(result) => self.on_region(job, result),
             Output::Blob(result) => self.on_blob(job, result),
             Output::Mesh(content, result) => self.on_mesh(job, content, result),
+            Output::Strip(content, result) => self.on_strip(job, content, result),
         }
     }
 
@@ -946,23 +1100,39 @@ impl Engine {
         self.stats.bytes += isovox_proto::mesh::encode_tile(&tile).len() as u64;
         self.stats.misses += 1;
         let size = tile_size(&tile);
-        let data = Content::Mesh(Arc::new(tile));
-        self.cache.put(content, data.clone(), size);
-        let mut first = true;
-        for k in self.scheduler.waiting.remove(&content).unwrap_or_default() {
-            let current = self
-                .desired
-                .tiles
-                .get(&k)
-                .is_some_and(|t| t.ready.is_none())
-                && self.scheduler.mesh_keys.get(&k) == Some(&content);
-            if current {
-                if !first {
-                    self.stats.hits += 1;
-                }
-                first = false;
-                self.mark_ready(k, content, data.clone());
+        self.cache.put(content, Content::Mesh(Arc::new(tile)), size);
+        self.on_arrival(content);
+    }
+
+    fn on_strip(&mut self, job: JobKey, content: u64, result: Result<Mesh, ClientError>) {
+        let JobKey::Strip(key, face) = job else {
+            return;
+        };
+        let strip = match result {
+            Ok(s) => s,
+            Err(e) => {
+                let name = isovox_proto::mesh::FACE_NAMES[usize::from(face) % 6];
+                self.fail(
+                    job,
+                    Some(key),
+                    format!("strip {name} of mesh tile {key}: {e}"),
+                );
+                return;
             }
+        };
+        self.scheduler.failures.remove(&job);
+        self.stats.bytes += isovox_proto::mesh::encode_compact(&strip).len() as u64;
+        let size = mesh_size(&strip) + 64;
+        self.cache
+            .put(content, Content::Strip(Arc::new(strip)), size);
+        self.on_arrival(content);
+    }
+
+    /// A mesh tile or strip with content key `content` is in the cache: the tiles waiting for
+    /// it are drawn once all their parts are there (the next plan finds them complete).
+    fn on_arrival(&mut self, content: u64) {
+        if self.scheduler.waiting.remove(&content).is_some() {
+            self.scheduler.replan_needed = true;
         }
     }
 
@@ -1007,7 +1177,8 @@ impl Engine {
             let g = self.layout.grid(level);
             let mut affected = BTreeSet::new();
             let mut read = Vec::new();
-            // Mesh tiles read bricks of their level and of the next coarser one.
+            // Mesh tiles read bricks of their level, and the strips of their mask's faces those
+            // of the next coarser one too.
             let readers: Vec<(BrickKey, Vec<(u8, isovox_proto::tile::GridBox)>)> = match self.kind {
                 TileKind::Bricks => Vec::new(),
                 TileKind::Meshes { .. } => self
@@ -1015,7 +1186,7 @@ impl Engine {
                     .tiles
                     .keys()
                     .filter(|t| t.level == level || t.level + 1 == level)
-                    .map(|&t| (t, isovox_proto::tile::mesh_tile_reads(&self.layout, t)))
+                    .map(|&t| (t, self.drawing_reads(t)))
                     .collect(),
             };
             for &p in changed {
@@ -1085,6 +1256,11 @@ impl Engine {
             for key in affected {
                 if let Some(r) = self.scheduler.running.remove(&JobKey::Mesh(key)) {
                     r.abort.abort();
+                }
+                for face in 0..6 {
+                    if let Some(r) = self.scheduler.running.remove(&JobKey::Strip(key, face)) {
+                        r.abort.abort();
+                    }
                 }
                 self.invalidate(key, ev.version);
             }

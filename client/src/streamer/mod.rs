@@ -241,12 +241,15 @@ pub fn select_stitched_tiles(info: &VolumeInfo, camera: [f32; 3], radii: &[f32])
 #[derive(Debug, Clone)]
 pub struct MeshTile {
     /// The tile as the server sends it, in world coordinates (normals quantized): its regular
-    /// mesh and its transition data.
+    /// mesh and its moves.
     pub tile: Arc<TileMesh>,
     /// The faces touching a coarser tile in the current selection (bit f: face f, in the order
     /// -x, +x, -y, +y, -z, +z).
     pub mask: u8,
-    /// `tile` stitched with `mask` (`isovox_proto::mesh::stitch`): what to draw.
+    /// The transition strips of the faces in `mask`, as the server sends them (`None` for the
+    /// other faces).
+    pub strips: [Option<Arc<Mesh>>; 6],
+    /// `tile` stitched with `mask` and `strips` (`isovox_proto::mesh::stitch`): what to draw.
     pub mesh: Arc<Mesh>,
 }
 
@@ -275,13 +278,9 @@ fn mesh_size(m: &Mesh) -> usize {
     m.positions.len() * 24 + m.indices.len() * 4
 }
 
-/// Memory a tile holds: its regular mesh and its transition data.
+/// Memory a tile holds: its regular mesh and its moves.
 fn tile_size(t: &TileMesh) -> usize {
-    let tr = &t.transitions;
-    mesh_size(&t.mesh)
-        + tr.positions.len() * 24
-        + tr.moves.len() * std::mem::size_of::<isovox_proto::mesh::VertexMove>()
-        + tr.strips.iter().map(Vec::len).sum::<usize>() * 4
+    mesh_size(&t.mesh) + t.moves.len() * std::mem::size_of::<isovox_proto::mesh::VertexMove>()
 }
 
 /// What the streamer reports.

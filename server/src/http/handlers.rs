@@ -5,6 +5,8 @@ use super::bricks::{format_etag, if_none_match, BrickPath};
 use super::compression::{accepts_zstd, Body};
 use super::extract::{Json, Path, Query};
 use super::{ApiError, AppState};
+use crate::mesh::cache::MeshCache;
+use crate::store::decoded::DecodedBricks;
 use crate::volume::read::{LevelAnswer, LevelForm};
 use crate::volume::{LiveVolume, VolumeError};
 use axum::extract::State;
@@ -13,6 +15,7 @@ use axum::response::{IntoResponse, Response};
 use isovox_proto::api::{VolumeInfo, VolumeList};
 use isovox_proto::batch::BatchRequest;
 use serde::Deserialize;
+use std::sync::Arc;
 
 /// Media type of the compact mesh encoding (`proto::mesh`).
 pub const MESH_MEDIA_TYPE: &str = "application/x-isovox-mesh";
@@ -74,8 +77,8 @@ pub enum TileFormat {
     /// `application/x-isovox-mesh` (`docs/mesh-encoding.md`).
     #[default]
     Compact,
-    /// `model/gltf-binary`: the regular mesh as a glTF primitive, the transition data in a
-    /// buffer view.
+    /// `model/gltf-binary`: the regular mesh as a glTF primitive, the moves in a buffer view
+    /// (a strip: a plain glTF mesh).
     Glb,
 }
 
@@ -87,6 +90,13 @@ impl TileFormat {
         }
     }
 
+    fn encode_strip(self, strip: &isovox_proto::mesh::Mesh) -> Vec<u8> {
+        match self {
+            TileFormat::Compact => isovox_proto::mesh::encode_compact(strip),
+            TileFormat::Glb => isovox_proto::mesh::encode_glb(strip),
+        }
+    }
+
     fn media_type(self) -> &'static str {
         match self {
             TileFormat::Compact => MESH_MEDIA_TYPE,
@@ -95,11 +105,11 @@ impl TileFormat {
     }
 }
 
-/// One mesh tile with its transition data (`docs/mesh-encoding.md`): marching cubes over the
+/// One mesh tile with its moves (`docs/mesh-encoding.md`): marching cubes over the
 /// brick and its halo, through the content-keyed mesh cache, meshed, encoded and (for clients
 /// that take it) zstd-compressed off the async runtime. `ETag` names the tile's inputs and
-/// position, so a revalidation costs index lookups (27 bricks and the coarser ones its strips
-/// read) and no meshing; caching headers as [`validate`] says.
+/// position, so a revalidation costs index lookups (27 bricks) and no meshing; caching headers as
+/// [`validate`] says.
 pub async fn mesh_tile(
     State(state): State<AppState>,
     Path((name, level, x, y, z)): Path<BrickPath>,
@@ -111,23 +121,92 @@ pub async fn mesh_tile(
         .catalog
         .get(&name)?
         .mesh_tile(query.version, (level, x, y, z), query.iso)?;
-    let response_headers = match validate(tile.tag(format as u8), query.version, &headers) {
+    let tag = tile.tag(format as u8);
+    answer_mesh(
+        &state,
+        tag,
+        query.version,
+        &headers,
+        format.media_type(),
+        move |meshes, bricks| Ok(format.encode(&tile.mesh(meshes, bricks)?)),
+    )
+    .await
+}
+
+/// A mesh answer named by `tag`: 304 when `If-None-Match` names it, else `make` run off the async
+/// runtime with the mesh cache and the decoded bricks, its bytes (zstd-compressed for clients
+/// that take it) with the caching headers [`validate`] gives.
+async fn answer_mesh(
+    state: &AppState,
+    tag: u64,
+    version: Option<u64>,
+    headers: &HeaderMap,
+    media_type: &'static str,
+    make: impl FnOnce(&MeshCache, Arc<DecodedBricks>) -> Result<Vec<u8>, VolumeError> + Send + 'static,
+) -> Result<Response, ApiError> {
+    let response_headers = match validate(tag, version, headers) {
         Validated::NotModified(response) => return Ok(response),
         Validated::Changed(response_headers) => response_headers,
     };
     let (meshes, bricks, zstd) = (
         state.meshes.clone(),
         state.bricks.clone(),
-        accepts_zstd(&headers),
+        accepts_zstd(headers),
     );
     let body = state
         .cpu
         .answer(0, move || {
-            let tile = tile.mesh(&meshes, bricks)?;
-            Ok::<_, VolumeError>(Body::new(format.encode(&tile), zstd))
+            Ok::<_, VolumeError>(Body::new(make(&meshes, bricks)?, zstd))
         })
         .await?;
-    Ok(body.respond(format.media_type(), response_headers))
+    Ok(body.respond(media_type, response_headers))
+}
+
+/// The path of a transition strip: a tile's and its face.
+pub type StripPath = (String, u8, u32, u32, u32, String);
+
+/// Face `name` (one of [`isovox_proto::mesh::FACE_NAMES`]: `-x`, `+x`, `-y`, `+y`, `-z`, `+z`)
+/// as its number.
+fn face_number(name: &str) -> Result<usize, ApiError> {
+    isovox_proto::mesh::FACE_NAMES
+        .iter()
+        .position(|&f| f == name)
+        .ok_or_else(|| {
+            ApiError::BadRequest(format!(
+                "unknown face {name:?}: one of {}",
+                isovox_proto::mesh::FACE_NAMES.join(", ")
+            ))
+        })
+}
+
+/// The transition strip of one face of a mesh tile (`docs/lod-meshes.md`): a plain mesh whose
+/// vertices are at their drawn positions, drawn with the tile when that face touches a tile one
+/// level coarser. Content-addressed like the tile: the mesh cache, a strong `ETag` naming its
+/// inputs (a revalidation costs index lookups), caching headers as [`validate`] says. A face
+/// that can never touch a coarser tile has an empty strip.
+pub async fn mesh_strip(
+    State(state): State<AppState>,
+    Path((name, level, x, y, z, face)): Path<StripPath>,
+    Query(query): Query<MeshQuery>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    let format = query.format;
+    let face = face_number(&face)?;
+    let strip =
+        state
+            .catalog
+            .get(&name)?
+            .mesh_strip(query.version, (level, x, y, z), face, query.iso)?;
+    let tag = strip.tag(format as u8);
+    answer_mesh(
+        &state,
+        tag,
+        query.version,
+        &headers,
+        format.media_type(),
+        move |meshes, bricks| Ok(format.encode_strip(&strip.mesh(meshes, bricks)?)),
+    )
+    .await
 }
 
 /// Of a computed answer named by a tag (`tag` hashes everything its bytes depend on).

@@ -12,7 +12,8 @@
 //! - `POST /v1/volumes/{name}/batch`: many bricks in one response (`proto::batch`).
 //! - `GET /v1/volumes/{name}/levels/{level}`: a level's brick grid, or its voxels.
 //! - `GET /v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}`: one mesh tile (see
-//!   [`handlers::mesh_tile`]).
+//!   [`handlers::mesh_tile`]); `.../strips/{face}`: the transition strip of one of its faces
+//!   ([`handlers::mesh_strip`]).
 //! - `POST /v1/volumes/{name}/edits` ([`edit`]), `POST .../compact` ([`compact`]),
 //!   `GET .../events` and `GET .../changes` ([`feed`]), `POST /v1/meshes` ([`meshes`]).
 //! - `GET /v1/volumes/{name}/zarr/...`, `.../precomputed/...` and their version-pinned forms
@@ -252,6 +253,7 @@ pub const ROUTES: &[&str] = &[
     "/v1/volumes/{name}",
     "/v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}",
     "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}",
+    "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}/strips/{face}",
     "/v1/volumes/{name}/blobs/{hash}",
     "/v1/volumes/{name}/batch",
     "/v1/volumes/{name}/levels/{level}",
@@ -312,6 +314,10 @@ fn routes(state: &AppState) -> Router<AppState> {
         .route(
             "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}",
             read(handlers::mesh_tile),
+        )
+        .route(
+            "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}/strips/{face}",
+            read(handlers::mesh_strip),
         )
         .route("/v1/volumes/{name}/batch", write(handlers::batch))
         .route("/v1/volumes/{name}/levels/{level}", read(handlers::level))

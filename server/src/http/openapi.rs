@@ -171,13 +171,24 @@ pub(super) fn document(limits: &TermLimits) -> Value {
                     "304": {"description": "not modified (If-None-Match)"}}),
                     problem_responses(&["400", "404", "413", "500", "503"]))}},
             "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}": {"get": {
-                "summary": "the marching-cubes mesh of one tile, in world coordinates, with its transition data: secondary positions and one strip per face, to join tiles one level coarser without cracks (docs/mesh-encoding.md, docs/lod-meshes.md); a strong ETag, Cache-Control: no-cache (public, max-age=31536000, immutable with ?version=N)",
+                "summary": "the marching-cubes mesh of one tile, in world coordinates, with its moves (secondary positions) for the faces that touch a tile one level coarser (docs/mesh-encoding.md, docs/lod-meshes.md); a strong ETag, Cache-Control: no-cache (public, max-age=31536000, immutable with ?version=N)",
                 "parameters": [name, level, coord("x"), coord("y"), coord("z"), version,
                     query_param("iso", json!({"type": "number", "minimum": 0, "maximum": u16::MAX}),
                         "iso value, default S - 0.5; within the volume's [L, H] (0..255 for u8 voxels, 0..65535 for u16: 400 beyond)"),
-                    query_param("format", json!({"type": "string", "enum": ["compact", "glb"]}), "compact (default: format version 2 with the transition section, docs/mesh-encoding.md) or glb (the regular mesh as a plain glTF primitive, the transition section in a buffer view named by the mesh's extras)")],
+                    query_param("format", json!({"type": "string", "enum": ["compact", "glb"]}), "compact (default: format version 3, the regular mesh and its moves, docs/mesh-encoding.md) or glb (the regular mesh as a plain glTF primitive, the moves in a buffer view named by the mesh's extras)")],
                 "responses": merge(json!({
-                    "200": {"description": "the tile: its regular mesh and transition data", "content": merge(binary("application/x-isovox-mesh"), binary("model/gltf-binary"))},
+                    "200": {"description": "the tile: its regular mesh and moves", "content": merge(binary("application/x-isovox-mesh"), binary("model/gltf-binary"))},
+                    "304": {"description": "not modified"}}), problem_responses(&["400", "404", "500", "503"]))}},
+            "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}/strips/{face}": {"get": {
+                "summary": "the transition strip of one face of a mesh tile: a plain mesh, in world coordinates at its drawn positions, drawn with the tile (its moves of that face applied) where that face touches a tile one level coarser (docs/lod-meshes.md); empty for a face that can never touch one (the volume's boundary, the coarsest level); a strong ETag, Cache-Control as the tile's",
+                "parameters": [name, level, coord("x"), coord("y"), coord("z"),
+                    json!({"name": "face", "in": "path", "required": true, "schema": {"type": "string", "enum": ["-x", "+x", "-y", "+y", "-z", "+z"]}, "description": "the face: -x, +x, -y, +y, -z or +z (400 for anything else)"}),
+                    version,
+                    query_param("iso", json!({"type": "number", "minimum": 0, "maximum": u16::MAX}),
+                        "iso value, as for the tile"),
+                    query_param("format", json!({"type": "string", "enum": ["compact", "glb"]}), "compact (default: format version 1, a plain mesh) or glb (a plain glTF mesh)")],
+                "responses": merge(json!({
+                    "200": {"description": "the strip", "content": merge(binary("application/x-isovox-mesh"), binary("model/gltf-binary"))},
                     "304": {"description": "not modified"}}), problem_responses(&["400", "404", "500", "503"]))}},
         },
         "components": {"securitySchemes": {"bearer": {"type": "http", "scheme": "bearer"}}, "schemas": {

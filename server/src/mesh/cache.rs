@@ -1,14 +1,15 @@
-//! The mesh cache: tiles keyed by the content of their inputs.
+//! The mesh cache: tiles and transition strips keyed by the content of their inputs.
 //!
 //! The tile key ([`super::tile::tile_inputs`]) is a hash of the content hashes (or constant
-//! values) of the bricks the tile reads, of its level and of the next coarser one (its
-//! transition strips read those), the level, the iso value and the tile's shape, and the cached
-//! tile (regular mesh and transition data) is in tile-local coordinates. So identical tiles anywhere, in any volume, are meshed once, and an
+//! values) of the bricks the tile reads, the level, the iso value and the tile's shape; a
+//! strip's key ([`super::tile::strip_inputs`]) hashes those of the bricks it reads (of the
+//! tile's level along its face and of the next coarser one) and its face. Cached tiles (regular
+//! mesh and moves) and strips are in tile-local coordinates. So identical tiles anywhere, in any volume, are meshed once, and an
 //! edit invalidates exactly the tiles whose inputs changed: their key changes; the old entry
 //! ages out. The decoded bricks a tile reads come from the scratch's shared brick cache
 //! ([`crate::store::decoded`]).
 
-use super::tile::{mesh_tile_from, TileInputs, TileScratch};
+use super::tile::{mesh_strip_from, mesh_tile_from, StripInputs, TileInputs, TileScratch};
 use crate::store::lru::ByteLru;
 use crate::store::{Snapshot, StoreError};
 use isovox_proto::mesh::TileMesh;
@@ -21,7 +22,8 @@ use std::sync::Arc;
 pub struct CachedTile {
     /// The tile's content key.
     pub key: u128,
-    /// The regular mesh and transition data, in tile-local coordinates.
+    /// The regular mesh and moves (of a strip: its mesh and the moves of its face), in
+    /// tile-local coordinates.
     pub tile: Arc<TileMesh>,
     /// Whether it came from the cache.
     pub hit: bool,
@@ -36,11 +38,9 @@ pub struct MeshCache {
 }
 
 fn tile_bytes(t: &TileMesh) -> usize {
-    let tr = &t.transitions;
-    let strips: usize = tr.strips.iter().map(Vec::len).sum();
-    (t.mesh.positions.len() + tr.positions.len()) * 24
-        + (t.mesh.indices.len() + strips) * 4
-        + tr.moves.len() * std::mem::size_of::<isovox_proto::mesh::VertexMove>()
+    t.mesh.positions.len() * 24
+        + t.mesh.indices.len() * 4
+        + t.moves.len() * std::mem::size_of::<isovox_proto::mesh::VertexMove>()
         + 128
 }
 
@@ -82,21 +82,53 @@ impl MeshCache {
         inputs: &TileInputs,
         scratch: &mut TileScratch,
     ) -> Result<CachedTile, StoreError> {
-        if let Some(tile) = self.tiles.get(inputs.key) {
+        self.cached(inputs.key, |tile| {
+            mesh_tile_from(snap, key, iso, inputs, tile, scratch).map(drop)
+        })
+    }
+
+    /// The local strip of face `face` of tile `key` with inputs `inputs` (from
+    /// [`super::tile::strip_inputs`]), from the cache or meshed now with `scratch` (and then
+    /// cached). Tiles and strips share the cache's bytes; their keys never meet (a strip's
+    /// describes its face).
+    ///
+    /// # Errors
+    /// A brick fails to read.
+    pub fn strip(
+        &self,
+        snap: &Snapshot,
+        key: BrickKey,
+        face: usize,
+        iso: f32,
+        inputs: &StripInputs,
+        scratch: &mut TileScratch,
+    ) -> Result<CachedTile, StoreError> {
+        self.cached(inputs.key, |strip| {
+            mesh_strip_from(snap, key, face, iso, inputs, strip, scratch)
+        })
+    }
+
+    /// The entry under content key `key`, or `make`'s (then cached).
+    fn cached(
+        &self,
+        key: u128,
+        make: impl FnOnce(&mut TileMesh) -> Result<(), StoreError>,
+    ) -> Result<CachedTile, StoreError> {
+        if let Some(tile) = self.tiles.get(key) {
             self.hits.fetch_add(1, Ordering::Relaxed);
             return Ok(CachedTile {
-                key: inputs.key,
+                key,
                 tile,
                 hit: true,
             });
         }
         self.misses.fetch_add(1, Ordering::Relaxed);
         let mut tile = TileMesh::default();
-        mesh_tile_from(snap, key, iso, inputs, &mut tile, scratch)?;
+        make(&mut tile)?;
         let tile = Arc::new(tile);
-        self.tiles.put(inputs.key, tile.clone(), tile_bytes(&tile));
+        self.tiles.put(key, tile.clone(), tile_bytes(&tile));
         Ok(CachedTile {
-            key: inputs.key,
+            key,
             tile,
             hit: false,
         })

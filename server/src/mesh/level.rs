@@ -1,7 +1,7 @@
 //! Whole levels and adaptive selections of tiles, meshed in parallel, stitched and welded.
 
 use super::mc::Mesh;
-use super::tile::{mesh_tile, mesh_tile_with_transitions, TileScratch};
+use super::tile::{mesh_strip_world, mesh_tile, mesh_tile_with_moves, TileScratch};
 use crate::progress::Progress;
 use crate::store::decoded::DecodedBricks;
 use crate::store::{Snapshot, StoreError};
@@ -40,15 +40,27 @@ pub fn balanced_tiles(snap: &Snapshot, camera: [f32; 3], radii: &[f32]) -> Vec<B
     isovox_proto::lod::balanced_tiles(snap.layout(), snap.header().voxel_scale, camera, radii)
 }
 
-/// Runs `mesh` on every tile of `tiles` in parallel, each thread with its own scratch sharing
-/// one cache of decoded bricks (each brick is read whole by up to 27 tiles), in the order given.
-fn in_parallel<T: Send>(
-    tiles: &[BrickKey],
+/// Runs `mesh` on every item of `tiles` (tiles, or tiles' faces) in parallel, each thread with
+/// its own scratch sharing one cache of decoded bricks (each brick is read whole by up to 27
+/// tiles), in the order given.
+fn in_parallel<I: Copy + Sync, T: Send>(
+    tiles: &[I],
     progress: &dyn Progress,
-    mesh: impl Fn(&mut TileScratch, BrickKey) -> Result<T, StoreError> + Sync,
+    mesh: impl Fn(&mut TileScratch, I) -> Result<T, StoreError> + Sync,
+) -> Result<Vec<T>, StoreError> {
+    let bricks = std::sync::Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
+    in_parallel_with(&bricks, tiles, progress, mesh)
+}
+
+/// [`in_parallel`] with the cache of decoded bricks `bricks` (shared with other passes, as the
+/// server shares one between requests).
+fn in_parallel_with<I: Copy + Sync, T: Send>(
+    bricks: &std::sync::Arc<DecodedBricks>,
+    tiles: &[I],
+    progress: &dyn Progress,
+    mesh: impl Fn(&mut TileScratch, I) -> Result<T, StoreError> + Sync,
 ) -> Result<Vec<T>, StoreError> {
     progress.start(tiles.len() as u64);
-    let bricks = std::sync::Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
     let parts = tiles
         .par_iter()
         .map_init(
@@ -100,8 +112,78 @@ pub fn mesh_tiles(
     Ok(out)
 }
 
+/// Meshes `tiles` in parallel with their moves (world coordinates), in the order given.
+///
+/// # Errors
+/// A brick fails to read.
+pub fn mesh_tiles_with_moves(
+    snap: &Snapshot,
+    tiles: &[BrickKey],
+    iso: f32,
+    progress: &dyn Progress,
+) -> Result<Vec<TileMesh>, StoreError> {
+    in_parallel(tiles, progress, |scratch, key| {
+        let mut tile = TileMesh::default();
+        mesh_tile_with_moves(snap, key, iso, &mut tile, scratch)?;
+        Ok(tile)
+    })
+}
+
+/// Meshes the transition strips `strips` (tile, face) in parallel, as drawn (world
+/// coordinates), in the order given.
+///
+/// # Errors
+/// A brick fails to read.
+pub fn mesh_strips(
+    snap: &Snapshot,
+    strips: &[(BrickKey, usize)],
+    iso: f32,
+    progress: &dyn Progress,
+) -> Result<Vec<Mesh>, StoreError> {
+    in_parallel(strips, progress, |scratch, (key, face)| {
+        let mut strip = Mesh::default();
+        mesh_strip_world(snap, key, face, iso, &mut strip, scratch)?;
+        Ok(strip)
+    })
+}
+
+/// A balanced selection's tiles, meshed with their moves, their face masks
+/// ([`isovox_proto::lod::face_masks`]) and the strips those masks need (world coordinates).
+#[derive(Debug, Clone, Default)]
+pub struct StitchableParts {
+    /// One per tile, in the selection's order.
+    pub tiles: Vec<TileMesh>,
+    /// Each tile's face mask.
+    pub masks: Vec<u8>,
+    /// Each tile's strips, for the faces of its mask.
+    pub strips: Vec<[Option<Mesh>; 6]>,
+}
+
+impl StitchableParts {
+    /// Tile `i` as drawn ([`stitch`] with its mask and strips) into `out`.
+    pub fn drawn(&self, i: usize, out: &mut Mesh) {
+        let strips = std::array::from_fn(|f| self.strips[i][f].as_ref());
+        stitch(&self.tiles[i], self.masks[i], strips, out);
+    }
+
+    /// The number of strips.
+    pub fn strip_count(&self) -> usize {
+        self.strips.iter().flatten().flatten().count()
+    }
+}
+
+/// The faces of a selection's tiles its masks need a strip for: (tile index, face).
+pub fn mask_faces(masks: &[u8]) -> Vec<(usize, usize)> {
+    masks
+        .iter()
+        .enumerate()
+        .flat_map(|(i, &m)| (0..6).filter(move |f| m >> f & 1 == 1).map(move |f| (i, f)))
+        .collect()
+}
+
 /// Meshes `tiles` (a balanced selection, as [`balanced_tiles`] gives) in parallel with their
-/// transition data, one tile per key (world coordinates), in the order given.
+/// moves, then the strips their face masks need, the two passes sharing one cache of decoded
+/// bricks (as the server's requests share one).
 ///
 /// # Errors
 /// A brick fails to read.
@@ -110,17 +192,34 @@ pub fn mesh_stitchable_parts(
     tiles: &[BrickKey],
     iso: f32,
     progress: &dyn Progress,
-) -> Result<Vec<TileMesh>, StoreError> {
-    in_parallel(tiles, progress, |scratch, key| {
+) -> Result<StitchableParts, StoreError> {
+    let bricks = std::sync::Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
+    let meshed = in_parallel_with(&bricks, tiles, progress, |scratch, key| {
         let mut tile = TileMesh::default();
-        mesh_tile_with_transitions(snap, key, iso, &mut tile, scratch)?;
+        mesh_tile_with_moves(snap, key, iso, &mut tile, scratch)?;
         Ok(tile)
+    })?;
+    let masks = isovox_proto::lod::face_masks(snap.layout(), tiles);
+    let faces = mask_faces(&masks);
+    let made = in_parallel_with(&bricks, &faces, progress, |scratch, (i, face)| {
+        let mut strip = Mesh::default();
+        mesh_strip_world(snap, tiles[i], face, iso, &mut strip, scratch)?;
+        Ok(strip)
+    })?;
+    let mut strips = vec![[(); 6].map(|_| None); tiles.len()];
+    for ((i, face), strip) in faces.into_iter().zip(made) {
+        strips[i][face] = Some(strip);
+    }
+    Ok(StitchableParts {
+        tiles: meshed,
+        masks,
+        strips,
     })
 }
 
 /// Meshes `tiles` (a balanced selection covering the volume once, as [`balanced_tiles`] gives)
 /// and stitches them: each tile drawn with the face mask [`isovox_proto::lod::face_masks`]
-/// gives it, all concatenated (see [`weld`]).
+/// gives it and those faces' strips, all concatenated (see [`weld`]).
 ///
 /// # Errors
 /// A brick fails to read.
@@ -131,11 +230,10 @@ pub fn mesh_stitched(
     progress: &dyn Progress,
 ) -> Result<Mesh, StoreError> {
     let parts = mesh_stitchable_parts(snap, tiles, iso, progress)?;
-    let masks = isovox_proto::lod::face_masks(snap.layout(), tiles);
     let mut out = Mesh::default();
     let mut drawn = Mesh::default();
-    for (tile, &mask) in parts.iter().zip(&masks) {
-        stitch(tile, mask, &mut drawn);
+    for i in 0..parts.tiles.len() {
+        parts.drawn(i, &mut drawn);
         out.append(&drawn);
     }
     Ok(out)

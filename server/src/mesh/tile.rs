@@ -24,15 +24,16 @@ use super::lattice::{
     lattice_field, lattice_plane, lattice_point, value_range, weights, LatticeScratch,
 };
 use super::mc::{march, Field, Kernel, Mesh, Scratch};
-use super::transition::{mesh_transitions, TransitionInput, TransitionScratch};
+use super::transition::{mesh_strip, tile_moves, TileFaces, TransitionInput, TransitionScratch};
 use crate::store::codec::min_max;
 use crate::store::decoded::{decode, DecodedBricks};
 use crate::store::{Snapshot, StoreError, StoredBrick};
 use bytes::Bytes;
 use isovox_proto::lod::FACE_DIRECTIONS;
-use isovox_proto::mesh::{TileMesh, Transitions};
+use isovox_proto::mesh::{apply_moves, TileMesh, VertexMove};
 use isovox_proto::tile::{
-    bricks_of, cells, coarse_box, field_box, has_transitions, stored_box, GridBox,
+    bricks_of, cells, coarse_box, field_box, has_transitions, stored_box, strip_coarse_box,
+    strip_field_box, GridBox,
 };
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use std::sync::Arc;
@@ -54,6 +55,8 @@ pub struct TileScratch {
     fine_bricks: BrickWindow,
     lattice: LatticeScratch,
     march: Scratch,
+    /// The regular mesh of the layer of cells a strip is built along.
+    layer: Mesh,
     transitions: TransitionScratch,
     /// Decoded bricks shared between tiles (and threads); without it each tile decodes its
     /// neighbours itself.
@@ -107,35 +110,43 @@ pub fn iso_value(iso: Option<f32>, t: VoxelType) -> Result<f32, String> {
     Ok(iso)
 }
 
-/// Whether a tile is meshed with its transition data (see [`super::transition`]).
+/// Whether a tile is meshed with its moves (see [`super::transition`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Stitching {
     /// The regular mesh alone: for one level meshed whole.
     None,
-    /// The regular mesh, secondary positions and a strip for every face with a neighbour (when
-    /// a coarser level exists): a tile that can be drawn next to any neighbours.
-    Transitions,
+    /// The regular mesh and the moves (secondary positions) of every face with a neighbour
+    /// (when a coarser level exists): a tile that can be drawn next to any neighbours, with
+    /// the strips of the faces that touch a coarser one ([`mesh_strip_from`]).
+    Moves,
 }
 
 /// What a tile's mesh depends on: its level, the iso value, the brick edge and voxel type,
 /// whether it is the first tile on an axis (it then owns one more cell), the content of the
-/// bricks it reads (content hash, constant value, or outside the volume); with transitions,
-/// also which faces have a neighbour, on which side of its parent it lies, and the content of
-/// the coarser bricks its strips read.
+/// bricks it reads (content hash, constant value, or outside the volume); with moves, also
+/// which faces have a neighbour and on which side of its parent it lies.
 #[derive(Debug, Clone)]
 pub struct TileInputs {
     /// Content key: equal keys give equal local meshes.
     pub key: u128,
-    /// Whether the iso value can lie between the samples the tile reads (from brick min/max):
+    /// Whether the iso value can lie between the samples its cells read (from brick min/max):
     /// whether the tile can hold anything.
     pub may_cross: bool,
-    /// Whether the iso value can lie between the samples its cells read (its level's alone):
-    /// whether its regular mesh can hold anything; when not, [`TileInputs::fine_inside`] says
-    /// on which side all of them are.
-    pub fine_may_cross: bool,
-    /// Without a crossing in the cells: whether all their samples are inside.
-    pub fine_inside: bool,
-    /// The faces to build strips for (a face mask; 0 without transitions).
+    /// The faces to make moves for (a face mask; 0 without moves).
+    pub faces: u8,
+}
+
+/// What a tile's strip depends on: as [`TileInputs`] with moves, the face, and the content of
+/// the bricks the strip reads: the tile's level along the face, the coarser level on and
+/// beside the face's plane.
+#[derive(Debug, Clone)]
+pub struct StripInputs {
+    /// Content key: equal keys give equal local strips.
+    pub key: u128,
+    /// Whether the iso value can lie between the samples the strip reads: whether it can hold
+    /// anything (never, for a face that cannot touch a coarser tile).
+    pub may_cross: bool,
+    /// The tile's faces with a neighbour ([`TileInputs::faces`]).
     pub faces: u8,
 }
 
@@ -201,6 +212,23 @@ fn describe_bricks(
     Ok((min, max))
 }
 
+/// The start of a content key's description: everything but the bricks.
+fn describe_tile(layout: &VolumeLayout, key: BrickKey, iso: f32, faces: u8) -> Vec<u8> {
+    let mut desc = Vec::with_capacity(64 + 2 * 27 * 9);
+    desc.push(key.level);
+    desc.extend_from_slice(&iso.to_bits().to_le_bytes());
+    desc.extend_from_slice(&layout.brick().to_le_bytes());
+    desc.push(layout.voxel_type().bytes() as u8);
+    desc.extend([key.x, key.y, key.z].map(|c| (c == 0) as u8));
+    desc.push(faces);
+    if faces != 0 {
+        // Which side of its parent the tile lies on fixes its moves and where its strips'
+        // coarse vertices are.
+        desc.extend([key.x, key.y, key.z].map(|c| (c % 2) as u8));
+    }
+    desc
+}
+
 /// Computes a tile's inputs from the index and brick headers alone (no voxel decoded).
 ///
 /// # Errors
@@ -220,42 +248,70 @@ pub fn tile_inputs(
     let (lo, hi, _) = cells(layout, key);
     let faces = match stitching {
         Stitching::None => 0,
-        Stitching::Transitions => transition_faces(layout, key),
+        Stitching::Moves => transition_faces(layout, key),
     };
-    let mut desc = Vec::with_capacity(64 + 2 * 27 * 9);
-    desc.push(key.level);
-    desc.extend_from_slice(&iso.to_bits().to_le_bytes());
-    desc.extend_from_slice(&layout.brick().to_le_bytes());
-    desc.push(layout.voxel_type().bytes() as u8);
-    desc.extend([key.x, key.y, key.z].map(|c| (c == 0) as u8));
-    desc.push(faces);
+    let mut desc = describe_tile(layout, key, iso, faces);
     // The field march reads (its cells' corners and the normals' halo); the corners alone
     // decide whether a surface crosses the cells.
     let field = stored_box(key.level, field_box(layout, key));
     let corners = stored_box(key.level, (lo, hi));
     let (min, max) = describe_bricks(snap, key.level, field, corners, &mut desc)?;
-    let (fine_low, fine_high) = value_range(key.level, f32::from(min), f32::from(max));
-    let (mut low, mut high) = (fine_low, fine_high);
-    if faces != 0 {
-        // Which side of its parent the tile lies on fixes where its strips' coarse vertices
-        // and moves are; the coarser voxels the strips read.
-        desc.extend([key.x, key.y, key.z].map(|c| (c % 2) as u8));
-        let coarse = stored_box(key.level + 1, coarse_box(layout, key));
-        let (min, max) = describe_bricks(snap, key.level + 1, coarse, coarse, &mut desc)?;
-        let (l, h) = value_range(key.level + 1, f32::from(min), f32::from(max));
-        low = low.min(l);
-        high = high.max(h);
-    }
+    let (low, high) = value_range(key.level, f32::from(min), f32::from(max));
     // At or below L every voxel, and the padding outside the volume, is inside: there is no
-    // surface. The coarser lattice values can still dip below L (Catmull-Rom's negative
-    // weights next to bright voxels), which would draw rings of that undershoot, and strips
-    // reaching into the padding where the finer field has no halo for their normals.
+    // surface.
     let surface_possible = iso > layout.voxel_type().low() as f32;
     Ok(TileInputs {
         key: xxhash_rust::xxh3::xxh3_128(&desc),
         may_cross: surface_possible && low < iso && high >= iso,
-        fine_may_cross: surface_possible && fine_low < iso && fine_high >= iso,
-        fine_inside: fine_low >= iso,
+        faces,
+    })
+}
+
+/// Computes the inputs of the strip of face `face` (0..6) of tile `key` from the index and
+/// brick headers alone.
+///
+/// # Errors
+/// The tile lies outside the volume, the face is not one of six, or a brick header fails to
+/// read.
+pub fn strip_inputs(
+    snap: &Snapshot,
+    key: BrickKey,
+    face: usize,
+    iso: f32,
+) -> Result<StripInputs, StoreError> {
+    let layout = snap.layout();
+    if !layout.contains(key) || face >= 6 {
+        return Err(StoreError::OutOfRange(format!(
+            "face {face} of tile {key} is outside the volume"
+        )));
+    }
+    let faces = transition_faces(layout, key);
+    let mut desc = describe_tile(layout, key, iso, faces);
+    desc.extend_from_slice(b"strip");
+    desc.push(face as u8);
+    if faces >> face & 1 == 0 {
+        return Ok(StripInputs {
+            key: xxhash_rust::xxh3::xxh3_128(&desc),
+            may_cross: false,
+            faces,
+        });
+    }
+    let fine = stored_box(key.level, strip_field_box(layout, key, face));
+    let (min, max) = describe_bricks(snap, key.level, fine, fine, &mut desc)?;
+    let (mut low, mut high) = value_range(key.level, f32::from(min), f32::from(max));
+    let coarse = stored_box(key.level + 1, strip_coarse_box(layout, key, face));
+    let (min, max) = describe_bricks(snap, key.level + 1, coarse, coarse, &mut desc)?;
+    let (l, h) = value_range(key.level + 1, f32::from(min), f32::from(max));
+    low = low.min(l);
+    high = high.max(h);
+    // At or below L there is no surface; the coarser lattice values can still dip below L
+    // (Catmull-Rom's negative weights next to bright voxels), which would draw rings of that
+    // undershoot, and strips reaching into the padding where the finer field has no halo for
+    // their normals.
+    let surface_possible = iso > layout.voxel_type().low() as f32;
+    Ok(StripInputs {
+        key: xxhash_rust::xxh3::xxh3_128(&desc),
+        may_cross: surface_possible && low < iso && high >= iso,
         faces,
     })
 }
@@ -278,22 +334,42 @@ pub fn mesh_tile(
     Ok(stats)
 }
 
-/// Meshes tile `key` of `snap` at `iso` into `out` (cleared first) with its transition data,
-/// in world coordinates.
+/// Meshes tile `key` of `snap` at `iso` into `out` (cleared first) with its moves, in world
+/// coordinates.
 ///
 /// # Errors
 /// A brick fails to read.
-pub fn mesh_tile_with_transitions(
+pub fn mesh_tile_with_moves(
     snap: &Snapshot,
     key: BrickKey,
     iso: f32,
     out: &mut TileMesh,
     scratch: &mut TileScratch,
 ) -> Result<TileStats, StoreError> {
-    let inputs = tile_inputs(snap, key, iso, Stitching::Transitions)?;
+    let inputs = tile_inputs(snap, key, iso, Stitching::Moves)?;
     let stats = mesh_tile_from(snap, key, iso, &inputs, out, scratch)?;
     tile_to_world(out, key, snap);
     Ok(stats)
+}
+
+/// Meshes the transition strip of face `face` of tile `key` into `out` (cleared first), in
+/// world coordinates, as drawn: its vertices moved (see [`strip_to_world`]).
+///
+/// # Errors
+/// The face is not one of six; a brick fails to read.
+pub fn mesh_strip_world(
+    snap: &Snapshot,
+    key: BrickKey,
+    face: usize,
+    iso: f32,
+    out: &mut Mesh,
+    scratch: &mut TileScratch,
+) -> Result<(), StoreError> {
+    let inputs = strip_inputs(snap, key, face, iso)?;
+    let mut strip = TileMesh::default();
+    mesh_strip_from(snap, key, face, iso, &inputs, &mut strip, scratch)?;
+    *out = strip_to_world(strip, key, snap);
+    Ok(())
 }
 
 /// Moves a tile's local mesh (lattice coordinates relative to the tile's frame) to world
@@ -304,19 +380,23 @@ pub fn to_world(mesh: &mut Mesh, key: BrickKey, snap: &Snapshot) {
     normals_to_world(normals, snap);
 }
 
-/// [`to_world`] for a tile with its transition data (vertices, and the moves' offsets).
+/// [`to_world`] for a tile with its moves (their distances too).
 pub fn tile_to_world(tile: &mut TileMesh, key: BrickKey, snap: &Snapshot) {
     to_world(&mut tile.mesh, key, snap);
-    let tr = &mut tile.transitions;
-    positions_to_world(&mut tr.positions, key, snap);
-    normals_to_world(&mut tr.normals, snap);
     let step = (1u64 << key.level) as f32;
     let scale = snap.header().voxel_scale;
-    for m in &mut tr.moves {
-        for (c, s) in m.offset.iter_mut().zip(scale) {
-            *c = *c * step * s;
-        }
+    for m in &mut tile.moves {
+        m.distance = m.distance * step * scale[usize::from(m.face / 2)];
     }
+}
+
+/// A local strip ([`mesh_strip_from`]) in world coordinates, as drawn: [`tile_to_world`], then
+/// its moves applied exactly as a viewer applies the tile's (`isovox_proto::mesh::stitch`), so
+/// that its copies of the tile's vertices are the tile's moved vertices bit for bit.
+pub fn strip_to_world(mut strip: TileMesh, key: BrickKey, snap: &Snapshot) -> Mesh {
+    tile_to_world(&mut strip, key, snap);
+    apply_moves(&mut strip.mesh.positions, &strip.moves, 0x3f);
+    strip.mesh
 }
 
 fn positions_to_world(positions: &mut [[f32; 3]], key: BrickKey, snap: &Snapshot) {
@@ -345,9 +425,9 @@ fn normals_to_world(normals: &mut [[f32; 3]], snap: &Snapshot) {
 }
 
 /// Meshes tile `key` into `out` (cleared first) in local lattice coordinates (relative to the
-/// tile's frame, level-k lattice units), with transition data for the faces `inputs` names.
-/// `inputs` comes from [`tile_inputs`] (the cache and the HTTP handler compute it for the key
-/// and the ETag; doing it again costs the index lookups).
+/// tile's frame, level-k lattice units), with the moves of the faces `inputs` names. `inputs`
+/// comes from [`tile_inputs`] (the cache and the HTTP handler compute it for the key and the
+/// ETag; doing it again costs the index lookups).
 ///
 /// # Errors
 /// A brick fails to read.
@@ -359,24 +439,36 @@ pub fn mesh_tile_from(
     out: &mut TileMesh,
     scratch: &mut TileScratch,
 ) -> Result<TileStats, StoreError> {
-    let (mesh, transitions) = (&mut out.mesh, &mut out.transitions);
-    mesh_into(snap, key, iso, inputs, mesh, Some(transitions), scratch)
+    let (mesh, moves) = (&mut out.mesh, &mut out.moves);
+    mesh_into(snap, key, iso, inputs, mesh, Some(moves), scratch)
 }
 
-/// The regular mesh into `mesh`, and the transition data into `transitions` when given.
+/// Where tile `key` lies among its neighbours, for its moves and strips.
+fn tile_faces(layout: &VolumeLayout, key: BrickKey, faces: u8) -> TileFaces {
+    let (lo, hi, frame) = cells(layout, key);
+    TileFaces {
+        lo,
+        hi,
+        frame,
+        coarse_frame: [key.x, key.y, key.z].map(|c| i64::from(c / 2) * layout.brick() as i64),
+        faces,
+    }
+}
+
+/// The regular mesh into `mesh`, and the moves into `moves` when given.
 fn mesh_into(
     snap: &Snapshot,
     key: BrickKey,
     iso: f32,
     inputs: &TileInputs,
     mesh: &mut Mesh,
-    transitions: Option<&mut Transitions>,
+    moves: Option<&mut Vec<VertexMove>>,
     scratch: &mut TileScratch,
 ) -> Result<TileStats, StoreError> {
     mesh.clear();
-    let mut transitions = transitions;
-    if let Some(t) = transitions.as_deref_mut() {
-        t.clear();
+    let mut moves = moves;
+    if let Some(m) = moves.as_deref_mut() {
+        m.clear();
     }
     if !inputs.may_cross {
         return Ok(TileStats {
@@ -387,244 +479,241 @@ fn mesh_into(
     let layout = snap.layout();
     let (lo, hi, frame) = cells(layout, key);
     let bricks = scratch.bricks.clone();
-    let fine_box = field_box(layout, key);
-    // The regular mesh, where the cells' samples can straddle the iso value.
-    if inputs.fine_may_cross {
-        let fine = lattice(
-            snap,
-            key.level,
-            fine_box,
-            bricks.as_deref(),
-            (
-                &mut scratch.fine_bricks,
-                &mut scratch.stored,
-                &mut scratch.lattice,
-            ),
-            &mut scratch.field,
-        )?;
-        march(&fine, lo, frame, hi, iso, mesh, &mut scratch.march);
-    } else {
-        scratch.march.forget();
+    let fine = lattice(
+        snap,
+        key.level,
+        field_box(layout, key),
+        bricks.as_deref(),
+        (
+            &mut scratch.fine_bricks,
+            &mut scratch.stored,
+            &mut scratch.lattice,
+        ),
+        &mut scratch.field,
+    )?;
+    march(&fine, lo, frame, hi, iso, mesh, &mut scratch.march);
+    if let Some(moves) = moves.filter(|_| inputs.faces != 0) {
+        tile_moves(
+            &tile_faces(layout, key, inputs.faces),
+            &scratch.march,
+            moves,
+        );
     }
-    let Some(transitions) = transitions.filter(|_| inputs.faces != 0) else {
-        return Ok(TileStats {
-            skipped: false,
-            triangles: mesh.triangles(),
-        });
-    };
-    // The coarser level's lattice values a strip reads: the face's plane and one point on
-    // each side of it (normals), only for the faces whose strips can hold a triangle. Most
-    // faces of a tile near a surface have none: their fine samples are all on one side, and
-    // so are the coarse ones, which the range of the coarse voxels under the face usually
-    // shows without computing a lattice value.
+    Ok(TileStats {
+        skipped: false,
+        triangles: mesh.triangles(),
+    })
+}
+
+/// Meshes the transition strip of face `face` of tile `key` into `out` (cleared first), in
+/// local lattice coordinates as the tile is: its mesh, with the moves of its vertices along
+/// the face (see [`super::transition::mesh_strip`]; [`strip_to_world`] draws it). `inputs`
+/// comes from [`strip_inputs`]. Only the layer of the tile's cells along the face is meshed
+/// again, not the tile.
+///
+/// # Errors
+/// A brick fails to read.
+pub fn mesh_strip_from(
+    snap: &Snapshot,
+    key: BrickKey,
+    face: usize,
+    iso: f32,
+    inputs: &StripInputs,
+    out: &mut TileMesh,
+    scratch: &mut TileScratch,
+) -> Result<(), StoreError> {
+    out.mesh.clear();
+    out.moves.clear();
+    if !inputs.may_cross || face >= 6 || inputs.faces >> face & 1 == 0 {
+        return Ok(());
+    }
+    let layout = snap.layout();
+    let (lo, hi, frame) = cells(layout, key);
+    let bricks = scratch.bricks.clone();
+    // The layer of cells along the face: its vertices on the face's plane are the tile's there,
+    // bit for bit (the same samples, the same formula, the same frame).
+    let axis = face / 2;
+    let (mut layer_lo, mut layer_hi) = (lo, hi);
+    if face & 1 == 1 {
+        layer_lo[axis] = hi[axis] - 1;
+    } else {
+        layer_hi[axis] = lo[axis] + 1;
+    }
+    // Most faces that can have a strip have none: every fine and coarse sample on the face lies
+    // on one side of the iso value, which the ranges of the stored voxels under the face
+    // usually show before any lattice value is computed or cell marched.
     let coarse_level = key.level + 1;
     let (c, d) = coarse_box(layout, key);
+    let points = face_points(face, (c, d));
+    let fine_points = (points.0.map(|v| 2 * v), points.1.map(|v| 2 * v));
+    let fine_read = stored_box(key.level, fine_points);
+    scratch
+        .fine_bricks
+        .open(snap, key.level, fine_read, bricks.as_deref())?;
+    let (min, max) = voxel_range(&scratch.fine_bricks, layout, fine_read);
+    let (fine_low, fine_high) = value_range(key.level, f32::from(min), f32::from(max));
+    let (slo, shi) = stored_box(coarse_level, strip_coarse_box(layout, key, face));
+    scratch
+        .coarse_bricks
+        .open(snap, coarse_level, (slo, shi), bricks.as_deref())?;
+    let coarse_read = stored_box(coarse_level, points);
+    let (min, max) = voxel_range(&scratch.coarse_bricks, layout, coarse_read);
+    let (coarse_low, coarse_high) = value_range(coarse_level, f32::from(min), f32::from(max));
+    let (low, high) = (fine_low.min(coarse_low), fine_high.max(coarse_high));
+    if low >= iso || high < iso {
+        return Ok(());
+    }
+    let fine_box = strip_field_box(layout, key, face);
+    let fine = lattice(
+        snap,
+        key.level,
+        fine_box,
+        bricks.as_deref(),
+        (
+            &mut scratch.fine_bricks,
+            &mut scratch.stored,
+            &mut scratch.lattice,
+        ),
+        &mut scratch.field,
+    )?;
+    march(
+        &fine,
+        layer_lo,
+        frame,
+        layer_hi,
+        iso,
+        &mut scratch.layer,
+        &mut scratch.march,
+    );
+    // The coarser level's lattice values the strip reads: the face's plane and one point on
+    // each side of it (normals). Most faces near a surface have no strip: their fine samples
+    // are all on one side, and so are the coarse ones, which the range of the coarse voxels
+    // under the face usually shows without computing a lattice value.
     let size = field_size((c, d));
     scratch.coarse.clear();
     scratch.coarse.resize(size[0] * size[1] * size[2], f32::NAN);
-    // The coarser bricks the strips can read, looked up once for all the faces.
-    let read = stored_box(coarse_level, (c, d));
-    scratch
-        .coarse_bricks
-        .open(snap, coarse_level, read, bricks.as_deref())?;
-    // Which faces' fine samples straddle the iso value: march makes a vertex on every crossed
-    // edge between the corners [lo, hi] and lists those on the boundary, so a face is mixed
-    // exactly when one of them lies in its plane (both ends on it). The faces' samples are
-    // corners, unless the tile is first on an axis: its faces start one point lower there,
+    // Whether the face's fine samples straddle the iso value: march makes a vertex on every
+    // crossed edge between the corners and lists those on the layer's boundary, so the face is
+    // mixed exactly when one of them lies in its plane (both ends on it). The face's samples
+    // are corners, unless the tile is first on an axis: its faces start one point lower there,
     // and are read one by one.
-    let fine = |values| Field {
-        origin: fine_box.0,
-        size: field_size(fine_box),
-        values,
-    };
-    let fine_mixed = if !inputs.fine_may_cross {
-        Some(0)
-    } else if lo.iter().all(|c| c.rem_euclid(2) == 0) {
-        let border = &scratch.march.border;
-        Some(
-            border
-                .iter()
-                .fold(0u8, |m, b| m | (b.faces[0] & b.faces[1])),
-        )
+    let fine_side = if lo.iter().all(|c| c.rem_euclid(2) == 0) {
+        let mixed = scratch
+            .march
+            .border
+            .iter()
+            .fold(0u8, |m, b| m | (b.faces[0] & b.faces[1]));
+        (mixed >> face & 1 == 0).then(|| fine.value(points.0.map(|v| 2 * v)) >= iso)
     } else {
-        None
+        fine_face_side(&fine, points, face, iso)
     };
-    // A tile without a vertex has all its samples on one side; most such tiles lie far enough
-    // from a surface that the coarse voxels around it are all on that side too: one range over
-    // them decides every face.
-    let one_side = if !inputs.fine_may_cross {
-        Some(inputs.fine_inside)
-    } else if mesh.positions.is_empty() && fine_mixed.is_some() {
-        Some(fine(&scratch.field).value(lo) >= iso)
-    } else {
-        None
-    };
-    if let Some(inside) = one_side {
+    if let Some(inside) = fine_side {
+        // All on one side: the stored voxels' range bounds the lattice values.
+        let read = stored_box(coarse_level, points);
         let (min, max) = voxel_range(&scratch.coarse_bricks, layout, read);
         let (low, high) = value_range(coarse_level, f32::from(min), f32::from(max));
         if (inside && low >= iso) || (!inside && high < iso) {
-            // No vertex, no strip: nothing to move or add.
-            return Ok(TileStats {
-                skipped: false,
-                triangles: 0,
-            });
+            return Ok(());
         }
     }
-    let mut strips = 0u8;
-    let weights = weights(coarse_level);
-    let outside = layout.voxel_type().low() as f32;
-    for face in (0..6).filter(|f| inputs.faces >> f & 1 == 1) {
-        let points = face_points(face, (c, d));
-        // The fine face's samples, when they straddle the iso value, decide alone; else the
-        // coarse plane does, against the side they are all on.
-        let fine_side = match fine_mixed {
-            _ if !inputs.fine_may_cross => Some(inputs.fine_inside),
-            Some(mixed) if mixed >> face & 1 == 1 => None,
-            Some(_) => Some(fine(&scratch.field).value(points.0.map(|v| 2 * v)) >= iso),
-            None => fine_face_side(&fine(&scratch.field), points, face, iso),
-        };
-        if let Some(inside) = fine_side {
-            // All on one side: the stored voxels' range bounds the lattice values.
-            let read = stored_box(coarse_level, points);
-            let (min, max) = voxel_range(&scratch.coarse_bricks, layout, read);
-            let (low, high) = value_range(coarse_level, f32::from(min), f32::from(max));
-            if (inside && low >= iso) || (!inside && high < iso) {
-                continue;
-            }
-        }
-        // One read of the stored voxels under the face's plane and the planes beside it, then
-        // the plane's values (with the ring around the face the normals read).
-        let (slo, shi) = stored_box(coarse_level, face_slab(face, (c, d)));
-        let stored_size = field_size((slo, shi));
-        gather(
-            &scratch.coarse_bricks,
-            layout,
-            slo,
-            stored_size,
-            &mut scratch.coarse_voxels,
-        );
-        let stored = Field {
-            origin: slo,
-            size: stored_size,
-            values: &scratch.coarse_voxels,
-        };
-        let plane_box = face_plane(face, (c, d));
-        lattice_plane(
-            &stored,
-            plane_box,
-            face / 2,
-            coarse_level,
-            layout.voxel_type(),
-            &mut scratch.lattice,
-            &mut scratch.region,
-        );
-        let plane_size = field_size(plane_box);
-        pad_outside(
-            &mut scratch.region,
-            (plane_box.0, plane_size),
-            layout.dims(),
-            coarse_level,
-            outside,
-        );
-        let plane = Field {
-            origin: plane_box.0,
-            size: plane_size,
-            values: &scratch.region,
-        };
-        if let Some(inside) = fine_side {
-            // The plane's own values say.
-            if all_on_side(&plane, points, iso, inside) {
-                continue;
-            }
-        }
-        strips |= 1 << face;
-        copy_into(&mut scratch.coarse, (c, size), &plane);
-        // The points beside the plane, for the normals the strip computes: where a coarse or
-        // connecting edge of the face is crossed, at both ends. Computed point by point: the
-        // few the strip reads, not the two planes.
-        let fine_field = fine(&scratch.field);
-        let fine_flags = match fine_side {
-            Some(inside) => Err(inside),
-            None => Ok(&fine_field),
-        };
-        scratch.beside.clear();
-        crossed_points(
-            &plane,
-            points,
-            face,
-            iso,
-            fine_flags,
-            &mut scratch.flags,
-            &mut scratch.beside,
-        );
-        for &q in &scratch.beside {
-            for step in [-1, 1] {
-                let mut p = q;
-                p[face / 2] += step;
-                let at = index_in((c, size), p);
-                if scratch.coarse[at].is_nan() {
-                    scratch.coarse[at] = if lattice_inside(p, layout.dims(), coarse_level) {
-                        lattice_point(&stored, p, weights)
-                    } else {
-                        outside
-                    };
-                }
-            }
-        }
-    }
-    if strips != 0 && !inputs.fine_may_cross {
-        // The strips read the fine face samples too (all on one side, no regular vertex).
-        lattice(
-            snap,
-            key.level,
-            fine_box,
-            bricks.as_deref(),
-            (
-                &mut scratch.fine_bricks,
-                &mut scratch.stored,
-                &mut scratch.lattice,
-            ),
-            &mut scratch.field,
-        )?;
-    }
-    if strips == 0 && !inputs.fine_may_cross {
-        return Ok(TileStats {
-            skipped: false,
-            triangles: 0,
-        });
-    }
-    let fine = Field {
-        origin: fine_box.0,
-        size: field_size(fine_box),
-        values: &scratch.field,
+    // One read of the stored voxels under the face's plane and the planes beside it, then the
+    // plane's values (with the ring around the face the normals read).
+    let stored_size = field_size((slo, shi));
+    gather(
+        &scratch.coarse_bricks,
+        layout,
+        slo,
+        stored_size,
+        &mut scratch.coarse_voxels,
+    );
+    let stored = Field {
+        origin: slo,
+        size: stored_size,
+        values: &scratch.coarse_voxels,
     };
+    let plane_box = face_plane(face, (c, d));
+    lattice_plane(
+        &stored,
+        plane_box,
+        axis,
+        coarse_level,
+        layout.voxel_type(),
+        &mut scratch.lattice,
+        &mut scratch.region,
+    );
+    let plane_size = field_size(plane_box);
+    let outside = layout.voxel_type().low() as f32;
+    pad_outside(
+        &mut scratch.region,
+        (plane_box.0, plane_size),
+        layout.dims(),
+        coarse_level,
+        outside,
+    );
+    let plane = Field {
+        origin: plane_box.0,
+        size: plane_size,
+        values: &scratch.region,
+    };
+    if let Some(inside) = fine_side {
+        // The plane's own values say.
+        if all_on_side(&plane, points, iso, inside) {
+            return Ok(());
+        }
+    }
+    copy_into(&mut scratch.coarse, (c, size), &plane);
+    // The points beside the plane, for the normals the strip computes: where a coarse or
+    // connecting edge of the face is crossed, at both ends. Computed point by point: the few
+    // the strip reads, not the two planes.
+    let fine_flags = match fine_side {
+        Some(inside) => Err(inside),
+        None => Ok(&fine),
+    };
+    scratch.beside.clear();
+    crossed_points(
+        &plane,
+        points,
+        face,
+        iso,
+        fine_flags,
+        &mut scratch.flags,
+        &mut scratch.beside,
+    );
+    let weights = weights(coarse_level);
+    for &q in &scratch.beside {
+        for step in [-1, 1] {
+            let mut p = q;
+            p[axis] += step;
+            let at = index_in((c, size), p);
+            if scratch.coarse[at].is_nan() {
+                scratch.coarse[at] = if lattice_inside(p, layout.dims(), coarse_level) {
+                    lattice_point(&stored, p, weights)
+                } else {
+                    outside
+                };
+            }
+        }
+    }
     let coarse = Field {
         origin: c,
         size,
         values: &scratch.coarse,
     };
     let input = TransitionInput {
+        tile: tile_faces(layout, key, inputs.faces),
         fine: &fine,
         coarse: &coarse,
-        lo,
-        hi,
-        frame,
-        coarse_frame: [key.x, key.y, key.z].map(|c| i64::from(c / 2) * layout.brick() as i64),
         iso,
-        faces: inputs.faces,
-        strips,
     };
-    mesh_transitions(
+    mesh_strip(
         &input,
-        mesh,
+        face,
+        &scratch.layer,
         &scratch.march,
-        transitions,
+        out,
         &mut scratch.transitions,
     );
-    Ok(TileStats {
-        skipped: false,
-        triangles: mesh.triangles(),
-    })
+    Ok(())
 }
 
 /// The number of points of a box on each axis.
@@ -641,17 +730,6 @@ fn face_points(face: usize, (c, d): GridBox) -> GridBox {
     let at = if face & 1 == 1 { d[a] - 1 } else { c[a] + 1 };
     lo[a] = at;
     hi[a] = at;
-    (lo, hi)
-}
-
-/// The coarser level's lattice points a strip of face `face` reads: its plane across the
-/// whole box `(c, d)` and the planes on either side (the normals' central differences).
-fn face_slab(face: usize, (c, d): GridBox) -> GridBox {
-    let a = face / 2;
-    let at = if face & 1 == 1 { d[a] - 1 } else { c[a] + 1 };
-    let (mut lo, mut hi) = (c, d);
-    lo[a] = at - 1;
-    hi[a] = at + 1;
     (lo, hi)
 }
 

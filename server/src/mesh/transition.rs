@@ -26,7 +26,7 @@
 //!   tile knows its six face neighbours, never the ones across its edges. No point moves with
 //!   two faces at once (when f touches a coarser tile, the tiles beyond f's edges that move
 //!   with f are siblings, and a sibling is never coarser). A vertex moves by the interpolation
-//!   of its edge's endpoint moves. [`mesh_transitions`] writes the moves as [`VertexMove`]s,
+//!   of its edge's endpoint moves. [`tile_moves`] writes the moves as [`VertexMove`]s,
 //!   "move vertex i by d when face f touches a coarser neighbour".
 //! - **Strips.** For each face, one transition cell per 2x2 block of boundary cells (the 13
 //!   samples of [`super::transition_table`]): its fine face is the 3x3 samples of the tile's
@@ -58,36 +58,41 @@
 //!   their strips (`isovox_proto::mesh::stitch`). With mask 0 a tile is its regular mesh,
 //!   unchanged.
 //!
-//! # What a caller gathers (tile.rs)
+//! # What a tile and a strip are
 //!
-//! For a tile of level k with cells `[lo, hi)` (as given to `march`; `lo` is -1 on the volume's
-//! low faces) and `coarse_frame` = the parent brick's position times the brick edge (in
-//! level-(k+1) lattice units):
+//! A tile carries its regular mesh and the moves of its boundary vertices for every face that
+//! can touch a coarser tile ([`tile_moves`], from `march`'s border alone: no coarser sample is
+//! read), whatever its neighbours are now, so it stays one cacheable object. The strip of a face
+//! is an object of its own, made only when asked ([`mesh_strip`]): a mesh whose vertices along
+//! the tile's face are copies of the tile's vertices there, with their moves with that face, so
+//! that applying them as a viewer applies the tile's gives the same bits, and welding joins the
+//! strip to the moved tile.
 //!
-//! - `fine`: the field `march` meshed: level-k lattice values over `[lo - 1, hi + 1]` (for
-//!   k > 0, [`super::lattice::lattice_field`] of the stored level-k voxels over
-//!   `[lo - 3, hi + 2]`).
-//! - `coarse`: level-(k+1) lattice values over `[c, d]` with `c = floor(lo / 2) - 1` and
-//!   `d = hi / 2 + 1` (`lattice_field` of the stored level-(k+1) voxels over `[c - 2, d + 1]`):
-//!   the coarse lattice points of all six faces and the neighbours their normals read. Only
-//!   the faces in `strips` are read: the plane of each across `[c, d]`, and beside the plane
+//! # What a caller gathers for a strip (tile.rs)
+//!
+//! For a tile of level k with cells `[lo, hi)` (`lo` is -1 on the volume's low faces) and
+//! `coarse_frame` = the parent brick's position times the brick edge (in level-(k+1) lattice
+//! units), and face f:
+//!
+//! - a `march` of the layer of the tile's cells along f (or of the whole tile) with the tile's
+//!   frame, and `fine`, the field it meshed: level-k lattice values over the layer's cells and
+//!   one point around them (for k > 0, [`super::lattice::lattice_field`] of the stored level-k
+//!   voxels 2 below and 1 above). The layer's vertices on f's plane are the tile's, bit for bit.
+//! - `coarse`: a field of level-(k+1) lattice values over `[c, d]` with `c = floor(lo / 2) - 1`
+//!   and `d = hi / 2 + 1`, of which only f's plane across `[c, d]` is read, and beside the plane
 //!   the points next to a point of the face where an edge of its cells' coarse face, or a
 //!   connecting edge, is crossed (the normals of coarse and connecting vertices read those;
 //!   nothing else off the plane is read, and `tile.rs` computes nothing else).
-//! - `faces`: the faces that can touch a coarser neighbour: those with a neighbouring tile in
-//!   the grid, when level k+1 exists. Strips are built for all of them, whatever the current
-//!   neighbours are, so the tile stays one cacheable object.
-//! - `strips`: those of `faces` whose strips can hold a triangle; the others are empty (every
-//!   fine and coarse sample of the face on one side), and the caller need not compute their
-//!   coarse values (`tile.rs` decides this from `march`'s boundary vertices and the range of the
-//!   coarse voxels under a face).
+//! - `tile.faces`: the faces that can touch a coarser neighbour: those with a neighbouring tile
+//!   in the grid, when level k+1 exists. The moves depend on all of them (a coarser tile across
+//!   f reaches past another face g exactly when no tile, or a sibling, lies across g).
 
-use super::mc::{faces_of, Field, Mesh, Scratch};
+use super::mc::{faces_of, BorderVertex, Field, Mesh, Scratch};
 use super::transition_table::{
     chain, edge_between, edge_kind, faces, run_segments, sample_position, table, triangulate,
     EdgeKind, Table, EDGES, EDGE_SIDES, SAMPLES, SIDES,
 };
-use isovox_proto::mesh::{Transitions, VertexMove};
+use isovox_proto::mesh::{TileMesh, VertexMove};
 /// How far (in fine cells) the fine face of a transition cell sits inside the coarse face.
 pub const WIDTH: f32 = super::transition_table::WIDTH as f32;
 
@@ -96,15 +101,10 @@ pub const WIDTH: f32 = super::transition_table::WIDTH as f32;
 /// carries over.
 pub const FACE_FRAMES: [(usize, usize); 6] = [(2, 1), (1, 2), (0, 2), (2, 0), (1, 0), (0, 1)];
 
-/// The inputs of [`mesh_transitions`] (see the module doc for what to gather).
+/// Where a tile lies and which of its faces have a neighbour: all the moves depend on.
 #[derive(Debug, Clone, Copy)]
-pub struct TransitionInput<'a> {
-    /// The tile's level-k lattice values: the field `march` meshed.
-    pub fine: &'a Field<'a>,
-    /// Level-(k+1) lattice values, in level-(k+1) lattice units (coarse point q is fine point
-    /// 2q).
-    pub coarse: &'a Field<'a>,
-    /// The lower end of the cells `[lo, hi)` given to `march`.
+pub struct TileFaces {
+    /// The lower end of the tile's cells `[lo, hi)` (as given to `march` for the whole tile).
     pub lo: [i64; 3],
     /// Their upper end.
     pub hi: [i64; 3],
@@ -113,17 +113,12 @@ pub struct TransitionInput<'a> {
     /// The parent tile's frame, in level-(k+1) lattice units: the coarse neighbours' frames on
     /// every axis along their faces.
     pub coarse_frame: [i64; 3],
-    /// The iso value.
-    pub iso: f32,
-    /// The faces (a face mask) to build strips and moves for.
+    /// The faces (a face mask) that can touch a coarser neighbour: those with a neighbouring
+    /// tile, when a coarser level exists.
     pub faces: u8,
-    /// Those of `faces` whose strips may hold a triangle: the others are known to be empty
-    /// (every sample of the face, fine and coarse, on one side) and are not looked at; their
-    /// coarse values need not be gathered.
-    pub strips: u8,
 }
 
-impl TransitionInput<'_> {
+impl TileFaces {
     /// The box whose faces the moves and strips are taken over: `[lo', hi]`.
     fn box_lo(&self) -> [i64; 3] {
         self.lo.map(|c| c - c.rem_euclid(2))
@@ -162,9 +157,29 @@ impl TransitionInput<'_> {
             _ => 0,
         }
     }
+
+    /// [`TileFaces::moving_faces_on`] of every face mask.
+    fn moving_table(&self) -> [u8; 64] {
+        std::array::from_fn(|on| self.moving_faces_on(on as u8))
+    }
 }
 
-/// Reusable memory for [`mesh_transitions`].
+/// The inputs of [`mesh_strip`] (see the module doc for what to gather).
+#[derive(Debug, Clone, Copy)]
+pub struct TransitionInput<'a> {
+    /// The tile.
+    pub tile: TileFaces,
+    /// The tile's level-k lattice values: at least the field `march` meshed for the strip (the
+    /// layer of cells along its face, or the whole tile).
+    pub fine: &'a Field<'a>,
+    /// Level-(k+1) lattice values, in level-(k+1) lattice units (coarse point q is fine point
+    /// 2q): the face's plane, and beside it the points its crossed edges' normals read.
+    pub coarse: &'a Field<'a>,
+    /// The iso value.
+    pub iso: f32,
+}
+
+/// Reusable memory for [`mesh_strip`].
 #[derive(Debug, Default)]
 pub struct TransitionScratch {
     /// Transition vertices already made, four slots per point of the coarse field: on the
@@ -188,12 +203,15 @@ pub struct TransitionScratch {
     coarse_inside: Vec<bool>,
     /// One loop's triangles, as indices into it.
     tris: Vec<[usize; 3]>,
-    /// [`TransitionInput::moving_faces_on`] of every face mask (64), for the current call.
+    /// [`TileFaces::moving_faces_on`] of every face mask, for the current call.
     moving: Vec<u8>,
     /// The current call's `box_lo`.
     box_lo: [i64; 3],
-    /// The transition data being built.
+    /// The strip being built.
     work: Transitions,
+    /// Per vertex of the strip being built (regular, then its own): its index in the strip,
+    /// or `u32::MAX`.
+    remap: Vec<u32>,
     /// One row of blocks of a strip: per fine column its three samples' inside flags (bits 0,
     /// 3, 6), per coarse column its two (bits 0, 2).
     fine_columns: Vec<u16>,
@@ -201,7 +219,7 @@ pub struct TransitionScratch {
 }
 
 impl TransitionScratch {
-    /// The faces lattice point `p` of the box moves with ([`TransitionInput::moving_faces_on`]
+    /// The faces lattice point `p` of the box moves with ([`TileFaces::moving_faces_on`]
     /// of the faces it lies on).
     fn moving_faces(&self, p: [i64; 3], hi: [i64; 3]) -> u8 {
         self.moving[usize::from(faces_of(p, self.box_lo, hi))]
@@ -216,54 +234,119 @@ impl TransitionScratch {
     }
 }
 
-/// The move of a point on face `face`, scaled by `k`.
+/// How far a point of face `face` moves (along the face's axis), scaled by `k`: inwards.
+fn distance(face: usize, k: f32) -> f32 {
+    if face & 1 == 0 {
+        WIDTH * k
+    } else {
+        -WIDTH * k
+    }
+}
+
+/// The move of a point on face `face`, scaled by `k`, as a vector.
 fn displacement(face: usize, k: f32) -> [f32; 3] {
     let mut d = [0f32; 3];
-    d[face / 2] = if face & 1 == 0 { WIDTH } else { -WIDTH } * k;
+    d[face / 2] = distance(face, k);
     d
 }
 
-/// Builds the transition data of one tile into `out` (cleared first): the moves of the regular
-/// vertices of `regular`, the vertices of the strips (their indices follow the regular ones)
-/// and the strips of the faces in `input.faces`. `march` is the scratch of the `march` call
-/// that meshed `input.fine` over `input.lo..input.hi` into `regular`, just before.
-///
-/// # Panics
-/// A field does not cover what the module doc says to gather, or a face of the tile in
-/// `input.faces` lies off the coarse lattice (an odd plane).
-pub fn mesh_transitions(
-    input: &TransitionInput<'_>,
-    regular: &Mesh,
-    march: &Scratch,
-    out: &mut Transitions,
-    scratch: &mut TransitionScratch,
-) {
-    out.clear();
-    if input.faces == 0 {
-        return;
-    }
-    // Built in the scratch's buffers (grown once, for every tile after), then copied out at
-    // their final sizes: one allocation per buffer instead of a growing one.
-    let mut work = std::mem::take(&mut scratch.work);
-    work.clear();
-    build(input, regular, march, &mut work, scratch);
-    out.positions.clone_from(&work.positions);
-    out.normals.clone_from(&work.normals);
-    out.moves.clone_from(&work.moves);
-    for (to, from) in out.strips.iter_mut().zip(&work.strips) {
-        to.clone_from(from);
-    }
-    scratch.work = work;
+/// A strip being built: the vertices it makes (numbered after the regular ones), their moves
+/// (with every face they move with), and its triangles.
+#[derive(Debug, Default)]
+struct Transitions {
+    positions: Vec<[f32; 3]>,
+    normals: Vec<[f32; 3]>,
+    moves: Vec<VertexMove>,
+    strip: Vec<u32>,
 }
 
-/// [`mesh_transitions`] into `out` (empty).
-fn build(
+impl Transitions {
+    fn clear(&mut self) {
+        self.positions.clear();
+        self.normals.clear();
+        self.moves.clear();
+        self.strip.clear();
+    }
+}
+
+/// The moves of the vertices `march` made on the tile's boundary (its `border`; `march` meshed
+/// the whole tile, `[tile.lo, tile.hi)`), for the faces in `tile.faces`, appended to `out`
+/// grouped by face: "move vertex i by d when face f touches a coarser neighbour". A vertex moves
+/// with a face by the interpolation of its edge's endpoint moves with it.
+pub fn tile_moves(tile: &TileFaces, march: &Scratch, out: &mut Vec<VertexMove>) {
+    if tile.faces == 0 {
+        return;
+    }
+    let moving = tile.moving_table();
+    let box_lo = tile.box_lo();
+    let same_box = box_lo == tile.lo;
+    let start = out.len();
+    for b in &march.border {
+        // march's faces are those of [lo, hi]; the box's are the same unless it starts lower.
+        let (f0, f1) = if same_box {
+            (
+                moving[usize::from(b.faces[0])],
+                moving[usize::from(b.faces[1])],
+            )
+        } else {
+            let mut p1 = b.p0;
+            p1[b.axis as usize] += 1;
+            (
+                moving[usize::from(faces_of(b.p0, box_lo, tile.hi))],
+                moving[usize::from(faces_of(p1, box_lo, tile.hi))],
+            )
+        };
+        push_moves(b, f0, f1, 0x3f, out);
+    }
+    // Grouped by face, as the encoding writes them (stable: in border order within a face).
+    out[start..].sort_by_key(|m| m.face);
+}
+
+/// The moves of border vertex `b` whose endpoints move with the faces `f0` and `f1`, for the
+/// faces in `only`.
+fn push_moves(b: &BorderVertex, f0: u8, f1: u8, only: u8, out: &mut Vec<VertexMove>) {
+    for face in (0..6).filter(|&f| ((f0 | f1) & only) >> f & 1 == 1) {
+        let k = match (f0 >> face & 1, f1 >> face & 1) {
+            (1, 1) => 1.0,
+            (1, _) => 1.0 - b.t,
+            _ => b.t,
+        };
+        out.push(VertexMove {
+            vertex: b.id,
+            face: face as u8,
+            distance: distance(face, k),
+        });
+    }
+}
+
+/// Builds the transition strip of face `face` of a tile into `out` (cleared first), in the
+/// tile's local frame: a mesh of its own whose vertices along the tile's face are copies of the
+/// tile's vertices there, with their moves with that face (`out.moves`, all of face `face`;
+/// applying them gives the drawn strip, and applying them exactly as the tile's moves are
+/// applied gives the tile's moved vertices bit for bit), its coarse vertices (never moved) and
+/// the vertices on the edges joining them (moved too). `regular` and `march` are a `march` of
+/// `input.fine` over cells that include the tile's layer of cells along `face` (the whole tile
+/// or that layer alone), with `input.tile.frame`. Empty when the face cannot touch a coarser
+/// tile or no surface crosses it.
+///
+/// # Panics
+/// A field does not cover what the module doc says to gather, or the face lies off the coarse
+/// lattice (an odd plane).
+pub fn mesh_strip(
     input: &TransitionInput<'_>,
+    face: usize,
     regular: &Mesh,
     march: &Scratch,
-    out: &mut Transitions,
+    out: &mut TileMesh,
     scratch: &mut TransitionScratch,
 ) {
+    out.mesh.clear();
+    out.moves.clear();
+    if input.tile.faces >> face & 1 == 0 {
+        return;
+    }
+    let mut work = std::mem::take(&mut scratch.work);
+    work.clear();
     let slots = 4 * input.coarse.values.len();
     scratch.stamp = scratch.stamp.wrapping_add(1);
     if scratch.stamp == 0 || scratch.made.len() < slots {
@@ -273,10 +356,8 @@ fn build(
         scratch.stamp = 1;
     }
     scratch.moving.clear();
-    scratch
-        .moving
-        .extend((0..64).map(|on| input.moving_faces_on(on)));
-    scratch.box_lo = input.box_lo();
+    scratch.moving.extend(input.tile.moving_table());
+    scratch.box_lo = input.tile.box_lo();
     scratch.regular = regular.positions.len();
     // Zero but for the vertices of the face whose strip is being built (set and reset around
     // it), so that it needs no clearing between tiles; cleared if a call left it midway.
@@ -286,57 +367,52 @@ fn build(
     if scratch.offsets.len() < regular.positions.len() {
         scratch.offsets.resize(regular.positions.len(), [0.0; 3]);
     }
-    let same_box = input.box_lo() == input.lo;
+    // The moves of the face's regular vertices with this face (by position in the tile's box:
+    // `march` may have meshed a layer of it only). The strip is drawn with the moves of its own
+    // face only: when face f touches a coarser tile, no point of f moves with another face
+    // (`moving_faces_on`).
+    let tile = &input.tile;
     for b in &march.border {
         let mut p1 = b.p0;
         p1[b.axis as usize] += 1;
-        // march's faces are those of [lo, hi]; the box's are the same unless it starts lower.
-        let (f0, f1) = if same_box {
-            (
-                scratch.moving[usize::from(b.faces[0])],
-                scratch.moving[usize::from(b.faces[1])],
-            )
-        } else {
-            (
-                scratch.moving_faces(b.p0, input.hi),
-                scratch.moving_faces(p1, input.hi),
-            )
-        };
-        // A vertex moves with a face by the interpolation of its endpoints' moves with it.
-        for face in (0..6).filter(|&f| (f0 | f1) >> f & 1 == 1) {
-            let k = match (f0 >> face & 1, f1 >> face & 1) {
-                (1, 1) => 1.0,
-                (1, _) => 1.0 - b.t,
-                _ => b.t,
+        let f0 = scratch.moving_faces(b.p0, tile.hi);
+        let f1 = scratch.moving_faces(p1, tile.hi);
+        push_moves(b, f0, f1, 1 << face, &mut work.moves);
+    }
+    let regular_moves = work.moves.len();
+    scratch.offsets_set = true;
+    for m in &work.moves {
+        scratch.offsets[m.vertex as usize][face / 2] = m.distance;
+    }
+    strip(input, face, regular, march, &mut work, scratch);
+    // The strip as an object of its own: the vertices it uses, in order of first use.
+    let n = regular.positions.len();
+    scratch.remap.clear();
+    scratch.remap.resize(n + work.positions.len(), u32::MAX);
+    for &i in &work.strip {
+        let i = i as usize;
+        if scratch.remap[i] == u32::MAX {
+            scratch.remap[i] = out.mesh.positions.len() as u32;
+            let (p, nm) = match i.checked_sub(n) {
+                None => (regular.positions[i], regular.normals[i]),
+                Some(t) => (work.positions[t], work.normals[t]),
             };
-            out.moves.push(VertexMove {
-                vertex: b.id,
-                faces: 1 << face,
-                offset: displacement(face, k),
-            });
+            out.mesh.positions.push(p);
+            out.mesh.normals.push(nm);
+        }
+        out.mesh.indices.push(scratch.remap[i]);
+    }
+    for m in work.moves.iter().filter(|m| usize::from(m.face) == face) {
+        let to = scratch.remap[m.vertex as usize];
+        if to != u32::MAX {
+            out.moves.push(VertexMove { vertex: to, ..*m });
         }
     }
-    let regular_moves = out.moves.len();
-    for face in 0..6 {
-        if (input.faces & input.strips) >> face & 1 == 0 {
-            continue;
-        }
-        // The strip is drawn with the moves of its own face only: when face f touches a
-        // coarser tile, no point of f moves with another face (`moving_faces_on`).
-        let own = |m: &&VertexMove| m.faces == 1 << face;
-        scratch.offsets_set = true;
-        for m in out.moves[..regular_moves].iter().filter(own) {
-            scratch.offsets[m.vertex as usize] = m.offset;
-        }
-        strip(input, face, regular, march, out, scratch);
-        for i in 0..regular_moves {
-            let m = out.moves[i];
-            if m.faces == 1 << face {
-                scratch.offsets[m.vertex as usize] = [0.0; 3];
-            }
-        }
-        scratch.offsets_set = false;
+    for m in &work.moves[..regular_moves] {
+        scratch.offsets[m.vertex as usize] = [0.0; 3];
     }
+    scratch.offsets_set = false;
+    scratch.work = work;
 }
 
 /// One transition cell being built: where its samples are.
@@ -393,13 +469,13 @@ fn strip(
     out: &mut Transitions,
     scratch: &mut TransitionScratch,
 ) {
-    let (lo, hi) = (input.box_lo(), input.hi);
+    let (lo, hi) = (input.tile.box_lo(), input.tile.hi);
     let axis = face / 2;
     let (ua, va) = FACE_FRAMES[face];
     let plane = if face % 2 == 1 {
         hi[axis]
     } else {
-        input.lo[axis]
+        input.tile.lo[axis]
     };
     assert!(
         plane.rem_euclid(2) == 0,
@@ -500,10 +576,10 @@ fn strip(
             // The sides on the box's edges where the coarser tile's face ends, in SIDES order
             // (u = 0, u = 2, v = 0, v = 2): their fine samples stay on the face plane.
             let collapsed = [
-                bu == 0 && !input.reaches_past(2 * ua),
-                bu + 2 == nu && !input.reaches_past(2 * ua + 1),
-                bv == 0 && !input.reaches_past(2 * va),
-                bv + 2 == nv && !input.reaches_past(2 * va + 1),
+                bu == 0 && !input.tile.reaches_past(2 * ua),
+                bu + 2 == nu && !input.tile.reaches_past(2 * ua + 1),
+                bv == 0 && !input.tile.reaches_past(2 * va),
+                bv + 2 == nv && !input.tile.reaches_past(2 * va + 1),
             ];
             transition_cell(&cell, case, collapsed, table, regular, march, out, scratch);
         }
@@ -628,7 +704,7 @@ fn transition_cell(
                     lines: &scratch.lines,
                 };
                 let tris = &mut scratch.tris;
-                triangulate_loop(cell.face, &shape, regular, out, scratch.regular, tris);
+                triangulate_loop(&shape, regular, out, scratch.regular, tris);
             }
             continue;
         }
@@ -662,7 +738,7 @@ fn transition_cell(
                 lines: &lines,
             };
             let tris = &mut scratch.tris;
-            triangulate_loop(cell.face, &shape, regular, out, scratch.regular, tris);
+            triangulate_loop(&shape, regular, out, scratch.regular, tris);
         }
     }
 }
@@ -684,7 +760,6 @@ struct LoopShape<'a> {
 /// a cone from a new vertex at its centroid instead, which lies inside the cell (the loop does
 /// not lie on one side), so that no edge of it lies on a side but the loop's own.
 fn triangulate_loop(
-    face: usize,
     shape: &LoopShape<'_>,
     regular: &Mesh,
     out: &mut Transitions,
@@ -705,7 +780,7 @@ fn triangulate_loop(
         .any(|t| on_side(t[0], t[1]) || on_side(t[1], t[2]) || on_side(t[2], t[0]));
     if !across_a_side {
         for t in tris.iter() {
-            out.strips[face].extend(t.map(|i| ids[i]));
+            out.strip.extend(t.map(|i| ids[i]));
         }
         return;
     }
@@ -735,7 +810,7 @@ fn triangulate_loop(
     out.positions.push(centre.map(|c| c as f32));
     out.normals.push(normal);
     for i in 0..n {
-        out.strips[face].extend([ids[i], ids[(i + 1) % n], apex]);
+        out.strip.extend([ids[i], ids[(i + 1) % n], apex]);
     }
 }
 
@@ -806,7 +881,7 @@ fn coarse_vertex(
         return (id, out.positions[(id as usize) - scratch.regular]);
     }
     let (t, normal) = input.coarse.crossing(q0, axis, input.iso);
-    let (cf, f) = (input.coarse_frame, input.frame);
+    let (cf, f) = (input.tile.coarse_frame, input.tile.frame);
     let mut pos = [0f32; 3];
     for b in 0..3 {
         pos[b] = if b == axis {
@@ -836,13 +911,13 @@ fn connecting_vertex(
     out: &mut Transitions,
     scratch: &mut TransitionScratch,
 ) -> (u32, [f32; 3]) {
-    let primary = [0, 1, 2].map(|b| (p[b] - input.frame[b]) as f32);
+    let primary = [0, 1, 2].map(|b| (p[b] - input.tile.frame[b]) as f32);
     let q = p.map(|c| c.div_euclid(2));
     let (vf, vc) = (input.fine.value(p), input.coarse.value(q));
     let s = (input.iso - vf) / (vc - vf);
     // It moves with each face its fine corner moves with; drawn in this strip with the moves
     // of this strip's face.
-    let moving = scratch.moving_faces(p, input.hi);
+    let moving = scratch.moving_faces(p, input.tile.hi);
     let drawn = if moving >> face & 1 == 1 {
         let d = displacement(face, 1.0 - s);
         [0, 1, 2].map(|b| primary[b] + d[b])
@@ -871,8 +946,8 @@ fn connecting_vertex(
     for f in (0..6).filter(|&f| moving >> f & 1 == 1) {
         out.moves.push(VertexMove {
             vertex: id,
-            faces: 1 << f,
-            offset: displacement(f, 1.0 - s),
+            face: f as u8,
+            distance: distance(f, 1.0 - s),
         });
     }
     scratch.made[slot] = (scratch.stamp, id);

@@ -6,7 +6,8 @@
 use super::{LiveVolume, VolumeError};
 use crate::mesh::cache::MeshCache;
 use crate::mesh::tile::{
-    iso_value, tile_inputs, tile_to_world, Stitching, TileInputs, TileScratch,
+    iso_value, strip_inputs, strip_to_world, tile_inputs, tile_to_world, Stitching, StripInputs,
+    TileInputs, TileScratch,
 };
 use crate::store::codec::constant_hash;
 use crate::store::decoded::{decode, DecodedBricks};
@@ -15,7 +16,7 @@ use crate::store::{Snapshot, StoredBrick};
 use isovox_proto::api::{LevelBrick, LevelGrid};
 use isovox_proto::batch::MAX_BATCH;
 use isovox_proto::batch::{encode_batch, BatchCodec, BatchEncoding, BatchEntry, BatchRequest};
-use isovox_proto::mesh::TileMesh;
+use isovox_proto::mesh::{Mesh, TileMesh};
 use isovox_proto::vod2::Codec;
 use isovox_proto::BrickKey;
 use std::sync::Arc;
@@ -141,10 +142,39 @@ impl LiveVolume {
             .key(level, x, y, z)
             .map_err(|e| VolumeError::OutOfRange(e.to_string()))?;
         let iso = iso_value(iso, snap.layout().voxel_type()).map_err(VolumeError::BadRequest)?;
-        let inputs = tile_inputs(&snap, key, iso, Stitching::Transitions)?;
+        let inputs = tile_inputs(&snap, key, iso, Stitching::Moves)?;
         Ok(TileRead {
             snap,
             key,
+            iso,
+            inputs,
+        })
+    }
+
+    /// Checks a read of the transition strip of face `face` (0..6) of a mesh tile and computes
+    /// its inputs (index lookups, no voxel decoded). A face that can never touch a coarser tile
+    /// (the volume's boundary, the coarsest level) has an empty strip.
+    ///
+    /// # Errors
+    /// As [`LiveVolume::mesh_tile`].
+    pub fn mesh_strip(
+        &self,
+        version: Option<u64>,
+        (level, x, y, z): (u8, u32, u32, u32),
+        face: usize,
+        iso: Option<f32>,
+    ) -> Result<StripRead, VolumeError> {
+        let snap = self.snapshot(version)?;
+        let key = snap
+            .layout()
+            .key(level, x, y, z)
+            .map_err(|e| VolumeError::OutOfRange(e.to_string()))?;
+        let iso = iso_value(iso, snap.layout().voxel_type()).map_err(VolumeError::BadRequest)?;
+        let inputs = strip_inputs(&snap, key, face, iso)?;
+        Ok(StripRead {
+            snap,
+            key,
+            face,
             iso,
             inputs,
         })
@@ -333,6 +363,21 @@ impl LevelRead {
     }
 }
 
+/// A hash of a mesh answer's content key `inputs`, the tile's position (world coordinates
+/// depend on it), the volume's voxel scale and `variant`.
+fn mesh_tag(inputs: u128, key: BrickKey, snap: &Snapshot, variant: &[u8]) -> u64 {
+    let mut tag = Vec::with_capacity(64);
+    tag.extend_from_slice(&inputs.to_le_bytes());
+    for c in [key.x, key.y, key.z] {
+        tag.extend_from_slice(&c.to_le_bytes());
+    }
+    for s in snap.header().voxel_scale {
+        tag.extend_from_slice(&s.to_le_bytes());
+    }
+    tag.extend_from_slice(variant);
+    xxhash_rust::xxh3::xxh3_64(&tag)
+}
+
 /// A checked mesh tile read (see [`LiveVolume::mesh_tile`]).
 #[derive(Debug)]
 pub struct TileRead {
@@ -346,19 +391,10 @@ impl TileRead {
     /// A hash of everything the tile's encoded mesh depends on (its inputs, position and the
     /// volume's voxel scale) and of `variant` (which encoding): equal tags, equal bytes.
     pub fn tag(&self, variant: u8) -> u64 {
-        let mut tag = Vec::with_capacity(64);
-        tag.extend_from_slice(&self.inputs.key.to_le_bytes());
-        for c in [self.key.x, self.key.y, self.key.z] {
-            tag.extend_from_slice(&c.to_le_bytes());
-        }
-        for s in self.snap.header().voxel_scale {
-            tag.extend_from_slice(&s.to_le_bytes());
-        }
-        tag.push(variant);
-        xxhash_rust::xxh3::xxh3_64(&tag)
+        mesh_tag(self.inputs.key, self.key, &self.snap, &[variant])
     }
 
-    /// The tile in world coordinates, its regular mesh and transition data: from `meshes` when
+    /// The tile in world coordinates, its regular mesh and moves: from `meshes` when
     /// it holds a tile with the same inputs, else meshed now (reading decoded bricks through
     /// `bricks`) and kept there.
     ///
@@ -374,5 +410,42 @@ impl TileRead {
         let mut tile = (*cached.tile).clone();
         tile_to_world(&mut tile, self.key, &self.snap);
         Ok(tile)
+    }
+}
+
+/// A checked transition strip read (see [`LiveVolume::mesh_strip`]).
+#[derive(Debug)]
+pub struct StripRead {
+    snap: Arc<Snapshot>,
+    key: BrickKey,
+    face: usize,
+    iso: f32,
+    inputs: StripInputs,
+}
+
+impl StripRead {
+    /// A hash of everything the strip's encoded mesh depends on (its inputs, which name its
+    /// face, the tile's position and the volume's voxel scale) and of `variant` (which
+    /// encoding): equal tags, equal bytes.
+    pub fn tag(&self, variant: u8) -> u64 {
+        mesh_tag(self.inputs.key, self.key, &self.snap, &[variant, b's'])
+    }
+
+    /// The strip in world coordinates, as drawn: from `meshes` when it holds one with the same
+    /// inputs, else meshed now (reading decoded bricks through `bricks`) and kept there.
+    ///
+    /// # Errors
+    /// A brick fails to read or decode.
+    pub fn mesh(self, meshes: &MeshCache, bricks: Arc<DecodedBricks>) -> Result<Mesh, VolumeError> {
+        let mut scratch = TileScratch::with_bricks(bricks);
+        let cached = meshes.strip(
+            &self.snap,
+            self.key,
+            self.face,
+            self.iso,
+            &self.inputs,
+            &mut scratch,
+        )?;
+        Ok(strip_to_world((*cached.tile).clone(), self.key, &self.snap))
     }
 }

@@ -1,21 +1,24 @@
 //! `isovox-bench mesh`: marching-cubes throughput next to VTK's Flying Edges and scikit-image,
 //! the thesis's Tables 6-8 (speed-up by threads, by level, triangles per level, adaptive LOD),
-//! and what crack-free stitching costs: tiles with their transition data against without
-//! (meshing time, triangles, bytes), and the adaptive LOD's savings once stitched.
+//! and what crack-free stitching costs: tiles with their moves against without, the transition
+//! strips a view needs, the whole view (meshing time, triangles, bytes), and the adaptive LOD's
+//! savings once stitched.
 
 use super::median;
 use anyhow::Context;
 use clap::Args;
-use isovox_proto::mesh::{encode_compact, encode_tile, TileMesh};
+use isovox_proto::mesh::{encode_compact, encode_tile, Mesh as ProtoMesh, TileMesh};
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use isovox_server::generate::{EllipsoidSource, WorldSource};
 use isovox_server::mesh::check::{crossing_triangles, open_edges};
 use isovox_server::mesh::level::{
-    adaptive_tiles, balanced_tiles, level_tiles, mesh_stitchable_parts, mesh_stitched,
-    mesh_tile_parts, mesh_tiles, weld,
+    adaptive_tiles, balanced_tiles, level_tiles, mask_faces, mesh_stitchable_parts, mesh_stitched,
+    mesh_strips, mesh_tile_parts, mesh_tiles, mesh_tiles_with_moves, weld,
 };
 use isovox_server::mesh::mc::{Kernel, Mesh};
-use isovox_server::mesh::tile::{default_iso, mesh_tile, mesh_tile_with_transitions, TileScratch};
+use isovox_server::mesh::tile::{
+    default_iso, mesh_strip_world, mesh_tile, mesh_tile_with_moves, TileScratch,
+};
 use isovox_server::progress::Silent;
 use isovox_server::store::decoded::DecodedBricks;
 use isovox_server::store::raw::RawInput;
@@ -54,9 +57,9 @@ pub struct MeshBenchArgs {
     /// Alternating runs of each side in the transition-data comparison.
     #[arg(long, default_value_t = 5)]
     pub transition_runs: usize,
-    /// Print a digest of every tile with its transition data at every level (its content, and
-    /// its compact bytes) instead of timing: equal digests before and after a change to the
-    /// meshing code show that it changed no tile.
+    /// Print a digest of every tile with its moves and of every transition strip at every level
+    /// (their content, and their compact bytes) instead of timing: equal digests before and
+    /// after a change to the meshing code show that it changed no tile and no strip.
     #[arg(long)]
     pub digest: bool,
     /// Only the marching-cubes table (the kernels and the peers), not the levels, the
@@ -97,10 +100,10 @@ fn mesh_pass(
 /// Each of `tiles` meshed into a fresh `T` by `mesh`, in parallel on the current rayon pool,
 /// marching with `kernel`: one scratch per thread, all sharing one cache of decoded bricks (as
 /// `mesh_tile_parts` gives them).
-fn mesh_each<T: Default + Send, S>(
-    tiles: &[BrickKey],
+fn mesh_each<I: Copy + Sync, T: Default + Send, S>(
+    tiles: &[I],
     kernel: Kernel,
-    mesh: impl Fn(BrickKey, &mut T, &mut TileScratch) -> Result<S, StoreError> + Sync,
+    mesh: impl Fn(I, &mut T, &mut TileScratch) -> Result<S, StoreError> + Sync,
 ) -> anyhow::Result<Vec<T>> {
     let bricks = Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
     let parts = tiles
@@ -157,47 +160,55 @@ fn kernels_in_turn(
         .collect())
 }
 
-/// The transition-data comparison: medians of alternating runs, in seconds.
-struct TransitionTimes {
-    /// Every level-0 tile with its transition data.
+/// Two sides timed in alternating runs: medians, in seconds.
+struct Alternating {
+    /// With the transition data.
     with: f64,
-    /// The same tiles' regular meshes alone.
+    /// Without.
     without: f64,
     /// What the transition data adds: the median of each pair's difference.
     added: f64,
 }
 
-/// Level-0 tiles meshed with their transition data against the same tiles without, on one
-/// thread: one warm-up of each, then the two alternate so that a machine whose load changes
-/// slows both alike; the medians and the tiles of the last run with transitions.
-fn transitions_against_plain(
-    snap: &Snapshot,
+/// `without` and `with` on one thread: one warm-up of each, then they alternate `runs` times so
+/// that a machine whose load changes slows both alike. Returns the medians and the last
+/// result of `with`.
+fn alternate<T: Send>(
     runs: usize,
-) -> anyhow::Result<(TransitionTimes, Vec<TileMesh>)> {
+    without: impl Fn() -> anyhow::Result<()> + Sync,
+    with: impl Fn() -> anyhow::Result<T> + Sync,
+) -> anyhow::Result<(Alternating, T)> {
     let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
-    let tiles = level_tiles(snap, 0);
-    let iso = default_iso(snap.layout().voxel_type());
-    pool.install(|| mesh_tile_parts(snap, &tiles, iso, &Silent))?;
-    pool.install(|| mesh_stitchable_parts(snap, &tiles, iso, &Silent))?;
-    let (mut with, mut without, mut added) = (Vec::new(), Vec::new(), Vec::new());
-    let mut parts = Vec::new();
+    pool.install(&without)?;
+    let mut last = pool.install(&with)?;
+    let (mut w, mut wo, mut added) = (Vec::new(), Vec::new(), Vec::new());
     for _ in 0..runs.max(1) {
         let start = Instant::now();
-        pool.install(|| mesh_tile_parts(snap, &tiles, iso, &Silent))?;
+        pool.install(&without)?;
         let plain = start.elapsed().as_secs_f64();
         let start = Instant::now();
-        parts = pool.install(|| mesh_stitchable_parts(snap, &tiles, iso, &Silent))?;
+        last = pool.install(&with)?;
         let stitchable = start.elapsed().as_secs_f64();
-        without.push(plain);
-        with.push(stitchable);
+        wo.push(plain);
+        w.push(stitchable);
         added.push(stitchable - plain);
     }
-    let times = TransitionTimes {
-        with: median(with),
-        without: median(without),
+    let times = Alternating {
+        with: median(w),
+        without: median(wo),
         added: median(added),
     };
-    Ok((times, parts))
+    Ok((times, last))
+}
+
+/// Every face of every tile of `tiles` that can touch a coarser tile.
+fn all_faces(snap: &Snapshot, tiles: &[BrickKey]) -> Vec<(BrickKey, usize)> {
+    let layout = snap.layout();
+    tiles
+        .iter()
+        .flat_map(|&k| (0..6).map(move |f| (k, f)))
+        .filter(|&(k, f)| isovox_proto::tile::has_strip(layout, k, f))
+        .collect()
 }
 
 /// The digests of one level's tiles ([`tile_digests`]).
@@ -207,11 +218,13 @@ struct LevelDigests {
     content: u64,
     order_free: u64,
     bytes: u64,
+    strips: u64,
 }
 
-/// Digests of every tile of every level of `snap` meshed with its transition data: of its
-/// content (regular mesh, transition vertices, moves, strips: independent of the encoding), of
-/// the same content free of order ([`order_free_digest`]) and of its compact bytes.
+/// Digests of every tile of every level of `snap` meshed with its moves: of its content
+/// (regular mesh and moves: independent of the encoding), of the same content free of order
+/// ([`order_free_digest`]) and of its compact bytes; and of every strip of every face that can
+/// touch a coarser tile (order-free, with its face).
 fn tile_digests(snap: &Snapshot, kernel: Kernel) -> anyhow::Result<Vec<LevelDigests>> {
     use std::hash::{DefaultHasher, Hash, Hasher};
     let iso = default_iso(snap.layout().voxel_type());
@@ -219,24 +232,38 @@ fn tile_digests(snap: &Snapshot, kernel: Kernel) -> anyhow::Result<Vec<LevelDige
     for level in 0..snap.layout().levels() {
         let tiles = level_tiles(snap, level);
         let parts = mesh_each(&tiles, kernel, |key, tile: &mut TileMesh, scratch| {
-            mesh_tile_with_transitions(snap, key, iso, tile, scratch)
+            mesh_tile_with_moves(snap, key, iso, tile, scratch)
         })?;
         let (mut content, mut bytes) = (DefaultHasher::new(), DefaultHasher::new());
         let mut order_free = DefaultHasher::new();
         for tile in &parts {
             order_free_digest(tile).hash(&mut order_free);
-            let (m, t) = (&tile.mesh, &tile.transitions);
+            let m = &tile.mesh;
             let bits = |v: &[[f32; 3]]| v.iter().flatten().map(|c| c.to_bits()).collect::<Vec<_>>();
             bits(&m.positions).hash(&mut content);
             bits(&m.normals).hash(&mut content);
             m.indices.hash(&mut content);
-            bits(&t.positions).hash(&mut content);
-            bits(&t.normals).hash(&mut content);
-            for mv in &t.moves {
-                (mv.vertex, mv.faces, mv.offset.map(f32::to_bits)).hash(&mut content);
+            for mv in &tile.moves {
+                (mv.vertex, mv.face, mv.distance.to_bits()).hash(&mut content);
             }
-            t.strips.hash(&mut content);
             encode_tile(tile).hash(&mut bytes);
+        }
+        let faces = all_faces(snap, &tiles);
+        let strips = mesh_each(
+            &faces,
+            kernel,
+            |(key, face), strip: &mut ProtoMesh, scratch| {
+                mesh_strip_world(snap, key, face, iso, strip, scratch)
+            },
+        )?;
+        let mut strip_digest = DefaultHasher::new();
+        for ((_, face), strip) in faces.iter().zip(&strips) {
+            face.hash(&mut strip_digest);
+            let tile = TileMesh {
+                mesh: strip.clone(),
+                moves: Vec::new(),
+            };
+            order_free_digest(&tile).hash(&mut strip_digest);
         }
         out.push(LevelDigests {
             level,
@@ -244,6 +271,7 @@ fn tile_digests(snap: &Snapshot, kernel: Kernel) -> anyhow::Result<Vec<LevelDige
             content: content.finish(),
             order_free: order_free.finish(),
             bytes: bytes.finish(),
+            strips: strip_digest.finish(),
         });
     }
     Ok(out)
@@ -253,50 +281,36 @@ fn tile_digests(snap: &Snapshot, kernel: Kernel) -> anyhow::Result<Vec<LevelDige
 /// or moves: every index is replaced by its vertex (position and normal bits), every triangle
 /// is rotated to start at its least vertex (its winding kept) and the lists are sorted. Two
 /// meshing kernels that number vertices differently give equal digests exactly when they make
-/// the same surface, strips and moves.
+/// the same surface and moves.
 fn order_free_digest(tile: &TileMesh) -> u64 {
     use std::hash::{DefaultHasher, Hash, Hasher};
     type Vertex = [u32; 6];
-    let (m, t) = (&tile.mesh, &tile.transitions);
+    let m = &tile.mesh;
     let vertex = |(p, n): (&[f32; 3], &[f32; 3])| -> Vertex {
         let [a, b, c] = p.map(f32::to_bits);
         let [d, e, f] = n.map(f32::to_bits);
         [a, b, c, d, e, f]
     };
-    let vertices: Vec<Vertex> = m
-        .positions
-        .iter()
-        .zip(&m.normals)
-        .chain(t.positions.iter().zip(&t.normals))
-        .map(vertex)
+    let vertices: Vec<Vertex> = m.positions.iter().zip(&m.normals).map(vertex).collect();
+    let mut triangles: Vec<[Vertex; 3]> = m
+        .indices
+        .chunks_exact(3)
+        .map(|tri| {
+            let mut v = [0, 1, 2].map(|k| vertices[tri[k] as usize]);
+            let least = (0..3).min_by_key(|&k| v[k]).unwrap_or(0);
+            v.rotate_left(least);
+            v
+        })
         .collect();
-    let triangles = |indices: &[u32]| {
-        let mut out: Vec<[Vertex; 3]> = indices
-            .chunks_exact(3)
-            .map(|tri| {
-                let mut v = [0, 1, 2].map(|k| vertices[tri[k] as usize]);
-                let least = (0..3).min_by_key(|&k| v[k]).unwrap_or(0);
-                v.rotate_left(least);
-                v
-            })
-            .collect();
-        out.sort_unstable();
-        out
-    };
-    let mut moves: Vec<(Vertex, u8, [u32; 3])> = t
+    triangles.sort_unstable();
+    let mut moves: Vec<(Vertex, u8, u32)> = tile
         .moves
         .iter()
-        .map(|mv| {
-            let offset = mv.offset.map(f32::to_bits);
-            (vertices[mv.vertex as usize], mv.faces, offset)
-        })
+        .map(|mv| (vertices[mv.vertex as usize], mv.face, mv.distance.to_bits()))
         .collect();
     moves.sort_unstable();
     let mut hasher = DefaultHasher::new();
-    triangles(&m.indices).hash(&mut hasher);
-    for strip in &t.strips {
-        triangles(strip).hash(&mut hasher);
-    }
+    triangles.hash(&mut hasher);
     moves.hash(&mut hasher);
     hasher.finish()
 }
@@ -376,14 +390,14 @@ pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
     }
 
     if a.digest {
-        println!("| data set | kernel | level | tiles | content digest | order-free digest | bytes digest |");
-        println!("|---|---|---:|---:|---|---|---|");
+        println!("| data set | kernel | level | tiles | content digest | order-free digest | bytes digest | strips digest |");
+        println!("|---|---|---:|---:|---|---|---|---|");
         for (name, _, snap, _, _) in &sets {
             for kernel in [Kernel::Rows, Kernel::Reference] {
                 for d in tile_digests(snap, kernel)? {
                     println!(
-                        "| {name} | {kernel:?} | {} | {} | {:016x} | {:016x} | {:016x} |",
-                        d.level, d.tiles, d.content, d.order_free, d.bytes
+                        "| {name} | {kernel:?} | {} | {} | {:016x} | {:016x} | {:016x} | {:016x} |",
+                        d.level, d.tiles, d.content, d.order_free, d.bytes, d.strips
                     );
                 }
             }
@@ -536,26 +550,43 @@ pub fn run(a: MeshBenchArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The transition-data table: every level-0 tile with its transition data against without.
+/// The corner view of the adaptive-LOD figures: camera at (0, dims y, 0), level k within
+/// radius max/4, max/2, max.
+fn corner_view(dims: [u32; 3]) -> ([f32; 3], [f32; 3]) {
+    let max = *dims.iter().max().unwrap_or(&1) as f32;
+    ([0.0, dims[1] as f32, 0.0], [max / 4.0, max / 2.0, max])
+}
+
+/// What crack-free stitching costs: (a) every level-0 tile with its moves against plain, (b) the
+/// strips alone, (c) a corner view's tiles with moves and the strips their masks need against
+/// the same tiles plain, (d) bytes.
 fn transition_table(sets: &[DataSet], runs: usize) -> anyhow::Result<()> {
-    println!("\n### Transition data (crack-free LOD), level 0, 1 thread\n");
-    println!("Every level-0 tile meshed as served: its regular mesh, the secondary positions of its boundary vertices and one transition strip per face with a neighbour (docs/lod-meshes.md), against the regular mesh alone, in alternating runs (median of {runs} each; the transition part is the median of each pair's difference); bytes in the compact encoding (version 2 against version 1), over the tiles with a surface.\n");
-    println!("| data set | without: ms | with: ms | transition part: ms | with / without (time) | tiles with a surface | regular triangles | strip triangles (6 faces) | moves | bytes without | bytes with | bytes more |");
-    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
-    for (name, _, snap, _, _) in sets {
+    println!("\n### Transition data (crack-free LOD), 1 thread\n");
+    println!("(a) Every level-0 tile meshed as served, its regular mesh and the moves (secondary positions) of its boundary vertices (docs/lod-meshes.md), against the regular mesh alone, in alternating runs (median of {runs} each; the moves' part is the median of each pair's difference). Bytes in the compact encoding (version 3 against version 1), over the tiles with a surface.\n");
+    println!("| data set | plain: ms | with moves: ms | moves' part: ms | with / plain (goal < 1.15x) | tiles with a surface | regular triangles | moves | bytes plain | bytes with moves | bytes more |");
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let mut strip_rows = Vec::new();
+    let mut view_rows = Vec::new();
+    for (name, _, snap, dims, _) in sets {
         eprintln!("bench mesh: transitions, {name}");
-        let (times, parts) = transitions_against_plain(snap, runs)?;
-        let surfaced: Vec<&TileMesh> = parts
-            .iter()
-            .filter(|t| !t.mesh.is_empty() || !t.transitions.is_empty())
-            .collect();
+        let tiles = level_tiles(snap, 0);
+        let iso = default_iso(snap.layout().voxel_type());
+        let (times, parts) = alternate(
+            runs,
+            || {
+                mesh_tile_parts(snap, &tiles, iso, &Silent)
+                    .map(drop)
+                    .map_err(Into::into)
+            },
+            || mesh_tiles_with_moves(snap, &tiles, iso, &Silent).map_err(Into::into),
+        )?;
+        let surfaced: Vec<&TileMesh> = parts.iter().filter(|t| !t.mesh.is_empty()).collect();
         let regular: usize = surfaced.iter().map(|t| t.mesh.triangles()).sum();
-        let strips: usize = surfaced.iter().map(|t| t.transitions.triangles()).sum();
-        let moves: usize = surfaced.iter().map(|t| t.transitions.moves.len()).sum();
+        let moves: usize = surfaced.iter().map(|t| t.moves.len()).sum();
         let bytes_without: usize = surfaced.iter().map(|t| encode_compact(&t.mesh).len()).sum();
         let bytes_with: usize = surfaced.iter().map(|t| encode_tile(t).len()).sum();
         println!(
-            "| {name} | {:.1} | {:.1} | {:.1} | {:.2}x | {} | {regular} | {strips} | {moves} | {bytes_without} | {bytes_with} | {:.1}% |",
+            "| {name} | {:.1} | {:.1} | {:.1} | **{:.3}x** | {} | {regular} | {moves} | {bytes_without} | {bytes_with} | {:.1}% |",
             times.without * 1e3,
             times.with * 1e3,
             times.added * 1e3,
@@ -563,6 +594,81 @@ fn transition_table(sets: &[DataSet], runs: usize) -> anyhow::Result<()> {
             surfaced.len(),
             100.0 * (bytes_with as f64 / bytes_without as f64 - 1.0)
         );
+        // (b) Every strip of every level-0 face that can touch a coarser tile, one thread.
+        let faces = all_faces(snap, &tiles);
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
+        pool.install(|| mesh_strips(snap, &faces, iso, &Silent))?;
+        let mut seconds = Vec::new();
+        let mut strips = Vec::new();
+        for _ in 0..runs.max(1) {
+            let start = Instant::now();
+            strips = pool.install(|| mesh_strips(snap, &faces, iso, &Silent))?;
+            seconds.push(start.elapsed().as_secs_f64());
+        }
+        let all_s = median(seconds);
+        let drawn: Vec<&ProtoMesh> = strips.iter().filter(|s| !s.is_empty()).collect();
+        let strip_triangles: usize = drawn.iter().map(|s| s.triangles()).sum();
+        let strip_bytes: usize = drawn.iter().map(|s| encode_compact(s).len()).sum();
+        // (c) The corner view: its balanced tiles with moves and the strips their masks need,
+        // against the same tiles plain.
+        let (camera, radii) = corner_view(*dims);
+        let view = balanced_tiles(snap, camera, &radii);
+        let masks = isovox_proto::lod::face_masks(snap.layout(), &view);
+        let wanted: Vec<(BrickKey, usize)> = mask_faces(&masks)
+            .into_iter()
+            .map(|(i, f)| (view[i], f))
+            .collect();
+        let (view_times, parts) = alternate(
+            runs,
+            || {
+                mesh_tile_parts(snap, &view, iso, &Silent)
+                    .map(drop)
+                    .map_err(Into::into)
+            },
+            || mesh_stitchable_parts(snap, &view, iso, &Silent).map_err(Into::into),
+        )?;
+        let view_tiles = &parts.tiles;
+        let view_strips: Vec<&ProtoMesh> = parts.strips.iter().flatten().flatten().collect();
+        let masked = masks.iter().filter(|&&m| m != 0).count();
+        let view_strip_bytes: usize = view_strips.iter().map(|s| encode_compact(s).len()).sum();
+        let view_tile_bytes: usize = view_tiles.iter().map(|t| encode_tile(t).len()).sum();
+        let view_plain_bytes: usize = view_tiles
+            .iter()
+            .map(|t| encode_compact(&t.mesh).len())
+            .sum();
+        strip_rows.push(format!(
+            "| {name} | {} | {:.1} | {:.1} | {} | {strip_triangles} | {strip_bytes} | {:.0} |",
+            faces.len(),
+            all_s * 1e3,
+            all_s * 1e6 / faces.len().max(1) as f64,
+            drawn.len(),
+            strip_bytes as f64 / drawn.len().max(1) as f64,
+        ));
+        view_rows.push(format!(
+            "| {name} | {:.0}, {:.0}, {:.0} | {} | {masked} | {} | {} | {:.1} | {:.1} | **{:.3}x** | {view_plain_bytes} | {view_tile_bytes} | {view_strip_bytes} | {:.1}% |",
+            radii[0],
+            radii[1],
+            radii[2],
+            view.len(),
+            wanted.len(),
+            view_strips.iter().filter(|s| !s.is_empty()).count(),
+            view_times.without * 1e3,
+            view_times.with * 1e3,
+            view_times.with / view_times.without,
+            100.0 * ((view_tile_bytes + view_strip_bytes) as f64 / view_plain_bytes as f64 - 1.0),
+        ));
+    }
+    println!("\n(b) The transition strips alone: every face of a level-0 tile that can touch a coarser tile, each strip meshed as served (the layer of the tile's cells along the face, the coarser level's plane, the strip), one thread, median of {runs}; bytes of the non-empty strips in the compact encoding (version 1).\n");
+    println!("| data set | strips | ms (all) | us per strip | non-empty | strip triangles | strip bytes | bytes per non-empty strip |");
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|");
+    for row in strip_rows {
+        println!("{row}");
+    }
+    println!("\n(c) A view: the balanced selection for the camera at a corner (as in the adaptive-LOD figures), its tiles meshed with their moves plus the strips their face masks need (one cache of decoded bricks for both passes, as the server's requests share one), against the same tiles plain, one thread, alternating runs (median of {runs} each); bytes in the compact encoding: the tiles plain (version 1), with moves (version 3), the strips (version 1), and what moves and strips add.\n");
+    println!("| data set | radii | tiles | tiles with a coarser face | strips needed | non-empty | plain: ms | with moves and strips: ms | ratio | bytes plain | bytes with moves | strip bytes | bytes more |");
+    println!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for row in view_rows {
+        println!("{row}");
     }
     Ok(())
 }
