@@ -55,6 +55,11 @@ fn voxels() -> Vec<u8> {
 }
 
 async fn start() -> Server {
+    start_with_queue(isovox_server::http::cpu::default_queue()).await
+}
+
+/// As [`start`], with `cpu_queue` places in the server's CPU queue.
+async fn start_with_queue(cpu_queue: usize) -> Server {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("mixed.vod");
     let layout = VolumeLayout::new(DIMS, 8, VoxelType::U16).unwrap();
@@ -72,6 +77,7 @@ async fn start() -> Server {
     tokens.add("tester", TOKEN, Scope::Write).unwrap();
     let config = ServerConfig {
         tokens,
+        cpu_queue,
         ..ServerConfig::default()
     };
     let server = spawn("127.0.0.1:0", AppState::with_config(catalog, config))
@@ -172,6 +178,55 @@ fn cropped(snap: &isovox_server::store::Snapshot, key: BrickKey) -> Vec<u8> {
         }
     }
     out
+}
+
+/// A client reading a level asks for many chunks at once (tensorstore: 32). Chunks that must be
+/// made (compressed, or decoded and cropped) take places in the CPU queue; a burst larger than
+/// the queue waits for places instead of being refused with 503s.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_burst_of_chunks_to_make_waits_for_the_cpu_queue() {
+    let s = start_with_queue(1).await;
+    let vod = Vod2::open(&s.path).unwrap();
+    let snap = vod.head();
+    let layout = snap.layout().clone();
+    // Every chunk the server must make: bricks not stored as a zstd frame, of every level, in
+    // both views (a precomputed chunk of a stored frame is decoded and cropped too).
+    let mut urls = Vec::new();
+    for level in 0..layout.levels() {
+        let [gx, gy, gz] = layout.grid(level);
+        for (x, y, z) in
+            (0..gz).flat_map(|z| (0..gy).flat_map(move |y| (0..gx).map(move |x| (x, y, z))))
+        {
+            let key = BrickKey { level, x, y, z };
+            if matches!(snap.stored(key).unwrap(), StoredBrick::Constant(0)) {
+                continue;
+            }
+            let [x0, y0, z0] = [x, y, z].map(|c| c * layout.brick());
+            let dims = layout.level_dims(level);
+            let [x1, y1, z1] =
+                [0, 1, 2].map(|a| (([x, y, z][a] + 1) * layout.brick()).min(dims[a]));
+            urls.push(format!(
+                "{}/precomputed/{level}/{x0}-{x1}_{y0}-{y1}_{z0}-{z1}",
+                s.base
+            ));
+            if !matches!(
+                snap.stored(key).unwrap(),
+                StoredBrick::Record { header, .. } if header.codec == Codec::Zstd
+            ) {
+                urls.push(format!("{}/zarr/{level}/c/{z}/{y}/{x}", s.base));
+            }
+        }
+    }
+    assert!(urls.len() > 40, "{} chunks to make", urls.len());
+    isovox_server::client_tls::install_provider();
+    let client = reqwest::Client::new();
+    let answers = futures_util::future::join_all(urls.iter().map(|url| {
+        let client = client.clone();
+        async move { client.get(url).send().await.unwrap().status().as_u16() }
+    }))
+    .await;
+    let refused = answers.iter().filter(|&&status| status != 200).count();
+    assert_eq!(refused, 0, "{answers:?}");
 }
 
 #[tokio::test]

@@ -42,6 +42,11 @@ pub enum Admission {
     /// With one of the queue's places, held until the job is done; 503 at once when every
     /// place is taken.
     Place,
+    /// With one of the queue's places, waiting up to this long for one; 503 after. For jobs
+    /// far smaller than the queue is sized for (a view's chunk to compress: a fraction of a
+    /// millisecond, where a mesh tile takes 10-50 ms), which clients ask for in bursts: a
+    /// burst of them waits moments for places instead of being refused.
+    WaitFor(std::time::Duration),
     /// Without a place: the job waits for a thread however long the queue is. For work another
     /// bound already limits (a change feed reads its backlog one page at a time, one page per
     /// subscriber).
@@ -79,7 +84,8 @@ impl CpuQueue {
     /// Runs `work` on the CPU threads, admitted as `admission` says.
     ///
     /// # Errors
-    /// 503 when `admission` needs a place and the queue is full; whatever `work` fails with;
+    /// 503 when `admission` needs a place and the queue is full (for [`Admission::WaitFor`]:
+    /// stays full that long); whatever `work` fails with;
     /// 500 if it panicked.
     pub async fn run<T, E>(
         &self,
@@ -97,6 +103,13 @@ impl CpuQueue {
                     .clone()
                     .try_acquire_owned()
                     .map_err(|_| ApiError::Overloaded(1))?,
+            ),
+            Admission::WaitFor(patience) => Some(
+                tokio::time::timeout(patience, self.places.clone().acquire_owned())
+                    .await
+                    .ok()
+                    .and_then(Result::ok)
+                    .ok_or(ApiError::Overloaded(1))?,
             ),
             Admission::Wait => None,
         };
@@ -322,6 +335,39 @@ mod tests {
         assert_eq!(queue.depth(), 1);
         release.send(()).unwrap();
         assert!(holder.await.unwrap().unwrap());
+        assert_eq!(queue.depth(), 0);
+    }
+
+    #[tokio::test]
+    async fn a_patient_job_waits_for_a_place_within_its_patience_only() {
+        let queue = Arc::new(CpuQueue::new(1, 2, 1 << 20));
+        let (release, holder) = fill_the_one_place(&queue).await;
+        // No place frees within the patience: refused.
+        let refused = queue
+            .run(Admission::WaitFor(Duration::from_millis(50)), || {
+                Ok::<_, ApiError>(())
+            })
+            .await;
+        assert!(
+            matches!(refused, Err(ApiError::Overloaded(1))),
+            "{refused:?}"
+        );
+        // A place frees while it waits: it runs, in that place.
+        let patient = {
+            let queue = queue.clone();
+            tokio::spawn(async move {
+                queue
+                    .run(Admission::WaitFor(Duration::from_secs(30)), || {
+                        Ok::<_, ApiError>(9)
+                    })
+                    .await
+            })
+        };
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        assert!(!patient.is_finished());
+        release.send(()).unwrap();
+        assert!(holder.await.unwrap().unwrap());
+        assert_eq!(patient.await.unwrap().unwrap(), 9);
         assert_eq!(queue.depth(), 0);
     }
 }

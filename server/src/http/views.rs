@@ -11,7 +11,8 @@
 //!
 //! A Zarr chunk of fill values only answers 404 (clients read it as the fill value) with the
 //! same caching headers as a chunk. A chunk that must be decoded or compressed (not stored as a
-//! frame that goes out as it is, not in the shared cache) is made on the CPU queue.
+//! frame that goes out as it is, not in the shared cache) is made on the CPU queue, waiting up
+//! to a second for a place there.
 
 use super::bricks::{format_etag, if_none_match};
 use super::cpu::Admission;
@@ -27,6 +28,12 @@ use axum::response::{IntoResponse, Response};
 const LIVE: &str = "public, max-age=1";
 /// Pinned views: one version's documents never change.
 const PINNED: &str = "public, max-age=31536000, immutable";
+
+/// How long a chunk to make waits for a place in the CPU queue before it is refused (503).
+/// tensorstore's first read of a level asks for 32 chunks at once, and the queue (16 places on
+/// two cores) is sized for mesh tiles: refused at once, those were retried with backoff, and the
+/// first read took 2 s instead of 0.25 s.
+const CHUNK_PATIENCE: std::time::Duration = std::time::Duration::from_secs(1);
 
 /// `{name}/zarr/{*path}` and `{name}/precomputed/{*path}`.
 type LivePath = Path<(String, String)>;
@@ -86,7 +93,9 @@ async fn view(
             let bricks = state.bricks.clone();
             state
                 .cpu
-                .run(Admission::Place, move || chunk.run(&bricks))
+                .run(Admission::WaitFor(CHUNK_PATIENCE), move || {
+                    chunk.run(&bricks)
+                })
                 .await?
         }
     };
