@@ -124,6 +124,23 @@ impl LiveVolume {
         })
     }
 
+    /// The snapshot, tile key and iso value of a read of mesh tile `(level, x, y, z)` (or of
+    /// one of its strips), checked.
+    fn mesh_read(
+        &self,
+        version: Option<u64>,
+        (level, x, y, z): (u8, u32, u32, u32),
+        iso: Option<f32>,
+    ) -> Result<(Arc<Snapshot>, BrickKey, f32), VolumeError> {
+        let snap = self.snapshot(version)?;
+        let key = snap
+            .layout()
+            .key(level, x, y, z)
+            .map_err(|e| VolumeError::OutOfRange(e.to_string()))?;
+        let iso = iso_value(iso, snap.layout().voxel_type()).map_err(VolumeError::BadRequest)?;
+        Ok((snap, key, iso))
+    }
+
     /// Checks a mesh tile read and computes the tile's inputs (27 index lookups, no voxel
     /// decoded): enough to name the result before meshing it.
     ///
@@ -136,12 +153,7 @@ impl LiveVolume {
         (level, x, y, z): (u8, u32, u32, u32),
         iso: Option<f32>,
     ) -> Result<TileRead, VolumeError> {
-        let snap = self.snapshot(version)?;
-        let key = snap
-            .layout()
-            .key(level, x, y, z)
-            .map_err(|e| VolumeError::OutOfRange(e.to_string()))?;
-        let iso = iso_value(iso, snap.layout().voxel_type()).map_err(VolumeError::BadRequest)?;
+        let (snap, key, iso) = self.mesh_read(version, (level, x, y, z), iso)?;
         let inputs = tile_inputs(&snap, key, iso, Stitching::Moves)?;
         Ok(TileRead {
             snap,
@@ -164,12 +176,7 @@ impl LiveVolume {
         face: usize,
         iso: Option<f32>,
     ) -> Result<StripRead, VolumeError> {
-        let snap = self.snapshot(version)?;
-        let key = snap
-            .layout()
-            .key(level, x, y, z)
-            .map_err(|e| VolumeError::OutOfRange(e.to_string()))?;
-        let iso = iso_value(iso, snap.layout().voxel_type()).map_err(VolumeError::BadRequest)?;
+        let (snap, key, iso) = self.mesh_read(version, (level, x, y, z), iso)?;
         let inputs = strip_inputs(&snap, key, face, iso)?;
         Ok(StripRead {
             snap,
