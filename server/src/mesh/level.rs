@@ -9,6 +9,7 @@ use isovox_proto::mesh::{stitch, TileMesh};
 use isovox_proto::BrickKey;
 use rayon::prelude::*;
 use std::collections::HashMap;
+use std::sync::Arc;
 
 /// Memory for decoded bricks during one [`mesh_tiles`] pass.
 const BRICK_CACHE_BYTES: usize = 256 << 20;
@@ -48,14 +49,18 @@ fn in_parallel<I: Copy + Sync, T: Send>(
     progress: &dyn Progress,
     mesh: impl Fn(&mut TileScratch, I) -> Result<T, StoreError> + Sync,
 ) -> Result<Vec<T>, StoreError> {
-    let bricks = std::sync::Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
-    in_parallel_with(&bricks, tiles, progress, mesh)
+    in_parallel_with(&new_brick_cache(), tiles, progress, mesh)
+}
+
+/// A cache of decoded bricks for one meshing pass (or passes that share it).
+fn new_brick_cache() -> Arc<DecodedBricks> {
+    Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES))
 }
 
 /// [`in_parallel`] with the cache of decoded bricks `bricks` (shared with other passes, as the
 /// server shares one between requests).
 fn in_parallel_with<I: Copy + Sync, T: Send>(
-    bricks: &std::sync::Arc<DecodedBricks>,
+    bricks: &Arc<DecodedBricks>,
     tiles: &[I],
     progress: &dyn Progress,
     mesh: impl Fn(&mut TileScratch, I) -> Result<T, StoreError> + Sync,
@@ -122,7 +127,18 @@ pub fn mesh_tiles_with_moves(
     iso: f32,
     progress: &dyn Progress,
 ) -> Result<Vec<TileMesh>, StoreError> {
-    in_parallel(tiles, progress, |scratch, key| {
+    tiles_with_moves_in(&new_brick_cache(), snap, tiles, iso, progress)
+}
+
+/// [`mesh_tiles_with_moves`] reading decoded bricks through `bricks`.
+fn tiles_with_moves_in(
+    bricks: &Arc<DecodedBricks>,
+    snap: &Snapshot,
+    tiles: &[BrickKey],
+    iso: f32,
+    progress: &dyn Progress,
+) -> Result<Vec<TileMesh>, StoreError> {
+    in_parallel_with(bricks, tiles, progress, |scratch, key| {
         let mut tile = TileMesh::default();
         mesh_tile_with_moves(snap, key, iso, &mut tile, scratch)?;
         Ok(tile)
@@ -140,7 +156,18 @@ pub fn mesh_strips(
     iso: f32,
     progress: &dyn Progress,
 ) -> Result<Vec<Mesh>, StoreError> {
-    in_parallel(strips, progress, |scratch, (key, face)| {
+    strips_in(&new_brick_cache(), snap, strips, iso, progress)
+}
+
+/// [`mesh_strips`] reading decoded bricks through `bricks`.
+fn strips_in(
+    bricks: &Arc<DecodedBricks>,
+    snap: &Snapshot,
+    strips: &[(BrickKey, usize)],
+    iso: f32,
+    progress: &dyn Progress,
+) -> Result<Vec<Mesh>, StoreError> {
+    in_parallel_with(bricks, strips, progress, |scratch, (key, face)| {
         let mut strip = Mesh::default();
         mesh_strip_world(snap, key, face, iso, &mut strip, scratch)?;
         Ok(strip)
@@ -173,7 +200,7 @@ impl StitchableParts {
 }
 
 /// The faces of a selection's tiles its masks need a strip for: (tile index, face).
-pub fn mask_faces(masks: &[u8]) -> Vec<(usize, usize)> {
+fn mask_faces(masks: &[u8]) -> Vec<(usize, usize)> {
     masks
         .iter()
         .enumerate()
@@ -193,19 +220,12 @@ pub fn mesh_stitchable_parts(
     iso: f32,
     progress: &dyn Progress,
 ) -> Result<StitchableParts, StoreError> {
-    let bricks = std::sync::Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
-    let meshed = in_parallel_with(&bricks, tiles, progress, |scratch, key| {
-        let mut tile = TileMesh::default();
-        mesh_tile_with_moves(snap, key, iso, &mut tile, scratch)?;
-        Ok(tile)
-    })?;
+    let bricks = new_brick_cache();
+    let meshed = tiles_with_moves_in(&bricks, snap, tiles, iso, progress)?;
     let masks = isovox_proto::lod::face_masks(snap.layout(), tiles);
     let faces = mask_faces(&masks);
-    let made = in_parallel_with(&bricks, &faces, progress, |scratch, (i, face)| {
-        let mut strip = Mesh::default();
-        mesh_strip_world(snap, tiles[i], face, iso, &mut strip, scratch)?;
-        Ok(strip)
-    })?;
+    let keys: Vec<_> = faces.iter().map(|&(i, face)| (tiles[i], face)).collect();
+    let made = strips_in(&bricks, snap, &keys, iso, progress)?;
     let mut strips = vec![[(); 6].map(|_| None); tiles.len()];
     for ((i, face), strip) in faces.into_iter().zip(made) {
         strips[i][face] = Some(strip);

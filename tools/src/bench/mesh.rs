@@ -12,8 +12,8 @@ use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use isovox_server::generate::{EllipsoidSource, WorldSource};
 use isovox_server::mesh::check::{crossing_triangles, open_edges};
 use isovox_server::mesh::level::{
-    adaptive_tiles, balanced_tiles, level_tiles, mask_faces, mesh_stitchable_parts, mesh_stitched,
-    mesh_strips, mesh_tile_parts, mesh_tiles, mesh_tiles_with_moves, weld,
+    adaptive_tiles, balanced_tiles, level_tiles, mesh_stitchable_parts, mesh_stitched, mesh_strips,
+    mesh_tile_parts, mesh_tiles, mesh_tiles_with_moves, weld,
 };
 use isovox_server::mesh::mc::{Kernel, Mesh};
 use isovox_server::mesh::tile::{
@@ -557,6 +557,12 @@ fn corner_view(dims: [u32; 3]) -> ([f32; 3], [f32; 3]) {
     ([0.0, dims[1] as f32, 0.0], [max / 4.0, max / 2.0, max])
 }
 
+/// `tiles` meshed plain (regular meshes alone), the baseline of the transition table.
+fn plain_pass(snap: &Snapshot, tiles: &[BrickKey], iso: f32) -> anyhow::Result<()> {
+    mesh_tile_parts(snap, tiles, iso, &Silent)?;
+    Ok(())
+}
+
 /// What crack-free stitching costs: (a) every level-0 tile with its moves against plain, (b) the
 /// strips alone, (c) a corner view's tiles with moves and the strips their masks need against
 /// the same tiles plain, (d) bytes.
@@ -573,11 +579,7 @@ fn transition_table(sets: &[DataSet], runs: usize) -> anyhow::Result<()> {
         let iso = default_iso(snap.layout().voxel_type());
         let (times, parts) = alternate(
             runs,
-            || {
-                mesh_tile_parts(snap, &tiles, iso, &Silent)
-                    .map(drop)
-                    .map_err(Into::into)
-            },
+            || plain_pass(snap, &tiles, iso),
             || mesh_tiles_with_moves(snap, &tiles, iso, &Silent).map_err(Into::into),
         )?;
         let surfaced: Vec<&TileMesh> = parts.iter().filter(|t| !t.mesh.is_empty()).collect();
@@ -613,23 +615,14 @@ fn transition_table(sets: &[DataSet], runs: usize) -> anyhow::Result<()> {
         // against the same tiles plain.
         let (camera, radii) = corner_view(*dims);
         let view = balanced_tiles(snap, camera, &radii);
-        let masks = isovox_proto::lod::face_masks(snap.layout(), &view);
-        let wanted: Vec<(BrickKey, usize)> = mask_faces(&masks)
-            .into_iter()
-            .map(|(i, f)| (view[i], f))
-            .collect();
         let (view_times, parts) = alternate(
             runs,
-            || {
-                mesh_tile_parts(snap, &view, iso, &Silent)
-                    .map(drop)
-                    .map_err(Into::into)
-            },
+            || plain_pass(snap, &view, iso),
             || mesh_stitchable_parts(snap, &view, iso, &Silent).map_err(Into::into),
         )?;
         let view_tiles = &parts.tiles;
         let view_strips: Vec<&ProtoMesh> = parts.strips.iter().flatten().flatten().collect();
-        let masked = masks.iter().filter(|&&m| m != 0).count();
+        let masked = parts.masks.iter().filter(|&&m| m != 0).count();
         let view_strip_bytes: usize = view_strips.iter().map(|s| encode_compact(s).len()).sum();
         let view_tile_bytes: usize = view_tiles.iter().map(|t| encode_tile(t).len()).sum();
         let view_plain_bytes: usize = view_tiles
@@ -650,7 +643,7 @@ fn transition_table(sets: &[DataSet], runs: usize) -> anyhow::Result<()> {
             radii[1],
             radii[2],
             view.len(),
-            wanted.len(),
+            parts.strip_count(),
             view_strips.iter().filter(|s| !s.is_empty()).count(),
             view_times.without * 1e3,
             view_times.with * 1e3,
