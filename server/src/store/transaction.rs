@@ -33,6 +33,14 @@ impl Default for CheckpointPolicy {
     }
 }
 
+/// Fewest bricks a parallel job of an edit's staging takes (evaluating, compressing,
+/// downsampling: tens of microseconds a brick). Handing a job to another rayon thread wakes it,
+/// and it spins a while before sleeping again: for a smaller job that costs more than it
+/// returns. A small carve (about 8 level-0 bricks, fewer on each level above) so never leaves
+/// the writer's thread; `isovox-bench edits` made the same edits/s and single-editor latency as
+/// with a one-thread rayon pool, 5-9% more edits/s than with every loop split.
+pub const BRICKS_PER_JOB: usize = 8;
+
 /// Changed bricks per level (level 0 first), as `[x, y, z]`.
 pub type ChangedKeys = Vec<Vec<[u32; 3]>>;
 
@@ -186,7 +194,11 @@ impl<'a> Transaction<'a> {
             }
             // Store this level's bricks; keep only those whose entry really changed.
             let writer = &*self.writer;
-            let prepared: Vec<_> = level.par_iter().map(|(_, v)| writer.prepare(v)).collect();
+            let prepared: Vec<_> = level
+                .par_iter()
+                .with_min_len(BRICKS_PER_JOB)
+                .map(|(_, v)| writer.prepare(v))
+                .collect();
             let mut kept: HashMap<BrickKey, BrickVoxels> = HashMap::new();
             for ((key, voxels), p) in level.into_iter().zip(prepared) {
                 if self.put(layout.node_index(key), &voxels, p)? {
@@ -202,6 +214,7 @@ impl<'a> Transaction<'a> {
             parents.dedup();
             level = parents
                 .par_iter()
+                .with_min_len(BRICKS_PER_JOB)
                 .map(|&parent| -> Result<(BrickKey, BrickVoxels), StoreError> {
                     let kids = layout.children(parent);
                     let mut changed: [Option<&BrickVoxels>; 8] = [None; 8];

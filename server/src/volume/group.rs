@@ -280,10 +280,8 @@ impl LiveVolume {
                 continue;
             }
             let savepoint = writer.savepoint();
-            // On a worker of the rayon pool: the edit's many small parallel loops then run
-            // there, instead of each being handed over from this thread and waited for.
             let cancel = pending.cancel.restarted();
-            match rayon::scope(|_| stage(writer, &tip, &mut pending.edit, policy, &cancel)) {
+            match stage(writer, &tip, &mut pending.edit, policy, &cancel) {
                 Ok((vod, event, response)) => {
                     tip = vod.clone();
                     staged.push(Staged {
