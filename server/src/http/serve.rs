@@ -64,6 +64,24 @@ async fn serve(
     state: AppState,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> std::io::Result<()> {
+    // The loop runs as a task of its own, on a runtime worker, whoever awaits `serve`: awaited
+    // in `block_on` it would run on the calling thread, and every accepted connection would be
+    // two wake-ups across threads (the I/O driver's worker waking that thread, its spawn waking
+    // a worker), every closed one a third. Spawned from a worker, a connection's task starts
+    // on that worker, next.
+    match tokio::spawn(accept_until_shutdown(listener, tls, state, shutdown)).await {
+        Ok(served) => served,
+        Err(e) if e.is_panic() => std::panic::resume_unwind(e.into_panic()),
+        Err(e) => Err(std::io::Error::other(e)),
+    }
+}
+
+async fn accept_until_shutdown(
+    listener: TcpListener,
+    tls: Option<TlsAcceptor>,
+    state: AppState,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> std::io::Result<()> {
     let (closing, grace) = (state.closing.clone(), state.config.shutdown_grace);
     let open = state.connections.clone();
     let service = tower::ServiceBuilder::new()
