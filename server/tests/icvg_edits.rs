@@ -985,6 +985,42 @@ fn checkpoint_every_commit() {
     }
 }
 
+/// A checkpoint written after deltas holds their changes too (the new checkpoint is the
+/// previous one with the deltas' entries and the edit's own applied).
+#[test]
+fn checkpoint_after_deltas_keeps_their_changes() {
+    let policy = CheckpointPolicy {
+        max_overlay: 1 << 20,
+        max_chain: 2,
+    };
+    let t = VoxelType::U8;
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("v.vod2");
+    let mut grid = initial(DIMS, t, 17);
+    build(&path, &grid, t);
+    let mut history = vec![(1u64, grid.clone())];
+    let centers = [[24, 16, 12], [8, 20, 6], [16, 8, 17], [30, 6, 16]];
+    let mut kinds = Vec::new();
+    for c in centers {
+        let (after, version, out) =
+            edit_and_check(&path, &grid, &difference_ellipsoid(c, 5), policy);
+        kinds.push(out.checkpoint);
+        grid = after;
+        history.push((version, grid.clone()));
+    }
+    // Two deltas, then the chain is full: the third edit checkpoints, the fourth is a delta.
+    assert_eq!(kinds, [false, false, true, false]);
+    let vod = Vod2::open(&path).unwrap();
+    assert_eq!(vod.head().chain_len(), 1);
+    for (version, level0) in &history {
+        check_snapshot(
+            &vod.version(*version).unwrap(),
+            level0,
+            &format!("version {version}"),
+        );
+    }
+}
+
 #[test]
 fn overlay_limit_alone_triggers_a_checkpoint() {
     let t = VoxelType::U8;

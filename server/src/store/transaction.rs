@@ -283,9 +283,7 @@ impl<'a> Transaction<'a> {
                 let checkpoint = snap.overlay_len() + changes.len() > policy.max_overlay
                     || snap.chain_len() + 1 > policy.max_chain;
                 let full = if checkpoint {
-                    let mut entries: Vec<u64> = (0..snap.layout().node_count())
-                        .map(|n| snap.entry_at(n).map(NodeEntry::encode))
-                        .collect::<Result<_, _>>()?;
+                    let mut entries = snap.raw_entries()?;
                     for (node, entry) in &changes {
                         entries[*node as usize] = entry.encode();
                     }

@@ -704,6 +704,34 @@ impl Snapshot {
         Ok((self.index.base, cp.total_len()?))
     }
 
+    /// Every index entry of this version in node order, raw (as a checkpoint stores them): the
+    /// checkpoint's chunks (each checked against its hash when first used) with the overlay
+    /// applied (each entry checked when its commit was read). What a new checkpoint is written
+    /// from: copying chunks costs a fraction of looking up and decoding each entry.
+    ///
+    /// # Errors
+    /// A checkpoint chunk fails its hash, or the chunks do not hold one entry per node.
+    pub fn raw_entries(&self) -> Result<Vec<u64>, StoreError> {
+        let nodes = self.layout().node_count();
+        let mut entries = Vec::with_capacity(usize::try_from(nodes).unwrap_or(0));
+        for c in 0..self.index.chunks.len() {
+            entries.extend_from_slice(self.index.chunk(&self.map, c)?);
+        }
+        if entries.len() as u64 != nodes {
+            return Err(StoreError::Internal(format!(
+                "the index checkpoint holds {} entries for {nodes} nodes",
+                entries.len()
+            )));
+        }
+        for (&node, &raw) in &self.overlay {
+            let slot = entries.get_mut(node as usize).ok_or_else(|| {
+                StoreError::Internal(format!("node {node} is outside the volume"))
+            })?;
+            *slot = raw;
+        }
+        Ok(entries)
+    }
+
     /// Number of entries that differ from the checkpoint.
     pub fn overlay_len(&self) -> usize {
         self.overlay.len()
@@ -1174,19 +1202,22 @@ impl IndexChunks {
     }
 
     fn entry(&self, map: &Region, node: u64) -> Result<u64, StoreError> {
-        let c = (node / CHUNK_ENTRIES) as usize;
-        let chunk = match self.chunks[c].get() {
-            Some(chunk) => chunk,
-            None => {
-                let decoded = self.decode_chunk(map, c as u64)?;
-                // Another reader may have decoded it meanwhile: either copy is the same.
-                let _ = self.chunks[c].set(decoded);
-                self.chunks[c]
-                    .get()
-                    .ok_or_else(|| StoreError::Internal("index chunk vanished".into()))?
-            }
-        };
+        let chunk = self.chunk(map, (node / CHUNK_ENTRIES) as usize)?;
         Ok(chunk[(node % CHUNK_ENTRIES) as usize])
+    }
+
+    /// Chunk `c`'s entries, decoded and checked on first use.
+    fn chunk(&self, map: &Region, c: usize) -> Result<&[u64], StoreError> {
+        if let Some(chunk) = self.chunks[c].get() {
+            return Ok(chunk);
+        }
+        let decoded = self.decode_chunk(map, c as u64)?;
+        // Another reader may have decoded it meanwhile: either copy is the same.
+        let _ = self.chunks[c].set(decoded);
+        self.chunks[c]
+            .get()
+            .map(|chunk| &chunk[..])
+            .ok_or_else(|| StoreError::Internal("index chunk vanished".into()))
     }
 
     fn decode_chunk(&self, map: &Region, c: u64) -> Result<Box<[u64]>, StoreError> {
