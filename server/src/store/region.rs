@@ -69,6 +69,11 @@ impl Region {
         self.map.bytes()
     }
 
+    /// The mapping of a whole local file (a mirror's has holes to fill: `None`).
+    pub(crate) fn whole_mapping(&self) -> Option<&Mapping> {
+        self.fill.is_none().then_some(&self.map)
+    }
+
     /// The region's length.
     #[inline]
     pub(crate) fn len(&self) -> u64 {

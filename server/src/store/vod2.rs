@@ -350,10 +350,18 @@ impl Vod2 {
                 slot.committed_len
             )));
         }
-        let map = Arc::new(Region::whole(
-            Mapping::new(&file, slot.committed_len)
+        // The file's next versions are seen through the same mapping while it has room (see
+        // `mapping.rs`); the room grows with the file, so it is remapped rarely.
+        let grown = self
+            .map
+            .whole_mapping()
+            .and_then(|m| m.grown(slot.committed_len));
+        let mapping = match grown {
+            Some(m) => m,
+            None => Mapping::with_room(&file, slot.committed_len, room_to_grow(slot.committed_len))
                 .map_err(StoreError::io_path("cannot map", &self.path))?,
-        ));
+        };
+        let map = Arc::new(Region::whole(mapping));
         let head = Arc::new(self.head.extend(map.clone(), slot.commit)?);
         check_slot(&slot, &head)?;
         Ok(Vod2 {
@@ -1277,4 +1285,11 @@ pub fn decode_stored(
         }
     }
     Ok(())
+}
+
+/// Addresses reserved past a file's end when an edit maps its new version: half the file, at
+/// least 64 MiB, so a file growing by edits is remapped a number of times logarithmic in its
+/// growth (a 1 GiB file by 4 KiB commits: every 131,072 commits or more).
+fn room_to_grow(len: u64) -> u64 {
+    (len / 2).max(64 << 20)
 }
