@@ -476,15 +476,19 @@ async fn subscribe(client: reqwest::Client, url: String, sink: Arrivals, ready: 
     while let Ok(Some(chunk)) = response.chunk().await {
         let now = Instant::now();
         buffer.extend_from_slice(&chunk);
-        while let Some(end) = buffer.iter().position(|&b| b == b'\n') {
-            let line: Vec<u8> = buffer.drain(..=end).collect();
-            let line = String::from_utf8_lossy(&line);
-            if !greeted && line.starts_with("event: hello") {
+        // Lines are looked at where they lie, without a copy each: 100 subscribers read about
+        // half a million lines a second, on the cores the server under test runs on.
+        let mut start = 0;
+        while let Some(len) = buffer[start..].iter().position(|&b| b == b'\n') {
+            let line = &buffer[start..start + len];
+            start += len + 1;
+            if !greeted && line.starts_with(b"event: hello") {
                 greeted = true;
                 ready.fetch_add(1, Ordering::AcqRel);
             }
             if let Some(v) = line
-                .strip_prefix("id: ")
+                .strip_prefix(b"id: ")
+                .and_then(|v| std::str::from_utf8(v).ok())
                 .and_then(|v| v.trim().parse::<u64>().ok())
             {
                 if let Ok(mut s) = sink.lock() {
@@ -492,5 +496,6 @@ async fn subscribe(client: reqwest::Client, url: String, sink: Arrivals, ready: 
                 }
             }
         }
+        buffer.drain(..start);
     }
 }
