@@ -351,8 +351,10 @@ pub(super) fn march(
     out.indices.reserve(indices);
     for &cell in mixed_cells.iter() {
         let (base, case) = ((cell >> 8) as usize, (cell & 0xff) as usize);
-        for &e in &table.edges[table.start[case]..table.start[case + 1]] {
-            out.indices.push(ids[base + edge_slots[e as usize]]);
-        }
+        // Extended a cell at a time, not pushed an index at a time: no capacity check per
+        // index (about 5% of the kernel on the MRI's tiles).
+        let edges = &table.edges[table.start[case]..table.start[case + 1]];
+        out.indices
+            .extend(edges.iter().map(|&e| ids[base + edge_slots[e as usize]]));
     }
 }
