@@ -432,6 +432,7 @@ fn stage_bricks(
         evaluated,
         new_records: staged.new_records,
         checkpoint: staged.checkpoint,
+        // Set by `stage_edit`, which times all of it.
         elapsed: Duration::ZERO,
     })
 }
