@@ -390,17 +390,18 @@ pub fn stage_edit(
     // A few bricks stage fastest on this thread (see BRICKS_PER_JOB: the loops then never
     // split); more, on a worker of the rayon pool, so that the loops' jobs are shared out
     // without this thread handing over and waiting for each.
-    let mut outcome = if keys.len() < 2 * BRICKS_PER_JOB {
-        stage_bricks(writer, snap, edit, &target, &keys, policy, cancel)
+    let few = keys.len() < 2 * BRICKS_PER_JOB;
+    let mut stage = || stage_bricks(writer, snap, edit, &target, &keys, policy, cancel, start);
+    if few {
+        stage()
     } else {
-        rayon::scope(|_| stage_bricks(writer, snap, edit, &target, &keys, policy, cancel))
-    }?;
-    outcome.elapsed = start.elapsed();
-    Ok(outcome)
+        rayon::scope(|_| stage())
+    }
 }
 
 /// Evaluates `edit` over the level-0 bricks `keys`, recomputes the levels above and stages
-/// the result (see [`stage_edit`]).
+/// the result (see [`stage_edit`], which began at `start`).
+#[allow(clippy::too_many_arguments)]
 fn stage_bricks(
     writer: &mut Vod2Writer,
     snap: &Snapshot,
@@ -409,6 +410,7 @@ fn stage_bricks(
     keys: &[BrickKey],
     policy: CheckpointPolicy,
     cancel: &CancelToken,
+    start: Instant,
 ) -> Result<EditOutcome, EvalError> {
     let results: Vec<(BrickKey, Option<BrickVoxels>)> = keys
         .par_iter()
@@ -432,7 +434,6 @@ fn stage_bricks(
         evaluated,
         new_records: staged.new_records,
         checkpoint: staged.checkpoint,
-        // Set by `stage_edit`, which times all of it.
-        elapsed: Duration::ZERO,
+        elapsed: start.elapsed(),
     })
 }
