@@ -19,7 +19,7 @@ use std::io;
 use std::sync::Arc;
 
 /// A read-only view of a file's bytes.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 pub(crate) struct Mapping {
     /// The mapped addresses, shared by the versions seen through them.
     map: Option<Arc<Mmap>>,

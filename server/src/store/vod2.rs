@@ -337,10 +337,7 @@ impl Vod2 {
     /// # Errors
     /// The file cannot be mapped, or the new commit record is malformed.
     pub fn advance(&self, slot: HeaderSlot) -> Result<Vod2, StoreError> {
-        let file =
-            File::open(&self.path).map_err(StoreError::io_path("cannot open", &self.path))?;
-        let file_len = file
-            .metadata()
+        let file_len = std::fs::metadata(&self.path)
             .map_err(StoreError::io_path("cannot stat", &self.path))?
             .len();
         if slot.committed_len > file_len {
@@ -358,8 +355,12 @@ impl Vod2 {
             .and_then(|m| m.grown(slot.committed_len));
         let mapping = match grown {
             Some(m) => m,
-            None => Mapping::with_room(&file, slot.committed_len, room_to_grow(slot.committed_len))
-                .map_err(StoreError::io_path("cannot map", &self.path))?,
+            None => {
+                let file = File::open(&self.path)
+                    .map_err(StoreError::io_path("cannot open", &self.path))?;
+                Mapping::with_room(&file, slot.committed_len, room_to_grow(slot.committed_len))
+                    .map_err(StoreError::io_path("cannot map", &self.path))?
+            }
         };
         let map = Arc::new(Region::whole(mapping));
         let head = Arc::new(self.head.extend(map.clone(), slot.commit)?);
