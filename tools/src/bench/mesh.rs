@@ -12,8 +12,8 @@ use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use isovox_server::generate::{EllipsoidSource, WorldSource};
 use isovox_server::mesh::check::{crossing_triangles, open_edges};
 use isovox_server::mesh::level::{
-    adaptive_tiles, balanced_tiles, level_tiles, mesh_stitchable_parts, mesh_stitched, mesh_strips,
-    mesh_tile_parts, mesh_tiles, mesh_tiles_with_moves, weld,
+    adaptive_tiles, balanced_tiles, each_in_parallel, level_tiles, mesh_stitchable_parts,
+    mesh_stitched, mesh_strips, mesh_tile_parts, mesh_tiles, mesh_tiles_with_moves, weld,
 };
 use isovox_server::mesh::mc::{Kernel, Mesh};
 use isovox_server::mesh::tile::{
@@ -25,7 +25,6 @@ use isovox_server::store::raw::RawInput;
 use isovox_server::store::{
     build_vod2, BrickSource, BuildOptions, DenseGrid, Snapshot, StoreError, Vod2,
 };
-use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::Arc;
@@ -106,16 +105,14 @@ fn mesh_each<I: Copy + Sync, T: Default + Send, S>(
     mesh: impl Fn(I, &mut T, &mut TileScratch) -> Result<S, StoreError> + Sync,
 ) -> anyhow::Result<Vec<T>> {
     let bricks = Arc::new(DecodedBricks::new(BRICK_CACHE_BYTES));
-    let parts = tiles
-        .par_iter()
-        .map_init(
-            || TileScratch::with_bricks(bricks.clone()).with_kernel(kernel),
-            |scratch, &key| {
-                let mut out = T::default();
-                mesh(key, &mut out, scratch).map(|_| out)
-            },
-        )
-        .collect::<Result<_, _>>()?;
+    let parts = each_in_parallel(
+        tiles,
+        || TileScratch::with_bricks(bricks.clone()).with_kernel(kernel),
+        |scratch, key| {
+            let mut out = T::default();
+            mesh(key, &mut out, scratch).map(|_| out)
+        },
+    )?;
     Ok(parts)
 }
 
