@@ -6,7 +6,7 @@
 //! longer than one 64-bit word included), with flat regions, values equal to the iso value,
 //! and meshes appended to a mesh that already holds vertices.
 
-use isovox_server::mesh::mc::{march, BorderVertex, Field, Kernel, Mesh, Scratch};
+use isovox_server::mesh::mc::{march, BorderVertex, Field, Kernel, Mesh, Sample, Scratch};
 use proptest::prelude::*;
 use std::collections::HashMap;
 
@@ -307,5 +307,89 @@ fn forget_drops_the_vertices_of_the_last_march() {
         scratch.forget();
         assert!(scratch.vertex_on_edge([3, 3, 3], 0).is_none(), "{kernel:?}");
         assert!(scratch.border.is_empty());
+    }
+}
+
+/// Marches `values` (integer voxels, or their f32 copy) with `kernel`.
+fn march_samples<S: Sample>(
+    case: &Case,
+    values: &[S],
+    iso: f32,
+    kernel: Kernel,
+) -> (Mesh, Scratch) {
+    let field = Field {
+        origin: case.origin,
+        size: case.size,
+        values,
+    };
+    let (mut mesh, mut scratch) = (Mesh::default(), Scratch::new(kernel));
+    march(
+        &field,
+        case.lo,
+        case.frame,
+        case.hi,
+        iso,
+        &mut mesh,
+        &mut scratch,
+    );
+    (mesh, scratch)
+}
+
+/// The same mesh, bit for bit and in the same order: vertices, triangles, border vertices.
+fn check_identical(a: &(Mesh, Scratch), b: &(Mesh, Scratch)) -> Result<(), TestCaseError> {
+    let positions = |m: &Mesh| m.positions.iter().map(|&p| bits(p)).collect::<Vec<_>>();
+    let normals = |m: &Mesh| m.normals.iter().map(|&n| bits(n)).collect::<Vec<_>>();
+    prop_assert_eq!(positions(&a.0), positions(&b.0));
+    prop_assert_eq!(normals(&a.0), normals(&b.0));
+    prop_assert_eq!(&a.0.indices, &b.0.indices);
+    let border = |s: &Scratch| {
+        s.border
+            .iter()
+            .map(|v| (v.id, v.p0, v.axis, v.t.to_bits(), v.faces))
+            .collect::<Vec<_>>()
+    };
+    prop_assert_eq!(border(&a.1), border(&b.1));
+    Ok(())
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(200))]
+
+    /// Level-0 tiles march their voxels as stored (u8, u16) instead of a copy in f32: the
+    /// same fields as integers give the same meshes as their f32 values, for every iso value
+    /// (between samples, on them, below and above every voxel, NaN).
+    #[test]
+    fn integer_samples_give_the_f32_mesh(
+        case in cases(),
+        iso in prop_oneof![-2.0f32..300.0, Just(0.0f32), Just(255.0), Just(255.5), Just(f32::NAN), 60000.0f32..70000.0],
+        use_case_iso in any::<bool>(),
+    ) {
+        // The field as integers 0..=255 (noise in [0, 1) spread over them).
+        let spread = case.values.iter().any(|v| v.fract() != 0.0);
+        let bytes: Vec<u8> = case
+            .values
+            .iter()
+            .map(|&v| if spread { (v * 255.0).round() } else { v } as u8)
+            .collect();
+        let iso = match (use_case_iso, spread) {
+            (true, true) => case.iso * 255.0,
+            (true, false) => case.iso,
+            (false, _) => iso,
+        };
+        for kernel in [Kernel::Rows, Kernel::Reference] {
+            let floats: Vec<f32> = bytes.iter().map(|&v| f32::from(v)).collect();
+            check_identical(
+                &march_samples(&case, &bytes, iso, kernel),
+                &march_samples(&case, &floats, iso, kernel),
+            )?;
+            // As u16 voxels spread over the whole range (257 v), and the iso value with them.
+            let words: Vec<u16> = bytes.iter().map(|&v| u16::from(v) * 257).collect();
+            let floats: Vec<f32> = words.iter().map(|&v| f32::from(v)).collect();
+            let iso = if iso.is_nan() { iso } else { iso * 257.0 };
+            check_identical(
+                &march_samples(&case, &words, iso, kernel),
+                &march_samples(&case, &floats, iso, kernel),
+            )?;
+        }
     }
 }

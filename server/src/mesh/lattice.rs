@@ -224,7 +224,7 @@ pub fn lattice_field<'o>(
         };
     }
     out.resize(size[0] * size[1] * size[2], 0.0);
-    let whole = Field {
+    let whole: Field<'_> = Field {
         origin: lo,
         size,
         values: &[],

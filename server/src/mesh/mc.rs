@@ -8,22 +8,113 @@
 //! Normals are the negated, interpolated central-difference gradient (they point from inside to
 //! outside, as the triangles' winding does).
 
+use super::inside;
 use super::mc_reference::{self, ReferenceScratch};
 use super::mc_rows::{self, RowsScratch};
+
+/// A sample the kernel marches: `f32` (the lattice values of coarser levels, resampled), or a
+/// level's stored voxels as they are (`u8`, `u16`), so that level 0 needs no conversion pass.
+/// Every formula reads samples through [`Sample::to_f32`], which is exact for integer voxels
+/// (they fit f32's 24-bit mantissa): a vertex made from `u8` samples is bit for bit the one
+/// made from the same values as `f32`.
+pub trait Sample: Copy + Send + Sync + 'static {
+    /// What [`Sample::inside_bits`] compares with, prepared once per call from `iso`.
+    type Cut: Copy;
+
+    /// The sample's value.
+    fn to_f32(self) -> f32;
+
+    /// The cut for `iso`: a sample is inside exactly when `sample.to_f32() >= iso`.
+    fn cut(iso: f32) -> Self::Cut;
+
+    /// Bit i: `values[i]` is inside (at most 64 values).
+    fn inside_bits(values: &[Self], cut: Self::Cut) -> u64;
+}
+
+impl Sample for f32 {
+    type Cut = f32;
+
+    #[inline]
+    fn to_f32(self) -> f32 {
+        self
+    }
+
+    fn cut(iso: f32) -> f32 {
+        iso
+    }
+
+    #[inline]
+    fn inside_bits(values: &[f32], iso: f32) -> u64 {
+        inside::f32_at_least(values, iso)
+    }
+}
+
+/// The least integer voxel value that is inside for `iso` (`v >= iso` exactly when
+/// `v >= threshold`), as a u32 in `[0, max + 1]`: `max + 1` when no voxel is (`iso` above `max`,
+/// or NaN, which no value reaches).
+fn integer_threshold(iso: f32, max: u32) -> u32 {
+    let up = iso.ceil();
+    if up <= 0.0 {
+        0
+    } else if up <= max as f32 {
+        up as u32
+    } else {
+        // Above every voxel, or NaN.
+        max + 1
+    }
+}
+
+impl Sample for u8 {
+    /// The threshold, `256` when nothing is inside.
+    type Cut = u32;
+
+    #[inline]
+    fn to_f32(self) -> f32 {
+        f32::from(self)
+    }
+
+    fn cut(iso: f32) -> u32 {
+        integer_threshold(iso, u32::from(u8::MAX))
+    }
+
+    #[inline]
+    fn inside_bits(values: &[u8], threshold: u32) -> u64 {
+        u8::try_from(threshold).map_or(0, |t| inside::u8_at_least(values, t))
+    }
+}
+
+impl Sample for u16 {
+    /// The threshold, `65536` when nothing is inside.
+    type Cut = u32;
+
+    #[inline]
+    fn to_f32(self) -> f32 {
+        f32::from(self)
+    }
+
+    fn cut(iso: f32) -> u32 {
+        integer_threshold(iso, u32::from(u16::MAX))
+    }
+
+    #[inline]
+    fn inside_bits(values: &[u16], threshold: u32) -> u64 {
+        u16::try_from(threshold).map_or(0, |t| inside::u16_at_least(values, t))
+    }
+}
 
 /// A scalar field sampled on integer grid points: the value of point `origin + (x, y, z)` is
 /// `values[(z * size[1] + y) * size[0] + x]`.
 #[derive(Debug, Clone, Copy)]
-pub struct Field<'a> {
+pub struct Field<'a, S = f32> {
     /// The grid position of the first sample.
     pub origin: [i64; 3],
     /// Samples along x, y, z.
     pub size: [usize; 3],
     /// The samples, x fastest.
-    pub values: &'a [f32],
+    pub values: &'a [S],
 }
 
-impl Field<'_> {
+impl<S: Sample> Field<'_, S> {
     /// The index in `values` of point `p` (inside the field).
     pub fn index(&self, p: [i64; 3]) -> usize {
         let l = [0, 1, 2].map(|a| (p[a] - self.origin[a]) as usize);
@@ -38,7 +129,7 @@ impl Field<'_> {
     /// The value at point `p`. Panics if `p` is outside the field.
     pub fn value(&self, p: [i64; 3]) -> f32 {
         assert!(self.contains(p), "point {p:?} outside the field");
-        self.values[self.index(p)]
+        self.values[self.index(p)].to_f32()
     }
 
     /// The negated central-difference gradient at `p` (pointing from inside to outside), not
@@ -54,7 +145,7 @@ impl Field<'_> {
     pub fn crossing(&self, p0: [i64; 3], axis: usize, iso: f32) -> (f32, [f32; 3]) {
         let i0 = self.index(p0);
         let stride = [1, self.size[0], self.size[0] * self.size[1]][axis];
-        let (v0, v1) = (self.values[i0], self.values[i0 + stride]);
+        let (v0, v1) = (self.values[i0].to_f32(), self.values[i0 + stride].to_f32());
         let t = (iso - v0) / (v1 - v0);
         (t, self.crossing_normal(i0, axis, t, v1 >= iso))
     }
@@ -87,11 +178,11 @@ impl Field<'_> {
     #[inline]
     fn gradient_at(&self, i: usize) -> [f32; 3] {
         let (sy, sz) = (self.size[0], self.size[0] * self.size[1]);
-        let v = self.values;
+        let v = |i: usize| self.values[i].to_f32();
         [
-            (v[i + 1] - v[i - 1]) * 0.5,
-            (v[i + sy] - v[i - sy]) * 0.5,
-            (v[i + sz] - v[i - sz]) * 0.5,
+            (v(i + 1) - v(i - 1)) * 0.5,
+            (v(i + sy) - v(i - sy)) * 0.5,
+            (v(i + sz) - v(i - sz)) * 0.5,
         ]
     }
 }
@@ -198,8 +289,8 @@ pub enum Kernel {
 ///
 /// # Panics
 /// The field does not cover that range.
-pub fn march(
-    field: &Field<'_>,
+pub fn march<S: Sample>(
+    field: &Field<'_, S>,
     lo: [i64; 3],
     frame: [i64; 3],
     hi: [i64; 3],

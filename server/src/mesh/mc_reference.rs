@@ -4,7 +4,7 @@
 //! and as the baseline `isovox-bench mesh` times next to it; [`super::mc::Kernel::Reference`]
 //! selects it.
 
-use super::mc::{faces_of, local_point, BorderVertex, Field, Mesh};
+use super::mc::{faces_of, local_point, BorderVertex, Field, Mesh, Sample};
 use super::table::{table, EDGES, EDGE_AXIS};
 
 /// The vertex id of each grid edge already visited, stamped with the call that wrote it so the
@@ -31,8 +31,8 @@ impl ReferenceScratch {
 }
 
 /// [`super::mc::march`] cell by cell (the caller has checked the field's extent).
-pub(super) fn march(
-    field: &Field<'_>,
+pub(super) fn march<S: Sample>(
+    field: &Field<'_, S>,
     (lo, hi): ([i64; 3], [i64; 3]),
     frame: [i64; 3],
     iso: f32,
@@ -68,10 +68,10 @@ pub(super) fn march(
             let rows = [row(y, z), row(y + 1, z), row(y, z + 1), row(y + 1, z + 1)];
             // Inside flags of the cells' x-side corners, as the bits of corners 0, 2, 4, 6.
             let side = |i: usize| -> usize {
-                (rows[0][i] >= iso) as usize
-                    | ((rows[1][i] >= iso) as usize) << 2
-                    | ((rows[2][i] >= iso) as usize) << 4
-                    | ((rows[3][i] >= iso) as usize) << 6
+                (rows[0][i].to_f32() >= iso) as usize
+                    | ((rows[1][i].to_f32() >= iso) as usize) << 2
+                    | ((rows[2][i].to_f32() >= iso) as usize) << 4
+                    | ((rows[3][i].to_f32() >= iso) as usize) << 6
             };
             let mut low_side = side(0);
             for (i, x) in (lo[0]..hi[0]).enumerate() {
@@ -81,7 +81,7 @@ pub(super) fn march(
                 if case == 0 || case == 255 {
                     continue;
                 }
-                let corners: [f32; 8] = std::array::from_fn(|c| rows[c >> 1][i + (c & 1)]);
+                let corners: [f32; 8] = std::array::from_fn(|c| rows[c >> 1][i + (c & 1)].to_f32());
                 let tris = &table[case];
                 if tris.is_empty() {
                     continue;

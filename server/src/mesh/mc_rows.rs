@@ -6,8 +6,8 @@
 //! Three passes over the points of `[lo, hi]`, rows along x, 63 cells (64 points) to a word,
 //! successive words of a row overlapping by one point so that every cell has its corners in one
 //! word:
-//! 1. inside bits: one word per 64 points of a row, from the field's values, sixteen compares
-//!    at a time;
+//! 1. inside bits: one word per 64 points of a row, from the field's values, a vector of
+//!    compares at a time ([`super::inside`]);
 //! 2. crossed edges: for each row, the edges from its points along x (a word xor itself shifted),
 //!    y and z (xor the next row's word) that the iso value crosses; one vertex for each, row
 //!    after row, its id written where the edge's slot is (only crossed edges' slots are written
@@ -21,7 +21,7 @@
 //! and each mixed cell's triangles use all its crossed edges), in another order; the triangles
 //! are the same, in the same order.
 
-use super::mc::{local_point, BorderVertex, Field, Mesh};
+use super::mc::{local_point, BorderVertex, Field, Mesh, Sample};
 use super::table::{table, EDGES, EDGE_AXIS};
 use std::sync::OnceLock;
 
@@ -111,26 +111,9 @@ fn flat_table() -> &'static FlatTable {
     })
 }
 
-/// Bit i: `values[i] >= iso` (at most 64 values). Sixteen at a time, each lane's bit set apart
-/// and or-ed together, which compiles to vector compares (about twice as fast as bit by bit).
-#[inline]
-fn inside_bits(values: &[f32], iso: f32) -> u64 {
-    let mut bits = 0u64;
-    let mut sixteens = values.chunks_exact(16);
-    for (k, sixteen) in (&mut sixteens).enumerate() {
-        let lanes: [u32; 16] = std::array::from_fn(|j| if sixteen[j] >= iso { 1 << j } else { 0 });
-        bits |= u64::from(lanes.iter().fold(0, |a, b| a | b)) << (16 * k);
-    }
-    let done = values.len() - sixteens.remainder().len();
-    for (j, &v) in sixteens.remainder().iter().enumerate() {
-        bits |= u64::from(v >= iso) << (done + j);
-    }
-    bits
-}
-
 /// What making a vertex needs beside its edge.
-struct Vertices<'a, 'f> {
-    field: &'a Field<'f>,
+struct Vertices<'a, 'f, S> {
+    field: &'a Field<'f, S>,
     iso: f32,
     lo: [i64; 3],
     /// Cells per axis.
@@ -148,7 +131,7 @@ fn faces_of(local: [usize; 3], n: [usize; 3]) -> u8 {
     f
 }
 
-impl Vertices<'_, '_> {
+impl<S: Sample> Vertices<'_, '_, S> {
     /// Appends to `out` the vertices on the crossed edges `bits` of word `w` of row `(y, z)`
     /// (relative to `lo`) along `AXIS`, whose first point has index `start` in the field,
     /// recording their ids in `ids` (the row's ids along `AXIS`) and the border ones in
@@ -177,7 +160,7 @@ impl Vertices<'_, '_> {
             let local = [x, y, z];
             let p0 = [0, 1, 2].map(|a| self.lo[a] + local[a] as i64);
             let i0 = start + x;
-            let (v0, v1) = (values[i0], values[i0 + stride]);
+            let (v0, v1) = (values[i0].to_f32(), values[i0 + stride].to_f32());
             let t = (self.iso - v0) / (v1 - v0);
             let mut pos = [0, 1, 2].map(|a| (p0[a] - self.frame[a]) as f32);
             pos[AXIS] += t;
@@ -203,8 +186,8 @@ impl Vertices<'_, '_> {
 }
 
 /// [`super::mc::march`] a row at a time (the caller has checked the field's extent).
-pub(super) fn march(
-    field: &Field<'_>,
+pub(super) fn march<S: Sample>(
+    field: &Field<'_, S>,
     (lo, hi): ([i64; 3], [i64; 3]),
     frame: [i64; 3],
     iso: f32,
@@ -236,6 +219,7 @@ pub(super) fn march(
     let cells_of = |w: usize| (n[0] - w * CELLS).min(CELLS);
 
     // 1. Inside bits.
+    let cut = S::cut(iso);
     for z in 0..=n[2] {
         for y in 0..=n[1] {
             let start = first + z * field_plane + y * field_row;
@@ -243,7 +227,7 @@ pub(super) fn march(
             let row = z * plane_rows + y;
             for (w, word) in words[row * width..][..width].iter_mut().enumerate() {
                 let from = w * CELLS;
-                word.inside = inside_bits(&values[from..(from + 64).min(row_points)], iso);
+                word.inside = S::inside_bits(&values[from..(from + 64).min(row_points)], cut);
             }
         }
     }

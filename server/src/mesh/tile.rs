@@ -23,7 +23,7 @@
 use super::lattice::{
     lattice_field, lattice_plane, lattice_point, value_range, weights, LatticeScratch,
 };
-use super::mc::{march, Field, Kernel, Mesh, Scratch};
+use super::mc::{march, Field, Kernel, Mesh, Sample, Scratch};
 use super::transition::{mesh_strip, tile_moves, TileFaces, TransitionInput, TransitionScratch};
 use crate::store::codec::min_max;
 use crate::store::decoded::{decode, DecodedBricks};
@@ -41,6 +41,9 @@ use std::sync::Arc;
 /// Reusable memory for meshing tiles one after another on one thread.
 #[derive(Debug, Default)]
 pub struct TileScratch {
+    /// A level-0 tile's voxels as stored, for the type of its volume.
+    voxels_u8: Vec<u8>,
+    voxels_u16: Vec<u16>,
     stored: Vec<f32>,
     field: Vec<f32>,
     coarse: Vec<f32>,
@@ -479,19 +482,51 @@ fn mesh_into(
     let layout = snap.layout();
     let (lo, hi, frame) = cells(layout, key);
     let bricks = scratch.bricks.clone();
-    let fine = lattice(
-        snap,
-        key.level,
-        field_box(layout, key),
-        bricks.as_deref(),
-        (
-            &mut scratch.fine_bricks,
-            &mut scratch.stored,
-            &mut scratch.lattice,
-        ),
-        &mut scratch.field,
-    )?;
-    march(&fine, lo, frame, hi, iso, mesh, &mut scratch.march);
+    let points = field_box(layout, key);
+    if key.level == 0 {
+        // Level 0's lattice is its voxels: marched as they are stored, with no conversion.
+        let window = &mut scratch.fine_bricks;
+        window.open(snap, 0, points, bricks.as_deref())?;
+        let cells = (lo, frame, hi, iso);
+        match layout.voxel_type() {
+            VoxelType::U8 => {
+                march_stored(
+                    window,
+                    layout,
+                    points,
+                    &mut scratch.voxels_u8,
+                    cells,
+                    mesh,
+                    &mut scratch.march,
+                );
+            }
+            VoxelType::U16 => {
+                march_stored(
+                    window,
+                    layout,
+                    points,
+                    &mut scratch.voxels_u16,
+                    cells,
+                    mesh,
+                    &mut scratch.march,
+                );
+            }
+        }
+    } else {
+        let fine = lattice(
+            snap,
+            key.level,
+            points,
+            bricks.as_deref(),
+            (
+                &mut scratch.fine_bricks,
+                &mut scratch.stored,
+                &mut scratch.lattice,
+            ),
+            &mut scratch.field,
+        )?;
+        march(&fine, lo, frame, hi, iso, mesh, &mut scratch.march);
+    }
     if let Some(moves) = moves.filter(|_| inputs.faces != 0) {
         tile_moves(
             &tile_faces(layout, key, inputs.faces),
@@ -1096,6 +1131,78 @@ fn gather(
                     *d = f32::from(u16::from_le_bytes([s[0], s[1]]));
                 }
             }
+        }
+    });
+}
+
+/// Marches the cells `(lo, frame, hi, iso)` of a level-0 tile over the voxels of `points` as
+/// `window` stores them, gathered into `buffer`.
+fn march_stored<V: StoredVoxel + Sample>(
+    window: &BrickWindow,
+    layout: &VolumeLayout,
+    points: GridBox,
+    buffer: &mut Vec<V>,
+    (lo, frame, hi, iso): ([i64; 3], [i64; 3], [i64; 3], f32),
+    mesh: &mut Mesh,
+    scratch: &mut Scratch,
+) {
+    let (origin, size) = (points.0, field_size(points));
+    gather_voxels(window, layout, origin, size, buffer);
+    let field = Field {
+        origin,
+        size,
+        values: &buffer[..],
+    };
+    march(&field, lo, frame, hi, iso, mesh, scratch);
+}
+
+/// A voxel type as a tile's samples hold it.
+trait StoredVoxel: Copy + Default {
+    /// The value of a constant brick (or of L outside the volume).
+    fn from_constant(v: u16) -> Self;
+    /// Copies a row of stored voxels (little-endian for u16) into `dst`.
+    fn copy_row(dst: &mut [Self], stored: &[u8]);
+}
+
+impl StoredVoxel for u8 {
+    fn from_constant(v: u16) -> Self {
+        // A u8 volume's values fit a u8.
+        v as u8
+    }
+
+    fn copy_row(dst: &mut [u8], stored: &[u8]) {
+        dst.copy_from_slice(stored);
+    }
+}
+
+impl StoredVoxel for u16 {
+    fn from_constant(v: u16) -> Self {
+        v
+    }
+
+    fn copy_row(dst: &mut [u16], stored: &[u8]) {
+        for (d, s) in dst.iter_mut().zip(stored.chunks_exact(2)) {
+            *d = u16::from_le_bytes([s[0], s[1]]);
+        }
+    }
+}
+
+/// Writes into `out` the stored voxels over the box `origin .. origin + size` (within
+/// `window`; L outside the volume), x fastest, as they are stored ([`gather`] converts them to
+/// f32). Every value is written once.
+fn gather_voxels<V: StoredVoxel>(
+    window: &BrickWindow,
+    layout: &VolumeLayout,
+    origin: [i64; 3],
+    size: [usize; 3],
+    out: &mut Vec<V>,
+) {
+    out.resize(size[0] * size[1] * size[2], V::default());
+    for_each_row(window, layout, origin, size, |at, width, row| {
+        let dst = &mut out[at..at + width];
+        match row {
+            Row::Constant(v) => dst.fill(V::from_constant(v)),
+            Row::Voxels(bytes) => V::copy_row(dst, bytes),
         }
     });
 }
