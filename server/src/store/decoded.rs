@@ -193,9 +193,7 @@ fn key(hash: u64, brick_bytes: usize, kind: u8) -> u128 {
 /// # Errors
 /// The record does not decode to its hash.
 pub fn decode(stored: &StoredBrick<'_>, layout: &VolumeLayout) -> Result<Bytes, StoreError> {
-    let mut out = vec![0u8; layout.brick_bytes()];
-    super::vod2::decode_stored(stored, layout, &mut out)?;
-    Ok(out.into())
+    Ok(super::vod2::decode_stored_new(stored, layout)?.into())
 }
 
 #[cfg(test)]

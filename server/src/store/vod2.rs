@@ -1275,15 +1275,49 @@ pub fn decode_stored(
             ..
         } => {
             codec::decode(header.codec, payload, out, offset)?;
-            let hash = content_hash(out);
-            if hash != header.hash {
-                return Err(StoreError::corrupt(
-                    offset,
-                    format!("content hash {:#018x}", header.hash),
-                    format!("{hash:#018x}"),
-                ));
-            }
+            check_content(out, header.hash, offset)?;
         }
+    }
+    Ok(())
+}
+
+/// A stored brick's voxels in a new buffer, verified against its content hash
+/// ([`decode_stored`] into a buffer it makes).
+///
+/// # Errors
+/// As [`decode_stored`].
+pub fn decode_stored_new(
+    stored: &StoredBrick<'_>,
+    layout: &VolumeLayout,
+) -> Result<Vec<u8>, StoreError> {
+    match *stored {
+        StoredBrick::Constant(_) => {
+            let mut out = vec![0; layout.brick_bytes()];
+            decode_stored(stored, layout, &mut out)?;
+            Ok(out)
+        }
+        StoredBrick::Record {
+            offset,
+            header,
+            payload,
+            ..
+        } => {
+            let out = codec::decode_new(header.codec, payload, layout.brick_bytes(), offset)?;
+            check_content(&out, header.hash, offset)?;
+            Ok(out)
+        }
+    }
+}
+
+/// Whether decoded bytes have the content hash their record's header gives.
+fn check_content(decoded: &[u8], expected: u64, offset: u64) -> Result<(), StoreError> {
+    let hash = content_hash(decoded);
+    if hash != expected {
+        return Err(StoreError::corrupt(
+            offset,
+            format!("content hash {expected:#018x}"),
+            format!("{hash:#018x}"),
+        ));
     }
     Ok(())
 }
