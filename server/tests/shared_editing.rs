@@ -52,6 +52,11 @@ impl Server {
 
     /// [`Server::start`], listening on `addr` (`HOST:PORT`).
     fn start_on(addr: &str, edit_rate: u32) -> Server {
+        Server::start_with(addr, edit_rate, &[])
+    }
+
+    /// [`Server::start_on`] with more options for `isovox serve`.
+    fn start_with(addr: &str, edit_rate: u32, options: &[&str]) -> Server {
         let dir = tempfile::tempdir().unwrap();
         let vod = dir.path().join("w.vod");
         let out = Command::new(env!("CARGO_BIN_EXE_isovox"))
@@ -83,7 +88,10 @@ impl Server {
                 tokens.as_os_str(),
                 "--edit-rate".as_ref(),
                 edit_rate.as_ref(),
-            ],
+            ]
+            .into_iter()
+            .chain(options.iter().map(|o| o.as_ref()))
+            .collect::<Vec<&std::ffi::OsStr>>(),
             &[("RUST_LOG", "debug"), ("ISOVOX_LOG", "debug")],
         );
         let base = process.url("");
@@ -1296,6 +1304,76 @@ fn compact_keeps_content() {
         .map(|i| i["version"].as_u64().unwrap())
         .collect();
     assert_eq!(listed, vec![h + 1], "{j}");
+}
+
+/// A compaction asked for while editors keep the writer's queue full is served between two
+/// groups (the writer does not keep it waiting until the editors stop), every edit before and
+/// after it is answered, and the versions stay consecutive across it.
+#[test]
+fn compaction_is_served_while_editors_keep_the_writer_busy() {
+    // One edit a group: while the writer commits one, the other editors' edits wait, so the
+    // queue is never empty while they edit.
+    let s = Server::start_with("127.0.0.1:0", 1000, &["--edit-group", "1"]);
+    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+    // Each editor stops after this many edits at most, so that a writer that kept the
+    // compaction waiting until the queue is empty fails the test instead of hanging it.
+    const EDITS_EACH: usize = 400;
+    let (stop, done) = (AtomicBool::new(false), AtomicUsize::new(0));
+    let versions = std::sync::Mutex::new(Vec::new());
+    std::thread::scope(|scope| {
+        for seed in 0..4u64 {
+            let (s, stop, done, versions) = (&s, &stop, &done, &versions);
+            scope.spawn(move || {
+                let c = client();
+                let mut rng = XorShift(0x5eed_0000 + seed);
+                for _ in 0..EDITS_EACH {
+                    if stop.load(Ordering::Acquire) {
+                        break;
+                    }
+                    let v = edit_ok(&c, s, SECRET1, &random_edit(&mut rng, (3, 12)).json());
+                    versions
+                        .lock()
+                        .unwrap()
+                        .push(v["version"].as_u64().unwrap());
+                }
+                done.fetch_add(1, Ordering::AcqRel);
+            });
+        }
+        // Let the editors fill the queue, then compact while they go on.
+        while versions.lock().unwrap().len() < 20 {
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        }
+        let c = client();
+        let a = Answer::read(
+            c.post(s.url("/v1/volumes/w/compact"))
+                .header(AUTHORIZATION, format!("Bearer {SECRET1}"))
+                .send()
+                .unwrap(),
+        );
+        let edits_before_the_answer = versions.lock().unwrap().len();
+        assert_eq!(a.status, StatusCode::OK, "compact: {}", a.text());
+        let compacted = a.json()["version"].as_u64().unwrap();
+        // Editing goes on after the compaction.
+        while versions.lock().unwrap().len() < edits_before_the_answer + 20
+            && done.load(Ordering::Acquire) < 4
+        {
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        }
+        stop.store(true, Ordering::Release);
+        let mut got = versions.lock().unwrap().clone();
+        got.sort_unstable();
+        // Every answered edit has its own version, with no gap: the compaction kept the
+        // numbering, and it saw a version some edit had made.
+        assert!(got.windows(2).all(|w| w[1] == w[0] + 1), "{got:?}");
+        assert!(
+            got.contains(&compacted),
+            "compacted {compacted}, edits {got:?}"
+        );
+        assert!(
+            got.iter().any(|&v| v > compacted),
+            "no edit after the compaction"
+        );
+    });
 }
 
 /// A subscriber that never reads does not hold up the writer; a reading one sees everything.

@@ -114,6 +114,14 @@ impl EditQueue {
     }
 }
 
+/// Why the writer's blocking thread stopped taking groups.
+enum Continue {
+    /// No edit waits: the writer stops until the next one.
+    QueueEmpty,
+    /// A compaction waits for the writer: it takes it before the next group.
+    YieldToCompaction,
+}
+
 /// A version staged in a group, not yet durable.
 struct Staged {
     pending: PendingEdit,
@@ -166,30 +174,64 @@ impl LiveVolume {
     }
 
     /// The volume's writer task: takes groups from the queue until it is empty.
+    ///
+    /// The groups that follow one another without a pause are committed on one blocking
+    /// thread, one after the other: the next group is taken as soon as the last one is
+    /// answered. Going back through the runtime between groups (this task woken on a worker,
+    /// then a blocking thread woken for the next group) left the writer idle for 0.8 ms a
+    /// group on average under 8 editors and 100 subscribers, a fifth of its time. A
+    /// compaction waiting for the writer still takes it between two groups.
     async fn write_groups(self: Arc<Self>, settings: GroupCommit) {
         loop {
             // Compaction takes the writer between groups.
             let mut slot = self.lock_writer().await;
-            let group: Vec<PendingEdit> = {
-                let mut queue = self.queue();
-                if queue.edits.is_empty() {
-                    queue.writing = false;
-                    return;
-                }
-                let n = queue.edits.len().min(settings.max_group.max(1));
-                queue.edits.drain(..n).collect()
-            };
             let vol = self.clone();
             let done = tokio::task::spawn_blocking(move || {
-                vol.commit_group(&mut slot, group, settings.policy)
+                while let Some(group) = vol.next_group(settings) {
+                    vol.commit_group(&mut slot, group, settings.policy);
+                    if vol.compactions_waiting() > 0 {
+                        return Continue::YieldToCompaction;
+                    }
+                }
+                Continue::QueueEmpty
             })
             .await;
-            if let Err(e) = done {
-                // The group's edits are answered with an error when their senders drop; the
-                // writer is reopened by the next group (it finds versions staged).
-                tracing::error!(volume = %self.name, error = %e, "an edit group failed");
+            match done {
+                Ok(Continue::QueueEmpty) => return,
+                Ok(Continue::YieldToCompaction) => {}
+                Err(e) => {
+                    // The group's edits are answered with an error when their senders drop;
+                    // the writer is reopened by the next group (it finds versions staged).
+                    tracing::error!(volume = %self.name, error = %e, "an edit group failed");
+                    if self.next_group_waits() {
+                        continue;
+                    }
+                    return;
+                }
             }
         }
+    }
+
+    /// The next group from the front of the queue, or `None` (and the writer marked stopped,
+    /// so the next edit starts it again) when the queue is empty.
+    fn next_group(&self, settings: GroupCommit) -> Option<Vec<PendingEdit>> {
+        let mut queue = self.queue();
+        if queue.edits.is_empty() {
+            queue.writing = false;
+            return None;
+        }
+        let n = queue.edits.len().min(settings.max_group.max(1));
+        Some(queue.edits.drain(..n).collect())
+    }
+
+    /// Whether edits wait after a group failed; when none does, the writer is marked stopped.
+    fn next_group_waits(&self) -> bool {
+        let mut queue = self.queue();
+        if queue.edits.is_empty() {
+            queue.writing = false;
+            return false;
+        }
+        true
     }
 
     /// Applies `group` in order and commits it with one pair of syncs, holding the writer;
