@@ -322,16 +322,17 @@ fn edit_brick(
     }
     let b = layout.brick() as usize;
     let o = [0, 1, 2].map(|a| (eff.min[a] - whole.min[a]) as usize);
-    let mut i = 0;
+    let mut operand_rows = operand.chunks_exact(size[0].max(1));
     for z in 0..size[2] {
         for y in 0..size[1] {
             let row = ((o[2] + z) * b + o[1] + y) * b + o[0];
-            for v in &mut values[row..row + size[0]] {
-                *v = match &edit.kind {
-                    EditKind::Binary(op, _) => op.apply(*v, operand[i], t),
-                    EditKind::Unary(op) => op.apply(*v, t),
-                };
-                i += 1;
+            let dst = &mut values[row..row + size[0]];
+            match &edit.kind {
+                EditKind::Binary(op, _) => {
+                    let d2 = operand_rows.next().unwrap_or_default();
+                    op.apply_in_place(dst, d2, t);
+                }
+                EditKind::Unary(op) => op.apply_in_place(dst, t),
             }
         }
     }

@@ -271,15 +271,11 @@ impl CompiledTerm {
                 x.eval(b, out)?;
                 let mut other = vec![0u16; out.len()];
                 y.eval(b, &mut other)?;
-                for (o, d2) in out.iter_mut().zip(other) {
-                    *o = op.apply(*o, d2, t);
-                }
+                op.apply_in_place(out, &other, t);
             }
             Node::Unary(op, x) => {
                 x.eval(b, out)?;
-                for o in out.iter_mut() {
-                    *o = op.apply(*o, t);
-                }
+                op.apply_in_place(out, t);
             }
             Node::Grid { frame, values } => copy_grid(frame, values, b, t.low(), out),
             Node::Morph {
