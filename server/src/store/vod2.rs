@@ -820,11 +820,7 @@ impl Snapshot {
     pub fn voxels(&self, key: BrickKey) -> Result<super::BrickVoxels, StoreError> {
         Ok(match self.stored(key)? {
             StoredBrick::Constant(v) => super::BrickVoxels::Constant(v),
-            record => {
-                let mut out = vec![0u8; self.layout().brick_bytes()];
-                decode_stored(&record, self.layout(), &mut out)?;
-                super::BrickVoxels::Data(out)
-            }
+            record => super::BrickVoxels::Data(decode_stored_new(&record, self.layout())?),
         })
     }
 
