@@ -611,6 +611,9 @@ pub fn mesh_strip_from(
         ),
         &mut scratch.field,
     )?;
+    // `march` appends: without this, the layer kept every earlier strip's vertices, and each
+    // strip cleared a table as long as all of them (a pass of many strips grew quadratically).
+    scratch.layer.clear();
     march(
         &fine,
         layer_lo,
@@ -1220,4 +1223,54 @@ fn voxel_range(window: &BrickWindow, layout: &VolumeLayout, (lo, hi): GridBox) -
         range = (range.0.min(l), range.1.max(h));
     });
     range
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)] // tests fail loudly on purpose
+
+    use super::*;
+    use crate::generate::WorldSource;
+    use crate::store::{build_vod2, BuildOptions, Vod2};
+
+    /// One scratch reused over every strip of a pass holds what the strip in hand needs, as a
+    /// fresh one does: nothing of the strips before it.
+    #[test]
+    fn a_reused_scratch_holds_only_the_current_strips_layer() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("w.vod");
+        let layout = VolumeLayout::new([64, 48, 64], 8, VoxelType::U8).unwrap();
+        let source = WorldSource::new(layout.clone(), 3);
+        build_vod2(&path, &layout, [1.0; 3], &source, &BuildOptions::default()).unwrap();
+        let vod = Vod2::open(&path).unwrap();
+        let snap = vod.head();
+        let iso = default_iso(VoxelType::U8);
+        let mut reused = TileScratch::default();
+        let mut with_a_layer = 0;
+        for (x, y, z) in
+            (0..8).flat_map(|x| (0..6).flat_map(move |y| (0..8).map(move |z| (x, y, z))))
+        {
+            let key = BrickKey { level: 0, x, y, z };
+            for face in 0..6 {
+                let (mut a, mut b) = (Mesh::default(), Mesh::default());
+                mesh_strip_world(&snap, key, face, iso, &mut a, &mut reused).unwrap();
+                let mut fresh = TileScratch::default();
+                mesh_strip_world(&snap, key, face, iso, &mut b, &mut fresh).unwrap();
+                assert_eq!(a, b, "strip {face} of {key:?}");
+                if fresh.layer.positions.is_empty() {
+                    continue;
+                }
+                with_a_layer += 1;
+                assert_eq!(
+                    reused.layer.positions.len(),
+                    fresh.layer.positions.len(),
+                    "the layer of strip {face} of {key:?}"
+                );
+            }
+        }
+        assert!(
+            with_a_layer > 10,
+            "only {with_a_layer} strips marched a layer"
+        );
+    }
 }
