@@ -112,6 +112,16 @@ impl EditQueue {
     pub(super) fn len(&self) -> usize {
         self.edits.len()
     }
+
+    /// Whether edits wait; when none does, the writer is marked stopped, so that the next
+    /// edit starts it again.
+    fn edits_wait(&mut self) -> bool {
+        let waiting = !self.edits.is_empty();
+        if !waiting {
+            self.writing = false;
+        }
+        waiting
+    }
 }
 
 /// Why the writer's blocking thread stopped taking groups.
@@ -203,7 +213,7 @@ impl LiveVolume {
                     // The group's edits are answered with an error when their senders drop;
                     // the writer is reopened by the next group (it finds versions staged).
                     tracing::error!(volume = %self.name, error = %e, "an edit group failed");
-                    if self.next_group_waits() {
+                    if self.queue().edits_wait() {
                         continue;
                     }
                     return;
@@ -216,22 +226,11 @@ impl LiveVolume {
     /// so the next edit starts it again) when the queue is empty.
     fn next_group(&self, settings: GroupCommit) -> Option<Vec<PendingEdit>> {
         let mut queue = self.queue();
-        if queue.edits.is_empty() {
-            queue.writing = false;
+        if !queue.edits_wait() {
             return None;
         }
         let n = queue.edits.len().min(settings.max_group.max(1));
         Some(queue.edits.drain(..n).collect())
-    }
-
-    /// Whether edits wait after a group failed; when none does, the writer is marked stopped.
-    fn next_group_waits(&self) -> bool {
-        let mut queue = self.queue();
-        if queue.edits.is_empty() {
-            queue.writing = false;
-            return false;
-        }
-        true
     }
 
     /// Applies `group` in order and commits it with one pair of syncs, holding the writer;
