@@ -9,32 +9,32 @@
 
 /// Bits `0..values.len()` of the result: `values[i] >= t` (at most 64 values).
 pub(super) fn u8_at_least(values: &[u8], t: u8) -> u64 {
-    let mut bits = 0;
-    let mut sixteens = values.chunks_exact(16);
-    for (k, sixteen) in (&mut sixteens).enumerate() {
-        bits |= u64::from(sixteen_u8(sixteen, t)) << (16 * k);
-    }
-    with_tail(bits, values.len(), sixteens.remainder(), |v| v >= t)
+    by_vectors::<16, _>(values, |v| u64::from(sixteen_u8(v, t)), |v| v >= t)
 }
 
 /// Bits `0..values.len()` of the result: `values[i] >= t` (at most 64 values).
 pub(super) fn u16_at_least(values: &[u16], t: u16) -> u64 {
-    let mut bits = 0;
-    let mut eights = values.chunks_exact(8);
-    for (k, eight) in (&mut eights).enumerate() {
-        bits |= u64::from(eight_u16(eight, t)) << (8 * k);
-    }
-    with_tail(bits, values.len(), eights.remainder(), |v| v >= t)
+    by_vectors::<8, _>(values, |v| u64::from(eight_u16(v, t)), |v| v >= t)
 }
 
 /// Bits `0..values.len()` of the result: `values[i] >= iso` (at most 64 values; false for NaN).
 pub(super) fn f32_at_least(values: &[f32], iso: f32) -> u64 {
+    by_vectors::<4, _>(values, |v| u64::from(four_f32(v, iso)), |v| v >= iso)
+}
+
+/// The bits of a row: `vector` on each whole vector of `W` values, `inside` on the values left.
+#[inline(always)]
+fn by_vectors<const W: usize, T: Copy>(
+    values: &[T],
+    vector: impl Fn(&[T]) -> u64,
+    inside: impl Fn(T) -> bool,
+) -> u64 {
     let mut bits = 0;
-    let mut fours = values.chunks_exact(4);
-    for (k, four) in (&mut fours).enumerate() {
-        bits |= u64::from(four_f32(four, iso)) << (4 * k);
+    let mut vectors = values.chunks_exact(W);
+    for (k, v) in (&mut vectors).enumerate() {
+        bits |= vector(v) << (W * k);
     }
-    with_tail(bits, values.len(), fours.remainder(), |v| v >= iso)
+    with_tail(bits, values.len(), vectors.remainder(), inside)
 }
 
 /// The bits of a row of `len` values: `bits` of its whole vectors, followed by those of its
