@@ -28,8 +28,13 @@ pub const HEADER_LEN: usize = 128;
 /// Offsets of the two header slots; each sits alone in its own 4 KiB page so that a torn write
 /// of one can never damage the other.
 pub const SLOT_OFFSETS: [u64; 2] = [4096, 8192];
-/// Size of a header slot record.
-pub const SLOT_LEN: usize = 48;
+/// Size of a header slot record: the 48 bytes every reader checks, then the appended-bytes check
+/// of revision 2 (flag [`SLOT_APPENDED_CHECKED`]), which readers before it never read.
+pub const SLOT_LEN: usize = 72;
+/// Header slot flag (the u32 at offset 4): the slot carries [`AppendedCheck`], the checksum of
+/// the bytes appended since the previous slot, and holds only if they match it. A writer sets
+/// it when the slot and those bytes were made durable by one sync together.
+pub const SLOT_APPENDED_CHECKED: u32 = 1;
 /// Where the append-only region starts.
 pub const DATA_START: u64 = 12288;
 /// Size of the header in front of every stored brick payload.
@@ -289,10 +294,28 @@ pub struct HeaderSlot {
     pub committed_len: u64,
     /// The head commit's version number.
     pub version: u64,
+    /// Set when the slot was synced together with the bytes it names (one `fdatasync` for
+    /// both): the checksum those bytes must match for the slot to hold.
+    pub appended: Option<AppendedCheck>,
 }
 
+/// The bytes `[from, committed_len)` a slot names beyond the previous slot, and their xxh3-64.
+/// A crash may leave the slot on disk without all of them; the checksum tells.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct AppendedCheck {
+    /// The previous slot's committed length, where the checked bytes start.
+    pub from: u64,
+    /// xxh3-64 of the bytes `[from, committed_len)`.
+    pub checksum: u64,
+}
+
+/// Where a slot's own checksums sit: the first covers the fields every reader knows, the
+/// second the whole record with the appended-bytes check.
+const SLOT_BASE_CHECK_AT: usize = 40;
+const SLOT_FULL_CHECK_AT: usize = SLOT_LEN - 8;
+
 impl HeaderSlot {
-    /// The slot's bytes, checksum included.
+    /// The slot's bytes, checksums included.
     pub fn encode(&self) -> [u8; SLOT_LEN] {
         let mut b = [0u8; SLOT_LEN];
         put(&mut b, 0, &SLOT_MAGIC);
@@ -300,21 +323,50 @@ impl HeaderSlot {
         put(&mut b, 16, &self.commit.to_le_bytes());
         put(&mut b, 24, &self.committed_len.to_le_bytes());
         put(&mut b, 32, &self.version.to_le_bytes());
-        seal(&mut b, SLOT_LEN - 8);
+        if let Some(check) = self.appended {
+            put(&mut b, 4, &SLOT_APPENDED_CHECKED.to_le_bytes());
+            put(&mut b, 48, &check.from.to_le_bytes());
+            put(&mut b, 56, &check.checksum.to_le_bytes());
+        }
+        seal(&mut b, SLOT_BASE_CHECK_AT);
+        if self.appended.is_some() {
+            seal(&mut b, SLOT_FULL_CHECK_AT);
+        }
         b
     }
 
+    /// Decodes the record alone. A slot with an appended-bytes check holds only if those
+    /// bytes match it too, which the caller checks against the file.
+    ///
     /// # Errors
-    /// Bad magic or checksum (a slot never written, or torn), or offsets that do not fit.
+    /// Bad magic or checksum (a slot never written, or torn), unknown flags, or offsets that
+    /// do not fit.
     pub fn decode(bytes: &[u8], base: u64) -> Result<Self, FormatError> {
         let f = Fields::new("header slot", bytes, base);
         f.magic(0, SLOT_MAGIC)?;
-        f.checksum(SLOT_LEN - 8)?;
+        f.checksum(SLOT_BASE_CHECK_AT)?;
+        let flags = f.u32(4)?;
+        if flags & !SLOT_APPENDED_CHECKED != 0 {
+            return Err(FormatError::invalid(
+                "header slot",
+                format!("unknown flags {flags:#x}"),
+            ));
+        }
+        let appended = if flags & SLOT_APPENDED_CHECKED != 0 {
+            f.checksum(SLOT_FULL_CHECK_AT)?;
+            Some(AppendedCheck {
+                from: f.u64(48)?,
+                checksum: f.u64(56)?,
+            })
+        } else {
+            None
+        };
         let slot = HeaderSlot {
             seq: f.u64(8)?,
             commit: f.u64(16)?,
             committed_len: f.u64(24)?,
             version: f.u64(32)?,
+            appended,
         };
         if slot.commit < DATA_START
             || slot
@@ -329,6 +381,18 @@ impl HeaderSlot {
                     slot.commit, slot.committed_len
                 ),
             ));
+        }
+        // The head commit is one of the appended records.
+        if let Some(check) = appended {
+            if check.from < DATA_START || check.from > slot.commit {
+                return Err(FormatError::invalid(
+                    "header slot",
+                    format!(
+                        "appended bytes from {} do not hold the head commit at {} (and start at {DATA_START} or later)",
+                        check.from, slot.commit
+                    ),
+                ));
+            }
         }
         Ok(slot)
     }
@@ -851,6 +915,7 @@ mod tests {
             commit: DATA_START + 100,
             committed_len: DATA_START + 1000,
             version: 3,
+            appended: None,
         };
         assert_eq!(HeaderSlot::decode(&s.encode(), 4096).unwrap(), s);
         let bad = HeaderSlot {
@@ -859,6 +924,57 @@ mod tests {
         };
         assert!(HeaderSlot::decode(&bad.encode(), 4096).is_err());
         assert!(HeaderSlot::decode(&[0u8; SLOT_LEN], 4096).is_err());
+    }
+
+    #[test]
+    fn slot_with_appended_check_round_trips_and_seals_its_extension() {
+        let s = HeaderSlot {
+            seq: 9,
+            commit: DATA_START + 500,
+            committed_len: DATA_START + 1000,
+            version: 4,
+            appended: Some(AppendedCheck {
+                from: DATA_START + 200,
+                checksum: 0xfeed_f00d_dead_beef,
+            }),
+        };
+        let bytes = s.encode();
+        assert_eq!(HeaderSlot::decode(&bytes, 4096).unwrap(), s);
+        // The first 48 bytes are what a reader before revision 2 reads: still a valid slot
+        // naming the same commit (it only skips the check).
+        assert_eq!(
+            xxh3_64(&bytes[..40]).to_le_bytes(),
+            bytes[40..48],
+            "the base checksum covers bytes [0, 40) as before"
+        );
+        for i in 48..SLOT_LEN {
+            let mut flipped = bytes;
+            flipped[i] ^= 0x10;
+            assert!(
+                HeaderSlot::decode(&flipped, 4096).is_err(),
+                "flip at byte {i} of the extension not detected"
+            );
+        }
+        // The appended bytes must hold the head commit.
+        for from in [DATA_START - 1, DATA_START + 501] {
+            let bad = HeaderSlot {
+                appended: Some(AppendedCheck { from, checksum: 1 }),
+                ..s
+            };
+            assert!(
+                HeaderSlot::decode(&bad.encode(), 4096).is_err(),
+                "from {from}"
+            );
+        }
+        // Unknown flags are refused.
+        let mut unknown = HeaderSlot {
+            appended: None,
+            ..s
+        }
+        .encode();
+        unknown[4] = 2;
+        seal(&mut unknown, 40);
+        assert!(HeaderSlot::decode(&unknown, 4096).is_err());
     }
 
     #[test]

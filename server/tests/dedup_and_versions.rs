@@ -12,7 +12,7 @@
 #![allow(clippy::unwrap_used)]
 
 use isovox_proto::vod2::{
-    NodeEntry, BRICK_HEADER_LEN, CHECKPOINT_FIXED_LEN, CHUNK_REF_LEN, DATA_START,
+    HeaderSlot, NodeEntry, BRICK_HEADER_LEN, CHECKPOINT_FIXED_LEN, CHUNK_REF_LEN, DATA_START,
     PAYLOAD_CHECK_LEN, SLOT_LEN, SLOT_OFFSETS,
 };
 use isovox_proto::{VolumeLayout, VoxelType};
@@ -506,9 +506,49 @@ fn crash_at_every_byte(checkpoint: bool) {
             &format!("slot torn after {k} bytes"),
         );
     }
-    // After a crash, appending cuts the unfinished tail and commits on top of the old version.
-    for len in [old_len, (old_len + new_len) / 2, new_len - 1] {
-        std::fs::write(&crashed, &c.new[..len]).unwrap();
+    // 4. The slot and the file's new length reached the disk, but not every byte of the tail:
+    // the slot and the tail are made durable by one sync, so nothing orders them. The slot
+    // carries the tail's checksum, and a tail that does not match it leaves the old version.
+    let written = HeaderSlot::decode(&c.new[slot..slot + SLOT_LEN], slot as u64).unwrap();
+    assert_eq!(
+        written.appended.map(|a| a.from),
+        Some(old_len as u64),
+        "the slot checks the bytes appended since the old one"
+    );
+    for at in old_len..new_len {
+        let mut lost = c.new.clone();
+        lost[at] ^= 0x01;
+        check_crash(
+            &c,
+            &lost,
+            false,
+            &crashed,
+            &format!("byte {at} of the tail lost"),
+        );
+    }
+    let sector_zeroed = |at: usize| {
+        let mut lost = c.new.clone();
+        lost[at..(at + 512).min(new_len)].fill(0);
+        lost
+    };
+    for at in (old_len..new_len).step_by(512) {
+        check_crash(
+            &c,
+            &sector_zeroed(at),
+            false,
+            &crashed,
+            &format!("512 bytes at {at} of the tail never written"),
+        );
+    }
+    // After a crash, appending cuts the unfinished tail and commits on top of the old version:
+    // the tail cut short, or whole in length with a sector of it never written (the stale slot
+    // is overwritten by the next commit's).
+    let cut_states =
+        [old_len, (old_len + new_len) / 2, new_len - 1].map(|len| c.new[..len].to_vec());
+    let lost_states = [old_len, new_len - 1].map(sector_zeroed);
+    for state in cut_states.iter().chain(&lost_states) {
+        let len = state.len();
+        std::fs::write(&crashed, state).unwrap();
         let mut model = c.old_model.clone();
         let node = c.layout.node_index(c.layout.key(0, 2, 1, 1).unwrap());
         let mut w = Vod2Writer::open_append(&crashed, Compression::Lz4).unwrap();

@@ -534,6 +534,12 @@ fn vod2_random_byte_flips_never_give_wrong_voxels() {
     let path = dir.path().join("flipped.vod");
     let (head_slot, other_slot) = slots_by_version(fx);
     let len = fx.vod2.len();
+    // The bytes version 4 appended, which its slot checks.
+    let head_group = {
+        let slot = HeaderSlot::decode(&fx.vod2[head_slot..head_slot + SLOT_LEN], 0).unwrap();
+        let check = slot.appended.expect("version 4 was synced with its slot");
+        check.from..slot.committed_len
+    };
     // Half the flips anywhere; half in the bytes that hold records (header, slots, data).
     let structured: Vec<usize> = (0..HEADER_LEN)
         .chain(head_slot..head_slot + SLOT_LEN)
@@ -588,6 +594,15 @@ fn vod2_random_byte_flips_never_give_wrong_voxels() {
                     all_read: true
                 },
                 "{what}: padding is never read"
+            );
+        } else if head_group.contains(&(pos as u64)) {
+            assert_eq!(
+                outcome,
+                Outcome::Opened {
+                    version: 3,
+                    all_read: true
+                },
+                "{what}: bytes synced with the head slot fail its check, which falls back"
             );
         } else {
             assert!(
@@ -825,10 +840,17 @@ proptest! {
     }
 
     #[test]
-    fn sealed_header_slot_with_any_fields_never_panics(seq in any::<u64>(), commit in offset(), committed_len in offset(), version in any::<u64>()) {
-        let b = sealed(SLOT_LEN, &[(0, b"VSLT"), (8, &seq.to_le_bytes()), (16, &commit.to_le_bytes()), (24, &committed_len.to_le_bytes()), (32, &version.to_le_bytes())]);
+    fn sealed_header_slot_with_any_fields_never_panics(seq in any::<u64>(), commit in offset(), committed_len in offset(), version in any::<u64>(), flags in prop_oneof![Just(0u32), Just(1u32), any::<u32>()], from in offset(), checksum in any::<u64>()) {
+        // The fields every reader checks, sealed at 40; then the appended-bytes check, sealed
+        // over the whole record at 64.
+        let base = sealed(48, &[(0, b"VSLT"), (4, &flags.to_le_bytes()), (8, &seq.to_le_bytes()), (16, &commit.to_le_bytes()), (24, &committed_len.to_le_bytes()), (32, &version.to_le_bytes())]);
+        let b = sealed(SLOT_LEN, &[(0, &base), (48, &from.to_le_bytes()), (56, &checksum.to_le_bytes())]);
         if let Ok(s) = HeaderSlot::decode(&b, 4096) {
             prop_assert!(s.commit >= DATA_START && s.commit + 56 <= s.committed_len);
+            prop_assert_eq!(flags, u32::from(s.appended.is_some()));
+            if let Some(check) = s.appended {
+                prop_assert!(check.from >= DATA_START && check.from <= s.commit);
+            }
         }
     }
 

@@ -16,7 +16,7 @@ mod common;
 mod server_process;
 use common::{mixed_volume, pyramid, Grid, XorShift};
 
-use isovox_proto::vod2::{Checkpoint, CommitHeader, NodeEntry};
+use isovox_proto::vod2::{Checkpoint, CommitHeader, HeaderSlot, NodeEntry, SLOT_LEN, SLOT_OFFSETS};
 use isovox_proto::{VolumeLayout, VoxelType};
 use isovox_server::store::codec::Compression;
 use isovox_server::store::{
@@ -45,13 +45,30 @@ struct History {
     models: Vec<Grid>,
     /// Commit record offset and header of each version, oldest first.
     commits: Vec<(u64, CommitHeader)>,
-    /// Offset of the noise brick record version HEAD wrote (its only reference).
-    head_noise_record: u64,
+    /// Offset of the noise brick record each version from 2 on wrote, at
+    /// `noise_records[v - 2]`. Version v's is at a place no later version writes: it stays
+    /// referenced by every version from v on.
+    noise_records: Vec<u64>,
 }
 
 impl History {
     fn commit(&self, version: u64) -> (u64, CommitHeader) {
         self.commits[version as usize - 1]
+    }
+
+    /// The offset of the header slot that names `version`. Each slot was synced together
+    /// with the bytes its version's commit appended, and checks them: damage there is read as
+    /// a crash before that sync, so the slot is reported too.
+    fn slot_naming(&self, version: u64) -> u64 {
+        let bytes = std::fs::read(&self.path).unwrap();
+        SLOT_OFFSETS
+            .into_iter()
+            .find(|&at| {
+                let at_usize = at as usize;
+                HeaderSlot::decode(&bytes[at_usize..at_usize + SLOT_LEN], at)
+                    .is_ok_and(|slot| slot.version == version && slot.appended.is_some())
+            })
+            .unwrap_or_else(|| panic!("no slot names version {version}"))
     }
 
     /// The versions whose commit wrote a full index checkpoint.
@@ -86,7 +103,7 @@ fn write_history(dir: &Path) -> History {
     };
     let mut rng = XorShift(0xdead_beef);
     let b = BRICK as usize;
-    let mut head_noise = None;
+    let mut noise_records = Vec::new();
     for version in 2..=HEAD {
         let v = version as usize;
         let mut model = models.last().unwrap().clone();
@@ -118,13 +135,11 @@ fn write_history(dir: &Path) -> History {
         let mut t = Transaction::on(&mut writer, &snap);
         t.update_level0(level0.clone()).unwrap();
         t.commit(policy).unwrap();
-        if version == HEAD {
-            let head = Vod2::open(&path).unwrap().head();
-            let NodeEntry::Stored(offset) = head.entry(level0[0].0).unwrap() else {
-                panic!("a noise brick is stored as a record");
-            };
-            head_noise = Some(offset);
-        }
+        let head = Vod2::open(&path).unwrap().head();
+        let NodeEntry::Stored(offset) = head.entry(level0[0].0).unwrap() else {
+            panic!("a noise brick is stored as a record");
+        };
+        noise_records.push(offset);
         models.push(model);
     }
     let mut commits = Vod2::open(&path).unwrap().commits().unwrap();
@@ -133,7 +148,7 @@ fn write_history(dir: &Path) -> History {
         path,
         models,
         commits,
-        head_noise_record: head_noise.unwrap(),
+        noise_records,
     };
     // The set-up this file is about: a checkpoint after the first, with two deltas after it.
     let checkpoints = history.checkpoints();
@@ -297,12 +312,19 @@ fn a_damaged_commit_record_is_salvaged_to_the_version_before_it() {
     // Version HEAD - 1: a delta after the last checkpoint, on the head's chain.
     let (at, header) = h.commit(HEAD - 1);
     assert_eq!(header.checkpoint, 0);
+    let older_slot = h.slot_naming(HEAD - 1);
     flip(&h.path, at + 20);
     assert!(Vod2::open(&h.path).is_err(), "the head no longer opens");
 
     let (report, clean) = check(&h.path);
     assert!(!clean);
-    assert_eq!(damage(&report), vec![(at, "commit record".to_string())]);
+    assert_eq!(
+        damage(&report),
+        vec![
+            (older_slot, "header slot".to_string()),
+            (at, "commit record".to_string())
+        ]
+    );
     assert_eq!(intact(&report), (1..HEAD - 1).collect::<Vec<_>>());
     assert_eq!(report["head"], HEAD);
     // The text report names the offset too.
@@ -318,10 +340,20 @@ fn a_damaged_head_commit_record_is_salvaged_to_its_parent() {
     let dir = tempfile::tempdir().unwrap();
     let h = write_history(dir.path());
     let (at, _) = h.commit(HEAD);
+    let head_slot = h.slot_naming(HEAD);
     flip(&h.path, at + 9);
+    // The record is among the bytes the head's slot was synced with: the slot fails its
+    // check, as after a crash before that sync, and the version before is the head.
+    assert_eq!(Vod2::open(&h.path).unwrap().head().version, HEAD - 1);
     let (report, clean) = check(&h.path);
     assert!(!clean);
-    assert_eq!(damage(&report), vec![(at, "commit record".to_string())]);
+    // What the failing slot named lies past the head's committed length, which is all a
+    // check reads: the slot is the damage it finds.
+    assert_eq!(
+        damage(&report),
+        vec![(head_slot, "header slot".to_string())]
+    );
+    assert_eq!(report["head"], HEAD - 1);
     assert_eq!(intact(&report), (1..HEAD).collect::<Vec<_>>());
     salvage_gives(&h, dir.path(), HEAD - 1);
 }
@@ -363,13 +395,20 @@ fn a_damaged_checkpoint_is_salvaged_to_the_version_before_it() {
 fn a_damaged_brick_is_never_copied() {
     let dir = tempfile::tempdir().unwrap();
     let h = write_history(dir.path());
-    // The noise brick only the head points at: its payload, past the 24-byte header.
-    flip(&h.path, h.head_noise_record + 24 + 100);
+    // The noise brick version HEAD - 1 wrote, which the head points at too: its payload, past
+    // the 24-byte header. It is among the bytes the slot naming HEAD - 1 was synced with, so
+    // that slot is damaged too (the head's slot is not: it checks only what HEAD appended).
+    let record = h.noise_records[HEAD as usize - 3];
+    let older_slot = h.slot_naming(HEAD - 1);
+    flip(&h.path, record + 24 + 100);
     let (report, clean) = check(&h.path);
     assert!(!clean);
     assert_eq!(
         damage(&report),
-        vec![(h.head_noise_record, "brick record".to_string())]
+        vec![
+            (older_slot, "header slot".to_string()),
+            (record, "brick record".to_string())
+        ]
     );
     let head = &report["versions"][HEAD as usize - 1];
     assert!(
@@ -377,7 +416,7 @@ fn a_damaged_brick_is_never_copied() {
         "the head's index reads: {head}"
     );
     assert_eq!(head["damaged_bricks"], 1);
-    assert_eq!(intact(&report), (1..HEAD).collect::<Vec<_>>());
+    assert_eq!(intact(&report), (1..HEAD - 1).collect::<Vec<_>>());
     // Asked for the head, salvage refuses: it would copy the damage.
     let out = dir.path().join("head.vod");
     let o = isovox(&[
@@ -394,7 +433,7 @@ fn a_damaged_brick_is_never_copied() {
         "{stderr}"
     );
     assert!(!out.exists());
-    salvage_gives(&h, dir.path(), HEAD - 1);
+    salvage_gives(&h, dir.path(), HEAD - 2);
 }
 
 /// `isovox serve` on `dir` (killed when dropped), its address, and everything it logged up to
@@ -430,6 +469,64 @@ fn token(dir: &Path) -> String {
     line.split_whitespace().nth(1).unwrap().to_string()
 }
 
+/// The volume at `volume_url` is at `version`, and every level-0 brick is that version's.
+fn assert_serves(c: &reqwest::blocking::Client, volume_url: &str, h: &History, version: u64) {
+    let info: Value = c.get(volume_url).send().unwrap().json().unwrap();
+    assert_eq!(info["version"], version);
+    let layout = layout();
+    let model = &h.models[version as usize - 1];
+    let g = layout.grid(0);
+    for z in 0..g[2] {
+        for y in 0..g[1] {
+            for x in 0..g[0] {
+                let r = c
+                    .get(format!("{volume_url}/bricks/0/{x}/{y}/{z}"))
+                    .send()
+                    .unwrap();
+                assert_eq!(r.status(), 200);
+                let want = model.brick([x as usize, y as usize, z as usize], 16, T);
+                assert_eq!(r.bytes().unwrap().to_vec(), want, "brick {x} {y} {z}");
+            }
+        }
+    }
+}
+
+#[test]
+fn damage_among_the_bytes_synced_with_the_head_slot_reads_as_a_crash_before_that_sync() {
+    // One fdatasync makes the newest commit durable together with its slot, so damage among
+    // the bytes it appended cannot be told from a crash that kept the slot and lost some of
+    // them: the version before it opens, read-write, with a warning naming the slot, and the
+    // next edit takes the failed commit's place.
+    let dir = tempfile::tempdir().unwrap();
+    let h = write_history(dir.path());
+    let head_slot = h.slot_naming(HEAD);
+    flip(&h.path, h.noise_records[HEAD as usize - 2] + 24 + 100);
+
+    let server = serve(dir.path());
+    assert!(!server.log.contains("READ-ONLY"), "{}", server.log);
+    assert!(
+        server.log.contains("header slot is not valid")
+            && server.log.contains(&format!("slot={head_slot}"))
+            && server.log.contains(&format!("version {HEAD}")),
+        "a warning naming the slot and the version it named: {}",
+        server.log
+    );
+    isovox_server::client_tls::install_provider();
+    let c = reqwest::blocking::Client::new();
+    let url = |p: &str| format!("{}/v1/volumes/w{p}", server.base);
+    assert_serves(&c, &url(""), &h, HEAD - 1);
+    let edit = post_edit(&c, &url("/edits"), dir.path());
+    assert_eq!(edit.status(), 200);
+    let answer: Value = edit.json().unwrap();
+    assert_eq!(
+        (answer["previous"].as_u64(), answer["version"].as_u64()),
+        (Some(HEAD - 1), Some(HEAD))
+    );
+    let (report, clean) = check(&h.path);
+    assert!(clean, "the edit's slot replaced the failed one: {report}");
+    assert_eq!(intact(&report), (1..=HEAD).collect::<Vec<_>>());
+}
+
 #[test]
 fn a_server_serves_the_newest_readable_version_read_only() {
     let dir = tempfile::tempdir().unwrap();
@@ -447,25 +544,7 @@ fn a_server_serves_the_newest_readable_version_read_only() {
     isovox_server::client_tls::install_provider();
     let c = reqwest::blocking::Client::new();
     let url = |p: &str| format!("{}/v1/volumes/w{p}", server.base);
-    let info: Value = c.get(url("")).send().unwrap().json().unwrap();
-    assert_eq!(info["version"], served);
-    // Every level-0 brick is the served version's.
-    let layout = layout();
-    let model = &h.models[served as usize - 1];
-    let g = layout.grid(0);
-    for z in 0..g[2] {
-        for y in 0..g[1] {
-            for x in 0..g[0] {
-                let r = c
-                    .get(url(&format!("/bricks/0/{x}/{y}/{z}")))
-                    .send()
-                    .unwrap();
-                assert_eq!(r.status(), 200);
-                let want = model.brick([x as usize, y as usize, z as usize], 16, T);
-                assert_eq!(r.bytes().unwrap().to_vec(), want, "brick {x} {y} {z}");
-            }
-        }
-    }
+    assert_serves(&c, &url(""), &h, served);
     // Edits and compaction are refused, naming the cause; nothing is written.
     let len_before = std::fs::metadata(&h.path).unwrap().len();
     let edit = post_edit(&c, &url("/edits"), dir.path());

@@ -62,7 +62,7 @@ pub(crate) struct ServeArgs {
     /// Edits waiting for one volume's writer; beyond it 503.
     #[arg(long, env = "ISOVOX_EDIT_QUEUE", default_value_t = 64)]
     pub edit_queue: usize,
-    /// Edits one volume's writer makes durable together at most, with one pair of syncs
+    /// Edits one volume's writer makes durable together at most, with one sync
     /// (each is still its own version, answered once durable); 1 syncs every edit on its own.
     #[arg(long, env = "ISOVOX_EDIT_GROUP", default_value_t = isovox_server::volume::group::DEFAULT_MAX_GROUP as u64, value_parser = clap::value_parser!(u64).range(1..=4096))]
     pub edit_group: u64,

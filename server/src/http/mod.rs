@@ -97,7 +97,7 @@ pub struct ServerConfig {
     pub edit_rate: f64,
     /// Edits waiting for one volume's writer; beyond it 503.
     pub edit_queue: usize,
-    /// Edits one volume's writer makes durable together at most (one pair of syncs); 1 syncs
+    /// Edits one volume's writer makes durable together at most (one sync); 1 syncs
     /// every edit on its own.
     pub edit_group: usize,
     /// Voxels one edit may evaluate (its bricks, and what its term samples besides: mesh

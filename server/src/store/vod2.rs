@@ -139,10 +139,33 @@ fn read_exact_at(file: &File, path: &Path, offset: u64, len: usize) -> Result<Ve
     Ok(buf)
 }
 
+/// xxh3-64 of the file's bytes `[from, to)`, read in pieces (a slot's appended bytes are a
+/// group of edits, but nothing bounds them to fit in memory at once).
+pub(crate) fn appended_checksum(
+    file: &File,
+    path: &Path,
+    from: u64,
+    to: u64,
+) -> Result<u64, StoreError> {
+    const PIECE: u64 = 1 << 20;
+    let mut hasher = xxhash_rust::xxh3::Xxh3::new();
+    let mut buf = vec![0u8; PIECE.min(to.saturating_sub(from)) as usize];
+    let mut at = from;
+    while at < to {
+        let piece = &mut buf[..(to - at).min(PIECE) as usize];
+        file.read_exact_at(piece, at)
+            .map_err(StoreError::io_path("cannot read", path))?;
+        hasher.update(piece);
+        at += piece.len() as u64;
+    }
+    Ok(hasher.digest())
+}
+
 /// What one header slot holds, as read.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum SlotState {
-    /// A valid slot (magic, checksum, offsets inside a file of this length).
+    /// A valid slot (magic, checksum, offsets inside a file of this length, and the bytes
+    /// appended with it matching their checksum when it has one).
     Valid(HeaderSlot),
     /// All zero: never written (a file with one commit has written one slot).
     Unused,
@@ -194,7 +217,15 @@ impl Vod2File {
                     "slot at {at} names {} committed bytes, the file has {file_len}",
                     s.committed_len
                 )),
-                Ok(s) => SlotState::Valid(s),
+                Ok(s) => match s.appended {
+                    Some(check) if appended_checksum(&file, path, check.from, s.committed_len)? != check.checksum => {
+                        SlotState::Invalid(format!(
+                            "slot at {at} (version {}) names bytes [{}, {}) synced with it, and they do not match its checksum: they had not all reached the disk when the writer stopped, or were damaged since",
+                            s.version, check.from, s.committed_len
+                        ))
+                    }
+                    _ => SlotState::Valid(s),
+                },
                 Err(_) if bytes.iter().all(|&b| b == 0) => SlotState::Unused,
                 Err(e) => SlotState::Invalid(e.to_string()),
             };
@@ -282,6 +313,16 @@ impl Vod2File {
                 format!("no valid slot: {}", problems.join("; ")),
             ))
         })?;
+        for (state, at) in self.slots.iter().zip(SLOT_OFFSETS) {
+            if let SlotState::Invalid(why) = state {
+                tracing::warn!(
+                    path = %self.path.display(),
+                    slot = at,
+                    version = slot.version,
+                    "a header slot is not valid ({why}); opening the version the other slot names"
+                );
+            }
+        }
         let head = self.snapshot_at(slot.commit)?;
         self.into_vod2(slot, head)
     }
@@ -299,6 +340,7 @@ impl Vod2File {
             commit: commit_at,
             committed_len: self.map.len(),
             version: head.version,
+            appended: None,
         };
         self.into_vod2(slot, head)
     }

@@ -2,29 +2,32 @@
 //!
 //! The commit protocol (crash-safe at any byte):
 //! 1. append the new brick records, the index checkpoint if any, and the commit record;
-//! 2. `fdatasync` the file, so all of that is durable;
-//! 3. write the header slot that is *not* the current head's (sequence number + 1, checksum),
-//!    naming the new commit and the new committed length; `fdatasync` again.
+//! 2. write the header slot that is *not* the current head's (sequence number + 1), naming the
+//!    new commit and the new committed length, with the checksum of everything appended in 1;
+//! 3. `fdatasync` the file, once.
 //!
-//! A crash before 3 completes leaves the old slot as the valid one with the highest sequence
-//! number: the old version, intact. A torn slot fails its checksum and is ignored. Nothing ever
-//! overwrites a byte below the committed length.
+//! A crash before 3 completes may leave any part of it on disk, in any order: a slot whose own
+//! checksum or whose appended bytes' checksum fails is ignored, and the old slot, which the
+//! previous sync made durable and which this one did not touch, names the old version, intact.
+//! Nothing ever overwrites a byte below the committed length. The first commit of a file and a
+//! sync of more than [`ONE_SYNC_MAX`] bytes (which an open would have to read again) instead
+//! sync the appended bytes before writing the slot, and the slot after, with no checksum.
 //!
-//! Group commit splits step 1 from steps 2-4: [`Vod2Writer::stage`] appends one version's
+//! Group commit splits step 1 from steps 2-3: [`Vod2Writer::stage`] appends one version's
 //! commit record (its parent the previous staged one), [`Vod2Writer::sync`] makes every version
-//! staged since the last sync durable with one pair of syncs and one slot naming the newest.
-//! Until then none of them is visible to a reader opening the file, so a crash anywhere in a
-//! group leaves either all of its versions or none. A [`Savepoint`] taken before staging a
-//! version lets the writer drop that version's bytes again ([`Vod2Writer::rollback`]) without
-//! touching the versions staged before it.
+//! staged since the last sync durable with one slot naming the newest. Until then none of them
+//! is visible to a reader opening the file, so a crash anywhere in a group leaves either all of
+//! its versions or none. A [`Savepoint`] taken before staging a version lets the writer drop
+//! that version's bytes again ([`Vod2Writer::rollback`]) without touching the versions staged
+//! before it.
 
 use super::codec::{self, Compression};
 use super::pyramid::BrickVoxels;
 use super::StoreError;
 use super::StoredBrick;
 use isovox_proto::vod2::{
-    content_hash, payload_check, BrickHeader, Checkpoint, Codec, CommitHeader, FileHeader,
-    HeaderSlot, NodeEntry, BRICK_HEADER_LEN, CHUNK_ENTRIES, DATA_START, SLOT_OFFSETS,
+    content_hash, payload_check, AppendedCheck, BrickHeader, Checkpoint, Codec, CommitHeader,
+    FileHeader, HeaderSlot, NodeEntry, BRICK_HEADER_LEN, CHUNK_ENTRIES, DATA_START, SLOT_OFFSETS,
 };
 use isovox_proto::VoxelType;
 use std::collections::HashMap;
@@ -35,6 +38,11 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 /// Append buffer size: large sequential writes, bounded memory.
 const FLUSH_AT: usize = 8 << 20;
+
+/// The most bytes a sync makes durable together with its slot in one `fdatasync`: opening the
+/// file reads them again to check them, so this bounds what an open reads (an edit group
+/// appends kilobytes; an import or a compaction syncs twice).
+const ONE_SYNC_MAX: u64 = 16 << 20;
 
 /// A brick made ready for storage off the writer's thread: classified, hashed and (unless a
 /// copy with the same hash is already stored) compressed.
@@ -543,14 +551,16 @@ impl Vod2Writer {
             commit: commit_at,
             committed_len: self.end(),
             version,
+            // Set when the sync writes it.
+            appended: None,
         };
         self.staged = Some(slot);
         Ok(slot)
     }
 
-    /// Makes every version staged since the last sync durable: `fdatasync`, the slot naming
-    /// the newest of them, `fdatasync` again. Returns the new head (the old one when nothing
-    /// was staged).
+    /// Makes every version staged since the last sync durable: the slot naming the newest of
+    /// them, then `fdatasync` (see the module's protocol). Returns the new head (the old one
+    /// when nothing was staged).
     ///
     /// # Errors
     /// Writing or syncing fails. The head is then unchanged in this writer, but the slot may
@@ -561,10 +571,10 @@ impl Vod2Writer {
                 StoreError::Internal(format!("{}: nothing to sync", self.path.display()))
             });
         };
-        match &self.target {
+        let slot = match &self.target {
             Target::File(_) => {
                 self.flush()?;
-                self.switch_slot(&slot)?;
+                self.switch_slot(slot)?
             }
             Target::Remote(publish) => {
                 publish.publish(self.head, self.buf_at, &self.buf, &slot)?;
@@ -572,8 +582,9 @@ impl Vod2Writer {
                 self.buf.clear();
                 // What it stored is now below `buf_at`, which it cannot read back.
                 self.known.clear();
+                slot
             }
-        }
+        };
         self.head = Some(slot);
         self.staged = None;
         self.appended.clear();
@@ -637,24 +648,49 @@ impl Vod2Writer {
 }
 
 impl Vod2Writer {
-    /// The local sync's second half: everything appended is synced, then the slot that is not
-    /// the current head's names `slot`, and is synced in turn.
-    fn switch_slot(&self, slot: &HeaderSlot) -> Result<(), StoreError> {
+    /// The local sync's second half: writes `slot` to the slot that is not the current head's
+    /// and makes it durable with everything appended since that head. A group of at most
+    /// [`ONE_SYNC_MAX`] bytes goes with its slot in one `fdatasync`, the slot carrying their
+    /// checksum (a crash may leave it on disk without them: opening then finds the checksum
+    /// wrong and the older slot still names the version before); the first commit of a file
+    /// and larger groups are synced before the slot is written, and the slot after. Returns
+    /// the slot as written.
+    fn switch_slot(&self, slot: HeaderSlot) -> Result<HeaderSlot, StoreError> {
         let Target::File(file) = &self.target else {
             return Err(StoreError::Internal(
                 "a remote writer has no header slots".into(),
             ));
         };
-        file.sync_data()
-            .map_err(StoreError::io_path("cannot sync", &self.path))?;
+        let sync = |file: &File| {
+            file.sync_data()
+                .map_err(StoreError::io_path("cannot sync", &self.path))
+        };
+        let slot = match self.head {
+            Some(head) if slot.committed_len - head.committed_len <= ONE_SYNC_MAX => HeaderSlot {
+                appended: Some(AppendedCheck {
+                    from: head.committed_len,
+                    checksum: super::vod2::appended_checksum(
+                        file,
+                        &self.path,
+                        head.committed_len,
+                        slot.committed_len,
+                    )?,
+                }),
+                ..slot
+            },
+            _ => {
+                sync(file)?;
+                slot
+            }
+        };
         let slot_at = SLOT_OFFSETS[(slot.seq % 2) as usize];
         file.write_all_at(&slot.encode(), slot_at)
             .map_err(StoreError::io_path(
                 "cannot write header slot of",
                 &self.path,
             ))?;
-        file.sync_data()
-            .map_err(StoreError::io_path("cannot sync", &self.path))
+        sync(file)?;
+        Ok(slot)
     }
 }
 

@@ -1,5 +1,5 @@
 //! Group commit: the edits waiting for a volume's writer are applied in arrival order and made
-//! durable together, with one pair of syncs.
+//! durable together, with one sync.
 //!
 //! An edit joins the volume's queue ([`LiveVolume::submit`]); while the queue is not empty, one
 //! task per volume takes up to [`GroupCommit::max_group`] edits from its front and commits them
@@ -11,7 +11,7 @@
 //!    its parent the record before it. An edit that fails, or is stopped (its deadline passed,
 //!    counted from when the writer reaches it, or its client left), is rolled back to the
 //!    savepoint taken before it and answered with its error; the others do not notice;
-//! 2. one `fdatasync`, one header slot naming the group's last version, one `fdatasync`
+//! 2. one header slot naming the group's last version, then one `fdatasync`
 //!    ([`Vod2Writer::sync`]): the whole group is durable, or (crash, failed sync) none of it;
 //! 3. each version in order is published to readers, announced on the change feed and
 //!    answered: every edit is still its own version with its own event, acknowledged only once
@@ -44,7 +44,7 @@ pub struct GroupCommit {
     /// Edits waiting for the writer at most; beyond it an edit is refused
     /// ([`VolumeError::WriterBusy`]).
     pub max_waiting: usize,
-    /// Edits made durable together at most. 1 is one pair of syncs per edit.
+    /// Edits made durable together at most. 1 is one sync per edit.
     pub max_group: usize,
     /// When a version writes a full index checkpoint.
     pub policy: CheckpointPolicy,
@@ -233,7 +233,7 @@ impl LiveVolume {
         Some(queue.edits.drain(..n).collect())
     }
 
-    /// Applies `group` in order and commits it with one pair of syncs, holding the writer;
+    /// Applies `group` in order and commits it with one sync, holding the writer;
     /// answers every edit (see the module's documentation). Edits whose receiver is gone
     /// before the writer reaches them are skipped. Blocking (evaluates on rayon, syncs the
     /// file): call it off the async runtime.
@@ -380,7 +380,7 @@ impl LiveVolume {
         }
     }
 
-    /// Applies one edit as a group of its own (one pair of syncs), holding the writer; what
+    /// Applies one edit as a group of its own (one sync), holding the writer; what
     /// the edits of a file served by no task take. Blocking; never cancelled.
     ///
     /// # Errors

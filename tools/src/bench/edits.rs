@@ -7,8 +7,8 @@
 //! its arrival at every subscriber, one editor's latency, and brick-read throughput (wrk) with
 //! and without paced edits running.
 //!
-//! The strategies of `--groups` (how many edits the server makes durable with one pair of
-//! syncs; 1 is one pair per edit) run in turn, `--runs` times each, in this one process, so
+//! The strategies of `--groups` (how many edits the server makes durable with one sync; 1 is
+//! one sync per edit) run in turn, `--runs` times each, in this one process, so
 //! their ratio comes from the same conditions: this machine's speed drifts by 20-30% from one
 //! invocation to the next, and other builds share its cores.
 //!
@@ -58,7 +58,7 @@ pub struct EditsBenchArgs {
     #[arg(long, default_value_t = 3)]
     pub runs: usize,
     /// The strategies compared: edits made durable together at most (`--edit-group`); 1 is
-    /// one pair of syncs per edit, what the server did before group commit.
+    /// one sync per edit, what the server did before group commit.
     #[arg(long, value_delimiter = ',', default_values_t = [1, isovox_server::volume::group::DEFAULT_MAX_GROUP])]
     pub groups: Vec<usize>,
     /// Radius of the carved ellipsoids.

@@ -168,6 +168,7 @@ impl Head {
             commit: self.commit,
             committed_len: self.committed_len,
             version: self.version,
+            appended: None,
         }
     }
 }
