@@ -32,7 +32,12 @@ $bin export "$out/data/world.vod" -o "$out/static/v1/volumes/world/zarr" --forma
 
 isovox_port=17471
 nginx_port=17472
-$bin serve --data "$out/data" --addr 127.0.0.1:$isovox_port 2>"$out/isovox.log" &
+# Each server in a session of its own, as a service manager would run it: nginx daemonizes into
+# one, and with the kernel's autogroup scheduling (on by default) a server left in this script's
+# session shares the client's CPU share instead of having its own. Measured: tensorstore's mean
+# time to first byte from isovox was 408 us in the client's session against 88 us from nginx,
+# 176 us against 117 us in its own.
+setsid $bin serve --data "$out/data" --addr 127.0.0.1:$isovox_port 2>"$out/isovox.log" </dev/null &
 isovox_pid=$!
 cat >"$out/nginx.conf" <<EOF
 worker_processes 2;
