@@ -161,6 +161,28 @@ pub(crate) fn appended_checksum(
     Ok(hasher.digest())
 }
 
+/// A decoded slot inside the file, checked against the bytes it was synced with when it
+/// carries their checksum.
+fn with_appended_bytes(
+    file: &File,
+    path: &Path,
+    at: u64,
+    slot: HeaderSlot,
+) -> Result<SlotState, StoreError> {
+    let Some(check) = slot.appended else {
+        return Ok(SlotState::Valid(slot));
+    };
+    if appended_checksum(file, path, check.from, slot.committed_len)? == check.checksum {
+        return Ok(SlotState::Valid(slot));
+    }
+    Ok(SlotState::Invalid(format!(
+        "slot at {at} (version {}) names bytes [{}, {}) synced with it, and they do not match \
+         its checksum: they had not all reached the disk when the writer stopped, or were \
+         damaged since",
+        slot.version, check.from, slot.committed_len
+    )))
+}
+
 /// What one header slot holds, as read.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum SlotState {
@@ -217,15 +239,7 @@ impl Vod2File {
                     "slot at {at} names {} committed bytes, the file has {file_len}",
                     s.committed_len
                 )),
-                Ok(s) => match s.appended {
-                    Some(check) if appended_checksum(&file, path, check.from, s.committed_len)? != check.checksum => {
-                        SlotState::Invalid(format!(
-                            "slot at {at} (version {}) names bytes [{}, {}) synced with it, and they do not match its checksum: they had not all reached the disk when the writer stopped, or were damaged since",
-                            s.version, check.from, s.committed_len
-                        ))
-                    }
-                    _ => SlotState::Valid(s),
-                },
+                Ok(s) => with_appended_bytes(&file, path, at, s)?,
                 Err(_) if bytes.iter().all(|&b| b == 0) => SlotState::Unused,
                 Err(e) => SlotState::Invalid(e.to_string()),
             };
