@@ -5,7 +5,12 @@
 //! - open change feeds end at once, with the response's last chunk, and the server stops; the
 //!   grace is an hour here, so neither can be the grace running out;
 //! - a request that would never finish (its body never comes) is cut when the grace runs out,
-//!   and the server stops.
+//!   and the server stops;
+//! - with any number of connection threads, connections at once are all served (plain reads
+//!   on the connection threads, routed ones on the runtime) until the shutdown, and then the
+//!   port refuses connections;
+//! - a server whose runtime is dropped without a shutdown stops its connection threads all
+//!   the same.
 //!
 //! The TLS server gets a certificate made by `openssl` (as `.ci/run` installs it); the client
 //! trusts exactly that certificate.
@@ -24,7 +29,7 @@ use tokio_rustls::rustls::pki_types::ServerName;
 
 mod raw_http;
 mod tls;
-use raw_http::{read_to_close, read_until};
+use raw_http::{get, get_once, read_to_close, read_until};
 use tls::{tls, Tls};
 
 /// Far longer than anything here should take: reaching it means the shutdown hangs.
@@ -61,6 +66,10 @@ async fn start(dir: &Path, grace: Duration, tls: Option<&Tls>) -> Running {
         shutdown_grace: grace,
         ..ServerConfig::default()
     };
+    start_with(dir, config, tls).await
+}
+
+async fn start_with(dir: &Path, config: ServerConfig, tls: Option<&Tls>) -> Running {
     let state = AppState::with_config(Catalog::open_dir(dir).unwrap(), config);
     let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = listener.local_addr().unwrap();
@@ -171,4 +180,87 @@ async fn shutdown_closes_a_request_still_running_when_the_grace_runs_out() {
             String::from_utf8_lossy(&bytes)
         );
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_connection_thread_serves_until_the_shutdown() {
+    let dir = tempfile::tempdir().unwrap();
+    world(dir.path());
+    // 0 is taken as 1.
+    for threads in [0, 1, 3] {
+        let config = ServerConfig {
+            connection_threads: threads,
+            shutdown_grace: HANGS,
+            ..ServerConfig::default()
+        };
+        let server = start_with(dir.path(), config, None).await;
+        let addr = server.addr;
+        let mut clients = tokio::task::JoinSet::new();
+        for client in 0..24u32 {
+            clients.spawn(async move {
+                let mut tcp = TcpStream::connect(addr).await.unwrap();
+                // A plain brick, the same brick routed (a query), a document of the router
+                // and a chunk of the Zarr view, one after the other on one connection.
+                let brick = format!("/v1/volumes/w/bricks/0/{}/0/{}", client % 4, client / 8);
+                for path in [
+                    brick.clone(),
+                    format!("{brick}?version=1"),
+                    "/v1/volumes/w".to_string(),
+                    format!("/v1/volumes/w/zarr/0/c/{}/0/{}", client / 8, client % 4),
+                ] {
+                    let answer = get(&mut tcp, &path, "").await.unwrap();
+                    // A chunk of fill values may be absent (404); the rest is there.
+                    let expected: &[u16] = if path.contains("/zarr/") {
+                        &[200, 404]
+                    } else {
+                        &[200]
+                    };
+                    assert!(
+                        expected.contains(&answer.status),
+                        "{threads} threads, {path}: {}",
+                        answer.head
+                    );
+                }
+            });
+        }
+        while let Some(client) = clients.join_next().await {
+            client.unwrap();
+        }
+        stop(server, &format!("{threads} connection threads")).await;
+        assert!(
+            TcpStream::connect(addr).await.is_err(),
+            "{threads} threads: still accepting after the shutdown"
+        );
+    }
+}
+
+#[test]
+fn dropping_the_runtime_stops_the_connection_threads() {
+    let dir = tempfile::tempdir().unwrap();
+    world(dir.path());
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+    let server = runtime.block_on(async {
+        let server = start(dir.path(), HANGS, None).await;
+        let answer = get_once(server.addr, "/healthz").await.unwrap();
+        assert_eq!(answer.status, 200, "{}", answer.head);
+        server
+    });
+    let Running { addr, stop, task } = server;
+    // The server's task goes with its runtime; its shutdown signal was never sent (`stop` is
+    // still held).
+    drop(task);
+    drop(runtime);
+    let deadline = std::time::Instant::now() + HANGS;
+    while std::net::TcpStream::connect(addr).is_ok() {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "still accepting {HANGS:?} after its runtime was dropped"
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    drop(stop);
 }

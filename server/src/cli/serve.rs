@@ -37,6 +37,10 @@ pub(crate) struct ServeArgs {
     /// 503 (413 for one answer larger than all of it).
     #[arg(long, env = "ISOVOX_RESPONSE_MEMORY_MB", default_value_t = 256)]
     pub response_memory_mb: usize,
+    /// Threads that accept and read connections and answer plain reads (bricks, the formats'
+    /// views), each with an event loop of its own, as nginx's workers. Default: one per core.
+    #[arg(long, env = "ISOVOX_CONNECTION_THREADS", default_value_t = cpu::cores())]
+    pub connection_threads: usize,
     /// Connections open at once (change feeds included); at the limit a new one closes the
     /// oldest idle one. Default: the file-descriptor limit less an eighth, at most 10,000.
     #[arg(long, env = "ISOVOX_MAX_CONNECTIONS")]
@@ -263,8 +267,9 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             names.join(", ")
         );
         eprintln!(
-            "limits: {} connections, {} CPU jobs queued on {} threads, {} MiB of answers in flight",
+            "limits: {} connections on {} threads, {} CPU jobs queued on {} threads, {} MiB of answers in flight",
             connections.max_connections,
+            a.connection_threads.max(1),
             a.cpu_queue,
             cpu::cores(),
             a.response_memory_mb
@@ -278,6 +283,7 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             cpu_queue: a.cpu_queue,
             response_memory_bytes: a.response_memory_mb << 20,
             connections,
+            connection_threads: a.connection_threads.max(1),
             tokens,
             private_reads: a.private_reads,
             edit_rate: a.edit_rate,

@@ -89,6 +89,9 @@ pub struct ServerConfig {
     pub response_memory_bytes: usize,
     /// Open connections, and how long they may wait for a request head or idle.
     pub connections: connections::Limits,
+    /// Threads that accept and read connections, each with a runtime of its own (`serve.rs`).
+    /// Default: one per core.
+    pub connection_threads: usize,
     /// Who may write (and, with `private_reads`, read).
     pub tokens: auth::Tokens,
     /// Every `/v1` route needs a token (of either scope).
@@ -124,6 +127,7 @@ impl Default for ServerConfig {
             cpu_threads: cpu::cores(),
             response_memory_bytes: 256 << 20,
             connections: connections::Limits::default(),
+            connection_threads: cpu::cores(),
             tokens: auth::Tokens::default(),
             private_reads: false,
             edit_rate: 50.0,
@@ -277,8 +281,13 @@ pub const ROUTES: &[&str] = &[
 /// cost the brick routes about a tenth of their throughput. (tower-http's `TraceLayer` was
 /// here too: it timed every request and body frame again and logged every 5xx, shed 503s
 /// included, as an error; internal errors log their cause where they are mapped, `error.rs`.)
+///
+/// Requests are answered on the thread that read them, but for those of volumes kept in an
+/// object store: they run as tasks of `runtime`, the server's multi-threaded runtime (see
+/// `fast_path.rs`).
 pub fn app(
     state: AppState,
+    runtime: tokio::runtime::Handle,
 ) -> impl tower::Service<
     axum::extract::Request,
     Response = axum::response::Response,
@@ -289,7 +298,7 @@ pub fn app(
        + Sync
        + 'static {
     let metrics = state.metrics.clone();
-    let fast_state = state.clone();
+    let (fast_state, routed_state) = (state.clone(), state.clone());
     let router = routes(&state)
         .fallback(handlers::not_found)
         .with_state(state);
@@ -300,7 +309,10 @@ pub fn app(
             r
         })
         .layer(metrics::MetricsLayer::new(metrics))
-        .service(fast_path::BrickFirst::new(fast_state, router))
+        .service(fast_path::BrickFirst::new(
+            fast_state,
+            fast_path::Routed::new(routed_state, router, runtime),
+        ))
 }
 
 /// The routes, with the layers only some of them take: a 30 s timeout on the routes that do

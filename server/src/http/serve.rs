@@ -6,6 +6,21 @@
 //! most so many open, a deadline for request heads (and the TLS handshake), another for
 //! connections without a request in progress.
 //!
+//! Connection threads, nginx's shape: [`ServerConfig::connection_threads`](super::ServerConfig::connection_threads)
+//! threads (one per core by default) each run an event loop of their own (a current-thread
+//! tokio runtime) and accept from the one listening socket; a connection stays on the thread
+//! that accepted it, and its requests are answered there (those of volumes kept in an object
+//! store run on the server's multi-threaded runtime instead, `fast_path.rs`). Why: tokio's
+//! multi-threaded runtime has one I/O driver, so every connection went through one event loop,
+//! woken in batches, with requests and answers handed between threads. tensorstore reading a
+//! level through the Zarr view (4,096 small chunks, curl pools of four connections per client
+//! thread) then saw answers in bursts, and closed and reopened 280-390 connections a read
+//! against 56-89 with nginx's two workers (355 with one worker); with a loop per core it opens
+//! 36-57, and the server spends 0.07-0.08 s of CPU a read instead of 0.11-0.12 (nginx
+//! 0.10-0.11). Every loop wakes for each new connection and one accepts it (tokio registers no
+//! `EPOLLEXCLUSIVE`): a wake-up per core per connection, cheap beside the connection itself at
+//! the core counts this runs on.
+//!
 //! Shutdown, the same on both: stop accepting; end every open change feed at once (a feed never
 //! ends by itself, so a graceful shutdown that waited for it would wait forever; subscribers
 //! reconnect with `since=` and miss nothing); let the other requests in flight finish, for up
@@ -23,6 +38,7 @@ use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::net::{TcpListener, TcpStream};
+use tokio::runtime::Handle;
 use tokio::sync::watch;
 use tokio::task::JoinSet;
 use tokio_rustls::{rustls, TlsAcceptor};
@@ -64,29 +80,135 @@ async fn serve(
     state: AppState,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> std::io::Result<()> {
-    // The loop runs as a task of its own, on a runtime worker, whoever awaits `serve`: awaited
-    // in `block_on` it would run on the calling thread, and every accepted connection would be
-    // two wake-ups across threads (the I/O driver's worker waking that thread, its spawn waking
-    // a worker), every closed one a third. Spawned from a worker, a connection's task starts
-    // on that worker, next.
-    match tokio::spawn(accept_until_shutdown(listener, tls, state, shutdown)).await {
-        Ok(served) => served,
-        Err(e) if e.is_panic() => std::panic::resume_unwind(e.into_panic()),
-        Err(e) => Err(std::io::Error::other(e)),
+    let accepting = Accepting {
+        service: tower::ServiceBuilder::new()
+            .map_request(|r: Request<hyper::body::Incoming>| r.map(axum::body::Body::new))
+            .service(app(state.clone(), Handle::current())),
+        tls,
+        open: state.connections.clone(),
+        closing: state.closing.clone(),
+        grace: state.config.shutdown_grace,
+    };
+    let listener = listener.into_std()?;
+    // Stops the connection threads when this future ends, or is dropped with its runtime.
+    let stop = StopOnDrop(Closing::default());
+    let mut threads = Vec::new();
+    for i in 0..state.config.connection_threads.max(1) {
+        let thread = listener.try_clone().and_then(|listener| {
+            let (accepting, stopped) = (accepting.clone(), stop.0.closed());
+            std::thread::Builder::new()
+                .name(format!("isovox-conn-{i}"))
+                .spawn(move || connection_thread(listener, accepting, stopped))
+        });
+        match thread {
+            Ok(thread) => threads.push(thread),
+            Err(e) => {
+                stop.0.close();
+                join(threads).await?;
+                return Err(e);
+            }
+        }
+    }
+    drop(listener);
+    shutdown.await;
+    stop.0.close();
+    join(threads).await
+}
+
+/// What the connection threads share: the service, the connection limits, the shutdown.
+#[derive(Clone)]
+struct Accepting<A> {
+    service: A,
+    tls: Option<TlsAcceptor>,
+    open: Arc<super::connections::Connections>,
+    closing: Closing,
+    grace: Duration,
+}
+
+/// The service every connection gets a clone of: [`app`], reading hyper's request bodies.
+trait AppService:
+    tower::Service<
+        hyper::Request<hyper::body::Incoming>,
+        Response = axum::response::Response,
+        Error = std::convert::Infallible,
+        Future: Send + 'static,
+    > + Clone
+    + Send
+    + 'static
+{
+}
+
+impl<A> AppService for A where
+    A: tower::Service<
+            hyper::Request<hyper::body::Incoming>,
+            Response = axum::response::Response,
+            Error = std::convert::Infallible,
+            Future: Send + 'static,
+        > + Clone
+        + Send
+        + 'static
+{
+}
+
+/// Closes its signal when dropped.
+struct StopOnDrop(Closing);
+
+impl Drop for StopOnDrop {
+    fn drop(&mut self) {
+        self.0.close();
     }
 }
 
-async fn accept_until_shutdown(
+/// One connection thread: a current-thread runtime accepting from `listener` (a handle on the
+/// listening socket every connection thread shares) until `stopped`, then shutting down its
+/// connections as the module documentation says.
+fn connection_thread<A: AppService>(
+    listener: std::net::TcpListener,
+    accepting: Accepting<A>,
+    stopped: impl Future<Output = ()> + Send + 'static,
+) -> std::io::Result<()> {
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    runtime.block_on(async move {
+        let listener = TcpListener::from_std(listener)?;
+        accept_until_shutdown(listener, accepting, stopped).await
+    })
+}
+
+/// Waits for the connection threads to end; a panic in one goes on here.
+async fn join(threads: Vec<std::thread::JoinHandle<std::io::Result<()>>>) -> std::io::Result<()> {
+    let ended = tokio::task::spawn_blocking(move || {
+        threads
+            .into_iter()
+            .map(std::thread::JoinHandle::join)
+            .collect::<Vec<_>>()
+    })
+    .await
+    .map_err(std::io::Error::other)?;
+    let mut result = Ok(());
+    for thread in ended {
+        match thread {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => result = result.and(Err(e)),
+            Err(panic) => std::panic::resume_unwind(panic),
+        }
+    }
+    result
+}
+
+async fn accept_until_shutdown<A: AppService>(
     listener: TcpListener,
-    tls: Option<TlsAcceptor>,
-    state: AppState,
+    accepting: Accepting<A>,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> std::io::Result<()> {
-    let (closing, grace) = (state.closing.clone(), state.config.shutdown_grace);
-    let open = state.connections.clone();
-    let service = tower::ServiceBuilder::new()
-        .map_request(|r: Request<hyper::body::Incoming>| r.map(axum::body::Body::new))
-        .service(app(state));
+    let Accepting {
+        service,
+        tls,
+        open,
+        closing,
+        grace,
+    } = accepting;
     let mut connections = JoinSet::new();
     tokio::pin!(shutdown);
     loop {
