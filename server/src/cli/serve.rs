@@ -37,8 +37,9 @@ pub(crate) struct ServeArgs {
     /// 503 (413 for one answer larger than all of it).
     #[arg(long, env = "ISOVOX_RESPONSE_MEMORY_MB", default_value_t = 256)]
     pub response_memory_mb: usize,
-    /// Threads that accept and read connections and answer plain reads (bricks, the formats'
-    /// views), each with an event loop of its own, as nginx's workers. Default: one per core.
+    /// Threads that accept connections and answer their requests (but those of volumes kept in
+    /// an object store), each with an event loop of its own, as nginx's workers. Default: one
+    /// per core.
     #[arg(long, env = "ISOVOX_CONNECTION_THREADS", default_value_t = cpu::cores())]
     pub connection_threads: usize,
     /// Connections open at once (change feeds included); at the limit a new one closes the

@@ -9,6 +9,7 @@ use super::extract::{Path, Query};
 use super::{ApiError, AppState};
 use crate::store::decoded::Form;
 use crate::store::{Snapshot, StoredBrick};
+use crate::volume::LiveVolume;
 use axum::extract::{Request, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
@@ -47,23 +48,23 @@ pub async fn brick(
 ) -> Result<Response, ApiError> {
     brick_at(
         &state,
-        &name,
+        state.catalog.get(&name)?,
         query.version,
         (level, x, y, z),
         request.headers(),
     )
 }
 
-/// The response for brick (level, x, y, z) of volume `name` at `version` (the head if `None`):
-/// the brick route's work once its request is parsed, shared with the fast path.
+/// The response for brick (level, x, y, z) of `vol` at `version` (the head if `None`): the
+/// brick route's work once its request is parsed and its volume found, shared with the fast
+/// path.
 pub(super) fn brick_at(
     state: &AppState,
-    name: &str,
+    vol: &LiveVolume,
     version: Option<u64>,
     (level, x, y, z): (u8, u32, u32, u32),
     headers: &HeaderMap,
 ) -> Result<Response, ApiError> {
-    let vol = state.catalog.get(name)?;
     // The head is borrowed from the volume's current file (no reference count touched).
     let (current, older);
     let snap: &Snapshot = match version {

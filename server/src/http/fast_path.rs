@@ -28,6 +28,7 @@
 
 use super::{bricks, views, ApiError, AppState};
 use crate::formats::ViewKind;
+use crate::volume::LiveVolume;
 use axum::extract::Request;
 use axum::http::Method;
 use axum::response::{IntoResponse, Response};
@@ -224,10 +225,8 @@ fn plain_brick(state: &AppState, request: &Request) -> Option<Response> {
         return None;
     }
     let (name, level, x, y, z) = parse(request)?;
-    if !local(state, name) {
-        return None;
-    }
-    bricks::brick_at(state, name, None, (level, x, y, z), request.headers()).ok()
+    let volume = local_volume(state, name)?;
+    bricks::brick_at(state, volume, None, (level, x, y, z), request.headers()).ok()
 }
 
 /// A plain request of a live view: `GET /v1/volumes/{name}/zarr/{*path}` (or `precomputed`),
@@ -256,18 +255,15 @@ fn plain_view(state: &AppState, request: &Request) -> Option<Response> {
         return None;
     }
     let (name, kind, path) = parse_view(request)?;
-    if !local(state, name) {
-        return None;
-    }
-    views::answer_ready(state, kind, name, path, request.headers())
+    let volume = local_volume(state, name)?;
+    views::answer_ready(state, volume, kind, name, path, request.headers())
 }
 
-/// Volume `name` is served and kept in a local file: reading it never waits on the network.
-fn local(state: &AppState, name: &str) -> bool {
-    state
-        .catalog
-        .get(name)
-        .is_ok_and(|volume| volume.remote().is_none())
+/// Volume `name` if it is served and kept in a local file: reading it never waits on the
+/// network.
+fn local_volume<'a>(state: &'a AppState, name: &str) -> Option<&'a LiveVolume> {
+    let volume = state.catalog.get(name).ok()?;
+    volume.remote().is_none().then_some(volume)
 }
 
 #[cfg(test)]

@@ -20,6 +20,7 @@ use super::extract::Path;
 use super::{ApiError, AppState};
 use crate::formats::view::{read, ViewAnswer, ViewBody, ViewRead};
 use crate::formats::{ViewError, ViewKind};
+use crate::volume::LiveVolume;
 use axum::extract::{Request, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
@@ -107,12 +108,12 @@ async fn view(
 /// (see `fast_path.rs`), which answers it (and any error) as [`zarr`] and [`precomputed`] do.
 pub(super) fn answer_ready(
     state: &AppState,
+    volume: &LiveVolume,
     kind: ViewKind,
     name: &str,
     path: &str,
     headers: &HeaderMap,
 ) -> Option<Response> {
-    let volume = state.catalog.get(name).ok()?;
     match read(volume, kind, None, path, &state.bricks).ok()? {
         ViewRead::Ready(answer) => respond(kind, name, None, path, answer, headers).ok(),
         ViewRead::Make(_) => None,
