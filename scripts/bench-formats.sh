@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The formats' figures (README, "Formats"):
+# The formats' figures (docs/benchmarks.md, "Formats"):
 # 1. tensorstore's zarr3 driver reading whole levels through isovox serve's OME-Zarr view,
 #    against the same chunks exported (isovox export --format zarr) and served as static files
 #    by nginx; the same volume, the same client, rounds alternating, in one run.

@@ -16,11 +16,10 @@ const MI_OPTION_ARENA_PURGE_MULT: libmimalloc_sys::mi_option_t = 24;
 /// Large bodies (a 64 MiB level, a raw batch) live in mimalloc's arenas. Freed, mimalloc keeps
 /// such memory committed for its purge delay (1 s) times the arena multiplier (1), and purges
 /// it only when the thread that owns it allocates again: a server whose CPU threads go idle
-/// after building a few large answers kept them resident (286 MiB against 27 MiB in
-/// `server/tests/memory_bound.rs`), past the bound the response budget promises. A multiplier
-/// of 0 purges arenas when their memory is freed; small pages keep their delay. It costs the
-/// per-request path a little: lz4 brick requests/s 3.5% lower (wrk, 64 connections, medians of
-/// 5 alternating runs against the multiplier of 1), which the bound is worth.
+/// after building a few large answers kept them resident, several times past the bound the
+/// response budget promises (the memory-bound tests catch it). A multiplier of 0 purges arenas
+/// when their memory is freed; small pages keep their delay. It costs the per-request path a
+/// few percent of brick requests/s (docs/benchmarks.md), which the bound is worth.
 /// `MIMALLOC_ARENA_PURGE_MULT` in the environment still decides, when set.
 pub(crate) fn purge_freed_arenas_at_once() {
     if std::env::var_os("MIMALLOC_ARENA_PURGE_MULT").is_none() {

@@ -1,6 +1,6 @@
 //! Isovox's own tools, kept out of the libraries so that their users carry only what they
-//! need: the benchmarks behind the README's figures (`isovox-bench`) and the load tester
-//! (`isovox-load`). Not published.
+//! need: the benchmarks behind the figures in docs/benchmarks.md (`isovox-bench`) and the load
+//! tester (`isovox-load`). Not published.
 //!
 //! Layout:
 //! - [`bench`]: `isovox-bench store|icvg|mesh|http|edits|memory|voxelize`, each a module that

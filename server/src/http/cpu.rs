@@ -30,8 +30,9 @@ pub fn cores() -> usize {
 }
 
 /// The default number of places: [`PLACES_PER_CORE`] per core. A cold mesh tile of a large
-/// world takes 10-50 ms of one core, so a full queue waits a few hundred milliseconds at most;
-/// 64 places on two cores made the 99th percentile 1.3-2.5 s before the first 503.
+/// world takes tens of milliseconds of one core, so a full queue waits a few hundred
+/// milliseconds at most; a much longer queue lets the 99th percentile grow to seconds before
+/// the first 503 tells a client to back off.
 pub fn default_queue() -> usize {
     PLACES_PER_CORE * cores()
 }

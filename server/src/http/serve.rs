@@ -13,14 +13,13 @@
 //! there, and its requests are answered there (those of volumes kept in an object
 //! store run on the server's multi-threaded runtime instead, `fast_path.rs`). Why: tokio's
 //! multi-threaded runtime has one I/O driver, so every connection went through one event loop,
-//! woken in batches, with requests and answers handed between threads. tensorstore reading a
-//! level through the Zarr view (4,096 small chunks, curl pools of four connections per client
-//! thread) then saw answers in bursts, and closed and reopened 280-390 connections a read
-//! against 56-89 with nginx's two workers (355 with one worker); with a loop per core it opens
-//! 33-57, and the server spends 0.05-0.08 s of CPU a read instead of 0.11-0.12 (nginx
-//! 0.07-0.11). Every loop wakes for each new connection and one accepts it (tokio registers no
-//! `EPOLLEXCLUSIVE`): a wake-up per core per connection, cheap beside the connection itself at
-//! the core counts this runs on.
+//! woken in batches, with requests and answers handed between threads. Clients with small
+//! connection pools (tensorstore's curl threads keep four each) then saw answers in bursts,
+//! overflowed their pools and closed and reopened connections many times a read, each costing
+//! CPU on both sides; one loop per core, as nginx's workers, answers steadily
+//! (docs/benchmarks.md, formats). Every loop wakes for each new connection and one accepts it
+//! (tokio registers no `EPOLLEXCLUSIVE`): a wake-up per core per connection, cheap beside the
+//! connection itself at the core counts this runs on.
 //!
 //! Shutdown, the same on both: stop accepting; end every open change feed at once (a feed never
 //! ends by itself, so a graceful shutdown that waited for it would wait forever; subscribers
@@ -164,9 +163,9 @@ type Handoff = (std::net::TcpStream, std::net::SocketAddr, Admitted);
 /// How connections are spread over the connection threads: each thread's open connections, and
 /// where to send it one. Whichever thread accepts a connection, the one with the fewest open
 /// serves it (the acceptor on a tie). Without this, one thread could take a whole burst of
-/// connections (a thread accepts until none is waiting), and a load tester's 64 connections,
-/// opened at once and kept, split anywhere from even to 1:2: measured, 79,000 to 128,000
-/// requests/s from one run of wrk to the next.
+/// connections (a thread accepts until none is waiting), and a load tester's connections,
+/// opened at once and kept, could split anywhere from even to 1:2, so throughput varied widely
+/// from one run to the next.
 struct Spread {
     open: Vec<AtomicUsize>,
     inboxes: Vec<mpsc::UnboundedSender<Handoff>>,

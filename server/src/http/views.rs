@@ -33,7 +33,7 @@ const PINNED: &str = "public, max-age=31536000, immutable";
 /// How long a chunk to make waits for a place in the CPU queue before it is refused (503).
 /// tensorstore's first read of a level asks for 32 chunks at once, and the queue (16 places on
 /// two cores) is sized for mesh tiles: refused at once, those were retried with backoff, and the
-/// first read took 2 s instead of 0.25 s.
+/// first read took several times longer than with a short wait for a place.
 const CHUNK_PATIENCE: std::time::Duration = std::time::Duration::from_secs(1);
 
 /// `{name}/zarr/{*path}` and `{name}/precomputed/{*path}`.

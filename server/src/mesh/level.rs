@@ -85,8 +85,8 @@ fn in_parallel_with<I: Copy + Sync, T: Send>(
 /// Every item is a job of its own that an idle thread can steal. Tiles differ in cost by
 /// orders of magnitude (one that cannot hold the surface is skipped, one full of it marches
 /// 32^3 mixed cells), and rayon's default pieces of several tiles, each run through by one
-/// thread, left the other thread idle for up to a third of a two-thread pass over the MRI
-/// (two threads 1.6x one; 1.8-2.0x with a job per tile).
+/// thread, left the other thread idle for a large part of a two-thread pass over a scan; a job
+/// per tile keeps both busy.
 pub fn each_in_parallel<I: Copy + Sync, T: Send, E: Send>(
     items: &[I],
     new_scratch: impl Fn() -> TileScratch + Sync,

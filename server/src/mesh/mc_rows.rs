@@ -340,7 +340,7 @@ pub(super) fn march<S: Sample>(
     for &cell in mixed_cells.iter() {
         let (base, case) = ((cell >> 8) as usize, (cell & 0xff) as usize);
         // Extended a cell at a time, not pushed an index at a time: no capacity check per
-        // index (about 5% of the kernel on the MRI's tiles).
+        // index, which showed in profiles of the kernel on scans.
         let edges = &table.edges[table.start[case]..table.start[case + 1]];
         out.indices
             .extend(edges.iter().map(|&e| ids[base + edge_slots[e as usize]]));

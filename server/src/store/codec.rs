@@ -31,13 +31,11 @@ pub const DEFAULT_ZSTD_LEVEL: i32 = 5;
 
 /// The zstd level of the bricks an edit writes. An edit compresses every brick it changes,
 /// on every level of detail (about 15 for a small carve in a 1024^3 world), while its editor
-/// waits, and compressing was the largest part of an edit's CPU (18% of the edit benchmark's
-/// process at level 3). Level -1, zstd's first fast level, compresses 16^3 terrain bricks in
-/// two thirds of level 3's time, 14% larger (3,003 bricks through zstd's Python binding: 5.6
-/// vs 8.4 us, 299 vs 262 bytes),
-/// and decodes them faster; `isovox-bench edits` made 11-12% more edits/s than at level 3 in
-/// alternating runs, the single editor's p50 0.98 against 1.11-1.20 ms. The frames are
-/// ordinary zstd frames. Imports and builds, written once, keep the stronger default.
+/// waits, and compressing was the largest part of an edit's CPU. Level -1, zstd's first fast
+/// level, compresses terrain bricks in about two thirds of level 3's time, a little larger, and
+/// decodes them faster; `isovox-bench edits` makes more edits/s with it, at a lower latency for
+/// a single editor. The frames are ordinary zstd frames. Imports and builds, written once, keep
+/// the stronger default.
 pub const EDIT_ZSTD_LEVEL: i32 = -1;
 
 impl Compression {

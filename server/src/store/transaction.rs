@@ -37,8 +37,8 @@ impl Default for CheckpointPolicy {
 /// downsampling: tens of microseconds a brick). Handing a job to another rayon thread wakes it,
 /// and it spins a while before sleeping again: for a smaller job that costs more than it
 /// returns. A small carve (about 8 level-0 bricks, fewer on each level above) so never leaves
-/// the writer's thread; `isovox-bench edits` made the same edits/s and single-editor latency as
-/// with a one-thread rayon pool, 5-9% more edits/s than with every loop split.
+/// the writer's thread; `isovox-bench edits` makes as many edits/s as with a one-thread rayon
+/// pool, and more than with every loop split.
 pub const BRICKS_PER_JOB: usize = 8;
 
 /// Changed bricks per level (level 0 first), as `[x, y, z]`.

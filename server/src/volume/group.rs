@@ -188,9 +188,9 @@ impl LiveVolume {
     /// The groups that follow one another without a pause are committed on one blocking
     /// thread, one after the other: the next group is taken as soon as the last one is
     /// answered. Going back through the runtime between groups (this task woken on a worker,
-    /// then a blocking thread woken for the next group) left the writer idle for 0.8 ms a
-    /// group on average under 8 editors and 100 subscribers, a fifth of its time. A
-    /// compaction waiting for the writer still takes it between two groups.
+    /// then a blocking thread woken for the next group) left the writer idle for a large share
+    /// of its time under many editors and subscribers. A compaction waiting for the writer
+    /// still takes it between two groups.
     async fn write_groups(self: Arc<Self>, settings: GroupCommit) {
         loop {
             // Compaction takes the writer between groups.

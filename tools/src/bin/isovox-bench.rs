@@ -1,4 +1,4 @@
-//! `isovox-bench`: the benchmarks behind the README's figures (`docs/cli.md`).
+//! `isovox-bench`: the benchmarks behind the figures in docs/benchmarks.md (`docs/cli.md`).
 
 use clap::Parser;
 use isovox_tools::bench::{run, BenchCommand};
