@@ -1,0 +1,48 @@
+//! The server crate's integration tests, in one binary: each module is one concern, and the
+//! helpers they share are modules of their own. One binary links the server once, where one
+//! binary per file linked it thirty times over.
+//!
+//! Shared helpers:
+//! - [`common`]: deterministic volumes and an independent downsampling to compare against;
+//! - [`server_process`]: a real `isovox serve` process on an ephemeral port;
+//! - [`raw_http`]: requests written byte by byte, for what a client library would hide;
+//! - [`tls`]: self-signed certificates and a TLS client;
+//! - [`random_terms`]: random ICVG terms for the property tests.
+#![allow(clippy::unwrap_used)] // tests fail loudly on purpose
+
+mod common;
+mod random_terms;
+mod raw_http;
+mod server_process;
+mod tls;
+
+mod cli;
+mod connection_limits;
+mod dedup_and_versions;
+mod durability;
+mod edit_cost;
+mod formats_clients;
+mod formats_views;
+mod hostile;
+mod icvg_edits;
+mod icvg_golden;
+mod icvg_laws;
+mod icvg_morphology;
+mod live_volume;
+mod memory_bound;
+mod mesh_closed;
+mod mesh_encodings;
+mod mesh_kernel;
+mod mesh_strips;
+mod object_store;
+mod openapi_fuzz;
+mod overload;
+mod recovery;
+mod roundtrip;
+mod shared_editing;
+mod shutdown;
+mod stitched;
+mod transitions;
+mod vod1;
+mod voxelize;
+mod web;

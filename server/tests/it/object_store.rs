@@ -1,0 +1,965 @@
+//! Volumes in an object store, tested as the deployment runs: a real S3 server on loopback
+//! (moto's, served by `scripts/s3-server.py`; `.ci/run` installs it), `isovox serve --store`
+//! replicas as processes, edits over HTTP, kill -9.
+//!
+//! - replicas answer byte for byte like the local-file server on the same volume, before and
+//!   after the same edit;
+//! - two replicas editing one volume concurrently lose no acknowledged edit and end at the same
+//!   head, with the same history; a replica started later serves that head;
+//! - a writer killed between writing its segment and advancing the head leaves the volume at its
+//!   last acknowledged version, and `isovox compact` collects the orphan;
+//! - a stalled writer cannot overwrite a newer head: it re-applies its edit on top, or, asked
+//!   with `If-Match`, is refused with 409.
+//!
+//! The S3 server's Python: `ISOVOX_S3_PYTHON`, else `target/s3-venv/bin/python` (what
+//! `.ci/run` creates).
+
+use crate::server_process;
+use reqwest::blocking::Client;
+use serde_json::{json, Value};
+
+use server_process::ServerProcess;
+use std::io::{BufRead, BufReader};
+use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+const TOKEN: &str = "object-store-7c1e94a0";
+const KEY_ID: &str = "isovox";
+const SECRET: &str = "isovox-secret";
+const VOLUME: &str = "w";
+/// The generated world: 96 x 64 x 96 voxels, bricks of 16 (levels 6x4x6, 3x2x3, 2x1x2, 1x1x1).
+const DIMS: [u32; 3] = [96, 64, 96];
+const BRICK: u32 = 16;
+
+fn workspace() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// The S3 server, killed when dropped.
+struct S3 {
+    child: Child,
+    endpoint: String,
+    bucket: String,
+}
+
+impl S3 {
+    fn start(bucket: &str) -> S3 {
+        let python = std::env::var("ISOVOX_S3_PYTHON")
+            .map(PathBuf::from)
+            .unwrap_or_else(|_| workspace().join("target/s3-venv/bin/python"));
+        assert!(
+            python.exists(),
+            "no Python with moto at {} (run .ci/run, or set ISOVOX_S3_PYTHON)",
+            python.display()
+        );
+        let port = free_port();
+        let mut child = Command::new(&python)
+            .arg(workspace().join("scripts/s3-server.py"))
+            .arg(port.to_string())
+            .arg(bucket)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("the S3 server starts");
+        let stdout = child.stdout.take().unwrap();
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines() {
+                let Ok(line) = line else { break };
+                if line.trim() == "ready" {
+                    let _ = tx.send(());
+                }
+            }
+        });
+        rx.recv_timeout(Duration::from_secs(60))
+            .expect("the S3 server says ready");
+        S3 {
+            child,
+            endpoint: format!("http://127.0.0.1:{port}"),
+            bucket: bucket.to_string(),
+        }
+    }
+
+    fn url(&self) -> String {
+        format!("s3://{}/vols", self.bucket)
+    }
+
+    fn env(&self, cmd: &mut Command) {
+        cmd.env("AWS_ENDPOINT", &self.endpoint)
+            .env("AWS_ACCESS_KEY_ID", KEY_ID)
+            .env("AWS_SECRET_ACCESS_KEY", SECRET)
+            .env("AWS_REGION", "us-east-1")
+            .env("AWS_ALLOW_HTTP", "true");
+    }
+
+    /// The volume's objects, read in this process.
+    fn volume_bucket(&self) -> isovox_server::store::remote::Bucket {
+        // SAFETY of the environment: every test sets the same credentials.
+        std::env::set_var("AWS_ACCESS_KEY_ID", KEY_ID);
+        std::env::set_var("AWS_SECRET_ACCESS_KEY", SECRET);
+        std::env::set_var("AWS_REGION", "us-east-1");
+        isovox_server::store::remote::Bucket::from_url_at(&self.url(), Some(&self.endpoint))
+            .unwrap()
+            .child(VOLUME)
+    }
+
+    fn segments(&self) -> Vec<String> {
+        self.volume_bucket()
+            .list("seg")
+            .unwrap()
+            .into_iter()
+            .map(|o| o.key)
+            .collect()
+    }
+
+    fn head_version(&self) -> u64 {
+        isovox_server::store::remote::read_head(&self.volume_bucket())
+            .unwrap()
+            .0
+            .version
+    }
+
+    fn isovox(&self, args: &[&str]) -> String {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_isovox"));
+        cmd.args(args);
+        self.env(&mut cmd);
+        let out = cmd.output().unwrap();
+        assert!(
+            out.status.success(),
+            "isovox {args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    }
+}
+
+impl Drop for S3 {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// An `isovox serve` process (a replica on the store, or the local-file server), killed with
+/// SIGKILL when dropped.
+struct Server {
+    process: ServerProcess,
+    base: String,
+    _dir: tempfile::TempDir,
+}
+
+impl Server {
+    fn replica(s3: &S3, pause_before_head_ms: Option<u64>) -> Server {
+        let store = s3.url();
+        let pause = pause_before_head_ms.map(|ms| ms.to_string());
+        let mut envs = vec![
+            ("AWS_ENDPOINT", s3.endpoint.as_str()),
+            ("AWS_ACCESS_KEY_ID", KEY_ID),
+            ("AWS_SECRET_ACCESS_KEY", SECRET),
+            ("AWS_REGION", "us-east-1"),
+            ("AWS_ALLOW_HTTP", "true"),
+        ];
+        if let Some(ms) = &pause {
+            envs.push(("ISOVOX_STORE_PAUSE_BEFORE_HEAD_MS", ms));
+        }
+        Server::start(&["--store", &store, "--follow-ms", "50"], &envs)
+    }
+
+    fn local(data: &Path) -> Server {
+        Server::start(&["--data", data.to_str().unwrap()], &[])
+    }
+
+    fn start(args: &[&str], envs: &[(&str, &str)]) -> Server {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("tokens"), format!("t {TOKEN} write\n")).unwrap();
+        let tokens = dir.path().join("tokens");
+        let cache = dir.path().join("cache");
+        let mut all: Vec<&std::ffi::OsStr> = args.iter().map(std::ffi::OsStr::new).collect();
+        all.extend([
+            std::ffi::OsStr::new("--token-file"),
+            tokens.as_os_str(),
+            std::ffi::OsStr::new("--cache-dir"),
+            cache.as_os_str(),
+        ]);
+        let mut envs = envs.to_vec();
+        envs.push(("ISOVOX_EDIT_RATE", "100000"));
+        let process = ServerProcess::start(&all, &envs);
+        Server {
+            base: process.url(&format!("/v1/volumes/{VOLUME}")),
+            process,
+            _dir: dir,
+        }
+    }
+
+    fn version(&self, http: &Client) -> u64 {
+        let v: Value = http.get(&self.base).send().unwrap().json().unwrap();
+        v["version"].as_u64().unwrap()
+    }
+
+    /// Waits until the served head is `version` (replicas follow every 50 ms).
+    fn wait_for(&self, http: &Client, version: u64) {
+        let deadline = Instant::now() + Duration::from_secs(30);
+        while self.version(http) != version {
+            assert!(
+                Instant::now() < deadline,
+                "{} stays at version {}, {version} expected",
+                self.base,
+                self.version(http)
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    fn get(&self, http: &Client, path: &str, encoding: Option<&str>) -> (u16, Vec<u8>, String) {
+        let mut req = http.get(format!("{}/{path}", self.base));
+        if let Some(e) = encoding {
+            req = req.header("Accept-Encoding", e);
+        }
+        let resp = req.send().unwrap();
+        let status = resp.status().as_u16();
+        let etag = resp
+            .headers()
+            .get("etag")
+            .map(|v| v.to_str().unwrap().to_string())
+            .unwrap_or_default();
+        (status, resp.bytes().unwrap().to_vec(), etag)
+    }
+
+    /// Posts an edit; the status and the answer.
+    fn edit(&self, http: &Client, edit: &Value, if_match: Option<u64>) -> (u16, Value) {
+        let mut req = http
+            .post(format!("{}/edits", self.base))
+            .bearer_auth(TOKEN)
+            .json(edit);
+        if let Some(v) = if_match {
+            req = req.header("If-Match", v.to_string());
+        }
+        let resp = req.send().unwrap();
+        let status = resp.status().as_u16();
+        (status, resp.json().unwrap_or(Value::Null))
+    }
+
+    fn kill(mut self) {
+        self.process.stop();
+    }
+}
+
+fn client() -> Client {
+    isovox_server::client_tls::install_provider();
+    Client::builder()
+        .timeout(Duration::from_secs(60))
+        .build()
+        .unwrap()
+}
+
+/// Generates the world into `dir/w.vod` and imports it into the store.
+fn world(s3: &S3, dir: &Path) -> PathBuf {
+    let file = dir.join(format!("{VOLUME}.vod"));
+    let dims = format!("{},{},{}", DIMS[0], DIMS[1], DIMS[2]);
+    s3.isovox(&[
+        "generate",
+        "world",
+        "-o",
+        file.to_str().unwrap(),
+        "--dims",
+        &dims,
+        "--brick",
+        &BRICK.to_string(),
+    ]);
+    let out = s3.isovox(&[
+        "import",
+        file.to_str().unwrap(),
+        "-o",
+        &format!("{}/{VOLUME}", s3.url()),
+    ]);
+    assert!(out.contains("version 1"), "{out}");
+    file
+}
+
+/// Every brick of every level, as `level/x/y/z`.
+fn all_bricks() -> Vec<String> {
+    let mut out = Vec::new();
+    let mut grid = DIMS.map(|d| d.div_ceil(BRICK));
+    for level in 0.. {
+        for z in 0..grid[2] {
+            for y in 0..grid[1] {
+                for x in 0..grid[0] {
+                    out.push(format!("{level}/{x}/{y}/{z}"));
+                }
+            }
+        }
+        if grid == [1, 1, 1] {
+            break;
+        }
+        grid = grid.map(|g| g.div_ceil(2));
+    }
+    out
+}
+
+/// A union with a cuboid at `origin` (size 8: H on its inner 4^3 voxels).
+fn carve(origin: [u32; 3]) -> Value {
+    json!({"op": "union", "term": {"cuboid": {"origin": origin, "size": [8, 8, 8]}}})
+}
+
+/// The level-0 voxel at `p` as a replica serves it (u8 world).
+fn voxel(server: &Server, http: &Client, p: [u32; 3]) -> u8 {
+    let b = p.map(|c| c / BRICK);
+    let (status, body, _) = server.get(http, &format!("bricks/0/{}/{}/{}", b[0], b[1], b[2]), None);
+    assert_eq!(status, 200);
+    let l = p.map(|c| (c % BRICK) as usize);
+    let b = BRICK as usize;
+    body[l[0] + b * (l[1] + b * l[2])]
+}
+
+/// Asserts that `a` and `b` answer every brick (raw, and zstd for the level-0 ones), every
+/// level grid and the metadata with the same bytes.
+fn assert_same_answers(http: &Client, a: &Server, b: &Server) {
+    for key in all_bricks() {
+        let (sa, ba, ea) = a.get(http, &format!("bricks/{key}"), None);
+        let (sb, bb, eb) = b.get(http, &format!("bricks/{key}"), None);
+        assert_eq!((sa, &ea), (sb, &eb), "brick {key}: status and ETag");
+        assert!(
+            ba == bb,
+            "brick {key}: raw bytes differ ({} vs {})",
+            a.base,
+            b.base
+        );
+        if key.starts_with("0/") {
+            let (_, za, _) = a.get(http, &format!("bricks/{key}"), Some("zstd"));
+            let (_, zb, _) = b.get(http, &format!("bricks/{key}"), Some("zstd"));
+            assert!(za == zb, "brick {key}: stored zstd bytes differ");
+            let hash = ea.trim_matches('"');
+            let (sh, bh, _) = b.get(http, &format!("blobs/{hash}"), None);
+            assert_eq!(sh, 200, "blob {hash}");
+            assert!(bh == ba, "blob {hash}: bytes differ from brick {key}");
+        }
+    }
+    for level in 0..4 {
+        let (_, ga, _) = a.get(http, &format!("levels/{level}"), None);
+        let (_, gb, _) = b.get(http, &format!("levels/{level}"), None);
+        assert!(ga == gb, "level {level} grid differs");
+    }
+    let ma: Value = http.get(&a.base).send().unwrap().json().unwrap();
+    let mb: Value = http.get(&b.base).send().unwrap().json().unwrap();
+    assert_eq!(ma, mb, "metadata");
+}
+
+#[test]
+fn replicas_answer_byte_for_byte_like_the_local_file_server() {
+    let s3 = S3::start("isovox-equal");
+    let data = tempfile::tempdir().unwrap();
+    world(&s3, data.path());
+    let http = client();
+    let local = Server::local(data.path());
+    let r1 = Server::replica(&s3, None);
+    let r2 = Server::replica(&s3, None);
+    assert_same_answers(&http, &local, &r1);
+    assert_same_answers(&http, &local, &r2);
+
+    // The same edit on the local server and on one replica: the other follows.
+    let edit = json!({"op": "difference", "term": {"ellipsoid": {"center": [40, 40, 50], "radii": [18, 12, 14]}}});
+    let (sl, al) = local.edit(&http, &edit, None);
+    let (s1, a1) = r1.edit(&http, &edit, None);
+    assert_eq!((sl, s1), (200, 200), "{al} {a1}");
+    assert_eq!(al["version"], 2);
+    assert_eq!(a1["version"], 2);
+    assert_eq!(al["changed"], a1["changed"]);
+    r2.wait_for(&http, 2);
+    assert_same_answers(&http, &local, &r1);
+    assert_same_answers(&http, &local, &r2);
+    let (_, cl, _) = local.get(&http, "changes?since=0", None);
+    let (_, c2, _) = r2.get(&http, "changes?since=0", None);
+    let (cl, c2): (Value, Value) = (
+        serde_json::from_slice(&cl).unwrap(),
+        serde_json::from_slice(&c2).unwrap(),
+    );
+    assert_eq!(cl["changes"][0]["changed"], c2["changes"][0]["changed"]);
+}
+
+#[test]
+fn two_replicas_editing_concurrently_lose_no_acknowledged_edit_and_converge() {
+    let s3 = S3::start("isovox-concurrent");
+    let data = tempfile::tempdir().unwrap();
+    world(&s3, data.path());
+    let r1 = Server::replica(&s3, None);
+    let r2 = Server::replica(&s3, None);
+    const PER_EDITOR: u32 = 6;
+    // Cuboids above the terrain (its top is below y = 48 there): each union changes voxels.
+    let origin = |editor: u32, i: u32| [2 + 10 * i, 50, 2 + 22 * editor];
+    let centre = |editor: u32, i: u32| origin(editor, i).map(|c| c + 4);
+    {
+        let http = client();
+        for editor in 0..4 {
+            for i in 0..PER_EDITOR {
+                assert_ne!(voxel(&r1, &http, centre(editor, i)), 255);
+            }
+        }
+    }
+    // Four editors, two per replica, each carving its own cuboids (none overlaps another).
+    let acks: Vec<(u32, u32, Value)> = std::thread::scope(|scope| {
+        let handles: Vec<_> = (0..4u32)
+            .map(|editor| {
+                let server = if editor % 2 == 0 { &r1 } else { &r2 };
+                scope.spawn(move || {
+                    let http = client();
+                    (0..PER_EDITOR)
+                        .map(|i| {
+                            let (status, answer) =
+                                server.edit(&http, &carve(origin(editor, i)), None);
+                            assert_eq!(status, 200, "editor {editor} edit {i}: {answer}");
+                            (editor, i, answer)
+                        })
+                        .collect::<Vec<_>>()
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .flat_map(|h| h.join().unwrap())
+            .collect()
+    });
+    let http = client();
+    let total = acks.len() as u64;
+    let mut versions: Vec<u64> = acks
+        .iter()
+        .map(|(_, _, a)| a["version"].as_u64().unwrap())
+        .collect();
+    versions.sort_unstable();
+    versions.dedup();
+    assert_eq!(
+        versions.len() as u64,
+        total,
+        "two edits acknowledged as one version"
+    );
+    // Every acknowledged edit is a version of the one history: 1 (the import) plus each edit.
+    assert_eq!(versions, (2..=total + 1).collect::<Vec<_>>());
+    assert_eq!(s3.head_version(), total + 1);
+    r1.wait_for(&http, total + 1);
+    r2.wait_for(&http, total + 1);
+
+    // The same history on both, each version as its editor was told.
+    let (_, c1, _) = r1.get(&http, "changes?since=1", None);
+    let (_, c2, _) = r2.get(&http, "changes?since=1", None);
+    assert!(c1 == c2, "the replicas list different histories");
+    let c1: Value = serde_json::from_slice(&c1).unwrap();
+    for (editor, i, ack) in &acks {
+        let v = ack["version"].as_u64().unwrap();
+        let listed = &c1["changes"][(v - 2) as usize];
+        assert_eq!(listed["version"], v);
+        assert_eq!(
+            listed["changed"], ack["changed"],
+            "editor {editor} edit {i}"
+        );
+    }
+    // Every cuboid is there (H at its centre), on both replicas.
+    for (editor, i, _) in &acks {
+        let c = centre(*editor, *i);
+        assert_eq!(voxel(&r1, &http, c), 255, "editor {editor} edit {i} on r1");
+        assert_eq!(voxel(&r2, &http, c), 255, "editor {editor} edit {i} on r2");
+    }
+    assert_same_answers(&http, &r1, &r2);
+    // A replica started now serves the current head.
+    let late = Server::replica(&s3, None);
+    assert_eq!(late.version(&http), total + 1);
+    assert_same_answers(&http, &r1, &late);
+}
+
+#[test]
+fn a_writer_killed_before_the_head_leaves_the_last_acknowledged_version() {
+    let s3 = S3::start("isovox-killed");
+    let data = tempfile::tempdir().unwrap();
+    world(&s3, data.path());
+    let http = client();
+    let r1 = Server::replica(&s3, None);
+    let (status, ack) = r1.edit(&http, &carve([10, 10, 10]), None);
+    assert_eq!((status, ack["version"].as_u64()), (200, Some(2)));
+    let before = s3.segments();
+    assert_eq!(before.len(), 2, "{before:?}");
+
+    // A writer that stops between its segment and the head, killed there.
+    let doomed = Server::replica(&s3, Some(60_000));
+    let base = doomed.base.clone();
+    std::thread::spawn(move || {
+        let _ = http_post_edit(&base, &carve([40, 50, 40]));
+    });
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while s3.segments().len() == before.len() {
+        assert!(Instant::now() < deadline, "the writer wrote no segment");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    doomed.kill();
+    assert_eq!(s3.head_version(), 2, "the head moved without its writer");
+    assert_eq!(
+        s3.segments().len(),
+        3,
+        "the orphaned segment is in the store"
+    );
+    std::thread::sleep(Duration::from_millis(200));
+    assert_eq!(r1.version(&http), 2);
+    let before = voxel_in_file(&s3, data.path(), [44, 54, 44]);
+    assert_ne!(before, 255, "the lost edit would have changed this voxel");
+    assert_eq!(voxel(&r1, &http, [44, 54, 44]), before);
+    let late = Server::replica(&s3, None);
+    assert_eq!(late.version(&http), 2);
+    assert_same_answers(&http, &r1, &late);
+
+    // Compaction keeps version 2 as it is and collects the orphan (and the replaced segments).
+    let out = s3.isovox(&[
+        "compact",
+        &format!("{}/{VOLUME}", s3.url()),
+        "--grace-secs",
+        "0",
+    ]);
+    assert!(out.contains("version 2 kept"), "{out}");
+    assert_eq!(s3.segments().len(), 1, "{:?}", s3.segments());
+    assert_eq!(s3.head_version(), 2);
+    let fresh = Server::replica(&s3, None);
+    assert_same_answers(&http, &late, &fresh);
+    // r1 follows the compacted head: same version, same answers.
+    std::thread::sleep(Duration::from_millis(300));
+    assert_same_answers(&http, &r1, &fresh);
+}
+
+/// The level-0 voxel at `p` of the imported world (before any edit), read from its file.
+fn voxel_in_file(s3: &S3, dir: &Path, p: [u32; 3]) -> u8 {
+    let out = dir.join("b.raw");
+    let (bx, by, bz) = (
+        (p[0] / BRICK).to_string(),
+        (p[1] / BRICK).to_string(),
+        (p[2] / BRICK).to_string(),
+    );
+    s3.isovox(&[
+        "get",
+        dir.join(format!("{VOLUME}.vod")).to_str().unwrap(),
+        "0",
+        &bx,
+        &by,
+        &bz,
+        "-o",
+        out.to_str().unwrap(),
+    ]);
+    let bytes = std::fs::read(out).unwrap();
+    let b = BRICK as usize;
+    let l = p.map(|c| (c % BRICK) as usize);
+    bytes[l[0] + b * (l[1] + b * l[2])]
+}
+
+fn http_post_edit(base: &str, edit: &Value) -> Option<u16> {
+    let resp = client()
+        .post(format!("{base}/edits"))
+        .bearer_auth(TOKEN)
+        .json(edit)
+        .send()
+        .ok()?;
+    Some(resp.status().as_u16())
+}
+
+#[test]
+fn a_stalled_writer_cannot_overwrite_a_newer_head() {
+    let s3 = S3::start("isovox-stalled");
+    let data = tempfile::tempdir().unwrap();
+    world(&s3, data.path());
+    let http = client();
+    let r1 = Server::replica(&s3, None);
+    let slow = Server::replica(&s3, Some(1500));
+    // Both edits go above the terrain, where they change voxels.
+    for p in [[14, 54, 14], [44, 54, 44], [74, 54, 74]] {
+        assert_ne!(voxel(&r1, &http, p), 255);
+    }
+
+    // The slow writer starts on version 1 and stalls before the head; r1 commits meanwhile.
+    let slow_base = slow.base.clone();
+    let stalled = std::thread::spawn(move || {
+        let http = client();
+        let resp = http
+            .post(format!("{slow_base}/edits"))
+            .bearer_auth(TOKEN)
+            .json(&carve([10, 50, 10]))
+            .send()
+            .unwrap();
+        (resp.status().as_u16(), resp.json::<Value>().unwrap())
+    });
+    let segments = s3.segments().len();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while s3.segments().len() == segments {
+        assert!(
+            Instant::now() < deadline,
+            "the slow writer wrote no segment"
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let (status, fast) = r1.edit(&http, &carve([40, 50, 40]), None);
+    assert_eq!((status, fast["version"].as_u64()), (200, Some(2)));
+    // Its head PUT is refused; it re-applies its edit on version 2.
+    let (status, late) = stalled.join().unwrap();
+    assert_eq!(status, 200, "{late}");
+    assert_eq!(late["version"], 3);
+    assert_eq!(late["previous"], 2);
+    r1.wait_for(&http, 3);
+    assert_eq!(
+        voxel(&r1, &http, [14, 14, 14]),
+        255,
+        "the stalled writer's edit"
+    );
+    assert_eq!(
+        voxel(&r1, &http, [44, 14, 44]),
+        255,
+        "the newer edit survived"
+    );
+
+    // Asked with If-Match, a stalled writer whose version is overtaken is refused (409).
+    let untouched = voxel(&r1, &http, [74, 54, 74]);
+    assert_ne!(
+        untouched, 255,
+        "the world is not full where the refused edit would go"
+    );
+    let slow_base = slow.base.clone();
+    let conditional = std::thread::spawn(move || {
+        let resp = client()
+            .post(format!("{slow_base}/edits"))
+            .bearer_auth(TOKEN)
+            .header("If-Match", "3")
+            .json(&carve([70, 50, 70]))
+            .send()
+            .unwrap();
+        (resp.status().as_u16(), resp.json::<Value>().unwrap())
+    });
+    let segments = s3.segments().len();
+    while s3.segments().len() == segments {
+        assert!(Instant::now() < deadline + Duration::from_secs(30));
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let (status, _) = r1.edit(&http, &carve([40, 40, 40]), None);
+    assert_eq!(status, 200);
+    let (status, refused) = conditional.join().unwrap();
+    assert_eq!(status, 409, "{refused}");
+    assert_eq!(refused["version"], 4);
+    assert_eq!(s3.head_version(), 4);
+    r1.wait_for(&http, 4);
+    assert_eq!(
+        voxel(&r1, &http, [74, 54, 74]),
+        untouched,
+        "the refused edit is not there"
+    );
+}
+
+/// nginx (Debian's) as a process, with a main configuration written for the test around
+/// `docker/nginx/isovox-locations.conf`, included as it is. Stopped when dropped.
+struct Nginx {
+    child: Child,
+    base: String,
+    _dir: tempfile::TempDir,
+}
+
+impl Nginx {
+    fn start(upstream: &str) -> Nginx {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path().display();
+        let port = free_port();
+        let rules = workspace().join("docker/nginx/isovox-locations.conf");
+        let conf = format!(
+            "daemon off;\nworker_processes 1;\npid {d}/nginx.pid;\nerror_log {d}/error.log;\n\
+             events {{ worker_connections 512; }}\nhttp {{\n  access_log off;\n\
+             client_body_temp_path {d}/body; proxy_temp_path {d}/proxy;\n\
+             fastcgi_temp_path {d}/fcgi; uwsgi_temp_path {d}/uwsgi; scgi_temp_path {d}/scgi;\n\
+             proxy_cache_path {d}/cache levels=1:2 keys_zone=isovox:8m max_size=1g inactive=30d use_temp_path=off;\n\
+             upstream isovox {{ server {upstream}; keepalive 16; }}\n\
+             server {{ listen 127.0.0.1:{port}; include {}; }}\n}}\n",
+            rules.display()
+        );
+        std::fs::write(dir.path().join("nginx.conf"), conf).unwrap();
+        let nginx = ["/usr/sbin/nginx", "/usr/bin/nginx"]
+            .into_iter()
+            .find(|p| Path::new(p).exists())
+            .expect("nginx is installed (.ci/run installs Debian's)");
+        let child = Command::new(nginx)
+            .arg("-c")
+            .arg(dir.path().join("nginx.conf"))
+            .arg("-p")
+            .arg(dir.path())
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+            assert!(Instant::now() < deadline, "nginx does not listen");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        Nginx {
+            child,
+            base: format!("http://127.0.0.1:{port}/v1/volumes/{VOLUME}"),
+            _dir: dir,
+        }
+    }
+}
+
+impl Drop for Nginx {
+    fn drop(&mut self) {
+        // TERM first: nginx's master stops its worker and cache manager before it exits.
+        // Killed outright, it would leave them running (holding the port) after the test.
+        let _ = Command::new("kill")
+            .args(["-s", "TERM", &self.child.id().to_string()])
+            .status();
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while Instant::now() < deadline {
+            if matches!(self.child.try_wait(), Ok(Some(_))) {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// The cache deployment: the world in the S3 server, one replica on it, nginx in front.
+/// (Fields drop in order: nginx, the replica, then the store.)
+struct Cached {
+    nginx: Nginx,
+    replica: Server,
+    _data: tempfile::TempDir,
+    _s3: S3,
+}
+
+impl Cached {
+    fn start(bucket: &str) -> Cached {
+        let s3 = S3::start(bucket);
+        let data = tempfile::tempdir().unwrap();
+        world(&s3, data.path());
+        let replica = Server::replica(&s3, None);
+        let upstream = &replica.base["http://".len()..replica.base.find("/v1/").unwrap()];
+        Cached {
+            nginx: Nginx::start(upstream),
+            replica,
+            _data: data,
+            _s3: s3,
+        }
+    }
+}
+
+/// Requests the replica answered on `route` with `status` (every status when `None`), from its
+/// Prometheus counter.
+fn answered(http: &Client, replica: &Server, route: &str, status: Option<u16>) -> u64 {
+    let root = &replica.base[..replica.base.find("/v1/").unwrap()];
+    let text = http
+        .get(format!("{root}/metrics"))
+        .send()
+        .unwrap()
+        .text()
+        .unwrap();
+    text.lines()
+        .filter(|l| {
+            l.starts_with("isovox_requests_total{")
+                && l.contains(&format!("route=\"{route}\""))
+                && status.is_none_or(|s| l.contains(&format!("status=\"{s}\"")))
+        })
+        .filter_map(|l| l.rsplit(' ').next()?.parse::<u64>().ok())
+        .sum()
+}
+
+#[test]
+fn nginx_in_front_of_a_replica_caches_blobs_for_good_and_revalidates_bricks() {
+    let Cached { nginx, replica, .. } = &Cached::start("isovox-nginx");
+    let http = client();
+    let blobs = "/v1/volumes/{name}/blobs/{hash}";
+
+    // A stampede of 16 concurrent misses for one blob makes one request to the replica.
+    let (_, direct, etag) = replica.get(&http, "bricks/0/2/2/2", None);
+    let hash = etag.trim_matches('"').to_string();
+    let before = answered(&http, replica, blobs, None);
+    let bodies = stampede(nginx, &format!("blobs/{hash}"), 16);
+    assert!(
+        bodies.iter().all(|b| *b == direct),
+        "a cached blob differs from the replica's"
+    );
+    assert_eq!(
+        answered(&http, replica, blobs, None) - before,
+        1,
+        "proxy_cache_lock"
+    );
+    let resp = http
+        .get(format!("{}/blobs/{hash}", nginx.base))
+        .send()
+        .unwrap();
+    assert_eq!(resp.headers()["x-cache"], "HIT");
+    assert!(resp.headers()["cache-control"]
+        .to_str()
+        .unwrap()
+        .contains("immutable"));
+
+    // Bricks by position: served through the cache, then revalidated by ETag after an edit.
+    let bricks = "/v1/volumes/{name}/bricks/{level}/{x}/{y}/{z}";
+    let through = http
+        .get(format!("{}/bricks/0/4/3/4", nginx.base))
+        .send()
+        .unwrap()
+        .bytes()
+        .unwrap();
+    let (_, at_replica, _) = replica.get(&http, "bricks/0/4/3/4", None);
+    assert!(through.as_ref() == at_replica.as_slice());
+    let (status, _) = replica.edit(&http, &carve([66, 50, 66]), None);
+    assert_eq!(status, 200);
+    std::thread::sleep(Duration::from_millis(2100));
+    let n = answered(&http, replica, bricks, None);
+    let resp = http
+        .get(format!("{}/bricks/0/4/3/4", nginx.base))
+        .send()
+        .unwrap();
+    let status = resp.headers()["x-cache"].to_str().unwrap().to_string();
+    let fresh = resp.bytes().unwrap();
+    let (_, edited, _) = replica.get(&http, "bricks/0/4/3/4", None);
+    assert!(
+        fresh.as_ref() == edited.as_slice(),
+        "nginx served a stale brick ({status})"
+    );
+    assert!(
+        answered(&http, replica, bricks, None) > n,
+        "nginx did not ask the replica again"
+    );
+    // An unchanged brick revalidates with a 304 from the replica: nginx says REVALIDATED.
+    let _ = http
+        .get(format!("{}/bricks/0/0/0/0", nginx.base))
+        .send()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(2100));
+    let resp = http
+        .get(format!("{}/bricks/0/0/0/0", nginx.base))
+        .send()
+        .unwrap();
+    assert_eq!(resp.headers()["x-cache"], "REVALIDATED");
+
+    // The change feed passes through unbuffered: an edit's event arrives while the stream is open.
+    let feed = client()
+        .get(format!("{}/events", nginx.base))
+        .send()
+        .unwrap();
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(feed).lines() {
+            let Ok(line) = line else { break };
+            if line.contains("\"version\":3") {
+                let _ = tx.send(line);
+                break;
+            }
+        }
+    });
+    std::thread::sleep(Duration::from_millis(200));
+    let (status, _) = replica.edit(&http, &carve([10, 50, 70]), None);
+    assert_eq!(status, 200);
+    let event = rx
+        .recv_timeout(Duration::from_secs(10))
+        .expect("the commit event through nginx");
+    assert!(event.contains("changed"), "{event}");
+}
+
+/// `path` (under the volume) asked by `n` clients at once through `nginx`: their bodies.
+fn stampede(nginx: &Nginx, path: &str, n: usize) -> Vec<Vec<u8>> {
+    std::thread::scope(|scope| {
+        let handles: Vec<_> = (0..n)
+            .map(|_| {
+                let url = format!("{}/{path}", nginx.base);
+                scope.spawn(move || {
+                    let resp = client().get(url).send().unwrap();
+                    assert_eq!(resp.status(), 200);
+                    resp.bytes().unwrap().to_vec()
+                })
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap()).collect()
+    })
+}
+
+/// Level grids and mesh tiles are CPU work on a replica (a bounded queue, 503 beyond it) that
+/// every viewer asks first: through nginx a stampede for one answer makes it once on the
+/// replica, and after an edit nginx asks again with the ETag and serves the new answer.
+#[test]
+fn nginx_in_front_of_a_replica_makes_each_level_and_tile_once_and_revalidates_them() {
+    let Cached { nginx, replica, .. } = &Cached::start("isovox-nginx-levels");
+    let http = client();
+    let levels = "/v1/volumes/{name}/levels/{level}";
+    let meshes = "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}";
+
+    // The replica names levels and tiles with a strong ETag and answers If-None-Match with 304;
+    // the newest version's answers are no-cache, a pinned version's immutable.
+    for path in ["levels/1", "levels/0?format=voxels", "meshes/0/2/2/2"] {
+        let (status, _, etag) = replica.get(&http, path, None);
+        assert_eq!(status, 200, "{path}");
+        assert!(
+            etag.len() > 2 && etag.starts_with('"') && etag.ends_with('"'),
+            "{path}: a strong ETag, not {etag:?}"
+        );
+        let again = http
+            .get(format!("{}/{path}", replica.base))
+            .header("If-None-Match", &etag)
+            .send()
+            .unwrap();
+        assert_eq!(again.status(), 304, "{path}");
+        assert_eq!(again.headers()["cache-control"], "no-cache", "{path}");
+        let sep = if path.contains('?') { '&' } else { '?' };
+        let pinned = http
+            .get(format!("{}/{path}{sep}version=1", replica.base))
+            .send()
+            .unwrap();
+        assert_eq!(pinned.headers()["etag"].to_str().unwrap(), etag, "{path}");
+        assert_eq!(
+            pinned.headers()["cache-control"],
+            "public, max-age=31536000, immutable",
+            "{path}"
+        );
+    }
+
+    // A stampede of 16 concurrent misses for one answer makes it once on the replica (the
+    // 200s it answered; proxy_cache_lock), and every viewer gets the replica's bytes.
+    for (route, path) in [
+        (levels, "levels/1"),
+        (levels, "levels/0?region=0,0,0,6,4,6&version=1"),
+        (meshes, "meshes/0/2/2/2?version=1"),
+    ] {
+        let (_, direct, _) = replica.get(&http, path, None);
+        let before = answered(&http, replica, route, Some(200));
+        let bodies = stampede(nginx, path, 16);
+        assert!(
+            bodies.iter().all(|b| *b == direct),
+            "{path}: a cached answer differs from the replica's"
+        );
+        assert_eq!(
+            answered(&http, replica, route, Some(200)) - before,
+            1,
+            "{path}: answers made on the replica for 16 concurrent requests through nginx"
+        );
+    }
+
+    // After an edit nginx asks the replica again (the second it keeps an answer has passed)
+    // with the old ETag, and serves the new grid, not the one it cached above.
+    let (_, old, _) = replica.get(&http, "levels/1", None);
+    let (status, _) = replica.edit(&http, &carve([66, 50, 66]), None);
+    assert_eq!(status, 200);
+    std::thread::sleep(Duration::from_millis(2100));
+    let resp = http.get(format!("{}/levels/1", nginx.base)).send().unwrap();
+    let cache = resp.headers()["x-cache"].to_str().unwrap().to_string();
+    let fresh = resp.bytes().unwrap();
+    let (_, edited, _) = replica.get(&http, "levels/1", None);
+    assert_ne!(old, edited, "the edit changed level 1's grid");
+    assert!(
+        fresh.as_ref() == edited.as_slice(),
+        "nginx served a stale level ({cache})"
+    );
+    // Unchanged since: nginx revalidates with a 304 from the replica.
+    std::thread::sleep(Duration::from_millis(2100));
+    let resp = http.get(format!("{}/levels/1", nginx.base)).send().unwrap();
+    assert_eq!(resp.headers()["x-cache"], "REVALIDATED");
+    assert!(resp.bytes().unwrap().as_ref() == edited.as_slice());
+}
