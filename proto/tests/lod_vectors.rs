@@ -1,6 +1,9 @@
-//! Test vectors of the tile selection (`proto::lod`) and of stitching mesh tiles
-//! (`proto::mesh`) for the web viewer's TypeScript ports (`web/src/lod.ts`, `web/src/mesh.ts`),
-//! which its unit tests check against `web/test-vectors/lod.json` and `mesh.json`.
+//! Test vectors of the tile selection (`proto::lod`), of stitching mesh tiles (`proto::mesh`)
+//! and of what a mesh tile and its strips read (`proto::tile`) for the web viewer's TypeScript
+//! ports (`web/src/lod.ts`, `web/src/mesh.ts`, `web/src/tile.ts`), which its unit tests check
+//! against `web/test-vectors/lod.json`, `mesh.json` and `tile.json`. (The bound on lattice
+//! values `tile.ts` also ports lives in the server crate: its vectors, `value_range.json`, are
+//! written by a unit test in `server/src/mesh/lattice.rs`.)
 //!
 //! These tests compute the vectors and fail when the committed files differ, so a change to the
 //! selection or the encoding cannot land without the vectors (and then the TypeScript ports)
@@ -9,7 +12,12 @@
 
 use isovox_proto::lod::{adaptive_tiles, balanced_tiles, face_masks, tile_distance};
 use isovox_proto::mesh::{
-    decode_strip, decode_tile, encode_compact, encode_tile, stitch, Mesh, TileMesh, VertexMove,
+    apply_moves, decode_strip, decode_tile, encode_compact, encode_tile, stitch, Mesh, TileMesh,
+    VertexMove,
+};
+use isovox_proto::tile::{
+    bricks_of, cells, coarse_box, field_box, has_strip, mesh_tile_reads, stored_box,
+    strip_coarse_box, strip_field_box, strip_reads, GridBox,
 };
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use std::fmt::Write as _;
@@ -334,4 +342,219 @@ fn web_lod_vectors_are_current() {
         serde_json::from_str(&fresh).unwrap_or_else(|e| panic!("vectors are not JSON: {e}"));
     assert!(parsed["cases"].as_array().is_some_and(|c| c.len() > 100));
     check_vectors("lod.json", &fresh);
+}
+
+fn json_box((lo, hi): GridBox) -> String {
+    format!(
+        "[[{},{},{}],[{},{},{}]]",
+        lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]
+    )
+}
+
+/// Reads as `tile.ts` gives them: `[level, bricks, crossing]`.
+fn json_reads(reads: &[(u8, GridBox, GridBox)]) -> String {
+    let parts: Vec<String> = reads
+        .iter()
+        .map(|&(level, bricks, crossing)| {
+            format!("[{level},{},{}]", json_box(bricks), json_box(crossing))
+        })
+        .collect();
+    format!("[{}]", parts.join(","))
+}
+
+/// The tiles of one level sampled for the vectors: on each axis the first, middle and last
+/// position (so the grid's corners, the middles of its edges and faces, and its centre: the
+/// first tile owns one more cell, the last has no neighbour across its high faces), and a few
+/// random ones, sorted and without repeats.
+fn sample_tiles(layout: &VolumeLayout, level: u8, rng: &mut Rng) -> Vec<BrickKey> {
+    let g = layout.grid(level);
+    let axis = |n: u32| {
+        let mut v = vec![0, n / 2, n - 1];
+        v.dedup();
+        v
+    };
+    let (xs, ys, zs) = (axis(g[0]), axis(g[1]), axis(g[2]));
+    let mut keys = Vec::new();
+    for &z in &zs {
+        for &y in &ys {
+            for &x in &xs {
+                keys.push(BrickKey { level, x, y, z });
+            }
+        }
+    }
+    for _ in 0..3 {
+        let [x, y, z] = g.map(|n| (rng.next() % u64::from(n)) as u32);
+        keys.push(BrickKey { level, x, y, z });
+    }
+    keys.sort();
+    keys.dedup();
+    keys
+}
+
+/// The tile vectors: for every layout of [`volumes`] and sampled tiles of every level, the
+/// tile's cells, field box and coarse box, what its mesh reads, `has_strip` of faces 0..=6
+/// (6 is out of range: never a strip) and per face 0..6 the strip's field and coarse boxes and
+/// what it reads; then `stored_box` and `bricks_of` of random boxes (negative corners
+/// included: tiles at the volume's low faces read outside it); then `apply_moves` of two tiles
+/// under every face mask.
+fn tile_vectors() -> String {
+    let mut rng = Rng(0x7113_0b0c_5e7f_a11d);
+    let mut layouts = Vec::new();
+    for v in volumes() {
+        let layout =
+            VolumeLayout::new(v.dims, v.brick, VoxelType::U8).unwrap_or_else(|e| panic!("{e}"));
+        let mut tiles = Vec::new();
+        for level in 0..layout.levels() {
+            for key in sample_tiles(&layout, level, &mut rng) {
+                let (lo, hi, _) = cells(&layout, key);
+                // proto's `mesh_tile_reads` names the bricks read; which of them decide whether a
+                // surface crosses is the server's `tile_inputs` rule (the bricks of the stored
+                // voxels under the cells' corners, `stored_box` of the cells), which `tile.ts`
+                // ports as `crossing`.
+                let reads: Vec<(u8, GridBox, GridBox)> = mesh_tile_reads(&layout, key)
+                    .into_iter()
+                    .map(|(level, bricks)| {
+                        let crossing = bricks_of(layout.brick(), stored_box(level, (lo, hi)));
+                        (level, bricks, crossing)
+                    })
+                    .collect();
+                let strip_flags: Vec<String> = (0..=6)
+                    .map(|f| has_strip(&layout, key, f).to_string())
+                    .collect();
+                let strips: Vec<String> = (0..6)
+                    .map(|f| {
+                        // A strip's every brick decides whether a surface crosses it (the
+                        // server's `strip_inputs`).
+                        let reads: Vec<(u8, GridBox, GridBox)> = strip_reads(&layout, key, f)
+                            .into_iter()
+                            .map(|(level, bricks)| (level, bricks, bricks))
+                            .collect();
+                        format!(
+                            "{{\"field\":{},\"coarse\":{},\"reads\":{}}}",
+                            json_box(strip_field_box(&layout, key, f)),
+                            json_box(strip_coarse_box(&layout, key, f)),
+                            json_reads(&reads)
+                        )
+                    })
+                    .collect();
+                tiles.push(format!(
+                    "{{\"key\":{},\"cells\":{},\"field\":{},\"coarse\":{},\"reads\":{},\"has_strip\":[{}],\"strips\":[{}]}}",
+                    json_key(key),
+                    json_box((lo, hi)),
+                    json_box(field_box(&layout, key)),
+                    json_box(coarse_box(&layout, key)),
+                    json_reads(&reads),
+                    strip_flags.join(","),
+                    strips.join(",")
+                ));
+            }
+        }
+        layouts.push(format!(
+            "{{\"dims\":{:?},\"brick\":{},\"levels\":{},\"tiles\":[\n{}\n]}}",
+            v.dims,
+            v.brick,
+            layout.levels(),
+            tiles.join(",\n")
+        ));
+    }
+    let mut boxes = Vec::new();
+    for i in 0..48 {
+        let level = (i % 4) as u8;
+        let brick = [2u32, 8, 16, 64][i / 4 % 4];
+        let lo: [i64; 3] = [0; 3].map(|_| (rng.next() % 200) as i64 - 70);
+        let hi = lo.map(|c| c + (rng.next() % 150) as i64);
+        let stored = stored_box(level, (lo, hi));
+        boxes.push(format!(
+            "{{\"level\":{level},\"brick\":{brick},\"box\":{},\"stored\":{},\"bricks\":{}}}",
+            json_box((lo, hi)),
+            json_box(stored),
+            json_box(bricks_of(brick, (lo, hi)))
+        ));
+    }
+    format!(
+        "{{\"generated_by\":\"proto/tests/lod_vectors.rs\",\n\"layouts\":[\n{}\n],\n\"boxes\":[\n{}\n],\n\"moves\":[\n{}\n]}}\n",
+        layouts.join(",\n"),
+        boxes.join(",\n"),
+        move_vectors(&mut rng).join(",\n")
+    )
+}
+
+/// `apply_moves` of two tiles under all 64 face masks. The first is built by hand so that every
+/// face has moves and one vertex moves on all six faces and one on both faces of an axis (two
+/// f32 additions to one coordinate, in the moves' order); the second is random. Positions are
+/// in [-40, 40) and distances below one, so the f32 sums round.
+fn move_vectors(rng: &mut Rng) -> Vec<String> {
+    let mut out = Vec::new();
+    for n in [8u32, 24] {
+        let positions: Vec<[f32; 3]> = (0..n)
+            .map(|_| [0; 3].map(|_| rng.range(-40.0, 40.0)))
+            .collect();
+        let mut moves: Vec<VertexMove> = Vec::new();
+        if n == 8 {
+            for face in 0..6u8 {
+                let inwards = if face % 2 == 0 { 1.0 } else { -1.0 };
+                moves.push(VertexMove {
+                    vertex: 0,
+                    face,
+                    distance: inwards * rng.range(0.05, 0.6),
+                });
+                moves.push(VertexMove {
+                    vertex: 1 + u32::from(face),
+                    face,
+                    distance: inwards * rng.range(0.05, 0.6),
+                });
+            }
+            moves.push(VertexMove {
+                vertex: 7,
+                face: 2,
+                distance: rng.range(0.05, 0.6),
+            });
+            moves.push(VertexMove {
+                vertex: 7,
+                face: 3,
+                distance: -rng.range(0.05, 0.6),
+            });
+        } else {
+            moves = (0..3 * n)
+                .map(|_| VertexMove {
+                    vertex: (rng.next() % u64::from(n)) as u32,
+                    face: (rng.next() % 6) as u8,
+                    distance: rng.range(-0.6, 0.6),
+                })
+                .collect();
+        }
+        // Grouped by face, as a tile carries them (`TileMesh::moves`).
+        moves.sort_by_key(|m| m.face);
+        let moved: Vec<String> = (0..64u8)
+            .map(|mask| {
+                let mut p = positions.clone();
+                apply_moves(&mut p, &moves, mask);
+                json_f32_list(&p)
+            })
+            .collect();
+        let listed: Vec<String> = moves
+            .iter()
+            .map(|m| format!("[{},{},{}]", m.vertex, m.face, json_f32(m.distance)))
+            .collect();
+        out.push(format!(
+            "{{\"positions\":{},\"moves\":[{}],\"moved\":[\n{}\n]}}",
+            json_f32_list(&positions),
+            listed.join(","),
+            moved.join(",\n")
+        ));
+    }
+    out
+}
+
+#[test]
+fn web_tile_vectors_are_current() {
+    let fresh = tile_vectors();
+    let parsed: serde_json::Value =
+        serde_json::from_str(&fresh).unwrap_or_else(|e| panic!("vectors are not JSON: {e}"));
+    assert_eq!(
+        parsed["layouts"].as_array().map(Vec::len),
+        Some(volumes().len())
+    );
+    assert_eq!(parsed["moves"].as_array().map(Vec::len), Some(2));
+    check_vectors("tile.json", &fresh);
 }

@@ -2,7 +2,9 @@
 // rule's arithmetic) and of the bound `server/src/mesh/lattice.rs` puts on a coarse level's
 // lattice values, for the viewer's content keys (`streamer.ts`): a tile's key names every brick
 // it reads, of its level; a strip's, those of the tile's level along its face and of the next
-// coarser one; and whether a surface can cross them at all.
+// coarser one; and whether a surface can cross them at all. Kept equal to the Rust by the vectors
+// its tests write: `web/test-vectors/tile.json` (proto/tests/lod_vectors.rs) and
+// `value_range.json` (server/src/mesh/lattice.rs), checked by `test/tile.test.ts`.
 
 import type { Layout, TileKey } from "./lod";
 
@@ -110,20 +112,30 @@ export function stripReads(layout: Layout, k: TileKey, face: number): TileRead[]
  * Bounds of the lattice values of `level` computed from stored voxels within `[min, max]`
  * (`lattice::value_range`): Catmull-Rom's negative weights overshoot the range by a fraction of
  * its width, rounding adds a half; level 0 is exact.
+ *
+ * Bit for bit the server's bound, so that the viewer calls a tile or strip empty (no request)
+ * exactly when the server's `may_cross` does: the weights and the overshoot in f64 with the same
+ * operations in the same order (powers as products, as Rust's `s * s * s` and `powi(3)`), the
+ * spill and both ends rounded to f32 (`Math.fround`) where Rust computes in f32. The port used
+ * to stay in f64 and widen by a millionth of the spill, meant as "a hair more than the Rust
+ * bound"; but an end's f32 rounding (up to half an f32 step, 0.002 near 65535) exceeds that
+ * millionth, and it came out narrower than the server's for some ranges (`value_range.json`,
+ * level 1 over [55719, 58118]: high 58927.636 against 58927.637; level 4 over
+ * [64825, 65000]: 65083.498 against 65083.5, so at surface 65084 the server meshed a tile the
+ * viewer called empty). Lattice values are integers and the iso value a half, so that f64 bound
+ * still lay above every value that crosses and no surface was lost; but two copies of one rule
+ * drift apart unseen unless a test can ask them to be equal.
  */
 export function valueRange(level: number, min: number, max: number): [number, number] {
   if (level === 0) return [min, max];
+  const f = Math.fround;
   const s = 0.5 + 1 / 2 ** (level + 1);
-  const w = [
-    (-(s ** 3) + 2 * s * s - s) / 2,
-    (3 * s ** 3 - 5 * s * s + 2) / 2,
-    (-3 * s ** 3 + 4 * s * s + s) / 2,
-    (s ** 3 - s * s) / 2,
-  ];
-  const negative = w.filter((x) => x < 0).reduce((a, x) => a - x, 0);
+  const s2 = s * s;
+  const s3 = s * s * s;
+  const w = [(-s3 + 2 * s2 - s) / 2, (3 * s3 - 5 * s2 + 2) / 2, (-3 * s3 + 4 * s2 + s) / 2, (s3 - s2) / 2];
+  const negative = w.filter((x) => x < 0).reduce((a, x) => a + -x, 0);
   const positive = 1 + negative;
-  const overshoot = 3 * positive * positive * negative + negative ** 3;
-  // A hair more than the Rust bound: float32 rounding there, float64 here.
-  const spill = overshoot * (max - min) * (1 + 1e-6);
-  return [min - spill - 0.5, max + spill + 0.5];
+  const overshoot = 3 * positive * positive * negative + negative * negative * negative;
+  const spill = f(overshoot * f(max - min));
+  return [f(f(min - spill) - 0.5), f(f(max + spill) + 0.5)];
 }

@@ -861,4 +861,69 @@ mod tests {
         assert_eq!(exact_passes(3, 255.0, 53), 3);
         assert_eq!(exact_passes(3, 65535.0, 53), 2);
     }
+
+    /// The vectors of [`value_range`] for the web viewer's port (`web/src/tile.ts`
+    /// `valueRange`, checked by `web/test/tile.test.ts`), which decides without a request which
+    /// tiles and strips no surface crosses: levels 0..16 over voxel ranges of u8 and u16 volumes
+    /// (equal voxels, the full ranges, narrow ones at either end, random ones). As the vectors of
+    /// `proto/tests/lod_vectors.rs`, the test fails when the committed file differs;
+    /// `ISOVOX_WRITE_VECTORS=1 cargo test -p isovox-server --lib lattice` rewrites it.
+    #[test]
+    fn web_value_range_vectors_are_current() {
+        let mut pairs: Vec<(f32, f32)> = vec![
+            (0.0, 0.0),
+            (7.0, 7.0),
+            (0.0, 1.0),
+            (3.0, 9.0),
+            (0.0, 100.0),
+            (0.0, 255.0),
+            (254.0, 255.0),
+            (0.0, 65535.0),
+            (65534.0, 65535.0),
+            (1.0, 65534.0),
+            // Level 4 reaches 65083.5 exactly in f32, where an f64 bound falls short by 0.002.
+            (64825.0, 65000.0),
+        ];
+        let mut state = 0x7a1u64;
+        for _ in 0..6 {
+            let a = (next(&mut state) >> 48) as f32;
+            let b = (next(&mut state) >> 48) as f32;
+            pairs.push((a.min(b), a.max(b)));
+            let c = (next(&mut state) >> 56) as f32;
+            let d = (next(&mut state) >> 56) as f32;
+            pairs.push((c.min(d), c.max(d)));
+        }
+        // serde_json writes an f32 with the shortest digits that read back as the same f32.
+        let num = |v: f32| serde_json::to_string(&v).unwrap_or_else(|e| panic!("{v}: {e}"));
+        let mut cases = Vec::new();
+        for level in 0..16u8 {
+            for &(min, max) in &pairs {
+                let (lo, hi) = value_range(level, min, max);
+                cases.push(format!(
+                    "[{level},{},{},{},{}]",
+                    num(min),
+                    num(max),
+                    num(lo),
+                    num(hi)
+                ));
+            }
+        }
+        let fresh = format!(
+            "{{\"generated_by\":\"server/src/mesh/lattice.rs\",\n\"columns\":[\"level\",\"min\",\"max\",\"low\",\"high\"],\n\"cases\":[\n{}\n]}}\n",
+            cases.join(",\n")
+        );
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../web/test-vectors/value_range.json");
+        if std::env::var_os("ISOVOX_WRITE_VECTORS").is_some() {
+            std::fs::write(&path, &fresh).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            return;
+        }
+        let committed = std::fs::read_to_string(&path).unwrap_or_default();
+        assert!(
+            committed == fresh,
+            "{} is stale: value_range changed. Rewrite it with ISOVOX_WRITE_VECTORS=1 cargo \
+             test -p isovox-server --lib lattice, then make web/src pass `npm test` in web/ again",
+            path.display()
+        );
+    }
 }
