@@ -1,8 +1,10 @@
 //! Bearer tokens and per-token edit rates.
 //!
-//! A token file has one token per line, `NAME TOKEN [SCOPE]` (SCOPE `write`, the default, or
-//! `read`); `#` starts a comment. Secrets are compared in constant time and never printed: a
-//! [`Token`]'s `Debug` shows its name and scope only, and logs name the token, not its secret.
+//! A token file has one token per line, `NAME TOKEN [SCOPE [VOLUMES]]`: NAME is the user the
+//! token speaks for; SCOPE is `write` (the default) or `read`; VOLUMES is `*` (every volume, the
+//! default) or a comma-separated list of the volumes the token may use. `#` starts a comment.
+//! Secrets are compared in constant time and never printed: a [`Token`]'s `Debug` shows its
+//! name, scope and volumes only, and logs name the token, not its secret.
 
 use super::{ApiError, AppState};
 use axum::extract::{Request, State};
@@ -23,14 +25,58 @@ pub enum Scope {
     Write,
 }
 
+/// Which volumes a token may use.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum VolumeAccess {
+    /// Every volume (`*`).
+    All,
+    /// Only these, by name.
+    Only(Vec<String>),
+}
+
+impl VolumeAccess {
+    /// Reads a token file's VOLUMES field: `*`, or names separated by commas.
+    ///
+    /// # Errors
+    /// An empty name (`a,,b`, a trailing comma) or `*` among names.
+    pub fn parse(field: &str) -> Result<VolumeAccess, String> {
+        if field == "*" {
+            return Ok(VolumeAccess::All);
+        }
+        let names: Vec<String> = field.split(',').map(str::to_string).collect();
+        if let Some(bad) = names.iter().find(|n| n.is_empty() || n.as_str() == "*") {
+            return Err(format!(
+                "volumes {field:?}: {} (expected * or NAME[,NAME...])",
+                if bad.is_empty() {
+                    "an empty name"
+                } else {
+                    "* among names"
+                }
+            ));
+        }
+        Ok(VolumeAccess::Only(names))
+    }
+
+    /// Whether the volume `name` is among them.
+    pub fn allows(&self, name: &str) -> bool {
+        match self {
+            VolumeAccess::All => true,
+            VolumeAccess::Only(names) => names.iter().any(|n| n == name),
+        }
+    }
+}
+
 /// One configured token.
 #[derive(Clone)]
 pub struct Token {
-    /// Its name, for logs and rate limits (never the secret).
+    /// The user it speaks for, for logs, rate limits and the record of who did what (never the
+    /// secret).
     pub name: String,
     secret: String,
     /// What it may do.
     pub scope: Scope,
+    /// Which volumes it may do it to.
+    pub volumes: VolumeAccess,
 }
 
 impl std::fmt::Debug for Token {
@@ -38,6 +84,7 @@ impl std::fmt::Debug for Token {
         f.debug_struct("Token")
             .field("name", &self.name)
             .field("scope", &self.scope)
+            .field("volumes", &self.volumes)
             .finish_non_exhaustive()
     }
 }
@@ -55,9 +102,9 @@ impl Tokens {
     /// Parses a token file's text.
     ///
     /// # Errors
-    /// A line that is not `NAME TOKEN [SCOPE]`, an unknown scope, a secret shorter than
-    /// [`MIN_SECRET_LEN`], or a name or secret given twice (the message names the line, never
-    /// the secret).
+    /// A line that is not `NAME TOKEN [SCOPE [VOLUMES]]`, an unknown scope, a malformed volume
+    /// list, a secret shorter than [`MIN_SECRET_LEN`], or a name or secret given twice (the
+    /// message names the line, never the secret).
     pub fn parse(text: &str) -> Result<Tokens, String> {
         let mut tokens = Tokens::default();
         for (i, line) in text.lines().enumerate() {
@@ -76,11 +123,20 @@ impl Tokens {
                     ))
                 }
             };
-            if !(2..=3).contains(&fields.len()) {
-                return Err(format!("line {}: expected NAME TOKEN [SCOPE]", i + 1));
+            if !(2..=4).contains(&fields.len()) {
+                return Err(format!(
+                    "line {}: expected NAME TOKEN [SCOPE [VOLUMES]]",
+                    i + 1
+                ));
             }
+            let volumes = match fields.get(3) {
+                None => VolumeAccess::All,
+                Some(field) => {
+                    VolumeAccess::parse(field).map_err(|e| format!("line {}: {e}", i + 1))?
+                }
+            };
             tokens
-                .add(fields[0], fields[1], scope)
+                .add_for(fields[0], fields[1], scope, volumes)
                 .map_err(|e| format!("line {}: {e}", i + 1))?;
         }
         Ok(tokens)
@@ -96,11 +152,25 @@ impl Tokens {
         Tokens::parse(&text).map_err(|e| format!("token file {}: {e}", path.display()))
     }
 
-    /// Adds a token.
+    /// Adds a token for every volume.
     ///
     /// # Errors
     /// A short secret, or a name or secret already present.
     pub fn add(&mut self, name: &str, secret: &str, scope: Scope) -> Result<(), String> {
+        self.add_for(name, secret, scope, VolumeAccess::All)
+    }
+
+    /// Adds a token for `volumes`.
+    ///
+    /// # Errors
+    /// A short secret, or a name or secret already present.
+    pub fn add_for(
+        &mut self,
+        name: &str,
+        secret: &str,
+        scope: Scope,
+        volumes: VolumeAccess,
+    ) -> Result<(), String> {
         if secret.len() < MIN_SECRET_LEN {
             return Err(format!(
                 "the token of {name:?} is shorter than {MIN_SECRET_LEN} characters"
@@ -116,6 +186,7 @@ impl Tokens {
             name: name.to_string(),
             secret: secret.to_string(),
             scope,
+            volumes,
         });
         Ok(())
     }
@@ -142,11 +213,18 @@ impl Tokens {
         found
     }
 
-    /// The token a request carries, if it has at least `need`.
+    /// The token a request carries, if it has at least `need` on `volume` (a route that names
+    /// no volume: `None`).
     ///
     /// # Errors
-    /// 401 without a bearer token or with an unknown one; 403 when its scope is short.
-    pub fn authorize(&self, headers: &HeaderMap, need: Scope) -> Result<&Token, ApiError> {
+    /// 401 without a bearer token or with an unknown one; 403 when its scope is short or it is
+    /// limited to other volumes.
+    pub fn authorize(
+        &self,
+        headers: &HeaderMap,
+        need: Scope,
+        volume: Option<&str>,
+    ) -> Result<&Token, ApiError> {
         let Some(value) = headers.get(header::AUTHORIZATION) else {
             return Err(ApiError::Unauthorized(
                 "this route needs a bearer token (Authorization: Bearer TOKEN)".into(),
@@ -171,6 +249,14 @@ impl Tokens {
                 token.name
             )));
         }
+        if let Some(volume) = volume {
+            if !token.volumes.allows(volume) {
+                return Err(ApiError::Forbidden(format!(
+                    "the token {:?} may not use the volume {volume:?}",
+                    token.name
+                )));
+            }
+        }
         Ok(token)
     }
 }
@@ -187,10 +273,12 @@ impl axum::extract::FromRequestParts<AppState> for WriteToken {
         parts: &mut axum::http::request::Parts,
         state: &AppState,
     ) -> Result<Self, ApiError> {
-        let token = state
-            .config
-            .tokens
-            .authorize(&parts.headers, Scope::Write)?;
+        let volume = volume_in_path(parts.uri.path());
+        let token =
+            state
+                .config
+                .tokens
+                .authorize(&parts.headers, Scope::Write, volume.as_deref())?;
         Ok(WriteToken(token.clone()))
     }
 }
@@ -202,15 +290,25 @@ pub async fn require_token(
     next: Next,
 ) -> Response {
     if request.uri().path().starts_with("/v1/") {
-        if let Err(e) = state
-            .config
-            .tokens
-            .authorize(request.headers(), Scope::Read)
+        let volume = volume_in_path(request.uri().path());
+        if let Err(e) =
+            state
+                .config
+                .tokens
+                .authorize(request.headers(), Scope::Read, volume.as_deref())
         {
             return e.into_response();
         }
     }
     next.run(request).await
+}
+
+/// The volume a `/v1/volumes/{name}...` path names, percent-decoded as the router decodes it;
+/// `None` for other paths (the list of volumes, uploads of meshes).
+fn volume_in_path(path: &str) -> Option<std::borrow::Cow<'_, str>> {
+    let rest = path.strip_prefix("/v1/volumes/")?;
+    let segment = rest.split('/').next().filter(|s| !s.is_empty())?;
+    Some(percent_encoding::percent_decode_str(segment).decode_utf8_lossy())
 }
 
 fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
@@ -285,21 +383,21 @@ mod tests {
             "Bearer 00000000000000000000".parse().unwrap(),
         );
         assert!(matches!(
-            t.authorize(&h, Scope::Write),
+            t.authorize(&h, Scope::Write, None),
             Err(ApiError::Forbidden(_))
         ));
-        assert_eq!(t.authorize(&h, Scope::Read).unwrap().name, "viewer");
+        assert_eq!(t.authorize(&h, Scope::Read, None).unwrap().name, "viewer");
         h.insert(
             header::AUTHORIZATION,
             "bearer fedcba9876543210fedc".parse().unwrap(),
         );
-        assert_eq!(t.authorize(&h, Scope::Write).unwrap().name, "bob");
+        assert_eq!(t.authorize(&h, Scope::Write, None).unwrap().name, "bob");
         h.insert(
             header::AUTHORIZATION,
             "Bearer fedcba9876543210fed".parse().unwrap(),
         );
         assert!(matches!(
-            t.authorize(&h, Scope::Read),
+            t.authorize(&h, Scope::Read, None),
             Err(ApiError::Unauthorized(_))
         ));
     }
@@ -312,7 +410,11 @@ mod tests {
             "alice short",
             "a 0123456789abcdef0123\na 1123456789abcdef0123",
             "a 0123456789abcdef0123\nb 0123456789abcdef0123",
-            "a 0123456789abcdef0123 write extra",
+            // VOLUMES is one field: a fifth is an error, as are empty names and a stray `*`.
+            "a 0123456789abcdef0123 write w extra",
+            "a 0123456789abcdef0123 write w,,x",
+            "a 0123456789abcdef0123 write w,",
+            "a 0123456789abcdef0123 write *,w",
         ] {
             let e = Tokens::parse(bad).unwrap_err();
             assert!(!e.contains("0123456789abcdef0123"), "{e}");
@@ -320,6 +422,59 @@ mod tests {
         }
         let t = Tokens::parse("alice 0123456789abcdef0123").unwrap();
         assert!(!format!("{t:?}").contains("0123456789abcdef0123"));
+    }
+
+    #[test]
+    fn a_token_limited_to_volumes_may_use_those_only() {
+        let t = Tokens::parse(
+            "alice 0123456789abcdef0123 write demo,scan\nbob 1123456789abcdef0123 read *\ncarol 2123456789abcdef0123\n",
+        )
+        .unwrap();
+        let bearer = |secret: &str| {
+            let mut h = HeaderMap::new();
+            h.insert(
+                header::AUTHORIZATION,
+                format!("Bearer {secret}").parse().unwrap(),
+            );
+            h
+        };
+        let alice = bearer("0123456789abcdef0123");
+        for volume in ["demo", "scan"] {
+            let token = t.authorize(&alice, Scope::Write, Some(volume)).unwrap();
+            assert_eq!(token.name, "alice");
+        }
+        let refused = t.authorize(&alice, Scope::Read, Some("other"));
+        assert!(
+            matches!(&refused, Err(ApiError::Forbidden(m)) if m.contains("\"other\"")),
+            "{refused:?}"
+        );
+        // A route that names no volume (the list, uploads) asks only for the scope.
+        assert!(t.authorize(&alice, Scope::Write, None).is_ok());
+        // `*` and an absent field both mean every volume.
+        let bob = bearer("1123456789abcdef0123");
+        assert!(t.authorize(&bob, Scope::Read, Some("other")).is_ok());
+        let carol = bearer("2123456789abcdef0123");
+        assert!(t.authorize(&carol, Scope::Write, Some("other")).is_ok());
+        assert_eq!(
+            VolumeAccess::parse("demo,scan"),
+            Ok(VolumeAccess::Only(vec!["demo".into(), "scan".into()]))
+        );
+    }
+
+    #[test]
+    fn the_volume_of_a_path_is_decoded_as_the_router_decodes_it() {
+        assert_eq!(
+            volume_in_path("/v1/volumes/demo/edits").as_deref(),
+            Some("demo")
+        );
+        assert_eq!(volume_in_path("/v1/volumes/demo").as_deref(), Some("demo"));
+        assert_eq!(
+            volume_in_path("/v1/volumes/d%65mo/bricks/0/0/0/0").as_deref(),
+            Some("demo")
+        );
+        assert_eq!(volume_in_path("/v1/volumes"), None);
+        assert_eq!(volume_in_path("/v1/volumes/"), None);
+        assert_eq!(volume_in_path("/v1/meshes"), None);
     }
 
     #[test]

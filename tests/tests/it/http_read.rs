@@ -300,6 +300,55 @@ async fn private_reads_guard_bricks() {
     }
 }
 
+/// A token limited to other volumes is refused (403, naming the volume) for reads with private
+/// reads and for edits; a token limited to this volume, or to none, is let through.
+#[tokio::test]
+async fn tokens_limited_to_volumes_are_refused_elsewhere() {
+    let tokens = Tokens::parse(
+        "elsewhere a-secret-for-other-volumes-only write other,more\n\
+         here a-secret-for-the-terrain-only-1 write terrain\n\
+         everywhere a-secret-for-every-volume-22 read *\n",
+    )
+    .unwrap();
+    let s = start_with(ServerConfig {
+        tokens,
+        private_reads: true,
+        ..ServerConfig::default()
+    })
+    .await;
+    let c = common::http();
+    let carve = r#"{"op":"difference","term":{"ellipsoid":{"center":[20,20,20],"radii":[4,4,4]}}}"#;
+    let brick = format!("{}/v1/volumes/terrain/bricks/0/1/1/1", s.base);
+    let edits = format!("{}/v1/volumes/terrain/edits", s.base);
+
+    let refused = c.get(&brick).bearer_auth("a-secret-for-other-volumes-only");
+    let p = problem(refused.send().await.unwrap(), 403).await;
+    assert!(p.detail.contains("\"terrain\""), "{}", p.detail);
+    let refused = c
+        .post(&edits)
+        .bearer_auth("a-secret-for-other-volumes-only")
+        .header("content-type", "application/json")
+        .body(carve);
+    let p = problem(refused.send().await.unwrap(), 403).await;
+    assert!(p.detail.contains("elsewhere"), "{}", p.detail);
+
+    let read = c.get(&brick).bearer_auth("a-secret-for-every-volume-22");
+    assert_eq!(read.send().await.unwrap().status().as_u16(), 200);
+    let read = c.get(&brick).bearer_auth("a-secret-for-the-terrain-only-1");
+    assert_eq!(read.send().await.unwrap().status().as_u16(), 200);
+    let edit = c
+        .post(&edits)
+        .bearer_auth("a-secret-for-the-terrain-only-1")
+        .header("content-type", "application/json")
+        .body(carve);
+    assert_eq!(edit.send().await.unwrap().status().as_u16(), 200);
+    // The list names no volume: any token of the scope may read it.
+    let list = c
+        .get(format!("{}/v1/volumes", s.base))
+        .bearer_auth("a-secret-for-other-volumes-only");
+    assert_eq!(list.send().await.unwrap().status().as_u16(), 200);
+}
+
 #[tokio::test]
 async fn errors_are_problem_details() {
     let s = start().await;
