@@ -156,8 +156,13 @@ fn finest_dataset(
         let n = s.len();
         [s[n - 1] as f32, s[n - 2] as f32, s[n - 3] as f32]
     });
+    let path = super::location::contained(path).map_err(|why| {
+        FormatsError::input(format!(
+            "{where_}: datasets[0].path {path:?} leads outside the image ({why}); Isovox reads only under the location it is given"
+        ))
+    })?;
     Ok((
-        path.trim_matches('/').to_string(),
+        path.to_string(),
         scale.filter(|s| s.iter().all(|v| v.is_finite() && *v > 0.0)),
     ))
 }
