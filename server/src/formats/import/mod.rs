@@ -10,6 +10,7 @@
 //! Layout: [`location`] (local path or http URL), [`planes`] (the plane stream and the slab
 //! source), [`convert`] (types and windows), one module per format.
 
+pub mod codecs;
 pub mod convert;
 pub mod location;
 pub mod nifti;
