@@ -19,7 +19,7 @@ pub mod precomputed;
 pub mod tiff;
 pub mod zarr;
 
-use self::convert::{Conversion, DType, Sampler};
+use self::convert::{number, Conversion, DType, Sampler};
 use self::location::Location;
 pub use self::planes::{PlaneSource, SlabSource};
 use super::FormatsError;
@@ -228,7 +228,12 @@ impl std::fmt::Display for ImportReport {
         match &self.conversion {
             ConversionNote::None => {}
             ConversionNote::Window { lo, hi } => {
-                write!(f, ", mapped from the window {lo}..{hi} (--window)")?;
+                write!(
+                    f,
+                    ", mapped from the window {}..{} (--window)",
+                    number(*lo),
+                    number(*hi)
+                )?;
             }
             ConversionNote::Percentiles {
                 lo,
@@ -237,8 +242,11 @@ impl std::fmt::Display for ImportReport {
                 sampled,
             } => write!(
                 f,
-                ", mapped from the window {lo}..{hi}: the {}th and {}th percentiles of {sampled} voxels sampled evenly (--window LO,HI to choose)",
-                percentiles.0, percentiles.1
+                ", mapped from the window {}..{}: the {}th and {}th percentiles of {sampled} voxels sampled evenly (--window LO,HI to choose)",
+                number(*lo),
+                number(*hi),
+                percentiles.0,
+                percentiles.1
             )?,
         }
         let s = self.elapsed.as_secs_f64();
