@@ -90,7 +90,7 @@ pub fn detect(input: &str) -> Result<Option<InputFormat>, FormatsError> {
     let location = Location::parse(rest)?;
     if let Location::Local(path) = &location {
         if path.is_file() {
-            return Ok(if nifti::sniff(path) {
+            return Ok(if nifti::sniff(path) || nifti::named(path) {
                 Some(InputFormat::Nifti)
             } else if tiff::sniff(path) {
                 Some(InputFormat::Tiff)
