@@ -12,6 +12,9 @@
 //! taking the machine down, the child runs under an address-space limit and is killed when its
 //! memory passes [`KILL_AT`].
 
+// unwrap is how a test says "this must work"; clippy exempts only #[test] functions.
+#![allow(clippy::unwrap_used)]
+
 mod server_process;
 
 use server_process::isovox;
@@ -707,4 +710,216 @@ fn a_constant_input_of_huge_values_is_named_in_few_digits() {
     write(&input, &file);
     let out = import(&[os(&input), "-o".as_ref(), os(&out_vod(dir.path()))]);
     out.assert_refused(&["huge.nii", "both 1e308", "--window"]);
+}
+
+// ---- What is valid still imports -----------------------------------------------------------
+
+/// 64^3 u8 voxels, x fastest, that compress somewhat and differ from plane to plane.
+fn voxels() -> Vec<u8> {
+    (0..64 * 64 * 64u32)
+        .map(|i| ((i % 64 / 8 + i / 4096) * 7 % 251) as u8)
+        .collect()
+}
+
+/// The chunk of `data` (64^3, x fastest) at chunk position (x, y, z), of `edge`^3, x fastest.
+fn chunk_of(data: &[u8], edge: usize, [cx, cy, cz]: [usize; 3]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(edge * edge * edge);
+    for z in cz * edge..(cz + 1) * edge {
+        for y in cy * edge..(cy + 1) * edge {
+            let at = (z * 64 + y) * 64 + cx * edge;
+            out.extend_from_slice(&data[at..at + edge]);
+        }
+    }
+    out
+}
+
+/// A Zarr v3 array of `data` (64^3 uint8) at `dir`, chunks of `chunk`^3 encoded by `codecs`,
+/// written by zarrs as another program would write it.
+fn zarrs_array(dir: &Path, chunk: u64, codecs: &str, data: &[u8]) {
+    use zarrs::array::{Array, ArrayMetadata};
+    std::fs::create_dir_all(dir).unwrap();
+    let metadata: ArrayMetadata = serde_json::from_str(&format!(
+        r#"{{"zarr_format": 3, "node_type": "array", "shape": [64, 64, 64], "data_type": "uint8",
+            "chunk_grid": {{"name": "regular", "configuration": {{"chunk_shape": [{chunk}, {chunk}, {chunk}]}}}},
+            "chunk_key_encoding": {{"name": "default", "configuration": {{"separator": "/"}}}},
+            "fill_value": 0, "codecs": {codecs}}}"#
+    ))
+    .unwrap();
+    let store = Arc::new(zarrs::filesystem::FilesystemStore::new(dir).unwrap());
+    let array = Array::new_with_metadata(store, "/", metadata).unwrap();
+    array.store_metadata().unwrap();
+    array
+        .store_array_subset_elements::<u8>(&array.subset_all(), data)
+        .unwrap();
+}
+
+/// Imports `input` (with `extra` arguments) and asserts that it succeeds within the memory
+/// bound and that the volume's voxels are `expected`.
+fn imports_as(input: &std::ffi::OsStr, extra: &[&str], dir: &Path, expected: &[u8]) {
+    let vod = dir.join("ok.vod");
+    let _ = std::fs::remove_file(&vod);
+    let mut args = vec![input];
+    args.extend(extra.iter().map(|a| std::ffi::OsStr::new(*a)));
+    args.extend(["-o".as_ref(), vod.as_os_str()]);
+    let out = import(&args);
+    assert_eq!(out.code, Some(0), "{out:#?}");
+    assert!(out.peak < PEAK_BOUND, "{out:#?}");
+    let raw = dir.join("ok.raw");
+    let exported = Command::new(isovox())
+        .arg("export")
+        .args([
+            os(&vod),
+            "-o".as_ref(),
+            os(&raw),
+            "--format".as_ref(),
+            "raw".as_ref(),
+        ])
+        .output()
+        .unwrap();
+    assert!(exported.status.success(), "{exported:?}");
+    assert!(
+        std::fs::read(&raw).unwrap() == expected,
+        "{input:?}: the imported voxels differ"
+    );
+}
+
+#[test]
+fn valid_zarr_arrays_import_whatever_their_codec() {
+    let data = voxels();
+    let dir = tempfile::tempdir().unwrap();
+    let bytes = r#"{"name": "bytes", "configuration": {"endian": "little"}}"#;
+    for (name, chunk, codecs) in [
+        (
+            "zstd",
+            32,
+            format!(
+                r#"[{bytes}, {{"name": "zstd", "configuration": {{"level": 3, "checksum": true}}}}]"#
+            ),
+        ),
+        (
+            "gzip",
+            32,
+            format!(r#"[{bytes}, {{"name": "gzip", "configuration": {{"level": 5}}}}]"#),
+        ),
+        (
+            "blosc",
+            32,
+            format!(
+                r#"[{bytes}, {{"name": "blosc", "configuration": {{"cname": "zstd", "clevel": 5, "shuffle": "noshuffle", "typesize": 1, "blocksize": 0}}}}]"#
+            ),
+        ),
+        (
+            "sharded",
+            64,
+            format!(
+                r#"[{{"name": "sharding_indexed", "configuration": {{"chunk_shape": [16, 16, 16],
+            "codecs": [{bytes}, {{"name": "zstd", "configuration": {{"level": 3, "checksum": false}}}}],
+            "index_codecs": [{bytes}, {{"name": "crc32c"}}], "index_location": "end"}}}}]"#
+            ),
+        ),
+    ] {
+        let input = dir.path().join(format!("{name}.zarr"));
+        zarrs_array(&input, chunk, &codecs, &data);
+        imports_as(os(&input), &[], dir.path(), &data);
+    }
+    // Zarr v2 with zstd (frames with their content size) and zlib, chunks by hand.
+    for (name, compressor) in [
+        ("v2zstd", r#"{"id": "zstd", "level": 3}"#),
+        ("v2zlib", r#"{"id": "zlib", "level": 5}"#),
+    ] {
+        let input = dir.path().join(format!("{name}.zarr"));
+        write(
+            &input.join(".zarray"),
+            format!(
+                r#"{{"zarr_format": 2, "shape": [64, 64, 64], "chunks": [32, 32, 32], "dtype": "|u1",
+                    "compressor": {compressor}, "fill_value": 0, "filters": null, "order": "C"}}"#
+            )
+            .as_bytes(),
+        );
+        for c in 0..8 {
+            let [cx, cy, cz] = [c % 2, c / 2 % 2, c / 4];
+            let raw = chunk_of(&data, 32, [cx, cy, cz]);
+            let encoded = if name == "v2zstd" {
+                zstd::bulk::compress(&raw, 3).unwrap()
+            } else {
+                let mut e =
+                    flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::new(5));
+                e.write_all(&raw).unwrap();
+                e.finish().unwrap()
+            };
+            write(&input.join(format!("{cz}.{cy}.{cx}")), &encoded);
+        }
+        imports_as(os(&input), &[], dir.path(), &data);
+    }
+}
+
+#[test]
+fn a_valid_ome_zarr_imports_locally_and_over_http() {
+    let data = voxels();
+    let dir = tempfile::tempdir().unwrap();
+    let image = dir.path().join("img.zarr");
+    ome_group(&image, "0");
+    zarrs_array(
+        &image.join("0"),
+        32,
+        r#"[{"name": "bytes", "configuration": {"endian": "little"}}, {"name": "zstd", "configuration": {"level": 3, "checksum": false}}]"#,
+        &data,
+    );
+    imports_as(os(&image), &[], dir.path(), &data);
+    let server = FileServer::start(dir.path());
+    let url = format!("{}/img.zarr", server.base);
+    imports_as(url.as_ref(), &[], dir.path(), &data);
+    assert!(server.asked().iter().all(|p| p.starts_with("/img.zarr/")));
+}
+
+#[test]
+fn valid_nifti_tiff_and_precomputed_inputs_import() {
+    let data = voxels();
+    let dir = tempfile::tempdir().unwrap();
+    let mut nifti = nifti_header([64; 3], 2, 8);
+    nifti.extend_from_slice(&data);
+    let plain = dir.path().join("ok.nii");
+    write(&plain, &nifti);
+    imports_as(os(&plain), &[], dir.path(), &data);
+    let gz = dir.path().join("ok.nii.gz");
+    write(&gz, &gzip(&nifti, flate2::Compression::default()));
+    imports_as(os(&gz), &[], dir.path(), &data);
+
+    let tif = dir.path().join("ok.tif");
+    {
+        let mut e = tiff::encoder::TiffEncoder::new(std::fs::File::create(&tif).unwrap()).unwrap();
+        for plane in data.chunks(64 * 64) {
+            e.write_image::<tiff::encoder::colortype::Gray8>(64, 64, plane)
+                .unwrap();
+        }
+    }
+    imports_as(os(&tif), &[], dir.path(), &data);
+
+    let pc = dir.path().join("pc");
+    write(
+        &pc.join("info"),
+        br#"{"type": "image", "data_type": "uint8", "num_channels": 1, "scales": [{"key": "s0",
+            "size": [64, 64, 64], "resolution": [1, 1, 1], "voxel_offset": [0, 0, 0],
+            "chunk_sizes": [[32, 32, 32]], "encoding": "raw"}]}"#,
+    );
+    for c in 0..8 {
+        let [cx, cy, cz] = [c % 2, c / 2 % 2, c / 4];
+        let name = format!(
+            "s0/{}-{}_{}-{}_{}-{}.gz",
+            cx * 32,
+            cx * 32 + 32,
+            cy * 32,
+            cy * 32 + 32,
+            cz * 32,
+            cz * 32 + 32
+        );
+        write(
+            &pc.join(name),
+            &gzip(
+                &chunk_of(&data, 32, [cx, cy, cz]),
+                flate2::Compression::default(),
+            ),
+        );
+    }
+    imports_as(os(&pc), &["--from", "precomputed"], dir.path(), &data);
 }
