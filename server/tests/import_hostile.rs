@@ -234,14 +234,22 @@ fn blosc_zeros(len: usize) -> Vec<u8> {
 /// A Zarr v3 uint8 array of 64^3 in one chunk (256 KiB), compressed by `codec` (a v3 codec
 /// object), its chunk `c/0/0/0` holding `chunk`.
 fn zarr_v3(dir: &Path, codec: &str, chunk: &[u8]) {
+    zarr_v3_codecs(
+        dir,
+        &format!(r#"[{{"name": "bytes", "configuration": {{"endian": "little"}}}}, {codec}]"#),
+        chunk,
+    );
+}
+
+/// [`zarr_v3`] with the whole list of codecs given.
+fn zarr_v3_codecs(dir: &Path, codecs: &str, chunk: &[u8]) {
     write(
         &dir.join("zarr.json"),
         format!(
             r#"{{"zarr_format": 3, "node_type": "array", "shape": [64, 64, 64], "data_type": "uint8",
                 "chunk_grid": {{"name": "regular", "configuration": {{"chunk_shape": [64, 64, 64]}}}},
                 "chunk_key_encoding": {{"name": "default", "configuration": {{"separator": "/"}}}},
-                "fill_value": 0,
-                "codecs": [{{"name": "bytes", "configuration": {{"endian": "little"}}}}, {codec}]}}"#
+                "fill_value": 0, "codecs": {codecs}}}"#
         )
         .as_bytes(),
     );
@@ -407,6 +415,28 @@ fn a_zstd_bomb_in_a_zarr_v3_chunk_is_refused_within_the_chunk_size() {
     let out = import(&[os(&input), "-o".as_ref(), os(&out_vod(dir.path()))]);
     out.assert_refused(&["bomb.zarr", "c/0/0/0", "more than the 262144 bytes"]);
     assert!(!out_vod(dir.path()).exists());
+}
+
+#[test]
+fn a_zstd_bomb_inside_a_shard_is_refused_within_the_inner_chunk_size() {
+    // One shard of one inner chunk: the bomb, then the index (offset and size, u64 LE).
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("sharded.zarr");
+    let mut shard = zstd_bomb(12 << 30);
+    let len = shard.len() as u64;
+    shard.extend_from_slice(&0u64.to_le_bytes());
+    shard.extend_from_slice(&len.to_le_bytes());
+    zarr_v3_codecs(
+        &input,
+        r#"[{"name": "sharding_indexed", "configuration": {"chunk_shape": [64, 64, 64],
+            "codecs": [{"name": "bytes", "configuration": {"endian": "little"}},
+                       {"name": "zstd", "configuration": {"level": 1, "checksum": false}}],
+            "index_codecs": [{"name": "bytes", "configuration": {"endian": "little"}}],
+            "index_location": "end"}}]"#,
+        &shard,
+    );
+    let out = import(&[os(&input), "-o".as_ref(), os(&out_vod(dir.path()))]);
+    out.assert_refused(&["sharded.zarr", "c/0/0/0", "more than the 262144 bytes"]);
 }
 
 #[test]
