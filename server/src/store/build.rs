@@ -183,6 +183,11 @@ pub fn stream_pyramid(
                 BrickVoxels::from_bytes(out, layout.voxel_type())
             })
             .collect();
+        if source.failed() {
+            return Err(StoreError::BadInput(format!(
+                "the input failed at brick row {z}; the build stopped"
+            )));
+        }
         b.add_slab(0, z, slab)?;
     }
     Ok(())

@@ -42,6 +42,12 @@ pub trait BrickSource: Sync {
     fn constant(&self, _key: BrickKey) -> Option<u16> {
         None
     }
+
+    /// Whether the source has failed (its error kept for the caller): the build stops at the
+    /// next row of bricks instead of building a pyramid that will be thrown away.
+    fn failed(&self) -> bool {
+        false
+    }
 }
 
 /// The first error of a [`BrickSource`] that reads from somewhere fallible: `fill` cannot

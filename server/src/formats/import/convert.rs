@@ -150,10 +150,20 @@ impl Conversion {
     }
 }
 
+/// `v` for a message: as Rust prints it, or in scientific notation when that would take more
+/// than a handful of digits (f64's largest values print with 309 of them).
+pub fn number(v: f64) -> String {
+    if v.is_finite() && v != 0.0 && !(1e-6..1e15).contains(&v.abs()) {
+        format!("{v:e}")
+    } else {
+        v.to_string()
+    }
+}
+
 /// Parses `LO,HI` (a window or a pair of percentiles).
 ///
 /// # Errors
-/// Not two finite numbers with `LO < HI`.
+/// Not two finite numbers with `LO < HI` whose difference is finite too.
 pub fn parse_pair(s: &str, what: &str) -> Result<(f64, f64), FormatsError> {
     let v: Vec<f64> = s
         .split(',')
@@ -163,9 +173,9 @@ pub fn parse_pair(s: &str, what: &str) -> Result<(f64, f64), FormatsError> {
             FormatsError::BadArgument(format!("{what} {s:?}: two numbers LO,HI expected"))
         })?;
     match v.as_slice() {
-        [lo, hi] if lo.is_finite() && hi.is_finite() && lo < hi => Ok((*lo, *hi)),
+        [lo, hi] if lo < hi && (hi - lo).is_finite() => Ok((*lo, *hi)),
         _ => Err(FormatsError::BadArgument(format!(
-            "{what} {s:?}: two finite numbers LO,HI with LO < HI expected"
+            "{what} {s:?}: two numbers LO < HI expected, whose difference is finite"
         ))),
     }
 }
@@ -227,7 +237,15 @@ impl Sampler {
         let (a, b) = (rank(lo), rank(hi));
         if a >= b {
             return Err(FormatsError::input(format!(
-                "the {lo}th and {hi}th percentiles are both {a}: give --window LO,HI"
+                "the {lo}th and {hi}th percentiles are both {}: give --window LO,HI",
+                number(a)
+            )));
+        }
+        if !(b - a).is_finite() {
+            return Err(FormatsError::input(format!(
+                "the {lo}th and {hi}th percentiles, {} and {}, are too far apart to map linearly: give --window LO,HI",
+                number(a),
+                number(b)
             )));
         }
         Ok((a, b, n))
@@ -309,9 +327,51 @@ mod tests {
     }
 
     #[test]
+    fn numbers_in_messages_stay_short() {
+        assert_eq!(number(f64::MAX), "1.7976931348623157e308");
+        assert_eq!(number(1e308), "1e308");
+        assert_eq!(number(-3.5e20), "-3.5e20");
+        assert_eq!(number(1e-300), "1e-300");
+        assert_eq!(number(1234.5), "1234.5");
+        assert_eq!(number(-1000.0), "-1000");
+        assert_eq!(number(0.0), "0");
+        assert_eq!(number(f64::INFINITY), "inf");
+        // A constant input of huge values names its value briefly.
+        let mut s = Sampler::new(4);
+        s.take(
+            DType::F64,
+            &[1e308f64; 4]
+                .iter()
+                .flat_map(|v| v.to_le_bytes())
+                .collect::<Vec<u8>>(),
+        );
+        let err = s.window((0.5, 99.5)).unwrap_err().to_string();
+        assert!(err.contains("both 1e308"), "{err}");
+        let mut s = Sampler::new(2);
+        s.take(
+            DType::F64,
+            &[-1e308f64, 1e308]
+                .iter()
+                .flat_map(|v| v.to_le_bytes())
+                .collect::<Vec<u8>>(),
+        );
+        let err = s.window((0.0, 100.0)).unwrap_err().to_string();
+        assert!(err.contains("-1e308 and 1e308"), "{err}");
+    }
+
+    #[test]
     fn pairs_are_checked() {
         assert_eq!(parse_pair("-1000, 3000", "w").unwrap(), (-1000.0, 3000.0));
-        for bad in ["1", "2,1", "1,1", "a,b", "1,2,3", "nan,1"] {
+        for bad in [
+            "1",
+            "2,1",
+            "1,1",
+            "a,b",
+            "1,2,3",
+            "nan,1",
+            "-1e308,1e308",
+            "0,inf",
+        ] {
             assert!(parse_pair(bad, "w").is_err(), "{bad}");
         }
         assert!(parse_percentiles("0.5,99.5").is_ok());

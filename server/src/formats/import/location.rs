@@ -104,6 +104,14 @@ impl Location {
     /// A read or a request fails, the server answers other than 200/404, or the bytes exceed
     /// `max_bytes`.
     pub fn get(&self, rel: &str, max_bytes: u64) -> Result<Option<Vec<u8>>, FormatsError> {
+        // The readers check the paths they take from metadata with a better message; this is
+        // the last line, for whatever name reaches here.
+        let rel = contained(rel).map_err(|why| {
+            FormatsError::input(format!(
+                "{}: {rel:?} leads outside it ({why})",
+                self.as_str()
+            ))
+        })?;
         match self {
             Location::Local(root) => {
                 let path = root.join(rel);
@@ -156,6 +164,60 @@ impl Location {
     }
 }
 
+/// `rel` (a path an input's metadata names: an OME-Zarr dataset, a precomputed scale key, a
+/// chunk) without its outer slashes, if it stays under the location it is relative to, locally
+/// and as a URL path: no `.` or `..` segment (percent-encoded or not, as URL parsers decode
+/// them), no leading slash, backslash, scheme or drive, query or fragment.
+///
+/// # Errors
+/// Why `rel` may lead elsewhere.
+pub fn contained(rel: &str) -> Result<&str, String> {
+    if rel.starts_with('/') {
+        return Err("an absolute path".into());
+    }
+    if let Some(c) = rel
+        .chars()
+        .find(|c| matches!(c, '\\' | '?' | '#' | ':') || c.is_control())
+    {
+        return Err(format!("{c:?} in a relative path"));
+    }
+    for segment in rel.trim_end_matches('/').split('/') {
+        let decoded = percent_decoded(segment);
+        if decoded == "." || decoded == ".." {
+            return Err(format!("a {segment:?} segment"));
+        }
+        if decoded.contains(['/', '\\', '\0']) {
+            return Err(format!("an encoded separator in {segment:?}"));
+        }
+    }
+    Ok(rel.trim_end_matches('/'))
+}
+
+/// `s` with its `%XX` escapes decoded (as bytes, lossily as text).
+fn percent_decoded(s: &str) -> String {
+    let b = s.as_bytes();
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        let hex = |c: u8| (c as char).to_digit(16);
+        match (
+            b[i],
+            b.get(i + 1).copied().and_then(hex),
+            b.get(i + 2).copied().and_then(hex),
+        ) {
+            (b'%', Some(h), Some(l)) => {
+                out.push((h * 16 + l) as u8);
+                i += 3;
+            }
+            (c, _, _) => {
+                out.push(c);
+                i += 1;
+            }
+        }
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
 /// Reads `r` to its end, refusing more than `max_bytes`.
 fn read_bounded(r: impl Read, max_bytes: u64, what: &str) -> Result<Vec<u8>, FormatsError> {
     let mut out = Vec::new();
@@ -171,4 +233,60 @@ fn read_bounded(r: impl Read, max_bytes: u64, what: &str) -> Result<Vec<u8>, For
         )));
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::contained;
+
+    #[test]
+    fn paths_inside_the_location_are_kept() {
+        for (rel, kept) in [
+            ("0", "0"),
+            ("s0/", "s0"),
+            ("scale0/image", "scale0/image"),
+            ("8_8_8", "8_8_8"),
+            ("4_4_40/0-64_0-64_0-16", "4_4_40/0-64_0-64_0-16"),
+            ("c/0/0/0", "c/0/0/0"),
+            ("0.0.0", "0.0.0"),
+            ("..data", "..data"),
+            ("a.b/..c", "a.b/..c"),
+            ("%41", "%41"),
+            ("", ""),
+        ] {
+            assert_eq!(contained(rel), Ok(kept), "{rel}");
+        }
+    }
+
+    #[test]
+    fn paths_that_leave_the_location_are_refused() {
+        for rel in [
+            "..",
+            "../x",
+            "../../x",
+            "a/../../x",
+            "a/..",
+            "./x",
+            "a/./b",
+            "/etc/passwd",
+            "//host/x",
+            "%2e%2e/x",
+            "%2E%2e",
+            ".%2E/x",
+            "%2e/x",
+            "a/%2f..%2fx",
+            "a%2F..",
+            "..\\x",
+            "a\\..\\..\\x",
+            "http://other.example/x",
+            "https:x",
+            "file:///etc/passwd",
+            "C:/Windows",
+            "x?y=../z",
+            "x#../y",
+            "a\0b",
+        ] {
+            assert!(contained(rel).is_err(), "{rel:?} was kept");
+        }
+    }
 }

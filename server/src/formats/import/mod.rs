@@ -10,6 +10,7 @@
 //! Layout: [`location`] (local path or http URL), [`planes`] (the plane stream and the slab
 //! source), [`convert`] (types and windows), one module per format.
 
+pub mod codecs;
 pub mod convert;
 pub mod location;
 pub mod nifti;
@@ -18,7 +19,7 @@ pub mod precomputed;
 pub mod tiff;
 pub mod zarr;
 
-use self::convert::{Conversion, DType, Sampler};
+use self::convert::{number, Conversion, DType, Sampler};
 use self::location::Location;
 pub use self::planes::{PlaneSource, SlabSource};
 use super::FormatsError;
@@ -89,7 +90,7 @@ pub fn detect(input: &str) -> Result<Option<InputFormat>, FormatsError> {
     let location = Location::parse(rest)?;
     if let Location::Local(path) = &location {
         if path.is_file() {
-            return Ok(if nifti::sniff(path) {
+            return Ok(if nifti::sniff(path) || nifti::named(path) {
                 Some(InputFormat::Nifti)
             } else if tiff::sniff(path) {
                 Some(InputFormat::Tiff)
@@ -227,7 +228,12 @@ impl std::fmt::Display for ImportReport {
         match &self.conversion {
             ConversionNote::None => {}
             ConversionNote::Window { lo, hi } => {
-                write!(f, ", mapped from the window {lo}..{hi} (--window)")?;
+                write!(
+                    f,
+                    ", mapped from the window {}..{} (--window)",
+                    number(*lo),
+                    number(*hi)
+                )?;
             }
             ConversionNote::Percentiles {
                 lo,
@@ -236,8 +242,11 @@ impl std::fmt::Display for ImportReport {
                 sampled,
             } => write!(
                 f,
-                ", mapped from the window {lo}..{hi}: the {}th and {}th percentiles of {sampled} voxels sampled evenly (--window LO,HI to choose)",
-                percentiles.0, percentiles.1
+                ", mapped from the window {}..{}: the {}th and {}th percentiles of {sampled} voxels sampled evenly (--window LO,HI to choose)",
+                number(*lo),
+                number(*hi),
+                percentiles.0,
+                percentiles.1
             )?,
         }
         let s = self.elapsed.as_secs_f64();

@@ -47,14 +47,26 @@ pub fn sniff(path: &Path) -> bool {
     let Ok(file) = File::open(path) else {
         return false;
     };
-    let mut reader = open_stream(file, path);
+    let (mut reader, _) = open_stream(file);
     let mut head = [0u8; HEADER_LEN];
     reader.read_exact(&mut head).is_ok()
         && (head[..4] == 348i32.to_le_bytes() || head[..4] == 348i32.to_be_bytes())
         && matches!(&head[344..348], b"n+1\0" | b"ni1\0")
 }
 
-fn open_stream(file: File, path: &Path) -> Box<dyn Read + Send> {
+/// Whether `path` is named as a NIfTI file (`.nii`, `.nii.gz`), whatever it holds: such a file
+/// is read as NIfTI, so that one that is not gets told why rather than taken for RAW.
+pub fn named(path: &Path) -> bool {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
+    name.ends_with(".nii") || name.ends_with(".nii.gz")
+}
+
+/// The file's bytes, through a gzip decoder when it starts with gzip's magic (whatever its
+/// name says), and whether it did.
+fn open_stream(file: File) -> (Box<dyn Read + Send>, bool) {
     let mut buffered = BufReader::new(file);
     let gz = {
         use std::io::BufRead;
@@ -62,12 +74,16 @@ fn open_stream(file: File, path: &Path) -> Box<dyn Read + Send> {
             .fill_buf()
             .is_ok_and(|b| b.starts_with(&[0x1f, 0x8b]))
     };
-    if gz || path.extension().is_some_and(|e| e == "gz") {
-        Box::new(flate2::read::MultiGzDecoder::new(buffered))
+    if gz {
+        (Box::new(flate2::read::MultiGzDecoder::new(buffered)), true)
     } else {
-        Box::new(buffered)
+        (Box::new(buffered), false)
     }
 }
+
+/// How many times its size deflate can expand data at most: a gzip file smaller than this
+/// fraction of what its header promises cannot hold it, and is refused before it is read.
+const DEFLATE_MAX_RATIO: u64 = 1032;
 
 struct Header {
     dims: [u32; 3],
@@ -80,13 +96,25 @@ struct Header {
 
 fn parse_header(h: &[u8; HEADER_LEN], path: &Path) -> Result<Header, FormatsError> {
     let bad = |what: String| FormatsError::input(format!("{}: {what}", path.display()));
-    let big_endian = match (
+    let (le, be) = (
         i32::from_le_bytes([h[0], h[1], h[2], h[3]]),
         i32::from_be_bytes([h[0], h[1], h[2], h[3]]),
-    ) {
+    );
+    // NIfTI-2's magic sits at byte 4 of its 540-byte header.
+    if le == 540 || be == 540 || matches!(&h[4..8], b"n+2\0" | b"ni2\0") {
+        return Err(bad(
+            "a NIfTI-2 header (sizeof_hdr 540); Isovox imports NIfTI-1 (.nii, .nii.gz)".into(),
+        ));
+    }
+    let big_endian = match (le, be) {
         (348, _) => false,
         (_, 348) => true,
-        _ => return Err(bad("not a NIfTI-1 file (sizeof_hdr is not 348)".into())),
+        _ => {
+            return Err(bad(format!(
+                "not a NIfTI-1 header: sizeof_hdr is {le} (348 expected) and the magic at byte 344 is \"{}\" (\"n+1\\0\" expected)",
+                h[344..348].escape_ascii()
+            )))
+        }
     };
     match &h[344..348] {
         b"n+1\0" => {}
@@ -95,7 +123,12 @@ fn parse_header(h: &[u8; HEADER_LEN], path: &Path) -> Result<Header, FormatsErro
                 "a NIfTI-1 header/image pair (.hdr/.img); Isovox imports single .nii files".into(),
             ))
         }
-        _ => return Err(bad("not a NIfTI-1 file (no n+1 magic)".into())),
+        other => {
+            return Err(bad(format!(
+                "not a NIfTI-1 file: the magic at byte 344 is \"{}\" (\"n+1\\0\" expected)",
+                other.escape_ascii()
+            )))
+        }
     }
     let i16_at = |o: usize| {
         let b = [h[o], h[o + 1]];
@@ -157,7 +190,8 @@ fn parse_header(h: &[u8; HEADER_LEN], path: &Path) -> Result<Header, FormatsErro
     let vox_offset = f32_at(108);
     if !(vox_offset.is_finite() && vox_offset >= HEADER_LEN as f32 && vox_offset < 1e9) {
         return Err(bad(format!(
-            "vox_offset {vox_offset} is not a valid offset"
+            "vox_offset {} is not a valid offset (348 up to 1e9)",
+            super::convert::number(f64::from(vox_offset))
         )));
     }
     let (slope, inter) = (f32_at(112), f32_at(116));
@@ -187,15 +221,45 @@ impl NiftiInput {
     /// Not a NIfTI-1 single file, an unsupported type or shape, or a read failure.
     pub fn open(path: &Path) -> Result<Self, FormatsError> {
         let file = File::open(path).map_err(FormatsError::io_path("cannot open", path))?;
-        let mut reader = open_stream(file, path);
+        let len = file
+            .metadata()
+            .map_err(FormatsError::io_path("cannot stat", path))?
+            .len();
+        let (mut reader, gzip) = open_stream(file);
         let mut head = [0u8; HEADER_LEN];
-        reader.read_exact(&mut head).map_err(|_| {
-            FormatsError::input(format!(
-                "{}: shorter than a NIfTI-1 header (348 bytes)",
-                path.display()
-            ))
-        })?;
+        if let Err(e) = reader.read_exact(&mut head) {
+            return Err(FormatsError::input(
+                if e.kind() == std::io::ErrorKind::UnexpectedEof {
+                    format!(
+                        "{}: shorter than a NIfTI-1 header (348 bytes{})",
+                        path.display(),
+                        if gzip { " once decompressed" } else { "" }
+                    )
+                } else {
+                    format!("{}: cannot decompress: {e}", path.display())
+                },
+            ));
+        }
         let h = parse_header(&head, path)?;
+        // The file's size is known before a voxel is read: one too small for what the header
+        // promises is refused at once, not after reading (and building from) all it has.
+        let [x, y, z] = h.dims;
+        let needed = h.vox_offset + plane_bytes(x, y, h.stored) * u64::from(z);
+        if !gzip && len < needed {
+            return Err(FormatsError::input(format!(
+                "{}: the header promises {x} x {y} x {z} {} voxels from byte {} ({needed} bytes), but the file has {len} bytes",
+                path.display(),
+                h.stored,
+                h.vox_offset
+            )));
+        }
+        if gzip && len.saturating_mul(DEFLATE_MAX_RATIO) < needed {
+            return Err(FormatsError::input(format!(
+                "{}: the header promises {x} x {y} x {z} {} voxels ({needed} bytes), more than {len} bytes of gzip can hold (deflate expands at most {DEFLATE_MAX_RATIO}-fold)",
+                path.display(),
+                h.stored
+            )));
+        }
         // Skip the extensions up to the voxels.
         let skip = h.vox_offset - HEADER_LEN as u64;
         let skipped = std::io::copy(&mut (&mut reader).take(skip), &mut std::io::sink())
@@ -245,20 +309,21 @@ impl PlaneSource for NiftiInput {
             )));
         }
         let [x, y, _] = self.dims;
-        let n = (plane_bytes(x, y, self.stored) * u64::from(z1 - z0)) as usize;
+        let n = plane_bytes(x, y, self.stored) * u64::from(z1 - z0);
         out.clear();
-        out.resize(n, 0);
-        self.reader.read_exact(out).map_err(|e| {
-            if e.kind() == std::io::ErrorKind::UnexpectedEof {
-                FormatsError::input(format!(
-                    "{}: truncated: the voxels end before plane {z1} of {}",
-                    self.path.display(),
-                    self.dims[2]
-                ))
-            } else {
-                FormatsError::io_path("cannot read", &self.path)(e)
-            }
-        })?;
+        // Grown as the bytes arrive rather than sized from the header first: a compressed
+        // stream that ends early costs what it held.
+        let got = (&mut self.reader)
+            .take(n)
+            .read_to_end(out)
+            .map_err(FormatsError::io_path("cannot read", &self.path))?;
+        if (got as u64) < n {
+            return Err(FormatsError::input(format!(
+                "{}: truncated: the voxels end before plane {z1} of {}",
+                self.path.display(),
+                self.dims[2]
+            )));
+        }
         self.next_z = z1;
         let width = self.stored.bytes();
         if self.big_endian && width > 1 {

@@ -192,6 +192,10 @@ impl SlabSource {
 }
 
 impl BrickSource for SlabSource {
+    fn failed(&self) -> bool {
+        self.failed.load(Ordering::Acquire)
+    }
+
     fn fill(&self, key: BrickKey, out: &mut [u8]) {
         if self.failed.load(Ordering::Acquire) {
             return;

@@ -131,10 +131,17 @@ impl PrecomputedInput {
                 scale.size, chunk
             )));
         };
+        let key = super::location::contained(&scale.key).map_err(|why| {
+            FormatsError::input(format!(
+                "{where_}: scales[0].key {:?} leads outside the volume ({why}); Isovox reads only under the location it is given",
+                scale.key
+            ))
+        })?;
+        let key = key.to_string();
         let voxel = scale.resolution.map(|r| r as f32);
         Ok(PrecomputedInput {
             location,
-            key: scale.key.trim_end_matches('/').to_string(),
+            key,
             dims: [dx, dy, dz],
             offset: scale.voxel_offset,
             chunk: [cx, cy, cz],

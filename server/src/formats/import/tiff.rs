@@ -82,15 +82,86 @@ fn page_shape(path: &Path, d: &mut TiffDecoder) -> Result<([u32; 2], DType), For
     Ok(([w, h], dtype))
 }
 
-/// Pages of one file.
+/// "strip" or "tile": what the page's chunks are.
+fn chunk_kind(d: &TiffDecoder) -> &'static str {
+    match d.get_chunk_type() {
+        tiff::decoder::ChunkType::Strip => "strip",
+        tiff::decoder::ChunkType::Tile => "tile",
+    }
+}
+
+/// Checks that every strip or tile of the current page (`page`, from 0) lies inside the file
+/// of `len` bytes: the offsets are known before any is read, so one that points past the end
+/// is refused when the stack is opened, by name, rather than failing a read halfway through.
+fn check_chunks(path: &Path, page: u32, len: u64, d: &mut TiffDecoder) -> Result<(), FormatsError> {
+    use tiff::tags::Tag;
+    let kind = chunk_kind(d);
+    let (offsets, counts) = match d.get_chunk_type() {
+        tiff::decoder::ChunkType::Strip => (Tag::StripOffsets, Tag::StripByteCounts),
+        tiff::decoder::ChunkType::Tile => (Tag::TileOffsets, Tag::TileByteCounts),
+    };
+    let offsets = d
+        .find_tag_unsigned_vec::<u64>(offsets)
+        .map_err(|e| tiff_error(path, e))?
+        .unwrap_or_default();
+    let counts = d
+        .find_tag_unsigned_vec::<u64>(counts)
+        .map_err(|e| tiff_error(path, e))?
+        .unwrap_or_default();
+    if offsets.len() != counts.len() {
+        return Err(FormatsError::input(format!(
+            "{}: page {page}: {} {kind} offsets but {} byte counts",
+            path.display(),
+            offsets.len(),
+            counts.len()
+        )));
+    }
+    for (i, (offset, count)) in offsets.iter().zip(&counts).enumerate() {
+        if offset.checked_add(*count).is_none_or(|end| end > len) {
+            return Err(FormatsError::input(format!(
+                "{}: page {page}, {kind} {i}: {count} bytes at offset {offset} run past the end of the file ({len} bytes)",
+                path.display()
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Pages of one file, each checked with [`check_chunks`].
 fn count_pages(path: &Path) -> Result<u32, FormatsError> {
+    let len = std::fs::metadata(path)
+        .map_err(FormatsError::io_path("cannot stat", path))?
+        .len();
     let mut d = open_decoder(path)?;
+    check_chunks(path, 0, len, &mut d)?;
     let mut pages = 1u32;
     while d.more_images() {
-        d.next_image().map_err(|e| tiff_error(path, e))?;
+        d.next_image()
+            .map_err(|e| FormatsError::input(format!("{}: page {pages}: {e}", path.display())))?;
+        check_chunks(path, pages, len, &mut d)?;
         pages += 1;
     }
     Ok(pages)
+}
+
+/// The error of a page that did not decode, naming the first of its strips or tiles that does
+/// not (decoded alone, each within the decoder's limits) when one does not.
+fn page_error(path: &Path, page: u32, d: &mut TiffDecoder, e: tiff::TiffError) -> FormatsError {
+    let kind = chunk_kind(d);
+    let chunks = match d.get_chunk_type() {
+        tiff::decoder::ChunkType::Strip => d.strip_count(),
+        tiff::decoder::ChunkType::Tile => d.tile_count(),
+    }
+    .unwrap_or(0);
+    for i in 0..chunks {
+        if let Err(e) = d.read_chunk(i) {
+            return FormatsError::input(format!(
+                "{}: page {page}, {kind} {i}: {e}",
+                path.display()
+            ));
+        }
+    }
+    FormatsError::input(format!("{}: page {page}: {e}", path.display()))
 }
 
 /// `name` split into text and numbers, so that names sort as people number files.
@@ -219,6 +290,7 @@ impl PlaneSource for TiffInput {
             let Some((file, decoder)) = &mut self.current else {
                 return Err(FormatsError::Internal("no TIFF page open".into()));
             };
+            let page = self.next_z - self.files[..*file].iter().map(|f| f.1).sum::<u32>();
             let path = &self.files[*file].0;
             let (size, dtype) = page_shape(path, decoder)?;
             if size != [self.dims[0], self.dims[1]] || dtype != self.dtype {
@@ -232,7 +304,11 @@ impl PlaneSource for TiffInput {
                     self.dtype
                 )));
             }
-            match decoder.read_image().map_err(|e| tiff_error(path, e))? {
+            let image = match decoder.read_image() {
+                Ok(image) => image,
+                Err(e) => return Err(page_error(path, page, decoder, e)),
+            };
+            match image {
                 DecodingResult::U8(v) => out.extend_from_slice(&v),
                 DecodingResult::I8(v) => out.extend(v.iter().map(|x| *x as u8)),
                 DecodingResult::U16(v) => out.extend(v.iter().flat_map(|x| x.to_le_bytes())),

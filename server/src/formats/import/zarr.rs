@@ -11,8 +11,10 @@ use super::location::Location;
 use super::planes::PlaneSource;
 use crate::formats::FormatsError;
 use serde_json::Value;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
-use zarrs::array::{Array, DataType};
+use zarrs::array::codec::ArrayToBytesCodecTraits;
+use zarrs::array::{Array, BytesRepresentation, DataType};
 use zarrs::array_subset::ArraySubset;
 use zarrs::storage::byte_range::ByteRangeIterator;
 use zarrs::storage::{
@@ -28,14 +30,19 @@ const MAX_METADATA_BYTES: u64 = 16 << 20;
 const MAX_OBJECT_BYTES: u64 = 1 << 30;
 
 /// A Zarr store over http(s), read through [`Location::get`]: every object is fetched whole (a
-/// byte range is cut from it), within [`MAX_OBJECT_BYTES`].
+/// byte range is cut from it), within `max_bytes`: [`MAX_METADATA_BYTES`] while the metadata is
+/// read, then what one encoded chunk (or shard) of the array can take, so that neither a large
+/// answer nor a gzip `Content-Encoding` expands past it.
 #[derive(Debug)]
-struct HttpStore(Location);
+struct HttpStore {
+    location: Location,
+    max_bytes: AtomicU64,
+}
 
 impl HttpStore {
     fn fetch(&self, key: &StoreKey) -> Result<Option<Bytes>, StorageError> {
-        self.0
-            .get(key.as_str(), MAX_OBJECT_BYTES)
+        self.location
+            .get(key.as_str(), self.max_bytes.load(Ordering::Relaxed))
             .map(|found| found.map(Bytes::from))
             .map_err(|e| StorageError::Other(crate::store::error_chain(&e)))
     }
@@ -156,8 +163,13 @@ fn finest_dataset(
         let n = s.len();
         [s[n - 1] as f32, s[n - 2] as f32, s[n - 3] as f32]
     });
+    let path = super::location::contained(path).map_err(|why| {
+        FormatsError::input(format!(
+            "{where_}: datasets[0].path {path:?} leads outside the image ({why}); Isovox reads only under the location it is given"
+        ))
+    })?;
     Ok((
-        path.trim_matches('/').to_string(),
+        path.to_string(),
         scale.filter(|s| s.iter().all(|v| v.is_finite() && *v > 0.0)),
     ))
 }
@@ -172,6 +184,7 @@ impl ZarrInput {
     /// # Errors
     /// No Zarr metadata there, malformed metadata, an unsupported data type, codec or shape.
     pub fn open(location: &Location) -> Result<Self, FormatsError> {
+        super::codecs::install();
         // Find the array: an OME group's finest dataset, or the root itself.
         let (path, scale) = if let Some(group) = json(location, "zarr.json")? {
             let where_ = location.describe("zarr.json");
@@ -223,17 +236,38 @@ impl ZarrInput {
         } else {
             format!("{}/{path}", location.as_str())
         };
+        let mut http = None;
         let store: Arc<dyn ReadableStorageTraits> = match location {
             Location::Local(p) => {
                 Arc::new(zarrs::filesystem::FilesystemStore::new(p).map_err(|e| {
                     zarr_error(format!("cannot open {}", p.display()))(e.to_string())
                 })?)
             }
-            Location::Http { .. } => Arc::new(HttpStore(location.clone())),
+            Location::Http { .. } => {
+                let store = Arc::new(HttpStore {
+                    location: location.clone(),
+                    max_bytes: AtomicU64::new(MAX_METADATA_BYTES),
+                });
+                http = Some(store.clone());
+                store
+            }
         };
         let array: ZarrArray = Array::open(store, &format!("/{path}")).map_err(|e| {
             zarr_error(format!("cannot open the array {name}"))(crate::store::error_chain(&e))
         })?;
+        if let Some(store) = http {
+            let encoded = array
+                .chunk_array_representation(&vec![0; array.dimensionality()])
+                .ok()
+                .and_then(|r| array.codecs().encoded_representation(&r).ok());
+            let bound = match encoded {
+                Some(BytesRepresentation::FixedSize(n) | BytesRepresentation::BoundedSize(n)) => {
+                    n.min(MAX_OBJECT_BYTES)
+                }
+                _ => MAX_OBJECT_BYTES,
+            };
+            store.max_bytes.store(bound, Ordering::Relaxed);
+        }
         let dtype = match array.data_type() {
             DataType::UInt8 => DType::U8,
             DataType::Int8 => DType::I8,
@@ -285,6 +319,23 @@ impl ZarrInput {
     }
 }
 
+impl ZarrInput {
+    /// ", chunk KEY" for the first chunk of `subset` that does not decode, to name it in the
+    /// error of a read that failed (zarrs's errors do not say which chunk); each is decoded
+    /// alone, within its size, so looking costs at most one chunk at a time.
+    fn failing_chunk(&self, subset: &ArraySubset) -> String {
+        let Ok(Some(chunks)) = self.array.chunks_in_array_subset(subset) else {
+            return String::new();
+        };
+        for indices in &chunks.indices() {
+            if self.array.retrieve_chunk(&indices).is_err() {
+                return format!(", chunk {}", self.array.chunk_key(&indices).as_str());
+            }
+        }
+        String::new()
+    }
+}
+
 impl PlaneSource for ZarrInput {
     fn dims(&self) -> [u32; 3] {
         self.dims
@@ -310,7 +361,11 @@ impl PlaneSource for ZarrInput {
         ranges.push(0..u64::from(self.dims[0]));
         let subset = ArraySubset::new_with_ranges(&ranges);
         let fail = |e: zarrs::array::ArrayError| FormatsError::Zarr {
-            context: format!("{}: cannot read planes {z0}..{z1}", self.name),
+            context: format!(
+                "{}: cannot read planes {z0}..{z1}{}",
+                self.name,
+                self.failing_chunk(&subset)
+            ),
             detail: crate::store::error_chain(&e),
         };
         macro_rules! elements {
