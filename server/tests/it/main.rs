@@ -24,6 +24,7 @@ mod edit_cost;
 mod formats_clients;
 mod formats_views;
 mod hostile;
+mod import_hostile;
 mod icvg_edits;
 mod icvg_golden;
 mod icvg_laws;

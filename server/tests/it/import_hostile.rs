@@ -12,11 +12,7 @@
 //! taking the machine down, the child runs under an address-space limit and is killed when its
 //! memory passes [`KILL_AT`].
 
-// unwrap is how a test says "this must work"; clippy exempts only #[test] functions.
-#![allow(clippy::unwrap_used)]
-
-mod server_process;
-
+use crate::server_process;
 use server_process::isovox;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpListener;
