@@ -120,7 +120,8 @@ pub fn document<'s>(snap: &'s Snapshot, name: &str, path: &str) -> Result<Docume
         ))),
         [Some(level), Some("c"), Some(z), Some(y), Some(x), None] => {
             let level = level_segment(snap, level)?;
-            let coord = |s: &str| s.parse::<u32>().ok();
+            // One spelling per chunk (`crate::decimal`): `01` or `+1` is no chunk.
+            let coord = |s: &str| crate::decimal::parse::<u32>(s).ok();
             let key = match (coord(x), coord(y), coord(z)) {
                 (Some(x), Some(y), Some(z)) => layout.key(level, x, y, z).ok(),
                 _ => None,
