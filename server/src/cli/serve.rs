@@ -76,7 +76,8 @@ pub(crate) struct ServeArgs {
     #[arg(long, env = "ISOVOX_MAX_EDIT_VOXELS", default_value_t = 1 << 28)]
     pub max_edit_voxels: u64,
     /// Seconds that compiling an edit, and then evaluating it, may each take; past it the edit
-    /// is stopped (nothing committed, the volume's writer freed) and answered with 422.
+    /// is stopped (nothing committed, the volume's writer freed) and answered with 422 (503 with
+    /// Retry-After when the time ran out waiting on an object store).
     #[arg(long, env = "ISOVOX_EDIT_TIMEOUT", default_value_t = 30.0)]
     pub edit_timeout: f64,
     /// Serve HTTPS (HTTP/2 and HTTP/1.1) with this PEM certificate chain; needs --tls-key.

@@ -418,6 +418,9 @@ fn stage_bricks(
         .with_min_len(BRICKS_PER_JOB)
         .map(|&key| {
             cancel.check()?;
+            // On the rayon pool too, reading a brick from an object store gives up at the
+            // edit's deadline (`bound_store_waits` says why).
+            let _bounded = crate::store::remote::bound_store_waits(cancel.deadline());
             edit_brick(edit, snap, target, key).map(|r| (key, r))
         })
         .collect::<Result<_, _>>()?;
