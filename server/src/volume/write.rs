@@ -198,6 +198,7 @@ fn edit_response(event: ChangeEvent, previous: u64, outcome: &EditOutcome) -> Ed
         new_records: outcome.new_records,
         checkpoint: outcome.checkpoint,
         elapsed_us: outcome.elapsed.as_micros() as u64,
+        committed: true,
     }
 }
 
