@@ -553,6 +553,21 @@ async fn numbers_in_urls_have_one_spelling() {
             );
         }
     }
+    // The problem says why: the spelling, not a chunk outside the grid.
+    for other in [
+        "zarr/0/c/+1/0/1",
+        "precomputed/0/00-08_0-8_0-8",
+        "versions/01/zarr/zarr.json",
+        "bricks/0/1/0/0?version=%31",
+    ] {
+        let problem: serde_json::Value = get(&format!("{}/{other}", s.base))
+            .await
+            .json()
+            .await
+            .unwrap();
+        let detail = problem["detail"].as_str().unwrap();
+        assert!(detail.contains("plain decimal"), "{other}: {detail}");
+    }
     // Text that is no number stays a malformed request, as before.
     for (path, status) in [
         ("bricks/0/x/0/0", 400),

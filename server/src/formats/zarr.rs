@@ -128,9 +128,19 @@ pub fn document<'s>(snap: &'s Snapshot, name: &str, path: &str) -> Result<Docume
             }
             .ok_or_else(|| {
                 let [gx, gy, gz] = layout.grid(level);
-                ViewError::NoSuchDocument(format!(
-                    "no chunk {z}/{y}/{x} at level {level}: its chunk grid (z, y, x) is {gz} x {gy} x {gx}"
-                ))
+                let spelled_otherwise = [x, y, z].iter().any(|s| {
+                    crate::decimal::parse::<u32>(s) == Err(crate::decimal::NotCanonical::OtherSpelling)
+                });
+                ViewError::NoSuchDocument(if spelled_otherwise {
+                    format!(
+                        "no chunk {z}/{y}/{x}: chunk coordinates are spelled in plain decimal, \
+                         without a sign, leading zeros or escapes"
+                    )
+                } else {
+                    format!(
+                        "no chunk {z}/{y}/{x} at level {level}: its chunk grid (z, y, x) is {gz} x {gy} x {gx}"
+                    )
+                })
             })?;
             let stored = snap.stored(key)?;
             if matches!(stored, StoredBrick::Constant(0)) {
