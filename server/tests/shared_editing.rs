@@ -586,7 +586,8 @@ impl XorShift {
 }
 
 /// A random cuboid edit in the middle of the volume (origins crowd a 40-voxel region so that
-/// edits overlap and their order matters; some stick out of the volume).
+/// edits overlap and their order matters; some stick out of the volume, none lies wholly
+/// outside it).
 fn random_edit(rng: &mut XorShift, sizes: (i64, i64)) -> CuboidEdit {
     let op = if rng.next() & 1 == 0 {
         Op::Union
@@ -594,11 +595,17 @@ fn random_edit(rng: &mut XorShift, sizes: (i64, i64)) -> CuboidEdit {
         Op::Difference
     };
     let origin = [rng.range(-4, 44), rng.range(-4, 34), rng.range(-4, 44)];
-    let size = [
+    let mut size = [
         rng.range(sizes.0, sizes.1),
         rng.range(sizes.0, sizes.1),
         rng.range(sizes.0, sizes.1),
     ];
+    // The cuboid's inner voxels (origin + 1 ..= origin + size - 2) must meet the volume: an edit
+    // wholly outside it commits no version (`an_edit_outside_the_volume_commits_nothing`), and
+    // these tests count one version per edit. Grown after drawing, so the draws stay the same.
+    for (s, o) in size.iter_mut().zip(origin) {
+        *s = (*s).max(2 - o);
+    }
     CuboidEdit { op, origin, size }
 }
 
