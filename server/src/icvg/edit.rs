@@ -419,7 +419,12 @@ pub fn stage_edit(
     if few {
         stage()
     } else {
-        rayon::scope(|_| stage())
+        rayon::scope(|_| {
+            // The worker stages the pyramid too, reading from the store: with the edit's bound
+            // on store waits, as this thread has it (`bound_store_waits`).
+            let _bounded = crate::store::remote::bound_store_waits(cancel.deadline());
+            stage()
+        })
     }
 }
 
