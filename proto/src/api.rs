@@ -138,6 +138,16 @@ pub struct EditResponse {
     pub checkpoint: bool,
     /// Time from the start of the evaluation to the durable commit.
     pub elapsed_us: u64,
+    /// Whether the edit made a version. `false` for an edit that reaches no voxel of the
+    /// volume (wholly outside it, or outside its region): nothing is committed, `version` and
+    /// `previous` are the current version, and the change feed announces nothing.
+    #[serde(default = "committed_by_default")]
+    pub committed: bool,
+}
+
+/// Answers from servers before `committed` existed made a version each.
+fn committed_by_default() -> bool {
+    true
 }
 
 /// One committed version as the change feed announces it.

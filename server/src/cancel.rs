@@ -50,6 +50,11 @@ impl CancelToken {
         }
     }
 
+    /// When the work must stop, and the limit that deadline came from (`None`: no deadline).
+    pub fn deadline(&self) -> Option<(Instant, Duration)> {
+        self.deadline
+    }
+
     /// Raises the flag: every holder's next [`CancelToken::check`] fails.
     pub fn cancel(&self) {
         self.flag.store(true, Ordering::Release);

@@ -21,12 +21,14 @@
 //! - [`progress`]: how long jobs report progress.
 //! - [`cancel`]: stopping long CPU work (an edit past its deadline, a client gone, shutdown).
 //! - [`client_tls`]: TLS for outgoing requests (imports over https, the object store).
+//! - [`decimal`]: numbers in URLs, read in their one canonical spelling.
 
 #![warn(missing_docs)]
 
 pub mod cancel;
 pub mod catalog;
 pub mod client_tls;
+pub mod decimal;
 pub mod formats;
 pub mod generate;
 pub mod geometry;

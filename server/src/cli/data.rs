@@ -138,6 +138,7 @@ pub(crate) struct GenerateArgs {
     /// Voxels per axis: X,Y,Z.
     #[arg(long, value_parser = parse_dims, default_value = "256,256,256")]
     pub dims: [u32; 3],
+    /// Voxel type: u8 (values 0..255) or u16 (0..65535, little endian).
     #[arg(long = "type", value_enum, default_value_t = TypeArg::U8)]
     pub voxel_type: TypeArg,
     /// Brick edge in voxels, a power of two.
@@ -163,9 +164,13 @@ pub(crate) struct InspectArgs {
 pub(crate) struct GetArgs {
     /// A VOD 2 or VOD 1 file.
     pub input: PathBuf,
+    /// Level of detail (0 = full resolution; each level above halves every axis).
     pub level: u8,
+    /// The brick's x in the level's brick grid (brick units, not voxels).
     pub x: u32,
+    /// The brick's y in the level's brick grid.
     pub y: u32,
+    /// The brick's z in the level's brick grid.
     pub z: u32,
     /// Write here instead of stdout.
     #[arg(short, long)]
@@ -411,7 +416,15 @@ pub(super) fn export(a: ExportArgs) -> anyhow::Result<()> {
             write_through_tmp(&a.output, |out| {
                 write_vod1(&snap, true, out)?;
                 Ok(())
-            })
+            })?;
+            out!(
+                "{}: VOD 1 of version {}, levels 0..{}: {} bytes",
+                a.output.display(),
+                snap.version,
+                snap.layout().levels() - 1,
+                file_bytes(&a.output)?
+            )?;
+            Ok(())
         }
         ExportFormat::Raw | ExportFormat::Rawvox => {
             let layout = snap.layout();
@@ -436,9 +449,35 @@ pub(super) fn export(a: ExportArgs) -> anyhow::Result<()> {
                 }
                 export_raw(&snap, a.level, region, out, &progress("exporting"))?;
                 Ok(())
-            })
+            })?;
+            let dims = [0, 1, 2].map(|i| region.max[i].saturating_sub(region.min[i]));
+            out!(
+                "{}: {} of version {}, level {}, voxels {},{},{}..{},{},{} ({} x {} x {}): {} bytes",
+                a.output.display(),
+                if a.format == ExportFormat::Rawvox { "RAWVOX" } else { "RAW" },
+                snap.version,
+                a.level,
+                region.min[0],
+                region.min[1],
+                region.min[2],
+                region.max[0],
+                region.max[1],
+                region.max[2],
+                dims[0],
+                dims[1],
+                dims[2],
+                file_bytes(&a.output)?
+            )?;
+            Ok(())
         }
     }
+}
+
+/// The size of the file at `path`, for what a command reports it wrote.
+fn file_bytes(path: &Path) -> anyhow::Result<u64> {
+    Ok(std::fs::metadata(path)
+        .with_context(|| format!("cannot read {}", path.display()))?
+        .len())
 }
 
 /// Writes `output` through `write`, into a temporary file beside it renamed into place when

@@ -10,9 +10,10 @@ use std::path::PathBuf;
 pub(crate) struct EditArgs {
     /// The VOD 2 file to edit.
     pub input: PathBuf,
-    /// An edit request as JSON (docs/icvg.md), e.g. {"op": "difference", "term": {...}}; `-`
-    /// reads it from stdin.
-    pub edit: Option<PathBuf>,
+    /// The edit request (docs/icvg.md): inline JSON when it starts with `{`, e.g.
+    /// '{"op": "difference", "term": {...}}'; `-` reads it from stdin; anything else is the
+    /// path of a JSON file holding it.
+    pub edit: Option<String>,
     /// Operator for the shorthand primitives below.
     #[arg(long, default_value = "difference")]
     pub op: String,
@@ -51,17 +52,25 @@ fn request(a: &EditArgs) -> anyhow::Result<EditRequest> {
         _ => bail!("give one shorthand primitive at a time"),
     };
     match (&a.edit, shorthand) {
-        (Some(_), Some(_)) => bail!("give either an edit file or a shorthand primitive, not both"),
-        (Some(path), None) => {
-            let text = if path.as_os_str() == "-" {
-                std::io::read_to_string(std::io::stdin())
-                    .context("cannot read the edit from stdin")?
+        (Some(_), Some(_)) => {
+            bail!("give either an edit (JSON or a file) or a shorthand primitive, not both")
+        }
+        (Some(given), None) => {
+            // A path never starts with `{` in practice, and JSON text always does: so the
+            // argument that `edit --help` shows (inline JSON) works as it reads.
+            let (text, what) = if given.trim_start().starts_with('{') {
+                (given.clone(), "the edit given".to_string())
+            } else if given == "-" {
+                let text = std::io::read_to_string(std::io::stdin())
+                    .context("cannot read the edit from stdin")?;
+                (text, "the edit read from stdin".to_string())
             } else {
-                std::fs::read_to_string(path)
-                    .with_context(|| format!("cannot read {}", path.display()))?
+                let text = std::fs::read_to_string(given)
+                    .with_context(|| format!("cannot read the edit file {given}"))?;
+                (text, given.clone())
             };
             serde_json::from_str(&text)
-                .with_context(|| format!("{} is not a valid edit request", path.display()))
+                .with_context(|| format!("{what} is not a valid edit request"))
         }
         (None, Some(term)) => Ok(EditRequest {
             op: a.op.clone(),
@@ -71,7 +80,7 @@ fn request(a: &EditArgs) -> anyhow::Result<EditRequest> {
             region: None,
         }),
         (None, None) => {
-            bail!("give an edit file (JSON) or a shorthand such as --ellipsoid CX,CY,CZ,RX,RY,RZ")
+            bail!("give an edit (inline JSON, a JSON file or - for stdin) or a shorthand such as --ellipsoid CX,CY,CZ,RX,RY,RZ")
         }
     }
 }
@@ -80,6 +89,13 @@ pub(super) fn edit(a: EditArgs) -> anyhow::Result<()> {
     let req = request(&a)?;
     let outcome =
         edit_file(&a.input, &req).with_context(|| format!("cannot edit {}", a.input.display()))?;
+    if !outcome.committed {
+        eprintln!(
+            "the edit reaches no voxel of {}: nothing changed, no version committed (still {})",
+            a.input.display(),
+            outcome.version
+        );
+    }
     out!("{}", serde_json::to_string(&outcome)?)?;
     Ok(())
 }

@@ -108,7 +108,9 @@ pub(crate) fn is_broken_pipe(e: &anyhow::Error) -> bool {
 /// Voxel type as a command-line value.
 #[derive(Debug, Clone, Copy, ValueEnum)]
 pub enum TypeArg {
+    /// 8-bit voxels.
     U8,
+    /// 16-bit voxels, little endian.
     U16,
 }
 

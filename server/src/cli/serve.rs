@@ -76,7 +76,8 @@ pub(crate) struct ServeArgs {
     #[arg(long, env = "ISOVOX_MAX_EDIT_VOXELS", default_value_t = 1 << 28)]
     pub max_edit_voxels: u64,
     /// Seconds that compiling an edit, and then evaluating it, may each take; past it the edit
-    /// is stopped (nothing committed, the volume's writer freed) and answered with 422.
+    /// is stopped (nothing committed, the volume's writer freed) and answered with 422 (503 with
+    /// Retry-After when the time ran out waiting on an object store).
     #[arg(long, env = "ISOVOX_EDIT_TIMEOUT", default_value_t = 30.0)]
     pub edit_timeout: f64,
     /// Serve HTTPS (HTTP/2 and HTTP/1.1) with this PEM certificate chain; needs --tls-key.
@@ -219,12 +220,25 @@ fn open_catalog(a: &ServeArgs) -> anyhow::Result<Catalog> {
     Ok(catalog)
 }
 
+/// Creates the data directory when it does not exist, saying so: a mistyped `--data` would
+/// otherwise go unnoticed, serving a fresh demo world beside the real one.
+fn create_data_dir(dir: &Path) -> anyhow::Result<()> {
+    if dir.is_dir() {
+        return Ok(());
+    }
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let full = std::fs::canonicalize(dir).unwrap_or_else(|_| dir.to_path_buf());
+    tracing::warn!(
+        data = %full.display(),
+        "created a new, empty data directory (check --data if you meant an existing one)"
+    );
+    Ok(())
+}
+
 pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
-    std::fs::create_dir_all(&a.data)
-        .with_context(|| format!("cannot create {}", a.data.display()))?;
-    let catalog = open_catalog(&a)?;
-    let tokens = load_tokens(&a)?;
-    let followed: Vec<_> = catalog.iter().map(|(_, v)| v.clone()).collect();
+    // Everything that can be checked without touching the disk is, and the port is bound, before
+    // anything is created: a server that cannot start leaves nothing behind (no data directory,
+    // demo world or token file).
     let tls = match (&a.tls_cert, &a.tls_key) {
         (Some(cert), Some(key)) => {
             Some(isovox_server::http::tls::config(cert, key).map_err(anyhow::Error::msg)?)
@@ -256,10 +270,14 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
         .enable_all()
         .build()
         .context("cannot start the async runtime")?;
+    let listener = runtime
+        .block_on(tokio::net::TcpListener::bind(a.addr.as_str()))
+        .with_context(|| format!("cannot listen on {}", a.addr))?;
+    create_data_dir(&a.data)?;
+    let catalog = open_catalog(&a)?;
+    let tokens = load_tokens(&a)?;
+    let followed: Vec<_> = catalog.iter().map(|(_, v)| v.clone()).collect();
     let served = runtime.block_on(async {
-        let listener = tokio::net::TcpListener::bind(a.addr.as_str())
-            .await
-            .with_context(|| format!("cannot listen on {}", a.addr))?;
         let addr = listener.local_addr()?;
         let names: Vec<&str> = catalog.iter().map(|(n, _)| n).collect();
         let scheme = if tls.is_some() { "https" } else { "http" };

@@ -26,6 +26,7 @@ pub(crate) enum FillArg {
 pub(crate) struct VoxelizeArgs {
     /// The model: .stl (binary or ASCII), .obj, .ply, .gltf or .glb; it must be watertight.
     pub model: PathBuf,
+    /// Output VOD 2 file.
     #[arg(short, long)]
     pub output: PathBuf,
     /// Voxels along the model's longest bounding-box side.
@@ -34,13 +35,16 @@ pub(crate) struct VoxelizeArgs {
     /// Samples per voxel and axis for the density (2: the paper's 2x2x2 box filter).
     #[arg(long, default_value_t = 2)]
     pub supersample: u32,
+    /// How a voxel's value is decided from the model.
     #[arg(long, value_enum, default_value_t = FillArg::Density)]
     pub fill: FillArg,
     /// Voxels of L around the model, so its surface is closed inside the volume.
     #[arg(long, default_value_t = 2)]
     pub padding: u32,
+    /// Voxel type: u8 (values 0..255) or u16 (0..65535, little endian).
     #[arg(long = "type", value_enum, default_value_t = TypeArg::U8)]
     pub voxel_type: TypeArg,
+    /// Brick edge in voxels, a power of two.
     #[arg(long, default_value_t = 32)]
     pub brick: u32,
     /// Voxelize even if some edges are used by an odd number of triangles (parity decides).

@@ -11,9 +11,11 @@
 //! A raw chunk is the voxels x fastest, then y, then z (little endian), as a brick is; chunks
 //! at the volume's far faces are cropped (`x1 = min(x0 + b, size)`), as Neuroglancer checks the
 //! byte count. A range that is not a chunk's (misaligned, wrong end) is a 400; a chunk past the
-//! level's extent or a level the volume does not have is a 404.
+//! level's extent, a level the volume does not have, or a number spelled other than in plain
+//! decimal (`+0`, `00`, `%30`: one URL per chunk) is a 404.
 
 use super::view::{level_segment, Chunk, ChunkEncoding, Document, ViewError};
+use crate::decimal::NotCanonical;
 use crate::store::Snapshot;
 use isovox_proto::VolumeLayout;
 use serde_json::{json, Value};
@@ -96,14 +98,24 @@ fn parse_chunk(
             "{name:?} is not a chunk name: {{x0}}-{{x1}}_{{y0}}-{{y1}}_{{z0}}-{{z1}} expected"
         ))
     };
+    // One spelling per chunk (`crate::decimal`): a range spelled with a sign, a leading zero or
+    // an escape names no chunk (404); one that is no numbers at all is malformed (400).
+    let number = |s: &str| {
+        crate::decimal::parse::<u32>(s).map_err(|e| match e {
+            NotCanonical::OtherSpelling => ViewError::NoSuchDocument(format!(
+                "no chunk {name:?}: its numbers are spelled in plain decimal, without a sign, \
+                 leading zeros or escapes"
+            )),
+            NotCanonical::NotANumber => malformed(),
+        })
+    };
     let ranges: Vec<(u32, u32)> = name
         .split('_')
         .map(|r| {
-            let (lo, hi) = r.split_once('-')?;
-            Some((lo.parse().ok()?, hi.parse().ok()?))
+            let (lo, hi) = r.split_once('-').ok_or_else(malformed)?;
+            Ok((number(lo)?, number(hi)?))
         })
-        .collect::<Option<_>>()
-        .ok_or_else(malformed)?;
+        .collect::<Result<_, ViewError>>()?;
     if ranges.len() != 3 {
         return Err(malformed());
     }
@@ -191,5 +203,12 @@ mod tests {
             parse_chunk(&l, 1, "128-160_0-32_0-32"),
             Err(ViewError::NoSuchDocument(_))
         ));
+        // Chunk 0-32_0-32_0-32 has one name: other spellings of its numbers name nothing.
+        for other in ["+0-+32_0-32_0-32", "00-032_0-32_0-32", "0-32_0-32_0-3%32"] {
+            assert!(
+                matches!(parse_chunk(&l, 0, other), Err(ViewError::NoSuchDocument(_))),
+                "{other}"
+            );
+        }
     }
 }

@@ -377,13 +377,12 @@ pub fn resolve<'s>(
     }
 }
 
-/// The level a path segment names, if the volume has it.
+/// The level a path segment (as sent: see [`crate::decimal`]) names, if the volume has it.
 pub(crate) fn level_segment(snap: &Snapshot, segment: &str) -> Result<u8, ViewError> {
     let levels = snap.layout().levels();
-    segment
-        .parse::<u8>()
+    crate::decimal::parse::<u8>(segment)
         .ok()
-        .filter(|l| *l < levels && (segment == "0" || !segment.starts_with('0')))
+        .filter(|l| *l < levels)
         .ok_or_else(|| {
             ViewError::NoSuchDocument(format!(
                 "no level {segment:?}: the volume has levels 0..{}",

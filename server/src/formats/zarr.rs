@@ -120,16 +120,27 @@ pub fn document<'s>(snap: &'s Snapshot, name: &str, path: &str) -> Result<Docume
         ))),
         [Some(level), Some("c"), Some(z), Some(y), Some(x), None] => {
             let level = level_segment(snap, level)?;
-            let coord = |s: &str| s.parse::<u32>().ok();
+            // One spelling per chunk (`crate::decimal`): `01` or `+1` is no chunk.
+            let coord = |s: &str| crate::decimal::parse::<u32>(s).ok();
             let key = match (coord(x), coord(y), coord(z)) {
                 (Some(x), Some(y), Some(z)) => layout.key(level, x, y, z).ok(),
                 _ => None,
             }
             .ok_or_else(|| {
                 let [gx, gy, gz] = layout.grid(level);
-                ViewError::NoSuchDocument(format!(
-                    "no chunk {z}/{y}/{x} at level {level}: its chunk grid (z, y, x) is {gz} x {gy} x {gx}"
-                ))
+                let spelled_otherwise = [x, y, z].iter().any(|s| {
+                    crate::decimal::parse::<u32>(s) == Err(crate::decimal::NotCanonical::OtherSpelling)
+                });
+                ViewError::NoSuchDocument(if spelled_otherwise {
+                    format!(
+                        "no chunk {z}/{y}/{x}: chunk coordinates are spelled in plain decimal, \
+                         without a sign, leading zeros or escapes"
+                    )
+                } else {
+                    format!(
+                        "no chunk {z}/{y}/{x} at level {level}: its chunk grid (z, y, x) is {gz} x {gy} x {gx}"
+                    )
+                })
             })?;
             let stored = snap.stored(key)?;
             if matches!(stored, StoredBrick::Constant(0)) {

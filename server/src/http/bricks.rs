@@ -5,7 +5,7 @@
 //! `Accept: application/x-lz4`, else the raw voxels. These are the hottest routes by far, so
 //! the code avoids per-request work the other routes do not mind (see the comments).
 
-use super::extract::{Path, Query};
+use super::extract::{Named, Path, RawPath, VersionParam};
 use super::{ApiError, AppState};
 use crate::store::decoded::Form;
 use crate::store::{Snapshot, StoredBrick};
@@ -15,19 +15,21 @@ use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use isovox_proto::vod2::Codec;
 use isovox_proto::VolumeLayout;
-use serde::Deserialize;
 
 /// The media type of an lz4 block (lz4_flex block format, decoding to one brick).
 pub const LZ4_MEDIA_TYPE: &str = "application/x-lz4";
 
-/// `{name}/bricks/{level}/{x}/{y}/{z}`.
-pub type BrickPath = (String, u8, u32, u32, u32);
-
-/// `?version=N`.
-#[derive(Debug, Deserialize)]
-pub struct VersionQuery {
-    /// The version to read; the newest when absent.
-    pub version: Option<u64>,
+/// `{level}/{x}/{y}/{z}` of a brick or tile route, as sent (see [`crate::decimal`]).
+///
+/// # Errors
+/// 404 for a number spelled otherwise, 400 for one that is not a number.
+pub(super) fn brick_position(raw: &RawPath) -> Result<(u8, u32, u32, u32), ApiError> {
+    Ok((
+        raw.number("level")?,
+        raw.number("x")?,
+        raw.number("y")?,
+        raw.number("z")?,
+    ))
 }
 
 /// One brick.
@@ -41,16 +43,18 @@ pub struct VersionQuery {
 /// - `?version=N` reads an older version while the file still holds it.
 pub async fn brick(
     State(state): State<AppState>,
-    Path((name, level, x, y, z)): Path<BrickPath>,
-    Query(query): Query<VersionQuery>,
+    Path(Named { name }): Path<Named>,
+    raw: RawPath,
+    VersionParam(version): VersionParam,
     // The request itself, not a `HeaderMap` extractor (which clones every header).
     request: Request,
 ) -> Result<Response, ApiError> {
+    let position = brick_position(&raw)?;
     brick_at(
         &state,
         state.catalog.get(&name)?,
-        query.version,
-        (level, x, y, z),
+        version,
+        position,
         request.headers(),
     )
 }

@@ -44,14 +44,18 @@ pub async fn edit(
     let response = vol
         .submit(edit, if_match, cancel, state.group_commit())
         .await?;
-    tracing::info!(
-        volume = %name,
-        token = %token.name,
-        version = response.version,
-        changed = response.changed.iter().map(Vec::len).sum::<usize>(),
-        elapsed_us = response.elapsed_us,
-        "edit committed"
-    );
+    if response.committed {
+        tracing::info!(
+            volume = %name,
+            token = %token.name,
+            version = response.version,
+            changed = response.changed.iter().map(Vec::len).sum::<usize>(),
+            elapsed_us = response.elapsed_us,
+            "edit committed"
+        );
+    } else {
+        tracing::info!(volume = %name, token = %token.name, version = response.version, "edit reaches nothing in the volume; nothing committed");
+    }
     Ok(Json(response))
 }
 

@@ -33,6 +33,14 @@ pub enum ApiError {
     UnsupportedMedia(String),
     /// Too much work queued: retry after this many seconds.
     Overloaded(u32),
+    /// A system the request waited on (the object store) did not answer in time: 503 with
+    /// `Retry-After`, the cause logged as a warning (not the client's fault, not a bug).
+    Stalled {
+        /// What stalled, for the log and the detail.
+        cause: String,
+        /// Seconds to wait before retrying.
+        retry_after: u32,
+    },
     /// No credentials, or unknown ones (401, with `WWW-Authenticate: Bearer`).
     Unauthorized(String),
     /// Valid credentials without the right (403).
@@ -65,6 +73,11 @@ impl From<StoreError> for ApiError {
             StoreError::BadInput(detail) => ApiError::BadRequest(detail),
             // Writers on other replicas kept winning: come back in a second.
             StoreError::HeadMoved { .. } => ApiError::Overloaded(1),
+            // Come back after about as long as was waited: a stall is rarely shorter.
+            StoreError::Stalled { limit } => ApiError::Stalled {
+                cause: e.to_string(),
+                retry_after: limit.as_secs_f64().ceil().clamp(1.0, 60.0) as u32,
+            },
             StoreError::Io { .. }
             | StoreError::ObjectStore { .. }
             | StoreError::Format(_)
@@ -192,6 +205,16 @@ impl IntoResponse for ApiError {
                 );
                 r.headers_mut()
                     .insert(header::RETRY_AFTER, HeaderValue::from(after));
+                r
+            }
+            ApiError::Stalled { cause, retry_after } => {
+                tracing::warn!(%cause, retry_after, "answered 503: the store stalled");
+                let mut r = problem(
+                    StatusCode::SERVICE_UNAVAILABLE,
+                    format!("{cause}; nothing was committed; retry in {retry_after} s"),
+                );
+                r.headers_mut()
+                    .insert(header::RETRY_AFTER, HeaderValue::from(retry_after));
                 r
             }
             ApiError::Unauthorized(d) => {

@@ -4,9 +4,13 @@
 
 use super::request_body::read_json;
 use super::ApiError;
-use axum::extract::{FromRequest, FromRequestParts, Request};
+use crate::decimal::{self, NotCanonical};
+use axum::extract::{FromRequest, FromRequestParts, MatchedPath, Request};
 use axum::http::request::Parts;
+use axum::http::Uri;
 use serde::de::DeserializeOwned;
+use serde::Deserialize;
+use std::str::FromStr;
 
 /// Path parameters ([`axum::extract::Path`]); 400 when they do not parse.
 #[derive(Debug)]
@@ -23,6 +27,122 @@ where
         let axum::extract::Path(value) =
             axum::extract::Path::<T>::from_request_parts(parts, state).await?;
         Ok(Path(value))
+    }
+}
+
+/// The `{name}` parameter of a route whose other parameters are read from [`RawPath`].
+#[derive(Debug, Deserialize)]
+pub struct Named {
+    /// The volume's name (percent-decoded).
+    pub name: String,
+}
+
+/// A route's path parameters as the client spelled them (not percent-decoded): for what must be
+/// read exactly as sent, numbers (one spelling each, [`crate::decimal`]) and a view's path
+/// within the view (`zarr%2Ejson` is not `zarr.json`).
+#[derive(Debug)]
+pub struct RawPath {
+    uri: Uri,
+    template: MatchedPath,
+}
+
+impl RawPath {
+    /// Parameter `name` as sent: its segment, or for `{*name}` the rest of the path.
+    pub fn param(&self, name: &str) -> Option<&str> {
+        let (mut template, mut rest) = (self.template.as_str(), self.uri.path());
+        loop {
+            let (t, t_tail) = template.split_once('/').unwrap_or((template, ""));
+            if t.strip_prefix("{*").and_then(|t| t.strip_suffix('}')) == Some(name) {
+                return Some(rest);
+            }
+            let (seg, tail) = rest.split_once('/').unwrap_or((rest, ""));
+            if t.strip_prefix('{').and_then(|t| t.strip_suffix('}')) == Some(name) {
+                return Some(seg);
+            }
+            if template.is_empty() {
+                return None;
+            }
+            (template, rest) = (t_tail, tail);
+        }
+    }
+
+    /// Parameter `name` read as a number: 404 for another spelling of a number, 400 for text
+    /// that is none (as axum's parser answered it).
+    ///
+    /// # Errors
+    /// As said, and 500 if the route has no such parameter (a bug).
+    pub fn number<T: FromStr>(&self, name: &str) -> Result<T, ApiError> {
+        let raw = self.param(name).ok_or_else(|| {
+            ApiError::Internal(format!(
+                "route {} has no {{{name}}}",
+                self.template.as_str()
+            ))
+        })?;
+        number(raw, &format!("{name} in the path"))
+    }
+}
+
+impl<S: Send + Sync> FromRequestParts<S> for RawPath {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, _state: &S) -> Result<Self, ApiError> {
+        let template = parts
+            .extensions
+            .get::<MatchedPath>()
+            .cloned()
+            .ok_or_else(|| ApiError::Internal("a routed request without its route".into()))?;
+        Ok(RawPath {
+            uri: parts.uri.clone(),
+            template,
+        })
+    }
+}
+
+/// `raw` (as sent) as a number, `what` naming it in the error.
+fn number<T: FromStr>(raw: &str, what: &str) -> Result<T, ApiError> {
+    decimal::parse(raw).map_err(|e| match e {
+        NotCanonical::OtherSpelling => ApiError::NotFound(format!(
+            "{what} is {raw:?}: numbers in URLs are plain decimal digits without a sign, \
+             leading zeros or escapes, and no other spelling names anything"
+        )),
+        NotCanonical::NotANumber => {
+            ApiError::BadRequest(format!("malformed {what}: {raw:?} is not a number"))
+        }
+    })
+}
+
+/// Query parameter `key` of `uri` read as a number, as sent (see [`crate::decimal`]); `None`
+/// when the query does not have it.
+///
+/// # Errors
+/// 404 for another spelling of a number, 400 for text that is none or a parameter given twice.
+pub fn query_number<T: FromStr>(uri: &Uri, key: &str) -> Result<Option<T>, ApiError> {
+    let mut values = uri
+        .query()
+        .unwrap_or_default()
+        .split('&')
+        .filter_map(|pair| pair.split_once('=').filter(|(k, _)| *k == key));
+    let Some((_, raw)) = values.next() else {
+        return Ok(None);
+    };
+    if values.next().is_some() {
+        return Err(ApiError::BadRequest(format!(
+            "malformed query: {key} is given more than once"
+        )));
+    }
+    number(raw, &format!("?{key}")).map(Some)
+}
+
+/// `?version=N`: the version to read, the newest when absent; `N` read as [`query_number`]
+/// says.
+#[derive(Debug, Clone, Copy)]
+pub struct VersionParam(pub Option<u64>);
+
+impl<S: Send + Sync> FromRequestParts<S> for VersionParam {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, _state: &S) -> Result<Self, ApiError> {
+        query_number(&parts.uri, "version").map(VersionParam)
     }
 }
 

@@ -6,10 +6,10 @@
 //! through axum (five path parameters decoded into ten reference-counted strings, a boxed
 //! service and a boxed future per request) cost about a tenth of its throughput. So
 //! [`BrickFirst`] answers plain requests for it itself: `GET`, no query, a volume name without
-//! escapes, numbers in plain digits, reads not private. It answers them with the routed
-//! handler's own [`bricks::brick_at`], and only when that succeeds: every other request,
-//! and every request that would fail, goes to the router, so error responses are decided in
-//! one place.
+//! escapes, numbers in their one canonical spelling (`crate::decimal`), reads not private. It
+//! answers them with the routed handler's own [`bricks::brick_at`], and only when that
+//! succeeds: every other request, and every request that would fail, goes to the router, so
+//! error responses are decided in one place.
 //!
 //! The live OME-Zarr and precomputed views are read the same way (tensorstore reading a level
 //! whole asks for every chunk, a third of them absent): a plain `GET` of a document that takes
@@ -211,12 +211,9 @@ fn parse(request: &Request) -> Option<(&str, u8, u32, u32, u32)> {
     Some((name, u8::try_from(level).ok()?, x, y, z))
 }
 
-/// Plain decimal digits (no sign, no escapes), as the router's parser would read them.
+/// A number in its one spelling (`crate::decimal`), as the router reads them.
 fn number(segment: &str) -> Option<u32> {
-    if segment.is_empty() || !segment.bytes().all(|b| b.is_ascii_digit()) {
-        return None;
-    }
-    segment.parse().ok()
+    crate::decimal::parse(segment).ok()
 }
 
 /// The response to a plain brick request that succeeds, else `None`.
@@ -293,6 +290,8 @@ mod tests {
             "/v1/volumes/world/bricks/2/10/0/4294967296",
             "/v1/volumes/world/bricks/256/0/0/0",
             "/v1/volumes/world/bricks/0/+1/0/0",
+            "/v1/volumes/world/bricks/0/01/0/0",
+            "/v1/volumes/world/bricks/00/1/0/0",
             "/v1/volumes/world/bricks/0/-1/0/0",
             "/v1/volumes/world/bricks/0/1/0",
             "/v1/volumes/world/bricks/0/1/0/0/",

@@ -1,9 +1,9 @@
 //! The read handlers beyond single bricks (those are in `bricks.rs`): what is served, many
 //! bricks at once, levels, mesh tiles. Each extracts, calls the volume and maps the result.
 
-use super::bricks::{format_etag, if_none_match, BrickPath};
+use super::bricks::{brick_position, format_etag, if_none_match};
 use super::compression::{accepts_zstd, Body};
-use super::extract::{Json, Path, Query};
+use super::extract::{Json, Named, Path, Query, RawPath, VersionParam};
 use super::{ApiError, AppState};
 use crate::mesh::cache::MeshCache;
 use crate::store::decoded::DecodedBricks;
@@ -61,8 +61,7 @@ pub async fn volume_info(
 /// Query of a mesh tile.
 #[derive(Debug, Deserialize)]
 pub struct MeshQuery {
-    /// The version to read; the newest when absent.
-    pub version: Option<u64>,
+    // `?version=N` is read as sent, by `VersionParam`.
     /// Iso value; default S - 0.5.
     pub iso: Option<f32>,
     /// `compact` (the default) or `glb`.
@@ -112,20 +111,23 @@ impl TileFormat {
 /// [`validate`] says.
 pub async fn mesh_tile(
     State(state): State<AppState>,
-    Path((name, level, x, y, z)): Path<BrickPath>,
+    Path(Named { name }): Path<Named>,
+    raw: RawPath,
+    VersionParam(version): VersionParam,
     Query(query): Query<MeshQuery>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     let format = query.format;
+    let position = brick_position(&raw)?;
     let tile = state
         .catalog
         .get(&name)?
-        .mesh_tile(query.version, (level, x, y, z), query.iso)?;
+        .mesh_tile(version, position, query.iso)?;
     let tag = tile.tag(format as u8);
     answer_mesh(
         &state,
         tag,
-        query.version,
+        version,
         &headers,
         format.media_type(),
         move |meshes, bricks| Ok(format.encode(&tile.mesh(meshes, bricks)?)),
@@ -162,8 +164,15 @@ async fn answer_mesh(
     Ok(body.respond(media_type, response_headers))
 }
 
-/// The path of a transition strip: a tile's and its face.
-pub type StripPath = (String, u8, u32, u32, u32, String);
+/// The path parameters of a transition strip read as text: the volume and the face (the
+/// tile's numbers are read as sent, by [`RawPath`]).
+#[derive(Debug, Deserialize)]
+pub struct StripPath {
+    /// The volume.
+    pub name: String,
+    /// The face, one of [`isovox_proto::mesh::FACE_NAMES`].
+    pub face: String,
+}
 
 /// Face `name` (one of [`isovox_proto::mesh::FACE_NAMES`]: `-x`, `+x`, `-y`, `+y`, `-z`, `+z`)
 /// as its number.
@@ -186,22 +195,24 @@ fn face_number(name: &str) -> Result<usize, ApiError> {
 /// that can never touch a coarser tile has an empty strip.
 pub async fn mesh_strip(
     State(state): State<AppState>,
-    Path((name, level, x, y, z, face)): Path<StripPath>,
+    Path(StripPath { name, face }): Path<StripPath>,
+    raw: RawPath,
+    VersionParam(version): VersionParam,
     Query(query): Query<MeshQuery>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     let format = query.format;
+    let position = brick_position(&raw)?;
     let face = face_number(&face)?;
-    let strip =
-        state
-            .catalog
-            .get(&name)?
-            .mesh_strip(query.version, (level, x, y, z), face, query.iso)?;
+    let strip = state
+        .catalog
+        .get(&name)?
+        .mesh_strip(version, position, face, query.iso)?;
     let tag = strip.tag(format as u8);
     answer_mesh(
         &state,
         tag,
-        query.version,
+        version,
         &headers,
         format.media_type(),
         move |meshes, bricks| Ok(format.encode_strip(&strip.mesh(meshes, bricks)?)),
@@ -268,8 +279,7 @@ pub async fn batch(
 /// Query of a level.
 #[derive(Debug, Deserialize)]
 pub struct LevelQuery {
-    /// The version to read; the newest when absent.
-    pub version: Option<u64>,
+    // `?version=N` is read as sent, by `VersionParam`.
     /// `MINX,MINY,MINZ,MAXX,MAXY,MAXZ` (max exclusive): bricks for `format=grid`, voxels for
     /// `format=voxels`. The whole level by default.
     pub region: Option<String>,
@@ -309,10 +319,13 @@ fn parse_region(s: &str) -> Result<([u64; 3], [u64; 3]), ApiError> {
 /// [`validate`] says.
 pub async fn level(
     State(state): State<AppState>,
-    Path((name, level)): Path<(String, u8)>,
+    Path(Named { name }): Path<Named>,
+    raw: RawPath,
+    VersionParam(version): VersionParam,
     Query(query): Query<LevelQuery>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
+    let level = raw.number("level")?;
     let form = match query.format.as_deref() {
         None | Some("grid") => LevelForm::Grid,
         Some("voxels") => LevelForm::Voxels,
@@ -326,8 +339,8 @@ pub async fn level(
     let read = state
         .catalog
         .get(&name)?
-        .level(query.version, level, form, region)?;
-    let response_headers = match validate(read.tag(), query.version, &headers) {
+        .level(version, level, form, region)?;
+    let response_headers = match validate(read.tag(), version, &headers) {
         Validated::NotModified(response) => return Ok(response),
         Validated::Changed(response_headers) => response_headers,
     };

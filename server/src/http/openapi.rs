@@ -285,9 +285,10 @@ fn write_side(name: Value, limits: &TermLimits) -> (Value, Value) {
     let event = json!({"type": "object", "required": ["version", "timestamp_ms", "changed"],
         "properties": {"version": {"type": "integer"}, "timestamp_ms": {"type": "integer"}, "changed": changed}});
     let mut schemas = json!({
-        "EditResponse": {"type": "object", "required": ["version", "previous", "changed", "evaluated", "new_records", "checkpoint", "elapsed_us"],
+        "EditResponse": {"type": "object", "required": ["version", "previous", "changed", "evaluated", "new_records", "checkpoint", "elapsed_us", "committed"],
             "properties": {"version": {"type": "integer"}, "previous": {"type": "integer"}, "changed": changed,
-                "evaluated": {"type": "integer"}, "new_records": {"type": "integer"}, "checkpoint": {"type": "boolean"}, "elapsed_us": {"type": "integer"}}},
+                "evaluated": {"type": "integer"}, "new_records": {"type": "integer"}, "checkpoint": {"type": "boolean"}, "elapsed_us": {"type": "integer"},
+                "committed": {"type": "boolean", "description": "false for an edit that reaches no voxel of the volume: nothing committed, version is the current one"}}},
         "ChangeEvent": event,
         "MeshInfo": {"type": "object", "required": ["hash", "triangles", "vertices", "min", "max"],
             "properties": {"hash": {"type": "string"}, "triangles": {"type": "integer"}, "vertices": {"type": "integer"},

@@ -9,6 +9,10 @@
 //!   the same documents of one version, which never change:
 //!   `Cache-Control: public, max-age=31536000, immutable`.
 //!
+//! The path within the view and the pinned version are read as the client spelled them: a
+//! number only in its canonical decimal spelling, nothing percent-escaped (`crate::decimal`),
+//! so each document has one URL and caches keep one copy of it.
+//!
 //! A Zarr chunk of fill values only answers 404 (clients read it as the fill value) with the
 //! same caching headers as a chunk. A chunk that must be decoded or compressed (not stored as a
 //! frame that goes out as it is, not in the shared cache) is made on the CPU queue, waiting up
@@ -16,7 +20,7 @@
 
 use super::bricks::{format_etag, if_none_match};
 use super::cpu::Admission;
-use super::extract::Path;
+use super::extract::{Named, Path, RawPath};
 use super::{ApiError, AppState};
 use crate::formats::view::{read, ViewAnswer, ViewBody, ViewRead};
 use crate::formats::{ViewError, ViewKind};
@@ -36,58 +40,65 @@ const PINNED: &str = "public, max-age=31536000, immutable";
 /// first read took several times longer than with a short wait for a place.
 const CHUNK_PATIENCE: std::time::Duration = std::time::Duration::from_secs(1);
 
-/// `{name}/zarr/{*path}` and `{name}/precomputed/{*path}`.
-type LivePath = Path<(String, String)>;
-/// `{name}/versions/{version}/zarr/{*path}` and `.../precomputed/{*path}`.
-type PinnedPath = Path<(String, u64, String)>;
-
 /// `GET /v1/volumes/{name}/zarr/{*path}`.
 pub async fn zarr(
     State(state): State<AppState>,
-    Path((name, path)): LivePath,
+    Path(Named { name }): Path<Named>,
+    raw: RawPath,
     request: Request,
 ) -> Result<Response, ApiError> {
-    view(&state, ViewKind::Zarr, &name, None, &path, request).await
+    view(&state, ViewKind::Zarr, &name, false, &raw, request).await
 }
 
 /// `GET /v1/volumes/{name}/precomputed/{*path}`.
 pub async fn precomputed(
     State(state): State<AppState>,
-    Path((name, path)): LivePath,
+    Path(Named { name }): Path<Named>,
+    raw: RawPath,
     request: Request,
 ) -> Result<Response, ApiError> {
-    view(&state, ViewKind::Precomputed, &name, None, &path, request).await
+    view(&state, ViewKind::Precomputed, &name, false, &raw, request).await
 }
 
 /// `GET /v1/volumes/{name}/versions/{version}/zarr/{*path}`.
 pub async fn zarr_pinned(
     State(state): State<AppState>,
-    Path((name, version, path)): PinnedPath,
+    Path(Named { name }): Path<Named>,
+    raw: RawPath,
     request: Request,
 ) -> Result<Response, ApiError> {
-    view(&state, ViewKind::Zarr, &name, Some(version), &path, request).await
+    view(&state, ViewKind::Zarr, &name, true, &raw, request).await
 }
 
 /// `GET /v1/volumes/{name}/versions/{version}/precomputed/{*path}`.
 pub async fn precomputed_pinned(
     State(state): State<AppState>,
-    Path((name, version, path)): PinnedPath,
+    Path(Named { name }): Path<Named>,
+    raw: RawPath,
     request: Request,
 ) -> Result<Response, ApiError> {
-    let kind = ViewKind::Precomputed;
-    view(&state, kind, &name, Some(version), &path, request).await
+    view(&state, ViewKind::Precomputed, &name, true, &raw, request).await
 }
 
-/// Reads the document (made on the CPU queue when it takes work) and answers it.
+/// Reads the document (made on the CPU queue when it takes work) and answers it: `{*path}`, and
+/// `{version}` when `pinned`, as the client spelled them.
 async fn view(
     state: &AppState,
     kind: ViewKind,
     name: &str,
-    version: Option<u64>,
-    path: &str,
+    pinned: bool,
+    raw: &RawPath,
     // The request itself, not a `HeaderMap` extractor (which clones every header).
     request: Request,
 ) -> Result<Response, ApiError> {
+    let version = if pinned {
+        Some(raw.number("version")?)
+    } else {
+        None
+    };
+    let path = raw
+        .param("path")
+        .ok_or_else(|| ApiError::Internal("a view route without {*path}".into()))?;
     let answer = match read(state.catalog.get(name)?, kind, version, path, &state.bricks)? {
         ViewRead::Ready(answer) => answer,
         ViewRead::Make(chunk) => {

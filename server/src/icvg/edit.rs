@@ -63,9 +63,13 @@ pub struct EditOutcome {
     pub new_records: u64,
     /// Whether the commit wrote a full index checkpoint.
     pub checkpoint: bool,
-    /// How long evaluating, storing and committing took.
-    #[serde(serialize_with = "micros")]
+    /// How long evaluating, storing and committing took, in microseconds as an edit's HTTP
+    /// answer says it (`elapsed_us`).
+    #[serde(rename = "elapsed_us", serialize_with = "micros")]
     pub elapsed: Duration,
+    /// Whether a version was committed (`false`: the edit reaches no voxel of the volume, see
+    /// [`Edit::reaches_nothing`]).
+    pub committed: bool,
 }
 
 fn micros<S: serde::Serializer>(d: &Duration, s: S) -> Result<S::Ok, S::Error> {
@@ -212,6 +216,14 @@ impl Edit {
         }
     }
 
+    /// Whether the edit can change no voxel of the volume: its reach (the region, or the term's
+    /// bounds for an operator that keeps what the term leaves out) is wholly outside it. Such an
+    /// edit commits nothing: an empty version would only tell every follower of the change
+    /// feed about nothing.
+    pub fn reaches_nothing(&self, layout: &VolumeLayout) -> bool {
+        self.reach(layout).is_empty()
+    }
+
     /// How many voxels applying the edit evaluates: the level-0 voxels of the bricks it
     /// visits, plus what its term samples besides (mesh leaves, morphology arguments): what an
     /// edit costs, for limits.
@@ -355,6 +367,17 @@ pub fn apply_edit(
     cancel: &CancelToken,
 ) -> Result<EditOutcome, EvalError> {
     let start = Instant::now();
+    if edit.reaches_nothing(snap.layout()) {
+        return Ok(EditOutcome {
+            version: snap.version,
+            changed: vec![Vec::new(); usize::from(snap.layout().levels())],
+            evaluated: 0,
+            new_records: 0,
+            checkpoint: false,
+            elapsed: start.elapsed(),
+            committed: false,
+        });
+    }
     let mut outcome = stage_edit(writer, snap, edit, policy, cancel)?;
     writer.sync()?;
     outcome.elapsed = start.elapsed();
@@ -396,7 +419,12 @@ pub fn stage_edit(
     if few {
         stage()
     } else {
-        rayon::scope(|_| stage())
+        rayon::scope(|_| {
+            // The worker stages the pyramid too, reading from the store: with the edit's bound
+            // on store waits, as this thread has it (`bound_store_waits`).
+            let _bounded = crate::store::remote::bound_store_waits(cancel.deadline());
+            stage()
+        })
     }
 }
 
@@ -418,6 +446,9 @@ fn stage_bricks(
         .with_min_len(BRICKS_PER_JOB)
         .map(|&key| {
             cancel.check()?;
+            // On the rayon pool too, reading a brick from an object store gives up at the
+            // edit's deadline (`bound_store_waits` says why).
+            let _bounded = crate::store::remote::bound_store_waits(cancel.deadline());
             edit_brick(edit, snap, target, key).map(|r| (key, r))
         })
         .collect::<Result<_, _>>()?;
@@ -430,6 +461,7 @@ fn stage_bricks(
     transaction.update_level0(level0)?;
     let staged = transaction.stage(policy)?;
     Ok(EditOutcome {
+        committed: true,
         version: staged.slot.version,
         changed: staged.changed,
         evaluated,

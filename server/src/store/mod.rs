@@ -104,6 +104,14 @@ pub enum StoreError {
         /// The volume.
         url: String,
     },
+    /// The object store did not answer a call within the time the work waiting on it had (an
+    /// edit's `--edit-timeout`): the store stalled, not the caller's fault; the call was given
+    /// up, and nothing it was to write was committed.
+    #[error("the object store did not answer within {limit:?}")]
+    Stalled {
+        /// The time the work had.
+        limit: std::time::Duration,
+    },
     /// A broken invariant of this program: neither the caller's fault nor the file's.
     #[error("internal error: {0}")]
     Internal(String),

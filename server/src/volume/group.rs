@@ -164,6 +164,9 @@ impl LiveVolume {
         cancel: CancelToken,
         settings: GroupCommit,
     ) -> Result<EditResponse, VolumeError> {
+        if let Some(unchanged) = self.unchanged(&edit) {
+            return Ok(unchanged);
+        }
         let (pending, answer) = PendingEdit::new(edit, if_match, cancel);
         {
             let mut queue = self.queue();
@@ -392,11 +395,31 @@ impl LiveVolume {
         if_match: Option<u64>,
         policy: CheckpointPolicy,
     ) -> Result<EditResponse, VolumeError> {
+        if let Some(unchanged) = self.unchanged(&edit) {
+            return Ok(unchanged);
+        }
         let (pending, mut answer) = PendingEdit::new(edit, if_match, CancelToken::never());
         self.commit_group(slot, vec![pending], policy);
         answer.try_recv().map_err(|_| {
             VolumeError::Store(StoreError::Internal("the edit was not answered".into()))
         })?
+    }
+
+    /// The answer to an edit that reaches no voxel of the volume ([`Edit::reaches_nothing`]),
+    /// which is not queued and commits nothing: it names the served version, and the change
+    /// feed announces nothing. `None` for every other edit.
+    fn unchanged(&self, edit: &Edit) -> Option<EditResponse> {
+        let head = self.head();
+        edit.reaches_nothing(head.layout()).then(|| EditResponse {
+            version: head.version,
+            previous: head.version,
+            changed: vec![Vec::new(); usize::from(head.layout().levels())],
+            evaluated: 0,
+            new_records: 0,
+            checkpoint: false,
+            elapsed_us: 0,
+            committed: false,
+        })
     }
 
     /// Serves a durable version: readers get it, the history lists it, the feed announces it.
@@ -459,6 +482,7 @@ fn stage(
         new_records: outcome.new_records,
         checkpoint: outcome.checkpoint,
         elapsed_us: micros(outcome.elapsed),
+        committed: true,
     };
     Ok((Arc::new(next), event, response))
 }

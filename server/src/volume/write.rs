@@ -148,6 +148,9 @@ impl LiveVolume {
         let mut attempt = 0u32;
         let mut lost_races = Backoff::new(LOST_RACE_FIRST_WAIT, LOST_RACE_MAX_WAIT);
         loop {
+            // Store calls give up at the edit's deadline (503, the store's fault) rather than
+            // wait out a stalled store; the head's PUT alone waits on (see its comment).
+            let bounded = crate::store::remote::bound_store_waits(cancel.deadline());
             self.catch_up(slot)?;
             let vod = self.current();
             let head = vod.head();
@@ -160,6 +163,8 @@ impl LiveVolume {
             let mut writer = Vod2Writer::remote(&vod, remote.clone());
             match apply_edit(&mut writer, &head, edit, policy, cancel) {
                 Ok(outcome) => {
+                    // Committed: what follows must not fail for a slow store.
+                    drop(bounded);
                     let committed = writer.head().ok_or_else(|| {
                         StoreError::Internal("a commit left the writer without a head".into())
                     })?;
@@ -193,6 +198,7 @@ fn edit_response(event: ChangeEvent, previous: u64, outcome: &EditOutcome) -> Ed
         new_records: outcome.new_records,
         checkpoint: outcome.checkpoint,
         elapsed_us: outcome.elapsed.as_micros() as u64,
+        committed: true,
     }
 }
 

@@ -16,6 +16,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use crate::common;
+use crate::server_process;
 use common::{brick_count, level_count, mixed_volume, pyramid, Grid};
 
 fn isovox(args: &[&str]) -> Output {
@@ -690,4 +691,238 @@ fn mesh_with_a_camera_writes_one_closed_stitched_glb() {
         .filter(|(&(a, b), &n)| n != 1 || edges.get(&(b, a)) != Some(&1))
         .count();
     assert_eq!(open, 0, "open or repeated edges in the stitched mesh");
+}
+
+/// Runs `isovox edit` with `stdin` as its standard input; must succeed; returns the JSON it
+/// prints and its stderr.
+fn edit_json(args: &[&str], stdin: Option<&str>) -> (Value, String) {
+    use std::io::Write;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_isovox"))
+        .args(args)
+        .env_remove("ISOVOX_LOG")
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut input = child.stdin.take().unwrap();
+    input.write_all(stdin.unwrap_or("").as_bytes()).unwrap();
+    drop(input);
+    let o = child.wait_with_output().unwrap();
+    assert!(o.status.success(), "isovox {args:?} failed: {}", show(&o));
+    let json = serde_json::from_slice(&o.stdout).unwrap_or_else(|e| {
+        panic!("{e}: {}", String::from_utf8_lossy(&o.stdout));
+    });
+    (json, String::from_utf8_lossy(&o.stderr).into_owned())
+}
+
+/// `isovox edit FILE '{...}'`, as `edit --help` shows it, takes the JSON inline; a path to a
+/// JSON file and `-` (stdin) work too. The JSON printed names the time `elapsed_us`, as the
+/// HTTP answer does.
+#[test]
+fn edit_takes_inline_json_a_file_or_stdin() {
+    let dir = tempfile::tempdir().unwrap();
+    let vod = small_vod(dir.path());
+    let body = r#"{"op": "union", "term": {"cuboid": {"origin": [0, 0, 0], "size": [4, 4, 4]}}}"#;
+    let (j, _) = edit_json(&["edit", s(&vod), body], None);
+    assert_eq!(j["version"], 2, "{j}");
+    assert_eq!(j["committed"], true, "{j}");
+    assert!(
+        j["elapsed_us"].is_u64() && j.get("elapsed").is_none(),
+        "{j}"
+    );
+    let file = dir.path().join("edit.json");
+    std::fs::write(&file, body).unwrap();
+    let (j, _) = edit_json(&["edit", s(&vod), s(&file)], None);
+    assert_eq!(j["version"], 3, "{j}");
+    let (j, _) = edit_json(&["edit", s(&vod), "-"], Some(body));
+    assert_eq!(j["version"], 4, "{j}");
+    assert_eq!(inspect_json(&vod)["version"], 4);
+
+    let help = String::from_utf8(ok(&["edit", "--help"])).unwrap();
+    assert!(help.contains("inline JSON"), "{help}");
+    let missing = dir.path().join("missing.json");
+    let e = fails(&["edit", s(&vod), s(&missing)]);
+    assert!(
+        e.contains("cannot read the edit file") && e.contains("missing.json"),
+        "{e}"
+    );
+    let e = fails(&["edit", s(&vod), "{\"op\": \"union\""]);
+    assert!(e.contains("not a valid edit request"), "{e}");
+    assert_eq!(
+        inspect_json(&vod)["version"],
+        4,
+        "failed edits commit nothing"
+    );
+}
+
+/// An edit wholly outside the volume (20 x 12 x 9 voxels) commits nothing: the file is not
+/// touched, the JSON names the current version with `"committed": false`, stderr says why.
+#[test]
+fn an_edit_outside_the_volume_commits_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let vod = small_vod(dir.path());
+    let before = std::fs::read(&vod).unwrap();
+    let (j, stderr) = edit_json(
+        &["edit", s(&vod), "--op", "union", "--cuboid", "24,0,0,4,4,4"],
+        None,
+    );
+    assert_eq!(j["committed"], false, "{j}");
+    assert_eq!(j["version"], 1, "{j}");
+    assert_eq!(j["evaluated"], 0, "{j}");
+    assert!(stderr.contains("nothing changed"), "{stderr}");
+    assert!(
+        std::fs::read(&vod).unwrap() == before,
+        "the file is untouched"
+    );
+    assert_eq!(inspect_json(&vod)["version"], 1);
+}
+
+/// `export` says what it wrote: the file, version, level, voxels and bytes (for a 20 x 12 x 9
+/// u8 volume: 2160 bytes; RAWVOX adds its 20-byte header; level 1 is 10 x 6 x 5).
+#[test]
+fn export_says_what_it_wrote() {
+    let dir = tempfile::tempdir().unwrap();
+    let vod = small_vod(dir.path());
+    let text = |args: &[&str]| String::from_utf8(ok(args)).unwrap();
+    let raw = dir.path().join("out.raw");
+    let said = text(&["export", s(&vod), "-o", s(&raw)]);
+    assert!(said.starts_with(s(&raw)), "{said}");
+    assert!(
+        said.contains("RAW of version 1, level 0")
+            && said.contains("(20 x 12 x 9)")
+            && said.contains(": 2160 bytes"),
+        "{said}"
+    );
+    let rawvox = dir.path().join("out.rawvox");
+    let said = text(&[
+        "export",
+        s(&vod),
+        "-o",
+        s(&rawvox),
+        "--format",
+        "rawvox",
+        "--level",
+        "1",
+    ]);
+    assert!(
+        said.contains("RAWVOX of version 1, level 1")
+            && said.contains("(10 x 6 x 5)")
+            && said.contains(": 320 bytes"),
+        "{said}"
+    );
+    let region = dir.path().join("region.raw");
+    let said = text(&[
+        "export",
+        s(&vod),
+        "-o",
+        s(&region),
+        "--region",
+        "1,2,3,5,6,7",
+    ]);
+    assert!(
+        said.contains("voxels 1,2,3..5,6,7 (4 x 4 x 4): 64 bytes"),
+        "{said}"
+    );
+    let vod1 = dir.path().join("out.vod1");
+    let said = text(&["export", s(&vod), "-o", s(&vod1), "--format", "vod1"]);
+    let bytes = std::fs::metadata(&vod1).unwrap().len();
+    assert!(
+        said.contains("VOD 1 of version 1") && said.contains(&format!(": {bytes} bytes")),
+        "{said}"
+    );
+}
+
+/// The text `--help` gives the argument whose line starts with `spec` (`<LEVEL>`,
+/// `--type <VOXEL_TYPE>`): on that line after it, or (clap's layout for long help) on the next.
+fn help_of(help: &str, spec: &str) -> String {
+    let lines: Vec<&str> = help.lines().collect();
+    let at = lines
+        .iter()
+        .position(|l| {
+            let l = l.trim_start();
+            l.starts_with(spec)
+                || l.split_once(", ")
+                    .is_some_and(|(_, long)| long.starts_with(spec))
+        })
+        .unwrap_or_else(|| panic!("no {spec:?} in {help}"));
+    let rest = lines[at].trim_start();
+    let rest = rest[rest.find(spec).unwrap() + spec.len()..].trim();
+    if rest.is_empty() {
+        lines
+            .get(at + 1)
+            .map(|l| l.trim())
+            .unwrap_or_default()
+            .to_string()
+    } else {
+        rest.to_string()
+    }
+}
+
+/// The arguments that had no help text have one in `--help`.
+#[test]
+fn arguments_have_help_text() {
+    let help = |sub: &str| String::from_utf8(ok(&[sub, "--help"])).unwrap();
+    let cases: [(&str, &str, &str); 9] = [
+        ("get", "<LEVEL>", "Level of detail"),
+        ("get", "<X>", "The brick's x"),
+        ("get", "<Y>", "The brick's y"),
+        ("get", "<Z>", "The brick's z"),
+        ("voxelize", "--output <OUTPUT>", "Output VOD 2 file"),
+        ("voxelize", "--type <VOXEL_TYPE>", "Voxel type"),
+        ("voxelize", "--brick <BRICK>", "Brick edge"),
+        (
+            "voxelize",
+            "--fill <FILL>",
+            "How a voxel's value is decided",
+        ),
+        ("generate", "--type <VOXEL_TYPE>", "Voxel type"),
+    ];
+    for (sub, spec, text) in cases {
+        let said = help_of(&help(sub), spec);
+        assert!(said.starts_with(text), "{sub} {spec}: {said:?}");
+    }
+}
+
+/// `serve` on a port that is taken fails before it creates anything: no data directory, demo
+/// world or token file left behind.
+#[test]
+fn serve_on_a_port_in_use_leaves_nothing_behind() {
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = taken.local_addr().unwrap().to_string();
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let o = Command::new(env!("CARGO_BIN_EXE_isovox"))
+        .args(["serve", "--data", s(&data), "--addr", &addr])
+        .env_remove("ISOVOX_LOG")
+        .env_remove("ISOVOX_TOKEN_FILE")
+        .env_remove("ISOVOX_WRITE_TOKEN")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "served on a taken port: {stderr}");
+    assert!(stderr.contains("cannot listen on"), "{stderr}");
+    assert!(!data.exists(), "{} was created", data.display());
+    drop(taken);
+}
+
+/// `serve --data` naming a directory that does not exist (a typo) says that it created one,
+/// naming it, rather than serving a fresh demo world in silence.
+#[test]
+fn serve_says_when_it_creates_a_data_directory() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("typo");
+    let mut server =
+        server_process::ServerProcess::start(&["--data".as_ref(), data.as_os_str()], &[]);
+    let log = server.stop();
+    assert!(
+        log.contains("created a new, empty data directory") && log.contains("typo"),
+        "{log}"
+    );
+    assert!(data.join("demo.vod").exists());
+    // A second start on the same directory says nothing of the kind.
+    let mut again =
+        server_process::ServerProcess::start(&["--data".as_ref(), data.as_os_str()], &[]);
+    let log = again.stop();
+    assert!(!log.contains("created a new"), "{log}");
 }

@@ -439,3 +439,145 @@ async fn an_export_holds_the_bytes_the_server_sends() {
         assert!(dest.join(meta).exists());
     }
 }
+
+/// Each document has one URL: a number in a path or `?version=` is read only in plain decimal
+/// (no sign, no leading zero, no percent-escape); any other spelling is a 404 problem, and only
+/// the canonical spelling answers 200. (Every spelling used to answer 200, so caches kept one
+/// chunk under many keys; `00` was a 404 where `%30` was a 200.)
+#[tokio::test]
+async fn numbers_in_urls_have_one_spelling() {
+    let s = start().await;
+    // Chunk (z, y, x) = (1, 0, 1) of level 0 is in the constant-7 slab: not the fill value.
+    let cases: [(&str, &[&str]); 9] = [
+        (
+            "zarr/0/c/1/0/1",
+            &[
+                "zarr/0/c/+1/0/1",
+                "zarr/0/c/01/0/1",
+                "zarr/0/c/%31/0/1",
+                "zarr/0/c/1/0/%31",
+                "zarr/0/c/1/00/1",
+                "zarr/%30/c/1/0/1",
+                "zarr/00/c/1/0/1",
+                "zarr/+0/c/1/0/1",
+            ],
+        ),
+        (
+            "zarr/0/zarr.json",
+            &[
+                "zarr/%30/zarr.json",
+                "zarr/+0/zarr.json",
+                "zarr/0/zarr%2Ejson",
+            ],
+        ),
+        (
+            "precomputed/0/0-8_0-8_0-8",
+            &[
+                "precomputed/0/+0-+8_0-8_0-8",
+                "precomputed/0/00-08_0-8_0-8",
+                "precomputed/0/0-8_0-8_0-%38",
+                "precomputed/%30/0-8_0-8_0-8",
+                "precomputed/+0/0-8_0-8_0-8",
+            ],
+        ),
+        (
+            "versions/1/zarr/0/c/1/0/1",
+            &[
+                "versions/+1/zarr/0/c/1/0/1",
+                "versions/01/zarr/0/c/1/0/1",
+                "versions/%31/zarr/0/c/1/0/1",
+                "versions/1/zarr/0/c/01/0/1",
+            ],
+        ),
+        (
+            "versions/1/precomputed/info",
+            &[
+                "versions/+1/precomputed/info",
+                "versions/01/precomputed/info",
+            ],
+        ),
+        (
+            "bricks/0/1/0/0",
+            &[
+                "bricks/+0/1/0/0",
+                "bricks/00/1/0/0",
+                "bricks/0/01/0/0",
+                "bricks/0/+1/0/0",
+                "bricks/0/%31/0/0",
+                "bricks/0/1/0/%30",
+            ],
+        ),
+        (
+            "bricks/0/1/0/0?version=1",
+            &[
+                "bricks/0/1/0/0?version=01",
+                "bricks/0/1/0/0?version=+1",
+                "bricks/0/1/0/0?version=%2B1",
+                "bricks/0/1/0/0?version=%31",
+            ],
+        ),
+        (
+            "meshes/0/1/0/0/strips/+x",
+            &[
+                "meshes/0/01/0/0/strips/+x",
+                "meshes/%30/1/0/0/strips/+x",
+                "meshes/0/1/0/0/strips/+x?version=01",
+            ],
+        ),
+        (
+            "levels/0",
+            &[
+                "levels/00",
+                "levels/+0",
+                "levels/%30",
+                "levels/0?version=+1",
+            ],
+        ),
+    ];
+    for (canonical, others) in cases {
+        let resp = get(&format!("{}/{canonical}", s.base)).await;
+        assert_eq!(resp.status(), 200, "{canonical}");
+        for other in others {
+            let resp = get(&format!("{}/{other}", s.base)).await;
+            assert_eq!(
+                resp.status(),
+                404,
+                "{other} (the canonical {canonical} is a 200)"
+            );
+            assert_eq!(
+                resp.headers()["content-type"],
+                "application/problem+json",
+                "{other}"
+            );
+        }
+    }
+    // The problem says why: the spelling, not a chunk outside the grid.
+    for other in [
+        "zarr/0/c/+1/0/1",
+        "precomputed/0/00-08_0-8_0-8",
+        "versions/01/zarr/zarr.json",
+        "bricks/0/1/0/0?version=%31",
+    ] {
+        let problem: serde_json::Value = get(&format!("{}/{other}", s.base))
+            .await
+            .json()
+            .await
+            .unwrap();
+        let detail = problem["detail"].as_str().unwrap();
+        assert!(detail.contains("plain decimal"), "{other}: {detail}");
+    }
+    // Text that is no number stays a malformed request, as before.
+    for (path, status) in [
+        ("bricks/0/x/0/0", 400),
+        ("bricks/0/-1/0/0", 400),
+        ("bricks/0/1/0/0?version=x", 400),
+        ("bricks/0/4294967296/0/0", 400),
+        ("levels/x", 400),
+        ("versions/x/precomputed/info", 400),
+        ("precomputed/0/x-8_0-8_0-8", 400),
+        ("zarr/0/c/x/0/1", 404),
+    ] {
+        let resp = get(&format!("{}/{path}", s.base)).await;
+        assert_eq!(resp.status().as_u16(), status, "{path}");
+    }
+}

@@ -692,7 +692,7 @@ fn term_outside_the_volume_changes_nothing() {
         let grid = initial(DIMS, t, 3);
         build(&path, &grid, t);
         let far = [[-40, 10, 10], [100, 10, 10], [10, -30, 10], [10, 10, 60]];
-        let mut version = 1;
+        let version = 1;
         for op in [
             "union",
             "difference",
@@ -722,7 +722,9 @@ fn term_outside_the_volume_changes_nothing() {
                     out.changed
                 );
                 assert_eq!(out.new_records, 0);
-                version += 1;
+                // Nothing to change, so nothing committed: the head stays at version 1 (an
+                // empty version per such edit would only wake the change feed's followers).
+                assert!(!out.committed, "{op} at {center:?} committed a version");
                 assert_eq!(v, version);
             }
         }
@@ -755,10 +757,14 @@ fn term_outside_the_volume_changes_nothing() {
                     max: [60, 29, 23],
                 }),
             };
-            let (after, _, out) = edit_and_check(&path, &grid, &req, CheckpointPolicy::default());
+            let (after, v, out) = edit_and_check(&path, &grid, &req, CheckpointPolicy::default());
             assert_eq!(after, grid);
             assert_eq!(out.evaluated, 0, "{op} outside the volume");
             assert!(out.changed.iter().all(Vec::is_empty));
+            assert!(
+                !out.committed && v == version,
+                "{op} outside the volume committed"
+            );
         }
     }
 }

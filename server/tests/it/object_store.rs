@@ -9,7 +9,9 @@
 //! - a writer killed between writing its segment and advancing the head leaves the volume at its
 //!   last acknowledged version, and `isovox compact` collects the orphan;
 //! - a stalled writer cannot overwrite a newer head: it re-applies its edit on top, or, asked
-//!   with `If-Match`, is refused with 409.
+//!   with `If-Match`, is refused with 409;
+//! - a store that stops answering (SIGSTOP) makes an edit a 503 with `Retry-After` once the
+//!   edit timeout passes, not a 422, commits nothing, and edits succeed again once it answers.
 //!
 //! The S3 server's Python: `ISOVOX_S3_PYTHON`, else `target/s3-venv/bin/python` (what
 //! `.ci/run` creates).
@@ -161,6 +163,11 @@ struct Server {
 
 impl Server {
     fn replica(s3: &S3, pause_before_head_ms: Option<u64>) -> Server {
+        Server::replica_with(s3, pause_before_head_ms, &[])
+    }
+
+    /// [`Server::replica`] with more arguments for `isovox serve`.
+    fn replica_with(s3: &S3, pause_before_head_ms: Option<u64>, more: &[&str]) -> Server {
         let store = s3.url();
         let pause = pause_before_head_ms.map(|ms| ms.to_string());
         let mut envs = vec![
@@ -173,7 +180,9 @@ impl Server {
         if let Some(ms) = &pause {
             envs.push(("ISOVOX_STORE_PAUSE_BEFORE_HEAD_MS", ms));
         }
-        Server::start(&["--store", &store, "--follow-ms", "50"], &envs)
+        let mut args = vec!["--store", &store, "--follow-ms", "50"];
+        args.extend_from_slice(more);
+        Server::start(&args, &envs)
     }
 
     fn local(data: &Path) -> Server {
@@ -962,4 +971,71 @@ fn nginx_in_front_of_a_replica_makes_each_level_and_tile_once_and_revalidates_th
     let resp = http.get(format!("{}/levels/1", nginx.base)).send().unwrap();
     assert_eq!(resp.headers()["x-cache"], "REVALIDATED");
     assert!(resp.bytes().unwrap().as_ref() == edited.as_slice());
+}
+
+/// Sends `signal` (`-STOP`, `-CONT`) to the S3 server.
+fn signal(s3: &S3, signal: &str) {
+    let status = Command::new("kill")
+        .args([signal, &s3.child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success(), "kill {signal}");
+}
+
+#[test]
+fn a_stalled_store_makes_an_edit_a_503_with_retry_after_and_commits_nothing() {
+    let s3 = S3::start("isovox-frozen");
+    let data = tempfile::tempdir().unwrap();
+    world(&s3, data.path());
+    let http = client();
+    let server = Server::replica_with(&s3, None, &["--edit-timeout", "1"]);
+    assert_eq!(server.version(&http), 1);
+
+    // The store stops answering; the edit (a few bricks: its own evaluation takes
+    // milliseconds) waits on it past its 1 s timeout.
+    signal(&s3, "-STOP");
+    let sent = Instant::now();
+    let resp = http
+        .post(format!("{}/edits", server.base))
+        .bearer_auth(TOKEN)
+        .json(&carve([10, 50, 10]))
+        .send()
+        .unwrap();
+    let took = sent.elapsed();
+    let status = resp.status().as_u16();
+    let retry_after = resp
+        .headers()
+        .get("retry-after")
+        .map(|v| v.to_str().unwrap().to_string());
+    let media = resp.headers()["content-type"].to_str().unwrap().to_string();
+    let problem: Value = resp.json().unwrap();
+    signal(&s3, "-CONT");
+    assert_eq!(status, 503, "{problem}");
+    // The limit was 1 s: retry after 1 s.
+    assert_eq!(retry_after.as_deref(), Some("1"), "{problem}");
+    assert_eq!(media, "application/problem+json");
+    assert_eq!(problem["status"], 503);
+    let detail = problem["detail"].as_str().unwrap();
+    assert!(
+        detail.contains("object store did not answer") && detail.contains("nothing was committed"),
+        "{detail}"
+    );
+    // Answered at the deadline, not after the store client's own retries (30 s and more).
+    assert!(took < Duration::from_secs(15), "answered after {took:?}");
+    let log = server.process.log();
+    assert!(
+        log.contains("the store stalled") && log.contains("did not answer within"),
+        "the log says why: {log}"
+    );
+
+    // The store answers again: the next edit is version 2 (the stalled one made none).
+    let (status, answer) = server.edit(&http, &carve([40, 50, 40]), None);
+    assert_eq!(
+        (status, answer["version"].as_u64()),
+        (200, Some(2)),
+        "{answer}"
+    );
+    assert_eq!(s3.head_version(), 2);
+    assert_eq!(voxel(&server, &http, [44, 54, 44]), 255, "the edit after");
+    assert_ne!(voxel(&server, &http, [14, 54, 14]), 255, "the stalled edit");
 }

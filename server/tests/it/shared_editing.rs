@@ -567,7 +567,8 @@ impl CuboidEdit {
 }
 
 /// A random cuboid edit in the middle of the volume (origins crowd a 40-voxel region so that
-/// edits overlap and their order matters; some stick out of the volume).
+/// edits overlap and their order matters; some stick out of the volume, none lies wholly
+/// outside it).
 fn random_edit(rng: &mut XorShift, sizes: (i64, i64)) -> CuboidEdit {
     let op = if rng.next() & 1 == 0 {
         Op::Union
@@ -579,11 +580,17 @@ fn random_edit(rng: &mut XorShift, sizes: (i64, i64)) -> CuboidEdit {
         rng.between(-4, 34),
         rng.between(-4, 44),
     ];
-    let size = [
+    let mut size = [
         rng.between(sizes.0, sizes.1),
         rng.between(sizes.0, sizes.1),
         rng.between(sizes.0, sizes.1),
     ];
+    // The cuboid's inner voxels (origin + 1 ..= origin + size - 2) must meet the volume: an edit
+    // wholly outside it commits no version (`an_edit_outside_the_volume_commits_nothing`), and
+    // these tests count one version per edit. Grown after drawing, so the draws stay the same.
+    for (s, o) in size.iter_mut().zip(origin) {
+        *s = (*s).max(2 - o);
+    }
     CuboidEdit { op, origin, size }
 }
 
@@ -1416,4 +1423,51 @@ fn slow_subscriber_does_not_block() {
         last,
         &acked,
     );
+}
+
+/// An edit that reaches no voxel of the volume (a term wholly outside it, or a region outside
+/// it) commits nothing: 200 naming the current version with `"committed": false` and no
+/// changed bricks, no new version in the history, no event on the change feed. (It used to
+/// commit an empty version, announced to every follower.)
+#[test]
+fn an_edit_outside_the_volume_commits_nothing() {
+    let s = Server::start(1000);
+    let c = client();
+    let h = head_version(&c, &s);
+    let mut sse = Sse::new(subscribe(&c, &s));
+    assert_eq!(read_hello(&mut sse), h);
+    // The volume is 64 x 48 x 64: x from 64 on, and a region past y = 48, are outside it.
+    let outside = [
+        json!({"op": "union", "term": {"cuboid": {"origin": [70, 0, 0], "size": [8, 8, 8]}}}),
+        json!({"op": "inverse", "region": {"min": [0, 50, 0], "max": [64, 60, 64]}}),
+    ];
+    for body in &outside {
+        let a = post_edit(&c, &s, "w", Some(SECRET1), body, None);
+        assert_eq!(a.status, StatusCode::OK, "{body}: {}", a.text());
+        let v = a.json();
+        assert_eq!(v["committed"], json!(false), "{v}");
+        assert_eq!(v["version"].as_u64(), Some(h), "{v}");
+        assert_eq!(v["previous"].as_u64(), Some(h), "{v}");
+        assert_eq!(v["evaluated"].as_u64(), Some(0), "{v}");
+        let changed = v["changed"].as_array().unwrap();
+        assert!(!changed.is_empty(), "one list per level: {v}");
+        assert!(
+            changed.iter().all(|l| l.as_array().unwrap().is_empty()),
+            "{v}"
+        );
+    }
+    assert_eq!(head_version(&c, &s), h, "no version was made");
+    let j = changes_since(&c, &s, h).json();
+    assert_eq!(j["changes"].as_array().map(Vec::len), Some(0), "{j}");
+    // The next real edit is h + 1, and it is the feed's first commit event.
+    let body =
+        json!({"op": "union", "term": {"cuboid": {"origin": [8, 40, 8], "size": [8, 8, 8]}}});
+    let v = edit_ok(&c, &s, SECRET1, &body);
+    assert_eq!(v["version"].as_u64(), Some(h + 1), "{v}");
+    assert_eq!(v["committed"], json!(true), "{v}");
+    let mut seen = Seen::default();
+    read_commits(&mut sse, &mut seen, h + 1);
+    assert_eq!(seen.stopped, None);
+    let versions: Vec<u64> = seen.commits.iter().map(|(v, _)| *v).collect();
+    assert_eq!(versions, [h + 1], "the feed announced only the real edit");
 }

@@ -6,10 +6,11 @@ use super::super::StoreError;
 use bytes::Bytes;
 use object_store::path::Path as ObjectPath;
 use object_store::{GetOptions, ObjectStore, PutMode, PutOptions, PutPayload, UpdateVersion};
+use std::cell::Cell;
 use std::future::Future;
 use std::ops::Range;
 use std::sync::{Arc, OnceLock};
-use std::time::SystemTime;
+use std::time::{Duration, Instant, SystemTime};
 
 /// A place in an object store: a bucket and a key prefix (`s3://bucket/prefix`).
 #[derive(Debug, Clone)]
@@ -54,22 +55,62 @@ fn io_runtime() -> Result<&'static tokio::runtime::Runtime, StoreError> {
         .map_err(|e| StoreError::Internal(format!("cannot start the store's runtime: {e}")))
 }
 
-/// Runs `fut` on the store's runtime and waits for it. On a worker of a multi-threaded tokio
-/// runtime the wait is announced (`block_in_place`), so that runtime moves its other tasks
-/// elsewhere meanwhile.
+thread_local! {
+    /// The deadline of the work this thread does for (an edit), and its limit: store calls
+    /// made on this thread are given up then. See [`bound_store_waits`].
+    static DEADLINE: Cell<Option<(Instant, Duration)>> = const { Cell::new(None) };
+}
+
+/// Until the guard is dropped, store calls made on this thread wait no later than `deadline`
+/// (`None`: as long as the store takes), then fail with [`StoreError::Stalled`].
+///
+/// An edit's evaluation checks its deadline between bricks, but a store call that stalls (the
+/// store stopped answering) never returns to a check: without this the edit waited out the
+/// client's retries (minutes), and the check that followed called the store's stall the edit's
+/// own cost (422). A call given up this way keeps running on the store's runtime and its
+/// answer is dropped.
+pub fn bound_store_waits(deadline: Option<(Instant, Duration)>) -> StoreWaitBound {
+    StoreWaitBound(DEADLINE.replace(deadline))
+}
+
+/// Restores the thread's previous bound when dropped (see [`bound_store_waits`]).
+#[derive(Debug)]
+pub struct StoreWaitBound(Option<(Instant, Duration)>);
+
+impl Drop for StoreWaitBound {
+    fn drop(&mut self) {
+        DEADLINE.set(self.0);
+    }
+}
+
+/// Runs `fut` on the store's runtime and waits for it, until this thread's deadline if it has
+/// one ([`bound_store_waits`]). On a worker of a multi-threaded tokio runtime the wait is
+/// announced (`block_in_place`), so that runtime moves its other tasks elsewhere meanwhile.
 fn wait<T: Send + 'static>(fut: impl Future<Output = T> + Send + 'static) -> Result<T, StoreError> {
     let (tx, rx) = std::sync::mpsc::sync_channel(1);
     io_runtime()?.spawn(async move {
         let _ = tx.send(fut.await);
     });
-    let recv = move || rx.recv();
+    let deadline = DEADLINE.get();
+    let recv = move || match deadline {
+        None => rx.recv().map_err(|_| None),
+        Some((at, limit)) => rx
+            .recv_timeout(at.saturating_duration_since(Instant::now()))
+            .map_err(|e| match e {
+                std::sync::mpsc::RecvTimeoutError::Timeout => Some(limit),
+                std::sync::mpsc::RecvTimeoutError::Disconnected => None,
+            }),
+    };
     let got = match tokio::runtime::Handle::try_current() {
         Ok(h) if h.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread => {
             tokio::task::block_in_place(recv)
         }
         _ => recv(),
     };
-    got.map_err(|_| StoreError::Internal("a store call was dropped unfinished".into()))
+    got.map_err(|stalled| match stalled {
+        Some(limit) => StoreError::Stalled { limit },
+        None => StoreError::Internal("a store call was dropped unfinished".into()),
+    })
 }
 
 fn failed(what: String) -> impl FnOnce(object_store::Error) -> StoreError {

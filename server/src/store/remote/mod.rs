@@ -27,7 +27,7 @@ pub mod bucket;
 pub mod head;
 pub mod mirror;
 
-pub use bucket::{Bucket, Conditional};
+pub use bucket::{bound_store_waits, Bucket, Conditional, StoreWaitBound};
 pub use head::{Head, Manifest, ManifestRef, Segment};
 pub use mirror::FetchCounters;
 
@@ -401,10 +401,14 @@ impl Publish for RemoteVolume {
             });
             next.segments.clear();
         }
-        match self
+        // The head's PUT decides whether the edit is committed: given up half-way, it could
+        // land after the caller heard it failed. So it waits as long as the store takes.
+        let unbounded = bucket::bound_store_waits(None);
+        let put = self
             .bucket
-            .put_if(HEAD_KEY, Bytes::from(next.encode()), Some(&state.etag))?
-        {
+            .put_if(HEAD_KEY, Bytes::from(next.encode()), Some(&state.etag));
+        drop(unbounded);
+        match put? {
             Conditional::Refused => Err(moved()),
             Conditional::Done((), etag) => {
                 let pages = Arc::new(Pages::new(segment));
