@@ -116,17 +116,17 @@
 //! reloads: new metadata, every hash forgotten, every delivered tile stale and refetched (content
 //! already cached by key is reused).
 
-use crate::client::{Client, ClientError, Feed, FeedEvent};
+use crate::client::{Client, ClientError};
 use bytes::Bytes;
 use isovox_proto::api::{ChangeEvent, LevelGrid, VolumeInfo};
 use isovox_proto::mesh::{Mesh, TileMesh};
 use isovox_proto::{BrickKey, VolumeLayout};
-use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
+use std::collections::{BTreeSet, HashMap};
 use std::hash::{DefaultHasher, Hash, Hasher};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::sync::{mpsc, oneshot, watch};
-use tokio::task::{AbortHandle, JoinError, JoinSet};
+use tokio::task::JoinError;
 use tokio::time::Instant;
 
 mod engine;

@@ -1,0 +1,221 @@
+//! The hash book: content hashes of bricks as of the engine's version, where unknown ones will
+//! come from, and the content keys of mesh tiles and strips computed from them.
+
+use super::scheduler::JobKey;
+use crate::streamer::{StreamEvent, CHUNK};
+use isovox_proto::api::{LevelGrid, VolumeInfo};
+use isovox_proto::tile::GridBox;
+use isovox_proto::{BrickKey, VolumeLayout};
+use std::collections::HashMap;
+use std::hash::{DefaultHasher, Hash, Hasher};
+
+/// The volume's shape as content keys describe it: its layout and metadata.
+pub(super) type Shape<'a> = (&'a VolumeLayout, &'a VolumeInfo);
+
+/// The hash book: content hashes of bricks as of the engine's version, and where unknown ones
+/// will come from.
+#[derive(Debug, Default)]
+pub(super) struct HashBook {
+    hashes: HashMap<BrickKey, u64>,
+    /// The grid region (planned or running) that brings an unknown brick's hash, when it is
+    /// not the brick's chunk.
+    sources: HashMap<BrickKey, JobKey>,
+}
+
+impl HashBook {
+    /// Brick `b`'s content hash, if known.
+    pub(super) fn hash(&self, b: BrickKey) -> Option<u64> {
+        self.hashes.get(&b).copied()
+    }
+
+    /// The grid region that brings `brick`'s hash: a designated one, or its chunk.
+    pub(super) fn source_of(&self, layout: &VolumeLayout, brick: BrickKey) -> JobKey {
+        if let Some(&s) = self.sources.get(&brick) {
+            return s;
+        }
+        let g = layout.grid(brick.level);
+        let p = [brick.x, brick.y, brick.z];
+        let min = p.map(|c| c / CHUNK * CHUNK);
+        JobKey::Region {
+            level: brick.level,
+            min,
+            max: [0, 1, 2].map(|a| (min[a] + CHUNK).min(g[a])),
+        }
+    }
+
+    /// A mesh tile's content key, or the input bricks whose hashes are unknown.
+    pub(super) fn mesh_content(
+        &self,
+        shape: Shape<'_>,
+        key: BrickKey,
+        iso: Option<f32>,
+    ) -> Result<u64, Vec<BrickKey>> {
+        let reads = isovox_proto::tile::mesh_tile_reads(shape.0, key);
+        self.content_of(shape, "isovox mesh tile with moves", key, None, iso, &reads)
+    }
+
+    /// The content key of the strip of face `face` of mesh tile `key`, or the input bricks
+    /// whose hashes are unknown.
+    pub(super) fn strip_content(
+        &self,
+        shape: Shape<'_>,
+        key: BrickKey,
+        face: u8,
+        iso: Option<f32>,
+    ) -> Result<u64, Vec<BrickKey>> {
+        let reads = isovox_proto::tile::strip_reads(shape.0, key, usize::from(face));
+        self.content_of(
+            shape,
+            "isovox transition strip",
+            key,
+            Some(face),
+            iso,
+            &reads,
+        )
+    }
+
+    /// A content key over what a tile or strip depends on: `what`, the tile, the face, the iso
+    /// value, the volume's shape and the hashes of the bricks of `reads`.
+    fn content_of(
+        &self,
+        (layout, info): Shape<'_>,
+        what: &str,
+        key: BrickKey,
+        face: Option<u8>,
+        iso: Option<f32>,
+        reads: &[(u8, GridBox)],
+    ) -> Result<u64, Vec<BrickKey>> {
+        let mut h = DefaultHasher::new();
+        what.hash(&mut h);
+        key.hash(&mut h);
+        face.hash(&mut h);
+        iso.map(f32::to_bits).hash(&mut h);
+        info.brick.hash(&mut h);
+        layout.voxel_type().bytes().hash(&mut h);
+        info.voxel_scale.map(f32::to_bits).hash(&mut h);
+        let mut unknown = Vec::new();
+        for &(level, (lo, hi)) in reads {
+            let g = layout.grid(level).map(i64::from);
+            for z in lo[2]..=hi[2] {
+                for y in lo[1]..=hi[1] {
+                    for x in lo[0]..=hi[0] {
+                        let c = [x, y, z];
+                        if (0..3).any(|a| c[a] < 0 || c[a] >= g[a]) {
+                            0u8.hash(&mut h);
+                            continue;
+                        }
+                        let b = BrickKey {
+                            level,
+                            x: x as u32,
+                            y: y as u32,
+                            z: z as u32,
+                        };
+                        match self.hashes.get(&b) {
+                            Some(v) => (1u8, *v).hash(&mut h),
+                            None => unknown.push(b),
+                        }
+                    }
+                }
+            }
+        }
+        if unknown.is_empty() {
+            Ok(h.finish())
+        } else {
+            Err(unknown)
+        }
+    }
+
+    /// The grid region `job` (bricks `min..max` of `level`) brings the hashes of its bricks
+    /// that are not known yet, unless another region was designated for them.
+    pub(super) fn claim(&mut self, level: u8, min: [u32; 3], max: [u32; 3], job: JobKey) {
+        for z in min[2]..max[2] {
+            for y in min[1]..max[1] {
+                for x in min[0]..max[0] {
+                    let b = BrickKey { level, x, y, z };
+                    if !self.hashes.contains_key(&b) {
+                        self.sources.entry(b).or_insert(job);
+                    }
+                }
+            }
+        }
+    }
+
+    /// The bricks `min..max` of `level` that `job` was to bring lose it as their source.
+    pub(super) fn forget_source(&mut self, level: u8, min: [u32; 3], max: [u32; 3], job: JobKey) {
+        for z in min[2]..max[2] {
+            for y in min[1]..max[1] {
+                for x in min[0]..max[0] {
+                    let b = BrickKey { level, x, y, z };
+                    if self.sources.get(&b) == Some(&job) {
+                        self.sources.remove(&b);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Learns the hashes of the bricks `min..max` of `level` from `grid` (checked to cover
+    /// them); returns an error event for each entry that is not a content hash.
+    pub(super) fn learn_region(
+        &mut self,
+        level: u8,
+        (min, max): ([u32; 3], [u32; 3]),
+        grid: &LevelGrid,
+    ) -> Vec<StreamEvent> {
+        let mut errors = Vec::new();
+        let mut bricks = grid.bricks.iter();
+        for z in min[2]..max[2] {
+            for y in min[1]..max[1] {
+                for x in min[0]..max[0] {
+                    let b = BrickKey { level, x, y, z };
+                    let Some(entry) = bricks.next() else {
+                        continue;
+                    };
+                    match u64::from_str_radix(&entry.hash, 16) {
+                        Ok(h) => {
+                            self.hashes.insert(b, h);
+                            self.sources.remove(&b);
+                        }
+                        Err(_) => errors.push(StreamEvent::Error {
+                            key: Some(b),
+                            error: format!("brick {b}: {:?} is not a content hash", entry.hash),
+                        }),
+                    }
+                }
+            }
+        }
+        errors
+    }
+
+    /// Brick `b` changed: its hash is unknown again.
+    pub(super) fn forget(&mut self, b: BrickKey) {
+        self.hashes.remove(&b);
+        self.sources.remove(&b);
+    }
+
+    /// One region of `level` brings the new hashes of the changed bricks `read` (some desired
+    /// tile reads them).
+    pub(super) fn bring_together(&mut self, level: u8, read: Vec<BrickKey>) {
+        let Some(first) = read.first() else {
+            return;
+        };
+        let (mut min, mut max) = ([first.x, first.y, first.z], [0u32; 3]);
+        for b in &read {
+            let p = [b.x, b.y, b.z];
+            for a in 0..3 {
+                min[a] = min[a].min(p[a]);
+                max[a] = max[a].max(p[a] + 1);
+            }
+        }
+        let region = JobKey::Region { level, min, max };
+        for b in read {
+            self.sources.insert(b, region);
+        }
+    }
+
+    /// Forgets every hash and source.
+    pub(super) fn clear(&mut self) {
+        self.hashes.clear();
+        self.sources.clear();
+    }
+}

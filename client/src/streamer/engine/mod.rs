@@ -1,0 +1,700 @@
+//! The streamer's task: an [`Engine`] made of its parts (the desired set, the hash book, the
+//! scheduler, the statistics) and the content cache, driven by the camera, finished requests,
+//! the change feed and retry timers. Each part keeps its own state with its own methods; the
+//! engine coordinates them and reports what happens.
+//!
+//! Layout:
+//! - this file: the [`Engine`] and its loop.
+//! - [`desired`]: the desired set.
+//! - [`book`]: the hash book and the content keys computed from it.
+//! - [`scheduler`]: the plan, the requests in flight, failures and retries.
+//! - [`cache`]: the content cache.
+//! - [`feed`]: the change-feed follower.
+
+mod book;
+mod cache;
+mod desired;
+mod feed;
+mod scheduler;
+
+pub(super) use feed::{follow, FeedMsg};
+
+use super::*;
+use book::{HashBook, Shape};
+use cache::{Content, Lru};
+use desired::Desired;
+use scheduler::{JobKey, Output, Scheduler};
+
+/// The task's state: what it serves, and its four parts.
+pub(super) struct Engine {
+    client: Client,
+    name: String,
+    kind: TileKind,
+    info: VolumeInfo,
+    layout: VolumeLayout,
+    radii: Vec<f32>,
+    /// The version every known hash and requested tile describes.
+    version: u64,
+    /// What the camera needs.
+    desired: Desired,
+    /// What bricks hold, by content hash.
+    book: HashBook,
+    /// What is requested, running, waiting or failed.
+    scheduler: Scheduler,
+    /// What has been done so far.
+    stats: Counters,
+    cache: Lru,
+    outbox: Vec<StreamEvent>,
+    events: mpsc::Sender<StreamEvent>,
+    events_open: bool,
+    shared: Arc<Mutex<Shared>>,
+    status: watch::Sender<Status>,
+}
+
+/// Statistics: requests, bytes, cache hits and misses, refetches of stale tiles.
+#[derive(Debug, Default, Clone, Copy)]
+struct Counters {
+    requests: u64,
+    bytes: u64,
+    hits: u64,
+    misses: u64,
+    stale_refetches: u64,
+}
+
+impl Engine {
+    /// An engine for volume `name` as `config` says, at the version `info` names, reporting
+    /// through `events`, `shared` and `status`.
+    #[allow(clippy::too_many_arguments)] // the task's channels, each made by `Streamer::start`
+    pub(super) fn new(
+        client: Client,
+        name: &str,
+        config: &StreamerConfig,
+        layout: VolumeLayout,
+        info: VolumeInfo,
+        radii: Vec<f32>,
+        events: mpsc::Sender<StreamEvent>,
+        shared: Arc<Mutex<Shared>>,
+        status: watch::Sender<Status>,
+    ) -> Engine {
+        Engine {
+            client,
+            name: name.to_string(),
+            kind: config.kind,
+            layout,
+            radii,
+            version: info.version,
+            outbox: vec![StreamEvent::Version {
+                version: info.version,
+            }],
+            info,
+            desired: Desired::default(),
+            book: HashBook::default(),
+            scheduler: Scheduler::new(config.max_in_flight),
+            stats: Counters::default(),
+            cache: Lru::new(config.cache_bytes),
+            events,
+            events_open: true,
+            shared,
+            status,
+        }
+    }
+
+    pub(super) async fn run(
+        mut self,
+        mut camera_rx: watch::Receiver<CameraMsg>,
+        mut feed_rx: Option<mpsc::Receiver<FeedMsg>>,
+        follower: Option<tokio::task::JoinHandle<()>>,
+        mut shutdown: oneshot::Receiver<()>,
+    ) {
+        loop {
+            if self.scheduler.replan_needed {
+                self.replan();
+            }
+            self.fill();
+            self.flush().await;
+            let retry_at = self.scheduler.retry_at;
+            tokio::select! {
+                // A shutdown, or the Streamer dropped.
+                _ = &mut shutdown => break,
+                changed = camera_rx.changed() => {
+                    if changed.is_err() {
+                        break;
+                    }
+                    let c = *camera_rx.borrow_and_update();
+                    self.desired.camera = c.position;
+                    self.desired.camera_seq = c.seq;
+                    self.update_desired();
+                }
+                Some(done) = self.scheduler.jobs.join_next(), if !self.scheduler.jobs.is_empty() => {
+                    self.on_join(done);
+                    while let Some(done) = self.scheduler.jobs.try_join_next() {
+                        self.on_join(done);
+                    }
+                }
+                msg = recv_feed(&mut feed_rx) => match msg {
+                    Some(m) => {
+                        self.on_feed(m);
+                        while let Some(Ok(m)) = feed_rx.as_mut().map(|rx| rx.try_recv()) {
+                            self.on_feed(m);
+                        }
+                    }
+                    None => feed_rx = None,
+                },
+                () = sleep_until(retry_at) => self.scheduler.retry_now(),
+            }
+        }
+        if let Some(f) = follower {
+            f.abort();
+        }
+        self.scheduler.jobs.abort_all();
+    }
+
+    fn distance(&self, key: BrickKey) -> f32 {
+        match self.desired.camera {
+            Some(c) => {
+                isovox_proto::lod::tile_distance(&self.layout, self.info.voxel_scale, key, c)
+            }
+            None => 0.0,
+        }
+    }
+
+    /// The volume's shape, as content keys describe it.
+    fn shape(&self) -> Shape<'_> {
+        (&self.layout, &self.info)
+    }
+
+    /// The desired set for the current camera; tiles that leave it are dropped, mesh tiles
+    /// whose face mask changed are stitched again.
+    fn update_desired(&mut self) {
+        let new = match (self.desired.camera, self.kind) {
+            (Some(c), TileKind::Bricks) => select_tiles(&self.info, c, &self.radii),
+            (Some(c), TileKind::Meshes { .. }) => select_stitched_tiles(&self.info, c, &self.radii),
+            (None, _) => Vec::new(),
+        };
+        let masks = matches!(self.kind, TileKind::Meshes { .. })
+            .then(|| isovox_proto::lod::face_masks(&self.layout, &new));
+        for key in self.desired.replace(new, masks) {
+            lock(&self.shared).resident.remove(&key);
+            self.outbox.push(StreamEvent::Dropped { key });
+        }
+        self.scheduler.replan_needed = true;
+    }
+
+    /// The iso value mesh tiles are asked at (the server's default when `None`).
+    fn mesh_iso(&self) -> Option<f32> {
+        match self.kind {
+            TileKind::Meshes { iso } => iso,
+            TileKind::Bricks => None,
+        }
+    }
+
+    /// Works out what every desired tile without current content needs, makes cached ones
+    /// ready, aborts requests nobody needs, and queues the rest nearest first.
+    fn replan(&mut self) {
+        self.scheduler.replan_needed = false;
+        self.scheduler.clear_plan();
+        let mut needed: HashMap<JobKey, f32> = HashMap::new();
+        let mut from_cache = Vec::new();
+        let mut drawings = Vec::new();
+        for key in self.desired.without_content() {
+            let d = self.distance(key);
+            match self.kind {
+                TileKind::Bricks => match self.book.hash(key) {
+                    Some(h) if self.cache.contains(h) => from_cache.push((key, h)),
+                    Some(h) => {
+                        need(&mut needed, JobKey::Blob(h), d);
+                        self.scheduler.wait(h, key);
+                    }
+                    None => need(&mut needed, self.book.source_of(&self.layout, key), d),
+                },
+                TileKind::Meshes { iso } => {
+                    if let Some(drawing) = self.plan_mesh(key, iso, d, &mut needed) {
+                        drawings.push(drawing);
+                    }
+                }
+            }
+        }
+        for (key, content) in from_cache {
+            if let Some(data) = self.cache.get(content) {
+                self.stats.hits += 1;
+                self.mark_ready(key, content, data);
+            }
+        }
+        for (key, content, strips) in drawings {
+            self.draw(key, content, strips);
+        }
+        for job in self.scheduler.unneeded(&needed) {
+            self.abort(job, true);
+        }
+        self.scheduler.queue_needed(needed);
+    }
+
+    /// Plans mesh tile `key` (at `iso`, at distance `d`): the tile and the strips of its mask's
+    /// faces, each from the cache or a request into `needed`. Returns its drawing (content key
+    /// and strips' content keys) when all are in the cache.
+    fn plan_mesh(
+        &mut self,
+        key: BrickKey,
+        iso: Option<f32>,
+        d: f32,
+        needed: &mut HashMap<JobKey, f32>,
+    ) -> Option<(BrickKey, u64, [Option<u64>; 6])> {
+        let mask = self.desired.mask(key);
+        let mut unknown = Vec::new();
+        let content = match self.book.mesh_content(self.shape(), key, iso) {
+            Ok(c) => Some(c),
+            Err(u) => {
+                unknown.extend(u);
+                None
+            }
+        };
+        let mut strips = [None; 6];
+        for face in (0..6u8).filter(|f| mask >> f & 1 == 1) {
+            match self.book.strip_content(self.shape(), key, face, iso) {
+                Ok(c) => strips[usize::from(face)] = Some(c),
+                Err(u) => unknown.extend(u),
+            }
+        }
+        let (Some(content), true) = (content, unknown.is_empty()) else {
+            for b in unknown {
+                need(needed, self.book.source_of(&self.layout, b), d);
+            }
+            return None;
+        };
+        let mut complete = true;
+        if !self.cache.contains(content) {
+            complete = false;
+            need(needed, JobKey::Mesh(key), d);
+            self.scheduler.wait_for_mesh(key, content);
+        }
+        for (face, strip) in strips.iter().enumerate() {
+            let Some(strip) = *strip else { continue };
+            if !self.cache.contains(strip) {
+                complete = false;
+                need(needed, JobKey::Strip(key, face as u8), d);
+                self.scheduler.wait_for_strip(key, face as u8, strip);
+            }
+        }
+        complete.then_some((key, content, strips))
+    }
+
+    /// Starts queued requests up to the concurrency bound.
+    fn fill(&mut self) {
+        let limit = self.scheduler.limit();
+        while let Some(job) = self.scheduler.next_queued(limit) {
+            let still_needed = self.scheduler.planned(job)
+                && match job {
+                    JobKey::Mesh(k) | JobKey::Strip(k, _) => self.desired.needs(k),
+                    JobKey::Region { .. } | JobKey::Blob(_) => true,
+                };
+            if still_needed {
+                self.start(job);
+            }
+        }
+    }
+
+    fn start(&mut self, job: JobKey) {
+        if let JobKey::Region { level, min, max } = job {
+            self.book.claim(level, min, max, job);
+        }
+        let iso = self.mesh_iso();
+        self.scheduler
+            .start(job, &self.client, &self.name, self.version, iso);
+        self.stats.requests += 1;
+    }
+
+    /// Aborts a running request; with `forget`, the bricks it was to bring lose it as their
+    /// source (nobody needs them now).
+    fn abort(&mut self, job: JobKey, forget: bool) {
+        if !self.scheduler.abort(job) {
+            return;
+        }
+        if let (true, JobKey::Region { level, min, max }) = (forget, job) {
+            self.book.forget_source(level, min, max, job);
+        }
+    }
+
+    fn mark_ready(&mut self, key: BrickKey, content: u64, data: Content) {
+        let data = match data {
+            Content::Brick(b) => TileData::Brick(b),
+            // Mesh tiles and strips are delivered through `draw`.
+            Content::Mesh(_) | Content::Strip(_) => return,
+        };
+        self.deliver(key, content, data);
+    }
+
+    /// Delivers mesh tile `key` drawn with its mask: its content (key `content`) and the strips
+    /// of its mask's faces (content keys `strips`), all in the cache. Delivered again only when
+    /// the drawing changed (another mask, another strip).
+    fn draw(&mut self, key: BrickKey, content: u64, strips: [Option<u64>; 6]) {
+        let Some(Content::Mesh(tile)) = self.cache.get(content) else {
+            return;
+        };
+        let mut parts: [Option<Arc<Mesh>>; 6] = Default::default();
+        for (face, strip) in strips.iter().enumerate() {
+            if let Some(c) = *strip {
+                match self.cache.get(c) {
+                    Some(Content::Strip(s)) => parts[face] = Some(s),
+                    _ => return,
+                }
+            }
+        }
+        let mask = self.desired.mask(key);
+        let mut h = DefaultHasher::new();
+        (content, mask, strips).hash(&mut h);
+        let drawn_key = h.finish();
+        // Not desired, or the same drawing as delivered (a mask that changed and changed back).
+        if self.desired.redrawn(key, content, drawn_key) != Some(false) {
+            return;
+        }
+        let mut mesh = Mesh::default();
+        let drawn_strips = std::array::from_fn(|f| parts[f].as_deref());
+        isovox_proto::mesh::stitch(&tile, mask, drawn_strips, &mut mesh);
+        self.desired.set_drawn(key, tile.clone(), mask, drawn_key);
+        let data = TileData::Mesh(MeshTile {
+            tile,
+            mask,
+            strips: parts,
+            mesh: Arc::new(mesh),
+        });
+        self.deliver(key, content, data);
+    }
+
+    fn deliver(&mut self, key: BrickKey, content: u64, data: TileData) {
+        let Some(first_shown) = self.desired.deliver(key, content) else {
+            return;
+        };
+        if first_shown {
+            lock(&self.shared).resident.insert(key);
+        }
+        self.outbox.push(StreamEvent::Ready {
+            key,
+            hash: content,
+            data,
+            version: self.version,
+        });
+    }
+
+    fn fail(&mut self, job: JobKey, key: Option<BrickKey>, error: String) {
+        self.scheduler.fail(job);
+        self.outbox.push(StreamEvent::Error { key, error });
+    }
+
+    fn on_join(&mut self, done: Result<(u64, JobKey, Output), JoinError>) {
+        let Some((job, output)) = self.scheduler.finish(done) else {
+            return;
+        };
+        match output {
+            Output::Region(result) => self.on_region(job, result),
+            Output::Blob(result) => self.on_blob(job, result),
+            Output::Mesh(content, result) => self.on_mesh(job, content, result),
+            Output::Strip(content, result) => self.on_strip(job, content, result),
+        }
+    }
+
+    fn on_region(&mut self, job: JobKey, result: Result<LevelGrid, ClientError>) {
+        let JobKey::Region { level, min, max } = job else {
+            return;
+        };
+        let grid = match result {
+            Ok(g) => g,
+            Err(e) => {
+                let msg = format!("level {level} grid {min:?}..{max:?}: {e}");
+                self.fail(job, None, msg);
+                return;
+            }
+        };
+        let count: usize = (0..3).map(|a| (max[a] - min[a]) as usize).product();
+        if grid.bricks.len() != count || grid.min != min || grid.max != max {
+            let msg = format!(
+                "level {level} grid {min:?}..{max:?}: the answer covers {:?}..{:?} with {} bricks",
+                grid.min,
+                grid.max,
+                grid.bricks.len()
+            );
+            self.fail(job, None, msg);
+            return;
+        }
+        let errors = self.book.learn_region(level, (min, max), &grid);
+        self.outbox.extend(errors);
+        self.book.forget_source(level, min, max, job);
+        self.scheduler.succeeded(job);
+        self.scheduler.replan_needed = true;
+    }
+
+    fn on_blob(&mut self, job: JobKey, result: Result<Bytes, ClientError>) {
+        let JobKey::Blob(h) = job else {
+            return;
+        };
+        let bytes = match result {
+            Ok(b) if b.len() == self.layout.brick_bytes() => b,
+            Ok(b) => {
+                let msg = format!(
+                    "blob {h:016x}: {} bytes, expected {}",
+                    b.len(),
+                    self.layout.brick_bytes()
+                );
+                self.fail(job, None, msg);
+                return;
+            }
+            Err(e) => {
+                self.fail(job, None, format!("blob {h:016x}: {e}"));
+                return;
+            }
+        };
+        self.scheduler.succeeded(job);
+        self.stats.bytes += bytes.len() as u64;
+        self.stats.misses += 1;
+        let data = Content::Brick(bytes);
+        self.cache.put(h, data.clone(), self.layout.brick_bytes());
+        let mut first = true;
+        for key in self.scheduler.take_waiting(h) {
+            let current = self.desired.needs(key) && self.book.hash(key) == Some(h);
+            if current {
+                if !first {
+                    self.stats.hits += 1;
+                }
+                first = false;
+                self.mark_ready(key, h, data.clone());
+            }
+        }
+    }
+
+    fn on_mesh(&mut self, job: JobKey, content: u64, result: Result<TileMesh, ClientError>) {
+        let JobKey::Mesh(key) = job else {
+            return;
+        };
+        let tile = match result {
+            Ok(t) => t,
+            Err(e) => {
+                self.fail(job, Some(key), format!("mesh tile {key}: {e}"));
+                return;
+            }
+        };
+        self.scheduler.succeeded(job);
+        self.stats.bytes += isovox_proto::mesh::encode_tile(&tile).len() as u64;
+        self.stats.misses += 1;
+        let size = tile_size(&tile);
+        self.cache.put(content, Content::Mesh(Arc::new(tile)), size);
+        self.scheduler.arrived(content);
+    }
+
+    fn on_strip(&mut self, job: JobKey, content: u64, result: Result<Mesh, ClientError>) {
+        let JobKey::Strip(key, face) = job else {
+            return;
+        };
+        let strip = match result {
+            Ok(s) => s,
+            Err(e) => {
+                let name = isovox_proto::mesh::FACE_NAMES[usize::from(face) % 6];
+                self.fail(
+                    job,
+                    Some(key),
+                    format!("strip {name} of mesh tile {key}: {e}"),
+                );
+                return;
+            }
+        };
+        self.scheduler.succeeded(job);
+        self.stats.bytes += isovox_proto::mesh::encode_compact(&strip).len() as u64;
+        let size = mesh_size(&strip) + 64;
+        self.cache
+            .put(content, Content::Strip(Arc::new(strip)), size);
+        self.scheduler.arrived(content);
+    }
+
+    fn on_feed(&mut self, msg: FeedMsg) {
+        match msg {
+            FeedMsg::Commits(commits) => {
+                for ev in &commits {
+                    self.apply_commit(ev);
+                }
+            }
+            FeedMsg::Reload(info) => self.reload(info),
+            FeedMsg::Error(error) => self.outbox.push(StreamEvent::Error { key: None, error }),
+        }
+    }
+
+    /// Marks a delivered tile stale (emitting `Stale`) and any desired tile as needing content.
+    fn invalidate(&mut self, key: BrickKey, version: u64) {
+        let Some(newly_stale) = self.desired.invalidate(key) else {
+            return;
+        };
+        if newly_stale {
+            self.stats.stale_refetches += 1;
+        }
+        self.outbox.push(StreamEvent::Stale { key, version });
+    }
+
+    fn apply_commit(&mut self, ev: &ChangeEvent) {
+        if ev.version <= self.version {
+            return;
+        }
+        for (level, changed) in ev.changed.iter().enumerate() {
+            if level >= self.layout.levels() as usize || changed.is_empty() {
+                continue;
+            }
+            let level = level as u8;
+            let (affected, read) = self.changed_bricks(level, changed);
+            // Grid regions in flight answer for the version before: abort those that cover a
+            // changed brick (they start again at the new version if still needed).
+            for job in self.scheduler.covering(level, changed) {
+                self.abort(job, false);
+            }
+            // One region brings the new hashes of the changed bricks some desired tile reads.
+            self.book.bring_together(level, read);
+            for key in affected {
+                self.scheduler.abort_tile(key);
+                self.invalidate(key, ev.version);
+            }
+        }
+        self.version = ev.version;
+        self.outbox.push(StreamEvent::Version {
+            version: ev.version,
+        });
+        self.scheduler.replan_needed = true;
+    }
+
+    /// Forgets the hashes of the bricks of `level` a commit `changed`; returns the desired
+    /// tiles that read one of them, and those of them some desired tile reads.
+    fn changed_bricks(
+        &mut self,
+        level: u8,
+        changed: &[[u32; 3]],
+    ) -> (BTreeSet<BrickKey>, Vec<BrickKey>) {
+        let g = self.layout.grid(level);
+        let mut affected = BTreeSet::new();
+        let mut read = Vec::new();
+        // Mesh tiles read bricks of their level, and the strips of their mask's faces those
+        // of the next coarser one too.
+        let readers = match self.kind {
+            TileKind::Bricks => Vec::new(),
+            TileKind::Meshes { .. } => self.desired.readers(&self.layout, level),
+        };
+        for &p in changed {
+            if (0..3).any(|a| p[a] >= g[a]) {
+                continue;
+            }
+            let b = BrickKey {
+                level,
+                x: p[0],
+                y: p[1],
+                z: p[2],
+            };
+            self.book.forget(b);
+            let mut is_read = false;
+            match self.kind {
+                TileKind::Bricks => {
+                    if self.desired.contains(b) {
+                        affected.insert(b);
+                        is_read = true;
+                    }
+                }
+                TileKind::Meshes { .. } => {
+                    let p = p.map(i64::from);
+                    for (t, reads) in &readers {
+                        let reads_p = reads.iter().any(|&(l, (lo, hi))| {
+                            l == level && (0..3).all(|a| lo[a] <= p[a] && p[a] <= hi[a])
+                        });
+                        if reads_p {
+                            affected.insert(*t);
+                            is_read = true;
+                        }
+                    }
+                }
+            }
+            if is_read {
+                read.push(b);
+            }
+        }
+        (affected, read)
+    }
+
+    /// Starts over from new metadata: every hash forgotten, every delivered tile stale.
+    fn reload(&mut self, info: VolumeInfo) {
+        let layout = match VolumeLayout::new(info.dims, info.brick, info.voxel_type) {
+            Ok(l) if l.levels() as usize == info.levels.len() => l,
+            _ => {
+                self.outbox.push(StreamEvent::Error {
+                    key: None,
+                    error: format!("reload: inconsistent metadata for {}", info.name),
+                });
+                return;
+            }
+        };
+        for job in self.scheduler.running_jobs() {
+            self.abort(job, true);
+        }
+        self.book.clear();
+        self.scheduler.reset();
+        self.layout = layout;
+        self.version = info.version;
+        self.info = info;
+        self.update_desired();
+        for key in self.desired.sorted_keys() {
+            self.invalidate(key, self.version);
+        }
+        self.outbox.push(StreamEvent::Version {
+            version: self.version,
+        });
+        self.scheduler.replan_needed = true;
+    }
+
+    /// Sends the events gathered so far, then publishes statistics and status (in that order, so
+    /// a waiter woken by the status finds every event in the channel).
+    async fn flush(&mut self) {
+        for ev in std::mem::take(&mut self.outbox) {
+            if self.events_open && self.events.send(ev).await.is_err() {
+                self.events_open = false;
+            }
+        }
+        {
+            let mut shared = lock(&self.shared);
+            let resident = shared.resident.len();
+            shared.stats = StreamerStats {
+                requests: self.stats.requests,
+                bytes: self.stats.bytes,
+                cache_hits: self.stats.hits,
+                cache_misses: self.stats.misses,
+                in_flight: self.scheduler.in_flight(),
+                in_flight_limit: self.scheduler.limit(),
+                resident,
+                cache_bytes: self.cache.bytes,
+                version: self.version,
+                stale_refetches: self.stats.stale_refetches,
+            };
+        }
+        let now = Status {
+            camera_seq: self.desired.camera_seq,
+            idle: self.desired.missing == 0,
+            version: self.version,
+        };
+        self.status.send_if_modified(|s| {
+            let changed = *s != now;
+            *s = now;
+            changed
+        });
+    }
+}
+
+/// The next feed message; never, without a feed.
+async fn recv_feed(rx: &mut Option<mpsc::Receiver<FeedMsg>>) -> Option<FeedMsg> {
+    match rx {
+        Some(rx) => rx.recv().await,
+        None => std::future::pending().await,
+    }
+}
+
+async fn sleep_until(at: Option<Instant>) {
+    match at {
+        Some(at) => tokio::time::sleep_until(at).await,
+        None => std::future::pending().await,
+    }
+}
+
+/// Records that `job` is needed by a tile at distance `d` (the nearest tile that needs it
+/// counts).
+fn need(needed: &mut HashMap<JobKey, f32>, job: JobKey, d: f32) {
+    let e = needed.entry(job).or_insert(d);
+    *e = e.min(d);
+}

@@ -1,0 +1,255 @@
+//! One version's index: a [`Snapshot`], its entry lookups, and the content hashes of its bricks
+//! and its ancestors' (found by hash).
+
+use super::checkpoint::IndexChunks;
+use super::StoredBrick;
+use crate::store::codec;
+use crate::store::region::Region;
+use crate::store::StoreError;
+use isovox_proto::vod2::{CommitHeader, FileHeader, NodeEntry};
+use isovox_proto::{BrickKey, FormatError, VolumeLayout};
+use std::collections::HashMap;
+use std::sync::{Arc, OnceLock};
+
+/// One version of a volume: an immutable index over the shared mapping.
+#[derive(Debug)]
+pub struct Snapshot {
+    pub(super) header: Arc<FileHeader>,
+    pub(super) map: Arc<Region>,
+    /// The version.
+    pub version: u64,
+    /// When it was committed (Unix milliseconds).
+    pub timestamp_ms: u64,
+    pub(super) commit_offset: u64,
+    pub(super) index: Arc<IndexChunks>,
+    /// Entries changed by the commits after the checkpoint: node index -> raw entry.
+    pub(super) overlay: HashMap<u64, u64>,
+    /// Content hash -> entry, built on first use by [`Snapshot::find_by_hash`] (or carried over
+    /// from the parent version and extended).
+    pub(super) by_hash: OnceLock<HashIndex>,
+    /// Commits replayed on top of the checkpoint.
+    pub(super) chain_len: usize,
+}
+
+impl Snapshot {
+    /// Gives `child` this version's blob index (when it was built) plus the entries its commit
+    /// `added`: bricks replaced by the commit stay findable by hash.
+    pub(super) fn hand_down_hashes(
+        &self,
+        child: &Snapshot,
+        added: impl Iterator<Item = u64>,
+    ) -> Result<(), StoreError> {
+        let Some(parent_hashes) = self.by_hash.get() else {
+            return Ok(());
+        };
+        let mut hashes = parent_hashes.child();
+        let (voxel_type, mapped) = (self.layout().voxel_type(), child.map.len());
+        for raw in added {
+            let entry = NodeEntry::decode(raw, voxel_type, mapped)?;
+            hashes.insert(child.entry_hash(entry)?, entry);
+        }
+        let _ = child.by_hash.set(hashes);
+        Ok(())
+    }
+
+    /// Dimensions, brick edge and voxel type.
+    pub fn layout(&self) -> &VolumeLayout {
+        &self.header.layout
+    }
+
+    /// The file's fixed header.
+    pub fn header(&self) -> &FileHeader {
+        &self.header
+    }
+
+    /// Offset of this version's commit record.
+    pub fn commit_offset(&self) -> u64 {
+        self.commit_offset
+    }
+
+    /// The index entry at a node index.
+    ///
+    /// # Errors
+    /// The node is out of range, its checkpoint chunk fails its hash, or the entry is invalid.
+    pub fn entry_at(&self, node: u64) -> Result<NodeEntry, StoreError> {
+        let layout = self.layout();
+        if node >= layout.node_count() {
+            return Err(FormatError::invalid(
+                "node index",
+                format!("{node} >= {}", layout.node_count()),
+            )
+            .into());
+        }
+        let raw = match self.overlay.get(&node) {
+            Some(&raw) => raw,
+            None => self.index.entry(&self.map, node)?,
+        };
+        Ok(NodeEntry::decode(raw, layout.voxel_type(), self.map.len())?)
+    }
+
+    /// The index entry of a brick.
+    ///
+    /// # Errors
+    /// See [`Snapshot::entry_at`]; the key must come from this volume's layout.
+    pub fn entry(&self, key: BrickKey) -> Result<NodeEntry, StoreError> {
+        let layout = self.layout();
+        if !layout.contains(key) {
+            return Err(StoreError::OutOfRange(format!(
+                "brick {key} is outside the volume"
+            )));
+        }
+        self.entry_at(layout.node_index(key))
+    }
+
+    /// An entry with content hash `hash` among the bricks of this version and of every older
+    /// version the file still holds, if any. The first call scans the oldest version's index
+    /// and the commit records since (reading brick headers, not payloads) and keeps a hash
+    /// table; a version built from its parent by [`Vod2::advance`] inherits the parent's.
+    ///
+    /// [`Vod2::advance`]: super::Vod2::advance
+    ///
+    /// Why older versions too: a client that learned a hash from a grid at `?version=N` (a
+    /// streamer catching up one version at a time) asks for it by hash, and the answer must not
+    /// depend on whether this process saw the commits after N or opened the file after them.
+    ///
+    /// # Errors
+    /// A commit record, an entry or a brick header on the way is malformed.
+    pub fn find_by_hash(&self, hash: u64) -> Result<Option<NodeEntry>, StoreError> {
+        if let Some(index) = self.by_hash.get() {
+            return Ok(index.get(hash));
+        }
+        let index = HashIndex {
+            base: Arc::new(self.history_hashes()?),
+            added: HashMap::new(),
+        };
+        let found = index.get(hash);
+        let _ = self.by_hash.set(index);
+        Ok(found)
+    }
+
+    /// Content hash -> entry over every brick of this version and its ancestors in the file:
+    /// the oldest version's index plus every entry a commit since then wrote (each version is
+    /// the oldest one with those changes applied).
+    fn history_hashes(&self) -> Result<HashMap<u64, NodeEntry>, StoreError> {
+        let mut records = Vec::new();
+        let mut at = self.commit_offset;
+        let oldest = loop {
+            let (h, record) = commit_record(&self.map, at)?;
+            records.push(record);
+            if h.parent == 0 {
+                break at;
+            }
+            at = h.parent;
+        };
+        let oldest = Snapshot::load(self.header.clone(), self.map.clone(), oldest)?;
+        let mut map = HashMap::new();
+        let mut constants = std::collections::HashSet::new();
+        let mut add = |entry: NodeEntry| -> Result<(), StoreError> {
+            let first_sight = match entry {
+                NodeEntry::Constant(v) => constants.insert(v),
+                NodeEntry::Stored(_) => true,
+            };
+            if first_sight {
+                map.entry(self.entry_hash(entry)?).or_insert(entry);
+            }
+            Ok(())
+        };
+        for node in 0..self.layout().node_count() {
+            add(oldest.entry_at(node)?)?;
+        }
+        let (voxel_type, mapped) = (self.layout().voxel_type(), self.map.len());
+        for record in records.iter().rev() {
+            for (_, raw) in CommitHeader::changes(record) {
+                add(NodeEntry::decode(raw, voxel_type, mapped)?)?;
+            }
+        }
+        Ok(map)
+    }
+
+    /// The content hash of the brick behind an entry (for a constant, of its expanded bytes).
+    ///
+    /// # Errors
+    /// See [`Snapshot::stored_entry`].
+    pub fn entry_hash(&self, entry: NodeEntry) -> Result<u64, StoreError> {
+        Ok(match self.stored_entry(entry)? {
+            StoredBrick::Record { header, .. } => header.hash,
+            StoredBrick::Constant(v) => codec::constant_hash(v, self.layout()),
+        })
+    }
+
+    /// The content hash of a brick (for a constant, the hash of its expanded bytes).
+    ///
+    /// # Errors
+    /// See [`Snapshot::stored`].
+    pub fn hash(&self, key: BrickKey) -> Result<u64, StoreError> {
+        self.entry_hash(self.entry(key)?)
+    }
+}
+
+/// The commit record at `at` (its fixed part fetched first for the change count, then the
+/// whole record), decoded and checked.
+///
+/// # Errors
+/// `at` lies past the committed region, the record cannot be fetched, or it is malformed.
+pub(super) fn commit_record(map: &Region, at: u64) -> Result<(CommitHeader, &[u8]), StoreError> {
+    let bytes = map.bytes();
+    let avail = bytes.get(at as usize..).ok_or_else(|| {
+        StoreError::from(FormatError::invalid(
+            "commit chain",
+            format!("offset {at} past the committed length {}", bytes.len()),
+        ))
+    })?;
+    map.ensure(at, CommitHeader::record_len(0))?;
+    if let Some(n) = avail.get(40..48) {
+        let n_changes = u64::from_le_bytes([n[0], n[1], n[2], n[3], n[4], n[5], n[6], n[7]]);
+        map.ensure(
+            at,
+            CommitHeader::record_len(n_changes.min(avail.len() as u64)),
+        )?;
+    }
+    Ok(CommitHeader::decode(avail, at)?)
+}
+
+/// Content hash -> entry for [`Snapshot::find_by_hash`]: a shared base plus what later versions
+/// added, so a commit extends its parent's table instead of rescanning the index. Entries of
+/// bricks an edit replaced stay findable: their records are still in the file, and content
+/// named by its hash is the same whichever version holds it.
+#[derive(Debug)]
+pub(super) struct HashIndex {
+    base: Arc<HashMap<u64, NodeEntry>>,
+    added: HashMap<u64, NodeEntry>,
+}
+
+impl HashIndex {
+    /// Additions past this size are folded into a new base (one copy of the table).
+    const MAX_ADDED: usize = 4096;
+
+    fn get(&self, hash: u64) -> Option<NodeEntry> {
+        self.added
+            .get(&hash)
+            .or_else(|| self.base.get(&hash))
+            .copied()
+    }
+
+    /// A copy for a child version (cheap: the base is shared).
+    fn child(&self) -> HashIndex {
+        if self.added.len() < Self::MAX_ADDED {
+            return HashIndex {
+                base: self.base.clone(),
+                added: self.added.clone(),
+            };
+        }
+        let mut base = (*self.base).clone();
+        base.extend(self.added.iter().map(|(h, e)| (*h, *e)));
+        HashIndex {
+            base: Arc::new(base),
+            added: HashMap::new(),
+        }
+    }
+
+    fn insert(&mut self, hash: u64, entry: NodeEntry) {
+        if self.base.get(&hash) != Some(&entry) {
+            self.added.entry(hash).or_insert(entry);
+        }
+    }
+}

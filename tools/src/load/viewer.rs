@@ -1,0 +1,143 @@
+//! A viewer: one user's streamer, its camera flown along a path, its events counted.
+
+use super::{CameraPath, LoadConfig};
+use isovox_client::client::Client;
+use isovox_client::streamer::{StreamEvent, Streamer, StreamerConfig, StreamerStats};
+use std::future::Future;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio::sync::{mpsc, watch};
+
+/// One viewer's counts.
+#[derive(Debug, Default)]
+pub(super) struct ViewerResult {
+    pub(super) started: bool,
+    /// The run ended before the ramp-up reached this user.
+    pub(super) not_started: bool,
+    pub(super) radii: Vec<f32>,
+    pub(super) ready: u64,
+    pub(super) ready_by_level: Vec<u64>,
+    pub(super) ready_bytes: u64,
+    pub(super) dropped: u64,
+    pub(super) stale: u64,
+    pub(super) versions: u64,
+    pub(super) errors: u64,
+    pub(super) error_samples: Vec<String>,
+    /// When the first and the last error event arrived.
+    pub(super) error_span: Option<(Instant, Instant)>,
+    pub(super) closed_early: bool,
+    pub(super) stats: Option<StreamerStats>,
+}
+
+impl ViewerResult {
+    fn record(&mut self, event: StreamEvent) {
+        match event {
+            StreamEvent::Ready { key, data, .. } => {
+                self.ready += 1;
+                let l = usize::from(key.level);
+                if self.ready_by_level.len() <= l {
+                    self.ready_by_level.resize(l + 1, 0);
+                }
+                self.ready_by_level[l] += 1;
+                self.ready_bytes += data.bytes();
+            }
+            StreamEvent::Dropped { .. } => self.dropped += 1,
+            StreamEvent::Stale { .. } => self.stale += 1,
+            StreamEvent::Version { .. } => self.versions += 1,
+            StreamEvent::Error { key, error } => {
+                self.errors += 1;
+                let now = Instant::now();
+                let span = self.error_span.get_or_insert((now, now));
+                span.1 = now;
+                if self.error_samples.len() < 5 {
+                    self.error_samples.push(match key {
+                        Some(k) => format!("{k}: {error}"),
+                        None => error,
+                    });
+                }
+            }
+        }
+    }
+}
+
+/// Runs `fut` while counting `rx`'s events.
+async fn draining<F: Future>(
+    rx: &mut mpsc::Receiver<StreamEvent>,
+    result: &mut ViewerResult,
+    fut: F,
+) -> F::Output {
+    tokio::pin!(fut);
+    loop {
+        tokio::select! {
+            out = &mut fut => return out,
+            event = rx.recv() => match event {
+                Some(e) => result.record(e),
+                None => return fut.await,
+            },
+        }
+    }
+}
+
+/// One user's streamer: starts it, flies the camera until `stop`, lets it finish what it has
+/// in flight, shuts it down.
+pub(super) async fn viewer(
+    client: Client,
+    config: Arc<LoadConfig>,
+    streamer_config: StreamerConfig,
+    mut path: CameraPath,
+    delay: Duration,
+    mut stop: watch::Receiver<bool>,
+    mut until: watch::Receiver<Option<u64>>,
+) -> ViewerResult {
+    let mut result = ViewerResult::default();
+    tokio::select! {
+        () = tokio::time::sleep(delay) => {}
+        _ = stop.wait_for(|s| *s) => {
+            result.not_started = true;
+            return result;
+        }
+    }
+    let (streamer, mut rx) = match Streamer::start(client, &config.volume, streamer_config).await {
+        Ok(s) => s,
+        Err(e) => {
+            result.errors += 1;
+            result.error_samples.push(format!("streamer start: {e}"));
+            return result;
+        }
+    };
+    result.started = true;
+    result.radii = streamer.radii().to_vec();
+    let start = Instant::now();
+    streamer.set_camera(path.at(0.0));
+    let mut tick = tokio::time::interval(Duration::from_secs_f64(1.0 / config.camera_hz.max(0.1)));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut open = true;
+    while !*stop.borrow() {
+        tokio::select! {
+            changed = stop.changed() => if changed.is_err() { break },
+            _ = tick.tick() => streamer.set_camera(path.at(start.elapsed().as_secs_f32())),
+            event = rx.recv(), if open => match event {
+                Some(e) => result.record(e),
+                None => { open = false; result.closed_early = true; }
+            },
+        }
+    }
+    // The camera stops; once the editors are done, the streamer catches up with the last
+    // acknowledged version and loads what the camera needs (or the drain time runs out).
+    let catch_up = async {
+        let last = match until.wait_for(Option::is_some).await {
+            Ok(v) => v.unwrap_or(0),
+            Err(_) => 0,
+        };
+        streamer.wait_version(last).await;
+    };
+    let _ = draining(
+        &mut rx,
+        &mut result,
+        tokio::time::timeout(config.drain, catch_up),
+    )
+    .await;
+    result.stats = Some(streamer.stats());
+    draining(&mut rx, &mut result, streamer.shutdown()).await;
+    result
+}
