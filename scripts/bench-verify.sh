@@ -34,9 +34,9 @@ case "$BASELINE" in
     # it is replaced by "the checksum matches".
     git ls-files -z | xargs -0 tar -c | tar -x -C "$OLD_SRC"
     check='let computed = payload_check(payload);'
-    grep -qF "$check" "$OLD_SRC/server/src/store/vod2.rs" \
-      || { echo "server/src/store/vod2.rs no longer has \`$check\`: update this script" >&2; exit 1; }
-    sed -i "s/$check/let computed = stored;/" "$OLD_SRC/server/src/store/vod2.rs" ;;
+    grep -qF "$check" "$OLD_SRC/server/src/store/vod2/bricks.rs" \
+      || { echo "server/src/store/vod2/bricks.rs no longer has \`$check\`: update this script" >&2; exit 1; }
+    sed -i "s/$check/let computed = stored;/" "$OLD_SRC/server/src/store/vod2/bricks.rs" ;;
   before) git archive 8f9f67919b8c4b7f08cf47534a1dbf3f3524939c | tar -x -C "$OLD_SRC" ;;
   *) echo "BASELINE is unchecked or before, not $BASELINE" >&2; exit 2 ;;
 esac

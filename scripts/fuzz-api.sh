@@ -6,7 +6,7 @@
 # FUZZ_CHECKS=all also that schema-valid requests are accepted and schema-invalid ones refused,
 # and that status codes, content types and headers are the documented ones. Exits with
 # Schemathesis's status (1 too when the server panicked); reports land in bench-out/fuzz-api/.
-# `server/tests/openapi_fuzz.rs` runs it with FUZZ_CHECKS=all and a few examples per operation.
+# `server/tests/it/openapi_fuzz.rs` runs it with FUZZ_CHECKS=all and a few examples per operation.
 #
 #   bash scripts/fuzz-api.sh            # a release build, 500 examples per operation and phase
 #   bash scripts/fuzz-api.sh --install  # only install Schemathesis (what .ci/run does)
@@ -61,7 +61,7 @@ trap 'exit 130' INT TERM
 mkdir -p "$work/data"
 # u16 voxels: the document's bounds on `iso` and `k` ([0, 65535], +-65535) are then this
 # volume's own [L, H]. A u8 volume narrows them to 255, which no schema can state per volume
-# (it answers 400 or 422 beyond; tests/tests/http_read.rs checks that).
+# (it answers 400 or 422 beyond; tests/tests/it/http_read.rs checks that).
 "$bin" generate scene -o "$work/data/demo.vod" --dims 128,64,128 --brick 16 --type u16
 
 # A free port on the loopback interface.

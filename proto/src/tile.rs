@@ -1,5 +1,5 @@
 //! What a mesh tile owns and reads: the seam rule's arithmetic, shared by the server that meshes
-//! tiles (`server/src/mesh/tile.rs`) and the clients that name their content by the bricks they
+//! tiles (`server/src/mesh/tile/`) and the clients that name their content by the bricks they
 //! read and refetch them when one of those changes.
 //!
 //! Tile (x, y, z) of level k owns the cells whose lower corner lies in `[x b, (x + 1) b)` on each

@@ -8,7 +8,7 @@
 //
 // Content keys. A mesh tile reads the bricks around it at its level (its cells reach into the +1
 // neighbours, its normals one sample further on every side; `tile.ts` `meshTileReads`, as
-// `server/src/mesh/tile.rs` reads them); the transition strip of a face, fetched only while the
+// `server/src/mesh/tile/` reads them); the transition strip of a face, fetched only while the
 // face touches a coarser tile (the tile's mask, `stitchMasks`), reads the tile's level along the
 // face and the next coarser level around it (`stripReads`). A content key is the position (and
 // face) and the content hashes of those bricks, learnt from the levels' brick grids (`GET

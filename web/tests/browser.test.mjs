@@ -261,7 +261,7 @@ function isStale(tile, changed) {
 
 /**
  * Whether the strip of face f of tile [l, x, y, z] (brick edge b) reads a brick `changed` lists
- * (server/src/mesh/tile.rs): of level l, the lattice points of the layer of cells along the face
+ * (server/src/mesh/tile/): of level l, the lattice points of the layer of cells along the face
  * (b (t + 1) - 2 ..= b (t + 1) + 1 on a high face, b t - 1 ..= b t + 2 on a low one, the tile's
  * b t - 1 ..= b (t + 1) + 1 across, from -2 for a first tile); of level l + 1, the face's plane
  * P (b (t + 1) / 2 or b t / 2) with a point on either side, and across c = floor(lo / 2) - 1 ..=
