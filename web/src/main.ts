@@ -182,7 +182,9 @@ function updateOverlay(): void {
   const lines = [
     `${info.name}  version ${s.version}  feed ${feedState}`,
     `tiles ${s.ready}/${s.desired} ready, ${s.drawn} drawn, ${s.triangles.toLocaleString("en")} triangles`,
-    `in flight ${s.inFlight} of ${streamer?.maxInFlight} (${protocol})`,
+    `in flight ${s.inFlight} of ${s.inFlightLimit}` +
+      (s.inFlightLimit < (streamer?.maxInFlight ?? 0) ? ` (server busy; at most ${streamer?.maxInFlight})` : "") +
+      ` (${protocol})`,
     `${mb(s.bytes)} received in ${s.requests} requests, ${mb(wire.bytes)} on the wire`,
   ];
   if (lastEdit) {

@@ -33,6 +33,7 @@ import { Api, ApiError, isAbort, type ChangeEvent, type LevelBrick, type LevelGr
 import { balancedTiles, keyText, Layout, stitchMasks, tileDistance, type TileKey } from "./lod";
 import { decodeStrip, decodeTile, stitchedTriangles, type TileMesh } from "./mesh";
 import { meshTileReads, stripReads, valueRange, type TileRead } from "./tile";
+import { InFlightLimit } from "./limit";
 
 /** Bricks per axis of the grid chunks fetched to learn content hashes. */
 const CHUNK = 8;
@@ -78,6 +79,8 @@ export interface StreamerStats {
   drawn: number;
   triangles: number;
   inFlight: number;
+  /** Requests allowed in flight now: the maximum, less after the server refused some. */
+  inFlightLimit: number;
   requests: number;
   /** Response bytes received (decoded). */
   bytes: number;
@@ -93,6 +96,8 @@ interface Job {
   priority: [number, number];
   controller: AbortController;
   version: number;
+  /** When it started (performance.now()), to tell which overload a refusal belongs to. */
+  started: number;
 }
 
 type BrickState = LevelBrick | "absent" | undefined;
@@ -114,8 +119,8 @@ export class Streamer {
   private readonly sink: TileSink;
   private readonly onChange: () => void;
   radii: number[];
-  maxInFlight: number;
   version: number;
+  private readonly limit: InFlightLimit;
 
   private camera: [number, number, number] = [0, 0, 0];
   /** Per level: brick index -> what the grid said. */
@@ -148,11 +153,20 @@ export class Streamer {
     this.layout = new Layout(o.info.dims, o.info.brick);
     this.sink = o.sink;
     this.radii = o.radii;
-    this.maxInFlight = Math.max(1, o.maxInFlight);
+    this.limit = new InFlightLimit(o.maxInFlight);
     this.cacheLimit = o.cacheBytes ?? 256 << 20;
     this.version = o.info.version;
     this.onChange = o.onChange ?? (() => {});
     this.hashes = this.layout.grids.map(() => new Map());
+  }
+
+  /** The most requests in flight at once; fewer while the server refuses some (503, 429). */
+  get maxInFlight(): number {
+    return this.limit.max;
+  }
+
+  set maxInFlight(max: number) {
+    this.limit.max = max;
   }
 
   get volume(): VolumeInfo {
@@ -227,6 +241,7 @@ export class Streamer {
       drawn: this.displayed.size,
       triangles,
       inFlight: this.jobs.size,
+      inFlightLimit: this.limit.get(),
       requests: this.counters.requests,
       bytes: this.counters.bytes,
       complete:
@@ -424,12 +439,13 @@ export class Streamer {
       })
       .sort((a, b) => compare(a[1].priority, b[1].priority));
     for (const [id, w] of queue) {
-      if (this.jobs.size >= this.maxInFlight) break;
+      if (this.jobs.size >= this.limit.get()) break;
       this.jobs.set(id, {
         id,
         priority: w.priority,
         controller: new AbortController(),
         version: this.version,
+        started: now,
       });
       w.start();
     }
@@ -502,11 +518,18 @@ export class Streamer {
     this.jobs.delete(id);
     if (error !== null) {
       if (isAbort(error)) return;
+      const now = performance.now();
+      const refused = error instanceof ApiError && (error.status === 503 || error.status === 429);
+      if (refused) this.limit.overloaded(job.started, now);
       const r = this.retryAt.get(id);
-      const delay = r ? Math.min(r.delay * 2, RETRY_MAX_MS) : RETRY_MIN_MS;
-      this.retryAt.set(id, { at: performance.now() + delay, delay });
+      const backoff = r ? Math.min(r.delay * 2, RETRY_MAX_MS) : RETRY_MIN_MS;
+      // The server's Retry-After is when it expects room again: never ask sooner.
+      const asked = error instanceof ApiError && error.retryAfter !== null ? error.retryAfter * 1000 : 0;
+      const delay = Math.max(backoff, asked);
+      this.retryAt.set(id, { at: now + delay, delay: backoff });
       this.lastError = error instanceof ApiError ? error.message : String(error);
     } else {
+      this.limit.succeeded();
       this.retryAt.delete(id);
     }
     this.plan();

@@ -1,5 +1,5 @@
 import { describe, expect, it } from "vitest";
-import type { Api, LevelGrid, Vec3 } from "../src/api";
+import { ApiError, type Api, type LevelGrid, type Vec3 } from "../src/api";
 import { balancedTiles, keyText, Layout, stitchMasks, tileDistance, type TileKey } from "../src/lod";
 import type { TileMesh } from "../src/mesh";
 import { Streamer } from "../src/streamer";
@@ -32,6 +32,8 @@ interface MeshCall {
   version: number;
   signal: AbortSignal;
   answer: () => void;
+  /** Answers 503 with `Retry-After: 0`, as a server whose CPU queue is full. */
+  refuse: () => void;
 }
 
 /** A server whose bricks all straddle the surface; `edit` changes bricks' content hashes. */
@@ -68,14 +70,27 @@ class ScriptedServer {
         new Promise<ArrayBuffer>((resolve, reject) => {
           const s = signal ?? new AbortController().signal;
           s.addEventListener("abort", () => reject(new DOMException("aborted", "AbortError")));
-          this.calls.push({ key, version, signal: s, answer: () => resolve(TRIANGLE.slice(0)) });
+          this.calls.push({
+            key,
+            version,
+            signal: s,
+            answer: () => resolve(TRIANGLE.slice(0)),
+            refuse: () => reject(new ApiError(503, "the CPU queue is full", 0, null)),
+          });
           this.meshCalls.push(this.calls[this.calls.length - 1]!);
         }),
       meshStrip: (_name: string, key: TileKey, face: number, version: number, signal?: AbortSignal) =>
         new Promise<ArrayBuffer>((resolve, reject) => {
           const s = signal ?? new AbortController().signal;
           s.addEventListener("abort", () => reject(new DOMException("aborted", "AbortError")));
-          this.calls.push({ key, face, version, signal: s, answer: () => resolve(TRIANGLE.slice(0)) });
+          this.calls.push({
+            key,
+            face,
+            version,
+            signal: s,
+            answer: () => resolve(TRIANGLE.slice(0)),
+            refuse: () => reject(new ApiError(503, "the CPU queue is full", 0, null)),
+          });
           this.stripCalls.push(this.calls[this.calls.length - 1]!);
         }),
     } as unknown as Api;
@@ -278,6 +293,27 @@ describe("the streamer", () => {
     // selected tile reads (each level's changes lie in one chunk here).
     const regridded = server.gridCalls.filter((g) => g.version === 2).map((g) => g.level);
     expect(regridded.sort()).toEqual([...readLevels].sort());
+    s.stop();
+  });
+  it("halves its requests in flight when the server refuses them, and grows back", async () => {
+    const server = new ScriptedServer();
+    const { s } = start(server, [0, 40, 0], 8);
+    await settle();
+    const first = server.pendingAll();
+    expect(first.length).toBe(8);
+    // One burst of refusals (all started before the cut) halves the limit once: 8 -> 4.
+    for (const c of first) {
+      (c as { done?: boolean }).done = true;
+      c.refuse();
+    }
+    await settle();
+    expect(s.stats().inFlightLimit).toBe(4);
+    expect(server.pendingAll().length).toBeLessThanOrEqual(4);
+    expect(s.stats().lastError).toContain("503");
+    // Four successes (a window as long as the limit) grow it by one.
+    for (let i = 0; i < 4; i++) expect(await server.answerOne()).toBeDefined();
+    expect(s.stats().inFlightLimit).toBe(5);
+    expect(server.pendingAll().length).toBeLessThanOrEqual(5);
     s.stop();
   });
 });
