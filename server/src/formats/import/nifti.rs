@@ -247,7 +247,8 @@ impl NiftiInput {
         let needed = h.vox_offset + plane_bytes(x, y, h.stored) * u64::from(z);
         if !gzip && len < needed {
             return Err(FormatsError::input(format!(
-                "{}: the header promises {x} x {y} x {z} {} voxels from byte {} ({needed} bytes), but the file has {len} bytes",
+                "{}: truncated: the header promises {x} x {y} x {z} {} voxels from byte {} \
+                 ({needed} bytes), but the file has {len} bytes",
                 path.display(),
                 h.stored,
                 h.vox_offset
