@@ -219,13 +219,17 @@ fn panic_message(panic: &(dyn std::any::Any + Send)) -> &str {
         .unwrap_or("(no message)")
 }
 
-/// Runs `work` on tokio's blocking pool, without a place in the [`CpuQueue`]: for work another
-/// bound already limits and that may wait on I/O or on a lock (edits wait in their volume's
-/// writer queue; a compaction holds the writer; a mesh upload needs a write token).
+/// Runs `work` on the blocking pool of `runtime`, the server's main runtime
+/// ([`super::AppState::main_runtime`]; never a connection thread's: each has one, and a
+/// connection runtime waits for its blocking tasks without a limit when it stops), without a
+/// place in the [`CpuQueue`]: for work another bound already limits and that may wait on I/O
+/// or on a lock (edits wait in their volume's writer queue; a compaction holds the writer; a
+/// mesh upload needs a write token).
 ///
 /// # Errors
 /// Whatever `work` fails with; 500 if it panicked.
 pub async fn blocking<T, E>(
+    runtime: tokio::runtime::Handle,
     work: impl FnOnce() -> Result<T, E> + Send + 'static,
 ) -> Result<T, ApiError>
 where
@@ -233,7 +237,7 @@ where
     E: Send + 'static,
     ApiError: From<E>,
 {
-    Ok(tokio::task::spawn_blocking(work).await??)
+    Ok(runtime.spawn_blocking(work).await??)
 }
 
 #[cfg(test)]

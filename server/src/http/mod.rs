@@ -182,6 +182,10 @@ pub struct Shared {
     pub mesh_store: Option<Arc<crate::voxelize::store::MeshStore>>,
     /// Set when the server starts shutting down: change feeds end.
     pub closing: Closing,
+    /// The server's main runtime, set by `serve.rs` when the server starts (for [`spawn`]:
+    /// the caller's runtime). Blocking work ([`cpu::blocking`]) and the
+    /// volumes' writer tasks run there, never on the connection thread that took the request.
+    main_runtime: std::sync::OnceLock<tokio::runtime::Handle>,
 }
 
 impl AppState {
@@ -218,8 +222,27 @@ impl AppState {
                 .as_deref()
                 .map(|d| Arc::new(crate::voxelize::store::MeshStore::new(d))),
             closing: Closing::default(),
+            main_runtime: std::sync::OnceLock::new(),
             config: Arc::new(config),
         }))
+    }
+
+    /// Where blocking work and the volumes' writer tasks run: the runtime that serves this
+    /// state (set when serving starts), else the current one (a handler called without a
+    /// server, as in unit tests).
+    ///
+    /// # Panics
+    /// Outside a tokio runtime before the server has started.
+    pub fn main_runtime(&self) -> tokio::runtime::Handle {
+        match self.main_runtime.get() {
+            Some(h) => h.clone(),
+            None => tokio::runtime::Handle::current(),
+        }
+    }
+
+    /// Records the server's main runtime (the first one given stays).
+    pub(crate) fn set_main_runtime(&self, runtime: tokio::runtime::Handle) {
+        let _ = self.main_runtime.set(runtime);
     }
 
     /// What one edit may ask for on this server.

@@ -81,6 +81,10 @@ async fn serve(
     state: AppState,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> std::io::Result<()> {
+    // Blocking work and the volumes' writer tasks run on this runtime, whichever connection
+    // thread took their request: they outlive that thread's connections, and its runtime
+    // never has a blocking pool to wait for when it stops.
+    state.set_main_runtime(Handle::current());
     let accepting = Accepting {
         service: tower::ServiceBuilder::new()
             .map_request(|r: Request<hyper::body::Incoming>| r.map(axum::body::Body::new))
