@@ -116,11 +116,12 @@ pub async fn mesh_tile(
     Query(query): Query<MeshQuery>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    let format = query.format;
+    let (format, version, iso) = (query.format, query.version, query.iso);
     let tile = state
-        .catalog
-        .get(&name)?
-        .mesh_tile(query.version, (level, x, y, z), query.iso)?;
+        .read_volume(&name, move |_, vol| {
+            vol.mesh_tile(version, (level, x, y, z), iso)
+        })
+        .await?;
     let tag = tile.tag(format as u8);
     answer_mesh(
         &state,
@@ -192,11 +193,12 @@ pub async fn mesh_strip(
 ) -> Result<Response, ApiError> {
     let format = query.format;
     let face = face_number(&face)?;
-    let strip =
-        state
-            .catalog
-            .get(&name)?
-            .mesh_strip(query.version, (level, x, y, z), face, query.iso)?;
+    let (version, iso) = (query.version, query.iso);
+    let strip = state
+        .read_volume(&name, move |_, vol| {
+            vol.mesh_strip(version, (level, x, y, z), face, iso)
+        })
+        .await?;
     let tag = strip.tag(format as u8);
     answer_mesh(
         &state,
@@ -253,7 +255,9 @@ pub async fn batch(
     headers: HeaderMap,
     Json(request): Json<BatchRequest>,
 ) -> Result<Response, ApiError> {
-    let read = state.catalog.get(&name)?.batch(&request)?;
+    let read = state
+        .read_volume(&name, move |_, vol| vol.batch(&request))
+        .await?;
     let zstd = accepts_zstd(&headers);
     let bricks = state.bricks.clone();
     let body = state
@@ -323,10 +327,10 @@ pub async fn level(
         }
     };
     let region = query.region.as_deref().map(parse_region).transpose()?;
+    let version = query.version;
     let read = state
-        .catalog
-        .get(&name)?
-        .level(query.version, level, form, region)?;
+        .read_volume(&name, move |_, vol| vol.level(version, level, form, region))
+        .await?;
     let response_headers = match validate(read.tag(), query.version, &headers) {
         Validated::NotModified(response) => return Ok(response),
         Validated::Changed(response_headers) => response_headers,

@@ -88,7 +88,7 @@ async fn serve(
     let accepting = Accepting {
         service: tower::ServiceBuilder::new()
             .map_request(|r: Request<hyper::body::Incoming>| r.map(axum::body::Body::new))
-            .service(app(state.clone(), Handle::current())),
+            .service(app(state.clone())),
         tls,
         open: state.connections.clone(),
         closing: state.closing.clone(),

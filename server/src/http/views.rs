@@ -47,7 +47,7 @@ pub async fn zarr(
     Path((name, path)): LivePath,
     request: Request,
 ) -> Result<Response, ApiError> {
-    view(&state, ViewKind::Zarr, &name, None, &path, request).await
+    view(&state, ViewKind::Zarr, &name, None, path, request).await
 }
 
 /// `GET /v1/volumes/{name}/precomputed/{*path}`.
@@ -56,7 +56,7 @@ pub async fn precomputed(
     Path((name, path)): LivePath,
     request: Request,
 ) -> Result<Response, ApiError> {
-    view(&state, ViewKind::Precomputed, &name, None, &path, request).await
+    view(&state, ViewKind::Precomputed, &name, None, path, request).await
 }
 
 /// `GET /v1/volumes/{name}/versions/{version}/zarr/{*path}`.
@@ -65,7 +65,7 @@ pub async fn zarr_pinned(
     Path((name, version, path)): PinnedPath,
     request: Request,
 ) -> Result<Response, ApiError> {
-    view(&state, ViewKind::Zarr, &name, Some(version), &path, request).await
+    view(&state, ViewKind::Zarr, &name, Some(version), path, request).await
 }
 
 /// `GET /v1/volumes/{name}/versions/{version}/precomputed/{*path}`.
@@ -75,20 +75,26 @@ pub async fn precomputed_pinned(
     request: Request,
 ) -> Result<Response, ApiError> {
     let kind = ViewKind::Precomputed;
-    view(&state, kind, &name, Some(version), &path, request).await
+    view(&state, kind, &name, Some(version), path, request).await
 }
 
-/// Reads the document (made on the CPU queue when it takes work) and answers it.
+/// Reads the document (in place, or on the store-read threads for a volume kept in an object
+/// store: [`AppState::read_volume`]; made on the CPU queue when it takes work) and answers it.
 async fn view(
     state: &AppState,
     kind: ViewKind,
     name: &str,
     version: Option<u64>,
-    path: &str,
+    path: String,
     // The request itself, not a `HeaderMap` extractor (which clones every header).
     request: Request,
 ) -> Result<Response, ApiError> {
-    let answer = match read(state.catalog.get(name)?, kind, version, path, &state.bricks)? {
+    let (made, path) = state
+        .read_volume(name, move |state, vol| {
+            read(vol, kind, version, &path, &state.bricks).map(|made| (made, path))
+        })
+        .await?;
+    let answer = match made {
         ViewRead::Ready(answer) => answer,
         ViewRead::Make(chunk) => {
             let bricks = state.bricks.clone();
@@ -100,7 +106,7 @@ async fn view(
                 .await?
         }
     };
-    respond(kind, name, version, path, answer, request.headers())
+    respond(kind, name, version, &path, answer, request.headers())
 }
 
 /// The response to a request of a live view that takes no work (metadata, a stored frame, a

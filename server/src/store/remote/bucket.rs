@@ -54,22 +54,23 @@ fn io_runtime() -> Result<&'static tokio::runtime::Runtime, StoreError> {
         .map_err(|e| StoreError::Internal(format!("cannot start the store's runtime: {e}")))
 }
 
-/// Runs `fut` on the store's runtime and waits for it. On a worker of a multi-threaded tokio
-/// runtime the wait is announced (`block_in_place`), so that runtime moves its other tasks
-/// elsewhere meanwhile.
+/// Runs `fut` on the store's runtime and blocks this thread until it is done. Callers are
+/// threads that may wait: the server's store-read, CPU, blocking and rayon threads, never an
+/// async runtime's worker (a connection thread serves all its connections on one thread, and
+/// would stall them all for the round trip: debug builds check it).
 fn wait<T: Send + 'static>(fut: impl Future<Output = T> + Send + 'static) -> Result<T, StoreError> {
+    debug_assert!(
+        !std::thread::current()
+            .name()
+            .is_some_and(|n| n.starts_with("isovox-conn-")),
+        "a store call on a connection thread: read remote volumes through AppState::read_volume"
+    );
     let (tx, rx) = std::sync::mpsc::sync_channel(1);
     io_runtime()?.spawn(async move {
         let _ = tx.send(fut.await);
     });
-    let recv = move || rx.recv();
-    let got = match tokio::runtime::Handle::try_current() {
-        Ok(h) if h.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread => {
-            tokio::task::block_in_place(recv)
-        }
-        _ => recv(),
-    };
-    got.map_err(|_| StoreError::Internal("a store call was dropped unfinished".into()))
+    rx.recv()
+        .map_err(|_| StoreError::Internal("a store call was dropped unfinished".into()))
 }
 
 fn failed(what: String) -> impl FnOnce(object_store::Error) -> StoreError {
