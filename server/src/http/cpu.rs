@@ -31,12 +31,14 @@ use tokio::sync::{oneshot, Semaphore};
 /// Places per core by default: a full queue holds about this many jobs per thread.
 const PLACES_PER_CORE: usize = 8;
 
-/// Store-read threads per core by default: their reads mostly wait on the network.
-const STORE_READ_THREADS_PER_CORE: usize = 4;
+/// Store-read threads per core by default: their reads mostly wait on the network (a cold
+/// read is one store round trip), so several per core keep several fetches in flight.
+const STORE_READ_THREADS_PER_CORE: usize = 8;
 
 /// Store reads running or waiting per store-read thread by default: a read that finds its
-/// pages cached takes microseconds, one that fetches them a round trip to the store.
-const STORE_READ_PLACES_PER_THREAD: usize = 16;
+/// pages cached takes microseconds, one that fetches them a round trip to the store, so a
+/// full queue waits a few round trips.
+const STORE_READ_PLACES_PER_THREAD: usize = 8;
 
 /// The cores this process may use.
 pub fn cores() -> usize {
