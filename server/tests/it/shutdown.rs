@@ -6,7 +6,7 @@
 //! - a request that would never finish (its body never comes) is cut when the grace runs out,
 //!   and the server stops;
 //! - with any number of connection threads, connections at once are all served (plain reads
-//!   on the connection threads, routed ones on the runtime) until the shutdown, and then the
+//!   and routed ones, all on the connection threads) until the shutdown, and then the
 //!   port refuses connections;
 //! - a server whose runtime is dropped without a shutdown stops its connection threads all
 //!   the same;
