@@ -37,9 +37,8 @@ pub(crate) struct ServeArgs {
     /// 503 (413 for one answer larger than all of it).
     #[arg(long, env = "ISOVOX_RESPONSE_MEMORY_MB", default_value_t = 256)]
     pub response_memory_mb: usize,
-    /// Threads that accept connections and answer their requests (but those of volumes kept in
-    /// an object store), each with an event loop of its own, as nginx's workers. Default: one
-    /// per core.
+    /// Threads that accept connections and answer their requests, each with an event loop of
+    /// its own, as nginx's workers. Default: one per core.
     #[arg(long, env = "ISOVOX_CONNECTION_THREADS", default_value_t = cpu::cores())]
     pub connection_threads: usize,
     /// Connections open at once (change feeds included); at the limit a new one closes the
@@ -266,7 +265,11 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
         header_timeout: seconds("header-timeout", a.header_timeout)?,
         idle_timeout: seconds("idle-timeout", a.idle_timeout)?,
     };
-    let runtime = tokio::runtime::Builder::new_multi_thread()
+    // The main runtime runs no request: the connection threads do (`http/serve.rs`). Its
+    // tasks are short async loops (this function's, the followers', the volumes' writer tasks,
+    // the signal handler) that hand their waits to its blocking pool: the main thread drives
+    // them all, and no `block_in_place` is left that would need a multi-threaded runtime.
+    let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
         .context("cannot start the async runtime")?;

@@ -41,6 +41,9 @@ pub(super) fn brick_position(raw: &RawPath) -> Result<(u8, u32, u32, u32), ApiEr
 ///   stored as lz4, else compressed on the fly).
 /// - `ETag` is the content hash; `If-None-Match` with it answers 304.
 /// - `?version=N` reads an older version while the file still holds it.
+///
+/// Read in place for a local volume, on the store-read threads for a volume kept in an object
+/// store ([`AppState::read_volume`]).
 pub async fn brick(
     State(state): State<AppState>,
     Path(Named { name }): Path<Named>,
@@ -50,13 +53,11 @@ pub async fn brick(
     request: Request,
 ) -> Result<Response, ApiError> {
     let position = brick_position(&raw)?;
-    brick_at(
-        &state,
-        state.catalog.get(&name)?,
-        version,
-        position,
-        request.headers(),
-    )
+    state
+        .read_volume(&name, move |state, vol| {
+            brick_at(state, vol, version, position, request.headers())
+        })
+        .await
 }
 
 /// The response for brick (level, x, y, z) of `vol` at `version` (the head if `None`): the
@@ -91,7 +92,8 @@ pub(super) fn brick_at(
 
 /// A brick by content hash (16 hex digits): immutable, so any HTTP cache or CDN may keep it
 /// forever. A brick of any version the file still holds is found (a client that read a grid at
-/// `?version=N` asks for its hashes), whether or not this process saw the commits since.
+/// `?version=N` asks for its hashes), whether or not this process saw the commits since. Read
+/// where [`AppState::read_volume`] says.
 pub async fn blob(
     State(state): State<AppState>,
     Path((name, hex)): Path<(String, String)>,
@@ -103,18 +105,22 @@ pub async fn blob(
         .ok_or_else(|| {
             ApiError::BadRequest(format!("{hex:?} is not a content hash (16 hex digits)"))
         })?;
-    let snap = state.catalog.get(&name)?.head();
-    let entry = snap
-        .find_by_hash(hash)?
-        .ok_or_else(|| ApiError::NotFound(format!("no brick with hash {hex} in {name:?}")))?;
-    let stored = snap.stored_entry(entry)?;
-    brick_response(
-        &state,
-        &snap,
-        stored,
-        request.headers(),
-        "public, max-age=31536000, immutable",
-    )
+    state
+        .read_volume(&name, move |state, vol| {
+            let snap = vol.head();
+            let entry = snap.find_by_hash(hash)?.ok_or_else(|| {
+                ApiError::NotFound(format!("no brick with hash {hex} in {:?}", vol.name()))
+            })?;
+            let stored = snap.stored_entry(entry)?;
+            brick_response(
+                state,
+                &snap,
+                stored,
+                request.headers(),
+                "public, max-age=31536000, immutable",
+            )
+        })
+        .await
 }
 
 /// Whether a header of `name` lists `token` (and does not refuse it with `q=0`).

@@ -18,7 +18,10 @@ pub async fn compact(
     let vol = state.catalog.get(&name)?.clone();
     let mut writer = vol.wait_for_writer(state.config.edit_queue).await?;
     let compacting = vol.clone();
-    let report = blocking(move || compacting.compact(&mut writer)).await?;
+    let report = blocking(state.main_runtime(), move || {
+        compacting.compact(&mut writer)
+    })
+    .await?;
     tracing::info!(volume = %name, token = %token.name, version = report.version,
         bytes_before = report.bytes_before, bytes_after = report.bytes_after, "compacted");
     Ok(Json(CompactResponse {

@@ -16,7 +16,8 @@ use isovox_proto::icvg::EditRequest;
 /// Largest edit request body.
 const MAX_EDIT_BODY: usize = 1 << 20;
 
-/// Checks the token before anything is read, compiles the edit off the async runtime, queues
+/// Checks the token before anything is read, compiles the edit on the main runtime's blocking
+/// pool (`cpu::blocking`), queues
 /// it for the volume's writer (bounded queue; the writer commits the edits waiting together,
 /// each as its own version), and answers with the new version once it is durable. Compiling and
 /// evaluating each get the server's edit timeout (waiting for the writer does not count); the
@@ -38,11 +39,13 @@ pub async fn edit(
     let _stop_when_dropped = cancel.cancel_on_drop();
     let (limits, volumes, preparing) = (state.edit_limits(), state.resolver(), vol.clone());
     let compiling = cancel.clone();
-    let edit =
-        blocking(move || preparing.prepare_edit(&request, &limits, &volumes, if_match, &compiling))
-            .await?;
+    let runtime = state.main_runtime();
+    let edit = blocking(runtime.clone(), move || {
+        preparing.prepare_edit(&request, &limits, &volumes, if_match, &compiling)
+    })
+    .await?;
     let response = vol
-        .submit(edit, if_match, cancel, state.group_commit())
+        .submit(edit, if_match, cancel, state.group_commit(), &runtime)
         .await?;
     if response.committed {
         tracing::info!(

@@ -19,25 +19,22 @@
 //!
 //! Where each runs: the server reads connections on threads of their own, one current-thread
 //! runtime each (`serve.rs` says why), and answers their requests there, plain or routed:
-//! handlers never block their thread (CPU work and file writes go to threads of their own,
-//! `cpu.rs` and the volume writers). Volumes kept in an object store are the exception: reading
-//! one may fetch pages from the store and wait for them (announced to tokio with
-//! `block_in_place`, which only a worker of a multi-threaded runtime can do). So the fast path
-//! leaves them to the router, and [`Routed`] runs their requests as tasks of the server's
-//! multi-threaded runtime ([`OnRuntime`]), where such a wait holds up no other connection.
+//! handlers never block their thread (CPU work, file writes and reads of volumes kept in an
+//! object store go to threads of their own: `cpu.rs`, the volume writers,
+//! [`AppState::read_volume`]). Reading a volume kept in an object store may fetch pages from
+//! the store and wait for them, so the fast path leaves those volumes to the router, whose
+//! handlers read them on the store-read threads.
 
-use super::{bricks, views, ApiError, AppState};
+use super::{bricks, views, AppState};
 use crate::formats::ViewKind;
 use crate::volume::LiveVolume;
 use axum::extract::Request;
 use axum::http::Method;
-use axum::response::{IntoResponse, Response};
+use axum::response::Response;
 use futures_util::future::Either;
 use std::convert::Infallible;
-use std::future::{ready, Future, Ready};
-use std::pin::Pin;
+use std::future::{ready, Ready};
 use std::task::{Context, Poll};
-use tokio::runtime::Handle;
 
 /// Answers plain brick requests, hands everything else to `inner` (the router).
 #[derive(Debug, Clone)]
@@ -69,119 +66,6 @@ where
             Some(response) => Either::Left(ready(Ok(response))),
             None => Either::Right(self.inner.call(request)),
         }
-    }
-}
-
-/// The router: requests naming a volume kept in an object store run on `runtime` (see the
-/// module documentation), the others where they were read.
-#[derive(Debug, Clone)]
-pub(super) struct Routed<S> {
-    state: AppState,
-    here: S,
-    on_runtime: OnRuntime<S>,
-}
-
-impl<S: Clone> Routed<S> {
-    pub(super) fn new(state: AppState, router: S, runtime: Handle) -> Self {
-        Routed {
-            state,
-            here: router.clone(),
-            on_runtime: OnRuntime::new(router, runtime),
-        }
-    }
-}
-
-impl<S> tower::Service<Request> for Routed<S>
-where
-    S: tower::Service<Request, Response = Response, Error = Infallible>,
-    S::Future: Send + 'static,
-{
-    type Response = Response;
-    type Error = Infallible;
-    type Future = Either<S::Future, <OnRuntime<S> as tower::Service<Request>>::Future>;
-
-    fn poll_ready(&mut self, cx: &mut Context<'_>) -> Poll<Result<(), Infallible>> {
-        match self.here.poll_ready(cx) {
-            Poll::Ready(Ok(())) => self.on_runtime.poll_ready(cx),
-            not_ready => not_ready,
-        }
-    }
-
-    fn call(&mut self, request: Request) -> Self::Future {
-        if may_wait_on_a_store(&self.state, request.uri().path()) {
-            Either::Right(self.on_runtime.call(request))
-        } else {
-            Either::Left(self.here.call(request))
-        }
-    }
-}
-
-/// `path` names a volume kept in an object store, or a volume name with escapes (as the
-/// router would decode them; rare enough to be sent to the runtime unread).
-fn may_wait_on_a_store(state: &AppState, path: &str) -> bool {
-    let Some(rest) = path.strip_prefix("/v1/volumes/") else {
-        return false;
-    };
-    let name = rest.split('/').next().unwrap_or_default();
-    name.contains('%') || state.catalog.get(name).is_ok_and(|v| v.remote().is_some())
-}
-
-/// Runs `inner`'s requests as tasks of `runtime`, each cancelled (aborted) if its response is
-/// no longer awaited, as a request is when its connection closes.
-#[derive(Debug, Clone)]
-pub(super) struct OnRuntime<S> {
-    inner: S,
-    runtime: Handle,
-}
-
-impl<S> OnRuntime<S> {
-    pub(super) fn new(inner: S, runtime: Handle) -> Self {
-        OnRuntime { inner, runtime }
-    }
-}
-
-impl<S> tower::Service<Request> for OnRuntime<S>
-where
-    S: tower::Service<Request, Response = Response, Error = Infallible>,
-    S::Future: Send + 'static,
-{
-    type Response = Response;
-    type Error = Infallible;
-    type Future = Pin<Box<dyn Future<Output = Result<Response, Infallible>> + Send>>;
-
-    fn poll_ready(&mut self, cx: &mut Context<'_>) -> Poll<Result<(), Infallible>> {
-        self.inner.poll_ready(cx)
-    }
-
-    fn call(&mut self, request: Request) -> Self::Future {
-        let task = AbortOnDrop(self.runtime.spawn(self.inner.call(request)));
-        Box::pin(async move {
-            match task.await {
-                Ok(answered) => answered,
-                // Unwinds this connection's task, as a handler's panic did when handlers ran on
-                // it (the connection closes; the server goes on).
-                Err(e) if e.is_panic() => std::panic::resume_unwind(e.into_panic()),
-                // Cancelled: the runtime is shutting down.
-                Err(_) => Ok(ApiError::Overloaded(1).into_response()),
-            }
-        })
-    }
-}
-
-/// A task that is aborted when this handle is dropped.
-struct AbortOnDrop<T>(tokio::task::JoinHandle<T>);
-
-impl<T> Future for AbortOnDrop<T> {
-    type Output = Result<T, tokio::task::JoinError>;
-
-    fn poll(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Self::Output> {
-        Pin::new(&mut self.0).poll(cx)
-    }
-}
-
-impl<T> Drop for AbortOnDrop<T> {
-    fn drop(&mut self) {
-        self.0.abort();
     }
 }
 
@@ -266,10 +150,6 @@ fn local_volume<'a>(state: &'a AppState, name: &str) -> Option<&'a LiveVolume> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::sync::atomic::{AtomicBool, Ordering};
-    use std::sync::Arc;
-    use tokio::sync::Notify;
-    use tower::Service;
 
     fn get(uri: &str) -> Request {
         Request::builder()
@@ -309,59 +189,6 @@ mod tests {
         let mut head = get("/v1/volumes/world/bricks/0/0/0/0");
         *head.method_mut() = Method::HEAD;
         assert_eq!(parse(&head), None);
-    }
-
-    /// Sets its flag when dropped.
-    struct Dropped(Arc<AtomicBool>);
-
-    impl Drop for Dropped {
-        fn drop(&mut self) {
-            self.0.store(true, Ordering::SeqCst);
-        }
-    }
-
-    #[tokio::test(flavor = "multi_thread", worker_threads = 1)]
-    async fn a_routed_request_is_cancelled_with_its_response() {
-        let (dropped, started) = (Arc::new(AtomicBool::new(false)), Arc::new(Notify::new()));
-        let handler = {
-            let (dropped, started) = (dropped.clone(), started.clone());
-            tower::service_fn(move |_: Request| {
-                let (guard, started) = (Dropped(dropped.clone()), started.clone());
-                async move {
-                    let _guard = guard;
-                    started.notify_one();
-                    std::future::pending::<Result<Response, Infallible>>().await
-                }
-            })
-        };
-        let answer = OnRuntime::new(handler, Handle::current()).call(get("/x"));
-        // It runs as a task of its own, awaited or not.
-        started.notified().await;
-        assert!(!dropped.load(Ordering::SeqCst));
-        drop(answer);
-        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
-        while !dropped.load(Ordering::SeqCst) {
-            assert!(
-                std::time::Instant::now() < deadline,
-                "the handler still runs"
-            );
-            tokio::time::sleep(std::time::Duration::from_millis(1)).await;
-        }
-    }
-
-    #[tokio::test(flavor = "multi_thread", worker_threads = 1)]
-    async fn a_routed_handlers_panic_unwinds_where_its_response_is_awaited() {
-        let handler = tower::service_fn(|_: Request| async {
-            if true {
-                panic!("on purpose");
-            }
-            Ok::<Response, Infallible>(Response::default())
-        });
-        let answer = OnRuntime::new(handler, Handle::current()).call(get("/x"));
-        let awaited = tokio::spawn(answer).await.unwrap_err();
-        assert!(awaited.is_panic());
-        let panic = awaited.into_panic();
-        assert_eq!(panic.downcast_ref::<&str>(), Some(&"on purpose"));
     }
 
     #[test]

@@ -55,10 +55,14 @@ pub async fn events(
     Query(query): Query<ChangesQuery>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    let vol = state.catalog.get(&name)?;
     let since = query.since.or(last_event_id(&headers)?);
     let closing = state.closing.closed();
-    let feed = Feed::start(vol, since, closing, state.clone())?;
+    // Checking `since` reads the file: where `read_volume` says.
+    let feed = state
+        .read_volume(&name, move |state, vol| {
+            Feed::start(vol, since, closing, state.clone())
+        })
+        .await?;
     let stream = futures_util::stream::unfold(feed, |mut feed| async move {
         feed.next()
             .await

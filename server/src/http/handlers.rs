@@ -117,12 +117,11 @@ pub async fn mesh_tile(
     Query(query): Query<MeshQuery>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    let format = query.format;
+    let (format, iso) = (query.format, query.iso);
     let position = brick_position(&raw)?;
     let tile = state
-        .catalog
-        .get(&name)?
-        .mesh_tile(version, position, query.iso)?;
+        .read_volume(&name, move |_, vol| vol.mesh_tile(version, position, iso))
+        .await?;
     let tag = tile.tag(format as u8);
     answer_mesh(
         &state,
@@ -204,10 +203,12 @@ pub async fn mesh_strip(
     let format = query.format;
     let position = brick_position(&raw)?;
     let face = face_number(&face)?;
+    let iso = query.iso;
     let strip = state
-        .catalog
-        .get(&name)?
-        .mesh_strip(version, position, face, query.iso)?;
+        .read_volume(&name, move |_, vol| {
+            vol.mesh_strip(version, position, face, iso)
+        })
+        .await?;
     let tag = strip.tag(format as u8);
     answer_mesh(
         &state,
@@ -264,7 +265,9 @@ pub async fn batch(
     headers: HeaderMap,
     Json(request): Json<BatchRequest>,
 ) -> Result<Response, ApiError> {
-    let read = state.catalog.get(&name)?.batch(&request)?;
+    let read = state
+        .read_volume(&name, move |_, vol| vol.batch(&request))
+        .await?;
     let zstd = accepts_zstd(&headers);
     let bricks = state.bricks.clone();
     let body = state
@@ -337,9 +340,8 @@ pub async fn level(
     };
     let region = query.region.as_deref().map(parse_region).transpose()?;
     let read = state
-        .catalog
-        .get(&name)?
-        .level(version, level, form, region)?;
+        .read_volume(&name, move |_, vol| vol.level(version, level, form, region))
+        .await?;
     let response_headers = match validate(read.tag(), version, &headers) {
         Validated::NotModified(response) => return Ok(response),
         Validated::Changed(response_headers) => response_headers,

@@ -42,8 +42,10 @@ pub async fn upload_mesh(
             ApiError::BadRequest("give the model's ?format=: stl, obj, ply or glb".into())
         })?;
     let body = read_limited(&headers, body, MAX_MESH_BODY, "a model").await?;
-    let info =
-        blocking(move || store.store(&body, &format).map_err(ApiError::Unprocessable)).await?;
+    let info = blocking(state.main_runtime(), move || {
+        store.store(&body, &format).map_err(ApiError::Unprocessable)
+    })
+    .await?;
     tracing::info!(token = %token.name, hash = %format!("{:016x}", info.hash), triangles = info.triangles, "mesh stored");
     Ok(Json(info))
 }

@@ -314,7 +314,7 @@ fn gauges(state: &AppState, out: &mut String) {
         }
     }
     let open = &state.connections;
-    let gauges: [(&str, &str, &str, u64); 20] = [
+    let gauges: [(&str, &str, &str, u64); 21] = [
         (
             "isovox_response_bytes_total",
             "counter",
@@ -344,6 +344,12 @@ fn gauges(state: &AppState, out: &mut String) {
             "gauge",
             "CPU jobs (meshing, batches, levels) running or queued.",
             state.cpu.depth() as u64,
+        ),
+        (
+            "isovox_store_read_queue_depth",
+            "gauge",
+            "Reads of volumes kept in an object store running or queued.",
+            state.store_reads.depth() as u64,
         ),
         (
             "isovox_response_memory_bytes",

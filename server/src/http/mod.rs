@@ -62,7 +62,7 @@ use crate::catalog::Catalog;
 use crate::mesh::cache::MeshCache;
 use crate::store::decoded::DecodedBricks;
 use crate::volume::resolve::CatalogVolumes;
-use crate::volume::{EditLimits, GroupCommit};
+use crate::volume::{EditLimits, GroupCommit, LiveVolume};
 use axum::handler::Handler;
 use axum::http::StatusCode;
 use axum::routing::{get, post, MethodRouter};
@@ -87,6 +87,12 @@ pub struct ServerConfig {
     /// Memory for the bodies CPU jobs build, held until they are sent (`held.rs`); beyond it
     /// 503.
     pub response_memory_bytes: usize,
+    /// Reads of volumes kept in an object store running or queued at once; beyond it 503
+    /// (`cpu::StoreReads`). Default: [`cpu::default_store_read_queue`].
+    pub store_read_queue: usize,
+    /// Threads running those reads (started at the first one). Default:
+    /// [`cpu::default_store_read_threads`].
+    pub store_read_threads: usize,
     /// Open connections, and how long they may wait for a request head or idle.
     pub connections: connections::Limits,
     /// Threads that accept and read connections, each with a runtime of its own (`serve.rs`).
@@ -126,6 +132,8 @@ impl Default for ServerConfig {
             cpu_queue: cpu::default_queue(),
             cpu_threads: cpu::cores(),
             response_memory_bytes: 256 << 20,
+            store_read_queue: cpu::default_store_read_queue(),
+            store_read_threads: cpu::default_store_read_threads(),
             connections: connections::Limits::default(),
             connection_threads: cpu::cores(),
             tokens: auth::Tokens::default(),
@@ -168,6 +176,9 @@ pub struct Shared {
     /// The bound on CPU work off the async runtime (meshing, batches, levels) and on the
     /// memory of its answers.
     pub cpu: cpu::CpuQueue,
+    /// The bound on reads of volumes kept in an object store, and their threads
+    /// ([`AppState::read_volume`]).
+    pub store_reads: cpu::StoreReads,
     /// The open connections.
     pub connections: Arc<connections::Connections>,
     /// Requests and latencies per route.
@@ -182,6 +193,10 @@ pub struct Shared {
     pub mesh_store: Option<Arc<crate::voxelize::store::MeshStore>>,
     /// Set when the server starts shutting down: change feeds end.
     pub closing: Closing,
+    /// The server's main runtime, set by `serve.rs` when the server starts (for [`spawn`]:
+    /// the caller's runtime). Blocking work ([`cpu::blocking`]) and the
+    /// volumes' writer tasks run there, never on the connection thread that took the request.
+    main_runtime: std::sync::OnceLock<tokio::runtime::Handle>,
 }
 
 impl AppState {
@@ -209,6 +224,7 @@ impl AppState {
                 config.cpu_threads,
                 config.response_memory_bytes,
             ),
+            store_reads: cpu::StoreReads::new(config.store_read_queue, config.store_read_threads),
             connections: Arc::new(connections::Connections::new(config.connections)),
             metrics: Arc::new(metrics::Metrics::new(ROUTES)),
             constants: bodies::ConstantBricks::default(),
@@ -218,8 +234,56 @@ impl AppState {
                 .as_deref()
                 .map(|d| Arc::new(crate::voxelize::store::MeshStore::new(d))),
             closing: Closing::default(),
+            main_runtime: std::sync::OnceLock::new(),
             config: Arc::new(config),
         }))
+    }
+
+    /// Where blocking work and the volumes' writer tasks run: the runtime that serves this
+    /// state (set when serving starts), else the current one (a handler called without a
+    /// server, as in unit tests).
+    ///
+    /// # Panics
+    /// Outside a tokio runtime before the server has started.
+    pub fn main_runtime(&self) -> tokio::runtime::Handle {
+        match self.main_runtime.get() {
+            Some(h) => h.clone(),
+            None => tokio::runtime::Handle::current(),
+        }
+    }
+
+    /// `read` of volume `name` (with this state), where reading it may wait: in place for a
+    /// volume kept in a local file (mapped memory; no allocation, no hop), on the store-read
+    /// threads for one kept in an object store, whose reads may fetch pages from the store
+    /// and wait for them ([`cpu::StoreReads::run`]: 503 when they are all busy). Every
+    /// synchronous read of a volume in a handler goes through here: a read of a remote volume
+    /// on a connection thread would stall all of that thread's connections for a round trip
+    /// (debug builds assert against it in `Bucket`).
+    ///
+    /// # Errors
+    /// 404 when no volume is called `name`; as [`cpu::StoreReads::run`]; whatever `read`
+    /// fails with.
+    pub async fn read_volume<T, E>(
+        &self,
+        name: &str,
+        read: impl FnOnce(&AppState, &Arc<LiveVolume>) -> Result<T, E> + Send + 'static,
+    ) -> Result<T, ApiError>
+    where
+        T: Send + 'static,
+        E: Send + 'static,
+        ApiError: From<E>,
+    {
+        let volume = self.catalog.get(name)?;
+        if volume.remote().is_none() {
+            return Ok(read(self, volume)?);
+        }
+        let (state, volume) = (self.clone(), volume.clone());
+        self.store_reads.run(move || read(&state, &volume)).await
+    }
+
+    /// Records the server's main runtime (the first one given stays).
+    pub(crate) fn set_main_runtime(&self, runtime: tokio::runtime::Handle) {
+        let _ = self.main_runtime.set(runtime);
     }
 
     /// What one edit may ask for on this server.
@@ -282,12 +346,11 @@ pub const ROUTES: &[&str] = &[
 /// here too: it timed every request and body frame again and logged every 5xx, shed 503s
 /// included, as an error; internal errors log their cause where they are mapped, `error.rs`.)
 ///
-/// Requests are answered on the thread that read them, but for those of volumes kept in an
-/// object store: they run as tasks of `runtime`, the server's multi-threaded runtime (see
-/// `fast_path.rs`).
+/// Requests are answered on the thread that read them; what would hold that thread up leaves
+/// it inside the handler (CPU work, blocking work, reads of volumes kept in an object store:
+/// [`AppState::read_volume`]).
 pub fn app(
     state: AppState,
-    runtime: tokio::runtime::Handle,
 ) -> impl tower::Service<
     axum::extract::Request,
     Response = axum::response::Response,
@@ -298,7 +361,7 @@ pub fn app(
        + Sync
        + 'static {
     let metrics = state.metrics.clone();
-    let (fast_state, routed_state) = (state.clone(), state.clone());
+    let fast_state = state.clone();
     let router = routes(&state)
         .fallback(handlers::not_found)
         .with_state(state);
@@ -309,10 +372,7 @@ pub fn app(
             r
         })
         .layer(metrics::MetricsLayer::new(metrics))
-        .service(fast_path::BrickFirst::new(
-            fast_state,
-            fast_path::Routed::new(routed_state, router, runtime),
-        ))
+        .service(fast_path::BrickFirst::new(fast_state, router))
 }
 
 /// The routes, with the layers only some of them take: a 30 s timeout on the routes that do

@@ -10,8 +10,9 @@
 //! threads (one per core by default) each run an event loop of their own (a current-thread
 //! tokio runtime) and accept from the one listening socket; a connection is served by the
 //! thread with the fewest open (handed over by the one that accepted it, [`Spread`]) and stays
-//! there, and its requests are answered there (those of volumes kept in an object
-//! store run on the server's multi-threaded runtime instead, `fast_path.rs`). Why: tokio's
+//! there, and its requests are answered there (what would hold the thread up leaves it from
+//! inside the handler: CPU work, blocking work, reads of volumes kept in an object store;
+//! `docs/architecture.md`). Why: tokio's
 //! multi-threaded runtime has one I/O driver, so every connection went through one event loop,
 //! woken in batches, with requests and answers handed between threads. Clients with small
 //! connection pools (tensorstore's curl threads keep four each) then saw answers in bursts,
@@ -81,10 +82,14 @@ async fn serve(
     state: AppState,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> std::io::Result<()> {
+    // Blocking work and the volumes' writer tasks run on this runtime, whichever connection
+    // thread took their request: they outlive that thread's connections, and its runtime
+    // never has a blocking pool to wait for when it stops.
+    state.set_main_runtime(Handle::current());
     let accepting = Accepting {
         service: tower::ServiceBuilder::new()
             .map_request(|r: Request<hyper::body::Incoming>| r.map(axum::body::Body::new))
-            .service(app(state.clone(), Handle::current())),
+            .service(app(state.clone())),
         tls,
         open: state.connections.clone(),
         closing: state.closing.clone(),

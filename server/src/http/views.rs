@@ -80,8 +80,9 @@ pub async fn precomputed_pinned(
     view(&state, ViewKind::Precomputed, &name, true, &raw, request).await
 }
 
-/// Reads the document (made on the CPU queue when it takes work) and answers it: `{*path}`, and
-/// `{version}` when `pinned`, as the client spelled them.
+/// Reads the document (in place, or on the store-read threads for a volume kept in an object
+/// store: [`AppState::read_volume`]; made on the CPU queue when it takes work) and answers it:
+/// `{*path}`, and `{version}` when `pinned`, as the client spelled them.
 async fn view(
     state: &AppState,
     kind: ViewKind,
@@ -98,8 +99,14 @@ async fn view(
     };
     let path = raw
         .param("path")
-        .ok_or_else(|| ApiError::Internal("a view route without {*path}".into()))?;
-    let answer = match read(state.catalog.get(name)?, kind, version, path, &state.bricks)? {
+        .ok_or_else(|| ApiError::Internal("a view route without {*path}".into()))?
+        .to_string();
+    let (made, path) = state
+        .read_volume(name, move |state, vol| {
+            read(vol, kind, version, &path, &state.bricks).map(|made| (made, path))
+        })
+        .await?;
+    let answer = match made {
         ViewRead::Ready(answer) => answer,
         ViewRead::Make(chunk) => {
             let bricks = state.bricks.clone();
@@ -111,7 +118,7 @@ async fn view(
                 .await?
         }
     };
-    respond(kind, name, version, path, answer, request.headers())
+    respond(kind, name, version, &path, answer, request.headers())
 }
 
 /// The response to a request of a live view that takes no work (metadata, a stored frame, a

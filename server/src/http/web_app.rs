@@ -7,8 +7,8 @@
 
 use super::bricks::{accepts, if_none_match};
 use super::cpu::blocking;
-use super::ApiError;
-use axum::extract::Path;
+use super::{ApiError, AppState};
+use axum::extract::{Path, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
@@ -63,40 +63,54 @@ fn compress_all() -> Assets {
         .collect()
 }
 
-/// The files, compressing them on the blocking pool the first time (level 19 is CPU work the
-/// async runtime must not do).
-async fn assets() -> Result<&'static Assets, ApiError> {
+/// The files, compressing them on the main runtime's blocking pool the first time (level 19
+/// is CPU work a connection thread must not do).
+async fn assets(state: &AppState) -> Result<&'static Assets, ApiError> {
     match ASSETS.get() {
         Some(assets) => Ok(assets),
-        None => blocking(|| Ok::<_, Infallible>(ASSETS.get_or_init(compress_all))).await,
+        None => {
+            let compress = || Ok::<_, Infallible>(ASSETS.get_or_init(compress_all));
+            blocking(state.main_runtime(), compress).await
+        }
     }
 }
 
 /// The viewer's routes: the page at `/` (and `/index.html`) and its files under `/assets/`.
-pub(super) fn routes<S: Clone + Send + Sync + 'static>() -> Router<S> {
+pub(super) fn routes() -> Router<AppState> {
     Router::new()
         .route("/", get(page))
         .route("/index.html", get(page))
         .route("/assets/{*file}", get(asset))
 }
 
-async fn page(headers: HeaderMap) -> Result<Response, ApiError> {
-    respond("/index.html", &headers, "no-cache").await
+async fn page(State(state): State<AppState>, headers: HeaderMap) -> Result<Response, ApiError> {
+    respond(&state, "/index.html", &headers, "no-cache").await
 }
 
-async fn asset(Path(file): Path<String>, headers: HeaderMap) -> Result<Response, ApiError> {
+async fn asset(
+    State(state): State<AppState>,
+    Path(file): Path<String>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
     let path = format!("/assets/{file}");
-    respond(&path, &headers, "public, max-age=31536000, immutable").await
+    respond(
+        &state,
+        &path,
+        &headers,
+        "public, max-age=31536000, immutable",
+    )
+    .await
 }
 
 /// The file at `path`: 304 when `If-None-Match` names it, zstd to clients that take it; a path
 /// the viewer has no file for is answered as any unknown route.
 async fn respond(
+    state: &AppState,
     path: &str,
     headers: &HeaderMap,
     cache: &'static str,
 ) -> Result<Response, ApiError> {
-    let Some(asset) = assets().await?.get(path) else {
+    let Some(asset) = assets(state).await?.get(path) else {
         return Err(super::handlers::not_found().await);
     };
     let mut out = HeaderMap::with_capacity(6);

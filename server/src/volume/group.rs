@@ -124,6 +124,20 @@ impl EditQueue {
     }
 }
 
+/// Held by a writer task while it runs: should the task be dropped before it ends by itself
+/// (its runtime stopped), the volume's writer is marked stopped, so that the next edit starts
+/// a new one instead of queueing for a writer that is gone.
+struct StillWriting(Option<Arc<LiveVolume>>);
+
+impl Drop for StillWriting {
+    fn drop(&mut self) {
+        if let Some(volume) = self.0.take() {
+            tracing::warn!(volume = %volume.name, "the volume's writer task was dropped");
+            volume.queue().writing = false;
+        }
+    }
+}
+
 /// Why the writer's blocking thread stopped taking groups.
 enum Continue {
     /// No edit waits: the writer stops until the next one.
@@ -149,9 +163,12 @@ impl LiveVolume {
     }
 
     /// Queues `edit` for the writer and waits until it is durable (or refused). The volume's
-    /// writer task is started when it is not running; it takes groups from the queue as
-    /// `settings` say until the queue is empty. `cancel` stops the edit's evaluation (see
-    /// [`PendingEdit::new`]).
+    /// writer task is started on `runtime` when it is not running; it takes groups from the
+    /// queue as `settings` say until the queue is empty. `cancel` stops the edit's evaluation
+    /// (see [`PendingEdit::new`]).
+    ///
+    /// `runtime` is the server's main runtime, not the caller's: a writer task spawned on a
+    /// connection thread would compete with that thread's connections and die with it.
     ///
     /// # Errors
     /// [`VolumeError::WriterBusy`] when `settings.max_waiting` edits already wait;
@@ -163,6 +180,7 @@ impl LiveVolume {
         if_match: Option<u64>,
         cancel: CancelToken,
         settings: GroupCommit,
+        runtime: &tokio::runtime::Handle,
     ) -> Result<EditResponse, VolumeError> {
         if let Some(unchanged) = self.unchanged(&edit) {
             return Ok(unchanged);
@@ -176,7 +194,7 @@ impl LiveVolume {
             queue.edits.push_back(pending);
             if !queue.writing {
                 queue.writing = true;
-                tokio::spawn(self.clone().write_groups(settings));
+                runtime.spawn(self.clone().write_groups(settings));
             }
         }
         answer.await.map_err(|_| {
@@ -195,6 +213,14 @@ impl LiveVolume {
     /// of its time under many editors and subscribers. A compaction waiting for the writer
     /// still takes it between two groups.
     async fn write_groups(self: Arc<Self>, settings: GroupCommit) {
+        let mut running = StillWriting(Some(self.clone()));
+        self.take_groups(settings).await;
+        // Ended by itself: the queue was found empty, and `writing` cleared, under its lock.
+        running.0 = None;
+    }
+
+    /// [`LiveVolume::write_groups`]' loop.
+    async fn take_groups(self: Arc<Self>, settings: GroupCommit) {
         loop {
             // Compaction takes the writer between groups.
             let mut slot = self.lock_writer().await;

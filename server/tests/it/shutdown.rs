@@ -6,10 +6,13 @@
 //! - a request that would never finish (its body never comes) is cut when the grace runs out,
 //!   and the server stops;
 //! - with any number of connection threads, connections at once are all served (plain reads
-//!   on the connection threads, routed ones on the runtime) until the shutdown, and then the
+//!   and routed ones, all on the connection threads) until the shutdown, and then the
 //!   port refuses connections;
 //! - a server whose runtime is dropped without a shutdown stops its connection threads all
-//!   the same.
+//!   the same;
+//! - an edit cut by the shutdown while it waits for its volume's writer leaves the volume
+//!   editable: its writer task lives on the server's runtime, not on the connection thread
+//!   that took the edit.
 //!
 //! The TLS server gets a certificate made by `openssl` (as `.ci/run` installs it); the client
 //! trusts exactly that certificate.
@@ -262,4 +265,82 @@ fn dropping_the_runtime_stops_the_connection_threads() {
         std::thread::sleep(Duration::from_millis(10));
     }
     drop(stop);
+}
+
+/// A write token for the edit tests (secrets have at least 16 characters).
+const SECRET: &str = "a-write-token-for-shutdown-tests";
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_edit_cut_by_the_shutdown_leaves_the_volume_editable() {
+    use isovox_server::cancel::CancelToken;
+    use isovox_server::http::auth::{Scope, Tokens};
+
+    let dir = tempfile::tempdir().unwrap();
+    world(dir.path());
+    let mut tokens = Tokens::default();
+    tokens.add("t", SECRET, Scope::Write).unwrap();
+    let config = ServerConfig {
+        tokens,
+        connection_threads: 1,
+        shutdown_grace: Duration::from_millis(100),
+        ..ServerConfig::default()
+    };
+    let state = AppState::with_config(Catalog::open_dir(dir.path()).unwrap(), config);
+    let volume = state.catalog.get("w").unwrap().clone();
+    // The writer is held (as a compaction holds it), so the edit's writer task waits for it.
+    let held = volume.lock_writer().await;
+    let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let (stop_tx, stopped) = tokio::sync::oneshot::channel::<()>();
+    let task = tokio::spawn(run(listener, state.clone(), async {
+        let _ = stopped.await;
+    }));
+    let body = r#"{"op":"union","term":{"cuboid":{"origin":[4,4,4],"size":[6,6,6]}}}"#;
+    let mut tcp = TcpStream::connect(addr).await.unwrap();
+    let head = format!(
+        "POST /v1/volumes/w/edits HTTP/1.1\r\nHost: isovox\r\nAuthorization: Bearer {SECRET}\r\n\
+         Content-Type: application/json\r\nContent-Length: {}\r\n\r\n{body}",
+        body.len()
+    );
+    tcp.write_all(head.as_bytes()).await.unwrap();
+    let deadline = std::time::Instant::now() + HANGS;
+    while volume.queue_depth() == 0 {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the edit never queued"
+        );
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    // The shutdown cuts the edit (its grace runs out) and stops the connection thread.
+    stop(
+        Running {
+            addr,
+            stop: stop_tx,
+            task,
+        },
+        "edit",
+    )
+    .await;
+    drop(tcp);
+    drop(held);
+
+    // The volume takes the next edit: a writer runs for it.
+    let request = serde_json::from_str(body).unwrap();
+    let cancel = CancelToken::never();
+    let edit = volume
+        .prepare_edit(
+            &request,
+            &state.edit_limits(),
+            &state.resolver(),
+            None,
+            &cancel,
+        )
+        .unwrap();
+    let runtime = tokio::runtime::Handle::current();
+    let submitted = volume.submit(edit, None, cancel, state.group_commit(), &runtime);
+    let answer = tokio::time::timeout(HANGS, submitted)
+        .await
+        .unwrap_or_else(|_| panic!("the edit after the shutdown hangs"))
+        .unwrap();
+    assert_eq!(answer.version, answer.previous + 1);
 }

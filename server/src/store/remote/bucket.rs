@@ -83,16 +83,23 @@ impl Drop for StoreWaitBound {
     }
 }
 
-/// Runs `fut` on the store's runtime and waits for it, until this thread's deadline if it has
-/// one ([`bound_store_waits`]). On a worker of a multi-threaded tokio runtime the wait is
-/// announced (`block_in_place`), so that runtime moves its other tasks elsewhere meanwhile.
+/// Runs `fut` on the store's runtime and blocks this thread until it is done, or until this
+/// thread's deadline if it has one ([`bound_store_waits`]). Callers are threads that may wait:
+/// the server's store-read, CPU, blocking and rayon threads, never an async runtime's worker (a
+/// connection thread serves all its connections on one thread, and would stall them all for the
+/// round trip: debug builds check it).
 fn wait<T: Send + 'static>(fut: impl Future<Output = T> + Send + 'static) -> Result<T, StoreError> {
+    debug_assert!(
+        !std::thread::current()
+            .name()
+            .is_some_and(|n| n.starts_with("isovox-conn-")),
+        "a store call on a connection thread: read remote volumes through AppState::read_volume"
+    );
     let (tx, rx) = std::sync::mpsc::sync_channel(1);
     io_runtime()?.spawn(async move {
         let _ = tx.send(fut.await);
     });
-    let deadline = DEADLINE.get();
-    let recv = move || match deadline {
+    let got = match DEADLINE.get() {
         None => rx.recv().map_err(|_| None),
         Some((at, limit)) => rx
             .recv_timeout(at.saturating_duration_since(Instant::now()))
@@ -100,12 +107,6 @@ fn wait<T: Send + 'static>(fut: impl Future<Output = T> + Send + 'static) -> Res
                 std::sync::mpsc::RecvTimeoutError::Timeout => Some(limit),
                 std::sync::mpsc::RecvTimeoutError::Disconnected => None,
             }),
-    };
-    let got = match tokio::runtime::Handle::try_current() {
-        Ok(h) if h.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread => {
-            tokio::task::block_in_place(recv)
-        }
-        _ => recv(),
     };
     got.map_err(|stalled| match stalled {
         Some(limit) => StoreError::Stalled { limit },
