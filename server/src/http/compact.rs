@@ -19,7 +19,7 @@ pub async fn compact(
     let mut writer = vol.wait_for_writer(state.config.edit_queue).await?;
     let compacting = vol.clone();
     let report = blocking(move || compacting.compact(&mut writer)).await?;
-    tracing::info!(volume = %name, token = %token.name, version = report.version,
+    tracing::info!(volume = %name, user = %token.user, version = report.version,
         bytes_before = report.bytes_before, bytes_after = report.bytes_after, "compacted");
     Ok(Json(CompactResponse {
         version: report.version,
