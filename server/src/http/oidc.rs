@@ -184,7 +184,9 @@ fn usable_key(entry: &Value) -> Option<Key> {
 /// The issuer's keys and how tokens are checked against them.
 pub struct Oidc {
     config: OidcConfig,
-    keys: RwLock<Arc<KeySet>>,
+    /// Shared with the refresh's blocking thread, which stores what it fetched even if the
+    /// request that started it is gone by then.
+    keys: Arc<RwLock<Arc<KeySet>>>,
     /// When the set was last refreshed for an unknown kid; the lock also makes concurrent
     /// refreshes one.
     refreshed: tokio::sync::Mutex<Option<Instant>>,
@@ -214,7 +216,7 @@ impl Oidc {
         };
         Ok(Oidc {
             config,
-            keys: RwLock::new(Arc::new(keys)),
+            keys: Arc::new(RwLock::new(Arc::new(keys))),
             refreshed: tokio::sync::Mutex::new(None),
             fetches: AtomicU64::new(0),
         })
@@ -253,7 +255,7 @@ impl Oidc {
     }
 
     fn store(&self, set: KeySet) {
-        *self.keys.write().unwrap_or_else(|p| p.into_inner()) = Arc::new(set);
+        store(&self.keys, set);
     }
 
     /// The user a JWT names, with the grants of its roles, once it verifies.
@@ -370,20 +372,22 @@ impl Oidc {
             }
         }
         *refreshed = Some(Instant::now());
-        let config = self.config.clone();
+        let (config, keys) = (self.config.clone(), self.keys.clone());
         self.fetches.fetch_add(1, Ordering::Relaxed);
-        let fetched = tokio::task::spawn_blocking(move || fetch_keys(&config))
-            .await
-            .map_err(|e| ApiError::Internal(format!("the key set fetch failed: {e}")))?;
+        let fetched = tokio::task::spawn_blocking(move || {
+            let set = fetch_keys(&config)?;
+            let n = set.keys.len();
+            store(&keys, set);
+            Ok::<usize, String>(n)
+        })
+        .await
+        .map_err(|e| ApiError::Internal(format!("the key set fetch failed: {e}")))?;
         match fetched {
-            Ok(set) => {
-                tracing::info!(
-                    issuer = %self.config.issuer,
-                    keys = set.keys.len(),
-                    "refreshed the issuer's keys for a token naming an unknown key"
-                );
-                self.store(set);
-            }
+            Ok(n) => tracing::info!(
+                issuer = %self.config.issuer,
+                keys = n,
+                "refreshed the issuer's keys for a token naming an unknown key"
+            ),
             Err(e) => {
                 tracing::warn!(issuer = %self.config.issuer, "cannot refresh the issuer's keys: {e}");
                 return Err(unauthorized(&format!(
@@ -404,6 +408,10 @@ impl Oidc {
         self.fetches.fetch_add(1, Ordering::Relaxed);
         fetch_keys(&self.config)
     }
+}
+
+fn store(keys: &RwLock<Arc<KeySet>>, set: KeySet) {
+    *keys.write().unwrap_or_else(|p| p.into_inner()) = Arc::new(set);
 }
 
 fn unauthorized(detail: &str) -> ApiError {

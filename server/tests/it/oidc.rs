@@ -208,7 +208,7 @@ fn data_dir() -> tempfile::TempDir {
 
 fn serve(dir: &Path, options: &[&str]) -> ServerProcess {
     let mut args: Vec<&std::ffi::OsStr> = vec!["--data".as_ref(), dir.as_os_str()];
-    args.extend(options.iter().map(|o| std::ffi::OsStr::new(o)));
+    args.extend(options.iter().map(std::ffi::OsStr::new));
     // Info logs: the edits name their user, and no token may show up there.
     ServerProcess::start(&args, &[("RUST_LOG", "info"), ("ISOVOX_LOG", "info")])
 }
