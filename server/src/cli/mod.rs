@@ -43,7 +43,7 @@ pub(crate) struct Cli {
 pub(crate) enum Command {
     /// Serve every VOD 2 file of a data directory over HTTP (a demo world is generated on
     /// first start).
-    Serve(serve::ServeArgs),
+    Serve(Box<serve::ServeArgs>),
     /// Import a RAW, RAWVOX or VOD 1 file into VOD 2 (or write VOD 1 with --format vod1), or
     /// OME-Zarr, Zarr, Neuroglancer precomputed, NIfTI-1 or a TIFF stack into VOD 2.
     Import(data::ImportArgs),
@@ -80,7 +80,7 @@ pub(crate) enum Command {
 /// Whatever the subcommand fails with, with context for the user.
 pub(crate) fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
-        Command::Serve(a) => serve::serve(a),
+        Command::Serve(a) => serve::serve(*a),
         Command::Import(a) => data::import(a),
         Command::Export(a) => data::export(a),
         Command::Generate(a) => data::generate(a),

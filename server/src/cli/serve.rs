@@ -7,6 +7,7 @@ use isovox_server::generate::{build_demo, DEMO_NAME};
 use isovox_server::http::auth::{random_secret, Scope, Tokens};
 use isovox_server::http::connections::{default_max_connections, raise_fd_limit, Limits};
 use isovox_server::http::cpu;
+use isovox_server::http::oidc::{KeySource, Oidc, OidcConfig, DEFAULT_ROLES_CLAIM};
 use isovox_server::http::{run, run_tls, shutdown_signal, AppState, ServerConfig};
 use isovox_server::store::remote::{Bucket, CacheConfig};
 use isovox_server::store::BuildOptions;
@@ -57,6 +58,26 @@ pub(crate) struct ServeArgs {
     /// random write token on first start when no token is configured.
     #[arg(long, env = "ISOVOX_TOKEN_FILE")]
     pub token_file: Option<PathBuf>,
+    /// Also accept JWTs of this OpenID Connect issuer (RS256, ES256), exactly as its tokens'
+    /// `iss` spell it; its keys are found through ISSUER/.well-known/openid-configuration.
+    /// Needs --oidc-audience.
+    #[arg(long, env = "ISOVOX_OIDC_ISSUER", requires = "oidc_audience")]
+    pub oidc_issuer: Option<String>,
+    /// The audience the JWTs must name in `aud`: this server's client id at the issuer.
+    #[arg(long, env = "ISOVOX_OIDC_AUDIENCE", requires = "oidc_issuer")]
+    pub oidc_audience: Option<String>,
+    /// The claim holding a user's roles (`write:VOLUME`, `read:VOLUME`, `*` for every volume,
+    /// `admin`): a top-level claim by name, else a dotted path such as `realm_access.roles`.
+    #[arg(long, env = "ISOVOX_OIDC_ROLES_CLAIM", default_value = DEFAULT_ROLES_CLAIM)]
+    pub oidc_roles_claim: String,
+    /// The issuer's keys (a JWKS) from this file, read once at start (no network), or from this
+    /// http(s) URL without discovery.
+    #[arg(long, env = "ISOVOX_OIDC_JWKS", requires = "oidc_issuer")]
+    pub oidc_jwks: Option<String>,
+    /// Least seconds between two fetches of the issuer's keys for tokens naming a key the server
+    /// does not have (so made-up key ids cannot make it hammer the issuer).
+    #[arg(long, env = "ISOVOX_OIDC_REFRESH_INTERVAL", default_value_t = 60.0)]
+    pub oidc_refresh_interval: f64,
     /// Every /v1 route needs a token (reads too).
     #[arg(long, env = "ISOVOX_PRIVATE_READS")]
     pub private_reads: bool,
@@ -107,7 +128,8 @@ pub(crate) struct ServeArgs {
 }
 
 /// The tokens the server accepts: the token file (DATA/tokens by default, created with one
-/// random write token when nothing else is configured) and `ISOVOX_WRITE_TOKEN`.
+/// random write token when nothing else is configured: no `ISOVOX_WRITE_TOKEN`, no OIDC issuer)
+/// and `ISOVOX_WRITE_TOKEN`.
 fn load_tokens(a: &ServeArgs) -> anyhow::Result<Tokens> {
     let env_token = std::env::var("ISOVOX_WRITE_TOKEN")
         .ok()
@@ -116,7 +138,7 @@ fn load_tokens(a: &ServeArgs) -> anyhow::Result<Tokens> {
     let file = match &a.token_file {
         Some(f) => Some(f.clone()),
         None if default_file.exists() => Some(default_file),
-        None if env_token.is_none() => {
+        None if env_token.is_none() && a.oidc_issuer.is_none() => {
             let secret = random_secret().context("cannot draw a random token")?;
             write_private(
                 &default_file,
@@ -142,6 +164,43 @@ fn load_tokens(a: &ServeArgs) -> anyhow::Result<Tokens> {
             .map_err(|e| anyhow::anyhow!("ISOVOX_WRITE_TOKEN: {e}"))?;
     }
     Ok(tokens)
+}
+
+/// The OIDC issuer whose JWTs are accepted, if configured: a key file is read now (an error
+/// stops the start); keys from the network are fetched now, and a failure only warns (the
+/// first token fetches them again), so a server restarting while its issuer is down still
+/// serves its token-file users and public reads.
+fn load_oidc(a: &ServeArgs) -> anyhow::Result<Option<std::sync::Arc<Oidc>>> {
+    let (Some(issuer), Some(audience)) = (&a.oidc_issuer, &a.oidc_audience) else {
+        return Ok(None);
+    };
+    let refresh_interval = seconds("oidc-refresh-interval", a.oidc_refresh_interval)?;
+    let keys = match a.oidc_jwks.as_deref() {
+        None => KeySource::Discover,
+        Some(url) if url.starts_with("http://") || url.starts_with("https://") => {
+            KeySource::Url(url.to_string())
+        }
+        Some(file) => KeySource::File(PathBuf::from(file)),
+    };
+    let from_file = matches!(keys, KeySource::File(_));
+    let oidc = Oidc::new(OidcConfig {
+        roles_claim: a.oidc_roles_claim.clone(),
+        keys,
+        refresh_interval,
+        ..OidcConfig::new(issuer, audience)
+    })
+    .map_err(|e| anyhow::anyhow!("--oidc-jwks: {e}"))?;
+    if !from_file {
+        if let Err(e) = oidc.load_blocking() {
+            tracing::warn!("cannot fetch the keys of the OIDC issuer yet (the first token will try again): {e}");
+        }
+    }
+    eprintln!(
+        "accepting JWTs of {issuer} for the audience {audience} ({} keys, roles in the claim {})",
+        oidc.key_count(),
+        a.oidc_roles_claim
+    );
+    Ok(Some(std::sync::Arc::new(oidc)))
 }
 
 /// Creates `path` readable by its owner only.
@@ -279,6 +338,7 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
     create_data_dir(&a.data)?;
     let catalog = open_catalog(&a)?;
     let tokens = load_tokens(&a)?;
+    let oidc = load_oidc(&a)?;
     let followed: Vec<_> = catalog.iter().map(|(_, v)| v.clone()).collect();
     let served = runtime.block_on(async {
         let addr = listener.local_addr()?;
@@ -296,7 +356,7 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             cpu::cores(),
             a.response_memory_mb
         );
-        if tokens.is_empty() {
+        if tokens.is_empty() && oidc.is_none() {
             tracing::warn!("no write token configured: every edit will be refused");
         }
         let config = ServerConfig {
@@ -307,6 +367,7 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
             connections,
             connection_threads: a.connection_threads.max(1),
             tokens,
+            oidc,
             private_reads: a.private_reads,
             edit_rate: a.edit_rate,
             edit_queue: a.edit_queue,

@@ -1,4 +1,10 @@
-//! Bearer tokens and per-token edit rates.
+//! Who a request speaks for, what they may do, and per-user edit rates.
+//!
+//! Two sources name a [`Principal`] (a user and their [`Grant`]s): the token file below, and,
+//! with `--oidc-issuer`, JWTs signed by an OpenID Connect issuer (`oidc.rs`). A bearer that
+//! looks like a JWT (three base64url parts joined by dots) goes to the issuer's keys when OIDC
+//! is configured; any other bearer is looked up in the token file. [`authorize`] is the one
+//! check both go through, so handlers see the same identity whichever signed it.
 //!
 //! A token file has one token per line, `NAME TOKEN [SCOPE [VOLUMES]]`: NAME is the user the
 //! token speaks for; SCOPE is `write` (the default) or `read`; VOLUMES is `*` (every volume, the
@@ -6,7 +12,7 @@
 //! Secrets are compared in constant time and never printed: a [`Token`]'s `Debug` shows its
 //! name, scope and volumes only, and logs name the token, not its secret.
 
-use super::{ApiError, AppState};
+use super::{ApiError, AppState, ServerConfig};
 use axum::extract::{Request, State};
 use axum::http::{header, HeaderMap};
 use axum::middleware::Next;
@@ -66,6 +72,130 @@ impl VolumeAccess {
     }
 }
 
+/// One right: `scope` on `volumes`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Grant {
+    /// What may be done.
+    pub scope: Scope,
+    /// To which volumes.
+    pub volumes: VolumeAccess,
+}
+
+/// Who a request speaks for and what they may do, whichever source vouched for them (a token
+/// of the token file, or a JWT).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Principal {
+    /// The user: the token file's NAME, or the JWT's `preferred_username` (else `sub`). Logs,
+    /// rate limits and the record of who did what use it.
+    pub user: String,
+    /// What they may do: a request is allowed when one grant covers it.
+    pub grants: Vec<Grant>,
+    /// The `admin` role, kept for rights still to come (undoing others' edits); it grants
+    /// nothing today.
+    pub admin: bool,
+}
+
+impl Principal {
+    /// Whether some grant gives at least `need` on `volume` (a route that names no volume:
+    /// `None`, which asks for the scope on any volume).
+    pub fn may(&self, need: Scope, volume: Option<&str>) -> bool {
+        self.grants
+            .iter()
+            .any(|g| g.scope >= need && volume.is_none_or(|v| g.volumes.allows(v)))
+    }
+
+    /// [`Principal::may`] as an answer: a 403 that says what is missing.
+    ///
+    /// # Errors
+    /// 403 when no grant covers `need` on `volume`.
+    pub fn check(&self, need: Scope, volume: Option<&str>) -> Result<(), ApiError> {
+        if self.may(need, volume) {
+            return Ok(());
+        }
+        let user = &self.user;
+        let what = match need {
+            Scope::Read => "read",
+            Scope::Write => "write",
+        };
+        // Say "read-only" when the user may read there: the one thing a read-only token lacks.
+        if need == Scope::Write && self.may(Scope::Read, volume) {
+            return Err(ApiError::Forbidden(match volume {
+                Some(v) => format!("{user:?} may only read the volume {v:?}"),
+                None => format!("{user:?} is read-only"),
+            }));
+        }
+        Err(ApiError::Forbidden(match volume {
+            Some(v) => format!("{user:?} may not {what} the volume {v:?}"),
+            None => format!("{user:?} may not {what}"),
+        }))
+    }
+}
+
+/// The grants of a JWT's roles: `write:VOLUME` writes and reads VOLUME, `read:VOLUME` reads
+/// it, `*` for VOLUME means every volume; `admin` is kept (the second value) and grants nothing
+/// by itself. Other roles (a provider's own, such as `offline_access`) are ignored.
+pub fn grants_from_roles<'a>(roles: impl IntoIterator<Item = &'a str>) -> (Vec<Grant>, bool) {
+    let mut grants = Vec::new();
+    let mut admin = false;
+    for role in roles {
+        if role == "admin" {
+            admin = true;
+            continue;
+        }
+        let Some((scope, volume)) = role.split_once(':') else {
+            continue;
+        };
+        let scope = match scope {
+            "write" => Scope::Write,
+            "read" => Scope::Read,
+            _ => continue,
+        };
+        let volumes = match volume {
+            "" => continue,
+            "*" => VolumeAccess::All,
+            name => VolumeAccess::Only(vec![name.to_string()]),
+        };
+        grants.push(Grant { scope, volumes });
+    }
+    (grants, admin)
+}
+
+/// The user and grants of a verified JWT's claims: the user is `preferred_username`, else
+/// `sub`; the roles are the claim `roles_claim` (a top-level claim by its exact name, which
+/// may hold dots or slashes as Auth0's namespaced claims do, else a dotted path into nested
+/// objects such as Keycloak's `realm_access.roles`), an array of strings or one string of
+/// roles separated by spaces. No roles claim: a user with no grants.
+///
+/// # Errors
+/// Neither `preferred_username` nor `sub` is a non-empty string.
+pub fn principal_from_claims(
+    claims: &serde_json::Value,
+    roles_claim: &str,
+) -> Result<Principal, String> {
+    let user = ["preferred_username", "sub"]
+        .iter()
+        .find_map(|c| claims.get(c)?.as_str().filter(|s| !s.is_empty()))
+        .ok_or("the token names no user (neither preferred_username nor sub)")?;
+    let roles = claims.get(roles_claim).or_else(|| {
+        roles_claim
+            .split('.')
+            .try_fold(claims, |value, key| value.get(key))
+    });
+    let roles: Vec<&str> = match roles {
+        Some(serde_json::Value::Array(items)) => {
+            items.iter().filter_map(serde_json::Value::as_str).collect()
+        }
+        Some(serde_json::Value::String(text)) => text.split_whitespace().collect(),
+        _ => Vec::new(),
+    };
+    let (grants, admin) = grants_from_roles(roles);
+    Ok(Principal {
+        user: user.to_string(),
+        grants,
+        admin,
+    })
+}
+
 /// One configured token.
 #[derive(Clone)]
 pub struct Token {
@@ -77,6 +207,20 @@ pub struct Token {
     pub scope: Scope,
     /// Which volumes it may do it to.
     pub volumes: VolumeAccess,
+}
+
+impl Token {
+    /// The user it speaks for and its one grant.
+    pub fn principal(&self) -> Principal {
+        Principal {
+            user: self.name.clone(),
+            grants: vec![Grant {
+                scope: self.scope,
+                volumes: self.volumes.clone(),
+            }],
+            admin: false,
+        }
+    }
 }
 
 impl std::fmt::Debug for Token {
@@ -213,8 +357,8 @@ impl Tokens {
         found
     }
 
-    /// The token a request carries, if it has at least `need` on `volume` (a route that names
-    /// no volume: `None`).
+    /// The user of the token file's token a request carries, if it has at least `need` on
+    /// `volume` (a route that names no volume: `None`). JWTs are [`authorize`]'s.
     ///
     /// # Errors
     /// 401 without a bearer token or with an unknown one; 403 when its scope is short or it is
@@ -224,47 +368,84 @@ impl Tokens {
         headers: &HeaderMap,
         need: Scope,
         volume: Option<&str>,
-    ) -> Result<&Token, ApiError> {
-        let Some(value) = headers.get(header::AUTHORIZATION) else {
-            return Err(ApiError::Unauthorized(
-                "this route needs a bearer token (Authorization: Bearer TOKEN)".into(),
-            ));
-        };
-        let secret = value
-            .to_str()
-            .ok()
-            .and_then(|v| {
-                let (scheme, rest) = v.split_once(' ')?;
-                scheme.eq_ignore_ascii_case("bearer").then(|| rest.trim())
-            })
-            .ok_or_else(|| {
-                ApiError::Unauthorized("the Authorization header is not `Bearer TOKEN`".into())
-            })?;
-        let token = self
-            .find(secret)
-            .ok_or_else(|| ApiError::Unauthorized("unknown token".into()))?;
-        if token.scope < need {
-            return Err(ApiError::Forbidden(format!(
-                "the token {:?} is read-only",
-                token.name
-            )));
-        }
-        if let Some(volume) = volume {
-            if !token.volumes.allows(volume) {
-                return Err(ApiError::Forbidden(format!(
-                    "the token {:?} may not use the volume {volume:?}",
-                    token.name
-                )));
-            }
-        }
-        Ok(token)
+    ) -> Result<Principal, ApiError> {
+        let principal = self.principal_of(bearer(headers)?)?;
+        principal.check(need, volume)?;
+        Ok(principal)
+    }
+
+    /// The user of the token whose secret is `secret`.
+    ///
+    /// # Errors
+    /// 401 for a secret that is no configured token's.
+    fn principal_of(&self, secret: &str) -> Result<Principal, ApiError> {
+        self.find(secret)
+            .map(Token::principal)
+            .ok_or_else(|| ApiError::Unauthorized("unknown token".into()))
     }
 }
 
-/// The write token a request carries: as the first extractor of a write route, it is checked
-/// before anything else of the request is read (a caller without one learns nothing).
+/// The bearer token of the `Authorization` header.
+///
+/// # Errors
+/// 401 without the header, or with another scheme.
+fn bearer(headers: &HeaderMap) -> Result<&str, ApiError> {
+    let Some(value) = headers.get(header::AUTHORIZATION) else {
+        return Err(ApiError::Unauthorized(
+            "this route needs a bearer token (Authorization: Bearer TOKEN)".into(),
+        ));
+    };
+    value
+        .to_str()
+        .ok()
+        .and_then(|v| {
+            let (scheme, rest) = v.split_once(' ')?;
+            scheme.eq_ignore_ascii_case("bearer").then(|| rest.trim())
+        })
+        .ok_or_else(|| {
+            ApiError::Unauthorized("the Authorization header is not `Bearer TOKEN`".into())
+        })
+}
+
+/// Whether `bearer` has a JWT's shape: three non-empty base64url parts joined by dots (a
+/// token file's secrets are hex, or anything without two dots).
+pub fn looks_like_jwt(bearer: &str) -> bool {
+    let parts: Vec<&str> = bearer.split('.').collect();
+    parts.len() == 3
+        && parts.iter().all(|p| {
+            !p.is_empty()
+                && p.bytes()
+                    .all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_')
+        })
+}
+
+/// Who a request speaks for, if they may do `need` on `volume` (`None`: a route that names no
+/// volume): a JWT's user when OIDC is configured and the bearer looks like one, else the token
+/// file's.
+///
+/// # Errors
+/// 401 without a bearer, for an unknown token, or a JWT that does not verify (the detail says
+/// why: expired, another audience or issuer, a bad signature); 403 when the user may not.
+pub async fn authorize(
+    config: &ServerConfig,
+    headers: &HeaderMap,
+    need: Scope,
+    volume: Option<&str>,
+) -> Result<Principal, ApiError> {
+    let bearer = bearer(headers)?;
+    let principal = match &config.oidc {
+        Some(oidc) if looks_like_jwt(bearer) => oidc.verify(bearer).await?,
+        _ => config.tokens.principal_of(bearer)?,
+    };
+    principal.check(need, volume)?;
+    Ok(principal)
+}
+
+/// Who a write request speaks for (a token of the token file, or a JWT), allowed to write to
+/// the volume of its path: as the first extractor of a write route, it is checked before
+/// anything else of the request is read (a caller without one learns nothing).
 #[derive(Debug, Clone)]
-pub struct WriteToken(pub Token);
+pub struct WriteToken(pub Principal);
 
 impl axum::extract::FromRequestParts<AppState> for WriteToken {
     type Rejection = ApiError;
@@ -274,16 +455,18 @@ impl axum::extract::FromRequestParts<AppState> for WriteToken {
         state: &AppState,
     ) -> Result<Self, ApiError> {
         let volume = volume_in_path(parts.uri.path());
-        let token =
-            state
-                .config
-                .tokens
-                .authorize(&parts.headers, Scope::Write, volume.as_deref())?;
-        Ok(WriteToken(token.clone()))
+        let principal = authorize(
+            &state.config,
+            &parts.headers,
+            Scope::Write,
+            volume.as_deref(),
+        )
+        .await?;
+        Ok(WriteToken(principal))
     }
 }
 
-/// With `--private-reads`: every `/v1` route needs a token of either scope.
+/// With `--private-reads`: every `/v1` route needs a token (or JWT) that may read.
 pub async fn require_token(
     State(state): State<AppState>,
     request: Request,
@@ -291,11 +474,13 @@ pub async fn require_token(
 ) -> Response {
     if request.uri().path().starts_with("/v1/") {
         let volume = volume_in_path(request.uri().path());
-        if let Err(e) =
-            state
-                .config
-                .tokens
-                .authorize(request.headers(), Scope::Read, volume.as_deref())
+        if let Err(e) = authorize(
+            &state.config,
+            request.headers(),
+            Scope::Read,
+            volume.as_deref(),
+        )
+        .await
         {
             return e.into_response();
         }
@@ -330,7 +515,8 @@ pub fn random_secret() -> std::io::Result<String> {
     Ok(bytes.iter().map(|b| format!("{b:02x}")).collect())
 }
 
-/// Edits per second per token: a token bucket per token name, `rate` tokens per second up to
+/// Edits per second per user: a token bucket per user name (a JWT's user and a token file's
+/// NAME alike), `rate` tokens per second up to
 /// a burst of `rate`.
 #[derive(Debug)]
 pub struct RateLimiter {
@@ -386,12 +572,12 @@ mod tests {
             t.authorize(&h, Scope::Write, None),
             Err(ApiError::Forbidden(_))
         ));
-        assert_eq!(t.authorize(&h, Scope::Read, None).unwrap().name, "viewer");
+        assert_eq!(t.authorize(&h, Scope::Read, None).unwrap().user, "viewer");
         h.insert(
             header::AUTHORIZATION,
             "bearer fedcba9876543210fedc".parse().unwrap(),
         );
-        assert_eq!(t.authorize(&h, Scope::Write, None).unwrap().name, "bob");
+        assert_eq!(t.authorize(&h, Scope::Write, None).unwrap().user, "bob");
         h.insert(
             header::AUTHORIZATION,
             "Bearer fedcba9876543210fed".parse().unwrap(),
@@ -441,7 +627,7 @@ mod tests {
         let alice = bearer("0123456789abcdef0123");
         for volume in ["demo", "scan"] {
             let token = t.authorize(&alice, Scope::Write, Some(volume)).unwrap();
-            assert_eq!(token.name, "alice");
+            assert_eq!(token.user, "alice");
         }
         let refused = t.authorize(&alice, Scope::Read, Some("other"));
         assert!(
@@ -475,6 +661,136 @@ mod tests {
         assert_eq!(volume_in_path("/v1/volumes"), None);
         assert_eq!(volume_in_path("/v1/volumes/"), None);
         assert_eq!(volume_in_path("/v1/meshes"), None);
+    }
+
+    #[test]
+    fn roles_map_to_grants_per_volume() {
+        let (grants, admin) = grants_from_roles([
+            "write:demo",
+            "read:*",
+            "admin",
+            "offline_access",
+            "write:",
+            "delete:demo",
+            "read",
+        ]);
+        assert!(admin);
+        assert_eq!(
+            grants,
+            vec![
+                Grant {
+                    scope: Scope::Write,
+                    volumes: VolumeAccess::Only(vec!["demo".into()])
+                },
+                Grant {
+                    scope: Scope::Read,
+                    volumes: VolumeAccess::All
+                },
+            ]
+        );
+        let p = Principal {
+            user: "u".into(),
+            grants,
+            admin,
+        };
+        // write:demo writes and reads demo; read:* reads everything, writes nothing else.
+        assert!(p.may(Scope::Write, Some("demo")));
+        assert!(p.may(Scope::Read, Some("demo")));
+        assert!(p.may(Scope::Read, Some("other")));
+        assert!(!p.may(Scope::Write, Some("other")));
+        assert!(
+            matches!(p.check(Scope::Write, Some("other")), Err(ApiError::Forbidden(m)) if m.contains("may only read the volume \"other\""))
+        );
+        // A route that names no volume asks for the scope on some volume.
+        assert!(p.may(Scope::Write, None));
+        // admin alone grants nothing (yet).
+        let (grants, admin) = grants_from_roles(["admin"]);
+        assert!(admin && grants.is_empty());
+        let only_admin = Principal {
+            user: "root".into(),
+            grants,
+            admin,
+        };
+        assert!(!only_admin.may(Scope::Read, None));
+        assert!(matches!(
+            only_admin.check(Scope::Write, Some("w")),
+            Err(ApiError::Forbidden(m)) if m.contains("may not write the volume \"w\"")
+        ));
+        // write:other does not reach w.
+        let (grants, _) = grants_from_roles(["write:other"]);
+        let other = Principal {
+            user: "o".into(),
+            grants,
+            admin: false,
+        };
+        assert!(!other.may(Scope::Read, Some("w")) && other.may(Scope::Write, Some("other")));
+    }
+
+    #[test]
+    fn claims_name_the_user_and_their_roles() {
+        use serde_json::json;
+        let p = principal_from_claims(
+            &json!({"sub": "1234", "preferred_username": "alice", "isovox_roles": ["read:demo", 7]}),
+            "isovox_roles",
+        )
+        .unwrap();
+        assert_eq!(p.user, "alice");
+        assert!(p.may(Scope::Read, Some("demo")) && !p.may(Scope::Write, Some("demo")));
+        // sub when there is no (or an empty) preferred_username.
+        let p = principal_from_claims(
+            &json!({"sub": "1234", "preferred_username": ""}),
+            "isovox_roles",
+        )
+        .unwrap();
+        assert_eq!(p.user, "1234");
+        assert!(p.grants.is_empty() && !p.admin);
+        assert!(
+            principal_from_claims(&json!({"isovox_roles": ["admin"]}), "isovox_roles").is_err()
+        );
+        // A dotted path into nested claims (Keycloak's realm roles).
+        let p = principal_from_claims(
+            &json!({"sub": "k", "realm_access": {"roles": ["write:*", "uma_authorization"]}}),
+            "realm_access.roles",
+        )
+        .unwrap();
+        assert!(p.may(Scope::Write, Some("anything")));
+        // A namespaced claim whose name holds dots is taken whole (Auth0's custom claims).
+        let p = principal_from_claims(
+            &json!({"sub": "a", "https://isovox.example/roles": ["admin", "write:w"]}),
+            "https://isovox.example/roles",
+        )
+        .unwrap();
+        assert!(p.admin && p.may(Scope::Write, Some("w")));
+        // One string of roles separated by spaces, as some providers send scopes.
+        let p =
+            principal_from_claims(&json!({"sub": "s", "roles": "read:a read:b"}), "roles").unwrap();
+        assert!(p.may(Scope::Read, Some("b")) && !p.may(Scope::Read, Some("c")));
+    }
+
+    #[test]
+    fn jwts_are_told_from_token_file_secrets_by_their_shape() {
+        assert!(looks_like_jwt(
+            "eyJhbGciOiJSUzI1NiJ9.eyJzdWIiOiJhIn0.c2ln-_x"
+        ));
+        for not in [
+            "0123456789abcdef0123",
+            "a.b",
+            "a..c",
+            "a.b.c.d",
+            "a.b.c=",
+            ".b.c",
+        ] {
+            assert!(!looks_like_jwt(not), "{not}");
+        }
+    }
+
+    #[test]
+    fn a_token_of_the_file_is_a_principal_with_one_grant() {
+        let t = Tokens::parse("alice 0123456789abcdef0123 read demo").unwrap();
+        let p = t.principal_of("0123456789abcdef0123").unwrap();
+        assert_eq!(p.user, "alice");
+        assert!(p.may(Scope::Read, Some("demo")) && !p.may(Scope::Write, Some("demo")));
+        assert!(!p.admin);
     }
 
     #[test]

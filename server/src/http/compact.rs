@@ -22,7 +22,7 @@ pub async fn compact(
         compacting.compact(&mut writer)
     })
     .await?;
-    tracing::info!(volume = %name, token = %token.name, version = report.version,
+    tracing::info!(volume = %name, user = %token.user, version = report.version,
         bytes_before = report.bytes_before, bytes_after = report.bytes_after, "compacted");
     Ok(Json(CompactResponse {
         version: report.version,

@@ -34,7 +34,7 @@ pub async fn edit(
     let vol = state.catalog.get(&name)?.clone();
     let request: EditRequest = read_json(&headers, body, MAX_EDIT_BODY, "an edit request").await?;
     let if_match = if_match(&headers)?;
-    state.edit_rate.take(&token.name)?;
+    state.edit_rate.take(&token.user)?;
     let cancel = CancelToken::with_timeout(state.config.edit_timeout);
     let _stop_when_dropped = cancel.cancel_on_drop();
     let (limits, volumes, preparing) = (state.edit_limits(), state.resolver(), vol.clone());
@@ -50,14 +50,14 @@ pub async fn edit(
     if response.committed {
         tracing::info!(
             volume = %name,
-            token = %token.name,
+            user = %token.user,
             version = response.version,
             changed = response.changed.iter().map(Vec::len).sum::<usize>(),
             elapsed_us = response.elapsed_us,
             "edit committed"
         );
     } else {
-        tracing::info!(volume = %name, token = %token.name, version = response.version, "edit reaches nothing in the volume; nothing committed");
+        tracing::info!(volume = %name, user = %token.user, version = response.version, "edit reaches nothing in the volume; nothing committed");
     }
     Ok(Json(response))
 }

@@ -46,6 +46,6 @@ pub async fn upload_mesh(
         store.store(&body, &format).map_err(ApiError::Unprocessable)
     })
     .await?;
-    tracing::info!(token = %token.name, hash = %format!("{:016x}", info.hash), triangles = info.triangles, "mesh stored");
+    tracing::info!(user = %token.user, hash = %format!("{:016x}", info.hash), triangles = info.triangles, "mesh stored");
     Ok(Json(info))
 }

@@ -27,7 +27,7 @@
 //! `meshes`, `web_app`); `error` decides every status code; `extract` gives axum's extractors
 //! that error; `cpu` runs CPU work off the async runtime; `compression` makes the zstd bodies
 //! inside that work and `held` bounds their memory until they are sent; `auth` checks tokens
-//! and edit rates; `bodies` keeps constant bricks' bodies; `serve` is the listener loop and the
+//! and edit rates, `oidc` an issuer's JWTs; `bodies` keeps constant bricks' bodies; `serve` is the listener loop and the
 //! shutdown, `connections` the limits on open connections, `tls` its certificates; `metrics`,
 //! `cors` and `openapi` are what their names say.
 
@@ -48,6 +48,7 @@ pub mod handlers;
 pub mod held;
 pub mod meshes;
 pub mod metrics;
+pub mod oidc;
 mod openapi;
 mod request_body;
 mod serve;
@@ -100,6 +101,8 @@ pub struct ServerConfig {
     pub connection_threads: usize,
     /// Who may write (and, with `private_reads`, read).
     pub tokens: auth::Tokens,
+    /// JWTs of an OpenID Connect issuer, beside the tokens (`--oidc-issuer`).
+    pub oidc: Option<Arc<oidc::Oidc>>,
     /// Every `/v1` route needs a token (of either scope).
     pub private_reads: bool,
     /// Edits per second per token (and the burst).
@@ -137,6 +140,7 @@ impl Default for ServerConfig {
             connections: connections::Limits::default(),
             connection_threads: cpu::cores(),
             tokens: auth::Tokens::default(),
+            oidc: None,
             private_reads: false,
             edit_rate: 50.0,
             edit_queue: 64,

@@ -36,6 +36,7 @@ mod mesh_encodings;
 mod mesh_kernel;
 mod mesh_strips;
 mod object_store;
+mod oidc;
 mod openapi_fuzz;
 mod overload;
 mod recovery;
