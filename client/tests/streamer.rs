@@ -607,6 +607,7 @@ fn carve(center: [i64; 3], r: u32) -> EditRequest {
         s_l: None,
         k: None,
         region: None,
+        message: None,
     }
 }
 

@@ -1,5 +1,6 @@
 //! HTTP API types (JSON), shared by the server and the client.
 
+use crate::history::CommitInfo;
 use crate::layout::VolumeLayout;
 use crate::voxel::VoxelType;
 use serde::{Deserialize, Serialize};
@@ -143,6 +144,13 @@ pub struct EditResponse {
     /// `previous` are the current version, and the change feed announces nothing.
     #[serde(default = "committed_by_default")]
     pub committed: bool,
+    /// For an undo or redo: the later edits applied again over the bricks it changed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub replayed: Option<u64>,
+    /// For a dry run (`?dry_run=true`): `true`, and nothing was committed (`version` is what
+    /// the edit would have made).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub dry_run: bool,
 }
 
 /// Answers from servers before `committed` existed made a version each.
@@ -159,6 +167,9 @@ pub struct ChangeEvent {
     pub timestamp_ms: u64,
     /// The bricks whose content changed, per level.
     pub changed: ChangedBricks,
+    /// Who made it and what it did (absent fields: not recorded).
+    #[serde(flatten)]
+    pub info: CommitInfo,
 }
 
 /// `GET /v1/volumes/{name}/changes?since=N`: the versions after `since`, oldest first.

@@ -201,6 +201,9 @@ pub struct EditRequest {
     /// Where the edit applies; the whole volume when absent.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub region: Option<Region>,
+    /// Why, in a few words (at most 200 characters): the history and the change feed show it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub message: Option<String>,
 }
 
 #[cfg(test)]

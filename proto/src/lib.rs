@@ -6,6 +6,7 @@
 //! Layout:
 //! - [`api`]: the JSON types of the HTTP API.
 //! - [`batch`]: many bricks in one response (the batch route's encoding).
+//! - [`history`]: who did what: commit notes, history, tags, undo, revert, presence.
 //! - [`icvg`]: ICVG terms and edit requests (JSON).
 //! - [`voxel`]: voxel types and the ICVG value range (L, H, S).
 //! - [`layout`]: the brick octree's geometry: levels, brick grids, [`BrickKey`], node indices.
@@ -23,6 +24,7 @@
 pub mod api;
 pub mod batch;
 pub mod error;
+pub mod history;
 pub mod icvg;
 pub mod layout;
 pub mod lod;

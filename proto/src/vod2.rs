@@ -50,6 +50,13 @@ pub const PAYLOAD_CHECK_LEN: usize = 4;
 pub const COMMIT_FIXED_LEN: usize = 56;
 /// Bytes per change entry in a commit record: (node index, node entry).
 pub const CHANGE_LEN: usize = 16;
+/// Commit record flag (bytes 4..8, revision 3): a note follows the record's checksum (its
+/// length as u32, the note, an xxh3 checksum of the record and the note).
+pub const COMMIT_HAS_NOTE: u32 = 1;
+/// Longest note a commit record may carry.
+pub const MAX_NOTE_LEN: u32 = 4 << 20;
+/// Bytes that frame a note: its length before it, the checksum after it.
+pub const NOTE_FRAMING_LEN: usize = 12;
 /// Size of a checkpoint's leading fields.
 pub const CHECKPOINT_FIXED_LEN: usize = 24;
 /// Index entries per checkpoint chunk (4 KiB of entries).
@@ -594,20 +601,36 @@ pub struct CommitHeader {
     pub checkpoint: u64,
     /// Index changes that follow the fixed part.
     pub n_changes: u64,
+    /// Bytes of the note that follows the record (revision 3), 0 for none.
+    pub note_len: u32,
 }
 
 impl CommitHeader {
-    /// Total bytes of the record.
+    /// Bytes of the record without its note: what readers before revision 3 read.
     pub fn record_len(n_changes: u64) -> u64 {
         COMMIT_FIXED_LEN as u64 + n_changes * CHANGE_LEN as u64
     }
 
-    /// Encodes the record with its changes.
-    pub fn encode(&self, changes: &[(u64, NodeEntry)]) -> Vec<u8> {
+    /// Bytes of the record with its note, if it has one.
+    pub fn total_len(&self) -> u64 {
+        let note = if self.note_len > 0 {
+            NOTE_FRAMING_LEN as u64 + u64::from(self.note_len)
+        } else {
+            0
+        };
+        Self::record_len(self.n_changes) + note
+    }
+
+    /// Encodes the record with its changes and, when `note` is not empty, the note after it.
+    pub fn encode(&self, changes: &[(u64, NodeEntry)], note: &[u8]) -> Vec<u8> {
         assert_eq!(changes.len() as u64, self.n_changes);
+        assert_eq!(note.len() as u64, u64::from(self.note_len));
         let len = Self::record_len(self.n_changes) as usize;
         let mut b = vec![0u8; len];
         put(&mut b, 0, &COMMIT_MAGIC);
+        if !note.is_empty() {
+            put(&mut b, 4, &COMMIT_HAS_NOTE.to_le_bytes());
+        }
         put(&mut b, 8, &self.version.to_le_bytes());
         put(&mut b, 16, &self.parent.to_le_bytes());
         put(&mut b, 24, &self.timestamp_ms.to_le_bytes());
@@ -619,14 +642,26 @@ impl CommitHeader {
             put(&mut b, at + 8, &entry.encode().to_le_bytes());
         }
         seal(&mut b, len - 8);
+        if !note.is_empty() {
+            b.extend_from_slice(&self.note_len.to_le_bytes());
+            b.extend_from_slice(note);
+            b.extend_from_slice(&[0; 8]);
+            let end = b.len();
+            seal(&mut b, end - 8);
+        }
         b
     }
 
-    /// Reads the fixed part of the record at `base`; `avail` is every byte from `base` to the end
-    /// of the committed region. Returns the header and the full record bytes (checksum verified).
+    /// Reads the record at `base`; `avail` is every byte from `base` to the end of the
+    /// committed region. Returns the header and the record's bytes without its note (checksums
+    /// verified, the note's too: [`CommitHeader::note`] reads it).
+    ///
+    /// Flag bits other than [`COMMIT_HAS_NOTE`] are ignored, as readers before revision 3
+    /// ignored every flag: a later revision may add what this reader need not know.
     ///
     /// # Errors
-    /// Bad magic, truncation, checksum mismatch, or a change count the region cannot hold.
+    /// Bad magic, truncation, checksum mismatch, or a change count or note length the region
+    /// cannot hold.
     pub fn decode(avail: &[u8], base: u64) -> Result<(Self, &[u8]), FormatError> {
         let f = Fields::new("commit record", avail, base);
         f.magic(0, COMMIT_MAGIC)?;
@@ -644,12 +679,27 @@ impl CommitHeader {
         let len = Self::record_len(n_changes) as usize;
         let record = f.slice(0, len)?;
         Fields::new("commit record", record, base).checksum(len - 8)?;
+        let note_len = if f.u32(4)? & COMMIT_HAS_NOTE != 0 {
+            let note_len = f.u32(len)?;
+            if note_len == 0 || note_len > MAX_NOTE_LEN {
+                return Err(FormatError::invalid(
+                    "commit record",
+                    format!("at {base}: a note of {note_len} bytes (1..={MAX_NOTE_LEN} expected)"),
+                ));
+            }
+            let total = len + NOTE_FRAMING_LEN + note_len as usize;
+            Fields::new("commit note", f.slice(0, total)?, base).checksum(total - 8)?;
+            note_len
+        } else {
+            0
+        };
         let h = CommitHeader {
             version: f.u64(8)?,
             parent: f.u64(16)?,
             timestamp_ms: f.u64(24)?,
             checkpoint: f.u64(32)?,
             n_changes,
+            note_len,
         };
         if h.parent >= base || (h.parent != 0 && h.parent < DATA_START) {
             return Err(FormatError::invalid(
@@ -673,6 +723,18 @@ impl CommitHeader {
             ));
         }
         Ok((h, record))
+    }
+
+    /// The note of the record `avail` starts with, as [`CommitHeader::decode`] checked it
+    /// (`self` is what it returned); empty when it has none.
+    pub fn note<'a>(&self, avail: &'a [u8]) -> &'a [u8] {
+        if self.note_len == 0 {
+            return &[];
+        }
+        let at = Self::record_len(self.n_changes) as usize + 4;
+        avail
+            .get(at..at + self.note_len as usize)
+            .unwrap_or_default()
     }
 
     /// The (node, raw entry) pairs of a record returned by [`CommitHeader::decode`].
@@ -1054,9 +1116,10 @@ mod tests {
             timestamp_ms: 1234,
             checkpoint: 0,
             n_changes: 2,
+            note_len: 0,
         };
         let base = DATA_START + 4096;
-        let mut bytes = h.encode(&changes);
+        let mut bytes = h.encode(&changes, &[]);
         bytes.extend_from_slice(&[0xAA; 10]); // trailing bytes of the region are ignored
         let (d, rec) = CommitHeader::decode(&bytes, base).unwrap();
         assert_eq!(d, h);
@@ -1066,9 +1129,44 @@ mod tests {
             vec![(3, NodeEntry::Constant(9).encode()), (5, DATA_START)]
         );
         // A huge change count cannot make the decoder allocate or read past the region.
-        let mut hostile = h.encode(&changes);
+        let mut hostile = h.encode(&changes, &[]);
         hostile[40..48].copy_from_slice(&u64::MAX.to_le_bytes());
         assert!(CommitHeader::decode(&hostile, base).is_err());
+    }
+
+    #[test]
+    fn a_note_follows_the_record_where_older_readers_do_not_look() {
+        let changes = vec![(3, NodeEntry::Constant(9))];
+        let note = br#"{"author":"alice"}"#;
+        let h = CommitHeader {
+            version: 2,
+            parent: DATA_START + 8,
+            timestamp_ms: 1234,
+            checkpoint: 0,
+            n_changes: 1,
+            note_len: note.len() as u32,
+        };
+        let base = DATA_START + 4096;
+        let bytes = h.encode(&changes, note);
+        let record_len = CommitHeader::record_len(1) as usize;
+        assert_eq!(bytes.len(), record_len + 4 + note.len() + 8);
+        assert_eq!(h.total_len(), bytes.len() as u64);
+        let (d, rec) = CommitHeader::decode(&bytes, base).unwrap();
+        assert_eq!(d, h);
+        assert_eq!(rec.len(), record_len);
+        assert_eq!(d.note(&bytes), note);
+        // What a reader before revision 3 checks: the record's own checksum over its first
+        // bytes, which the note does not touch.
+        let stored = u64::from_le_bytes(bytes[record_len - 8..record_len].try_into().unwrap());
+        assert_eq!(stored, xxh3_64(&bytes[..record_len - 8]));
+        // A changed note byte, a cut note, an absurd length: each refused.
+        let mut flipped = bytes.clone();
+        flipped[record_len + 6] ^= 1;
+        assert!(CommitHeader::decode(&flipped, base).is_err());
+        assert!(CommitHeader::decode(&bytes[..bytes.len() - 1], base).is_err());
+        let mut absurd = bytes.clone();
+        absurd[record_len..record_len + 4].copy_from_slice(&u32::MAX.to_le_bytes());
+        assert!(CommitHeader::decode(&absurd, base).is_err());
     }
 
     #[test]

@@ -187,6 +187,7 @@ pub fn scene_edits(dims: [u32; 3]) -> Vec<EditRequest> {
         s_l: None,
         k: None,
         region: None,
+        message: None,
     };
     vec![
         // Two tunnels along x and one along z, at two thirds of the terrain's mean height.

@@ -78,6 +78,7 @@ fn request(a: &EditArgs) -> anyhow::Result<EditRequest> {
             s_l: None,
             k: None,
             region: None,
+            message: None,
         }),
         (None, None) => {
             bail!("give an edit (inline JSON, a JSON file or - for stdin) or a shorthand such as --ellipsoid CX,CY,CZ,RX,RY,RZ")

@@ -90,8 +90,7 @@ pub struct Principal {
     pub user: String,
     /// What they may do: a request is allowed when one grant covers it.
     pub grants: Vec<Grant>,
-    /// The `admin` role, kept for rights still to come (undoing others' edits); it grants
-    /// nothing today.
+    /// The `admin` role: may undo and redo anyone's edit (a user undoes only their own).
     pub admin: bool,
 }
 
@@ -132,8 +131,8 @@ impl Principal {
 }
 
 /// The grants of a JWT's roles: `write:VOLUME` writes and reads VOLUME, `read:VOLUME` reads
-/// it, `*` for VOLUME means every volume; `admin` is kept (the second value) and grants nothing
-/// by itself. Other roles (a provider's own, such as `offline_access`) are ignored.
+/// it, `*` for VOLUME means every volume; `admin` (the second value) lets a writer undo anyone's
+/// edits and grants nothing by itself. Other roles (a provider's own, such as `offline_access`) are ignored.
 pub fn grants_from_roles<'a>(roles: impl IntoIterator<Item = &'a str>) -> (Vec<Grant>, bool) {
     let mut grants = Vec::new();
     let mut admin = false;
@@ -207,6 +206,8 @@ pub struct Token {
     pub scope: Scope,
     /// Which volumes it may do it to.
     pub volumes: VolumeAccess,
+    /// The `admin` scope: writes, and may undo anyone's edit.
+    pub admin: bool,
 }
 
 impl Token {
@@ -218,7 +219,7 @@ impl Token {
                 scope: self.scope,
                 volumes: self.volumes.clone(),
             }],
-            admin: false,
+            admin: self.admin,
         }
     }
 }
@@ -257,12 +258,13 @@ impl Tokens {
                 continue;
             }
             let fields: Vec<&str> = line.split_whitespace().collect();
-            let scope = match fields.get(2).copied() {
-                None | Some("write") => Scope::Write,
-                Some("read") => Scope::Read,
+            let (scope, admin) = match fields.get(2).copied() {
+                None | Some("write") => (Scope::Write, false),
+                Some("read") => (Scope::Read, false),
+                Some("admin") => (Scope::Write, true),
                 Some(other) => {
                     return Err(format!(
-                        "line {}: scope {other:?} is neither write nor read",
+                        "line {}: scope {other:?} is not write, read or admin",
                         i + 1
                     ))
                 }
@@ -282,6 +284,9 @@ impl Tokens {
             tokens
                 .add_for(fields[0], fields[1], scope, volumes)
                 .map_err(|e| format!("line {}: {e}", i + 1))?;
+            if let Some(token) = tokens.tokens.last_mut() {
+                token.admin = admin;
+            }
         }
         Ok(tokens)
     }
@@ -331,6 +336,7 @@ impl Tokens {
             secret: secret.to_string(),
             scope,
             volumes,
+            admin: false,
         });
         Ok(())
     }

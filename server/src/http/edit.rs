@@ -1,4 +1,5 @@
-//! `POST /v1/volumes/{name}/edits`: an ICVG edit as the next version (`docs/editing.md`).
+//! `POST /v1/volumes/{name}/edits`: an ICVG edit as the next version (`docs/editing.md`);
+//! with `?dry_run=true`, what it would change, committing nothing.
 
 use super::auth::WriteToken;
 use super::cpu::blocking;
@@ -6,11 +7,13 @@ use super::extract::Path;
 use super::request_body::read_json;
 use super::{ApiError, AppState};
 use crate::cancel::CancelToken;
+use crate::volume::group::Work;
 use axum::body::Body;
 use axum::extract::State;
-use axum::http::{header, HeaderMap};
+use axum::http::{header, HeaderMap, Uri};
 use axum::Json;
 use isovox_proto::api::EditResponse;
+use isovox_proto::history::MAX_MESSAGE_CHARS;
 use isovox_proto::icvg::EditRequest;
 
 /// Largest edit request body.
@@ -28,11 +31,14 @@ pub async fn edit(
     WriteToken(token): WriteToken,
     State(state): State<AppState>,
     Path(name): Path<String>,
+    uri: Uri,
     headers: HeaderMap,
     body: Body,
 ) -> Result<Json<EditResponse>, ApiError> {
     let vol = state.catalog.get(&name)?.clone();
+    let dry_run = query_flag(&uri, "dry_run")?;
     let request: EditRequest = read_json(&headers, body, MAX_EDIT_BODY, "an edit request").await?;
+    check_message(request.message.as_deref())?;
     let if_match = if_match(&headers)?;
     state.edit_rate.take(&token.user)?;
     let cancel = CancelToken::with_timeout(state.config.edit_timeout);
@@ -40,14 +46,18 @@ pub async fn edit(
     let (limits, volumes, preparing) = (state.edit_limits(), state.resolver(), vol.clone());
     let compiling = cancel.clone();
     let runtime = state.main_runtime();
-    let edit = blocking(runtime.clone(), move || {
+    let mut edit = blocking(runtime.clone(), move || {
         preparing.prepare_edit(&request, &limits, &volumes, if_match, &compiling)
     })
     .await?;
+    edit.note.info.author = Some(token.user.clone());
+    let work = Work::Edit { edit, dry_run };
     let response = vol
-        .submit(edit, if_match, cancel, state.group_commit(), &runtime)
+        .submit(work, if_match, cancel, state.group_commit(), &runtime)
         .await?;
-    if response.committed {
+    if dry_run {
+        tracing::debug!(volume = %name, user = %token.user, "dry run answered");
+    } else if response.committed {
         tracing::info!(
             volume = %name,
             user = %token.user,
@@ -62,11 +72,53 @@ pub async fn edit(
     Ok(Json(response))
 }
 
+/// `?KEY=true` or `?KEY=false` (absent: false).
+///
+/// # Errors
+/// 400 for another value, or the key given twice.
+pub fn query_flag(uri: &Uri, key: &str) -> Result<bool, ApiError> {
+    let mut values = uri
+        .query()
+        .unwrap_or_default()
+        .split('&')
+        .filter_map(|pair| pair.split_once('=').filter(|(k, _)| *k == key));
+    let value = match (values.next(), values.next()) {
+        (None, _) => return Ok(false),
+        (Some(_), Some(_)) => {
+            return Err(ApiError::BadRequest(format!(
+                "malformed query: {key} is given more than once"
+            )))
+        }
+        (Some((_, v)), None) => v,
+    };
+    match value {
+        "true" => Ok(true),
+        "false" => Ok(false),
+        other => Err(ApiError::BadRequest(format!(
+            "?{key}={other}: true or false expected"
+        ))),
+    }
+}
+
+/// A commit message: at most [`MAX_MESSAGE_CHARS`] characters.
+///
+/// # Errors
+/// 400 for a longer one.
+pub fn check_message(message: Option<&str>) -> Result<(), ApiError> {
+    match message {
+        Some(m) if m.chars().count() > MAX_MESSAGE_CHARS => Err(ApiError::BadRequest(format!(
+            "a message is at most {MAX_MESSAGE_CHARS} characters; this one has {}",
+            m.chars().count()
+        ))),
+        _ => Ok(()),
+    }
+}
+
 /// `If-Match`: `*` (whatever version is current: no condition), or a version `N`, `"N"` or
 /// `W/"N"` (the ETag forms; `/openapi.json` states the same pattern). A number beyond u64
 /// names a version no volume reaches; read as `u64::MAX` it gets the 409 any version but the
 /// current one gets.
-fn if_match(headers: &HeaderMap) -> Result<Option<u64>, ApiError> {
+pub(super) fn if_match(headers: &HeaderMap) -> Result<Option<u64>, ApiError> {
     let Some(value) = headers.get(header::IF_MATCH) else {
         return Ok(None);
     };

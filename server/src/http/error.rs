@@ -110,10 +110,14 @@ impl From<VolumeError> for ApiError {
                 detail,
                 version: Some(current),
             },
-            VolumeError::ReadOnly { .. } => ApiError::Conflict {
+            VolumeError::ReadOnly { .. }
+            | VolumeError::NotUndoable(_)
+            | VolumeError::Unsupported(_) => ApiError::Conflict {
                 detail,
                 version: None,
             },
+            VolumeError::NotAllowed(_) => ApiError::Forbidden(detail),
+            VolumeError::UndoTooLarge { .. } => ApiError::Unprocessable(detail),
             VolumeError::Compacted { .. } => ApiError::Gone(detail),
             VolumeError::WriterBusy => ApiError::Overloaded(1),
             // Too costly for this server: like an edit over the voxel budget.

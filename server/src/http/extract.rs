@@ -3,8 +3,9 @@
 //! their arguments directly.
 
 use super::request_body::read_json;
-use super::ApiError;
+use super::{ApiError, AppState};
 use crate::decimal::{self, NotCanonical};
+use crate::volume::history::valid_tag;
 use axum::extract::{FromRequest, FromRequestParts, MatchedPath, Request};
 use axum::http::request::Parts;
 use axum::http::Uri;
@@ -133,16 +134,42 @@ pub fn query_number<T: FromStr>(uri: &Uri, key: &str) -> Result<Option<T>, ApiEr
     number(raw, &format!("?{key}")).map(Some)
 }
 
-/// `?version=N`: the version to read, the newest when absent; `N` read as [`query_number`]
-/// says.
+/// `?version=N` or `?version=TAG`: the version to read, the newest when absent; `N` read as
+/// [`query_number`] says, a tag looked up in the volume of the path (404 when it has none of
+/// that name).
 #[derive(Debug, Clone, Copy)]
 pub struct VersionParam(pub Option<u64>);
 
-impl<S: Send + Sync> FromRequestParts<S> for VersionParam {
+impl FromRequestParts<AppState> for VersionParam {
     type Rejection = ApiError;
 
-    async fn from_request_parts(parts: &mut Parts, _state: &S) -> Result<Self, ApiError> {
-        query_number(&parts.uri, "version").map(VersionParam)
+    async fn from_request_parts(parts: &mut Parts, state: &AppState) -> Result<Self, ApiError> {
+        let mut given = parts
+            .uri
+            .query()
+            .unwrap_or_default()
+            .split('&')
+            .filter_map(|pair| pair.strip_prefix("version="));
+        // Given twice: `query_number` says so.
+        match (given.next(), given.next()) {
+            (Some(tag), None) if valid_tag(tag) => {
+                let name = parts
+                    .uri
+                    .path()
+                    .strip_prefix("/v1/volumes/")
+                    .and_then(|rest| rest.split('/').next())
+                    .map(|n| percent_encoding::percent_decode_str(n).decode_utf8_lossy())
+                    .ok_or_else(|| ApiError::BadRequest("?version=TAG needs a volume".into()))?
+                    .into_owned();
+                let tag = tag.to_string();
+                // Reading the history may wait on an object store: where `read_volume` says.
+                let version = state
+                    .read_volume(&name, move |_, vol| vol.tagged(&tag))
+                    .await?;
+                Ok(VersionParam(Some(version)))
+            }
+            _ => query_number(&parts.uri, "version").map(VersionParam),
+        }
     }
 }
 

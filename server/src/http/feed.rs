@@ -48,7 +48,8 @@ pub async fn changes(
 }
 
 /// `GET /v1/volumes/{name}/events`: server-sent events, `hello` then one `commit` per version
-/// (after `?since=N` or `Last-Event-ID: N` first the versions since then, from the file).
+/// (after `?since=N` or `Last-Event-ID: N` first the versions since then, from the file), and
+/// `presence` events as users move or leave.
 pub async fn events(
     State(state): State<AppState>,
     Path(name): Path<String>,
@@ -102,6 +103,8 @@ struct Feed {
     /// Where the backlog is read (the CPU threads).
     state: AppState,
     rx: tokio::sync::broadcast::Receiver<Arc<FeedItem>>,
+    /// Presence events (JSON), sent as they come; one missed is replaced by the next.
+    presence: tokio::sync::broadcast::Receiver<Arc<String>>,
     /// Resolves when the server shuts down: the stream ends then (subscribers reconnect with
     /// `since=` to the next server and miss nothing), so the shutdown does not wait for it.
     closing: Pin<Box<dyn Future<Output = ()> + Send>>,
@@ -124,6 +127,7 @@ impl Feed {
     ) -> Result<Feed, ApiError> {
         // Subscribe before reading the head, so no version falls between the two.
         let rx = vol.subscribe();
+        let presence = vol.subscribe_presence();
         let head = vol.head().version;
         if let Some(since) = since {
             vol.check_since(since)?;
@@ -135,6 +139,7 @@ impl Feed {
             vol: vol.clone(),
             state,
             rx,
+            presence,
             closing: Box::pin(closing),
             pending: VecDeque::from([hello]),
             last: since.unwrap_or(head),
@@ -174,6 +179,14 @@ impl Feed {
             }
             let received = tokio::select! {
                 received = self.rx.recv() => received,
+                presence = self.presence.recv() => match presence {
+                    Ok(json) => {
+                        return Some(Event::default().event("presence").data(json.as_str()))
+                    }
+                    // Missed cursors are replaced by the next ones. (Closed cannot happen: the
+                    // sender is the volume's, which this feed holds.)
+                    Err(_) => continue,
+                },
                 () = &mut self.closing => return None,
             };
             match received {

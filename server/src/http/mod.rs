@@ -46,6 +46,7 @@ mod fast_path;
 pub mod feed;
 pub mod handlers;
 pub mod held;
+pub mod history;
 pub mod meshes;
 pub mod metrics;
 pub mod oidc;
@@ -66,7 +67,7 @@ use crate::volume::resolve::CatalogVolumes;
 use crate::volume::{EditLimits, GroupCommit, LiveVolume};
 use axum::handler::Handler;
 use axum::http::StatusCode;
-use axum::routing::{get, post, MethodRouter};
+use axum::routing::{get, post, put, MethodRouter};
 use axum::Router;
 use std::sync::Arc;
 use std::time::Duration;
@@ -193,6 +194,8 @@ pub struct Shared {
     pub config: Arc<ServerConfig>,
     /// Edits per second per token.
     pub edit_rate: Arc<auth::RateLimiter>,
+    /// Presence updates per second per user.
+    pub presence_rate: Arc<auth::RateLimiter>,
     /// Uploaded meshes for `mesh` leaves of edit terms.
     pub mesh_store: Option<Arc<crate::voxelize::store::MeshStore>>,
     /// Set when the server starts shutting down: change feeds end.
@@ -233,6 +236,7 @@ impl AppState {
             metrics: Arc::new(metrics::Metrics::new(ROUTES)),
             constants: bodies::ConstantBricks::default(),
             edit_rate: Arc::new(auth::RateLimiter::new(config.edit_rate)),
+            presence_rate: Arc::new(auth::RateLimiter::new(PRESENCE_RATE)),
             mesh_store: config
                 .mesh_dir
                 .as_deref()
@@ -316,6 +320,10 @@ impl AppState {
     }
 }
 
+/// Presence updates a user may send per second (bursts as large): a viewer sends one when its
+/// camera moves, a few a second at most.
+pub const PRESENCE_RATE: f64 = 5.0;
+
 /// Every route template the router serves (metrics are kept per template).
 pub const ROUTES: &[&str] = &[
     "/healthz",
@@ -333,6 +341,12 @@ pub const ROUTES: &[&str] = &[
     "/v1/volumes/{name}/changes",
     "/v1/volumes/{name}/events",
     "/v1/volumes/{name}/compact",
+    "/v1/volumes/{name}/history",
+    "/v1/volumes/{name}/tags",
+    "/v1/volumes/{name}/tags/{tag}",
+    "/v1/volumes/{name}/undo",
+    "/v1/volumes/{name}/revert",
+    "/v1/volumes/{name}/presence",
     "/v1/meshes",
     "/v1/volumes/{name}/zarr/{*path}",
     "/v1/volumes/{name}/precomputed/{*path}",
@@ -398,12 +412,24 @@ fn routes(state: &AppState) -> Router<AppState> {
         .route("/v1/volumes/{name}/batch", write(handlers::batch))
         .route("/v1/volumes/{name}/levels/{level}", read(handlers::level))
         .route("/v1/volumes/{name}/changes", read(feed::changes))
+        .route("/v1/volumes/{name}/history", read(history::history))
+        .route("/v1/volumes/{name}/tags", read(history::tags))
         .route_layer(timeout);
     // Edits wait for their volume's writer (bounded by the edit queue), and the change feed is
     // meant to stay open: neither gets the timeout.
     let write_routes = Router::new()
         .route("/v1/volumes/{name}/edits", write(edit::edit))
         .route("/v1/volumes/{name}/compact", write(compact::compact))
+        .route("/v1/volumes/{name}/undo", write(history::undo))
+        .route("/v1/volumes/{name}/revert", write(history::revert))
+        .route(
+            "/v1/volumes/{name}/tags/{tag}",
+            put(history::put_tag).options(cors::preflight),
+        )
+        .route(
+            "/v1/volumes/{name}/presence",
+            write(history::post_presence).get(history::presence),
+        )
         .route("/v1/meshes", write(meshes::upload_mesh))
         .route("/v1/volumes/{name}/events", read(feed::events));
     let mut router = Router::new()

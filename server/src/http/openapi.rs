@@ -84,6 +84,11 @@ fn version_number() -> Value {
     int(0, u64::MAX)
 }
 
+/// A tag's name (`volume/history.rs`, `valid_tag`).
+fn tag_name() -> Value {
+    json!({"type": "string", "pattern": format!("^(?![0-9]+$)[A-Za-z0-9._-]{{1,{}}}$", isovox_proto::history::MAX_TAG_LEN)})
+}
+
 /// The field's formats (`views.rs`, `docs/formats.md`): each view, live and pinned.
 fn view_paths(name: Value) -> Value {
     let version = path_param(
@@ -127,8 +132,8 @@ pub(super) fn document(limits: &TermLimits) -> Value {
     };
     let version = query_param(
         "version",
-        version_number(),
-        "read this older version (404 when the file does not hold it)",
+        json!({"anyOf": [version_number(), tag_name()]}),
+        "read this older version, by number or tag (404 when the file does not hold it)",
     );
     let brick_params = json!([name, level, coord("x"), coord("y"), coord("z"), version]);
     let binary = |media: &str| json!({media: {"schema": {"type": "string", "format": "binary"}}});
@@ -277,8 +282,53 @@ fn write_side(name: Value, limits: &TermLimits) -> (Value, Value) {
                 "description": "resume after this version (empty: no event seen yet)"}],
             "responses": merge(json!({"200": {"description": "an event stream; each event as its fields (data: JSON text)", "content": {"text/event-stream": {"schema": {
                 "type": "object", "required": ["data"],
-                "properties": {"event": {"type": "string", "enum": ["hello", "commit", "resync"]}, "data": {"type": "string"}, "id": {"type": "string"}}}}}}}),
+                "properties": {"event": {"type": "string", "enum": ["hello", "commit", "resync", "presence"]}, "data": {"type": "string"}, "id": {"type": "string"}}}}}}}),
                 problem_responses(&["400", "404", "409", "410"]))}},
+        "/v1/volumes/{name}/history": {"get": {
+            "summary": "commits newest first: version, time, author, message, kind, operation and box, bricks changed",
+            "parameters": [name, query_param("before", version_number(), "list the commits before this version"),
+                query_param("limit", int(1, crate::volume::history::MAX_HISTORY as u64), "most commits listed (default 100)")],
+            "responses": merge(json!({"200": {"description": "the commits", "content": json_body("HistoryList")}}),
+                problem_responses(&["400", "404", "500"]))}},
+        "/v1/volumes/{name}/tags": {"get": {
+            "summary": "every tag and the version it names",
+            "parameters": [name],
+            "responses": merge(json!({"200": {"description": "the tags", "content": json_body("TagList")}}),
+                problem_responses(&["400", "404", "500"]))}},
+        "/v1/volumes/{name}/tags/{tag}": {"put": {
+            "summary": "name a version (a commit that changes no brick); setting a tag again moves it",
+            "security": bearer,
+            "parameters": [name, path_param("tag", tag_name(), "the tag")],
+            "requestBody": {"required": true, "content": json_body("TagRequest")},
+            "responses": merge(json!({"200": {"description": "the tag's commit", "content": json_body("EditResponse")}}),
+                problem_responses(&["400", "401", "403", "404", "409", "413", "415", "429", "500", "503"]))}},
+        "/v1/volumes/{name}/undo": {"post": {
+            "summary": "take back the edit of a version (or make an undone one again), later edits over it applied again",
+            "security": bearer,
+            "parameters": [name],
+            "requestBody": {"required": true, "content": json_body("UndoRequest")},
+            "responses": merge(json!({"200": {"description": "the new version", "content": json_body("EditResponse")}}),
+                problem_responses(&["400", "401", "403", "404", "409", "410", "413", "415", "422", "429", "500", "503"]))}},
+        "/v1/volumes/{name}/revert": {"post": {
+            "summary": "a new version whose content is an earlier version's",
+            "security": bearer,
+            "parameters": [name],
+            "requestBody": {"required": true, "content": json_body("RevertRequest")},
+            "responses": merge(json!({"200": {"description": "the new version", "content": json_body("EditResponse")}}),
+                problem_responses(&["400", "401", "403", "404", "409", "410", "413", "415", "429", "500", "503"]))}},
+        "/v1/volumes/{name}/presence": {
+            "post": {
+                "summary": "where the user is (read role enough; a few a second at most): sent to the change feed's subscribers, never stored",
+                "security": bearer,
+                "parameters": [name],
+                "requestBody": {"required": true, "content": json_body("PresenceRequest")},
+                "responses": merge(json!({"204": {"description": "announced"}}),
+                    problem_responses(&["400", "401", "403", "404", "413", "415", "429"]))},
+            "get": {
+                "summary": "who is present now",
+                "parameters": [name],
+                "responses": merge(json!({"200": {"description": "the users present", "content": json_body("PresenceList")}}),
+                    problem_responses(&["400", "404"]))}},
     });
     let changed =
         json!({"type": "array", "items": {"type": "array", "items": schema_ref("Triple")}});
@@ -290,6 +340,21 @@ fn write_side(name: Value, limits: &TermLimits) -> (Value, Value) {
                 "evaluated": {"type": "integer"}, "new_records": {"type": "integer"}, "checkpoint": {"type": "boolean"}, "elapsed_us": {"type": "integer"},
                 "committed": {"type": "boolean", "description": "false for an edit that reaches no voxel of the volume: nothing committed, version is the current one"}}},
         "ChangeEvent": event,
+        "HistoryList": {"type": "object", "required": ["head", "oldest", "commits", "more"],
+            "properties": {"head": {"type": "integer"}, "oldest": {"type": "integer"}, "more": {"type": "boolean"},
+                "commits": {"type": "array", "items": {"type": "object", "required": ["version", "timestamp_ms", "bricks_changed"]}}}},
+        "TagList": {"type": "object", "required": ["tags"],
+            "properties": {"tags": {"type": "array", "items": {"type": "object", "required": ["tag", "version", "set_at"]}}}},
+        "TagRequest": closed(&["version"], json!({"version": version_number()})),
+        "UndoRequest": closed(&["version"], json!({"version": version_number(),
+            "message": {"type": "string", "maxLength": isovox_proto::history::MAX_MESSAGE_CHARS}})),
+        "RevertRequest": closed(&["to"], json!({"to": version_number(),
+            "message": {"type": "string", "maxLength": isovox_proto::history::MAX_MESSAGE_CHARS}})),
+        "PresenceRequest": closed(&["position"], json!({"position": tuple(3, json!({"type": "number"})),
+            "looking": tuple(3, json!({"type": "number"})),
+            "label": {"type": "string", "maxLength": crate::volume::presence::MAX_LABEL_CHARS}})),
+        "PresenceList": {"type": "object", "required": ["present"],
+            "properties": {"present": {"type": "array", "items": {"type": "object", "required": ["user", "position", "at_ms"]}}}},
         "MeshInfo": {"type": "object", "required": ["hash", "triangles", "vertices", "min", "max"],
             "properties": {"hash": {"type": "string"}, "triangles": {"type": "integer"}, "vertices": {"type": "integer"},
                 "min": tuple(3, json!({"type": "number"})), "max": tuple(3, json!({"type": "number"}))}},
@@ -425,7 +490,8 @@ fn term_schemas(limits: &TermLimits) -> Value {
     let edit = |op: Value, required: &[&str], term: &Value, s_l: &Value, k: &Value| {
         closed(
             required,
-            json!({"op": op, "term": term, "s_l": s_l, "k": k, "region": nullable(schema_ref("Region"))}),
+            json!({"op": op, "term": term, "s_l": s_l, "k": k, "region": nullable(schema_ref("Region")),
+                "message": nullable(json!({"type": "string", "maxLength": isovox_proto::history::MAX_MESSAGE_CHARS}))}),
         )
     };
     json!({

@@ -17,13 +17,16 @@
 
 use super::compile::check_k;
 use super::ops::{BinaryOp, Outside, UnaryOp};
-use super::term::{CompiledTerm, EvalError, Scope, TermError, TermLimits, VolumeResolver};
+use super::term::{
+    CompiledTerm, EvalError, RecordingReads, Scope, TermError, TermLimits, VolumeResolver,
+};
 use crate::cancel::CancelToken;
 use crate::geometry::Box3;
 use crate::store::transaction::{ChangedKeys, CheckpointPolicy, Transaction, BRICKS_PER_JOB};
 use crate::store::writer::Vod2Writer;
 use crate::store::{BrickVoxels, Snapshot};
-use isovox_proto::icvg::{EditRequest, MAX_COORDINATE};
+use isovox_proto::history::{CommitInfo, CommitKind, CommitNote, OpSummary};
+use isovox_proto::icvg::{EditRequest, Region, MAX_COORDINATE};
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -48,6 +51,9 @@ pub struct Edit {
     /// Voxels its term samples besides its evaluation brick by brick (mesh leaves voxelized,
     /// morphology arguments), counted when it was compiled.
     pub sampled: u64,
+    /// What its commit records of it (its request, what it reads, who made it): filled by
+    /// [`Edit::for_volume`], the author by the caller. Edits built otherwise record nothing.
+    pub note: CommitNote,
 }
 
 /// What an edit changed.
@@ -112,11 +118,34 @@ impl Edit {
         cancel: &CancelToken,
     ) -> Result<Edit, TermError> {
         let volume = Box3::of_volume(layout);
-        Edit::build(req, layout.voxel_type(), limits, volumes, |region| Scope {
+        let reading = RecordingReads::new(volumes);
+        let mut edit = Edit::build(req, layout.voxel_type(), limits, &reading, |region| Scope {
             within: Some(region.map_or(volume, |r| r.intersect(&volume))),
             max_voxels,
             cancel: cancel.clone(),
-        })
+        })?;
+        let reach = edit.reach(layout);
+        let request = EditRequest {
+            message: None,
+            ..req.clone()
+        };
+        edit.note = CommitNote {
+            info: CommitInfo {
+                kind: Some(CommitKind::Edit),
+                message: req.message.clone(),
+                op: Some(OpSummary::of(
+                    req,
+                    Region {
+                        min: reach.min,
+                        max: reach.max,
+                    },
+                )),
+                ..CommitInfo::default()
+            },
+            request: Some(request),
+            reads: reading.into_reads(),
+        };
+        Ok(edit)
     }
 
     fn build(
@@ -185,6 +214,7 @@ impl Edit {
                     kind: EditKind::Binary(op, term),
                     region,
                     sampled,
+                    note: CommitNote::default(),
                 });
             }
         };
@@ -192,6 +222,7 @@ impl Edit {
             kind,
             region,
             sampled: 0,
+            note: CommitNote::default(),
         })
     }
 }
@@ -214,6 +245,26 @@ impl Edit {
             },
             EditKind::Unary(_) => target,
         }
+    }
+
+    /// Readies the edit to be evaluated brick by brick (morphology in its term filtered once
+    /// over its reach): what [`stage_edit`] does first, for an edit applied by other means (a
+    /// replay under an undo, [`edit_voxels`]).
+    ///
+    /// # Errors
+    /// `cancel` stops it.
+    pub fn prepare_eval(
+        &mut self,
+        layout: &VolumeLayout,
+        cancel: &CancelToken,
+    ) -> Result<(), EvalError> {
+        let reach = self.reach(layout);
+        if let EditKind::Binary(_, term) = &mut self.kind {
+            if !reach.is_empty() {
+                term.materialize(&reach, cancel)?;
+            }
+        }
+        Ok(())
     }
 
     /// Whether the edit can change no voxel of the volume: its reach (the region, or the term's
@@ -250,7 +301,8 @@ fn bricks_meeting_count(layout: &VolumeLayout, b: &Box3) -> u64 {
     (0..3).map(|a| (hi[a] - lo[a] + 1) as u64).product()
 }
 
-fn bricks_meeting(layout: &VolumeLayout, b: &Box3) -> Vec<BrickKey> {
+/// The level-0 bricks that meet `b`, z slowest.
+pub fn bricks_meeting(layout: &VolumeLayout, b: &Box3) -> Vec<BrickKey> {
     if b.is_empty() {
         return Vec::new();
     }
@@ -295,17 +347,35 @@ fn edit_brick(
     key: BrickKey,
 ) -> Result<Option<BrickVoxels>, EvalError> {
     let layout = snap.layout();
+    if Box3::of_brick(layout, key).intersect(target).is_empty() {
+        return Ok(None);
+    }
+    edit_voxels(edit, &snap.voxels(key)?, layout, target, key)
+}
+
+/// The content of the level-0 brick `key` after `edit` (whose target is `target`) is applied
+/// to its content `old`, or `None` when the edit leaves it as it is. What replaying an edit
+/// over other voxels than it first met (an undo under it) applies.
+///
+/// # Errors
+/// Evaluating the term fails or is stopped.
+pub fn edit_voxels(
+    edit: &Edit,
+    old: &BrickVoxels,
+    layout: &VolumeLayout,
+    target: &Box3,
+    key: BrickKey,
+) -> Result<Option<BrickVoxels>, EvalError> {
     let t = layout.voxel_type();
     let whole = Box3::of_brick(layout, key);
     let eff = whole.intersect(target);
     if eff.is_empty() {
         return Ok(None);
     }
-    let old = snap.voxels(key)?;
     // Without touching voxels when the brick is wholly edited and both sides are constant.
     if eff == whole {
         let d1 = match old {
-            BrickVoxels::Constant(v) => Some(v),
+            BrickVoxels::Constant(v) => Some(*v),
             BrickVoxels::Data(_) => None,
         };
         let new = match &edit.kind {
@@ -322,10 +392,10 @@ fn edit_brick(
         };
         if let Some(v) = new {
             let result = BrickVoxels::Constant(v);
-            return Ok((result != old).then_some(result));
+            return Ok((result != *old).then_some(result));
         }
     }
-    let mut values = to_u16(&old, layout);
+    let mut values = to_u16(old, layout);
     let size = [0, 1, 2].map(|a| (eff.max[a] - eff.min[a]) as usize);
     let mut operand = Vec::new();
     if let EditKind::Binary(_, term) = &edit.kind {
@@ -349,7 +419,7 @@ fn edit_brick(
         }
     }
     let result = from_u16(&values, layout);
-    Ok((result != old).then_some(result))
+    Ok((result != *old).then_some(result))
 }
 
 /// Applies `edit` to the version `snap` of the file `writer` appends to, and commits the result
@@ -404,11 +474,7 @@ pub fn stage_edit(
     let layout = snap.layout();
     let target = edit.target(layout);
     let reach = edit.reach(layout);
-    if let EditKind::Binary(_, term) = &mut edit.kind {
-        if !reach.is_empty() {
-            term.materialize(&reach, cancel)?;
-        }
-    }
+    edit.prepare_eval(layout, cancel)?;
     let edit = &*edit;
     let keys = bricks_meeting(layout, &reach);
     // A few bricks stage fastest on this thread (see BRICKS_PER_JOB: the loops then never
@@ -458,6 +524,9 @@ fn stage_bricks(
         .filter_map(|(k, r)| r.map(|r| (k, r)))
         .collect();
     let mut transaction = Transaction::on(writer, snap);
+    if edit.note.info.kind.is_some() {
+        transaction.set_note(note_bytes(&edit.note));
+    }
     transaction.update_level0(level0)?;
     let staged = transaction.stage(policy)?;
     Ok(EditOutcome {
@@ -469,4 +538,10 @@ fn stage_bricks(
         checkpoint: staged.checkpoint,
         elapsed: start.elapsed(),
     })
+}
+
+/// A commit note as the commit record stores it (JSON).
+pub fn note_bytes(note: &CommitNote) -> Vec<u8> {
+    // Serializing plain data to a Vec cannot fail.
+    serde_json::to_vec(note).unwrap_or_default()
 }

@@ -7,6 +7,7 @@ use crate::cancel::{CancelToken, Stopped};
 use crate::geometry::Box3;
 use crate::store::{Snapshot, StoreError};
 use isovox_proto::{BrickKey, VoxelType};
+use std::collections::BTreeMap;
 use std::sync::Arc;
 
 /// Limits on what a term may ask for (safe defaults; a server can tighten them).
@@ -112,6 +113,20 @@ pub trait VolumeResolver {
     /// No volume of that name.
     fn resolve(&self, name: &str) -> Result<Arc<Snapshot>, TermError>;
 
+    /// The volume `name` at `version` (what replaying an edit reads).
+    ///
+    /// # Errors
+    /// No volume of that name, or it no longer holds that version.
+    fn resolve_at(&self, name: &str, version: u64) -> Result<Arc<Snapshot>, TermError> {
+        let snap = self.resolve(name)?;
+        if snap.version == version {
+            return Ok(snap);
+        }
+        Err(TermError::Volume(format!(
+            "volume {name:?} at version {version}: older versions cannot be read here"
+        )))
+    }
+
     /// The uploaded mesh with this content hash (for `mesh` leaves).
     ///
     /// # Errors
@@ -120,6 +135,95 @@ pub trait VolumeResolver {
         Err(TermError::Unknown(format!(
             "mesh {hash:016x}: meshes are not available here"
         )))
+    }
+}
+
+/// A resolver that notes the version of every volume it finds: what an edit's commit records,
+/// so that replaying the edit (an undo under it) reads the same voxels
+/// ([`PinnedReads`]).
+pub struct RecordingReads<'a> {
+    inner: &'a dyn VolumeResolver,
+    reads: std::sync::Mutex<BTreeMap<String, u64>>,
+}
+
+impl<'a> RecordingReads<'a> {
+    /// Finds volumes and meshes through `inner`.
+    pub fn new(inner: &'a dyn VolumeResolver) -> Self {
+        RecordingReads {
+            inner,
+            reads: std::sync::Mutex::new(BTreeMap::new()),
+        }
+    }
+
+    /// The version of each volume found, by name.
+    pub fn into_reads(self) -> BTreeMap<String, u64> {
+        self.reads.into_inner().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+impl std::fmt::Debug for RecordingReads<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RecordingReads").finish_non_exhaustive()
+    }
+}
+
+impl VolumeResolver for RecordingReads<'_> {
+    fn resolve(&self, name: &str) -> Result<Arc<Snapshot>, TermError> {
+        let snap = self.inner.resolve(name)?;
+        self.reads
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .insert(name.to_string(), snap.version);
+        Ok(snap)
+    }
+
+    fn resolve_at(&self, name: &str, version: u64) -> Result<Arc<Snapshot>, TermError> {
+        self.inner.resolve_at(name, version)
+    }
+
+    fn mesh(&self, hash: u64) -> Result<Arc<crate::voxelize::solid::TriMesh>, TermError> {
+        self.inner.mesh(hash)
+    }
+}
+
+/// A resolver that finds each volume at the version an edit's commit recorded it read: what
+/// replaying the edit resolves its `volume` leaves through.
+pub struct PinnedReads<'a> {
+    inner: &'a dyn VolumeResolver,
+    reads: &'a BTreeMap<String, u64>,
+}
+
+impl<'a> PinnedReads<'a> {
+    /// `inner`'s volumes at the versions `reads` names.
+    pub fn new(inner: &'a dyn VolumeResolver, reads: &'a BTreeMap<String, u64>) -> Self {
+        PinnedReads { inner, reads }
+    }
+}
+
+impl std::fmt::Debug for PinnedReads<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("PinnedReads")
+            .field("reads", self.reads)
+            .finish_non_exhaustive()
+    }
+}
+
+impl VolumeResolver for PinnedReads<'_> {
+    fn resolve(&self, name: &str) -> Result<Arc<Snapshot>, TermError> {
+        let version = self.reads.get(name).ok_or_else(|| {
+            TermError::Volume(format!(
+                "the edit did not record the version of volume {name:?} it read"
+            ))
+        })?;
+        self.inner.resolve_at(name, *version)
+    }
+
+    fn resolve_at(&self, name: &str, version: u64) -> Result<Arc<Snapshot>, TermError> {
+        self.inner.resolve_at(name, version)
+    }
+
+    fn mesh(&self, hash: u64) -> Result<Arc<crate::voxelize::solid::TriMesh>, TermError> {
+        self.inner.mesh(hash)
     }
 }
 

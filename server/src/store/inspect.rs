@@ -136,7 +136,7 @@ pub fn inspect(vod: &Vod2) -> Result<Inspection, StoreError> {
         .iter()
         .take_while(|(_, h)| h.version >= checkpoint_version(&commits, checkpoint_at))
     {
-        live += CommitHeader::record_len(h.n_changes);
+        live += h.total_len();
     }
     let file_bytes = vod.file_len();
     let raw_bytes = layout.raw_bytes();

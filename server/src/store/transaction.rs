@@ -76,6 +76,8 @@ pub struct Transaction<'a> {
     writer: &'a mut Vod2Writer,
     base: Base<'a>,
     records_before: u64,
+    /// The commit's note (JSON), empty for none.
+    note: Vec<u8>,
 }
 
 fn records(writer: &Vod2Writer) -> u64 {
@@ -94,6 +96,7 @@ impl<'a> Transaction<'a> {
                 changed: vec![Vec::new(); snap.layout().levels() as usize],
             },
             writer,
+            note: Vec::new(),
         }
     }
 
@@ -106,7 +109,13 @@ impl<'a> Transaction<'a> {
                 entries: vec![0; nodes],
             },
             writer,
+            note: Vec::new(),
         }
+    }
+
+    /// Records `note` (who made the commit and what it did, as JSON) in the commit record.
+    pub fn set_note(&mut self, note: Vec<u8>) {
+        self.note = note;
     }
 
     /// The writer, for preparing bricks in parallel ([`Vod2Writer::prepare`]) before they are
@@ -291,11 +300,11 @@ impl<'a> Transaction<'a> {
                 } else {
                     None
                 };
-                let slot = self.writer.stage(&changes, full.as_deref())?;
+                let slot = self.writer.stage(&changes, full.as_deref(), &self.note)?;
                 (slot, changed, checkpoint)
             }
             Base::Empty { entries } => {
-                let slot = self.writer.stage(&[], Some(&entries))?;
+                let slot = self.writer.stage(&[], Some(&entries), &self.note)?;
                 (slot, ChangedKeys::new(), true)
             }
         };

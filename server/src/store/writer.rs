@@ -455,13 +455,15 @@ impl Vod2Writer {
         changes: &[(u64, NodeEntry)],
         checkpoint: Option<&[u64]>,
     ) -> Result<HeaderSlot, StoreError> {
-        self.stage(changes, checkpoint)?;
+        self.stage(changes, checkpoint, &[])?;
         self.sync()
     }
 
     /// Appends the next version's commit record (after the newest staged one, or the head):
     /// `checkpoint` is the full index after the commit (written as a checkpoint), or `None` to
-    /// record only `changes` relative to its parent. The bytes reach the file (so a mapping of
+    /// record only `changes` relative to its parent; `note` (the commit's
+    /// [`CommitNote`](isovox_proto::history::CommitNote) as JSON, or empty) follows the
+    /// record. The bytes reach the file (so a mapping of
     /// it can read the new version) but are not durable and not named by a slot until
     /// [`Vod2Writer::sync`]. Returns the slot that will name the version, its committed length
     /// ending with this record.
@@ -474,7 +476,17 @@ impl Vod2Writer {
         &mut self,
         changes: &[(u64, NodeEntry)],
         checkpoint: Option<&[u64]>,
+        note: &[u8],
     ) -> Result<HeaderSlot, StoreError> {
+        let note_len = u32::try_from(note.len())
+            .ok()
+            .filter(|&n| n <= isovox_proto::vod2::MAX_NOTE_LEN)
+            .ok_or_else(|| {
+                StoreError::Internal(format!(
+                    "a commit note of {} bytes is longer than the format allows",
+                    note.len()
+                ))
+            })?;
         // Every version of a group is named by one slot write, to the slot that does not hold
         // the durable head: the sequence number moves by one per sync, not per version.
         let (parent, version, seq) = match (self.tip(), self.head) {
@@ -542,8 +554,9 @@ impl Vod2Writer {
                 .unwrap_or(0),
             checkpoint: checkpoint_at,
             n_changes: changes.len() as u64,
+            note_len,
         }
-        .encode(changes);
+        .encode(changes, note);
         let commit_at = self.append(&record)?;
         self.flush()?;
         let slot = HeaderSlot {

@@ -79,6 +79,24 @@ pub enum VolumeError {
         /// Why: what is damaged, what is served, how to recover.
         cause: String,
     },
+    /// An undo, redo, revert or tag that cannot be made as asked (the version is not an edit,
+    /// is undone already, or a commit under it cannot be replayed).
+    #[error("{0}")]
+    NotUndoable(String),
+    /// The user may not do this (undo another user's edit without the admin role).
+    #[error("{0}")]
+    NotAllowed(String),
+    /// An undo or redo would apply more than the server allows per edit.
+    #[error("the undo re-evaluates {voxels} voxels (the edit's bricks, once per edit applied again over them); this server allows {max} per edit (--max-edit-voxels): revert to a version instead")]
+    UndoTooLarge {
+        /// Voxels it would evaluate.
+        voxels: u64,
+        /// Voxels allowed.
+        max: u64,
+    },
+    /// What the volume's storage cannot do yet.
+    #[error("{0}")]
+    Unsupported(String),
     /// Too many edits already wait for the volume's writer.
     #[error("too many edits are waiting for this volume")]
     WriterBusy,

@@ -22,13 +22,14 @@
 //!
 //! [`Vod2Writer::sync`]: crate::store::Vod2Writer::sync
 
+use super::undo::UndoJob;
 use super::{change_event, LiveVolume, VolumeError, WriterSlot};
 use crate::cancel::CancelToken;
 use crate::icvg::edit::{stage_edit, Edit};
-use crate::icvg::term::EvalError;
 use crate::store::codec::Compression;
 use crate::store::{error_chain, CheckpointPolicy, StoreError, Vod2, Vod2Writer};
 use isovox_proto::api::{ChangeEvent, EditResponse};
+use isovox_proto::history::CommitNote;
 use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -63,29 +64,68 @@ impl Default for GroupCommit {
 /// What an edit is answered with.
 pub type EditAnswer = Result<EditResponse, VolumeError>;
 
-/// An edit waiting for the writer, with where its answer goes.
+/// What a request in the writer's queue asks it to commit.
+#[derive(Debug)]
+pub enum Work {
+    /// An edit; with `dry_run`, evaluated and answered but not committed.
+    Edit {
+        /// The compiled edit.
+        edit: Edit,
+        /// Answer what it would change, and roll it back.
+        dry_run: bool,
+    },
+    /// An undo or redo (`undo.rs`).
+    Undo(UndoJob),
+    /// The content of version `to` as a new version.
+    Revert {
+        /// The version restored.
+        to: u64,
+        /// Who asks, and their message.
+        note: CommitNote,
+    },
+    /// A name for a version.
+    Tag {
+        /// The name.
+        tag: String,
+        /// The version it names.
+        version: u64,
+        /// Who asks.
+        note: CommitNote,
+    },
+}
+
+impl Work {
+    /// Whether it may share a group with the edits around it. Undos, reverts and tags read
+    /// the history up to the served head, which versions staged in a group are not yet part
+    /// of: each is a group of its own.
+    fn groups(&self) -> bool {
+        matches!(self, Work::Edit { .. })
+    }
+}
+
+/// A request waiting for the writer, with where its answer goes.
 #[derive(Debug)]
 pub struct PendingEdit {
-    edit: Edit,
+    work: Work,
     if_match: Option<u64>,
     cancel: CancelToken,
     answer: oneshot::Sender<EditAnswer>,
 }
 
 impl PendingEdit {
-    /// `edit`, to apply only if the volume is then at version `if_match` (when given), and the
-    /// receiver of its answer. Dropping the receiver before the writer reaches the edit
+    /// `work`, to apply only if the volume is then at version `if_match` (when given), and the
+    /// receiver of its answer. Dropping the receiver before the writer reaches the work
     /// withdraws it (it is then never applied); cancelling `cancel` stops its evaluation, and
     /// its deadline (if any) starts again when the writer reaches it.
     pub fn new(
-        edit: Edit,
+        work: Work,
         if_match: Option<u64>,
         cancel: CancelToken,
     ) -> (PendingEdit, oneshot::Receiver<EditAnswer>) {
         let (answer, receiver) = oneshot::channel();
         (
             PendingEdit {
-                edit,
+                work,
                 if_match,
                 cancel,
                 answer,
@@ -176,16 +216,18 @@ impl LiveVolume {
     /// [`VolumeError::Stopped`]; what applying or committing failed with.
     pub async fn submit(
         self: &Arc<Self>,
-        edit: Edit,
+        work: Work,
         if_match: Option<u64>,
         cancel: CancelToken,
         settings: GroupCommit,
         runtime: &tokio::runtime::Handle,
     ) -> Result<EditResponse, VolumeError> {
-        if let Some(unchanged) = self.unchanged(&edit) {
-            return Ok(unchanged);
+        if let Work::Edit { edit, .. } = &work {
+            if let Some(unchanged) = self.unchanged(edit) {
+                return Ok(unchanged);
+            }
         }
-        let (pending, answer) = PendingEdit::new(edit, if_match, cancel);
+        let (pending, answer) = PendingEdit::new(work, if_match, cancel);
         {
             let mut queue = self.queue();
             if queue.len() + self.compactions_waiting() >= settings.max_waiting {
@@ -258,7 +300,13 @@ impl LiveVolume {
         if !queue.edits_wait() {
             return None;
         }
-        let n = queue.edits.len().min(settings.max_group.max(1));
+        let n = queue
+            .edits
+            .iter()
+            .take(settings.max_group.max(1))
+            .take_while(|p| p.work.groups())
+            .count()
+            .max(1);
         Some(queue.edits.drain(..n).collect())
     }
 
@@ -290,14 +338,22 @@ impl LiveVolume {
             for mut pending in group {
                 if !pending.answer.is_closed() {
                     let cancel = pending.cancel.restarted();
-                    let answer = self.apply_remote(
-                        &remote,
-                        slot,
-                        &mut pending.edit,
-                        pending.if_match,
-                        policy,
-                        &cancel,
-                    );
+                    let answer = match &mut pending.work {
+                        Work::Edit {
+                            edit,
+                            dry_run: false,
+                        } => self.apply_remote(
+                            &remote,
+                            slot,
+                            edit,
+                            pending.if_match,
+                            policy,
+                            &cancel,
+                        ),
+                        _ => Err(VolumeError::Unsupported(
+                            "undo, redo, revert, tags and dry runs are not available yet for a volume kept in an object store".into(),
+                        )),
+                    };
                     pending.answer(answer);
                 }
             }
@@ -331,8 +387,9 @@ impl LiveVolume {
         // The newest version so far: the served head, then each staged one.
         let mut tip = base;
         let mut staged: Vec<Staged> = Vec::new();
-        // Answers not given by a version of this group (conflicts, failures), by position.
-        let mut refused: Vec<(usize, PendingEdit, VolumeError)> = Vec::new();
+        // Answers not given by a version of this group (conflicts, failures, dry runs), by
+        // position.
+        let mut answered: Vec<(usize, PendingEdit, EditAnswer)> = Vec::new();
         let mut edits = group.into_iter();
         while let Some(mut pending) = edits.next() {
             if pending.answer.is_closed() {
@@ -342,16 +399,30 @@ impl LiveVolume {
             let head = tip.head_ref();
             if let Some(expected) = pending.if_match.filter(|&v| v != head.version) {
                 let current = head.version;
-                refused.push((
+                answered.push((
                     staged.len(),
                     pending,
-                    VolumeError::Conflict { expected, current },
+                    Err(VolumeError::Conflict { expected, current }),
                 ));
                 continue;
             }
             let savepoint = writer.savepoint();
             let cancel = pending.cancel.restarted();
-            match stage(writer, &tip, &mut pending.edit, policy, &cancel) {
+            let dry_run = matches!(pending.work, Work::Edit { dry_run: true, .. });
+            match self.stage_work(writer, &tip, &mut pending.work, policy, &cancel) {
+                Ok((_, _, mut response)) if dry_run => {
+                    if let Err(cut) = writer.rollback(savepoint) {
+                        tracing::error!(volume = %self.name, error = %error_chain(&cut), "cannot roll back a dry run");
+                        slot.writer = None;
+                        pending.answer(Err(copy_of(&cut).into()));
+                        fail_all(staged, answered, edits, &cut);
+                        return;
+                    }
+                    response.dry_run = true;
+                    response.committed = false;
+                    response.elapsed_us = micros(started.elapsed());
+                    answered.push((staged.len(), pending, Ok(response)));
+                }
                 Ok((vod, event, response)) => {
                     tip = vod.clone();
                     staged.push(Staged {
@@ -368,11 +439,11 @@ impl LiveVolume {
                         // next one reopens the file (cutting off everything staged).
                         tracing::error!(volume = %self.name, error = %error_chain(&cut), "cannot roll back a failed edit");
                         slot.writer = None;
-                        pending.answer(Err(e.into()));
-                        fail_all(staged, refused, edits, &cut);
+                        pending.answer(Err(e));
+                        fail_all(staged, answered, edits, &cut);
                         return;
                     }
-                    refused.push((staged.len(), pending, e.into()));
+                    answered.push((staged.len(), pending, Err(e)));
                 }
             }
         }
@@ -382,7 +453,7 @@ impl LiveVolume {
                 tracing::error!(volume = %self.name, error = %error_chain(&e), "cannot make an edit group durable");
                 // The slot may or may not have reached the disk: reopen to learn which.
                 slot.writer = None;
-                fail_all(staged, refused, std::iter::empty(), &e);
+                fail_all(staged, answered, std::iter::empty(), &e);
                 return;
             }
             tracing::debug!(
@@ -393,19 +464,19 @@ impl LiveVolume {
                 "edit group durable"
             );
         }
-        // Publish and answer in order: the refused edits at their places among the versions.
-        let mut refused = refused.into_iter().peekable();
+        // Publish and answer in order: the other answers at their places among the versions.
+        let mut answered = answered.into_iter().peekable();
         for (i, s) in staged.into_iter().enumerate() {
-            while let Some((_, pending, e)) = refused.next_if(|(at, _, _)| *at <= i) {
-                pending.answer(Err(e));
+            while let Some((_, pending, a)) = answered.next_if(|(at, _, _)| *at <= i) {
+                pending.answer(a);
             }
             self.publish(s.vod, s.event);
             let mut response = s.response;
             response.elapsed_us = micros(s.started.elapsed());
             s.pending.answer(Ok(response));
         }
-        for (_, pending, e) in refused {
-            pending.answer(Err(e));
+        for (_, pending, a) in answered {
+            pending.answer(a);
         }
     }
 
@@ -424,7 +495,11 @@ impl LiveVolume {
         if let Some(unchanged) = self.unchanged(&edit) {
             return Ok(unchanged);
         }
-        let (pending, mut answer) = PendingEdit::new(edit, if_match, CancelToken::never());
+        let work = Work::Edit {
+            edit,
+            dry_run: false,
+        };
+        let (pending, mut answer) = PendingEdit::new(work, if_match, CancelToken::never());
         self.commit_group(slot, vec![pending], policy);
         answer.try_recv().map_err(|_| {
             VolumeError::Store(StoreError::Internal("the edit was not answered".into()))
@@ -445,6 +520,8 @@ impl LiveVolume {
             checkpoint: false,
             elapsed_us: 0,
             committed: false,
+            replayed: None,
+            dry_run: false,
         })
     }
 
@@ -484,33 +561,65 @@ fn writer_at<'a>(slot: &'a mut WriterSlot, base: &Vod2) -> Result<&'a mut Vod2Wr
     }
 }
 
-/// Evaluates `edit` on `tip` and stages it: the next version's file (mapped up to its commit
-/// record, not yet durable), its change event read back from the record, and the answer.
-fn stage(
-    writer: &mut Vod2Writer,
-    tip: &Vod2,
-    edit: &mut Edit,
-    policy: CheckpointPolicy,
-    cancel: &CancelToken,
-) -> Result<(Arc<Vod2>, ChangeEvent, EditResponse), EvalError> {
-    let head = tip.head_ref();
-    let outcome = stage_edit(writer, head, edit, policy, cancel)?;
-    let slot = writer
-        .tip()
-        .ok_or_else(|| StoreError::Internal("staging left the writer without a version".into()))?;
-    let next = tip.advance(slot)?;
-    let event = change_event(&next, slot.commit)?;
-    let response = EditResponse {
-        version: event.version,
-        previous: head.version,
-        changed: event.changed.clone(),
-        evaluated: outcome.evaluated as u64,
-        new_records: outcome.new_records,
-        checkpoint: outcome.checkpoint,
-        elapsed_us: micros(outcome.elapsed),
-        committed: true,
-    };
-    Ok((Arc::new(next), event, response))
+impl LiveVolume {
+    /// Stages `work` on `tip`: the next version's file (mapped up to its commit record, not
+    /// yet durable), its change event read back from the record, and the answer.
+    fn stage_work(
+        &self,
+        writer: &mut Vod2Writer,
+        tip: &Vod2,
+        work: &mut Work,
+        policy: CheckpointPolicy,
+        cancel: &CancelToken,
+    ) -> Result<(Arc<Vod2>, ChangeEvent, EditResponse), VolumeError> {
+        let head = tip.head_ref();
+        let (new_records, checkpoint, evaluated, replayed) = match work {
+            Work::Edit { edit, .. } => {
+                let outcome = stage_edit(writer, head, edit, policy, cancel)?;
+                (
+                    outcome.new_records,
+                    outcome.checkpoint,
+                    outcome.evaluated as u64,
+                    None,
+                )
+            }
+            Work::Undo(job) => {
+                let s = self.stage_undo(writer, head, job, policy, cancel)?;
+                (
+                    s.committed.new_records,
+                    s.committed.checkpoint,
+                    s.evaluated,
+                    s.replayed,
+                )
+            }
+            Work::Revert { to, note } => {
+                let s = self.stage_revert(writer, head, *to, note.clone(), policy)?;
+                (s.committed.new_records, s.committed.checkpoint, 0, None)
+            }
+            Work::Tag { tag, version, note } => {
+                let s = self.stage_tag(writer, head, tag, *version, note.clone(), policy)?;
+                (s.committed.new_records, s.committed.checkpoint, 0, None)
+            }
+        };
+        let slot = writer.tip().ok_or_else(|| {
+            StoreError::Internal("staging left the writer without a version".into())
+        })?;
+        let next = tip.advance(slot)?;
+        let event = change_event(&next, slot.commit)?;
+        let response = EditResponse {
+            version: event.version,
+            previous: head.version,
+            changed: event.changed.clone(),
+            evaluated,
+            new_records,
+            checkpoint,
+            elapsed_us: 0,
+            committed: true,
+            replayed,
+            dry_run: false,
+        };
+        Ok((Arc::new(next), event, response))
+    }
 }
 
 fn micros(d: Duration) -> u64 {
@@ -530,22 +639,24 @@ fn copy_of(e: &StoreError) -> StoreError {
 
 /// Answers every edit of a group that failed as a whole (a failed sync, a writer that could
 /// not be rolled back) with `e`: none of its versions is served. What was refused before
-/// stays refused, but a conflict with a version of the group names a version never made.
+/// stays refused, but a conflict with (or a dry run on) a version of the group names a
+/// version never made.
 fn fail_all(
     staged: Vec<Staged>,
-    refused: Vec<(usize, PendingEdit, VolumeError)>,
+    answered: Vec<(usize, PendingEdit, EditAnswer)>,
     unreached: impl Iterator<Item = PendingEdit>,
     e: &StoreError,
 ) {
     for s in staged {
         s.pending.answer(Err(copy_of(e).into()));
     }
-    for (at, pending, error) in refused {
-        let error = match error {
-            VolumeError::Conflict { .. } if at > 0 => copy_of(e).into(),
+    for (at, pending, answer) in answered {
+        let answer = match answer {
+            // A dry run, or a conflict, on a version of the group that is never made.
+            Ok(_) | Err(VolumeError::Conflict { .. }) if at > 0 => Err(copy_of(e).into()),
             other => other,
         };
-        pending.answer(Err(error));
+        pending.answer(answer);
     }
     for pending in unreached {
         pending.answer(Err(copy_of(e).into()));

@@ -22,19 +22,22 @@
 pub mod error;
 pub mod follow;
 pub mod group;
+pub mod history;
+pub mod presence;
 pub mod read;
 pub mod resolve;
+pub mod undo;
 pub mod write;
 
 pub use error::VolumeError;
 pub use group::{GroupCommit, PendingEdit};
+pub(crate) use history::change_event;
 pub use write::{edit_file, EditLimits};
 
 use crate::store::remote::{Refreshed, RemoteVolume};
 use crate::store::{Snapshot, StoreError, Vod2, Vod2Writer};
 use arc_swap::ArcSwap;
 use isovox_proto::api::{ChangeEvent, ChangeList, ChangedBricks};
-use isovox_proto::vod2::CommitHeader;
 use isovox_proto::VolumeLayout;
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -127,6 +130,10 @@ pub struct LiveVolume {
     /// Compactions waiting for the writer lock.
     waiting: AtomicUsize,
     history: RwLock<History>,
+    /// What each commit's note says, by version, once read.
+    records: Mutex<history::RecordCache>,
+    /// Who is looking at the volume now.
+    presence: presence::Presences,
     /// The older versions read last, most recent first: loading one walks its commits back to
     /// a checkpoint and decodes index chunks again, and pinned readers (a `?version=N` client,
     /// a version-pinned view) ask for the same few versions request after request.
@@ -196,6 +203,8 @@ impl LiveVolume {
             edits: Default::default(),
             waiting: AtomicUsize::new(0),
             history: RwLock::new(history),
+            records: Mutex::default(),
+            presence: presence::Presences::default(),
             older: Mutex::default(),
             feed: broadcast::channel(FEED_CAPACITY).0,
             remote: None,
@@ -570,19 +579,6 @@ impl LiveVolume {
     }
 }
 
-/// The change-feed event of the commit record at `at`.
-pub(crate) fn change_event(vod: &Vod2, at: u64) -> Result<ChangeEvent, StoreError> {
-    let (h, changes) = vod.commit_at(at)?;
-    Ok(ChangeEvent {
-        version: h.version,
-        timestamp_ms: h.timestamp_ms,
-        changed: changed_bricks(
-            vod.layout(),
-            CommitHeader::changes(changes).map(|(node, _)| node),
-        ),
-    })
-}
-
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]
@@ -609,6 +605,7 @@ mod tests {
                 s_l: None,
                 k: None,
                 region: None,
+                message: None,
             };
             write::edit_file(path, &request).unwrap();
         }

@@ -27,6 +27,19 @@ impl VolumeResolver for CatalogVolumes {
             .ok_or_else(|| TermError::Unknown(format!("no volume named {name:?}")))
     }
 
+    fn resolve_at(&self, name: &str, version: u64) -> Result<Arc<Snapshot>, TermError> {
+        let volume = self
+            .catalog
+            .volume(name)
+            .ok_or_else(|| TermError::Unknown(format!("no volume named {name:?}")))?;
+        volume.version(version).map_err(|e| {
+            TermError::Volume(format!(
+                "volume {name:?} at version {version}: {}",
+                error_chain(&e)
+            ))
+        })
+    }
+
     fn mesh(&self, hash: u64) -> Result<Arc<TriMesh>, TermError> {
         match &self.meshes {
             Some(store) => uploaded(store, hash),
@@ -55,6 +68,22 @@ impl VolumeResolver for DirVolumes {
                 error_chain(&e)
             ))
         })
+    }
+
+    fn resolve_at(&self, name: &str, version: u64) -> Result<Arc<Snapshot>, TermError> {
+        if !valid_name(name) {
+            return Err(TermError::Unknown(format!("{name:?} is not a volume name")));
+        }
+        let path = self.dir.join(format!("{name}.vod"));
+        Vod2::open(&path)
+            .and_then(|v| v.version(version))
+            .map_err(|e| {
+                TermError::Volume(format!(
+                    "volume {name:?} ({}) at version {version}: {}",
+                    path.display(),
+                    error_chain(&e)
+                ))
+            })
     }
 
     fn mesh(&self, hash: u64) -> Result<Arc<TriMesh>, TermError> {

@@ -199,6 +199,8 @@ fn edit_response(event: ChangeEvent, previous: u64, outcome: &EditOutcome) -> Ed
         checkpoint: outcome.checkpoint,
         elapsed_us: outcome.elapsed.as_micros() as u64,
         committed: true,
+        replayed: None,
+        dry_run: false,
     }
 }
 

@@ -668,12 +668,13 @@ fn vod1_random_byte_flips_never_give_wrong_voxels() {
 /// Rewrites the commit record at `at` with `edit` applied to its header, resealing it.
 fn reseal_commit(bytes: &mut [u8], at: usize, edit: impl FnOnce(&mut CommitHeader)) {
     let (mut h, record) = CommitHeader::decode(&bytes[at..], at as u64).unwrap();
-    let len = record.len();
+    let len = h.total_len() as usize;
     let changes: Vec<(u64, NodeEntry)> = CommitHeader::changes(record)
         .map(|(n, raw)| (n, NodeEntry::decode(raw, VoxelType::U8, u64::MAX).unwrap()))
         .collect();
+    let note = h.note(&bytes[at..]).to_vec();
     edit(&mut h);
-    let encoded = h.encode(&changes);
+    let encoded = h.encode(&changes, &note);
     assert_eq!(encoded.len(), len);
     bytes[at..at + len].copy_from_slice(&encoded);
 }

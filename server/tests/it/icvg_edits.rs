@@ -398,6 +398,7 @@ fn request(h: u16) -> impl Strategy<Value = EditRequest> {
                     s_l: None,
                     k: None,
                     region,
+                    message: None,
                 },
                 13 => EditRequest {
                     op: "add_scalar".into(),
@@ -405,6 +406,7 @@ fn request(h: u16) -> impl Strategy<Value = EditRequest> {
                     s_l: None,
                     k: Some(k * scale),
                     region,
+                    message: None,
                 },
                 i => EditRequest {
                     op: BINARY_NAMES[i].into(),
@@ -412,6 +414,7 @@ fn request(h: u16) -> impl Strategy<Value = EditRequest> {
                     s_l: (i == 11).then_some(s_l as f64 / 100.0),
                     k: None,
                     region,
+                    message: None,
                 },
             }
         })
@@ -485,6 +488,7 @@ fn every_operator_in_sequence() {
                 s_l: (*name == "divide").then_some(0.5),
                 k: None,
                 region: None,
+                message: None,
             })
             .collect();
         reqs.push(EditRequest {
@@ -496,6 +500,7 @@ fn every_operator_in_sequence() {
                 min: [5, 5, 5],
                 max: [30, 20, 17],
             }),
+            message: None,
         });
         reqs.push(EditRequest {
             op: "add_scalar".into(),
@@ -503,6 +508,7 @@ fn every_operator_in_sequence() {
             s_l: None,
             k: Some(-(t.high() as i32) / 3),
             region: None,
+            message: None,
         });
         for req in reqs {
             let (after, version, _) =
@@ -536,6 +542,7 @@ fn difference_ellipsoid(center: [i64; 3], radius: u32) -> EditRequest {
         s_l: None,
         k: None,
         region: None,
+        message: None,
     }
 }
 
@@ -711,6 +718,7 @@ fn term_outside_the_volume_changes_nothing() {
                     s_l: None,
                     k: None,
                     region: None,
+                    message: None,
                 };
                 let (after, v, out) =
                     edit_and_check(&path, &grid, &req, CheckpointPolicy::default());
@@ -756,6 +764,7 @@ fn term_outside_the_volume_changes_nothing() {
                     min: [37, 0, 0],
                     max: [60, 29, 23],
                 }),
+                message: None,
             };
             let (after, v, out) = edit_and_check(&path, &grid, &req, CheckpointPolicy::default());
             assert_eq!(after, grid);
@@ -835,6 +844,7 @@ fn identity_edit_visits_only_bricks_in_the_bbox() {
             s_l: None,
             k: None,
             region,
+            message: None,
         };
         let (after, _, out) = edit_and_check(&path, &grid, &req, CheckpointPolicy::default());
         assert!(
@@ -870,6 +880,7 @@ fn intersection_makes_bricks_outside_the_bbox_constant_l() {
                 s_l: None,
                 k: None,
                 region: None,
+                message: None,
             };
             edit_and_check(&path, &grid, &req, CheckpointPolicy::default());
             // B-box [7,7,7]..[18,18,18): level-0 bricks 0..=2 on every axis meet it.
@@ -922,6 +933,7 @@ fn checkpoint_every_commit() {
                 s_l: None,
                 k: None,
                 region: None,
+                message: None,
             },
             EditRequest {
                 op: "add_scalar".into(),
@@ -932,6 +944,7 @@ fn checkpoint_every_commit() {
                     min: [0, 0, 0],
                     max: [20, 20, 20],
                 }),
+                message: None,
             },
             EditRequest {
                 op: "inverse".into(),
@@ -939,6 +952,7 @@ fn checkpoint_every_commit() {
                 s_l: None,
                 k: None,
                 region: None,
+                message: None,
             },
         ];
         for req in &reqs {
@@ -1031,6 +1045,7 @@ fn overlay_limit_alone_triggers_a_checkpoint() {
         s_l: None,
         k: None,
         region: None,
+        message: None,
     };
     let (after, _, out) = edit_and_check(&path, &grid, &req, policy);
     let changed: usize = out.changed.iter().map(Vec::len).sum();
@@ -1221,6 +1236,7 @@ fn stored_volume_operand() {
                 s_l: None,
                 k: None,
                 region,
+                message: None,
             };
             let (after, _, _) =
                 edit_and_check_with(&path, &grid, &req, CheckpointPolicy::default(), &files);

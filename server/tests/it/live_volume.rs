@@ -21,7 +21,7 @@ use isovox_server::icvg::term::{NoVolumes, TermLimits};
 use isovox_server::store::codec::Compression;
 use isovox_server::store::CheckpointPolicy;
 use isovox_server::store::{build_vod2, BuildOptions, Snapshot, StoredBrick, Vod2, Vod2Writer};
-use isovox_server::volume::group::EditAnswer;
+use isovox_server::volume::group::{EditAnswer, Work};
 use isovox_server::volume::{LiveVolume, PendingEdit, VolumeError, WriterSlot};
 use std::path::{Path, PathBuf};
 use tokio::sync::oneshot::Receiver;
@@ -81,6 +81,7 @@ fn random_edit(rng: &mut XorShift) -> EditRequest {
         s_l: None,
         k: None,
         region: None,
+        message: None,
     }
 }
 
@@ -321,6 +322,14 @@ fn compiled(request: &EditRequest) -> Edit {
     Edit::from_request(request, VoxelType::U8, &TermLimits::default(), &NoVolumes).unwrap()
 }
 
+/// `request` compiled, as the writer's queue takes it.
+fn work(request: &EditRequest) -> Work {
+    Work::Edit {
+        edit: compiled(request),
+        dry_run: false,
+    }
+}
+
 /// Both header slots as the file holds them now (read with pread, as a reader opening it).
 /// Two copies of the same world in `dir`: the file under test and a reference.
 fn two_worlds(dir: &Path) -> (PathBuf, PathBuf) {
@@ -387,7 +396,7 @@ fn a_group_is_consecutive_versions_made_durable_by_one_slot_write() {
 
     let (group, mut receivers): (Vec<_>, Vec<_>) = requests
         .iter()
-        .map(|r| PendingEdit::new(compiled(r), None, CancelToken::never()))
+        .map(|r| PendingEdit::new(work(r), None, CancelToken::never()))
         .unzip();
     let mut slot = WriterSlot::default();
     vol.commit_group(&mut slot, group, policy);
@@ -460,7 +469,7 @@ fn if_match_inside_a_group_sees_the_versions_made_before_it_in_the_group() {
     let conditions = [None, Some(v), Some(v + 1), Some(v + 1), Some(v + 2)];
     let (group, mut receivers): (Vec<_>, Vec<_>) = conditions
         .iter()
-        .map(|&c| PendingEdit::new(compiled(&random_edit(&mut rng)), c, CancelToken::never()))
+        .map(|&c| PendingEdit::new(work(&random_edit(&mut rng)), c, CancelToken::never()))
         .unzip();
     vol.commit_group(
         &mut WriterSlot::default(),
@@ -490,9 +499,9 @@ fn an_edit_withdrawn_before_the_writer_reaches_it_is_never_applied() {
     let v = vol.head().version;
     let mut rng = XorShift(4242);
     let requests: Vec<EditRequest> = (0..3).map(|_| random_edit(&mut rng)).collect();
-    let (a, mut a_answer) = PendingEdit::new(compiled(&requests[0]), None, CancelToken::never());
-    let (b, b_answer) = PendingEdit::new(compiled(&requests[1]), None, CancelToken::never());
-    let (c, mut c_answer) = PendingEdit::new(compiled(&requests[2]), None, CancelToken::never());
+    let (a, mut a_answer) = PendingEdit::new(work(&requests[0]), None, CancelToken::never());
+    let (b, b_answer) = PendingEdit::new(work(&requests[1]), None, CancelToken::never());
+    let (c, mut c_answer) = PendingEdit::new(work(&requests[2]), None, CancelToken::never());
     // B's client left while B waited.
     drop(b_answer);
     vol.commit_group(
@@ -518,6 +527,7 @@ fn column(x: i64, z: i64) -> EditRequest {
         s_l: None,
         k: None,
         region: None,
+        message: None,
     }
 }
 

@@ -39,6 +39,7 @@ mod object_store;
 mod oidc;
 mod openapi_fuzz;
 mod overload;
+mod people;
 mod recovery;
 mod roundtrip;
 mod shared_editing;

@@ -42,6 +42,7 @@ fn volume_with(
             s_l: None,
             k: None,
             region: None,
+            message: None,
         };
         let mut edit = Edit::from_request(&req, t, &TermLimits::default(), &NoVolumes).unwrap();
         let mut w = Vod2Writer::open_append(&path, Compression::Zstd(3)).unwrap();

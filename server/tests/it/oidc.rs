@@ -21,10 +21,10 @@ use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
-const AUDIENCE: &str = "isovox-test";
+pub(crate) const AUDIENCE: &str = "isovox-test";
 
 /// A signing key of the test issuer: its kid, algorithm, private key and public JWK.
-struct Key {
+pub(crate) struct Key {
     kid: String,
     alg: Algorithm,
     private: EncodingKey,
@@ -33,7 +33,7 @@ struct Key {
 
 impl Key {
     /// A fresh key made by `openssl genpkey` (RSA 2048 for RS256, P-256 for ES256).
-    fn new(dir: &Path, kid: &str, alg: Algorithm) -> Key {
+    pub(crate) fn new(dir: &Path, kid: &str, alg: Algorithm) -> Key {
         let pem = dir.join(format!("{kid}.pem"));
         let options: &[&str] = match alg {
             Algorithm::RS256 => &["-algorithm", "RSA", "-pkeyopt", "rsa_keygen_bits:2048"],
@@ -65,7 +65,7 @@ impl Key {
     }
 
     /// A JWT signed by this key, naming this key's kid, with `claims`.
-    fn sign(&self, claims: &Value) -> String {
+    pub(crate) fn sign(&self, claims: &Value) -> String {
         let mut header = Header::new(self.alg);
         header.kid = Some(self.kid.clone());
         jsonwebtoken::encode(&header, claims, &self.private).unwrap()
@@ -80,7 +80,7 @@ fn now() -> u64 {
 }
 
 /// The claims of a token of `issuer` for `user` with `roles`, valid for ten minutes.
-fn claims(issuer: &str, user: &str, roles: &[&str]) -> Value {
+pub(crate) fn claims(issuer: &str, user: &str, roles: &[&str]) -> Value {
     json!({
         "iss": issuer,
         "aud": AUDIENCE,
@@ -94,8 +94,8 @@ fn claims(issuer: &str, user: &str, roles: &[&str]) -> Value {
 
 /// The test's issuer: `/.well-known/openid-configuration` and `/jwks` on 127.0.0.1, one
 /// request per connection; the key set can be replaced (rotation) and its fetches are counted.
-struct Issuer {
-    url: String,
+pub(crate) struct Issuer {
+    pub(crate) url: String,
     jwks: Arc<Mutex<Value>>,
     fetches: Arc<AtomicUsize>,
     stop: Arc<AtomicBool>,
@@ -103,7 +103,7 @@ struct Issuer {
 }
 
 impl Issuer {
-    fn start(keys: &[&Key]) -> Issuer {
+    pub(crate) fn start(keys: &[&Key]) -> Issuer {
         let listener = TcpListener::bind("127.0.0.1:0").unwrap();
         let url = format!("http://{}", listener.local_addr().unwrap());
         let jwks = Arc::new(Mutex::new(Value::Null));

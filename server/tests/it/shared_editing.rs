@@ -269,26 +269,26 @@ fn changes_since(c: &Client, s: &Server, since: u64) -> Answer {
 // ---------------------------------------------------------------------------------------------
 
 #[derive(Debug, Clone)]
-struct SseEvent {
-    event: String,
-    id: Option<String>,
-    data: String,
+pub(crate) struct SseEvent {
+    pub(crate) event: String,
+    pub(crate) id: Option<String>,
+    pub(crate) data: String,
 }
 
 /// A minimal `text/event-stream` parser over any reader.
-struct Sse<R: Read> {
+pub(crate) struct Sse<R: Read> {
     reader: BufReader<R>,
 }
 
 impl<R: Read> Sse<R> {
-    fn new(r: R) -> Self {
+    pub(crate) fn new(r: R) -> Self {
         Sse {
             reader: BufReader::new(r),
         }
     }
 
     /// The next event, or the error or end of stream that came first.
-    fn next_event(&mut self) -> Result<SseEvent, String> {
+    pub(crate) fn next_event(&mut self) -> Result<SseEvent, String> {
         let mut event = String::new();
         let mut id = None;
         let mut data: Option<String> = None;

@@ -337,7 +337,11 @@ async fn an_edit_cut_by_the_shutdown_leaves_the_volume_editable() {
         )
         .unwrap();
     let runtime = tokio::runtime::Handle::current();
-    let submitted = volume.submit(edit, None, cancel, state.group_commit(), &runtime);
+    let work = isovox_server::volume::group::Work::Edit {
+        edit,
+        dry_run: false,
+    };
+    let submitted = volume.submit(work, None, cancel, state.group_commit(), &runtime);
     let answer = tokio::time::timeout(HANGS, submitted)
         .await
         .unwrap_or_else(|_| panic!("the edit after the shutdown hangs"))

@@ -173,6 +173,7 @@ fn volume_with(dir: &Path, dims: [u32; 3], brick: u32, term: Term) -> Vod2 {
         s_l: None,
         k: None,
         region: None,
+        message: None,
     };
     let mut edit = Edit::from_request(&req, t, &TermLimits::default(), &NoVolumes).unwrap();
     let mut w = Vod2Writer::open_append(&path, Compression::Zstd(3)).unwrap();

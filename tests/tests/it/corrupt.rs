@@ -85,6 +85,7 @@ fn carve(center: [i64; 3]) -> EditRequest {
         s_l: None,
         k: None,
         region: None,
+        message: None,
     }
 }
 

@@ -425,6 +425,7 @@ impl Bench {
                         s_l: None,
                         k: None,
                         region: None,
+                        message: None,
                     };
                     let body = serde_json::to_vec(&request).unwrap_or_default();
                     let start = Instant::now();

@@ -50,6 +50,7 @@ pub(super) fn random_edit(
             s_l: None,
             k: None,
             region: None,
+            message: None,
         },
     )
 }

@@ -6,7 +6,9 @@ use super::StoredBrick;
 use crate::store::codec;
 use crate::store::region::Region;
 use crate::store::StoreError;
-use isovox_proto::vod2::{CommitHeader, FileHeader, NodeEntry};
+use isovox_proto::vod2::{
+    CommitHeader, FileHeader, NodeEntry, COMMIT_HAS_NOTE, MAX_NOTE_LEN, NOTE_FRAMING_LEN,
+};
 use isovox_proto::{BrickKey, FormatError, VolumeLayout};
 use std::collections::HashMap;
 use std::sync::{Arc, OnceLock};
@@ -202,10 +204,21 @@ pub(super) fn commit_record(map: &Region, at: u64) -> Result<(CommitHeader, &[u8
     map.ensure(at, CommitHeader::record_len(0))?;
     if let Some(n) = avail.get(40..48) {
         let n_changes = u64::from_le_bytes([n[0], n[1], n[2], n[3], n[4], n[5], n[6], n[7]]);
-        map.ensure(
-            at,
-            CommitHeader::record_len(n_changes.min(avail.len() as u64)),
-        )?;
+        let len = CommitHeader::record_len(n_changes.min(avail.len() as u64));
+        map.ensure(at, len)?;
+        // A note (revision 3) follows: its length, then the note and its checksum.
+        let flags = avail
+            .get(4..8)
+            .map_or(0, |f| u32::from_le_bytes([f[0], f[1], f[2], f[3]]));
+        if flags & COMMIT_HAS_NOTE != 0 {
+            map.ensure(at, len + 4)?;
+            let note_len = usize::try_from(len)
+                .ok()
+                .and_then(|l| avail.get(l..l + 4))
+                .map_or(0, |n| u32::from_le_bytes([n[0], n[1], n[2], n[3]]))
+                .min(MAX_NOTE_LEN);
+            map.ensure(at, len + NOTE_FRAMING_LEN as u64 + u64::from(note_len))?;
+        }
     }
     Ok(CommitHeader::decode(avail, at)?)
 }
