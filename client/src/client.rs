@@ -551,6 +551,31 @@ impl Client {
         .await
     }
 
+    /// `POST /v1/volumes/{name}/undo`: takes back the edit of `version` (or makes an undone
+    /// one again, for an undo's version).
+    ///
+    /// # Errors
+    /// As [`Client::edit`]; 403 for another user's edit, 409 for a version that is no edit or
+    /// one undone already.
+    pub async fn undo(&self, name: &str, version: u64) -> Result<EditResponse, ClientError> {
+        let path = format!("/v1/volumes/{name}/undo");
+        let body = serde_json::to_vec(&isovox_proto::history::UndoRequest {
+            version,
+            message: None,
+        })
+        .map_err(|e| ClientError::Decode(e.to_string()))?;
+        self.json(
+            "undo",
+            || {
+                self.request(Method::POST, &path)
+                    .header("content-type", "application/json")
+                    .body(body.clone())
+            },
+            false,
+        )
+        .await
+    }
+
     /// The versions after `since` (at most `limit`, the server's default when `None`).
     ///
     /// # Errors

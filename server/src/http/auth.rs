@@ -598,7 +598,7 @@ mod tests {
     fn rejects_bad_lines_without_echoing_secrets() {
         for bad in [
             "alice",
-            "alice 0123456789abcdef0123 admin",
+            "alice 0123456789abcdef0123 root",
             "alice short",
             "a 0123456789abcdef0123\na 1123456789abcdef0123",
             "a 0123456789abcdef0123\nb 0123456789abcdef0123",
@@ -614,6 +614,20 @@ mod tests {
         }
         let t = Tokens::parse("alice 0123456789abcdef0123").unwrap();
         assert!(!format!("{t:?}").contains("0123456789abcdef0123"));
+    }
+
+    #[test]
+    fn the_admin_scope_writes_and_may_undo_anyones_edits() {
+        let t = Tokens::parse(
+            "alice 0123456789abcdef0123 admin
+bob 1123456789abcdef0123
+",
+        )
+        .unwrap();
+        let alice = t.principal_of("0123456789abcdef0123").unwrap();
+        assert!(alice.admin && alice.may(Scope::Write, Some("w")));
+        let bob = t.principal_of("1123456789abcdef0123").unwrap();
+        assert!(!bob.admin && bob.may(Scope::Write, Some("w")));
     }
 
     #[test]

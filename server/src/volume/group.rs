@@ -22,11 +22,13 @@
 //!
 //! [`Vod2Writer::sync`]: crate::store::Vod2Writer::sync
 
-use super::undo::UndoJob;
+use super::undo::{StagedCommit, UndoJob};
 use super::{change_event, LiveVolume, VolumeError, WriterSlot};
 use crate::cancel::CancelToken;
 use crate::icvg::edit::{stage_edit, Edit};
 use crate::store::codec::Compression;
+use crate::store::transaction::ChangedKeys;
+use crate::store::Snapshot;
 use crate::store::{error_chain, CheckpointPolicy, StoreError, Vod2, Vod2Writer};
 use isovox_proto::api::{ChangeEvent, EditResponse};
 use isovox_proto::history::CommitNote;
@@ -338,22 +340,14 @@ impl LiveVolume {
             for mut pending in group {
                 if !pending.answer.is_closed() {
                     let cancel = pending.cancel.restarted();
-                    let answer = match &mut pending.work {
-                        Work::Edit {
-                            edit,
-                            dry_run: false,
-                        } => self.apply_remote(
-                            &remote,
-                            slot,
-                            edit,
-                            pending.if_match,
-                            policy,
-                            &cancel,
-                        ),
-                        _ => Err(VolumeError::Unsupported(
-                            "undo, redo, revert, tags and dry runs are not available yet for a volume kept in an object store".into(),
-                        )),
-                    };
+                    let answer = self.apply_remote(
+                        &remote,
+                        slot,
+                        &mut pending.work,
+                        pending.if_match,
+                        policy,
+                        &cancel,
+                    );
                     pending.answer(answer);
                 }
             }
@@ -573,54 +567,108 @@ impl LiveVolume {
         cancel: &CancelToken,
     ) -> Result<(Arc<Vod2>, ChangeEvent, EditResponse), VolumeError> {
         let head = tip.head_ref();
-        let (new_records, checkpoint, evaluated, replayed) = match work {
-            Work::Edit { edit, .. } => {
-                let outcome = stage_edit(writer, head, edit, policy, cancel)?;
-                (
-                    outcome.new_records,
-                    outcome.checkpoint,
-                    outcome.evaluated as u64,
-                    None,
-                )
-            }
-            Work::Undo(job) => {
-                let s = self.stage_undo(writer, head, job, policy, cancel)?;
-                (
-                    s.committed.new_records,
-                    s.committed.checkpoint,
-                    s.evaluated,
-                    s.replayed,
-                )
-            }
-            Work::Revert { to, note } => {
-                let s = self.stage_revert(writer, head, *to, note.clone(), policy)?;
-                (s.committed.new_records, s.committed.checkpoint, 0, None)
-            }
-            Work::Tag { tag, version, note } => {
-                let s = self.stage_tag(writer, head, tag, *version, note.clone(), policy)?;
-                (s.committed.new_records, s.committed.checkpoint, 0, None)
-            }
-        };
+        let staged = self.stage_only(writer, head, work, policy, cancel)?;
         let slot = writer.tip().ok_or_else(|| {
             StoreError::Internal("staging left the writer without a version".into())
         })?;
         let next = tip.advance(slot)?;
         let event = change_event(&next, slot.commit)?;
-        let response = EditResponse {
-            version: event.version,
-            previous: head.version,
-            changed: event.changed.clone(),
-            evaluated,
-            new_records,
-            checkpoint,
-            elapsed_us: 0,
-            committed: true,
-            replayed,
-            dry_run: false,
-        };
+        let response = staged.response(&event, head.version);
         Ok((Arc::new(next), event, response))
     }
+
+    /// Stages `work` on `head` in `writer`: the commit's bytes appended, the version not yet
+    /// readable (a remote writer keeps them until its sync) nor durable.
+    pub(super) fn stage_only(
+        &self,
+        writer: &mut Vod2Writer,
+        head: &Snapshot,
+        work: &mut Work,
+        policy: CheckpointPolicy,
+        cancel: &CancelToken,
+    ) -> Result<StagedWork, VolumeError> {
+        Ok(match work {
+            Work::Edit { edit, .. } => {
+                let outcome = stage_edit(writer, head, edit, policy, cancel)?;
+                StagedWork {
+                    changed: outcome.changed,
+                    new_records: outcome.new_records,
+                    checkpoint: outcome.checkpoint,
+                    evaluated: outcome.evaluated as u64,
+                    replayed: None,
+                }
+            }
+            Work::Undo(job) => self.stage_undo(writer, head, job, policy, cancel)?.into(),
+            Work::Revert { to, note } => self
+                .stage_revert(writer, head, *to, note.clone(), policy)?
+                .into(),
+            Work::Tag { tag, version, note } => self
+                .stage_tag(writer, head, tag, *version, note.clone(), policy)?
+                .into(),
+        })
+    }
 }
+
+/// What staging a request's work made, before it is durable.
+#[derive(Debug)]
+pub(super) struct StagedWork {
+    /// Changed bricks per level.
+    pub changed: ChangedKeys,
+    pub new_records: u64,
+    pub checkpoint: bool,
+    /// Level-0 bricks evaluated.
+    pub evaluated: u64,
+    /// For undo and redo: other edits applied again.
+    pub replayed: Option<u64>,
+}
+
+impl From<StagedCommit> for StagedWork {
+    fn from(s: StagedCommit) -> Self {
+        StagedWork {
+            changed: s.committed.changed,
+            new_records: s.committed.new_records,
+            checkpoint: s.committed.checkpoint,
+            evaluated: s.evaluated,
+            replayed: s.replayed,
+        }
+    }
+}
+
+impl StagedWork {
+    /// The answer once committed as `event` on top of `previous`.
+    pub(super) fn response(&self, event: &ChangeEvent, previous: u64) -> EditResponse {
+        EditResponse {
+            version: event.version,
+            previous,
+            changed: event.changed.clone(),
+            evaluated: self.evaluated,
+            new_records: self.new_records,
+            checkpoint: self.checkpoint,
+            elapsed_us: 0,
+            committed: true,
+            replayed: self.replayed,
+            dry_run: false,
+        }
+    }
+
+    /// The answer of a dry run on `previous`: what would be `version`.
+    pub(super) fn dry_run(&self, version: u64, previous: u64) -> EditResponse {
+        EditResponse {
+            version,
+            previous,
+            changed: self.changed.clone(),
+            evaluated: self.evaluated,
+            new_records: self.new_records,
+            checkpoint: self.checkpoint,
+            elapsed_us: 0,
+            committed: false,
+            replayed: self.replayed,
+            dry_run: true,
+        }
+    }
+}
+
+impl LiveVolume {}
 
 fn micros(d: Duration) -> u64 {
     u64::try_from(d.as_micros()).unwrap_or(u64::MAX)

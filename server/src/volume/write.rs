@@ -1,18 +1,19 @@
 //! Writing a served volume: edits checked against a server's limits (applied by the writer in
 //! groups, `group.rs`) and compaction; and an edit of a file no server serves.
 
+use super::group::Work;
 use super::resolve::DirVolumes;
 use super::{LiveVolume, VolumeError, WriterSlot};
 use crate::cancel::CancelToken;
 use crate::icvg::edit::{apply_edit, Edit, EditOutcome};
-use crate::icvg::term::{EvalError, TermLimits, VolumeResolver};
+use crate::icvg::term::{TermLimits, VolumeResolver};
 use crate::progress::Silent;
 use crate::store::codec::Compression;
 use crate::store::compact::{compact, compact_remote, CompactReport};
 use crate::store::remote::backoff::Backoff;
 use crate::store::remote::RemoteVolume;
 use crate::store::{CheckpointPolicy, StoreError, Vod2, Vod2Writer};
-use isovox_proto::api::{ChangeEvent, EditResponse};
+use isovox_proto::api::EditResponse;
 use isovox_proto::icvg::EditRequest;
 use std::path::Path;
 use std::sync::Arc;
@@ -139,12 +140,13 @@ impl LiveVolume {
         &self,
         remote: &Arc<RemoteVolume>,
         slot: &mut WriterSlot,
-        edit: &mut Edit,
+        work: &mut Work,
         if_match: Option<u64>,
         policy: CheckpointPolicy,
         cancel: &CancelToken,
     ) -> Result<EditResponse, VolumeError> {
         let started = Instant::now();
+        let dry_run = matches!(work, Work::Edit { dry_run: true, .. });
         let mut attempt = 0u32;
         let mut lost_races = Backoff::new(LOST_RACE_FIRST_WAIT, LOST_RACE_MAX_WAIT);
         loop {
@@ -161,8 +163,19 @@ impl LiveVolume {
                 });
             }
             let mut writer = Vod2Writer::remote(&vod, remote.clone());
-            match apply_edit(&mut writer, &head, edit, policy, cancel) {
-                Ok(outcome) => {
+            let staged = match self.stage_only(&mut writer, &head, work, policy, cancel) {
+                // What a remote writer staged stays in its memory until its sync: a dry run
+                // drops it.
+                Ok(staged) if dry_run => {
+                    let mut response = staged.dry_run(head.version + 1, head.version);
+                    response.elapsed_us = started.elapsed().as_micros() as u64;
+                    return Ok(response);
+                }
+                Ok(staged) => writer.sync().map(|_| staged).map_err(VolumeError::from),
+                Err(e) => Err(e),
+            };
+            match staged {
+                Ok(staged) => {
                     // Committed: what follows must not fail for a slow store.
                     drop(bounded);
                     let committed = writer.head().ok_or_else(|| {
@@ -170,11 +183,11 @@ impl LiveVolume {
                     })?;
                     let next = remote.after_commit(&vod)?;
                     let event = self.publish_commit(next, committed.commit)?;
-                    let mut response = edit_response(event, head.version, &outcome);
+                    let mut response = staged.response(&event, head.version);
                     response.elapsed_us = started.elapsed().as_micros() as u64;
                     return Ok(response);
                 }
-                Err(EvalError::Store(StoreError::HeadMoved { .. }))
+                Err(VolumeError::Store(StoreError::HeadMoved { .. }))
                     if attempt + 1 < MAX_REMOTE_ATTEMPTS =>
                 {
                     attempt += 1;
@@ -182,25 +195,9 @@ impl LiveVolume {
                     // with jitter, so the losers do not all come back at the same instant.
                     std::thread::sleep(lost_races.next_wait());
                 }
-                Err(e) => return Err(e.into()),
+                Err(e) => return Err(e),
             }
         }
-    }
-}
-
-/// The answer to an edit committed as `event` on top of version `previous`.
-fn edit_response(event: ChangeEvent, previous: u64, outcome: &EditOutcome) -> EditResponse {
-    EditResponse {
-        version: event.version,
-        previous,
-        changed: event.changed,
-        evaluated: outcome.evaluated as u64,
-        new_records: outcome.new_records,
-        checkpoint: outcome.checkpoint,
-        elapsed_us: outcome.elapsed.as_micros() as u64,
-        committed: true,
-        replayed: None,
-        dry_run: false,
     }
 }
 

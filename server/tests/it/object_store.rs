@@ -259,6 +259,18 @@ impl Server {
         (status, resp.json().unwrap_or(Value::Null))
     }
 
+    /// Posts `body` to the volume's `route` (undo, revert) with the write token.
+    fn post(&self, http: &Client, route: &str, body: &Value) -> (u16, Value) {
+        let resp = http
+            .post(format!("{}/{route}", self.base))
+            .bearer_auth(TOKEN)
+            .json(body)
+            .send()
+            .unwrap();
+        let status = resp.status().as_u16();
+        (status, resp.json().unwrap_or(Value::Null))
+    }
+
     fn kill(mut self) {
         self.process.stop();
     }
@@ -394,6 +406,30 @@ fn replicas_answer_byte_for_byte_like_the_local_file_server() {
         serde_json::from_slice(&c2).unwrap(),
     );
     assert_eq!(cl["changes"][0]["changed"], c2["changes"][0]["changed"]);
+    assert_eq!(
+        c2["changes"][0]["author"], "t",
+        "the replica reads the commit's note: {c2}"
+    );
+
+    // Undo and revert commit on the store as edits do, and give what the local server gives.
+    let over = json!({"op": "union", "term": {"ellipsoid": {"center": [48, 44, 50], "radii": [14, 14, 14]}}});
+    assert_eq!(local.edit(&http, &over, None).0, 200);
+    assert_eq!(r1.edit(&http, &over, None).0, 200);
+    for (route, body) in [
+        ("undo", json!({"version": 2})),
+        ("revert", json!({"to": 1})),
+    ] {
+        let (sl, al) = local.post(&http, route, &body);
+        let (s1, a1) = r1.post(&http, route, &body);
+        assert_eq!((sl, s1), (200, 200), "{route}: {al} {a1}");
+        assert_eq!(
+            (&al["version"], &al["replayed"]),
+            (&a1["version"], &a1["replayed"])
+        );
+        r2.wait_for(&http, a1["version"].as_u64().unwrap());
+        assert_same_answers(&http, &local, &r1);
+        assert_same_answers(&http, &local, &r2);
+    }
 }
 
 #[test]

@@ -70,6 +70,13 @@ pub struct EditsBenchArgs {
     /// wrk connections for the read phases.
     #[arg(long, default_value_t = 64)]
     pub connections: u32,
+    /// Editors of the undo phase that undo each of their edits once it is acknowledged (the
+    /// others only edit).
+    #[arg(long, default_value_t = 2)]
+    pub undoers: usize,
+    /// Run only the undo phase.
+    #[arg(long)]
+    pub only_undo: bool,
 }
 
 /// What the editors saw: per acknowledged version, when its answer arrived and how long the
@@ -79,6 +86,11 @@ struct Acks {
     at: HashMap<u64, Instant>,
     latency_ms: Vec<f64>,
     errors: usize,
+    /// Undos (of the editor's own edit, just acknowledged): their latency and how many edits
+    /// the server applied again under each.
+    undo_latency_ms: Vec<f64>,
+    replayed: Vec<u64>,
+    undo_errors: usize,
 }
 
 /// Arrival times of versions at one subscriber.
@@ -184,6 +196,9 @@ pub fn run_bench(a: EditsBenchArgs) -> anyhow::Result<()> {
         a,
     };
     let a = &bench.a;
+    if a.only_undo {
+        return bench.undo_run();
+    }
 
     // Phase 1: each strategy in turn, `runs` times, on a fresh copy of the world each time.
     let mut figures: Vec<Vec<Figures>> = vec![Vec::new(); a.groups.len()];
@@ -225,7 +240,8 @@ pub fn run_bench(a: EditsBenchArgs) -> anyhow::Result<()> {
             );
         }
     }
-    bench.read_runs()
+    bench.read_runs()?;
+    bench.undo_run()
 }
 
 impl Bench {
@@ -391,15 +407,79 @@ impl Bench {
         Ok(())
     }
 
+    /// Phase 3: `editors` editors flat out, `undoers` of whom undo each of their edits once it
+    /// is acknowledged (the last strategy): edits/s, and an undo's latency beside the edit's.
+    fn undo_run(&self) -> anyhow::Result<()> {
+        let a = &self.a;
+        let group = a.groups[a.groups.len() - 1];
+        let undoers = a.undoers.min(a.editors);
+        let mut rows = Vec::new();
+        for undoing in [0, undoers] {
+            let server = self.serve(group)?;
+            let base = server.base();
+            let start = Instant::now();
+            let acks = self
+                .runtime
+                .block_on(self.edit_undo_for(&base, a.editors, a.seconds, None, undoing));
+            let secs = start.elapsed().as_secs_f64();
+            drop(server);
+            rows.push((undoing, acks, secs));
+        }
+        println!("\n### Undo: {} editors carving radius-{} ellipsoids into the {}^3 world for {} s, of whom 0 or {undoers} undo each of their edits once it is acknowledged (edit group {group})\n", a.editors, a.radius, a.size, a.seconds);
+        println!("| editors undoing | edits/s | edit p50 ms | edit p99 ms | undos/s | undo p50 ms | undo p99 ms | edits applied again per undo | errors |");
+        println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+        for (undoing, acks, secs) in &rows {
+            let q = |v: &Vec<f64>, p: f64| {
+                if v.is_empty() {
+                    f64::NAN
+                } else {
+                    percentile(v.clone(), p)
+                }
+            };
+            let replayed = if acks.replayed.is_empty() {
+                f64::NAN
+            } else {
+                acks.replayed.iter().sum::<u64>() as f64 / acks.replayed.len() as f64
+            };
+            println!(
+                "| {undoing} | {:.0} | {:.2} | {:.2} | {:.0} | {:.2} | {:.2} | {:.2} | {} |",
+                acks.latency_ms.len() as f64 / secs,
+                q(&acks.latency_ms, 0.5),
+                q(&acks.latency_ms, 0.99),
+                acks.undo_latency_ms.len() as f64 / secs,
+                q(&acks.undo_latency_ms, 0.5),
+                q(&acks.undo_latency_ms, 0.99),
+                replayed,
+                acks.errors + acks.undo_errors,
+            );
+        }
+        Ok(())
+    }
+
     /// Runs `editors` editors for `seconds`, each as fast as it is answered or at `rate`
     /// edits/s.
     async fn edit_for(&self, base: &str, editors: usize, seconds: u64, rate: Option<f64>) -> Acks {
+        self.edit_undo_for(base, editors, seconds, rate, 0).await
+    }
+
+    /// [`Bench::edit_for`] where the first `undoers` editors undo each of their edits once it
+    /// is acknowledged.
+    async fn edit_undo_for(
+        &self,
+        base: &str,
+        editors: usize,
+        seconds: u64,
+        rate: Option<f64>,
+        undoers: usize,
+    ) -> Acks {
         let deadline = Instant::now() + Duration::from_secs(seconds);
         let acks = Arc::new(Mutex::new(Acks::default()));
         let mut tasks = Vec::new();
         for e in 0..editors {
             let (client, acks, world) = (self.client.clone(), acks.clone(), self.world.clone());
             let url = format!("{base}/v1/volumes/world/edits");
+            let undo_url = format!("{base}/v1/volumes/world/undo");
+            let undoes = e < undoers;
             let auth = format!("Bearer {}", self.secret);
             let (size, radius) = (self.a.size, self.a.radius);
             tasks.push(tokio::spawn(async move {
@@ -445,6 +525,7 @@ impl Bench {
                         _ => None,
                     };
                     let now = Instant::now();
+                    let version = ok.as_ref().map(|r| r.version);
                     if let Ok(mut acks) = acks.lock() {
                         match ok {
                             Some(r) => {
@@ -452,6 +533,35 @@ impl Bench {
                                 acks.latency_ms.push((now - start).as_secs_f64() * 1e3);
                             }
                             None => acks.errors += 1,
+                        }
+                    }
+                    let Some(version) = version.filter(|_| undoes) else {
+                        continue;
+                    };
+                    let start = Instant::now();
+                    let answer = client
+                        .post(&undo_url)
+                        .header("content-type", "application/json")
+                        .header("authorization", &auth)
+                        .body(format!("{{\"version\":{version}}}"))
+                        .send()
+                        .await;
+                    let undone = match answer {
+                        Ok(r) if r.status().is_success() => r
+                            .bytes()
+                            .await
+                            .ok()
+                            .and_then(|b| serde_json::from_slice::<EditResponse>(&b).ok()),
+                        _ => None,
+                    };
+                    let now = Instant::now();
+                    if let Ok(mut acks) = acks.lock() {
+                        match undone {
+                            Some(r) => {
+                                acks.undo_latency_ms.push((now - start).as_secs_f64() * 1e3);
+                                acks.replayed.push(r.replayed.unwrap_or(0));
+                            }
+                            None => acks.undo_errors += 1,
                         }
                     }
                 }

@@ -211,6 +211,7 @@ pub fn run(a: IcvgArgs) -> anyhow::Result<()> {
                 ),
                 region: None,
                 sampled: 0,
+                note: Default::default(),
             };
             let start = Instant::now();
             let outcome = apply_edit(

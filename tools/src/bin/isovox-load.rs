@@ -111,6 +111,9 @@ struct Args {
     /// Share of the edits that carve (the others add).
     #[arg(long, default_value_t = 0.5)]
     carve_fraction: f64,
+    /// Share of the edits after which the editor undoes one of its own edits (0 to 1).
+    #[arg(long, default_value_t = 0.0)]
+    undo_fraction: f64,
     /// Change-feed subscribers timing edit notifications (default: min(viewers, 8)).
     #[arg(long)]
     subscribers: Option<usize>,
@@ -154,6 +157,9 @@ fn config(a: Args) -> Result<(LoadConfig, Option<PathBuf>), String> {
     if a.editors > 0 && a.token.is_none() {
         return Err("--editors needs a write token: --token T or ISOVOX_TOKEN".into());
     }
+    if !(0.0..=1.0).contains(&a.undo_fraction) {
+        return Err("--undo-fraction is a share between 0 and 1".into());
+    }
     if !(0.0..=1.0).contains(&a.carve_fraction) {
         return Err("--carve-fraction is a share between 0 and 1".into());
     }
@@ -180,6 +186,7 @@ fn config(a: Args) -> Result<(LoadConfig, Option<PathBuf>), String> {
     c.edit_rate = a.edit_rate;
     c.edit_radius = (a.edit_radius[0], a.edit_radius[1]);
     c.carve_fraction = a.carve_fraction;
+    c.undo_fraction = a.undo_fraction;
     c.subscribers = a.subscribers;
     c.seed = a.seed;
     c.drain = seconds("drain", a.drain)?;

@@ -92,6 +92,8 @@ pub struct LoadConfig {
     pub edit_radius: (u32, u32),
     /// The share of edits that carve (difference); the others add (union).
     pub carve_fraction: f64,
+    /// The share of edits after which an editor undoes one of its own edits.
+    pub undo_fraction: f64,
     /// Change-feed subscribers timing edit notifications; `min(viewers, 8)` (at least 1) when
     /// `None` and there are editors.
     pub subscribers: Option<usize>,
@@ -129,6 +131,7 @@ impl LoadConfig {
             edit_rate: 1.0,
             edit_radius: (4, 12),
             carve_fraction: 0.5,
+            undo_fraction: 0.0,
             subscribers: None,
             seed: 1,
             drain: Duration::from_secs(10),

@@ -19,6 +19,8 @@ pub(super) struct EditorResult {
     /// (version, sent at, acknowledged at).
     pub(super) acks: Vec<(u64, Instant, Instant)>,
     pub(super) failures: BTreeMap<String, u64>,
+    /// Undos of this editor's own edits: (sent at, acknowledged at, edits applied again).
+    pub(super) undos: Vec<(Instant, Instant, u64)>,
 }
 
 /// An ellipsoid carve or addition at a random place: x and z anywhere, y in the band the demo
@@ -65,6 +67,8 @@ pub(super) async fn editor(
 ) -> EditorResult {
     let mut result = EditorResult::default();
     let mut rng = Rng::new(seed);
+    // This editor's acknowledged edits not undone yet.
+    let mut mine: Vec<u64> = Vec::new();
     let period = Duration::from_secs_f64(1.0 / config.edit_rate.max(0.001));
     // Editors start at different points of their period, so they do not edit in step.
     let first = tokio::time::Instant::now() + delay + period.mul_f32(rng.unit());
@@ -89,8 +93,26 @@ pub(super) async fn editor(
         match client.edit(&config.volume, &request, None).await {
             Ok(r) => {
                 result.acks.push((r.version, sent, Instant::now()));
+                mine.push(r.version);
             }
             Err(e) => *result.failures.entry(e.kind()).or_default() += 1,
+        }
+        // Undo one of this editor's own edits still in effect, picked at random: later edits
+        // of everyone over it are applied again by the server.
+        if !mine.is_empty() && f64::from(rng.unit()) < config.undo_fraction {
+            let version = mine.swap_remove((rng.next_u64() % mine.len() as u64) as usize);
+            let sent = Instant::now();
+            match client.undo(&config.volume, version).await {
+                Ok(r) => result
+                    .undos
+                    .push((sent, Instant::now(), r.replayed.unwrap_or(0))),
+                Err(e) => {
+                    *result
+                        .failures
+                        .entry(format!("undo {}", e.kind()))
+                        .or_default() += 1
+                }
+            }
         }
     }
     result

@@ -138,6 +138,14 @@ impl LoadReport {
             l.p99,
             l.max
         );
+        if e.undos > 0 {
+            let u = &e.undo_latency_ms;
+            let _ = writeln!(
+                s,
+                "Undos of their own edits: {} acknowledged, {} later edits applied again; latency p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms.\n",
+                e.undos, e.replayed, u.p50, u.p99, u.max
+            );
+        }
     }
 
     /// The edit-to-notification table: from the acknowledgement, and from sending the edit.

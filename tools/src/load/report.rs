@@ -64,6 +64,12 @@ pub struct EditReport {
     pub acknowledged_per_s: f64,
     /// From sending an edit to its acknowledgement (the whole call, retries included).
     pub latency_ms: Latency,
+    /// Undos of the editors' own edits (`--undo-fraction`) acknowledged.
+    pub undos: u64,
+    /// Edits the server applied again over the undone ones, in all.
+    pub replayed: u64,
+    /// From sending an undo to its acknowledgement.
+    pub undo_latency_ms: Latency,
 }
 
 /// Edit-to-notification: from an edit's acknowledgement (as its editor received it) to the
@@ -271,6 +277,7 @@ fn edit_section(
     errors: &mut Vec<ErrorCount>,
 ) -> (EditReport, HashMap<u64, (Instant, Instant)>) {
     let mut edit_latencies = Vec::new();
+    let mut undo_latencies = Vec::new();
     let mut acks: HashMap<u64, (Instant, Instant)> = HashMap::new();
     let mut edits = EditReport {
         editors: config.editors,
@@ -287,6 +294,11 @@ fn edit_section(
             acks.insert(*version, (*sent, *acked));
             edit_latencies.push(acked.saturating_duration_since(*sent));
         }
+        edits.undos += e.undos.len() as u64;
+        for (sent, acked, replayed) in &e.undos {
+            undo_latencies.push(acked.saturating_duration_since(*sent));
+            edits.replayed += replayed;
+        }
         for (k, v) in &e.failures {
             edits.failed += v;
             *edit_failures.entry(k.clone()).or_default() += v;
@@ -294,6 +306,7 @@ fn edit_section(
     }
     edits.acknowledged_per_s = edits.acknowledged as f64 / secs;
     edits.latency_ms = Latency::from_durations(&edit_latencies);
+    edits.undo_latency_ms = Latency::from_durations(&undo_latencies);
     // HTTP failures of edits are counted with the route; the others (an answer that did not
     // decode) only here.
     for (kind, count) in edit_failures {
