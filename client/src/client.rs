@@ -99,8 +99,9 @@ pub enum FeedEvent {
         /// The volume's version then.
         version: u64,
     },
-    /// A committed version.
-    Commit(ChangeEvent),
+    /// A committed version (boxed: with its author and operation it is much larger than the
+    /// other events).
+    Commit(Box<ChangeEvent>),
     /// The subscriber fell behind: versions after `since` up to `version` were skipped; fetch
     /// them with [`Client::changes`].
     Resync {
@@ -733,7 +734,9 @@ fn parse_event(event: &str, data: &str) -> Result<Option<FeedEvent>, ClientError
         "hello" => Some(FeedEvent::Hello {
             version: serde_json::from_str::<Hello>(data).map_err(bad)?.version,
         }),
-        "commit" => Some(FeedEvent::Commit(serde_json::from_str(data).map_err(bad)?)),
+        "commit" => Some(FeedEvent::Commit(Box::new(
+            serde_json::from_str(data).map_err(bad)?,
+        ))),
         "resync" => {
             let r: Resync = serde_json::from_str(data).map_err(bad)?;
             Some(FeedEvent::Resync {

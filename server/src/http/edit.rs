@@ -51,7 +51,7 @@ pub async fn edit(
     })
     .await?;
     edit.note.info.author = Some(token.user.clone());
-    let work = Work::Edit { edit, dry_run };
+    let work = Work::edit(edit, dry_run);
     let response = vol
         .submit(work, if_match, cancel, state.group_commit(), &runtime)
         .await?;

@@ -80,6 +80,12 @@ fn content_hash() -> Value {
 }
 
 /// A version number (any u64).
+/// Optional fields may be null, as absent (what a client with None or null for "not given"
+/// sends).
+fn nullable(schema: Value) -> Value {
+    json!({"anyOf": [schema, {"type": "null"}]})
+}
+
 fn version_number() -> Value {
     int(0, u64::MAX)
 }
@@ -332,6 +338,8 @@ fn write_side(name: Value, limits: &TermLimits) -> (Value, Value) {
     });
     let changed =
         json!({"type": "array", "items": {"type": "array", "items": schema_ref("Triple")}});
+    let bound = crate::volume::presence::MAX_COORDINATE;
+    let coordinate = json!({"type": "number", "minimum": -bound, "maximum": bound});
     let event = json!({"type": "object", "required": ["version", "timestamp_ms", "changed"],
         "properties": {"version": {"type": "integer"}, "timestamp_ms": {"type": "integer"}, "changed": changed}});
     let mut schemas = json!({
@@ -350,9 +358,9 @@ fn write_side(name: Value, limits: &TermLimits) -> (Value, Value) {
             "message": {"type": "string", "maxLength": isovox_proto::history::MAX_MESSAGE_CHARS}})),
         "RevertRequest": closed(&["to"], json!({"to": version_number(),
             "message": {"type": "string", "maxLength": isovox_proto::history::MAX_MESSAGE_CHARS}})),
-        "PresenceRequest": closed(&["position"], json!({"position": tuple(3, json!({"type": "number"})),
-            "looking": tuple(3, json!({"type": "number"})),
-            "label": {"type": "string", "maxLength": crate::volume::presence::MAX_LABEL_CHARS}})),
+        "PresenceRequest": closed(&["position"], json!({"position": tuple(3, coordinate.clone()),
+            "looking": nullable(tuple(3, coordinate)),
+            "label": nullable(json!({"type": "string", "maxLength": crate::volume::presence::MAX_LABEL_CHARS}))})),
         "PresenceList": {"type": "object", "required": ["present"],
             "properties": {"present": {"type": "array", "items": {"type": "object", "required": ["user", "position", "at_ms"]}}}},
         "MeshInfo": {"type": "object", "required": ["hash", "triangles", "vertices", "min", "max"],
@@ -483,9 +491,7 @@ fn term_schemas(limits: &TermLimits) -> Value {
         .map(|(key, schema)| closed(&[key], json!({key: schema})))
         .collect();
     let region = closed(&["min", "max"], json!({"min": point, "max": point}));
-    // Optional fields may be null, as absent (what a client with None or null for "not given"
-    // sends); a field an operator does not take may only be that.
-    let nullable = |schema: Value| json!({"anyOf": [schema, {"type": "null"}]});
+    // A field an operator does not take may only be null or absent.
     let absent = json!({"type": "null"});
     let edit = |op: Value, required: &[&str], term: &Value, s_l: &Value, k: &Value| {
         closed(

@@ -71,8 +71,8 @@ pub type EditAnswer = Result<EditResponse, VolumeError>;
 pub enum Work {
     /// An edit; with `dry_run`, evaluated and answered but not committed.
     Edit {
-        /// The compiled edit.
-        edit: Edit,
+        /// The compiled edit (boxed: it is much larger than the other variants).
+        edit: Box<Edit>,
         /// Answer what it would change, and roll it back.
         dry_run: bool,
     },
@@ -97,6 +97,14 @@ pub enum Work {
 }
 
 impl Work {
+    /// `edit`, committed or (`dry_run`) only evaluated and answered.
+    pub fn edit(edit: Edit, dry_run: bool) -> Work {
+        Work::Edit {
+            edit: Box::new(edit),
+            dry_run,
+        }
+    }
+
     /// Whether it may share a group with the edits around it. Undos, reverts and tags read
     /// the history up to the served head, which versions staged in a group are not yet part
     /// of: each is a group of its own.
@@ -489,10 +497,7 @@ impl LiveVolume {
         if let Some(unchanged) = self.unchanged(&edit) {
             return Ok(unchanged);
         }
-        let work = Work::Edit {
-            edit,
-            dry_run: false,
-        };
+        let work = Work::edit(edit, false);
         let (pending, mut answer) = PendingEdit::new(work, if_match, CancelToken::never());
         self.commit_group(slot, vec![pending], policy);
         answer.try_recv().map_err(|_| {

@@ -15,6 +15,9 @@ use tokio::sync::broadcast;
 /// A user silent this long is gone.
 pub const PRESENCE_TIMEOUT: Duration = Duration::from_secs(10);
 
+/// Largest presence coordinate, in magnitude (voxels).
+pub const MAX_COORDINATE: f64 = 1e15;
+
 /// Longest presence label, in characters.
 pub const MAX_LABEL_CHARS: usize = 64;
 
@@ -55,9 +58,11 @@ impl Default for Presences {
 /// # Errors
 /// What is wrong with it, for a 400.
 pub fn check(request: &PresenceRequest) -> Result<(), String> {
-    let finite = |p: &[f64; 3]| p.iter().all(|c| c.is_finite() && c.abs() < 1e15);
+    let finite = |p: &[f64; 3]| p.iter().all(|c| c.abs() <= MAX_COORDINATE);
     if !finite(&request.position) || !request.looking.as_ref().is_none_or(finite) {
-        return Err("position and looking must be finite coordinates".into());
+        return Err(format!(
+            "position and looking are coordinates within +-{MAX_COORDINATE:e} voxels"
+        ));
     }
     if let Some(label) = &request.label {
         if label.chars().count() > MAX_LABEL_CHARS {
@@ -158,6 +163,39 @@ impl Presences {
     }
 }
 
+impl super::LiveVolume {
+    /// Records where `user` is on this volume and tells the other subscribers; a task on
+    /// `runtime` announces the users who fall silent.
+    pub fn present(
+        self: &Arc<Self>,
+        user: &str,
+        request: PresenceRequest,
+        runtime: &tokio::runtime::Handle,
+    ) {
+        if self.presence.update(user, request) {
+            let vol = self.clone();
+            runtime.spawn(async move {
+                loop {
+                    tokio::time::sleep(SWEEP_INTERVAL).await;
+                    if !vol.presence.sweep() {
+                        return;
+                    }
+                }
+            });
+        }
+    }
+
+    /// Who is present now.
+    pub fn presences(&self) -> Vec<Presence> {
+        self.presence.list()
+    }
+
+    /// Every presence event from now on (JSON).
+    pub fn subscribe_presence(&self) -> broadcast::Receiver<Arc<String>> {
+        self.presence.subscribe()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]
@@ -196,38 +234,5 @@ mod tests {
         let list = p.list();
         assert_eq!(list.len(), 1);
         assert_eq!(list[0].position[0], 2.0);
-    }
-}
-
-impl super::LiveVolume {
-    /// Records where `user` is on this volume and tells the other subscribers; a task on
-    /// `runtime` announces the users who fall silent.
-    pub fn present(
-        self: &Arc<Self>,
-        user: &str,
-        request: PresenceRequest,
-        runtime: &tokio::runtime::Handle,
-    ) {
-        if self.presence.update(user, request) {
-            let vol = self.clone();
-            runtime.spawn(async move {
-                loop {
-                    tokio::time::sleep(SWEEP_INTERVAL).await;
-                    if !vol.presence.sweep() {
-                        return;
-                    }
-                }
-            });
-        }
-    }
-
-    /// Who is present now.
-    pub fn presences(&self) -> Vec<Presence> {
-        self.presence.list()
-    }
-
-    /// Every presence event from now on (JSON).
-    pub fn subscribe_presence(&self) -> broadcast::Receiver<Arc<String>> {
-        self.presence.subscribe()
     }
 }

@@ -166,8 +166,8 @@ impl LiveVolume {
         // Every commit after the base that changed bricks must be one the model knows.
         if let Some(r) = records
             .iter()
-            .filter(|r| r.version > base && r.info.kind.is_none() && r.bricks_changed > 0)
-            .last()
+            .rev()
+            .find(|r| r.version > base && r.info.kind.is_none() && r.bricks_changed > 0)
         {
             return Err(VolumeError::NotUndoable(format!(
                 "version {} changed the volume without recording what it did (an import or an older server): revert to a version instead",
@@ -278,10 +278,16 @@ impl LiveVolume {
         mut note: CommitNote,
         policy: CheckpointPolicy,
     ) -> Result<StagedCommit, VolumeError> {
-        if to >= head.version {
-            return Err(VolumeError::BadRequest(format!(
-                "revert to {to}: a version before the head ({}) is expected",
-                head.version
+        if to > head.version {
+            return Err(VolumeError::NoSuchVersion {
+                version: to,
+                oldest: self.oldest(),
+                head: head.version,
+            });
+        }
+        if to == head.version {
+            return Err(VolumeError::NotUndoable(format!(
+                "version {to} is the head: there is nothing to revert"
             )));
         }
         let target = self.version(to)?;

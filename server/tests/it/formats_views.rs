@@ -566,11 +566,13 @@ async fn numbers_in_urls_have_one_spelling() {
         let detail = problem["detail"].as_str().unwrap();
         assert!(detail.contains("plain decimal"), "{other}: {detail}");
     }
-    // Text that is no number stays a malformed request, as before.
+    // Text that is no number stays a malformed request, as before; but `?version=` also takes
+    // a tag's name, and a name no tag has is not found.
     for (path, status) in [
         ("bricks/0/x/0/0", 400),
         ("bricks/0/-1/0/0", 400),
-        ("bricks/0/1/0/0?version=x", 400),
+        ("bricks/0/1/0/0?version=x", 404),
+        ("bricks/0/1/0/0?version=x!", 400),
         ("bricks/0/4294967296/0/0", 400),
         ("levels/x", 400),
         ("versions/x/precomputed/info", 400),

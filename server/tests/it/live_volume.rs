@@ -324,10 +324,7 @@ fn compiled(request: &EditRequest) -> Edit {
 
 /// `request` compiled, as the writer's queue takes it.
 fn work(request: &EditRequest) -> Work {
-    Work::Edit {
-        edit: compiled(request),
-        dry_run: false,
-    }
+    Work::edit(compiled(request), false)
 }
 
 /// Both header slots as the file holds them now (read with pread, as a reader opening it).

@@ -346,6 +346,13 @@ fn voxel(server: &Server, http: &Client, p: [u32; 3]) -> u8 {
 /// Asserts that `a` and `b` answer every brick (raw, and zstd for the level-0 ones), every
 /// level grid and the metadata with the same bytes.
 fn assert_same_answers(http: &Client, a: &Server, b: &Server) {
+    assert_same_content(http, a, b, true);
+}
+
+/// [`assert_same_answers`], the stored (zstd) bricks only when `stored` (content that an older
+/// version held too may be found in the file by one writer and stored again by another: the
+/// same voxels in other frames).
+fn assert_same_content(http: &Client, a: &Server, b: &Server, stored: bool) {
     for key in all_bricks() {
         let (sa, ba, ea) = a.get(http, &format!("bricks/{key}"), None);
         let (sb, bb, eb) = b.get(http, &format!("bricks/{key}"), None);
@@ -357,9 +364,11 @@ fn assert_same_answers(http: &Client, a: &Server, b: &Server) {
             b.base
         );
         if key.starts_with("0/") {
-            let (_, za, _) = a.get(http, &format!("bricks/{key}"), Some("zstd"));
-            let (_, zb, _) = b.get(http, &format!("bricks/{key}"), Some("zstd"));
-            assert!(za == zb, "brick {key}: stored zstd bytes differ");
+            if stored {
+                let (_, za, _) = a.get(http, &format!("bricks/{key}"), Some("zstd"));
+                let (_, zb, _) = b.get(http, &format!("bricks/{key}"), Some("zstd"));
+                assert!(za == zb, "brick {key}: stored zstd bytes differ");
+            }
             let hash = ea.trim_matches('"');
             let (sh, bh, _) = b.get(http, &format!("blobs/{hash}"), None);
             assert_eq!(sh, 200, "blob {hash}");
@@ -407,7 +416,7 @@ fn replicas_answer_byte_for_byte_like_the_local_file_server() {
     );
     assert_eq!(cl["changes"][0]["changed"], c2["changes"][0]["changed"]);
     assert_eq!(
-        c2["changes"][0]["author"], "t",
+        c2["changes"][1]["author"], "t",
         "the replica reads the commit's note: {c2}"
     );
 
@@ -427,8 +436,8 @@ fn replicas_answer_byte_for_byte_like_the_local_file_server() {
             (&a1["version"], &a1["replayed"])
         );
         r2.wait_for(&http, a1["version"].as_u64().unwrap());
-        assert_same_answers(&http, &local, &r1);
-        assert_same_answers(&http, &local, &r2);
+        assert_same_content(&http, &local, &r1, false);
+        assert_same_content(&http, &local, &r2, false);
     }
 }
 

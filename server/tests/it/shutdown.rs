@@ -337,10 +337,7 @@ async fn an_edit_cut_by_the_shutdown_leaves_the_volume_editable() {
         )
         .unwrap();
     let runtime = tokio::runtime::Handle::current();
-    let work = isovox_server::volume::group::Work::Edit {
-        edit,
-        dry_run: false,
-    };
+    let work = isovox_server::volume::group::Work::edit(edit, false);
     let submitted = volume.submit(work, None, cancel, state.group_commit(), &runtime);
     let answer = tokio::time::timeout(HANGS, submitted)
         .await

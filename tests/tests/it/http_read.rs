@@ -385,8 +385,17 @@ async fn errors_are_problem_details() {
         404,
     )
     .await;
+    // A name is a tag's (none here); text that is neither a number nor a tag's name is a
+    // malformed request.
     problem(
         get("/v1/volumes/terrain/bricks/0/0/0/0?version=seven")
+            .await
+            .unwrap(),
+        404,
+    )
+    .await;
+    problem(
+        get("/v1/volumes/terrain/bricks/0/0/0/0?version=seven!")
             .await
             .unwrap(),
         400,

@@ -881,7 +881,7 @@ async fn levels_match_the_file() {
         "region=",
         "format=png",
         "format=",
-        "version=x",
+        "version=x!",
     ] {
         problem(
             get(&format!("/v1/volumes/terrain/levels/0?{q}"))
@@ -1093,7 +1093,7 @@ async fn metrics_count_response_bytes() {
 // 5. OpenAPI.
 
 /// Every route the router serves, with its method (from `server/src/http/mod.rs`).
-const ROUTES: [(&str, &str); 20] = [
+const ROUTES: [(&str, &str); 26] = [
     ("/healthz", "get"),
     ("/metrics", "get"),
     ("/openapi.json", "get"),
@@ -1112,6 +1112,12 @@ const ROUTES: [(&str, &str); 20] = [
     ("/v1/volumes/{name}/compact", "post"),
     ("/v1/volumes/{name}/changes", "get"),
     ("/v1/volumes/{name}/events", "get"),
+    ("/v1/volumes/{name}/history", "get"),
+    ("/v1/volumes/{name}/tags", "get"),
+    ("/v1/volumes/{name}/tags/{tag}", "put"),
+    ("/v1/volumes/{name}/undo", "post"),
+    ("/v1/volumes/{name}/revert", "post"),
+    ("/v1/volumes/{name}/presence", "get"),
     ("/v1/meshes", "post"),
     ("/v1/volumes/{name}/zarr/{path}", "get"),
     ("/v1/volumes/{name}/precomputed/{path}", "get"),
@@ -1190,6 +1196,13 @@ async fn openapi_lists_every_route() {
                     .post(&url)
                     .header("content-type", "application/json")
                     .body("{\"keys\": [[0,0,0,0]]}")
+                    .send()
+                    .await
+                    .unwrap(),
+                "put" => c
+                    .put(&url)
+                    .header("content-type", "application/json")
+                    .body("{\"version\": 1}")
                     .send()
                     .await
                     .unwrap(),

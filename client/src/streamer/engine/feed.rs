@@ -83,7 +83,7 @@ pub(in crate::streamer) async fn follow(
                 Ok(Some(FeedEvent::Commit(ev))) => {
                     if ev.version > last {
                         last = ev.version;
-                        replay.push(ev);
+                        replay.push(*ev);
                         if last >= replayed_to
                             && tx
                                 .send(FeedMsg::Commits(std::mem::take(&mut replay)))
