@@ -30,6 +30,7 @@ let protocol = "http/1.1";
 let frames = 0;
 let firstFrameMs: number | null = null;
 let completeMs: number | null = null;
+let completeInViewMs: number | null = null;
 let lastEdit: { version: number; sent: number; answerMs: number; screenMs: number | null } | null =
   null;
 const wire = { requests: 0, bytes: 0 };
@@ -73,6 +74,17 @@ function cameraPosition(): [number, number, number] {
   return [p.x, p.y, p.z];
 }
 
+/** Whether a box (world units) is in the camera's view frustum now. */
+function inViewNow(): (min: [number, number, number], max: [number, number, number]) => boolean {
+  const camera = viewport.camera;
+  camera.updateMatrixWorld();
+  const frustum = new THREE.Frustum().setFromProjectionMatrix(
+    new THREE.Matrix4().multiplyMatrices(camera.projectionMatrix, camera.matrixWorldInverse),
+  );
+  const box = new THREE.Box3();
+  return (min, max) => frustum.intersectsBox(box.set(new THREE.Vector3(...min), new THREE.Vector3(...max)));
+}
+
 async function openVolume(name: string, state: UrlState | null): Promise<void> {
   streamer?.stop();
   feed?.close();
@@ -92,6 +104,7 @@ async function openVolume(name: string, state: UrlState | null): Promise<void> {
     radii: radii(v),
     maxInFlight: inFlightBudget(),
     onChange: changed,
+    inView: inViewNow(),
   });
   streamer = s;
   s.setCamera(cameraPosition());
@@ -141,7 +154,8 @@ function afterChange(): void {
       });
     }
   }
-  viewport.requestRender();
+  // No frame for that: the view draws a frame when a tile comes or goes (and swiftshader takes
+  // about 100 ms for one of the default view, time the requests after it would wait for).
   updateOverlay();
 }
 
@@ -152,9 +166,15 @@ viewport.onFrame = (tiles) => {
     firstFrameMs = now;
     performance.mark("isovox:first-frame");
   }
-  if (completeMs === null && streamer?.stats().complete) {
+  const st = streamer?.stats();
+  if (completeInViewMs === null && st?.completeInView && tiles > 0) completeInViewMs = now;
+  if (completeMs === null && st?.complete) {
     completeMs = now;
     performance.mark("isovox:complete");
+  }
+  // Commits whose tiles were all swapped in before this frame: on screen now.
+  for (const t of streamer?.traces.values() ?? []) {
+    if (t.shown !== null && t.frame === null) t.frame = now;
   }
   updateOverlay();
 };
@@ -165,7 +185,7 @@ viewport.onCameraChange = () => {
   if (cameraTimer !== null) return;
   cameraTimer = setTimeout(() => {
     cameraTimer = null;
-    streamer?.setCamera(cameraPosition());
+    streamer?.setView(cameraPosition(), inViewNow());
     writeUrl(urlState());
   }, 100);
 };
@@ -416,6 +436,7 @@ const hook = {
     tilesOnScreen: viewport.tileCount,
     firstFrameMs,
     completeMs,
+    completeInViewMs,
     wireRequests: wire.requests,
     wireBytes: wire.bytes,
     lastEdit,
@@ -436,6 +457,8 @@ const hook = {
     direction: viewport.camera.getWorldDirection(new THREE.Vector3()).toArray(),
     navigation: viewport.navigation,
   }),
+  /** When recent commits reached the page and the screen (performance.now() milliseconds). */
+  traces: () => [...(streamer?.traces.values() ?? [])].map((t) => ({ ...t })),
   /** The tiles the camera needs now, as [level, x, y, z]. */
   selection: () => (streamer?.selection() ?? []).map((k) => [k.level, k.x, k.y, k.z]),
 };
