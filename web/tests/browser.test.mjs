@@ -453,6 +453,168 @@ test("the slice view's pixels are the voxels GET /bricks returns (u8, and u16 th
   }
 });
 
+/**
+ * Before the page's scripts run: after every animation-frame callback that drew into the view
+ * (WebGL2 draw calls or a clear), `window.__probe()` runs, while the frame just drawn is still in
+ * the drawing buffer (it is cleared only when the browser composites the frame).
+ */
+function probeFrames() {
+  // (Against the viewer before issue 36, which swapped tiles one by one, the burst below showed
+  // up to 703 newly enclosed sky pixels in a frame.)
+  const raf = window.requestAnimationFrame.bind(window);
+  let dirty = false;
+  const proto = WebGL2RenderingContext.prototype;
+  for (const name of ["drawElements", "drawArrays", "clear"]) {
+    const f = proto[name];
+    proto[name] = function (...args) {
+      dirty = true;
+      return f.apply(this, args);
+    };
+  }
+  window.requestAnimationFrame = (cb) =>
+    raf((t) => {
+      cb(t);
+      if (dirty) {
+        dirty = false;
+        window.__probe?.();
+      }
+    });
+}
+
+/**
+ * In the page: a probe that reads each frame's pixels and records which sky pixels the surface
+ * encloses (not reached from the canvas's border through sky: a flood fill), as indices into the
+ * frame, leaving out those `allowed` lists. `window.__frames` gets one entry per frame.
+ */
+function installHoleProbe({ sky, allowed }) {
+  const canvas = document.getElementById("view");
+  const gl = canvas.getContext("webgl2");
+  const ok = new Set(allowed);
+  window.__frames = [];
+  window.__probe = () => {
+    const w = gl.drawingBufferWidth;
+    const h = gl.drawingBufferHeight;
+    const px = new Uint8Array(w * h * 4);
+    gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, px);
+    const isSky = (i) =>
+      Math.abs(px[i * 4] - sky[0]) + Math.abs(px[i * 4 + 1] - sky[1]) + Math.abs(px[i * 4 + 2] - sky[2]) < 24;
+    const reached = new Uint8Array(w * h);
+    const stack = [];
+    const push = (i) => {
+      if (!reached[i] && isSky(i)) {
+        reached[i] = 1;
+        stack.push(i);
+      }
+    };
+    for (let x = 0; x < w; x++) {
+      push(x);
+      push((h - 1) * w + x);
+    }
+    for (let y = 0; y < h; y++) {
+      push(y * w);
+      push(y * w + w - 1);
+    }
+    while (stack.length) {
+      const i = stack.pop();
+      const x = i % w;
+      if (x > 0) push(i - 1);
+      if (x < w - 1) push(i + 1);
+      if (i >= w) push(i - w);
+      if (i < w * (h - 1)) push(i + w);
+    }
+    const enclosed = [];
+    for (let i = 0; i < w * h; i++) if (!reached[i] && isSky(i) && !ok.has(i)) enclosed.push(i);
+    const s = window.isovox?.stats();
+    window.__frames.push({ version: s?.version ?? null, stale: s?.stale ?? null, enclosed });
+  };
+}
+
+test("while a burst of edits lands, another page never shows sky through the terrain, and ends as a fresh page does", { timeout: 240_000 }, async () => {
+  // The default view's camera, as its URL gives it, so that a fresh page can take the same one.
+  const a = await openPage();
+  await waitComplete(a.page);
+  const view = await a.page.evaluate(() => location.search);
+  await a.context.close();
+
+  const context = await browser.newContext({ viewport: VIEW });
+  await context.addInitScript(probeFrames);
+  const page = await context.newPage();
+  const errors = [];
+  page.on("pageerror", (e) => errors.push(e.message));
+  await page.goto(`${server.base}/${view}`);
+  const before = await waitComplete(page);
+  await waitFor(page, "the feed to be live", (s) => s.feed === "live");
+  // The enclosed sky of the view before the burst (gaps under overhangs and the like) is allowed.
+  await page.evaluate(installHoleProbe, { sky: SKY, allowed: [] });
+  await page.evaluate(() => window.isovox && window.__probe());
+  const start = await page.evaluate(() => window.__frames.at(-1));
+  await page.evaluate(installHoleProbe, { sky: SKY, allowed: start.enclosed });
+
+  // Ten edits in the terrain in front (below the horizon: ground, not sky, lies behind them),
+  // alternately carved and raised, across the borders of tiles (multiples of 128 voxels: every
+  // level's tiles meet there), where tiles of two versions would not meet. Sent at once.
+  const p = await page.evaluate(({ x, y }) => window.isovox.pick(x, y), FRONT);
+  assert.ok(p, "a surface point in front");
+  const { top } = await surfaceTops(1);
+  const [bx, bz] = [Math.round(p[0] / 128) * 128, Math.round(p[2] / 128) * 128];
+  const points = [];
+  for (let i = 0; i < 10; i++) {
+    const d = (Math.floor(i / 2) - 2) * 20;
+    const [x, z] = i % 2 === 0 ? [bx, p[2] + d] : [p[0] + d, bz];
+    const t = top(Math.floor(x / 2), Math.floor(z / 2));
+    assert.ok(t, `a surface at ${x}, ${z}`);
+    points.push([Math.round(x), Math.round(t[1]), Math.round(z)]);
+  }
+  const sent = Date.now();
+  const answers = await Promise.all(
+    points.map((c, i) =>
+      api("/v1/volumes/demo/edits", {
+        method: "POST",
+        headers: { "content-type": "application/json", authorization: `Bearer ${token}` },
+        body: JSON.stringify({
+          op: i % 2 === 0 ? "difference" : "union",
+          term: { ellipsoid: { center: c, radii: i % 2 === 0 ? [24, 24, 24] : [16, 16, 16] } },
+        }),
+      }).then((r) => r.json()),
+    ),
+  );
+  const burstMs = Date.now() - sent;
+  const last = Math.max(...answers.map((r) => r.version));
+  assert.equal(last, before.version + 10, "ten versions");
+  await waitComplete(page, last);
+  const frames = await page.evaluate(() => window.__frames);
+  const afterImg = await screenshot(page);
+
+  // A fresh page at the same camera: what the newest version looks like. Sky it encloses (a
+  // carving may open a real gap) is allowed in the frames, as before.
+  const fresh = await browser.newContext({ viewport: VIEW });
+  await fresh.addInitScript(probeFrames);
+  const freshPage = await fresh.newPage();
+  await freshPage.goto(`${server.base}/${view}`);
+  await waitComplete(freshPage, last);
+  await freshPage.evaluate(installHoleProbe, { sky: SKY, allowed: start.enclosed });
+  await freshPage.evaluate(() => window.__probe());
+  const end = await freshPage.evaluate(() => window.__frames.at(-1));
+  const freshImg = await screenshot(freshPage);
+  await fresh.close();
+
+  const allowed = new Set(end.enclosed);
+  const holes = frames.map((f) => ({ ...f, enclosed: f.enclosed.filter((i) => !allowed.has(i)) }));
+  const worst = holes.reduce((m, f) => (f.enclosed.length > m.enclosed.length ? f : m), { enclosed: [] });
+  console.log(
+    `burst of 10 edits sent in ${burstMs} ms; page B drew ${frames.length} frames meanwhile, versions ` +
+      `${[...new Set(frames.map((f) => f.version))].join(",")}; most newly enclosed sky in a frame: ${worst.enclosed.length}`,
+  );
+  assert.ok(frames.length >= 1 && frames.at(-1).version === last, `the last of ${frames.length} frames shows version ${last}`);
+  assert.equal(worst.enclosed.length, 0, `a frame of version ${worst.version} showed sky through the terrain in ${worst.enclosed.length} pixels`);
+
+  // After the burst the page shows what a fresh page at the same camera shows.
+  const diff = changedPixels(afterImg, freshImg, () => true);
+  assert.ok(diff.changed <= diff.total * 0.0005, `${diff.changed} of ${diff.total} pixels differ from a fresh page`);
+  assert.deepEqual(errors, []);
+  await context.close();
+});
+
 test("a wrong token shows an error in words and changes nothing", { timeout: 120_000 }, async () => {
   const { context, page } = await openPage();
   const s = await waitComplete(page);
