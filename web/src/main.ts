@@ -154,7 +154,12 @@ function afterChange(): void {
       });
     }
   }
-  // No frame for that: the view draws a frame when a tile comes or goes (and swiftshader takes
+  // The last tiles may have come out of the view frustum, which draws no frame: one marks it.
+  const st = s.stats();
+  if ((completeMs === null && st.complete) || (completeInViewMs === null && st.completeInView)) {
+    viewport.requestRender();
+  }
+  // No frame otherwise: the view draws a frame when a tile comes or goes (and swiftshader takes
   // about 100 ms for one of the default view, time the requests after it would wait for).
   updateOverlay();
 }

@@ -55,6 +55,10 @@ export class Viewport implements TileSink {
   private readonly orbit: OrbitControls;
   private readonly fly: FlyNavigation;
   private frameRequested = false;
+  /** When the next frame may be drawn (performance.now()), after the last one's pause. */
+  private nextFrameAt = 0;
+  private readonly frustum = new THREE.Frustum();
+  private readonly projScreen = new THREE.Matrix4();
   navigation: Navigation = "orbit";
   /** Called after each frame with the number of tiles drawn. */
   onFrame: (tiles: number) => void = () => {};
@@ -147,7 +151,7 @@ export class Viewport implements TileSink {
     mesh.matrixAutoUpdate = false;
     this.scene.add(mesh);
     this.tiles.set(id, { mesh, data, mask });
-    this.requestRender();
+    if (this.seen(mesh)) this.requestRender();
   }
 
   hide(id: string): void {
@@ -156,7 +160,18 @@ export class Viewport implements TileSink {
     this.scene.remove(t.mesh);
     t.mesh.geometry.dispose();
     this.tiles.delete(id);
-    this.requestRender();
+    if (this.seen(t.mesh)) this.requestRender();
+  }
+
+  /** Whether a tile's mesh is in the view frustum (a tile outside it changes no frame). */
+  private seen(mesh: THREE.Mesh): boolean {
+    const g = mesh.geometry;
+    if (!g.boundingSphere) g.computeBoundingSphere();
+    this.camera.updateMatrixWorld();
+    this.frustum.setFromProjectionMatrix(
+      this.projScreen.multiplyMatrices(this.camera.projectionMatrix, this.camera.matrixWorldInverse),
+    );
+    return g.boundingSphere ? this.frustum.intersectsSphere(g.boundingSphere) : true;
   }
 
   get tileCount(): number {
@@ -165,15 +180,33 @@ export class Viewport implements TileSink {
 
   // --- frames, picking --------------------------------------------------------------------
 
+  /**
+   * Draws a frame soon. A frame that takes long (software rendering: about 100 ms for the
+   * default view, several hundred close to the ground) is followed by a pause of twice its
+   * length, so that drawing takes at most a third of the main thread while tiles stream in and
+   * their responses are not kept waiting; after a quiet moment (an edit landing in a still view)
+   * the frame is drawn at once.
+   */
   requestRender(): void {
     if (this.frameRequested) return;
     this.frameRequested = true;
-    requestAnimationFrame(() => {
-      this.frameRequested = false;
-      if (this.fly.enabled && this.fly.step()) this.requestRender();
-      this.renderer.render(this.scene, this.camera);
-      this.onFrame(this.tiles.size);
-    });
+    const wait = this.nextFrameAt - performance.now();
+    const frame = () =>
+      requestAnimationFrame(() => {
+        this.frameRequested = false;
+        if (this.fly.enabled && this.fly.step()) this.requestRender();
+        const start = performance.now();
+        this.renderer.render(this.scene, this.camera);
+        this.onFrame(this.tiles.size);
+        // The frame's cost includes the browser's work after this callback (compositing, and
+        // with SwiftShader the rasterizing): it ends when the next task runs.
+        setTimeout(() => {
+          const end = performance.now();
+          this.nextFrameAt = end + 2 * (end - start);
+        }, 0);
+      });
+    if (wait > 1) setTimeout(frame, wait);
+    else frame();
   }
 
   private resize(): void {

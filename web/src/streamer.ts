@@ -166,6 +166,11 @@ export class Streamer {
   private camera: [number, number, number] = [0, 0, 0];
   /** Per level: brick index -> what the grid said. */
   private hashes: Array<Map<number, LevelBrick>> = [];
+  /**
+   * Content keys computed since the hashes last changed (a plan after each response would
+   * otherwise compute every selected tile's and strip's key again: most of a plan's time).
+   */
+  private keys = new Map<string, string | null>();
   private readonly cache = new Map<string, TileMesh | null>();
   private cacheBytes = 0;
   private readonly cacheLimit: number;
@@ -259,6 +264,7 @@ export class Streamer {
       for (const [x, y, z] of bricks) {
         changed.add(`${level}/${x}/${y}/${z}`);
         known?.delete(this.brickIndex(level, x, y, z));
+        this.keys.clear();
       }
     });
     this.commitLog.push({ version: ev.version, bricks: changed });
@@ -292,6 +298,7 @@ export class Streamer {
     this.layout = new Layout(info.dims, info.brick);
     this.selectionKey = "";
     this.hashes = this.layout.grids.map(() => new Map());
+    this.keys.clear();
     this.commitLog.length = 0;
     this.version = info.version;
     this.plan();
@@ -380,12 +387,24 @@ export class Streamer {
 
   /** The tile's content key (`keyOf` of what it reads). */
   private contentKey(k: TileKey): string | null {
-    return this.keyOf(keyText(k), meshTileReads(this.layout, k));
+    const name = keyText(k);
+    let key = this.keys.get(name);
+    if (key === undefined) {
+      key = this.keyOf(name, meshTileReads(this.layout, k));
+      this.keys.set(name, key);
+    }
+    return key;
   }
 
   /** The content key of the strip of face `face` of tile `k`. */
   private stripKey(k: TileKey, face: number): string | null {
-    return this.keyOf(`${keyText(k)}/${face}`, stripReads(this.layout, k, face));
+    const name = `${keyText(k)}/${face}`;
+    let key = this.keys.get(name);
+    if (key === undefined) {
+      key = this.keyOf(name, stripReads(this.layout, k, face));
+      this.keys.set(name, key);
+    }
+    return key;
   }
 
   /** The faces of tile `k`'s mask. */
@@ -480,12 +499,17 @@ export class Streamer {
       this.masks = stitchMasks(this.layout, this.desired);
       this.visible = new Map();
     }
-    // Stand-ins: the tiles of the selection's coarsest level over selected tiles that have
-    // nothing to show yet.
+    // Stand-ins: the tiles of the selection's coarsest level over selected tiles in the view
+    // frustum that have nothing to show yet (out of it, nothing shows either way: they must not
+    // keep the tiles in view under a stand-in).
     const coarsest = this.desired.reduce((a, k) => Math.max(a, k.level), 0);
     const standIns = new Map<string, TileKey>();
     for (const k of this.desired) {
-      if (k.level < coarsest && this.showable(k, this.masks.get(keyText(k)) ?? 0) === undefined) {
+      if (
+        k.level < coarsest &&
+        this.isVisible(k) &&
+        this.showable(k, this.masks.get(keyText(k)) ?? 0) === undefined
+      ) {
         const a = this.layout.ancestor(k, coarsest);
         standIns.set(keyText(a), a);
       }
@@ -746,6 +770,7 @@ export class Streamer {
           const text = `${grid.level}/${x}/${y}/${z}`;
           if (b && !later.some((c) => c.bricks.has(text))) {
             known.set(this.brickIndex(grid.level, x, y, z), b);
+            this.keys.clear();
           }
         }
       }
