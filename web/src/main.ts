@@ -10,6 +10,7 @@ import { radiiForScreenError } from "./lod";
 import { Viewport, type Navigation } from "./scene";
 import { AXIS, SliceView, type Axis } from "./slice";
 import { Streamer } from "./streamer";
+import { COLORMAPS, neuroglancerUrl, type Colormap } from "./colormap";
 import { readUrl, writeUrl, type UrlState } from "./url";
 
 const $ = <T extends HTMLElement>(id: string) => document.getElementById(id) as T;
@@ -96,6 +97,10 @@ async function openVolume(name: string, state: UrlState | null): Promise<void> {
   };
   viewport.setVolume(v, view ?? undefined);
   if (state?.detail) $<HTMLInputElement>("detail").value = String(state.detail);
+  $<HTMLInputElement>("iso").value = state?.iso != null ? String(state.iso) : "";
+  $<HTMLInputElement>("iso").min = String(v.low);
+  $<HTMLInputElement>("iso").max = String(v.high);
+  setColormap(state?.colormap ?? "terrain");
   if (state?.navigation) setNavigation(state.navigation);
   const s = new Streamer({
     api,
@@ -107,7 +112,9 @@ async function openVolume(name: string, state: UrlState | null): Promise<void> {
     inView: inViewNow(),
   });
   streamer = s;
+  s.setIso(chosenIso());
   s.setCamera(cameraPosition());
+  updateNeuroglancer();
   feed = new Feed(api, name, v.version, {
     commit: (ev) => {
       s.applyCommit(ev);
@@ -184,6 +191,14 @@ viewport.onFrame = (tiles) => {
   updateOverlay();
 };
 
+// The radii follow the canvas's height (the screen-space error is in its pixels), and the view
+// frustum its shape.
+new ResizeObserver(() => {
+  if (!info || !streamer) return;
+  streamer.radii = radii(info);
+  streamer.setView(cameraPosition(), inViewNow());
+}).observe(viewport.renderer.domElement);
+
 let cameraTimer: ReturnType<typeof setTimeout> | null = null;
 viewport.onCameraChange = () => {
   // The selection is planned again at most every 100 ms while the camera moves.
@@ -192,6 +207,7 @@ viewport.onCameraChange = () => {
     cameraTimer = null;
     streamer?.setView(cameraPosition(), inViewNow());
     writeUrl(urlState());
+    updateNeuroglancer();
   }, 100);
 };
 
@@ -234,6 +250,8 @@ function urlState(): UrlState {
     slice: $<HTMLInputElement>("slice-on").checked
       ? { axis: slice.state.axis, position: slice.state.position }
       : null,
+    iso: chosenIso(),
+    colormap: $<HTMLSelectElement>("colormap").value as Colormap,
   };
 }
 
@@ -385,7 +403,8 @@ function setupSlice(v: VolumeInfo, state: UrlState | null): void {
   center.value = String(slice.state.center);
   $<HTMLSelectElement>("slice-axis").value = slice.state.axis;
   syncSlicePosition();
-  $<HTMLCanvasElement>("slice").hidden = !$<HTMLInputElement>("slice-on").checked;
+  $<HTMLDivElement>("slice-box").hidden = !$<HTMLInputElement>("slice-on").checked;
+  showSlicePlane();
   void loadSlice();
 }
 
@@ -398,7 +417,8 @@ function syncSlicePosition(): void {
 
 $<HTMLInputElement>("slice-on").addEventListener("change", (e) => {
   const on = (e.target as HTMLInputElement).checked;
-  $<HTMLCanvasElement>("slice").hidden = !on;
+  $<HTMLDivElement>("slice-box").hidden = !on;
+  showSlicePlane();
   void loadSlice();
   writeUrl(urlState());
 });
@@ -406,11 +426,13 @@ $<HTMLSelectElement>("slice-axis").addEventListener("change", (e) => {
   slice.state.axis = (e.target as HTMLSelectElement).value as Axis;
   if (info) slice.state.position = Math.floor(info.dims[AXIS[slice.state.axis]] / 2);
   syncSlicePosition();
+  showSlicePlane();
   void loadSlice();
   writeUrl(urlState());
 });
 $<HTMLInputElement>("slice-pos").addEventListener("change", (e) => {
   slice.state.position = Number((e.target as HTMLInputElement).value);
+  showSlicePlane();
   void loadSlice();
   writeUrl(urlState());
 });
@@ -424,6 +446,124 @@ for (const id of ["slice-width", "slice-center"]) {
     slice.state.width = Number($<HTMLInputElement>("slice-width").value);
     slice.state.center = Number($<HTMLInputElement>("slice-center").value);
     slice.draw();
+  });
+}
+
+/** The slice's plane in the 3D view, while the slice is shown. */
+function showSlicePlane(): void {
+  if (!info || !$<HTMLInputElement>("slice-on").checked) {
+    viewport.setSlicePlane(null);
+    return;
+  }
+  const a = AXIS[slice.state.axis];
+  const s = info.voxel_scale;
+  const size = new THREE.Vector3(info.dims[0] * s[0], info.dims[1] * s[1], info.dims[2] * s[2]);
+  // Voxel i's sample sits at i (the surface's coordinates), so the plane too.
+  viewport.setSlicePlane({ axis: slice.state.axis, position: slice.state.position * (s[a] ?? 1), size });
+}
+
+// --- for scans: colour map, iso value, the voxel under the pointer, Neuroglancer ----------
+
+for (const m of COLORMAPS) $<HTMLSelectElement>("colormap").add(new Option(m, m));
+
+function setColormap(map: Colormap): void {
+  $<HTMLSelectElement>("colormap").value = map;
+  viewport.setColormap(map);
+  slice.setColormap(map);
+}
+
+$<HTMLSelectElement>("colormap").addEventListener("change", (e) => {
+  setColormap((e.target as HTMLSelectElement).value as Colormap);
+  writeUrl(urlState());
+});
+
+/** The iso value chosen, or null for the volume's default (empty or out of its range). */
+function chosenIso(): number | null {
+  const text = $<HTMLInputElement>("iso").value.trim();
+  const v = Number(text);
+  if (!info || text === "" || !Number.isFinite(v) || v < info.low || v > info.high) return null;
+  return v;
+}
+
+$<HTMLInputElement>("iso").addEventListener("change", () => {
+  streamer?.setIso(chosenIso());
+  writeUrl(urlState());
+});
+
+function updateNeuroglancer(): void {
+  if (!info) return;
+  const t = viewport.target;
+  const s = info.voxel_scale;
+  const center: [number, number, number] = [t.x / s[0], t.y / s[1], t.z / s[2]].map(Math.round) as [number, number, number];
+  const base = new URLSearchParams(location.search).get("neuroglancer") ?? "https://neuroglancer-demo.appspot.com/";
+  $<HTMLAnchorElement>("neuroglancer").href = neuroglancerUrl(base, location.origin, info.name, center);
+}
+
+/** What the pointer is over: a voxel's position and value, or nothing. */
+let probe: { where: string; position: [number, number, number]; level: number; value: number } | null = null;
+
+function showProbe(): void {
+  $<HTMLParagraphElement>("probe").textContent = probe
+    ? `${probe.where} (${probe.position.join(", ")})${probe.level > 0 ? ` level ${probe.level}` : ""}: ${probe.value}`
+    : "pointer: -";
+}
+
+{
+  // Over the slice: the voxel shown under the pointer (from the loaded slice, as drawn).
+  const canvas = $<HTMLCanvasElement>("slice");
+  canvas.addEventListener("pointermove", (e) => {
+    const r = canvas.getBoundingClientRect();
+    // The canvas is drawn with object-fit: contain: find the drawn image's box.
+    const scale = Math.min(r.width / canvas.width, r.height / canvas.height);
+    const x0 = r.left + (r.width - canvas.width * scale) / 2;
+    const y0 = r.top + (r.height - canvas.height * scale) / 2;
+    const v = slice.voxelAt((e.clientX - x0) / scale, (e.clientY - y0) / scale);
+    probe = v && { where: "slice", ...v };
+    showProbe();
+  });
+}
+
+{
+  // Over the 3D view: the level-0 voxel nearest the surface point under the pointer, its value
+  // read from its brick (one request per brick and version, at most every 100 ms).
+  const canvas = viewport.renderer.domElement;
+  const bricks = new Map<string, Promise<Uint8Array | Uint16Array>>();
+  let timer: ReturnType<typeof setTimeout> | null = null;
+  let last: { x: number; y: number } | null = null;
+  const look = async () => {
+    timer = null;
+    const v = info;
+    if (!last || !v || !streamer) return;
+    const p = viewport.pick(last.x, last.y);
+    if (!p) {
+      probe = null;
+      showProbe();
+      return;
+    }
+    const s = v.voxel_scale;
+    const pos = [p.x / s[0], p.y / s[1], p.z / s[2]].map((c, a) =>
+      Math.min(v.dims[a]! - 1, Math.max(0, Math.round(c))),
+    ) as [number, number, number];
+    const b = v.brick;
+    const key = { level: 0, x: Math.floor(pos[0] / b), y: Math.floor(pos[1] / b), z: Math.floor(pos[2] / b) };
+    const id = `${v.name}/${streamer.version}/${key.x}/${key.y}/${key.z}`;
+    let voxels = bricks.get(id);
+    if (!voxels) {
+      if (bricks.size > 64) bricks.clear();
+      const u16 = v.voxel_type === "u16";
+      voxels = api.brick(v.name, key).then((buf) => (u16 ? new Uint16Array(buf) : new Uint8Array(buf)));
+      bricks.set(id, voxels);
+      voxels.catch(() => bricks.delete(id));
+    }
+    const data = await voxels;
+    const l = [pos[0] % b, pos[1] % b, pos[2] % b];
+    probe = { where: "surface", position: pos, level: 0, value: data[l[0]! + b * (l[1]! + b * l[2]!)] ?? 0 };
+    showProbe();
+  };
+  canvas.addEventListener("pointermove", (e) => {
+    const r = canvas.getBoundingClientRect();
+    last = { x: e.clientX - r.left, y: e.clientY - r.top };
+    if (timer === null) timer = setTimeout(() => void look().catch(() => {}), 100);
   });
 }
 
@@ -464,6 +604,8 @@ const hook = {
   }),
   /** When recent commits reached the page and the screen (performance.now() milliseconds). */
   traces: () => [...(streamer?.traces.values() ?? [])].map((t) => ({ ...t })),
+  /** The voxel under the pointer (3D view or slice), as the panel shows it. */
+  probe: () => probe,
   /** The tiles the camera needs now, as [level, x, y, z]. */
   selection: () => (streamer?.selection() ?? []).map((k) => [k.level, k.x, k.y, k.z]),
 };

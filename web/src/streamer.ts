@@ -86,6 +86,8 @@ export interface StreamerStats {
   /** Tiles drawn, and triangles in them. */
   drawn: number;
   triangles: number;
+  /** Triangles of the tiles drawn in the view frustum. */
+  trianglesInView: number;
   inFlight: number;
   /** Requests allowed in flight now: the maximum, less after the server refused some. */
   inFlightLimit: number;
@@ -162,6 +164,8 @@ export class Streamer {
   radii: number[];
   version: number;
   private readonly limit: InFlightLimit;
+  /** The iso value meshed at: null for the volume's default (S - 0.5). */
+  private isoValue: number | null = null;
 
   private camera: [number, number, number] = [0, 0, 0];
   /** Per level: brick index -> what the grid said. */
@@ -236,6 +240,22 @@ export class Streamer {
 
   setCamera(camera: [number, number, number]): void {
     this.camera = camera;
+    this.plan();
+  }
+
+  /** The iso value meshed at (null: the volume's default, S - 0.5). */
+  get iso(): number | null {
+    return this.isoValue;
+  }
+
+  /**
+   * Meshes at another iso value: every tile gets a new content key; the view keeps the old
+   * surface until the new one has arrived (one region), then swaps.
+   */
+  setIso(iso: number | null): void {
+    if (iso === this.isoValue) return;
+    this.isoValue = iso;
+    this.keys.clear();
     this.plan();
   }
 
@@ -315,13 +335,19 @@ export class Streamer {
   stats(): StreamerStats {
     if (this.statsCache) return this.statsCache;
     let triangles = 0;
-    for (const d of this.displayed.values()) triangles += stitchedTriangles(d.mesh, d.mask, d.strips);
+    let trianglesInView = 0;
+    for (const [id, d] of this.displayed) {
+      const n = stitchedTriangles(d.mesh, d.mask, d.strips);
+      triangles += n;
+      if (this.visible.get(id.startsWith("s:") ? id.slice(2) : id) !== false) trianglesInView += n;
+    }
     this.statsCache = {
       version: this.version,
       desired: this.desired.length,
       ready: this.readyCount,
       drawn: this.displayed.size,
       triangles,
+      trianglesInView,
       inFlight: this.jobs.size,
       inFlightLimit: this.limit.get(),
       requests: this.counters.requests,
@@ -354,10 +380,10 @@ export class Streamer {
    * interpolation; outside the volume every voxel is L = 0).
    */
   private keyOf(name: string, reads: TileRead[]): string | null {
-    const iso = this.info.surface - 0.5;
+    const iso = this.isoValue ?? this.info.surface - 0.5;
     let low = Infinity;
     let high = -Infinity;
-    const parts: string[] = [name];
+    const parts: string[] = [this.isoValue === null ? name : `${name}@${iso}`];
     for (const read of reads) {
       const [lo, hi] = read.bricks;
       const [clo, chi] = read.crossing;
@@ -637,9 +663,15 @@ export class Streamer {
       while (parent[i] !== i) i = parent[i] = parent[parent[i]!]!;
       return i;
     };
+    // A sweep along x: only boxes whose x ranges meet are compared (an iso change makes every
+    // tile pending; all pairs would be too many to check on every plan).
     const boxes = pending.map((p) => this.voxelBox(p.key));
-    for (let i = 0; i < pending.length; i++) {
-      for (let j = i + 1; j < pending.length; j++) {
+    const byX = boxes.map((_, i) => i).sort((i, j) => boxes[i]![0]! - boxes[j]![0]!);
+    for (let a = 0; a < byX.length; a++) {
+      const i = byX[a]!;
+      for (let b = a + 1; b < byX.length; b++) {
+        const j = byX[b]!;
+        if (boxes[j]![0]! > boxes[i]![1]!) break;
         if (touches(boxes[i]!, boxes[j]!)) parent[root(i)] = root(j);
       }
     }
@@ -783,7 +815,7 @@ export class Streamer {
     if (!job) return;
     this.counters.requests++;
     this.api
-      .meshTile(this.info.name, k, job.version, job.controller.signal)
+      .meshTile(this.info.name, k, job.version, job.controller.signal, this.isoValue)
       .then((buffer) => {
         if (this.jobs.get(id) !== job) return;
         this.counters.bytes += buffer.byteLength;
@@ -802,7 +834,7 @@ export class Streamer {
     if (!job) return;
     this.counters.requests++;
     this.api
-      .meshStrip(this.info.name, k, face, job.version, job.controller.signal)
+      .meshStrip(this.info.name, k, face, job.version, job.controller.signal, this.isoValue)
       .then((buffer) => {
         if (this.jobs.get(id) !== job) return;
         this.counters.bytes += buffer.byteLength;
