@@ -629,9 +629,8 @@ test("while a burst of edits lands, another page never shows sky through the ter
 const isGrey = (p) => Math.max(...p) - Math.min(...p) <= 3;
 
 test("for scans: the iso value and the colour map change the pixels as chosen", { timeout: 180_000 }, async () => {
-  const { context, page, errors } = await openPage("?volume=ball&slice=z:32");
+  const { context, page, errors } = await openPage("?volume=ball");
   await waitComplete(page);
-  await page.waitForSelector("#slice[data-version]");
   const ball = await (await api("/v1/volumes/ball")).json();
   const centre = ball.dims.map((d) => (d - 1) / 2);
   const rays = await viewRays(page);
@@ -675,6 +674,9 @@ test("for scans: the iso value and the colour map change the pixels as chosen", 
   const viridisImg = await screenshot(page);
   const coloured = narrow.through.filter((q) => !isGrey(pixel(viridisImg, q.x, q.y))).length;
   assert.ok(coloured > narrow.through.length * 0.9, `${coloured} of ${narrow.through.length} surface pixels coloured`);
+  // (The slice and its plane in 3D come last: they would cover pixels looked at above.)
+  await page.check("#slice-on");
+  await page.waitForSelector("#slice[data-version]");
   await page.evaluate(() => {
     for (const [id, v] of [["slice-width", 100], ["slice-center", 150]]) {
       const input = document.getElementById(id);
@@ -701,6 +703,7 @@ test("for scans: the iso value and the colour map change the pixels as chosen", 
     }
   }
   assert.ok(ends > 2000, `${ends} slice pixels at the map's ends`);
+  assert.equal(shown.index, 32);
   assert.match(await page.evaluate(() => location.search), /cmap=viridis/);
   assert.deepEqual(errors, []);
   await context.close();
