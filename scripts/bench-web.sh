@@ -5,7 +5,14 @@
 # the camera needs is on screen, requests and bytes. Goals: first frame under 1 s, complete
 # under 3 s on loopback.
 #
+# Then (web/bench/live.mjs) two pages on one server, default view and a close one (its camera is
+# CLOSE in live.mjs): the close view's cold load (in view, complete, triangles, bytes), and 50
+# edits sent by page A, each timed to the first frame of page B that shows it (p50, p99), split
+# into server, feed, fetch, decode and draw. Goals: p50 under 150 ms, p99 under 400 ms, the close
+# view complete under 5 s.
+#
 #   scripts/bench-web.sh [--runs N] [--width W --height H] [--screenshot docs/viewer.png]
+#   EDITS=50 LIVE=only|no scripts/bench-web.sh    (only the live part, or none of it)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -20,4 +27,9 @@ openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:prime256v1 -nodes -days 
   -subj /CN=127.0.0.1 -addext "subjectAltName=IP:127.0.0.1" \
   -keyout "$tls/key.pem" -out "$tls/cert.pem" 2>/dev/null
 
-node web/bench/load.mjs --bin "$PWD/target/release/isovox" --cert "$tls/cert.pem" --key "$tls/key.pem" "$@"
+if [ "${LIVE:-}" != only ]; then
+  node web/bench/load.mjs --bin "$PWD/target/release/isovox" --cert "$tls/cert.pem" --key "$tls/key.pem" "$@"
+fi
+if [ "${LIVE:-}" != no ]; then
+  node web/bench/live.mjs --bin "$PWD/target/release/isovox" --edits "${EDITS:-50}"
+fi

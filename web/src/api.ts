@@ -158,6 +158,11 @@ export function readErrorWords(e: unknown, tokenSent: boolean): string {
  * one, every request carries it (`Authorization: Bearer`): a server with private reads wants it
  * on reads too, the change feed included.
  */
+/** `&iso=` for an iso value other than the volume's default (null). */
+function isoQuery(iso: number | null): string {
+  return iso === null ? "" : `&iso=${iso}`;
+}
+
 export class Api {
   readonly base: string;
   private readonly token: () => string | null;
@@ -216,8 +221,9 @@ export class Api {
     key: { level: number; x: number; y: number; z: number },
     version: number,
     signal?: AbortSignal,
+    iso: number | null = null,
   ): Promise<ArrayBuffer> {
-    const path = `/v1/volumes/${encodeURIComponent(name)}/meshes/${key.level}/${key.x}/${key.y}/${key.z}?version=${version}`;
+    const path = `/v1/volumes/${encodeURIComponent(name)}/meshes/${key.level}/${key.x}/${key.y}/${key.z}?version=${version}${isoQuery(iso)}`;
     const r = await this.send(path, signal ? { signal } : {});
     return r.arrayBuffer();
   }
@@ -232,9 +238,10 @@ export class Api {
     face: number,
     version: number,
     signal?: AbortSignal,
+    iso: number | null = null,
   ): Promise<ArrayBuffer> {
     const faceName = encodeURIComponent(["-x", "+x", "-y", "+y", "-z", "+z"][face] ?? "?");
-    const path = `/v1/volumes/${encodeURIComponent(name)}/meshes/${key.level}/${key.x}/${key.y}/${key.z}/strips/${faceName}?version=${version}`;
+    const path = `/v1/volumes/${encodeURIComponent(name)}/meshes/${key.level}/${key.x}/${key.y}/${key.z}/strips/${faceName}?version=${version}${isoQuery(iso)}`;
     const r = await this.send(path, signal ? { signal } : {});
     return r.arrayBuffer();
   }

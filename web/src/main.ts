@@ -10,6 +10,7 @@ import { radiiForScreenError } from "./lod";
 import { Viewport, type Navigation } from "./scene";
 import { AXIS, SliceView, type Axis } from "./slice";
 import { Streamer } from "./streamer";
+import { COLORMAPS, neuroglancerUrl, type Colormap } from "./colormap";
 import { readUrl, writeUrl, type UrlState } from "./url";
 
 const $ = <T extends HTMLElement>(id: string) => document.getElementById(id) as T;
@@ -30,6 +31,7 @@ let protocol = "http/1.1";
 let frames = 0;
 let firstFrameMs: number | null = null;
 let completeMs: number | null = null;
+let completeInViewMs: number | null = null;
 let lastEdit: { version: number; sent: number; answerMs: number; screenMs: number | null } | null =
   null;
 const wire = { requests: 0, bytes: 0 };
@@ -73,6 +75,17 @@ function cameraPosition(): [number, number, number] {
   return [p.x, p.y, p.z];
 }
 
+/** Whether a box (world units) is in the camera's view frustum now. */
+function inViewNow(): (min: [number, number, number], max: [number, number, number]) => boolean {
+  const camera = viewport.camera;
+  camera.updateMatrixWorld();
+  const frustum = new THREE.Frustum().setFromProjectionMatrix(
+    new THREE.Matrix4().multiplyMatrices(camera.projectionMatrix, camera.matrixWorldInverse),
+  );
+  const box = new THREE.Box3();
+  return (min, max) => frustum.intersectsBox(box.set(new THREE.Vector3(...min), new THREE.Vector3(...max)));
+}
+
 async function openVolume(name: string, state: UrlState | null): Promise<void> {
   streamer?.stop();
   feed?.close();
@@ -84,6 +97,10 @@ async function openVolume(name: string, state: UrlState | null): Promise<void> {
   };
   viewport.setVolume(v, view ?? undefined);
   if (state?.detail) $<HTMLInputElement>("detail").value = String(state.detail);
+  $<HTMLInputElement>("iso").value = state?.iso != null ? String(state.iso) : "";
+  $<HTMLInputElement>("iso").min = String(v.low);
+  $<HTMLInputElement>("iso").max = String(v.high);
+  setColormap(state?.colormap ?? "terrain");
   if (state?.navigation) setNavigation(state.navigation);
   const s = new Streamer({
     api,
@@ -92,9 +109,12 @@ async function openVolume(name: string, state: UrlState | null): Promise<void> {
     radii: radii(v),
     maxInFlight: inFlightBudget(),
     onChange: changed,
+    inView: inViewNow(),
   });
   streamer = s;
+  s.setIso(chosenIso());
   s.setCamera(cameraPosition());
+  updateNeuroglancer();
   feed = new Feed(api, name, v.version, {
     commit: (ev) => {
       s.applyCommit(ev);
@@ -141,7 +161,13 @@ function afterChange(): void {
       });
     }
   }
-  viewport.requestRender();
+  // The last tiles may have come out of the view frustum, which draws no frame: one marks it.
+  const st = s.stats();
+  if ((completeMs === null && st.complete) || (completeInViewMs === null && st.completeInView)) {
+    viewport.requestRender();
+  }
+  // No frame otherwise: the view draws a frame when a tile comes or goes (and swiftshader takes
+  // about 100 ms for one of the default view, time the requests after it would wait for).
   updateOverlay();
 }
 
@@ -152,12 +178,26 @@ viewport.onFrame = (tiles) => {
     firstFrameMs = now;
     performance.mark("isovox:first-frame");
   }
-  if (completeMs === null && streamer?.stats().complete) {
+  const st = streamer?.stats();
+  if (completeInViewMs === null && st?.completeInView && tiles > 0) completeInViewMs = now;
+  if (completeMs === null && st?.complete) {
     completeMs = now;
     performance.mark("isovox:complete");
   }
+  // Commits whose tiles were all swapped in before this frame: on screen now.
+  for (const t of streamer?.traces.values() ?? []) {
+    if (t.shown !== null && t.frame === null) t.frame = now;
+  }
   updateOverlay();
 };
+
+// The radii follow the canvas's height (the screen-space error is in its pixels), and the view
+// frustum its shape.
+new ResizeObserver(() => {
+  if (!info || !streamer) return;
+  streamer.radii = radii(info);
+  streamer.setView(cameraPosition(), inViewNow());
+}).observe(viewport.renderer.domElement);
 
 let cameraTimer: ReturnType<typeof setTimeout> | null = null;
 viewport.onCameraChange = () => {
@@ -165,8 +205,9 @@ viewport.onCameraChange = () => {
   if (cameraTimer !== null) return;
   cameraTimer = setTimeout(() => {
     cameraTimer = null;
-    streamer?.setCamera(cameraPosition());
+    streamer?.setView(cameraPosition(), inViewNow());
     writeUrl(urlState());
+    updateNeuroglancer();
   }, 100);
 };
 
@@ -209,6 +250,8 @@ function urlState(): UrlState {
     slice: $<HTMLInputElement>("slice-on").checked
       ? { axis: slice.state.axis, position: slice.state.position }
       : null,
+    iso: chosenIso(),
+    colormap: $<HTMLSelectElement>("colormap").value as Colormap,
   };
 }
 
@@ -360,7 +403,8 @@ function setupSlice(v: VolumeInfo, state: UrlState | null): void {
   center.value = String(slice.state.center);
   $<HTMLSelectElement>("slice-axis").value = slice.state.axis;
   syncSlicePosition();
-  $<HTMLCanvasElement>("slice").hidden = !$<HTMLInputElement>("slice-on").checked;
+  $<HTMLDivElement>("slice-box").hidden = !$<HTMLInputElement>("slice-on").checked;
+  showSlicePlane();
   void loadSlice();
 }
 
@@ -373,7 +417,8 @@ function syncSlicePosition(): void {
 
 $<HTMLInputElement>("slice-on").addEventListener("change", (e) => {
   const on = (e.target as HTMLInputElement).checked;
-  $<HTMLCanvasElement>("slice").hidden = !on;
+  $<HTMLDivElement>("slice-box").hidden = !on;
+  showSlicePlane();
   void loadSlice();
   writeUrl(urlState());
 });
@@ -381,11 +426,13 @@ $<HTMLSelectElement>("slice-axis").addEventListener("change", (e) => {
   slice.state.axis = (e.target as HTMLSelectElement).value as Axis;
   if (info) slice.state.position = Math.floor(info.dims[AXIS[slice.state.axis]] / 2);
   syncSlicePosition();
+  showSlicePlane();
   void loadSlice();
   writeUrl(urlState());
 });
 $<HTMLInputElement>("slice-pos").addEventListener("change", (e) => {
   slice.state.position = Number((e.target as HTMLInputElement).value);
+  showSlicePlane();
   void loadSlice();
   writeUrl(urlState());
 });
@@ -399,6 +446,124 @@ for (const id of ["slice-width", "slice-center"]) {
     slice.state.width = Number($<HTMLInputElement>("slice-width").value);
     slice.state.center = Number($<HTMLInputElement>("slice-center").value);
     slice.draw();
+  });
+}
+
+/** The slice's plane in the 3D view, while the slice is shown. */
+function showSlicePlane(): void {
+  if (!info || !$<HTMLInputElement>("slice-on").checked) {
+    viewport.setSlicePlane(null);
+    return;
+  }
+  const a = AXIS[slice.state.axis];
+  const s = info.voxel_scale;
+  const size = new THREE.Vector3(info.dims[0] * s[0], info.dims[1] * s[1], info.dims[2] * s[2]);
+  // Voxel i's sample sits at i (the surface's coordinates), so the plane too.
+  viewport.setSlicePlane({ axis: slice.state.axis, position: slice.state.position * (s[a] ?? 1), size });
+}
+
+// --- for scans: colour map, iso value, the voxel under the pointer, Neuroglancer ----------
+
+for (const m of COLORMAPS) $<HTMLSelectElement>("colormap").add(new Option(m, m));
+
+function setColormap(map: Colormap): void {
+  $<HTMLSelectElement>("colormap").value = map;
+  viewport.setColormap(map);
+  slice.setColormap(map);
+}
+
+$<HTMLSelectElement>("colormap").addEventListener("change", (e) => {
+  setColormap((e.target as HTMLSelectElement).value as Colormap);
+  writeUrl(urlState());
+});
+
+/** The iso value chosen, or null for the volume's default (empty or out of its range). */
+function chosenIso(): number | null {
+  const text = $<HTMLInputElement>("iso").value.trim();
+  const v = Number(text);
+  if (!info || text === "" || !Number.isFinite(v) || v < info.low || v > info.high) return null;
+  return v;
+}
+
+$<HTMLInputElement>("iso").addEventListener("change", () => {
+  streamer?.setIso(chosenIso());
+  writeUrl(urlState());
+});
+
+function updateNeuroglancer(): void {
+  if (!info) return;
+  const t = viewport.target;
+  const s = info.voxel_scale;
+  const center: [number, number, number] = [t.x / s[0], t.y / s[1], t.z / s[2]].map(Math.round) as [number, number, number];
+  const base = new URLSearchParams(location.search).get("neuroglancer") ?? "https://neuroglancer-demo.appspot.com/";
+  $<HTMLAnchorElement>("neuroglancer").href = neuroglancerUrl(base, location.origin, info.name, center);
+}
+
+/** What the pointer is over: a voxel's position and value, or nothing. */
+let probe: { where: string; position: [number, number, number]; level: number; value: number } | null = null;
+
+function showProbe(): void {
+  $<HTMLParagraphElement>("probe").textContent = probe
+    ? `${probe.where} (${probe.position.join(", ")})${probe.level > 0 ? ` level ${probe.level}` : ""}: ${probe.value}`
+    : "pointer: -";
+}
+
+{
+  // Over the slice: the voxel shown under the pointer (from the loaded slice, as drawn).
+  const canvas = $<HTMLCanvasElement>("slice");
+  canvas.addEventListener("pointermove", (e) => {
+    const r = canvas.getBoundingClientRect();
+    // The canvas is drawn with object-fit: contain: find the drawn image's box.
+    const scale = Math.min(r.width / canvas.width, r.height / canvas.height);
+    const x0 = r.left + (r.width - canvas.width * scale) / 2;
+    const y0 = r.top + (r.height - canvas.height * scale) / 2;
+    const v = slice.voxelAt((e.clientX - x0) / scale, (e.clientY - y0) / scale);
+    probe = v && { where: "slice", ...v };
+    showProbe();
+  });
+}
+
+{
+  // Over the 3D view: the level-0 voxel nearest the surface point under the pointer, its value
+  // read from its brick (one request per brick and version, at most every 100 ms).
+  const canvas = viewport.renderer.domElement;
+  const bricks = new Map<string, Promise<Uint8Array | Uint16Array>>();
+  let timer: ReturnType<typeof setTimeout> | null = null;
+  let last: { x: number; y: number } | null = null;
+  const look = async () => {
+    timer = null;
+    const v = info;
+    if (!last || !v || !streamer) return;
+    const p = viewport.pick(last.x, last.y);
+    if (!p) {
+      probe = null;
+      showProbe();
+      return;
+    }
+    const s = v.voxel_scale;
+    const pos = [p.x / s[0], p.y / s[1], p.z / s[2]].map((c, a) =>
+      Math.min(v.dims[a]! - 1, Math.max(0, Math.round(c))),
+    ) as [number, number, number];
+    const b = v.brick;
+    const key = { level: 0, x: Math.floor(pos[0] / b), y: Math.floor(pos[1] / b), z: Math.floor(pos[2] / b) };
+    const id = `${v.name}/${streamer.version}/${key.x}/${key.y}/${key.z}`;
+    let voxels = bricks.get(id);
+    if (!voxels) {
+      if (bricks.size > 64) bricks.clear();
+      const u16 = v.voxel_type === "u16";
+      voxels = api.brick(v.name, key).then((buf) => (u16 ? new Uint16Array(buf) : new Uint8Array(buf)));
+      bricks.set(id, voxels);
+      voxels.catch(() => bricks.delete(id));
+    }
+    const data = await voxels;
+    const l = [pos[0] % b, pos[1] % b, pos[2] % b];
+    probe = { where: "surface", position: pos, level: 0, value: data[l[0]! + b * (l[1]! + b * l[2]!)] ?? 0 };
+    showProbe();
+  };
+  canvas.addEventListener("pointermove", (e) => {
+    const r = canvas.getBoundingClientRect();
+    last = { x: e.clientX - r.left, y: e.clientY - r.top };
+    if (timer === null) timer = setTimeout(() => void look().catch(() => {}), 100);
   });
 }
 
@@ -416,6 +581,7 @@ const hook = {
     tilesOnScreen: viewport.tileCount,
     firstFrameMs,
     completeMs,
+    completeInViewMs,
     wireRequests: wire.requests,
     wireBytes: wire.bytes,
     lastEdit,
@@ -436,6 +602,10 @@ const hook = {
     direction: viewport.camera.getWorldDirection(new THREE.Vector3()).toArray(),
     navigation: viewport.navigation,
   }),
+  /** When recent commits reached the page and the screen (performance.now() milliseconds). */
+  traces: () => [...(streamer?.traces.values() ?? [])].map((t) => ({ ...t })),
+  /** The voxel under the pointer (3D view or slice), as the panel shows it. */
+  probe: () => probe,
   /** The tiles the camera needs now, as [level, x, y, z]. */
   selection: () => (streamer?.selection() ?? []).map((k) => [k.level, k.x, k.y, k.z]),
 };

@@ -9,6 +9,8 @@ import type { VolumeInfo } from "./api";
 import type { TileKey } from "./lod";
 import { stitch, type TileMesh, type TriangleSet } from "./mesh";
 import type { TileSink } from "./streamer";
+import { colorAt, type Colormap } from "./colormap";
+import type { Axis } from "./slice";
 
 const VERTEX = /* glsl */ `
 varying vec3 vNormal;
@@ -25,12 +27,30 @@ const FRAGMENT = /* glsl */ `
 varying vec3 vNormal;
 varying float vHeight;
 uniform vec3 sun;
+// 0: the terrain's grass and rock; otherwise the number of colour map stops (height through it).
+uniform int stopCount;
+uniform vec3 stops[10];
+vec3 colormap(float t) {
+  float x = clamp(t, 0.0, 1.0) * float(stopCount - 1);
+  int i = int(min(floor(x), float(stopCount - 2)));
+  vec3 a = stops[0];
+  vec3 b = stops[1];
+  for (int k = 0; k < 9; k++) {
+    if (k == i) { a = stops[k]; b = stops[k + 1]; }
+  }
+  return mix(a, b, x - float(i));
+}
 void main() {
   vec3 n = normalize(vNormal);
   float light = 0.38 + 0.62 * max(dot(n, sun), 0.0);
-  vec3 rock = mix(vec3(0.45, 0.36, 0.28), vec3(0.62, 0.60, 0.58), clamp(vHeight, 0.0, 1.0));
-  vec3 grass = mix(vec3(0.30, 0.52, 0.20), vec3(0.55, 0.62, 0.30), clamp(vHeight, 0.0, 1.0));
-  vec3 base = mix(rock, grass, smoothstep(0.55, 0.8, n.y));
+  vec3 base;
+  if (stopCount == 0) {
+    vec3 rock = mix(vec3(0.45, 0.36, 0.28), vec3(0.62, 0.60, 0.58), clamp(vHeight, 0.0, 1.0));
+    vec3 grass = mix(vec3(0.30, 0.52, 0.20), vec3(0.55, 0.62, 0.30), clamp(vHeight, 0.0, 1.0));
+    base = mix(rock, grass, smoothstep(0.55, 0.8, n.y));
+  } else {
+    base = colormap(vHeight);
+  }
   gl_FragColor = vec4(base * light, 1.0);
 }`;
 
@@ -51,10 +71,15 @@ export class Viewport implements TileSink {
   readonly camera: THREE.PerspectiveCamera;
   private readonly scene = new THREE.Scene();
   private readonly tiles = new Map<string, TileView>();
+  private plane: THREE.Group | null = null;
   private readonly material: THREE.ShaderMaterial;
   private readonly orbit: OrbitControls;
   private readonly fly: FlyNavigation;
   private frameRequested = false;
+  /** When the next frame may be drawn (performance.now()), after the last one's pause. */
+  private nextFrameAt = 0;
+  private readonly frustum = new THREE.Frustum();
+  private readonly projScreen = new THREE.Matrix4();
   navigation: Navigation = "orbit";
   /** Called after each frame with the number of tiles drawn. */
   onFrame: (tiles: number) => void = () => {};
@@ -69,6 +94,8 @@ export class Viewport implements TileSink {
     const uniforms = {
       sun: { value: new THREE.Vector3(0.4, 0.8, 0.45).normalize() },
       heightScale: { value: 1 / 256 },
+      stopCount: { value: 0 },
+      stops: { value: Array.from({ length: 10 }, () => new THREE.Vector3()) },
     };
     this.material = new THREE.ShaderMaterial({ vertexShader: VERTEX, fragmentShader: FRAGMENT, uniforms });
     this.orbit = new OrbitControls(this.camera, canvas);
@@ -133,6 +160,59 @@ export class Viewport implements TileSink {
     this.requestRender();
   }
 
+  /** Colours the surface by height through `map` ("terrain": grass and rock). */
+  setColormap(map: Colormap): void {
+    const u = this.material.uniforms;
+    if (map === "terrain") {
+      u["stopCount"]!.value = 0;
+    } else {
+      const stops = u["stops"]!.value as THREE.Vector3[];
+      for (let i = 0; i < 10; i++) {
+        const [r, g, b] = colorAt(map, i / 9);
+        // A ShaderMaterial's gl_FragColor goes out as it is: the map's sRGB values as they are.
+        stops[i]!.set(r / 255, g / 255, b / 255);
+      }
+      u["stopCount"]!.value = 10;
+    }
+    this.requestRender();
+  }
+
+  /**
+   * Draws the slice's plane in the view (a translucent square across the volume with its
+   * outline), or removes it.
+   */
+  setSlicePlane(plane: { axis: Axis; position: number; size: THREE.Vector3 } | null): void {
+    if (this.plane) {
+      this.scene.remove(this.plane);
+      this.plane.traverse((o) => {
+        if (o instanceof THREE.Mesh || o instanceof THREE.LineSegments) o.geometry.dispose();
+      });
+      this.plane = null;
+    }
+    if (plane) {
+      const { axis, position, size } = plane;
+      const a = axis === "x" ? 0 : axis === "y" ? 1 : 2;
+      const box = new THREE.BoxGeometry(
+        a === 0 ? 0 : size.x,
+        a === 1 ? 0 : size.y,
+        a === 2 ? 0 : size.z,
+      );
+      const group = new THREE.Group();
+      const fill = new THREE.Mesh(
+        box,
+        new THREE.MeshBasicMaterial({ color: 0xffd040, transparent: true, opacity: 0.18, side: THREE.DoubleSide, depthWrite: false }),
+      );
+      const edges = new THREE.LineSegments(new THREE.EdgesGeometry(box), new THREE.LineBasicMaterial({ color: 0xffb000 }));
+      group.add(fill, edges);
+      const center = size.clone().multiplyScalar(0.5);
+      center.setComponent(a, position);
+      group.position.copy(center);
+      this.plane = group;
+      this.scene.add(group);
+    }
+    this.requestRender();
+  }
+
   // --- tiles (the streamer's sink) ----------------------------------------------------------
 
   show(
@@ -147,7 +227,7 @@ export class Viewport implements TileSink {
     mesh.matrixAutoUpdate = false;
     this.scene.add(mesh);
     this.tiles.set(id, { mesh, data, mask });
-    this.requestRender();
+    if (this.seen(mesh)) this.requestRender();
   }
 
   hide(id: string): void {
@@ -156,7 +236,18 @@ export class Viewport implements TileSink {
     this.scene.remove(t.mesh);
     t.mesh.geometry.dispose();
     this.tiles.delete(id);
-    this.requestRender();
+    if (this.seen(t.mesh)) this.requestRender();
+  }
+
+  /** Whether a tile's mesh is in the view frustum (a tile outside it changes no frame). */
+  private seen(mesh: THREE.Mesh): boolean {
+    const g = mesh.geometry;
+    if (!g.boundingSphere) g.computeBoundingSphere();
+    this.camera.updateMatrixWorld();
+    this.frustum.setFromProjectionMatrix(
+      this.projScreen.multiplyMatrices(this.camera.projectionMatrix, this.camera.matrixWorldInverse),
+    );
+    return g.boundingSphere ? this.frustum.intersectsSphere(g.boundingSphere) : true;
   }
 
   get tileCount(): number {
@@ -165,15 +256,33 @@ export class Viewport implements TileSink {
 
   // --- frames, picking --------------------------------------------------------------------
 
+  /**
+   * Draws a frame soon. A frame that takes long (software rendering: about 100 ms for the
+   * default view, several hundred close to the ground) is followed by a pause of twice its
+   * length, so that drawing takes at most a third of the main thread while tiles stream in and
+   * their responses are not kept waiting; after a quiet moment (an edit landing in a still view)
+   * the frame is drawn at once.
+   */
   requestRender(): void {
     if (this.frameRequested) return;
     this.frameRequested = true;
-    requestAnimationFrame(() => {
-      this.frameRequested = false;
-      if (this.fly.enabled && this.fly.step()) this.requestRender();
-      this.renderer.render(this.scene, this.camera);
-      this.onFrame(this.tiles.size);
-    });
+    const wait = this.nextFrameAt - performance.now();
+    const frame = () =>
+      requestAnimationFrame(() => {
+        this.frameRequested = false;
+        if (this.fly.enabled && this.fly.step()) this.requestRender();
+        const start = performance.now();
+        this.renderer.render(this.scene, this.camera);
+        this.onFrame(this.tiles.size);
+        // The frame's cost includes the browser's work after this callback (compositing, and
+        // with SwiftShader the rasterizing): it ends when the next task runs.
+        setTimeout(() => {
+          const end = performance.now();
+          this.nextFrameAt = end + 2 * (end - start);
+        }, 0);
+      });
+    if (wait > 1) setTimeout(frame, wait);
+    else frame();
   }
 
   private resize(): void {

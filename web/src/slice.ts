@@ -7,6 +7,7 @@
 // the right and z down (row 0 is z = 0).
 
 import type { Api, VolumeInfo } from "./api";
+import { lut, type Colormap } from "./colormap";
 
 export type Axis = "x" | "y" | "z";
 
@@ -81,6 +82,7 @@ export class SliceView {
   private values: Uint16Array | null = null;
   private size = { w: 0, h: 0, level: 0, index: 0 };
   private controller: AbortController | null = null;
+  private colors = lut("grey");
   /** Called when the slice was drawn (after each load). */
   onDrawn: () => void = () => {};
 
@@ -196,7 +198,32 @@ export class SliceView {
     this.draw();
   }
 
-  /** Draws the loaded values through the current window/level. */
+  /** Maps the window/level's grey levels through `map` ("terrain" draws grey). */
+  setColormap(map: Colormap): void {
+    this.colors = lut(map);
+    this.draw();
+  }
+
+  /**
+   * The voxel under canvas pixel (px, py) (canvas pixels, one per voxel of the level shown): its
+   * level, its position in that level's voxels and its value; null off the slice.
+   */
+  voxelAt(px: number, py: number): { level: number; position: [number, number, number]; value: number } | null {
+    const values = this.values;
+    if (!values) return null;
+    const { w, h, level, index } = this.size;
+    const cu = Math.floor(px);
+    const y = Math.floor(py);
+    if (cu < 0 || y < 0 || cu >= w || y >= h) return null;
+    const { col, row, rowDown } = planeAxes(this.state.axis);
+    const p: [number, number, number] = [0, 0, 0];
+    p[AXIS[this.state.axis]] = index;
+    p[col] = cu;
+    p[row] = rowDown ? y : h - 1 - y;
+    return { level, position: p, value: values[y * w + cu] ?? 0 };
+  }
+
+  /** Draws the loaded values through the current window/level and colour map. */
   draw(): void {
     const values = this.values;
     if (!values) return;
@@ -207,11 +234,12 @@ export class SliceView {
     if (!ctx) return;
     const img = ctx.createImageData(w, h);
     const { center, width } = this.state;
+    const colors = this.colors;
     for (let i = 0; i < values.length; i++) {
       const g = windowLevel(values[i] ?? 0, center, width);
-      img.data[i * 4] = g;
-      img.data[i * 4 + 1] = g;
-      img.data[i * 4 + 2] = g;
+      img.data[i * 4] = colors[g * 3] ?? 0;
+      img.data[i * 4 + 1] = colors[g * 3 + 1] ?? 0;
+      img.data[i * 4 + 2] = colors[g * 3 + 2] ?? 0;
       img.data[i * 4 + 3] = 255;
     }
     ctx.putImageData(img, 0, 0);

@@ -26,8 +26,16 @@
 //
 // Edits. `applyCommit` forgets the hashes of the changed bricks, aborts the requests they make
 // stale, and plans again: the chunks holding them are fetched at the new version, and exactly the
-// tiles whose inputs changed get a new content key and are refetched; until then they keep
-// showing their old mesh.
+// tiles whose inputs changed get a new content key and are refetched, ahead of everything else.
+//
+// Versions swap whole. A tile whose drawing changed (new content, or new strips) is "pending";
+// pending tiles that touch (by a face, an edge or a corner, across levels too) form a region,
+// and a region keeps showing its old drawings until every one of its new drawings has arrived,
+// then swaps them all in one plan (one frame). So a tile never meets a neighbour of another
+// version: a tile whose drawing did not change read none of the changed bricks, so its border
+// agrees with both versions of its neighbours. Commits that land while a region waits collapse
+// into the newest: the region waits for the newest drawings, and requests for older ones are
+// cancelled (their content keys are no longer wanted).
 
 import { Api, ApiError, isAbort, type ChangeEvent, type LevelBrick, type LevelGrid, type VolumeInfo } from "./api";
 import { balancedTiles, keyText, Layout, stitchMasks, tileDistance, type TileKey } from "./lod";
@@ -78,6 +86,8 @@ export interface StreamerStats {
   /** Tiles drawn, and triangles in them. */
   drawn: number;
   triangles: number;
+  /** Triangles of the tiles drawn in the view frustum. */
+  trianglesInView: number;
   inFlight: number;
   /** Requests allowed in flight now: the maximum, less after the server refused some. */
   inFlightLimit: number;
@@ -86,14 +96,42 @@ export interface StreamerStats {
   bytes: number;
   /** Every tile of the selection shows its current content; nothing is in flight for it. */
   complete: boolean;
-  /** Delivered tiles waiting for the content an edit gave them. */
+  /** The same for the tiles in the view frustum (those outside may still be loading). */
+  completeInView: boolean;
+  /** Tiles showing an older drawing, waiting for their region's new drawings to arrive. */
   stale: number;
   lastError: string | null;
 }
 
+/**
+ * Request priority, smallest first: [class, -level, distance]. Class 0: a tile on screen whose
+ * drawing a commit made stale (what others just edited jumps the queue); 1: in the view
+ * frustum; 2: out of it.
+ */
+type Priority = [number, number, number];
+
+/** When a commit's changes reached the page and the screen (performance.now() milliseconds). */
+export interface CommitTrace {
+  version: number;
+  /** The change feed delivered it. */
+  feed: number;
+  /** The last response of a request started at this version arrived. */
+  fetched: number | null;
+  /** Requests started at this version, and the time spent decoding their answers. */
+  requests: number;
+  decodeMs: number;
+  /** Every tile of the view shows its drawing of this version (or a later one). */
+  shown: number | null;
+  /** The first frame drawn after `shown` (set by the renderer's owner, `main.ts`). */
+  frame: number | null;
+}
+
+/** Commit traces kept (the newest). */
+const TRACES = 256;
+
 interface Job {
   id: string;
-  priority: [number, number];
+  priority: Priority;
   controller: AbortController;
   version: number;
   /** When it started (performance.now()), to tell which overload a refusal belongs to. */
@@ -110,6 +148,11 @@ export interface StreamerOptions {
   maxInFlight: number;
   cacheBytes?: number;
   onChange?: () => void;
+  /**
+   * Whether a box (world units: voxel coordinates times the voxel scale) is in the view
+   * frustum; by default everything is.
+   */
+  inView?: (min: [number, number, number], max: [number, number, number]) => boolean;
 }
 
 export class Streamer {
@@ -121,10 +164,17 @@ export class Streamer {
   radii: number[];
   version: number;
   private readonly limit: InFlightLimit;
+  /** The iso value meshed at: null for the volume's default (S - 0.5). */
+  private isoValue: number | null = null;
 
   private camera: [number, number, number] = [0, 0, 0];
   /** Per level: brick index -> what the grid said. */
   private hashes: Array<Map<number, LevelBrick>> = [];
+  /**
+   * Content keys computed since the hashes last changed (a plan after each response would
+   * otherwise compute every selected tile's and strip's key again: most of a plan's time).
+   */
+  private keys = new Map<string, string | null>();
   private readonly cache = new Map<string, TileMesh | null>();
   private cacheBytes = 0;
   private readonly cacheLimit: number;
@@ -138,6 +188,15 @@ export class Streamer {
   private masks = new Map<string, number>();
   private readyCount = 0;
   private staleCount = 0;
+  private readyInView = 0;
+  private desiredInView = 0;
+  private inView: (min: [number, number, number], max: [number, number, number]) => boolean;
+  /** Per selected tile: whether it is in the view frustum. */
+  private visible = new Map<string, boolean>();
+  /** Tiles showing an older drawing than their current one (the last plan's pending regions). */
+  private pendingIds = new Set<string>();
+  /** Per recent commit: when it reached the page and the screen. */
+  readonly traces = new Map<number, CommitTrace>();
   private desired: TileKey[] = [];
   private selectionKey = "";
   private planned = false;
@@ -157,6 +216,7 @@ export class Streamer {
     this.cacheLimit = o.cacheBytes ?? 256 << 20;
     this.version = o.info.version;
     this.onChange = o.onChange ?? (() => {});
+    this.inView = o.inView ?? (() => true);
     this.hashes = this.layout.grids.map(() => new Map());
   }
 
@@ -183,6 +243,33 @@ export class Streamer {
     this.plan();
   }
 
+  /** The iso value meshed at (null: the volume's default, S - 0.5). */
+  get iso(): number | null {
+    return this.isoValue;
+  }
+
+  /**
+   * Meshes at another iso value: every tile gets a new content key; the view keeps the old
+   * surface until the new one has arrived (one region), then swaps.
+   */
+  setIso(iso: number | null): void {
+    if (iso === this.isoValue) return;
+    this.isoValue = iso;
+    this.keys.clear();
+    this.plan();
+  }
+
+  /** The camera moved or turned: its position, and what is in its view frustum now. */
+  setView(
+    camera: [number, number, number],
+    inView: (min: [number, number, number], max: [number, number, number]) => boolean,
+  ): void {
+    this.camera = camera;
+    this.inView = inView;
+    this.visible = new Map();
+    this.plan();
+  }
+
   setRadii(radii: number[]): void {
     this.radii = radii;
     this.plan();
@@ -197,10 +284,24 @@ export class Streamer {
       for (const [x, y, z] of bricks) {
         changed.add(`${level}/${x}/${y}/${z}`);
         known?.delete(this.brickIndex(level, x, y, z));
+        this.keys.clear();
       }
     });
     this.commitLog.push({ version: ev.version, bricks: changed });
     if (this.commitLog.length > COMMIT_LOG) this.commitLog.shift();
+    this.traces.set(ev.version, {
+      version: ev.version,
+      feed: performance.now(),
+      fetched: null,
+      requests: 0,
+      decodeMs: 0,
+      shown: null,
+      frame: null,
+    });
+    for (const v of this.traces.keys()) {
+      if (this.traces.size <= TRACES) break;
+      this.traces.delete(v);
+    }
     this.version = ev.version;
     // Chunk requests still running answer for the old version; the chunks holding changed
     // bricks are asked again at the new one (mesh requests are by content key: still valid).
@@ -217,6 +318,7 @@ export class Streamer {
     this.layout = new Layout(info.dims, info.brick);
     this.selectionKey = "";
     this.hashes = this.layout.grids.map(() => new Map());
+    this.keys.clear();
     this.commitLog.length = 0;
     this.version = info.version;
     this.plan();
@@ -233,19 +335,26 @@ export class Streamer {
   stats(): StreamerStats {
     if (this.statsCache) return this.statsCache;
     let triangles = 0;
-    for (const d of this.displayed.values()) triangles += stitchedTriangles(d.mesh, d.mask, d.strips);
+    let trianglesInView = 0;
+    for (const [id, d] of this.displayed) {
+      const n = stitchedTriangles(d.mesh, d.mask, d.strips);
+      triangles += n;
+      if (this.visible.get(id.startsWith("s:") ? id.slice(2) : id) !== false) trianglesInView += n;
+    }
     this.statsCache = {
       version: this.version,
       desired: this.desired.length,
       ready: this.readyCount,
       drawn: this.displayed.size,
       triangles,
+      trianglesInView,
       inFlight: this.jobs.size,
       inFlightLimit: this.limit.get(),
       requests: this.counters.requests,
       bytes: this.counters.bytes,
       complete:
         this.planned && this.readyCount === this.desired.length && this.jobs.size === 0,
+      completeInView: this.planned && this.readyInView === this.desiredInView,
       stale: this.staleCount,
       lastError: this.lastError,
     };
@@ -271,10 +380,10 @@ export class Streamer {
    * interpolation; outside the volume every voxel is L = 0).
    */
   private keyOf(name: string, reads: TileRead[]): string | null {
-    const iso = this.info.surface - 0.5;
+    const iso = this.isoValue ?? this.info.surface - 0.5;
     let low = Infinity;
     let high = -Infinity;
-    const parts: string[] = [name];
+    const parts: string[] = [this.isoValue === null ? name : `${name}@${iso}`];
     for (const read of reads) {
       const [lo, hi] = read.bricks;
       const [clo, chi] = read.crossing;
@@ -304,12 +413,24 @@ export class Streamer {
 
   /** The tile's content key (`keyOf` of what it reads). */
   private contentKey(k: TileKey): string | null {
-    return this.keyOf(keyText(k), meshTileReads(this.layout, k));
+    const name = keyText(k);
+    let key = this.keys.get(name);
+    if (key === undefined) {
+      key = this.keyOf(name, meshTileReads(this.layout, k));
+      this.keys.set(name, key);
+    }
+    return key;
   }
 
   /** The content key of the strip of face `face` of tile `k`. */
   private stripKey(k: TileKey, face: number): string | null {
-    return this.keyOf(`${keyText(k)}/${face}`, stripReads(this.layout, k, face));
+    const name = `${keyText(k)}/${face}`;
+    let key = this.keys.get(name);
+    if (key === undefined) {
+      key = this.keyOf(name, stripReads(this.layout, k, face));
+      this.keys.set(name, key);
+    }
+    return key;
   }
 
   /** The faces of tile `k`'s mask. */
@@ -368,6 +489,28 @@ export class Streamer {
     return undefined;
   }
 
+  /** Tile `k`'s box in world units. */
+  private box(k: TileKey): [[number, number, number], [number, number, number]] {
+    const span = this.layout.brick * 2 ** k.level;
+    const s = this.info.voxel_scale;
+    const p = [k.x, k.y, k.z];
+    const min = [0, 1, 2].map((a) => (p[a] ?? 0) * span * (s[a] ?? 1)) as [number, number, number];
+    const max = [0, 1, 2].map((a) => ((p[a] ?? 0) + 1) * span * (s[a] ?? 1)) as [number, number, number];
+    return [min, max];
+  }
+
+  /** Whether tile `k` is in the view frustum (remembered per selection). */
+  private isVisible(k: TileKey): boolean {
+    const id = keyText(k);
+    let v = this.visible.get(id);
+    if (v === undefined) {
+      const [min, max] = this.box(k);
+      v = this.inView(min, max);
+      this.visible.set(id, v);
+    }
+    return v;
+  }
+
   /** Plans again: the selection, what is drawn, and which requests run. */
   plan(): void {
     if (this.stopped) return;
@@ -380,26 +523,38 @@ export class Streamer {
       this.selectionKey = selectionKey;
       this.desired = balancedTiles(this.layout, scale, this.camera, this.radii);
       this.masks = stitchMasks(this.layout, this.desired);
+      this.visible = new Map();
     }
-    // Stand-ins: the tiles of the selection's coarsest level over selected tiles that have
-    // nothing to show yet.
+    // Stand-ins: the tiles of the selection's coarsest level over selected tiles in the view
+    // frustum that have nothing to show yet (out of it, nothing shows either way: they must not
+    // keep the tiles in view under a stand-in).
     const coarsest = this.desired.reduce((a, k) => Math.max(a, k.level), 0);
     const standIns = new Map<string, TileKey>();
     for (const k of this.desired) {
-      if (k.level < coarsest && this.showable(k, this.masks.get(keyText(k)) ?? 0) === undefined) {
+      if (
+        k.level < coarsest &&
+        this.isVisible(k) &&
+        this.showable(k, this.masks.get(keyText(k)) ?? 0) === undefined
+      ) {
         const a = this.layout.ancestor(k, coarsest);
         standIns.set(keyText(a), a);
       }
     }
 
-    // What each tile needs, with its priority: coarse first, then nearest.
-    const wanted = new Map<string, { priority: [number, number]; start: () => void }>();
-    const want = (id: string, priority: [number, number], start: () => void) => {
+    // What is on screen (first: it tells which tiles are pending).
+    this.draw(standIns);
+
+    // What each tile needs, with its priority: stale tiles on screen first, then those in the
+    // view frustum, then the rest; within each, coarse first, then nearest.
+    const wanted = new Map<string, { priority: Priority; start: () => void }>();
+    const want = (id: string, priority: Priority, start: () => void) => {
       const w = wanted.get(id);
       if (!w || compare(priority, w.priority) < 0) wanted.set(id, { priority, start });
     };
     const need = (k: TileKey, faces: number[]) => {
-      const priority: [number, number] = [-k.level, tileDistance(this.layout, scale, k, this.camera)];
+      const id = keyText(k);
+      const urgency = this.pendingIds.has(id) ? 0 : this.isVisible(k) ? 1 : 2;
+      const priority: Priority = [urgency, -k.level, tileDistance(this.layout, scale, k, this.camera)];
       const content = this.contentKey(k);
       const chunks = new Set<string>();
       if (content === null) {
@@ -439,7 +594,10 @@ export class Streamer {
       })
       .sort((a, b) => compare(a[1].priority, b[1].priority));
     for (const [id, w] of queue) {
-      if (this.jobs.size >= this.limit.get()) break;
+      // Stale tiles on screen may take one place beyond the limit, so an edit is never queued
+      // behind a long load.
+      const room = this.limit.get() + (w.priority[0] === 0 ? 1 : 0);
+      if (this.jobs.size >= room) break;
       this.jobs.set(id, {
         id,
         priority: w.priority,
@@ -447,20 +605,20 @@ export class Streamer {
         version: this.version,
         started: now,
       });
+      this.trace(this.version, (t) => t.requests++);
       w.start();
     }
     if (this.retryTimer !== null) clearTimeout(this.retryTimer);
     this.retryTimer =
       nextRetry < Infinity ? setTimeout(() => this.plan(), nextRetry - now + 1) : null;
-
-    this.draw(standIns);
     this.onChange();
   }
 
   /**
    * What is on screen: each selected tile that has something to show, except under a stand-in:
    * where a selected tile has nothing yet, the stand-in over it is drawn instead of every
-   * selected tile under it (they would overlap).
+   * selected tile under it (they would overlap). A tile whose drawing changed swaps only with
+   * every other changed tile it touches (its region), when all their new drawings are there.
    */
   private draw(standIns: Map<string, TileKey>): void {
     const coarsest = this.desired.reduce((a, k) => Math.max(a, k.level), 0);
@@ -472,18 +630,68 @@ export class Streamer {
     const next = new Map<string, { key: TileKey; drawing: Drawing }>();
     const desiredIds = new Set<string>();
     let ready = 0;
-    let stale = 0;
+    let readyInView = 0;
+    let inView = 0;
+    const put = (id: string, k: TileKey, d: Drawing | null, current: boolean) => {
+      this.lastShown.set(id, d);
+      if (d) next.set(id, { key: k, drawing: d });
+      if (current) {
+        ready++;
+        if (this.isVisible(k)) readyInView++;
+      }
+    };
+    const pending: Array<{ id: string; key: TileKey; now: Drawing | null | undefined; old: Drawing | null }> = [];
     for (const k of this.desired) {
       const id = keyText(k);
       desiredIds.add(id);
+      if (this.isVisible(k)) inView++;
       if (k.level < coarsest && covering.has(keyText(this.layout.ancestor(k, coarsest)))) continue;
-      const m = this.showable(k, this.masks.get(id) ?? 0);
-      if (!m) continue;
-      this.lastShown.set(id, m.drawing);
-      if (m.current) ready++;
-      else stale++;
-      if (m.drawing) next.set(id, { key: k, drawing: m.drawing });
+      const now = this.current(k, this.masks.get(id) ?? 0);
+      const old = this.lastShown.get(id);
+      if (old === undefined) {
+        // Never shown: nothing to keep; shown once it is there.
+        if (now !== undefined) put(id, k, now, true);
+        continue;
+      }
+      if (now !== undefined && (now?.content ?? "") === (old?.content ?? "")) put(id, k, now, true);
+      else pending.push({ id, key: k, now, old });
     }
+
+    // Regions: pending tiles that touch, joined (union-find).
+    const parent = pending.map((_, i) => i);
+    const root = (i: number): number => {
+      while (parent[i] !== i) i = parent[i] = parent[parent[i]!]!;
+      return i;
+    };
+    // A sweep along x: only boxes whose x ranges meet are compared (an iso change makes every
+    // tile pending; all pairs would be too many to check on every plan).
+    const boxes = pending.map((p) => this.voxelBox(p.key));
+    const byX = boxes.map((_, i) => i).sort((i, j) => boxes[i]![0]! - boxes[j]![0]!);
+    for (let a = 0; a < byX.length; a++) {
+      const i = byX[a]!;
+      for (let b = a + 1; b < byX.length; b++) {
+        const j = byX[b]!;
+        if (boxes[j]![0]! > boxes[i]![1]!) break;
+        if (touches(boxes[i]!, boxes[j]!)) parent[root(i)] = root(j);
+      }
+    }
+    const waiting = new Set<number>();
+    pending.forEach((p, i) => {
+      if (p.now === undefined) waiting.add(root(i));
+    });
+    this.pendingIds = new Set();
+    let stale = 0;
+    pending.forEach((p, i) => {
+      if (waiting.has(root(i))) {
+        put(p.id, p.key, p.old, false);
+        // Urgent when a commit changed it (its mask, which only the camera changes, is the same).
+        if (p.old === null || p.old.mask === (this.masks.get(p.id) ?? 0)) this.pendingIds.add(p.id);
+        stale++;
+      } else {
+        put(p.id, p.key, p.now ?? null, true);
+      }
+    });
+
     for (const [id, c] of covering) {
       if (c.drawing) next.set(`s:${id}`, { key: c.key, drawing: c.drawing });
     }
@@ -504,6 +712,26 @@ export class Streamer {
     }
     this.readyCount = ready;
     this.staleCount = stale;
+    this.readyInView = readyInView;
+    this.desiredInView = inView;
+    if (stale === 0) {
+      const now = performance.now();
+      for (const t of this.traces.values()) {
+        if (t.shown === null && t.version <= this.version) t.shown = now;
+      }
+    }
+  }
+
+  /** Tile `k`'s box in level-0 voxels, [min, max] per axis. */
+  private voxelBox(k: TileKey): number[] {
+    const span = this.layout.brick * 2 ** k.level;
+    return [k.x * span, (k.x + 1) * span, k.y * span, (k.y + 1) * span, k.z * span, (k.z + 1) * span];
+  }
+
+  /** Applies `f` to the trace of `version`, if one is kept. */
+  private trace(version: number, f: (t: CommitTrace) => void): void {
+    const t = this.traces.get(version);
+    if (t) f(t);
   }
 
   // --- requests ---------------------------------------------------------------------------
@@ -553,6 +781,7 @@ export class Streamer {
       .then(({ grid, bytes }) => {
         if (this.jobs.get(id) !== job) return;
         this.counters.bytes += bytes;
+        this.trace(job.version, (t) => (t.fetched = performance.now()));
         this.learn(grid, job.version);
         this.finish(id, job, null);
       })
@@ -573,6 +802,7 @@ export class Streamer {
           const text = `${grid.level}/${x}/${y}/${z}`;
           if (b && !later.some((c) => c.bricks.has(text))) {
             known.set(this.brickIndex(grid.level, x, y, z), b);
+            this.keys.clear();
           }
         }
       }
@@ -585,11 +815,13 @@ export class Streamer {
     if (!job) return;
     this.counters.requests++;
     this.api
-      .meshTile(this.info.name, k, job.version, job.controller.signal)
+      .meshTile(this.info.name, k, job.version, job.controller.signal, this.isoValue)
       .then((buffer) => {
         if (this.jobs.get(id) !== job) return;
         this.counters.bytes += buffer.byteLength;
+        const t0 = performance.now();
         const mesh = decodeTile(buffer);
+        this.decoded(job.version, t0);
         this.remember(content, mesh.indices.length === 0 ? null : mesh);
         this.finish(id, job, null);
       })
@@ -602,15 +834,26 @@ export class Streamer {
     if (!job) return;
     this.counters.requests++;
     this.api
-      .meshStrip(this.info.name, k, face, job.version, job.controller.signal)
+      .meshStrip(this.info.name, k, face, job.version, job.controller.signal, this.isoValue)
       .then((buffer) => {
         if (this.jobs.get(id) !== job) return;
         this.counters.bytes += buffer.byteLength;
+        const t0 = performance.now();
         const strip = decodeStrip(buffer);
+        this.decoded(job.version, t0);
         this.remember(content, strip.indices.length === 0 ? null : strip);
         this.finish(id, job, null);
       })
       .catch((e: unknown) => this.finish(id, job, e));
+  }
+
+  /** Notes in `version`'s trace a response that arrived at `t0` and was decoded until now. */
+  private decoded(version: number, t0: number): void {
+    const now = performance.now();
+    this.trace(version, (t) => {
+      t.fetched = t0;
+      t.decodeMs += now - t0;
+    });
   }
 
   /** Keeps a tile's mesh by content key, least recently stored first out past the budget. */
@@ -632,6 +875,14 @@ export class Streamer {
   }
 }
 
-function compare(a: [number, number], b: [number, number]): number {
-  return a[0] - b[0] || a[1] - b[1];
+function compare(a: Priority, b: Priority): number {
+  return a[0] - b[0] || a[1] - b[1] || a[2] - b[2];
+}
+
+/** Whether two boxes ([min, max] per axis) share at least a point. */
+function touches(a: number[], b: number[]): boolean {
+  for (let i = 0; i < 6; i += 2) {
+    if ((a[i] ?? 0) > (b[i + 1] ?? 0) || (b[i] ?? 0) > (a[i + 1] ?? 0)) return false;
+  }
+  return true;
 }

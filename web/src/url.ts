@@ -1,8 +1,10 @@
 // The view in the page's URL, so a link reproduces it: volume, camera, navigation, detail and
-// slice, e.g. `?volume=demo&camera=-30,300,700&target=256,90,256&nav=orbit&detail=8&slice=z:256`.
+// slice, iso value and colour map, e.g.
+// `?volume=demo&camera=-30,300,700&target=256,90,256&nav=orbit&detail=12&slice=z:256&iso=90.5&cmap=viridis`.
 
 import type { Navigation } from "./scene";
 import type { Axis } from "./slice";
+import { COLORMAPS, type Colormap } from "./colormap";
 
 type V3 = [number, number, number];
 
@@ -12,6 +14,9 @@ export interface UrlState {
   navigation: Navigation | null;
   detail: number | null;
   slice: { axis: Axis; position: number } | null;
+  /** The iso value (null: the volume's own). */
+  iso?: number | null;
+  colormap?: Colormap | null;
 }
 
 function vec(s: string | null): V3 | null {
@@ -27,7 +32,11 @@ export function readUrl(search = location.search): UrlState {
   const nav = q.get("nav");
   const detail = Number(q.get("detail"));
   const [axis, pos] = (q.get("slice") ?? "").split(":");
+  const iso = q.get("iso");
+  const cmap = q.get("cmap");
   return {
+    iso: iso !== null && iso !== "" && Number.isFinite(Number(iso)) ? Number(iso) : null,
+    colormap: COLORMAPS.find((m) => m === cmap) ?? null,
     volume: q.get("volume"),
     camera: position && target ? { position, target } : null,
     navigation: nav === "orbit" || nav === "fly" ? nav : null,
@@ -51,6 +60,8 @@ export function urlQuery(s: UrlState): string {
   if (s.navigation) q.set("nav", s.navigation);
   if (s.detail) q.set("detail", String(s.detail));
   if (s.slice) q.set("slice", `${s.slice.axis}:${s.slice.position}`);
+  if (s.iso != null) q.set("iso", String(s.iso));
+  if (s.colormap && s.colormap !== "terrain") q.set("cmap", s.colormap);
   return `?${q.toString().replaceAll("%2C", ",").replaceAll("%3A", ":")}`;
 }
 

@@ -316,4 +316,120 @@ describe("the streamer", () => {
     expect(server.pendingAll().length).toBeLessThanOrEqual(5);
     s.stop();
   });
+
+  it("swaps a commit's changed tiles only together with every changed tile they touch", async () => {
+    const server = new ScriptedServer();
+    const camera: Vec3 = [20, 40, 20];
+    // What each tile shows, as the identities of its mesh, mask and strips.
+    const ids = new WeakMap<object, number>();
+    let count = 0;
+    const idOf = (o: object | null) => {
+      if (!o) return "-";
+      if (!ids.has(o)) ids.set(o, ++count);
+      return String(ids.get(o));
+    };
+    const shown = new Map<string, { key: TileKey; drawing: string }>();
+    const s = new Streamer({
+      api: server.api(),
+      info: INFO,
+      sink: {
+        show: (id, key, m, mask, strips) =>
+          shown.set(id, { key, drawing: [idOf(m), mask, ...strips.map(idOf)].join(",") }),
+        hide: (id) => shown.delete(id),
+      },
+      radii: [12, 24, 48],
+      maxInFlight: 3,
+    });
+    s.setCamera(camera);
+    await settle();
+    while (await server.answerOne());
+    const before = new Map([...shown].map(([id, v]) => [id, v.drawing]));
+    const snapshots: Array<Map<string, { key: TileKey; drawing: string }>> = [];
+    // Two commits in a burst at one place: the second lands before any tile of the first.
+    const changed: Vec3[][] = [[[2, 1, 2], [3, 1, 2]], [[1, 0, 1]], [], []];
+    changed.forEach((bricks, level) => server.edit(level, bricks));
+    s.applyCommit({ version: 2, timestamp_ms: 0, changed });
+    await settle();
+    const firstCalls = server.pendingAll();
+    expect(firstCalls.length).toBeGreaterThan(0);
+    expect(firstCalls.every((c) => c.version === 2)).toBe(true);
+    changed.forEach((bricks, level) => server.edit(level, bricks));
+    s.applyCommit({ version: 3, timestamp_ms: 0, changed });
+    await settle();
+    // The requests for version 2's drawings are cancelled: version 3 replaces them.
+    expect(firstCalls.every((c) => c.signal.aborted)).toBe(true);
+    snapshots.push(new Map(shown));
+    while (await server.answerOne()) snapshots.push(new Map(shown));
+    expect(s.stats()).toMatchObject({ version: 3, complete: true, stale: 0 });
+    const after = new Map([...shown].map(([id, v]) => [id, v.drawing]));
+    const swapped = [...after.keys()].filter((id) => before.has(id) && before.get(id) !== after.get(id));
+    expect(swapped.length).toBeGreaterThan(3);
+    // In every state shown, a tile already showing its new drawing never touches a tile still
+    // showing an old drawing it will replace.
+    const box = (k: TileKey) => {
+      const span = BRICK * 2 ** k.level;
+      return [k.x, k.y, k.z].map((c) => [c * span, (c + 1) * span] as const);
+    };
+    const touch = (a: TileKey, b: TileKey) =>
+      box(a).every(([lo, hi], i) => lo <= box(b)[i]![1] && box(b)[i]![0] <= hi);
+    let mixed = 0;
+    let swaps = 0;
+    for (const snap of snapshots) {
+      const isNew = (id: string) => before.get(id) !== after.get(id) && snap.get(id)?.drawing === after.get(id);
+      const isOld = (id: string) => before.get(id) !== after.get(id) && snap.get(id)?.drawing === before.get(id);
+      if (swapped.some(isNew)) swaps++;
+      for (const [a, va] of snap) {
+        if (!isNew(a)) continue;
+        for (const [b, vb] of snap) if (isOld(b) && touch(va.key, vb.key)) mixed++;
+      }
+    }
+    expect(mixed).toBe(0);
+    // And the whole region swapped at once: from the first state with a new drawing on.
+    const firstNew = snapshots.findIndex((snap) => swapped.some((id) => snap.get(id)?.drawing === after.get(id)));
+    expect(firstNew).toBeGreaterThan(0);
+    for (const snap of snapshots.slice(firstNew)) {
+      for (const id of swapped) expect(snap.get(id)?.drawing).toBe(after.get(id));
+    }
+    expect(swaps).toBeGreaterThan(0);
+    s.stop();
+  });
+
+  it("fetches the tiles an edit made stale before the rest of a load", async () => {
+    const server = new ScriptedServer();
+    const { s } = start(server, [20, 40, 20], 2);
+    await settle();
+    while (await server.answerOne());
+    // The camera moves (a load starts), then a commit changes tiles on screen.
+    s.setCamera([60, 40, 60]);
+    await settle();
+    const loading = server.pendingAll().length;
+    expect(loading).toBe(2);
+    // A tile shown before the move and still needed after it (it has the same mask and content
+    // in both selections, so it is on screen), changed by a commit.
+    const keep = (c: Vec3) => {
+      const d = balancedTiles(layout, [1, 1, 1], c, [12, 24, 48]);
+      const m = stitchMasks(layout, d);
+      return new Map(d.map((k) => [keyText(k), `${m.get(keyText(k))}`]));
+    };
+    const [a, b] = [keep([20, 40, 20]), keep([60, 40, 60])];
+    const both = [...a.keys()].filter((id) => b.get(id) === a.get(id) && id.startsWith("1/"));
+    expect(both.length).toBeGreaterThan(0);
+    const [level, x, y, z] = both[0]!.split("/").map(Number) as [number, number, number, number];
+    const changed: Vec3[][] = [[], [], [], []];
+    changed[level] = [[x, y, z]];
+    changed.forEach((bricks, l) => server.edit(l, bricks));
+    s.applyCommit({ version: 2, timestamp_ms: 0, changed });
+    await settle();
+    // One place beyond the bound goes to the stale tiles at once, ahead of the load.
+    const first = server.pendingAll().filter((c) => c.version === 2);
+    expect(first.length).toBe(1);
+    expect(server.pendingAll().length).toBe(3);
+    expect(first[0]!.key.level).toBe(level);
+    // It is answered before any of the load: the next request is again for the edit.
+    await server.answerOne();
+    await server.answerOne();
+    const next = server.pendingAll().filter((c) => c.version === 2 && !first.includes(c));
+    expect(next.length).toBeGreaterThan(0);
+    s.stop();
+  });
 });

@@ -3,6 +3,7 @@ import { ApiError, editErrorWords } from "../src/api";
 import { editRequest, primitiveTerm, PRIMITIVES } from "../src/edit";
 import { decodeBatch, planeAxes, windowLevel } from "../src/slice";
 import { readUrl, urlQuery } from "../src/url";
+import { colorAt, lut, neuroglancerUrl } from "../src/colormap";
 
 describe("edit errors in words", () => {
   const words = (status: number, retry: number | null = null, version: number | null = null) =>
@@ -104,16 +105,45 @@ describe("URL state", () => {
       navigation: "fly" as const,
       detail: 6,
       slice: { axis: "y" as const, position: 40 },
+      iso: 90.5,
+      colormap: "magma" as const,
     };
     const q = urlQuery(s);
-    expect(q).toBe("?volume=demo&camera=1.3,-2,3&target=4,5,6&nav=fly&detail=6&slice=y:40");
+    expect(q).toBe("?volume=demo&camera=1.3,-2,3&target=4,5,6&nav=fly&detail=6&slice=y:40&iso=90.5&cmap=magma");
     expect(readUrl(q)).toEqual({ ...s, camera: { position: [1.3, -2, 3], target: [4, 5, 6] } });
-    expect(readUrl("?camera=1,2&nav=walk&slice=w:3&detail=-1")).toEqual({
+    expect(readUrl("?camera=1,2&nav=walk&slice=w:3&detail=-1&iso=x&cmap=rainbow")).toEqual({
       volume: null,
       camera: null,
       navigation: null,
       detail: null,
       slice: null,
+      iso: null,
+      colormap: null,
     });
+  });
+});
+
+describe("colour maps and the Neuroglancer link", () => {
+  it("has matplotlib's endpoints and grey in between", () => {
+    // viridis(0) and viridis(1) in matplotlib: (0.267004, 0.004874, 0.329415), (0.993248,
+    // 0.906157, 0.143936); magma(1): (0.987053, 0.991438, 0.749504).
+    expect(colorAt("viridis", 0)).toEqual([68, 1, 84]);
+    expect(colorAt("viridis", 1)).toEqual([253, 231, 37]);
+    expect(colorAt("magma", 1)).toEqual([252, 253, 191]);
+    expect(colorAt("grey", 0.5)).toEqual([128, 128, 128]);
+    expect(colorAt("viridis", -3)).toEqual([68, 1, 84]);
+    const l = lut("cividis");
+    expect([...l.slice(0, 3)]).toEqual([0, 0x22, 0x4e]);
+    expect([...l.slice(255 * 3)]).toEqual([0xfe, 0xe8, 0x38]);
+  });
+
+  it("links Neuroglancer to the volume's precomputed view", () => {
+    const url = neuroglancerUrl("http://127.0.0.1:9000", "http://127.0.0.1:7070", "my scan", [10, 20, 30]);
+    expect(url.startsWith("http://127.0.0.1:9000/#!")).toBe(true);
+    const state = JSON.parse(decodeURIComponent(url.slice(url.indexOf("#!") + 2)));
+    expect(state.layers).toEqual([
+      { type: "image", source: "precomputed://http://127.0.0.1:7070/v1/volumes/my%20scan/precomputed", name: "my scan" },
+    ]);
+    expect(state.navigation.pose.position.voxelCoordinates).toEqual([10, 20, 30]);
   });
 });

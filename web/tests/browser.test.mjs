@@ -40,6 +40,16 @@ before(async () => {
     "generate", "ellipsoid", "-o", join(dataDir, "ell16.vod"),
     "--dims", "96,80,64", "--brick", "16", "--type", "u16",
   ]);
+  // A scan-like ball: u8 values falling off from the centre, 255 - 6 d (d in voxels from
+  // (31.5, 31.5, 31.5)), so each iso value has its own sphere: radius (255 - iso) / 6.
+  const ball = new Uint8Array(64 ** 3);
+  for (let z = 0; z < 64; z++) for (let y = 0; y < 64; y++) for (let x = 0; x < 64; x++) {
+    const d = Math.hypot(x - 31.5, y - 31.5, z - 31.5);
+    ball[x + 64 * (y + 64 * z)] = Math.max(0, Math.min(255, Math.round(255 - 6 * d)));
+  }
+  writeFileSync(join(dataDir, "ball.raw"), ball);
+  execFileSync(BIN, ["import", join(dataDir, "ball.raw"), "--dims", "64,64,64", "--brick", "16", "-o", join(dataDir, "ball.vod")]);
+  rmSync(join(dataDir, "ball.raw"));
   server = await startServer(BIN, dataDir);
   token = demoToken(dataDir);
   browser = await launch();
@@ -453,6 +463,327 @@ test("the slice view's pixels are the voxels GET /bricks returns (u8, and u16 th
   }
 });
 
+/**
+ * Before the page's scripts run: after every animation-frame callback that drew into the view
+ * (WebGL2 draw calls or a clear), `window.__probe()` runs, while the frame just drawn is still in
+ * the drawing buffer (it is cleared only when the browser composites the frame).
+ */
+function probeFrames() {
+  // (Against the viewer before issue 36, which swapped tiles one by one, the burst below showed
+  // up to 703 newly enclosed sky pixels in a frame.)
+  const raf = window.requestAnimationFrame.bind(window);
+  let dirty = false;
+  const proto = WebGL2RenderingContext.prototype;
+  for (const name of ["drawElements", "drawArrays", "clear"]) {
+    const f = proto[name];
+    proto[name] = function (...args) {
+      dirty = true;
+      return f.apply(this, args);
+    };
+  }
+  window.requestAnimationFrame = (cb) =>
+    raf((t) => {
+      cb(t);
+      if (dirty) {
+        dirty = false;
+        window.__probe?.();
+      }
+    });
+}
+
+/**
+ * In the page: a probe that reads each frame's pixels and records which sky pixels the surface
+ * encloses (not reached from the canvas's border through sky: a flood fill), as indices into the
+ * frame, leaving out those `allowed` lists. `window.__frames` gets one entry per frame.
+ */
+function installHoleProbe({ sky, allowed }) {
+  const canvas = document.getElementById("view");
+  const gl = canvas.getContext("webgl2");
+  const ok = new Set(allowed);
+  window.__frames = [];
+  window.__probe = () => {
+    const w = gl.drawingBufferWidth;
+    const h = gl.drawingBufferHeight;
+    const px = new Uint8Array(w * h * 4);
+    gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, px);
+    const isSky = (i) =>
+      Math.abs(px[i * 4] - sky[0]) + Math.abs(px[i * 4 + 1] - sky[1]) + Math.abs(px[i * 4 + 2] - sky[2]) < 24;
+    const reached = new Uint8Array(w * h);
+    const stack = [];
+    const push = (i) => {
+      if (!reached[i] && isSky(i)) {
+        reached[i] = 1;
+        stack.push(i);
+      }
+    };
+    for (let x = 0; x < w; x++) {
+      push(x);
+      push((h - 1) * w + x);
+    }
+    for (let y = 0; y < h; y++) {
+      push(y * w);
+      push(y * w + w - 1);
+    }
+    while (stack.length) {
+      const i = stack.pop();
+      const x = i % w;
+      if (x > 0) push(i - 1);
+      if (x < w - 1) push(i + 1);
+      if (i >= w) push(i - w);
+      if (i < w * (h - 1)) push(i + w);
+    }
+    const enclosed = [];
+    for (let i = 0; i < w * h; i++) if (!reached[i] && isSky(i) && !ok.has(i)) enclosed.push(i);
+    const s = window.isovox?.stats();
+    window.__frames.push({ version: s?.version ?? null, stale: s?.stale ?? null, enclosed });
+  };
+}
+
+test("while a burst of edits lands, another page never shows sky through the terrain, and ends as a fresh page does", { timeout: 240_000 }, async () => {
+  // The default view's camera, as its URL gives it, so that a fresh page can take the same one.
+  const a = await openPage();
+  await waitComplete(a.page);
+  const view = await a.page.evaluate(() => location.search);
+  await a.context.close();
+
+  const context = await browser.newContext({ viewport: VIEW });
+  await context.addInitScript(probeFrames);
+  const page = await context.newPage();
+  const errors = [];
+  page.on("pageerror", (e) => errors.push(e.message));
+  await page.goto(`${server.base}/${view}`);
+  const before = await waitComplete(page);
+  await waitFor(page, "the feed to be live", (s) => s.feed === "live");
+  // The enclosed sky of the view before the burst (gaps under overhangs and the like) is allowed.
+  await page.evaluate(installHoleProbe, { sky: SKY, allowed: [] });
+  await page.evaluate(() => window.isovox && window.__probe());
+  const start = await page.evaluate(() => window.__frames.at(-1));
+  await page.evaluate(installHoleProbe, { sky: SKY, allowed: start.enclosed });
+
+  // Ten edits in the terrain in front (below the horizon: ground, not sky, lies behind them),
+  // alternately carved and raised, across the borders of tiles (multiples of 128 voxels: every
+  // level's tiles meet there), where tiles of two versions would not meet. Sent at once.
+  const p = await page.evaluate(({ x, y }) => window.isovox.pick(x, y), FRONT);
+  assert.ok(p, "a surface point in front");
+  const { top } = await surfaceTops(1);
+  const [bx, bz] = [Math.round(p[0] / 128) * 128, Math.round(p[2] / 128) * 128];
+  const points = [];
+  for (let i = 0; i < 10; i++) {
+    const d = (Math.floor(i / 2) - 2) * 20;
+    const [x, z] = i % 2 === 0 ? [bx, p[2] + d] : [p[0] + d, bz];
+    const t = top(Math.floor(x / 2), Math.floor(z / 2));
+    assert.ok(t, `a surface at ${x}, ${z}`);
+    points.push([Math.round(x), Math.round(t[1]), Math.round(z)]);
+  }
+  const sent = Date.now();
+  const answers = await Promise.all(
+    points.map((c, i) =>
+      api("/v1/volumes/demo/edits", {
+        method: "POST",
+        headers: { "content-type": "application/json", authorization: `Bearer ${token}` },
+        body: JSON.stringify({
+          op: i % 2 === 0 ? "difference" : "union",
+          term: { ellipsoid: { center: c, radii: i % 2 === 0 ? [24, 24, 24] : [16, 16, 16] } },
+        }),
+      }).then((r) => r.json()),
+    ),
+  );
+  const burstMs = Date.now() - sent;
+  const last = Math.max(...answers.map((r) => r.version));
+  assert.equal(last, before.version + 10, "ten versions");
+  await waitComplete(page, last);
+  const frames = await page.evaluate(() => window.__frames);
+  const afterImg = await screenshot(page);
+
+  // A fresh page at the same camera: what the newest version looks like. Sky it encloses (a
+  // carving may open a real gap) is allowed in the frames, as before.
+  const fresh = await browser.newContext({ viewport: VIEW });
+  await fresh.addInitScript(probeFrames);
+  const freshPage = await fresh.newPage();
+  await freshPage.goto(`${server.base}/${view}`);
+  await waitComplete(freshPage, last);
+  await freshPage.evaluate(installHoleProbe, { sky: SKY, allowed: start.enclosed });
+  await freshPage.evaluate(() => window.__probe());
+  const end = await freshPage.evaluate(() => window.__frames.at(-1));
+  const freshImg = await screenshot(freshPage);
+  await fresh.close();
+
+  const allowed = new Set(end.enclosed);
+  const holes = frames.map((f) => ({ ...f, enclosed: f.enclosed.filter((i) => !allowed.has(i)) }));
+  const worst = holes.reduce((m, f) => (f.enclosed.length > m.enclosed.length ? f : m), { enclosed: [] });
+  console.log(
+    `burst of 10 edits sent in ${burstMs} ms; page B drew ${frames.length} frames meanwhile, versions ` +
+      `${[...new Set(frames.map((f) => f.version))].join(",")}; most newly enclosed sky in a frame: ${worst.enclosed.length}`,
+  );
+  assert.ok(frames.length >= 1 && frames.at(-1).version === last, `the last of ${frames.length} frames shows version ${last}`);
+  assert.equal(worst.enclosed.length, 0, `a frame of version ${worst.version} showed sky through the terrain in ${worst.enclosed.length} pixels`);
+
+  // After the burst the page shows what a fresh page at the same camera shows.
+  const diff = changedPixels(afterImg, freshImg, () => true);
+  assert.ok(diff.changed <= diff.total * 0.0005, `${diff.changed} of ${diff.total} pixels differ from a fresh page`);
+  assert.deepEqual(errors, []);
+  await context.close();
+});
+
+/** Whether pixel p is grey (its channels within 3 of each other). */
+const isGrey = (p) => Math.max(...p) - Math.min(...p) <= 3;
+
+test("for scans: the iso value and the colour map change the pixels as chosen", { timeout: 180_000 }, async () => {
+  const { context, page, errors } = await openPage("?volume=ball");
+  await waitComplete(page);
+  const ball = await (await api("/v1/volumes/ball")).json();
+  const centre = ball.dims.map((d) => (d - 1) / 2);
+  const rays = await viewRays(page);
+  /** Rays that go through the sphere of radius r, and rays that miss the one of radius R. */
+  const split = (r, R) => ({
+    through: rays.filter((q) => hitsEllipsoid(q.origin, q.direction, centre, [r, r, r])),
+    past: rays.filter((q) => !hitsEllipsoid(q.origin, q.direction, centre, [R, R, R])),
+  });
+
+  // The default iso value (S - 0.5 = 126.5): a sphere of radius 128.5 / 6 = 21.4 voxels.
+  let img = await screenshot(page);
+  const wide = split(20, 23);
+  for (const q of wide.through) assert.ok(!isSky(pixel(img, q.x, q.y)), `(${q.x}, ${q.y}) through the ball is sky`);
+  for (const q of wide.past) assert.ok(isSky(pixel(img, q.x, q.y)), `(${q.x}, ${q.y}) past the ball is not sky`);
+  // Terrain colours, not grey.
+  assert.ok(wide.through.filter((q) => !isGrey(pixel(img, q.x, q.y))).length > wide.through.length * 0.9);
+
+  // Iso 200: radius 55 / 6 = 9.2 voxels; the tiles are asked for with ?iso=200.
+  const since = await page.evaluate(() => performance.now());
+  await page.fill("#iso", "200");
+  await page.dispatchEvent("#iso", "change");
+  await waitFor(page, "the new surface", (st) => st.complete && st.stale === 0);
+  await waitComplete(page);
+  const meshUrls = (await requestedUrls(page, since)).filter((u) => u.includes("/meshes/"));
+  assert.ok(meshUrls.length > 0 && meshUrls.every((u) => u.includes("iso=200")), `mesh requests: ${meshUrls}`);
+  assert.match(await page.evaluate(() => location.search), /iso=200/);
+  img = await screenshot(page);
+  const narrow = split(8, 10.5);
+  assert.ok(narrow.through.length > 100 && narrow.past.length > 1000);
+  for (const q of narrow.through) assert.ok(!isSky(pixel(img, q.x, q.y)), `(${q.x}, ${q.y}) through the iso-200 ball is sky`);
+  for (const q of narrow.past) assert.ok(isSky(pixel(img, q.x, q.y)), `(${q.x}, ${q.y}) past the iso-200 ball is not sky`);
+
+  // Colour map grey: the lit surface is grey. Viridis: it is not, and the slice's voxels map to
+  // matplotlib's viridis ends through the window (values >= 200 to its top, <= 100 to its bottom).
+  await page.selectOption("#colormap", "grey");
+  await page.evaluate(() => new Promise((r) => setTimeout(() => requestAnimationFrame(() => requestAnimationFrame(r)), 300)));
+  img = await screenshot(page);
+  for (const q of narrow.through) assert.ok(isGrey(pixel(img, q.x, q.y)), `(${q.x}, ${q.y}) is ${pixel(img, q.x, q.y)}, not grey`);
+  await page.selectOption("#colormap", "viridis");
+  await page.evaluate(() => new Promise((r) => setTimeout(() => requestAnimationFrame(() => requestAnimationFrame(r)), 300)));
+  const viridisImg = await screenshot(page);
+  const coloured = narrow.through.filter((q) => !isGrey(pixel(viridisImg, q.x, q.y))).length;
+  assert.ok(coloured > narrow.through.length * 0.9, `${coloured} of ${narrow.through.length} surface pixels coloured`);
+  // (The slice and its plane in 3D come last: they would cover pixels looked at above.)
+  await page.check("#slice-on");
+  await page.waitForSelector("#slice[data-version]");
+  await page.evaluate(() => {
+    for (const [id, v] of [["slice-width", 100], ["slice-center", 150]]) {
+      const input = document.getElementById(id);
+      input.value = String(v);
+      input.dispatchEvent(new Event("input"));
+    }
+  });
+  const shown = await page.evaluate(() => {
+    const c = document.getElementById("slice");
+    return { w: c.width, h: c.height, index: Number(c.dataset.index), rgba: Array.from(c.getContext("2d").getImageData(0, 0, c.width, c.height).data) };
+  });
+  assert.equal(shown.w, 64);
+  const plane = new Uint8Array(await (await api(`/v1/volumes/ball/levels/0?format=voxels&region=0,0,${shown.index},64,64,${shown.index + 1}`)).arrayBuffer());
+  let ends = 0;
+  for (let y = 0; y < 64; y++) {
+    for (let x = 0; x < 64; x++) {
+      const v = plane[x + 64 * y];
+      const at = ((63 - y) * 64 + x) * 4; // z slice: y up
+      const got = shown.rgba.slice(at, at + 3);
+      if (v >= 200) assert.deepEqual(got, [253, 231, 37], `voxel (${x}, ${y}) = ${v}`);
+      else if (v <= 100) assert.deepEqual(got, [68, 1, 84], `voxel (${x}, ${y}) = ${v}`);
+      else continue;
+      ends++;
+    }
+  }
+  assert.ok(ends > 2000, `${ends} slice pixels at the map's ends`);
+  assert.equal(shown.index, 32);
+  assert.match(await page.evaluate(() => location.search), /cmap=viridis/);
+  assert.deepEqual(errors, []);
+  await context.close();
+});
+
+test("for scans: the voxel under the pointer, the slice's plane in 3D, resizing it, and the Neuroglancer link", { timeout: 180_000 }, async () => {
+  const { context, page, errors } = await openPage("?volume=ball");
+  await waitComplete(page);
+  const ball = await (await api("/v1/volumes/ball")).json();
+  const voxelOf = async (p) => {
+    const b = ball.brick;
+    const body = new Uint8Array(await (await api(`/v1/volumes/ball/bricks/0/${p.map((c) => Math.floor(c / b)).join("/")}`)).arrayBuffer());
+    return body[(p[0] % b) + b * ((p[1] % b) + b * (p[2] % b))];
+  };
+
+  // Over the surface: the voxel nearest the point under the pointer, with its value.
+  const at = await project(page, [31.5, 31.5 + 21.4, 31.5]);
+  await page.mouse.move(at.x, at.y - 5);
+  await page.mouse.move(at.x, at.y);
+  await page.waitForFunction(() => window.isovox.probe()?.where === "surface");
+  const surface = await page.evaluate(() => window.isovox.probe());
+  const hit = await page.evaluate(({ x, y }) => window.isovox.pick(x, y), at);
+  assert.ok(surface.position.every((c, a) => Math.abs(c - hit[a]) <= 0.5 + 1e-6), `${surface.position} is not the voxel at ${hit}`);
+  assert.equal(surface.value, await voxelOf(surface.position));
+  assert.match(await page.textContent("#probe"), new RegExp(`surface \\(${surface.position.join(", ")}\\): ${surface.value}`));
+
+  // The slice: its plane appears in the 3D view where it cuts the volume.
+  const before = await screenshot(page);
+  await page.check("#slice-on");
+  await page.waitForSelector("#slice[data-version]");
+  await page.evaluate(() => new Promise((r) => setTimeout(() => requestAnimationFrame(() => requestAnimationFrame(r)), 300)));
+  const after = await screenshot(page);
+  // A corner of the plane (z = 32, the volume's x and y ends, outside the ball) is drawn there:
+  // one that neither the panel nor the slice's own box covers.
+  const sliceBox = await page.locator("#slice-box").boundingBox();
+  const underBox = (p) => p.x >= sliceBox.x - 8 && p.x <= sliceBox.x + sliceBox.width + 8 && p.y >= sliceBox.y - 8;
+  let corner = null;
+  for (const [x, y] of [[63.5, 0.5], [0.5, 0.5], [63.5, 63.5], [0.5, 63.5]]) {
+    const p = await project(page, [x, y, 32]);
+    if (!inUi(p.x, p.y) && !underBox(p)) {
+      corner = p;
+      break;
+    }
+  }
+  assert.ok(corner, "a corner of the plane in sight");
+  const near = changedPixels(before, after, (x, y) => Math.hypot(x - corner.x, y - corner.y) < 6);
+  assert.ok(near.changed > 0, "the plane's corner is drawn");
+
+  // Resizable: dragging the box's corner grows it, and the slice with it.
+  const box = await page.locator("#slice-box").boundingBox();
+  const canvasBefore = await page.locator("#slice").boundingBox();
+  await page.mouse.move(box.x + box.width - 3, box.y + box.height - 3);
+  await page.mouse.down();
+  await page.mouse.move(box.x + box.width + 80, box.y + box.height + 0, { steps: 5 });
+  await page.mouse.up();
+  const grown = await page.locator("#slice-box").boundingBox();
+  const canvasAfter = await page.locator("#slice").boundingBox();
+  assert.ok(grown.width > box.width + 40, `the box is ${grown.width} wide, was ${box.width}`);
+  assert.ok(canvasAfter.width >= canvasBefore.width, "the slice follows the box");
+
+  // Over the slice: the voxel drawn under the pointer, equal to GET /bricks there.
+  const c = await page.locator("#slice").boundingBox();
+  await page.mouse.move(c.x + c.width * 0.3, c.y + c.height * 0.6);
+  await page.waitForFunction(() => window.isovox.probe()?.where === "slice");
+  const onSlice = await page.evaluate(() => window.isovox.probe());
+  assert.equal(onSlice.level, 0);
+  assert.equal(onSlice.position[2], 32);
+  assert.equal(onSlice.value, await voxelOf(onSlice.position));
+
+  // Open in Neuroglancer: the ball's precomputed view on this server, which answers.
+  const href = await page.getAttribute("#neuroglancer", "href");
+  const state = JSON.parse(decodeURIComponent(href.slice(href.indexOf("#!") + 2)));
+  assert.equal(state.layers[0].source, `precomputed://${server.base}/v1/volumes/ball/precomputed`);
+  const infoJson = await (await fetch(`${server.base}/v1/volumes/ball/precomputed/info`)).json();
+  assert.equal(infoJson.type, "image");
+  assert.deepEqual(infoJson.scales[0].size, [64, 64, 64]);
+  assert.deepEqual(errors, []);
+  await context.close();
+});
+
 test("a wrong token shows an error in words and changes nothing", { timeout: 120_000 }, async () => {
   const { context, page } = await openPage();
   const s = await waitComplete(page);
@@ -618,7 +949,7 @@ test("the volume picker loads the chosen volume's tiles and shows it", { timeout
   const { context, page, errors } = await openPage();
   await waitComplete(page);
   const options = await page.$$eval("#volume option", (os) => os.map((o) => ({ value: o.value, text: o.textContent })));
-  assert.deepEqual(options.map((o) => o.value).sort(), ["demo", "ell16"]);
+  assert.deepEqual(options.map((o) => o.value).sort(), ["ball", "demo", "ell16"]);
   assert.match(options.find((o) => o.value === "ell16").text, /96x80x64 u16/);
   const since = await page.evaluate(() => performance.now());
 
