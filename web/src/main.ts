@@ -11,6 +11,8 @@ import { Viewport, type Navigation } from "./scene";
 import { AXIS, SliceView, type Axis } from "./slice";
 import { Streamer } from "./streamer";
 import { readUrl, writeUrl, type UrlState } from "./url";
+import "./people.css";
+import { People } from "./people";
 
 const $ = <T extends HTMLElement>(id: string) => document.getElementById(id) as T;
 
@@ -97,9 +99,12 @@ async function openVolume(name: string, state: UrlState | null): Promise<void> {
   s.setCamera(cameraPosition());
   feed = new Feed(api, name, v.version, {
     commit: (ev) => {
-      s.applyCommit(ev);
+      // While an older version is shown, the live one is caught up when the page returns.
+      if (people.viewing === null) s.applyCommit(ev);
       if (slice.touches(ev.changed)) void loadSlice();
+      people.commit(ev);
     },
+    presence: (p) => people.presence(p),
     reload: async () => {
       const fresh = await api.volume(name);
       s.reload(fresh);
@@ -112,6 +117,7 @@ async function openVolume(name: string, state: UrlState | null): Promise<void> {
     },
   });
   setupSlice(v, state);
+  people.open(v);
   writeUrl(urlState());
 }
 
@@ -156,6 +162,7 @@ viewport.onFrame = (tiles) => {
     completeMs = now;
     performance.mark("isovox:complete");
   }
+  people.frame();
   updateOverlay();
 };
 
@@ -167,6 +174,7 @@ viewport.onCameraChange = () => {
     cameraTimer = null;
     streamer?.setCamera(cameraPosition());
     writeUrl(urlState());
+    people.cameraMoved();
   }, 100);
 };
 
@@ -256,6 +264,10 @@ function say(text: string, error = false): void {
 
 async function sendEdit(request: Record<string, unknown>): Promise<void> {
   if (!info || !streamer) return;
+  if (people.viewing !== null) {
+    say(`Viewing version ${people.viewing}, read-only: go back to live to edit.`, true);
+    return;
+  }
   const token = tokens.get();
   if (!token || writeRefused) {
     pendingEdit = request;
@@ -270,6 +282,7 @@ async function sendEdit(request: Record<string, unknown>): Promise<void> {
     const r = await api.edit(info.name, request, token, ifMatch);
     lastEdit = { version: r.version, sent, answerMs: performance.now() - sent, screenMs: null };
     say(`Applied as version ${r.version}.`);
+    people.edited(r.version);
     changed();
   } catch (e) {
     // A wrong token is forgotten. A read-only one still serves the page's reads until a write
@@ -288,6 +301,7 @@ $<HTMLFormElement>("token-form").addEventListener("submit", (e) => {
   writeRefused = false;
   input.value = "";
   $<HTMLFormElement>("token-form").hidden = true;
+  void people.whoAmI();
   if (awaitingReadToken) {
     awaitingReadToken = false;
     begin();
@@ -402,6 +416,31 @@ for (const id of ["slice-width", "slice-center"]) {
   });
 }
 
+// --- people: undo, history, cursors, sign-in (people.ts) ----------------------------------
+
+const people = new People({
+  api,
+  tokens,
+  volume: () => info,
+  camera: () => {
+    const c = viewport.camera;
+    const d = c.position.distanceTo(viewport.target);
+    const looking = c.position.clone().addScaledVector(c.getWorldDirection(new THREE.Vector3()), d);
+    return { position: cameraPosition(), looking: [looking.x, looking.y, looking.z] };
+  },
+  project: (p) => {
+    const v = new THREE.Vector3(...p).project(viewport.camera);
+    // Behind the camera (or on it): not drawn.
+    if (!(v.z > -1 && v.z < 1)) return null;
+    return viewport.project(new THREE.Vector3(...p));
+  },
+  show: (version) => {
+    if (streamer && info) streamer.reload({ ...info, version: version ?? feed?.version ?? info.version });
+  },
+  say,
+  askToken,
+});
+
 // --- start -------------------------------------------------------------------------------
 
 /** For the browser tests and the benchmark: what the page shows, read without scraping. */
@@ -438,6 +477,8 @@ const hook = {
   }),
   /** The tiles the camera needs now, as [level, x, y, z]. */
   selection: () => (streamer?.selection() ?? []).map((k) => [k.level, k.x, k.y, k.z]),
+  /** Who the page is, the others' cursors, the history panel's rows, the undo stacks. */
+  people: () => people.state(),
 };
 (window as unknown as { isovox: typeof hook }).isovox = hook;
 
@@ -473,9 +514,12 @@ async function start(): Promise<void> {
 }
 
 function begin(): void {
-  start().catch((e: unknown) => {
-    overlay.textContent = readErrorWords(e, tokens.get() !== null);
-  });
+  people
+    .start()
+    .then(start)
+    .catch((e: unknown) => {
+      overlay.textContent = readErrorWords(e, tokens.get() !== null);
+    });
 }
 
 begin();
