@@ -136,7 +136,7 @@ function fnv1a(s) {
   return h;
 }
 
-test("A's edit reaches B with A's name and A's cursor; Ctrl+Z in A gives both pages the surface from before; the history lists it", { timeout: 300_000 }, async (t) => {
+test("A's edit reaches B with A's name and A's cursor; Ctrl+Z in A gives both pages the surface from before; B views the edit's version read-only and reverts to it", { timeout: 300_000 }, async (t) => {
   const b = await openPage();
   await waitComplete(b.page);
   // A stands 40% of the way from B's camera to the point B looks at: A's cursor is in B's view.
@@ -227,6 +227,42 @@ test("A's edit reaches B with A's name and A's cursor; Ctrl+Z in A gives both pa
   const undoRow = await b.page.textContent(`#history li[data-version="${undoVersion}"]`);
   assert.match(undoRow, new RegExp(`alice undid version ${version}`));
   assert.equal((await people(a.page)).nextRedo, undoVersion);
+
+  // B looks at the edit's version read-only: the cuboid again, under a banner; then live again.
+  await b.page.click(`#history li[data-version="${version}"] button.view`);
+  assert.match(await b.page.textContent("#viewing"), new RegExp(`Viewing version ${version}, read-only`));
+  await until(b.page, "B at the edit's version", (v) => window.isovox.stats().version === v, version);
+  await waitComplete(b.page, version);
+  const viewed = await shot(b.page);
+  const same = changedPixels(afterB, viewed);
+  t.diagnostic(`B viewing version ${version}: ${same.changed} of ${same.total} pixels differ from live after the edit`);
+  assert.ok(same.changed <= same.total * 0.001, `viewing version ${version}: ${same.changed} of ${same.total} pixels differ`);
+  await b.page.check("#edit-mode");
+  await b.page.mouse.click(FRONT.x, FRONT.y);
+  assert.match(await b.page.textContent("#edit-status"), /read-only: go back to live to edit/);
+  await b.page.uncheck("#edit-mode");
+  await b.page.click("#live");
+  assert.ok(await b.page.isHidden("#viewing"));
+  await until(b.page, "B live again", (v) => window.isovox.stats().version === v, undoVersion);
+  await waitComplete(b.page, undoVersion);
+  const live = changedPixels(beforeB, await shot(b.page));
+  assert.ok(live.changed <= live.total * 0.001, `live again: ${live.changed} of ${live.total} pixels differ from before the edit`);
+
+  // B reverts to the edit's version: the cuboid is back on both pages.
+  b.page.once("dialog", (d) => void d.accept());
+  await b.page.click(`#history li[data-version="${version}"] button.revert`);
+  const reverted = await until(b.page, "the revert's answer", () => {
+    const t = document.querySelector("#edit-status").textContent;
+    return /Reverted|revert/.test(t) ? t : null;
+  });
+  const r = new RegExp(`^Reverted to version ${version} as version (\\d+)\\.$`).exec(reverted);
+  assert.ok(r, `revert status: ${reverted}`);
+  await waitComplete(a.page, Number(r[1]));
+  await waitComplete(b.page, Number(r[1]));
+  const back = changedPixels(afterB, await shot(b.page));
+  assert.ok(back.changed <= back.total * 0.001, `after the revert: ${back.changed} of ${back.total} pixels differ from after the edit`);
+  await b.page.waitForSelector(`#history li[data-version="${r[1]}"]`);
+  assert.match(await b.page.textContent(`#history li[data-version="${r[1]}"]`), new RegExp(`bob reverted to version ${version}`));
 
   assert.deepEqual(a.errors, [], "A's console errors");
   assert.deepEqual(b.errors, [], "B's console errors");
