@@ -68,6 +68,8 @@ pub type EditAnswer = Result<EditResponse, VolumeError>;
 
 /// What a request in the writer's queue asks it to commit.
 #[derive(Debug)]
+// One per queued request, moved once into the writer: boxing the edit would buy nothing.
+#[allow(clippy::large_enum_variant)]
 pub enum Work {
     /// An edit; with `dry_run`, evaluated and answered but not committed.
     Edit {

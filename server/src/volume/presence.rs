@@ -158,6 +158,39 @@ impl Presences {
     }
 }
 
+impl super::LiveVolume {
+    /// Records where `user` is on this volume and tells the other subscribers; a task on
+    /// `runtime` announces the users who fall silent.
+    pub fn present(
+        self: &Arc<Self>,
+        user: &str,
+        request: PresenceRequest,
+        runtime: &tokio::runtime::Handle,
+    ) {
+        if self.presence.update(user, request) {
+            let vol = self.clone();
+            runtime.spawn(async move {
+                loop {
+                    tokio::time::sleep(SWEEP_INTERVAL).await;
+                    if !vol.presence.sweep() {
+                        return;
+                    }
+                }
+            });
+        }
+    }
+
+    /// Who is present now.
+    pub fn presences(&self) -> Vec<Presence> {
+        self.presence.list()
+    }
+
+    /// Every presence event from now on (JSON).
+    pub fn subscribe_presence(&self) -> broadcast::Receiver<Arc<String>> {
+        self.presence.subscribe()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]
@@ -196,38 +229,5 @@ mod tests {
         let list = p.list();
         assert_eq!(list.len(), 1);
         assert_eq!(list[0].position[0], 2.0);
-    }
-}
-
-impl super::LiveVolume {
-    /// Records where `user` is on this volume and tells the other subscribers; a task on
-    /// `runtime` announces the users who fall silent.
-    pub fn present(
-        self: &Arc<Self>,
-        user: &str,
-        request: PresenceRequest,
-        runtime: &tokio::runtime::Handle,
-    ) {
-        if self.presence.update(user, request) {
-            let vol = self.clone();
-            runtime.spawn(async move {
-                loop {
-                    tokio::time::sleep(SWEEP_INTERVAL).await;
-                    if !vol.presence.sweep() {
-                        return;
-                    }
-                }
-            });
-        }
-    }
-
-    /// Who is present now.
-    pub fn presences(&self) -> Vec<Presence> {
-        self.presence.list()
-    }
-
-    /// Every presence event from now on (JSON).
-    pub fn subscribe_presence(&self) -> broadcast::Receiver<Arc<String>> {
-        self.presence.subscribe()
     }
 }

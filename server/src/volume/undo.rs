@@ -166,8 +166,7 @@ impl LiveVolume {
         // Every commit after the base that changed bricks must be one the model knows.
         if let Some(r) = records
             .iter()
-            .filter(|r| r.version > base && r.info.kind.is_none() && r.bricks_changed > 0)
-            .last()
+            .rfind(|r| r.version > base && r.info.kind.is_none() && r.bricks_changed > 0)
         {
             return Err(VolumeError::NotUndoable(format!(
                 "version {} changed the volume without recording what it did (an import or an older server): revert to a version instead",

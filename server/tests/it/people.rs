@@ -378,7 +378,7 @@ fn undo_takes_back_one_edit_and_keeps_the_later_ones() {
         Some(alice_edit()),
     );
     assert_eq!(dry["dry_run"], true);
-    assert!(dry["changed"][0].as_array().unwrap().len() > 0, "{dry}");
+    assert!(!dry["changed"][0].as_array().unwrap().is_empty(), "{dry}");
     assert_eq!(
         w.ok("GET", "/v1/volumes/w", None, None)["version"],
         tag_version
