@@ -4,7 +4,9 @@
 //
 //   ISOVOX_BIN=target/debug/isovox node --test tests/people.test.mjs     (in web/)
 
+import { createHash, generateKeyPairSync, sign } from "node:crypto";
 import { appendFileSync, mkdtempSync, rmSync, writeFileSync } from "node:fs";
+import { createServer } from "node:http";
 import { tmpdir } from "node:os";
 import { join } from "node:path";
 import { after, before, test } from "node:test";
@@ -268,4 +270,109 @@ test("A's edit reaches B with A's name and A's cursor; Ctrl+Z in A gives both pa
   assert.deepEqual(b.errors, [], "B's console errors");
   await a.context.close();
   await b.context.close();
+});
+
+// --- sign-in at an OpenID Connect provider -----------------------------------------------------
+
+const b64url = (buf) => Buffer.from(buf).toString("base64url");
+
+/**
+ * A provider on 127.0.0.1 that signs in anyone at once: discovery, an authorization endpoint
+ * that redirects back with a code, and a token endpoint that checks the code, the redirect URI,
+ * the client and the PKCE verifier against the S256 challenge before it answers an opaque access
+ * token and an ID token (RS256) for `user` with `roles`. CORS open, as providers allow the
+ * origins registered for a client.
+ */
+async function startProvider({ clientId, user, roles }) {
+  const { privateKey, publicKey } = generateKeyPairSync("rsa", { modulusLength: 2048 });
+  const jwk = { ...publicKey.export({ format: "jwk" }), kid: "k1", alg: "RS256", use: "sig" };
+  const codes = new Map();
+  const seen = { authorize: [], token: [] };
+  const server = createServer((req, res) => {
+    const u = new URL(req.url, base);
+    const cors = { "access-control-allow-origin": "*", "access-control-allow-headers": "content-type" };
+    const json = (status, body) => {
+      res.writeHead(status, { ...cors, "content-type": "application/json" });
+      res.end(JSON.stringify(body));
+    };
+    if (req.method === "OPTIONS") return res.writeHead(204, cors), res.end();
+    if (u.pathname === "/.well-known/openid-configuration") {
+      return json(200, { issuer: base, authorization_endpoint: `${base}/auth`, token_endpoint: `${base}/token`, jwks_uri: `${base}/jwks` });
+    }
+    if (u.pathname === "/auth") {
+      const p = Object.fromEntries(u.searchParams);
+      seen.authorize.push(p);
+      const code = `code-${codes.size + 1}`;
+      codes.set(code, p);
+      const back = new URL(p.redirect_uri);
+      back.searchParams.set("code", code);
+      back.searchParams.set("state", p.state);
+      return res.writeHead(302, { location: back.toString() }), res.end();
+    }
+    if (u.pathname === "/token" && req.method === "POST") {
+      let body = "";
+      req.on("data", (c) => (body += c));
+      req.on("end", () => {
+        const f = Object.fromEntries(new URLSearchParams(body));
+        seen.token.push(f);
+        const asked = codes.get(f.code);
+        codes.delete(f.code);
+        const ok =
+          asked &&
+          f.grant_type === "authorization_code" &&
+          f.client_id === clientId &&
+          asked.client_id === clientId &&
+          f.redirect_uri === asked.redirect_uri &&
+          asked.code_challenge_method === "S256" &&
+          b64url(createHash("sha256").update(f.code_verifier ?? "").digest()) === asked.code_challenge;
+        if (!ok) return json(400, { error: "invalid_grant" });
+        const now = Math.floor(Date.now() / 1000);
+        const claims = { iss: base, aud: clientId, sub: `id-${user}`, preferred_username: user, iat: now, exp: now + 600, isovox_roles: roles };
+        const input = `${b64url(JSON.stringify({ alg: "RS256", kid: "k1", typ: "JWT" }))}.${b64url(JSON.stringify(claims))}`;
+        const jwt = `${input}.${b64url(sign("sha256", Buffer.from(input), privateKey))}`;
+        json(200, { access_token: "opaque-access-token", token_type: "Bearer", id_token: jwt, expires_in: 600 });
+      });
+      return;
+    }
+    json(404, { error: "not_found" });
+  });
+  await new Promise((r) => server.listen(0, "127.0.0.1", r));
+  const base = `http://127.0.0.1:${server.address().port}`;
+  return { base, jwks: { keys: [jwk] }, seen, close: () => new Promise((r) => server.close(r)) };
+}
+
+test("sign-in at the server's OIDC provider: authorization code with PKCE, in the page", { timeout: 180_000 }, async () => {
+  const provider = await startProvider({ clientId: "isovox-web", user: "carol", roles: ["write:*"] });
+  const jwksFile = join(dataDir, "jwks.json");
+  writeFileSync(jwksFile, JSON.stringify(provider.jwks));
+  await server.kill();
+  server = await startServer(BIN, dataDir, {
+    extraArgs: ["--oidc-issuer", provider.base, "--oidc-audience", "isovox-web", "--oidc-jwks", jwksFile],
+  });
+  try {
+    const { context, page, errors } = await openPage("?volume=demo&detail=12");
+    await page.waitForSelector("#sign-in-oidc:not([hidden])");
+    assert.match(await page.textContent("#who"), /Not signed in/);
+    await Promise.all([page.waitForURL((u) => u.searchParams.has("code")), page.click("#sign-in-oidc")]);
+    await until(page, "signed in as carol", () => window.isovox?.people().me === "carol");
+    assert.match(await page.textContent("#who"), /^Signed in as carol$/);
+    // The provider was asked for a code with an S256 challenge and the page's own address, and
+    // the page traded it with the verifier (the provider checked them); the page's query is back.
+    assert.equal(provider.seen.authorize.length, 1);
+    const asked = provider.seen.authorize[0];
+    assert.equal(asked.client_id, "isovox-web");
+    assert.equal(asked.redirect_uri, `${server.base}/`);
+    assert.equal(asked.code_challenge_method, "S256");
+    assert.equal(provider.seen.token.length, 1);
+    const back = new URL(page.url()).searchParams;
+    assert.deepEqual([back.has("code"), back.has("state"), back.get("volume"), back.get("detail")], [false, false, "demo", "12"]);
+    // The session's token is the ID token (the access token is opaque): the server takes it.
+    const token = await page.evaluate(() => sessionStorage.getItem("isovox-token"));
+    const who = await (await fetch(`${server.base}/v1/auth`, { headers: { authorization: `Bearer ${token}` } })).json();
+    assert.deepEqual([who.user, who.write], ["carol", true]);
+    assert.deepEqual(errors, [], "console errors");
+    await context.close();
+  } finally {
+    await provider.close();
+  }
 });
