@@ -377,9 +377,15 @@ export class Api {
     await this.post(`/v1/volumes/${encodeURIComponent(name)}/presence`, { position, looking, label });
   }
 
-  /** Who the token is (`user` null without one) and how to sign in. */
-  auth(): Promise<AuthInfo> {
-    return this.json("/v1/auth");
+  /**
+   * Who the token is (`user` null without one) and how to sign in; `anonymous` asks without the
+   * token (how to sign in, when the token was refused).
+   */
+  async auth(anonymous = false): Promise<AuthInfo> {
+    if (!anonymous) return this.json("/v1/auth");
+    const r = await fetch(`${this.base}/v1/auth`);
+    if (!r.ok) throw await failure(r);
+    return (await r.json()) as AuthInfo;
   }
 
   /**

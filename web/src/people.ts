@@ -43,6 +43,8 @@ export class People {
   /** Who the session's token is (null without one, or before the server said). */
   me: string | null = null;
   auth: AuthInfo | null = null;
+  /** The server's OIDC provider, from the last answer of `/v1/auth` (kept when a token is refused). */
+  private oidc: AuthInfo["oidc"] = null;
   /** The version shown read-only, or null for the live volume. */
   viewing: number | null = null;
   private undo = new UndoStack();
@@ -62,7 +64,7 @@ export class People {
     $("live").addEventListener("click", () => this.view(null));
     $("sign-in").addEventListener("click", () => this.host.askToken());
     $("sign-in-oidc").addEventListener("click", () => {
-      const oidc = this.auth?.oidc;
+      const oidc = this.oidc;
       if (oidc) beginSignIn(oidc).catch((e: unknown) => this.host.say(`Sign-in: ${String(e)}`, true));
     });
     window.addEventListener("keydown", (e) => {
@@ -82,7 +84,9 @@ export class People {
    */
   async start(): Promise<void> {
     try {
-      const first = await this.host.api.auth();
+      // Without the token: a stale one (an expired JWT) must not hide how to sign in again.
+      const first = await this.host.api.auth(true);
+      this.oidc = first.oidc;
       if (first.oidc) {
         const token = await finishSignIn(first.oidc);
         if (token) this.host.tokens.set(token);
@@ -98,19 +102,17 @@ export class People {
   async whoAmI(): Promise<void> {
     try {
       this.auth = await this.host.api.auth();
-    } catch (e) {
-      if (e instanceof ApiError && e.status === 401) this.host.tokens.forget();
-      try {
-        this.auth = await this.host.api.auth();
-      } catch {
-        this.auth = null;
-      }
+    } catch {
+      // A refused token (401) is the page's reads' to put into words and forget (main.ts):
+      // forgetting it here would race them. Meanwhile nobody is signed in.
+      this.auth = null;
     }
+    if (this.auth) this.oidc = this.auth.oidc;
     this.me = this.auth?.user ?? null;
     $("who").textContent = this.me
       ? `Signed in as ${this.me}${this.auth?.write ? "" : " (read only)"}`
       : "Not signed in: the volume can be looked at; edits, undo and cursors need a token.";
-    $("sign-in-oidc").hidden = !this.auth?.oidc;
+    $("sign-in-oidc").hidden = !this.oidc;
     this.panel.writer = this.auth?.write ?? false;
     this.panel.render();
     this.restartPresence();
