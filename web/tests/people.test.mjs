@@ -138,7 +138,7 @@ function fnv1a(s) {
   return h;
 }
 
-test("A's edit reaches B with A's name and A's cursor; Ctrl+Z in A gives both pages the surface from before; B views the edit's version read-only and reverts to it", { timeout: 300_000 }, async (t) => {
+test("A's edit reaches B with A's name and A's cursor; Ctrl+Z in A gives both pages the surface from before; B views the edit's version read-only and reverts to it; A's redo is then refused in words", { timeout: 300_000 }, async (t) => {
   const b = await openPage();
   await waitComplete(b.page);
   // A stands 40% of the way from B's camera to the point B looks at: A's cursor is in B's view.
@@ -266,7 +266,19 @@ test("A's edit reaches B with A's name and A's cursor; Ctrl+Z in A gives both pa
   await b.page.waitForSelector(`#history li[data-version="${r[1]}"]`);
   assert.match(await b.page.textContent(`#history li[data-version="${r[1]}"]`), new RegExp(`bob reverted to version ${version}`));
 
-  assert.deepEqual(a.errors, [], "A's console errors");
+  // A's Ctrl+Shift+Z would make the edit again, but the revert did: the server's 409 in words.
+  await a.page.keyboard.press("Control+Shift+Z");
+  const refused = await until(a.page, "the redo's answer", () => {
+    const t = document.querySelector("#edit-status").textContent;
+    return /Redo|redo|Redone/.test(t) && !/Redoing/.test(t) ? t : null;
+  });
+  assert.match(refused, new RegExp(`^Version ${undoVersion} cannot be redone \\(409 Conflict\\): .+ It was taken off the list\\.$`));
+  assert.equal((await people(a.page)).nextRedo, null);
+
+  // Chromium logs every failed request; the refused redo's 409 is the one expected.
+  const conflict = /^Failed to load resource: the server responded with a status of 409/;
+  assert.deepEqual(a.errors.filter((e) => !conflict.test(e)), [], "A's console errors");
+  assert.equal(a.errors.length, 1, "one refused request, the redo");
   assert.deepEqual(b.errors, [], "B's console errors");
   await a.context.close();
   await b.context.close();
