@@ -152,6 +152,7 @@ function afterChange(): void {
 }
 
 viewport.onFrame = (tiles) => {
+  people.frame();
   frames++;
   const now = performance.now();
   if (firstFrameMs === null && tiles > 0) {
@@ -162,7 +163,6 @@ viewport.onFrame = (tiles) => {
     completeMs = now;
     performance.mark("isovox:complete");
   }
-  people.frame();
   updateOverlay();
 };
 
@@ -172,9 +172,9 @@ viewport.onCameraChange = () => {
   if (cameraTimer !== null) return;
   cameraTimer = setTimeout(() => {
     cameraTimer = null;
+    people.cameraMoved();
     streamer?.setCamera(cameraPosition());
     writeUrl(urlState());
-    people.cameraMoved();
   }, 100);
 };
 
