@@ -152,7 +152,6 @@ function afterChange(): void {
 }
 
 viewport.onFrame = (tiles) => {
-  people.frame();
   frames++;
   const now = performance.now();
   if (firstFrameMs === null && tiles > 0) {
@@ -172,7 +171,6 @@ viewport.onCameraChange = () => {
   if (cameraTimer !== null) return;
   cameraTimer = setTimeout(() => {
     cameraTimer = null;
-    people.cameraMoved();
     streamer?.setCamera(cameraPosition());
     writeUrl(urlState());
   }, 100);
@@ -349,6 +347,45 @@ function editAt(x: number, y: number): void {
   });
 }
 
+// --- people: undo, history, cursors, sign-in (people.ts) ----------------------------------
+
+const people = new People({
+  api,
+  tokens,
+  volume: () => info,
+  camera: () => {
+    const c = viewport.camera;
+    const d = c.position.distanceTo(viewport.target);
+    const looking = c.position.clone().addScaledVector(c.getWorldDirection(new THREE.Vector3()), d);
+    return { position: cameraPosition(), looking: [looking.x, looking.y, looking.z] };
+  },
+  project: (p) => {
+    const v = new THREE.Vector3(...p).project(viewport.camera);
+    // Behind the camera (or on it): not drawn.
+    if (!(v.z > -1 && v.z < 1)) return null;
+    return viewport.project(new THREE.Vector3(...p));
+  },
+  show: (version) => {
+    if (streamer && info) streamer.reload({ ...info, version: version ?? feed?.version ?? info.version });
+  },
+  say,
+  askToken,
+});
+
+// Markers follow every camera move and frame; the others are told (throttled, presence.ts).
+{
+  const cameraChanged = viewport.onCameraChange;
+  viewport.onCameraChange = () => {
+    cameraChanged();
+    people.cameraMoved();
+  };
+  const frameDrawn = viewport.onFrame;
+  viewport.onFrame = (tiles) => {
+    frameDrawn(tiles);
+    people.frame();
+  };
+}
+
 // --- slice -------------------------------------------------------------------------------
 
 async function loadSlice(): Promise<void> {
@@ -415,31 +452,6 @@ for (const id of ["slice-width", "slice-center"]) {
     slice.draw();
   });
 }
-
-// --- people: undo, history, cursors, sign-in (people.ts) ----------------------------------
-
-const people = new People({
-  api,
-  tokens,
-  volume: () => info,
-  camera: () => {
-    const c = viewport.camera;
-    const d = c.position.distanceTo(viewport.target);
-    const looking = c.position.clone().addScaledVector(c.getWorldDirection(new THREE.Vector3()), d);
-    return { position: cameraPosition(), looking: [looking.x, looking.y, looking.z] };
-  },
-  project: (p) => {
-    const v = new THREE.Vector3(...p).project(viewport.camera);
-    // Behind the camera (or on it): not drawn.
-    if (!(v.z > -1 && v.z < 1)) return null;
-    return viewport.project(new THREE.Vector3(...p));
-  },
-  show: (version) => {
-    if (streamer && info) streamer.reload({ ...info, version: version ?? feed?.version ?? info.version });
-  },
-  say,
-  askToken,
-});
 
 // --- start -------------------------------------------------------------------------------
 
