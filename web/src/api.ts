@@ -40,10 +40,64 @@ export interface LevelGrid {
 /** Changed bricks per level, level 0 first. */
 export type ChangedBricks = Vec3[][];
 
-export interface ChangeEvent {
+/** An edit's operation in a few words (`proto/src/history.rs` OpSummary). */
+export interface OpSummary {
+  op: string;
+  leaves: string[];
+  box: { min: Vec3; max: Vec3 };
+}
+
+/** What a commit did and who made it (`proto/src/history.rs` CommitInfo), all optional. */
+export interface CommitInfo {
+  author?: string;
+  message?: string;
+  kind?: "edit" | "undo" | "redo" | "revert" | "tag";
+  op?: OpSummary;
+  target?: number;
+  replayed?: number;
+  to?: number;
+  tag?: string;
+}
+
+export interface ChangeEvent extends CommitInfo {
   version: number;
   timestamp_ms: number;
   changed: ChangedBricks;
+}
+
+/** One commit of `GET .../history`. */
+export interface HistoryEntry extends CommitInfo {
+  version: number;
+  timestamp_ms: number;
+  bricks_changed: number;
+  /** For edits: taken back now (undone, or reverted away). */
+  undone?: boolean;
+}
+
+export interface HistoryList {
+  head: number;
+  oldest: number;
+  more: boolean;
+  commits: HistoryEntry[];
+}
+
+/** Another user's whereabouts (`presence` events of the feed). */
+export interface Presence {
+  user: string;
+  position: Vec3;
+  looking?: Vec3;
+  label?: string;
+  at_ms: number;
+  gone?: boolean;
+}
+
+/** `GET /v1/auth`: who the token is, and how to sign in. */
+export interface AuthInfo {
+  user: string | null;
+  write: boolean;
+  admin: boolean;
+  private_reads: boolean;
+  oidc: { issuer: string; client_id: string; audience: string } | null;
 }
 
 export interface ChangeList {
@@ -56,6 +110,8 @@ export interface ChangeList {
 
 export interface EditResponse {
   version: number;
+  /** For undo and redo: other edits applied again. */
+  replayed?: number;
   previous: number;
   changed: ChangedBricks;
   evaluated: number;
@@ -296,6 +352,47 @@ export class Api {
       body: JSON.stringify(request),
     });
     return (await r.json()) as EditResponse;
+  }
+
+  /** Commits newest first (`before` a version when given). */
+  history(name: string, limit = 100, before?: number): Promise<HistoryList> {
+    const b = before === undefined ? "" : `&before=${before}`;
+    return this.json(`/v1/volumes/${encodeURIComponent(name)}/history?limit=${limit}${b}`);
+  }
+
+  private async post<T>(path: string, body: unknown): Promise<T> {
+    const r = await this.send(path, {
+      method: "POST",
+      headers: { "content-type": "application/json" },
+      body: JSON.stringify(body),
+    });
+    return (r.status === 204 ? null : await r.json()) as T;
+  }
+
+  /** Takes back the edit of `version` (or, for an undo's version, makes its edit again). */
+  undo(name: string, version: number): Promise<EditResponse> {
+    return this.post(`/v1/volumes/${encodeURIComponent(name)}/undo`, { version });
+  }
+
+  /** Commits a version whose content is version `to`'s. */
+  revert(name: string, to: number): Promise<EditResponse> {
+    return this.post(`/v1/volumes/${encodeURIComponent(name)}/revert`, { to });
+  }
+
+  /** Tells the others where this page's camera is. */
+  async presence(name: string, position: Vec3, looking: Vec3, label: string): Promise<void> {
+    await this.post(`/v1/volumes/${encodeURIComponent(name)}/presence`, { position, looking, label });
+  }
+
+  /**
+   * Who the token is (`user` null without one) and how to sign in; `anonymous` asks without the
+   * token (how to sign in, when the token was refused).
+   */
+  async auth(anonymous = false): Promise<AuthInfo> {
+    if (!anonymous) return this.json("/v1/auth");
+    const r = await fetch(`${this.base}/v1/auth`);
+    if (!r.ok) throw await failure(r);
+    return (await r.json()) as AuthInfo;
   }
 
   /**

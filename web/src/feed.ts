@@ -14,7 +14,7 @@
 // below the page's. A `resync` (the page fell more than 1024 versions behind the live stream)
 // is filled the same way from `changes`.
 
-import { Api, ApiError, isAbort, type ChangeEvent } from "./api";
+import { Api, ApiError, isAbort, type ChangeEvent, type Presence } from "./api";
 import { SseParser, type ServerEvent } from "./sse";
 
 const RETRY_MIN_MS = 100;
@@ -28,6 +28,8 @@ export interface FeedHandlers {
   /** The page's version cannot be continued from: load the volume anew. Resolves when done. */
   reload(): Promise<number>;
   state?(state: FeedState): void;
+  /** Another user's whereabouts (not versioned: never replayed). */
+  presence?(p: Presence): void;
 }
 
 export class Feed {
@@ -118,6 +120,8 @@ export class Feed {
       const ev = JSON.parse(e.data) as ChangeEvent;
       if (this.catchingUp) void this.catchingUp.then(() => this.apply(ev));
       else this.apply(ev);
+    } else if (e.event === "presence") {
+      this.handlers.presence?.(JSON.parse(e.data) as Presence);
     } else if (e.event === "resync") {
       void this.restart(() => this.catchUp());
     }

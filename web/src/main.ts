@@ -12,6 +12,8 @@ import { AXIS, SliceView, type Axis } from "./slice";
 import { Streamer } from "./streamer";
 import { COLORMAPS, neuroglancerUrl, type Colormap } from "./colormap";
 import { readUrl, writeUrl, type UrlState } from "./url";
+import "./people.css";
+import { People } from "./people";
 
 const $ = <T extends HTMLElement>(id: string) => document.getElementById(id) as T;
 
@@ -117,9 +119,12 @@ async function openVolume(name: string, state: UrlState | null): Promise<void> {
   updateNeuroglancer();
   feed = new Feed(api, name, v.version, {
     commit: (ev) => {
-      s.applyCommit(ev);
+      // While an older version is shown, the live one is caught up when the page returns.
+      if (people.viewing === null) s.applyCommit(ev);
       if (slice.touches(ev.changed)) void loadSlice();
+      people.commit(ev);
     },
+    presence: (p) => people.presence(p),
     reload: async () => {
       const fresh = await api.volume(name);
       s.reload(fresh);
@@ -132,6 +137,7 @@ async function openVolume(name: string, state: UrlState | null): Promise<void> {
     },
   });
   setupSlice(v, state);
+  people.open(v);
   writeUrl(urlState());
 }
 
@@ -299,6 +305,10 @@ function say(text: string, error = false): void {
 
 async function sendEdit(request: Record<string, unknown>): Promise<void> {
   if (!info || !streamer) return;
+  if (people.viewing !== null) {
+    say(`Viewing version ${people.viewing}, read-only: go back to live to edit.`, true);
+    return;
+  }
   const token = tokens.get();
   if (!token || writeRefused) {
     pendingEdit = request;
@@ -313,6 +323,7 @@ async function sendEdit(request: Record<string, unknown>): Promise<void> {
     const r = await api.edit(info.name, request, token, ifMatch);
     lastEdit = { version: r.version, sent, answerMs: performance.now() - sent, screenMs: null };
     say(`Applied as version ${r.version}.`);
+    people.edited(r.version);
     changed();
   } catch (e) {
     // A wrong token is forgotten. A read-only one still serves the page's reads until a write
@@ -331,6 +342,7 @@ $<HTMLFormElement>("token-form").addEventListener("submit", (e) => {
   writeRefused = false;
   input.value = "";
   $<HTMLFormElement>("token-form").hidden = true;
+  void people.whoAmI();
   if (awaitingReadToken) {
     awaitingReadToken = false;
     begin();
@@ -376,6 +388,45 @@ function editAt(x: number, y: number): void {
     const r = canvas.getBoundingClientRect();
     editAt(e.clientX - r.left, e.clientY - r.top);
   });
+}
+
+// --- people: undo, history, cursors, sign-in (people.ts) ----------------------------------
+
+const people = new People({
+  api,
+  tokens,
+  volume: () => info,
+  camera: () => {
+    const c = viewport.camera;
+    const d = c.position.distanceTo(viewport.target);
+    const looking = c.position.clone().addScaledVector(c.getWorldDirection(new THREE.Vector3()), d);
+    return { position: cameraPosition(), looking: [looking.x, looking.y, looking.z] };
+  },
+  project: (p) => {
+    const v = new THREE.Vector3(...p).project(viewport.camera);
+    // Behind the camera (or on it): not drawn.
+    if (!(v.z > -1 && v.z < 1)) return null;
+    return viewport.project(new THREE.Vector3(...p));
+  },
+  show: (version) => {
+    if (streamer && info) streamer.reload({ ...info, version: version ?? feed?.version ?? info.version });
+  },
+  say,
+  askToken,
+});
+
+// Markers follow every camera move and frame; the others are told (throttled, presence.ts).
+{
+  const cameraChanged = viewport.onCameraChange;
+  viewport.onCameraChange = () => {
+    cameraChanged();
+    people.cameraMoved();
+  };
+  const frameDrawn = viewport.onFrame;
+  viewport.onFrame = (tiles) => {
+    frameDrawn(tiles);
+    people.frame();
+  };
 }
 
 // --- slice -------------------------------------------------------------------------------
@@ -608,6 +659,8 @@ const hook = {
   probe: () => probe,
   /** The tiles the camera needs now, as [level, x, y, z]. */
   selection: () => (streamer?.selection() ?? []).map((k) => [k.level, k.x, k.y, k.z]),
+  /** Who the page is, the others' cursors, the history panel's rows, the undo stacks. */
+  people: () => people.state(),
 };
 (window as unknown as { isovox: typeof hook }).isovox = hook;
 
@@ -643,9 +696,12 @@ async function start(): Promise<void> {
 }
 
 function begin(): void {
-  start().catch((e: unknown) => {
-    overlay.textContent = readErrorWords(e, tokens.get() !== null);
-  });
+  people
+    .start()
+    .then(start)
+    .catch((e: unknown) => {
+      overlay.textContent = readErrorWords(e, tokens.get() !== null);
+    });
 }
 
 begin();

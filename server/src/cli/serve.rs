@@ -66,6 +66,10 @@ pub(crate) struct ServeArgs {
     /// The audience the JWTs must name in `aud`: this server's client id at the issuer.
     #[arg(long, env = "ISOVOX_OIDC_AUDIENCE", requires = "oidc_issuer")]
     pub oidc_audience: Option<String>,
+    /// The client id the web viewer signs in with at the issuer (a public client, authorization
+    /// code with PKCE; `GET /v1/auth` tells the page). Default: the audience.
+    #[arg(long, env = "ISOVOX_OIDC_CLIENT_ID", requires = "oidc_issuer")]
+    pub oidc_client_id: Option<String>,
     /// The claim holding a user's roles (`write:VOLUME`, `read:VOLUME`, `*` for every volume,
     /// `admin`): a top-level claim by name, else a dotted path such as `realm_access.roles`.
     #[arg(long, env = "ISOVOX_OIDC_ROLES_CLAIM", default_value = DEFAULT_ROLES_CLAIM)]
@@ -187,6 +191,7 @@ fn load_oidc(a: &ServeArgs) -> anyhow::Result<Option<std::sync::Arc<Oidc>>> {
         roles_claim: a.oidc_roles_claim.clone(),
         keys,
         refresh_interval,
+        client_id: a.oidc_client_id.clone().unwrap_or_else(|| audience.clone()),
         ..OidcConfig::new(issuer, audience)
     })
     .map_err(|e| anyhow::anyhow!("--oidc-jwks: {e}"))?;

@@ -478,7 +478,8 @@ pub async fn require_token(
     request: Request,
     next: Next,
 ) -> Response {
-    if request.uri().path().starts_with("/v1/") {
+    // `/v1/auth` tells a page how to sign in: it cannot need a token itself.
+    if request.uri().path().starts_with("/v1/") && request.uri().path() != "/v1/auth" {
         let volume = volume_in_path(request.uri().path());
         if let Err(e) = authorize(
             &state.config,
@@ -492,6 +493,34 @@ pub async fn require_token(
         }
     }
     next.run(request).await
+}
+
+/// `GET /v1/auth`: who the bearer is (`user` null without one), what they may do, and how a
+/// page signs in: `oidc` names the issuer and the viewer's client id when the server accepts
+/// an issuer's JWTs (`--oidc-issuer`, `--oidc-client-id`), else null. Open to all, with
+/// `--private-reads` too; a bearer the server refuses is a 401 as anywhere.
+///
+/// # Errors
+/// 401 for a token or JWT that does not verify.
+pub async fn whoami(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+) -> Result<axum::Json<serde_json::Value>, ApiError> {
+    let principal = if headers.contains_key(header::AUTHORIZATION) {
+        Some(authorize(&state.config, &headers, Scope::Read, None).await?)
+    } else {
+        None
+    };
+    let oidc = state.config.oidc.as_ref().map(|o| {
+        serde_json::json!({"issuer": o.config().issuer, "client_id": o.config().client_id, "audience": o.config().audience})
+    });
+    Ok(axum::Json(serde_json::json!({
+        "user": principal.as_ref().map(|p| p.user.clone()),
+        "write": principal.as_ref().is_some_and(|p| p.may(Scope::Write, None)),
+        "admin": principal.as_ref().is_some_and(|p| p.admin),
+        "private_reads": state.config.private_reads,
+        "oidc": oidc,
+    })))
 }
 
 /// The volume a `/v1/volumes/{name}...` path names, percent-decoded as the router decodes it;

@@ -436,6 +436,7 @@ fn routes(state: &AppState) -> Router<AppState> {
         .route("/healthz", read(handlers::healthz))
         .route("/metrics", read(metrics::metrics))
         .route("/openapi.json", read(openapi::openapi))
+        .route("/v1/auth", read(auth::whoami))
         .route("/v1/volumes", read(handlers::list_volumes))
         .route("/v1/volumes/{name}", read(handlers::volume_info))
         .route(

@@ -60,6 +60,9 @@ pub struct OidcConfig {
     /// What this server is called in the tokens' `aud` (the client id registered with the
     /// issuer).
     pub audience: String,
+    /// The client id the web viewer signs in with at the issuer (authorization code with PKCE;
+    /// `GET /v1/auth` tells the page): `--oidc-client-id`, else the audience.
+    pub client_id: String,
     /// The claim holding the roles: a top-level claim by its exact name, else a dotted path
     /// (`realm_access.roles`).
     pub roles_claim: String,
@@ -75,6 +78,7 @@ impl OidcConfig {
         OidcConfig {
             issuer: issuer.to_string(),
             audience: audience.to_string(),
+            client_id: audience.to_string(),
             roles_claim: DEFAULT_ROLES_CLAIM.to_string(),
             keys: KeySource::Discover,
             refresh_interval: DEFAULT_REFRESH_INTERVAL,

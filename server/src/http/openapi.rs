@@ -151,6 +151,8 @@ pub(super) fn document(limits: &TermLimits) -> Value {
             "/healthz": {"get": {"summary": "liveness", "responses": {"200": {"description": "ok", "content": {"text/plain": {"schema": {"type": "string"}}}}}}},
             "/metrics": {"get": {"summary": "Prometheus metrics", "responses": {"200": {"description": "text format 0.0.4", "content": {"text/plain": {"schema": {"type": "string"}}}}}}},
             "/openapi.json": {"get": {"summary": "this document", "responses": {"200": {"description": "OpenAPI 3.1", "content": {"application/json": {"schema": {"type": "object"}}}}}}},
+            "/v1/auth": {"get": {"summary": "who the bearer is and how a page signs in (open to all)",
+                "responses": merge(json!({"200": {"description": "user (null without a bearer), write, admin, private_reads, oidc (issuer and client_id, or null)", "content": {"application/json": {"schema": {"type": "object"}}}}}), problem_responses(&["401"]))}},
             "/v1/volumes": {"get": {"summary": "list volumes", "responses": {"200": {"description": "volumes", "content": {"application/json": {"schema": schema_ref("VolumeList")}}}}}},
             "/v1/volumes/{name}": {"get": {"summary": "volume metadata", "parameters": [name],
                 "responses": merge(json!({"200": {"description": "metadata", "content": {"application/json": {"schema": schema_ref("VolumeInfo")}}}}), problem_responses(&["400", "404"]))}},

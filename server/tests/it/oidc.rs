@@ -434,3 +434,65 @@ fn oidc_keys_from_a_file_need_no_network_and_jwt_users_are_rate_limited() {
     // Reads are public here: no token needed.
     assert_eq!(read(&c, &s, "w", None).0, StatusCode::OK);
 }
+
+/// `GET /v1/auth` tells a page how to sign in, with `--private-reads` too (before it has a
+/// token), and who a token is once it has one.
+#[test]
+fn the_page_learns_how_to_sign_in_and_who_it_is() {
+    let keys_dir = tempfile::tempdir().unwrap();
+    let rsa = Key::new(keys_dir.path(), "rsa1", Algorithm::RS256);
+    let jwks = keys_dir.path().join("jwks.json");
+    std::fs::write(&jwks, json!({"keys": [rsa.jwk]}).to_string()).unwrap();
+    let iss = "https://issuer.invalid/realms/site";
+    let dir = data_dir();
+    let s = serve(
+        dir.path(),
+        &[
+            "--oidc-issuer",
+            iss,
+            "--oidc-audience",
+            AUDIENCE,
+            "--oidc-client-id",
+            "isovox-web",
+            "--oidc-jwks",
+            jwks.to_str().unwrap(),
+            "--private-reads",
+        ],
+    );
+    let c = client();
+    let auth = |token: Option<&str>| {
+        let (status, body) = send(c.get(s.url("/v1/auth")), token);
+        (
+            status,
+            serde_json::from_str::<Value>(&body).unwrap_or(Value::Null),
+        )
+    };
+    let (status, anonymous) = auth(None);
+    assert_eq!(status, StatusCode::OK, "{anonymous}");
+    assert_eq!(
+        anonymous,
+        json!({"user": null, "write": false, "admin": false, "private_reads": true,
+               "oidc": {"issuer": iss, "client_id": "isovox-web", "audience": AUDIENCE}})
+    );
+    // Only /v1/auth is open: the volumes stay private.
+    assert_eq!(read(&c, &s, "w", None).0, StatusCode::UNAUTHORIZED);
+
+    let reader = rsa.sign(&claims(iss, "rita", &["read:w"]));
+    let (status, rita) = auth(Some(&reader));
+    assert_eq!(status, StatusCode::OK, "{rita}");
+    assert_eq!(
+        (&rita["user"], &rita["write"]),
+        (&json!("rita"), &json!(false))
+    );
+    let writer = rsa.sign(&claims(iss, "alice", &["write:*", "admin"]));
+    let (_, alice) = auth(Some(&writer));
+    assert_eq!(
+        (&alice["user"], &alice["write"], &alice["admin"]),
+        (&json!("alice"), &json!(true), &json!(true))
+    );
+    // A token the server refuses is a 401, as anywhere.
+    assert_eq!(
+        send(c.get(s.url("/v1/auth")), Some("not-a-token")).0,
+        StatusCode::UNAUTHORIZED
+    );
+}

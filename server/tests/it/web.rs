@@ -55,9 +55,13 @@ fn typescript_unit_tests() {
     run("npm", &["test", "--silent"], &[]);
 }
 
+/// One browser test file at a time: each runs chromium on SwiftShader and a server.
+static BROWSER: Mutex<()> = Mutex::new(());
+
 #[test]
 fn browser_tests() {
     node_modules();
+    let _one = BROWSER.lock().unwrap_or_else(|e| e.into_inner());
     let chromium = std::env::var("CHROMIUM").unwrap_or_else(|_| "/usr/bin/chromium".into());
     assert!(
         std::path::Path::new(&chromium).exists(),
@@ -66,6 +70,26 @@ fn browser_tests() {
     run(
         "node",
         &["--test", "--test-reporter=spec", "tests/browser.test.mjs"],
+        &[
+            ("ISOVOX_BIN", env!("CARGO_BIN_EXE_isovox")),
+            ("CHROMIUM", &chromium),
+        ],
+    );
+}
+
+/// `web/tests/people.test.mjs`: two users' pages, each other's names, cursors and undo.
+#[test]
+fn browser_tests_of_editing_together() {
+    node_modules();
+    let _one = BROWSER.lock().unwrap_or_else(|e| e.into_inner());
+    let chromium = std::env::var("CHROMIUM").unwrap_or_else(|_| "/usr/bin/chromium".into());
+    assert!(
+        std::path::Path::new(&chromium).exists(),
+        "{chromium} is missing: install Debian's chromium (apt-get install chromium), as .ci/run does"
+    );
+    run(
+        "node",
+        &["--test", "--test-reporter=spec", "tests/people.test.mjs"],
         &[
             ("ISOVOX_BIN", env!("CARGO_BIN_EXE_isovox")),
             ("CHROMIUM", &chromium),
