@@ -347,6 +347,7 @@ pub const ROUTES: &[&str] = &[
     "/v1/volumes/{name}/undo",
     "/v1/volumes/{name}/revert",
     "/v1/volumes/{name}/presence",
+    "/v1/auth",
     "/v1/meshes",
     "/v1/volumes/{name}/zarr/{*path}",
     "/v1/volumes/{name}/precomputed/{*path}",

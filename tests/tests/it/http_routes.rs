@@ -1093,7 +1093,7 @@ async fn metrics_count_response_bytes() {
 // 5. OpenAPI.
 
 /// Every route the router serves, with its method (from `server/src/http/mod.rs`).
-const ROUTES: [(&str, &str); 26] = [
+const ROUTES: [(&str, &str); 27] = [
     ("/healthz", "get"),
     ("/metrics", "get"),
     ("/openapi.json", "get"),
@@ -1118,6 +1118,7 @@ const ROUTES: [(&str, &str); 26] = [
     ("/v1/volumes/{name}/undo", "post"),
     ("/v1/volumes/{name}/revert", "post"),
     ("/v1/volumes/{name}/presence", "get"),
+    ("/v1/auth", "get"),
     ("/v1/meshes", "post"),
     ("/v1/volumes/{name}/zarr/{path}", "get"),
     ("/v1/volumes/{name}/precomputed/{path}", "get"),
