@@ -472,6 +472,30 @@ impl axum::extract::FromRequestParts<AppState> for WriteToken {
     }
 }
 
+/// Who a request speaks for, allowed to read the volume of its path: for routes that need a
+/// user even when reads are open (presence names its sender). Checked before the body is read.
+#[derive(Debug, Clone)]
+pub struct ReadToken(pub Principal);
+
+impl axum::extract::FromRequestParts<AppState> for ReadToken {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(
+        parts: &mut axum::http::request::Parts,
+        state: &AppState,
+    ) -> Result<Self, ApiError> {
+        let volume = volume_in_path(parts.uri.path());
+        let principal = authorize(
+            &state.config,
+            &parts.headers,
+            Scope::Read,
+            volume.as_deref(),
+        )
+        .await?;
+        Ok(ReadToken(principal))
+    }
+}
+
 /// With `--private-reads`: every `/v1` route needs a token (or JWT) that may read.
 pub async fn require_token(
     State(state): State<AppState>,
