@@ -460,16 +460,20 @@ impl axum::extract::FromRequestParts<AppState> for WriteToken {
         parts: &mut axum::http::request::Parts,
         state: &AppState,
     ) -> Result<Self, ApiError> {
-        let volume = volume_in_path(parts.uri.path());
-        let principal = authorize(
-            &state.config,
-            &parts.headers,
-            Scope::Write,
-            volume.as_deref(),
-        )
-        .await?;
-        Ok(WriteToken(principal))
+        authorize_path(parts, state, Scope::Write)
+            .await
+            .map(WriteToken)
     }
+}
+
+/// [`authorize`] for `need` on the volume the request's path names.
+async fn authorize_path(
+    parts: &axum::http::request::Parts,
+    state: &AppState,
+    need: Scope,
+) -> Result<Principal, ApiError> {
+    let volume = volume_in_path(parts.uri.path());
+    authorize(&state.config, &parts.headers, need, volume.as_deref()).await
 }
 
 /// Who a request speaks for, allowed to read the volume of its path: for routes that need a
@@ -484,15 +488,9 @@ impl axum::extract::FromRequestParts<AppState> for ReadToken {
         parts: &mut axum::http::request::Parts,
         state: &AppState,
     ) -> Result<Self, ApiError> {
-        let volume = volume_in_path(parts.uri.path());
-        let principal = authorize(
-            &state.config,
-            &parts.headers,
-            Scope::Read,
-            volume.as_deref(),
-        )
-        .await?;
-        Ok(ReadToken(principal))
+        authorize_path(parts, state, Scope::Read)
+            .await
+            .map(ReadToken)
     }
 }
 

@@ -509,21 +509,7 @@ impl Bench {
                     };
                     let body = serde_json::to_vec(&request).unwrap_or_default();
                     let start = Instant::now();
-                    let answer = client
-                        .post(&url)
-                        .header("content-type", "application/json")
-                        .header("authorization", &auth)
-                        .body(body)
-                        .send()
-                        .await;
-                    let ok = match answer {
-                        Ok(r) if r.status().is_success() => r
-                            .bytes()
-                            .await
-                            .ok()
-                            .and_then(|b| serde_json::from_slice::<EditResponse>(&b).ok()),
-                        _ => None,
-                    };
+                    let ok = post_for_answer(&client, &url, &auth, body).await;
                     let now = Instant::now();
                     let version = ok.as_ref().map(|r| r.version);
                     if let Ok(mut acks) = acks.lock() {
@@ -539,21 +525,8 @@ impl Bench {
                         continue;
                     };
                     let start = Instant::now();
-                    let answer = client
-                        .post(&undo_url)
-                        .header("content-type", "application/json")
-                        .header("authorization", &auth)
-                        .body(format!("{{\"version\":{version}}}"))
-                        .send()
-                        .await;
-                    let undone = match answer {
-                        Ok(r) if r.status().is_success() => r
-                            .bytes()
-                            .await
-                            .ok()
-                            .and_then(|b| serde_json::from_slice::<EditResponse>(&b).ok()),
-                        _ => None,
-                    };
+                    let body = format!("{{\"version\":{version}}}").into_bytes();
+                    let undone = post_for_answer(&client, &undo_url, &auth, body).await;
                     let now = Instant::now();
                     if let Ok(mut acks) = acks.lock() {
                         match undone {
@@ -574,6 +547,31 @@ impl Bench {
             .ok()
             .and_then(|m| m.into_inner().ok())
             .unwrap_or_default()
+    }
+}
+
+/// Posts the JSON `body` to `url` with `auth`: the answer of a commit (edit, undo), or `None`
+/// for a failure of any kind.
+async fn post_for_answer(
+    client: &reqwest::Client,
+    url: &str,
+    auth: &str,
+    body: Vec<u8>,
+) -> Option<EditResponse> {
+    let answer = client
+        .post(url)
+        .header("content-type", "application/json")
+        .header("authorization", auth)
+        .body(body)
+        .send()
+        .await;
+    match answer {
+        Ok(r) if r.status().is_success() => r
+            .bytes()
+            .await
+            .ok()
+            .and_then(|b| serde_json::from_slice::<EditResponse>(&b).ok()),
+        _ => None,
     }
 }
 
