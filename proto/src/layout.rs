@@ -102,6 +102,14 @@ impl VolumeLayout {
         })
     }
 
+    /// The same shape with values of another type (an attribute channel's pyramid).
+    pub fn with_voxel_type(&self, voxel_type: VoxelType) -> VolumeLayout {
+        VolumeLayout {
+            voxel_type,
+            ..self.clone()
+        }
+    }
+
     /// Level-0 size in voxels.
     pub fn dims(&self) -> [u32; 3] {
         self.dims

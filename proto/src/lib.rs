@@ -6,6 +6,7 @@
 //! Layout:
 //! - [`api`]: the JSON types of the HTTP API.
 //! - [`batch`]: many bricks in one response (the batch route's encoding).
+//! - [`channel`]: attribute channels (materials, labels) beside density, and their mode.
 //! - [`history`]: who did what: commit notes, history, tags, undo, revert, presence.
 //! - [`icvg`]: ICVG terms and edit requests (JSON).
 //! - [`voxel`]: voxel types and the ICVG value range (L, H, S).
@@ -23,6 +24,7 @@
 
 pub mod api;
 pub mod batch;
+pub mod channel;
 pub mod error;
 pub mod history;
 pub mod icvg;

@@ -12,8 +12,9 @@
 //! All integers are little endian. Every decoder checks bounds, sizes and checksums and returns a
 //! [`FormatError`] naming the problem; none panics on any input.
 
+use crate::channel::ChannelInfo;
 use crate::error::FormatError;
-use crate::layout::VolumeLayout;
+use crate::layout::{VolumeLayout, MAX_NODES};
 use crate::voxel::VoxelType;
 use xxhash_rust::xxh3::xxh3_64;
 
@@ -25,6 +26,10 @@ pub const FORMAT_VERSION: u32 = 2;
 pub const HASH_XH64: [u8; 4] = *b"XH64";
 /// Size of the file header record.
 pub const HEADER_LEN: usize = 128;
+/// Size of the header page: the header and, after it, the channel table (revision 4).
+pub const DATA_PAGE: usize = 4096;
+/// Longest channel table: what the header page holds after the header.
+pub const MAX_CHANNEL_TABLE: u32 = (DATA_PAGE - HEADER_LEN) as u32;
 /// Offsets of the two header slots; each sits alone in its own 4 KiB page so that a torn write
 /// of one can never damage the other.
 pub const SLOT_OFFSETS: [u64; 2] = [4096, 8192];
@@ -190,6 +195,8 @@ pub struct FileHeader {
     pub voxel_scale: [f32; 3],
     /// Reserved flags (0).
     pub flags: u32,
+    /// The attribute channels beside density (revision 4), in stream order: channel `i + 1`.
+    pub channels: Vec<ChannelInfo>,
 }
 
 impl FileHeader {
@@ -199,7 +206,112 @@ impl FileHeader {
             layout,
             voxel_scale,
             flags: FLAG_RIGHT_PADDING,
+            channels: Vec::new(),
         }
+    }
+
+    /// The header of a new file with attribute channels beside density.
+    ///
+    /// # Errors
+    /// A channel is invalid (name, palette), there are too many, or their table does not fit
+    /// in the header page.
+    pub fn with_channels(
+        layout: VolumeLayout,
+        voxel_scale: [f32; 3],
+        channels: Vec<ChannelInfo>,
+    ) -> Result<Self, FormatError> {
+        crate::channel::validate_channels(&channels)?;
+        let header = FileHeader {
+            channels,
+            ..FileHeader::new(layout, voxel_scale)
+        };
+        let table = header.channel_table().map_or(0, |t| t.len());
+        if table > MAX_CHANNEL_TABLE as usize {
+            return Err(FormatError::invalid(
+                "channel table",
+                format!("{table} bytes, the header page holds {MAX_CHANNEL_TABLE} (shorten the palettes)"),
+            ));
+        }
+        if header
+            .layout
+            .node_count()
+            .saturating_mul(1 + header.channels.len() as u64)
+            > MAX_NODES
+        {
+            return Err(FormatError::invalid(
+                "channels",
+                format!(
+                    "{} streams of {} bricks each are too many",
+                    1 + header.channels.len(),
+                    header.layout.node_count()
+                ),
+            ));
+        }
+        Ok(header)
+    }
+
+    /// The layout of stream `stream`'s pyramid: density's shape with the stream's value type.
+    pub fn stream_layout(&self, stream: usize) -> Option<VolumeLayout> {
+        match stream {
+            0 => Some(self.layout.clone()),
+            s => self
+                .channels
+                .get(s - 1)
+                .map(|c| self.layout.with_voxel_type(c.voxel_type)),
+        }
+    }
+
+    /// Index entries of the whole file: one pyramid per stream (density, then each channel).
+    pub fn node_count(&self) -> u64 {
+        self.layout.node_count() * (1 + self.channels.len() as u64)
+    }
+
+    /// The stream (0 density, `i + 1` channel `i`) holding the node `node` of the file's index,
+    /// with the voxel type of its values; `None` past the last stream.
+    pub fn stream_of(&self, node: u64) -> Option<(usize, VoxelType)> {
+        let stream = usize::try_from(node / self.layout.node_count()).ok()?;
+        match stream {
+            0 => Some((0, self.layout.voxel_type())),
+            s => self.channels.get(s - 1).map(|c| (s, c.voxel_type)),
+        }
+    }
+
+    /// The stream of the channel named `name` (1 for the first attribute channel).
+    pub fn stream_named(&self, name: &str) -> Option<usize> {
+        self.channels
+            .iter()
+            .position(|c| c.name == name)
+            .map(|i| i + 1)
+    }
+
+    /// The bytes of the header page: the header and, when there are attribute channels, the
+    /// channel table after it (`docs/vod2.md`, revision 4).
+    pub fn encode_page(&self) -> Vec<u8> {
+        let mut page = vec![0u8; DATA_PAGE];
+        page[..HEADER_LEN].copy_from_slice(&self.encode());
+        if let Some(table) = self.channel_table() {
+            // with_channels made sure it fits; a header built otherwise gets no table, and
+            // reading it back fails rather than reading a cut one.
+            if let Some(room) = page.get_mut(HEADER_LEN..HEADER_LEN + table.len()) {
+                room.copy_from_slice(&table);
+            }
+        }
+        page
+    }
+
+    /// The channel table: u32 JSON length, the JSON, xxh3-64 of both.
+    fn channel_table(&self) -> Option<Vec<u8>> {
+        if self.channels.is_empty() {
+            return None;
+        }
+        // Serializing plain data to a Vec cannot fail.
+        let json = serde_json::to_vec(&self.channels).unwrap_or_default();
+        let mut t = Vec::with_capacity(json.len() + 12);
+        t.extend_from_slice(&(json.len() as u32).to_le_bytes());
+        t.extend_from_slice(&json);
+        let sum = xxh3_64(&t);
+        t.extend_from_slice(&sum.to_le_bytes());
+        Some(t)
     }
 
     /// The header's bytes.
@@ -220,7 +332,9 @@ impl FileHeader {
             put(&mut b, 40 + 4 * i, &s.to_le_bytes());
         }
         put(&mut b, 52, &HASH_XH64);
-        put(&mut b, 56, &1u32.to_le_bytes()); // channels
+        put(&mut b, 56, &(1 + self.channels.len() as u32).to_le_bytes());
+        let table_len = self.channel_table().map_or(0, |t| t.len() as u32);
+        put(&mut b, 60, &table_len.to_le_bytes());
         seal(&mut b, HEADER_LEN - 8);
         b
     }
@@ -275,17 +389,58 @@ impl FileHeader {
                 detail: format!("{:?}", String::from_utf8_lossy(&hash)),
             });
         }
-        let channels = f.u32(56)?;
-        if channels != 1 {
-            return Err(FormatError::Unsupported {
-                what: "channel count",
-                detail: channels.to_string(),
-            });
+        let streams = f.u32(56)?;
+        let table_len = f.u32(60)?;
+        let channels = match (streams, table_len) {
+            (1, 0) => Vec::new(),
+            (2..=8, 13..=MAX_CHANNEL_TABLE) => {
+                let rest = bytes.get(HEADER_LEN..).unwrap_or_default();
+                let table = Fields::new("channel table", rest, HEADER_LEN as u64);
+                table.checksum(table_len as usize - 8)?;
+                let json_len = table.u32(0)?;
+                if json_len as usize + 12 != table_len as usize {
+                    return Err(FormatError::invalid(
+                        "channel table",
+                        format!("{json_len} bytes of JSON in a table of {table_len}"),
+                    ));
+                }
+                let json = table.slice(4, json_len as usize)?;
+                let channels: Vec<ChannelInfo> = serde_json::from_slice(json).map_err(|e| {
+                    FormatError::invalid("channel table", format!("not a channel list: {e}"))
+                })?;
+                crate::channel::validate_channels(&channels)?;
+                if channels.len() as u32 + 1 != streams {
+                    return Err(FormatError::invalid(
+                        "channel table",
+                        format!(
+                            "{} channels listed, the header counts {streams} streams",
+                            channels.len()
+                        ),
+                    ));
+                }
+                channels
+            }
+            _ => {
+                return Err(FormatError::Unsupported {
+                    what: "channel count",
+                    detail: format!("{streams} streams with a channel table of {table_len} bytes"),
+                })
+            }
+        };
+        if layout.node_count().saturating_mul(streams as u64) > MAX_NODES {
+            return Err(FormatError::invalid(
+                "file header",
+                format!(
+                    "{streams} streams of {} bricks each are too many",
+                    layout.node_count()
+                ),
+            ));
         }
         Ok(FileHeader {
             layout,
             voxel_scale,
             flags,
+            channels,
         })
     }
 }

@@ -6,7 +6,7 @@
 //! (rayon); deduplication and appending run in order on one thread, so the file is deterministic.
 
 use super::codec::Compression;
-use super::pyramid::{constant_parent, downsample, BrickSource, BrickVoxels};
+use super::pyramid::{constant_parent, downsample, BrickSource, BrickVoxels, Downsampling};
 use super::transaction::{CheckpointPolicy, Transaction};
 use super::writer::{Vod2Writer, WriteStats};
 use super::StoreError;
@@ -67,18 +67,57 @@ pub fn build_vod2(
     source: &dyn BrickSource,
     options: &BuildOptions,
 ) -> Result<BuildReport, StoreError> {
+    let header = FileHeader::new(layout.clone(), voxel_scale);
+    build_streams(path, header, &[source], options)
+}
+
+/// Builds `path` as version 1 of a volume with the header `header` (which may list attribute
+/// channels): `sources[0]` gives density's level 0, `sources[i]` channel `i - 1`'s. Each
+/// stream's pyramid is built as [`build_vod2`] builds density's, a channel's levels by
+/// [`Downsampling::of_channel`].
+///
+/// # Errors
+/// A source is missing or extra, or the file cannot be written.
+pub fn build_streams(
+    path: &Path,
+    header: FileHeader,
+    sources: &[&dyn BrickSource],
+    options: &BuildOptions,
+) -> Result<BuildReport, StoreError> {
     let start = Instant::now();
-    let mut writer = Vod2Writer::create(
-        path,
-        FileHeader::new(layout.clone(), voxel_scale),
-        options.compression,
-    )?;
-    let mut sink = FileSink(Transaction::first(&mut writer));
-    options.progress.start(layout.node_count());
-    let built = stream_pyramid(layout, source, &mut sink, options.progress.as_ref());
+    if sources.len() != 1 + header.channels.len() {
+        return Err(StoreError::Internal(format!(
+            "{} sources for {} streams",
+            sources.len(),
+            1 + header.channels.len()
+        )));
+    }
+    let streams: Vec<(VolumeLayout, Downsampling)> = (0..sources.len())
+        .filter_map(|s| {
+            let how = match s {
+                0 => Downsampling::Mean,
+                s => Downsampling::of_channel(&header.channels[s - 1]),
+            };
+            Some((header.stream_layout(s)?, how))
+        })
+        .collect();
+    let mut writer = Vod2Writer::create(path, header.clone(), options.compression)?;
+    let mut transaction = Transaction::first(&mut writer);
+    options.progress.start(header.node_count());
+    let mut built = Ok(());
+    for (stream, ((layout, how), source)) in streams.iter().zip(sources).enumerate() {
+        let mut sink = FileSink {
+            transaction: &mut transaction,
+            first_node: stream as u64 * layout.node_count(),
+        };
+        built = stream_pyramid_by(layout, *how, *source, &mut sink, options.progress.as_ref());
+        if built.is_err() {
+            break;
+        }
+    }
     options.progress.finish();
     built?;
-    sink.0.commit(CheckpointPolicy::default())?;
+    transaction.commit(CheckpointPolicy::default())?;
     Ok(BuildReport {
         stats: writer.stats(),
         file_bytes: writer.end(),
@@ -121,10 +160,14 @@ impl SlabSink for MemorySink {
     }
 }
 
-/// Stores every brick as the first version of a new file.
-struct FileSink<'a>(Transaction<'a>);
+/// Stores every brick of one stream as part of the first version of a new file.
+struct FileSink<'t, 'w> {
+    transaction: &'t mut Transaction<'w>,
+    /// The file-wide node of the stream's first brick.
+    first_node: u64,
+}
 
-impl SlabSink for FileSink<'_> {
+impl SlabSink for FileSink<'_, '_> {
     fn slab(
         &mut self,
         layout: &VolumeLayout,
@@ -132,16 +175,18 @@ impl SlabSink for FileSink<'_> {
         z: u32,
         slab: &[BrickVoxels],
     ) -> Result<(), StoreError> {
-        let writer = self.0.writer();
-        let prepared: Vec<_> = slab.par_iter().map(|v| writer.prepare(v)).collect();
-        let first = layout.node_index(BrickKey {
-            level,
-            x: 0,
-            y: 0,
-            z,
-        });
+        let writer = self.transaction.writer();
+        let t = layout.voxel_type();
+        let prepared: Vec<_> = slab.par_iter().map(|v| writer.prepare_as(v, t)).collect();
+        let first = self.first_node
+            + layout.node_index(BrickKey {
+                level,
+                x: 0,
+                y: 0,
+                z,
+            });
         for (i, (voxels, p)) in slab.iter().zip(prepared).enumerate() {
-            self.0.put(first + i as u64, voxels, p)?;
+            self.transaction.put_as(first + i as u64, voxels, p, t)?;
         }
         Ok(())
     }
@@ -157,8 +202,23 @@ pub fn stream_pyramid(
     sink: &mut dyn SlabSink,
     progress: &dyn Progress,
 ) -> Result<(), StoreError> {
+    stream_pyramid_by(layout, Downsampling::Mean, source, sink, progress)
+}
+
+/// [`stream_pyramid`] with the levels above level 0 made by `how`.
+///
+/// # Errors
+/// What the sink returns.
+pub fn stream_pyramid_by(
+    layout: &VolumeLayout,
+    how: Downsampling,
+    source: &dyn BrickSource,
+    sink: &mut dyn SlabSink,
+    progress: &dyn Progress,
+) -> Result<(), StoreError> {
     let mut b = Builder {
         layout,
+        how,
         sink,
         pending: vec![None; layout.levels() as usize],
         progress,
@@ -195,6 +255,7 @@ pub fn stream_pyramid(
 
 struct Builder<'a> {
     layout: &'a VolumeLayout,
+    how: Downsampling,
     sink: &'a mut dyn SlabSink,
     /// Per level: an even slab waiting for its odd partner.
     pending: Vec<Option<Vec<BrickVoxels>>>,
@@ -235,6 +296,7 @@ impl Builder<'_> {
         let brick = self.layout.brick();
         let voxel_type = self.layout.voxel_type();
         let brick_bytes = self.layout.brick_bytes();
+        let how = self.how;
         (0..parent[0] * parent[1])
             .into_par_iter()
             .map(|i| {
@@ -256,7 +318,7 @@ impl Builder<'_> {
                     return BrickVoxels::Constant(v);
                 }
                 let mut out = vec![0u8; brick_bytes];
-                downsample(&children, brick, voxel_type, &mut out);
+                downsample(&children, brick, voxel_type, how, &mut out);
                 BrickVoxels::from_bytes(out, voxel_type)
             })
             .collect()

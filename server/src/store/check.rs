@@ -28,6 +28,7 @@ use crate::progress::Progress;
 use isovox_proto::vod2::{
     CommitHeader, NodeEntry, CHUNK_ENTRIES, COMMIT_FIXED_LEN, DATA_START, SLOT_OFFSETS,
 };
+use isovox_proto::VoxelType;
 use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::{BTreeMap, HashMap, HashSet};
@@ -160,7 +161,7 @@ pub fn check(
     check_chain(&file, &commits, &mut damage);
 
     // Every checkpoint, whole; then the state of every version, oldest first.
-    let mut checkpoints: HashMap<u64, Result<HashSet<u64>, String>> = HashMap::new();
+    let mut checkpoints: HashMap<u64, Result<HashMap<u64, VoxelType>, String>> = HashMap::new();
     for h in commits.values() {
         if h.checkpoint != 0 && !checkpoints.contains_key(&h.checkpoint) {
             let read = read_checkpoint(&file, &commits, h.checkpoint);
@@ -178,20 +179,20 @@ pub fn check(
 
     let (mut bricks, mut without_checksum) = (0, 0);
     if depth == Depth::Everything {
-        let mut referenced: HashSet<u64> = HashSet::new();
+        let mut referenced: HashMap<u64, VoxelType> = HashMap::new();
         for offsets in checkpoints.values().flatten() {
             referenced.extend(offsets);
         }
         for &at in commits.keys() {
             referenced.extend(stored_changes(&file, at));
         }
-        let mut offsets: Vec<u64> = referenced.into_iter().collect();
-        offsets.sort_unstable();
+        let mut offsets: Vec<(u64, VoxelType)> = referenced.into_iter().collect();
+        offsets.sort_unstable_by_key(|&(offset, _)| offset);
         progress.start(offsets.len() as u64);
         let checked: Vec<(u64, Result<bool, StoreError>)> = offsets
             .par_iter()
-            .map(|&offset| {
-                let r = check_brick(&file, offset);
+            .map(|&(offset, voxel_type)| {
+                let r = check_brick(&file, offset, voxel_type);
                 progress.advance(1);
                 (offset, r)
             })
@@ -331,33 +332,37 @@ fn read_checkpoint(
     file: &Vod2File,
     commits: &BTreeMap<u64, CommitHeader>,
     at: u64,
-) -> Result<HashSet<u64>, String> {
+) -> Result<HashMap<u64, VoxelType>, String> {
     let (&commit, _) = commits
         .iter()
         .find(|(_, h)| h.checkpoint == at)
         .ok_or_else(|| "no commit names it".to_string())?;
     let snap = file.snapshot_at(commit).map_err(|e| error_chain(&e))?;
-    let mut bricks = HashSet::new();
+    let mut bricks = HashMap::new();
     let mut problems = Vec::new();
     // The checkpoint commit's own state is the checkpoint's (its changes are already in it),
     // so every entry read here comes from the checkpoint itself.
     let nodes = snap.layout().node_count();
-    let mut node = 0;
-    while node < nodes {
-        match snap.entry_at(node) {
-            Ok(NodeEntry::Stored(offset)) => {
-                bricks.insert(offset);
+    for view in snap.streams() {
+        let base = view.stream() as u64 * nodes;
+        let mut node = 0;
+        while node < nodes {
+            match view.entry_at(node) {
+                Ok(NodeEntry::Stored(offset)) => {
+                    bricks.insert(offset, view.layout().voxel_type());
+                }
+                Ok(NodeEntry::Constant(_)) => {}
+                Err(e) => {
+                    let at = base + node;
+                    let chunk = at / CHUNK_ENTRIES;
+                    problems.push(format!("chunk {chunk}, entry {at}: {}", error_chain(&e)));
+                    // A chunk that does not decode fails for each of its entries: say it once.
+                    node = (chunk + 1) * CHUNK_ENTRIES - base;
+                    continue;
+                }
             }
-            Ok(NodeEntry::Constant(_)) => {}
-            Err(e) => {
-                let chunk = node / CHUNK_ENTRIES;
-                problems.push(format!("chunk {chunk}, entry {node}: {}", error_chain(&e)));
-                // A chunk that does not decode fails for each of its entries: say it once.
-                node = (chunk + 1) * CHUNK_ENTRIES;
-                continue;
-            }
+            node += 1;
         }
-        node += 1;
     }
     if problems.is_empty() {
         Ok(bricks)
@@ -371,7 +376,7 @@ fn read_checkpoint(
 fn version_states(
     file: &Vod2File,
     commits: &BTreeMap<u64, CommitHeader>,
-    checkpoints: &HashMap<u64, Result<HashSet<u64>, String>>,
+    checkpoints: &HashMap<u64, Result<HashMap<u64, VoxelType>, String>>,
     damage: &mut Vec<Damage>,
 ) -> Vec<VersionCheck> {
     let mut order: Vec<(u64, &CommitHeader)> = commits.iter().map(|(&at, h)| (at, h)).collect();
@@ -426,43 +431,48 @@ fn version_states(
 
 /// Checks a commit record's changes: nodes inside the volume, entries valid.
 fn changes_valid(file: &Vod2File, at: u64) -> Result<(), String> {
-    let layout = &file.header().layout;
+    let header = file.header();
     let mapped = file.mapped();
     let (_, record) =
         CommitHeader::decode(&mapped[at as usize..], at).map_err(|e| e.to_string())?;
     for (node, raw) in CommitHeader::changes(record) {
-        if node >= layout.node_count() {
-            return Err(format!(
-                "a change to node {node}; the volume has {}",
-                layout.node_count()
-            ));
-        }
-        NodeEntry::decode(raw, layout.voxel_type(), mapped.len() as u64)
+        let (_, voxel_type) = header.stream_of(node).ok_or_else(|| {
+            format!(
+                "a change to node {node}; the file has {}",
+                header.node_count()
+            )
+        })?;
+        NodeEntry::decode(raw, voxel_type, mapped.len() as u64)
             .map_err(|e| format!("the change to node {node}: {e}"))?;
     }
     Ok(())
 }
 
-/// The brick records a commit record's changes point at.
-fn stored_changes(file: &Vod2File, at: u64) -> Vec<u64> {
+/// The entry of node `node` (file-wide) as its stream's type reads it.
+fn decode_change(file: &Vod2File, node: u64, raw: u64) -> Option<NodeEntry> {
+    let (_, voxel_type) = file.header().stream_of(node)?;
+    NodeEntry::decode(raw, voxel_type, file.mapped().len() as u64).ok()
+}
+
+/// The brick records a commit record's changes point at, with their streams' value types.
+fn stored_changes(file: &Vod2File, at: u64) -> Vec<(u64, VoxelType)> {
     let mapped = file.mapped();
     let Ok((_, record)) = CommitHeader::decode(&mapped[at as usize..], at) else {
         return Vec::new();
     };
     CommitHeader::changes(record)
-        .filter_map(|(_, raw)| {
-            match NodeEntry::decode(raw, file.header().layout.voxel_type(), mapped.len() as u64) {
-                Ok(NodeEntry::Stored(offset)) => Some(offset),
-                _ => None,
-            }
+        .filter_map(|(node, raw)| match decode_change(file, node, raw)? {
+            NodeEntry::Stored(offset) => Some((offset, file.header().stream_of(node)?.1)),
+            NodeEntry::Constant(_) => None,
         })
         .collect()
 }
 
-/// Checks one brick record whole: header, payload checksum, decoded content hash. Returns
-/// whether it has a payload checksum.
-fn check_brick(file: &Vod2File, offset: u64) -> Result<bool, StoreError> {
-    let stored = file.stored_at(offset)?;
+/// Checks one brick record (of a stream of `voxel_type`) whole: header, payload checksum,
+/// decoded content hash. Returns whether it has a payload checksum.
+fn check_brick(file: &Vod2File, offset: u64, voxel_type: VoxelType) -> Result<bool, StoreError> {
+    let layout = file.header().layout.with_voxel_type(voxel_type);
+    let stored = file.stored_as(offset, &layout)?;
     let had_checksum = matches!(
         stored,
         StoredBrick::Record {
@@ -471,9 +481,8 @@ fn check_brick(file: &Vod2File, offset: u64) -> Result<bool, StoreError> {
         }
     );
     stored.check_payload()?;
-    let layout = &file.header().layout;
     let mut out = vec![0u8; layout.brick_bytes()];
-    decode_stored(&stored, layout, &mut out)?;
+    decode_stored(&stored, &layout, &mut out)?;
     Ok(had_checksum)
 }
 
@@ -495,20 +504,24 @@ fn count_damaged_bricks(
             let Ok(snap) = file.snapshot_at(v.commit) else {
                 continue;
             };
-            (0..snap.layout().node_count())
-                .filter(|&n| {
-                    matches!(snap.entry_at(n), Ok(NodeEntry::Stored(o)) if damaged.contains(&o))
+            let n = snap.layout().node_count();
+            snap.streams()
+                .flat_map(|view| {
+                    (0..n)
+                        .filter(|&node| {
+                            matches!(view.entry_at(node), Ok(NodeEntry::Stored(o)) if damaged.contains(&o))
+                        })
+                        .map(move |node| view.stream() as u64 * n + node)
                 })
                 .collect()
         } else {
             // A version is the only child of the one before it: its set moves on.
             let mut nodes = bad.remove(&h.parent).unwrap_or_default();
             let mapped = file.mapped();
-            let voxel_type = file.header().layout.voxel_type();
             if let Ok((_, record)) = CommitHeader::decode(&mapped[v.commit as usize..], v.commit) {
                 for (node, raw) in CommitHeader::changes(record) {
-                    match NodeEntry::decode(raw, voxel_type, mapped.len() as u64) {
-                        Ok(NodeEntry::Stored(o)) if damaged.contains(&o) => nodes.insert(node),
+                    match decode_change(file, node, raw) {
+                        Some(NodeEntry::Stored(o)) if damaged.contains(&o) => nodes.insert(node),
                         _ => nodes.remove(&node),
                     };
                 }

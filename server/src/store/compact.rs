@@ -141,28 +141,31 @@ fn write_version(
     let mut writer = Vod2Writer::create(out, version.header().clone(), Default::default())?;
     writer.start_at_version(version.version)?;
     let nodes = version.layout().node_count();
-    progress.start(nodes);
+    progress.start(version.header().node_count());
     let mut transaction = Transaction::first(&mut writer);
     let mut moved: HashMap<u64, NodeEntry> = HashMap::new();
-    for node in 0..nodes {
-        let entry = version.entry_at(node)?;
-        let copied = match entry {
-            NodeEntry::Constant(_) => entry,
-            NodeEntry::Stored(offset) => match moved.get(&offset) {
-                Some(&e) => e,
-                None => {
-                    let e = transaction.copy_record(&version.stored_entry(entry)?)?;
-                    moved.insert(offset, e);
-                    e
-                }
-            },
-        };
-        transaction.set(node, copied)?;
-        if node % 4096 == 4095 {
-            progress.advance(4096);
+    // Density, then each attribute channel: every stream's pyramid, file-wide node by node.
+    for (stream, view) in version.streams().enumerate() {
+        for node in 0..nodes {
+            let entry = view.entry_at(node)?;
+            let copied = match entry {
+                NodeEntry::Constant(_) => entry,
+                NodeEntry::Stored(offset) => match moved.get(&offset) {
+                    Some(&e) => e,
+                    None => {
+                        let e = transaction.copy_record(&view.stored_entry(entry)?)?;
+                        moved.insert(offset, e);
+                        e
+                    }
+                },
+            };
+            transaction.set(stream as u64 * nodes + node, copied)?;
+            if node % 4096 == 4095 {
+                progress.advance(4096);
+            }
         }
+        progress.advance(nodes % 4096);
     }
-    progress.advance(nodes % 4096);
     progress.finish();
     transaction.commit(CheckpointPolicy::default())?;
     Ok(moved.len() as u64)

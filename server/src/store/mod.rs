@@ -38,7 +38,9 @@ pub mod vod1;
 pub mod vod2;
 pub mod writer;
 
-pub use build::{build_vod2, stream_pyramid, BuildOptions, BuildReport, MemorySink, SlabSink};
+pub use build::{
+    build_streams, build_vod2, stream_pyramid, BuildOptions, BuildReport, MemorySink, SlabSink,
+};
 pub use pyramid::{BrickSource, BrickVoxels, DenseGrid};
 pub use transaction::{CheckpointPolicy, Committed, Transaction};
 pub use vod2::{

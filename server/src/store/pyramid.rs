@@ -129,16 +129,39 @@ impl BrickSource for DenseGrid<'_> {
     }
 }
 
+/// How a voxel of level k+1 follows from its 2x2x2 voxels of level k.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Downsampling {
+    /// The rounded mean, half up: density.
+    Mean,
+    /// The most frequent value, ties to the smallest; with `sparse`, 0 only when all 8 are 0
+    /// ([`isovox_proto::channel::mode_of_8`]): attribute channels, whose values are names.
+    Mode {
+        /// Whether 0 loses to any other value.
+        sparse: bool,
+    },
+}
+
+impl Downsampling {
+    /// How the levels of an attribute channel are made.
+    pub fn of_channel(channel: &isovox_proto::channel::ChannelInfo) -> Downsampling {
+        Downsampling::Mode {
+            sparse: channel.sparse,
+        }
+    }
+}
+
 /// Writes into `out` (the parent brick's bytes) the downsampling of its 8 children, given in
 /// octant order (x fastest); a `None` child is outside the volume and counts as all L.
 pub fn downsample(
     children: &[Option<&BrickVoxels>; 8],
     brick: u32,
     voxel_type: VoxelType,
+    how: Downsampling,
     out: &mut [u8],
 ) {
     for (octant, child) in children.iter().enumerate() {
-        downsample_octant(octant, *child, brick, voxel_type, out);
+        downsample_octant(octant, *child, brick, voxel_type, how, out);
     }
 }
 
@@ -150,11 +173,12 @@ pub fn downsample_changed(
     changed: &[Option<&BrickVoxels>; 8],
     brick: u32,
     voxel_type: VoxelType,
+    how: Downsampling,
     out: &mut [u8],
 ) {
     for (octant, child) in changed.iter().enumerate() {
         if child.is_some() {
-            downsample_octant(octant, *child, brick, voxel_type, out);
+            downsample_octant(octant, *child, brick, voxel_type, how, out);
         }
     }
 }
@@ -165,18 +189,70 @@ fn downsample_octant(
     child: Option<&BrickVoxels>,
     brick: u32,
     voxel_type: VoxelType,
+    how: Downsampling,
     out: &mut [u8],
 ) {
     let b = brick as usize;
     let h = b / 2;
     let (ox, oy, oz) = ((octant & 1) * h, (octant >> 1 & 1) * h, (octant >> 2) * h);
-    match child {
-        None => fill_subcube(out, b, [ox, oy, oz], 0, voxel_type),
-        Some(BrickVoxels::Constant(v)) => fill_subcube(out, b, [ox, oy, oz], *v, voxel_type),
-        Some(BrickVoxels::Data(d)) => match voxel_type {
+    match (child, how) {
+        (None, _) => fill_subcube(out, b, [ox, oy, oz], 0, voxel_type),
+        (Some(BrickVoxels::Constant(v)), _) => fill_subcube(out, b, [ox, oy, oz], *v, voxel_type),
+        (Some(BrickVoxels::Data(d)), Downsampling::Mean) => match voxel_type {
             VoxelType::U8 => mean_subcube_u8(d, out, b, [ox, oy, oz]),
             VoxelType::U16 => mean_subcube_u16(d, out, b, [ox, oy, oz]),
         },
+        (Some(BrickVoxels::Data(d)), Downsampling::Mode { sparse }) => {
+            mode_subcube(d, out, b, [ox, oy, oz], voxel_type, sparse)
+        }
+    }
+}
+
+/// The most frequent value of each 2x2x2 of `child` into the octant at `o` of `out`.
+fn mode_subcube(
+    child: &[u8],
+    out: &mut [u8],
+    b: usize,
+    o: [usize; 3],
+    voxel_type: VoxelType,
+    sparse: bool,
+) {
+    let h = b / 2;
+    let vb = voxel_type.bytes();
+    let at = |x: usize, y: usize, z: usize| -> u64 {
+        let i = ((z * b + y) * b + x) * vb;
+        match voxel_type {
+            VoxelType::U8 => child[i] as u64,
+            VoxelType::U16 => u16::from_le_bytes([child[i], child[i + 1]]) as u64,
+        }
+    };
+    for z in 0..h {
+        for y in 0..h {
+            for x in 0..h {
+                let (x2, y2, z2) = (2 * x, 2 * y, 2 * z);
+                let group = [
+                    at(x2, y2, z2),
+                    at(x2 + 1, y2, z2),
+                    at(x2, y2 + 1, z2),
+                    at(x2 + 1, y2 + 1, z2),
+                    at(x2, y2, z2 + 1),
+                    at(x2 + 1, y2, z2 + 1),
+                    at(x2, y2 + 1, z2 + 1),
+                    at(x2 + 1, y2 + 1, z2 + 1),
+                ];
+                // Most 2x2x2 groups of a material or label brick hold one value: no counting.
+                let v = if group.iter().all(|&v| v == group[0]) {
+                    group[0]
+                } else {
+                    isovox_proto::channel::mode_of_8(group, sparse)
+                };
+                let i = (((o[2] + z) * b + o[1] + y) * b + o[0] + x) * vb;
+                match voxel_type {
+                    VoxelType::U8 => out[i] = v as u8,
+                    VoxelType::U16 => out[i..i + 2].copy_from_slice(&(v as u16).to_le_bytes()),
+                }
+            }
+        }
     }
 }
 
@@ -275,7 +351,7 @@ mod tests {
         let child = BrickVoxels::Data(vec![4, 10, 6, 8, 2, 2, 4, 4]);
         let children = [Some(&child), None, None, None, None, None, None, None];
         let mut out = vec![0u8; 8];
-        downsample(&children, 2, VoxelType::U8, &mut out);
+        downsample(&children, 2, VoxelType::U8, Downsampling::Mean, &mut out);
         assert_eq!(out, vec![5, 0, 0, 0, 0, 0, 0, 0]);
     }
 
@@ -292,6 +368,7 @@ mod tests {
                 &[Some(&child), None, None, None, None, None, None, None],
                 2,
                 VoxelType::U8,
+                Downsampling::Mean,
                 &mut out,
             );
             assert_eq!(out[0], expect);
@@ -302,10 +379,60 @@ mod tests {
             &[Some(&full), None, None, None, None, None, None, None],
             2,
             VoxelType::U16,
+            Downsampling::Mean,
             &mut out,
         );
         assert_eq!(&out[..2], &[0xff, 0xff]);
         assert_eq!(&out[2..4], &[0, 0]);
+    }
+
+    #[test]
+    fn mode_downsampling_by_hand() {
+        // A 4^3 brick of u8 labels whose octant 0 (x, y, z < 2) holds, in x-fastest order,
+        // 7 3 3 7 / 3 7 3 3: five 3s. Octant 1 (x >= 2): 1 2 1 2 / 2 1 2 1, a 4-4 tie: 1.
+        // Octant 2 (y >= 2): six 0s and two 9s: 0, or 9 when sparse. The rest all 5.
+        let mut child = vec![5u8; 64];
+        let put = |child: &mut Vec<u8>, o: [usize; 3], vals: [u8; 8]| {
+            for (i, v) in vals.iter().enumerate() {
+                let (x, y, z) = (o[0] + (i & 1), o[1] + (i >> 1 & 1), o[2] + (i >> 2));
+                child[(z * 4 + y) * 4 + x] = *v;
+            }
+        };
+        put(&mut child, [0, 0, 0], [7, 3, 3, 7, 3, 7, 3, 3]);
+        put(&mut child, [2, 0, 0], [1, 2, 1, 2, 2, 1, 2, 1]);
+        put(&mut child, [0, 2, 0], [0, 0, 9, 0, 0, 0, 9, 0]);
+        let child = BrickVoxels::Data(child);
+        for (sparse, third) in [(false, 0u8), (true, 9)] {
+            let mut out = vec![0u8; 64];
+            let kids = [Some(&child), None, None, None, None, None, None, None];
+            downsample(
+                &kids,
+                4,
+                VoxelType::U8,
+                Downsampling::Mode { sparse },
+                &mut out,
+            );
+            // The parent's octant 0 is the child's 2x2x2 groups: (0,0,0), (1,0,0), (0,1,0), ...
+            assert_eq!(out[0], 3);
+            assert_eq!(out[1], 1);
+            assert_eq!(out[4], third, "sparse {sparse}");
+            assert_eq!(out[(4 + 1) * 4 + 1], 5); // group (1,1,1): all 5
+            assert_eq!(out[2], 0, "octants without a child are 0");
+        }
+        // u16: 300 x3, 40000 x3, 7 x2: a tie between 300 and 40000 goes to 300.
+        let vals: [u16; 8] = [40000, 300, 7, 300, 40000, 7, 300, 40000];
+        let bytes = vals.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let child = BrickVoxels::Data(bytes);
+        let mut out = vec![0u8; 16];
+        let kids = [Some(&child), None, None, None, None, None, None, None];
+        downsample(
+            &kids,
+            2,
+            VoxelType::U16,
+            Downsampling::Mode { sparse: false },
+            &mut out,
+        );
+        assert_eq!(u16::from_le_bytes([out[0], out[1]]), 300);
     }
 
     #[test]

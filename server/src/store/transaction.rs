@@ -6,13 +6,13 @@
 //! fill every entry of a new file ([`Transaction::first`]), whose first commit is a checkpoint.
 
 use super::codec::fill_constant;
-use super::pyramid::{constant_parent, downsample, downsample_changed, BrickVoxels};
+use super::pyramid::{constant_parent, downsample, downsample_changed, BrickVoxels, Downsampling};
 use super::writer::{PreparedBrick, Vod2Writer};
 use super::{Snapshot, StoreError, StoredBrick};
 use isovox_proto::vod2::{HeaderSlot, NodeEntry};
 use isovox_proto::BrickKey;
 use rayon::prelude::*;
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 
 /// When to write a full index checkpoint instead of a delta: a reader replays the deltas since
 /// the last checkpoint when it opens the file, so their number is bounded.
@@ -55,6 +55,9 @@ pub struct Committed {
     pub new_records: u64,
     /// Whether the commit wrote a full index checkpoint.
     pub checkpoint: bool,
+    /// The bricks of attribute channels whose entries changed, per stream (1 the first
+    /// channel), per level; streams without a change are absent.
+    pub channels_changed: BTreeMap<usize, ChangedKeys>,
 }
 
 /// What a transaction builds on.
@@ -65,6 +68,8 @@ enum Base<'a> {
         snap: &'a Snapshot,
         changes: Vec<(u64, NodeEntry)>,
         changed: ChangedKeys,
+        /// Changed bricks of attribute channels, by stream.
+        channels_changed: BTreeMap<usize, ChangedKeys>,
     },
     /// Nothing (a new file): every entry is staged.
     Empty { entries: Vec<u64> },
@@ -94,6 +99,7 @@ impl<'a> Transaction<'a> {
                 snap,
                 changes: Vec::new(),
                 changed: vec![Vec::new(); snap.layout().levels() as usize],
+                channels_changed: BTreeMap::new(),
             },
             writer,
             note: Vec::new(),
@@ -102,7 +108,7 @@ impl<'a> Transaction<'a> {
 
     /// The first transaction of a new file: stage every entry before committing.
     pub fn first(writer: &'a mut Vod2Writer) -> Self {
-        let nodes = writer.header().layout.node_count() as usize;
+        let nodes = writer.header().node_count() as usize;
         Transaction {
             records_before: records(writer),
             base: Base::Empty {
@@ -129,20 +135,50 @@ impl<'a> Transaction<'a> {
     /// # Errors
     /// The base's entry cannot be read.
     pub fn set(&mut self, node: u64, entry: NodeEntry) -> Result<bool, StoreError> {
-        match &mut self.base {
-            Base::Version {
-                snap,
-                changes,
-                changed,
-            } => {
-                if entry == snap.entry_at(node)? {
-                    return Ok(false);
-                }
-                let key = snap.layout().key_of(node)?;
-                changes.push((node, entry));
-                changed[key.level as usize].push([key.x, key.y, key.z]);
-                Ok(true)
+        match &self.base {
+            Base::Version { snap, .. } => {
+                let snap: &Snapshot = snap;
+                self.set_in(snap, node, entry)
             }
+            Base::Empty { .. } => self.set_raw(node, entry),
+        }
+    }
+
+    /// Sets the entry of node `node` of the stream `view` is a version of (the base version's
+    /// density, or one of its channels: [`Snapshot::channel`]); returns whether it differs
+    /// from `view`'s.
+    fn set_in(&mut self, view: &Snapshot, node: u64, entry: NodeEntry) -> Result<bool, StoreError> {
+        let Base::Version {
+            changes,
+            changed,
+            channels_changed,
+            ..
+        } = &mut self.base
+        else {
+            return self.set_raw(node, entry);
+        };
+        if entry == view.entry_at(node)? {
+            return Ok(false);
+        }
+        let layout = view.layout();
+        let key = layout.key_of(node)?;
+        changes.push((view.stream() as u64 * layout.node_count() + node, entry));
+        let keys = match view.stream() {
+            0 => changed,
+            s => channels_changed
+                .entry(s)
+                .or_insert_with(|| vec![Vec::new(); layout.levels() as usize]),
+        };
+        keys[key.level as usize].push([key.x, key.y, key.z]);
+        Ok(true)
+    }
+
+    /// Sets a file-wide entry of a new file.
+    fn set_raw(&mut self, node: u64, entry: NodeEntry) -> Result<bool, StoreError> {
+        match &mut self.base {
+            Base::Version { .. } => Err(StoreError::Internal(
+                "a version's entries are set through its streams".into(),
+            )),
             Base::Empty { entries } => {
                 let slot = entries.get_mut(node as usize).ok_or_else(|| {
                     StoreError::Internal(format!("node {node} is outside the volume"))
@@ -168,6 +204,28 @@ impl<'a> Transaction<'a> {
         self.set(node, entry)
     }
 
+    /// [`Transaction::put`] of a brick of values of `voxel_type` at the file-wide `node` of a
+    /// new file (a build's attribute channel).
+    ///
+    /// # Errors
+    /// Storing fails, or this transaction has a base version ([`Transaction::update_stream`]
+    /// is how a version changes a channel).
+    pub fn put_as(
+        &mut self,
+        node: u64,
+        voxels: &BrickVoxels,
+        prepared: PreparedBrick,
+        voxel_type: isovox_proto::VoxelType,
+    ) -> Result<bool, StoreError> {
+        if !matches!(self.base, Base::Empty { .. }) {
+            return Err(StoreError::Internal(
+                "put_as fills a new file; a version's channels change by update_stream".into(),
+            ));
+        }
+        let entry = self.writer.store_as(voxels, prepared, voxel_type)?;
+        self.set(node, entry)
+    }
+
     /// Copies a brick record of another file with its payload as it is (verified first, see
     /// [`Vod2Writer::copy_record`]) and returns its new entry (not yet set on any node: records
     /// shared by several nodes are copied once).
@@ -186,15 +244,44 @@ impl<'a> Transaction<'a> {
     /// # Errors
     /// A brick of the base fails to read, storing fails, or this is the first transaction of a
     /// file (there is no base to read siblings from).
-    pub fn update_level0(
-        &mut self,
-        mut level: Vec<(BrickKey, BrickVoxels)>,
-    ) -> Result<(), StoreError> {
+    pub fn update_level0(&mut self, level: Vec<(BrickKey, BrickVoxels)>) -> Result<(), StoreError> {
         let Base::Version { snap, .. } = self.base else {
             return Err(StoreError::Internal(
                 "level-of-detail upkeep needs a base version".into(),
             ));
         };
+        self.update_stream(snap, level, Downsampling::Mean)
+    }
+
+    /// [`Transaction::update_level0`] of an attribute channel: `view` is the base version's
+    /// channel ([`Snapshot::channel`]), its levels made by `how`.
+    ///
+    /// # Errors
+    /// As [`Transaction::update_level0`].
+    pub fn update_channel_level0(
+        &mut self,
+        view: &Snapshot,
+        level: Vec<(BrickKey, BrickVoxels)>,
+    ) -> Result<(), StoreError> {
+        let stream = view.stream();
+        let info = stream
+            .checked_sub(1)
+            .and_then(|i| view.header().channels.get(i))
+            .ok_or_else(|| StoreError::Internal(format!("stream {stream} is no channel")))?;
+        self.update_stream(view, level, Downsampling::of_channel(info))
+    }
+
+    fn update_stream(
+        &mut self,
+        snap: &Snapshot,
+        mut level: Vec<(BrickKey, BrickVoxels)>,
+        how: Downsampling,
+    ) -> Result<(), StoreError> {
+        if !matches!(self.base, Base::Version { .. }) {
+            return Err(StoreError::Internal(
+                "level-of-detail upkeep needs a base version".into(),
+            ));
+        }
         let layout = snap.layout();
         let t = layout.voxel_type();
         for lvl in 0..layout.levels() {
@@ -206,11 +293,12 @@ impl<'a> Transaction<'a> {
             let prepared: Vec<_> = level
                 .par_iter()
                 .with_min_len(BRICKS_PER_JOB)
-                .map(|(_, v)| writer.prepare(v))
+                .map(|(_, v)| writer.prepare_as(v, t))
                 .collect();
             let mut kept: HashMap<BrickKey, BrickVoxels> = HashMap::new();
             for ((key, voxels), p) in level.into_iter().zip(prepared) {
-                if self.put(layout.node_index(key), &voxels, p)? {
+                let entry = self.writer.store_as(&voxels, p, t)?;
+                if self.set_in(snap, layout.node_index(key), entry)? {
                     kept.insert(key, voxels);
                 }
             }
@@ -236,7 +324,7 @@ impl<'a> Transaction<'a> {
                             Some(v) => BrickVoxels::Constant(v),
                             None => {
                                 let mut out = vec![0u8; layout.brick_bytes()];
-                                downsample(&changed, layout.brick(), t, &mut out);
+                                downsample(&changed, layout.brick(), t, how, &mut out);
                                 BrickVoxels::from_bytes(out, t)
                             }
                         }
@@ -251,7 +339,7 @@ impl<'a> Transaction<'a> {
                                 bytes
                             }
                         };
-                        downsample_changed(&changed, layout.brick(), t, &mut out);
+                        downsample_changed(&changed, layout.brick(), t, how, &mut out);
                         BrickVoxels::from_bytes(out, t)
                     };
                     Ok((parent, voxels))
@@ -283,11 +371,12 @@ impl<'a> Transaction<'a> {
     }
 
     fn finish(self, policy: CheckpointPolicy, durable: bool) -> Result<Committed, StoreError> {
-        let (slot, changed, checkpoint) = match self.base {
+        let (slot, changed, checkpoint, channels_changed) = match self.base {
             Base::Version {
                 snap,
                 changes,
                 changed,
+                channels_changed,
             } => {
                 let checkpoint = snap.overlay_len() + changes.len() > policy.max_overlay
                     || snap.chain_len() + 1 > policy.max_chain;
@@ -301,11 +390,11 @@ impl<'a> Transaction<'a> {
                     None
                 };
                 let slot = self.writer.stage(&changes, full.as_deref(), &self.note)?;
-                (slot, changed, checkpoint)
+                (slot, changed, checkpoint, channels_changed)
             }
             Base::Empty { entries } => {
                 let slot = self.writer.stage(&[], Some(&entries), &self.note)?;
-                (slot, ChangedKeys::new(), true)
+                (slot, ChangedKeys::new(), true, BTreeMap::new())
             }
         };
         let slot = if durable { self.writer.sync()? } else { slot };
@@ -314,6 +403,7 @@ impl<'a> Transaction<'a> {
             changed,
             new_records: records(self.writer) - self.records_before,
             checkpoint,
+            channels_changed,
         })
     }
 }

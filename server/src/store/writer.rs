@@ -152,7 +152,7 @@ impl Vod2Writer {
             .open(path)
             .map_err(StoreError::io_path("cannot create", path))?;
         let mut buf = vec![0u8; DATA_START as usize];
-        buf[..isovox_proto::vod2::HEADER_LEN].copy_from_slice(&header.encode());
+        buf[..isovox_proto::vod2::DATA_PAGE].copy_from_slice(&header.encode_page());
         Ok(Vod2Writer {
             target: Target::File(file),
             path: path.to_path_buf(),
@@ -185,13 +185,15 @@ impl Vod2Writer {
         let snap = vod.head();
         let mut known: HashMap<u64, Vec<u64>> = HashMap::new();
         let mut seen = std::collections::HashSet::new();
-        for node in 0..snap.layout().node_count() {
-            if let NodeEntry::Stored(offset) = snap.entry_at(node)? {
-                if seen.insert(offset) {
-                    if let super::StoredBrick::Record { header, .. } =
-                        snap.stored_entry(NodeEntry::Stored(offset))?
-                    {
-                        known.entry(header.hash).or_default().push(offset);
+        for stream in snap.streams() {
+            for node in 0..stream.layout().node_count() {
+                if let NodeEntry::Stored(offset) = stream.entry_at(node)? {
+                    if seen.insert(offset) {
+                        if let super::StoredBrick::Record { header, .. } =
+                            stream.stored_entry(NodeEntry::Stored(offset))?
+                        {
+                            known.entry(header.hash).or_default().push(offset);
+                        }
                     }
                 }
             }
@@ -383,7 +385,11 @@ impl Vod2Writer {
     /// Classifies, hashes and compresses one brick. Pure and thread-safe: call it from rayon
     /// over a batch, then hand the results to [`Vod2Writer::store`] in order.
     pub fn prepare(&self, voxels: &BrickVoxels) -> PreparedBrick {
-        let voxel_type = self.header.layout.voxel_type();
+        self.prepare_as(voxels, self.header.layout.voxel_type())
+    }
+
+    /// [`Vod2Writer::prepare`] for a brick of values of `voxel_type` (an attribute channel's).
+    pub fn prepare_as(&self, voxels: &BrickVoxels, voxel_type: VoxelType) -> PreparedBrick {
         prepare(voxels, voxel_type, self.compression, &self.known)
     }
 
@@ -397,6 +403,22 @@ impl Vod2Writer {
         voxels: &BrickVoxels,
         brick: PreparedBrick,
     ) -> Result<NodeEntry, StoreError> {
+        let voxel_type = self.header.layout.voxel_type();
+        self.store_as(voxels, brick, voxel_type)
+    }
+
+    /// [`Vod2Writer::store`] for a brick of values of `voxel_type` (an attribute channel's,
+    /// prepared by [`Vod2Writer::prepare_as`]). Records are shared across streams when their
+    /// bytes are equal.
+    ///
+    /// # Errors
+    /// As [`Vod2Writer::store`].
+    pub fn store_as(
+        &mut self,
+        voxels: &BrickVoxels,
+        brick: PreparedBrick,
+        voxel_type: VoxelType,
+    ) -> Result<NodeEntry, StoreError> {
         let bytes = match (voxels, brick.constant.as_ref()) {
             (BrickVoxels::Data(d), None) => d,
             (BrickVoxels::Constant(v), _) | (BrickVoxels::Data(_), Some(v)) => {
@@ -407,7 +429,7 @@ impl Vod2Writer {
         };
         if let Some(candidates) = self.known.get(&brick.hash) {
             for &offset in candidates.clone().iter() {
-                if self.stored_equals(offset, bytes)? {
+                if self.stored_equals(offset, bytes, voxel_type)? {
                     self.stats.deduplicated += 1;
                     return Ok(NodeEntry::Stored(offset));
                 }
@@ -431,9 +453,15 @@ impl Vod2Writer {
 
     /// Whether the record at `offset` holds `bytes`. A damaged record holds nothing: the
     /// brick is then stored anew, so later versions do not depend on the damage.
-    fn stored_equals(&self, offset: u64, bytes: &[u8]) -> Result<bool, StoreError> {
+    fn stored_equals(
+        &self,
+        offset: u64,
+        bytes: &[u8],
+        voxel_type: VoxelType,
+    ) -> Result<bool, StoreError> {
         let head = self.read_at(offset, BRICK_HEADER_LEN)?;
-        let h = match BrickHeader::decode(&head, offset, &self.header.layout) {
+        let layout = self.header.layout.with_voxel_type(voxel_type);
+        let h = match BrickHeader::decode(&head, offset, &layout) {
             Ok(h) => h,
             Err(e) => return Ok(damaged(offset, &e.into())),
         };
@@ -512,13 +540,12 @@ impl Vod2Writer {
             },
             (None, _) => (0, self.first_version, 1),
         };
-        let layout = &self.header.layout;
         for (node, entry) in changes {
-            let valid = *node < layout.node_count()
-                && match *entry {
-                    NodeEntry::Constant(v) => v <= layout.voxel_type().high(),
-                    NodeEntry::Stored(offset) => offset >= DATA_START && offset < self.end(),
-                };
+            let valid = match (self.header.stream_of(*node), *entry) {
+                (None, _) => false,
+                (Some((_, voxel_type)), NodeEntry::Constant(v)) => v <= voxel_type.high(),
+                (Some(_), NodeEntry::Stored(offset)) => offset >= DATA_START && offset < self.end(),
+            };
             if !valid {
                 return Err(StoreError::Internal(format!(
                     "invalid change to node {node}: {entry:?}"
@@ -527,10 +554,10 @@ impl Vod2Writer {
         }
         let checkpoint_at = match checkpoint {
             Some(entries) => {
-                if entries.len() as u64 != self.header.layout.node_count() {
+                if entries.len() as u64 != self.header.node_count() {
                     return Err(StoreError::Internal(format!(
                         "a checkpoint needs {} entries, got {}",
-                        self.header.layout.node_count(),
+                        self.header.node_count(),
                         entries.len()
                     )));
                 }

@@ -16,6 +16,7 @@ mod raw_http;
 mod server_process;
 mod tls;
 
+mod channels;
 mod cli;
 mod connection_limits;
 mod dedup_and_versions;

@@ -18,7 +18,7 @@ use isovox_server::mesh::mc::{march, Field, Mesh, Scratch};
 use isovox_server::mesh::transition::{
     mesh_strip, tile_moves, TileFaces, TransitionInput, TransitionScratch,
 };
-use isovox_server::store::pyramid::{downsample, BrickVoxels};
+use isovox_server::store::pyramid::{downsample, BrickVoxels, Downsampling};
 use std::collections::HashMap;
 
 const ISO: f32 = 127.5;
@@ -70,7 +70,7 @@ impl Pyramid {
                 .collect();
             let refs: [Option<&BrickVoxels>; 8] = std::array::from_fn(|i| Some(&children[i]));
             let mut out = vec![0u8; h * h * h];
-            downsample(&refs, h as u32, VoxelType::U8, &mut out);
+            downsample(&refs, h as u32, VoxelType::U8, Downsampling::Mean, &mut out);
             levels.push((s / 2, out));
         }
         Pyramid { levels }

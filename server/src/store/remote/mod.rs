@@ -37,7 +37,7 @@ use super::{StoreError, Vod2};
 use arc_swap::ArcSwap;
 use bytes::Bytes;
 use head::{HEAD_FORMAT, TAIL_MAX};
-use isovox_proto::vod2::{FileHeader, HeaderSlot, HEADER_LEN};
+use isovox_proto::vod2::{FileHeader, HeaderSlot, DATA_PAGE};
 use mirror::{MirrorFile, MirrorView, Pages};
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
@@ -194,8 +194,8 @@ impl RemoteVolume {
             .collect();
         let view = Arc::new(MirrorView::new(file.clone(), pages.clone()));
         let map = file.map(head.committed_len)?;
-        view.fill(0, HEADER_LEN as u64)?;
-        let header = FileHeader::decode(map.bytes().get(..HEADER_LEN).unwrap_or_default())?;
+        view.fill(0, DATA_PAGE as u64)?;
+        let header = FileHeader::decode(map.bytes().get(..DATA_PAGE).unwrap_or_default())?;
         let volume = Arc::new(RemoteVolume {
             name: name.to_string(),
             header: header.clone(),

@@ -10,7 +10,7 @@ use crate::store::StoreError;
 use isovox_proto::vod2::{
     Checkpoint, CommitHeader, FileHeader, CHECKPOINT_FIXED_LEN, CHUNK_ENTRIES, CHUNK_REF_LEN,
 };
-use isovox_proto::{FormatError, VolumeLayout};
+use isovox_proto::FormatError;
 use std::collections::HashMap;
 use std::sync::{Arc, OnceLock};
 
@@ -20,7 +20,6 @@ impl Snapshot {
         map: Arc<Region>,
         commit_at: u64,
     ) -> Result<Snapshot, StoreError> {
-        let layout = &header.layout;
         // Walk back to the newest checkpoint, keeping each commit's changes; every record is
         // decoded (and checksummed) once.
         let mut chain: Vec<&[u8]> = Vec::new();
@@ -46,18 +45,21 @@ impl Snapshot {
             at = h.parent;
             (h, record) = (parent, parent_record);
         };
-        let index = Arc::new(IndexChunks::open(&map, checkpoint_at, layout.node_count())?);
+        let nodes = header.node_count();
+        let index = Arc::new(IndexChunks::open(&map, checkpoint_at, nodes)?);
         let mut overlay = HashMap::new();
         // The checkpoint holds the state after its own commit: apply only the later ones.
         for record in chain.iter().rev().skip(1) {
-            apply_changes(record, layout, &mut overlay, |_| ())?;
+            apply_changes(record, nodes, &mut overlay, |_| ())?;
         }
         Ok(Snapshot {
             version: head.version,
             timestamp_ms: head.timestamp_ms,
             commit_offset: commit_at,
             index,
-            overlay,
+            overlay: Arc::new(overlay),
+            stream: 0,
+            channel_views: OnceLock::new(),
             chain_len: chain.len() - 1,
             by_hash: OnceLock::new(),
             header,
@@ -78,20 +80,23 @@ impl Snapshot {
             let snap = Snapshot::load(self.header.clone(), map.clone(), commit_at)?;
             // A child that wrote a checkpoint still finds what its parents held by hash.
             if child {
-                self.hand_down_hashes(&snap, CommitHeader::changes(record).map(|(_, e)| e))?;
+                self.hand_down_hashes(&snap, CommitHeader::changes(record))?;
             }
             return Ok(snap);
         }
-        let layout = self.layout();
-        let mut overlay = self.overlay.clone();
+        let mut overlay = (*self.overlay).clone();
         let mut added = Vec::new();
-        apply_changes(record, layout, &mut overlay, |entry| added.push(entry))?;
+        apply_changes(record, self.header.node_count(), &mut overlay, |change| {
+            added.push(change)
+        })?;
         let snap = Snapshot {
             version: h.version,
             timestamp_ms: h.timestamp_ms,
             commit_offset: commit_at,
             index: self.index.clone(),
-            overlay,
+            overlay: Arc::new(overlay),
+            stream: self.stream,
+            channel_views: OnceLock::new(),
             chain_len: self.chain_len + 1,
             by_hash: OnceLock::new(),
             header: self.header.clone(),
@@ -107,14 +112,14 @@ impl Snapshot {
     /// # Errors
     /// A chunk reference is invalid.
     pub fn checkpoint_span(&self) -> Result<(u64, u64), StoreError> {
-        let n_nodes = self.layout().node_count();
+        let n_nodes = self.header.node_count();
         self.map
             .ensure(self.index.base, Checkpoint::directory_len(n_nodes))?;
         let cp = self.index.checkpoint(self.map.bytes())?;
         Ok((self.index.base, cp.total_len()?))
     }
 
-    /// Every index entry of this version in node order, raw (as a checkpoint stores them): the
+    /// Every index entry of this version (every stream's) in node order, raw (as a checkpoint stores them): the
     /// checkpoint's chunks (each checked against its hash when first used) with the overlay
     /// applied (each entry checked when its commit was read). What a new checkpoint is written
     /// from: copying chunks costs a fraction of looking up and decoding each entry.
@@ -122,7 +127,7 @@ impl Snapshot {
     /// # Errors
     /// A checkpoint chunk fails its hash, or the chunks do not hold one entry per node.
     pub fn raw_entries(&self) -> Result<Vec<u64>, StoreError> {
-        let nodes = self.layout().node_count();
+        let nodes = self.header.node_count();
         let mut entries = Vec::with_capacity(usize::try_from(nodes).unwrap_or(0));
         for c in 0..self.index.chunks.len() {
             entries.extend_from_slice(self.index.chunk(&self.map, c)?);
@@ -133,7 +138,7 @@ impl Snapshot {
                 entries.len()
             )));
         }
-        for (&node, &raw) in &self.overlay {
+        for (&node, &raw) in self.overlay.iter() {
             let slot = entries.get_mut(node as usize).ok_or_else(|| {
                 StoreError::Internal(format!("node {node} is outside the volume"))
             })?;
@@ -154,26 +159,23 @@ impl Snapshot {
 }
 
 /// Applies a commit record's changes to `overlay` (node index -> raw entry), checking each node
-/// against the layout, and hands each entry to `added`.
+/// against the file's `nodes`, and hands each (node, entry) to `added`.
 fn apply_changes(
     record: &[u8],
-    layout: &VolumeLayout,
+    nodes: u64,
     overlay: &mut HashMap<u64, u64>,
-    mut added: impl FnMut(u64),
+    mut added: impl FnMut((u64, u64)),
 ) -> Result<(), StoreError> {
     for (node, entry) in CommitHeader::changes(record) {
-        if node >= layout.node_count() {
+        if node >= nodes {
             return Err(FormatError::invalid(
                 "commit record",
-                format!(
-                    "change to node {node}, the volume has {}",
-                    layout.node_count()
-                ),
+                format!("change to node {node}, the file has {nodes}"),
             )
             .into());
         }
         overlay.insert(node, entry);
-        added(entry);
+        added((node, entry));
     }
     Ok(())
 }

@@ -7,7 +7,7 @@ use super::{Snapshot, StoredBrick, Vod2};
 use crate::store::mapping::Mapping;
 use crate::store::region::Region;
 use crate::store::StoreError;
-use isovox_proto::vod2::{FileHeader, HeaderSlot, DATA_START, HEADER_LEN, SLOT_LEN, SLOT_OFFSETS};
+use isovox_proto::vod2::{FileHeader, HeaderSlot, DATA_PAGE, DATA_START, SLOT_LEN, SLOT_OFFSETS};
 use isovox_proto::FormatError;
 use std::fs::File;
 use std::os::unix::fs::FileExt;
@@ -61,7 +61,7 @@ impl Vod2File {
             }
             .into());
         }
-        let header = FileHeader::decode(&read_exact_at(&file, path, 0, HEADER_LEN)?)?;
+        let header = FileHeader::decode(&read_exact_at(&file, path, 0, DATA_PAGE)?)?;
         let mut slots = [SlotState::Unused, SlotState::Unused];
         for (state, at) in slots.iter_mut().zip(SLOT_OFFSETS) {
             let bytes = read_exact_at(&file, path, at, SLOT_LEN)?;
@@ -136,6 +136,18 @@ impl Vod2File {
     /// Its header or bounds are invalid.
     pub fn stored_at(&self, offset: u64) -> Result<StoredBrick<'_>, StoreError> {
         stored_record(&self.map, &self.header.layout, offset)
+    }
+
+    /// [`Vod2File::stored_at`] for a record of the stream whose pyramid has `layout`.
+    ///
+    /// # Errors
+    /// Its header or bounds are invalid.
+    pub fn stored_as(
+        &self,
+        offset: u64,
+        layout: &isovox_proto::VolumeLayout,
+    ) -> Result<StoredBrick<'_>, StoreError> {
+        stored_record(&self.map, layout, offset)
     }
 
     /// The file opened at the version the slots name as the newest durable one.

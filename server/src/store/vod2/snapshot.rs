@@ -24,8 +24,14 @@ pub struct Snapshot {
     pub timestamp_ms: u64,
     pub(super) commit_offset: u64,
     pub(super) index: Arc<IndexChunks>,
-    /// Entries changed by the commits after the checkpoint: node index -> raw entry.
-    pub(super) overlay: HashMap<u64, u64>,
+    /// Entries changed by the commits after the checkpoint: node index (of the file's whole
+    /// index, every stream) -> raw entry.
+    pub(super) overlay: Arc<HashMap<u64, u64>>,
+    /// Which stream of the file this is a view of: 0 density, `i + 1` attribute channel `i`
+    /// (its `header`'s layout then has the channel's value type).
+    pub(super) stream: usize,
+    /// The views of the attribute channels of this version, made on first use (density's only).
+    pub(super) channel_views: OnceLock<Vec<Arc<Snapshot>>>,
     /// Content hash -> entry, built on first use by [`Snapshot::find_by_hash`] (or carried over
     /// from the parent version and extended).
     pub(super) by_hash: OnceLock<HashIndex>,
@@ -39,14 +45,15 @@ impl Snapshot {
     pub(super) fn hand_down_hashes(
         &self,
         child: &Snapshot,
-        added: impl Iterator<Item = u64>,
+        added: impl Iterator<Item = (u64, u64)>,
     ) -> Result<(), StoreError> {
         let Some(parent_hashes) = self.by_hash.get() else {
             return Ok(());
         };
         let mut hashes = parent_hashes.child();
         let (voxel_type, mapped) = (self.layout().voxel_type(), child.map.len());
-        for raw in added {
+        let mine = self.nodes_of_stream();
+        for (_, raw) in added.filter(|(node, _)| mine.contains(node)) {
             let entry = NodeEntry::decode(raw, voxel_type, mapped)?;
             hashes.insert(child.entry_hash(entry)?, entry);
         }
@@ -54,9 +61,62 @@ impl Snapshot {
         Ok(())
     }
 
-    /// Dimensions, brick edge and voxel type.
+    /// Dimensions, brick edge and voxel type (of this stream's values: an attribute channel's
+    /// view has the channel's type).
     pub fn layout(&self) -> &VolumeLayout {
         &self.header.layout
+    }
+
+    /// Which stream this is a view of: 0 density, `i + 1` the file's attribute channel `i`.
+    pub fn stream(&self) -> usize {
+        self.stream
+    }
+
+    /// The nodes of the file's whole index that hold this stream's pyramid.
+    pub(super) fn nodes_of_stream(&self) -> std::ops::Range<u64> {
+        let n = self.layout().node_count();
+        let base = self.stream as u64 * n;
+        base..base + n
+    }
+
+    /// The same version of the attribute channel named `name`, as a snapshot of its own: its
+    /// layout has the channel's value type, and every read (entries, bricks, hashes) is of the
+    /// channel's pyramid. `None` when the file has no such channel.
+    pub fn channel(&self, name: &str) -> Option<Arc<Snapshot>> {
+        let stream = self.header.stream_named(name)?;
+        self.channel_views().get(stream - 1).cloned()
+    }
+
+    /// This version of every stream of the file: itself (density), then each channel's view.
+    pub fn streams(&self) -> impl Iterator<Item = &Snapshot> {
+        std::iter::once(self).chain(self.channel_views().iter().map(|v| &**v))
+    }
+
+    /// The views of every attribute channel of this version, in stream order.
+    pub fn channel_views(&self) -> &[Arc<Snapshot>] {
+        self.channel_views.get_or_init(|| {
+            (1..=self.header.channels.len())
+                .filter_map(|stream| {
+                    let layout = self.header.stream_layout(stream)?;
+                    Some(Arc::new(Snapshot {
+                        header: Arc::new(FileHeader {
+                            layout,
+                            ..(*self.header).clone()
+                        }),
+                        map: self.map.clone(),
+                        version: self.version,
+                        timestamp_ms: self.timestamp_ms,
+                        commit_offset: self.commit_offset,
+                        index: self.index.clone(),
+                        overlay: self.overlay.clone(),
+                        stream,
+                        channel_views: OnceLock::new(),
+                        by_hash: OnceLock::new(),
+                        chain_len: self.chain_len,
+                    }))
+                })
+                .collect()
+        })
     }
 
     /// The file's fixed header.
@@ -82,6 +142,7 @@ impl Snapshot {
             )
             .into());
         }
+        let node = self.stream as u64 * layout.node_count() + node;
         let raw = match self.overlay.get(&node) {
             Some(&raw) => raw,
             None => self.index.entry(&self.map, node)?,
@@ -144,6 +205,10 @@ impl Snapshot {
             at = h.parent;
         };
         let oldest = Snapshot::load(self.header.clone(), self.map.clone(), oldest)?;
+        let oldest = Snapshot {
+            stream: self.stream,
+            ..oldest
+        };
         let mut map = HashMap::new();
         let mut constants = std::collections::HashSet::new();
         let mut add = |entry: NodeEntry| -> Result<(), StoreError> {
@@ -160,8 +225,9 @@ impl Snapshot {
             add(oldest.entry_at(node)?)?;
         }
         let (voxel_type, mapped) = (self.layout().voxel_type(), self.map.len());
+        let mine = self.nodes_of_stream();
         for record in records.iter().rev() {
-            for (_, raw) in CommitHeader::changes(record) {
+            for (_, raw) in CommitHeader::changes(record).filter(|(node, _)| mine.contains(node)) {
                 add(NodeEntry::decode(raw, voxel_type, mapped)?)?;
             }
         }
