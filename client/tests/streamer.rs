@@ -608,6 +608,8 @@ fn carve(center: [i64; 3], r: u32) -> EditRequest {
         k: None,
         region: None,
         message: None,
+        channel: None,
+        overwrite: None,
     }
 }
 

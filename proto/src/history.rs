@@ -126,7 +126,8 @@ fn leaf_kinds(term: &Term, out: &mut Vec<String>) {
         | Term::Complement(a)
         | Term::AddScalar { arg: a, .. }
         | Term::Dilate { arg: a, .. }
-        | Term::Erode { arg: a, .. } => leaf_kinds(a, out),
+        | Term::Erode { arg: a, .. }
+        | Term::Attributed { leaf: a, .. } => leaf_kinds(a, out),
     }
 }
 

@@ -13,8 +13,13 @@ use serde::{Deserialize, Serialize};
 pub const MAX_COORDINATE: i64 = 1 << 53;
 
 /// A CVG term.
+///
+/// Every leaf object may also carry attributes (`"material": N`, `"label": N`): values of the
+/// volume's attribute channels where the leaf is what the operators keep (`docs/channels.md`).
+/// In Rust a leaf with attributes is [`Term::Attributed`] around the leaf; on the wire the
+/// attributes are fields of the leaf's own object.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case", deny_unknown_fields)]
+#[serde(remote = "Self", rename_all = "snake_case", deny_unknown_fields)]
 pub enum Term {
     /// Extension space `size` (every side > 2) starting at `origin`: L padding layer, S surface
     /// layer, H inside.
@@ -164,6 +169,116 @@ pub enum Term {
         /// The term eroded.
         arg: Box<Term>,
     },
+    /// A leaf with attribute values (written as fields of the leaf's object, never as an
+    /// object of its own).
+    #[serde(skip)]
+    Attributed {
+        /// The attributes.
+        attrs: Attributes,
+        /// The leaf.
+        leaf: Box<Term>,
+    },
+}
+
+/// Attribute values a leaf gives the volume's channels where it wins (CVG's rule).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Attributes {
+    /// The value for a `material` channel.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub material: Option<u64>,
+    /// The value for a `label` channel.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub label: Option<u64>,
+}
+
+impl Attributes {
+    /// The value for the channel named `channel`, if this leaf gives one.
+    pub fn get(&self, channel: &str) -> Option<u64> {
+        match channel {
+            "material" => self.material,
+            "label" => self.label,
+            _ => None,
+        }
+    }
+
+    fn is_empty(&self) -> bool {
+        self.material.is_none() && self.label.is_none()
+    }
+}
+
+/// The names of the leaves, which may carry attributes.
+pub const LEAVES: [&str; 10] = [
+    "cuboid",
+    "ellipsoid",
+    "cylinder",
+    "cone",
+    "torus",
+    "capsule",
+    "prism",
+    "pyramid",
+    "volume",
+    "mesh",
+];
+
+impl Serialize for Term {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        use serde::ser::Error;
+        let Term::Attributed { attrs, leaf } = self else {
+            return Term::serialize(self, s);
+        };
+        // The leaf's object with the attributes as fields of its own.
+        let mut value = serde_json::to_value(&**leaf).map_err(S::Error::custom)?;
+        let inner = value
+            .as_object_mut()
+            .and_then(|o| o.values_mut().next())
+            .and_then(|v| v.as_object_mut())
+            .ok_or_else(|| S::Error::custom("attributes on a term that is not a leaf"))?;
+        for (name, v) in [("material", attrs.material), ("label", attrs.label)] {
+            if let Some(v) = v {
+                inner.insert(name.into(), v.into());
+            }
+        }
+        value.serialize(s)
+    }
+}
+
+impl<'de> Deserialize<'de> for Term {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        use serde::de::Error;
+        let mut value = serde_json::Value::deserialize(d)?;
+        // A leaf's object may carry attributes: take them out, read the leaf, wrap it.
+        let mut attrs = Attributes::default();
+        if let Some(obj) = value.as_object_mut() {
+            if let (1, Some((name, serde_json::Value::Object(fields)))) =
+                (obj.len(), obj.iter_mut().next())
+            {
+                if LEAVES.contains(&name.as_str()) {
+                    for (field, slot) in [
+                        ("material", &mut attrs.material),
+                        ("label", &mut attrs.label),
+                    ] {
+                        if let Some(v) = fields.remove(field) {
+                            *slot = Some(v.as_u64().ok_or_else(|| {
+                                D::Error::custom(format!(
+                                    "\"{field}\" of a {name} must be an unsigned integer, not {v}"
+                                ))
+                            })?);
+                        }
+                    }
+                }
+            }
+        }
+        let leaf = Term::deserialize(value).map_err(D::Error::custom)?;
+        Ok(if attrs.is_empty() {
+            leaf
+        } else {
+            Term::Attributed {
+                attrs,
+                leaf: Box::new(leaf),
+            }
+        })
+    }
 }
 
 /// A box of level-0 voxels: `min` inclusive, `max` exclusive.
@@ -204,6 +319,23 @@ pub struct EditRequest {
     /// Why, in a few words (at most 200 characters): the history and the change feed show it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub message: Option<String>,
+    /// `paint`'s channel (default `material`): the channel written where the term is inside.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub channel: Option<String>,
+    /// `paint`'s mode: overwrite every value (default), or only where the channel is 0.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub overwrite: Option<Overwrite>,
+}
+
+/// Which voxels `paint` writes, as the two brush modes of segmentation tools.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Overwrite {
+    /// Every voxel inside the term.
+    #[default]
+    All,
+    /// Only voxels whose value is 0 (unlabelled): what others painted stays.
+    Empty,
 }
 
 #[cfg(test)]
@@ -245,5 +377,47 @@ mod tests {
             r#"{"cuboid": {"origin": [0,0,0], "size": [4,4,4], "x": 1}}"#
         )
         .is_err());
+    }
+
+    #[test]
+    fn leaves_carry_attributes_as_fields_of_their_own() {
+        let json = r#"{"union": [
+            {"cuboid": {"origin": [0,0,0], "size": [4,4,4], "material": 3}},
+            {"ellipsoid": {"center": [1,2,3], "radii": [2,2,2], "label": 70000, "material": 1}}
+        ]}"#;
+        let t: Term = serde_json::from_str(json).unwrap();
+        let Term::Union(a, b) = &t else {
+            panic!("not a union: {t:?}")
+        };
+        let Term::Attributed { attrs, leaf } = &**a else {
+            panic!("no attributes: {a:?}")
+        };
+        assert_eq!(
+            (*attrs, &**leaf),
+            (
+                Attributes {
+                    material: Some(3),
+                    label: None
+                },
+                &Term::Cuboid {
+                    origin: [0, 0, 0],
+                    size: [4, 4, 4]
+                }
+            )
+        );
+        assert!(matches!(&**b, Term::Attributed { attrs, .. } if attrs.label == Some(70000) && attrs.material == Some(1)));
+        // Written back as fields of the leaf, and read again the same.
+        let text = serde_json::to_string(&t).unwrap();
+        assert!(text.contains(r#""size":[4,4,4],"material":3"#) || text.contains(r#""material":3"#), "{text}");
+        assert_eq!(serde_json::from_str::<Term>(&text).unwrap(), t);
+        // Attributes belong to leaves, and are unsigned integers.
+        for bad in [
+            r#"{"dilate": {"radius": 1, "arg": {"cuboid": {"origin": [0,0,0], "size": [4,4,4]}}, "material": 2}}"#,
+            r#"{"cuboid": {"origin": [0,0,0], "size": [4,4,4], "material": -1}}"#,
+            r#"{"cuboid": {"origin": [0,0,0], "size": [4,4,4], "material": "rock"}}"#,
+            r#"{"cuboid": {"origin": [0,0,0], "size": [4,4,4], "colour": 2}}"#,
+        ] {
+            assert!(serde_json::from_str::<Term>(bad).is_err(), "{bad}");
+        }
     }
 }

@@ -188,6 +188,8 @@ pub fn scene_edits(dims: [u32; 3]) -> Vec<EditRequest> {
         k: None,
         region: None,
         message: None,
+        channel: None,
+        overwrite: None,
     };
     vec![
         // Two tunnels along x and one along z, at two thirds of the terrain's mean height.

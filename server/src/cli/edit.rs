@@ -79,6 +79,8 @@ fn request(a: &EditArgs) -> anyhow::Result<EditRequest> {
             k: None,
             region: None,
             message: None,
+            channel: None,
+            overwrite: None,
         }),
         (None, None) => {
             bail!("give an edit (inline JSON, a JSON file or - for stdin) or a shorthand such as --ellipsoid CX,CY,CZ,RX,RY,RZ")

@@ -9,7 +9,7 @@ use super::primitives::{
 };
 use super::term::{CompiledTerm, Node, Scope, TermError, TermLimits, VolumeResolver};
 use crate::geometry::Box3;
-use isovox_proto::icvg::{Region, Term, MAX_COORDINATE};
+use isovox_proto::icvg::{Attributes, Region, Term, MAX_COORDINATE};
 use isovox_proto::VoxelType;
 
 impl CompiledTerm {
@@ -184,6 +184,11 @@ impl Compiler<'_> {
                 };
                 Ok(self.with_bbox(node, bbox))
             }
+            Term::Attributed { attrs, leaf } => {
+                let mut leaf = self.node(leaf, depth, within)?;
+                leaf.attrs = *attrs;
+                Ok(leaf)
+            }
             Term::AddScalar { k, arg } => {
                 check_k(*k, t)?;
                 let a = self.node(arg, depth + 1, within)?;
@@ -301,6 +306,7 @@ impl Compiler<'_> {
             node,
             bbox,
             voxel_type: self.t,
+            attrs: Attributes::default(),
         }
     }
 }

@@ -32,6 +32,27 @@ pub enum BinaryOp {
     Divide(f64),
 }
 
+/// Which operand of a binary operator a voxel's attributes come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AttributesFrom {
+    /// The operand with the larger density there; the left one on a tie.
+    Denser,
+    /// Always the left one.
+    Left,
+}
+
+impl AttributesFrom {
+    /// The attribute of a voxel whose operands have densities `d1`, `d2` and attributes `a1`,
+    /// `a2`.
+    #[inline(always)]
+    pub fn pick(self, d1: u16, a1: u64, d2: u16, a2: u64) -> u64 {
+        match self {
+            AttributesFrom::Denser if d2 > d1 => a2,
+            _ => a1,
+        }
+    }
+}
+
 /// What a binary operator gives where the operand is L (outside the operand's B-box).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Outside {
@@ -188,6 +209,26 @@ impl BinaryOp {
             B::Product => each(dst, operand, |a, b| B::Product.apply(a, b, t)),
             B::DivideA => each(dst, operand, |a, b| B::DivideA.apply(a, b, t)),
             B::Divide(s_l) => each(dst, operand, |a, b| B::Divide(s_l).apply(a, b, t)),
+        }
+    }
+
+    /// Which operand a voxel's attributes (material, label) come from (`docs/channels.md`):
+    /// CVG's rule for union and intersection (the operand with the larger density, the left
+    /// on a tie), extended to `add`, whose result grows with both operands as a union's does;
+    /// the left operand's for the differences (CVG's rule) and for every operator that trims,
+    /// caps or scales the left operand by the right.
+    pub fn attributes_from(self) -> AttributesFrom {
+        match self {
+            BinaryOp::Union | BinaryOp::Intersection | BinaryOp::Add => AttributesFrom::Denser,
+            BinaryOp::Trim
+            | BinaryOp::Cap
+            | BinaryOp::Difference
+            | BinaryOp::DifferenceA
+            | BinaryOp::DifferenceB
+            | BinaryOp::Modulate
+            | BinaryOp::Product
+            | BinaryOp::DivideA
+            | BinaryOp::Divide(_) => AttributesFrom::Left,
         }
     }
 

@@ -6,6 +6,7 @@ use super::primitives::Primitive;
 use crate::cancel::{CancelToken, Stopped};
 use crate::geometry::Box3;
 use crate::store::{Snapshot, StoreError};
+use isovox_proto::icvg::Attributes;
 use isovox_proto::{BrickKey, VoxelType};
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -285,7 +286,13 @@ pub struct CompiledTerm {
     pub bbox: Option<Box3>,
     /// The voxel type it is evaluated for.
     pub voxel_type: VoxelType,
+    /// A leaf's attribute values (none for operators).
+    pub attrs: Attributes,
 }
+
+/// What a term gives an attribute channel at a voxel where no leaf gives it a value: the
+/// volume keeps its own there.
+pub const KEEP: u64 = u64::MAX;
 
 impl CompiledTerm {
     /// The value at one voxel (the reference, voxel by voxel; [`CompiledTerm::eval`] is the fast
@@ -396,6 +403,123 @@ impl CompiledTerm {
             },
         }
         Ok(())
+    }
+
+    /// Whether a leaf of the term gives channel `channel` values: its own attribute, or a
+    /// stored volume leaf whose volume has that channel. A term that gives none leaves the
+    /// channel as it is.
+    pub fn gives(&self, channel: &str) -> bool {
+        if self.attrs.get(channel).is_some() {
+            return true;
+        }
+        match &self.node {
+            Node::Primitive(_) | Node::Grid { .. } => false,
+            Node::Volume { snap, .. } => snap.header().stream_named(channel).is_some(),
+            Node::Binary(_, x, y) => x.gives(channel) || y.gives(channel),
+            Node::Unary(_, x) => x.gives(channel),
+            Node::Morph { arg, .. } => arg.uniform(channel).is_some(),
+        }
+    }
+
+    /// The one value every leaf of the term gives `channel`, if they all give the same (what
+    /// a morphology of the term gives: the filter moves the surface, not the names on it).
+    fn uniform(&self, channel: &str) -> Option<u64> {
+        if let Some(v) = self.attrs.get(channel) {
+            return Some(v);
+        }
+        match &self.node {
+            Node::Primitive(_) | Node::Grid { .. } | Node::Volume { .. } => None,
+            Node::Binary(_, x, y) => {
+                let v = x.uniform(channel)?;
+                (y.uniform(channel)? == v).then_some(v)
+            }
+            Node::Unary(_, x) => x.uniform(channel),
+            Node::Morph { arg, .. } => arg.uniform(channel),
+        }
+    }
+
+    /// Evaluates the term over `b` into `out` as [`CompiledTerm::eval`] does, and the values
+    /// it gives the channel `channel` into `values` ([`KEEP`] where none): leaves give their
+    /// attribute (a stored volume leaf without one, its volume's channel), operators pick
+    /// each voxel's from one operand by [`BinaryOp::attributes_from`].
+    ///
+    /// # Errors
+    /// A stored volume operand fails to read.
+    pub fn eval_channel(
+        &self,
+        b: &Box3,
+        channel: &str,
+        out: &mut [u16],
+        values: &mut [u64],
+    ) -> Result<(), EvalError> {
+        debug_assert_eq!(out.len(), values.len());
+        let outside = self.bbox.is_some_and(|bb| b.intersect(&bb).is_empty());
+        if outside || !self.gives(channel) {
+            values.fill(KEEP);
+            return self.eval(b, out);
+        }
+        if let Some(v) = self.attrs.get(channel) {
+            values.fill(v);
+            return self.eval(b, out);
+        }
+        match &self.node {
+            Node::Binary(op, x, y) => {
+                x.eval_channel(b, channel, out, values)?;
+                let mut other = vec![0u16; out.len()];
+                let mut other_values = vec![KEEP; out.len()];
+                y.eval_channel(b, channel, &mut other, &mut other_values)?;
+                let from = op.attributes_from();
+                for i in 0..out.len() {
+                    values[i] = from.pick(out[i], values[i], other[i], other_values[i]);
+                }
+                op.apply_in_place(out, &other, self.voxel_type);
+            }
+            Node::Unary(op, x) => {
+                x.eval_channel(b, channel, out, values)?;
+                op.apply_in_place(out, self.voxel_type);
+            }
+            Node::Volume {
+                snap,
+                shift,
+                source,
+            } => {
+                self.eval(b, out)?;
+                match snap.channel(channel) {
+                    Some(view) => {
+                        let mut read = vec![0u16; out.len()];
+                        read_volume_box(&view, *shift, source, b, &mut read)?;
+                        for (v, r) in values.iter_mut().zip(read) {
+                            *v = r as u64;
+                        }
+                    }
+                    None => values.fill(KEEP),
+                }
+            }
+            Node::Morph { arg, .. } => {
+                self.eval(b, out)?;
+                values.fill(arg.uniform(channel).unwrap_or(KEEP));
+            }
+            Node::Primitive(_) | Node::Grid { .. } => {
+                self.eval(b, out)?;
+                values.fill(KEEP);
+            }
+        }
+        Ok(())
+    }
+
+    /// Every attribute value a leaf of the term names for `channel` (for checking them
+    /// against the channel's type before an edit runs).
+    pub fn attribute_values(&self, channel: &str, out: &mut Vec<u64>) {
+        out.extend(self.attrs.get(channel));
+        match &self.node {
+            Node::Binary(_, x, y) => {
+                x.attribute_values(channel, out);
+                y.attribute_values(channel, out);
+            }
+            Node::Unary(_, x) => x.attribute_values(channel, out),
+            Node::Morph { arg, .. } => arg.attribute_values(channel, out),
+            Node::Primitive(_) | Node::Grid { .. } | Node::Volume { .. } => {}
+        }
     }
 
     /// Replaces every morphology node by a grid of its values over the part of `b` it reaches

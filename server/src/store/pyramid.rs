@@ -507,15 +507,18 @@ mod tests {
             fn refs(v: &[Option<BrickVoxels>]) -> [Option<&BrickVoxels>; 8] {
                 std::array::from_fn(|o| v[o].as_ref())
             }
-            let mut parent = vec![0u8; bytes];
-            downsample(&refs(&old), b, t, &mut parent);
-            let mut expected = vec![0u8; bytes];
-            downsample(&refs(&new), b, t, &mut expected);
-            let changed: [Option<&BrickVoxels>; 8] = std::array::from_fn(|o| {
-                new[o].as_ref().filter(|_| old[o].is_some() && changed_mask >> o & 1 == 1)
-            });
-            downsample_changed(&changed, b, t, &mut parent);
-            proptest::prop_assert_eq!(parent, expected);
+            // Means (density) and modes (channels) alike.
+            for how in [Downsampling::Mean, Downsampling::Mode { sparse: false }, Downsampling::Mode { sparse: true }] {
+                let mut parent = vec![0u8; bytes];
+                downsample(&refs(&old), b, t, how, &mut parent);
+                let mut expected = vec![0u8; bytes];
+                downsample(&refs(&new), b, t, how, &mut expected);
+                let changed: [Option<&BrickVoxels>; 8] = std::array::from_fn(|o| {
+                    new[o].as_ref().filter(|_| old[o].is_some() && changed_mask >> o & 1 == 1)
+                });
+                downsample_changed(&changed, b, t, how, &mut parent);
+                proptest::prop_assert_eq!(parent, expected);
+            }
         }
     }
 }

@@ -606,6 +606,8 @@ mod tests {
                 k: None,
                 region: None,
                 message: None,
+                channel: None,
+                overwrite: None,
             };
             write::edit_file(path, &request).unwrap();
         }

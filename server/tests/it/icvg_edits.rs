@@ -399,6 +399,8 @@ fn request(h: u16) -> impl Strategy<Value = EditRequest> {
                     k: None,
                     region,
                     message: None,
+                    channel: None,
+                    overwrite: None,
                 },
                 13 => EditRequest {
                     op: "add_scalar".into(),
@@ -407,6 +409,8 @@ fn request(h: u16) -> impl Strategy<Value = EditRequest> {
                     k: Some(k * scale),
                     region,
                     message: None,
+                    channel: None,
+                    overwrite: None,
                 },
                 i => EditRequest {
                     op: BINARY_NAMES[i].into(),
@@ -415,6 +419,8 @@ fn request(h: u16) -> impl Strategy<Value = EditRequest> {
                     k: None,
                     region,
                     message: None,
+                    channel: None,
+                    overwrite: None,
                 },
             }
         })
@@ -489,6 +495,8 @@ fn every_operator_in_sequence() {
                 k: None,
                 region: None,
                 message: None,
+                channel: None,
+                overwrite: None,
             })
             .collect();
         reqs.push(EditRequest {
@@ -501,6 +509,8 @@ fn every_operator_in_sequence() {
                 max: [30, 20, 17],
             }),
             message: None,
+            channel: None,
+            overwrite: None,
         });
         reqs.push(EditRequest {
             op: "add_scalar".into(),
@@ -509,6 +519,8 @@ fn every_operator_in_sequence() {
             k: Some(-(t.high() as i32) / 3),
             region: None,
             message: None,
+            channel: None,
+            overwrite: None,
         });
         for req in reqs {
             let (after, version, _) =
@@ -543,6 +555,8 @@ fn difference_ellipsoid(center: [i64; 3], radius: u32) -> EditRequest {
         k: None,
         region: None,
         message: None,
+        channel: None,
+        overwrite: None,
     }
 }
 
@@ -719,6 +733,8 @@ fn term_outside_the_volume_changes_nothing() {
                     k: None,
                     region: None,
                     message: None,
+                    channel: None,
+                    overwrite: None,
                 };
                 let (after, v, out) =
                     edit_and_check(&path, &grid, &req, CheckpointPolicy::default());
@@ -765,6 +781,8 @@ fn term_outside_the_volume_changes_nothing() {
                     max: [60, 29, 23],
                 }),
                 message: None,
+                channel: None,
+                overwrite: None,
             };
             let (after, v, out) = edit_and_check(&path, &grid, &req, CheckpointPolicy::default());
             assert_eq!(after, grid);
@@ -845,6 +863,8 @@ fn identity_edit_visits_only_bricks_in_the_bbox() {
             k: None,
             region,
             message: None,
+            channel: None,
+            overwrite: None,
         };
         let (after, _, out) = edit_and_check(&path, &grid, &req, CheckpointPolicy::default());
         assert!(
@@ -881,6 +901,8 @@ fn intersection_makes_bricks_outside_the_bbox_constant_l() {
                 k: None,
                 region: None,
                 message: None,
+                channel: None,
+                overwrite: None,
             };
             edit_and_check(&path, &grid, &req, CheckpointPolicy::default());
             // B-box [7,7,7]..[18,18,18): level-0 bricks 0..=2 on every axis meet it.
@@ -934,6 +956,8 @@ fn checkpoint_every_commit() {
                 k: None,
                 region: None,
                 message: None,
+                channel: None,
+                overwrite: None,
             },
             EditRequest {
                 op: "add_scalar".into(),
@@ -945,6 +969,8 @@ fn checkpoint_every_commit() {
                     max: [20, 20, 20],
                 }),
                 message: None,
+                channel: None,
+                overwrite: None,
             },
             EditRequest {
                 op: "inverse".into(),
@@ -953,6 +979,8 @@ fn checkpoint_every_commit() {
                 k: None,
                 region: None,
                 message: None,
+                channel: None,
+                overwrite: None,
             },
         ];
         for req in &reqs {
@@ -1046,6 +1074,8 @@ fn overlay_limit_alone_triggers_a_checkpoint() {
         k: None,
         region: None,
         message: None,
+        channel: None,
+        overwrite: None,
     };
     let (after, _, out) = edit_and_check(&path, &grid, &req, policy);
     let changed: usize = out.changed.iter().map(Vec::len).sum();
@@ -1237,6 +1267,8 @@ fn stored_volume_operand() {
                 k: None,
                 region,
                 message: None,
+                channel: None,
+                overwrite: None,
             };
             let (after, _, _) =
                 edit_and_check_with(&path, &grid, &req, CheckpointPolicy::default(), &files);

@@ -82,6 +82,8 @@ fn random_edit(rng: &mut XorShift) -> EditRequest {
         k: None,
         region: None,
         message: None,
+        channel: None,
+        overwrite: None,
     }
 }
 
@@ -525,6 +527,8 @@ fn column(x: i64, z: i64) -> EditRequest {
         k: None,
         region: None,
         message: None,
+        channel: None,
+        overwrite: None,
     }
 }
 

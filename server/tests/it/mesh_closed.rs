@@ -43,6 +43,8 @@ fn volume_with(
             k: None,
             region: None,
             message: None,
+            channel: None,
+            overwrite: None,
         };
         let mut edit = Edit::from_request(&req, t, &TermLimits::default(), &NoVolumes).unwrap();
         let mut w = Vod2Writer::open_append(&path, Compression::Zstd(3)).unwrap();

@@ -86,6 +86,8 @@ fn carve(center: [i64; 3]) -> EditRequest {
         k: None,
         region: None,
         message: None,
+        channel: None,
+        overwrite: None,
     }
 }
 

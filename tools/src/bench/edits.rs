@@ -506,6 +506,8 @@ impl Bench {
                         k: None,
                         region: None,
                         message: None,
+                        channel: None,
+                        overwrite: None,
                     };
                     let body = serde_json::to_vec(&request).unwrap_or_default();
                     let start = Instant::now();

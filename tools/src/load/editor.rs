@@ -53,6 +53,8 @@ pub(super) fn random_edit(
             k: None,
             region: None,
             message: None,
+            channel: None,
+            overwrite: None,
         },
     )
 }
