@@ -405,10 +405,15 @@ mod tests {
                 }
             )
         );
-        assert!(matches!(&**b, Term::Attributed { attrs, .. } if attrs.label == Some(70000) && attrs.material == Some(1)));
+        assert!(
+            matches!(&**b, Term::Attributed { attrs, .. } if attrs.label == Some(70000) && attrs.material == Some(1))
+        );
         // Written back as fields of the leaf, and read again the same.
         let text = serde_json::to_string(&t).unwrap();
-        assert!(text.contains(r#""size":[4,4,4],"material":3"#) || text.contains(r#""material":3"#), "{text}");
+        assert!(
+            text.contains(r#""size":[4,4,4],"material":3"#) || text.contains(r#""material":3"#),
+            "{text}"
+        );
         assert_eq!(serde_json::from_str::<Term>(&text).unwrap(), t);
         // Attributes belong to leaves, and are unsigned integers.
         for bad in [

@@ -16,20 +16,23 @@
 //! without committing anything.
 
 use super::compile::check_k;
-use super::ops::{BinaryOp, Outside, UnaryOp};
+use super::ops::{AttributesFrom, BinaryOp, Outside, UnaryOp};
 use super::term::{
-    CompiledTerm, EvalError, RecordingReads, Scope, TermError, TermLimits, VolumeResolver,
+    CompiledTerm, EvalError, RecordingReads, Scope, TermError, TermLimits, VolumeResolver, KEEP,
 };
 use crate::cancel::CancelToken;
 use crate::geometry::Box3;
 use crate::store::transaction::{ChangedKeys, CheckpointPolicy, Transaction, BRICKS_PER_JOB};
 use crate::store::writer::Vod2Writer;
 use crate::store::{BrickVoxels, Snapshot};
+use isovox_proto::channel::ChannelInfo;
 use isovox_proto::history::{CommitInfo, CommitKind, CommitNote, OpSummary};
-use isovox_proto::icvg::{EditRequest, Region, MAX_COORDINATE};
+use isovox_proto::icvg::{EditRequest, Overwrite, Region, MAX_COORDINATE};
+use isovox_proto::vod2::FileHeader;
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use rayon::prelude::*;
 use serde::Serialize;
+use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
 /// What an edit does.
@@ -39,6 +42,16 @@ pub enum EditKind {
     Binary(BinaryOp, CompiledTerm),
     /// `op(volume)`.
     Unary(UnaryOp),
+    /// `paint`: the channel `channel` takes the term's values where the term is inside (at
+    /// least S), density unchanged; with [`Overwrite::Empty`] only where the channel is 0.
+    Paint {
+        /// The channel written.
+        channel: String,
+        /// Which voxels it may write.
+        overwrite: Overwrite,
+        /// Where, and what values.
+        term: CompiledTerm,
+    },
 }
 
 /// A validated edit, ready to apply.
@@ -76,6 +89,10 @@ pub struct EditOutcome {
     /// Whether a version was committed (`false`: the edit reaches no voxel of the volume, see
     /// [`Edit::reaches_nothing`]).
     pub committed: bool,
+    /// Changed bricks of attribute channels, by channel name, per level; only channels that
+    /// changed.
+    #[serde(skip_serializing_if = "BTreeMap::is_empty")]
+    pub channels: BTreeMap<String, ChangedKeys>,
 }
 
 fn micros<S: serde::Serializer>(d: &Duration, s: S) -> Result<S::Ok, S::Error> {
@@ -111,12 +128,13 @@ impl Edit {
     /// [`TermError::Stopped`] when `cancel` stops the compilation.
     pub fn for_volume(
         req: &EditRequest,
-        layout: &VolumeLayout,
+        header: &FileHeader,
         limits: &TermLimits,
         volumes: &dyn VolumeResolver,
         max_voxels: Option<u64>,
         cancel: &CancelToken,
     ) -> Result<Edit, TermError> {
+        let layout = &header.layout;
         let volume = Box3::of_volume(layout);
         let reading = RecordingReads::new(volumes);
         let mut edit = Edit::build(req, layout.voxel_type(), limits, &reading, |region| Scope {
@@ -124,6 +142,7 @@ impl Edit {
             max_voxels,
             cancel: cancel.clone(),
         })?;
+        edit.check_channels(header)?;
         let reach = edit.reach(layout);
         let request = EditRequest {
             message: None,
@@ -184,6 +203,40 @@ impl Edit {
                 req.op
             )));
         }
+        if (req.channel.is_some() || req.overwrite.is_some()) && req.op != "paint" {
+            return Err(TermError::Invalid(format!(
+                "\"channel\" and \"overwrite\" belong to paint, not to {:?}",
+                req.op
+            )));
+        }
+        if req.op == "paint" {
+            let term = req.term.as_ref().ok_or_else(|| {
+                TermError::Invalid("paint needs a \"term\": where to paint, and what".into())
+            })?;
+            let channel = req.channel.clone().unwrap_or_else(|| "material".into());
+            if !["material", "label"].contains(&channel.as_str()) {
+                return Err(TermError::Invalid(format!(
+                    "paint writes \"material\" or \"label\", the attributes leaves carry; not {channel:?}"
+                )));
+            }
+            let (term, sampled) =
+                CompiledTerm::compile_in(term, t, limits, volumes, &scope(region))?;
+            if !term.gives(&channel) {
+                return Err(TermError::Invalid(format!(
+                    "paint needs a term whose leaves carry \"{channel}\": values to paint"
+                )));
+            }
+            return Ok(Edit {
+                kind: EditKind::Paint {
+                    channel,
+                    overwrite: req.overwrite.unwrap_or_default(),
+                    term,
+                },
+                region,
+                sampled,
+                note: CommitNote::default(),
+            });
+        }
         let kind = match req.op.as_str() {
             "inverse" | "complement" | "add_scalar" => {
                 if req.term.is_some() {
@@ -243,8 +296,58 @@ impl Edit {
                 (Outside::Identity, Some(b)) => b.intersect(&target),
                 _ => target,
             },
+            // Paint writes only where its term is inside.
+            EditKind::Paint { term, .. } => term.bbox.map_or(target, |b| b.intersect(&target)),
             EditKind::Unary(_) => target,
         }
+    }
+
+    /// The channels of `header` the edit can change: `paint`'s, and for an operator that takes
+    /// attributes from the denser operand (union, intersection, add) every channel its term
+    /// gives values. A term's attribute for a channel the volume does not have is ignored.
+    pub fn channels_touched<'h>(&self, header: &'h FileHeader) -> Vec<&'h ChannelInfo> {
+        header
+            .channels
+            .iter()
+            .filter(|c| match &self.kind {
+                EditKind::Paint { channel, .. } => *channel == c.name,
+                EditKind::Binary(op, term) => {
+                    op.attributes_from() == AttributesFrom::Denser && term.gives(&c.name)
+                }
+                EditKind::Unary(_) => false,
+            })
+            .collect()
+    }
+
+    /// Refuses what the volume `header` describes cannot take: paint of a channel it does not
+    /// have, an attribute value beyond its channel's type.
+    fn check_channels(&self, header: &FileHeader) -> Result<(), TermError> {
+        let term = match &self.kind {
+            EditKind::Paint { channel, term, .. } => {
+                if header.stream_named(channel).is_none() {
+                    let names: Vec<&str> =
+                        header.channels.iter().map(|c| c.name.as_str()).collect();
+                    return Err(TermError::Invalid(format!(
+                        "this volume has no channel {channel:?} to paint (its channels: {names:?})"
+                    )));
+                }
+                term
+            }
+            EditKind::Binary(_, term) => term,
+            EditKind::Unary(_) => return Ok(()),
+        };
+        for c in &header.channels {
+            let mut values = Vec::new();
+            term.attribute_values(&c.name, &mut values);
+            let high = u64::from(c.voxel_type.high());
+            if let Some(v) = values.iter().find(|&&v| v > high) {
+                return Err(TermError::Invalid(format!(
+                    "\"{}\": {v} is beyond the channel's type {} (at most {high})",
+                    c.name, c.voxel_type
+                )));
+            }
+        }
+        Ok(())
     }
 
     /// Readies the edit to be evaluated brick by brick (morphology in its term filtered once
@@ -259,7 +362,7 @@ impl Edit {
         cancel: &CancelToken,
     ) -> Result<(), EvalError> {
         let reach = self.reach(layout);
-        if let EditKind::Binary(_, term) = &mut self.kind {
+        if let EditKind::Binary(_, term) | EditKind::Paint { term, .. } = &mut self.kind {
             if !reach.is_empty() {
                 term.materialize(&reach, cancel)?;
             }
@@ -369,7 +472,7 @@ pub fn edit_voxels(
     let t = layout.voxel_type();
     let whole = Box3::of_brick(layout, key);
     let eff = whole.intersect(target);
-    if eff.is_empty() {
+    if eff.is_empty() || matches!(edit.kind, EditKind::Paint { .. }) {
         return Ok(None);
     }
     // Without touching voxels when the brick is wholly edited and both sides are constant.
@@ -389,6 +492,7 @@ pub fn edit_voxels(
                 None => None,
             },
             EditKind::Unary(op) => d1.map(|a| op.apply(a, t)),
+            EditKind::Paint { .. } => None,
         };
         if let Some(v) = new {
             let result = BrickVoxels::Constant(v);
@@ -415,11 +519,83 @@ pub fn edit_voxels(
                     op.apply_in_place(dst, d2, t);
                 }
                 EditKind::Unary(op) => op.apply_in_place(dst, t),
+                EditKind::Paint { .. } => {}
             }
         }
     }
     let result = from_u16(&values, layout);
     Ok((result != *old).then_some(result))
+}
+
+/// The content of the level-0 brick `key` of the channel `channel` after `edit` (whose target
+/// is `target`) is applied where the volume's density was `density` and the channel's values
+/// `values`, or `None` when the edit leaves it as it is. `layout` is density's. Where the edit
+/// takes attributes from the denser operand, a voxel whose term is denser than the volume was
+/// takes the term's value; `paint` writes where its term is inside (at least S), only over 0
+/// with [`Overwrite::Empty`]. Values the term gives beyond the channel's type saturate.
+///
+/// # Errors
+/// Evaluating the term fails or is stopped.
+#[allow(clippy::too_many_arguments)]
+pub fn channel_voxels(
+    edit: &Edit,
+    density: &BrickVoxels,
+    values: &BrickVoxels,
+    layout: &VolumeLayout,
+    channel: &ChannelInfo,
+    target: &Box3,
+    key: BrickKey,
+) -> Result<Option<BrickVoxels>, EvalError> {
+    let whole = Box3::of_brick(layout, key);
+    let eff = whole.intersect(target);
+    let (term, paint) = match &edit.kind {
+        EditKind::Binary(op, term) if op.attributes_from() == AttributesFrom::Denser => {
+            (term, None)
+        }
+        EditKind::Paint {
+            channel: name,
+            overwrite,
+            term,
+        } if *name == channel.name => (term, Some(*overwrite)),
+        _ => return Ok(None),
+    };
+    if eff.is_empty() || term.bbox.is_some_and(|b| b.intersect(&eff).is_empty()) {
+        return Ok(None);
+    }
+    let size = [0, 1, 2].map(|a| (eff.max[a] - eff.min[a]) as usize);
+    let n = size[0] * size[1] * size[2];
+    let (mut term_density, mut term_values) = (vec![0u16; n], vec![KEEP; n]);
+    term.eval_channel(&eff, &channel.name, &mut term_density, &mut term_values)?;
+    let channel_layout = layout.with_voxel_type(channel.voxel_type);
+    let old_density = to_u16(density, layout);
+    let mut new = to_u16(values, &channel_layout);
+    let (surface, high) = (layout.voxel_type().surface(), channel.voxel_type.high());
+    let b = layout.brick() as usize;
+    let o = [0, 1, 2].map(|a| (eff.min[a] - whole.min[a]) as usize);
+    let mut i = 0;
+    for z in 0..size[2] {
+        for y in 0..size[1] {
+            let row = ((o[2] + z) * b + o[1] + y) * b + o[0];
+            for x in 0..size[0] {
+                let (d, v) = (term_density[i], term_values[i]);
+                i += 1;
+                if v == KEEP {
+                    continue;
+                }
+                let at = row + x;
+                let takes = match paint {
+                    None => d > old_density[at],
+                    Some(Overwrite::All) => d >= surface,
+                    Some(Overwrite::Empty) => d >= surface && new[at] == 0,
+                };
+                if takes {
+                    new[at] = v.min(u64::from(high)) as u16;
+                }
+            }
+        }
+    }
+    let result = from_u16(&new, &channel_layout);
+    Ok((result != *values).then_some(result))
 }
 
 /// Applies `edit` to the version `snap` of the file `writer` appends to, and commits the result
@@ -446,6 +622,7 @@ pub fn apply_edit(
             checkpoint: false,
             elapsed: start.elapsed(),
             committed: false,
+            channels: BTreeMap::new(),
         });
     }
     let mut outcome = stage_edit(writer, snap, edit, policy, cancel)?;
@@ -523,12 +700,37 @@ fn stage_bricks(
         .into_iter()
         .filter_map(|(k, r)| r.map(|r| (k, r)))
         .collect();
+    // Each channel the edit can change, from the voxels before it (CVG's rule compares the
+    // operands' densities).
+    let mut channels = Vec::new();
+    for channel in edit.channels_touched(snap.header()) {
+        let Some(view) = snap.channel(&channel.name) else {
+            continue;
+        };
+        let changed: Vec<(BrickKey, BrickVoxels)> = keys
+            .par_iter()
+            .with_min_len(BRICKS_PER_JOB)
+            .map(|&key| {
+                cancel.check()?;
+                let _bounded = crate::store::remote::bound_store_waits(cancel.deadline());
+                let (density, values) = (snap.voxels(key)?, view.voxels(key)?);
+                channel_voxels(edit, &density, &values, snap.layout(), channel, target, key)
+                    .map(|r| r.map(|r| (key, r)))
+            })
+            .filter_map(Result::transpose)
+            .collect::<Result<_, EvalError>>()?;
+        channels.push((view, changed));
+    }
     let mut transaction = Transaction::on(writer, snap);
     if edit.note.info.kind.is_some() {
         transaction.set_note(note_bytes(&edit.note));
     }
     transaction.update_level0(level0)?;
+    for (view, changed) in channels {
+        transaction.update_channel_level0(&view, changed)?;
+    }
     let staged = transaction.stage(policy)?;
+    let channels = channel_names(snap.header(), staged.channels_changed);
     Ok(EditOutcome {
         committed: true,
         version: staged.slot.version,
@@ -537,7 +739,22 @@ fn stage_bricks(
         new_records: staged.new_records,
         checkpoint: staged.checkpoint,
         elapsed: start.elapsed(),
+        channels,
     })
+}
+
+/// Changed channel bricks by stream, keyed by the channels' names instead.
+pub fn channel_names(
+    header: &FileHeader,
+    by_stream: BTreeMap<usize, ChangedKeys>,
+) -> BTreeMap<String, ChangedKeys> {
+    by_stream
+        .into_iter()
+        .filter_map(|(stream, keys)| {
+            let name = header.channels.get(stream.checked_sub(1)?)?.name.clone();
+            Some((name, keys))
+        })
+        .collect()
 }
 
 /// A commit note as the commit record stores it (JSON).

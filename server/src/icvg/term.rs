@@ -441,7 +441,9 @@ impl CompiledTerm {
     /// Evaluates the term over `b` into `out` as [`CompiledTerm::eval`] does, and the values
     /// it gives the channel `channel` into `values` ([`KEEP`] where none): leaves give their
     /// attribute (a stored volume leaf without one, its volume's channel), operators pick
-    /// each voxel's from one operand by [`BinaryOp::attributes_from`].
+    /// each voxel's from one operand by [`BinaryOp::attributes_from`]. Where the term is L
+    /// (empty) it gives none, whatever its operands gave: so a voxel's value never depends on
+    /// how the evaluated box was cut.
     ///
     /// # Errors
     /// A stored volume operand fails to read.
@@ -459,8 +461,10 @@ impl CompiledTerm {
             return self.eval(b, out);
         }
         if let Some(v) = self.attrs.get(channel) {
+            self.eval(b, out)?;
             values.fill(v);
-            return self.eval(b, out);
+            keep_where_empty(out, values);
+            return Ok(());
         }
         match &self.node {
             Node::Binary(op, x, y) => {
@@ -504,6 +508,7 @@ impl CompiledTerm {
                 values.fill(KEEP);
             }
         }
+        keep_where_empty(out, values);
         Ok(())
     }
 
@@ -556,6 +561,16 @@ impl CompiledTerm {
             values: grid.1,
         };
         Ok(())
+    }
+}
+
+/// A leaf names no attribute where it is L (empty): there it gives [`KEEP`], so that what a
+/// voxel gets never depends on how the evaluated box was cut into bricks.
+fn keep_where_empty(density: &[u16], values: &mut [u64]) {
+    for (v, &d) in values.iter_mut().zip(density) {
+        if d == 0 {
+            *v = KEEP;
+        }
     }
 }
 

@@ -147,7 +147,15 @@ impl<'a> Transaction<'a> {
     /// Sets the entry of node `node` of the stream `view` is a version of (the base version's
     /// density, or one of its channels: [`Snapshot::channel`]); returns whether it differs
     /// from `view`'s.
-    fn set_in(&mut self, view: &Snapshot, node: u64, entry: NodeEntry) -> Result<bool, StoreError> {
+    ///
+    /// # Errors
+    /// The view's entry cannot be read, or `node` is outside its pyramid.
+    pub fn set_in(
+        &mut self,
+        view: &Snapshot,
+        node: u64,
+        entry: NodeEntry,
+    ) -> Result<bool, StoreError> {
         let Base::Version {
             changes,
             changed,

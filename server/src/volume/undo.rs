@@ -15,7 +15,7 @@ use super::history::{in_effect, CommitRecord};
 use super::{EditLimits, LiveVolume, VolumeError};
 use crate::cancel::CancelToken;
 use crate::geometry::Box3;
-use crate::icvg::edit::{bricks_meeting, edit_voxels, note_bytes, Edit};
+use crate::icvg::edit::{bricks_meeting, channel_voxels, edit_voxels, note_bytes, Edit};
 use crate::icvg::term::{PinnedReads, VolumeResolver};
 use crate::store::transaction::{Committed, Transaction};
 use crate::store::{BrickVoxels, CheckpointPolicy, Snapshot, Vod2Writer};
@@ -208,7 +208,7 @@ impl LiveVolume {
             let pinned = PinnedReads::new(job.volumes.as_ref(), &note.reads);
             let mut e = Edit::for_volume(
                 &request,
-                layout,
+                head.header(),
                 &job.limits.term,
                 &pinned,
                 job.limits.max_voxels,
@@ -219,28 +219,50 @@ impl LiveVolume {
             edits.push((e, target, op_box(r).unwrap_or(target)));
         }
         let from = self.version(base)?;
-        let results: Vec<(BrickKey, Option<BrickVoxels>)> = keys
+        // Every stream of a brick (density, then each channel) is replayed together: an edit's
+        // channel values depend on the density before it.
+        let channels = &head.header().channels;
+        let results: Vec<(BrickKey, Vec<Option<BrickVoxels>>)> = keys
             .par_iter()
             .map(|&key| {
                 cancel.check()?;
                 let brick = Box3::of_brick(layout, key);
-                let mut voxels = from.voxels(key)?;
+                let mut streams = from
+                    .streams()
+                    .map(|s| s.voxels(key))
+                    .collect::<Result<Vec<_>, _>>()?;
                 for (e, target, reach) in &edits {
                     if reach.intersect(&brick).is_empty() {
                         continue;
                     }
-                    if let Some(next) = edit_voxels(e, &voxels, layout, target, key)? {
-                        voxels = next;
+                    for (i, channel) in channels.iter().enumerate() {
+                        let (density, values) = (&streams[0], &streams[i + 1]);
+                        if let Some(next) =
+                            channel_voxels(e, density, values, layout, channel, target, key)?
+                        {
+                            streams[i + 1] = next;
+                        }
+                    }
+                    if let Some(next) = edit_voxels(e, &streams[0], layout, target, key)? {
+                        streams[0] = next;
                     }
                 }
-                let current = head.voxels(key)?;
-                Ok((key, (voxels != current).then_some(voxels)))
+                let changed = head
+                    .streams()
+                    .zip(streams)
+                    .map(|(now, replayed)| Ok((replayed != now.voxels(key)?).then_some(replayed)))
+                    .collect::<Result<Vec<_>, crate::store::StoreError>>()?;
+                Ok((key, changed))
             })
             .collect::<Result<_, crate::icvg::term::EvalError>>()?;
-        let level0: Vec<(BrickKey, BrickVoxels)> = results
-            .into_iter()
-            .filter_map(|(k, v)| v.map(|v| (k, v)))
-            .collect();
+        let mut level0: Vec<Vec<(BrickKey, BrickVoxels)>> = vec![Vec::new(); 1 + channels.len()];
+        for (key, streams) in results {
+            for (stream, v) in streams.into_iter().enumerate() {
+                if let Some(v) = v {
+                    level0[stream].push((key, v));
+                }
+            }
+        }
         let replayed = replays.iter().filter(|r| r.version != edit_version).count() as u64;
         let note = CommitNote {
             info: CommitInfo {
@@ -260,7 +282,11 @@ impl LiveVolume {
         };
         let mut transaction = Transaction::on(writer, head);
         transaction.set_note(note_bytes(&note));
-        transaction.update_level0(level0)?;
+        let mut level0 = level0.into_iter();
+        transaction.update_level0(level0.next().unwrap_or_default())?;
+        for (view, changed) in head.channel_views().iter().zip(level0) {
+            transaction.update_channel_level0(view, changed)?;
+        }
         Ok(StagedCommit {
             committed: transaction.stage(policy)?,
             replayed: Some(replayed),
@@ -301,9 +327,17 @@ impl LiveVolume {
         note.info.to = Some(to);
         let mut transaction = Transaction::on(writer, head);
         transaction.set_note(note_bytes(&note));
+        // Nodes are file-wide: each belongs to one stream's pyramid (density, or a channel).
+        let per_stream = head.layout().node_count();
+        let (heads, targets): (Vec<&Snapshot>, Vec<&Snapshot>) =
+            (head.streams().collect(), target.streams().collect());
         for node in nodes {
-            let entry: NodeEntry = target.entry_at(node)?;
-            transaction.set(node, entry)?;
+            let (stream, local) = ((node / per_stream) as usize, node % per_stream);
+            let (Some(now), Some(then)) = (heads.get(stream), targets.get(stream)) else {
+                continue;
+            };
+            let entry: NodeEntry = then.entry_at(local)?;
+            transaction.set_in(now, local, entry)?;
         }
         Ok(StagedCommit {
             committed: transaction.stage(policy)?,

@@ -66,7 +66,7 @@ impl LiveVolume {
         let layout = head.layout();
         let edit = Edit::for_volume(
             request,
-            layout,
+            head.header(),
             &limits.term,
             volumes,
             limits.max_voxels,
@@ -214,7 +214,7 @@ pub fn edit_file(path: &Path, request: &EditRequest) -> Result<EditOutcome, Volu
     let never = CancelToken::never();
     let mut edit = Edit::for_volume(
         request,
-        snap.layout(),
+        snap.header(),
         &TermLimits::default(),
         &DirVolumes { dir },
         None,

@@ -282,3 +282,362 @@ fn channel_headers_refuse_what_does_not_fit() {
         assert!(FileHeader::decode(&bad).is_err(), "flip at {at} accepted");
     }
 }
+
+// ---- Edits of channels: CVG's rule, paint, and which streams an edit touches ----
+
+use isovox_proto::icvg::EditRequest;
+use isovox_server::cancel::CancelToken;
+use isovox_server::icvg::edit::{apply_edit, Edit, EditOutcome};
+use isovox_server::icvg::term::{NoVolumes, TermLimits};
+
+const G: [u32; 3] = [24, 24, 24];
+
+/// Ground: density 255 below z = 10, 0 above; material 1 (rock) everywhere; labels 0 but for
+/// a box of 77 at x, y, z in [2, 6).
+fn ground(path: &std::path::Path) {
+    let n = G.iter().product::<u32>() as usize;
+    let idx = |x: usize, y: usize, z: usize| (z * 24 + y) * 24 + x;
+    let mut density = vec![0u8; n];
+    let material = vec![1u8; n];
+    let mut label = vec![0u16; n];
+    for z in 0..24 {
+        for y in 0..24 {
+            for x in 0..24 {
+                if z < 10 {
+                    density[idx(x, y, z)] = 255;
+                }
+                if (2..6).contains(&x) && (2..6).contains(&y) && (2..6).contains(&z) {
+                    label[idx(x, y, z)] = 77;
+                }
+            }
+        }
+    }
+    let label_bytes: Vec<u8> = label.iter().flat_map(|v| v.to_le_bytes()).collect();
+    let sources = [
+        DenseGrid::new(G, VoxelType::U8, BRICK, &density),
+        DenseGrid::new(G, VoxelType::U8, BRICK, &material),
+        DenseGrid::new(G, VoxelType::U16, BRICK, &label_bytes),
+    ];
+    let sources: Vec<&dyn isovox_server::store::BrickSource> =
+        sources.iter().map(|s| s as _).collect();
+    let layout = VolumeLayout::new(G, BRICK, VoxelType::U8).unwrap();
+    let channels = vec![
+        ChannelInfo::new("material", VoxelType::U8),
+        ChannelInfo {
+            sparse: true,
+            ..ChannelInfo::new("label", VoxelType::U16)
+        },
+    ];
+    let header = FileHeader::with_channels(layout, [1.0; 3], channels).unwrap();
+    build_streams(path, header, &sources, &BuildOptions::default()).unwrap();
+}
+
+fn edit(path: &std::path::Path, json: &str) -> EditOutcome {
+    let req: EditRequest = serde_json::from_str(json).unwrap();
+    let vod = Vod2::open(path).unwrap();
+    let snap = vod.head();
+    let mut edit = Edit::for_volume(
+        &req,
+        snap.header(),
+        &TermLimits::default(),
+        &NoVolumes,
+        None,
+        &CancelToken::never(),
+    )
+    .unwrap();
+    let mut w = Vod2Writer::open_append(path, Default::default()).unwrap();
+    let policy = CheckpointPolicy::default();
+    apply_edit(&mut w, &snap, &mut edit, policy, &CancelToken::never()).unwrap()
+}
+
+/// The level-0 voxels of a stream of the head (density for `None`), one u16 per voxel.
+fn level0(path: &std::path::Path, channel: Option<&str>) -> Vec<u16> {
+    let vod = Vod2::open(path).unwrap();
+    let head = vod.head();
+    let channel_view = channel.map(|c| head.channel(c).unwrap());
+    let view: &Snapshot = channel_view.as_deref().unwrap_or(&head);
+    let t = view.layout().voxel_type();
+    let b = BRICK as usize;
+    let mut out = vec![0u16; G.iter().product::<u32>() as usize];
+    for bz in 0..3u32 {
+        for by in 0..3u32 {
+            for bx in 0..3u32 {
+                let key = BrickKey {
+                    level: 0,
+                    x: bx,
+                    y: by,
+                    z: bz,
+                };
+                let bytes = view.read(key).unwrap();
+                for i in 0..b * b * b {
+                    let (x, y, z) = (i % b, i / b % b, i / (b * b));
+                    let v = match t {
+                        VoxelType::U8 => bytes[i] as u16,
+                        VoxelType::U16 => u16::from_le_bytes([bytes[2 * i], bytes[2 * i + 1]]),
+                    };
+                    let at = ((bz as usize * b + z) * 24 + by as usize * b + y) * 24
+                        + bx as usize * b
+                        + x;
+                    out[at] = v;
+                }
+            }
+        }
+    }
+    out
+}
+
+fn at(x: usize, y: usize, z: usize) -> usize {
+    (z * 24 + y) * 24 + x
+}
+
+fn inside(p: [usize; 3], lo: [usize; 3], hi: [usize; 3]) -> bool {
+    (0..3).all(|a| lo[a] <= p[a] && p[a] < hi[a])
+}
+
+fn each_voxel() -> impl Iterator<Item = [usize; 3]> {
+    (0..24).flat_map(|z| (0..24).flat_map(move |y| (0..24).map(move |x| [x, y, z])))
+}
+
+#[test]
+fn union_takes_the_denser_operand_s_material_and_difference_keeps_the_volume_s() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("ground.vod");
+    ground(&path);
+    let density_before = level0(&path, None);
+
+    // A cuboid of material 5 from z = 6 to 16: its padding (the outer layer) is L, its next
+    // layer S, the rest H. Above the ground (z >= 10) the term is denser than air wherever it
+    // is S or H; inside the ground (255) it never is. So material 5 at x, y in [5, 11) (origin
+    // 4 + 1 up to the padding at 4 + 8 - 1), z in [10, 15), rock elsewhere.
+    let out = edit(
+        &path,
+        r#"{"op": "union", "term": {"cuboid": {"origin": [4, 4, 6], "size": [8, 8, 10], "material": 5}}}"#,
+    );
+    assert!(
+        out.channels.contains_key("material"),
+        "{:?}",
+        out.channels.keys()
+    );
+    assert!(!out.channels.contains_key("label"), "labels were not named");
+    let material = level0(&path, Some("material"));
+    for p in each_voxel() {
+        let want = if inside(p, [5, 5, 10], [11, 11, 15]) {
+            5
+        } else {
+            1
+        };
+        assert_eq!(material[at(p[0], p[1], p[2])], want, "material at {p:?}");
+    }
+
+    // A difference takes attributes from the left operand, the volume: density changes,
+    // material and labels do not.
+    let out = edit(
+        &path,
+        r#"{"op": "difference", "term": {"ellipsoid": {"center": [12, 12, 8], "radii": [4, 4, 4], "material": 9}}}"#,
+    );
+    assert!(out.changed[0].len() > 0, "the carve changed no density");
+    assert!(
+        out.channels.is_empty(),
+        "a difference changed {:?}",
+        out.channels.keys()
+    );
+    assert_eq!(level0(&path, Some("material")), material);
+    assert_ne!(level0(&path, None), density_before);
+}
+
+#[test]
+fn paint_writes_a_channel_where_its_term_is_inside_and_leaves_density_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("ground.vod");
+    ground(&path);
+    let density = level0(&path, None);
+    let entries = |path: &std::path::Path| -> Vec<_> {
+        let vod = Vod2::open(path).unwrap();
+        let head = vod.head();
+        (0..head.layout().node_count())
+            .map(|n| head.entry_at(n).unwrap())
+            .collect()
+    };
+    let density_entries = entries(&path);
+
+    // Paint material 3 with a cuboid [0, 12)^3: inside (S or H) is [1, 11)^3.
+    let out = edit(
+        &path,
+        r#"{"op": "paint", "term": {"cuboid": {"origin": [0, 0, 0], "size": [12, 12, 12], "material": 3}}}"#,
+    );
+    assert!(
+        out.changed.iter().all(|l| l.is_empty()),
+        "paint changed density bricks"
+    );
+    assert_eq!(entries(&path), density_entries);
+    assert_eq!(level0(&path, None), density);
+    let material = level0(&path, Some("material"));
+    for p in each_voxel() {
+        let want = if inside(p, [1, 1, 1], [11, 11, 11]) {
+            3
+        } else {
+            1
+        };
+        assert_eq!(material[at(p[0], p[1], p[2])], want, "material at {p:?}");
+    }
+
+    // Labels, "empty" mode: 9 only where the label was 0; the 77 box stays.
+    edit(
+        &path,
+        r#"{"op": "paint", "channel": "label", "overwrite": "empty", "term": {"cuboid": {"origin": [0, 0, 0], "size": [10, 10, 10], "label": 9}}}"#,
+    );
+    let label = level0(&path, Some("label"));
+    for p in each_voxel() {
+        let want = if inside(p, [2, 2, 2], [6, 6, 6]) {
+            77
+        } else if inside(p, [1, 1, 1], [9, 9, 9]) {
+            9
+        } else {
+            0
+        };
+        assert_eq!(label[at(p[0], p[1], p[2])], want, "label at {p:?}");
+    }
+    // "all" paints over the 77s too.
+    edit(
+        &path,
+        r#"{"op": "paint", "channel": "label", "term": {"cuboid": {"origin": [0, 0, 0], "size": [5, 5, 5], "label": 4}}}"#,
+    );
+    let label = level0(&path, Some("label"));
+    assert_eq!(label[at(3, 3, 3)], 4);
+    assert_eq!(label[at(5, 5, 5)], 77);
+    assert_eq!(
+        level0(&path, Some("material")),
+        material,
+        "paint of labels moved materials"
+    );
+}
+
+#[test]
+fn edits_of_channels_refuse_what_the_volume_cannot_take() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("ground.vod");
+    ground(&path);
+    let vod = Vod2::open(&path).unwrap();
+    let head = vod.head();
+    let try_edit = |json: &str| {
+        let req: EditRequest = serde_json::from_str(json).unwrap();
+        Edit::for_volume(
+            &req,
+            head.header(),
+            &TermLimits::default(),
+            &NoVolumes,
+            None,
+            &CancelToken::never(),
+        )
+        .map(|_| ())
+        .map_err(|e| e.to_string())
+    };
+    let cube =
+        |attrs: &str| format!(r#"{{"cuboid": {{"origin": [0, 0, 0], "size": [4, 4, 4]{attrs}}}}}"#);
+    for (json, says) in [
+        (
+            format!(
+                r#"{{"op": "paint", "channel": "colour", "term": {}}}"#,
+                cube(r#", "material": 2"#)
+            ),
+            "not \"colour\"",
+        ),
+        (
+            format!(r#"{{"op": "paint", "term": {}}}"#, cube("")),
+            "carry",
+        ),
+        (
+            format!(
+                r#"{{"op": "union", "term": {}}}"#,
+                cube(r#", "material": 256"#)
+            ),
+            "beyond",
+        ),
+        (
+            format!(
+                r#"{{"op": "union", "overwrite": "empty", "term": {}}}"#,
+                cube("")
+            ),
+            "belong to paint",
+        ),
+    ] {
+        let err = try_edit(&json).expect_err(&json);
+        assert!(err.contains(says), "{json}: {err}");
+    }
+    assert!(try_edit(&format!(
+        r#"{{"op": "union", "term": {}}}"#,
+        cube(r#", "material": 255, "label": 65535"#)
+    ))
+    .is_ok());
+}
+
+#[test]
+fn terms_give_attributes_by_cvg_s_rule_by_hand() {
+    use isovox_server::geometry::Box3;
+    use isovox_server::icvg::term::{CompiledTerm, KEEP};
+    // A: cuboid [0, 6)^3, material 1; B: cuboid x in [3, 9), y, z in [0, 6), material 2. Along
+    // the row y = z = 2 a cuboid is L on its outer layer, S on the next, H inside:
+    //   x:  0  1  2  3  4  5  6  7  8
+    //   A:  L  S  H  H  S  L  .  .  .
+    //   B:  .  .  .  L  S  H  H  S  L
+    // Where a term's result is L it gives no attribute (KEEP), whatever its operands gave.
+    let a = r#"{"cuboid": {"origin": [0, 0, 0], "size": [6, 6, 6], "material": 1}}"#;
+    let b = r#"{"cuboid": {"origin": [3, 0, 0], "size": [6, 6, 6], "material": 2}}"#;
+    let k = KEEP;
+    let cases: [(&str, String, [u64; 9]); 5] = [
+        // Union and intersection: the denser operand's, the left one on a tie (x = 4: S, S).
+        (
+            "union",
+            format!(r#"{{"union": [{a}, {b}]}}"#),
+            [k, 1, 1, 1, 1, 2, 2, 2, k],
+        ),
+        (
+            "union, swapped",
+            format!(r#"{{"union": [{b}, {a}]}}"#),
+            [k, 1, 1, 1, 2, 2, 2, 2, k],
+        ),
+        // Intersection is S only at x = 4, where the two tie.
+        (
+            "intersection",
+            format!(r#"{{"intersection": [{a}, {b}]}}"#),
+            [k, k, k, k, 1, k, k, k, k],
+        ),
+        // Difference: always the left operand's; at x = 4 it carves A down to L.
+        (
+            "difference",
+            format!(r#"{{"difference": [{a}, {b}]}}"#),
+            [k, 1, 1, 1, k, k, k, k, k],
+        ),
+        // A leaf without a material gives none: where it is denser, the other's is not taken.
+        (
+            "union with a plain leaf",
+            format!(
+                r#"{{"union": [{a}, {{"cuboid": {{"origin": [3, 0, 0], "size": [6, 6, 6]}}}}]}}"#
+            ),
+            [k, 1, 1, 1, 1, k, k, k, k],
+        ),
+    ];
+    for (what, json, want) in cases {
+        let term: isovox_proto::icvg::Term = serde_json::from_str(&json).unwrap();
+        let compiled =
+            CompiledTerm::compile(&term, VoxelType::U8, &TermLimits::default(), &NoVolumes)
+                .unwrap();
+        // Evaluated over the row, and over boxes that cut it: the same values.
+        for cut in [9, 4, 1] {
+            let mut got = Vec::new();
+            let mut x = 0;
+            while x < 9 {
+                let end = (x + cut).min(9);
+                let bx = Box3::new([x, 2, 2], [end, 3, 3]);
+                let n = (end - x) as usize;
+                let (mut d, mut v) = (vec![0u16; n], vec![0u64; n]);
+                compiled
+                    .eval_channel(&bx, "material", &mut d, &mut v)
+                    .unwrap();
+                got.extend(v);
+                x = end;
+            }
+            assert_eq!(got, want, "{what}, boxes of {cut}");
+        }
+    }
+}

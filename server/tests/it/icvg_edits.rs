@@ -227,6 +227,8 @@ fn naive(level0: &Grid, edit: &Edit, t: VoxelType) -> Grid {
                 out.values[i] = match &edit.kind {
                     EditKind::Binary(op, term) => op.apply(old, term.sample(v), t),
                     EditKind::Unary(op) => op.apply(old, t),
+                    // Paint leaves density as it is.
+                    EditKind::Paint { .. } => old,
                 };
             }
         }

@@ -191,7 +191,7 @@ fn morph_edit_matches_naive(dims: [usize; 3], r: i64, dilate: bool, value: impl 
     let never = CancelToken::never();
     let mut edit = Edit::for_volume(
         &request,
-        snap.layout(),
+        snap.header(),
         &TermLimits::default(),
         &One(snap.clone()),
         Some(1 << 28),
