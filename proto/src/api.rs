@@ -39,6 +39,9 @@ pub struct VolumeInfo {
     pub voxel_scale: [f32; 3],
     /// The current version; edits increase it.
     pub version: u64,
+    /// The attribute channels beside density (materials, labels), read with `?channel=NAME`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub channels: Vec<crate::channel::ChannelInfo>,
 }
 
 impl VolumeInfo {
@@ -62,6 +65,7 @@ impl VolumeInfo {
                 .collect(),
             voxel_scale,
             version,
+            channels: Vec::new(),
         }
     }
 }

@@ -5,10 +5,12 @@
 
 use crate::geometry::Box3;
 use crate::icvg::primitives::{Ellipsoid, Primitive};
-use crate::store::build::{build_file, sibling, FileFormat};
+use crate::store::build::{build_file, build_streams_file, sibling, FileFormat};
 use crate::store::{BrickSource, BuildOptions, SnapshotSource, StoreError, Vod2};
 use crate::volume::{edit_file, VolumeError};
-use isovox_proto::icvg::{EditRequest, Term};
+use isovox_proto::channel::ChannelInfo;
+use isovox_proto::icvg::{Attributes, EditRequest, Term};
+use isovox_proto::vod2::FileHeader;
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use noise::{Fbm, MultiFractal, NoiseFn, Perlin};
 use rayon::prelude::*;
@@ -176,11 +178,131 @@ impl BrickSource for WorldSource {
     }
 }
 
+/// The demo world's materials, by value (0 is air).
+pub mod materials {
+    /// Air: no material.
+    pub const AIR: u16 = 0;
+    /// Bedrock, below everything.
+    pub const ROCK: u16 = 1;
+    /// A few voxels of soil under the surface.
+    pub const SOIL: u16 = 2;
+    /// The surface of gentle slopes.
+    pub const GRASS: u16 = 3;
+    /// The surface near the water line.
+    pub const SAND: u16 = 4;
+    /// A vein of ore winding through the rock.
+    pub const ORE: u16 = 5;
+    /// What the scene's buildings are made of.
+    pub const MARBLE: u16 = 6;
+    /// Their display colours, by value (the channel's palette).
+    pub const PALETTE: [&str; 7] = [
+        "#000000", "#77736e", "#7a5634", "#4f8a35", "#d9c58c", "#c9a227", "#e8e4dc",
+    ];
+}
+
+/// The material channel of a [`WorldSource`]'s terrain: rock below, soil a few voxels deep,
+/// grass on gentle slopes, sand near the water line (the lowest fifth of the hills), an ore
+/// vein winding through the rock; air above the ground.
+#[derive(Debug, Clone)]
+pub struct WorldMaterials {
+    world: WorldSource,
+    water_line: f32,
+}
+
+impl WorldMaterials {
+    /// The materials of `world`.
+    pub fn new(world: WorldSource) -> Self {
+        let dy = world.layout.dims()[1] as f32;
+        WorldMaterials {
+            world,
+            water_line: 0.3 * dy,
+        }
+    }
+
+    /// The material of voxel (x, y, z).
+    pub fn material(&self, x: u32, y: u32, z: u32) -> u16 {
+        use materials::*;
+        let w = &self.world;
+        let h = w.height(x, z);
+        let depth = h - y as f32;
+        if depth < -0.5 {
+            return AIR;
+        }
+        let [dx, dy, dz] = w.layout.dims().map(|d| d as f32);
+        // The vein: a tube around a curve that winds in y and z as x goes.
+        let (fx, fy, fz) = (x as f32, y as f32, z as f32);
+        let vy = dy * (0.3 + 0.08 * (fx * 9.0 / dx).sin());
+        let vz = dz * (0.5 + 0.15 * (fx * 5.0 / dx).cos());
+        if depth > 6.0 && (fy - vy).hypot(fz - vz) < dy * 0.03 {
+            return ORE;
+        }
+        if depth > 5.0 {
+            return ROCK;
+        }
+        if h < self.water_line + 2.0 {
+            return SAND;
+        }
+        let slope = ((w.height(x + 1, z) - w.height(x.saturating_sub(1), z)).abs()
+            + (w.height(x, z + 1) - w.height(x, z.saturating_sub(1))).abs())
+            / 2.0;
+        if depth < 3.0 && slope < 1.2 {
+            GRASS
+        } else {
+            SOIL
+        }
+    }
+}
+
+impl BrickSource for WorldMaterials {
+    fn fill(&self, key: BrickKey, out: &mut [u8]) {
+        let (Box3 { min: lo, max: hi }, _) = clipped_brick(&self.world.layout, key);
+        let b = self.world.layout.brick() as usize;
+        for z in lo[2]..hi[2] {
+            for y in lo[1]..hi[1] {
+                for x in lo[0]..hi[0] {
+                    let i = (((z - lo[2]) as usize * b + (y - lo[1]) as usize) * b)
+                        + (x - lo[0]) as usize;
+                    out[i] = self.material(x as u32, y as u32, z as u32) as u8;
+                }
+            }
+        }
+    }
+
+    fn constant(&self, key: BrickKey) -> Option<u16> {
+        // Air above the ground is air; the rest is worth looking at.
+        (self.world.constant(key) == Some(0)).then_some(materials::AIR)
+    }
+}
+
+/// The header of a demo world of `layout`: density and a `material` channel.
+///
+/// # Errors
+/// None for the demo's palette; the signature is [`FileHeader::with_channels`]'s.
+pub fn world_header(layout: &VolumeLayout) -> Result<FileHeader, StoreError> {
+    let material = ChannelInfo {
+        palette: materials::PALETTE.iter().map(|c| c.to_string()).collect(),
+        ..ChannelInfo::new("material", VoxelType::U8)
+    };
+    Ok(FileHeader::with_channels(
+        layout.clone(),
+        [1.0; 3],
+        vec![material],
+    )?)
+}
+
 /// The edits that turn a generated world of `dims` into the demo scene: tunnels carved through
 /// the terrain, a crater, and a few primitives standing on it.
 pub fn scene_edits(dims: [u32; 3]) -> Vec<EditRequest> {
     let [x, y, z] = dims.map(|d| d as i64);
     let r = |v: i64| v.max(2) as u32;
+    // What the scene builds is marble (ignored by a volume without a material channel).
+    let marble = |leaf: Term| Term::Attributed {
+        attrs: Attributes {
+            material: Some(u64::from(materials::MARBLE)),
+            label: None,
+        },
+        leaf: Box::new(leaf),
+    };
     let edit = |op: &str, term: Term| EditRequest {
         op: op.into(),
         term: Some(term),
@@ -225,34 +347,34 @@ pub fn scene_edits(dims: [u32; 3]) -> Vec<EditRequest> {
         // A ring, a pyramid and a tower.
         edit(
             "union",
-            Term::Torus {
+            marble(Term::Torus {
                 center: [x / 4, y * 4 / 5, z * 3 / 4],
                 major: r(x / 12),
                 minor: r(y / 30),
-            },
+            }),
         ),
         edit(
             "union",
-            Term::Pyramid {
+            marble(Term::Pyramid {
                 origin: [x * 3 / 5, y / 3, z * 3 / 5],
                 size: [r(x / 8), r(y / 2), r(z / 8)],
-            },
+            }),
         ),
         edit(
             "union",
-            Term::Cylinder {
+            marble(Term::Cylinder {
                 base: [x / 8, y / 5, z / 8],
                 radii: [r(x / 40), r(z / 40)],
                 height: r(y * 7 / 10),
-            },
+            }),
         ),
         edit(
             "union",
-            Term::Cone {
+            marble(Term::Cone {
                 base: [x / 8, y * 9 / 10 - r(y / 5) as i64, z / 8],
                 radii: [r(x / 25), r(z / 25)],
                 height: r(y / 5),
-            },
+            }),
         ),
     ]
 }
@@ -283,6 +405,40 @@ pub fn build_scene(
     Ok(())
 }
 
+/// [`build_scene`] of a world with a material channel: the terrain's [`WorldMaterials`], which
+/// the scene's carving reveals and its buildings (marble) add to.
+///
+/// # Errors
+/// A build, an edit or the rebuild fails.
+pub fn build_scene_with_materials(
+    output: &Path,
+    world: &WorldSource,
+    options: &BuildOptions,
+) -> Result<(), VolumeError> {
+    let layout = &world.layout;
+    let header = world_header(layout)?;
+    let work = sibling(output, ".isovox-scene");
+    let materials = WorldMaterials::new(world.clone());
+    build_streams_file(&work, header.clone(), &[world, &materials], options)?;
+    for request in scene_edits(layout.dims()) {
+        edit_file(&work, &request)?;
+    }
+    let edited = Vod2::open(&work)?;
+    let head = edited.head();
+    let sources: Vec<SnapshotSource> = std::iter::once(head.clone())
+        .chain(head.channel_views().iter().cloned())
+        .map(SnapshotSource::new)
+        .collect();
+    let refs: Vec<&dyn BrickSource> = sources.iter().map(|s| s as &dyn BrickSource).collect();
+    build_streams_file(output, header, &refs, options)?;
+    for source in sources {
+        source.finish()?;
+    }
+    drop((head, edited));
+    let _ = std::fs::remove_file(&work);
+    Ok(())
+}
+
 /// The name of the volume `isovox serve` generates on first start.
 pub const DEMO_NAME: &str = "demo";
 
@@ -301,12 +457,7 @@ pub fn build_demo(dir: &Path, options: &BuildOptions) -> Result<PathBuf, VolumeE
     })?;
     let path = dir.join(format!("{DEMO_NAME}.vod"));
     let layout = VolumeLayout::new([512, 256, 512], 32, VoxelType::U8).map_err(StoreError::from)?;
-    build_scene(
-        &path,
-        &layout,
-        &WorldSource::new(layout.clone(), 1),
-        options,
-    )?;
+    build_scene_with_materials(&path, &WorldSource::new(layout, 1), options)?;
     Ok(path)
 }
 

@@ -5,7 +5,7 @@
 //! `Accept: application/x-lz4`, else the raw voxels. These are the hottest routes by far, so
 //! the code avoids per-request work the other routes do not mind (see the comments).
 
-use super::extract::{Named, Path, RawPath, VersionParam};
+use super::extract::{ChannelParam, Named, Path, RawPath, VersionParam};
 use super::{ApiError, AppState};
 use crate::store::decoded::Form;
 use crate::store::{Snapshot, StoredBrick};
@@ -49,13 +49,18 @@ pub async fn brick(
     Path(Named { name }): Path<Named>,
     raw: RawPath,
     VersionParam(version): VersionParam,
+    ChannelParam(channel): ChannelParam,
     // The request itself, not a `HeaderMap` extractor (which clones every header).
     request: Request,
 ) -> Result<Response, ApiError> {
     let position = brick_position(&raw)?;
     state
-        .read_volume(&name, move |state, vol| {
-            brick_at(state, vol, version, position, request.headers())
+        .read_volume(&name, move |state, vol| match channel {
+            None => brick_at(state, vol, version, position, request.headers()),
+            Some(channel) => {
+                let snap = vol.snapshot_of(version, Some(&channel))?;
+                brick_of(state, &snap, position, request.headers())
+            }
         })
         .await
 }
@@ -82,6 +87,16 @@ pub(super) fn brick_at(
             current.head_ref()
         }
     };
+    brick_of(state, snap, (level, x, y, z), headers)
+}
+
+/// The response for brick (level, x, y, z) of the stream `snap` (density, or a channel's view).
+fn brick_of(
+    state: &AppState,
+    snap: &Snapshot,
+    (level, x, y, z): (u8, u32, u32, u32),
+    headers: &HeaderMap,
+) -> Result<Response, ApiError> {
     let key = snap
         .layout()
         .key(level, x, y, z)
@@ -97,6 +112,7 @@ pub(super) fn brick_at(
 pub async fn blob(
     State(state): State<AppState>,
     Path((name, hex)): Path<(String, String)>,
+    ChannelParam(channel): ChannelParam,
     request: Request,
 ) -> Result<Response, ApiError> {
     let hash = (hex.len() == 16 && hex.bytes().all(|b| b.is_ascii_hexdigit()))
@@ -107,7 +123,7 @@ pub async fn blob(
         })?;
     state
         .read_volume(&name, move |state, vol| {
-            let snap = vol.head();
+            let snap = vol.snapshot_of(None, channel.as_deref())?;
             let entry = snap.find_by_hash(hash)?.ok_or_else(|| {
                 ApiError::NotFound(format!("no brick with hash {hex} in {:?}", vol.name()))
             })?;

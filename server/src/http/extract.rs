@@ -173,6 +173,42 @@ impl FromRequestParts<AppState> for VersionParam {
     }
 }
 
+/// `?channel=NAME`: which stream of a volume to read: an attribute channel by name, or
+/// `density` (the default when absent).
+#[derive(Debug, Clone)]
+pub struct ChannelParam(pub Option<String>);
+
+impl<S: Send + Sync> FromRequestParts<S> for ChannelParam {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, _: &S) -> Result<Self, ApiError> {
+        let mut given = parts
+            .uri
+            .query()
+            .unwrap_or_default()
+            .split('&')
+            .filter_map(|pair| pair.strip_prefix("channel="));
+        match (given.next(), given.next()) {
+            (None, _) => Ok(ChannelParam(None)),
+            (Some(_), Some(_)) => Err(ApiError::BadRequest(
+                "?channel= is given twice: name one channel".into(),
+            )),
+            (Some(name), None) => {
+                let name = percent_encoding::percent_decode_str(name).decode_utf8_lossy();
+                let plain = !name.is_empty()
+                    && name.len() <= isovox_proto::channel::MAX_NAME_LEN
+                    && name.bytes().all(|c| c.is_ascii_alphanumeric() || c == b'_');
+                if !plain {
+                    return Err(ApiError::BadRequest(format!(
+                        "?channel={name:?} is not a channel name (letters, digits and _)"
+                    )));
+                }
+                Ok(ChannelParam((name != "density").then(|| name.into_owned())))
+            }
+        }
+    }
+}
+
 /// The query string ([`axum::extract::Query`]); 400 when it does not parse.
 #[derive(Debug)]
 pub struct Query<T>(pub T);

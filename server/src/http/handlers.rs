@@ -3,7 +3,7 @@
 
 use super::bricks::{brick_position, format_etag, if_none_match};
 use super::compression::{accepts_zstd, Body};
-use super::extract::{Json, Named, Path, Query, RawPath, VersionParam};
+use super::extract::{ChannelParam, Json, Named, Path, Query, RawPath, VersionParam};
 use super::{ApiError, AppState};
 use crate::mesh::cache::MeshCache;
 use crate::store::decoded::DecodedBricks;
@@ -35,12 +35,15 @@ pub async fn not_found() -> ApiError {
 
 fn info(name: &str, volume: &LiveVolume) -> VolumeInfo {
     let vod = volume.current();
-    VolumeInfo::new(
-        name,
-        vod.layout(),
-        vod.header().voxel_scale,
-        vod.head().version,
-    )
+    VolumeInfo {
+        channels: vod.header().channels.clone(),
+        ..VolumeInfo::new(
+            name,
+            vod.layout(),
+            vod.header().voxel_scale,
+            vod.head().version,
+        )
+    }
 }
 
 /// `GET /v1/volumes`.
@@ -262,11 +265,12 @@ fn validate(tag: u64, version: Option<u64>, headers: &HeaderMap) -> Validated {
 pub async fn batch(
     State(state): State<AppState>,
     Path(name): Path<String>,
+    ChannelParam(channel): ChannelParam,
     headers: HeaderMap,
     Json(request): Json<BatchRequest>,
 ) -> Result<Response, ApiError> {
     let read = state
-        .read_volume(&name, move |_, vol| vol.batch(&request))
+        .read_volume(&name, move |_, vol| vol.batch(&request, channel.as_deref()))
         .await?;
     let zstd = accepts_zstd(&headers);
     let bricks = state.bricks.clone();
@@ -325,6 +329,7 @@ pub async fn level(
     Path(Named { name }): Path<Named>,
     raw: RawPath,
     VersionParam(version): VersionParam,
+    ChannelParam(channel): ChannelParam,
     Query(query): Query<LevelQuery>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
@@ -340,7 +345,9 @@ pub async fn level(
     };
     let region = query.region.as_deref().map(parse_region).transpose()?;
     let read = state
-        .read_volume(&name, move |_, vol| vol.level(version, level, form, region))
+        .read_volume(&name, move |_, vol| {
+            vol.level(version, channel.as_deref(), level, form, region)
+        })
         .await?;
     let response_headers = match validate(read.tag(), version, &headers) {
         Validated::NotModified(response) => return Ok(response),

@@ -141,7 +141,20 @@ pub(super) fn document(limits: &TermLimits) -> Value {
         json!({"anyOf": [version_number(), tag_name()]}),
         "read this older version, by number or tag (404 when the file does not hold it)",
     );
-    let brick_params = json!([name, level, coord("x"), coord("y"), coord("z"), version]);
+    let channel = query_param(
+        "channel",
+        json!({"type": "string", "pattern": "^[A-Za-z0-9_]{1,32}$"}),
+        "read this attribute channel (the volume metadata lists them) instead of density; 404 when the volume has none of that name",
+    );
+    let brick_params = json!([
+        name,
+        level,
+        coord("x"),
+        coord("y"),
+        coord("z"),
+        version,
+        channel
+    ]);
     let binary = |media: &str| json!({media: {"schema": {"type": "string", "format": "binary"}}});
     let mut doc = json!({
         "openapi": "3.1.0",
@@ -164,19 +177,19 @@ pub(super) fn document(limits: &TermLimits) -> Value {
                     "304": {"description": "not modified (If-None-Match)"}}), problem_responses(&["400", "404", "500"]))}},
             "/v1/volumes/{name}/blobs/{hash}": {"get": {
                 "summary": "a brick by content hash, immutable (Cache-Control: public, max-age=31536000, immutable)",
-                "parameters": [name, path_param("hash", content_hash(), "content hash, 16 hex digits")],
+                "parameters": [name, path_param("hash", content_hash(), "content hash, 16 hex digits"), channel],
                 "responses": merge(json!({
                     "200": {"description": "the brick", "content": merge(binary("application/octet-stream"), binary("application/x-lz4"))},
                     "304": {"description": "not modified"}}), problem_responses(&["400", "404", "500"]))}},
             "/v1/volumes/{name}/batch": {"post": {
                 "summary": "many bricks in one response (application/x-isovox-bricks, see proto/src/batch.rs)",
                 "description": "Raw answers carry at most 64 MiB of voxels: 2,048 bricks of 32^3 u8 voxels, 1,024 of u16 (413 beyond); stored answers take up to 4,096 bricks of any size.",
-                "parameters": [name],
+                "parameters": [name, channel],
                 "requestBody": {"required": true, "content": {"application/json": {"schema": schema_ref("BatchRequest")}}},
                 "responses": merge(json!({"200": {"description": "the bricks", "content": binary("application/x-isovox-bricks")}}), problem_responses(&["400", "404", "413", "415", "500", "503"]))}},
             "/v1/volumes/{name}/levels/{level}": {"get": {
                 "summary": "a level's brick grid (JSON), or its voxels as one RAW array (format=voxels); a strong ETag, Cache-Control: no-cache (public, max-age=31536000, immutable with ?version=N)",
-                "parameters": [name, level, version,
+                "parameters": [name, level, version, channel,
                     query_param("region", json!({"type": "string", "pattern": "^[0-9]{1,10}(,[0-9]{1,10}){5}$"}),
                         "MINX,MINY,MINZ,MAXX,MAXY,MAXZ, max exclusive: in bricks for the grid, in voxels for format=voxels. An axis with MAX <= MIN selects nothing (an empty answer); a coordinate beyond the level is 404"),
                     query_param("format", json!({"type": "string", "enum": ["grid", "voxels"]}), "grid (default) or voxels (at most 64 MiB: 413 beyond)")],
@@ -218,7 +231,13 @@ pub(super) fn document(limits: &TermLimits) -> Value {
                     "surface": {"type": "integer"}, "brick": {"type": "integer"},
                     "levels": {"type": "array", "items": schema_ref("LevelInfo")},
                     "voxel_scale": tuple(3, json!({"type": "number"})),
-                    "version": {"type": "integer"}}},
+                    "version": {"type": "integer"},
+                    "channels": {"type": "array", "items": schema_ref("ChannelInfo")}}},
+            "ChannelInfo": {"type": "object", "required": ["name", "type"],
+                "description": "an attribute channel beside density (docs/channels.md): categorical values per voxel, levels by mode",
+                "properties": {"name": {"type": "string"}, "type": {"type": "string", "enum": ["u8", "u16"]},
+                    "palette": {"type": "array", "items": {"type": "string", "pattern": "^#[0-9A-Fa-f]{6}$"}},
+                    "sparse": {"type": "boolean"}}},
             "VolumeList": {"type": "object", "required": ["volumes"], "properties": {"volumes": {"type": "array", "items": schema_ref("VolumeInfo")}}},
             "LevelGrid": {"type": "object", "required": ["level", "grid", "min", "max", "version", "bricks"],
                 "properties": {"level": {"type": "integer"}, "grid": schema_ref("Triple"),
@@ -488,6 +507,16 @@ fn term_schemas(limits: &TermLimits) -> Value {
     for op in binary_ops {
         leaves.push((op, two_terms.clone()));
     }
+    // A leaf's object may carry attribute values (docs/channels.md).
+    let attribute = int(0, u16::MAX.into());
+    for (key, schema) in &mut leaves {
+        if isovox_proto::icvg::LEAVES.contains(key) {
+            if let Some(props) = schema.get_mut("properties").and_then(Value::as_object_mut) {
+                props.insert("material".into(), attribute.clone());
+                props.insert("label".into(), attribute.clone());
+            }
+        }
+    }
     let term_kinds: Vec<Value> = leaves
         .into_iter()
         .map(|(key, schema)| closed(&[key], json!({key: schema})))
@@ -499,8 +528,33 @@ fn term_schemas(limits: &TermLimits) -> Value {
         closed(
             required,
             json!({"op": op, "term": term, "s_l": s_l, "k": k, "region": nullable(schema_ref("Region")),
-                "message": nullable(json!({"type": "string", "maxLength": isovox_proto::history::MAX_MESSAGE_CHARS}))}),
+                "message": nullable(json!({"type": "string", "maxLength": isovox_proto::history::MAX_MESSAGE_CHARS})),
+                "channel": absent, "overwrite": absent}),
         )
+    };
+    let paint = merge(
+        edit(
+            json!({"const": "paint"}),
+            &["op", "term"],
+            &term,
+            &absent,
+            &absent,
+        ),
+        json!({"description": "paint: the channel takes the term's attribute values where the term is inside; density unchanged"}),
+    );
+    let paint = {
+        let mut paint = paint;
+        if let Some(props) = paint.get_mut("properties").and_then(Value::as_object_mut) {
+            props.insert(
+                "channel".into(),
+                nullable(json!({"type": "string", "enum": ["material", "label"]})),
+            );
+            props.insert(
+                "overwrite".into(),
+                nullable(json!({"type": "string", "enum": ["all", "empty"]})),
+            );
+        }
+        paint
     };
     json!({
         "Term": {"description": "an ICVG term (docs/icvg.md): one key naming a primitive, a stored volume, an uploaded mesh or an operator",
@@ -512,6 +566,7 @@ fn term_schemas(limits: &TermLimits) -> Value {
                 edit(json!({"const": "divide"}), &["op", "s_l", "term"], &term, &s_l, &absent),
                 edit(json!({"type": "string", "enum": ["inverse", "complement"]}), &["op"], &absent, &absent, &absent),
                 edit(json!({"const": "add_scalar"}), &["op", "k"], &absent, &absent, &k),
+                paint,
             ]},
     })
 }

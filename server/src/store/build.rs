@@ -347,6 +347,24 @@ pub fn sibling(path: &Path, suffix: &str) -> std::path::PathBuf {
     std::path::PathBuf::from(s)
 }
 
+/// [`build_streams`] into `output` through a temporary file beside it, renamed into place (as
+/// [`build_file`] does for one stream).
+///
+/// # Errors
+/// The build or the rename fails.
+pub fn build_streams_file(
+    output: &Path,
+    header: FileHeader,
+    sources: &[&dyn BrickSource],
+    options: &BuildOptions,
+) -> Result<BuildReport, StoreError> {
+    let tmp = sibling(output, ".isovox-tmp");
+    let report = build_streams(&tmp, header, sources, options)?;
+    std::fs::rename(&tmp, output)
+        .map_err(StoreError::io_path("cannot move the result to", output))?;
+    Ok(report)
+}
+
 /// Builds `output` from `source` through a temporary file beside it, renamed into place, so an
 /// interrupted build never leaves a half-written volume under the final name. As VOD 1, the
 /// VOD 2 build is converted (lz4 unless `options` say no compression) and removed.

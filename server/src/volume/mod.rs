@@ -153,6 +153,28 @@ impl Drop for QueueTicket<'_> {
     }
 }
 
+/// The stream of `snap` that `channel` names: density when `None`, else its attribute channel
+/// of that name.
+///
+/// # Errors
+/// [`VolumeError::OutOfRange`], naming the channels there are, when it has none of that name.
+pub fn stream_of(snap: Arc<Snapshot>, channel: Option<&str>) -> Result<Arc<Snapshot>, VolumeError> {
+    let Some(name) = channel else {
+        return Ok(snap);
+    };
+    snap.channel(name).ok_or_else(|| {
+        let names: Vec<&str> = snap
+            .header()
+            .channels
+            .iter()
+            .map(|c| c.name.as_str())
+            .collect();
+        VolumeError::OutOfRange(format!(
+            "this volume has no channel {name:?} (density and {names:?})"
+        ))
+    })
+}
+
 /// The changed bricks of a commit, by level, each level sorted by z, then y, then x.
 pub fn changed_bricks(layout: &VolumeLayout, nodes: impl Iterator<Item = u64>) -> ChangedBricks {
     let mut changed: ChangedBricks = vec![Vec::new(); layout.levels() as usize];
@@ -430,6 +452,20 @@ impl LiveVolume {
             Some(v) => self.version(v),
             None => Ok(self.head()),
         }
+    }
+
+    /// [`LiveVolume::snapshot`] of the stream `channel` names: density when `None`, else the
+    /// attribute channel of that name (a 404 naming the channels there are when it has none).
+    ///
+    /// # Errors
+    /// As [`LiveVolume::snapshot`]; [`VolumeError::OutOfRange`] for an unknown channel.
+    pub fn snapshot_of(
+        &self,
+        version: Option<u64>,
+        channel: Option<&str>,
+    ) -> Result<Arc<Snapshot>, VolumeError> {
+        let snap = self.snapshot(version)?;
+        stream_of(snap, channel)
     }
 
     /// The oldest version the file holds.

@@ -30,14 +30,18 @@ impl LiveVolume {
     ///
     /// # Errors
     /// [`VolumeError::TooLarge`], [`VolumeError::NoSuchVersion`], [`VolumeError::OutOfRange`].
-    pub fn batch(&self, request: &BatchRequest) -> Result<BatchRead, VolumeError> {
+    pub fn batch(
+        &self,
+        request: &BatchRequest,
+        channel: Option<&str>,
+    ) -> Result<BatchRead, VolumeError> {
         if request.keys.len() > MAX_BATCH {
             return Err(VolumeError::TooLarge(format!(
                 "{} keys; a batch takes at most {MAX_BATCH}",
                 request.keys.len()
             )));
         }
-        let snap = self.snapshot(request.version)?;
+        let snap = self.snapshot_of(request.version, channel)?;
         let layout = snap.layout();
         if request.encoding == BatchEncoding::Raw
             && request.keys.len() * layout.brick_bytes() > MAX_RESPONSE_BYTES
@@ -72,11 +76,12 @@ impl LiveVolume {
     pub fn level(
         &self,
         version: Option<u64>,
+        channel: Option<&str>,
         level: u8,
         form: LevelForm,
         region: Option<([u64; 3], [u64; 3])>,
     ) -> Result<LevelRead, VolumeError> {
-        let snap = self.snapshot(version)?;
+        let snap = self.snapshot_of(version, channel)?;
         let layout = snap.layout();
         if level >= layout.levels() {
             return Err(VolumeError::OutOfRange(format!(
@@ -315,6 +320,8 @@ impl LevelRead {
         }
         tag.push(self.level);
         tag.push(self.form as u8);
+        // Each stream of a version has its own answers.
+        tag.push(self.snap.stream() as u8);
         for c in self.min.iter().chain(&self.max) {
             tag.extend_from_slice(&c.to_le_bytes());
         }
