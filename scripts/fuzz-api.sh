@@ -126,6 +126,12 @@ checks.positive_data_acceptance.expected-statuses = ["2xx", "3xx", "401", "403",
 include-path = "/v1/volumes/{name}/edits"
 checks.positive_data_acceptance.expected-statuses = ["2xx", "3xx", "401", "403", "404", "409", "410", "422", "429", "5xx"]
 
+# A batch of more keys than the document's maxItems is refused as 413 Content Too Large (its
+# documented answer: the answer would be too large), not 400.
+[[operations]]
+include-path = "/v1/volumes/{name}/batch"
+checks.negative_data_rejection.expected-statuses = ["400", "401", "403", "404", "405", "406", "409", "413", "415", "422", "428", "429", "5xx"]
+
 [[operations]]
 include-path = "/v1/volumes/{name}/undo"
 checks.positive_data_acceptance.expected-statuses = ["2xx", "3xx", "401", "403", "404", "409", "410", "422", "429", "5xx"]

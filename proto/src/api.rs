@@ -171,6 +171,10 @@ pub struct ChangeEvent {
     pub timestamp_ms: u64,
     /// The bricks whose content changed, per level.
     pub changed: ChangedBricks,
+    /// The bricks of attribute channels whose content changed, by channel, per level; only
+    /// channels that changed.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub channels: std::collections::BTreeMap<String, ChangedBricks>,
     /// Who made it and what it did (absent fields: not recorded).
     #[serde(flatten)]
     pub info: CommitInfo,

@@ -443,7 +443,8 @@ pub fn build_scene_with_materials(
 pub const DEMO_NAME: &str = "demo";
 
 /// Generates the demo world as `dir/demo.vod`: a 512 x 256 x 512 terrain with tunnels, a crater
-/// and a few primitives carved and added by ICVG edits (brick 32; about a second, under 2 MB).
+/// and a few primitives carved and added by ICVG edits, with a material channel (brick 32; a few
+/// seconds, about 2.4 MB).
 /// Returns the file's path.
 ///
 /// # Errors

@@ -322,6 +322,19 @@ impl Edit {
     /// Refuses what the volume `header` describes cannot take: paint of a channel it does not
     /// have, an attribute value beyond its channel's type.
     fn check_channels(&self, header: &FileHeader) -> Result<(), TermError> {
+        // Whatever the volume: no channel type holds more than u16 (the document says so).
+        if let EditKind::Binary(_, term) | EditKind::Paint { term, .. } = &self.kind {
+            for name in ["material", "label"] {
+                let mut values = Vec::new();
+                term.attribute_values(name, &mut values);
+                if let Some(v) = values.iter().find(|&&v| v > u64::from(u16::MAX)) {
+                    return Err(TermError::Invalid(format!(
+                        "\"{name}\": {v} is beyond every channel type (at most {})",
+                        u16::MAX
+                    )));
+                }
+            }
+        }
         let term = match &self.kind {
             EditKind::Paint { channel, term, .. } => {
                 if header.stream_named(channel).is_none() {

@@ -72,13 +72,31 @@ pub fn read_note(vod: &Vod2, at: u64) -> Result<(CommitHeader, CommitNote), Stor
 pub(crate) fn change_event(vod: &Vod2, at: u64) -> Result<ChangeEvent, StoreError> {
     let (h, note) = read_note(vod, at)?;
     let (_, changes) = vod.commit_at(at)?;
+    let header = vod.header();
+    let per_stream = header.layout.node_count();
+    let nodes_of = |stream: u64| {
+        CommitHeader::changes(changes)
+            .map(|(node, _)| node)
+            .filter(move |node| node / per_stream == stream)
+            .map(move |node| node % per_stream)
+    };
+    let channels = header
+        .channels
+        .iter()
+        .zip(1u64..)
+        .map(|(c, stream)| {
+            (
+                c.name.clone(),
+                changed_bricks(vod.layout(), nodes_of(stream)),
+            )
+        })
+        .filter(|(_, changed)| changed.iter().any(|level| !level.is_empty()))
+        .collect();
     Ok(ChangeEvent {
         version: h.version,
         timestamp_ms: h.timestamp_ms,
-        changed: changed_bricks(
-            vod.layout(),
-            CommitHeader::changes(changes).map(|(node, _)| node),
-        ),
+        changed: changed_bricks(vod.layout(), nodes_of(0)),
+        channels,
         info: note.info,
     })
 }

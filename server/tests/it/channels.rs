@@ -641,3 +641,182 @@ fn terms_give_attributes_by_cvg_s_rule_by_hand() {
         }
     }
 }
+
+// ---- Over HTTP: metadata, ?channel=, and kill -9 during channel edits ----
+
+/// A 64^3 ground (brick 16) with material and label channels, as `dir/world.vod`.
+fn ground_64(dir: &std::path::Path) {
+    let g = [64u32; 3];
+    let n = 64 * 64 * 64;
+    let mut density = vec![0u8; n];
+    for (i, d) in density.iter_mut().enumerate() {
+        if i / (64 * 64) < 20 {
+            *d = 255;
+        }
+    }
+    let material = vec![1u8; n];
+    let label = vec![0u8; 2 * n];
+    let sources = [
+        DenseGrid::new(g, VoxelType::U8, 16, &density),
+        DenseGrid::new(g, VoxelType::U8, 16, &material),
+        DenseGrid::new(g, VoxelType::U16, 16, &label),
+    ];
+    let sources: Vec<&dyn isovox_server::store::BrickSource> =
+        sources.iter().map(|s| s as _).collect();
+    let layout = VolumeLayout::new(g, 16, VoxelType::U8).unwrap();
+    let channels = vec![
+        ChannelInfo::new("material", VoxelType::U8),
+        ChannelInfo {
+            sparse: true,
+            ..ChannelInfo::new("label", VoxelType::U16)
+        },
+    ];
+    let header = FileHeader::with_channels(layout, [1.0; 3], channels).unwrap();
+    build_streams(
+        &dir.join("world.vod"),
+        header,
+        &sources,
+        &BuildOptions::default(),
+    )
+    .unwrap();
+}
+
+fn serve(dir: &std::path::Path) -> crate::server_process::ServerProcess {
+    let tokens = dir.join("tokens");
+    std::fs::write(&tokens, "alice secret-alice-0123456 write\n").unwrap();
+    crate::server_process::ServerProcess::start(
+        &[
+            "--data".as_ref(),
+            dir.as_os_str(),
+            "--token-file".as_ref(),
+            tokens.as_os_str(),
+        ],
+        &[],
+    )
+}
+
+fn get_bytes(url: &str) -> (u16, Vec<u8>) {
+    let r = reqwest::blocking::get(url).unwrap();
+    let status = r.status().as_u16();
+    (status, r.bytes().unwrap().to_vec())
+}
+
+#[test]
+fn channels_over_http_and_a_kill_during_channel_edits_loses_nothing_acknowledged() {
+    isovox_server::client_tls::install_provider();
+    let dir = tempfile::tempdir().unwrap();
+    ground_64(dir.path());
+    let server = serve(dir.path());
+    let info: serde_json::Value = reqwest::blocking::get(server.url("/v1/volumes/world"))
+        .unwrap()
+        .json()
+        .unwrap();
+    let names: Vec<&str> = info["channels"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["material", "label"]);
+    // Level 1 of material is all 1; of density, 255 below z = 10 and 0 above.
+    let (status, material) =
+        get_bytes(&server.url("/v1/volumes/world/levels/1?channel=material&format=voxels"));
+    assert_eq!((status, material.len()), (200, 32 * 32 * 32));
+    assert!(material.iter().all(|&m| m == 1));
+    let (_, density) = get_bytes(&server.url("/v1/volumes/world/levels/1?format=voxels"));
+    assert_eq!(density[9 * 32 * 32], 255);
+    assert_eq!(density[10 * 32 * 32], 0);
+    // A brick of the label channel is u16: 2 bytes a voxel.
+    let (status, brick) = get_bytes(&server.url("/v1/volumes/world/bricks/0/0/0/0?channel=label"));
+    assert_eq!((status, brick.len()), (200, 2 * 16 * 16 * 16));
+    for bad in ["colour", "dens%20ity"] {
+        let (status, body) =
+            get_bytes(&server.url(&format!("/v1/volumes/world/levels/0?channel={bad}")));
+        let body = String::from_utf8_lossy(&body);
+        assert!(status == 404 || status == 400, "{bad}: {status} {body}");
+    }
+    let (status, body) = get_bytes(&server.url("/v1/volumes/world/levels/0?channel=colour"));
+    assert_eq!(status, 404);
+    assert!(
+        String::from_utf8_lossy(&body).contains("material"),
+        "the 404 names the channels"
+    );
+    drop(server);
+
+    // Two editors paint disjoint 4^3 cubes of distinct materials while the server is killed.
+    let mut server = serve(dir.path());
+    let acknowledged = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let editors: Vec<_> = (0..2u64)
+        .map(|e| {
+            let (url, acknowledged, stop) = (
+                server.url("/v1/volumes/world/edits"),
+                acknowledged.clone(),
+                stop.clone(),
+            );
+            std::thread::spawn(move || {
+                let client = reqwest::blocking::Client::new();
+                for i in 0..200u64 {
+                    if stop.load(std::sync::atomic::Ordering::Relaxed) {
+                        break;
+                    }
+                    let cube = 2 * i + e; // 0..400: a cell of an 8 x 8 x 7 grid of 8^3 cells
+                    let origin = [cube % 8 * 8, cube / 8 % 8 * 8, cube / 64 * 8];
+                    let material = 2 + cube % 250;
+                    // A cuboid of size 6 is S or H on [origin + 1, origin + 5).
+                    let body = serde_json::json!({"op": "paint", "term": {"cuboid": {
+                        "origin": origin, "size": [6, 6, 6], "material": material}}});
+                    let sent = client
+                        .post(&url)
+                        .bearer_auth("secret-alice-0123456")
+                        .json(&body)
+                        .timeout(std::time::Duration::from_secs(10))
+                        .send();
+                    match sent {
+                        Ok(r) if r.status().is_success() => {
+                            acknowledged.lock().unwrap().push((origin, material))
+                        }
+                        _ => break, // the server is gone
+                    }
+                    if cube >= 7 * 64 - 2 {
+                        break;
+                    }
+                }
+            })
+        })
+        .collect();
+    // Kill once some edits were acknowledged, with more in flight.
+    let start = std::time::Instant::now();
+    while acknowledged.lock().unwrap().len() < 20 && start.elapsed().as_secs() < 60 {
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    let _ = server.stop();
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    for e in editors {
+        e.join().unwrap();
+    }
+    let acknowledged = acknowledged.lock().unwrap().clone();
+    assert!(
+        acknowledged.len() >= 20,
+        "only {} edits before the kill",
+        acknowledged.len()
+    );
+
+    // Every acknowledged paint is there after a restart; the file checks clean.
+    let server = serve(dir.path());
+    let (_, material) =
+        get_bytes(&server.url("/v1/volumes/world/levels/0?channel=material&format=voxels"));
+    for (origin, m) in &acknowledged {
+        for d in [[1, 1, 1], [4, 4, 4], [1, 4, 2]] {
+            let p = [0, 1, 2].map(|a| (origin[a] + d[a]) as usize);
+            assert_eq!(
+                material[(p[2] * 64 + p[1]) * 64 + p[0]] as u64,
+                *m,
+                "the acknowledged paint at {origin:?} is missing at {p:?}"
+            );
+        }
+    }
+    drop(server);
+    let report = check(&dir.path().join("world.vod"), Depth::Everything, &Silent).unwrap();
+    assert!(!report.is_damaged(), "{}", report.summary());
+}

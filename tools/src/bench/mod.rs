@@ -4,6 +4,7 @@
 //! Timings are wall-clock on this machine with a warm page cache (the data was just written);
 //! each figure is the median of several runs where a run is short.
 
+pub mod channels;
 pub mod cold_tiles;
 pub mod edits;
 pub mod http;
@@ -57,6 +58,9 @@ pub enum BenchCommand {
     /// Solid voxelization of a ~300k-triangle closed model into 512^3 and 1024^3, next to the
     /// paper's GPU figures.
     Voxelize(voxelize::VoxelizeBenchArgs),
+    /// Attribute channels: mode downsampling next to tinybrain, label storage next to
+    /// compressed_segmentation + gzip, edits/s with a material channel against density alone.
+    Channels(channels::ChannelsBenchArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -90,6 +94,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Edits(a) => edits::run_bench(a),
         BenchCommand::Memory(a) => memory::run_bench(a),
         BenchCommand::Voxelize(a) => voxelize::run_bench(a),
+        BenchCommand::Channels(a) => channels::run_bench(a),
         BenchCommand::ColdTiles(a) => cold_tiles::run_bench(a),
     }
 }
