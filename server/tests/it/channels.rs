@@ -435,7 +435,7 @@ fn union_takes_the_denser_operand_s_material_and_difference_keeps_the_volume_s()
         &path,
         r#"{"op": "difference", "term": {"ellipsoid": {"center": [12, 12, 8], "radii": [4, 4, 4], "material": 9}}}"#,
     );
-    assert!(out.changed[0].len() > 0, "the carve changed no density");
+    assert!(!out.changed[0].is_empty(), "the carve changed no density");
     assert!(
         out.channels.is_empty(),
         "a difference changed {:?}",

@@ -74,7 +74,7 @@ fn segmentation(n: u32) -> Vec<u16> {
                     ^ cell[1].wrapping_mul(19_349_663)
                     ^ cell[2].wrapping_mul(83_492_791)) as u64;
                 let h = h.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 40;
-                out[(z * n + y) * n + x] = if h % 7 == 0 {
+                out[(z * n + y) * n + x] = if h.is_multiple_of(7) {
                     0
                 } else {
                     1 + (h % 60_000) as u16
@@ -284,10 +284,10 @@ fn python(python: &Path, script: &str) -> anyhow::Result<String> {
     Ok(String::from_utf8(out.stdout)?)
 }
 
-fn version(python: &Path, module: &str) -> anyhow::Result<String> {
+fn version(interpreter: &Path, module: &str) -> anyhow::Result<String> {
     let dist = module.replace('_', "-");
     Ok(python(
-        python,
+        interpreter,
         &format!("import importlib.metadata as m; print(m.version({dist:?}))"),
     )?
     .trim()
