@@ -630,6 +630,7 @@ const hook = {
     webgl2: viewport.webgl2,
     frames,
     tilesOnScreen: viewport.tileCount,
+    framePending: viewport.framePending,
     firstFrameMs,
     completeMs,
     completeInViewMs,

@@ -97,12 +97,17 @@ async function waitFor(page, what, predicate, timeoutMs = 60_000) {
   throw new Error(`timed out waiting for ${what}; last stats ${JSON.stringify(last)}`);
 }
 
-/** Waits until every tile the camera needs shows its current content, and a frame drew it. */
+/**
+ * Waits until every tile the camera needs shows its current content, and a frame drew it: no
+ * frame is pending (one asked for soon after another waits out that one's pause, scene.ts
+ * `requestRender`, so frames of the browser alone do not tell), then two more frames for the
+ * browser to composite it.
+ */
 async function waitComplete(page, version = 0) {
   const s = await waitFor(
     page,
-    `the view to be complete at version ${version}`,
-    (s) => s.complete && s.completeMs !== null && s.version >= version && s.stale === 0,
+    `the view to be complete at version ${version} and drawn`,
+    (s) => s.complete && s.completeMs !== null && s.version >= version && s.stale === 0 && !s.framePending,
   );
   await page.evaluate(() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r))));
   return s;
