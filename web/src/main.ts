@@ -607,6 +607,8 @@ function showProbe(): void {
       voxels.catch(() => bricks.delete(id));
     }
     const data = await voxels;
+    // The pointer left the view meanwhile: what is under it now (the slice, or nothing) stands.
+    if (!last) return;
     const l = [pos[0] % b, pos[1] % b, pos[2] % b];
     probe = { where: "surface", position: pos, level: 0, value: data[l[0]! + b * (l[1]! + b * l[2]!)] ?? 0 };
     showProbe();
@@ -615,6 +617,13 @@ function showProbe(): void {
     const r = canvas.getBoundingClientRect();
     last = { x: e.clientX - r.left, y: e.clientY - r.top };
     if (timer === null) timer = setTimeout(() => void look().catch(() => {}), 100);
+  });
+  // Off the view (onto the slice box, which lies over it, or the panel): a look still to come
+  // would put the voxel under the pointer's last place in the view over what it is on now.
+  canvas.addEventListener("pointerleave", () => {
+    last = null;
+    if (timer !== null) clearTimeout(timer);
+    timer = null;
   });
 }
 
@@ -630,6 +639,7 @@ const hook = {
     webgl2: viewport.webgl2,
     frames,
     tilesOnScreen: viewport.tileCount,
+    framePending: viewport.framePending,
     firstFrameMs,
     completeMs,
     completeInViewMs,

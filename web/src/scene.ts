@@ -254,6 +254,14 @@ export class Viewport implements TileSink {
     return this.tiles.size;
   }
 
+  /**
+   * Whether a frame was asked for and not drawn yet: what the view shows may then be older than
+   * its tiles (a frame after a recent one waits out that one's pause, `requestRender`).
+   */
+  get framePending(): boolean {
+    return this.frameRequested;
+  }
+
   // --- frames, picking --------------------------------------------------------------------
 
   /**

@@ -97,15 +97,26 @@ async function waitFor(page, what, predicate, timeoutMs = 60_000) {
   throw new Error(`timed out waiting for ${what}; last stats ${JSON.stringify(last)}`);
 }
 
-/** Waits until every tile the camera needs shows its current content, and a frame drew it. */
+/**
+ * Waits until every tile the camera needs shows its current content, and a frame drew it: no
+ * frame is pending (one asked for soon after another waits out that one's pause, scene.ts
+ * `requestRender`, so frames of the browser alone do not tell), then two more frames for the
+ * browser to composite it.
+ */
 async function waitComplete(page, version = 0) {
   const s = await waitFor(
     page,
-    `the view to be complete at version ${version}`,
-    (s) => s.complete && s.completeMs !== null && s.version >= version && s.stale === 0,
+    `the view to be complete at version ${version} and drawn`,
+    (s) => s.complete && s.completeMs !== null && s.version >= version && s.stale === 0 && !s.framePending,
   );
   await page.evaluate(() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r))));
   return s;
+}
+
+/** Waits until the view drew the last frame it asked for (see `waitComplete`), composited. */
+async function waitDrawn(page) {
+  await waitFor(page, "the view's last frame to be drawn", (s) => !s.framePending);
+  await page.evaluate(() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r))));
 }
 
 let shots = 0;
@@ -666,11 +677,11 @@ test("for scans: the iso value and the colour map change the pixels as chosen", 
   // Colour map grey: the lit surface is grey. Viridis: it is not, and the slice's voxels map to
   // matplotlib's viridis ends through the window (values >= 200 to its top, <= 100 to its bottom).
   await page.selectOption("#colormap", "grey");
-  await page.evaluate(() => new Promise((r) => setTimeout(() => requestAnimationFrame(() => requestAnimationFrame(r)), 300)));
+  await waitDrawn(page);
   img = await screenshot(page);
   for (const q of narrow.through) assert.ok(isGrey(pixel(img, q.x, q.y)), `(${q.x}, ${q.y}) is ${pixel(img, q.x, q.y)}, not grey`);
   await page.selectOption("#colormap", "viridis");
-  await page.evaluate(() => new Promise((r) => setTimeout(() => requestAnimationFrame(() => requestAnimationFrame(r)), 300)));
+  await waitDrawn(page);
   const viridisImg = await screenshot(page);
   const coloured = narrow.through.filter((q) => !isGrey(pixel(viridisImg, q.x, q.y))).length;
   assert.ok(coloured > narrow.through.length * 0.9, `${coloured} of ${narrow.through.length} surface pixels coloured`);
@@ -734,7 +745,7 @@ test("for scans: the voxel under the pointer, the slice's plane in 3D, resizing 
   const before = await screenshot(page);
   await page.check("#slice-on");
   await page.waitForSelector("#slice[data-version]");
-  await page.evaluate(() => new Promise((r) => setTimeout(() => requestAnimationFrame(() => requestAnimationFrame(r)), 300)));
+  await waitDrawn(page);
   const after = await screenshot(page);
   // A corner of the plane (z = 32, the volume's x and y ends, outside the ball) is drawn there:
   // one that neither the panel nor the slice's own box covers.

@@ -69,14 +69,19 @@ async function until(page, what, fn, arg, timeoutMs = 60_000) {
   throw new Error(`timed out waiting for ${what}`);
 }
 
-/** Waits until every tile the camera needs shows version `version` or later, and a frame drew it. */
+/**
+ * Waits until every tile the camera needs shows version `version` or later, and a frame drew it:
+ * no frame is pending (one asked for soon after another waits out that one's pause, scene.ts
+ * `requestRender`, so frames of the browser alone do not tell), then two more frames for the
+ * browser to composite it.
+ */
 async function waitComplete(page, version = 0) {
   await until(
     page,
-    `the view to be complete at version ${version}`,
+    `the view to be complete at version ${version} and drawn`,
     (v) => {
       const s = window.isovox?.stats();
-      return s && s.complete && s.completeMs !== null && s.version >= v && s.stale === 0;
+      return s && s.complete && s.completeMs !== null && s.version >= v && s.stale === 0 && !s.framePending;
     },
     version,
   );

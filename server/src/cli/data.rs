@@ -9,7 +9,7 @@ use isovox_server::generate::{build_scene, EllipsoidSource, WorldSource};
 use isovox_server::store::build::{build_file, sibling, FileFormat};
 use isovox_server::store::codec::{Compression, DEFAULT_ZSTD_LEVEL};
 use isovox_server::store::inspect::inspect as inspect_vod2;
-use isovox_server::store::raw::{export_raw, rawvox_header, RawInput, Region, RAWVOX_MAGIC};
+use isovox_server::store::raw::{export_raw, rawvox_header, LevelBox, RawInput, RAWVOX_MAGIC};
 use isovox_server::store::remote::{upload, Bucket, CacheConfig, RemoteVolume};
 use isovox_server::store::vod1::{write_vod1, Vod1File, Vod1Source};
 use isovox_server::store::{BrickSource, BuildOptions, DenseGrid, Vod2};
@@ -362,7 +362,7 @@ fn import_file(a: ImportArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn parse_region(s: &str) -> anyhow::Result<Region> {
+fn parse_region(s: &str) -> anyhow::Result<LevelBox> {
     let v: Vec<u32> = s
         .split(',')
         .map(|p| {
@@ -377,7 +377,7 @@ fn parse_region(s: &str) -> anyhow::Result<Region> {
             v.len()
         );
     }
-    Ok(Region {
+    Ok(LevelBox {
         min: [v[0], v[1], v[2]],
         max: [v[3], v[4], v[5]],
     })
@@ -437,7 +437,7 @@ pub(super) fn export(a: ExportArgs) -> anyhow::Result<()> {
             }
             let region = match &a.region {
                 Some(r) => parse_region(r)?,
-                None => Region {
+                None => LevelBox {
                     min: [0; 3],
                     max: layout.level_dims(a.level),
                 },

@@ -1,15 +1,20 @@
 //! Prometheus metrics: requests by route and status, latency histograms by route, bytes sent,
-//! mesh cache hits and misses, CPU queue depth. Recorded by a tower layer, rendered as text.
+//! mesh cache hits and misses, CPU queue depth. Recorded by a tower layer into
+//! `prometheus-client`'s metrics, which also writes the text format.
 
 use super::AppState;
 use axum::extract::State;
 use axum::http::{header, Request};
 use axum::response::{IntoResponse, Response};
-use std::fmt::Write;
+use prometheus_client::encoding::{prometheus_text, EncodeLabelSet};
+use prometheus_client::metrics::counter::{ConstCounter, Counter};
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::ConstGauge;
+use prometheus_client::metrics::histogram::Histogram;
+use prometheus_client::registry::Registry;
 use std::future::Future;
 use std::pin::Pin;
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 use std::task::{Context, Poll};
 use std::time::Instant;
 
@@ -21,55 +26,46 @@ const BUCKETS: [f64; 14] = [
 /// Status codes are counted in a table indexed by the code (codes outside it are not counted).
 const STATUSES: usize = 600;
 
-/// One route's counters, lock-free: requests by status code, and a latency histogram.
+/// The labels of `isovox_requests_total`.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, EncodeLabelSet)]
+struct RouteStatus {
+    route: &'static str,
+    status: u16,
+}
+
+/// The label of `isovox_request_seconds`.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, EncodeLabelSet)]
+struct RouteLabel {
+    route: &'static str,
+}
+
+fn latency_histogram() -> Histogram {
+    Histogram::new(BUCKETS)
+}
+
+/// One route's handles into the families, taken from them at the route's first request (and
+/// the first of each status), so that recording a request neither hashes its labels nor takes
+/// the family's lock. A series appears when its first request is recorded, as it did when the
+/// text was written by hand: routes and statuses never seen are not in the exposition.
 #[derive(Debug)]
-struct RouteMetrics {
-    by_status: Box<[AtomicU64]>,
-    buckets: [AtomicU64; BUCKETS.len()],
-    count: AtomicU64,
-    sum_micros: AtomicU64,
-}
-
-impl Default for RouteMetrics {
-    fn default() -> Self {
-        RouteMetrics {
-            by_status: (0..STATUSES).map(|_| AtomicU64::new(0)).collect(),
-            buckets: std::array::from_fn(|_| AtomicU64::new(0)),
-            count: AtomicU64::new(0),
-            sum_micros: AtomicU64::new(0),
-        }
-    }
-}
-
-/// One shard of every counter. Each thread records into its own shard, so the counters of a
-/// request touch no cache line another core is writing (shared counters cost the brick routes
-/// measurable throughput); `/metrics` sums the shards.
-#[derive(Debug)]
-#[repr(align(128))]
-struct Shard {
-    routes: Box<[RouteMetrics]>,
-    bytes_sent: AtomicU64,
-}
-
-thread_local! {
-    /// This thread's number, given out in turn at its first request; it picks the thread's
-    /// shard (threads beyond the shard count share shards: still correct, only slower).
-    static THREAD: usize = {
-        static NEXT: AtomicUsize = AtomicUsize::new(0);
-        NEXT.fetch_add(1, Ordering::Relaxed)
-    };
+struct RouteHandles {
+    by_status: Box<[OnceLock<Counter>]>,
+    latency: OnceLock<Histogram>,
 }
 
 /// The server's counters, by route template (the router's, see [`super::ROUTES`]; requests
-/// matching none are counted as "unmatched"). Recording a request costs no lock and no
-/// allocation.
+/// matching none are counted as "unmatched").
 #[derive(Debug)]
 pub struct Metrics {
     /// Route templates, `unmatched` last.
     names: Vec<&'static str>,
     /// Path to index in `names`, matched by the same rules as axum's router (both use matchit).
     matcher: matchit::Router<usize>,
-    shards: Box<[Shard]>,
+    requests: Family<RouteStatus, Counter>,
+    latency: Family<RouteLabel, Histogram, fn() -> Histogram>,
+    bytes_sent: Counter,
+    /// By index in `names`.
+    handles: Box<[RouteHandles]>,
 }
 
 impl Metrics {
@@ -87,18 +83,20 @@ impl Metrics {
                 .expect("route templates are valid and distinct");
         }
         let names: Vec<_> = routes.iter().copied().chain(["unmatched"]).collect();
-        // One shard per core: the async workers, which record the requests, are as many.
-        let cores = std::thread::available_parallelism().map_or(4, usize::from);
-        let shards = (0..cores)
-            .map(|_| Shard {
-                routes: names.iter().map(|_| RouteMetrics::default()).collect(),
-                bytes_sent: AtomicU64::new(0),
+        let handles = names
+            .iter()
+            .map(|_| RouteHandles {
+                by_status: (0..STATUSES).map(|_| OnceLock::new()).collect(),
+                latency: OnceLock::new(),
             })
             .collect();
         Metrics {
             names,
             matcher,
-            shards,
+            requests: Family::default(),
+            latency: Family::new_with_constructor(latency_histogram),
+            bytes_sent: Counter::default(),
+            handles,
         }
     }
 
@@ -115,36 +113,43 @@ impl Metrics {
     }
 
     fn record(&self, route: usize, status: u16, seconds: f64, bytes: u64) {
-        let shard = &self.shards[THREAD.with(|t| *t) % self.shards.len()];
-        let Some(m) = shard.routes.get(route) else {
+        let Some(h) = self.handles.get(route) else {
             return;
         };
-        if let Some(c) = m.by_status.get(status as usize) {
-            c.fetch_add(1, Ordering::Relaxed);
+        let name = self.route_name(route);
+        if let Some(counter) = h.by_status.get(usize::from(status)) {
+            counter
+                .get_or_init(|| {
+                    let labels = RouteStatus {
+                        route: name,
+                        status,
+                    };
+                    self.requests.get_or_create(&labels).clone()
+                })
+                .inc();
         }
-        // One bucket per request (cumulated when rendered).
-        if let Some(i) = BUCKETS.iter().position(|b| seconds <= *b) {
-            m.buckets[i].fetch_add(1, Ordering::Relaxed);
-        }
-        m.count.fetch_add(1, Ordering::Relaxed);
-        m.sum_micros
-            .fetch_add((seconds * 1e6) as u64, Ordering::Relaxed);
-        shard.bytes_sent.fetch_add(bytes, Ordering::Relaxed);
+        h.latency
+            .get_or_init(|| {
+                self.latency
+                    .get_or_create(&RouteLabel { route: name })
+                    .clone()
+            })
+            .observe(seconds);
+        self.bytes_sent.inc_by(bytes);
     }
 
-    /// A counter of route `route` summed over the shards.
-    fn sum(&self, route: usize, counter: impl Fn(&RouteMetrics) -> &AtomicU64) -> u64 {
-        self.shards
-            .iter()
-            .map(|s| counter(&s.routes[route]).load(Ordering::Relaxed))
-            .sum()
-    }
-
-    fn bytes_sent(&self) -> u64 {
-        self.shards
-            .iter()
-            .map(|s| s.bytes_sent.load(Ordering::Relaxed))
-            .sum()
+    /// Adds the request metrics to `registry` (the families are shared, not copied).
+    fn register(&self, registry: &mut Registry) {
+        registry.register(
+            "isovox_requests",
+            "HTTP requests by route and status",
+            self.requests.clone(),
+        );
+        registry.register(
+            "isovox_request_seconds",
+            "Request latency by route",
+            self.latency.clone(),
+        );
     }
 }
 
@@ -246,61 +251,20 @@ where
     }
 }
 
-/// `GET /metrics` in the Prometheus text format.
+/// `GET /metrics` in the Prometheus text format (0.0.4).
 pub async fn metrics(State(state): State<AppState>) -> Response {
+    let mut registry = Registry::default();
+    state.metrics.register(&mut registry);
+    gauges(&state, &mut registry);
     let mut out = String::new();
-    requests(&state.metrics, &mut out);
-    gauges(&state, &mut out);
-    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], out).into_response()
+    // Writing into a String cannot fail.
+    let _ = prometheus_text::encode(&mut out, &registry);
+    ([(header::CONTENT_TYPE, prometheus_text::CONTENT_TYPE)], out).into_response()
 }
 
-/// Requests by route and status, and the latency histogram by route.
-fn requests(m: &Metrics, out: &mut String) {
-    let _ = writeln!(out, "# HELP isovox_requests_total HTTP requests by route and status.\n# TYPE isovox_requests_total counter");
-    for (i, route) in m.names.iter().enumerate() {
-        for status in 0..STATUSES {
-            let n = m.sum(i, |r| &r.by_status[status]);
-            if n > 0 {
-                let _ = writeln!(
-                    out,
-                    "isovox_requests_total{{route=\"{route}\",status=\"{status}\"}} {n}"
-                );
-            }
-        }
-    }
-    let _ = writeln!(out, "# HELP isovox_request_seconds Request latency by route.\n# TYPE isovox_request_seconds histogram");
-    for (i, route) in m.names.iter().enumerate() {
-        let count = m.sum(i, |r| &r.count);
-        if count == 0 {
-            continue;
-        }
-        let mut cumulative = 0;
-        for (b, bound) in BUCKETS.iter().enumerate() {
-            cumulative += m.sum(i, |r| &r.buckets[b]);
-            let _ = writeln!(
-                out,
-                "isovox_request_seconds_bucket{{route=\"{route}\",le=\"{bound}\"}} {cumulative}"
-            );
-        }
-        let _ = writeln!(
-            out,
-            "isovox_request_seconds_bucket{{route=\"{route}\",le=\"+Inf\"}} {count}"
-        );
-        let _ = writeln!(
-            out,
-            "isovox_request_seconds_sum{{route=\"{route}\"}} {}",
-            m.sum(i, |r| &r.sum_micros) as f64 / 1e6
-        );
-        let _ = writeln!(
-            out,
-            "isovox_request_seconds_count{{route=\"{route}\"}} {count}"
-        );
-    }
-}
-
-/// The counters and gauges of the server's parts: bytes sent, caches, queues, subscribers.
-fn gauges(state: &AppState, out: &mut String) {
-    let m = &state.metrics;
+/// The counters and gauges of the server's parts, read at the scrape: bytes sent, caches,
+/// queues, subscribers. Counter names get their `_total` from the encoder.
+fn gauges(state: &AppState, registry: &mut Registry) {
     let (mut edit_queue, mut subscribers) = (0, 0);
     let (mut fetches, mut fetched, mut mirrored) = (0, 0, 0);
     for (_, v) in state.catalog.iter() {
@@ -314,138 +278,117 @@ fn gauges(state: &AppState, out: &mut String) {
         }
     }
     let open = &state.connections;
-    let gauges: [(&str, &str, &str, u64); 21] = [
-        (
-            "isovox_response_bytes_total",
-            "counter",
-            "Response body bytes sent (known lengths).",
-            m.bytes_sent(),
-        ),
-        (
-            "isovox_mesh_cache_hits_total",
-            "counter",
-            "Mesh tiles served from the cache.",
-            state.meshes.hits(),
-        ),
-        (
-            "isovox_mesh_cache_misses_total",
-            "counter",
-            "Mesh tiles meshed on request.",
-            state.meshes.misses(),
-        ),
+    let mut counter = |name: &str, help: &str, value: u64| {
+        registry.register(name, help, ConstCounter::new(value));
+    };
+    counter(
+        "isovox_response_bytes",
+        "Response body bytes sent (known lengths)",
+        state.metrics.bytes_sent.get(),
+    );
+    counter(
+        "isovox_mesh_cache_hits",
+        "Mesh tiles served from the cache",
+        state.meshes.hits(),
+    );
+    counter(
+        "isovox_mesh_cache_misses",
+        "Mesh tiles meshed on request",
+        state.meshes.misses(),
+    );
+    counter(
+        "isovox_connections_refused",
+        "Connections closed on arrival: the limit was reached and none was idle",
+        open.refused(),
+    );
+    counter(
+        "isovox_connections_evicted",
+        "Idle connections closed to make room for new ones",
+        open.evicted(),
+    );
+    counter(
+        "isovox_connections_timed_out",
+        "Connections closed by the header or the idle timeout",
+        open.timed_out(),
+    );
+    counter(
+        "isovox_brick_cache_hits",
+        "Decoded bricks and lz4 blocks (for bodies and meshing) found in the cache",
+        state.bricks.hits(),
+    );
+    counter(
+        "isovox_brick_cache_misses",
+        "Bricks decoded or transcoded on request (for bodies and meshing)",
+        state.bricks.misses(),
+    );
+    counter(
+        "isovox_store_fetches",
+        "Range requests to the object store for pages of its volumes",
+        fetches,
+    );
+    counter(
+        "isovox_store_fetched_bytes",
+        "Bytes those range requests returned",
+        fetched,
+    );
+    let gauges: [(&str, &str, u64); 11] = [
         (
             "isovox_mesh_cache_bytes",
-            "gauge",
-            "Bytes held by the mesh cache.",
+            "Bytes held by the mesh cache",
             state.meshes.bytes() as u64,
         ),
         (
             "isovox_cpu_queue_depth",
-            "gauge",
-            "CPU jobs (meshing, batches, levels) running or queued.",
+            "CPU jobs (meshing, batches, levels) running or queued",
             state.cpu.depth() as u64,
         ),
         (
             "isovox_store_read_queue_depth",
-            "gauge",
-            "Reads of volumes kept in an object store running or queued.",
+            "Reads of volumes kept in an object store running or queued",
             state.store_reads.depth() as u64,
         ),
         (
             "isovox_response_memory_bytes",
-            "gauge",
-            "Bytes of response bodies built by CPU jobs and not yet sent.",
+            "Bytes of response bodies built by CPU jobs and not yet sent",
             state.cpu.memory.held() as u64,
         ),
         (
             "isovox_connections_max",
-            "gauge",
-            "Connections that may be open at once.",
+            "Connections that may be open at once",
             open.limits().max_connections as u64,
         ),
         (
             "isovox_connections_open",
-            "gauge",
-            "Connections open (change feeds included).",
+            "Connections open (change feeds included)",
             open.open() as u64,
         ),
         (
-            "isovox_connections_refused_total",
-            "counter",
-            "Connections closed on arrival: the limit was reached and none was idle.",
-            open.refused(),
-        ),
-        (
-            "isovox_connections_evicted_total",
-            "counter",
-            "Idle connections closed to make room for new ones.",
-            open.evicted(),
-        ),
-        (
-            "isovox_connections_timed_out_total",
-            "counter",
-            "Connections closed by the header or the idle timeout.",
-            open.timed_out(),
-        ),
-        (
-            "isovox_brick_cache_hits_total",
-            "counter",
-            "Decoded bricks and lz4 blocks (for bodies and meshing) found in the cache.",
-            state.bricks.hits(),
-        ),
-        (
-            "isovox_brick_cache_misses_total",
-            "counter",
-            "Bricks decoded or transcoded on request (for bodies and meshing).",
-            state.bricks.misses(),
-        ),
-        (
             "isovox_brick_cache_bytes",
-            "gauge",
-            "Bytes held by the cache of decoded bricks.",
+            "Bytes held by the cache of decoded bricks",
             state.bricks.bytes() as u64,
         ),
         (
             "isovox_edit_queue_depth",
-            "gauge",
-            "Edits waiting for a volume's writer.",
+            "Edits waiting for a volume's writer",
             edit_queue,
         ),
         (
             "isovox_feed_subscribers",
-            "gauge",
-            "Change-feed subscribers connected.",
+            "Change-feed subscribers connected",
             subscribers,
         ),
         (
-            "isovox_store_fetches_total",
-            "counter",
-            "Range requests to the object store for pages of its volumes.",
-            fetches,
-        ),
-        (
-            "isovox_store_fetched_bytes_total",
-            "counter",
-            "Bytes those range requests returned.",
-            fetched,
-        ),
-        (
             "isovox_store_mirror_bytes",
-            "gauge",
-            "Bytes of fetched pages held in the local mirrors of the store's volumes.",
+            "Bytes of fetched pages held in the local mirrors of the store's volumes",
             mirrored,
         ),
         (
             "isovox_volumes",
-            "gauge",
-            "Volumes served.",
+            "Volumes served",
             state.catalog.len() as u64,
         ),
     ];
-    for (name, kind, help, value) in gauges {
-        let _ = writeln!(
-            out,
-            "# HELP {name} {help}\n# TYPE {name} {kind}\n{name} {value}"
-        );
+    for (name, help, value) in gauges {
+        registry.register(name, help, ConstGauge::new(value));
     }
 }

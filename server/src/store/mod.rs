@@ -17,7 +17,8 @@
 //! - [`inspect`]: whole-file statistics (bricks by codec, unique bricks, garbage bytes).
 //! - [`decoded`]: decoded bricks by content hash, shared by every reader of a process.
 //! - [`lru`]: a content-keyed LRU bounded by bytes (decoded bricks, mesh tiles).
-//! - [`region`]: the committed region readers see (a mapping; for a mirror, what fills it).
+//! - [`region`]: the committed region readers see, [`region::MappedRegion`] (a mapping; for a
+//!   mirror, what fills it).
 //! - [`remote`]: volumes kept in an object store (S3): objects, the head, replicas' mirrors.
 
 pub mod build;

@@ -151,7 +151,7 @@ pub fn rawvox_header(dims: [u32; 3], voxel_type: VoxelType) -> [u8; RAWVOX_HEADE
 
 /// A box of voxels at one level: `min` inclusive, `max` exclusive.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Region {
+pub struct LevelBox {
     /// The first voxel (inclusive).
     pub min: [u32; 3],
     /// The end (exclusive).
@@ -166,7 +166,7 @@ pub struct Region {
 pub fn export_raw(
     snap: &Snapshot,
     level: u8,
-    region: Region,
+    region: LevelBox,
     out: &mut dyn Write,
     progress: &dyn Progress,
 ) -> Result<(), StoreError> {

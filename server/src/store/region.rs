@@ -1,12 +1,15 @@
 //! The committed region of a VOD 2 file as its readers see it: a memory mapping, and for a
 //! volume kept in an object store, what fills the mapping's holes before they are read.
 //!
-//! A local file is whole: [`Region::ensure`] is one predictable branch and the brick path reads
-//! the mapping as it always did. A replica of a volume in an object store maps a sparse local
-//! file instead (the bounded cache, [`crate::store::remote`]); every read first asks its
+//! A local file is whole: [`MappedRegion::ensure`] is one predictable branch and the brick path
+//! reads the mapping as it always did. A replica of a volume in an object store maps a sparse
+//! local file instead (the bounded cache, [`crate::store::remote`]); every read first asks its
 //! [`Fill`] to bring the bytes it is about to touch, so a range that was never fetched is never
 //! read. Everything read is checksummed anyway (records, index chunks, brick headers and
 //! contents), so a range read without its fill would be an error, never wrong voxels.
+//!
+//! (Not to be confused with a box of voxels: [`crate::store::raw::LevelBox`] for exports,
+//! [`crate::geometry::Box3`] in world voxels, `isovox_proto::icvg::Region` for an edit's bounds.)
 
 use super::mapping::Mapping;
 use super::StoreError;
@@ -25,20 +28,20 @@ pub trait Fill: Send + Sync + Debug {
 
 /// A mapped committed region and, for a sparse mirror, its filler.
 #[derive(Debug)]
-pub struct Region {
+pub struct MappedRegion {
     map: Mapping,
     fill: Option<Arc<dyn Fill>>,
 }
 
-impl Region {
+impl MappedRegion {
     /// A whole local file.
-    pub(crate) fn whole(map: Mapping) -> Region {
-        Region { map, fill: None }
+    pub(crate) fn whole(map: Mapping) -> MappedRegion {
+        MappedRegion { map, fill: None }
     }
 
     /// A sparse mirror whose bytes `fill` brings on first use.
-    pub(crate) fn filled(map: Mapping, fill: Arc<dyn Fill>) -> Region {
-        Region {
+    pub(crate) fn filled(map: Mapping, fill: Arc<dyn Fill>) -> MappedRegion {
+        MappedRegion {
             map,
             fill: Some(fill),
         }
@@ -63,7 +66,7 @@ impl Region {
         }
     }
 
-    /// The mapped bytes: read only ranges made readable by [`Region::ensure`] first.
+    /// The mapped bytes: read only ranges made readable by [`MappedRegion::ensure`] first.
     #[inline]
     pub(crate) fn bytes(&self) -> &[u8] {
         self.map.bytes()

@@ -11,7 +11,7 @@ use crate::mesh::tile::{
 };
 use crate::store::codec::constant_hash;
 use crate::store::decoded::{decode, DecodedBricks};
-use crate::store::raw::{export_raw, Region};
+use crate::store::raw::{export_raw, LevelBox};
 use crate::store::{Snapshot, StoredBrick};
 use isovox_proto::api::{LevelBrick, LevelGrid};
 use isovox_proto::batch::MAX_BATCH;
@@ -346,7 +346,7 @@ impl LevelRead {
             export_raw(
                 snap,
                 level,
-                Region { min, max },
+                LevelBox { min, max },
                 &mut out,
                 &crate::progress::Silent,
             )?;

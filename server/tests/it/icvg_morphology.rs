@@ -226,7 +226,7 @@ fn morph_edit_matches_naive(dims: [usize; 3], r: i64, dilate: bool, value: impl 
     isovox_server::store::raw::export_raw(
         &after,
         0,
-        isovox_server::store::raw::Region {
+        isovox_server::store::raw::LevelBox {
             min: [0; 3],
             max: d32,
         },

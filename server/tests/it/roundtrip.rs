@@ -13,7 +13,7 @@ use isovox_proto::{VolumeLayout, VoxelType};
 use isovox_server::progress::Silent;
 use isovox_server::store::codec::Compression;
 use isovox_server::store::inspect::inspect;
-use isovox_server::store::raw::{export_raw, RawInput, Region};
+use isovox_server::store::raw::{export_raw, LevelBox, RawInput};
 use isovox_server::store::{build_vod2, BuildOptions, DenseGrid, Snapshot, Vod2};
 use std::path::Path;
 
@@ -45,7 +45,7 @@ fn build_from_raw_file(
 
 fn export(snap: &Snapshot, level: u8, min: [u32; 3], max: [u32; 3]) -> Vec<u8> {
     let mut out = Vec::new();
-    export_raw(snap, level, Region { min, max }, &mut out, &Silent).unwrap();
+    export_raw(snap, level, LevelBox { min, max }, &mut out, &Silent).unwrap();
     out
 }
 
@@ -284,7 +284,7 @@ fn export_rejects_empty_and_out_of_range_regions() {
     ];
     for (level, min, max) in bad {
         let mut out = Vec::new();
-        let r = export_raw(&snap, level, Region { min, max }, &mut out, &Silent);
+        let r = export_raw(&snap, level, LevelBox { min, max }, &mut out, &Silent);
         let e = r.expect_err("export of an invalid region must fail");
         assert!(!e.to_string().is_empty());
     }

@@ -12,7 +12,7 @@
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use isovox_server::progress::Silent;
 use isovox_server::store::codec::Compression;
-use isovox_server::store::raw::{export_raw, Region};
+use isovox_server::store::raw::{export_raw, LevelBox};
 use isovox_server::store::vod1::{write_vod1, Vod1, Vod1Source};
 use isovox_server::store::{build_vod2, BuildOptions, DenseGrid, Vod2};
 use std::collections::HashMap;
@@ -174,7 +174,7 @@ fn chain(voxel_type: VoxelType, compress: bool) {
     source.finish().unwrap();
     let second = Vod2::open(&second_path).unwrap();
     let mut exported = Vec::new();
-    let region = Region {
+    let region = LevelBox {
         min: [0; 3],
         max: dims,
     };

@@ -3,7 +3,7 @@
 
 use super::Snapshot;
 use crate::store::codec;
-use crate::store::region::Region;
+use crate::store::region::MappedRegion;
 use crate::store::StoreError;
 use isovox_proto::vod2::{
     content_hash, payload_check, BrickHeader, Fields, NodeEntry, BRICK_HEADER_LEN,
@@ -158,7 +158,7 @@ impl Snapshot {
 /// The brick record at `offset` of the mapped bytes `mapped`: its header checked, its payload
 /// and (in a checked record) the payload's checksum bounds-checked, nothing decoded.
 pub(super) fn stored_record<'m>(
-    map: &'m Region,
+    map: &'m MappedRegion,
     layout: &VolumeLayout,
     offset: u64,
 ) -> Result<StoredBrick<'m>, StoreError> {
@@ -196,7 +196,7 @@ pub(super) fn stored_record<'m>(
 /// without copying them.
 #[derive(Debug)]
 struct MappedRange {
-    map: Arc<Region>,
+    map: Arc<MappedRegion>,
     start: usize,
     end: usize,
 }

@@ -5,7 +5,7 @@
 use super::snapshot::commit_record;
 use super::Snapshot;
 use crate::store::codec;
-use crate::store::region::Region;
+use crate::store::region::MappedRegion;
 use crate::store::StoreError;
 use isovox_proto::vod2::{
     Checkpoint, CommitHeader, FileHeader, CHECKPOINT_FIXED_LEN, CHUNK_ENTRIES, CHUNK_REF_LEN,
@@ -17,7 +17,7 @@ use std::sync::{Arc, OnceLock};
 impl Snapshot {
     pub(super) fn load(
         header: Arc<FileHeader>,
-        map: Arc<Region>,
+        map: Arc<MappedRegion>,
         commit_at: u64,
     ) -> Result<Snapshot, StoreError> {
         // Walk back to the newest checkpoint, keeping each commit's changes; every record is
@@ -72,7 +72,11 @@ impl Snapshot {
     /// not a child of this version, loaded from the file as [`Vod2::open`] does).
     ///
     /// [`Vod2::open`]: super::Vod2::open
-    pub(super) fn extend(&self, map: Arc<Region>, commit_at: u64) -> Result<Snapshot, StoreError> {
+    pub(super) fn extend(
+        &self,
+        map: Arc<MappedRegion>,
+        commit_at: u64,
+    ) -> Result<Snapshot, StoreError> {
         let (h, record) = commit_record(&map, commit_at)?;
         let child =
             h.parent == self.commit_offset && self.version.checked_add(1) == Some(h.version);
@@ -190,7 +194,7 @@ pub(super) struct IndexChunks {
 
 impl IndexChunks {
     /// Checks the checkpoint's fixed fields; chunks are checked when first used.
-    fn open(map: &Region, base: u64, n_nodes: u64) -> Result<IndexChunks, StoreError> {
+    fn open(map: &MappedRegion, base: u64, n_nodes: u64) -> Result<IndexChunks, StoreError> {
         map.ensure(base, CHECKPOINT_FIXED_LEN as u64)?;
         let avail = map.bytes().get(base as usize..).ok_or_else(|| {
             StoreError::from(FormatError::invalid(
@@ -216,13 +220,13 @@ impl IndexChunks {
         )?)
     }
 
-    pub(super) fn entry(&self, map: &Region, node: u64) -> Result<u64, StoreError> {
+    pub(super) fn entry(&self, map: &MappedRegion, node: u64) -> Result<u64, StoreError> {
         let chunk = self.chunk(map, (node / CHUNK_ENTRIES) as usize)?;
         Ok(chunk[(node % CHUNK_ENTRIES) as usize])
     }
 
     /// Chunk `c`'s entries, decoded and checked on first use.
-    fn chunk(&self, map: &Region, c: usize) -> Result<&[u64], StoreError> {
+    fn chunk(&self, map: &MappedRegion, c: usize) -> Result<&[u64], StoreError> {
         if let Some(chunk) = self.chunks[c].get() {
             return Ok(chunk);
         }
@@ -235,7 +239,7 @@ impl IndexChunks {
             .ok_or_else(|| StoreError::Internal("index chunk vanished".into()))
     }
 
-    fn decode_chunk(&self, map: &Region, c: u64) -> Result<Box<[u64]>, StoreError> {
+    fn decode_chunk(&self, map: &MappedRegion, c: u64) -> Result<Box<[u64]>, StoreError> {
         map.ensure(self.base, CHECKPOINT_FIXED_LEN as u64)?;
         let cp = self.checkpoint(map.bytes())?;
         map.ensure(

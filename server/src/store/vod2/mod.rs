@@ -38,7 +38,7 @@ pub use slots::{SlotState, Vod2File};
 pub use snapshot::Snapshot;
 
 use super::mapping::Mapping;
-use super::region::{Fill, Region};
+use super::region::{Fill, MappedRegion};
 use super::StoreError;
 use isovox_proto::vod2::{CommitHeader, FileHeader, HeaderSlot};
 use isovox_proto::{FormatError, VolumeLayout};
@@ -53,7 +53,7 @@ use std::sync::Arc;
 pub struct Vod2 {
     path: PathBuf,
     header: Arc<FileHeader>,
-    map: Arc<Region>,
+    map: Arc<MappedRegion>,
     file_len: u64,
     head_slot: HeaderSlot,
     head: Arc<Snapshot>,
@@ -104,7 +104,7 @@ impl Vod2 {
                     .map_err(StoreError::io_path("cannot map", &self.path))?
             }
         };
-        let map = Arc::new(Region::whole(mapping));
+        let map = Arc::new(MappedRegion::whole(mapping));
         let head = Arc::new(self.head.extend(map.clone(), slot.commit)?);
         check_slot(&slot, &head)?;
         Ok(Vod2 {
@@ -131,7 +131,7 @@ impl Vod2 {
         map: Mapping,
         fill: Arc<dyn Fill>,
     ) -> Result<Vod2, StoreError> {
-        let map = Arc::new(Region::filled(map, fill));
+        let map = Arc::new(MappedRegion::filled(map, fill));
         let header = Arc::new(header);
         let head = Arc::new(Snapshot::load(header.clone(), map.clone(), slot.commit)?);
         check_slot(&slot, &head)?;
@@ -156,7 +156,7 @@ impl Vod2 {
         map: Mapping,
         fill: Arc<dyn Fill>,
     ) -> Result<Vod2, StoreError> {
-        let map = Arc::new(Region::filled(map, fill));
+        let map = Arc::new(MappedRegion::filled(map, fill));
         let head = Arc::new(self.head.extend(map.clone(), slot.commit)?);
         check_slot(&slot, &head)?;
         Ok(Vod2 {

@@ -5,7 +5,7 @@ use super::appended::with_appended_bytes;
 use super::bricks::stored_record;
 use super::{Snapshot, StoredBrick, Vod2};
 use crate::store::mapping::Mapping;
-use crate::store::region::Region;
+use crate::store::region::MappedRegion;
 use crate::store::StoreError;
 use isovox_proto::vod2::{FileHeader, HeaderSlot, DATA_PAGE, DATA_START, SLOT_LEN, SLOT_OFFSETS};
 use isovox_proto::FormatError;
@@ -34,7 +34,7 @@ pub enum SlotState {
 pub struct Vod2File {
     path: PathBuf,
     header: Arc<FileHeader>,
-    map: Arc<Region>,
+    map: Arc<MappedRegion>,
     file_len: u64,
     slots: [SlotState; 2],
     head_slot: Option<HeaderSlot>,
@@ -84,7 +84,7 @@ impl Vod2File {
             })
             .max_by_key(|s| s.seq);
         let committed = head_slot.map_or(file_len, |s| s.committed_len);
-        let map = Arc::new(Region::whole(
+        let map = Arc::new(MappedRegion::whole(
             Mapping::new(&file, committed).map_err(StoreError::io_path("cannot map", path))?,
         ));
         Ok(Vod2File {

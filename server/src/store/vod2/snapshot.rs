@@ -4,7 +4,7 @@
 use super::checkpoint::IndexChunks;
 use super::StoredBrick;
 use crate::store::codec;
-use crate::store::region::Region;
+use crate::store::region::MappedRegion;
 use crate::store::StoreError;
 use isovox_proto::vod2::{
     CommitHeader, FileHeader, NodeEntry, COMMIT_HAS_NOTE, MAX_NOTE_LEN, NOTE_FRAMING_LEN,
@@ -17,7 +17,7 @@ use std::sync::{Arc, OnceLock};
 #[derive(Debug)]
 pub struct Snapshot {
     pub(super) header: Arc<FileHeader>,
-    pub(super) map: Arc<Region>,
+    pub(super) map: Arc<MappedRegion>,
     /// The version.
     pub version: u64,
     /// When it was committed (Unix milliseconds).
@@ -259,7 +259,10 @@ impl Snapshot {
 ///
 /// # Errors
 /// `at` lies past the committed region, the record cannot be fetched, or it is malformed.
-pub(super) fn commit_record(map: &Region, at: u64) -> Result<(CommitHeader, &[u8]), StoreError> {
+pub(super) fn commit_record(
+    map: &MappedRegion,
+    at: u64,
+) -> Result<(CommitHeader, &[u8]), StoreError> {
     let bytes = map.bytes();
     let avail = bytes.get(at as usize..).ok_or_else(|| {
         StoreError::from(FormatError::invalid(
