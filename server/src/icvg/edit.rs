@@ -512,13 +512,32 @@ pub fn edit_voxels(
             return Ok((result != *old).then_some(result));
         }
     }
-    let mut values = to_u16(old, layout);
     let size = [0, 1, 2].map(|a| (eff.max[a] - eff.min[a]) as usize);
     let mut operand = Vec::new();
     if let EditKind::Binary(_, term) = &edit.kind {
         operand = vec![0u16; size[0] * size[1] * size[2]];
         term.eval(&eff, &mut operand)?;
     }
+    Ok(apply_operand(edit, old, layout, &eff, &whole, &operand))
+}
+
+/// The brick `old` (whose box is `whole`) with `edit` applied over `eff`, the term's values
+/// there being `operand` (x fastest; empty for a unary edit), or `None` when that changes
+/// nothing.
+fn apply_operand(
+    edit: &Edit,
+    old: &BrickVoxels,
+    layout: &VolumeLayout,
+    eff: &Box3,
+    whole: &Box3,
+    operand: &[u16],
+) -> Option<BrickVoxels> {
+    if matches!(edit.kind, EditKind::Paint { .. }) {
+        return None;
+    }
+    let t = layout.voxel_type();
+    let mut values = to_u16(old, layout);
+    let size = [0, 1, 2].map(|a| (eff.max[a] - eff.min[a]) as usize);
     let b = layout.brick() as usize;
     let o = [0, 1, 2].map(|a| (eff.min[a] - whole.min[a]) as usize);
     let mut operand_rows = operand.chunks_exact(size[0].max(1));
@@ -537,7 +556,92 @@ pub fn edit_voxels(
         }
     }
     let result = from_u16(&values, layout);
-    Ok((result != *old).then_some(result))
+    (result != *old).then_some(result)
+}
+
+/// The term of an edit that can change channels, and for `paint` its mode: `None` for an edit
+/// that changes no channel named `channel`.
+fn channel_term<'e>(
+    edit: &'e Edit,
+    channel: &str,
+) -> Option<(&'e CompiledTerm, Option<Overwrite>)> {
+    match &edit.kind {
+        EditKind::Binary(op, term) if op.attributes_from() == AttributesFrom::Denser => {
+            Some((term, None))
+        }
+        EditKind::Paint {
+            channel: name,
+            overwrite,
+            term,
+        } if name == channel => Some((term, Some(*overwrite))),
+        _ => None,
+    }
+}
+
+/// A level-0 brick of every stream `edit` can change, after it: density (`None` when
+/// unchanged) and each of `channels` (their old contents `values`, in the same order). The
+/// term is evaluated once for density and the first channel, not once per stream.
+///
+/// # Errors
+/// Evaluating the term fails or is stopped.
+#[allow(clippy::too_many_arguments)]
+pub fn edit_streams(
+    edit: &Edit,
+    density: &BrickVoxels,
+    channels: &[&ChannelInfo],
+    values: &[BrickVoxels],
+    layout: &VolumeLayout,
+    target: &Box3,
+    key: BrickKey,
+) -> Result<(Option<BrickVoxels>, Vec<Option<BrickVoxels>>), EvalError> {
+    let whole = Box3::of_brick(layout, key);
+    let eff = whole.intersect(target);
+    let unchanged = vec![None; channels.len()];
+    let term = match &edit.kind {
+        EditKind::Binary(_, term) | EditKind::Paint { term, .. } => term,
+        EditKind::Unary(_) => {
+            return Ok((edit_voxels(edit, density, layout, target, key)?, unchanged))
+        }
+    };
+    if eff.is_empty()
+        || term.bbox.is_some_and(|b| b.intersect(&eff).is_empty())
+        || channels.is_empty()
+    {
+        return Ok((edit_voxels(edit, density, layout, target, key)?, unchanged));
+    }
+    let size = [0, 1, 2].map(|a| (eff.max[a] - eff.min[a]) as usize);
+    let n = size[0] * size[1] * size[2];
+    let mut operand = Vec::new();
+    let mut out = Vec::with_capacity(channels.len());
+    for (channel, old) in channels.iter().zip(values) {
+        let Some((term, paint)) = channel_term(edit, &channel.name) else {
+            out.push(None);
+            continue;
+        };
+        let (mut term_density, mut term_values) = (vec![0u16; n], vec![KEEP; n]);
+        term.eval_channel(&eff, &channel.name, &mut term_density, &mut term_values)?;
+        out.push(take_values(
+            density,
+            old,
+            layout,
+            channel,
+            &eff,
+            &whole,
+            paint,
+            &term_density,
+            &term_values,
+        ));
+        if operand.is_empty() {
+            operand = term_density;
+        }
+    }
+    if operand.is_empty() {
+        return Ok((edit_voxels(edit, density, layout, target, key)?, out));
+    }
+    Ok((
+        apply_operand(edit, density, layout, &eff, &whole, &operand),
+        out,
+    ))
 }
 
 /// The content of the level-0 brick `key` of the channel `channel` after `edit` (whose target
@@ -561,16 +665,8 @@ pub fn channel_voxels(
 ) -> Result<Option<BrickVoxels>, EvalError> {
     let whole = Box3::of_brick(layout, key);
     let eff = whole.intersect(target);
-    let (term, paint) = match &edit.kind {
-        EditKind::Binary(op, term) if op.attributes_from() == AttributesFrom::Denser => {
-            (term, None)
-        }
-        EditKind::Paint {
-            channel: name,
-            overwrite,
-            term,
-        } if *name == channel.name => (term, Some(*overwrite)),
-        _ => return Ok(None),
+    let Some((term, paint)) = channel_term(edit, &channel.name) else {
+        return Ok(None);
     };
     if eff.is_empty() || term.bbox.is_some_and(|b| b.intersect(&eff).is_empty()) {
         return Ok(None);
@@ -579,6 +675,34 @@ pub fn channel_voxels(
     let n = size[0] * size[1] * size[2];
     let (mut term_density, mut term_values) = (vec![0u16; n], vec![KEEP; n]);
     term.eval_channel(&eff, &channel.name, &mut term_density, &mut term_values)?;
+    Ok(take_values(
+        density,
+        values,
+        layout,
+        channel,
+        &eff,
+        &whole,
+        paint,
+        &term_density,
+        &term_values,
+    ))
+}
+
+/// The channel brick `values` after the term's `term_density` and `term_values` over `eff`
+/// are taken where CVG's rule (or `paint`'s mode) says; `None` when nothing changes.
+#[allow(clippy::too_many_arguments)]
+fn take_values(
+    density: &BrickVoxels,
+    values: &BrickVoxels,
+    layout: &VolumeLayout,
+    channel: &ChannelInfo,
+    eff: &Box3,
+    whole: &Box3,
+    paint: Option<Overwrite>,
+    term_density: &[u16],
+    term_values: &[u64],
+) -> Option<BrickVoxels> {
+    let size = [0, 1, 2].map(|a| (eff.max[a] - eff.min[a]) as usize);
     let channel_layout = layout.with_voxel_type(channel.voxel_type);
     let old_density = to_u16(density, layout);
     let mut new = to_u16(values, &channel_layout);
@@ -608,7 +732,7 @@ pub fn channel_voxels(
         }
     }
     let result = from_u16(&new, &channel_layout);
-    Ok((result != *values).then_some(result))
+    (result != *values).then_some(result)
 }
 
 /// Applies `edit` to the version `snap` of the file `writer` appends to, and commits the result
@@ -697,7 +821,15 @@ fn stage_bricks(
     cancel: &CancelToken,
     start: Instant,
 ) -> Result<EditOutcome, EvalError> {
-    let results: Vec<(BrickKey, Option<BrickVoxels>)> = keys
+    // The channels the edit can change, read and written with density in one pass over the
+    // bricks: the term is evaluated once for all of them (CVG's rule compares the operands'
+    // densities, so a channel's values come from the voxels before the edit).
+    let touched = edit.channels_touched(snap.header());
+    let views: Vec<_> = touched
+        .iter()
+        .filter_map(|c| snap.channel(&c.name))
+        .collect();
+    let results: Vec<(BrickKey, Option<BrickVoxels>, Vec<Option<BrickVoxels>>)> = keys
         .par_iter()
         .with_min_len(BRICKS_PER_JOB)
         .map(|&key| {
@@ -705,35 +837,46 @@ fn stage_bricks(
             // On the rayon pool too, reading a brick from an object store gives up at the
             // edit's deadline (`bound_store_waits` says why).
             let _bounded = crate::store::remote::bound_store_waits(cancel.deadline());
-            edit_brick(edit, snap, target, key).map(|r| (key, r))
+            if views.is_empty() || views.len() != touched.len() {
+                return edit_brick(edit, snap, target, key).map(|r| (key, r, Vec::new()));
+            }
+            if Box3::of_brick(snap.layout(), key)
+                .intersect(target)
+                .is_empty()
+            {
+                return Ok((key, None, vec![None; views.len()]));
+            }
+            let density = snap.voxels(key)?;
+            let values = views
+                .iter()
+                .map(|v| v.voxels(key))
+                .collect::<Result<Vec<_>, _>>()?;
+            let (d, c) = edit_streams(
+                edit,
+                &density,
+                &touched,
+                &values,
+                snap.layout(),
+                target,
+                key,
+            )?;
+            Ok((key, d, c))
         })
-        .collect::<Result<_, _>>()?;
+        .collect::<Result<_, EvalError>>()?;
     let evaluated = results.len();
-    let level0 = results
-        .into_iter()
-        .filter_map(|(k, r)| r.map(|r| (k, r)))
-        .collect();
-    // Each channel the edit can change, from the voxels before it (CVG's rule compares the
-    // operands' densities).
-    let mut channels = Vec::new();
-    for channel in edit.channels_touched(snap.header()) {
-        let Some(view) = snap.channel(&channel.name) else {
-            continue;
-        };
-        let changed: Vec<(BrickKey, BrickVoxels)> = keys
-            .par_iter()
-            .with_min_len(BRICKS_PER_JOB)
-            .map(|&key| {
-                cancel.check()?;
-                let _bounded = crate::store::remote::bound_store_waits(cancel.deadline());
-                let (density, values) = (snap.voxels(key)?, view.voxels(key)?);
-                channel_voxels(edit, &density, &values, snap.layout(), channel, target, key)
-                    .map(|r| r.map(|r| (key, r)))
-            })
-            .filter_map(Result::transpose)
-            .collect::<Result<_, EvalError>>()?;
-        channels.push((view, changed));
+    let mut level0 = Vec::new();
+    let mut channels: Vec<Vec<(BrickKey, BrickVoxels)>> = vec![Vec::new(); views.len()];
+    for (key, density, streams) in results {
+        if let Some(d) = density {
+            level0.push((key, d));
+        }
+        for (i, c) in streams.into_iter().enumerate() {
+            if let Some(c) = c {
+                channels[i].push((key, c));
+            }
+        }
     }
+    let channels: Vec<_> = views.into_iter().zip(channels).collect();
     let mut transaction = Transaction::on(writer, snap);
     if edit.note.info.kind.is_some() {
         transaction.set_note(note_bytes(&edit.note));
