@@ -208,7 +208,8 @@ fn downsample_octant(
     }
 }
 
-/// The most frequent value of each 2x2x2 of `child` into the octant at `o` of `out`.
+/// The most frequent value of each 2x2x2 of `child` into the octant at `o` of `out`, row by
+/// row as the means are (four input rows per output row), typed per voxel size.
 fn mode_subcube(
     child: &[u8],
     out: &mut [u8],
@@ -217,28 +218,59 @@ fn mode_subcube(
     voxel_type: VoxelType,
     sparse: bool,
 ) {
+    match voxel_type {
+        VoxelType::U8 => mode_rows(
+            child,
+            out,
+            b,
+            o,
+            sparse,
+            1,
+            |r, x| r[x] as u64,
+            |d, x, v| d[x] = v as u8,
+        ),
+        VoxelType::U16 => mode_rows(
+            child,
+            out,
+            b,
+            o,
+            sparse,
+            2,
+            |r, x| u16::from_le_bytes([r[2 * x], r[2 * x + 1]]) as u64,
+            |d, x, v| d[2 * x..2 * x + 2].copy_from_slice(&(v as u16).to_le_bytes()),
+        ),
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn mode_rows(
+    child: &[u8],
+    out: &mut [u8],
+    b: usize,
+    o: [usize; 3],
+    sparse: bool,
+    vb: usize,
+    get: impl Fn(&[u8], usize) -> u64,
+    put: impl Fn(&mut [u8], usize, u64),
+) {
     let h = b / 2;
-    let vb = voxel_type.bytes();
-    let at = |x: usize, y: usize, z: usize| -> u64 {
-        let i = ((z * b + y) * b + x) * vb;
-        match voxel_type {
-            VoxelType::U8 => child[i] as u64,
-            VoxelType::U16 => u16::from_le_bytes([child[i], child[i + 1]]) as u64,
-        }
-    };
+    let row = |y: usize, z: usize| &child[(z * b + y) * b * vb..][..b * vb];
     for z in 0..h {
         for y in 0..h {
+            let (r00, r01) = (row(2 * y, 2 * z), row(2 * y + 1, 2 * z));
+            let (r10, r11) = (row(2 * y, 2 * z + 1), row(2 * y + 1, 2 * z + 1));
+            let dst = &mut out[((o[2] + z) * b + o[1] + y) * b * vb + o[0] * vb..][..h * vb];
             for x in 0..h {
-                let (x2, y2, z2) = (2 * x, 2 * y, 2 * z);
                 let group = [
-                    at(x2, y2, z2),
-                    at(x2 + 1, y2, z2),
-                    at(x2, y2 + 1, z2),
-                    at(x2 + 1, y2 + 1, z2),
-                    at(x2, y2, z2 + 1),
-                    at(x2 + 1, y2, z2 + 1),
-                    at(x2, y2 + 1, z2 + 1),
-                    at(x2 + 1, y2 + 1, z2 + 1),
+                    get(r00, 2 * x),
+                    get(r00, 2 * x + 1),
+                    get(r01, 2 * x),
+                    get(r01, 2 * x + 1),
+                    get(r10, 2 * x),
+                    get(r10, 2 * x + 1),
+                    get(r11, 2 * x),
+                    get(r11, 2 * x + 1),
                 ];
                 // Most 2x2x2 groups of a material or label brick hold one value: no counting.
                 let v = if group.iter().all(|&v| v == group[0]) {
@@ -246,11 +278,7 @@ fn mode_subcube(
                 } else {
                     isovox_proto::channel::mode_of_8(group, sparse)
                 };
-                let i = (((o[2] + z) * b + o[1] + y) * b + o[0] + x) * vb;
-                match voxel_type {
-                    VoxelType::U8 => out[i] = v as u8,
-                    VoxelType::U16 => out[i..i + 2].copy_from_slice(&(v as u16).to_le_bytes()),
-                }
+                put(dst, x, v);
             }
         }
     }

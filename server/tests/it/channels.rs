@@ -822,7 +822,11 @@ fn channels_over_http_and_a_kill_during_channel_edits_loses_nothing_acknowledged
 }
 
 /// POSTs `body` to `path` as alice; the answer's JSON (panics unless 2xx).
-fn post_ok(server: &crate::server_process::ServerProcess, path: &str, body: serde_json::Value) -> serde_json::Value {
+fn post_ok(
+    server: &crate::server_process::ServerProcess,
+    path: &str,
+    body: serde_json::Value,
+) -> serde_json::Value {
     let r = reqwest::blocking::Client::new()
         .post(server.url(path))
         .bearer_auth("secret-alice-0123456")
@@ -841,9 +845,8 @@ fn undo_takes_back_an_edit_s_materials_and_keeps_a_later_edit_s() {
     let dir = tempfile::tempdir().unwrap();
     ground_64(dir.path());
     let server = serve(dir.path());
-    let material = || {
-        get_bytes(&server.url("/v1/volumes/world/levels/0?channel=material&format=voxels")).1
-    };
+    let material =
+        || get_bytes(&server.url("/v1/volumes/world/levels/0?channel=material&format=voxels")).1;
     let at = |m: &[u8], p: [usize; 3]| m[(p[2] * 64 + p[1]) * 64 + p[0]];
     // Alice raises a marble block (6) on the ground, z in [20, 30); a second edit raises a
     // block of material 9 overlapping it on x in [20, 40). Then the first is undone.
@@ -862,7 +865,11 @@ fn undo_takes_back_an_edit_s_materials_and_keeps_a_later_edit_s() {
     // over, never denser than the first block's H where they overlap): 9 where the first was
     // not, marble where the first already stood (H against H: the volume keeps its own).
     assert_eq!(at(&both, [10, 10, 24]), 6);
-    assert_eq!(at(&both, [24, 10, 24]), 6, "the overlap stays the first block's");
+    assert_eq!(
+        at(&both, [24, 10, 24]),
+        6,
+        "the overlap stays the first block's"
+    );
     assert_eq!(at(&both, [35, 10, 24]), 9);
     let undo = post_ok(
         &server,
@@ -874,7 +881,11 @@ fn undo_takes_back_an_edit_s_materials_and_keeps_a_later_edit_s() {
     // Without the first block: rock (1) where it stood alone, the second block's 9 where they
     // overlapped (it now rises from air there), and 9 where it was alone.
     assert_eq!(at(&after, [10, 10, 24]), 1);
-    assert_eq!(at(&after, [24, 10, 24]), 9, "the second edit, applied again, owns the overlap");
+    assert_eq!(
+        at(&after, [24, 10, 24]),
+        9,
+        "the second edit, applied again, owns the overlap"
+    );
     assert_eq!(at(&after, [35, 10, 24]), 9);
     // Below the ground nothing ever changed.
     assert_eq!(at(&after, [10, 10, 5]), 1);
