@@ -155,6 +155,13 @@ pub struct EditResponse {
     /// the edit would have made).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub dry_run: bool,
+    /// For an edit: the level-0 voxels whose density it changed (or would, in a dry run).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub voxels_changed: Option<u64>,
+    /// The bricks of attribute channels whose content changed, by channel, per level; only
+    /// channels that changed.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub channels: std::collections::BTreeMap<String, ChangedBricks>,
 }
 
 /// Answers from servers before `committed` existed made a version each.

@@ -93,6 +93,8 @@ pub struct EditOutcome {
     /// changed.
     #[serde(skip_serializing_if = "BTreeMap::is_empty")]
     pub channels: BTreeMap<String, ChangedKeys>,
+    /// Level-0 density voxels whose value the edit changed.
+    pub voxels_changed: u64,
 }
 
 fn micros<S: serde::Serializer>(d: &Duration, s: S) -> Result<S::Ok, S::Error> {
@@ -455,20 +457,6 @@ fn from_u16(values: &[u16], layout: &VolumeLayout) -> BrickVoxels {
     BrickVoxels::from_bytes(bytes, layout.voxel_type())
 }
 
-/// The new content of one level-0 brick, or `None` when the edit leaves it as it is.
-fn edit_brick(
-    edit: &Edit,
-    snap: &Snapshot,
-    target: &Box3,
-    key: BrickKey,
-) -> Result<Option<BrickVoxels>, EvalError> {
-    let layout = snap.layout();
-    if Box3::of_brick(layout, key).intersect(target).is_empty() {
-        return Ok(None);
-    }
-    edit_voxels(edit, &snap.voxels(key)?, layout, target, key)
-}
-
 /// The content of the level-0 brick `key` after `edit` (whose target is `target`) is applied
 /// to its content `old`, or `None` when the edit leaves it as it is. What replaying an edit
 /// over other voxels than it first met (an undo under it) applies.
@@ -760,6 +748,7 @@ pub fn apply_edit(
             elapsed: start.elapsed(),
             committed: false,
             channels: BTreeMap::new(),
+            voxels_changed: 0,
         });
     }
     let mut outcome = stage_edit(writer, snap, edit, policy, cancel)?;
@@ -829,7 +818,9 @@ fn stage_bricks(
         .iter()
         .filter_map(|c| snap.channel(&c.name))
         .collect();
-    let results: Vec<(BrickKey, Option<BrickVoxels>, Vec<Option<BrickVoxels>>)> = keys
+    type BrickResult = (BrickKey, Option<BrickVoxels>, Vec<Option<BrickVoxels>>, u64);
+    let layout = snap.layout();
+    let results: Vec<BrickResult> = keys
         .par_iter()
         .with_min_len(BRICKS_PER_JOB)
         .map(|&key| {
@@ -837,36 +828,33 @@ fn stage_bricks(
             // On the rayon pool too, reading a brick from an object store gives up at the
             // edit's deadline (`bound_store_waits` says why).
             let _bounded = crate::store::remote::bound_store_waits(cancel.deadline());
-            if views.is_empty() || views.len() != touched.len() {
-                return edit_brick(edit, snap, target, key).map(|r| (key, r, Vec::new()));
-            }
-            if Box3::of_brick(snap.layout(), key)
-                .intersect(target)
-                .is_empty()
-            {
-                return Ok((key, None, vec![None; views.len()]));
+            if Box3::of_brick(layout, key).intersect(target).is_empty() {
+                return Ok((key, None, vec![None; views.len()], 0));
             }
             let density = snap.voxels(key)?;
-            let values = views
-                .iter()
-                .map(|v| v.voxels(key))
-                .collect::<Result<Vec<_>, _>>()?;
-            let (d, c) = edit_streams(
-                edit,
-                &density,
-                &touched,
-                &values,
-                snap.layout(),
-                target,
-                key,
-            )?;
-            Ok((key, d, c))
+            let (new, channels) = if views.is_empty() {
+                (
+                    edit_voxels(edit, &density, layout, target, key)?,
+                    Vec::new(),
+                )
+            } else {
+                let values = views
+                    .iter()
+                    .map(|v| v.voxels(key))
+                    .collect::<Result<Vec<_>, _>>()?;
+                edit_streams(edit, &density, &touched, &values, layout, target, key)?
+            };
+            let changed = new
+                .as_ref()
+                .map_or(0, |new| voxels_differing(&density, new, layout));
+            Ok((key, new, channels, changed))
         })
         .collect::<Result<_, EvalError>>()?;
     let evaluated = results.len();
+    let voxels_changed = results.iter().map(|r| r.3).sum();
     let mut level0 = Vec::new();
     let mut channels: Vec<Vec<(BrickKey, BrickVoxels)>> = vec![Vec::new(); views.len()];
-    for (key, density, streams) in results {
+    for (key, density, streams, _) in results {
         if let Some(d) = density {
             level0.push((key, d));
         }
@@ -896,7 +884,25 @@ fn stage_bricks(
         checkpoint: staged.checkpoint,
         elapsed: start.elapsed(),
         channels,
+        voxels_changed,
     })
+}
+
+/// How many voxels of a brick differ between `old` and `new`.
+fn voxels_differing(old: &BrickVoxels, new: &BrickVoxels, layout: &VolumeLayout) -> u64 {
+    match (old, new) {
+        (BrickVoxels::Constant(a), BrickVoxels::Constant(b)) => {
+            if a == b {
+                0
+            } else {
+                layout.brick_voxels() as u64
+            }
+        }
+        _ => {
+            let (a, b) = (to_u16(old, layout), to_u16(new, layout));
+            a.iter().zip(&b).filter(|(x, y)| x != y).count() as u64
+        }
+    }
 }
 
 /// Changed channel bricks by stream, keyed by the channels' names instead.

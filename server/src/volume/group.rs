@@ -521,6 +521,8 @@ impl LiveVolume {
             committed: false,
             replayed: None,
             dry_run: false,
+            voxels_changed: Some(0),
+            channels: Default::default(),
         })
     }
 
@@ -601,6 +603,8 @@ impl LiveVolume {
                     checkpoint: outcome.checkpoint,
                     evaluated: outcome.evaluated as u64,
                     replayed: None,
+                    voxels_changed: Some(outcome.voxels_changed),
+                    channels: outcome.channels,
                 }
             }
             Work::Undo(job) => self.stage_undo(writer, head, job, policy, cancel)?.into(),
@@ -625,6 +629,10 @@ pub(super) struct StagedWork {
     pub evaluated: u64,
     /// For undo and redo: other edits applied again.
     pub replayed: Option<u64>,
+    /// For an edit: the level-0 voxels whose density it changed.
+    pub voxels_changed: Option<u64>,
+    /// Changed bricks of attribute channels, by channel name, per level.
+    pub channels: std::collections::BTreeMap<String, ChangedKeys>,
 }
 
 impl From<StagedCommit> for StagedWork {
@@ -635,6 +643,10 @@ impl From<StagedCommit> for StagedWork {
             checkpoint: s.committed.checkpoint,
             evaluated: s.evaluated,
             replayed: s.replayed,
+            voxels_changed: None,
+            // An answer after commit takes the channels from its change event; undo, revert
+            // and tags have no dry run.
+            channels: Default::default(),
         }
     }
 }
@@ -653,6 +665,8 @@ impl StagedWork {
             committed: true,
             replayed: self.replayed,
             dry_run: false,
+            voxels_changed: self.voxels_changed,
+            channels: event.channels.clone(),
         }
     }
 
@@ -669,6 +683,8 @@ impl StagedWork {
             committed: false,
             replayed: self.replayed,
             dry_run: true,
+            voxels_changed: self.voxels_changed,
+            channels: self.channels.clone(),
         }
     }
 }

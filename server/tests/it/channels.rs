@@ -860,6 +860,12 @@ fn undo_takes_back_an_edit_s_materials_and_keeps_a_later_edit_s() {
         "/v1/volumes/world/edits",
         serde_json::json!({"op": "union", "term": {"cuboid": {"origin": [20, 4, 18], "size": [24, 24, 12], "material": 9}}}),
     );
+    assert!(
+        first["channels"]["material"][0]
+            .as_array()
+            .is_some_and(|l| !l.is_empty()),
+        "the answer lists the changed material bricks: {first}"
+    );
     let both = material();
     // Inside the first block only: marble; inside the second (denser than the air it took
     // over, never denser than the first block's H where they overlap): 9 where the first was
@@ -889,4 +895,29 @@ fn undo_takes_back_an_edit_s_materials_and_keeps_a_later_edit_s() {
     assert_eq!(at(&after, [35, 10, 24]), 9);
     // Below the ground nothing ever changed.
     assert_eq!(at(&after, [10, 10, 5]), 1);
+}
+
+#[test]
+fn a_dry_run_counts_the_voxels_the_edit_then_changes() {
+    isovox_server::client_tls::install_provider();
+    let dir = tempfile::tempdir().unwrap();
+    ground_64(dir.path());
+    let server = serve(dir.path());
+    let density = || get_bytes(&server.url("/v1/volumes/world/levels/0?format=voxels")).1;
+    let before = density();
+    let carve = serde_json::json!({"op": "difference", "term": {"ellipsoid": {"center": [30, 30, 19], "radii": [9, 7, 5]}}});
+    let dry = post_ok(
+        &server,
+        "/v1/volumes/world/edits?dry_run=true",
+        carve.clone(),
+    );
+    assert_eq!(dry["dry_run"], true);
+    assert_eq!(density(), before, "a dry run changed the volume");
+    let real = post_ok(&server, "/v1/volumes/world/edits", carve);
+    let after = density();
+    // Counted here, voxel by voxel, from what the server serves before and after.
+    let differing = before.iter().zip(&after).filter(|(a, b)| a != b).count() as u64;
+    assert!(differing > 100, "the carve changed only {differing} voxels");
+    assert_eq!(dry["voxels_changed"].as_u64(), Some(differing), "{dry}");
+    assert_eq!(real["voxels_changed"].as_u64(), Some(differing), "{real}");
 }
