@@ -12,6 +12,7 @@ use isovox_proto::api::{
     VolumeList,
 };
 use isovox_proto::batch::{decode_batch, BatchEncoding, BatchEntry, BatchRequest};
+use isovox_proto::history::{Presence, PresenceRequest};
 use isovox_proto::icvg::EditRequest;
 use isovox_proto::mesh::{decode_strip, decode_tile, Mesh, TileMesh, FACE_NAMES};
 use isovox_proto::BrickKey;
@@ -92,7 +93,7 @@ pub struct Brick {
 }
 
 /// One event of the change feed.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub enum FeedEvent {
     /// The first event: the version current when the subscription started.
     Hello {
@@ -110,6 +111,8 @@ pub enum FeedEvent {
         /// The version it is told about now.
         version: u64,
     },
+    /// Where another user is (or that they left: `gone`).
+    Presence(Presence),
 }
 
 /// Sees every HTTP exchange a [`Client`] makes (each attempt of a retried call): load tests
@@ -552,6 +555,31 @@ impl Client {
         .await
     }
 
+    /// `POST /v1/volumes/{name}/presence`: says where this client's user is; the change feed
+    /// tells the others (a few a second per user at most: 429 beyond).
+    ///
+    /// # Errors
+    /// See [`ClientError`].
+    pub async fn presence(
+        &self,
+        name: &str,
+        presence: &PresenceRequest,
+    ) -> Result<(), ClientError> {
+        let path = format!("/v1/volumes/{name}/presence");
+        let body = serde_json::to_vec(presence).map_err(|e| ClientError::Decode(e.to_string()))?;
+        self.send(
+            "presence",
+            || {
+                self.request(Method::POST, &path)
+                    .header("content-type", "application/json")
+                    .body(body.clone())
+            },
+            false,
+        )
+        .await?;
+        Ok(())
+    }
+
     /// `POST /v1/volumes/{name}/undo`: takes back the edit of `version` (or makes an undone
     /// one again, for an undo's version).
     ///
@@ -744,6 +772,9 @@ fn parse_event(event: &str, data: &str) -> Result<Option<FeedEvent>, ClientError
                 version: r.version,
             })
         }
+        "presence" => Some(FeedEvent::Presence(
+            serde_json::from_str(data).map_err(bad)?,
+        )),
         _ => None,
     })
 }

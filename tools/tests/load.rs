@@ -44,7 +44,14 @@ async fn start() -> Server {
     let state = AppState::with_config(
         catalog,
         ServerConfig {
-            tokens: Tokens::parse(&format!("t {TOKEN} write")).unwrap(),
+            tokens: Tokens::parse(&format!(
+                "t {TOKEN} write\n{}",
+                (0..3)
+                    .map(|i| format!("p{i} {} read", presence_token(i)))
+                    .collect::<Vec<_>>()
+                    .join("\n")
+            ))
+            .unwrap(),
             edit_rate: 1000.0,
             // Room for every request the streamers can have in flight (16 each, up to four
             // users here): these tests check what is counted, not shedding (the server's
@@ -59,6 +66,11 @@ async fn start() -> Server {
         _server: server,
         _dir: dir,
     }
+}
+
+/// The read token of presence user `p{i}`.
+fn presence_token(i: usize) -> String {
+    format!("presence-user-token-{i:04}")
 }
 
 /// The server's route template for the client's route name.
@@ -306,4 +318,29 @@ async fn a_request_budget_stops_the_run_early() {
     assert!(report.total.requests >= 50);
     assert_eq!(report.edits.acknowledged, 0);
     assert_eq!(report.notifications.subscribers, 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn viewers_say_where_they_are_and_subscribers_hear_it() {
+    let s = start().await;
+    let mut c = config(&s, 3, 1, Tiles::Bricks);
+    // Three users, two messages a second each: under the server's five per user.
+    c.presence_hz = 2.0;
+    c.presence_tokens = (0..3).map(presence_token).collect();
+    let report = run(c).await.unwrap();
+    let p = report.presence.clone().expect("a presence report");
+    let subscribers = 3; // min(viewers, 8) with an editor
+    assert!(p.accepted >= 3, "{p:?}");
+    assert_eq!((p.limited, p.failed), (0, 0), "{p:?}");
+    assert_eq!(p.sent, p.accepted, "{p:?}");
+    // Each subscriber hears each message once at most; they heard some.
+    assert!(
+        p.delivered > 0 && p.delivered <= p.accepted * subscribers,
+        "{p:?}"
+    );
+    assert!(
+        p.delay_p99_ms >= p.delay_p50_ms && p.delay_p50_ms > 0.0,
+        "{p:?}"
+    );
+    assert!(report.to_markdown().contains("### Presence"));
 }

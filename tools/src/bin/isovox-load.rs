@@ -114,6 +114,13 @@ struct Args {
     /// Share of the edits after which the editor undoes one of its own edits (0 to 1).
     #[arg(long, default_value_t = 0.0)]
     undo_fraction: f64,
+    /// Presence messages per second per viewer (0: none); they need a token.
+    #[arg(long, default_value_t = 0.0)]
+    presence_hz: f64,
+    /// A token file (`NAME TOKEN ...` per line, the server's format): viewers say where they
+    /// are as these users, in turn (default: all as the --token's user).
+    #[arg(long)]
+    presence_tokens: Option<std::path::PathBuf>,
     /// Change-feed subscribers timing edit notifications (default: min(viewers, 8)).
     #[arg(long)]
     subscribers: Option<usize>,
@@ -187,6 +194,23 @@ fn config(a: Args) -> Result<(LoadConfig, Option<PathBuf>), String> {
     c.edit_radius = (a.edit_radius[0], a.edit_radius[1]);
     c.carve_fraction = a.carve_fraction;
     c.undo_fraction = a.undo_fraction;
+    if !(0.0..=100.0).contains(&a.presence_hz) {
+        return Err(format!("--presence-hz {} is not in 0..=100", a.presence_hz));
+    }
+    c.presence_hz = a.presence_hz;
+    if let Some(file) = &a.presence_tokens {
+        let text = std::fs::read_to_string(file)
+            .map_err(|e| format!("cannot read {}: {e}", file.display()))?;
+        c.presence_tokens = text
+            .lines()
+            .map(str::trim)
+            .filter(|l| !l.is_empty() && !l.starts_with('#'))
+            .filter_map(|l| l.split_whitespace().nth(1).map(str::to_string))
+            .collect();
+        if c.presence_tokens.is_empty() {
+            return Err(format!("{} holds no token", file.display()));
+        }
+    }
     c.subscribers = a.subscribers;
     c.seed = a.seed;
     c.drain = seconds("drain", a.drain)?;

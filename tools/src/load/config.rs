@@ -94,6 +94,12 @@ pub struct LoadConfig {
     pub carve_fraction: f64,
     /// The share of edits after which an editor undoes one of its own edits.
     pub undo_fraction: f64,
+    /// Presence messages per second per viewer (0: none): the viewer's camera position,
+    /// timed to its arrival at the change-feed subscribers.
+    pub presence_hz: f64,
+    /// Tokens viewers say where they are with, one user each, taken in turn (the server allows
+    /// a few presence messages a second per user); the write token when empty.
+    pub presence_tokens: Vec<String>,
     /// Change-feed subscribers timing edit notifications; `min(viewers, 8)` (at least 1) when
     /// `None` and there are editors.
     pub subscribers: Option<usize>,
@@ -132,6 +138,8 @@ impl LoadConfig {
             edit_radius: (4, 12),
             carve_fraction: 0.5,
             undo_fraction: 0.0,
+            presence_hz: 0.0,
+            presence_tokens: Vec::new(),
             subscribers: None,
             seed: 1,
             drain: Duration::from_secs(10),

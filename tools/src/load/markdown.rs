@@ -15,6 +15,7 @@ impl LoadReport {
             self.write_edits(&mut s);
             self.write_notifications(&mut s);
         }
+        self.write_presence(&mut s);
         self.write_streamers(&mut s);
         s
     }
@@ -182,6 +183,28 @@ impl LoadReport {
     }
 
     /// The streamers' table, tiles by level, and the streamers' failures.
+    fn write_presence(&self, s: &mut String) {
+        let Some(p) = &self.presence else {
+            return;
+        };
+        let _ = writeln!(
+            s,
+            "### Presence\n\n| sent | accepted | 429 | failed | arrivals at subscribers | per accepted message | send to arrival p50 ms | p99 ms |\n|---:|---:|---:|---:|---:|---:|---:|---:|"
+        );
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} | {} | {} | {:.2} | {:.2} | {:.2} |\n",
+            p.sent,
+            p.accepted,
+            p.limited,
+            p.failed,
+            p.delivered,
+            p.fan_out,
+            p.delay_p50_ms,
+            p.delay_p99_ms
+        );
+    }
+
     fn write_streamers(&self, s: &mut String) {
         let t = &self.streamers;
         let _ = writeln!(

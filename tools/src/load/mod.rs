@@ -33,6 +33,7 @@ mod camera;
 mod config;
 mod editor;
 mod markdown;
+mod presence;
 mod report;
 mod stats;
 mod subscriber;
@@ -40,6 +41,7 @@ mod viewer;
 
 pub use camera::{CameraPath, RecordedPath, Rng};
 pub use config::{LoadConfig, LoadError, PathSpec, Tiles};
+pub use presence::PresenceReport;
 pub use report::{
     EditReport, ErrorCount, LoadReport, NotificationReport, RouteReport, StreamerReport,
 };
@@ -162,6 +164,7 @@ pub async fn run_until(
     ));
     let side = side_runtime.handle();
 
+    let presence_log = Arc::new(presence::PresenceLog::default());
     // Subscribers first, so that every acknowledged edit comes after their hello.
     let mut tasks = Tasks::default();
     let mut subscribers = Vec::new();
@@ -174,6 +177,7 @@ pub async fn run_until(
             config.drain,
             tx,
             until_rx.clone(),
+            presence_log.clone(),
         ));
         tasks.0.push(task.abort_handle());
         subscribers.push(task);
@@ -192,6 +196,20 @@ pub async fn run_until(
     let ramp = |i: usize| config.ramp_up.mul_f64(i as f64 / users as f64);
     let mut viewers = Vec::with_capacity(users);
     for i in 0..users {
+        // Viewers (not editors) say where they are, as the users of the presence tokens.
+        let presence = match (
+            config.presence_hz > 0.0 && i < config.viewers,
+            &config.token,
+        ) {
+            (true, Some(token)) => {
+                let token = match config.presence_tokens.len() {
+                    0 => token.clone(),
+                    n => config.presence_tokens[i % n].clone(),
+                };
+                Some((make_client()?.with_token(token), presence_log.clone(), i))
+            }
+            _ => None,
+        };
         let task = tokio::spawn(viewer(
             make_client()?,
             config.clone(),
@@ -200,6 +218,7 @@ pub async fn run_until(
             ramp(i),
             stop_rx.clone(),
             until_rx.clone(),
+            presence,
         ));
         tasks.0.push(task.abort_handle());
         viewers.push(task);
@@ -290,7 +309,7 @@ pub async fn run_until(
         .await
         .map_or(last_version, |i| i.version);
 
-    Ok(report(
+    let mut report = report(
         &config,
         &recorder,
         elapsed,
@@ -298,7 +317,11 @@ pub async fn run_until(
         &editor_results,
         &subscriber_results,
         &viewer_results,
-    ))
+    );
+    if config.presence_hz > 0.0 {
+        report.presence = Some(presence_log.report());
+    }
+    Ok(report)
 }
 
 #[cfg(test)]

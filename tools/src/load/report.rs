@@ -162,6 +162,9 @@ pub struct LoadReport {
     pub edits: EditReport,
     pub notifications: NotificationReport,
     pub streamers: StreamerReport,
+    /// Presence messages, when viewers sent them (`--presence-hz`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub presence: Option<super::presence::PresenceReport>,
 }
 
 /// Everything a run measured, section by section; the failures every section finds are listed
@@ -213,6 +216,7 @@ pub(super) fn report(
         edits,
         notifications,
         streamers,
+        presence: None,
     }
 }
 

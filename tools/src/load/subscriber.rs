@@ -24,6 +24,7 @@ pub(super) async fn subscriber(
     drain: Duration,
     ready: oneshot::Sender<Result<u64, ClientError>>,
     mut until: watch::Receiver<Option<u64>>,
+    presence: std::sync::Arc<super::presence::PresenceLog>,
 ) -> SubscriberResult {
     let mut result = SubscriberResult::default();
     let mut feed = match client.events(&volume, None).await {
@@ -76,6 +77,11 @@ pub(super) async fn subscriber(
                     last = last.max(c.version);
                 }
                 Ok(Some(FeedEvent::Hello { .. })) => {}
+                Ok(Some(FeedEvent::Presence(p))) => {
+                    if let Some(label) = &p.label {
+                        presence.arrived(label);
+                    }
+                }
                 Ok(Some(FeedEvent::Resync { since, version })) => {
                     result.resyncs += 1;
                     let mut from = since;

@@ -80,6 +80,7 @@ async fn draining<F: Future>(
 
 /// One user's streamer: starts it, flies the camera until `stop`, lets it finish what it has
 /// in flight, shuts it down.
+#[allow(clippy::too_many_arguments)]
 pub(super) async fn viewer(
     client: Client,
     config: Arc<LoadConfig>,
@@ -88,6 +89,7 @@ pub(super) async fn viewer(
     delay: Duration,
     mut stop: watch::Receiver<bool>,
     mut until: watch::Receiver<Option<u64>>,
+    presence: Option<(Client, Arc<super::presence::PresenceLog>, usize)>,
 ) -> ViewerResult {
     let mut result = ViewerResult::default();
     tokio::select! {
@@ -112,10 +114,30 @@ pub(super) async fn viewer(
     let mut tick = tokio::time::interval(Duration::from_secs_f64(1.0 / config.camera_hz.max(0.1)));
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     let mut open = true;
+    // Presence, when asked for: the camera's position every 1/presence_hz seconds.
+    let presence_period = Duration::from_secs_f64(1.0 / config.presence_hz.max(1e-3));
+    let mut say_where = tokio::time::interval(presence_period);
+    say_where.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut said = 0u64;
     while !*stop.borrow() {
         tokio::select! {
             changed = stop.changed() => if changed.is_err() { break },
             _ = tick.tick() => streamer.set_camera(path.at(start.elapsed().as_secs_f32())),
+            _ = say_where.tick(), if presence.is_some() => {
+                if let Some((client, log, user)) = &presence {
+                    said += 1;
+                    let label = format!("viewer {user} #{said}");
+                    let at = path.at(start.elapsed().as_secs_f32());
+                    let request = isovox_proto::history::PresenceRequest {
+                        position: at.map(f64::from),
+                        looking: None,
+                        label: Some(label.clone()),
+                    };
+                    log.sending(&label);
+                    let answer = client.presence(&config.volume, &request).await;
+                    log.answered(answer.map_err(|e| e.status().map(|s| s.as_u16())));
+                }
+            }
             event = rx.recv(), if open => match event {
                 Some(e) => result.record(e),
                 None => { open = false; result.closed_early = true; }

@@ -96,6 +96,8 @@ pub(in crate::streamer) async fn follow(
                 }
                 // Fell behind: subscribing again after `last` replays the gap from the file.
                 Ok(Some(FeedEvent::Resync { .. })) => break false,
+                // Where others are is not the streamer's business.
+                Ok(Some(FeedEvent::Presence(_))) => {}
                 Ok(None) => {
                     let msg = format!("change feed closed after version {last}; reconnecting");
                     if tx.send(FeedMsg::Error(msg)).await.is_err() {
