@@ -217,10 +217,22 @@ impl Client {
         build: impl Fn() -> RequestBuilder,
         idempotent: bool,
     ) -> Result<reqwest::Response, ClientError> {
+        self.send_attempts(route, build, idempotent, self.retry.attempts)
+            .await
+    }
+
+    /// [`Client::send`] with at most `attempts` attempts.
+    async fn send_attempts(
+        &self,
+        route: &'static str,
+        build: impl Fn() -> RequestBuilder,
+        idempotent: bool,
+        attempts: u32,
+    ) -> Result<reqwest::Response, ClientError> {
         let mut attempt = 0;
         loop {
             attempt += 1;
-            let last = attempt >= self.retry.attempts.max(1);
+            let last = attempt >= attempts.max(1);
             let start = std::time::Instant::now();
             let answer = build().send().await;
             if let Some(o) = &self.observer {
@@ -556,10 +568,11 @@ impl Client {
     }
 
     /// `POST /v1/volumes/{name}/presence`: says where this client's user is; the change feed
-    /// tells the others (a few a second per user at most: 429 beyond).
+    /// tells the others (a few a second per user at most: 429 beyond). Sent once, never
+    /// retried: a position that waited for a retry is old news, and the next one follows.
     ///
     /// # Errors
-    /// See [`ClientError`].
+    /// See [`ClientError`]; 429 when the user says where they are too often.
     pub async fn presence(
         &self,
         name: &str,
@@ -567,16 +580,12 @@ impl Client {
     ) -> Result<(), ClientError> {
         let path = format!("/v1/volumes/{name}/presence");
         let body = serde_json::to_vec(presence).map_err(|e| ClientError::Decode(e.to_string()))?;
-        self.send(
-            "presence",
-            || {
-                self.request(Method::POST, &path)
-                    .header("content-type", "application/json")
-                    .body(body.clone())
-            },
-            false,
-        )
-        .await?;
+        let build = || {
+            self.request(Method::POST, &path)
+                .header("content-type", "application/json")
+                .body(body.clone())
+        };
+        self.send_attempts("presence", build, false, 1).await?;
         Ok(())
     }
 

@@ -343,4 +343,14 @@ async fn viewers_say_where_they_are_and_subscribers_hear_it() {
         "{p:?}"
     );
     assert!(report.to_markdown().contains("### Presence"));
+    // One user for all three viewers at 10 a second each, three times the server's five a
+    // second (bursts of five): it refuses some (429), and the report counts them (presence is
+    // never retried, so a refusal is not hidden behind a later success).
+    let mut c = config(&s, 3, 1, Tiles::Bricks);
+    c.presence_hz = 10.0;
+    c.seed = 12;
+    let report = run(c).await.unwrap();
+    let p = report.presence.unwrap();
+    assert!(p.limited > 0, "{p:?}");
+    assert_eq!(p.sent, p.accepted + p.limited + p.failed, "{p:?}");
 }
