@@ -534,7 +534,8 @@ fn term_schemas(limits: &TermLimits) -> Value {
                 "channel": absent, "overwrite": absent}),
         )
     };
-    let paint = merge(
+    // paint takes a channel and a mode besides (docs/channels.md).
+    let mut paint = merge(
         edit(
             json!({"const": "paint"}),
             &["op", "term"],
@@ -544,20 +545,12 @@ fn term_schemas(limits: &TermLimits) -> Value {
         ),
         json!({"description": "paint: the channel takes the term's attribute values where the term is inside; density unchanged"}),
     );
-    let paint = {
-        let mut paint = paint;
-        if let Some(props) = paint.get_mut("properties").and_then(Value::as_object_mut) {
-            props.insert(
-                "channel".into(),
-                nullable(json!({"type": "string", "enum": ["material", "label"]})),
-            );
-            props.insert(
-                "overwrite".into(),
-                nullable(json!({"type": "string", "enum": ["all", "empty"]})),
-            );
-        }
-        paint
-    };
+    if let Some(props) = paint.get_mut("properties").and_then(Value::as_object_mut) {
+        let channel = json!({"type": "string", "enum": ["material", "label"]});
+        props.insert("channel".into(), nullable(channel));
+        let overwrite = json!({"type": "string", "enum": ["all", "empty"]});
+        props.insert("overwrite".into(), nullable(overwrite));
+    }
     json!({
         "Term": {"description": "an ICVG term (docs/icvg.md): one key naming a primitive, a stored volume, an uploaded mesh or an operator",
             "oneOf": term_kinds},
