@@ -182,10 +182,15 @@ export class Streamer {
    */
   private keys = new Map<string, string | null>();
   /**
-   * Tiles and strips (by name, as `keys`) that commits changed bricks of but no voxel they
-   * read: their meshes are those of this content key, computed before those commits.
+   * Content keys that do not come from the hashes, by name (as `keys`): for tiles and strips of
+   * the selection, what they were before the last commits that did not reach them (their meshes
+   * did not change), or, for those the last commit that did reach them, `NAME#E.V`: their
+   * meshes at version V (and at every later one until a commit reaches them again), asked for
+   * at once, without waiting for the changed bricks' new hashes.
    */
   private carried = new Map<string, string>();
+  /** Told apart in `NAME#E.V` keys: a reload or another iso value starts a new epoch E. */
+  private epoch = 0;
   private readonly cache = new Map<string, TileMesh | null>();
   private cacheBytes = 0;
   private readonly cacheLimit: number;
@@ -268,6 +273,7 @@ export class Streamer {
     this.isoValue = iso;
     this.keys.clear();
     this.carried.clear();
+    this.epoch++;
     this.plan();
   }
 
@@ -290,7 +296,7 @@ export class Streamer {
   /** Applies one committed version of the change feed (versions in order, each once). */
   applyCommit(ev: ChangeEvent): void {
     if (ev.version <= this.version) return;
-    this.carry(changeBoxes(ev, this.layout.brick));
+    this.carry(changeBoxes(ev, this.layout.brick), ev.version);
     const changed = new Set<string>();
     ev.changed.forEach((bricks, level) => {
       const known = this.hashes[level];
@@ -333,6 +339,7 @@ export class Streamer {
     this.hashes = this.layout.grids.map(() => new Map());
     this.keys.clear();
     this.carried.clear();
+    this.epoch++;
     this.commitLog.length = 0;
     this.version = info.version;
     this.plan();
@@ -448,17 +455,21 @@ export class Streamer {
   }
 
   /**
-   * Before a commit's hashes are forgotten: every tile of the selection and strip of its masks
-   * whose voxels `boxes` (the commit's changed level-0 voxels) do not reach keeps its content
-   * key, so it is neither refetched nor waited for; the rest (and everything when `boxes` is
-   * null: the commit did not say what it changed) get new keys once the new hashes are known.
-   * Tiles out of the selection lose what they carried (nobody checks them against the commit).
+   * Before the hashes of commit `version`'s bricks are forgotten: every tile of the selection
+   * and strip of its masks whose voxels `boxes` (the commit's changed level-0 voxels) do not
+   * reach keeps its content key, so it is neither refetched nor waited for; those it reaches
+   * get the key of their meshes at `version`, fetched at once (no grid chunk first: the mesh of
+   * a version needs no hash to be asked for). When `boxes` is null (the commit did not say
+   * what it changed), every tile reading a changed brick gets a new key once the new hashes
+   * are known. Tiles out of the selection lose what they carried (nobody checks them against
+   * the commit).
    */
-  private carry(boxes: VoxelBox[] | null): void {
+  private carry(boxes: VoxelBox[] | null, version: number): void {
     const next = new Map<string, string>();
     if (boxes !== null) {
       const keep = (name: string, key: string | null, reads: TileRead[]) => {
-        if (key !== null && !reachedBy(reads, boxes)) next.set(name, key);
+        if (reachedBy(reads, boxes)) next.set(name, `${name}#${this.epoch}.${version}`);
+        else if (key !== null) next.set(name, key);
       };
       for (const k of this.desired) {
         keep(keyText(k), this.contentKey(k), meshTileReads(this.layout, k));
@@ -470,6 +481,7 @@ export class Streamer {
       }
     }
     this.carried = next;
+    this.keys.clear();
   }
 
   /** The faces of tile `k`'s mask. */

@@ -518,8 +518,11 @@ describe("the streamer", () => {
     }
     expect(wantStrips.length).toBeGreaterThan(0);
     expect(restripped.sort()).toEqual(wantStrips.sort());
-    // Every request at the new version, and the view is that version's, whole.
+    // Every request at the new version, and the view is that version's, whole. No grid chunk
+    // was asked for first: the meshes of version 2 are asked for by version, and the tiles kept
+    // need no new hash.
     expect(server.calls.slice(meshes + strips).every((c) => c.version === 2)).toBe(true);
+    expect(server.gridCalls.filter((g) => g.version === 2)).toEqual([]);
     expect(s.stats()).toMatchObject({ version: 2, complete: true, stale: 0, ready: desired.length });
     // The tiles kept were not drawn again: only those refetched (or whose strips were) swapped.
     const redrawn = new Set([...refetched, ...restripped.map((id) => id.split("/").slice(0, 4).join("/"))]);
@@ -538,8 +541,36 @@ describe("the streamer", () => {
     while (await server.answerOne());
     const again = server.meshCalls.slice(meshes2).map((c) => keyText(c.key));
     expect(again).toContain("0/3/2/1");
+    // Tile (1, 2, 1) shows its mesh of version 2, which the second box does not reach.
     expect(again).not.toContain("0/1/2/1");
+    expect(server.meshCalls.slice(meshes2).every((c) => c.version === 3)).toBe(true);
     expect(s.stats()).toMatchObject({ version: 3, complete: true, stale: 0 });
+    s.stop();
+  });
+  it("asks again for a version's meshes after a reload, whose versions may name other content", async () => {
+    const server = new ScriptedServer();
+    const { s } = start(server, [20, 40, 20]);
+    await settle();
+    while (await server.answerOne());
+    const box = { min: [17, 20, 10] as Vec3, max: [20, 23, 13] as Vec3 };
+    const changed: Vec3[][] = [[[2, 2, 1]], [[1, 1, 0]], [[0, 0, 0]], [[0, 0, 0]]];
+    const commit = { version: 2, timestamp_ms: 0, kind: "edit" as const, changed, op: { op: "union", leaves: [], box } };
+    changed.forEach((bricks, level) => server.edit(level, bricks));
+    s.applyCommit(commit);
+    await settle();
+    while (await server.answerOne());
+    expect(server.meshCalls.filter((c) => c.version === 2).map((c) => keyText(c.key))).toContain("0/2/2/1");
+    // The server's file was replaced by one at version 1, and another edit made its version 2.
+    const before = server.meshCalls.length;
+    s.reload({ ...INFO, version: 1 });
+    await settle();
+    while (await server.answerOne());
+    changed.forEach((bricks, level) => server.edit(level, bricks));
+    s.applyCommit(commit);
+    await settle();
+    while (await server.answerOne());
+    expect(server.meshCalls.slice(before).filter((c) => c.version === 2).map((c) => keyText(c.key))).toContain("0/2/2/1");
+    expect(s.stats()).toMatchObject({ version: 2, complete: true, stale: 0 });
     s.stop();
   });
 });
