@@ -11,6 +11,7 @@ import { stitch, type TileMesh, type TriangleSet } from "./mesh";
 import type { TileSink } from "./streamer";
 import { colorAt, type Colormap } from "./colormap";
 import type { Axis } from "./slice";
+import type { Preview } from "./edit";
 
 const VERTEX = /* glsl */ `
 varying vec3 vNormal;
@@ -72,6 +73,9 @@ export class Viewport implements TileSink {
   private readonly scene = new THREE.Scene();
   private readonly tiles = new Map<string, TileView>();
   private plane: THREE.Group | null = null;
+  /** The page's own edits drawn until the server's tiles show them, by id. */
+  private readonly previews = new Map<number, THREE.Mesh>();
+  private previewId = 0;
   private readonly material: THREE.ShaderMaterial;
   private readonly orbit: OrbitControls;
   private readonly fly: FlyNavigation;
@@ -295,6 +299,46 @@ export class Viewport implements TileSink {
     this.requestRender();
   }
 
+  /**
+   * Draws the page's own edit at once (`edit.ts` `previewOf`), in the volume's world units
+   * (`scale`: the voxel scale), until `removePreview` with the id this returns.
+   */
+  addPreview(p: Preview, scale: readonly number[]): number {
+    const g = previewGeometry(p);
+    const material =
+      p.effect === "add"
+        ? this.material
+        : new THREE.MeshBasicMaterial({
+            color: p.effect === "carve" ? 0xd03020 : 0x808080,
+            transparent: true,
+            opacity: 0.45,
+            depthWrite: false,
+          });
+    const mesh = new THREE.Mesh(g, material);
+    mesh.position.set(...(p.center.map((c, a) => c * (scale[a] ?? 1)) as [number, number, number]));
+    mesh.scale.set(...([0, 1, 2].map((a) => scale[a] ?? 1) as [number, number, number]));
+    this.scene.add(mesh);
+    const id = ++this.previewId;
+    this.previews.set(id, mesh);
+    this.requestRender();
+    return id;
+  }
+
+  removePreview(id: number): void {
+    const mesh = this.previews.get(id);
+    if (!mesh) return;
+    this.previews.delete(id);
+    this.scene.remove(mesh);
+    mesh.geometry.dispose();
+    if (mesh.material !== this.material) (mesh.material as THREE.Material).dispose();
+    this.requestRender();
+  }
+
+  /** Edits drawn as previews now. */
+  get previewCount(): number {
+    return this.previews.size;
+  }
+
   /** The ray from the camera through canvas pixel (x, y) (CSS pixels). */
   ray(x: number, y: number): THREE.Raycaster {
     const c = this.renderer.domElement;
@@ -315,6 +359,37 @@ export class Viewport implements TileSink {
     const c = this.renderer.domElement;
     const v = p.clone().project(this.camera);
     return { x: ((v.x + 1) / 2) * c.clientWidth, y: ((1 - v.y) / 2) * c.clientHeight };
+  }
+}
+
+/** A preview's shape in voxel units, centred on the origin (`edit.ts` `previewOf`, icvg.md). */
+function previewGeometry(p: Preview): THREE.BufferGeometry {
+  const [hx, hy, hz] = p.half;
+  switch (p.primitive) {
+    case "ellipsoid":
+      return new THREE.SphereGeometry(1, 24, 16).scale(hx, hy, hz);
+    case "cuboid":
+      return new THREE.BoxGeometry(2 * hx, 2 * hy, 2 * hz);
+    case "cylinder":
+      return new THREE.CylinderGeometry(1, 1, 2 * hy, 24).scale(hx, 1, hz);
+    case "cone":
+      // Apex up.
+      return new THREE.ConeGeometry(1, 2 * hy, 24).scale(hx, 1, hz);
+    case "pyramid":
+      // Four sides (a cone of four segments, turned so they face the axes), apex up.
+      return new THREE.ConeGeometry(Math.SQRT2, 2 * hy, 4).rotateY(Math.PI / 4).scale(hx, 1, hz);
+    case "torus":
+      // Around +y: three's torus lies in the x-y plane around z.
+      return new THREE.TorusGeometry(hx - (p.minor ?? 1), p.minor ?? 1, 12, 32).rotateX(Math.PI / 2);
+    case "capsule": {
+      const r = p.minor ?? hx;
+      return new THREE.CapsuleGeometry(r, Math.max(0, 2 * (hy - r)), 8, 16);
+    }
+    case "prism": {
+      // The wedge below the plane through the top of its -x face and the bottom of its +x face.
+      const shape = new THREE.Shape([new THREE.Vector2(-hx, -hy), new THREE.Vector2(hx, -hy), new THREE.Vector2(-hx, hy)]);
+      return new THREE.ExtrudeGeometry(shape, { depth: 2 * hz, bevelEnabled: false }).translate(0, 0, -hz);
+    }
   }
 }
 
