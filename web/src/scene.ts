@@ -386,9 +386,23 @@ function previewGeometry(p: Preview): THREE.BufferGeometry {
       return new THREE.CapsuleGeometry(r, Math.max(0, 2 * (hy - r)), 8, 16);
     }
     case "prism": {
-      // The wedge below the plane through the top of its -x face and the bottom of its +x face.
-      const shape = new THREE.Shape([new THREE.Vector2(-hx, -hy), new THREE.Vector2(hx, -hy), new THREE.Vector2(-hx, hy)]);
-      return new THREE.ExtrudeGeometry(shape, { depth: 2 * hz, bevelEnabled: false }).translate(0, 0, -hz);
+      // The wedge below the plane through the top of its -x face and the bottom of its +x face:
+      // a right triangle in x-y, from z -hz to +hz (its two ends and three sides, outwards).
+      const [a, b, c] = [[-hx, -hy], [hx, -hy], [-hx, hy]] as const;
+      const v = (p: readonly [number, number], z: number) => [p[0], p[1], z];
+      const quad = (p: readonly [number, number], q: readonly [number, number]) => [
+        ...v(p, -hz), ...v(q, -hz), ...v(q, hz),
+        ...v(p, -hz), ...v(q, hz), ...v(p, hz),
+      ];
+      const positions = [
+        ...v(a, hz), ...v(b, hz), ...v(c, hz),
+        ...v(a, -hz), ...v(c, -hz), ...v(b, -hz),
+        ...quad(a, b), ...quad(b, c), ...quad(c, a),
+      ];
+      const g = new THREE.BufferGeometry();
+      g.setAttribute("position", new THREE.Float32BufferAttribute(positions, 3));
+      g.computeVertexNormals();
+      return g;
     }
   }
 }
