@@ -198,6 +198,9 @@ function afterChange(): void {
   updateOverlay();
 }
 
+// Frames wait for the last one's pause only while tiles are on their way (scene.ts).
+viewport.busy = () => (streamer?.inFlight ?? 0) > 0;
+
 viewport.onFrame = (tiles) => {
   frames++;
   const now = performance.now();

@@ -80,8 +80,17 @@ export class Viewport implements TileSink {
   private readonly orbit: OrbitControls;
   private readonly fly: FlyNavigation;
   private frameRequested = false;
+  /** The timer of a frame put off until `nextFrameAt`, if one is. */
+  private frameTimer: ReturnType<typeof setTimeout> | null = null;
+  /** A frame was asked for and when to draw it is decided at the end of the task. */
+  private deciding = false;
   /** When the next frame may be drawn (performance.now()), after the last one's pause. */
   private nextFrameAt = 0;
+  /**
+   * Whether responses are on their way (the streamer's requests in flight): only then does a
+   * frame wait for the last one's pause, which keeps the main thread free for them.
+   */
+  busy: () => boolean = () => true;
   private readonly frustum = new THREE.Frustum();
   private readonly projScreen = new THREE.Matrix4();
   navigation: Navigation = "orbit";
@@ -263,30 +272,46 @@ export class Viewport implements TileSink {
   /**
    * Draws a frame soon. A frame that takes long (software rendering: about 100 ms for the
    * default view, several hundred close to the ground) is followed by a pause of twice its
-   * length, so that drawing takes at most a third of the main thread while tiles stream in and
-   * their responses are not kept waiting; after a quiet moment (an edit landing in a still view)
-   * the frame is drawn at once.
+   * length while requests are in flight (`busy`), so that drawing takes at most a third of the
+   * main thread while tiles stream in and their responses are not kept waiting. With nothing in
+   * flight (the last tile of an edit arrived and its region swapped, or a quiet moment) the
+   * frame is drawn at once: no response is waiting for the main thread.
    */
   requestRender(): void {
-    if (this.frameRequested) return;
-    this.frameRequested = true;
-    const wait = this.nextFrameAt - performance.now();
-    const frame = () =>
-      requestAnimationFrame(() => {
-        this.frameRequested = false;
-        if (this.fly.enabled && this.fly.step()) this.requestRender();
-        const start = performance.now();
-        this.renderer.render(this.scene, this.camera);
-        this.onFrame(this.tiles.size);
-        // The frame's cost includes the browser's work after this callback (compositing, and
-        // with SwiftShader the rasterizing): it ends when the next task runs.
-        setTimeout(() => {
-          const end = performance.now();
-          this.nextFrameAt = end + 2 * (end - start);
-        }, 0);
-      });
-    if (wait > 1) setTimeout(frame, wait);
-    else frame();
+    // Drawn at the next animation frame already, or decided below.
+    if ((this.frameRequested && this.frameTimer === null) || this.deciding) return;
+    this.deciding = true;
+    // Decided once the caller's task is done: a streamer's plan shows tiles before it starts
+    // its next requests.
+    queueMicrotask(() => {
+      this.deciding = false;
+      const wait = this.busy() ? this.nextFrameAt - performance.now() : 0;
+      if (this.frameRequested) {
+        // A frame put off for the pause is drawn now when no response waits any more.
+        if (this.frameTimer === null || wait > 1) return;
+        clearTimeout(this.frameTimer);
+      }
+      this.frameRequested = true;
+      if (wait > 1) this.frameTimer = setTimeout(() => this.frame(), wait);
+      else this.frame();
+    });
+  }
+
+  private frame(): void {
+    this.frameTimer = null;
+    requestAnimationFrame(() => {
+      this.frameRequested = false;
+      if (this.fly.enabled && this.fly.step()) this.requestRender();
+      const start = performance.now();
+      this.renderer.render(this.scene, this.camera);
+      this.onFrame(this.tiles.size);
+      // The frame's cost includes the browser's work after this callback (compositing, and
+      // with SwiftShader the rasterizing): it ends when the next task runs.
+      setTimeout(() => {
+        const end = performance.now();
+        this.nextFrameAt = end + 2 * (end - start);
+      }, 0);
+    });
   }
 
   private resize(): void {

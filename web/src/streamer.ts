@@ -236,6 +236,11 @@ export class Streamer {
     this.hashes = this.layout.grids.map(() => new Map());
   }
 
+  /** Requests in flight now. */
+  get inFlight(): number {
+    return this.jobs.size;
+  }
+
   /** The most requests in flight at once; fewer while the server refuses some (503, 429). */
   get maxInFlight(): number {
     return this.limit.max;
