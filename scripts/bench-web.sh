@@ -6,13 +6,14 @@
 # under 3 s on loopback.
 #
 # Then (web/bench/live.mjs) two pages on one server, default view and a close one (its camera is
-# CLOSE in live.mjs): the close view's cold load (in view, complete, triangles, bytes), and 50
-# edits sent by page A, each timed to the first frame of page B that shows it (p50, p99), split
-# into server, feed, fetch, decode and draw. Goals: p50 under 150 ms, p99 under 400 ms, the close
-# view complete under 5 s.
+# CLOSE in live.mjs), over HTTP/1.1 and over HTTP/2 with TLS: the close view's cold load (in
+# view, complete, triangles, bytes), and 50 edits sent by page A, each timed to the first frame
+# of page B that shows it (p50, p99), split into server, feed, fetch, decode and draw. Goals: p50
+# under 150 ms, p99 under 400 ms, the close view complete under 5 s.
 #
 #   scripts/bench-web.sh [--runs N] [--width W --height H] [--screenshot docs/viewer.png]
 #   EDITS=50 LIVE=only|no scripts/bench-web.sh    (only the live part, or none of it)
+#   PROTOCOLS="h1 h2" scripts/bench-web.sh        (the live part's protocols: h1, h2 or both)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -31,5 +32,9 @@ if [ "${LIVE:-}" != only ]; then
   node web/bench/load.mjs --bin "$PWD/target/release/isovox" --cert "$tls/cert.pem" --key "$tls/key.pem" "$@"
 fi
 if [ "${LIVE:-}" != no ]; then
-  node web/bench/live.mjs --bin "$PWD/target/release/isovox" --edits "${EDITS:-50}"
+  for protocol in ${PROTOCOLS:-h1 h2}; do
+    tls_args=()
+    [ "$protocol" = h2 ] && tls_args=(--cert "$tls/cert.pem" --key "$tls/key.pem")
+    node web/bench/live.mjs --bin "$PWD/target/release/isovox" --edits "${EDITS:-50}" "${tls_args[@]}"
+  done
 fi

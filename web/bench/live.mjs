@@ -1,8 +1,12 @@
 // How fast others' edits reach the screen, and how fast a close view loads: headless Chromium
-// with two pages on the demo world, page A editing, page B watching. `scripts/bench-web.sh
-// --live` builds the server and runs this; by hand:
+// with two pages on the demo world, page A editing, page B watching, each in a browser of its own
+// (pages of one browser share its GPU process: with SwiftShader, A's frames would hold up B's).
+// `scripts/bench-web.sh` builds the server and runs this; by hand:
 //
 //   node bench/live.mjs --bin target/release/isovox [--edits 50] [--width 1280 --height 720]
+//       [--cert cert.pem --key key.pem]     (HTTPS with HTTP/2: chromium takes any certificate)
+//       [--settle MS]                       (between edits, after B drew the last one: 1000)
+//   node bench/live.mjs --base URL --token TOKEN [--tls]   (a server already running)
 //
 // For each view (the default one, and CLOSE below: near the ground at the default detail):
 //
@@ -12,13 +16,19 @@
 //   centre (in sight in both views), sent by page A with `fetch`, and the time from A sending it
 //   to the first animation frame of B in which B shows the version and no tile waits for a newer
 //   drawing (read in B's own animation-frame callbacks, so it is measured the same way for any
-//   version of the viewer). Where the page keeps commit traces (`isovox.traces()`), the time is
-//   split into: server (A's request answered), feed (B's change feed delivered the commit),
-//   fetch (the last response of B's requests for it), decode, and draw (until the first frame
-//   after B swapped the tiles in). Clocks: performance.timeOrigin + performance.now() of each
-//   page (the same machine clock).
+//   version of the viewer), or, where the page keeps commit traces (`isovox.traces()`), to the
+//   frame B drew the swap in, if later (a frame is paced after the one before it). The time is
+//   then split into: server (A's request answered), feed (B's change feed delivered the
+//   commit), fetch (the last response of B's requests for it), decode, and draw (until the
+//   first frame after B swapped the tiles in); raster is the time from that frame to B's next
+//   animation frame, which runs once the frame's pixels are composited (with SwiftShader, once
+//   they are rasterized: not counted in the total, which a GPU would make a few milliseconds).
+//   After each edit the bench waits `--settle` ms, so that B has finished drawing (and its pause
+//   after a frame, twice the frame's cost) and each edit is timed on its own. Clocks:
+//   performance.timeOrigin + performance.now() of each page (the same machine clock).
 
-import { mkdtempSync, rmSync } from "node:fs";
+import { mkdtempSync, readFileSync, rmSync } from "node:fs";
+import { get as httpsGet } from "node:https";
 import { tmpdir } from "node:os";
 import { join } from "node:path";
 import { parseArgs } from "node:util";
@@ -33,19 +43,43 @@ const { values: opt } = parseArgs({
     bin: { type: "string" },
     base: { type: "string" },
     token: { type: "string" },
+    cert: { type: "string" },
+    key: { type: "string" },
+    tls: { type: "boolean", default: false },
     edits: { type: "string", default: "50" },
+    settle: { type: "string", default: "1000" },
     width: { type: "string", default: "1280" },
     height: { type: "string", default: "720" },
     views: { type: "string", default: "default,close" },
     json: { type: "boolean", default: false },
   },
 });
-if (!opt.bin && !opt.base) {
-  console.error("usage: live.mjs --bin ISOVOX | --base URL --token TOKEN [--edits N] [--views default,close]");
+if ((!opt.bin && !opt.base) || Boolean(opt.cert) !== Boolean(opt.key)) {
+  console.error(
+    "usage: live.mjs --bin ISOVOX [--cert CERT.pem --key KEY.pem] | --base URL --token TOKEN [--tls] " +
+      "[--edits N] [--views default,close]",
+  );
   process.exit(2);
 }
 const viewport = { width: Number(opt.width), height: Number(opt.height) };
 const edits = Number(opt.edits);
+const settle = Number(opt.settle);
+/** HTTPS (with HTTP/2): a self-signed certificate, so chromium is told to take any. */
+const tls = opt.tls || Boolean(opt.cert);
+
+/** GET `url` as bytes; over HTTPS trusting the bench's own certificate (or any, with --tls). */
+async function download(url) {
+  if (!url.startsWith("https:")) return new Uint8Array(await (await fetch(url)).arrayBuffer());
+  const options = opt.cert ? { ca: readFileSync(opt.cert) } : { rejectUnauthorized: false };
+  return new Promise((resolve, reject) => {
+    httpsGet(url, options, (res) => {
+      const chunks = [];
+      res.on("data", (c) => chunks.push(c));
+      res.on("end", () => resolve(new Uint8Array(Buffer.concat(chunks))));
+      res.on("error", reject);
+    }).on("error", reject);
+  });
+}
 
 const epoch = (page) => page.evaluate(() => performance.timeOrigin + performance.now());
 
@@ -61,9 +95,9 @@ async function waitPage(page, what, predicate, arg, timeoutMs = 120_000) {
 
 /** The top surface height of the demo world at (x, z), from level 1's voxels. */
 async function surface(base) {
-  const info = await (await fetch(`${base}/v1/volumes/demo`)).json();
+  const info = JSON.parse(new TextDecoder().decode(await download(`${base}/v1/volumes/demo`)));
   const l = info.levels[1].dims;
-  const voxels = new Uint8Array(await (await fetch(`${base}/v1/volumes/demo/levels/1?format=voxels`)).arrayBuffer());
+  const voxels = await download(`${base}/v1/volumes/demo/levels/1?format=voxels`);
   return (x, z) => {
     const [i, k] = [Math.floor(x / 2), Math.floor(z / 2)];
     for (let j = l[1] - 1; j >= 0; j--) if (voxels[i + l[0] * (j + l[1] * k)] >= info.surface) return 2 * j + 1;
@@ -73,9 +107,13 @@ async function surface(base) {
 
 async function runView(base, token, name, top) {
   const query = name === "close" ? `?camera=${CLOSE.camera.join(",")}&target=${CLOSE.target.join(",")}` : "";
-  const browser = await launch();
+  // A browser each: pages of one browser share its GPU process, and with SwiftShader A's
+  // frames would hold up B's (two people editing together have a GPU each).
+  const browsers = [];
   try {
     const open = async () => {
+      const browser = await launch(tls ? ["--ignore-certificate-errors"] : []);
+      browsers.push(browser);
       const context = await browser.newContext({ viewport });
       const page = await context.newPage();
       const errors = [];
@@ -97,6 +135,7 @@ async function runView(base, token, name, top) {
       return s?.completeMs != null ? s : null;
     });
     const loaded = {
+      protocol: load.protocol,
       firstFrameMs: load.firstFrameMs,
       completeInViewMs: load.completeInViewMs ?? null,
       completeMs: load.completeMs,
@@ -111,14 +150,18 @@ async function runView(base, token, name, top) {
     await waitPage(a.page, "A's view to be complete", () => window.isovox?.stats()?.completeMs != null);
     await waitPage(b.page, "B's feed to be live", () => window.isovox?.stats()?.feed === "live");
 
-    // B: in each animation frame, the first time it shows a version with nothing waiting.
+    // B: in each animation frame, the first time it shows a version with nothing waiting, and
+    // when its animation frames ran (the one after a frame B drew runs once that frame's pixels
+    // are composited: with SwiftShader, once they are rasterized).
     await b.page.evaluate(() => {
       window.__shown = {};
+      window.__ticks = [];
       const tick = () => {
+        const now = performance.timeOrigin + performance.now();
         const s = window.isovox.stats();
-        if (s.stale === 0 && !(s.version in window.__shown)) {
-          window.__shown[s.version] = performance.timeOrigin + performance.now();
-        }
+        if (s.stale === 0 && !(s.version in window.__shown)) window.__shown[s.version] = now;
+        window.__ticks.push(now);
+        if (window.__ticks.length > 1000) window.__ticks.splice(0, 500);
         requestAnimationFrame(tick);
       };
       requestAnimationFrame(tick);
@@ -155,25 +198,38 @@ async function runView(base, token, name, top) {
         const at = Object.entries(window.__shown).find(([k]) => Number(k) >= v);
         return at ? at[1] : null;
       }, sent.version, 60_000);
-      const trace = await b.page.evaluate(
-        (v) => {
-          const t = window.isovox.traces?.().find((t) => t.version === v);
-          return t ? { ...t, origin: performance.timeOrigin } : null;
-        },
-        sent.version,
-      );
+      // Where the page keeps commit traces, the frame B drew the swap in (it may come after the
+      // animation frame above: a frame is paced after the one before); waited for, at most 3 s
+      // (an edit that changed nothing in view draws no frame).
+      const traceOf = (v) => {
+        const t = window.isovox.traces?.().find((t) => t.version === v);
+        return t ? { ...t, origin: performance.timeOrigin } : null;
+      };
+      let trace = await b.page.evaluate(traceOf, sent.version);
+      for (const start = Date.now(); trace && trace.frame === null && Date.now() - start < 3000; ) {
+        await b.page.waitForTimeout(10);
+        trace = await b.page.evaluate(traceOf, sent.version);
+      }
       const row = { total: seen - sent.t0, server: sent.t1 - sent.t0 };
       if (trace) {
         const e = (ms) => (ms === null ? null : trace.origin + ms);
+        if (trace.frame !== null) row.total = Math.max(seen, e(trace.frame)) - sent.t0;
         row.feed = e(trace.feed) - sent.t0;
         row.fetch = trace.fetched === null ? 0 : trace.fetched - trace.feed;
         row.decode = trace.decodeMs;
         row.requests = trace.requests;
         row.draw = trace.frame === null || trace.shown === null ? null : trace.frame - Math.max(trace.shown, trace.fetched ?? trace.feed);
+        if (trace.frame !== null) {
+          // Its pixels: the next animation frame of B after it.
+          const at = e(trace.frame);
+          const next = await waitPage(b.page, "B's next animation frame", (t) => window.__ticks.find((x) => x > t) ?? null, at, 10_000);
+          row.raster = next - at;
+        }
       }
       rows.push(row);
-      // Let both pages settle before the next edit.
-      await b.page.waitForTimeout(50);
+      // Let B finish drawing (and its pause after a frame: twice the frame's cost) before the
+      // next edit, so that each edit is timed on its own and not behind the last one's frame.
+      await b.page.waitForTimeout(settle);
     }
     const errors = [...a.errors, ...b.errors];
     if (errors.length) throw new Error(`page errors: ${errors.join("; ")}`);
@@ -181,7 +237,7 @@ async function runView(base, token, name, top) {
     await b.context.close();
     return { name, loaded, rows };
   } finally {
-    await browser.close();
+    for (const browser of browsers) await browser.close();
   }
 }
 
@@ -199,7 +255,9 @@ try {
   let token = opt.token;
   if (opt.bin) {
     dataDir = mkdtempSync(join(tmpdir(), "isovox-bench-live-"));
-    server = await startServer(opt.bin, dataDir);
+    server = await startServer(opt.bin, dataDir, {
+      extraArgs: opt.cert ? ["--tls-cert", opt.cert, "--tls-key", opt.key] : [],
+    });
     base = server.base;
     token = demoToken(dataDir);
   }
@@ -211,22 +269,26 @@ try {
     `demo world 512x256x512, viewport ${viewport.width}x${viewport.height}, close view camera ` +
       `${CLOSE.camera.join(",")} target ${CLOSE.target.join(",")}`,
   );
-  console.log("| view | first frame | in view complete | complete | tiles | triangles | requests | on the wire | decoded |");
-  console.log("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+  console.log("| view | protocol | first frame | in view complete | complete | tiles | triangles | requests | on the wire | decoded |");
+  console.log("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|");
   for (const { name, loaded: l } of results) {
     console.log(
-      `| ${name} | ${ms(l.firstFrameMs)} | ${ms(l.completeInViewMs)} | ${ms(l.completeMs)} | ${l.tiles} | ` +
+      `| ${name} | ${l.protocol} | ${ms(l.firstFrameMs)} | ${ms(l.completeInViewMs)} | ${ms(l.completeMs)} | ${l.tiles} | ` +
         `${l.triangles.toLocaleString("en")} | ${l.requests} | ${(l.wireBytes / 1e6).toFixed(1)} MB | ${(l.bytes ?? l.decodedBytes) / 1e6 > 0 ? ((l.decodedBytes) / 1e6).toFixed(1) : "-"} MB |`,
     );
   }
   console.log(`\nedit on page A to the first frame of page B showing it, ${edits} edits, p50 / p99:`);
-  console.log("| view | A to B's screen | server (A answered) | feed (B told) | fetch (after feed) | decode | draw (swap to frame) | requests per edit |");
-  console.log("|---|---:|---:|---:|---:|---:|---:|---:|");
+  console.log(
+    "| view | A to B's screen | server (A answered) | feed (B told) | fetch (after feed) | decode | draw (swap to frame) " +
+      "| requests per edit | raster (frame to pixels) |",
+  );
+  console.log("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
   for (const { name, rows } of results) {
     const col = (k) => `${ms(pct(rows.map((r) => r[k]), 50))} / ${ms(pct(rows.map((r) => r[k]), 99))}`;
     const req = pct(rows.map((r) => r.requests), 50);
     console.log(
-      `| ${name} | ${col("total")} | ${col("server")} | ${col("feed")} | ${col("fetch")} | ${col("decode")} | ${col("draw")} | ${req ?? "-"} |`,
+      `| ${name} | ${col("total")} | ${col("server")} | ${col("feed")} | ${col("fetch")} | ${col("decode")} | ${col("draw")} | ` +
+        `${req ?? "-"} | ${col("raster")} |`,
     );
   }
 } finally {

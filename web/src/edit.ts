@@ -110,3 +110,52 @@ export class TokenStore {
     sessionStorage.removeItem(TOKEN_KEY);
   }
 }
+
+/**
+ * What the page draws at once for its own edit, until the server's tiles show it: the
+ * primitive's surface, roughly (level-0 voxel coordinates). `effect` says how it is drawn:
+ * "add" (union, add) as the terrain would draw it, "carve" (the differences) as a translucent
+ * red shell where material goes away, "other" (operators whose result depends on both sides)
+ * as a translucent grey shell.
+ */
+export interface Preview {
+  primitive: Primitive;
+  effect: "add" | "carve" | "other";
+  /** The centre of the primitive's extension space. */
+  center: V3;
+  /** Half the extent of its surface along x, y and z. */
+  half: V3;
+  /** The torus's tube radius, the capsule's radius. */
+  minor?: number;
+}
+
+/** The preview of `editRequest(op, primitive, center, size, ...)`'s shape. */
+export function previewOf(op: string, primitive: Primitive, center: V3, size: number): Preview {
+  const c = center.map(Math.round) as V3;
+  const r = Math.max(2, Math.round(size));
+  const effect = op === "union" || op === "add" ? "add" : op.startsWith("difference") ? "carve" : "other";
+  const cube = (h: number): V3 => [h, h, h];
+  switch (primitive) {
+    case "ellipsoid":
+      return { primitive, effect, center: c, half: cube(r) };
+    // The surface of the cuboid and its cut forms lies on the S layer, one voxel in from the
+    // extension space's faces; the cylinder's and the cone's ends too.
+    case "cuboid":
+    case "prism":
+    case "pyramid":
+      return { primitive, effect, center: c, half: cube(r - 1) };
+    case "cylinder":
+    case "cone":
+      return { primitive, effect, center: c, half: [r, r - 1, r] };
+    case "torus": {
+      const minor = Math.max(1, Math.round(r / 3));
+      const major = Math.max(1, r - minor);
+      return { primitive, effect, center: c, half: [major + minor, minor, major + minor], minor };
+    }
+    case "capsule": {
+      const radius = Math.max(1, Math.round(r / 2));
+      const length = Math.max(1, 2 * (r - radius));
+      return { primitive, effect, center: c, half: [radius, length / 2 + radius, radius], minor: radius };
+    }
+  }
+}

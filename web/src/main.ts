@@ -4,7 +4,7 @@
 import "./style.css";
 import * as THREE from "three";
 import { Api, ApiError, editErrorWords, readErrorWords, type VolumeInfo } from "./api";
-import { editRequest, OPERATORS, PRIMITIVES, TokenStore, type Primitive } from "./edit";
+import { editRequest, OPERATORS, previewOf, PRIMITIVES, TokenStore, type Preview, type Primitive } from "./edit";
 import { Feed, type FeedState } from "./feed";
 import { radiiForScreenError } from "./lod";
 import { Viewport, type Navigation } from "./scene";
@@ -91,6 +91,7 @@ function inViewNow(): (min: [number, number, number], max: [number, number, numb
 async function openVolume(name: string, state: UrlState | null): Promise<void> {
   streamer?.stop();
   feed?.close();
+  for (const p of previews.splice(0)) viewport.removePreview(p.id);
   const v = await api.volume(name);
   info = v;
   const view = state?.camera && {
@@ -153,9 +154,29 @@ function changed(): void {
   });
 }
 
+/**
+ * The page's own edits drawn at once, until its view shows them: the preview's id in the view,
+ * and the edit's version once the server answered (null before).
+ */
+const previews: Array<{ id: number; version: number | null }> = [];
+
+/** Takes away the previews of the edits the view shows now (or of `failed`, an edit refused). */
+function clearPreviews(failed?: number): void {
+  const st = streamer?.stats();
+  for (let i = previews.length - 1; i >= 0; i--) {
+    const p = previews[i]!;
+    const shown = p.version !== null && st !== undefined && st.version >= p.version && st.stale === 0;
+    if (p.id === failed || shown) {
+      viewport.removePreview(p.id);
+      previews.splice(i, 1);
+    }
+  }
+}
+
 function afterChange(): void {
   const s = streamer;
   if (!s) return;
+  clearPreviews();
   if (lastEdit && lastEdit.screenMs === null) {
     const st = s.stats();
     if (st.version >= lastEdit.version && st.stale === 0) {
@@ -176,6 +197,9 @@ function afterChange(): void {
   // about 100 ms for one of the default view, time the requests after it would wait for).
   updateOverlay();
 }
+
+// Frames wait for the last one's pause only while tiles are on their way (scene.ts).
+viewport.busy = () => (streamer?.inFlight ?? 0) > 0;
 
 viewport.onFrame = (tiles) => {
   frames++;
@@ -286,7 +310,7 @@ for (const { op, label } of OPERATORS) $<HTMLSelectElement>("op").add(new Option
 for (const p of PRIMITIVES) $<HTMLSelectElement>("primitive").add(new Option(p, p));
 $<HTMLSelectElement>("op").value = "difference";
 
-let pendingEdit: Record<string, unknown> | null = null;
+let pendingEdit: { request: Record<string, unknown>; preview: Preview | null } | null = null;
 /** The server refused to read without a (right) token: the page starts once one is given. */
 let awaitingReadToken = false;
 /** The session's token may only read (403): the next edit asks for a write token. */
@@ -303,7 +327,7 @@ function say(text: string, error = false): void {
   editStatus.classList.toggle("error", error);
 }
 
-async function sendEdit(request: Record<string, unknown>): Promise<void> {
+async function sendEdit(request: Record<string, unknown>, preview: Preview | null = null): Promise<void> {
   if (!info || !streamer) return;
   if (people.viewing !== null) {
     say(`Viewing version ${people.viewing}, read-only: go back to live to edit.`, true);
@@ -311,7 +335,7 @@ async function sendEdit(request: Record<string, unknown>): Promise<void> {
   }
   const token = tokens.get();
   if (!token || writeRefused) {
-    pendingEdit = request;
+    pendingEdit = { request, preview };
     askToken();
     say("Enter the write token (asked once for this session).");
     return;
@@ -319,13 +343,18 @@ async function sendEdit(request: Record<string, unknown>): Promise<void> {
   const ifMatch = $<HTMLInputElement>("if-match").checked ? streamer.version : null;
   const sent = performance.now();
   say("Applying...");
+  // Drawn at once, while the server applies the edit and the view fetches its tiles.
+  const shown = preview ? { id: viewport.addPreview(preview, info.voxel_scale), version: null as number | null } : null;
+  if (shown) previews.push(shown);
   try {
     const r = await api.edit(info.name, request, token, ifMatch);
     lastEdit = { version: r.version, sent, answerMs: performance.now() - sent, screenMs: null };
+    if (shown) shown.version = r.version;
     say(`Applied as version ${r.version}.`);
     people.edited(r.version);
     changed();
   } catch (e) {
+    if (shown) clearPreviews(shown.id);
     // A wrong token is forgotten. A read-only one still serves the page's reads until a write
     // token replaces it.
     if (e instanceof ApiError && e.status === 401) tokens.forget();
@@ -349,7 +378,7 @@ $<HTMLFormElement>("token-form").addEventListener("submit", (e) => {
   }
   const r = pendingEdit;
   pendingEdit = null;
-  if (r) void sendEdit(r);
+  if (r) void sendEdit(r.request, r.preview);
 });
 
 /** Edits at canvas pixel (x, y): picks the surface and sends the edit. */
@@ -361,18 +390,16 @@ function editAt(x: number, y: number): void {
     return;
   }
   const s = info.voxel_scale;
-  const request = editRequest(
-    $<HTMLSelectElement>("op").value,
-    $<HTMLSelectElement>("primitive").value as Primitive,
-    [p.x / s[0], p.y / s[1], p.z / s[2]],
-    Number($<HTMLInputElement>("size").value),
-    info.dims,
-  );
+  const op = $<HTMLSelectElement>("op").value;
+  const primitive = $<HTMLSelectElement>("primitive").value as Primitive;
+  const center: [number, number, number] = [p.x / s[0], p.y / s[1], p.z / s[2]];
+  const size = Number($<HTMLInputElement>("size").value);
+  const request = editRequest(op, primitive, center, size, info.dims);
   if (!request) {
     say("The shape lies outside the volume.", true);
     return;
   }
-  void sendEdit(request);
+  void sendEdit(request, previewOf(op, primitive, center, size));
 }
 
 {
@@ -640,6 +667,8 @@ const hook = {
     frames,
     tilesOnScreen: viewport.tileCount,
     framePending: viewport.framePending,
+    /** The page's own edits drawn as previews, waiting for their tiles. */
+    previews: viewport.previewCount,
     firstFrameMs,
     completeMs,
     completeInViewMs,

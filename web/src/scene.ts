@@ -11,6 +11,7 @@ import { stitch, type TileMesh, type TriangleSet } from "./mesh";
 import type { TileSink } from "./streamer";
 import { colorAt, type Colormap } from "./colormap";
 import type { Axis } from "./slice";
+import type { Preview } from "./edit";
 
 const VERTEX = /* glsl */ `
 varying vec3 vNormal;
@@ -72,12 +73,24 @@ export class Viewport implements TileSink {
   private readonly scene = new THREE.Scene();
   private readonly tiles = new Map<string, TileView>();
   private plane: THREE.Group | null = null;
+  /** The page's own edits drawn until the server's tiles show them, by id. */
+  private readonly previews = new Map<number, THREE.Mesh>();
+  private previewId = 0;
   private readonly material: THREE.ShaderMaterial;
   private readonly orbit: OrbitControls;
   private readonly fly: FlyNavigation;
   private frameRequested = false;
+  /** The timer of a frame put off until `nextFrameAt`, if one is. */
+  private frameTimer: ReturnType<typeof setTimeout> | null = null;
+  /** A frame was asked for and when to draw it is decided at the end of the task. */
+  private deciding = false;
   /** When the next frame may be drawn (performance.now()), after the last one's pause. */
   private nextFrameAt = 0;
+  /**
+   * Whether responses are on their way (the streamer's requests in flight): only then does a
+   * frame wait for the last one's pause, which keeps the main thread free for them.
+   */
+  busy: () => boolean = () => true;
   private readonly frustum = new THREE.Frustum();
   private readonly projScreen = new THREE.Matrix4();
   navigation: Navigation = "orbit";
@@ -267,30 +280,46 @@ export class Viewport implements TileSink {
   /**
    * Draws a frame soon. A frame that takes long (software rendering: about 100 ms for the
    * default view, several hundred close to the ground) is followed by a pause of twice its
-   * length, so that drawing takes at most a third of the main thread while tiles stream in and
-   * their responses are not kept waiting; after a quiet moment (an edit landing in a still view)
-   * the frame is drawn at once.
+   * length while requests are in flight (`busy`), so that drawing takes at most a third of the
+   * main thread while tiles stream in and their responses are not kept waiting. With nothing in
+   * flight (the last tile of an edit arrived and its region swapped, or a quiet moment) the
+   * frame is drawn at once: no response is waiting for the main thread.
    */
   requestRender(): void {
-    if (this.frameRequested) return;
-    this.frameRequested = true;
-    const wait = this.nextFrameAt - performance.now();
-    const frame = () =>
-      requestAnimationFrame(() => {
-        this.frameRequested = false;
-        if (this.fly.enabled && this.fly.step()) this.requestRender();
-        const start = performance.now();
-        this.renderer.render(this.scene, this.camera);
-        this.onFrame(this.tiles.size);
-        // The frame's cost includes the browser's work after this callback (compositing, and
-        // with SwiftShader the rasterizing): it ends when the next task runs.
-        setTimeout(() => {
-          const end = performance.now();
-          this.nextFrameAt = end + 2 * (end - start);
-        }, 0);
-      });
-    if (wait > 1) setTimeout(frame, wait);
-    else frame();
+    // Drawn at the next animation frame already, or decided below.
+    if ((this.frameRequested && this.frameTimer === null) || this.deciding) return;
+    this.deciding = true;
+    // Decided once the caller's task is done: a streamer's plan shows tiles before it starts
+    // its next requests.
+    queueMicrotask(() => {
+      this.deciding = false;
+      const wait = this.busy() ? this.nextFrameAt - performance.now() : 0;
+      if (this.frameRequested) {
+        // A frame put off for the pause is drawn now when no response waits any more.
+        if (this.frameTimer === null || wait > 1) return;
+        clearTimeout(this.frameTimer);
+      }
+      this.frameRequested = true;
+      if (wait > 1) this.frameTimer = setTimeout(() => this.frame(), wait);
+      else this.frame();
+    });
+  }
+
+  private frame(): void {
+    this.frameTimer = null;
+    requestAnimationFrame(() => {
+      this.frameRequested = false;
+      if (this.fly.enabled && this.fly.step()) this.requestRender();
+      const start = performance.now();
+      this.renderer.render(this.scene, this.camera);
+      this.onFrame(this.tiles.size);
+      // The frame's cost includes the browser's work after this callback (compositing, and
+      // with SwiftShader the rasterizing): it ends when the next task runs.
+      setTimeout(() => {
+        const end = performance.now();
+        this.nextFrameAt = end + 2 * (end - start);
+      }, 0);
+    });
   }
 
   private resize(): void {
@@ -301,6 +330,46 @@ export class Viewport implements TileSink {
     this.camera.aspect = w / h;
     this.camera.updateProjectionMatrix();
     this.requestRender();
+  }
+
+  /**
+   * Draws the page's own edit at once (`edit.ts` `previewOf`), in the volume's world units
+   * (`scale`: the voxel scale), until `removePreview` with the id this returns.
+   */
+  addPreview(p: Preview, scale: readonly number[]): number {
+    const g = previewGeometry(p);
+    const material =
+      p.effect === "add"
+        ? this.material
+        : new THREE.MeshBasicMaterial({
+            color: p.effect === "carve" ? 0xd03020 : 0x808080,
+            transparent: true,
+            opacity: 0.45,
+            depthWrite: false,
+          });
+    const mesh = new THREE.Mesh(g, material);
+    mesh.position.set(...(p.center.map((c, a) => c * (scale[a] ?? 1)) as [number, number, number]));
+    mesh.scale.set(...([0, 1, 2].map((a) => scale[a] ?? 1) as [number, number, number]));
+    this.scene.add(mesh);
+    const id = ++this.previewId;
+    this.previews.set(id, mesh);
+    this.requestRender();
+    return id;
+  }
+
+  removePreview(id: number): void {
+    const mesh = this.previews.get(id);
+    if (!mesh) return;
+    this.previews.delete(id);
+    this.scene.remove(mesh);
+    mesh.geometry.dispose();
+    if (mesh.material !== this.material) (mesh.material as THREE.Material).dispose();
+    this.requestRender();
+  }
+
+  /** Edits drawn as previews now. */
+  get previewCount(): number {
+    return this.previews.size;
   }
 
   /** The ray from the camera through canvas pixel (x, y) (CSS pixels). */
@@ -323,6 +392,51 @@ export class Viewport implements TileSink {
     const c = this.renderer.domElement;
     const v = p.clone().project(this.camera);
     return { x: ((v.x + 1) / 2) * c.clientWidth, y: ((1 - v.y) / 2) * c.clientHeight };
+  }
+}
+
+/** A preview's shape in voxel units, centred on the origin (`edit.ts` `previewOf`, icvg.md). */
+function previewGeometry(p: Preview): THREE.BufferGeometry {
+  const [hx, hy, hz] = p.half;
+  switch (p.primitive) {
+    case "ellipsoid":
+      return new THREE.SphereGeometry(1, 24, 16).scale(hx, hy, hz);
+    case "cuboid":
+      return new THREE.BoxGeometry(2 * hx, 2 * hy, 2 * hz);
+    case "cylinder":
+      return new THREE.CylinderGeometry(1, 1, 2 * hy, 24).scale(hx, 1, hz);
+    case "cone":
+      // Apex up.
+      return new THREE.ConeGeometry(1, 2 * hy, 24).scale(hx, 1, hz);
+    case "pyramid":
+      // Four sides (a cone of four segments, turned so they face the axes), apex up.
+      return new THREE.ConeGeometry(Math.SQRT2, 2 * hy, 4).rotateY(Math.PI / 4).scale(hx, 1, hz);
+    case "torus":
+      // Around +y: three's torus lies in the x-y plane around z.
+      return new THREE.TorusGeometry(hx - (p.minor ?? 1), p.minor ?? 1, 12, 32).rotateX(Math.PI / 2);
+    case "capsule": {
+      const r = p.minor ?? hx;
+      return new THREE.CapsuleGeometry(r, Math.max(0, 2 * (hy - r)), 8, 16);
+    }
+    case "prism": {
+      // The wedge below the plane through the top of its -x face and the bottom of its +x face:
+      // a right triangle in x-y, from z -hz to +hz (its two ends and three sides, outwards).
+      const [a, b, c] = [[-hx, -hy], [hx, -hy], [-hx, hy]] as const;
+      const v = (p: readonly [number, number], z: number) => [p[0], p[1], z];
+      const quad = (p: readonly [number, number], q: readonly [number, number]) => [
+        ...v(p, -hz), ...v(q, -hz), ...v(q, hz),
+        ...v(p, -hz), ...v(q, hz), ...v(p, hz),
+      ];
+      const positions = [
+        ...v(a, hz), ...v(b, hz), ...v(c, hz),
+        ...v(a, -hz), ...v(c, -hz), ...v(b, -hz),
+        ...quad(a, b), ...quad(b, c), ...quad(c, a),
+      ];
+      const g = new THREE.BufferGeometry();
+      g.setAttribute("position", new THREE.Float32BufferAttribute(positions, 3));
+      g.computeVertexNormals();
+      return g;
+    }
   }
 }
 

@@ -25,8 +25,14 @@
 // more (the camera moved on) is aborted.
 //
 // Edits. `applyCommit` forgets the hashes of the changed bricks, aborts the requests they make
-// stale, and plans again: the chunks holding them are fetched at the new version, and exactly the
-// tiles whose inputs changed get a new content key and are refetched, ahead of everything else.
+// stale, and plans again: the chunks holding them are fetched at the new version, and the tiles
+// whose inputs changed get a new content key and are refetched, ahead of everything else. Not
+// all of them: a commit says which level-0 voxels it can have changed (`changeBoxes`: an edit's
+// `op.box` within its changed level-0 bricks), and a tile or strip none of whose stored voxels is
+// made of those (`tile.ts` `reachedBy`: the stencil of its reads, 2^k level-0 voxels per voxel of
+// level k) has the same mesh at the new version: it keeps its content key ("carried") and is
+// neither refetched nor waited for. A radius-5 edit changes a brick on every level, read by up to
+// 27 tiles a level (and their strips); its box reaches one to a few of them.
 //
 // Versions swap whole. A tile whose drawing changed (new content, or new strips) is "pending";
 // pending tiles that touch (by a face, an edge or a corner, across levels too) form a region,
@@ -37,10 +43,10 @@
 // into the newest: the region waits for the newest drawings, and requests for older ones are
 // cancelled (their content keys are no longer wanted).
 
-import { Api, ApiError, isAbort, type ChangeEvent, type LevelBrick, type LevelGrid, type VolumeInfo } from "./api";
+import { Api, ApiError, isAbort, type ChangeEvent, type LevelBrick, type LevelGrid, type Vec3, type VolumeInfo } from "./api";
 import { balancedTiles, keyText, Layout, stitchMasks, tileDistance, type TileKey } from "./lod";
 import { decodeStrip, decodeTile, stitchedTriangles, type TileMesh } from "./mesh";
-import { meshTileReads, stripReads, valueRange, type TileRead } from "./tile";
+import { hasStrip, meshTileReads, reachedBy, stripReads, valueRange, type TileRead, type VoxelBox } from "./tile";
 import { InFlightLimit } from "./limit";
 
 /** Bricks per axis of the grid chunks fetched to learn content hashes. */
@@ -175,6 +181,16 @@ export class Streamer {
    * otherwise compute every selected tile's and strip's key again: most of a plan's time).
    */
   private keys = new Map<string, string | null>();
+  /**
+   * Content keys that do not come from the hashes, by name (as `keys`): for tiles and strips of
+   * the selection, what they were before the last commits that did not reach them (their meshes
+   * did not change), or, for those the last commit that did reach them, `NAME#E.V`: their
+   * meshes at version V (and at every later one until a commit reaches them again), asked for
+   * at once, without waiting for the changed bricks' new hashes.
+   */
+  private carried = new Map<string, string>();
+  /** Told apart in `NAME#E.V` keys: a reload or another iso value starts a new epoch E. */
+  private epoch = 0;
   private readonly cache = new Map<string, TileMesh | null>();
   private cacheBytes = 0;
   private readonly cacheLimit: number;
@@ -220,6 +236,11 @@ export class Streamer {
     this.hashes = this.layout.grids.map(() => new Map());
   }
 
+  /** Requests in flight now. */
+  get inFlight(): number {
+    return this.jobs.size;
+  }
+
   /** The most requests in flight at once; fewer while the server refuses some (503, 429). */
   get maxInFlight(): number {
     return this.limit.max;
@@ -256,6 +277,8 @@ export class Streamer {
     if (iso === this.isoValue) return;
     this.isoValue = iso;
     this.keys.clear();
+    this.carried.clear();
+    this.epoch++;
     this.plan();
   }
 
@@ -278,6 +301,7 @@ export class Streamer {
   /** Applies one committed version of the change feed (versions in order, each once). */
   applyCommit(ev: ChangeEvent): void {
     if (ev.version <= this.version) return;
+    this.carry(changeBoxes(ev, this.layout.brick), ev.version);
     const changed = new Set<string>();
     ev.changed.forEach((bricks, level) => {
       const known = this.hashes[level];
@@ -319,6 +343,8 @@ export class Streamer {
     this.selectionKey = "";
     this.hashes = this.layout.grids.map(() => new Map());
     this.keys.clear();
+    this.carried.clear();
+    this.epoch++;
     this.commitLog.length = 0;
     this.version = info.version;
     this.plan();
@@ -416,7 +442,7 @@ export class Streamer {
     const name = keyText(k);
     let key = this.keys.get(name);
     if (key === undefined) {
-      key = this.keyOf(name, meshTileReads(this.layout, k));
+      key = this.carried.get(name) ?? this.keyOf(name, meshTileReads(this.layout, k));
       this.keys.set(name, key);
     }
     return key;
@@ -427,10 +453,40 @@ export class Streamer {
     const name = `${keyText(k)}/${face}`;
     let key = this.keys.get(name);
     if (key === undefined) {
-      key = this.keyOf(name, stripReads(this.layout, k, face));
+      key = this.carried.get(name) ?? this.keyOf(name, stripReads(this.layout, k, face));
       this.keys.set(name, key);
     }
     return key;
+  }
+
+  /**
+   * Before the hashes of commit `version`'s bricks are forgotten: every tile of the selection
+   * and strip of its masks whose voxels `boxes` (the commit's changed level-0 voxels) do not
+   * reach keeps its content key, so it is neither refetched nor waited for; those it reaches
+   * get the key of their meshes at `version`, fetched at once (no grid chunk first: the mesh of
+   * a version needs no hash to be asked for). When `boxes` is null (the commit did not say
+   * what it changed), every tile reading a changed brick gets a new key once the new hashes
+   * are known. Tiles out of the selection lose what they carried (nobody checks them against
+   * the commit).
+   */
+  private carry(boxes: VoxelBox[] | null, version: number): void {
+    const next = new Map<string, string>();
+    if (boxes !== null) {
+      const keep = (name: string, key: string | null, reads: TileRead[]) => {
+        if (reachedBy(reads, boxes)) next.set(name, `${name}#${this.epoch}.${version}`);
+        else if (key !== null) next.set(name, key);
+      };
+      for (const k of this.desired) {
+        keep(keyText(k), this.contentKey(k), meshTileReads(this.layout, k));
+        for (const face of this.maskFaces(k)) {
+          if (hasStrip(this.layout, k, face)) {
+            keep(`${keyText(k)}/${face}`, this.stripKey(k, face), stripReads(this.layout, k, face));
+          }
+        }
+      }
+    }
+    this.carried = next;
+    this.keys.clear();
   }
 
   /** The faces of tile `k`'s mask. */
@@ -873,6 +929,29 @@ export class Streamer {
       this.cacheBytes -= m?.bytes ?? 0;
     }
   }
+}
+
+/**
+ * The level-0 voxels a commit can have changed, as boxes (max exclusive), or null when it does
+ * not say. An edit's `op.box` bounds the voxels it changes, and each changed voxel lies in a
+ * changed level-0 brick: so the box within each of those bricks. An undo, redo or revert says
+ * no box of its own that bounds what it changed (an undo applies later edits again over the
+ * bricks it recomputes), so the changed level-0 bricks whole; a commit that did not record its
+ * kind, or changed coarser bricks without a level-0 one, is taken to change everything its
+ * bricks hold (null).
+ */
+export function changeBoxes(ev: ChangeEvent, brick: number): VoxelBox[] | null {
+  if (ev.kind === undefined) return null;
+  const level0 = ev.changed[0] ?? [];
+  if (level0.length === 0 && ev.changed.some((bricks) => bricks.length > 0)) return null;
+  const op = ev.kind === "edit" ? ev.op?.box : undefined;
+  const boxes: VoxelBox[] = [];
+  for (const b of level0) {
+    const min = b.map((c, a) => Math.max(c * brick, op?.min[a] ?? -Infinity)) as Vec3;
+    const max = b.map((c, a) => Math.min((c + 1) * brick, op?.max[a] ?? Infinity)) as Vec3;
+    if ([0, 1, 2].every((a) => min[a]! < max[a]!)) boxes.push({ min, max });
+  }
+  return boxes;
 }
 
 function compare(a: Priority, b: Priority): number {

@@ -48,7 +48,9 @@ export function bricksOf(brick: number, [lo, hi]: GridBox): GridBox {
 /** What a mesh tile or strip reads (`tile::mesh_tile_reads`, `tile::strip_reads`), per level. */
 export interface TileRead {
   level: number;
-  /** The bricks read. */
+  /** The stored voxels of `level` read (their lattice values are what the mesh is made of). */
+  voxels: GridBox;
+  /** The bricks read: those holding `voxels`. */
   bricks: GridBox;
   /** The bricks whose voxels decide whether a surface crosses the tile or strip. */
   crossing: GridBox;
@@ -56,10 +58,12 @@ export interface TileRead {
 
 export function meshTileReads(layout: Layout, k: TileKey): TileRead[] {
   const { lo, hi } = cells(layout, k);
+  const voxels = storedBox(k.level, fieldBox(layout, k));
   return [
     {
       level: k.level,
-      bricks: bricksOf(layout.brick, storedBox(k.level, fieldBox(layout, k))),
+      voxels,
+      bricks: bricksOf(layout.brick, voxels),
       crossing: bricksOf(layout.brick, storedBox(k.level, [lo, hi])),
     },
   ];
@@ -100,12 +104,51 @@ export function stripCoarseBox(layout: Layout, k: TileKey, face: number): GridBo
 /** What the strip of `face` of tile `k` reads (`tile::strip_reads`); none without a strip. */
 export function stripReads(layout: Layout, k: TileKey, face: number): TileRead[] {
   if (!hasStrip(layout, k, face)) return [];
-  const fine = bricksOf(layout.brick, storedBox(k.level, stripFieldBox(layout, k, face)));
-  const coarse = bricksOf(layout.brick, storedBox(k.level + 1, stripCoarseBox(layout, k, face)));
+  const fine = storedBox(k.level, stripFieldBox(layout, k, face));
+  const coarse = storedBox(k.level + 1, stripCoarseBox(layout, k, face));
+  const [fineBricks, coarseBricks] = [bricksOf(layout.brick, fine), bricksOf(layout.brick, coarse)];
   return [
-    { level: k.level, bricks: fine, crossing: fine },
-    { level: k.level + 1, bricks: coarse, crossing: coarse },
+    { level: k.level, voxels: fine, bricks: fineBricks, crossing: fineBricks },
+    { level: k.level + 1, voxels: coarse, bricks: coarseBricks, crossing: coarseBricks },
   ];
+}
+
+/** Level-0 voxels `[min, max)` on each axis (max exclusive, as an edit's `op.box`). */
+export interface VoxelBox {
+  min: Vec3;
+  max: Vec3;
+}
+
+/**
+ * The level-0 voxels a read's stored voxels are made of: voxel i of level k is the mean of a
+ * 2x2x2 group of level k-1 voxels, level by level, so of the level-0 voxels
+ * `[2^k i, 2^k (i + 1))` on each axis and no others (`server/src/store/pyramid.rs`; a voxel
+ * outside the volume is L whatever is edited).
+ */
+export function footprint(read: TileRead): VoxelBox {
+  const s = 2 ** read.level;
+  const [lo, hi] = read.voxels;
+  return { min: lo.map((c) => c * s) as Vec3, max: hi.map((c) => (c + 1) * s) as Vec3 };
+}
+
+/** Whether two boxes of level-0 voxels (max exclusive) share a voxel. */
+export function overlaps(a: VoxelBox, b: VoxelBox): boolean {
+  return [0, 1, 2].every((i) => a.min[i]! < b.max[i]! && b.min[i]! < a.max[i]!);
+}
+
+/**
+ * Whether a change confined to the level-0 voxels `boxes` can change what `reads` read (so the
+ * mesh tile or strip made of them). False means its mesh at the new version is the one at the
+ * old version: a tile's regular mesh, moves and strips are functions of the stored voxels it
+ * reads alone (and whether the server meshes it at all, its `may_cross` bound, is decided by
+ * those voxels' bricks: a bound that changed while the voxels did not only says again that no
+ * surface crosses them, and none did).
+ */
+export function reachedBy(reads: readonly TileRead[], boxes: readonly VoxelBox[]): boolean {
+  return reads.some((r) => {
+    const f = footprint(r);
+    return boxes.some((b) => overlaps(f, b));
+  });
 }
 
 /**

@@ -2,7 +2,7 @@ import { describe, expect, it } from "vitest";
 import { ApiError, type Api, type LevelGrid, type Vec3 } from "../src/api";
 import { balancedTiles, keyText, Layout, stitchMasks, tileDistance, type TileKey } from "../src/lod";
 import type { TileMesh } from "../src/mesh";
-import { Streamer } from "../src/streamer";
+import { changeBoxes, Streamer } from "../src/streamer";
 import { triangle } from "./compact";
 
 // The streamer against a scripted server: level grids answer at once, mesh tiles wait until the
@@ -431,5 +431,183 @@ describe("the streamer", () => {
     const next = server.pendingAll().filter((c) => c.version === 2 && !first.includes(c));
     expect(next.length).toBeGreaterThan(0);
     s.stop();
+  });
+  it("refetches only the tiles and strips an edit's box reaches, and keeps the rest at the new version", async () => {
+    const server = new ScriptedServer();
+    const camera: Vec3 = [20, 40, 20];
+    const shown = new Map<string, TileMesh>();
+    const shows: string[] = [];
+    const s = new Streamer({
+      api: server.api(),
+      info: INFO,
+      sink: {
+        show: (id, _k, m) => {
+          shows.push(id);
+          shown.set(id, m);
+        },
+        hide: (id) => shown.delete(id),
+      },
+      radii: [12, 24, 48],
+      maxInFlight: 3,
+    });
+    s.setCamera(camera);
+    await settle();
+    while (await server.answerOne());
+    expect(s.stats().complete).toBe(true);
+    const desired = balancedTiles(layout, [1, 1, 1], camera, [12, 24, 48]);
+    const masks = stitchMasks(layout, desired);
+    const before = new Map(shown);
+    const [meshes, strips] = [server.meshCalls.length, server.stripCalls.length];
+    shows.length = 0;
+
+    // A small edit in level-0 brick (2, 2, 1): the voxels x 17..19, y 20..22, z 10..12, and
+    // the bricks over it on every level (level 1: voxels x 8..9, y 10..11, z 5..6).
+    const box = { min: [17, 20, 10] as Vec3, max: [20, 23, 13] as Vec3 };
+    const changed: Vec3[][] = [[[2, 2, 1]], [[1, 1, 0]], [[0, 0, 0]], [[0, 0, 0]]];
+    changed.forEach((bricks, level) => server.edit(level, bricks));
+    const edit = { version: 2, timestamp_ms: 0, kind: "edit" as const, changed };
+    s.applyCommit({ ...edit, op: { op: "union", leaves: ["ellipsoid"], box } });
+    await settle();
+    while (await server.answerOne());
+    const refetched = server.meshCalls.slice(meshes).map((c) => keyText(c.key));
+    const restripped = server.stripCalls.slice(strips).map((c) => `${keyText(c.key)}/${c.face}`);
+
+    // By hand: a level-0 tile t (cells 8t..8t+8, from -1 for the first) reads the voxels
+    // [8t - 1, 8t + 10) (from -2 for the first); level-1 tile t the level-1 voxels
+    // 8t - 3 ..= 8t + 10 (from -4), so level-0 [16t - 6, 16t + 22) (from -8).
+    // Level 0 on x: tiles 1 [7, 18) and 2 [15, 26) meet 17..19, tile 3 [23, 34) does not;
+    // on y: tile 2 [15, 26) meets 20..22, tile 3 [23, 34) does not; on z: tile 1 [7, 18) meets
+    // 10..12, tile 0 [-2, 10) and tile 2 [15, 26) do not. Level 1: tiles 0 [-8, 22) and 1
+    // [10, 38) on every axis, tile 2 [26, 54) on none. Tile (0, 1, 2, 1) lies beside the box
+    // (its cells end at x 16) and must be refetched: its normals read voxel 17.
+    expect(refetched.sort()).toEqual(["0/1/2/1", "0/2/2/1", "1/0/0/0", "1/0/0/1", "1/1/0/0", "1/1/0/1"]);
+    // Without the box, every tile reading a changed brick would have been: 18 of level 0 (x
+    // 1..3, y 2..3, z 0..2) and 8 of level 1.
+    const readers = desired.filter((k) =>
+      (changed[k.level] ?? []).some(([x, y, z]) => Math.abs(x - k.x) <= 1 && Math.abs(y - k.y) <= 1 && Math.abs(z - k.z) <= 1),
+    );
+    expect(readers.length).toBe(26);
+
+    // Strips, by the same rule: of the tile's level, the layer of cells along the face; of the
+    // next, level-(k+1) voxels c - 3 ..= c + 2 on the face's axis (c = lo/2 on a low face, hi/2 on
+    // a high one) and lo/2 - 3 ..= hi/2 + 2 across; each voxel of level k is 2^k of level 0.
+    const stripVoxels = (k: TileKey, f: number): Array<[number, number][]> => {
+      const t = [k.x, k.y, k.z];
+      const lo = t.map((c) => 8 * c - (c === 0 ? 1 : 0));
+      const hi = t.map((c) => 8 * c + 8);
+      const grow = k.level === 0 ? [1, 1] : [3, 2];
+      const fine = [0, 1, 2].map((a): [number, number] => {
+        if (a !== f >> 1) return [lo[a]! - grow[0]!, hi[a]! + grow[1]!];
+        return f & 1 ? [hi[a]! - 1 - grow[0]!, hi[a]! + grow[1]!] : [lo[a]! - grow[0]!, lo[a]! + 1 + grow[1]!];
+      });
+      const coarse = [0, 1, 2].map((a): [number, number] => {
+        const c = f & 1 ? hi[a]! / 2 : Math.floor(lo[a]! / 2);
+        if (a === f >> 1) return [c - 3, c + 2];
+        return [Math.floor(lo[a]! / 2) - 3, hi[a]! / 2 + 2];
+      });
+      const s0 = 2 ** k.level;
+      return [fine.map(([a, b]) => [a * s0, (b + 1) * s0]), coarse.map(([a, b]) => [a * 2 * s0, (b + 1) * 2 * s0])];
+    };
+    const meets = (r: [number, number][]) => [0, 1, 2].every((a) => r[a]![0] < box.max[a]! && box.min[a]! < r[a]![1]);
+    const wantStrips: string[] = [];
+    for (const k of desired) {
+      for (let f = 0; f < 6; f++) {
+        if (((masks.get(keyText(k)) ?? 0) & (1 << f)) === 0) continue;
+        if (stripVoxels(k, f).some(meets)) wantStrips.push(`${keyText(k)}/${f}`);
+      }
+    }
+    expect(wantStrips.length).toBeGreaterThan(0);
+    expect(restripped.sort()).toEqual(wantStrips.sort());
+    // Every request at the new version, and the view is that version's, whole. No grid chunk
+    // was asked for first: the meshes of version 2 are asked for by version, and the tiles kept
+    // need no new hash.
+    expect(server.calls.slice(meshes + strips).every((c) => c.version === 2)).toBe(true);
+    expect(server.gridCalls.filter((g) => g.version === 2)).toEqual([]);
+    expect(s.stats()).toMatchObject({ version: 2, complete: true, stale: 0, ready: desired.length });
+    // The tiles kept were not drawn again: only those refetched (or whose strips were) swapped.
+    const redrawn = new Set([...refetched, ...restripped.map((id) => id.split("/").slice(0, 4).join("/"))]);
+    expect(shows.length).toBeGreaterThan(0);
+    expect(shows.filter((id) => !redrawn.has(id))).toEqual([]);
+    for (const [id, m] of shown) if (!redrawn.has(id)) expect(m).toBe(before.get(id));
+
+    // A second edit whose box reaches a tile the first one left alone (level-0 tile (3, 2, 1):
+    // voxels [23, 34) on x) refetches it: what a tile keeps holds only until a box reaches it.
+    const [meshes2] = [server.meshCalls.length];
+    const second: Vec3[][] = [[[3, 2, 1]], [[1, 1, 0]], [[0, 0, 0]], [[0, 0, 0]]];
+    second.forEach((bricks, level) => server.edit(level, bricks));
+    const box2 = { min: [29, 20, 10] as Vec3, max: [31, 22, 12] as Vec3 };
+    s.applyCommit({ version: 3, timestamp_ms: 0, kind: "edit", changed: second, op: { op: "union", leaves: [], box: box2 } });
+    await settle();
+    while (await server.answerOne());
+    const again = server.meshCalls.slice(meshes2).map((c) => keyText(c.key));
+    expect(again).toContain("0/3/2/1");
+    // Tile (1, 2, 1) shows its mesh of version 2, which the second box does not reach.
+    expect(again).not.toContain("0/1/2/1");
+    expect(server.meshCalls.slice(meshes2).every((c) => c.version === 3)).toBe(true);
+    expect(s.stats()).toMatchObject({ version: 3, complete: true, stale: 0 });
+    s.stop();
+  });
+  it("asks again for a version's meshes after a reload, whose versions may name other content", async () => {
+    const server = new ScriptedServer();
+    const { s } = start(server, [20, 40, 20]);
+    await settle();
+    while (await server.answerOne());
+    const box = { min: [17, 20, 10] as Vec3, max: [20, 23, 13] as Vec3 };
+    const changed: Vec3[][] = [[[2, 2, 1]], [[1, 1, 0]], [[0, 0, 0]], [[0, 0, 0]]];
+    const commit = { version: 2, timestamp_ms: 0, kind: "edit" as const, changed, op: { op: "union", leaves: [], box } };
+    changed.forEach((bricks, level) => server.edit(level, bricks));
+    s.applyCommit(commit);
+    await settle();
+    while (await server.answerOne());
+    expect(server.meshCalls.filter((c) => c.version === 2).map((c) => keyText(c.key))).toContain("0/2/2/1");
+    // The server's file was replaced by one at version 1, and another edit made its version 2.
+    const before = server.meshCalls.length;
+    s.reload({ ...INFO, version: 1 });
+    await settle();
+    while (await server.answerOne());
+    changed.forEach((bricks, level) => server.edit(level, bricks));
+    s.applyCommit(commit);
+    await settle();
+    while (await server.answerOne());
+    expect(server.meshCalls.slice(before).filter((c) => c.version === 2).map((c) => keyText(c.key))).toContain("0/2/2/1");
+    expect(s.stats()).toMatchObject({ version: 2, complete: true, stale: 0 });
+    s.stop();
+  });
+});
+
+describe("the voxels a commit changed", () => {
+  const brick = 8;
+  const box = { min: [30, 5, 5] as Vec3, max: [36, 9, 9] as Vec3 };
+  const changed: Vec3[][] = [[[3, 0, 0], [4, 0, 0]], [[1, 0, 0], [2, 0, 0]], [[0, 0, 0]], [[0, 0, 0]]];
+  const op = { op: "difference", leaves: ["ellipsoid"], box };
+
+  it("is an edit's box within each changed level-0 brick", () => {
+    // Brick (3, 0, 0) is voxels [24, 32) x [0, 8) x [0, 8); (4, 0, 0) [32, 40) x ...
+    expect(changeBoxes({ version: 2, timestamp_ms: 0, kind: "edit", op, changed }, brick)).toEqual([
+      { min: [30, 5, 5], max: [32, 8, 8] },
+      { min: [32, 5, 5], max: [36, 8, 8] },
+    ]);
+    // A changed brick the box misses adds nothing; an edit that changed nothing changed no voxel.
+    const far: Vec3[][] = [[[3, 0, 0], [7, 3, 7]], [], [], []];
+    expect(changeBoxes({ version: 2, timestamp_ms: 0, kind: "edit", op, changed: far }, brick)).toEqual([
+      { min: [30, 5, 5], max: [32, 8, 8] },
+    ]);
+    expect(changeBoxes({ version: 2, timestamp_ms: 0, kind: "edit", op, changed: [[], [], [], []] }, brick)).toEqual([]);
+  });
+
+  it("is the changed level-0 bricks whole for an undo, a redo or a revert", () => {
+    for (const kind of ["undo", "redo", "revert"] as const) {
+      expect(changeBoxes({ version: 2, timestamp_ms: 0, kind, op, changed }, brick)).toEqual([
+        { min: [24, 0, 0], max: [32, 8, 8] },
+        { min: [32, 0, 0], max: [40, 8, 8] },
+      ]);
+    }
+  });
+
+  it("is unknown for a commit that does not say what it was, or changed no level-0 brick but coarser ones", () => {
+    expect(changeBoxes({ version: 2, timestamp_ms: 0, changed }, brick)).toBeNull();
+    expect(changeBoxes({ version: 2, timestamp_ms: 0, op, changed }, brick)).toBeNull();
+    const coarseOnly: Vec3[][] = [[], [[1, 0, 0]], [], []];
+    expect(changeBoxes({ version: 2, timestamp_ms: 0, kind: "edit", op, changed: coarseOnly }, brick)).toBeNull();
   });
 });

@@ -7,8 +7,10 @@ import {
   cells,
   coarseBox,
   fieldBox,
+  footprint,
   hasStrip,
   meshTileReads,
+  reachedBy,
   storedBox,
   stripCoarseBox,
   stripFieldBox,
@@ -174,5 +176,56 @@ describe("valueRange equals server/src/mesh/lattice.rs value_range", () => {
       const at = `level ${level} [${min}, ${max}]`;
       expect(valueRange(level, min, max), at).toEqual([Math.fround(low), Math.fround(high)]);
     }
+  });
+});
+
+describe("the level-0 voxels a tile's mesh is made of", () => {
+  // 64^3, brick 8: grids 8, 4, 2, 1 (proto/src/tile.rs's reads_by_hand).
+  const layout = new Layout([64, 64, 64], 8);
+  const key = (level: number, x: number, y: number, z: number): TileKey => ({ level, x, y, z });
+  const box = (min: [number, number, number], max: [number, number, number]) => ({ min, max });
+
+  it("is the stored voxels read, scaled by the level", () => {
+    // Level-0 tile (2, 0, 5): field x 15..=25, y -2..=9 (first on y), z 39..=49: the level-0
+    // voxels [15, 26) x [-2, 10) x [39, 50).
+    const [tile] = meshTileReads(layout, key(0, 2, 0, 5));
+    expect(tile!.voxels).toEqual([[15, -2, 39], [25, 9, 49]]);
+    expect(footprint(tile!)).toEqual(box([15, -2, 39], [26, 10, 50]));
+    // Level 2, tile (1, 1, 1): stored voxels 5..=18 of level 2, each the mean of 4^3 level-0
+    // voxels: [20, 76) on every axis.
+    expect(footprint(meshTileReads(layout, key(2, 1, 1, 1))[0]!)).toEqual(box([20, 20, 20], [76, 76, 76]));
+    // The +x strip of (0, 2, 0, 5): the tile's level x 22..=25 (y, z as the tile), and level 1's
+    // stored x 9..=14, y -4..=6, z 17..=26: level-0 x [18, 30), y [-8, 14), z [34, 54).
+    const [fine, coarse] = stripReads(layout, key(0, 2, 0, 5), 1);
+    expect(footprint(fine!)).toEqual(box([22, -2, 39], [26, 10, 50]));
+    expect(footprint(coarse!)).toEqual(box([18, -8, 34], [30, 14, 54]));
+  });
+
+  it("is reached by a box one voxel beyond the tile's cells, and not by one two beyond", () => {
+    // Level-0 tile (3, 1, 2): cells x [24, 32), y [8, 16), z [16, 24); its cells' far corners are
+    // the points 32 and its normals read 33: voxels [23, 34) on x.
+    const reads = meshTileReads(layout, key(0, 3, 1, 2));
+    const at = (x0: number, x1: number) => box([x0, 10, 18], [x1, 13, 21]);
+    // A box wholly in the next tile's cells (x 33..35): still its neighbour's business.
+    expect(reachedBy(reads, [at(33, 36)])).toBe(true);
+    expect(reachedBy(reads, [at(34, 36)])).toBe(false);
+    // On the low side: voxel 23 (the normals of the first cells) is read, 22 is not.
+    expect(reachedBy(reads, [at(20, 24)])).toBe(true);
+    expect(reachedBy(reads, [at(20, 23)])).toBe(false);
+    // Any of several boxes; none at all reaches nothing.
+    expect(reachedBy(reads, [at(40, 41), at(33, 34)])).toBe(true);
+    expect(reachedBy(reads, [])).toBe(false);
+  });
+
+  it("reaches two level-0 voxels a side per level-1 voxel of the interpolation's reach", () => {
+    // The box x [33, 36) lies in level-1 tile 2's cells (level-0 [32, 64)). Level-1 tile 1 (cells
+    // 8..16 of level 1) reads stored voxels 5..=18: level-0 [10, 38), reached. Tile 3 (cells
+    // 24..32) reads 21..=34: level-0 [42, 70), not reached, although it reads level-1 brick 2
+    // (voxels 16..=23), which holds the level-1 voxels the box changes (16 and 17).
+    const at = box([33, 20, 20], [36, 23, 23]);
+    expect(reachedBy(meshTileReads(layout, key(1, 1, 1, 1)), [at])).toBe(true);
+    const far = meshTileReads(layout, key(1, 3, 1, 1));
+    expect(far[0]!.bricks[0][0]).toBe(2);
+    expect(reachedBy(far, [at])).toBe(false);
   });
 });

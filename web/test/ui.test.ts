@@ -1,6 +1,6 @@
 import { describe, expect, it } from "vitest";
 import { ApiError, editErrorWords } from "../src/api";
-import { editRequest, primitiveTerm, PRIMITIVES } from "../src/edit";
+import { editRequest, previewOf, primitiveTerm, PRIMITIVES } from "../src/edit";
 import { decodeBatch, planeAxes, windowLevel } from "../src/slice";
 import { readUrl, urlQuery } from "../src/url";
 import { colorAt, lut, neuroglancerUrl } from "../src/colormap";
@@ -47,6 +47,40 @@ describe("edit requests", () => {
           // Extension along y: 2 ceil(length / 2) + 2 radius + 1 (docs/icvg.md).
           const ext = 2 * Math.ceil((body["length"] as number) / 2) + 2 * (body["radius"] as number) + 1;
           expect(ext).toBeLessThanOrEqual(2 * Math.max(2, s) + 1);
+        }
+      }
+    }
+  });
+});
+
+describe("the preview of the page's own edit", () => {
+  it("draws the primitive where the request puts it, by its effect", () => {
+    // The request's cuboid: origin 5, 16, 25 and sides 11; its surface (the S layer) 6..=14 on
+    // x, so centred on 10 with half extent 4.
+    expect(previewOf("union", "cuboid", [10.4, 20.6, 30], 5)).toEqual({
+      primitive: "cuboid",
+      effect: "add",
+      center: [10, 21, 30],
+      half: [4, 4, 4],
+    });
+    expect(previewOf("difference", "ellipsoid", [1, 1, 1], 8)).toMatchObject({ effect: "carve", center: [1, 1, 1], half: [8, 8, 8] });
+    expect(previewOf("difference_b", "ellipsoid", [1, 1, 1], 8).effect).toBe("carve");
+    expect(previewOf("add", "ellipsoid", [1, 1, 1], 8).effect).toBe("add");
+    expect(previewOf("intersection", "ellipsoid", [1, 1, 1], 8).effect).toBe("other");
+    // A torus of size 9: tube 3, ring 6 (the term's), so 9 across and 3 up from the centre.
+    expect(previewOf("union", "torus", [50, 50, 50], 9)).toMatchObject({ half: [9, 3, 9], minor: 3 });
+  });
+
+  it("stays within the edit's region, for every primitive and size", () => {
+    for (const p of PRIMITIVES) {
+      for (const size of [2, 3, 7, 30]) {
+        const c: [number, number, number] = [100.3, 99.6, 100];
+        const r = editRequest("union", p, c, size, [256, 256, 256]) as { region: { min: number[]; max: number[] } };
+        const v = previewOf("union", p, c, size);
+        for (let a = 0; a < 3; a++) {
+          expect(v.half[a]!, `${p} ${size}`).toBeGreaterThan(0);
+          expect(v.center[a]! - v.half[a]!, `${p} ${size}`).toBeGreaterThanOrEqual(r.region.min[a]!);
+          expect(v.center[a]! + v.half[a]!, `${p} ${size}`).toBeLessThan(r.region.max[a]!);
         }
       }
     }

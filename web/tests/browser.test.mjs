@@ -368,7 +368,25 @@ test("an edit in one page changes the picture in another page at the edited plac
   // A point of the terrain in front, where the edit's box shows.
   const at = FRONT;
   assert.ok(!isSky(pixel(beforeImg, at.x, at.y)), "the edit point is on the terrain");
-  const status = await editThroughUi(a.page, at, { op: "union", primitive: "cuboid", size: 24, tokenText: token });
+  const nearAt = (x, y) => Math.hypot(x - at.x, y - at.y) < 20;
+  // A draws its own edit at once: its request is held here until A's page has been looked at,
+  // so the server has not even seen the edit when A shows it.
+  const aBeforeImg = await screenshot(a.page);
+  let release;
+  const held = new Promise((r) => (release = r));
+  await a.page.route("**/v1/volumes/demo/edits", async (route) => {
+    await held;
+    await route.continue();
+  });
+  const editing = editThroughUi(a.page, at, { op: "union", primitive: "cuboid", size: 24, tokenText: token });
+  await waitFor(a.page, "A's preview of its edit", (s) => s.previews === 1 && s.editStatus === "Applying...");
+  await a.page.evaluate(() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r))));
+  const preview = changedPixels(aBeforeImg, await screenshot(a.page), nearAt);
+  assert.ok(preview.changed > preview.total * 0.2, `A's preview changed ${preview.changed} of ${preview.total} pixels near the edit`);
+  assert.equal((await stats(b.page)).version, before.version, "B has not seen the edit yet");
+  release();
+  const status = await editing;
+  await a.page.unroute("**/v1/volumes/demo/edits");
   const m = /Applied as version (\d+)/.exec(status);
   assert.ok(m, `edit status: ${status}`);
   const version = Number(m[1]);
@@ -376,7 +394,7 @@ test("an edit in one page changes the picture in another page at the edited plac
 
   const after = await waitComplete(b.page, version);
   const afterImg = await screenshot(b.page);
-  const near = changedPixels(beforeImg, afterImg, (x, y) => Math.hypot(x - at.x, y - at.y) < 20);
+  const near = changedPixels(beforeImg, afterImg, nearAt);
   const far = changedPixels(beforeImg, afterImg, (x, y) => Math.hypot(x - at.x, y - at.y) > 150);
   assert.ok(near.changed > near.total * 0.2, `near the edit ${near.changed} of ${near.total} pixels changed`);
   assert.ok(far.changed <= far.total * 0.002, `far from the edit ${far.changed} of ${far.total} pixels changed`);
@@ -396,6 +414,9 @@ test("an edit in one page changes the picture in another page at the edited plac
     assert.ok(isStripStale(s, changed, info.brick), `strip ${s} was fetched but not stale`);
   }
   assert.equal(after.stale, 0);
+  // Once A's own view shows the edit's tiles, the preview is gone.
+  await waitComplete(a.page, version);
+  await waitFor(a.page, "A's preview to be taken away", (s) => s.previews === 0);
   await a.context.close();
   await b.context.close();
 });
