@@ -20,6 +20,17 @@ export interface VolumeInfo {
   levels: LevelInfo[];
   voxel_scale: Vec3;
   version: number;
+  /** Attribute channels beside density (`docs/channels.md`); absent on volumes without. */
+  channels?: ChannelInfo[];
+}
+
+/** A categorical channel: `material` (worlds) or `label` (segmentations). */
+export interface ChannelInfo {
+  name: string;
+  type: "u8" | "u16" | "u32" | "u64";
+  /** Display colour per value ("#rrggbb", index = value), when the volume gives them. */
+  palette?: string[];
+  sparse?: boolean;
 }
 
 export interface LevelBrick {
@@ -63,6 +74,8 @@ export interface ChangeEvent extends CommitInfo {
   version: number;
   timestamp_ms: number;
   changed: ChangedBricks;
+  /** Changed bricks of attribute channels, by channel: only channels that changed. */
+  channels?: Record<string, ChangedBricks>;
 }
 
 /** One commit of `GET .../history`. */
@@ -214,9 +227,19 @@ export function readErrorWords(e: unknown, tokenSent: boolean): string {
  * one, every request carries it (`Authorization: Bearer`): a server with private reads wants it
  * on reads too, the change feed included.
  */
-/** `&iso=` for an iso value other than the volume's default (null). */
-function isoQuery(iso: number | null): string {
-  return iso === null ? "" : `&iso=${iso}`;
+/**
+ * How a mesh is asked for: the iso value (null: the volume's default) and the channel whose
+ * values its vertices carry (null: none; `docs/mesh-encoding.md`, the material section).
+ */
+export interface MeshLook {
+  iso: number | null;
+  channel: string | null;
+}
+
+/** The query parameters of `look` after `?version=`. */
+function lookQuery(look: MeshLook): string {
+  const iso = look.iso === null ? "" : `&iso=${look.iso}`;
+  return look.channel === null ? iso : `${iso}&channel=${encodeURIComponent(look.channel)}`;
 }
 
 export class Api {
@@ -277,9 +300,9 @@ export class Api {
     key: { level: number; x: number; y: number; z: number },
     version: number,
     signal?: AbortSignal,
-    iso: number | null = null,
+    look: MeshLook = { iso: null, channel: null },
   ): Promise<ArrayBuffer> {
-    const path = `/v1/volumes/${encodeURIComponent(name)}/meshes/${key.level}/${key.x}/${key.y}/${key.z}?version=${version}${isoQuery(iso)}`;
+    const path = `/v1/volumes/${encodeURIComponent(name)}/meshes/${key.level}/${key.x}/${key.y}/${key.z}?version=${version}${lookQuery(look)}`;
     const r = await this.send(path, signal ? { signal } : {});
     return r.arrayBuffer();
   }
@@ -294,10 +317,10 @@ export class Api {
     face: number,
     version: number,
     signal?: AbortSignal,
-    iso: number | null = null,
+    look: MeshLook = { iso: null, channel: null },
   ): Promise<ArrayBuffer> {
     const faceName = encodeURIComponent(["-x", "+x", "-y", "+y", "-z", "+z"][face] ?? "?");
-    const path = `/v1/volumes/${encodeURIComponent(name)}/meshes/${key.level}/${key.x}/${key.y}/${key.z}/strips/${faceName}?version=${version}${isoQuery(iso)}`;
+    const path = `/v1/volumes/${encodeURIComponent(name)}/meshes/${key.level}/${key.x}/${key.y}/${key.z}/strips/${faceName}?version=${version}${lookQuery(look)}`;
     const r = await this.send(path, signal ? { signal } : {});
     return r.arrayBuffer();
   }

@@ -3,10 +3,10 @@
 // within a few levels of the 256-entry tables). The slice view maps the window/level's 0..255
 // through one; the 3D view colours the surface by height through it.
 
-export const COLORMAPS = ["terrain", "grey", "viridis", "magma", "inferno", "cividis"] as const;
+export const COLORMAPS = ["terrain", "materials", "grey", "viridis", "magma", "inferno", "cividis"] as const;
 export type Colormap = (typeof COLORMAPS)[number];
 
-const STOPS: Record<Exclude<Colormap, "terrain">, string[]> = {
+const STOPS: Record<Exclude<Colormap, "terrain" | "materials">, string[]> = {
   grey: ["000000", "ffffff"],
   viridis: ["440154", "482878", "3e4989", "31688e", "26828e", "1f9e89", "35b779", "6ece58", "b5de2b", "fde725"],
   magma: ["000004", "180f3d", "440f76", "721f81", "9e2f7f", "cd4071", "f1605d", "fd9668", "feca8d", "fcfdbf"],
@@ -20,9 +20,12 @@ const rgb = (hex: string): [number, number, number] => [
   parseInt(hex.slice(4, 6), 16),
 ];
 
-/** The map's colour at t in [0, 1] (clamped), 0..255 per channel; "terrain" is grey here. */
+/**
+ * The map's colour at t in [0, 1] (clamped), 0..255 per channel; "terrain" and "materials"
+ * (surface colourings) are grey here.
+ */
 export function colorAt(map: Colormap, t: number): [number, number, number] {
-  const stops = STOPS[map === "terrain" ? "grey" : map].map(rgb);
+  const stops = STOPS[map === "terrain" || map === "materials" ? "grey" : map].map(rgb);
   const x = Math.min(1, Math.max(0, Number.isFinite(t) ? t : 0)) * (stops.length - 1);
   const i = Math.min(stops.length - 2, Math.floor(x));
   const f = x - i;

@@ -16,7 +16,17 @@ export const OPERATORS: ReadonlyArray<{ op: string; label: string }> = [
   { op: "product", label: "product" },
   { op: "divide_a", label: "divide_a" },
   { op: "divide", label: "divide (s_l 0.5)" },
+  { op: "paint", label: "paint (material only)" },
 ];
+
+/**
+ * What the shape is made of (`"material": N` on its leaf; null: nothing said, the volume keeps
+ * its materials) and, for `paint`, which voxels it writes (`docs/channels.md`).
+ */
+export interface Attributes {
+  material: number | null;
+  overwrite: "all" | "empty";
+}
 
 export const PRIMITIVES = [
   "ellipsoid",
@@ -67,7 +77,8 @@ export function primitiveTerm(primitive: Primitive, c: V3, s: number): Record<st
 
 /**
  * The edit request: `op(volume, primitive)` within the primitive's box grown by two voxels and
- * clipped to the volume; null when that box misses the volume.
+ * clipped to the volume; null when that box misses the volume. With a material the leaf carries
+ * it; `paint` writes the material channel where the primitive is inside, density untouched.
  */
 export function editRequest(
   op: string,
@@ -75,18 +86,24 @@ export function editRequest(
   center: V3,
   size: number,
   dims: V3,
+  attributes: Attributes = { material: null, overwrite: "all" },
 ): Record<string, unknown> | null {
   const c = center.map(Math.round) as V3;
   const r = Math.max(2, Math.round(size));
   const min = c.map((v, a) => Math.min(dims[a] ?? 0, Math.max(0, v - r - 2)));
   const max = c.map((v, a) => Math.min(dims[a] ?? 0, Math.max(0, v + r + 3)));
   if (min.some((v, a) => v >= (max[a] ?? 0))) return null;
-  const request: Record<string, unknown> = {
-    op,
-    term: primitiveTerm(primitive, c, r),
-    region: { min, max },
-  };
+  const term = primitiveTerm(primitive, c, r);
+  if (attributes.material !== null) {
+    const leaf = term[primitive] as Record<string, unknown>;
+    leaf["material"] = attributes.material;
+  }
+  const request: Record<string, unknown> = { op, term, region: { min, max } };
   if (op === "divide") request["s_l"] = 0.5;
+  if (op === "paint") {
+    request["channel"] = "material";
+    request["overwrite"] = attributes.overwrite;
+  }
   return request;
 }
 

@@ -3,7 +3,7 @@
 
 import "./style.css";
 import * as THREE from "three";
-import { Api, ApiError, editErrorWords, readErrorWords, type VolumeInfo } from "./api";
+import { Api, ApiError, editErrorWords, readErrorWords, type ChannelInfo, type VolumeInfo } from "./api";
 import { editRequest, OPERATORS, previewOf, PRIMITIVES, TokenStore, type Preview, type Primitive } from "./edit";
 import { Feed, type FeedState } from "./feed";
 import { radiiForScreenError } from "./lod";
@@ -103,7 +103,10 @@ async function openVolume(name: string, state: UrlState | null): Promise<void> {
   $<HTMLInputElement>("iso").value = state?.iso != null ? String(state.iso) : "";
   $<HTMLInputElement>("iso").min = String(v.low);
   $<HTMLInputElement>("iso").max = String(v.high);
-  setColormap(state?.colormap ?? "terrain");
+  showMaterials(v);
+  const materials = materialChannel(v);
+  const map = state?.colormap ?? (materials ? "materials" : "terrain");
+  setColormap(map === "materials" && !materials ? "terrain" : map);
   if (state?.navigation) setNavigation(state.navigation);
   const s = new Streamer({
     api,
@@ -116,6 +119,7 @@ async function openVolume(name: string, state: UrlState | null): Promise<void> {
   });
   streamer = s;
   s.setIso(chosenIso());
+  s.setChannel(meshChannel());
   s.setCamera(cameraPosition());
   updateNeuroglancer();
   feed = new Feed(api, name, v.version, {
@@ -309,6 +313,48 @@ $<HTMLSelectElement>("volume").addEventListener("change", (e) => {
 for (const { op, label } of OPERATORS) $<HTMLSelectElement>("op").add(new Option(label, op));
 for (const p of PRIMITIVES) $<HTMLSelectElement>("primitive").add(new Option(p, p));
 $<HTMLSelectElement>("op").value = "difference";
+$<HTMLSelectElement>("op").addEventListener("change", (e) => {
+  $("overwrite-label").hidden = (e.target as HTMLSelectElement).value !== "paint";
+});
+
+/** The volume's material channel (u8, named `material`), which meshes can carry. */
+function materialChannel(v: VolumeInfo): ChannelInfo | null {
+  return v.channels?.find((c) => c.name === "material" && c.type === "u8") ?? null;
+}
+
+/**
+ * The material controls for volume `v`: the picker (none, or one of the palette's values,
+ * each on its colour), paint as an operation, the "materials" colouring; hidden without a
+ * material channel.
+ */
+function showMaterials(v: VolumeInfo): void {
+  const channel = materialChannel(v);
+  const picker = $<HTMLSelectElement>("material");
+  picker.replaceChildren(new Option("as it is (none given)", ""));
+  for (const [value, color] of (channel?.palette ?? []).entries()) {
+    if (value === 0) continue;
+    const option = new Option(`material ${value}`, String(value));
+    option.style.background = color;
+    picker.add(option);
+  }
+  $("material-label").hidden = channel === null;
+  const op = $<HTMLSelectElement>("op");
+  for (const option of op.options) {
+    if (option.value === "paint") option.hidden = option.disabled = channel === null;
+  }
+  if (channel === null && op.value === "paint") op.value = "difference";
+  $("overwrite-label").hidden = op.value !== "paint";
+  for (const option of $<HTMLSelectElement>("colormap").options) {
+    if (option.value === "materials") option.hidden = option.disabled = channel === null;
+  }
+  viewport.setPalette(channel?.palette ?? []);
+}
+
+/** The channel the meshes carry: the material channel while the surface is coloured by it. */
+function meshChannel(): string | null {
+  const map = $<HTMLSelectElement>("colormap").value;
+  return map === "materials" && info && materialChannel(info) ? "material" : null;
+}
 
 let pendingEdit: { request: Record<string, unknown>; preview: Preview | null } | null = null;
 /** The server refused to read without a (right) token: the page starts once one is given. */
@@ -394,7 +440,14 @@ function editAt(x: number, y: number): void {
   const primitive = $<HTMLSelectElement>("primitive").value as Primitive;
   const center: [number, number, number] = [p.x / s[0], p.y / s[1], p.z / s[2]];
   const size = Number($<HTMLInputElement>("size").value);
-  const request = editRequest(op, primitive, center, size, info.dims);
+  const chosen = $<HTMLSelectElement>("material").value;
+  const material = chosen === "" || !materialChannel(info) ? null : Number(chosen);
+  if (op === "paint" && material === null) {
+    say("Choose a material to paint with.", true);
+    return;
+  }
+  const overwrite = $<HTMLSelectElement>("overwrite").value === "empty" ? "empty" : "all";
+  const request = editRequest(op, primitive, center, size, info.dims, { material, overwrite });
   if (!request) {
     say("The shape lies outside the volume.", true);
     return;
@@ -548,6 +601,7 @@ function setColormap(map: Colormap): void {
   $<HTMLSelectElement>("colormap").value = map;
   viewport.setColormap(map);
   slice.setColormap(map);
+  streamer?.setChannel(meshChannel());
 }
 
 $<HTMLSelectElement>("colormap").addEventListener("change", (e) => {

@@ -20,6 +20,11 @@ export interface TriangleSet {
   normals: Int16Array;
   /** Three per triangle, counter-clockwise seen from outside. */
   indices: Uint16Array | Uint32Array;
+  /**
+   * Four bytes per vertex when asked for with a channel (`?channel=`): the values at the two
+   * ends of the lattice edge the vertex lies on, the weight of the second (0..255), and 0.
+   */
+  materials?: Uint8Array | null;
 }
 
 export interface Moves {
@@ -82,7 +87,8 @@ export function decodeTile(buffer: ArrayBuffer, strip = false): TileMesh {
   if (view.getUint32(0, true) !== MAGIC) fail("bad magic");
   const version = view.getUint16(4, true);
   if (version !== 1 && (strip || version !== 3)) fail(`unsupported version ${version}`);
-  const wide = (view.getUint16(6, true) & 1) === 1;
+  const flags = view.getUint16(6, true);
+  const wide = (flags & 1) === 1;
   const n = view.getUint32(8, true);
   const m = view.getUint32(12, true);
   const indexBytes = wide ? 4 : 2;
@@ -98,8 +104,17 @@ export function decodeTile(buffer: ArrayBuffer, strip = false): TileMesh {
   let at = HEADER + n * 18;
   const indices = readIndices(buffer, at, m, wide, n, fail);
   at = Math.ceil((at + m * indexBytes) / 4) * 4;
+  let materials: Uint8Array | null = null;
+  if ((flags & 2) !== 0) {
+    if (at + n * 4 > buffer.byteLength) fail("the material section is cut short");
+    materials = new Uint8Array(buffer, at, n * 4);
+    for (let i = 0; i < n; i++) {
+      if (materials[4 * i + 3] !== 0) fail(`vertex ${i}'s material padding is not 0`);
+    }
+    at += n * 4;
+  }
   const moves = version === 3 ? decodeMoves(buffer, at, n, fail) : null;
-  return { positions, normals, indices, min, max, moves, bytes: buffer.byteLength };
+  return { positions, normals, indices, materials, min, max, moves, bytes: buffer.byteLength };
 }
 
 /** A transition strip (`decode_strip`): a plain mesh, version 1. */
@@ -151,7 +166,7 @@ export function stitch(
   const moves = tile.moves;
   const moved = moves !== null && moves.face.some((f) => (mask & (1 << f)) !== 0);
   if (!moved && drawn.length === 0) {
-    return { positions: tile.positions, normals: tile.normals, indices: tile.indices };
+    return { positions: tile.positions, normals: tile.normals, indices: tile.indices, materials: tile.materials ?? null };
   }
   const n = tile.positions.length / 3;
   const count = drawn.reduce((a, s) => a + s.positions.length / 3, n);
@@ -159,6 +174,9 @@ export function stitch(
   const normals = new Int16Array(count * 3);
   positions.set(tile.positions);
   normals.set(tile.normals);
+  // Materials when the tile has them (a strip without gets zeros: none).
+  const materials = tile.materials ? new Uint8Array(count * 4) : null;
+  materials?.set(tile.materials!);
   if (moves) {
     for (let i = 0; i < moves.vertex.length; i++) {
       const f = moves.face[i] ?? 0;
@@ -176,11 +194,12 @@ export function stitch(
   for (const s of drawn) {
     positions.set(s.positions, 3 * base);
     normals.set(s.normals, 3 * base);
+    if (materials && s.materials) materials.set(s.materials, 4 * base);
     for (let i = 0; i < s.indices.length; i++) indices[at + i] = (s.indices[i] ?? 0) + base;
     at += s.indices.length;
     base += s.positions.length / 3;
   }
-  return { positions, normals, indices };
+  return { positions, normals, indices, materials };
 }
 
 /** Triangles the tile draws with `mask` and `strips`. */

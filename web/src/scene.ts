@@ -12,25 +12,58 @@ import type { TileSink } from "./streamer";
 import { colorAt, type Colormap } from "./colormap";
 import type { Axis } from "./slice";
 import type { Preview } from "./edit";
+import { materialTextures, TEXTURE_LAYERS, TEXTURE_SIZE } from "./textures";
 
+// Materials (`useMaterials`): a vertex carries the values at the two ends of the lattice edge it
+// lies on and the weight of the second (`mesh.ts`, the material section). Values 0..7 become
+// weights of eight slots (two vec4) that the triangle interpolates, so where materials meet the
+// surface blends from one to the other instead of stepping; larger values keep their weight in
+// one more slot, drawn in the value's palette colour. Value 0 (none) is drawn as the terrain is.
 const VERTEX = /* glsl */ `
+attribute vec4 material;
 varying vec3 vNormal;
+varying vec3 vPosition;
 varying float vHeight;
+varying vec4 vLow;
+varying vec4 vHigh;
+varying float vOther;
+flat varying float vOtherValue;
 uniform float heightScale;
+vec4 slots(float value, float first) {
+  return vec4(equal(vec4(value), vec4(first, first + 1.0, first + 2.0, first + 3.0)));
+}
 void main() {
   vec3 p = position;
   vNormal = normal;
+  vPosition = p;
   vHeight = p.y * heightScale;
+  float a = material.x;
+  float b = material.y;
+  float t = material.z / 255.0;
+  vLow = slots(a, 0.0) * (1.0 - t) + slots(b, 0.0) * t;
+  vHigh = slots(a, 4.0) * (1.0 - t) + slots(b, 4.0) * t;
+  vOther = (a >= 8.0 ? 1.0 - t : 0.0) + (b >= 8.0 ? t : 0.0);
+  vOtherValue = a >= 8.0 ? a : b;
   gl_Position = projectionMatrix * modelViewMatrix * vec4(p, 1.0);
 }`;
 
 const FRAGMENT = /* glsl */ `
 varying vec3 vNormal;
+varying vec3 vPosition;
 varying float vHeight;
+varying vec4 vLow;
+varying vec4 vHigh;
+varying float vOther;
+flat varying float vOtherValue;
 uniform vec3 sun;
 // 0: the terrain's grass and rock; otherwise the number of colour map stops (height through it).
 uniform int stopCount;
 uniform vec3 stops[10];
+// 1: colour by material (the palette's colours, textured), the rest as the terrain.
+uniform int useMaterials;
+uniform sampler2D palette;
+uniform sampler2DArray detail;
+uniform float textureScale;
 vec3 colormap(float t) {
   float x = clamp(t, 0.0, 1.0) * float(stopCount - 1);
   int i = int(min(floor(x), float(stopCount - 2)));
@@ -41,14 +74,39 @@ vec3 colormap(float t) {
   }
   return mix(a, b, x - float(i));
 }
+vec3 paletteColor(float value) {
+  return texelFetch(palette, ivec2(int(value), 0), 0).rgb;
+}
+// Triplanar mapping: the texture projected along each axis, weighted by how much the surface
+// faces that axis.
+float textured(float layer, vec3 blend) {
+  vec3 p = vPosition * textureScale;
+  return (texture(detail, vec3(p.yz, layer)).r * blend.x
+    + texture(detail, vec3(p.xz, layer)).r * blend.y
+    + texture(detail, vec3(p.xy, layer)).r * blend.z) * (255.0 / 200.0);
+}
 void main() {
   vec3 n = normalize(vNormal);
   float light = 0.38 + 0.62 * max(dot(n, sun), 0.0);
+  vec3 rock = mix(vec3(0.45, 0.36, 0.28), vec3(0.62, 0.60, 0.58), clamp(vHeight, 0.0, 1.0));
+  vec3 grass = mix(vec3(0.30, 0.52, 0.20), vec3(0.55, 0.62, 0.30), clamp(vHeight, 0.0, 1.0));
+  vec3 terrain = mix(rock, grass, smoothstep(0.55, 0.8, n.y));
   vec3 base;
-  if (stopCount == 0) {
-    vec3 rock = mix(vec3(0.45, 0.36, 0.28), vec3(0.62, 0.60, 0.58), clamp(vHeight, 0.0, 1.0));
-    vec3 grass = mix(vec3(0.30, 0.52, 0.20), vec3(0.55, 0.62, 0.30), clamp(vHeight, 0.0, 1.0));
-    base = mix(rock, grass, smoothstep(0.55, 0.8, n.y));
+  if (useMaterials == 1) {
+    vec3 blend = pow(abs(n), vec3(4.0));
+    blend /= blend.x + blend.y + blend.z;
+    float weights[8] = float[8](vLow.x, vLow.y, vLow.z, vLow.w, vHigh.x, vHigh.y, vHigh.z, vHigh.w);
+    float total = vOther;
+    base = vOther * paletteColor(vOtherValue);
+    for (int i = 0; i < 8; i++) {
+      float w = weights[i];
+      if (w < 0.004) continue;
+      total += w;
+      base += w * (i == 0 ? terrain : paletteColor(float(i)) * textured(float(i), blend));
+    }
+    base = total > 0.0 ? base / total : terrain;
+  } else if (stopCount == 0) {
+    base = terrain;
   } else {
     base = colormap(vHeight);
   }
@@ -109,6 +167,10 @@ export class Viewport implements TileSink {
       heightScale: { value: 1 / 256 },
       stopCount: { value: 0 },
       stops: { value: Array.from({ length: 10 }, () => new THREE.Vector3()) },
+      useMaterials: { value: 0 },
+      palette: { value: paletteTexture([]) },
+      detail: { value: detailTexture() },
+      textureScale: { value: 1 / 16 },
     };
     this.material = new THREE.ShaderMaterial({ vertexShader: VERTEX, fragmentShader: FRAGMENT, uniforms });
     this.orbit = new OrbitControls(this.camera, canvas);
@@ -153,6 +215,8 @@ export class Viewport implements TileSink {
     const size = new THREE.Vector3(...info.dims).multiply(new THREE.Vector3(...info.voxel_scale));
     const extent = Math.max(size.x, size.y, size.z);
     this.material.uniforms["heightScale"]!.value = 1 / Math.max(size.y, 1);
+    // The textures repeat every 16 voxels (4 texels a voxel).
+    this.material.uniforms["textureScale"]!.value = 1 / (16 * Math.min(...info.voxel_scale));
     this.camera.near = extent / 2000;
     this.camera.far = extent * 20;
     this.camera.updateProjectionMatrix();
@@ -173,10 +237,14 @@ export class Viewport implements TileSink {
     this.requestRender();
   }
 
-  /** Colours the surface by height through `map` ("terrain": grass and rock). */
+  /**
+   * Colours the surface by height through `map` ("terrain": grass and rock; "materials": by the
+   * material its vertices carry, `setPalette`'s colours, textured).
+   */
   setColormap(map: Colormap): void {
     const u = this.material.uniforms;
-    if (map === "terrain") {
+    u["useMaterials"]!.value = map === "materials" ? 1 : 0;
+    if (map === "terrain" || map === "materials") {
       u["stopCount"]!.value = 0;
     } else {
       const stops = u["stops"]!.value as THREE.Vector3[];
@@ -187,6 +255,14 @@ export class Viewport implements TileSink {
       }
       u["stopCount"]!.value = 10;
     }
+    this.requestRender();
+  }
+
+  /** The colours of material values (index = value; "#rrggbb"), for the "materials" map. */
+  setPalette(colors: readonly string[]): void {
+    const u = this.material.uniforms["palette"]!;
+    (u.value as THREE.Texture).dispose();
+    u.value = paletteTexture(colors);
     this.requestRender();
   }
 
@@ -449,11 +525,40 @@ function geometry(t: TriangleSet, bounds?: { min: number[]; max: number[] }): TH
   g.setAttribute("position", new THREE.BufferAttribute(t.positions, 3));
   g.setAttribute("normal", new THREE.BufferAttribute(t.normals, 3, true));
   g.setIndex(new THREE.BufferAttribute(t.indices, 1));
+  // Bytes as they are: the shader reads the values 0..255, not normalized.
+  if (t.materials) g.setAttribute("material", new THREE.BufferAttribute(t.materials, 4));
   if (bounds) {
     g.boundingBox = new THREE.Box3(new THREE.Vector3(...bounds.min), new THREE.Vector3(...bounds.max));
     g.boundingSphere = g.boundingBox.getBoundingSphere(new THREE.Sphere());
   }
   return g;
+}
+
+/** 256 colours in a row, value i at texel i (grey for values the palette does not give). */
+function paletteTexture(colors: readonly string[]): THREE.DataTexture {
+  const data = new Uint8Array(256 * 4);
+  for (let i = 0; i < 256; i++) {
+    const m = /^#?([0-9a-f]{6})$/i.exec(colors[i] ?? "");
+    const hex = m ? parseInt(m[1]!, 16) : 0x808080;
+    data.set([hex >> 16, (hex >> 8) & 255, hex & 255, 255], 4 * i);
+  }
+  const t = new THREE.DataTexture(data, 256, 1, THREE.RGBAFormat, THREE.UnsignedByteType);
+  t.needsUpdate = true;
+  return t;
+}
+
+/** The materials' surface patterns (`textures.ts`), repeating, mipmapped. */
+function detailTexture(): THREE.DataArrayTexture {
+  const t = new THREE.DataArrayTexture(materialTextures(), TEXTURE_SIZE, TEXTURE_SIZE, TEXTURE_LAYERS);
+  t.format = THREE.RGBAFormat;
+  t.type = THREE.UnsignedByteType;
+  t.wrapS = THREE.RepeatWrapping;
+  t.wrapT = THREE.RepeatWrapping;
+  t.magFilter = THREE.LinearFilter;
+  t.minFilter = THREE.LinearMipmapLinearFilter;
+  t.generateMipmaps = true;
+  t.needsUpdate = true;
+  return t;
 }
 
 /** Fly navigation: drag to look, W/A/S/D (or arrows) to move, Q/E down and up, Shift faster. */

@@ -43,7 +43,7 @@
 // into the newest: the region waits for the newest drawings, and requests for older ones are
 // cancelled (their content keys are no longer wanted).
 
-import { Api, ApiError, isAbort, type ChangeEvent, type LevelBrick, type LevelGrid, type Vec3, type VolumeInfo } from "./api";
+import { Api, ApiError, isAbort, type ChangeEvent, type MeshLook, type LevelBrick, type LevelGrid, type Vec3, type VolumeInfo } from "./api";
 import { balancedTiles, keyText, Layout, stitchMasks, tileDistance, type TileKey } from "./lod";
 import { decodeStrip, decodeTile, stitchedTriangles, type TileMesh } from "./mesh";
 import { hasStrip, meshTileReads, reachedBy, stripReads, valueRange, type TileRead, type VoxelBox } from "./tile";
@@ -172,6 +172,15 @@ export class Streamer {
   private readonly limit: InFlightLimit;
   /** The iso value meshed at: null for the volume's default (S - 0.5). */
   private isoValue: number | null = null;
+  /** The channel whose values the meshes' vertices carry (materials), or null. */
+  private channelName: string | null = null;
+  /**
+   * With a channel: per brick (`level/x/y/z`), the version of the last commit that changed the
+   * channel's brick there since the page loaded the volume. The grids give density's hashes
+   * only, and a paint changes the channel alone: these stamps, part of the content keys, are
+   * what tells a mesh with the old materials from one with the new.
+   */
+  private stamps = new Map<string, number>();
 
   private camera: [number, number, number] = [0, 0, 0];
   /** Per level: brick index -> what the grid said. */
@@ -301,7 +310,13 @@ export class Streamer {
   /** Applies one committed version of the change feed (versions in order, each once). */
   applyCommit(ev: ChangeEvent): void {
     if (ev.version <= this.version) return;
-    this.carry(changeBoxes(ev, this.layout.brick), ev.version);
+    this.carry(changeBoxes(ev, this.layout.brick, this.channelName), ev.version);
+    if (this.channelName !== null) {
+      ev.channels?.[this.channelName]?.forEach((bricks, level) => {
+        for (const [x, y, z] of bricks) this.stamps.set(`${level}/${x}/${y}/${z}`, ev.version);
+        if (bricks.length > 0) this.keys.clear();
+      });
+    }
     const changed = new Set<string>();
     ev.changed.forEach((bricks, level) => {
       const known = this.hashes[level];
@@ -346,6 +361,13 @@ export class Streamer {
     this.carried.clear();
     this.epoch++;
     this.commitLog.length = 0;
+    if (this.channelName !== null) {
+      // The stamps start again from this version, and the content keys without them name
+      // density only: a cached mesh may carry values the channel no longer has.
+      this.stamps.clear();
+      this.cache.clear();
+      this.cacheBytes = 0;
+    }
     this.version = info.version;
     this.plan();
   }
@@ -410,6 +432,7 @@ export class Streamer {
     let low = Infinity;
     let high = -Infinity;
     const parts: string[] = [this.isoValue === null ? name : `${name}@${iso}`];
+    if (this.channelName !== null) parts.push(`~${this.channelName}`);
     for (const read of reads) {
       const [lo, hi] = read.bricks;
       const [clo, chi] = read.crossing;
@@ -421,6 +444,10 @@ export class Streamer {
             const b = this.brick(read.level, x, y, z);
             if (b === undefined) return null;
             parts.push(b === "absent" ? "-" : b.hash);
+            if (this.channelName !== null) {
+              const stamp = this.stamps.get(`${read.level}/${x}/${y}/${z}`);
+              if (stamp !== undefined) parts.push(`@${stamp}`);
+            }
             const crossing =
               x >= clo[0] && x <= chi[0] && y >= clo[1] && y <= chi[1] && z >= clo[2] && z <= chi[2];
             if (crossing) {
@@ -435,6 +462,25 @@ export class Streamer {
       high = Math.max(high, h);
     }
     return low < iso && high >= iso ? parts.join(":") : "";
+  }
+
+  /** The channel whose values the meshes' vertices carry (null: none). */
+  get channel(): string | null {
+    return this.channelName;
+  }
+
+  /**
+   * Meshes with (or without) the values of `channel` on their vertices: every tile gets a new
+   * content key, and the view keeps the old surface until the new one has arrived.
+   */
+  setChannel(channel: string | null): void {
+    if (channel === this.channelName) return;
+    this.channelName = channel;
+    this.stamps.clear();
+    this.keys.clear();
+    this.carried.clear();
+    this.epoch++;
+    this.plan();
   }
 
   /** The tile's content key (`keyOf` of what it reads). */
@@ -865,13 +911,17 @@ export class Streamer {
     }
   }
 
+  private look(): MeshLook {
+    return { iso: this.isoValue, channel: this.channelName };
+  }
+
   private fetchMesh(k: TileKey, content: string): void {
     const id = `m:${content}`;
     const job = this.jobs.get(id);
     if (!job) return;
     this.counters.requests++;
     this.api
-      .meshTile(this.info.name, k, job.version, job.controller.signal, this.isoValue)
+      .meshTile(this.info.name, k, job.version, job.controller.signal, this.look())
       .then((buffer) => {
         if (this.jobs.get(id) !== job) return;
         this.counters.bytes += buffer.byteLength;
@@ -890,7 +940,7 @@ export class Streamer {
     if (!job) return;
     this.counters.requests++;
     this.api
-      .meshStrip(this.info.name, k, face, job.version, job.controller.signal, this.isoValue)
+      .meshStrip(this.info.name, k, face, job.version, job.controller.signal, this.look())
       .then((buffer) => {
         if (this.jobs.get(id) !== job) return;
         this.counters.bytes += buffer.byteLength;
@@ -940,10 +990,12 @@ export class Streamer {
  * kind, or changed coarser bricks without a level-0 one, is taken to change everything its
  * bricks hold (null).
  */
-export function changeBoxes(ev: ChangeEvent, brick: number): VoxelBox[] | null {
+export function changeBoxes(ev: ChangeEvent, brick: number, channel: string | null = null): VoxelBox[] | null {
   if (ev.kind === undefined) return null;
-  const level0 = ev.changed[0] ?? [];
-  if (level0.length === 0 && ev.changed.some((bricks) => bricks.length > 0)) return null;
+  // With a channel drawn, its changes are changes of the meshes too (a paint changes it alone).
+  const streams = [ev.changed, ...(channel !== null && ev.channels?.[channel] ? [ev.channels[channel]] : [])];
+  const level0 = streams.flatMap((changed) => changed[0] ?? []);
+  if (level0.length === 0 && streams.some((changed) => changed.some((bricks) => bricks.length > 0))) return null;
   const op = ev.kind === "edit" ? ev.op?.box : undefined;
   const boxes: VoxelBox[] = [];
   for (const b of level0) {

@@ -5,17 +5,19 @@ export function compactMesh(
   positions: number[][],
   normals: number[][],
   indices: number[],
-  options: { version?: number; wide?: boolean } = {},
+  options: { version?: number; wide?: boolean; materials?: number[][] } = {},
 ): ArrayBuffer {
   const n = positions.length;
   const m = indices.length;
   const wide = options.wide ?? n > 65536;
   const size = 40 + n * 18 + m * (wide ? 4 : 2);
-  const buffer = new ArrayBuffer(Math.ceil(size / 4) * 4);
+  // The material section (flag bit 1): four bytes per vertex after the indices' padding.
+  const materials = options.materials;
+  const buffer = new ArrayBuffer(Math.ceil(size / 4) * 4 + (materials ? 4 * n : 0));
   const v = new DataView(buffer);
   [0x49, 0x56, 0x4d, 0x53].forEach((b, i) => v.setUint8(i, b)); // "IVMS"
   v.setUint16(4, options.version ?? 1, true);
-  v.setUint16(6, wide ? 1 : 0, true);
+  v.setUint16(6, (wide ? 1 : 0) | (materials ? 2 : 0), true);
   v.setUint32(8, n, true);
   v.setUint32(12, m, true);
   const lo = [0, 1, 2].map((a) => Math.min(...positions.map((p) => p[a] ?? 0)));
@@ -29,6 +31,8 @@ export function compactMesh(
     else v.setUint16(at, i, true);
     at += wide ? 4 : 2;
   }
+  at = Math.ceil(at / 4) * 4;
+  for (const q of materials ?? []) for (const b of q) v.setUint8(at++, b);
   return buffer;
 }
 

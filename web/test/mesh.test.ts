@@ -55,6 +55,33 @@ describe("compact mesh decoding", () => {
     expect(() => decodeStrip(compactMesh([], [], [], { version: 3 }))).toThrow(/version 3/);
   });
 
+  it("reads the material section (flag bit 1) and stitches it with the strips", () => {
+    const normal = [0, 0, 1];
+    const tri = (z: number) => [[0, 0, z], [1, 0, z], [0, 1, z]];
+    // 3 vertices, 3 u16 indices: 40 + 54 + 6 = 100 bytes, a multiple of 4; the section follows.
+    const b = compactMesh(tri(0), [normal, normal, normal], [0, 1, 2], {
+      materials: [[1, 1, 0, 0], [1, 6, 128, 0], [6, 6, 255, 0]],
+    });
+    expect(b.byteLength).toBe(112);
+    const t = decodeTile(b);
+    expect([...t.materials!]).toEqual([1, 1, 0, 0, 1, 6, 128, 0, 6, 6, 255, 0]);
+    expect([...t.indices]).toEqual([0, 1, 2]);
+    // Cut anywhere in the section, or a padding byte that is not 0: refused.
+    for (let cut = 100; cut < 112; cut++) expect(() => decodeTile(b.slice(0, cut))).toThrow(/material section/);
+    const patched = b.slice(0);
+    new Uint8Array(patched)[111] = 1;
+    expect(() => decodeTile(patched)).toThrow(/padding/);
+    // A strip with materials is appended after the tile's: its values follow the tile's.
+    const strip = decodeStrip(
+      compactMesh(tri(1), [normal, normal, normal], [0, 1, 2], { materials: [[2, 2, 0, 0], [2, 3, 64, 0], [3, 3, 0, 0]] }),
+    );
+    const drawn = stitch(t, 1, [strip]);
+    expect([...drawn.materials!]).toEqual([1, 1, 0, 0, 1, 6, 128, 0, 6, 6, 255, 0, 2, 2, 0, 0, 2, 3, 64, 0, 3, 3, 0, 0]);
+    expect([...drawn.indices]).toEqual([0, 1, 2, 3, 4, 5]);
+    // Without the flag there is no section.
+    expect(decodeTile(triangle()).materials).toBeNull();
+  });
+
   it("reads u32 indices at an unaligned offset", () => {
     // 3 vertices with wide indices: the indices start at 40 + 54 = 94, not a multiple of 4.
     const b = triangle([2, 1, 0], { wide: true });

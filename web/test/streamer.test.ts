@@ -1,5 +1,5 @@
 import { describe, expect, it } from "vitest";
-import { ApiError, type Api, type LevelGrid, type Vec3 } from "../src/api";
+import { ApiError, type Api, type LevelGrid, type MeshLook, type Vec3 } from "../src/api";
 import { balancedTiles, keyText, Layout, stitchMasks, tileDistance, type TileKey } from "../src/lod";
 import type { TileMesh } from "../src/mesh";
 import { changeBoxes, Streamer } from "../src/streamer";
@@ -30,6 +30,8 @@ interface MeshCall {
   /** The face, for a strip request. */
   face?: number;
   version: number;
+  /** The channel the request asked the vertices to carry (`?channel=`), or null. */
+  channel: string | null;
   signal: AbortSignal;
   answer: () => void;
   /** Answers 503 with `Retry-After: 0`, as a server whose CPU queue is full. */
@@ -66,20 +68,21 @@ class ScriptedServer {
         const grid: LevelGrid = { level, grid: [...layout.grid(level)] as Vec3, min, max, version, bricks };
         return { grid, bytes: 100 };
       },
-      meshTile: (_name: string, key: TileKey, version: number, signal?: AbortSignal) =>
+      meshTile: (_name: string, key: TileKey, version: number, signal?: AbortSignal, look?: MeshLook) =>
         new Promise<ArrayBuffer>((resolve, reject) => {
           const s = signal ?? new AbortController().signal;
           s.addEventListener("abort", () => reject(new DOMException("aborted", "AbortError")));
           this.calls.push({
             key,
             version,
+            channel: look?.channel ?? null,
             signal: s,
             answer: () => resolve(TRIANGLE.slice(0)),
             refuse: () => reject(new ApiError(503, "the CPU queue is full", 0, null)),
           });
           this.meshCalls.push(this.calls[this.calls.length - 1]!);
         }),
-      meshStrip: (_name: string, key: TileKey, face: number, version: number, signal?: AbortSignal) =>
+      meshStrip: (_name: string, key: TileKey, face: number, version: number, signal?: AbortSignal, look?: MeshLook) =>
         new Promise<ArrayBuffer>((resolve, reject) => {
           const s = signal ?? new AbortController().signal;
           s.addEventListener("abort", () => reject(new DOMException("aborted", "AbortError")));
@@ -87,6 +90,7 @@ class ScriptedServer {
             key,
             face,
             version,
+            channel: look?.channel ?? null,
             signal: s,
             answer: () => resolve(TRIANGLE.slice(0)),
             refuse: () => reject(new ApiError(503, "the CPU queue is full", 0, null)),
@@ -571,6 +575,91 @@ describe("the streamer", () => {
     while (await server.answerOne());
     expect(server.meshCalls.slice(before).filter((c) => c.version === 2).map((c) => keyText(c.key))).toContain("0/2/2/1");
     expect(s.stats()).toMatchObject({ version: 2, complete: true, stale: 0 });
+    s.stop();
+  });
+});
+
+describe("meshes with materials", () => {
+  // The paint of the union test's box: the material channel's bricks over it changed on every
+  // level, density's none.
+  const box = { min: [17, 20, 10] as Vec3, max: [20, 23, 13] as Vec3 };
+  const painted: Vec3[][] = [[[2, 2, 1]], [[1, 1, 0]], [[0, 0, 0]], [[0, 0, 0]]];
+  const paint = (version: number) => ({
+    version,
+    timestamp_ms: 0,
+    kind: "edit" as const,
+    changed: [[], [], [], []] as Vec3[][],
+    channels: { material: painted },
+    op: { op: "paint", leaves: ["ellipsoid"], box },
+  });
+
+  it("asks for them with the channel, refetches what a paint reaches, and asks again for painted tiles it selects later", async () => {
+    const server = new ScriptedServer();
+    const camera: Vec3 = [20, 40, 20];
+    const { s } = start(server, camera);
+    s.setChannel("material");
+    await settle();
+    while (await server.answerOne());
+    expect(server.calls.length).toBeGreaterThan(0);
+    const plain = server.calls.filter((c) => c.channel === null).length;
+    const fresh = server.calls.slice(plain);
+    expect(fresh.length).toBeGreaterThan(0);
+    expect(fresh.every((c) => c.channel === "material")).toBe(true);
+    expect(s.stats().complete).toBe(true);
+
+    // The paint changes no density: the hashes stay, and still the tiles its box reaches (the
+    // same six as the union's) are fetched at its version.
+    const before = server.meshCalls.length;
+    s.applyCommit(paint(2));
+    await settle();
+    while (await server.answerOne());
+    const refetched = server.meshCalls.slice(before);
+    expect(refetched.map((c) => keyText(c.key)).sort()).toEqual(["0/1/2/1", "0/2/2/1", "1/0/0/0", "1/0/0/1", "1/1/0/0", "1/1/0/1"]);
+    expect(refetched.every((c) => c.version === 2 && c.channel === "material")).toBe(true);
+    expect(s.stats()).toMatchObject({ version: 2, complete: true, stale: 0 });
+
+    // Away (the level-0 tiles there leave the selection), an edit there (after which tiles
+    // out of the selection keep nothing from the paint), and back: a tile reading a painted
+    // brick is asked again (its cached mesh from before has the old materials), one reading
+    // neither a painted brick nor one the edit changed is not.
+    const away = server.meshCalls.length;
+    s.setCamera([60, 30, 60]);
+    await settle();
+    while (await server.answerOne());
+    expect(balancedTiles(layout, [1, 1, 1], [60, 30, 60], [12, 24, 48]).some((k) => keyText(k) === "0/2/2/1")).toBe(false);
+    const edited: Vec3[][] = [[[7, 3, 7]], [[3, 1, 3]], [[1, 0, 1]], [[0, 0, 0]]];
+    edited.forEach((bricks, level) => server.edit(level, bricks));
+    const far = { min: [58, 26, 58] as Vec3, max: [61, 29, 61] as Vec3 };
+    s.applyCommit({ version: 3, timestamp_ms: 0, kind: "edit", changed: edited, op: { op: "union", leaves: [], box: far } });
+    await settle();
+    while (await server.answerOne());
+    const back = server.meshCalls.length;
+    s.setCamera(camera);
+    await settle();
+    while (await server.answerOne());
+    const again = server.meshCalls.slice(back).map((c) => c.key);
+    expect(again.map(keyText)).toContain("0/2/2/1");
+    const reads = (bricks: Vec3[][], k: TileKey) =>
+      (bricks[k.level] ?? []).some(([x, y, z]) => Math.abs(x - k.x) <= 1 && Math.abs(y - k.y) <= 1 && Math.abs(z - k.z) <= 1);
+    expect(again.filter((k) => !reads(painted, k) && !reads(edited, k))).toEqual([]);
+    expect(server.meshCalls.slice(away, back).length).toBeGreaterThan(0);
+    s.stop();
+  });
+
+  it("does not refetch for a paint while the meshes carry no channel", async () => {
+    const server = new ScriptedServer();
+    const { s } = start(server, [20, 40, 20]);
+    await settle();
+    while (await server.answerOne());
+    const before = server.calls.length;
+    s.applyCommit(paint(2));
+    await settle();
+    while (await server.answerOne());
+    expect(server.calls.length).toBe(before);
+    expect(s.stats()).toMatchObject({ version: 2, complete: true, stale: 0 });
+    // The channel's own level-0 bricks count as changed voxels only when it is drawn.
+    expect(changeBoxes(paint(2), 8)).toEqual([]);
+    expect(changeBoxes(paint(2), 8, "material")).toEqual([box]);
     s.stop();
   });
 });

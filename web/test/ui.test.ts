@@ -34,6 +34,20 @@ describe("edit requests", () => {
     expect(editRequest("divide", "ellipsoid", [9, 9, 9], 3, [64, 64, 64])?.["s_l"]).toBe(0.5);
   });
 
+  it("puts the chosen material on the leaf, and paints the material channel in the chosen mode", () => {
+    const union = editRequest("union", "cuboid", [10, 20, 30], 5, [64, 64, 64], { material: 6, overwrite: "all" });
+    expect(union?.["term"]).toEqual({ cuboid: { origin: [5, 15, 25], size: [11, 11, 11], material: 6 } });
+    expect(union).not.toHaveProperty("channel");
+    const paint = editRequest("paint", "ellipsoid", [10, 20, 30], 4, [64, 64, 64], { material: 3, overwrite: "empty" });
+    expect(paint).toEqual({
+      op: "paint",
+      channel: "material",
+      overwrite: "empty",
+      term: { ellipsoid: { center: [10, 20, 30], radii: [4, 4, 4], material: 3 } },
+      region: { min: [4, 14, 24], max: [17, 27, 37] },
+    });
+  });
+
   it("keeps every primitive within the documented limits and its box", () => {
     for (const p of PRIMITIVES) {
       for (const s of [2, 3, 7, 30]) {
