@@ -169,6 +169,12 @@ fn committed_by_default() -> bool {
     true
 }
 
+/// The most changed bricks whose hashes and value ranges a [`ChangeEvent`] lists (about 45
+/// bytes of JSON each: 200 kB at most per event and subscriber). An edit's event stays well under
+/// it (a radius-30 sphere in 32^3 bricks changes about 30 bricks a level); an import-sized
+/// revert goes over, and its streamers ask the grids.
+pub const EVENT_GRID_LIMIT: usize = 4096;
+
 /// One committed version as the change feed announces it.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ChangeEvent {
@@ -178,6 +184,13 @@ pub struct ChangeEvent {
     pub timestamp_ms: u64,
     /// The bricks whose content changed, per level.
     pub changed: ChangedBricks,
+    /// What each brick of `changed` holds now, in the same order (per level, one entry per
+    /// brick): its content hash and value range, as `levels/{l}` would list it at this version.
+    /// A streamer updates its grids from the event alone, and fetches the new bricks and
+    /// meshes by hash or version. Empty when the commit changed more than
+    /// [`EVENT_GRID_LIMIT`] bricks (then ask the grids), and from servers before it existed.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub bricks: Vec<Vec<LevelBrick>>,
     /// The bricks of attribute channels whose content changed, by channel, per level; only
     /// channels that changed.
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]

@@ -74,6 +74,11 @@ export interface ChangeEvent extends CommitInfo {
   version: number;
   timestamp_ms: number;
   changed: ChangedBricks;
+  /**
+   * What each brick of `changed` holds now (same levels, same order): hash and value range, as
+   * the level grid lists them. Absent when the commit changed too many bricks to list.
+   */
+  bricks?: LevelBrick[][];
   /** Changed bricks of attribute channels, by channel: only channels that changed. */
   channels?: Record<string, ChangedBricks>;
 }

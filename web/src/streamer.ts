@@ -318,13 +318,19 @@ export class Streamer {
       });
     }
     const changed = new Set<string>();
+    // The event says what the changed bricks hold now when it lists them: the grids are
+    // up to date without asking the server (the chunks are asked again otherwise).
+    const listed = ev.bricks?.length === ev.changed.length && ev.changed.every((b, l) => ev.bricks?.[l]?.length === b.length);
     ev.changed.forEach((bricks, level) => {
       const known = this.hashes[level];
-      for (const [x, y, z] of bricks) {
+      bricks.forEach(([x, y, z], i) => {
         changed.add(`${level}/${x}/${y}/${z}`);
-        known?.delete(this.brickIndex(level, x, y, z));
+        const index = this.brickIndex(level, x, y, z);
+        const now = listed ? ev.bricks?.[level]?.[i] : undefined;
+        if (now && known?.has(index)) known.set(index, now);
+        else known?.delete(index);
         this.keys.clear();
-      }
+      });
     });
     this.commitLog.push({ version: ev.version, bricks: changed });
     if (this.commitLog.length > COMMIT_LOG) this.commitLog.shift();

@@ -579,6 +579,60 @@ describe("the streamer", () => {
   });
 });
 
+describe("grids from the change feed", () => {
+  const box = { min: [17, 20, 10] as Vec3, max: [20, 23, 13] as Vec3 };
+  const changed: Vec3[][] = [[[2, 2, 1]], [[1, 1, 0]], [[0, 0, 0]], [[0, 0, 0]]];
+  const close: Vec3 = [18, 14, 6];
+
+  /**
+   * The camera close to where the edit will be, then away; an edit (its event listing the
+   * changed bricks' new hashes, or not); the camera close again: the grid chunks and meshes
+   * asked for after the move back.
+   */
+  async function editThenClose(withBricks: boolean) {
+    const server = new ScriptedServer();
+    const { s } = start(server, close);
+    await settle();
+    while (await server.answerOne());
+    s.setCamera([60, 30, 60]);
+    await settle();
+    while (await server.answerOne());
+    changed.forEach((bricks, level) => server.edit(level, bricks));
+    // The hashes the scripted server's grids give the changed bricks now (revision 1).
+    const bricks = changed.map((level, l) => level.map(([x, y, z]) => ({ hash: `${l}-${x}-${y}-${z}-1`, min: 0, max: 255 })));
+    s.applyCommit({ version: 2, timestamp_ms: 0, kind: "edit", changed, ...(withBricks ? { bricks } : {}), op: { op: "union", leaves: [], box } });
+    await settle();
+    while (await server.answerOne());
+    const [grids, calls] = [server.gridCalls.length, server.calls.length];
+    s.setCamera(close);
+    await settle();
+    while (await server.answerOne());
+    expect(s.stats()).toMatchObject({ version: 2, complete: true, stale: 0 });
+    s.stop();
+    return {
+      grids: server.gridCalls.slice(grids),
+      meshes: server.calls.slice(calls).map((c) => `${keyText(c.key)}/${c.face ?? "t"}@${c.version}`).sort(),
+    };
+  }
+
+  it("takes the changed bricks' hashes from a commit that lists them, and asks no grid chunk for them", async () => {
+    // Tile (0, 2, 2, 1), which reads the changed level-0 brick, is selected close to the edit
+    // and not from away: when the camera comes back its key comes from the hashes, and only the
+    // changed brick's new hash tells it from the mesh fetched before the edit.
+    const away = new Set(balancedTiles(layout, [1, 1, 1], [60, 30, 60], [12, 24, 48]).map(keyText));
+    expect(away.has("0/2/2/1")).toBe(false);
+    expect(balancedTiles(layout, [1, 1, 1], close, [12, 24, 48]).map(keyText)).toContain("0/2/2/1");
+    const listed = await editThenClose(true);
+    const unlisted = await editThenClose(false);
+    expect(listed.grids).toEqual([]);
+    expect(unlisted.grids.filter((g) => g.version === 2).length).toBeGreaterThan(0);
+    // The same meshes either way, the changed tile among them: the hashes the event gave are
+    // the grid's (the old one would have shown the cached mesh of before the edit).
+    expect(listed.meshes).toContain("0/2/2/1/t@2");
+    expect(listed.meshes).toEqual(unlisted.meshes);
+  });
+});
+
 describe("meshes with materials", () => {
   // The paint of the union test's box: the material channel's bricks over it changed on every
   // level, density's none.

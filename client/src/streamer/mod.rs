@@ -98,13 +98,15 @@
 //!
 //! # Edits and reconnects
 //!
-//! For each commit, in version order: every brick in `changed[level]` forgets its hash; the
-//! desired tiles whose inputs include one of them (bricks: the brick itself; meshes: the tiles
-//! that read it, of its level and the next finer one) lose their current content, and the
-//! delivered ones get `Stale`.
-//! Requests in flight whose answers predate the commit and touch a changed brick are aborted. One
-//! grid region per level, the bounding box of the changed bricks that some desired tile reads,
-//! brings the new hashes; content then comes from the cache or one request per new content key.
+//! For each commit, in version order: every brick in `changed[level]` takes the hash the event
+//! lists for it (`bricks`), or forgets it when the event does not list them (a commit of more
+//! than `EVENT_GRID_LIMIT` bricks, an older server); the desired tiles whose inputs include one
+//! of them (bricks: the brick itself; meshes: the tiles that read it, of its level and the next
+//! finer one) lose their current content, and the delivered ones get `Stale`.
+//! Requests in flight whose answers predate the commit and touch a changed brick are aborted.
+//! For hashes the event did not give, one grid region per level, the bounding box of the changed
+//! bricks that some desired tile reads, brings them; content then comes from the cache or one
+//! request per new content key.
 //! Tiles whose inputs did not change are not refetched.
 //!
 //! When the feed ends or fails, the follower reconnects with `since` = the last version it
@@ -118,7 +120,7 @@
 
 use crate::client::{Client, ClientError};
 use bytes::Bytes;
-use isovox_proto::api::{ChangeEvent, LevelGrid, VolumeInfo};
+use isovox_proto::api::{ChangeEvent, LevelBrick, LevelGrid, VolumeInfo};
 use isovox_proto::mesh::{Mesh, TileMesh};
 use isovox_proto::{BrickKey, VolumeLayout};
 use std::collections::{BTreeSet, HashMap};

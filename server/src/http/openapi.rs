@@ -361,8 +361,12 @@ fn write_side(name: Value, limits: &TermLimits) -> (Value, Value) {
         json!({"type": "array", "items": {"type": "array", "items": schema_ref("Triple")}});
     let bound = crate::volume::presence::MAX_COORDINATE;
     let coordinate = json!({"type": "number", "minimum": -bound, "maximum": bound});
+    let brick_now = json!({"type": "object", "required": ["hash", "min", "max"],
+        "properties": {"hash": {"type": "string"}, "min": {"type": "integer"}, "max": {"type": "integer"}}});
     let event = json!({"type": "object", "required": ["version", "timestamp_ms", "changed"],
-        "properties": {"version": {"type": "integer"}, "timestamp_ms": {"type": "integer"}, "changed": changed}});
+        "properties": {"version": {"type": "integer"}, "timestamp_ms": {"type": "integer"}, "changed": changed,
+            "bricks": {"type": "array", "description": "what each brick of changed holds now, in its order (absent past 4096 changed bricks)",
+                "items": {"type": "array", "items": brick_now}}}});
     let mut schemas = json!({
         "EditResponse": {"type": "object", "required": ["version", "previous", "changed", "evaluated", "new_records", "checkpoint", "elapsed_us", "committed"],
             "properties": {"version": {"type": "integer"}, "previous": {"type": "integer"}, "changed": changed,

@@ -7,11 +7,12 @@
 
 use super::{changed_bricks, LiveVolume, VolumeError};
 use crate::store::{StoreError, Vod2};
-use isovox_proto::api::ChangeEvent;
+use isovox_proto::api::{ChangeEvent, ChangedBricks, LevelBrick, EVENT_GRID_LIMIT};
 use isovox_proto::history::{
     CommitInfo, CommitKind, CommitNote, HistoryEntry, HistoryList, Tag, TagList, MAX_TAG_LEN,
 };
-use isovox_proto::vod2::CommitHeader;
+use isovox_proto::layout::BrickKey;
+use isovox_proto::vod2::{CommitHeader, NodeEntry};
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
@@ -92,13 +93,68 @@ pub(crate) fn change_event(vod: &Vod2, at: u64) -> Result<ChangeEvent, StoreErro
         })
         .filter(|(_, changed)| changed.iter().any(|level| !level.is_empty()))
         .collect();
+    let changed = changed_bricks(vod.layout(), nodes_of(0));
+    let bricks = changed_grid(vod, changes, &changed)?;
     Ok(ChangeEvent {
         version: h.version,
         timestamp_ms: h.timestamp_ms,
-        changed: changed_bricks(vod.layout(), nodes_of(0)),
+        changed,
+        bricks,
         channels,
         info: note.info,
     })
+}
+
+/// What each density brick of `changed` holds after the commit whose record's changes are
+/// `changes`: its hash and value range, read from the entries the record wrote (brick headers,
+/// no payload), in `changed`'s order. Empty past [`EVENT_GRID_LIMIT`] bricks.
+///
+/// # Errors
+/// An entry or a brick header in the record is malformed.
+fn changed_grid(
+    vod: &Vod2,
+    changes: &[u8],
+    changed: &ChangedBricks,
+) -> Result<Vec<Vec<LevelBrick>>, StoreError> {
+    if changed.iter().map(Vec::len).sum::<usize>() > EVENT_GRID_LIMIT {
+        return Ok(Vec::new());
+    }
+    let snap = vod.head_ref();
+    let layout = snap.layout();
+    let per_stream = layout.node_count();
+    let mut now = HashMap::new();
+    for (node, raw) in CommitHeader::changes(changes).filter(|(node, _)| *node < per_stream) {
+        // A node written twice by one record: the later entry is what the version holds.
+        now.insert(node, raw);
+    }
+    changed
+        .iter()
+        .enumerate()
+        .map(|(level, bricks)| {
+            bricks
+                .iter()
+                .map(|&[x, y, z]| {
+                    let key = BrickKey {
+                        level: level as u8,
+                        x,
+                        y,
+                        z,
+                    };
+                    let raw = now.get(&layout.node_index(key)).ok_or_else(|| {
+                        StoreError::Internal(format!("brick {key} changed but has no entry"))
+                    })?;
+                    let entry = NodeEntry::decode(*raw, layout.voxel_type(), vod.committed_len())?;
+                    let stored = snap.stored_entry(entry)?;
+                    let (min, max) = stored.min_max();
+                    Ok(LevelBrick {
+                        hash: format!("{:016x}", stored.content_hash(layout)),
+                        min,
+                        max,
+                    })
+                })
+                .collect()
+        })
+        .collect()
 }
 
 /// Whether `tag` may name a version: 1 to 64 of `[A-Za-z0-9._-]`, not all digits (so that

@@ -904,6 +904,67 @@ fn since_after_the_head_is_a_conflict() {
     a.expect_problem(400, "Last-Event-ID x1");
 }
 
+/// A commit's event lists, for each brick it changed, the hash and value range the level grid
+/// gives that brick at the commit's version (asked brick by brick with `?region=&version=`),
+/// so a streamer refreshes its grid from the event alone; an undo's event too.
+#[test]
+fn change_events_list_what_each_changed_brick_holds_as_the_grid_does() {
+    let s = Server::start(1000);
+    let c = client();
+    let h = head_version(&c, &s);
+    let edits = [
+        json!({"op": "union", "term": {"cuboid": {"origin": [10, 20, 12], "size": [20, 12, 9]}}}),
+        json!({"op": "difference", "term": {"ellipsoid": {"center": [40, 15, 40], "radii": [9, 7, 9]}}}),
+    ];
+    let last = edits
+        .iter()
+        .map(|body| edit_ok(&c, &s, SECRET1, body)["version"].as_u64().unwrap())
+        .last()
+        .unwrap();
+    let undo = Answer::read(
+        c.post(s.url("/v1/volumes/w/undo"))
+            .header(AUTHORIZATION, format!("Bearer {SECRET1}"))
+            .header(CONTENT_TYPE, "application/json")
+            .body(json!({ "version": last }).to_string())
+            .send()
+            .unwrap(),
+    );
+    assert_eq!(undo.status, StatusCode::OK, "undo: {}", undo.text());
+    let a = changes_since(&c, &s, h);
+    assert_eq!(a.status, StatusCode::OK, "{}", a.text());
+    let list = a.json();
+    let events = list["changes"].as_array().unwrap();
+    assert_eq!(events.len(), 3, "{list}");
+    let mut checked = 0;
+    for ev in events {
+        let version = ev["version"].as_u64().unwrap();
+        let changed = ev["changed"].as_array().unwrap();
+        let bricks = ev["bricks"]
+            .as_array()
+            .unwrap_or_else(|| panic!("no bricks: {ev}"));
+        assert_eq!(bricks.len(), changed.len(), "{ev}");
+        for (level, (keys, now)) in changed.iter().zip(bricks).enumerate() {
+            let (keys, now) = (keys.as_array().unwrap(), now.as_array().unwrap());
+            assert_eq!(keys.len(), now.len(), "level {level} of {ev}");
+            for (k, listed) in keys.iter().zip(now) {
+                let [x, y, z] = [0, 1, 2].map(|a| k[a].as_u64().unwrap());
+                let url = format!(
+                    "/v1/volumes/w/levels/{level}?region={x},{y},{z},{},{},{}&version={version}",
+                    x + 1,
+                    y + 1,
+                    z + 1
+                );
+                let g = Answer::read(c.get(s.url(&url)).send().unwrap());
+                assert_eq!(g.status, StatusCode::OK, "{url}: {}", g.text());
+                let grid = g.json();
+                assert_eq!(&grid["bricks"][0], listed, "{url}");
+                checked += 1;
+            }
+        }
+    }
+    assert!(checked > 10, "{checked} bricks checked");
+}
+
 /// A log written to a pipe or a file carries no ANSI colour codes (they are for terminals), and
 /// `--addr` takes a host name, as every server does.
 #[test]

@@ -187,6 +187,12 @@ impl HashBook {
         errors
     }
 
+    /// Brick `b` changed and holds `hash` now (a commit event said so).
+    pub(super) fn learn(&mut self, b: BrickKey, hash: u64) {
+        self.hashes.insert(b, hash);
+        self.sources.remove(&b);
+    }
+
     /// Brick `b` changed: its hash is unknown again.
     pub(super) fn forget(&mut self, b: BrickKey) {
         self.hashes.remove(&b);

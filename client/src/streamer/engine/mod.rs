@@ -530,12 +530,21 @@ impl Engine {
         if ev.version <= self.version {
             return;
         }
+        // What the changed bricks hold now, when the event lists it (aligned with `changed`).
+        let listed = (ev.bricks.len() == ev.changed.len()
+            && ev
+                .bricks
+                .iter()
+                .zip(&ev.changed)
+                .all(|(b, c)| b.len() == c.len()))
+        .then_some(&ev.bricks);
         for (level, changed) in ev.changed.iter().enumerate() {
             if level >= self.layout.levels() as usize || changed.is_empty() {
                 continue;
             }
+            let now = listed.map(|l| l[level].as_slice());
             let level = level as u8;
-            let (affected, read) = self.changed_bricks(level, changed);
+            let (affected, read) = self.changed_bricks(level, changed, now);
             // Grid regions in flight answer for the version before: abort those that cover a
             // changed brick (they start again at the new version if still needed).
             for job in self.scheduler.covering(level, changed) {
@@ -555,12 +564,15 @@ impl Engine {
         self.scheduler.replan_needed = true;
     }
 
-    /// Forgets the hashes of the bricks of `level` a commit `changed`; returns the desired
-    /// tiles that read one of them, and those of them some desired tile reads.
+    /// Learns the new hashes of the bricks of `level` a commit `changed` from `now` (what the
+    /// event says they hold, in the same order), or forgets them when it does not say; returns
+    /// the desired tiles that read one of them, and those of them some desired tile reads whose
+    /// new hash must come from a grid region.
     fn changed_bricks(
         &mut self,
         level: u8,
         changed: &[[u32; 3]],
+        now: Option<&[LevelBrick]>,
     ) -> (BTreeSet<BrickKey>, Vec<BrickKey>) {
         let g = self.layout.grid(level);
         let mut affected = BTreeSet::new();
@@ -571,7 +583,7 @@ impl Engine {
             TileKind::Bricks => Vec::new(),
             TileKind::Meshes { .. } => self.desired.readers(&self.layout, level),
         };
-        for &p in changed {
+        for (i, &p) in changed.iter().enumerate() {
             if (0..3).any(|a| p[a] >= g[a]) {
                 continue;
             }
@@ -581,7 +593,13 @@ impl Engine {
                 y: p[1],
                 z: p[2],
             };
-            self.book.forget(b);
+            let learnt = now
+                .and_then(|now| now.get(i))
+                .and_then(|e| u64::from_str_radix(&e.hash, 16).ok());
+            match learnt {
+                Some(hash) => self.book.learn(b, hash),
+                None => self.book.forget(b),
+            }
             let mut is_read = false;
             match self.kind {
                 TileKind::Bricks => {
@@ -603,7 +621,7 @@ impl Engine {
                     }
                 }
             }
-            if is_read {
+            if is_read && learnt.is_none() {
                 read.push(b);
             }
         }
