@@ -24,9 +24,10 @@
 // HTTP/1.1 connections per host and the change feed holds one), and a request no tile needs any
 // more (the camera moved on) is aborted.
 //
-// Edits. `applyCommit` forgets the hashes of the changed bricks, aborts the requests they make
-// stale, and plans again: the chunks holding them are fetched at the new version, and the tiles
-// whose inputs changed get a new content key and are refetched, ahead of everything else. Not
+// Edits. `applyCommit` takes the changed bricks' new hashes from the event (`bricks`; when it
+// does not list them, it forgets them and the chunks holding them are fetched at the new
+// version), aborts the requests they make stale, and plans again: the tiles whose inputs
+// changed get a new content key and are refetched, ahead of everything else. Not
 // all of them: a commit says which level-0 voxels it can have changed (`changeBoxes`: an edit's
 // `op.box` within its changed level-0 bricks), and a tile or strip none of whose stored voxels is
 // made of those (`tile.ts` `reachedBy`: the stencil of its reads, 2^k level-0 voxels per voxel of
