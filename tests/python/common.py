@@ -17,11 +17,14 @@ def fetch(url, headers=None):
         return r.status, dict(r.headers), r.read()
 
 
-def level_voxels(base, level, dtype, region=None):
+def level_voxels(base, level, dtype, region=None, channel=None):
     """Level `level` of the volume at `base` (`.../v1/volumes/NAME`) as an array indexed
     [z, y, x], from `/levels/{level}?format=voxels` (x fastest, little endian). `region` is
-    (x0, y0, z0, x1, y1, z1), max exclusive."""
+    (x0, y0, z0, x1, y1, z1), max exclusive; `channel` names an attribute channel to read
+    instead of density."""
     url = f"{base}/levels/{level}?format=voxels"
+    if channel is not None:
+        url += f"&channel={channel}"
     if region is None:
         info = fetch_json(base)
         dims = info["levels"][level]["dims"]

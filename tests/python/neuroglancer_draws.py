@@ -7,6 +7,12 @@ pixel is bright exactly where its voxel is at least the surface value, for at le
 slice (the rest is the one-voxel rim where linear sampling blends both sides). The screenshot is
 retaken until it agrees or 90 s pass, since Neuroglancer draws coarse levels first.
 
+The volume's material channel, opened from the precomputed view's `material/` source (uint32
+labels in the compressed_segmentation encoding) as a segmentation layer, must be drawn in more
+than one colour, each material's voxels in a colour of their own: for each material covering at
+least 0.5% of the slice, at least 90% of its pixels are within 12 levels of their median colour,
+and the medians of any two of them differ.
+
 Usage: python neuroglancer_draws.py --url http://127.0.0.1:PORT --volume demo --out DIR
 """
 
@@ -59,9 +65,18 @@ def main():
         print(f"{view}: {agreement:.4f} of the slice's pixels agree with its voxels")
         if agreement < AGREEMENT:
             failures.append(f"{view}: only {agreement:.4f} of the pixels agree (needs {AGREEMENT})")
+    channels = [c["name"] for c in info.get("channels", [])]
+    if "material" not in channels:
+        failures.append(f"the demo volume should have a material channel, it has {channels}")
+    else:
+        labels = level_voxels(base, 0, np.uint8, (x0, y0, z, x0 + wx, y0 + wy, z + 1), channel="material")[0]
+        ok, why = draw_segmentation(f"precomputed://{base}/precomputed/material", (x0, y0, z), (wx, wy), labels, a.out)
+        print(f"segmentation: {why}")
+        if not ok:
+            failures.append(f"segmentation: {why}")
     if failures:
         sys.exit("; ".join(failures))
-    print("neuroglancer draws the volume from both views")
+    print("neuroglancer draws the volume from both views, and its materials as a segmentation")
 
 
 def draw(view, source, origin, size, inside, out_dir):
@@ -110,6 +125,73 @@ def draw(view, source, origin, size, inside, out_dir):
         if image is not None:
             image.save(os.path.join(out_dir, f"neuroglancer-{view}.png"))
         return best
+    finally:
+        browser.stdin.close()
+        try:
+            browser.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            browser.kill()
+
+
+def draw_segmentation(source, origin, size, labels, out_dir):
+    """Draws `source` as a segmentation layer over the window `origin`, `size` of plane z; `labels`
+    (indexed [y, x]) are its values there. Returns (agrees, why)."""
+    ids = [int(i) for i in np.unique(labels) if i != 0 and (labels == i).mean() >= 0.005]
+    if len(ids) < 2:
+        return False, f"the slice should hold two materials or more on 0.5% of it, it holds {ids}"
+    viewer = neuroglancer.Viewer()
+    with viewer.txn() as s:
+        s.layers["material"] = neuroglancer.SegmentationLayer(source=source, segments=ids, selected_alpha=1.0)
+        s.layout = "xy"
+        s.show_axis_lines = False
+        s.show_scale_bar = False
+        s.show_default_annotations = False
+    browser = subprocess.Popen(
+        ["node", os.path.join(os.path.dirname(__file__), "open_page.mjs"),
+         viewer.get_viewer_url(), str(WIDTH), str(HEIGHT)],
+        stdin=subprocess.PIPE,
+    )
+    try:
+        deadline = time.time() + 60
+        while not viewer.state.dimensions.names and time.time() < deadline:
+            time.sleep(0.2)
+        names = list(viewer.state.dimensions.names)
+        if sorted(names) != ["x", "y", "z"]:
+            return False, f"the viewer's dimensions are {names}, not x, y, z"
+        (x0, y0, z), (wx, wy) = origin, size
+        centre = {"x": x0 + wx / 2, "y": y0 + wy / 2, "z": z + 0.5}
+        with viewer.txn() as s:
+            s.display_dimensions = ["x", "y", "z"]
+            s.position = [centre[n] for n in names]
+            s.cross_section_scale = 1
+        why, image = "no screenshot", None
+        deadline = time.time() + 90
+        while time.time() < deadline:
+            shot = viewer.screenshot(size=[WIDTH, HEIGHT])
+            image = Image.open(io.BytesIO(shot.screenshot.image)).convert("RGB")
+            pixels = np.asarray(image).astype(int)
+            left, top = (WIDTH - wx) // 2, (HEIGHT - wy) // 2
+            window = pixels[top:top + wy, left:left + wx]
+            medians, agree = {}, True
+            for i in ids:
+                mine = window[labels == i]
+                median = np.median(mine, axis=0)
+                near = (np.abs(mine - median).max(axis=1) <= 12).mean()
+                medians[i] = median
+                if near < 0.9 or median.max() < 30:
+                    agree, why = False, f"material {i}: {near:.2f} of its pixels near its colour {median.tolist()}"
+                    break
+            if agree:
+                same = [(i, j) for i in ids for j in ids if i < j and np.abs(medians[i] - medians[j]).max() <= 12]
+                if same:
+                    agree, why = False, f"materials {same} are drawn in the same colour"
+                else:
+                    why = f"{len(ids)} materials {ids} drawn in {len(ids)} colours " + str({i: medians[i].tolist() for i in ids})
+                    break
+            time.sleep(1)
+        if image is not None:
+            image.save(os.path.join(out_dir, "neuroglancer-segmentation.png"))
+        return agree, why
     finally:
         browser.stdin.close()
         try:

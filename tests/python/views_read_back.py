@@ -50,6 +50,26 @@ def ome_zarr(root, level):
     return np.asarray(nodes[0].data[level])
 
 
+def tensorstore_segmentation(root, channel, level):
+    store = ts.open(
+        {"driver": "neuroglancer_precomputed", "kvstore": f"{root}/precomputed/{channel}/", "scale_index": level}
+    ).result()
+    return np.asarray(store.read().result())[..., 0].transpose(2, 1, 0)
+
+
+def cloud_volume_segmentation(root, channel, level):
+    cv = CloudVolume(f"precomputed://{root}/precomputed/{channel}", mip=level, progress=False, cache=False)
+    return np.asarray(cv[:, :, :])[..., 0].transpose(2, 1, 0)
+
+
+# The attribute channels' data sources of the precomputed view: uint32 labels in the
+# compressed_segmentation encoding, which both decode.
+SEGMENTATION_CLIENTS = {
+    "tensorstore neuroglancer_precomputed": tensorstore_segmentation,
+    "cloud-volume": cloud_volume_segmentation,
+}
+
+
 CLIENTS = {
     "tensorstore zarr3": tensorstore_zarr3,
     "tensorstore neuroglancer_precomputed": tensorstore_precomputed,
@@ -108,6 +128,16 @@ def main():
             for client, read in CLIENTS.items():
                 check(failures, f"{name} level {k} via {client}", read(base, k), before[k])
         print(f"{name}: {levels} levels of {info['dims']} {info['voxel_type']} read back equal by {len(CLIENTS)} clients")
+        for channel in info.get("channels", []):
+            cname = channel["name"]
+            dtype_c = {"u8": np.uint8, "u16": np.uint16}[channel["type"]]
+            for k in range(levels):
+                want = level_voxels(base, k, dtype_c, channel=cname).astype(np.uint32)
+                if k == 0 and len(np.unique(want)) < 2:
+                    failures.append(f"{name} channel {cname}: one value only; the check would prove little")
+                for client, read in SEGMENTATION_CLIENTS.items():
+                    check(failures, f"{name} channel {cname} level {k} via {client}", read(base, cname, k), want)
+            print(f"{name}: channel {cname}, {levels} levels read back equal as segmentations by {len(SEGMENTATION_CLIENTS)} clients")
 
         old = info["version"]
         new = edit(base, a.token, info)

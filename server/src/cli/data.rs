@@ -5,8 +5,11 @@ use anyhow::{anyhow, bail, Context};
 use clap::{Args, ValueEnum};
 use isovox_proto::VolumeLayout;
 use isovox_server::formats::ViewKind;
-use isovox_server::generate::{build_scene, EllipsoidSource, WorldSource};
-use isovox_server::store::build::{build_file, sibling, FileFormat};
+use isovox_server::generate::{
+    build_scene, build_scene_with_materials, world_header, EllipsoidSource, WorldMaterials,
+    WorldSource,
+};
+use isovox_server::store::build::{build_file, build_streams_file, sibling, FileFormat};
 use isovox_server::store::codec::{Compression, DEFAULT_ZSTD_LEVEL};
 use isovox_server::store::inspect::inspect as inspect_vod2;
 use isovox_server::store::raw::{export_raw, rawvox_header, LevelBox, RawInput, RAWVOX_MAGIC};
@@ -147,6 +150,10 @@ pub(crate) struct GenerateArgs {
     /// Noise seed (world).
     #[arg(long, default_value_t = 1)]
     pub seed: u32,
+    /// With a u8 `material` channel (world, scene): rock, soil, grass, sand and an ore vein,
+    /// and marble for the scene's buildings, as the demo world has.
+    #[arg(long)]
+    pub materials: bool,
     #[command(flatten)]
     pub compression: CompressionArgs,
 }
@@ -504,6 +511,28 @@ fn write_through_tmp(
 pub(super) fn generate(a: GenerateArgs) -> anyhow::Result<()> {
     let layout = VolumeLayout::new(a.dims, a.brick, a.voxel_type.into())?;
     let compression = a.compression.compression();
+    if a.materials {
+        let world = WorldSource::new(layout.clone(), a.seed);
+        return match a.dataset {
+            Dataset::Ellipsoid => bail!("--materials is for world and scene"),
+            Dataset::World => {
+                let materials = WorldMaterials::new(world.clone());
+                let header = world_header(&layout)?;
+                build_streams_file(
+                    &a.output,
+                    header,
+                    &[&world, &materials],
+                    &options(compression),
+                )?;
+                Ok(())
+            }
+            Dataset::Scene => Ok(build_scene_with_materials(
+                &a.output,
+                &world,
+                &options(compression),
+            )?),
+        };
+    }
     match a.dataset {
         Dataset::Ellipsoid => build_to(
             &a.output,

@@ -14,6 +14,7 @@
 //!
 //! `docs/formats.md` describes the views, their version-pinned forms and the imports.
 
+pub mod compressed_segmentation;
 pub mod export;
 pub mod import;
 pub mod precomputed;

@@ -8,6 +8,13 @@
 //!                                         k, cropped to the level's extent
 //! ```
 //!
+//! Each attribute channel (`docs/channels.md`) is a data source of its own under
+//! `{channel}/`: `{channel}/info` says `"type": "segmentation"`, uint32 values (u8 and u16
+//! channels widened: the encoding below is defined for uint32 and uint64 only) and the
+//! `compressed_segmentation` encoding in blocks of 8^3, and `{channel}/{k}/{range}` is the
+//! channel's brick so encoded ([`super::compressed_segmentation`]): Neuroglancer opens it as a
+//! segmentation layer.
+//!
 //! A raw chunk is the voxels x fastest, then y, then z (little endian), as a brick is; chunks
 //! at the volume's far faces are cropped (`x1 = min(x0 + b, size)`), as Neuroglancer checks the
 //! byte count. A range that is not a chunk's (misaligned, wrong end) is a 400; a chunk past the
@@ -22,6 +29,20 @@ use serde_json::{json, Value};
 
 /// The `info` document.
 pub fn info(layout: &VolumeLayout, voxel_scale: [f32; 3]) -> Value {
+    scales_info(layout, voxel_scale, Source::Image)
+}
+
+/// What a data source of the view holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Source {
+    /// Density, raw.
+    Image,
+    /// An attribute channel, as uint32 labels in `compressed_segmentation`.
+    Segmentation,
+}
+
+/// The `info` document of a data source of `layout`'s levels.
+fn scales_info(layout: &VolumeLayout, voxel_scale: [f32; 3], source: Source) -> Value {
     let b = layout.brick();
     let scales: Vec<Value> = (0..layout.levels())
         .map(|k| {
@@ -32,14 +53,28 @@ pub fn info(layout: &VolumeLayout, voxel_scale: [f32; 3]) -> Value {
                 "resolution": voxel_scale.map(|s| f64::from(s) * f),
                 "voxel_offset": [0, 0, 0],
                 "chunk_sizes": [[b, b, b]],
-                "encoding": "raw"
             })
         })
+        .map(|mut scale| {
+            match source {
+                Source::Image => scale["encoding"] = json!("raw"),
+                Source::Segmentation => {
+                    scale["encoding"] = json!("compressed_segmentation");
+                    scale["compressed_segmentation_block_size"] =
+                        json!(super::compressed_segmentation::BLOCK);
+                }
+            }
+            scale
+        })
         .collect();
+    let (kind, data_type) = match source {
+        Source::Image => ("image", super::zarr::data_type(layout.voxel_type())),
+        Source::Segmentation => ("segmentation", "uint32"),
+    };
     json!({
         "@type": "neuroglancer_multiscale_volume",
-        "type": "image",
-        "data_type": super::zarr::data_type(layout.voxel_type()),
+        "type": kind,
+        "data_type": data_type,
         "num_channels": 1,
         "scales": scales
     })
@@ -63,10 +98,42 @@ pub fn chunk_name(layout: &VolumeLayout, level: u8, brick: [u32; 3]) -> String {
 /// # Errors
 /// See [`super::view::resolve`].
 pub fn document<'s>(snap: &'s Snapshot, path: &str) -> Result<Document<'s>, ViewError> {
+    // A channel's source: its name first (names start with a letter, levels are numbers).
+    if let Some((first, rest)) = path.split_once('/') {
+        if first.starts_with(|c: char| c.is_ascii_lowercase()) {
+            let view = snap
+                .header()
+                .stream_named(first)
+                .and_then(|stream| snap.channel_views().get(stream - 1))
+                .ok_or_else(|| {
+                    let names: Vec<&str> = snap
+                        .header()
+                        .channels
+                        .iter()
+                        .map(|c| c.name.as_str())
+                        .collect();
+                    ViewError::NoSuchDocument(format!(
+                        "the volume has no channel {first:?}; its channels: {names:?}"
+                    ))
+                })?;
+            return source_document(view, Some(view), rest, Source::Segmentation);
+        }
+    }
+    source_document(snap, None, path, Source::Image)
+}
+
+/// What `path` names in the data source `source` of `snap` (`view`: the shared channel view
+/// when `snap` is one).
+fn source_document<'s>(
+    snap: &'s Snapshot,
+    view: Option<&'s std::sync::Arc<Snapshot>>,
+    path: &str,
+    source: Source,
+) -> Result<Document<'s>, ViewError> {
     let layout = snap.layout();
     match path.split_once('/') {
         None if path == "info" => Ok(Document::Metadata(
-            serde_json::to_vec_pretty(&info(layout, snap.header().voxel_scale))
+            serde_json::to_vec_pretty(&scales_info(layout, snap.header().voxel_scale, source))
                 .unwrap_or_default(),
         )),
         Some((level, chunk)) => {
@@ -78,11 +145,15 @@ pub fn document<'s>(snap: &'s Snapshot, path: &str) -> Result<Document<'s>, View
             Ok(Document::Chunk(Chunk {
                 key,
                 stored: snap.stored(key)?,
-                encoding: ChunkEncoding::Raw { extent },
+                encoding: match source {
+                    Source::Image => ChunkEncoding::Raw { extent },
+                    Source::Segmentation => ChunkEncoding::CompressedSegmentation { extent },
+                },
+                view,
             }))
         }
         None => Err(ViewError::NoSuchDocument(format!(
-            "{path:?} is not in the precomputed view: it has info and {{level}}/{{x0}}-{{x1}}_{{y0}}-{{y1}}_{{z0}}-{{z1}}"
+            "{path:?} is not in the precomputed view: it has info, {{level}}/{{x0}}-{{x1}}_{{y0}}-{{y1}}_{{z0}}-{{z1}}, and {{channel}}/ for each channel"
         ))),
     }
 }

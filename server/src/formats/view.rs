@@ -97,6 +97,9 @@ pub struct Chunk<'s> {
     pub stored: StoredBrick<'s>,
     /// How the chunk's bytes are made from it.
     pub encoding: ChunkEncoding,
+    /// The attribute channel's view the brick is read from, when it is a channel's (the
+    /// snapshot resolved is then that view).
+    pub view: Option<&'s Arc<Snapshot>>,
 }
 
 /// How a chunk's bytes are made from its brick.
@@ -108,6 +111,12 @@ pub enum ChunkEncoding {
     /// The decoded voxels, cropped to this extent (x, y, z) when it is smaller than the brick
     /// (precomputed's edge chunks).
     Raw {
+        /// Voxels kept per axis.
+        extent: [u32; 3],
+    },
+    /// The decoded values cropped to this extent, as uint32 labels in Neuroglancer's
+    /// `compressed_segmentation` (a channel's chunks in the precomputed view).
+    CompressedSegmentation {
         /// Voxels kept per axis.
         extent: [u32; 3],
     },
@@ -138,6 +147,17 @@ impl Chunk<'_> {
             ChunkEncoding::Raw { extent } => {
                 Ok(self.crop(layout, extent, bricks.voxels(hash, &self.stored, layout)?))
             }
+            ChunkEncoding::CompressedSegmentation { extent } => {
+                let voxels = self.crop(layout, extent, bricks.voxels(hash, &self.stored, layout)?);
+                let labels: Vec<u32> = match layout.voxel_type().bytes() {
+                    1 => voxels.iter().map(|&v| u32::from(v)).collect(),
+                    _ => voxels
+                        .chunks_exact(2)
+                        .map(|p| u32::from(u16::from_le_bytes([p[0], p[1]])))
+                        .collect(),
+                };
+                Ok(super::compressed_segmentation::encode_chunk(&labels, extent).into())
+            }
         }
     }
 
@@ -161,6 +181,8 @@ impl Chunk<'_> {
             ChunkEncoding::Raw { extent } => bricks
                 .get(hash, layout.brick_bytes(), Form::Raw)
                 .map(|voxels| self.crop(layout, extent, voxels)),
+            // Encoded on the CPU queue, not here.
+            ChunkEncoding::CompressedSegmentation { .. } => None,
         })
     }
 
@@ -278,6 +300,7 @@ impl MakeChunk {
             key: self.key,
             stored: self.snap.stored(self.key)?,
             encoding: self.encoding,
+            view: None,
         };
         Ok(ViewAnswer {
             version: self.snap.version,
@@ -343,16 +366,19 @@ fn read_snapshot(
     let body = match resolve(kind, snap, name, path)? {
         Document::Metadata(json) => ViewBody::Json(json.into()),
         Document::Absent => ViewBody::Absent,
-        Document::Chunk(chunk) => match chunk.ready_body(snap, bricks)? {
-            Some(body) => ViewBody::Chunk(body),
-            None => {
-                return Ok(ViewRead::Make(MakeChunk {
-                    snap: shared(),
-                    key: chunk.key,
-                    encoding: chunk.encoding,
-                }))
+        // A channel's chunk is read through the channel's view (its layout has the channel's type).
+        Document::Chunk(chunk) => {
+            match chunk.ready_body(chunk.view.map_or(snap, |v| &**v), bricks)? {
+                Some(body) => ViewBody::Chunk(body),
+                None => {
+                    return Ok(ViewRead::Make(MakeChunk {
+                        snap: chunk.view.cloned().unwrap_or_else(shared),
+                        key: chunk.key,
+                        encoding: chunk.encoding,
+                    }))
+                }
             }
-        },
+        }
     };
     Ok(ViewRead::Ready(ViewAnswer {
         version: snap.version,

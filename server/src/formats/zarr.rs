@@ -150,6 +150,7 @@ pub fn document<'s>(snap: &'s Snapshot, name: &str, path: &str) -> Result<Docume
                 key,
                 stored,
                 encoding: ChunkEncoding::ZstdFrame,
+                view: None,
             }))
         }
         _ => Err(ViewError::NoSuchDocument(format!(

@@ -92,6 +92,7 @@ fn odd_volumes(data: &Path) {
         .args([
             "generate",
             "world",
+            "--materials",
             "--dims",
             "197,77,141",
             "--brick",

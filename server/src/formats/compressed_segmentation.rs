@@ -1,0 +1,187 @@
+//! Neuroglancer's `compressed_segmentation` encoding of a label chunk (uint32 values), which
+//! Neuroglancer draws as a segmentation and tensorstore and cloud-volume decode.
+//!
+//! The chunk is cut into blocks of [`BLOCK`] voxels (the last ones of an axis padded to a whole
+//! block); each block stores the sorted distinct values it holds (its lookup table) and, per
+//! voxel, the index of its value in that table, packed in 0, 1, 2, 4, 8, 16 or 32 bits into
+//! little-endian 32-bit words. The data starts with one 64-bit header per block, x fastest: the
+//! table's offset (24 bits) and the bits per index (8 bits) in the first word, the offset of the
+//! packed indices in the second; offsets in 32-bit words from the start of the channel's data.
+//! A precomputed chunk holds one such encoding per channel, after one u32 per channel giving
+//! where it starts (in words from the chunk's start): here one channel, so the chunk is the word
+//! 1 followed by the encoding. Blocks with the same table share one copy of it.
+//!
+//! No Rust crate implements the encoding (the PyPI `compressed-segmentation` package and
+//! tensorstore are C++); this one is checked against both by the formats tests.
+
+use std::collections::HashMap;
+
+/// The block edge, per axis: Neuroglancer's default, and what `info` declares.
+pub const BLOCK: [u32; 3] = [8, 8, 8];
+
+/// The precomputed chunk of `values` (one channel of uint32 labels, x fastest, then y, then z)
+/// of `size` voxels.
+///
+/// # Panics
+/// When `values` does not hold `size` voxels: a caller's bug.
+pub fn encode_chunk(values: &[u32], size: [u32; 3]) -> Vec<u8> {
+    assert_eq!(
+        values.len(),
+        size.iter().map(|&s| s as usize).product::<usize>(),
+        "values of a {size:?} chunk"
+    );
+    let grid = [0, 1, 2].map(|a| size[a].div_ceil(BLOCK[a]));
+    let blocks = grid.iter().map(|&g| g as usize).product::<usize>();
+    // One channel: its encoding starts after the one offset word.
+    let mut words: Vec<u32> = vec![1];
+    let start = words.len();
+    words.resize(start + 2 * blocks, 0);
+    let mut tables: HashMap<Vec<u32>, u32> = HashMap::new();
+    let mut block = Vec::with_capacity(BLOCK.iter().map(|&b| b as usize).product());
+    let mut i = 0;
+    for bz in 0..grid[2] {
+        for by in 0..grid[1] {
+            for bx in 0..grid[0] {
+                block_values(values, size, [bx, by, bz], &mut block);
+                let mut table = block.clone();
+                table.sort_unstable();
+                table.dedup();
+                let bits = index_bits(table.len());
+                let packed_at = (words.len() - start) as u32;
+                pack(&block, &table, bits, &mut words);
+                let table_at = match tables.get(&table) {
+                    Some(&at) => at,
+                    None => {
+                        let at = (words.len() - start) as u32;
+                        words.extend_from_slice(&table);
+                        tables.insert(table, at);
+                        at
+                    }
+                };
+                words[start + 2 * i] = table_at | (bits << 24);
+                words[start + 2 * i + 1] = packed_at;
+                i += 1;
+            }
+        }
+    }
+    words.iter().flat_map(|w| w.to_le_bytes()).collect()
+}
+
+/// The values of block `b` of a chunk of `size`, x fastest, padded past the chunk's far faces
+/// with the block's first value (the format lets any value of the block pad it).
+fn block_values(values: &[u32], size: [u32; 3], b: [u32; 3], out: &mut Vec<u32>) {
+    out.clear();
+    let lo = [0, 1, 2].map(|a| b[a] * BLOCK[a]);
+    let first = values[index(size, lo)];
+    for z in 0..BLOCK[2] {
+        for y in 0..BLOCK[1] {
+            for x in 0..BLOCK[0] {
+                let p = [lo[0] + x, lo[1] + y, lo[2] + z];
+                let inside = (0..3).all(|a| p[a] < size[a]);
+                out.push(if inside {
+                    values[index(size, p)]
+                } else {
+                    first
+                });
+            }
+        }
+    }
+}
+
+fn index(size: [u32; 3], p: [u32; 3]) -> usize {
+    p[0] as usize + size[0] as usize * (p[1] as usize + size[1] as usize * p[2] as usize)
+}
+
+/// Bits per index for a table of `n` values: 0 for one value, else the smallest of 1, 2, 4, 8,
+/// 16 and 32 that can count to `n`.
+fn index_bits(n: usize) -> u32 {
+    if n <= 1 {
+        return 0;
+    }
+    [1, 2, 4, 8, 16, 32]
+        .into_iter()
+        .find(|&bits| bits == 32 || n <= 1usize << bits)
+        .unwrap_or(32)
+}
+
+/// Appends the indices of `block`'s values in `table`, `bits` each, packed into words from
+/// their low bits up.
+fn pack(block: &[u32], table: &[u32], bits: u32, words: &mut Vec<u32>) {
+    if bits == 0 {
+        return;
+    }
+    let per_word = 32 / bits as usize;
+    for group in block.chunks(per_word) {
+        let mut word = 0u32;
+        for (j, v) in group.iter().enumerate() {
+            // The table is sorted and holds every value of the block.
+            let k = table.binary_search(v).unwrap_or(0) as u32;
+            word |= k << (j as u32 * bits);
+        }
+        words.push(word);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn words(bytes: &[u8]) -> Vec<u32> {
+        bytes
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect()
+    }
+
+    #[test]
+    fn one_value_takes_no_index_bits() {
+        // A 2x2x2 chunk of 7s: one block (padded with 7), no packed words, table [7].
+        // Words: channel offset 1; header: table at 2 (after the 2 header words), 0 bits;
+        // indices at 2 (none); the table.
+        let w = words(&encode_chunk(&[7; 8], [2, 2, 2]));
+        assert_eq!(w, vec![1, 2, 2, 7]);
+    }
+
+    #[test]
+    fn two_values_pack_one_bit_each_x_fastest() {
+        // A 8x1x1 chunk 5 9 5 5 9 9 9 5 in one 8x8x8 block: table [5, 9], 1 bit each. The
+        // block's 512 voxels are 8 given then padding with the first value (5, index 0): 16
+        // words of indices, the first 0b0111_0010 (bits 1, 4, 5, 6 set), the rest 0.
+        let w = words(&encode_chunk(&[5, 9, 5, 5, 9, 9, 9, 5], [8, 1, 1]));
+        assert_eq!(w[0], 1);
+        // Header: the table after the 16 index words, at 2 + 16 = 18; 1 bit; indices at 2.
+        assert_eq!(w[1], 18 | (1 << 24));
+        assert_eq!(w[2], 2);
+        assert_eq!(w[3], 0b0111_0010);
+        assert!(w[4..19].iter().all(|&x| x == 0));
+        assert_eq!(&w[19..], &[5, 9]);
+    }
+
+    #[test]
+    fn blocks_with_the_same_values_share_one_table() {
+        // 16x8x8: two blocks, both all 3: two headers, one table. Block 0's (empty) indices
+        // and its table start at word 4 of the channel (after the 4 header words); block 1's
+        // empty indices start where the words then end (5), its table is block 0's.
+        let w = words(&encode_chunk(&vec![3; 16 * 64], [16, 8, 8]));
+        assert_eq!(w, vec![1, 4, 4, 4, 5, 3]);
+    }
+
+    #[test]
+    fn index_bits_are_the_allowed_widths() {
+        let cases = [
+            (1, 0),
+            (2, 1),
+            (3, 2),
+            (4, 2),
+            (5, 4),
+            (16, 4),
+            (17, 8),
+            (256, 8),
+        ];
+        for (n, bits) in cases {
+            assert_eq!(index_bits(n), bits, "{n} values");
+        }
+        assert_eq!(index_bits(257), 16);
+        assert_eq!(index_bits(65537), 32);
+    }
+}
