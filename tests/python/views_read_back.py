@@ -19,7 +19,7 @@ import tensorstore as ts
 import zarr
 from cloudvolume import CloudVolume
 from ome_zarr.io import parse_url
-from ome_zarr.reader import Reader
+from ome_zarr.reader import Label, Reader
 
 from common import dtype_of, fetch_json, level_voxels
 
@@ -62,11 +62,32 @@ def cloud_volume_segmentation(root, channel, level):
     return np.asarray(cv[:, :, :])[..., 0].transpose(2, 1, 0)
 
 
+def tensorstore_zarr3_label(root, channel, level):
+    return ts.open({"driver": "zarr3", "kvstore": f"{root}/zarr/labels/{channel}/{level}/"}).result().read().result()
+
+
+def zarr_python_label(root, channel, level):
+    return zarr.open_group(f"{root}/zarr/", mode="r")["labels"][channel][str(level)][...]
+
+
+def ome_zarr_label(root, channel, level):
+    nodes = list(Reader(parse_url(f"{root}/zarr/labels/{channel}/"))())
+    label = next(n for n in nodes if n.load(Label) is not None)
+    return np.asarray(label.data[level])
+
+
 # The attribute channels' data sources of the precomputed view: uint32 labels in the
 # compressed_segmentation encoding, which both decode.
 SEGMENTATION_CLIENTS = {
     "tensorstore neuroglancer_precomputed": tensorstore_segmentation,
     "cloud-volume": cloud_volume_segmentation,
+}
+
+# The OME-Zarr view's label images (labels/{channel}), in the channel's own type.
+LABEL_CLIENTS = {
+    "tensorstore zarr3": tensorstore_zarr3_label,
+    "zarr-python": zarr_python_label,
+    "ome-zarr": ome_zarr_label,
 }
 
 
@@ -132,12 +153,22 @@ def main():
             cname = channel["name"]
             dtype_c = {"u8": np.uint8, "u16": np.uint16}[channel["type"]]
             for k in range(levels):
-                want = level_voxels(base, k, dtype_c, channel=cname).astype(np.uint32)
+                want = level_voxels(base, k, dtype_c, channel=cname)
                 if k == 0 and len(np.unique(want)) < 2:
                     failures.append(f"{name} channel {cname}: one value only; the check would prove little")
                 for client, read in SEGMENTATION_CLIENTS.items():
-                    check(failures, f"{name} channel {cname} level {k} via {client}", read(base, cname, k), want)
-            print(f"{name}: channel {cname}, {levels} levels read back equal as segmentations by {len(SEGMENTATION_CLIENTS)} clients")
+                    check(failures, f"{name} channel {cname} level {k} via {client}", read(base, cname, k), want.astype(np.uint32))
+                for client, read in LABEL_CLIENTS.items():
+                    check(failures, f"{name} label image {cname} level {k} via {client}", read(base, cname, k), want)
+            colors = zarr.open_group(f"{base}/zarr/labels/{cname}/", mode="r").attrs["ome"]["image-label"]["colors"]
+            palette = channel.get("palette", [])
+            want_colors = [
+                {"label-value": i, "rgba": [int(c[1:3], 16), int(c[3:5], 16), int(c[5:7], 16), 255]}
+                for i, c in enumerate(palette)
+            ]
+            if colors != want_colors:
+                failures.append(f"{name} label image {cname}: colours {colors}, expected {want_colors}")
+            print(f"{name}: channel {cname}, {levels} levels read back equal as segmentations by {len(SEGMENTATION_CLIENTS)} clients and as label images by {len(LABEL_CLIENTS)}")
 
         old = info["version"]
         new = edit(base, a.token, info)

@@ -39,14 +39,49 @@ pub fn chunk_path(kind: ViewKind, layout: &VolumeLayout, key: BrickKey) -> Strin
     }
 }
 
-/// The metadata documents of view `kind`, relative to its root.
-fn metadata_paths(kind: ViewKind, layout: &VolumeLayout) -> Vec<String> {
-    match kind {
+/// The metadata documents of view `kind` of `snap`, relative to its root: density's, then each
+/// attribute channel's (a label image under `labels/` in Zarr, a data source of its own in
+/// precomputed).
+fn metadata_paths(kind: ViewKind, snap: &Snapshot) -> Vec<String> {
+    let levels = |prefix: &str| {
+        (0..snap.layout().levels())
+            .map(|k| format!("{prefix}{k}/zarr.json"))
+            .collect::<Vec<_>>()
+    };
+    let mut paths = match kind {
         ViewKind::Zarr => std::iter::once("zarr.json".to_string())
-            .chain((0..layout.levels()).map(|k| format!("{k}/zarr.json")))
+            .chain(levels(""))
             .collect(),
         ViewKind::Precomputed => vec!["info".into()],
+    };
+    if kind == ViewKind::Zarr && !snap.header().channels.is_empty() {
+        paths.push("labels/zarr.json".into());
     }
+    for (prefix, _) in sources(kind, snap).into_iter().skip(1) {
+        match kind {
+            ViewKind::Zarr => {
+                paths.push(format!("{prefix}zarr.json"));
+                paths.extend(levels(&prefix));
+            }
+            ViewKind::Precomputed => paths.push(format!("{prefix}info")),
+        }
+    }
+    paths
+}
+
+/// The data sources of view `kind` of `snap`, each with the path its documents start with:
+/// density (at the root), then each attribute channel's view.
+fn sources(kind: ViewKind, snap: &Snapshot) -> Vec<(String, &Snapshot)> {
+    let channels = snap.header().channels.iter().zip(snap.channel_views());
+    std::iter::once((String::new(), snap))
+        .chain(channels.map(|(c, view)| {
+            let prefix = match kind {
+                ViewKind::Zarr => format!("labels/{}/", c.name),
+                ViewKind::Precomputed => format!("{}/", c.name),
+            };
+            (prefix, &**view)
+        }))
+        .collect()
 }
 
 /// Memory for the bodies an export makes once and writes many times: deduplicated bricks (most
@@ -75,7 +110,7 @@ pub fn export_view(
     if tmp.exists() {
         std::fs::remove_dir_all(&tmp).map_err(FormatsError::io_path("cannot remove", &tmp))?;
     }
-    progress.start(snap.layout().node_count());
+    progress.start(snap.layout().node_count() * (1 + snap.header().channels.len() as u64));
     let written = write_tree(snap, kind, name, &tmp, progress);
     progress.finish();
     let result = written.and_then(|report| {
@@ -105,7 +140,7 @@ fn write_tree(
         std::fs::write(&path, bytes).map_err(FormatsError::io_path("cannot write", &path))
     };
     let mut bytes = 0u64;
-    for rel in metadata_paths(kind, layout) {
+    for rel in metadata_paths(kind, snap) {
         match resolve(kind, snap, name, &rel)? {
             Document::Metadata(doc) => {
                 write(&rel, &doc)?;
@@ -119,36 +154,38 @@ fn write_tree(
         }
     }
     let (chunks, absent, written) = (AtomicU64::new(0), AtomicU64::new(0), AtomicU64::new(bytes));
-    for level in 0..layout.levels() {
-        let [gx, gy, gz] = layout.grid(level);
-        for z in 0..gz {
-            (0..gx * gy).into_par_iter().try_for_each(|i| {
-                let key = BrickKey {
-                    level,
-                    x: i % gx,
-                    y: i / gx,
-                    z,
-                };
-                let rel = chunk_path(kind, layout, key);
-                match resolve(kind, snap, name, &rel)? {
-                    Document::Chunk(chunk) => {
-                        let body = chunk.body(snap, &bricks)?;
-                        write(&rel, &body)?;
-                        chunks.fetch_add(1, Ordering::Relaxed);
-                        written.fetch_add(body.len() as u64, Ordering::Relaxed);
+    for (prefix, source) in sources(kind, snap) {
+        for level in 0..layout.levels() {
+            let [gx, gy, gz] = layout.grid(level);
+            for z in 0..gz {
+                (0..gx * gy).into_par_iter().try_for_each(|i| {
+                    let key = BrickKey {
+                        level,
+                        x: i % gx,
+                        y: i / gx,
+                        z,
+                    };
+                    let rel = format!("{prefix}{}", chunk_path(kind, layout, key));
+                    match resolve(kind, snap, name, &rel)? {
+                        Document::Chunk(chunk) => {
+                            let body = chunk.body(source, &bricks)?;
+                            write(&rel, &body)?;
+                            chunks.fetch_add(1, Ordering::Relaxed);
+                            written.fetch_add(body.len() as u64, Ordering::Relaxed);
+                        }
+                        Document::Absent => {
+                            absent.fetch_add(1, Ordering::Relaxed);
+                        }
+                        Document::Metadata(_) => {
+                            return Err(FormatsError::Internal(format!(
+                                "{rel} resolved to metadata, not a chunk"
+                            )))
+                        }
                     }
-                    Document::Absent => {
-                        absent.fetch_add(1, Ordering::Relaxed);
-                    }
-                    Document::Metadata(_) => {
-                        return Err(FormatsError::Internal(format!(
-                            "{rel} resolved to metadata, not a chunk"
-                        )))
-                    }
-                }
-                Ok(())
-            })?;
-            progress.advance(u64::from(gx * gy));
+                    Ok(())
+                })?;
+                progress.advance(u64::from(gx * gy));
+            }
         }
     }
     Ok(ExportReport {

@@ -17,6 +17,17 @@
 //! when compression did not pay, lz4, constant) are compressed with zstd on request. A brick
 //! equal to the fill value everywhere answers 404, which Zarr clients read as the fill value.
 //!
+//! Each attribute channel (`docs/channels.md`) is an OME-Zarr label image under `labels/`:
+//!
+//! ```text
+//! labels/zarr.json                 {"ome": {"labels": [every channel's name]}}
+//! labels/{channel}/zarr.json       the channel's multiscales (the same datasets, "type": "mode")
+//!                                  and "image-label": its palette as colours, source ../../
+//! labels/{channel}/{k}/...         level k of the channel, as the image's levels are
+//! ```
+//!
+//! The root group's consolidated metadata lists these too.
+//!
 //! Level k's voxel i is the mean of level-0 voxels [i 2^k, (i + 1) 2^k) (the pyramid averages
 //! 2x2x2 blocks). OME-Zarr places a voxel's coordinate at its centre, so level k's dataset has
 //! the scale s 2^k and the translation s (2^k - 1) / 2: its voxel centres fall on the centres
@@ -59,6 +70,16 @@ pub fn array_metadata(layout: &VolumeLayout, level: u8) -> Value {
 /// The group's metadata (`zarr.json`): OME-Zarr 0.5 multiscales and the consolidated metadata
 /// of every level.
 pub fn group_metadata(layout: &VolumeLayout, voxel_scale: [f32; 3], name: &str) -> Value {
+    multiscale_group(layout, voxel_scale, name, "mean")
+}
+
+/// A multiscale image group of `layout`'s levels, downsampled by `method`.
+fn multiscale_group(
+    layout: &VolumeLayout,
+    voxel_scale: [f32; 3],
+    name: &str,
+    method: &str,
+) -> Value {
     let levels = 0..layout.levels();
     let datasets: Vec<Value> = levels
         .clone()
@@ -92,7 +113,7 @@ pub fn group_metadata(layout: &VolumeLayout, voxel_scale: [f32; 3], name: &str) 
                         {"name": "x", "type": "space"}
                     ],
                     "datasets": datasets,
-                    "type": "mean"
+                    "type": method
                 }]
             }
         },
@@ -100,20 +121,126 @@ pub fn group_metadata(layout: &VolumeLayout, voxel_scale: [f32; 3], name: &str) 
     })
 }
 
+/// The root group's metadata: [`group_metadata`], and when the volume has channels, the
+/// `labels` groups and arrays in its consolidated metadata.
+fn root_metadata(snap: &Snapshot, name: &str) -> Value {
+    let mut root = group_metadata(snap.layout(), snap.header().voxel_scale, name);
+    if snap.channel_views().is_empty() {
+        return root;
+    }
+    let consolidated = &mut root["consolidated_metadata"]["metadata"];
+    consolidated["labels"] = labels_metadata(snap);
+    for view in snap.channel_views() {
+        let channel = channel_name(view);
+        let mut group = label_metadata(view);
+        if let Some(arrays) = group["consolidated_metadata"]["metadata"]
+            .as_object()
+            .cloned()
+        {
+            for (k, array) in arrays {
+                consolidated[format!("labels/{channel}/{k}")] = array;
+            }
+        }
+        if let Some(g) = group.as_object_mut() {
+            g.remove("consolidated_metadata");
+        }
+        consolidated[format!("labels/{channel}")] = group;
+    }
+    root
+}
+
+/// The name of the attribute channel `view` is of.
+fn channel_name(view: &Snapshot) -> &str {
+    view.header()
+        .channels
+        .get(view.stream().wrapping_sub(1))
+        .map_or("", |c| c.name.as_str())
+}
+
+/// `labels/zarr.json`: the label images there are, one per channel.
+fn labels_metadata(snap: &Snapshot) -> Value {
+    let names: Vec<&str> = snap
+        .channel_views()
+        .iter()
+        .map(|v| channel_name(v))
+        .collect();
+    json!({
+        "zarr_format": 3,
+        "node_type": "group",
+        "attributes": {"ome": {"version": "0.5", "labels": names}}
+    })
+}
+
+/// `labels/{channel}/zarr.json`: the channel's levels (by mode) as a label image of the image
+/// two levels up, its palette as the label colours.
+fn label_metadata(view: &Snapshot) -> Value {
+    let name = channel_name(view);
+    let mut group = multiscale_group(view.layout(), view.header().voxel_scale, name, "mode");
+    let palette = view
+        .header()
+        .channels
+        .get(view.stream().wrapping_sub(1))
+        .map(|c| c.palette.clone())
+        .unwrap_or_default();
+    let colors: Vec<Value> = palette
+        .iter()
+        .enumerate()
+        .filter_map(|(value, hex)| {
+            let hex = hex.strip_prefix('#').unwrap_or(hex);
+            let rgb = u32::from_str_radix(hex, 16).ok().filter(|_| hex.len() == 6)?;
+            Some(json!({"label-value": value, "rgba": [rgb >> 16, (rgb >> 8) & 255, rgb & 255, 255]}))
+        })
+        .collect();
+    group["attributes"]["ome"]["image-label"] =
+        json!({"version": "0.5", "colors": colors, "source": {"image": "../../"}});
+    group
+}
+
 /// What `path` names in the Zarr view of `snap` (volume `name`).
 ///
 /// # Errors
 /// See [`super::view::resolve`].
 pub fn document<'s>(snap: &'s Snapshot, name: &str, path: &str) -> Result<Document<'s>, ViewError> {
+    if path == "zarr.json" {
+        return Ok(metadata(&root_metadata(snap, name)));
+    }
+    if let Some(rest) = path.strip_prefix("labels/") {
+        if rest == "zarr.json" && !snap.channel_views().is_empty() {
+            return Ok(metadata(&labels_metadata(snap)));
+        }
+        let (channel, rest) = rest.split_once('/').unwrap_or((rest, ""));
+        let view = snap
+            .channel_views()
+            .iter()
+            .find(|v| channel_name(v) == channel)
+            .ok_or_else(|| {
+                ViewError::NoSuchDocument(format!(
+                    "no label image {channel:?}: the volume's channels are {:?}",
+                    snap.channel_views()
+                        .iter()
+                        .map(|v| channel_name(v))
+                        .collect::<Vec<_>>()
+                ))
+            })?;
+        if rest == "zarr.json" {
+            return Ok(metadata(&label_metadata(view)));
+        }
+        return level_document(view, Some(view), rest);
+    }
+    level_document(snap, None, path)
+}
+
+/// What `path` names among the level arrays of `snap` (`view`: the shared channel view when
+/// `snap` is one).
+fn level_document<'s>(
+    snap: &'s Snapshot,
+    view: Option<&'s std::sync::Arc<Snapshot>>,
+    path: &str,
+) -> Result<Document<'s>, ViewError> {
     let layout = snap.layout();
     let mut parts = path.split('/');
     let segments: [Option<&str>; 6] = std::array::from_fn(|_| parts.next());
     match segments {
-        [Some("zarr.json"), None, ..] => Ok(metadata(&group_metadata(
-            layout,
-            snap.header().voxel_scale,
-            name,
-        ))),
         [Some(level), Some("zarr.json"), None, ..] => Ok(metadata(&array_metadata(
             layout,
             level_segment(snap, level)?,
@@ -150,11 +277,11 @@ pub fn document<'s>(snap: &'s Snapshot, name: &str, path: &str) -> Result<Docume
                 key,
                 stored,
                 encoding: ChunkEncoding::ZstdFrame,
-                view: None,
+                view,
             }))
         }
         _ => Err(ViewError::NoSuchDocument(format!(
-            "{path:?} is not in the Zarr view: it has zarr.json, {{level}}/zarr.json and {{level}}/c/{{z}}/{{y}}/{{x}}"
+            "{path:?} is not in the Zarr view: it has zarr.json, {{level}}/zarr.json, {{level}}/c/{{z}}/{{y}}/{{x}}, and labels/{{channel}}/ the same for each channel"
         ))),
     }
 }

@@ -440,6 +440,78 @@ async fn an_export_holds_the_bytes_the_server_sends() {
     }
 }
 
+/// Every file of an export of a volume with a material channel, labels and segmentation sources
+/// included, holds the bytes the server sends for that path; and there are such files for the
+/// channel (metadata and chunks).
+#[tokio::test]
+async fn an_export_of_a_volume_with_channels_holds_the_bytes_the_server_sends() {
+    use isovox_server::generate::{world_header, WorldMaterials, WorldSource};
+    use isovox_server::store::build::build_streams_file;
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("world.vod");
+    let layout = VolumeLayout::new([45, 30, 37], 8, VoxelType::U8).unwrap();
+    let world = WorldSource::new(layout.clone(), 3);
+    let materials = WorldMaterials::new(world.clone());
+    build_streams_file(
+        &path,
+        world_header(&layout).unwrap(),
+        &[&world, &materials],
+        &BuildOptions::default(),
+    )
+    .unwrap();
+    let catalog = Catalog::open_dir(dir.path()).unwrap();
+    let server = spawn(
+        "127.0.0.1:0",
+        AppState::with_config(catalog, ServerConfig::default()),
+    )
+    .await
+    .unwrap();
+    let base = format!("{}/v1/volumes/world", server.base());
+    let snap = Vod2::open(&path).unwrap().head();
+    for (kind, channel_dir) in [
+        (ViewKind::Zarr, "labels/material"),
+        (ViewKind::Precomputed, "material"),
+    ] {
+        let dest = dir.path().join(format!("export-{}", kind.segment()));
+        export_view(&snap, kind, "world", &dest, &Silent).unwrap();
+        let mut files = Vec::new();
+        let mut stack = vec![dest.clone()];
+        while let Some(d) = stack.pop() {
+            for e in std::fs::read_dir(&d).unwrap() {
+                let p = e.unwrap().path();
+                if p.is_dir() {
+                    stack.push(p);
+                } else {
+                    files.push(p);
+                }
+            }
+        }
+        let rels: Vec<String> = files
+            .iter()
+            .map(|f| {
+                f.strip_prefix(&dest)
+                    .unwrap()
+                    .to_string_lossy()
+                    .into_owned()
+            })
+            .collect();
+        let of_channel = rels.iter().filter(|r| r.starts_with(channel_dir)).count();
+        assert!(
+            of_channel > layout.levels() as usize,
+            "{kind:?}: {of_channel} files of the channel: {rels:?}"
+        );
+        for (file, rel) in files.iter().zip(&rels) {
+            let resp = get(&format!("{base}/{}/{rel}", kind.segment())).await;
+            assert_eq!(resp.status(), 200, "{kind:?} {rel}");
+            assert_eq!(
+                std::fs::read(file).unwrap(),
+                resp.bytes().await.unwrap().to_vec(),
+                "{kind:?} {rel}"
+            );
+        }
+    }
+}
+
 /// Each document has one URL: a number in a path or `?version=` is read only in plain decimal
 /// (no sign, no leading zero, no percent-escape); any other spelling is a 404 problem, and only
 /// the canonical spelling answers 200. (Every spelling used to answer 200, so caches kept one
