@@ -155,6 +155,37 @@ def main():
     if "percentiles" not in out:
         failures.append(f"nibabel float32: the output does not say percentiles were used: {out!r}")
 
+    # A NIfTI label map (uint32 ids, as segmentation tools write them) beside the image, as the
+    # channel `label`; read back through the exported Zarr view's label image, equal to the map.
+    seg = np.zeros(shape, dtype=np.uint32)
+    seg[5:20, 10:30, 8:40] = 7
+    seg[12:30, 2:15, 30:50] = 40000
+    seg[0:3, :, :] = 3
+    nib.save(nib.Nifti1Image(seg.transpose(2, 1, 0), np.eye(4)), os.path.join(work, "seg.nii.gz"))
+    labelled = os.path.join(work, "labelled.vod")
+    r = run(a.isovox, "import", os.path.join(work, "v.nii"), "-o", labelled, "--brick", "16",
+            "--channel", f"label={os.path.join(work, 'seg.nii.gz')}")
+    if r.returncode == 0:
+        if "channel label (u16, sparse)" not in r.stdout:
+            failures.append(f"label import: the output does not name the channel: {r.stdout!r}")
+        exported = os.path.join(work, "labelled-zarr")
+        shutil.rmtree(exported, ignore_errors=True)
+        run(a.isovox, "export", labelled, "-o", exported, "--format", "zarr")
+        got = zarr.open_group(exported, mode="r")["labels"]["label"]["0"][...]
+        same("NIfTI uint32 label map as channel label", got, seg.astype(np.uint16))
+        same("the image beside it", zarr.open_group(exported, mode="r")["0"][...], u8)
+    # A label map of another shape, or with an id past u16, is refused and leaves nothing.
+    big = seg.copy()
+    big[1, 1, 1] = 70000
+    nib.save(nib.Nifti1Image(big.transpose(2, 1, 0), np.eye(4)), os.path.join(work, "big.nii.gz"))
+    nib.save(nib.Nifti1Image(seg[:, :, :50].transpose(2, 1, 0), np.eye(4)), os.path.join(work, "small.nii.gz"))
+    for bad, words in [("big.nii.gz", "70000"), ("small.nii.gz", "shape")]:
+        out = os.path.join(work, "refused.vod")
+        r = run(a.isovox, "import", os.path.join(work, "v.nii"), "-o", out, "--channel",
+                f"label={os.path.join(work, bad)}", ok=False)
+        if r.returncode == 0 or words not in r.stderr or os.path.exists(out):
+            failures.append(f"label map {bad}: exit {r.returncode}, stderr {r.stderr.strip()!r}, left a file: {os.path.exists(out)}")
+
     # tifffile: a multi-page file and a folder of single pages (named so that a text sort
     # would misorder them).
     tifffile.imwrite(os.path.join(work, "stack.tif"), u16)

@@ -334,6 +334,9 @@ fn import_file(a: ImportArgs) -> anyhow::Result<()> {
     if let Some(format) = super::formats::input_format(&a)? {
         return super::formats::import(&a, format);
     }
+    if !a.formats.channels.is_empty() {
+        bail!("--channel is for imports of the field's formats (Zarr, precomputed, NIfTI, TIFF), not RAW or VOD files");
+    }
     let compress = a.compression.compression();
     match sniff(&a.input)? {
         InputKind::Vod(1) => {

@@ -8,7 +8,9 @@ use anyhow::{bail, Context};
 use clap::Args;
 use isovox_server::formats::export::export_view;
 use isovox_server::formats::import::convert::{parse_pair, parse_percentiles};
-use isovox_server::formats::import::{detect, import as import_input, ImportOptions, InputFormat};
+use isovox_server::formats::import::{
+    detect, import as import_input, ChannelInput, ImportOptions, InputFormat,
+};
 use isovox_server::formats::ViewKind;
 use isovox_server::store::{BuildOptions, Snapshot};
 use std::sync::Arc;
@@ -26,6 +28,10 @@ pub(crate) struct FormatImportArgs {
     /// Without --window: the window is these percentiles of the input (a first pass samples it).
     #[arg(long, default_value = "0.5,99.5", value_name = "LO,HI")]
     pub percentiles: String,
+    /// A label map of the image's shape (any of the formats above) imported beside it as the
+    /// attribute channel NAME, ids kept as they are: `--channel label=seg.nii.gz`. Repeatable.
+    #[arg(long = "channel", value_name = "NAME=INPUT")]
+    pub channels: Vec<String>,
 }
 
 fn parse_format(s: &str) -> Result<InputFormat, String> {
@@ -73,11 +79,35 @@ pub(super) fn import(a: &ImportArgs, format: InputFormat) -> anyhow::Result<()> 
         percentiles: parse_percentiles(&a.formats.percentiles)?,
         // The default 1,1,1 means "as the input says".
         voxel_scale: (a.scale != [1.0; 3]).then_some(a.scale),
+        channels: a
+            .formats
+            .channels
+            .iter()
+            .map(|c| channel_input(c))
+            .collect::<anyhow::Result<_>>()?,
     };
     let report = import_input(&input, format, &a.output, &options, &progress("sampling"))
         .with_context(|| format!("cannot import {input}"))?;
     out!("{}: {report}", a.output.display())?;
     Ok(())
+}
+
+/// `NAME=INPUT` of `--channel`, its format detected.
+fn channel_input(arg: &str) -> anyhow::Result<ChannelInput> {
+    let (name, input) = arg
+        .split_once('=')
+        .filter(|(n, i)| !n.is_empty() && !i.is_empty())
+        .with_context(|| format!("--channel {arg:?}: NAME=INPUT expected (label=seg.nii.gz)"))?;
+    let format = detect(input)
+        .with_context(|| format!("cannot read {input}"))?
+        .with_context(|| {
+            format!("--channel {name}: {input} is in none of the formats a label map may be in (Zarr, precomputed, NIfTI, TIFF)")
+        })?;
+    Ok(ChannelInput {
+        name: name.to_string(),
+        input: input.to_string(),
+        format,
+    })
 }
 
 /// Writes view `kind` of `snap` as a directory tree (every level of the whole volume).

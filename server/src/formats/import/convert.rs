@@ -104,13 +104,18 @@ pub enum Conversion {
         /// The volume's type.
         target: VoxelType,
     },
+    /// Ids (a label map beside the image): each value kept exactly, never scaled; a value
+    /// that is negative, not a whole number or above `target`'s largest is an error naming it.
+    Labels(VoxelType),
 }
 
 impl Conversion {
     /// The volume's type.
     pub fn target(&self) -> VoxelType {
         match *self {
-            Conversion::Identity(t) | Conversion::Window { target: t, .. } => t,
+            Conversion::Identity(t)
+            | Conversion::Window { target: t, .. }
+            | Conversion::Labels(t) => t,
         }
     }
 
@@ -145,6 +150,26 @@ impl Conversion {
                     VoxelType::U8 => (0..n).map(|i| map(i) as u8).collect(),
                     VoxelType::U16 => (0..n).flat_map(|i| map(i).to_le_bytes()).collect(),
                 })
+            }
+            Conversion::Labels(target) => {
+                let n = values.len() / dtype.bytes();
+                let high = f64::from(target.high());
+                let mut out = Vec::with_capacity(n * target.bytes());
+                for i in 0..n {
+                    let v = dtype.value(values, i);
+                    if !(0.0..=high).contains(&v) || v.fract() != 0.0 {
+                        return Err(FormatsError::input(format!(
+                            "label value {} is not an id from 0 to {high} (a {target} channel; \
+                             u32 and u64 labels are not stored yet)",
+                            number(v)
+                        )));
+                    }
+                    match target {
+                        VoxelType::U8 => out.push(v as u8),
+                        VoxelType::U16 => out.extend_from_slice(&(v as u16).to_le_bytes()),
+                    }
+                }
+                Ok(out)
             }
         }
     }

@@ -24,8 +24,11 @@ use self::location::Location;
 pub use self::planes::{PlaneSource, SlabSource};
 use super::FormatsError;
 use crate::progress::Progress;
+use crate::store::build::build_streams;
 use crate::store::build::sibling;
-use crate::store::{build_vod2, BuildOptions};
+use crate::store::{build_vod2, BrickSource, BuildOptions};
+use isovox_proto::channel::ChannelInfo;
+use isovox_proto::vod2::FileHeader;
 use isovox_proto::{VolumeLayout, VoxelType};
 use std::path::Path;
 use std::str::FromStr;
@@ -152,6 +155,19 @@ pub struct ImportOptions {
     pub percentiles: (f64, f64),
     /// The voxel scale; `None`: the input's (1, 1, 1 when it records none).
     pub voxel_scale: Option<[f32; 3]>,
+    /// Label maps imported beside the image as attribute channels (`docs/channels.md`).
+    pub channels: Vec<ChannelInput>,
+}
+
+/// A label map to import as an attribute channel: `--channel NAME=INPUT`.
+#[derive(Debug, Clone)]
+pub struct ChannelInput {
+    /// The channel's name (`label`, `material`, ...).
+    pub name: String,
+    /// Where it is (a path or http URL), in any format an image may be in.
+    pub input: String,
+    /// Its format.
+    pub format: InputFormat,
 }
 
 impl Default for ImportOptions {
@@ -163,6 +179,7 @@ impl Default for ImportOptions {
             window: None,
             percentiles: (0.5, 99.5),
             voxel_scale: None,
+            channels: Vec::new(),
         }
     }
 }
@@ -207,6 +224,8 @@ pub struct ImportReport {
     pub voxel_scale: [f32; 3],
     /// How values were converted.
     pub conversion: ConversionNote,
+    /// The attribute channels imported beside the image.
+    pub channels: Vec<ChannelInfo>,
     /// Bytes of input voxels read (once; a percentile pass reads them twice).
     pub input_bytes: u64,
     /// Bytes of the VOD 2 file written.
@@ -248,6 +267,15 @@ impl std::fmt::Display for ImportReport {
                 percentiles.0,
                 percentiles.1
             )?,
+        }
+        for c in &self.channels {
+            write!(
+                f,
+                "; channel {} ({}{})",
+                c.name,
+                c.voxel_type,
+                if c.sparse { ", sparse" } else { "" }
+            )?;
         }
         let s = self.elapsed.as_secs_f64();
         write!(
@@ -308,6 +336,52 @@ fn choose_conversion(
     ))
 }
 
+/// The label maps `inputs` as channels of a volume of `layout`: their descriptions and their
+/// sources. A map must have the image's shape; its values are kept as ids (u8 for a u8 input,
+/// u16 otherwise: a value past the channel's type is an error). A `material` channel counts 0
+/// like any value in its coarser levels; every other name is a segmentation's, where 0
+/// (unlabelled) loses (`sparse`).
+///
+/// # Errors
+/// A map cannot be opened, has another shape, or the names are not valid channel names.
+fn open_channels(
+    inputs: &[ChannelInput],
+    layout: &VolumeLayout,
+) -> Result<(Vec<ChannelInfo>, Vec<SlabSource>), FormatsError> {
+    let mut infos = Vec::new();
+    let mut sources = Vec::new();
+    for c in inputs {
+        let source = open(&c.input, c.format)?;
+        if source.dims() != layout.dims() {
+            return Err(FormatsError::input(format!(
+                "channel {}: {} is {:?} voxels, the image {:?}; a label map has the image's shape",
+                c.name,
+                c.input,
+                source.dims(),
+                layout.dims()
+            )));
+        }
+        let voxel_type = match source.dtype() {
+            DType::U8 => VoxelType::U8,
+            _ => VoxelType::U16,
+        };
+        let channel_layout = VolumeLayout::new(layout.dims(), layout.brick(), voxel_type)
+            .map_err(|e| FormatsError::input(e.to_string()))?;
+        infos.push(ChannelInfo {
+            sparse: c.name != "material",
+            ..ChannelInfo::new(&c.name, voxel_type)
+        });
+        sources.push(SlabSource::new(
+            channel_layout,
+            source,
+            Conversion::Labels(voxel_type),
+        )?);
+    }
+    isovox_proto::channel::validate_channels(&infos)
+        .map_err(|e| FormatsError::BadArgument(format!("--channel: {e}")))?;
+    Ok((infos, sources))
+}
+
 /// Imports `input` (a path or http URL) as `format` into a new VOD 2 file at `output`.
 /// `scan` is told the progress of a percentile pass (planes read), `options.build.progress`
 /// that of the import (bricks written).
@@ -336,9 +410,25 @@ pub fn import(
     let (conversion, note) =
         choose_conversion(dtype, target, options, dims, &|| open(input, format), scan)?;
     let slabs = SlabSource::new(layout.clone(), source, conversion)?;
+    let (channels, channel_slabs) = open_channels(&options.channels, &layout)?;
+    let imported = channels.clone();
     let tmp = sibling(output, ".isovox-tmp");
-    let built = build_vod2(&tmp, &layout, voxel_scale, &slabs, &options.build);
-    let finished = slabs.finish();
+    let built = if channels.is_empty() {
+        build_vod2(&tmp, &layout, voxel_scale, &slabs, &options.build)
+    } else {
+        let header = FileHeader::with_channels(layout.clone(), voxel_scale, channels)
+            .map_err(|e| FormatsError::BadArgument(e.to_string()))?;
+        let sources: Vec<&dyn BrickSource> = std::iter::once(&slabs as &dyn BrickSource)
+            .chain(channel_slabs.iter().map(|s| s as &dyn BrickSource))
+            .collect();
+        build_streams(&tmp, header, &sources, &options.build)
+    };
+    // Every source finished (its reader joined), the first error kept.
+    let finished: Vec<_> = std::iter::once(slabs)
+        .chain(channel_slabs)
+        .map(SlabSource::finish)
+        .collect();
+    let finished = finished.into_iter().find(|r| r.is_err()).unwrap_or(Ok(()));
     let outcome = match (built, finished) {
         (_, Err(e)) => Err(e),
         (Err(e), Ok(())) => Err(FormatsError::Store(e)),
@@ -360,6 +450,7 @@ pub fn import(
         voxel_type: target,
         voxel_scale,
         conversion: note,
+        channels: imported,
         input_bytes: dims.iter().map(|&d| u64::from(d)).product::<u64>() * dtype.bytes() as u64,
         file_bytes: report.file_bytes,
         elapsed: start.elapsed(),
