@@ -437,6 +437,35 @@ fn strips_carry_the_materials_of_the_vertices_they_copy() {
         assert!(m[..2].iter().all(|v| [1, 2, 5].contains(v)), "{p:?}: {m:?}");
     }
     assert!(copies >= 4, "{copies} copies of tile vertices");
+    // The strip's coarse vertices lie on the face's plane x = 16, never moved, on edges of the
+    // level-1 lattice (level-0 positions 2J): one coordinate between two even ones. Their ends
+    // are the channel's level-1 voxels J, which is material(2J) here; t is read off the
+    // position, (y - 2 J0) / 2.
+    let mut coarse = 0;
+    for (p, m) in strip.positions.iter().zip(&strip.materials) {
+        let copy = drawn.positions.contains(p);
+        let off: Vec<usize> = (1..3).filter(|&a| p[a].fract() != 0.0).collect();
+        if copy || p[0] != 16.0 || off.len() != 1 {
+            continue;
+        }
+        let a = off[0];
+        let b = 3 - a; // the other lateral axis: on the coarse lattice
+        assert_eq!(p[b] % 2.0, 0.0, "{p:?} is on no coarse edge");
+        let mut j0 = [8i64, 0, 0];
+        j0[a] = (p[a] / 2.0).floor() as i64;
+        j0[b] = (p[b] / 2.0) as i64;
+        let mut j1 = j0;
+        j1[a] += 1;
+        let t = (p[a] - (2 * j0[a]) as f32) / 2.0;
+        let want = rule(
+            material_at(j0.map(|c| 2 * c)),
+            material_at(j1.map(|c| 2 * c)),
+            t,
+        );
+        assert_eq!(m, &want, "the coarse vertex at {p:?}");
+        coarse += 1;
+    }
+    assert!(coarse >= 4, "{coarse} coarse vertices");
 }
 
 fn web() -> PathBuf {
