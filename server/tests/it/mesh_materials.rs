@@ -39,15 +39,17 @@ fn density(x: usize, y: usize, _z: usize) -> u8 {
     }
 }
 
-/// Materials: rock (1) for x < 8 and ore (5) for x >= 8 up to y = 7; above, soil (2) for
-/// x < 8 and air (0) for x >= 8. So the surface's edges (x, 7) -> (x, 8) blend rock into soil
-/// for x < 8, and are ore alone for x >= 8 (air takes the other end's value). Every 2x2x2 group
-/// is uniform (the boundaries x = 8 and y = 8 are even), so level 1 of the channel is
-/// `material(2J)`.
-fn material(x: usize, y: usize, _z: usize) -> u8 {
+/// Materials: rock (1) for x < 8 and, for x >= 8, ore (5) where z < 8 and sand (4) where
+/// z >= 8, up to y = 7; above, soil (2) for x < 8 and air (0) for x >= 8. So the surface's edges
+/// (x, 7) -> (x, 8) blend rock into soil for x < 8, and are ore or sand alone for x >= 8 (air
+/// takes the other end's value). Every 2x2x2 group is uniform (the boundaries x = 8, y = 8 and
+/// z = 8 are even), so level 1 of the channel is `material(2J)`; and level-0 voxel J is not
+/// always `material(2J)` (z = 5 is ore, z = 10 sand), so reading the wrong level shows.
+fn material(x: usize, y: usize, z: usize) -> u8 {
     match (x < 8, y <= 7) {
         (true, true) => 1,
-        (false, true) => 5,
+        (false, true) if z < 8 => 5,
+        (false, true) => 4,
         (true, false) => 2,
         (false, false) => 0,
     }
@@ -220,7 +222,11 @@ fn tile_materials_follow_the_rule_by_hand() {
             if p[1] > 7.0 && p[1] < 8.0 && (0.0..31.0).contains(&p[0]) && p[0].fract() == 0.0 {
                 let d = f32::from(density(p[0] as usize, 7, 0));
                 assert!((p[1] - 7.0 - (1.0 - 126.5 / d)).abs() < 1e-5, "{p:?}");
-                let want = if p[0] < 8.0 { [1, 2] } else { [5, 5] };
+                let want = match (p[0] < 8.0, p[2] < 8.0) {
+                    (true, _) => [1, 2],
+                    (false, true) => [5, 5],
+                    (false, false) => [4, 4],
+                };
                 assert_eq!(&m[..2], &want, "{p:?}");
                 on_top += 1;
             }
@@ -432,9 +438,12 @@ fn strips_carry_the_materials_of_the_vertices_they_copy() {
             );
             copies += 1;
         }
-        // Every vertex here lies on an edge with an end below the surface (rock or ore),
-        // the other soil, ore or air: never none.
-        assert!(m[..2].iter().all(|v| [1, 2, 5].contains(v)), "{p:?}: {m:?}");
+        // Every vertex here lies on an edge with an end below the surface (rock, ore or
+        // sand), the other soil, ore, sand or air: never none.
+        assert!(
+            m[..2].iter().all(|v| [1, 2, 4, 5].contains(v)),
+            "{p:?}: {m:?}"
+        );
     }
     assert!(copies >= 4, "{copies} copies of tile vertices");
     // The strip's coarse vertices lie on the face's plane x = 16, never moved, on edges of the
