@@ -8,12 +8,15 @@
 //! ```text
 //! 0    magic "IVMS"
 //! 4    u16 format version (1: a mesh; 3: a tile, with its moves), u16 flags (bit 0: indices
-//!      are u32, else u16)
+//!      are u32, else u16; bit 1: a material section follows the indices)
 //! 8    u32 vertex count n, u32 index count m (a multiple of 3)
 //! 16   f32[3] bounds min, f32[3] bounds max (0 when empty)
 //! 40   n x f32[3] positions
 //!      n x i16[3] normals, each component round(c * 32767)
 //!      m x u16 or u32 indices, then zero padding to 4 bytes
+//! flag bit 1 only, the material section:
+//!      n x u8[4] (material a, material b, weight w, 0): the vertex lies on the lattice edge
+//!      from a point of material a to one of material b, at round(w / 255) of the way
 //! version 3 only, the move section:
 //!      u32[6] move counts, one per face (-x, +x, -y, +y, -z, +z)
 //!      per face in that order, its moves: u32 vertex (< n), f32 distance along the face's axis
@@ -27,7 +30,7 @@ use crate::error::FormatError;
 use crate::vod2::Fields;
 
 /// A triangle mesh: positions, unit normals, indices (three per triangle, counter-clockwise seen
-/// from outside).
+/// from outside), and optionally one material blend per vertex.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Mesh {
     /// Vertex positions.
@@ -36,6 +39,10 @@ pub struct Mesh {
     pub normals: Vec<[f32; 3]>,
     /// Triangles, three vertex indices each, counter-clockwise seen from outside.
     pub indices: Vec<u32>,
+    /// Empty, or one entry per vertex: `[a, b, w, 0]`, the vertex lying on the lattice edge
+    /// from a point of material `a` to one of material `b` at `w / 255` of the way
+    /// (`docs/mesh-encoding.md`; `[0, 0, 0, 0]`: none).
+    pub materials: Vec<[u8; 4]>,
 }
 
 impl Mesh {
@@ -44,6 +51,12 @@ impl Mesh {
         self.positions.clear();
         self.normals.clear();
         self.indices.clear();
+        self.materials.clear();
+    }
+
+    /// Whether it carries materials (one per vertex).
+    pub fn has_materials(&self) -> bool {
+        !self.materials.is_empty()
     }
 
     /// The number of triangles.
@@ -72,9 +85,16 @@ impl Mesh {
         (lo, hi)
     }
 
-    /// Appends `other`, offsetting its indices.
+    /// Appends `other`, offsetting its indices. When either carries materials the result does,
+    /// one per vertex: the vertices of the one without get `[0, 0, 0, 0]` (none).
     pub fn append(&mut self, other: &Mesh) {
         let base = self.positions.len() as u32;
+        if self.has_materials() || other.has_materials() {
+            self.materials.resize(self.positions.len(), [0; 4]);
+            self.materials.extend_from_slice(&other.materials);
+            let end = self.materials.len() + other.positions.len() - other.materials.len();
+            self.materials.resize(end, [0; 4]);
+        }
         self.positions.extend_from_slice(&other.positions);
         self.normals.extend_from_slice(&other.normals);
         self.indices.extend(other.indices.iter().map(|i| i + base));
@@ -140,6 +160,7 @@ pub fn stitch(tile: &TileMesh, mask: u8, strips: [Option<&Mesh>; 6], out: &mut M
     out.positions.extend_from_slice(&tile.mesh.positions);
     out.normals.extend_from_slice(&tile.mesh.normals);
     out.indices.extend_from_slice(&tile.mesh.indices);
+    out.materials.extend_from_slice(&tile.mesh.materials);
     apply_moves(&mut out.positions, &tile.moves, mask);
     for (face, strip) in strips.iter().enumerate() {
         if let Some(strip) = strip.filter(|_| mask >> face & 1 == 1) {
@@ -154,6 +175,12 @@ const HEADER: usize = 40;
 const MOVES_HEADER: usize = 24;
 /// One move: u32 vertex, f32 distance.
 const MOVE_BYTES: usize = 8;
+/// Flag bit 0: indices are u32.
+const FLAG_WIDE: u16 = 1;
+/// Flag bit 1: a material section follows the indices.
+const FLAG_MATERIALS: u16 = 2;
+/// One vertex's materials: u8 a, u8 b, u8 weight, u8 0.
+const MATERIAL_BYTES: usize = 4;
 
 fn wide(n_vertices: usize) -> bool {
     n_vertices > 65536
@@ -191,11 +218,26 @@ fn put_indices(b: &mut Vec<u8>, indices: &[u32], wide: bool) {
     }
 }
 
-/// The compact header and regular mesh, `version` in the header.
+/// The material section: one entry per vertex (missing ones as none, extra ones dropped: a
+/// hand-built mesh; decoded ones have one per vertex).
+fn put_materials(b: &mut Vec<u8>, mesh: &Mesh) {
+    let n = mesh.positions.len();
+    for i in 0..n {
+        let [a, m, w, _] = mesh.materials.get(i).copied().unwrap_or([0; 4]);
+        b.extend_from_slice(&[a, m, w, 0]);
+    }
+}
+
+/// The compact header and regular mesh, `version` in the header, and its material section
+/// when it has materials.
 fn put_regular(b: &mut Vec<u8>, mesh: &Mesh, version: u16, wide: bool) {
+    let mut flags = if wide { FLAG_WIDE } else { 0 };
+    if mesh.has_materials() {
+        flags |= FLAG_MATERIALS;
+    }
     b.extend_from_slice(&MAGIC);
     b.extend_from_slice(&version.to_le_bytes());
-    b.extend_from_slice(&u16::from(wide).to_le_bytes());
+    b.extend_from_slice(&flags.to_le_bytes());
     b.extend_from_slice(&(mesh.positions.len() as u32).to_le_bytes());
     b.extend_from_slice(&(mesh.indices.len() as u32).to_le_bytes());
     let (lo, hi) = mesh.bounds();
@@ -206,6 +248,9 @@ fn put_regular(b: &mut Vec<u8>, mesh: &Mesh, version: u16, wide: bool) {
     put_normals(b, &mesh.normals);
     put_indices(b, &mesh.indices, wide);
     pad4(b);
+    if mesh.has_materials() {
+        put_materials(b, mesh);
+    }
 }
 
 /// The move section (see the module doc): six per-face counts, then each face's moves.
@@ -229,7 +274,7 @@ fn put_moves(b: &mut Vec<u8>, moves: &[VertexMove]) {
 /// served this way: a plain mesh.
 pub fn encode_compact(mesh: &Mesh) -> Vec<u8> {
     let n = mesh.positions.len();
-    let mut b = Vec::with_capacity(HEADER + n * 18 + mesh.indices.len() * 4 + 4);
+    let mut b = Vec::with_capacity(HEADER + n * 22 + mesh.indices.len() * 4 + 4);
     put_regular(&mut b, mesh, 1, wide(n));
     b
 }
@@ -240,7 +285,7 @@ pub fn encode_tile(tile: &TileMesh) -> Vec<u8> {
     let mesh = &tile.mesh;
     let n = mesh.positions.len();
     let mut b = Vec::with_capacity(
-        HEADER + n * 18 + mesh.indices.len() * 4 + 4 + MOVES_HEADER + tile.moves.len() * MOVE_BYTES,
+        HEADER + n * 22 + mesh.indices.len() * 4 + 4 + MOVES_HEADER + tile.moves.len() * MOVE_BYTES,
     );
     put_regular(&mut b, mesh, 3, wide(n));
     put_moves(&mut b, &tile.moves);
@@ -331,7 +376,8 @@ fn decode_regular(bytes: &[u8]) -> Result<(Mesh, u16, bool, usize), FormatError>
             detail: version.to_string(),
         });
     }
-    let wide = f.u16(6)? & 1 == 1;
+    let flags = f.u16(6)?;
+    let wide = flags & FLAG_WIDE != 0;
     let n = f.u32(8)? as usize;
     let m = f.u32(12)? as usize;
     let index_bytes = if wide { 4 } else { 2 };
@@ -346,12 +392,27 @@ fn decode_regular(bytes: &[u8]) -> Result<(Mesh, u16, bool, usize), FormatError>
         positions: Vec::with_capacity(n),
         normals: Vec::with_capacity(n),
         indices: Vec::with_capacity(m),
+        materials: Vec::new(),
     };
     let mut at = HEADER;
     get_vertices(&f, &mut at, n, &mut mesh.positions, &mut mesh.normals)?;
     // Version 2 indices may name transition vertices only in the strips.
     get_indices(&f, &mut at, m, wide, n, &mut mesh.indices)?;
-    Ok((mesh, version, wide, at.next_multiple_of(4)))
+    let mut at = at.next_multiple_of(4);
+    if flags & FLAG_MATERIALS != 0 {
+        let section = f.slice(at, n * MATERIAL_BYTES).map_err(|_| {
+            too_small(format!(
+                "a material section of {n} vertices does not fit {} bytes",
+                bytes.len()
+            ))
+        })?;
+        mesh.materials = section
+            .chunks_exact(MATERIAL_BYTES)
+            .map(|c| [c[0], c[1], c[2], c[3]])
+            .collect();
+        at += n * MATERIAL_BYTES;
+    }
+    Ok((mesh, version, wide, at))
 }
 
 /// Decodes a tile: version 3 with its moves, or version 1 (a regular mesh, no moves). Version 2
@@ -414,7 +475,9 @@ fn decode_moves(bytes: &[u8], n: usize) -> Result<Vec<VertexMove>, FormatError> 
 }
 
 /// Encodes a mesh as glTF 2.0 binary: one node, one mesh, one triangle primitive with POSITION
-/// and NORMAL (f32 vec3) and indices (u16 or u32), accessor bounds on the positions.
+/// and NORMAL (f32 vec3) and indices (u16 or u32), accessor bounds on the positions; with
+/// materials, the custom attributes `_MATERIAL` (u8 VEC2: a, b; byte stride 4) and
+/// `_MATERIAL_WEIGHT` (f32 SCALAR: w / 255).
 pub fn encode_glb(mesh: &Mesh) -> Vec<u8> {
     glb(mesh, None)
 }
@@ -455,6 +518,23 @@ fn glb(mesh: &Mesh, moves: Option<&[VertexMove]>) -> Vec<u8> {
         primitive["indices"] = serde_json::json!(2);
         accessors.push(serde_json::json!({"bufferView": 2, "componentType": if wide { 5125 } else { 5123 }, "count": mesh.indices.len(), "type": "SCALAR"}));
         views.push(serde_json::json!({"buffer": 0, "byteOffset": index_at, "byteLength": index_len, "target": 34963}));
+    }
+    if mesh.has_materials() && n > 0 {
+        // `_MATERIAL`: the two materials, u8 VEC2 in 4-byte elements (glTF wants vertex
+        // attribute strides that are multiples of 4); `_MATERIAL_WEIGHT`: w / 255 as f32.
+        let at = bin.len();
+        put_materials(&mut bin, mesh);
+        primitive["attributes"]["_MATERIAL"] = serde_json::json!(accessors.len());
+        accessors.push(serde_json::json!({"bufferView": views.len(), "componentType": 5121, "count": n, "type": "VEC2"}));
+        views.push(serde_json::json!({"buffer": 0, "byteOffset": at, "byteLength": n * MATERIAL_BYTES, "byteStride": MATERIAL_BYTES, "target": 34962}));
+        let at = bin.len();
+        for i in 0..n {
+            let w = mesh.materials.get(i).map_or(0, |m| m[2]);
+            bin.extend_from_slice(&(f32::from(w) / 255.0).to_le_bytes());
+        }
+        primitive["attributes"]["_MATERIAL_WEIGHT"] = serde_json::json!(accessors.len());
+        accessors.push(serde_json::json!({"bufferView": views.len(), "componentType": 5126, "count": n, "type": "SCALAR"}));
+        views.push(serde_json::json!({"buffer": 0, "byteOffset": at, "byteLength": n * 4, "target": 34962}));
     }
     let mut gltf_mesh = serde_json::json!({"primitives": [primitive]});
     if let Some(moves) = moves {
@@ -544,6 +624,7 @@ mod tests {
             ],
             normals: vec![[0.0, 0.0, 1.0]; 4],
             indices: vec![0, 1, 2, 0, 2, 3],
+            materials: vec![],
         }
     }
 
@@ -617,6 +698,7 @@ mod tests {
             positions: vec![[0.75, 0.0, 0.0], [1.5, 0.5, 0.0], [0.875, 1.0, 0.0]],
             normals: vec![[1.0, 0.0, 0.0]; 3],
             indices: vec![0, 1, 2],
+            materials: vec![],
         }
     }
 
@@ -722,6 +804,200 @@ mod tests {
         assert!(glb_moves(&g[..g.len() - 8]).is_err());
     }
 
+    /// `quad()` with materials: rock to soil at 0.5, soil alone, soil to ore at 1/255, none.
+    fn painted_quad() -> Mesh {
+        Mesh {
+            materials: vec![[1, 2, 128, 0], [2, 2, 0, 0], [2, 5, 1, 0], [0, 0, 0, 0]],
+            ..quad()
+        }
+    }
+
+    #[test]
+    fn material_section_round_trip_and_golden_bytes() {
+        let m = painted_quad();
+        let b = encode_compact(&m);
+        // Flags: bit 1 (materials), indices u16. The section follows the 124 bytes of the
+        // plain mesh (indices end at 124, already a multiple of 4).
+        assert_eq!(&b[6..8], &[2, 0]);
+        assert_eq!(b.len(), 124 + 16);
+        assert_eq!(
+            &b[..124],
+            &{
+                let mut plain = encode_compact(&quad());
+                plain[6] = 2;
+                plain
+            }[..]
+        );
+        assert_eq!(
+            &b[124..],
+            &[1, 2, 128, 0, 2, 2, 0, 0, 2, 5, 1, 0, 0, 0, 0, 0]
+        );
+        assert_eq!(decode_compact(&b).unwrap(), m);
+        assert_eq!(decode_strip(&b).unwrap(), m);
+        // Without materials, the bytes are exactly those of before: flag clear, no section.
+        assert_eq!(&encode_compact(&quad())[6..8], &[0, 0]);
+        assert!(decode_compact(&encode_compact(&quad()))
+            .unwrap()
+            .materials
+            .is_empty());
+        // Odd index count: 3 u16 indices (6 bytes) padded by 2 before the section.
+        let tri = Mesh {
+            indices: vec![0, 1, 2],
+            ..painted_quad()
+        };
+        let b = encode_compact(&tri);
+        let section = 40 + 48 + 24 + 6 + 2;
+        assert_eq!(b.len(), section + 16);
+        assert_eq!(&b[section - 2..section], &[0, 0]);
+        assert_eq!(&b[section..section + 4], &[1, 2, 128, 0]);
+        assert_eq!(decode_compact(&b).unwrap(), tri);
+    }
+
+    #[test]
+    fn material_section_in_a_tile_comes_before_the_moves() {
+        let t = TileMesh {
+            mesh: painted_quad(),
+            ..tile()
+        };
+        let b = encode_tile(&t);
+        assert_eq!(&b[4..8], &[3, 0, 2, 0]);
+        assert_eq!(b.len(), 124 + 16 + 24 + 24);
+        assert_eq!(
+            &b[124..140],
+            &[1, 2, 128, 0, 2, 2, 0, 0, 2, 5, 1, 0, 0, 0, 0, 0]
+        );
+        // The move counts follow: +x 2, +y 1.
+        assert_eq!(&b[144..148], &[2, 0, 0, 0]);
+        let d = decode_tile(&b).unwrap();
+        assert_eq!(d.mesh, t.mesh);
+        assert_eq!(d.moves, by_face(t.moves.clone()));
+        assert_eq!(decode_compact(&b).unwrap(), t.mesh);
+        assert_eq!(encode_tile(&d), b);
+    }
+
+    #[test]
+    fn material_section_with_u32_indices() {
+        // 65537 vertices: indices are u32 (flags 3 with materials).
+        let n = 65537u32;
+        let mesh = Mesh {
+            positions: (0..n).map(|i| [i as f32, 0.0, 0.0]).collect(),
+            normals: vec![[0.0, 1.0, 0.0]; n as usize],
+            indices: vec![0, 65536, 1],
+            materials: (0..n)
+                .map(|i| [(i % 7) as u8, (i % 5) as u8, (i % 256) as u8, 0])
+                .collect(),
+        };
+        let b = encode_compact(&mesh);
+        assert_eq!(&b[6..8], &[3, 0]);
+        // 40 + 18 * 65537 + 3 * 4 = 1_179_718 bytes, padded by 2 to a multiple of 4.
+        let section = 1_179_720;
+        assert_eq!(b.len(), section + 4 * n as usize);
+        assert_eq!(
+            &b[section + 4 * 65536..],
+            &[(65536 % 7) as u8, (65536 % 5) as u8, 0, 0]
+        );
+        assert_eq!(decode_compact(&b).unwrap(), mesh);
+        let tile = TileMesh {
+            mesh: mesh.clone(),
+            moves: vec![VertexMove {
+                vertex: 65536,
+                face: 0,
+                distance: 0.5,
+            }],
+        };
+        let d = decode_tile(&encode_tile(&tile)).unwrap();
+        assert_eq!(d, tile);
+        // Truncated inside the section: an error, not a panic.
+        assert!(decode_compact(&b[..b.len() - 1]).is_err());
+    }
+
+    #[test]
+    fn material_section_rejects_hostile_input() {
+        let b = encode_compact(&painted_quad());
+        for cut in 0..b.len() {
+            assert!(decode_compact(&b[..cut]).is_err(), "cut at {cut}");
+            assert!(decode_strip(&b[..cut]).is_err(), "cut at {cut}");
+        }
+        let t = encode_tile(&TileMesh {
+            mesh: painted_quad(),
+            ..tile()
+        });
+        for cut in 0..t.len() {
+            assert!(decode_tile(&t[..cut]).is_err(), "cut at {cut}");
+        }
+        // The flag set on a mesh without the section: too short.
+        let mut flagged = encode_compact(&quad());
+        flagged[6] |= 2;
+        assert!(decode_compact(&flagged).is_err());
+        // A huge vertex count with the flag: refused before allocating.
+        let mut huge = b.clone();
+        huge[8..12].copy_from_slice(&u32::MAX.to_le_bytes());
+        assert!(decode_compact(&huge).is_err());
+    }
+
+    #[test]
+    fn append_stitch_and_glb_carry_materials() {
+        let mut m = quad();
+        m.append(&painted_quad());
+        assert_eq!(m.materials.len(), 8);
+        assert_eq!(&m.materials[..4], &[[0; 4]; 4]);
+        assert_eq!(&m.materials[4..], &painted_quad().materials[..]);
+        let mut p = painted_quad();
+        p.append(&quad());
+        assert_eq!(&p.materials[..4], &painted_quad().materials[..]);
+        assert_eq!(&p.materials[4..], &[[0; 4]; 4]);
+        let mut plain = quad();
+        plain.append(&quad());
+        assert!(plain.materials.is_empty());
+        let t = TileMesh {
+            mesh: painted_quad(),
+            ..tile()
+        };
+        let mut out = Mesh::default();
+        stitch(
+            &t,
+            0b10,
+            [None, Some(&strip()), None, None, None, None],
+            &mut out,
+        );
+        assert_eq!(out.materials.len(), out.positions.len());
+        assert_eq!(&out.materials[..4], &t.mesh.materials[..]);
+        assert_eq!(&out.materials[4..], &[[0; 4]; 3]);
+        // GLB: the two custom attributes, the moves' view after them.
+        let g = encode_glb_tile(&t);
+        let json_len = u32::from_le_bytes([g[12], g[13], g[14], g[15]]) as usize;
+        let json: serde_json::Value = serde_json::from_slice(&g[20..20 + json_len]).unwrap();
+        let attributes = &json["meshes"][0]["primitives"][0]["attributes"];
+        let (a, w) = (
+            attributes["_MATERIAL"].as_u64().unwrap() as usize,
+            attributes["_MATERIAL_WEIGHT"].as_u64().unwrap() as usize,
+        );
+        assert_eq!(json["accessors"][a]["type"], "VEC2");
+        assert_eq!(json["accessors"][a]["componentType"], 5121);
+        assert_eq!(json["accessors"][w]["type"], "SCALAR");
+        assert_eq!(json["accessors"][w]["componentType"], 5126);
+        let view = json["accessors"][a]["bufferView"].as_u64().unwrap() as usize;
+        assert_eq!(json["bufferViews"][view]["byteStride"], 4);
+        let bin = 20 + json_len + 8;
+        let at = bin + json["bufferViews"][view]["byteOffset"].as_u64().unwrap() as usize;
+        assert_eq!(
+            &g[at..at + 16],
+            &[1, 2, 128, 0, 2, 2, 0, 0, 2, 5, 1, 0, 0, 0, 0, 0]
+        );
+        let wv = json["accessors"][w]["bufferView"].as_u64().unwrap() as usize;
+        let at = bin + json["bufferViews"][wv]["byteOffset"].as_u64().unwrap() as usize;
+        let w0 = f32::from_le_bytes([g[at], g[at + 1], g[at + 2], g[at + 3]]);
+        assert_eq!(w0, 128.0 / 255.0);
+        assert_eq!(glb_moves(&g).unwrap(), Some(by_face(t.moves.clone())));
+        // Without materials, no custom attribute.
+        let g = encode_glb_tile(&tile());
+        let json_len = u32::from_le_bytes([g[12], g[13], g[14], g[15]]) as usize;
+        let json: serde_json::Value = serde_json::from_slice(&g[20..20 + json_len]).unwrap();
+        assert!(json["meshes"][0]["primitives"][0]["attributes"]
+            .get("_MATERIAL")
+            .is_none());
+    }
+
     fn arbitrary_tile() -> impl Strategy<Value = TileMesh> {
         let point = || [-1e4f32..1e4, -1e4f32..1e4, -1e4f32..1e4];
         (1usize..40).prop_flat_map(move |n| {
@@ -729,12 +1005,18 @@ mod tests {
                 proptest::collection::vec(point(), n),
                 proptest::collection::vec(0u32..n as u32, 0..30),
                 proptest::collection::vec((0u32..n as u32, 0u8..6, -2f32..2.0), 0..20),
+                proptest::option::of(proptest::collection::vec(any::<[u8; 3]>(), n)),
             )
-                .prop_map(move |(positions, regular, moves)| TileMesh {
+                .prop_map(move |(positions, regular, moves, materials)| TileMesh {
                     mesh: Mesh {
                         normals: vec![[0.0, 0.0, 1.0]; positions.len()],
                         positions,
                         indices: regular.iter().flat_map(|&i| [i, i, i]).collect(),
+                        materials: materials
+                            .unwrap_or_default()
+                            .into_iter()
+                            .map(|[a, b, w]| [a, b, w, 0])
+                            .collect(),
                     },
                     moves: moves
                         .into_iter()
@@ -783,6 +1065,7 @@ mod tests {
             let d = decode_tile(&b).map_err(|e| TestCaseError::fail(e.to_string()))?;
             prop_assert_eq!(&d.mesh.positions, &t.mesh.positions);
             prop_assert_eq!(&d.mesh.indices, &t.mesh.indices);
+            prop_assert_eq!(&d.mesh.materials, &t.mesh.materials);
             prop_assert_eq!(&d.moves, &by_face(t.moves.clone()));
             prop_assert_eq!(encode_tile(&d), b);
             prop_assert_eq!(glb_moves(&encode_glb_tile(&t)).ok().flatten(), Some(d.moves));

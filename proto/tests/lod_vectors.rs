@@ -235,6 +235,7 @@ fn tiles() -> Vec<(TileMesh, [Mesh; 6])> {
             indices: (0..3 * n.min(50))
                 .map(|_| (rng.next() % n as u64) as u32)
                 .collect(),
+            materials: vec![],
         };
         // Grouped by face, as the encoding gives them back; a vertex may move on two faces.
         let mut moves: Vec<VertexMove> = (0..2 * t)
@@ -253,6 +254,7 @@ fn tiles() -> Vec<(TileMesh, [Mesh; 6])> {
                 indices: (0..3 * (f + 1))
                     .map(|_| (rng.next() % k as u64) as u32)
                     .collect(),
+                materials: vec![],
             }
         });
         out.push((TileMesh { mesh, moves }, strips));

@@ -117,7 +117,9 @@ impl From<VolumeError> for ApiError {
                 version: None,
             },
             VolumeError::NotAllowed(_) => ApiError::Forbidden(detail),
-            VolumeError::UndoTooLarge { .. } => ApiError::Unprocessable(detail),
+            VolumeError::UndoTooLarge { .. } | VolumeError::Unprocessable(_) => {
+                ApiError::Unprocessable(detail)
+            }
             VolumeError::Compacted { .. } => ApiError::Gone(detail),
             VolumeError::WriterBusy => ApiError::Overloaded(1),
             // Too costly for this server: like an edit over the voxel budget.

@@ -107,8 +107,9 @@ impl TileFormat {
     }
 }
 
-/// One mesh tile with its moves (`docs/mesh-encoding.md`): marching cubes over the
-/// brick and its halo, through the content-keyed mesh cache, meshed, encoded and (for clients
+/// One mesh tile with its moves (`docs/mesh-encoding.md`), with `?channel=NAME` its per-vertex
+/// materials from that u8 channel (`docs/channels.md`): marching cubes over the brick and its
+/// halo, through the content-keyed mesh cache, meshed, encoded and (for clients
 /// that take it) zstd-compressed off the async runtime. `ETag` names the tile's inputs and
 /// position, so a revalidation costs index lookups (27 bricks) and no meshing; caching headers as
 /// [`validate`] says.
@@ -117,13 +118,16 @@ pub async fn mesh_tile(
     Path(Named { name }): Path<Named>,
     raw: RawPath,
     VersionParam(version): VersionParam,
+    ChannelParam(channel): ChannelParam,
     Query(query): Query<MeshQuery>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
     let (format, iso) = (query.format, query.iso);
     let position = brick_position(&raw)?;
     let tile = state
-        .read_volume(&name, move |_, vol| vol.mesh_tile(version, position, iso))
+        .read_volume(&name, move |_, vol| {
+            vol.mesh_tile(version, position, iso, channel.as_deref())
+        })
         .await?;
     let tag = tile.tag(format as u8);
     answer_mesh(
@@ -200,6 +204,7 @@ pub async fn mesh_strip(
     Path(StripPath { name, face }): Path<StripPath>,
     raw: RawPath,
     VersionParam(version): VersionParam,
+    ChannelParam(channel): ChannelParam,
     Query(query): Query<MeshQuery>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
@@ -209,7 +214,7 @@ pub async fn mesh_strip(
     let iso = query.iso;
     let strip = state
         .read_volume(&name, move |_, vol| {
-            vol.mesh_strip(version, position, face, iso)
+            vol.mesh_strip(version, position, face, iso, channel.as_deref())
         })
         .await?;
     let tag = strip.tag(format as u8);

@@ -146,6 +146,11 @@ pub(super) fn document(limits: &TermLimits) -> Value {
         json!({"type": "string", "pattern": "^[A-Za-z0-9_]{1,32}$"}),
         "read this attribute channel (the volume metadata lists them) instead of density; 404 when the volume has none of that name",
     );
+    let mesh_channel = query_param(
+        "channel",
+        json!({"type": "string", "pattern": "^[A-Za-z0-9_]{1,32}$"}),
+        "per-vertex materials from this u8 attribute channel (docs/channels.md, docs/mesh-encoding.md): the same mesh, plus each vertex's two materials and their weight (compact: flags bit 1 and a material section; glb: the attributes _MATERIAL and _MATERIAL_WEIGHT); density or absent: the mesh alone, as without it; 404 when the volume has no channel of that name, 422 when it is not u8",
+    );
     let brick_params = json!([
         name,
         level,
@@ -201,10 +206,11 @@ pub(super) fn document(limits: &TermLimits) -> Value {
                 "parameters": [name, level, coord("x"), coord("y"), coord("z"), version,
                     query_param("iso", json!({"type": "number", "minimum": 0, "maximum": u16::MAX}),
                         "iso value, default S - 0.5; within the volume's [L, H] (0..255 for u8 voxels, 0..65535 for u16: 400 beyond)"),
-                    query_param("format", json!({"type": "string", "enum": ["compact", "glb"]}), "compact (default: format version 3, the regular mesh and its moves, docs/mesh-encoding.md) or glb (the regular mesh as a plain glTF primitive, the moves in a buffer view named by the mesh's extras)")],
+                    query_param("format", json!({"type": "string", "enum": ["compact", "glb"]}), "compact (default: format version 3, the regular mesh and its moves, docs/mesh-encoding.md) or glb (the regular mesh as a plain glTF primitive, the moves in a buffer view named by the mesh's extras)"),
+                    mesh_channel.clone()],
                 "responses": merge(json!({
                     "200": {"description": "the tile: its regular mesh and moves", "content": merge(binary("application/x-isovox-mesh"), binary("model/gltf-binary"))},
-                    "304": {"description": "not modified"}}), problem_responses(&["400", "404", "500", "503"]))}},
+                    "304": {"description": "not modified"}}), problem_responses(&["400", "404", "422", "500", "503"]))}},
             "/v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}/strips/{face}": {"get": {
                 "summary": "the transition strip of one face of a mesh tile: a plain mesh, in world coordinates at its drawn positions, drawn with the tile (its moves of that face applied) where that face touches a tile one level coarser (docs/lod-meshes.md); empty for a face that can never touch one (the volume's boundary, the coarsest level); a strong ETag, Cache-Control as the tile's",
                 "parameters": [name, level, coord("x"), coord("y"), coord("z"),
@@ -212,10 +218,11 @@ pub(super) fn document(limits: &TermLimits) -> Value {
                     version,
                     query_param("iso", json!({"type": "number", "minimum": 0, "maximum": u16::MAX}),
                         "iso value, as for the tile"),
-                    query_param("format", json!({"type": "string", "enum": ["compact", "glb"]}), "compact (default: format version 1, a plain mesh) or glb (a plain glTF mesh)")],
+                    query_param("format", json!({"type": "string", "enum": ["compact", "glb"]}), "compact (default: format version 1, a plain mesh) or glb (a plain glTF mesh)"),
+                    mesh_channel],
                 "responses": merge(json!({
                     "200": {"description": "the strip", "content": merge(binary("application/x-isovox-mesh"), binary("model/gltf-binary"))},
-                    "304": {"description": "not modified"}}), problem_responses(&["400", "404", "500", "503"]))}},
+                    "304": {"description": "not modified"}}), problem_responses(&["400", "404", "422", "500", "503"]))}},
         },
         "components": {"securitySchemes": {"bearer": {"type": "http", "scheme": "bearer"}}, "schemas": {
             "Problem": {"type": "object", "required": ["type", "title", "status", "detail"],

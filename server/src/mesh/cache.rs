@@ -6,10 +6,15 @@
 //! tile's level along its face and of the next coarser one) and its face. Cached tiles (regular
 //! mesh and moves) and strips are in tile-local coordinates. So identical tiles anywhere, in any volume, are meshed once, and an
 //! edit invalidates exactly the tiles whose inputs changed: their key changes; the old entry
-//! ages out. The decoded bricks a tile reads come from the scratch's shared brick cache
+//! ages out. A tile or strip with materials from a channel is an entry of its own, whose key
+//! also names the channel bricks its materials read ([`super::tile::tile_material_key`]), so a
+//! paint (a channel edit) changes it and not the plain one. The decoded bricks a tile reads come from the scratch's shared brick cache
 //! ([`crate::store::decoded`]).
 
-use super::tile::{mesh_strip_from, mesh_tile_from, StripInputs, TileInputs, TileScratch};
+use super::tile::{
+    mesh_strip_from, mesh_strip_materials, mesh_tile_from, mesh_tile_materials, StripInputs,
+    TileInputs, TileScratch,
+};
 use crate::store::lru::ByteLru;
 use crate::store::{Snapshot, StoreError};
 use isovox_proto::mesh::TileMesh;
@@ -39,6 +44,7 @@ pub struct MeshCache {
 
 fn tile_bytes(t: &TileMesh) -> usize {
     t.mesh.positions.len() * 24
+        + t.mesh.materials.len() * 4
         + t.mesh.indices.len() * 4
         + t.moves.len() * std::mem::size_of::<isovox_proto::mesh::VertexMove>()
         + 128
@@ -105,6 +111,50 @@ impl MeshCache {
     ) -> Result<CachedTile, StoreError> {
         self.cached(inputs.key, |strip| {
             mesh_strip_from(snap, key, face, iso, inputs, strip, scratch)
+        })
+    }
+
+    /// [`MeshCache::tile`] with the materials of `channel` (a u8 view of the same version),
+    /// under `material_key` ([`super::tile::tile_material_key`]): its geometry is the plain
+    /// tile's, its own entry names the channel bricks too.
+    ///
+    /// # Errors
+    /// A brick fails to read.
+    #[allow(clippy::too_many_arguments)]
+    pub fn tile_with_materials(
+        &self,
+        snap: &Snapshot,
+        channel: &Snapshot,
+        key: BrickKey,
+        iso: f32,
+        inputs: &TileInputs,
+        material_key: u128,
+        scratch: &mut TileScratch,
+    ) -> Result<CachedTile, StoreError> {
+        self.cached(material_key, |tile| {
+            mesh_tile_materials(snap, channel, key, iso, inputs, tile, scratch)
+        })
+    }
+
+    /// [`MeshCache::strip`] with the materials of `channel`, under `material_key`
+    /// ([`super::tile::strip_material_key`]).
+    ///
+    /// # Errors
+    /// A brick fails to read.
+    #[allow(clippy::too_many_arguments)]
+    pub fn strip_with_materials(
+        &self,
+        snap: &Snapshot,
+        channel: &Snapshot,
+        key: BrickKey,
+        face: usize,
+        iso: f32,
+        inputs: &StripInputs,
+        material_key: u128,
+        scratch: &mut TileScratch,
+    ) -> Result<CachedTile, StoreError> {
+        self.cached(material_key, |strip| {
+            mesh_strip_materials(snap, channel, key, face, iso, inputs, strip, scratch)
         })
     }
 

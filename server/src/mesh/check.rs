@@ -172,6 +172,7 @@ mod tests {
             normals: vec![[0.0, 0.0, 1.0]; positions.len()],
             positions,
             indices,
+            materials: vec![],
         }
     }
 

@@ -290,19 +290,26 @@ pub fn mesh_stitched(
     Ok(out)
 }
 
-/// Merges vertices with bit-identical positions (the seam vertices of neighbouring tiles), and
-/// drops the triangles two of whose corners merge: they have no area. (Within a level no two
+/// Merges vertices with bit-identical positions (the seam vertices of neighbouring tiles),
+/// keeping the first one's normal and materials, and drops the triangles two of whose corners
+/// merge: they have no area. (Within a level no two
 /// vertices coincide; a transition strip's end can hold a fine and a coarse crossing that do,
 /// joined by a triangle of zero area, see [`super::transition`].)
 pub fn weld(mesh: &Mesh) -> Mesh {
     let mut index: HashMap<[u32; 3], u32> = HashMap::with_capacity(mesh.positions.len());
     let mut out = Mesh::default();
     let mut remap = Vec::with_capacity(mesh.positions.len());
-    for (p, n) in mesh.positions.iter().zip(&mesh.normals) {
+    let materials = mesh.materials.len() == mesh.positions.len() && mesh.has_materials();
+    for (i, (p, n)) in mesh.positions.iter().zip(&mesh.normals).enumerate() {
         let key = p.map(f32::to_bits);
         let id = *index.entry(key).or_insert_with(|| {
             out.positions.push(*p);
             out.normals.push(*n);
+            if materials {
+                // The first of the merged vertices' materials (a tile's and its strip's copy
+                // of a vertex carry the same).
+                out.materials.push(mesh.materials[i]);
+            }
             (out.positions.len() - 1) as u32
         });
         remap.push(id);

@@ -251,11 +251,12 @@ fn displacement(face: usize, k: f32) -> [f32; 3] {
 }
 
 /// A strip being built: the vertices it makes (numbered after the regular ones), their moves
-/// (with every face they move with), and its triangles.
+/// (with every face they move with), the lattice edge each lies on, and its triangles.
 #[derive(Debug, Default)]
 struct Transitions {
     positions: Vec<[f32; 3]>,
     normals: Vec<[f32; 3]>,
+    edges: Vec<StripEdge>,
     moves: Vec<VertexMove>,
     strip: Vec<u32>,
 }
@@ -264,8 +265,71 @@ impl Transitions {
     fn clear(&mut self) {
         self.positions.clear();
         self.normals.clear();
+        self.edges.clear();
         self.moves.clear();
         self.strip.clear();
+    }
+}
+
+/// Where a vertex of a strip lies, for its materials: on a lattice edge, or a cone's apex.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum StripEdge {
+    /// On the edge between two lattice points, at `t` of the way from the first (before any
+    /// move): each end is `(d, j)`, lattice point `j` of the tile's level (`d` = 0) or of the
+    /// next coarser one (`d` = 1), in that level's lattice coordinates. A fine edge has two
+    /// ends of the tile's level, a coarse one two of the coarser level, a connecting edge a
+    /// fine corner and its coarse twin.
+    Edge {
+        /// The two ends.
+        ends: [(u8, [i64; 3]); 2],
+        /// The fraction of the way from `ends[0]` to `ends[1]`.
+        t: f32,
+    },
+    /// The apex of a cone drawn over a loop (see `triangulate_loop`): it lies on no edge and
+    /// takes the materials of the loop's vertex with this id (regular ids first, then the
+    /// strip's own, as the strip is built).
+    Apex(u32),
+}
+
+impl TransitionScratch {
+    /// The edge of each vertex of the strip the last [`mesh_strip`] built (`n` vertices, in
+    /// the strip's order) into `out` (cleared first), `march` being the `march` it was built
+    /// from. A vertex whose edge is unknown (none, as built) gets `None`.
+    pub fn strip_edges(&self, march: &Scratch, n: usize, out: &mut Vec<Option<StripEdge>>) {
+        out.clear();
+        out.resize(n, None);
+        let to = |id: usize| {
+            self.remap
+                .get(id)
+                .copied()
+                .filter(|&to| to != u32::MAX && (to as usize) < n)
+                .map(|to| to as usize)
+        };
+        // The regular vertices the strip copies lie on the face's plane: on the border of the
+        // layer `march` meshed.
+        for b in &march.border {
+            if let Some(i) = to(b.id as usize) {
+                let mut p1 = b.p0;
+                p1[usize::from(b.axis)] += 1;
+                out[i] = Some(StripEdge::Edge {
+                    ends: [(0, b.p0), (0, p1)],
+                    t: b.t,
+                });
+            }
+        }
+        for (k, edge) in self.work.edges.iter().enumerate() {
+            if let Some(i) = to(self.regular + k) {
+                out[i] = Some(*edge);
+            }
+        }
+        for i in 0..n {
+            if let Some(StripEdge::Apex(id)) = out[i] {
+                out[i] = to(id as usize).and_then(|j| match out[j] {
+                    Some(StripEdge::Apex(_)) => None,
+                    other => other,
+                });
+            }
+        }
     }
 }
 
@@ -809,6 +873,7 @@ fn triangulate_loop(
     let apex = (n_regular + out.positions.len()) as u32;
     out.positions.push(centre.map(|c| c as f32));
     out.normals.push(normal);
+    out.edges.push(StripEdge::Apex(ids[0]));
     for i in 0..n {
         out.strip.extend([ids[i], ids[(i + 1) % n], apex]);
     }
@@ -897,7 +962,13 @@ fn coarse_vertex(
             (2 * q0[b] - f[b]) as f32
         };
     }
-    let id = push_vertex(out, scratch, pos, normal);
+    let mut q1 = q0;
+    q1[axis] += 1;
+    let edge = StripEdge::Edge {
+        ends: [(1, q0), (1, q1)],
+        t,
+    };
+    let id = push_vertex(out, scratch, pos, normal, edge);
     scratch.made[slot] = (scratch.stamp, id);
     (id, pos)
 }
@@ -942,7 +1013,11 @@ fn connecting_vertex(
         d[face / 2] = if vc >= input.iso { -outward } else { outward };
         d
     };
-    let id = push_vertex(out, scratch, primary, normal);
+    let edge = StripEdge::Edge {
+        ends: [(0, p), (1, q)],
+        t: s,
+    };
+    let id = push_vertex(out, scratch, primary, normal, edge);
     for f in (0..6).filter(|&f| moving >> f & 1 == 1) {
         out.moves.push(VertexMove {
             vertex: id,
@@ -961,9 +1036,11 @@ fn push_vertex(
     scratch: &TransitionScratch,
     pos: [f32; 3],
     normal: [f32; 3],
+    edge: StripEdge,
 ) -> u32 {
     let id = (scratch.regular + out.positions.len()) as u32;
     out.positions.push(pos);
     out.normals.push(normal);
+    out.edges.push(edge);
     id
 }

@@ -27,6 +27,10 @@ pub enum VolumeError {
     /// The request's arguments make no sense (a malformed region, an unknown format, ...).
     #[error("{0}")]
     BadRequest(String),
+    /// Well-formed, but not something this volume can answer (a u16 channel asked for
+    /// per-vertex materials, say): 422.
+    #[error("{0}")]
+    Unprocessable(String),
     /// The answer would be larger than the server gives in one response.
     #[error("{0}")]
     TooLarge(String),

@@ -3,11 +3,11 @@
 //! so a caller's mistake is told apart from a busy server, and run afterwards, off the async
 //! runtime (decoding, encoding, meshing).
 
-use super::{LiveVolume, VolumeError};
+use super::{stream_of, LiveVolume, VolumeError};
 use crate::mesh::cache::MeshCache;
 use crate::mesh::tile::{
-    iso_value, strip_inputs, strip_to_world, tile_inputs, tile_to_world, Stitching, StripInputs,
-    TileInputs, TileScratch,
+    check_material_channel, iso_value, strip_inputs, strip_material_key, strip_to_world,
+    tile_inputs, tile_material_key, tile_to_world, Stitching, StripInputs, TileInputs, TileScratch,
 };
 use crate::store::codec::constant_hash;
 use crate::store::decoded::{decode, DecodedBricks};
@@ -130,47 +130,70 @@ impl LiveVolume {
     }
 
     /// The snapshot, tile key and iso value of a read of mesh tile `(level, x, y, z)` (or of
-    /// one of its strips), checked.
+    /// one of its strips), checked, and the view of `channel` for per-vertex materials.
+    #[allow(clippy::type_complexity)]
     fn mesh_read(
         &self,
         version: Option<u64>,
         (level, x, y, z): (u8, u32, u32, u32),
         iso: Option<f32>,
-    ) -> Result<(Arc<Snapshot>, BrickKey, f32), VolumeError> {
+        channel: Option<&str>,
+    ) -> Result<(Arc<Snapshot>, BrickKey, f32, Option<Arc<Snapshot>>), VolumeError> {
         let snap = self.snapshot(version)?;
+        let channel = match channel {
+            None => None,
+            Some(name) => {
+                let view = stream_of(snap.clone(), Some(name))?;
+                check_material_channel(&view)
+                    .map_err(|e| VolumeError::Unprocessable(format!("channel {name:?}: {e}")))?;
+                Some(view)
+            }
+        };
         let key = snap
             .layout()
             .key(level, x, y, z)
             .map_err(|e| VolumeError::OutOfRange(e.to_string()))?;
         let iso = iso_value(iso, snap.layout().voxel_type()).map_err(VolumeError::BadRequest)?;
-        Ok((snap, key, iso))
+        Ok((snap, key, iso, channel))
     }
 
     /// Checks a mesh tile read and computes the tile's inputs (27 index lookups, no voxel
-    /// decoded): enough to name the result before meshing it.
+    /// decoded): enough to name the result before meshing it. With `channel`, the tile carries
+    /// per-vertex materials from that u8 channel, and its inputs name the channel's bricks too.
     ///
     /// # Errors
-    /// [`VolumeError::NoSuchVersion`], [`VolumeError::OutOfRange`], an iso value outside the
-    /// voxel type's [L, H] ([`VolumeError::BadRequest`]), a brick header that does not read.
+    /// [`VolumeError::NoSuchVersion`], [`VolumeError::OutOfRange`] (also an unknown channel),
+    /// an iso value outside the voxel type's [L, H] ([`VolumeError::BadRequest`]), a channel
+    /// that is not u8 ([`VolumeError::Unprocessable`]), a brick header that does not read.
     pub fn mesh_tile(
         &self,
         version: Option<u64>,
         (level, x, y, z): (u8, u32, u32, u32),
         iso: Option<f32>,
+        channel: Option<&str>,
     ) -> Result<TileRead, VolumeError> {
-        let (snap, key, iso) = self.mesh_read(version, (level, x, y, z), iso)?;
+        let (snap, key, iso, channel) = self.mesh_read(version, (level, x, y, z), iso, channel)?;
         let inputs = tile_inputs(&snap, key, iso, Stitching::Moves)?;
+        let channel = match channel {
+            Some(view) => {
+                let material_key = tile_material_key(&view, key, &inputs)?;
+                Some((view, material_key))
+            }
+            None => None,
+        };
         Ok(TileRead {
             snap,
             key,
             iso,
             inputs,
+            channel,
         })
     }
 
     /// Checks a read of the transition strip of face `face` (0..6) of a mesh tile and computes
     /// its inputs (index lookups, no voxel decoded). A face that can never touch a coarser tile
-    /// (the volume's boundary, the coarsest level) has an empty strip.
+    /// (the volume's boundary, the coarsest level) has an empty strip. With `channel`, as
+    /// [`LiveVolume::mesh_tile`].
     ///
     /// # Errors
     /// As [`LiveVolume::mesh_tile`].
@@ -180,15 +203,24 @@ impl LiveVolume {
         (level, x, y, z): (u8, u32, u32, u32),
         face: usize,
         iso: Option<f32>,
+        channel: Option<&str>,
     ) -> Result<StripRead, VolumeError> {
-        let (snap, key, iso) = self.mesh_read(version, (level, x, y, z), iso)?;
+        let (snap, key, iso, channel) = self.mesh_read(version, (level, x, y, z), iso, channel)?;
         let inputs = strip_inputs(&snap, key, face, iso)?;
+        let channel = match channel {
+            Some(view) => {
+                let material_key = strip_material_key(&view, key, face, &inputs)?;
+                Some((view, material_key))
+            }
+            None => None,
+        };
         Ok(StripRead {
             snap,
             key,
             face,
             iso,
             inputs,
+            channel,
         })
     }
 }
@@ -399,13 +431,19 @@ pub struct TileRead {
     key: BrickKey,
     iso: f32,
     inputs: TileInputs,
+    /// The channel of its materials and the content key of the tile with them.
+    channel: Option<(Arc<Snapshot>, u128)>,
 }
 
 impl TileRead {
-    /// A hash of everything the tile's encoded mesh depends on (its inputs, position and the
-    /// volume's voxel scale) and of `variant` (which encoding): equal tags, equal bytes.
+    /// A hash of everything the tile's encoded mesh depends on (its inputs, with materials the
+    /// channel's bricks too, position and the volume's voxel scale) and of `variant` (which
+    /// encoding): equal tags, equal bytes.
     pub fn tag(&self, variant: u8) -> u64 {
-        mesh_tag(self.inputs.key, self.key, &self.snap, &[variant])
+        match &self.channel {
+            None => mesh_tag(self.inputs.key, self.key, &self.snap, &[variant]),
+            Some((_, key)) => mesh_tag(*key, self.key, &self.snap, &[variant, b'm']),
+        }
     }
 
     /// The tile in world coordinates, its regular mesh and moves: from `meshes` when
@@ -420,7 +458,18 @@ impl TileRead {
         bricks: Arc<DecodedBricks>,
     ) -> Result<TileMesh, VolumeError> {
         let mut scratch = TileScratch::with_bricks(bricks);
-        let cached = meshes.tile(&self.snap, self.key, self.iso, &self.inputs, &mut scratch)?;
+        let cached = match &self.channel {
+            None => meshes.tile(&self.snap, self.key, self.iso, &self.inputs, &mut scratch)?,
+            Some((channel, material_key)) => meshes.tile_with_materials(
+                &self.snap,
+                channel,
+                self.key,
+                self.iso,
+                &self.inputs,
+                *material_key,
+                &mut scratch,
+            )?,
+        };
         let mut tile = (*cached.tile).clone();
         tile_to_world(&mut tile, self.key, &self.snap);
         Ok(tile)
@@ -435,14 +484,19 @@ pub struct StripRead {
     face: usize,
     iso: f32,
     inputs: StripInputs,
+    /// The channel of its materials and the content key of the strip with them.
+    channel: Option<(Arc<Snapshot>, u128)>,
 }
 
 impl StripRead {
     /// A hash of everything the strip's encoded mesh depends on (its inputs, which name its
-    /// face, the tile's position and the volume's voxel scale) and of `variant` (which
-    /// encoding): equal tags, equal bytes.
+    /// face, with materials the channel's bricks too, the tile's position and the volume's
+    /// voxel scale) and of `variant` (which encoding): equal tags, equal bytes.
     pub fn tag(&self, variant: u8) -> u64 {
-        mesh_tag(self.inputs.key, self.key, &self.snap, &[variant, b's'])
+        match &self.channel {
+            None => mesh_tag(self.inputs.key, self.key, &self.snap, &[variant, b's']),
+            Some((_, key)) => mesh_tag(*key, self.key, &self.snap, &[variant, b's', b'm']),
+        }
     }
 
     /// The strip in world coordinates, as drawn: from `meshes` when it holds one with the same
@@ -452,14 +506,26 @@ impl StripRead {
     /// A brick fails to read or decode.
     pub fn mesh(self, meshes: &MeshCache, bricks: Arc<DecodedBricks>) -> Result<Mesh, VolumeError> {
         let mut scratch = TileScratch::with_bricks(bricks);
-        let cached = meshes.strip(
-            &self.snap,
-            self.key,
-            self.face,
-            self.iso,
-            &self.inputs,
-            &mut scratch,
-        )?;
+        let cached = match &self.channel {
+            None => meshes.strip(
+                &self.snap,
+                self.key,
+                self.face,
+                self.iso,
+                &self.inputs,
+                &mut scratch,
+            )?,
+            Some((channel, material_key)) => meshes.strip_with_materials(
+                &self.snap,
+                channel,
+                self.key,
+                self.face,
+                self.iso,
+                &self.inputs,
+                *material_key,
+                &mut scratch,
+            )?,
+        };
         Ok(strip_to_world((*cached.tile).clone(), self.key, &self.snap))
     }
 }

@@ -35,6 +35,7 @@ mod memory_bound;
 mod mesh_closed;
 mod mesh_encodings;
 mod mesh_kernel;
+mod mesh_materials;
 mod mesh_strips;
 mod object_store;
 mod oidc;

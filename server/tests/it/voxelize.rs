@@ -1339,6 +1339,7 @@ fn glb_of(m: &TriMesh) -> Vec<u8> {
         positions: m.positions.clone(),
         normals: vec![[0.0, 0.0, 1.0]; m.positions.len()],
         indices: m.triangles.iter().flatten().copied().collect(),
+        materials: vec![],
     })
 }
 

@@ -53,7 +53,7 @@ fn transition_faces(layout: &VolumeLayout, key: BrickKey) -> u8 {
 /// Adds the content of the bricks of `level` holding the voxels `read` (a box, inclusive) to
 /// `desc`, and returns the least and greatest voxel of those among them that hold voxels of
 /// `crossing` (the voxels that decide whether the surface can cross the cells).
-fn describe_bricks(
+pub(super) fn describe_bricks(
     snap: &Snapshot,
     level: u8,
     read: GridBox,

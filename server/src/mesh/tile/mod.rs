@@ -25,6 +25,7 @@
 //!   brick headers alone.
 //! - [`regular`]: a tile's regular mesh and its moves.
 //! - [`strip`]: a tile's transition strips, in named steps.
+//! - [`materials`]: per-vertex materials from a u8 channel, and their content keys.
 //! - [`geometry`]: the seam arithmetic: which cells and lattice points a tile and its strips
 //!   read, and indices into the buffers that hold them.
 //! - [`voxels`]: the stored voxels they read (a window of bricks) and the lattice values
@@ -33,12 +34,17 @@
 
 mod geometry;
 mod inputs;
+mod materials;
 mod regular;
 mod strip;
 mod voxels;
 mod world;
 
 pub use inputs::{strip_inputs, tile_inputs, StripInputs, TileInputs};
+pub use materials::{
+    blend, check_material_channel, mesh_strip_materials, mesh_tile_materials, strip_material_key,
+    tile_material_key,
+};
 pub use regular::{mesh_tile, mesh_tile_from, mesh_tile_with_moves};
 pub use strip::{mesh_strip_from, mesh_strip_world};
 pub use world::{strip_to_world, tile_to_world, to_world};
@@ -69,6 +75,8 @@ pub struct TileScratch {
     flags: Vec<[bool; 2]>,
     /// The bricks of a tile's own level.
     fine_bricks: BrickWindow,
+    /// The channel bricks a tile's or a strip's materials read.
+    material_bricks: BrickWindow,
     lattice: LatticeScratch,
     march: Scratch,
     /// The regular mesh of the layer of cells a strip is built along.
