@@ -318,10 +318,11 @@ function isStripStale([l, x, y, z, f], changed, b) {
 }
 
 /** Clicks the surface at screen point `at` in edit mode, giving `tokenText` when asked. */
-async function editThroughUi(page, at, { op, primitive, size, tokenText }) {
+async function editThroughUi(page, at, { op, primitive, size, tokenText, material }) {
   await page.check("#edit-mode");
   await page.selectOption("#op", op);
   await page.selectOption("#primitive", primitive);
+  if (material !== undefined) await page.selectOption("#material", String(material));
   await page.fill("#size", String(size));
   await page.mouse.click(at.x, at.y);
   await page.waitForSelector("#token-form:not([hidden])");
@@ -417,6 +418,74 @@ test("an edit in one page changes the picture in another page at the edited plac
   // Once A's own view shows the edit's tiles, the preview is gone.
   await waitComplete(a.page, version);
   await waitFor(a.page, "A's preview to be taken away", (s) => s.previews === 0);
+  await a.context.close();
+  await b.context.close();
+});
+
+/**
+ * Per pixel of the 3D view sampled every 4th, the palette value whose colour it shows: light and
+ * the textures scale a colour's channels alike, so its chromaticity (r, g, b over their sum)
+ * names it; null for sky, or no value within 0.012. Rock and marble (both grey) count as one.
+ */
+function materialsShown(img, palette, inside = () => true) {
+  const chroma = ([r, g, b]) => [r / (r + g + b + 1e-9), g / (r + g + b + 1e-9)];
+  const known = palette.map((hex, value) => ({ value, c: chroma([1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16))) }));
+  const counts = new Map();
+  let ground = 0;
+  for (let y = 0; y < img.height; y += 4) {
+    for (let x = 0; x < img.width; x += 4) {
+      if (inUi(x, y) || !inside(x, y)) continue;
+      const p = pixel(img, x, y);
+      if (isSky(p)) continue;
+      ground++;
+      const c = chroma(p);
+      let best = null;
+      for (const k of known.slice(1)) {
+        const d = Math.hypot(c[0] - k.c[0], c[1] - k.c[1]);
+        if (d < 0.012 && (best === null || d < best.d)) best = { value: k.value, d };
+      }
+      if (best === null) continue;
+      const value = best.value === 6 ? 1 : best.value;
+      counts.set(value, (counts.get(value) ?? 0) + 1);
+    }
+  }
+  return { ground, counts };
+}
+
+test("materials: the demo world shows several, and a paint from page A changes the colour on page B there alone", { timeout: 180_000 }, async () => {
+  const info = await (await api("/v1/volumes/demo")).json();
+  const palette = info.channels.find((c) => c.name === "material").palette;
+  const a = await openPage();
+  const b = await openPage();
+  await waitComplete(a.page);
+  const before = await waitComplete(b.page);
+  assert.equal(await b.page.inputValue("#colormap"), "materials", "a volume with materials is coloured by them");
+  const beforeImg = await screenshot(b.page);
+  const shown = materialsShown(beforeImg, palette);
+  const many = [...shown.counts].filter(([, n]) => n >= shown.ground * 0.01);
+  assert.ok(many.length >= 2, `materials on 1% of the ground or more: ${JSON.stringify([...shown.counts])} of ${shown.ground}`);
+
+  // A paints ore (5, gold: nowhere on the surface before) where the terrain in front is; the
+  // density does not change, the colour does.
+  const at = FRONT;
+  const nearAt = (x, y) => Math.hypot(x - at.x, y - at.y) < 14;
+  const oreBefore = materialsShown(beforeImg, palette, nearAt).counts.get(5) ?? 0;
+  assert.equal(oreBefore, 0, "no ore in front before");
+  const status = await editThroughUi(a.page, at, { op: "paint", primitive: "ellipsoid", size: 16, tokenText: token, material: 5 });
+  const m = /Applied as version (\d+)/.exec(status);
+  assert.ok(m, `paint status: ${status}`);
+  const version = Number(m[1]);
+  const change = (await (await api(`/v1/volumes/demo/changes?since=${version - 1}`)).json()).changes[0];
+  assert.ok(change.changed.every((bricks) => bricks.length === 0), "a paint changes no density brick");
+  assert.ok(change.channels.material[0].length > 0, "a paint changes material bricks");
+
+  await waitComplete(b.page, version);
+  const afterImg = await screenshot(b.page);
+  const near = materialsShown(afterImg, palette, nearAt);
+  const ore = near.counts.get(5) ?? 0;
+  assert.ok(ore > near.ground * 0.3, `ore on ${ore} of ${near.ground} samples in front after the paint`);
+  const far = changedPixels(beforeImg, afterImg, (x, y) => Math.hypot(x - at.x, y - at.y) > 150);
+  assert.ok(far.changed <= far.total * 0.002, `far from the paint ${far.changed} of ${far.total} pixels changed`);
   await a.context.close();
   await b.context.close();
 });
