@@ -612,15 +612,9 @@ impl LiveVolume {
                 snap.version
             )));
         };
-        let at = |l: u8| -> ([u32; 3], [u32; 3], u64) {
-            let lo = lo0.map(|c| c >> l);
-            let hi: [u32; 3] = hi0.map(|c| c.div_ceil(1 << l));
-            let n = (0..3).map(|a| u64::from(hi[a] - lo[a])).product();
-            (lo, hi, n)
-        };
-        let (lo, hi, voxels) = at(level);
+        let (lo, hi, voxels) = level_box([lo0, hi0], level);
         if voxels > MAX_MESH_VOXELS {
-            let fits = (level..layout.levels()).find(|&l| at(l).2 <= MAX_MESH_VOXELS);
+            let fits = finest_fitting([lo0, hi0], level, layout.levels(), MAX_MESH_VOXELS);
             return Err(VolumeError::TooLarge(format!(
                 "segment {id}'s box {lo0:?}..{hi0:?} holds {voxels} voxels at level {level}; a mesh marches at most {MAX_MESH_VOXELS}: ask for level {}",
                 fits.map_or("none".into(), |l| l.to_string())
@@ -633,6 +627,22 @@ impl LiveVolume {
             mesh,
         })
     }
+}
+
+/// A level-0 box `[lo, hi)` at `level`: `[floor(lo / 2^level), ceil(hi / 2^level))` (a voxel of
+/// a mode pyramid holds a value of one of its level-0 voxels, so a segment's voxels at `level`
+/// lie in it), and its voxel count.
+fn level_box([lo, hi]: [[u32; 3]; 2], level: u8) -> ([u32; 3], [u32; 3], u64) {
+    let step = 1u64 << level.min(63);
+    let lo = lo.map(|c| (u64::from(c) / step) as u32);
+    let hi: [u32; 3] = hi.map(|c| u64::from(c).div_ceil(step) as u32);
+    let n = (0..3).map(|a| u64::from(hi[a] - lo[a])).product();
+    (lo, hi, n)
+}
+
+/// The finest level from `from` up (below `levels`) whose box holds at most `cap` voxels.
+fn finest_fitting(bounds: [[u32; 3]; 2], from: u8, levels: u8, cap: u64) -> Option<u8> {
+    (from..levels).find(|&l| level_box(bounds, l).2 <= cap)
 }
 
 /// Marching cubes on the indicator of `id` over the voxels `[lo, hi)` of `level` of `snap`,
@@ -745,6 +755,21 @@ mod tests {
                 },
             ]
         );
+    }
+
+    #[test]
+    fn a_box_too_large_for_a_mesh_names_the_finest_level_that_fits() {
+        // 600 x 600 x 100 = 36,000,000 voxels at level 0, over 2^24 = 16,777,216; at level 1
+        // [0, 300) x [0, 300) x [0, 50) = 4,500,000.
+        let bounds = [[0, 0, 0], [600, 600, 100]];
+        assert_eq!(level_box(bounds, 0).2, 36_000_000);
+        assert_eq!(finest_fitting(bounds, 0, 8, MAX_MESH_VOXELS), Some(1));
+        // Rounded outwards: [3, 9) at level 0 is [1, 5) at level 1 and [0, 3) at level 2.
+        let odd = [[3, 3, 3], [9, 9, 9]];
+        assert_eq!(level_box(odd, 1), ([1; 3], [5; 3], 64));
+        assert_eq!(level_box(odd, 2), ([0; 3], [3; 3], 27));
+        // No level fits a cap of nothing.
+        assert_eq!(finest_fitting(bounds, 0, 8, 0), None);
     }
 
     #[test]

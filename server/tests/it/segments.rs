@@ -291,15 +291,30 @@ fn segments_follow_paints_undo_redo_and_revert_and_equal_a_recount() {
     assert_eq!(listed(&pinned), (first, after_first.clone()));
 
     // One build per channel, then updates from the commits: the log says so.
-    let log = server.log();
-    let builds = log
-        .lines()
-        .filter(|l| l.contains("segment index built") && l.contains("label"))
-        .count();
-    assert_eq!(
-        builds, 1,
-        "the label index was built {builds} times:\n{log}"
-    );
+    let builds = || {
+        server
+            .log()
+            .lines()
+            .filter(|l| l.contains("segment index built") && l.contains("label"))
+            .count()
+    };
+    assert_eq!(builds(), 1, "the label index was built more than once");
+
+    // A paint the index has not seen, then compaction (the file starts again from the head,
+    // its first commit relative to nothing), then another paint: the commits no longer lead
+    // from the indexed version, and the index is built again, right.
+    paint(&server, [40, 40, 40], [6, 6, 6], 12);
+    post_ok(&server, "/v1/volumes/world/compact", json!({}));
+    paint(&server, [50, 2, 2], [4, 4, 4], 13);
+    let compacted = labels_checked(&server, "after compaction");
+    assert_eq!(compacted[&12], (64, [[41, 41, 41], [45, 45, 45]]));
+    assert_eq!(compacted[&13], (8, [[51, 3, 3], [53, 5, 5]]));
+    assert_eq!(builds(), 2, "the index was not rebuilt after compaction");
+    // From there on, updates again.
+    paint(&server, [50, 2, 2], [4, 4, 4], 14);
+    let later = labels_checked(&server, "id 14 over 13");
+    assert!(!later.contains_key(&13) && later[&14].0 == 8);
+    assert_eq!(builds(), 2);
 }
 
 /// The volume marching cubes (iso 0.5) encloses around an `n x m x k` box of ones in a field
