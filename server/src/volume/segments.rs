@@ -22,8 +22,6 @@
 
 use super::{stream_of, LiveVolume, VolumeError};
 use crate::mesh::mc::{march, Field, Scratch};
-use crate::progress::Silent;
-use crate::store::raw::{export_raw, LevelBox};
 use crate::store::{Snapshot, StoreError, StoredBrick, Vod2};
 use isovox_proto::mesh::Mesh;
 use isovox_proto::vod2::CommitHeader;
@@ -43,6 +41,9 @@ pub const MAX_SEGMENTS: usize = 10_000;
 pub const MAX_SCAN_VOXELS: u64 = 1 << 24;
 /// Voxels of a segment's box (at the level asked for) one mesh may march, 256^3.
 pub const MAX_MESH_VOXELS: u64 = 1 << 24;
+/// Vertices one segment mesh may have (its crossed grid edges, counted before marching):
+/// about 25 MiB of mesh (positions, normals, twice as many triangles) and less encoded.
+pub const MAX_MESH_VERTICES: u64 = 1 << 19;
 
 /// One segment: a non-zero value of a channel.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize)]
@@ -645,43 +646,106 @@ fn finest_fitting(bounds: [[u32; 3]; 2], from: u8, levels: u8, cap: u64) -> Opti
     (from..levels).find(|&l| level_box(bounds, l).2 <= cap)
 }
 
+/// The indicator of `id` over the voxels `[lo, hi)` of `level` of `snap` (1 where the voxel is
+/// `id`), with two samples of zeros more on each side (the padding that closes the mesh, and
+/// the halo `march` reads for its normals), x fastest; read brick by brick, so the job holds
+/// the indicator and one decoded brick.
+fn indicator(
+    snap: &Snapshot,
+    level: u8,
+    lo: [u32; 3],
+    hi: [u32; 3],
+    id: u16,
+) -> Result<(Vec<u8>, [usize; 3]), StoreError> {
+    let n = [0, 1, 2].map(|a| (hi[a] - lo[a]) as usize);
+    let size = n.map(|c| c + 4);
+    let mut values = vec![0u8; size.iter().product()];
+    let layout = snap.layout();
+    let b = layout.brick();
+    let two = layout.voxel_type() != VoxelType::U8;
+    for bz in lo[2] / b..=(hi[2] - 1) / b {
+        for by in lo[1] / b..=(hi[1] - 1) / b {
+            for bx in lo[0] / b..=(hi[0] - 1) / b {
+                let key = BrickKey {
+                    level,
+                    x: bx,
+                    y: by,
+                    z: bz,
+                };
+                let origin = [bx, by, bz].map(|c| c * b);
+                // The part of the box in this brick, in voxels of the level.
+                let from: [u32; 3] = std::array::from_fn(|a| lo[a].max(origin[a]));
+                let to: [u32; 3] = std::array::from_fn(|a| hi[a].min(origin[a] + b));
+                let voxels = snap.voxels(key)?;
+                for z in from[2]..to[2] {
+                    for y in from[1]..to[1] {
+                        let row = ((z - lo[2]) as usize + 2) * size[1] + (y - lo[1]) as usize + 2;
+                        let out = &mut values[row * size[0] + 2..][..n[0]];
+                        let local = ((z - origin[2]) * b + (y - origin[1])) * b;
+                        for x in from[0]..to[0] {
+                            let inside = match &voxels {
+                                crate::store::BrickVoxels::Constant(v) => *v == id,
+                                crate::store::BrickVoxels::Data(d) => {
+                                    let i = (local + x - origin[0]) as usize;
+                                    let v = if two {
+                                        u16::from_le_bytes([d[2 * i], d[2 * i + 1]])
+                                    } else {
+                                        u16::from(d[i])
+                                    };
+                                    v == id
+                                }
+                            };
+                            out[(x - lo[0]) as usize] = u8::from(inside);
+                        }
+                    }
+                }
+            }
+        }
+    }
+    Ok((values, size))
+}
+
+/// The grid edges between samples of `values` (x fastest, `size`) whose two ends differ: the
+/// vertices marching cubes makes on it, one per crossed edge.
+fn crossed_edges(values: &[u8], size: [usize; 3]) -> u64 {
+    let (sx, sxy) = (size[0], size[0] * size[1]);
+    let mut crossed = 0u64;
+    for (i, &v) in values.iter().enumerate() {
+        let x = i % sx;
+        let y = i / sx % size[1];
+        let z = i / sxy;
+        if x + 1 < size[0] && values[i + 1] != v {
+            crossed += 1;
+        }
+        if y + 1 < size[1] && values[i + sx] != v {
+            crossed += 1;
+        }
+        if z + 1 < size[2] && values[i + sxy] != v {
+            crossed += 1;
+        }
+    }
+    crossed
+}
+
 /// Marching cubes on the indicator of `id` over the voxels `[lo, hi)` of `level` of `snap`,
 /// padded by a voxel of zeros on every side (so the mesh is closed), in world coordinates.
+///
+/// # Errors
+/// A brick does not read; [`VolumeError::TooLarge`] when the surface would have more than
+/// [`MAX_MESH_VERTICES`] vertices.
 fn mesh_indicator(
     snap: &Snapshot,
     level: u8,
     lo: [u32; 3],
     hi: [u32; 3],
     id: u16,
-) -> Result<Mesh, StoreError> {
-    let mut raw = Vec::new();
-    export_raw(
-        snap,
-        level,
-        LevelBox { min: lo, max: hi },
-        &mut raw,
-        &Silent,
-    )?;
-    let n = [0, 1, 2].map(|a| (hi[a] - lo[a]) as usize);
-    // Two samples more on each side: the padding of zeros, and the halo `march` reads for
-    // its normals' central differences.
-    let size = n.map(|c| c + 4);
-    let mut values = vec![0u8; size.iter().product()];
-    let two = snap.layout().voxel_type() != VoxelType::U8;
-    let mut i = 0;
-    for z in 0..n[2] {
-        for y in 0..n[1] {
-            let row = ((z + 2) * size[1] + y + 2) * size[0] + 2;
-            for x in 0..n[0] {
-                let v = if two {
-                    u16::from_le_bytes([raw[2 * i], raw[2 * i + 1]])
-                } else {
-                    u16::from(raw[i])
-                };
-                values[row + x] = u8::from(v == id);
-                i += 1;
-            }
-        }
+) -> Result<Mesh, VolumeError> {
+    let (values, size) = indicator(snap, level, lo, hi, id)?;
+    let vertices = crossed_edges(&values, size);
+    if vertices > MAX_MESH_VERTICES {
+        return Err(VolumeError::TooLarge(format!(
+            "segment {id}'s surface at level {level} has {vertices} vertices; a mesh has at most {MAX_MESH_VERTICES}: ask for a coarser level (each level has about a quarter of the one below's)"
+        )));
     }
     let origin = lo.map(|c| i64::from(c) - 2);
     let field = Field {
@@ -770,6 +834,17 @@ mod tests {
         assert_eq!(level_box(odd, 2), ([0; 3], [3; 3], 27));
         // No level fits a cap of nothing.
         assert_eq!(finest_fitting(bounds, 0, 8, 0), None);
+    }
+
+    #[test]
+    fn crossed_edges_are_the_faces_of_the_voxels_inside() {
+        // A 2 x 1 x 1 bar of ones in a 6 x 5 x 5 field of zeros: its faces, 2 (2 + 2 + 1) = 10.
+        let size = [6, 5, 5];
+        let mut values = vec![0u8; 150];
+        values[(2 * 5 + 2) * 6 + 2] = 1;
+        values[(2 * 5 + 2) * 6 + 3] = 1;
+        assert_eq!(crossed_edges(&values, size), 10);
+        assert_eq!(crossed_edges(&[0; 150], size), 0);
     }
 
     #[test]

@@ -357,6 +357,9 @@ fn a_segment_s_mesh_is_closed_and_encloses_what_marching_cubes_gives_a_box() {
     let mesh = isovox_proto::mesh::decode_compact(&compact).unwrap();
     assert!(mesh.triangles() > 0);
     assert_eq!(open_edges(&mesh), 0, "the mesh is not closed");
+    // One vertex per crossed grid edge, welded: one per face of the box's voxels,
+    // 2 (10 x 6 + 10 x 4 + 6 x 4) = 248.
+    assert_eq!(mesh.positions.len(), 248);
     let v = enclosed_volume(&mesh);
     let want = box_volume(10.0, 6.0, 4.0);
     // Every vertex lies at a midpoint, exact in f32: only the sum's rounding differs.
