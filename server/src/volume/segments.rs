@@ -836,6 +836,101 @@ mod tests {
         assert_eq!(finest_fitting(bounds, 0, 8, 0), None);
     }
 
+    /// Every non-zero value of `view`'s level 0, counted voxel by voxel.
+    fn brute_force(view: &Snapshot) -> Vec<SegmentInfo> {
+        let layout = view.layout();
+        let (dims, b) = (layout.dims(), layout.brick());
+        let mut found: BTreeMap<u16, SegmentInfo> = BTreeMap::new();
+        for z in 0..dims[2] {
+            for y in 0..dims[1] {
+                for x in 0..dims[0] {
+                    let key = BrickKey {
+                        level: 0,
+                        x: x / b,
+                        y: y / b,
+                        z: z / b,
+                    };
+                    let bytes = view.read(key).unwrap();
+                    let i = (((z % b) * b + y % b) * b + x % b) as usize;
+                    let v = u16::from_le_bytes([bytes[2 * i], bytes[2 * i + 1]]);
+                    if v == 0 {
+                        continue;
+                    }
+                    let s = found.entry(v).or_insert(SegmentInfo {
+                        id: v,
+                        voxels: 0,
+                        bounds: [[u32::MAX; 3], [0; 3]],
+                    });
+                    s.voxels += 1;
+                    for (a, c) in [x, y, z].into_iter().enumerate() {
+                        s.bounds[0][a] = s.bounds[0][a].min(c);
+                        s.bounds[1][a] = s.bounds[1][a].max(c + 1);
+                    }
+                }
+            }
+        }
+        found.into_values().collect()
+    }
+
+    #[test]
+    fn the_index_kept_across_random_paints_equals_a_count_of_every_voxel() {
+        use crate::store::{build_streams, BuildOptions, DenseGrid, Vod2};
+        use isovox_proto::channel::ChannelInfo;
+        use isovox_proto::vod2::FileHeader;
+        use isovox_proto::VolumeLayout;
+
+        // 20 x 18 x 17 (edge bricks cut by the volume's end), brick 8, a sparse u16 label.
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("v.vod");
+        let dims = [20u32, 18, 17];
+        let n = dims.iter().product::<u32>() as usize;
+        let density = vec![0u8; n];
+        let label = vec![0u8; 2 * n];
+        let sources = [
+            DenseGrid::new(dims, VoxelType::U8, 8, &density),
+            DenseGrid::new(dims, VoxelType::U16, 8, &label),
+        ];
+        let sources: Vec<&dyn crate::store::BrickSource> = sources.iter().map(|s| s as _).collect();
+        let layout = VolumeLayout::new(dims, 8, VoxelType::U8).unwrap();
+        let channels = vec![ChannelInfo {
+            sparse: true,
+            ..ChannelInfo::new("label", VoxelType::U16)
+        }];
+        let header = FileHeader::with_channels(layout, [1.0; 3], channels).unwrap();
+        build_streams(&path, header, &sources, &BuildOptions::default()).unwrap();
+        let volume = LiveVolume::new("v", Vod2::open(&path).unwrap()).unwrap();
+        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = |below: u64| {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed % below
+        };
+        for step in 0..24 {
+            // Ids from a few (0 erases), so that paints cover others whole and ids come and
+            // go; some paints reach past the volume's end.
+            let origin = [0, 1, 2].map(|a| next(u64::from(dims[a])) as i64 - 2);
+            let size = [0, 1, 2].map(|_| 3 + next(9) as u32);
+            let id = [0, 3, 7, 300, 65535][next(5) as usize];
+            let request: isovox_proto::icvg::EditRequest =
+                serde_json::from_value(serde_json::json!(
+                    {"op": "paint", "channel": "label",
+                     "term": {"cuboid": {"origin": origin, "size": size, "label": id}}}
+                ))
+                .unwrap();
+            super::super::write::edit_file(&path, &request).unwrap();
+            // Several commits between two looks, sometimes.
+            if next(3) == 0 {
+                continue;
+            }
+            volume.reload().unwrap();
+            let list = volume.segments(None, "label", None, None).unwrap();
+            let head = volume.head().channel("label").unwrap();
+            assert_eq!(list.version, head.version);
+            assert_eq!(list.segments, brute_force(&head), "step {step}");
+        }
+    }
+
     #[test]
     fn crossed_edges_are_the_faces_of_the_voxels_inside() {
         // A 2 x 1 x 1 bar of ones in a 6 x 5 x 5 field of zeros: its faces, 2 (2 + 2 + 1) = 10.
