@@ -14,6 +14,9 @@
 //! - `GET /v1/volumes/{name}/meshes/{level}/{x}/{y}/{z}`: one mesh tile (see
 //!   [`handlers::mesh_tile`]); `.../strips/{face}`: the transition strip of one of its faces
 //!   ([`handlers::mesh_strip`]).
+//! - `GET /v1/volumes/{name}/channels/{channel}/segments`: a categorical channel's ids with
+//!   their voxel counts and boxes; `.../segments/{id}/mesh`: one segment's closed mesh
+//!   ([`segments`]).
 //! - `POST /v1/volumes/{name}/edits` ([`edit`]), `POST .../compact` ([`compact`]),
 //!   `GET .../events` and `GET .../changes` ([`feed`]), `POST /v1/meshes` ([`meshes`]).
 //! - `GET /v1/volumes/{name}/zarr/...`, `.../precomputed/...` and their version-pinned forms
@@ -24,7 +27,7 @@
 //! code the routed handler calls; see `fast_path.rs` for why and for what counts as plain.
 //!
 //! Layout: handlers by concern (`bricks`, `handlers`, `views`, `edit`, `compact`, `feed`,
-//! `meshes`, `web_app`); `error` decides every status code; `extract` gives axum's extractors
+//! `meshes`, `segments`, `web_app`); `error` decides every status code; `extract` gives axum's extractors
 //! that error; `cpu` runs CPU work off the async runtime; `compression` makes the zstd bodies
 //! inside that work and `held` bounds their memory until they are sent; `auth` checks tokens
 //! and edit rates, `oidc` an issuer's JWTs; `bodies` keeps constant bricks' bodies; `serve` is the listener loop and the
@@ -52,6 +55,7 @@ pub mod metrics;
 pub mod oidc;
 mod openapi;
 mod request_body;
+pub mod segments;
 mod serve;
 pub mod tls;
 pub mod views;
@@ -415,6 +419,14 @@ fn routes(state: &AppState) -> Router<AppState> {
         .route("/v1/volumes/{name}/changes", read(feed::changes))
         .route("/v1/volumes/{name}/history", read(history::history))
         .route("/v1/volumes/{name}/tags", read(history::tags))
+        .route(
+            "/v1/volumes/{name}/channels/{channel}/segments",
+            read(segments::segments),
+        )
+        .route(
+            "/v1/volumes/{name}/channels/{channel}/segments/{id}/mesh",
+            read(segments::segment_mesh),
+        )
         .route_layer(timeout);
     // Edits wait for their volume's writer (bounded by the edit queue), and the change feed is
     // meant to stay open: neither gets the timeout.

@@ -260,14 +260,65 @@ pub(super) fn document(limits: &TermLimits) -> Value {
         }}
     });
     let (paths, schemas) = write_side(name.clone(), limits);
+    let (segment_paths, segment_schemas) = segments(name.clone(), version.clone());
     if let Some(p) = doc["paths"].as_object_mut() {
         p.extend(paths.as_object().cloned().unwrap_or_default());
+        p.extend(segment_paths.as_object().cloned().unwrap_or_default());
         p.extend(view_paths(name).as_object().cloned().unwrap_or_default());
     }
     if let Some(s) = doc["components"]["schemas"].as_object_mut() {
         s.extend(schemas.as_object().cloned().unwrap_or_default());
+        s.extend(segment_schemas.as_object().cloned().unwrap_or_default());
     }
     doc
+}
+
+/// The segments of categorical channels (`docs/channels.md`, "Segments"): their list and one
+/// segment's mesh.
+fn segments(name: Value, version: Value) -> (Value, Value) {
+    use crate::volume::segments::{MAX_MESH_VOXELS, MAX_SCAN_VOXELS, MAX_SEGMENTS};
+    let channel = path_param(
+        "channel",
+        json!({"type": "string", "pattern": "^[A-Za-z0-9_]{1,32}$", "not": {"const": "density"}}),
+        "an attribute channel of the volume (404 naming the channels it has when it has none of that name); density is not categorical (422)",
+    );
+    let version = merge(
+        version,
+        json!({"description": format!("list this older version, by number or tag (404 when the file does not hold it): the segments are kept for the newest version, so an older one is a scan, for volumes of at most {MAX_SCAN_VOXELS} voxels (409 beyond)")}),
+    );
+    let binary = |media: &str| json!({media: {"schema": {"type": "string", "format": "binary"}}});
+    let paths = json!({
+        "/v1/volumes/{name}/channels/{channel}/segments": {"get": {
+            "summary": "a categorical channel's non-zero values (segmentation ids, materials in use), ascending, each with its level-0 voxel count and bounding box; kept per commit, not scanned per request (the first request for a channel builds its index)",
+            "parameters": [name, channel, version,
+                query_param("after", version_number(), "list the ids after this one (the previous page's next)"),
+                query_param("limit", int(1, MAX_SEGMENTS as u64), "segments per page, default 1000")],
+            "responses": merge(json!({"200": {"description": "one page of segments, with the version it describes", "content": {"application/json": {"schema": schema_ref("SegmentList")}}}}),
+                problem_responses(&["400", "404", "409", "422", "500", "503"]))}},
+        "/v1/volumes/{name}/channels/{channel}/segments/{id}/mesh": {"get": {
+            "summary": "the closed mesh of the voxels of a channel whose value is id, at a level of the channel's mode pyramid: marching cubes on the indicator (1 where the value is id, iso 0.5) over the segment's box padded by a voxel of zeros, in world coordinates (level-0 voxel units times the voxel scale); Isovox-Version names the version meshed",
+            "parameters": [name, channel,
+                path_param("id", int(0, u64::MAX), "the segment's id (404 when the channel holds no voxel of it, 0 or a value beyond its type included)"),
+                version,
+                query_param("level", int(0, u8::MAX.into()), "the level marched, default 0 (404 beyond the channel's pyramid)"),
+                query_param("format", json!({"type": "string", "enum": ["compact", "glb"]}), "compact (default: format version 1, a plain mesh, docs/mesh-encoding.md) or glb (a plain glTF mesh)")],
+            "responses": merge(json!({"200": {"description": format!("the mesh; 413 when the segment's box holds more than {MAX_MESH_VOXELS} voxels at that level (the detail names a level that fits)"),
+                    "headers": {"Isovox-Version": {"description": "the version meshed", "schema": {"type": "integer"}}},
+                    "content": merge(binary("application/x-isovox-mesh"), binary("model/gltf-binary"))}}),
+                problem_responses(&["400", "404", "409", "413", "422", "500", "503"]))}},
+    });
+    let triple = schema_ref("Triple");
+    let schemas = json!({
+        "SegmentList": {"type": "object", "required": ["version", "channel", "total", "segments"],
+            "properties": {"version": {"type": "integer"}, "channel": {"type": "string"},
+                "total": {"type": "integer", "description": "segments at that version, on every page"},
+                "next": {"type": "integer", "description": "when more follow: the after of the next page; absent on the last page"},
+                "segments": {"type": "array", "items": {"type": "object", "required": ["id", "voxels", "box"],
+                    "properties": {"id": {"type": "integer", "minimum": 1}, "voxels": {"type": "integer", "minimum": 1},
+                        "box": {"type": "array", "items": triple, "minItems": 2, "maxItems": 2,
+                            "description": "[[x0, y0, z0], [x1, y1, z1]], level-0 voxels, max exclusive"}}}}}},
+    });
+    (paths, schemas)
 }
 
 /// The write side (`docs/editing.md`): edits, compaction, the change feed and its catch-up.

@@ -17,7 +17,8 @@
 //! server answers (batches, levels, mesh tiles), checked first and run later off the async
 //! runtime; [`write`] checking edits against a server's limits, and compaction; [`group`] the
 //! edit queue and group commit; [`resolve`] the volumes
-//! and meshes edit terms name; [`error`] what can go wrong.
+//! and meshes edit terms name; [`segments`] the segments of categorical channels, kept per
+//! commit; [`error`] what can go wrong.
 
 pub mod error;
 pub mod follow;
@@ -26,6 +27,7 @@ pub mod history;
 pub mod presence;
 pub mod read;
 pub mod resolve;
+pub mod segments;
 pub mod undo;
 pub mod write;
 
@@ -141,6 +143,9 @@ pub struct LiveVolume {
     feed: broadcast::Sender<Arc<FeedItem>>,
     /// Where the volume is kept when it is not a local file (an object store).
     remote: Option<Arc<RemoteVolume>>,
+    /// The segments of its channels, per channel, kept from the first request on
+    /// ([`segments`]).
+    segments: segments::SegmentIndexes,
 }
 
 /// A place in the writer's queue; dropping it leaves the queue.
@@ -230,6 +235,7 @@ impl LiveVolume {
             older: Mutex::default(),
             feed: broadcast::channel(FEED_CAPACITY).0,
             remote: None,
+            segments: segments::SegmentIndexes::default(),
         })
     }
 

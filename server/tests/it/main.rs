@@ -44,6 +44,7 @@ mod overload;
 mod people;
 mod recovery;
 mod roundtrip;
+mod segments;
 mod shared_editing;
 mod shutdown;
 mod stitched;
