@@ -17,6 +17,7 @@ Usage: python neuroglancer_draws.py --url http://127.0.0.1:PORT --volume demo --
 """
 
 import argparse
+import contextlib
 import io
 import os
 import subprocess
@@ -79,10 +80,13 @@ def main():
     print("neuroglancer draws the volume from both views, and its materials as a segmentation")
 
 
-def draw(view, source, origin, size, inside, out_dir):
+@contextlib.contextmanager
+def opened(name, layer):
+    """A Neuroglancer viewer showing `layer` as `name` in an xy cross-section, open in chromium;
+    yields (viewer, its dimension names) once the browser has read the layer's metadata."""
     viewer = neuroglancer.Viewer()
     with viewer.txn() as s:
-        s.layers["volume"] = neuroglancer.ImageLayer(source=source, shader=SHADER)
+        s.layers[name] = layer
         s.layout = "xy"
         s.show_axis_lines = False
         s.show_scale_bar = False
@@ -97,7 +101,17 @@ def draw(view, source, origin, size, inside, out_dir):
         deadline = time.time() + 60
         while not viewer.state.dimensions.names and time.time() < deadline:
             time.sleep(0.2)
-        names = list(viewer.state.dimensions.names)
+        yield viewer, list(viewer.state.dimensions.names)
+    finally:
+        browser.stdin.close()
+        try:
+            browser.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            browser.kill()
+
+
+def draw(view, source, origin, size, inside, out_dir):
+    with opened("volume", neuroglancer.ImageLayer(source=source, shader=SHADER)) as (viewer, names):
         if sorted(names) != ["x", "y", "z"]:
             return fail(view, f"the viewer's dimensions are {names}, not x, y, z")
         (x0, y0, z), (wx, wy) = origin, size
@@ -125,12 +139,6 @@ def draw(view, source, origin, size, inside, out_dir):
         if image is not None:
             image.save(os.path.join(out_dir, f"neuroglancer-{view}.png"))
         return best
-    finally:
-        browser.stdin.close()
-        try:
-            browser.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            browser.kill()
 
 
 def draw_segmentation(source, origin, size, labels, out_dir):
@@ -139,23 +147,8 @@ def draw_segmentation(source, origin, size, labels, out_dir):
     ids = [int(i) for i in np.unique(labels) if i != 0 and (labels == i).mean() >= 0.005]
     if len(ids) < 2:
         return False, f"the slice should hold two materials or more on 0.5% of it, it holds {ids}"
-    viewer = neuroglancer.Viewer()
-    with viewer.txn() as s:
-        s.layers["material"] = neuroglancer.SegmentationLayer(source=source, segments=ids, selected_alpha=1.0)
-        s.layout = "xy"
-        s.show_axis_lines = False
-        s.show_scale_bar = False
-        s.show_default_annotations = False
-    browser = subprocess.Popen(
-        ["node", os.path.join(os.path.dirname(__file__), "open_page.mjs"),
-         viewer.get_viewer_url(), str(WIDTH), str(HEIGHT)],
-        stdin=subprocess.PIPE,
-    )
-    try:
-        deadline = time.time() + 60
-        while not viewer.state.dimensions.names and time.time() < deadline:
-            time.sleep(0.2)
-        names = list(viewer.state.dimensions.names)
+    layer = neuroglancer.SegmentationLayer(source=source, segments=ids, selected_alpha=1.0)
+    with opened("material", layer) as (viewer, names):
         if sorted(names) != ["x", "y", "z"]:
             return False, f"the viewer's dimensions are {names}, not x, y, z"
         (x0, y0, z), (wx, wy) = origin, size
@@ -192,12 +185,6 @@ def draw_segmentation(source, origin, size, labels, out_dir):
         if image is not None:
             image.save(os.path.join(out_dir, "neuroglancer-segmentation.png"))
         return agree, why
-    finally:
-        browser.stdin.close()
-        try:
-            browser.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            browser.kill()
 
 
 def fail(view, why):

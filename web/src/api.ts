@@ -247,6 +247,25 @@ function lookQuery(look: MeshLook): string {
   return look.channel === null ? iso : `${iso}&channel=${encodeURIComponent(look.channel)}`;
 }
 
+/** One segment of a channel (`GET .../channels/{channel}/segments`). */
+export interface Segment {
+  id: number;
+  /** Level-0 voxels holding it. */
+  voxels: number;
+  /** Its level-0 box, [min, max) per axis as [[x0, y0, z0], [x1, y1, z1]]. */
+  box: [Vec3, Vec3];
+}
+
+/** A page of a channel's segments. */
+export interface SegmentList {
+  version: number;
+  channel: string;
+  total?: number;
+  segments: Segment[];
+  /** The `after` of the next page, absent on the last. */
+  next?: number;
+}
+
 export class Api {
   readonly base: string;
   private readonly token: () => string | null;
@@ -335,8 +354,25 @@ export class Api {
     name: string,
     key: { level: number; x: number; y: number; z: number },
     signal?: AbortSignal,
+    channel: string | null = null,
   ): Promise<ArrayBuffer> {
-    const path = `/v1/volumes/${encodeURIComponent(name)}/bricks/${key.level}/${key.x}/${key.y}/${key.z}`;
+    const query = channel === null ? "" : `?channel=${encodeURIComponent(channel)}`;
+    const path = `/v1/volumes/${encodeURIComponent(name)}/bricks/${key.level}/${key.x}/${key.y}/${key.z}${query}`;
+    const r = await this.send(path, signal ? { signal } : {});
+    return r.arrayBuffer();
+  }
+
+  /** The first `limit` segments of `channel` (ids ascending). */
+  segments(name: string, channel: string, limit = 1000, signal?: AbortSignal): Promise<SegmentList> {
+    return this.json(
+      `/v1/volumes/${encodeURIComponent(name)}/channels/${encodeURIComponent(channel)}/segments?limit=${limit}`,
+      signal,
+    );
+  }
+
+  /** Segment `id`'s closed mesh at `level` (compact encoding, version 1). */
+  async segmentMesh(name: string, channel: string, id: number, level: number, signal?: AbortSignal): Promise<ArrayBuffer> {
+    const path = `/v1/volumes/${encodeURIComponent(name)}/channels/${encodeURIComponent(channel)}/segments/${id}/mesh?level=${level}&format=compact`;
     const r = await this.send(path, signal ? { signal } : {});
     return r.arrayBuffer();
   }

@@ -14,6 +14,7 @@ import { COLORMAPS, neuroglancerUrl, type Colormap } from "./colormap";
 import { readUrl, writeUrl, type UrlState } from "./url";
 import "./people.css";
 import { People } from "./people";
+import { SegmentPanel } from "./segments";
 
 const $ = <T extends HTMLElement>(id: string) => document.getElementById(id) as T;
 
@@ -24,6 +25,12 @@ const viewport = new Viewport($<HTMLCanvasElement>("view"));
 const slice = new SliceView(api, $<HTMLCanvasElement>("slice"));
 const overlay = $<HTMLPreElement>("overlay");
 const editStatus = $<HTMLParagraphElement>("edit-status");
+const segments = new SegmentPanel(api, viewport, {
+  section: $("segments-section"),
+  channel: $<HTMLSelectElement>("segment-channel"),
+  status: $("segments-status"),
+  list: $("segments"),
+});
 
 let info: VolumeInfo | null = null;
 let streamer: Streamer | null = null;
@@ -104,6 +111,7 @@ async function openVolume(name: string, state: UrlState | null): Promise<void> {
   $<HTMLInputElement>("iso").min = String(v.low);
   $<HTMLInputElement>("iso").max = String(v.high);
   showMaterials(v);
+  segments.open(v);
   const materials = materialChannel(v);
   const map = state?.colormap ?? (materials ? "materials" : "terrain");
   setColormap(map === "materials" && !materials ? "terrain" : map);
@@ -128,6 +136,7 @@ async function openVolume(name: string, state: UrlState | null): Promise<void> {
       if (people.viewing === null) s.applyCommit(ev);
       if (slice.touches(ev.changed)) void loadSlice();
       people.commit(ev);
+      segments.commit(ev);
     },
     presence: (p) => people.presence(p),
     reload: async () => {
@@ -632,11 +641,21 @@ function updateNeuroglancer(): void {
 }
 
 /** What the pointer is over: a voxel's position and value, or nothing. */
-let probe: { where: string; position: [number, number, number]; level: number; value: number } | null = null;
+let probe: {
+  where: string;
+  position: [number, number, number];
+  level: number;
+  value: number;
+  /** Over the surface: the channels' values at the voxel (material, label, ...). */
+  channels?: Record<string, number>;
+} | null = null;
 
 function showProbe(): void {
   $<HTMLParagraphElement>("probe").textContent = probe
-    ? `${probe.where} (${probe.position.join(", ")})${probe.level > 0 ? ` level ${probe.level}` : ""}: ${probe.value}`
+    ? `${probe.where} (${probe.position.join(", ")})${probe.level > 0 ? ` level ${probe.level}` : ""}: ${probe.value}` +
+      Object.entries(probe.channels ?? {})
+        .map(([name, value]) => `, ${name} ${value}`)
+        .join("")
     : "pointer: -";
 }
 
@@ -678,20 +697,29 @@ function showProbe(): void {
     ) as [number, number, number];
     const b = v.brick;
     const key = { level: 0, x: Math.floor(pos[0] / b), y: Math.floor(pos[1] / b), z: Math.floor(pos[2] / b) };
-    const id = `${v.name}/${streamer.version}/${key.x}/${key.y}/${key.z}`;
-    let voxels = bricks.get(id);
-    if (!voxels) {
-      if (bricks.size > 64) bricks.clear();
-      const u16 = v.voxel_type === "u16";
-      voxels = api.brick(v.name, key).then((buf) => (u16 ? new Uint16Array(buf) : new Uint8Array(buf)));
-      bricks.set(id, voxels);
-      voxels.catch(() => bricks.delete(id));
-    }
-    const data = await voxels;
+    const version = streamer.version;
+    // The brick's voxels of density (channel null) or of a channel, each once per version.
+    const voxelsOf = (channel: string | null, type: string) => {
+      const id = `${v.name}/${version}/${channel ?? ""}/${key.x}/${key.y}/${key.z}`;
+      let voxels = bricks.get(id);
+      if (!voxels) {
+        if (bricks.size > 64) bricks.clear();
+        const u16 = type === "u16";
+        voxels = api.brick(v.name, key, undefined, channel).then((buf) => (u16 ? new Uint16Array(buf) : new Uint8Array(buf)));
+        bricks.set(id, voxels);
+        voxels.catch(() => bricks.delete(id));
+      }
+      return voxels;
+    };
+    const l = [pos[0] % b, pos[1] % b, pos[2] % b];
+    const at = l[0]! + b * (l[1]! + b * l[2]!);
+    const data = await voxelsOf(null, v.voxel_type);
+    const channels = await Promise.all(
+      (v.channels ?? []).map(async (c) => [c.name, (await voxelsOf(c.name, c.type))[at] ?? 0] as [string, number]),
+    );
     // The pointer left the view meanwhile: what is under it now (the slice, or nothing) stands.
     if (!last) return;
-    const l = [pos[0] % b, pos[1] % b, pos[2] % b];
-    probe = { where: "surface", position: pos, level: 0, value: data[l[0]! + b * (l[1]! + b * l[2]!)] ?? 0 };
+    probe = { where: "surface", position: pos, level: 0, value: data[at] ?? 0, channels: Object.fromEntries(channels) };
     showProbe();
   };
   canvas.addEventListener("pointermove", (e) => {
@@ -723,6 +751,8 @@ const hook = {
     framePending: viewport.framePending,
     /** The page's own edits drawn as previews, waiting for their tiles. */
     previews: viewport.previewCount,
+    /** Segment meshes shown from the segment list. */
+    segments: viewport.segmentCount,
     firstFrameMs,
     completeMs,
     completeInViewMs,

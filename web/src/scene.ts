@@ -134,6 +134,8 @@ export class Viewport implements TileSink {
   /** The page's own edits drawn until the server's tiles show them, by id. */
   private readonly previews = new Map<number, THREE.Mesh>();
   private previewId = 0;
+  /** Segment meshes shown from the segment list, by id. */
+  private readonly segments = new Map<number, THREE.Mesh>();
   private readonly material: THREE.ShaderMaterial;
   private readonly orbit: OrbitControls;
   private readonly fly: FlyNavigation;
@@ -173,6 +175,10 @@ export class Viewport implements TileSink {
       textureScale: { value: 1 / 16 },
     };
     this.material = new THREE.ShaderMaterial({ vertexShader: VERTEX, fragmentShader: FRAGMENT, uniforms });
+    // Light for the segment meshes (the surface's own shader lights itself).
+    const sunLight = new THREE.DirectionalLight(0xffffff, 2.2);
+    sunLight.position.set(0.4, 0.8, 0.45);
+    this.scene.add(new THREE.AmbientLight(0xffffff, 0.9), sunLight);
     this.orbit = new OrbitControls(this.camera, canvas);
     this.orbit.addEventListener("change", () => {
       this.requestRender();
@@ -300,6 +306,42 @@ export class Viewport implements TileSink {
       this.scene.add(group);
     }
     this.requestRender();
+  }
+
+  // --- segments (the segment list's sink) -------------------------------------------------
+
+  /**
+   * Shows segment `id`'s closed mesh in `color` (lit, drawn over the surface where both lie:
+   * a segment's boundary on the surface is the surface).
+   */
+  showSegment(id: number, mesh: TriangleSet, color: [number, number, number]): void {
+    this.hideSegment(id);
+    const material = new THREE.MeshLambertMaterial({
+      color: new THREE.Color().setRGB(color[0] / 255, color[1] / 255, color[2] / 255, THREE.SRGBColorSpace),
+      polygonOffset: true,
+      polygonOffsetFactor: -1,
+      polygonOffsetUnits: -4,
+    });
+    const m = new THREE.Mesh(geometry(mesh), material);
+    m.matrixAutoUpdate = false;
+    this.scene.add(m);
+    this.segments.set(id, m);
+    this.requestRender();
+  }
+
+  hideSegment(id: number): void {
+    const m = this.segments.get(id);
+    if (!m) return;
+    this.scene.remove(m);
+    m.geometry.dispose();
+    (m.material as THREE.Material).dispose();
+    this.segments.delete(id);
+    this.requestRender();
+  }
+
+  /** Segment meshes shown. */
+  get segmentCount(): number {
+    return this.segments.size;
   }
 
   // --- tiles (the streamer's sink) ----------------------------------------------------------

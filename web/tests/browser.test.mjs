@@ -486,6 +486,27 @@ test("materials: the demo world shows several, and a paint from page A changes t
   assert.ok(ore > near.ground * 0.3, `ore on ${ore} of ${near.ground} samples in front after the paint`);
   const far = changedPixels(beforeImg, afterImg, (x, y) => Math.hypot(x - at.x, y - at.y) > 150);
   assert.ok(far.changed <= far.total * 0.002, `far from the paint ${far.changed} of ${far.total} pixels changed`);
+
+  // The pointer over the surface says the voxel's material, as GET /bricks?channel= has it.
+  await b.page.mouse.move(at.x, at.y - 5);
+  await b.page.mouse.move(at.x, at.y);
+  await b.page.waitForFunction(() => window.isovox.probe()?.where === "surface" && window.isovox.probe()?.channels);
+  const probe = await b.page.evaluate(() => window.isovox.probe());
+  const size = info.brick;
+  const [px, py, pz] = probe.position;
+  const brick = new Uint8Array(await (await api(`/v1/volumes/demo/bricks/0/${Math.floor(px / size)}/${Math.floor(py / size)}/${Math.floor(pz / size)}?channel=material`)).arrayBuffer());
+  assert.equal(probe.channels.material, brick[(px % size) + size * ((py % size) + size * (pz % size))]);
+  assert.match(await b.page.textContent("#probe"), new RegExp(`material ${probe.channels.material}`));
+
+  // The segment list lists the materials in use, ore among them now; ticking ore shows its mesh.
+  const listed = await (await api("/v1/volumes/demo/channels/material/segments")).json();
+  await b.page.waitForFunction((n) => document.querySelectorAll("#segments input[data-segment]").length === n, listed.segments.length);
+  assert.ok(listed.segments.some((s) => s.id === 5), `ore listed: ${JSON.stringify(listed.segments.map((s) => s.id))}`);
+  await b.page.check('#segments input[data-segment="5"]');
+  await waitFor(b.page, "ore's mesh to be shown", (s) => s.segments === 1);
+  await b.page.uncheck('#segments input[data-segment="5"]');
+  await waitFor(b.page, "ore's mesh to be hidden", (s) => s.segments === 0);
+  assert.deepEqual(b.errors, [], "console errors");
   await a.context.close();
   await b.context.close();
 });

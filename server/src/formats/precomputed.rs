@@ -101,21 +101,12 @@ pub fn document<'s>(snap: &'s Snapshot, path: &str) -> Result<Document<'s>, View
     // A channel's source: its name first (names start with a letter, levels are numbers).
     if let Some((first, rest)) = path.split_once('/') {
         if first.starts_with(|c: char| c.is_ascii_lowercase()) {
-            let view = snap
-                .header()
-                .stream_named(first)
-                .and_then(|stream| snap.channel_views().get(stream - 1))
-                .ok_or_else(|| {
-                    let names: Vec<&str> = snap
-                        .header()
-                        .channels
-                        .iter()
-                        .map(|c| c.name.as_str())
-                        .collect();
-                    ViewError::NoSuchDocument(format!(
-                        "the volume has no channel {first:?}; its channels: {names:?}"
-                    ))
-                })?;
+            let view = snap.channel_view(first).ok_or_else(|| {
+                ViewError::NoSuchDocument(format!(
+                    "the volume has no channel {first:?}; its channels: {:?}",
+                    snap.channel_names()
+                ))
+            })?;
             return source_document(view, Some(view), rest, Source::Segmentation);
         }
     }

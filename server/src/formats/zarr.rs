@@ -159,11 +159,7 @@ fn channel_name(view: &Snapshot) -> &str {
 
 /// `labels/zarr.json`: the label images there are, one per channel.
 fn labels_metadata(snap: &Snapshot) -> Value {
-    let names: Vec<&str> = snap
-        .channel_views()
-        .iter()
-        .map(|v| channel_name(v))
-        .collect();
+    let names = snap.channel_names();
     json!({
         "zarr_format": 3,
         "node_type": "group",
@@ -209,19 +205,12 @@ pub fn document<'s>(snap: &'s Snapshot, name: &str, path: &str) -> Result<Docume
             return Ok(metadata(&labels_metadata(snap)));
         }
         let (channel, rest) = rest.split_once('/').unwrap_or((rest, ""));
-        let view = snap
-            .channel_views()
-            .iter()
-            .find(|v| channel_name(v) == channel)
-            .ok_or_else(|| {
-                ViewError::NoSuchDocument(format!(
-                    "no label image {channel:?}: the volume's channels are {:?}",
-                    snap.channel_views()
-                        .iter()
-                        .map(|v| channel_name(v))
-                        .collect::<Vec<_>>()
-                ))
-            })?;
+        let view = snap.channel_view(channel).ok_or_else(|| {
+            ViewError::NoSuchDocument(format!(
+                "no label image {channel:?}: the volume's channels are {:?}",
+                snap.channel_names()
+            ))
+        })?;
         if rest == "zarr.json" {
             return Ok(metadata(&label_metadata(view)));
         }

@@ -168,14 +168,9 @@ pub fn stream_of(snap: Arc<Snapshot>, channel: Option<&str>) -> Result<Arc<Snaps
         return Ok(snap);
     };
     snap.channel(name).ok_or_else(|| {
-        let names: Vec<&str> = snap
-            .header()
-            .channels
-            .iter()
-            .map(|c| c.name.as_str())
-            .collect();
         VolumeError::OutOfRange(format!(
-            "this volume has no channel {name:?} (density and {names:?})"
+            "this volume has no channel {name:?} (density and {:?})",
+            snap.channel_names()
         ))
     })
 }

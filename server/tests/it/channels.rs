@@ -644,55 +644,10 @@ fn terms_give_attributes_by_cvg_s_rule_by_hand() {
 
 // ---- Over HTTP: metadata, ?channel=, and kill -9 during channel edits ----
 
-/// A 64^3 ground (brick 16) with material and label channels, as `dir/world.vod`.
-fn ground_64(dir: &std::path::Path) {
-    let g = [64u32; 3];
-    let n = 64 * 64 * 64;
-    let mut density = vec![0u8; n];
-    for (i, d) in density.iter_mut().enumerate() {
-        if i / (64 * 64) < 20 {
-            *d = 255;
-        }
-    }
-    let material = vec![1u8; n];
-    let label = vec![0u8; 2 * n];
-    let sources = [
-        DenseGrid::new(g, VoxelType::U8, 16, &density),
-        DenseGrid::new(g, VoxelType::U8, 16, &material),
-        DenseGrid::new(g, VoxelType::U16, 16, &label),
-    ];
-    let sources: Vec<&dyn isovox_server::store::BrickSource> =
-        sources.iter().map(|s| s as _).collect();
-    let layout = VolumeLayout::new(g, 16, VoxelType::U8).unwrap();
-    let channels = vec![
-        ChannelInfo::new("material", VoxelType::U8),
-        ChannelInfo {
-            sparse: true,
-            ..ChannelInfo::new("label", VoxelType::U16)
-        },
-    ];
-    let header = FileHeader::with_channels(layout, [1.0; 3], channels).unwrap();
-    build_streams(
-        &dir.join("world.vod"),
-        header,
-        &sources,
-        &BuildOptions::default(),
-    )
-    .unwrap();
-}
+use crate::channel_volumes::{ground_64, serve as serve_with};
 
 fn serve(dir: &std::path::Path) -> crate::server_process::ServerProcess {
-    let tokens = dir.join("tokens");
-    std::fs::write(&tokens, "alice secret-alice-0123456 write\n").unwrap();
-    crate::server_process::ServerProcess::start(
-        &[
-            "--data".as_ref(),
-            dir.as_os_str(),
-            "--token-file".as_ref(),
-            tokens.as_os_str(),
-        ],
-        &[],
-    )
+    serve_with(dir, &[])
 }
 
 fn get_bytes(url: &str) -> (u16, Vec<u8>) {

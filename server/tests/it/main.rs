@@ -10,6 +10,7 @@
 //! - [`random_terms`]: random ICVG terms for the property tests.
 #![allow(clippy::unwrap_used)] // tests fail loudly on purpose
 
+mod channel_volumes;
 mod common;
 mod random_terms;
 mod raw_http;

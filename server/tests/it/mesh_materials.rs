@@ -14,11 +14,8 @@
 //!   validator (the `gltf-validator` npm package) with no error.
 
 use crate::server_process::ServerProcess;
-use isovox_proto::channel::ChannelInfo;
 use isovox_proto::mesh::{decode_strip, decode_tile, stitch, Mesh, TileMesh};
-use isovox_proto::vod2::FileHeader;
-use isovox_proto::{VolumeLayout, VoxelType};
-use isovox_server::store::{build_streams, BuildOptions, DenseGrid};
+use isovox_server::store::BuildOptions;
 use std::path::{Path, PathBuf};
 
 /// The hand-built volume: 32 x 16 x 16 voxels, bricks of 16 (two level-0 tiles along x, one
@@ -77,28 +74,8 @@ fn hand_volume(dir: &Path) {
             }
         }
     }
-    let label = vec![0u8; 2 * n];
-    let g = DIMS.map(|c| c as u32);
-    let sources = [
-        DenseGrid::new(g, VoxelType::U8, 16, &d),
-        DenseGrid::new(g, VoxelType::U8, 16, &m),
-        DenseGrid::new(g, VoxelType::U16, 16, &label),
-    ];
-    let sources: Vec<&dyn isovox_server::store::BrickSource> =
-        sources.iter().map(|s| s as _).collect();
-    let layout = VolumeLayout::new(g, 16, VoxelType::U8).unwrap();
-    let channels = vec![
-        ChannelInfo::new("material", VoxelType::U8),
-        ChannelInfo::new("label", VoxelType::U16),
-    ];
-    let header = FileHeader::with_channels(layout, [1.0; 3], channels).unwrap();
-    build_streams(
-        &dir.join("hand.vod"),
-        header,
-        &sources,
-        &BuildOptions::default(),
-    )
-    .unwrap();
+    let dims = DIMS.map(|c| c as u32);
+    crate::channel_volumes::write_volume(&dir.join("hand.vod"), dims, &d, &m, false);
 }
 
 /// The demo world `isovox serve` generates on first start (512 x 256 x 512, brick 32, with a
@@ -125,21 +102,10 @@ fn demo_tiles() -> Vec<String> {
     keys
 }
 
-const TOKEN: &str = "secret-alice-0123456";
+use crate::channel_volumes::TOKEN;
 
 fn serve(dir: &Path) -> ServerProcess {
-    isovox_server::client_tls::install_provider();
-    let tokens = dir.join("tokens");
-    std::fs::write(&tokens, format!("alice {TOKEN} write\n")).unwrap();
-    ServerProcess::start(
-        &[
-            "--data".as_ref(),
-            dir.as_os_str(),
-            "--token-file".as_ref(),
-            tokens.as_os_str(),
-        ],
-        &[],
-    )
+    crate::channel_volumes::serve(dir, &[])
 }
 
 /// Status, ETag and body of a GET.

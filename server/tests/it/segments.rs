@@ -4,65 +4,23 @@
 //! the volume marching cubes gives a box of ones (derived by hand below), as compact and GLB;
 //! hostile parameters answered with a 4xx.
 
-use isovox_proto::channel::ChannelInfo;
-use isovox_proto::vod2::FileHeader;
-use isovox_proto::{VolumeLayout, VoxelType};
 use isovox_server::mesh::check::{enclosed_volume, open_edges};
-use isovox_server::store::{build_streams, BuildOptions, DenseGrid};
 use serde_json::{json, Value};
 use std::collections::BTreeMap;
 
 use crate::server_process::ServerProcess;
 
 const G: usize = 64;
-const TOKEN: &str = "secret-alice-0123456";
+use crate::channel_volumes::TOKEN;
 
-/// A 64^3 ground (brick 16): density 255 below z = 20, material 1 everywhere, a sparse u16
-/// label channel of 0s; as `dir/world.vod`.
 fn ground(dir: &std::path::Path) {
-    let g = [G as u32; 3];
-    let n = G * G * G;
-    let density: Vec<u8> = (0..n)
-        .map(|i| if i / (G * G) < 20 { 255 } else { 0 })
-        .collect();
-    let material = vec![1u8; n];
-    let label = vec![0u8; 2 * n];
-    let sources = [
-        DenseGrid::new(g, VoxelType::U8, 16, &density),
-        DenseGrid::new(g, VoxelType::U8, 16, &material),
-        DenseGrid::new(g, VoxelType::U16, 16, &label),
-    ];
-    let sources: Vec<&dyn isovox_server::store::BrickSource> =
-        sources.iter().map(|s| s as _).collect();
-    let layout = VolumeLayout::new(g, 16, VoxelType::U8).unwrap();
-    let channels = vec![
-        ChannelInfo::new("material", VoxelType::U8),
-        ChannelInfo {
-            sparse: true,
-            ..ChannelInfo::new("label", VoxelType::U16)
-        },
-    ];
-    let header = FileHeader::with_channels(layout, [1.0; 3], channels).unwrap();
-    build_streams(
-        &dir.join("world.vod"),
-        header,
-        &sources,
-        &BuildOptions::default(),
-    )
-    .unwrap();
+    crate::channel_volumes::ground_64(dir);
 }
 
 fn serve(dir: &std::path::Path) -> ServerProcess {
-    let tokens = dir.join("tokens");
-    std::fs::write(&tokens, format!("alice {TOKEN} write\n")).unwrap();
-    ServerProcess::start(
-        &[
-            "--data".as_ref(),
-            dir.as_os_str(),
-            "--token-file".as_ref(),
-            tokens.as_os_str(),
-        ],
-        // The index's builds are logged at info.
+    // The index's builds are logged at info.
+    crate::channel_volumes::serve(
+        dir,
         &[("ISOVOX_LOG", "warn,isovox_server::volume::segments=info")],
     )
 }

@@ -87,6 +87,21 @@ impl Snapshot {
         self.channel_views().get(stream - 1).cloned()
     }
 
+    /// The view of the attribute channel named `name`, borrowed (see [`Snapshot::channel`]).
+    pub fn channel_view(&self, name: &str) -> Option<&Arc<Snapshot>> {
+        let stream = self.header.stream_named(name)?;
+        self.channel_views().get(stream - 1)
+    }
+
+    /// The names of the file's attribute channels, in stream order (for messages).
+    pub fn channel_names(&self) -> Vec<&str> {
+        self.header
+            .channels
+            .iter()
+            .map(|c| c.name.as_str())
+            .collect()
+    }
+
     /// This version of every stream of the file: itself (density), then each channel's view.
     pub fn streams(&self) -> impl Iterator<Item = &Snapshot> {
         std::iter::once(self).chain(self.channel_views().iter().map(|v| &**v))
