@@ -13,12 +13,18 @@ than one colour, each material's voxels in a colour of their own: for each mater
 least 0.5% of the slice, at least 90% of its pixels are within 12 levels of their median colour,
 and the medians of any two of them differ.
 
+Isovox's own viewer links to Neuroglancer ("Open in Neuroglancer"): the state in that link,
+read from the page and given to the same client, must show the volume's precomputed source at
+the link's position, and drawn there (the same pixel check) it must agree with the voxels.
+
 Usage: python neuroglancer_draws.py --url http://127.0.0.1:PORT --volume demo --out DIR
 """
 
 import argparse
 import contextlib
 import io
+import json
+import urllib.parse
 import os
 import subprocess
 import sys
@@ -66,6 +72,11 @@ def main():
         print(f"{view}: {agreement:.4f} of the slice's pixels agree with its voxels")
         if agreement < AGREEMENT:
             failures.append(f"{view}: only {agreement:.4f} of the pixels agree (needs {AGREEMENT})")
+    ok, why = draw_from_viewer_link(a.url, a.volume, base, a.out)
+    print(f"viewer link: {why}")
+    if not ok:
+        failures.append(f"viewer link: {why}")
+
     channels = [c["name"] for c in info.get("channels", [])]
     if "material" not in channels:
         failures.append(f"the demo volume should have a material channel, it has {channels}")
@@ -80,17 +91,29 @@ def main():
     print("neuroglancer draws the volume from both views, and its materials as a segmentation")
 
 
+def plain_xy(s):
+    """An xy cross-section with nothing drawn over the data."""
+    s.layout = "xy"
+    s.show_axis_lines = False
+    s.show_scale_bar = False
+    s.show_default_annotations = False
+
+
+def showing(name, layer):
+    """Sets a viewer to show `layer` as `name` in a plain xy cross-section."""
+    def configure(viewer):
+        with viewer.txn() as s:
+            s.layers[name] = layer
+            plain_xy(s)
+    return configure
+
+
 @contextlib.contextmanager
-def opened(name, layer):
-    """A Neuroglancer viewer showing `layer` as `name` in an xy cross-section, open in chromium;
-    yields (viewer, its dimension names) once the browser has read the layer's metadata."""
+def opened(configure):
+    """A Neuroglancer viewer set up by `configure(viewer)`, open in chromium; yields (viewer, its
+    dimension names) once the browser has read the layers' metadata."""
     viewer = neuroglancer.Viewer()
-    with viewer.txn() as s:
-        s.layers[name] = layer
-        s.layout = "xy"
-        s.show_axis_lines = False
-        s.show_scale_bar = False
-        s.show_default_annotations = False
+    configure(viewer)
     browser = subprocess.Popen(
         ["node", os.path.join(os.path.dirname(__file__), "open_page.mjs"),
          viewer.get_viewer_url(), str(WIDTH), str(HEIGHT)],
@@ -111,7 +134,7 @@ def opened(name, layer):
 
 
 def draw(view, source, origin, size, inside, out_dir):
-    with opened("volume", neuroglancer.ImageLayer(source=source, shader=SHADER)) as (viewer, names):
+    with opened(showing("volume", neuroglancer.ImageLayer(source=source, shader=SHADER))) as (viewer, names):
         if sorted(names) != ["x", "y", "z"]:
             return fail(view, f"the viewer's dimensions are {names}, not x, y, z")
         (x0, y0, z), (wx, wy) = origin, size
@@ -141,6 +164,55 @@ def draw(view, source, origin, size, inside, out_dir):
         return best
 
 
+def draw_from_viewer_link(url, volume, base, out_dir):
+    """Reads the viewer page's Neuroglancer link, gives its state to the client, and checks the
+    layer and position it shows, then the slice drawn there. Returns (agrees, why)."""
+    href = subprocess.run(
+        ["node", os.path.join(os.path.dirname(__file__), "viewer_link.mjs"), url, volume],
+        capture_output=True, text=True, timeout=120, check=True,
+    ).stdout.strip()
+    state = json.loads(urllib.parse.unquote(href[href.index("#!") + 2:]))
+    source = state["layers"][0]["source"]
+    if source != f"precomputed://{base}/precomputed":
+        return False, f"the link's source is {source}"
+    center = state["navigation"]["pose"]["position"]["voxelCoordinates"]
+    with opened(lambda viewer: viewer.set_state(neuroglancer.ViewerState(state))) as (viewer, names):
+        if sorted(names) != ["x", "y", "z"]:
+            return False, f"the viewer's dimensions are {names}, not x, y, z"
+        position = dict(zip(names, viewer.state.position))
+        # Precomputed puts voxel i at [i, i + 1): the link's voxel coordinates as they are.
+        if any(abs(position[n] - c) > 0.5 for n, c in zip("xyz", center)):
+            return False, f"the client is at {position}, the link says {center}"
+        layers = [layer.name for layer in viewer.state.layers]
+        # Drawn at the link's position, one voxel per pixel, as draw() checks.
+        x, y, z = (int(c) for c in center)
+        info = fetch_json(base)
+        wx, wy = min(info["dims"][0], WIDTH - 40), min(info["dims"][1], HEIGHT - 40)
+        x0 = min(max(0, x - wx // 2), info["dims"][0] - wx)
+        y0 = min(max(0, y - wy // 2), info["dims"][1] - wy)
+        truth = level_voxels(base, 0, np.uint8, (x0, y0, z, x0 + wx, y0 + wy, z + 1))[0] >= 127
+        with viewer.txn() as s:
+            s.layers[layers[0]].shader = SHADER
+            plain_xy(s)
+            s.position = [{"x": x0 + wx / 2, "y": y0 + wy / 2, "z": z + 0.5}[n] for n in names]
+            s.cross_section_scale = 1
+        best, image = 0.0, None
+        deadline = time.time() + 90
+        while time.time() < deadline:
+            shot = viewer.screenshot(size=[WIDTH, HEIGHT])
+            image = Image.open(io.BytesIO(shot.screenshot.image)).convert("L")
+            left, top = (WIDTH - wx) // 2, (HEIGHT - wy) // 2
+            bright = np.asarray(image)[top:top + wy, left:left + wx] >= 127
+            best = max(best, float((bright == truth).mean()))
+            if best >= AGREEMENT:
+                break
+            time.sleep(1)
+        if image is not None:
+            image.save(os.path.join(out_dir, "neuroglancer-link.png"))
+        why = f"layer {layers} at {center} from the viewer's link; {best:.4f} of the slice's pixels agree"
+        return best >= AGREEMENT, why
+
+
 def draw_segmentation(source, origin, size, labels, out_dir):
     """Draws `source` as a segmentation layer over the window `origin`, `size` of plane z; `labels`
     (indexed [y, x]) are its values there. Returns (agrees, why)."""
@@ -148,7 +220,7 @@ def draw_segmentation(source, origin, size, labels, out_dir):
     if len(ids) < 2:
         return False, f"the slice should hold two materials or more on 0.5% of it, it holds {ids}"
     layer = neuroglancer.SegmentationLayer(source=source, segments=ids, selected_alpha=1.0)
-    with opened("material", layer) as (viewer, names):
+    with opened(showing("material", layer)) as (viewer, names):
         if sorted(names) != ["x", "y", "z"]:
             return False, f"the viewer's dimensions are {names}, not x, y, z"
         (x0, y0, z), (wx, wy) = origin, size
