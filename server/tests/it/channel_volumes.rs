@@ -73,3 +73,21 @@ pub(crate) fn serve(dir: &Path, envs: &[(&str, &str)]) -> ServerProcess {
         envs,
     )
 }
+
+/// POSTs `body` to `path` of `server` as alice; the answer's JSON (panics unless 2xx).
+pub(crate) fn post_ok(
+    server: &ServerProcess,
+    path: &str,
+    body: serde_json::Value,
+) -> serde_json::Value {
+    let r = reqwest::blocking::Client::new()
+        .post(server.url(path))
+        .bearer_auth(TOKEN)
+        .json(&body)
+        .send()
+        .unwrap();
+    let status = r.status();
+    let text = r.text().unwrap();
+    assert!(status.is_success(), "{path} {body}: {status} {text}");
+    serde_json::from_str(&text).unwrap()
+}

@@ -776,23 +776,7 @@ fn channels_over_http_and_a_kill_during_channel_edits_loses_nothing_acknowledged
     assert!(!report.is_damaged(), "{}", report.summary());
 }
 
-/// POSTs `body` to `path` as alice; the answer's JSON (panics unless 2xx).
-fn post_ok(
-    server: &crate::server_process::ServerProcess,
-    path: &str,
-    body: serde_json::Value,
-) -> serde_json::Value {
-    let r = reqwest::blocking::Client::new()
-        .post(server.url(path))
-        .bearer_auth("secret-alice-0123456")
-        .json(&body)
-        .send()
-        .unwrap();
-    let status = r.status();
-    let text = r.text().unwrap();
-    assert!(status.is_success(), "{path} {body}: {status} {text}");
-    serde_json::from_str(&text).unwrap()
-}
+use crate::channel_volumes::post_ok;
 
 #[test]
 fn undo_takes_back_an_edit_s_materials_and_keeps_a_later_edit_s() {

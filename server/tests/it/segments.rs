@@ -11,7 +11,6 @@ use std::collections::BTreeMap;
 use crate::server_process::ServerProcess;
 
 const G: usize = 64;
-use crate::channel_volumes::TOKEN;
 
 fn ground(dir: &std::path::Path) {
     crate::channel_volumes::ground_64(dir);
@@ -38,18 +37,7 @@ fn get_json(server: &ServerProcess, path: &str) -> Value {
     serde_json::from_slice(&body).unwrap()
 }
 
-fn post_ok(server: &ServerProcess, path: &str, body: Value) -> Value {
-    let r = reqwest::blocking::Client::new()
-        .post(server.url(path))
-        .bearer_auth(TOKEN)
-        .json(&body)
-        .send()
-        .unwrap();
-    let status = r.status();
-    let text = r.text().unwrap();
-    assert!(status.is_success(), "{path} {body}: {status} {text}");
-    serde_json::from_str(&text).unwrap()
-}
+use crate::channel_volumes::post_ok;
 
 /// Paints `id` into the cuboid leaf at `origin` of `size`: inside (S or H) on
 /// `[origin + 1, origin + size - 1)` on each axis (its outer layer is L).
