@@ -146,22 +146,29 @@ def draw(view, source, origin, size, inside, out_dir):
             s.display_dimensions = ["x", "y", "z"]
             s.position = [centre[n] for n in names]
             s.cross_section_scale = 1
-        best, image = 0.0, None
-        deadline = time.time() + 90
-        while time.time() < deadline:
-            shot = viewer.screenshot(size=[WIDTH, HEIGHT])
-            image = Image.open(io.BytesIO(shot.screenshot.image)).convert("L")
-            pixels = np.asarray(image)
-            # The window is centred on the canvas, one voxel per pixel.
-            left, top = (WIDTH - wx) // 2, (HEIGHT - wy) // 2
-            bright = pixels[top:top + wy, left:left + wx] >= 127
-            best = max(best, float((bright == inside).mean()))
-            if best >= AGREEMENT:
-                break
-            time.sleep(1)
-        if image is not None:
-            image.save(os.path.join(out_dir, f"neuroglancer-{view}.png"))
-        return best
+        return agreement(viewer, inside, os.path.join(out_dir, f"neuroglancer-{view}.png"))
+
+
+def agreement(viewer, inside, shot_path):
+    """The best share of the drawn window's pixels that are bright exactly where `inside` is
+    (indexed [y, x]; the window centred on the canvas, one voxel per pixel), retaking the
+    screenshot until it reaches AGREEMENT or 90 s pass (Neuroglancer draws coarse levels first).
+    The last screenshot is saved at `shot_path`."""
+    wy, wx = inside.shape
+    best, image = 0.0, None
+    deadline = time.time() + 90
+    while time.time() < deadline:
+        shot = viewer.screenshot(size=[WIDTH, HEIGHT])
+        image = Image.open(io.BytesIO(shot.screenshot.image)).convert("L")
+        left, top = (WIDTH - wx) // 2, (HEIGHT - wy) // 2
+        bright = np.asarray(image)[top:top + wy, left:left + wx] >= 127
+        best = max(best, float((bright == inside).mean()))
+        if best >= AGREEMENT:
+            break
+        time.sleep(1)
+    if image is not None:
+        image.save(shot_path)
+    return best
 
 
 def draw_from_viewer_link(url, volume, base, out_dir):
@@ -196,19 +203,7 @@ def draw_from_viewer_link(url, volume, base, out_dir):
             plain_xy(s)
             s.position = [{"x": x0 + wx / 2, "y": y0 + wy / 2, "z": z + 0.5}[n] for n in names]
             s.cross_section_scale = 1
-        best, image = 0.0, None
-        deadline = time.time() + 90
-        while time.time() < deadline:
-            shot = viewer.screenshot(size=[WIDTH, HEIGHT])
-            image = Image.open(io.BytesIO(shot.screenshot.image)).convert("L")
-            left, top = (WIDTH - wx) // 2, (HEIGHT - wy) // 2
-            bright = np.asarray(image)[top:top + wy, left:left + wx] >= 127
-            best = max(best, float((bright == truth).mean()))
-            if best >= AGREEMENT:
-                break
-            time.sleep(1)
-        if image is not None:
-            image.save(os.path.join(out_dir, "neuroglancer-link.png"))
+        best = agreement(viewer, truth, os.path.join(out_dir, "neuroglancer-link.png"))
         why = f"layer {layers} at {center} from the viewer's link; {best:.4f} of the slice's pixels agree"
         return best >= AGREEMENT, why
 

@@ -151,10 +151,12 @@ fn root_metadata(snap: &Snapshot, name: &str) -> Value {
 
 /// The name of the attribute channel `view` is of.
 fn channel_name(view: &Snapshot) -> &str {
-    view.header()
-        .channels
-        .get(view.stream().wrapping_sub(1))
-        .map_or("", |c| c.name.as_str())
+    channel_info(view).map_or("", |c| c.name.as_str())
+}
+
+/// The description of the attribute channel `view` is of (`None` for density's).
+fn channel_info(view: &Snapshot) -> Option<&isovox_proto::channel::ChannelInfo> {
+    view.header().channels.get(view.stream().wrapping_sub(1))
 }
 
 /// `labels/zarr.json`: the label images there are, one per channel.
@@ -172,11 +174,8 @@ fn labels_metadata(snap: &Snapshot) -> Value {
 fn label_metadata(view: &Snapshot) -> Value {
     let name = channel_name(view);
     let mut group = multiscale_group(view.layout(), view.header().voxel_scale, name, "mode");
-    let palette = view
-        .header()
-        .channels
-        .get(view.stream().wrapping_sub(1))
-        .map(|c| c.palette.clone())
+    let palette = channel_info(view)
+        .map(|c| c.palette.as_slice())
         .unwrap_or_default();
     let colors: Vec<Value> = palette
         .iter()

@@ -76,7 +76,10 @@ impl MeshCache {
     }
 
     /// The local tile `key` with inputs `inputs` (from [`super::tile::tile_inputs`]), from the
-    /// cache or meshed now with `scratch` (and then cached).
+    /// cache or meshed now with `scratch` (and then cached). With `materials`, a u8 channel view
+    /// of the same version and its key ([`super::tile::tile_material_key`]): the same geometry
+    /// with the channel's per-vertex materials, an entry of its own that names the channel
+    /// bricks too.
     ///
     /// # Errors
     /// A brick fails to read.
@@ -86,20 +89,28 @@ impl MeshCache {
         key: BrickKey,
         iso: f32,
         inputs: &TileInputs,
+        materials: Option<(&Snapshot, u128)>,
         scratch: &mut TileScratch,
     ) -> Result<CachedTile, StoreError> {
-        self.cached(inputs.key, |tile| {
-            mesh_tile_from(snap, key, iso, inputs, tile, scratch).map(drop)
-        })
+        match materials {
+            None => self.cached(inputs.key, |tile| {
+                mesh_tile_from(snap, key, iso, inputs, tile, scratch).map(drop)
+            }),
+            Some((channel, material_key)) => self.cached(material_key, |tile| {
+                mesh_tile_materials(snap, channel, key, iso, inputs, tile, scratch)
+            }),
+        }
     }
 
     /// The local strip of face `face` of tile `key` with inputs `inputs` (from
     /// [`super::tile::strip_inputs`]), from the cache or meshed now with `scratch` (and then
-    /// cached). Tiles and strips share the cache's bytes; their keys never meet (a strip's
-    /// describes its face).
+    /// cached); `materials` as for [`MeshCache::tile`] (the key from
+    /// [`super::tile::strip_material_key`]). Tiles and strips share the cache's bytes; their
+    /// keys never meet (a strip's describes its face).
     ///
     /// # Errors
     /// A brick fails to read.
+    #[allow(clippy::too_many_arguments)]
     pub fn strip(
         &self,
         snap: &Snapshot,
@@ -107,55 +118,17 @@ impl MeshCache {
         face: usize,
         iso: f32,
         inputs: &StripInputs,
+        materials: Option<(&Snapshot, u128)>,
         scratch: &mut TileScratch,
     ) -> Result<CachedTile, StoreError> {
-        self.cached(inputs.key, |strip| {
-            mesh_strip_from(snap, key, face, iso, inputs, strip, scratch)
-        })
-    }
-
-    /// [`MeshCache::tile`] with the materials of `channel` (a u8 view of the same version),
-    /// under `material_key` ([`super::tile::tile_material_key`]): its geometry is the plain
-    /// tile's, its own entry names the channel bricks too.
-    ///
-    /// # Errors
-    /// A brick fails to read.
-    #[allow(clippy::too_many_arguments)]
-    pub fn tile_with_materials(
-        &self,
-        snap: &Snapshot,
-        channel: &Snapshot,
-        key: BrickKey,
-        iso: f32,
-        inputs: &TileInputs,
-        material_key: u128,
-        scratch: &mut TileScratch,
-    ) -> Result<CachedTile, StoreError> {
-        self.cached(material_key, |tile| {
-            mesh_tile_materials(snap, channel, key, iso, inputs, tile, scratch)
-        })
-    }
-
-    /// [`MeshCache::strip`] with the materials of `channel`, under `material_key`
-    /// ([`super::tile::strip_material_key`]).
-    ///
-    /// # Errors
-    /// A brick fails to read.
-    #[allow(clippy::too_many_arguments)]
-    pub fn strip_with_materials(
-        &self,
-        snap: &Snapshot,
-        channel: &Snapshot,
-        key: BrickKey,
-        face: usize,
-        iso: f32,
-        inputs: &StripInputs,
-        material_key: u128,
-        scratch: &mut TileScratch,
-    ) -> Result<CachedTile, StoreError> {
-        self.cached(material_key, |strip| {
-            mesh_strip_materials(snap, channel, key, face, iso, inputs, strip, scratch)
-        })
+        match materials {
+            None => self.cached(inputs.key, |strip| {
+                mesh_strip_from(snap, key, face, iso, inputs, strip, scratch)
+            }),
+            Some((channel, material_key)) => self.cached(material_key, |strip| {
+                mesh_strip_materials(snap, channel, key, face, iso, inputs, strip, scratch)
+            }),
+        }
     }
 
     /// The entry under content key `key`, or `make`'s (then cached).

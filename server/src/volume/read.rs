@@ -458,18 +458,15 @@ impl TileRead {
         bricks: Arc<DecodedBricks>,
     ) -> Result<TileMesh, VolumeError> {
         let mut scratch = TileScratch::with_bricks(bricks);
-        let cached = match &self.channel {
-            None => meshes.tile(&self.snap, self.key, self.iso, &self.inputs, &mut scratch)?,
-            Some((channel, material_key)) => meshes.tile_with_materials(
-                &self.snap,
-                channel,
-                self.key,
-                self.iso,
-                &self.inputs,
-                *material_key,
-                &mut scratch,
-            )?,
-        };
+        let materials = self.channel.as_ref().map(|(c, k)| (&**c, *k));
+        let cached = meshes.tile(
+            &self.snap,
+            self.key,
+            self.iso,
+            &self.inputs,
+            materials,
+            &mut scratch,
+        )?;
         let mut tile = (*cached.tile).clone();
         tile_to_world(&mut tile, self.key, &self.snap);
         Ok(tile)
@@ -506,26 +503,16 @@ impl StripRead {
     /// A brick fails to read or decode.
     pub fn mesh(self, meshes: &MeshCache, bricks: Arc<DecodedBricks>) -> Result<Mesh, VolumeError> {
         let mut scratch = TileScratch::with_bricks(bricks);
-        let cached = match &self.channel {
-            None => meshes.strip(
-                &self.snap,
-                self.key,
-                self.face,
-                self.iso,
-                &self.inputs,
-                &mut scratch,
-            )?,
-            Some((channel, material_key)) => meshes.strip_with_materials(
-                &self.snap,
-                channel,
-                self.key,
-                self.face,
-                self.iso,
-                &self.inputs,
-                *material_key,
-                &mut scratch,
-            )?,
-        };
+        let materials = self.channel.as_ref().map(|(c, k)| (&**c, *k));
+        let cached = meshes.strip(
+            &self.snap,
+            self.key,
+            self.face,
+            self.iso,
+            &self.inputs,
+            materials,
+            &mut scratch,
+        )?;
         Ok(strip_to_world((*cached.tile).clone(), self.key, &self.snap))
     }
 }
