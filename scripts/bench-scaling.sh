@@ -72,12 +72,13 @@ def edit(port, origin):
     with urllib.request.urlopen(req, timeout=60) as r:
         return json.loads(r.read())
 
-def start(name, port):
+def start(name, port, *more):
     t0 = time.perf_counter()
+    subprocess.run(["mkdir", "-p", f"{work}/{name}"])
     log = open(f"{work}/{name}.log", "w")
     p = subprocess.Popen([f"{bin_}/isovox", "serve", "--store", "s3://isovox-bench/vols", "--data", f"{work}/{name}",
         "--token-file", f"{work}/tokens", "--addr", f"127.0.0.1:{port}", "--follow-ms", "50",
-        "--edit-rate", "100000"], stdout=subprocess.DEVNULL, stderr=log)
+        "--edit-rate", "100000", *more], stdout=subprocess.DEVNULL, stderr=log)
     while True:
         try:
             get(f"http://127.0.0.1:{port}/v1/volumes/w", timeout=1)
@@ -122,24 +123,43 @@ q = lambda p: delays[min(len(delays) - 1, int(p * len(delays)))]
 print(f"edit on replica a -> event on replica b: p50 {q(0.5):.1f} ms, p99 {q(0.99):.1f} ms "
       f"({len(delays)} events, {missing} missing; follow interval 50 ms)")
 
-# Writers on both replicas for 10 s.
-count = [0]; busy = [0]; stop = time.perf_counter() + 10
-def writer(port, k):
-    i = 0
-    while time.perf_counter() < stop:
-        try:
-            edit(port, [16 * ((i * 7 + k) % (dims // 16)), dims - 20, 16 * ((i * 3 + k) % (dims // 16))])
-            count[0] += 1
-        except urllib.error.HTTPError as e:
-            if e.code != 503:
-                raise
-            busy[0] += 1  # the writer lost the head race 16 times in a row
-        i += 1
-ts = [threading.Thread(target=writer, args=(p, k)) for k, p in enumerate([a, a, b, b])]
-[t.start() for t in ts]; [t.join() for t in ts]
-print(f"edits with 2 writers on each of 2 replicas: {count[0]/10:.1f} edits/s on one volume "
-      f"({busy[0]} answered 503 after losing the head race 16 times)")
+# Editors on both replicas for 10 s: with group commit (the default: a replica's waiting edits
+# become one segment and one head PUT), then with --edit-group 1 (one segment and one head PUT
+# per edit), each on a fresh pair of replicas, in turn.
+def edit_rate(ports, per_replica, seconds=10):
+    count = {p: 0 for p in ports}; busy = [0]; stop = time.perf_counter() + seconds
+    def writer(port, k):
+        i = 0
+        while time.perf_counter() < stop:
+            try:
+                edit(port, [16 * ((i * 7 + k) % (dims // 16)), dims - 20, 16 * ((i * 3 + k) % (dims // 16))])
+                count[port] += 1
+            except urllib.error.HTTPError as e:
+                if e.code != 503:
+                    raise
+                busy[0] += 1  # the group lost the head race 16 times in a row
+            i += 1
+    ts = [threading.Thread(target=writer, args=(p, k)) for k, p in enumerate(ports * per_replica)]
+    [t.start() for t in ts]; [t.join() for t in ts]
+    return sum(count.values()) / seconds, busy[0], [count[p] / seconds for p in ports]
+
 pa.kill(); pb.kill()
+import socket
+def free():
+    s = socket.socket(); s.bind(("127.0.0.1", 0)); port = s.getsockname()[1]; s.close(); return port
+rates = {}
+for per_replica in (2, 8):
+    for label, more in (("groups", ()), ("one per edit", ("--edit-group", "1"))):
+        ports = [free(), free()]
+        procs = [start(f"{label[0]}{per_replica}{i}", port, *more)[0] for i, port in enumerate(ports)]
+        rate, busy, each = edit_rate(ports, per_replica)
+        for p in procs:
+            p.kill()
+        rates[(per_replica, label)] = rate
+        print(f"edits with {per_replica} editors on each of 2 replicas, {label}: {rate:.1f} edits/s on one volume "
+              f"({' + '.join(f'{r:.1f}' for r in each)} by replica; {busy} answered 503 after losing the head race 16 times)")
+    print(f"  group commit / one commit per edit, {per_replica} editors per replica: "
+          f"{rates[(per_replica, 'groups')] / rates[(per_replica, 'one per edit')]:.2f}x")
 EOF
 
 # nginx in front of one replica, streaming load through it, then against another replica alone.

@@ -328,6 +328,13 @@ impl Vod2Writer {
         self.staged.is_some()
     }
 
+    /// A remote writer's bytes appended since its last sync, and the offset of the first: what
+    /// its next sync publishes, and what the versions it staged are read from until then.
+    /// `None` for a local file (its staged bytes are in the file).
+    pub fn unpublished(&self) -> Option<(u64, &[u8])> {
+        matches!(self.target, Target::Remote(_)).then_some((self.buf_at, &self.buf[..]))
+    }
+
     fn remember(&mut self, hash: u64, offset: u64) {
         self.known.entry(hash).or_default().push(offset);
         self.appended.push((hash, offset));

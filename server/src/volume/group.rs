@@ -108,7 +108,7 @@ impl Work {
     /// Whether it may share a group with the edits around it. Undos, reverts and tags read
     /// the history up to the served head, which versions staged in a group are not yet part
     /// of: each is a group of its own.
-    fn groups(&self) -> bool {
+    pub(super) fn groups(&self) -> bool {
         matches!(self, Work::Edit { .. })
     }
 }
@@ -116,9 +116,9 @@ impl Work {
 /// A request waiting for the writer, with where its answer goes.
 #[derive(Debug)]
 pub struct PendingEdit {
-    work: Work,
-    if_match: Option<u64>,
-    cancel: CancelToken,
+    pub(super) work: Work,
+    pub(super) if_match: Option<u64>,
+    pub(super) cancel: CancelToken,
     answer: oneshot::Sender<EditAnswer>,
 }
 
@@ -144,7 +144,12 @@ impl PendingEdit {
         )
     }
 
-    fn answer(self, answer: EditAnswer) {
+    /// Whether its client left (nobody waits for the answer).
+    pub(super) fn withdrawn(&self) -> bool {
+        self.answer.is_closed()
+    }
+
+    pub(super) fn answer(self, answer: EditAnswer) {
         // A receiver that is gone had its client leave: nobody to tell.
         let _ = self.answer.send(answer);
     }
@@ -343,22 +348,7 @@ impl LiveVolume {
             return;
         }
         if let Some(remote) = self.remote().cloned() {
-            // A volume in an object store commits each edit with its own conditional PUT of
-            // the head (a lost race re-applies it), one at a time.
-            for mut pending in group {
-                if !pending.answer.is_closed() {
-                    let cancel = pending.cancel.restarted();
-                    let answer = self.apply_remote(
-                        &remote,
-                        slot,
-                        &mut pending.work,
-                        pending.if_match,
-                        policy,
-                        &cancel,
-                    );
-                    pending.answer(answer);
-                }
-            }
+            self.commit_group_remote(&remote, slot, group, policy);
             return;
         }
         let mut base = self.current();
@@ -689,20 +679,38 @@ impl StagedWork {
     }
 }
 
-impl LiveVolume {}
-
-fn micros(d: Duration) -> u64 {
+pub(super) fn micros(d: Duration) -> u64 {
     u64::try_from(d.as_micros()).unwrap_or(u64::MAX)
 }
 
-/// An error like `e` for each of several edits that share it.
-fn copy_of(e: &StoreError) -> StoreError {
+/// An error like `e` for each of several edits that share it: the same variant, so that each
+/// is answered with the status `e` has (a stalled store is a 503 for every edit of the group).
+pub(super) fn copy_of(e: &StoreError) -> StoreError {
     match e {
         StoreError::Io { context, source } => StoreError::Io {
             context: context.clone(),
             source: std::io::Error::new(source.kind(), source.to_string()),
         },
-        other => StoreError::Internal(error_chain(other)),
+        StoreError::Format(f) => StoreError::Format(f.clone()),
+        StoreError::Corrupt {
+            offset,
+            expected,
+            found,
+        } => StoreError::Corrupt {
+            offset: *offset,
+            expected: expected.clone(),
+            found: found.clone(),
+        },
+        StoreError::Absent(m) => StoreError::Absent(m.clone()),
+        StoreError::OutOfRange(m) => StoreError::OutOfRange(m.clone()),
+        StoreError::BadInput(m) => StoreError::BadInput(m.clone()),
+        StoreError::ObjectStore { context, source } => StoreError::ObjectStore {
+            context: context.clone(),
+            source: error_chain(source.as_ref()).into(),
+        },
+        StoreError::HeadMoved { url } => StoreError::HeadMoved { url: url.clone() },
+        StoreError::Stalled { limit } => StoreError::Stalled { limit: *limit },
+        StoreError::Internal(m) => StoreError::Internal(m.clone()),
     }
 }
 

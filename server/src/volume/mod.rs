@@ -26,6 +26,7 @@ pub mod group;
 pub mod history;
 pub mod presence;
 pub mod read;
+mod remote_group;
 pub mod resolve;
 pub mod segments;
 pub mod undo;
@@ -251,18 +252,6 @@ impl LiveVolume {
     /// The object-store volume behind it, if it is one.
     pub fn remote(&self) -> Option<&Arc<RemoteVolume>> {
         self.remote.as_ref()
-    }
-
-    /// Makes `next` (the file as of a new commit at `at` on top of the current head) current:
-    /// records the version in the history, publishes it to readers, then announces it on the
-    /// change feed. Returns its event.
-    ///
-    /// # Errors
-    /// The commit record cannot be read back.
-    fn publish_commit(&self, next: Vod2, at: u64) -> Result<ChangeEvent, StoreError> {
-        let event = change_event(&next, at)?;
-        self.publish(Arc::new(next), event.clone());
-        Ok(event)
     }
 
     fn announce(&self, event: &ChangeEvent) {

@@ -585,6 +585,151 @@ fn a_writer_killed_before_the_head_leaves_the_last_acknowledged_version() {
     assert_same_answers(&http, &r1, &fresh);
 }
 
+/// Group commit on the object store: 8 editors on each of 2 replicas edit one volume, and one
+/// replica is killed with SIGKILL while its writer is busy (under this load it is always
+/// staging a group, uploading its segment or racing for the head). Every edit either replica
+/// acknowledged is in the history at the version it was told, with its own message; the
+/// groups took fewer segments than versions; the survivor and a late replica serve one head.
+#[test]
+fn group_commits_on_the_store_lose_no_acknowledged_edit_when_a_replica_is_killed() {
+    let s3 = S3::start("isovox-groups");
+    let data = tempfile::tempdir().unwrap();
+    world(&s3, data.path());
+    let survivor = Server::replica(&s3, None);
+    let mut doomed = Server::replica(&s3, None);
+    let bases = [survivor.base.clone(), doomed.base.clone()];
+    let segments_before = s3.segments().len();
+    const EDITORS: usize = 8;
+    let stop = std::sync::atomic::AtomicBool::new(false);
+    // (message, acknowledged version) of every 200.
+    let acked = std::sync::Mutex::new(Vec::<(String, u64)>::new());
+    let failed_on_doomed = std::sync::atomic::AtomicUsize::new(0);
+    // Stops the editors however the scope ends (a failed assertion in it would otherwise wait
+    // for them forever).
+    struct StopOnDrop<'a>(&'a std::sync::atomic::AtomicBool);
+    impl Drop for StopOnDrop<'_> {
+        fn drop(&mut self) {
+            self.0.store(true, std::sync::atomic::Ordering::Relaxed);
+        }
+    }
+    let refused = std::sync::atomic::AtomicUsize::new(0);
+    std::thread::scope(|scope| {
+        let _stop = StopOnDrop(&stop);
+        for (r, base) in bases.iter().enumerate() {
+            for e in 0..EDITORS {
+                let (stop, acked, failed, refused) = (&stop, &acked, &failed_on_doomed, &refused);
+                scope.spawn(move || {
+                    let http = client();
+                    let mut i = 0u32;
+                    while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                        let message = format!("replica {r} editor {e} edit {i}");
+                        // Cuboids above the terrain, each editor in its own column of x, z.
+                        let slot = (r * EDITORS + e) as u32;
+                        let mut edit =
+                            carve([2 + 5 * (slot % 16), 50, 2 + 40 * (slot / 16) + (i % 8) * 5]);
+                        edit["message"] = json!(message);
+                        let sent = http
+                            .post(format!("{base}/edits"))
+                            .bearer_auth(TOKEN)
+                            .json(&edit)
+                            .send();
+                        match sent.map(|resp| (resp.status().as_u16(), resp.json::<Value>())) {
+                            Ok((200, Ok(answer))) => {
+                                let v = answer["version"].as_u64().expect("a version");
+                                acked.lock().unwrap().push((message, v));
+                            }
+                            // Lost the head race 16 times in a row: not acknowledged.
+                            Ok((503, _)) => {
+                                refused.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                            }
+                            Ok((status, answer)) => panic!("{message}: {status} {answer:?}"),
+                            Err(_) if r == 1 => {
+                                failed.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                                return;
+                            }
+                            Err(e) => panic!("{message}: {e}"),
+                        }
+                        i += 1;
+                    }
+                });
+            }
+        }
+        let acked_by_doomed = |acked: &std::sync::Mutex<Vec<(String, u64)>>| {
+            acked
+                .lock()
+                .unwrap()
+                .iter()
+                .filter(|(m, _)| m.starts_with("replica 1"))
+                .count()
+        };
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while acked_by_doomed(&acked) < 10 {
+            assert!(
+                Instant::now() < deadline,
+                "the doomed replica acknowledged {} edits in 60 s ({} acknowledged in all, {} refused 503)",
+                acked_by_doomed(&acked),
+                acked.lock().unwrap().len(),
+                refused.load(std::sync::atomic::Ordering::Relaxed)
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        // SIGKILL, mid-group.
+        doomed.process.stop();
+        // The survivor goes on alone for a while, then everyone stops.
+        std::thread::sleep(Duration::from_secs(1));
+        stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    });
+    assert!(
+        failed_on_doomed.load(std::sync::atomic::Ordering::Relaxed) > 0,
+        "no edit was in flight on the killed replica"
+    );
+    let acked = acked.into_inner().unwrap();
+    let http = client();
+    let head = s3.head_version();
+    survivor.wait_for(&http, head);
+    // Every acknowledged version is distinct and holds the edit it was acknowledged for.
+    let mut versions: Vec<u64> = acked.iter().map(|(_, v)| *v).collect();
+    versions.sort_unstable();
+    versions.dedup();
+    assert_eq!(
+        versions.len(),
+        acked.len(),
+        "two edits acknowledged as one version"
+    );
+    let mut messages = std::collections::HashMap::new();
+    let mut before = head + 1;
+    while before > 2 {
+        let (status, body, _) =
+            survivor.get(&http, &format!("history?before={before}&limit=1000"), None);
+        assert_eq!(status, 200);
+        let page: Value = serde_json::from_slice(&body).unwrap();
+        for c in page["commits"].as_array().unwrap() {
+            let v = c["version"].as_u64().unwrap();
+            messages.insert(v, c["message"].as_str().unwrap_or_default().to_string());
+            before = before.min(v);
+        }
+        if page["more"] != json!(true) {
+            break;
+        }
+    }
+    for (message, v) in &acked {
+        assert_eq!(
+            messages.get(v),
+            Some(message),
+            "acknowledged version {v} ({message}) is not in the history as acknowledged"
+        );
+    }
+    // Groups: fewer segments than versions (each group is one segment for all its versions).
+    let segments = s3.segments().len() - segments_before;
+    let made = (head - 1) as usize;
+    // The survivor still edits, and a replica started now serves the same head.
+    let (status, answer) = survivor.edit(&http, &carve([40, 50, 40]), None);
+    assert_eq!(status, 200, "{answer}");
+    let late = Server::replica(&s3, None);
+    assert_eq!(late.version(&http), head + 1);
+    assert_same_answers(&http, &survivor, &late);
+}
+
 /// The level-0 voxel at `p` of the imported world (before any edit), read from its file.
 fn voxel_in_file(s3: &S3, dir: &Path, p: [u32; 3]) -> u8 {
     let out = dir.join("b.raw");

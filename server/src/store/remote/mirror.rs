@@ -178,6 +178,29 @@ impl MirrorFile {
         Ok(())
     }
 
+    /// Writes bytes this process's writer staged and has not published (they start where the
+    /// head's segments end) and returns them as pages present, for the writer's own reads of
+    /// the versions it staged. They are not counted in the cache, and no view of a published
+    /// head lists them: should the publication fail, the segment another writer published at
+    /// the same offsets is fetched over them when first read.
+    ///
+    /// # Errors
+    /// The file cannot be written.
+    pub fn put_staged(&self, start: u64, bytes: &[u8]) -> Result<Pages, StoreError> {
+        self.file
+            .write_all_at(bytes, start)
+            .map_err(StoreError::io_path("cannot write", &self.path))?;
+        let pages = Pages::new(Segment {
+            start,
+            len: bytes.len() as u64,
+            key: "staged".into(),
+        });
+        for word in pages.present.iter() {
+            word.store(u64::MAX, Ordering::Release);
+        }
+        Ok(pages)
+    }
+
     /// Makes pages `first..=last` of `pages` present, fetching the span from the first missing
     /// to the last missing one in one range request.
     fn fetch(&self, pages: &Pages, first: u64, last: u64) -> Result<(), StoreError> {

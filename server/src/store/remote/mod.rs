@@ -324,14 +324,33 @@ impl RemoteVolume {
         Ok(Refreshed::Advanced(self.advance(&state, current)?))
     }
 
-    /// The volume as of the head this process published last (after a commit through
-    /// [`Publish`]), built from `current`, the version the commit was made on.
+    /// A version this process's writer staged on top of `tip` and has not published yet, as
+    /// `slot` names it: the writer's unpublished bytes (`unpublished`, starting at `from`, the
+    /// end of the head's segments) are written into the mirror file where they belong, and the
+    /// version is read from there. Only the writer reads such a version (to stage the next
+    /// edit of a group on it) until its group is published, when it is served as it is.
     ///
     /// # Errors
-    /// The new commit record cannot be read.
-    pub fn after_commit(&self, current: &Vod2) -> Result<Vod2, StoreError> {
+    /// The head moved since the writer started (`from` is not where its segments end), the
+    /// mirror cannot be written, or the staged commit record does not read back.
+    pub fn staged(
+        &self,
+        tip: &Vod2,
+        from: u64,
+        unpublished: &[u8],
+        slot: HeaderSlot,
+    ) -> Result<Vod2, StoreError> {
         let state = self.lock();
-        self.advance(&state, current)
+        if from != state.head.committed_len {
+            return Err(StoreError::HeadMoved {
+                url: self.bucket.url().to_string(),
+            });
+        }
+        let staged = Arc::new(state.file.put_staged(from, unpublished)?);
+        let pages: Vec<Arc<Pages>> = state.pages.iter().cloned().chain([staged]).collect();
+        let map = state.file.map(slot.committed_len)?;
+        let view = Arc::new(MirrorView::new(state.file.clone(), pages));
+        tip.advance_mirror(slot, map, view)
     }
 
     /// The head object's current content and ETag, read from the store.
