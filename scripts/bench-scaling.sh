@@ -4,6 +4,7 @@
 #
 #   scripts/bench-scaling.sh            # DIMS=2048 (a 2048^3 world, brick 16); DIMS=512 is quicker
 #   PROFILE=dev DIMS=256 scripts/bench-scaling.sh   # a quick check of the script, no figures
+#   EDITS_ONLY=1 DIMS=512 scripts/bench-scaling.sh  # up to the edit figures, without nginx and the load
 #
 # Prints: the cold start of a replica (until it serves the volume's metadata) and what it fetched
 # doing so; range requests and bytes fetched per cold brick; the delay from an acknowledged edit
@@ -144,7 +145,7 @@ def edit_rate(ports, per_replica, seconds=10):
     return sum(count.values()) / seconds, busy[0], [count[p] / seconds for p in ports]
 
 pa.kill(); pb.kill()
-import socket
+import os, socket
 def free():
     s = socket.socket(); s.bind(("127.0.0.1", 0)); port = s.getsockname()[1]; s.close(); return port
 rates = {}
@@ -161,6 +162,7 @@ for per_replica in (2, 8):
     print(f"  group commit / one commit per edit, {per_replica} editors per replica: "
           f"{rates[(per_replica, 'groups')] / rates[(per_replica, 'one per edit')]:.2f}x")
 EOF
+[ -n "${EDITS_ONLY:-}" ] && exit 0  # the edit figures alone
 
 # nginx in front of one replica, streaming load through it, then against another replica alone.
 # Both replicas are warmed first by the same load run against each directly (nginx's cache

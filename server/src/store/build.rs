@@ -177,7 +177,15 @@ impl SlabSink for FileSink<'_, '_> {
     ) -> Result<(), StoreError> {
         let writer = self.transaction.writer();
         let t = layout.voxel_type();
-        let prepared: Vec<_> = slab.par_iter().map(|v| writer.prepare_as(v, t)).collect();
+        // Stream 0 (density) starts at node 0; an attribute channel's pyramid after it.
+        let channel = self.first_node > 0;
+        let prepared: Vec<_> = slab
+            .par_iter()
+            .map(|v| match channel {
+                true => writer.prepare_channel(v, t),
+                false => writer.prepare_as(v, t),
+            })
+            .collect();
         let first = self.first_node
             + layout.node_index(BrickKey {
                 level,

@@ -400,6 +400,17 @@ impl Vod2Writer {
         prepare(voxels, voxel_type, self.compression, &self.known)
     }
 
+    /// [`Vod2Writer::prepare_as`] compressing an attribute channel's brick as a build does
+    /// ([`Compression::for_channels`]).
+    pub fn prepare_channel(&self, voxels: &BrickVoxels, voxel_type: VoxelType) -> PreparedBrick {
+        prepare(
+            voxels,
+            voxel_type,
+            self.compression.for_channels(),
+            &self.known,
+        )
+    }
+
     /// Stores a prepared brick: a constant goes into the index; content already stored is
     /// shared (hash match confirmed byte for byte); anything else is appended.
     ///

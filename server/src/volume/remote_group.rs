@@ -45,9 +45,11 @@ const LOST_RACE_FIRST_WAIT: Duration = Duration::from_millis(2);
 /// See [`LOST_RACE_FIRST_WAIT`].
 const LOST_RACE_MAX_WAIT: Duration = Duration::from_millis(100);
 
-/// The longest pause a replica takes after a won head race (see
-/// [`LiveVolume::leave_the_head_a_chance`]).
-const MAX_YIELD: Duration = Duration::from_millis(50);
+/// The shortest and longest pause a replica leaves another that asked for a turn (see
+/// [`LiveVolume::leave_the_head_a_turn`]).
+const MIN_TURN: Duration = Duration::from_millis(5);
+/// See [`MIN_TURN`].
+const MAX_TURN: Duration = Duration::from_millis(100);
 
 /// An edit of the group with what its evaluation is stopped by and when it started.
 struct Member {
@@ -110,6 +112,9 @@ impl LiveVolume {
                 Err(StoreError::HeadMoved { .. }) if attempt + 1 < MAX_REMOTE_ATTEMPTS => {
                     drop(bounded);
                     attempt += 1;
+                    if attempt >= 2 {
+                        remote.ask_for_a_turn();
+                    }
                     // Writers that collide again and again back off apart: exponentially,
                     // with jitter, so the losers do not all come back at the same instant.
                     std::thread::sleep(lost_races.next_wait());
@@ -137,26 +142,18 @@ impl LiveVolume {
                 }
             }
         }
-        self.leave_the_head_a_chance(won_in);
+        self.leave_the_head_a_turn(remote, won_in);
     }
 
-    /// After a won head race with edits still waiting, pauses for a random time up to half of
-    /// what the won attempt took, at most [`MAX_YIELD`].
-    ///
-    /// Without it, a replica whose editors keep its queue full wins every race: having made
-    /// the head itself, its catch-up is a 304 and it stages the next group at once, while
-    /// another replica that lost must first fetch the new head and its commit records, and
-    /// arrives one round late each time (measured: one replica of two, under 8 editors each,
-    /// acknowledged no edit in 60 s, its editors answered 503). The pause gives it a window;
-    /// the edits that arrive during it join the next group, so the replica's own rate falls
-    /// less than the pause.
-    fn leave_the_head_a_chance(&self, won_in: Duration) {
-        if won_in.is_zero() || self.queue().len() == 0 {
+    /// After a won head race, while another replica asks for a turn and edits still wait
+    /// here: pauses three times as long as the won attempt took (between [`MIN_TURN`] and
+    /// [`MAX_TURN`]), longer than the other needs to catch up, stage and publish its group
+    /// (`store/remote/turns.rs` says why).
+    fn leave_the_head_a_turn(&self, remote: &RemoteVolume, won_in: Duration) {
+        if won_in.is_zero() || self.queue().len() == 0 || !remote.others_wait() {
             return;
         }
-        let most = (won_in / 2).min(MAX_YIELD);
-        let pause = most.mul_f64(rand::random::<f64>());
-        std::thread::sleep(pause);
+        std::thread::sleep((won_in * 3).clamp(MIN_TURN, MAX_TURN));
     }
 
     /// One attempt: catch up with the head, stage every member on the version before it,

@@ -231,7 +231,7 @@ print(total)
     let bpv = |bytes: u64| bytes as f64 * 8.0 / (n as f64).powi(3);
     println!(
         "| isovox channel (zstd level {}, constant bricks free) | {ours_bytes} | {:.3} |",
-        isovox_server::store::codec::DEFAULT_ZSTD_LEVEL,
+        isovox_server::store::codec::CHANNEL_ZSTD_LEVEL,
         bpv(ours_bytes)
     );
     println!(

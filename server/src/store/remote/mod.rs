@@ -26,6 +26,7 @@ pub mod backoff;
 pub mod bucket;
 pub mod head;
 pub mod mirror;
+pub mod turns;
 
 pub use bucket::{bound_store_waits, Bucket, Conditional, StoreWaitBound};
 pub use head::{Head, Manifest, ManifestRef, Segment};
@@ -97,6 +98,8 @@ pub struct RemoteVolume {
     /// The state's mirror file, readable without the state's lock: a follower holds that lock
     /// across a request to the store, and `/metrics` must not wait for the store.
     mirror: ArcSwap<MirrorFile>,
+    /// Who waits for the head (`turns.rs`).
+    turns: turns::Turns,
 }
 
 /// A unique tag for object names: this process and a counter, hashed with the time.
@@ -209,6 +212,7 @@ impl RemoteVolume {
                 file,
             }),
             bucket,
+            turns: turns::Turns::default(),
         });
         let vod = Vod2::open_mirror(
             PathBuf::from(volume.bucket.url()),
@@ -351,6 +355,16 @@ impl RemoteVolume {
         let map = state.file.map(slot.committed_len)?;
         let view = Arc::new(MirrorView::new(state.file.clone(), pages));
         tip.advance_mirror(slot, map, view)
+    }
+
+    /// Asks the other replicas for a gap at the head (this one lost the race again).
+    pub fn ask_for_a_turn(&self) {
+        self.turns.ask(&self.bucket);
+    }
+
+    /// Whether another replica asked for a gap lately (see `turns.rs`).
+    pub fn others_wait(&self) -> bool {
+        self.turns.others_wait(&self.bucket)
     }
 
     /// The head object's current content and ETag, read from the store.
