@@ -716,6 +716,11 @@ pub enum NodeEntry {
 }
 
 impl NodeEntry {
+    /// Whether a raw index entry is a constant (its flag bit set), before it is decoded.
+    pub fn is_constant(raw: u64) -> bool {
+        raw & NODE_CONSTANT != 0
+    }
+
     /// The entry as stored in the index.
     pub fn encode(self) -> u64 {
         match self {
@@ -1285,7 +1290,10 @@ impl<'a> Checkpoint<'a> {
             if (len as usize) <= SUMMARY_BLOCK_HEADER_LEN {
                 return Err(FormatError::invalid(
                     "index chunk reference",
-                    format!("at {}: a summary block of {len} bytes", self.base + at as u64),
+                    format!(
+                        "at {}: a summary block of {len} bytes",
+                        self.base + at as u64
+                    ),
                 ));
             }
             len
@@ -1352,7 +1360,10 @@ impl<'a> Checkpoint<'a> {
         Ok(Some(SummaryBlock {
             codec,
             hash: f.u64(0)?,
-            payload: f.slice(SUMMARY_BLOCK_HEADER_LEN, block.len() - SUMMARY_BLOCK_HEADER_LEN)?,
+            payload: f.slice(
+                SUMMARY_BLOCK_HEADER_LEN,
+                block.len() - SUMMARY_BLOCK_HEADER_LEN,
+            )?,
             offset,
         }))
     }
@@ -1745,7 +1756,10 @@ mod tests {
         assert_eq!(r1.offset, r.offset + 4096 + 6160);
         assert_eq!(cp.summaries(&r1).unwrap(), None);
         // A reader before revision 5 reads what it always read: offset, length, codec, hash.
-        assert_eq!(u64::from_le_bytes(b[dir..dir + 8].try_into().unwrap()), r.offset);
+        assert_eq!(
+            u64::from_le_bytes(b[dir..dir + 8].try_into().unwrap()),
+            r.offset
+        );
         // A bad block header codec or stray bits are refused; a cut block too.
         let at = (r.offset + 4096) as usize;
         let mut bad = b.clone();
@@ -1768,7 +1782,11 @@ mod tests {
             max: 3,
         };
         assert!(s.validate(VoxelType::U16, "x", 0).is_err());
-        let s = BrickSummary { min: 0, max: 256, ..s };
+        let s = BrickSummary {
+            min: 0,
+            max: 256,
+            ..s
+        };
         assert!(s.validate(VoxelType::U8, "x", 0).is_err());
         assert!(s.validate(VoxelType::U16, "x", 0).is_ok());
         assert_eq!(BrickSummary::decode(&s.encode()), s);
