@@ -641,7 +641,8 @@ impl Vod2Writer {
                 )));
             }
         }
-        let change_summaries = match self.write_summaries {
+        // A record without changes has no summaries to carry: no section.
+        let change_summaries = match self.write_summaries && !changes.is_empty() {
             true => Some(
                 changes
                     .iter()

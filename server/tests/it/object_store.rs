@@ -1158,6 +1158,19 @@ fn a_cold_replica_lists_a_level_grid_from_index_chunks_not_brick_records() {
          chunks) on a cold replica: revision 5 {requests} range requests, {bytes} bytes; \
          revision 4 {old_requests} requests, {old_bytes} bytes"
     );
+    // What the summaries cost: the head checkpoint's bytes per index entry, both files.
+    let index_bytes = |path: &Path| {
+        let vod = isovox_server::store::Vod2::open(path).unwrap();
+        let (_, len) = vod.head().checkpoint_span().unwrap();
+        (len, vod.header().node_count())
+    };
+    let ((new_len, nodes), (old_len, _)) = (index_bytes(&file), index_bytes(Path::new(old)));
+    eprintln!(
+        "index of {nodes} entries: revision 5 {new_len} bytes ({:.2} a entry), revision 4 \
+         {old_len} bytes ({:.2} a entry)",
+        new_len as f64 / nodes as f64,
+        old_len as f64 / nodes as f64
+    );
     assert_eq!(
         grid["bricks"], old_grid["bricks"],
         "both files list the same grid"
