@@ -1,5 +1,6 @@
 //! What a tile's mesh and a strip's depend on: content keys computed from the index alone (its
-//! brick summaries; brick headers in files written before revision 5; no voxel decoded), and whether the iso value can cross what they read.
+//! brick summaries; brick headers in files written before revision 5; no voxel decoded), and
+//! whether the iso value can cross what they read.
 
 use super::Stitching;
 use crate::mesh::lattice::value_range;
@@ -122,10 +123,11 @@ fn describe_tile(layout: &VolumeLayout, key: BrickKey, iso: f32, faces: u8) -> V
     desc
 }
 
-/// Computes a tile's inputs from the index and brick headers alone (no voxel decoded).
+/// Computes a tile's inputs from the index alone (its brick summaries; brick headers for
+/// entries written before revision 5; no voxel decoded).
 ///
 /// # Errors
-/// The tile lies outside the volume, or a brick header fails to read.
+/// The tile lies outside the volume, or a summary (or brick header) fails to read.
 pub fn tile_inputs(
     snap: &Snapshot,
     key: BrickKey,
@@ -160,12 +162,12 @@ pub fn tile_inputs(
     })
 }
 
-/// Computes the inputs of the strip of face `face` (0..6) of tile `key` from the index and
-/// brick headers alone.
+/// Computes the inputs of the strip of face `face` (0..6) of tile `key` from the index alone
+/// (as [`tile_inputs`]).
 ///
 /// # Errors
-/// The tile lies outside the volume, the face is not one of six, or a brick header fails to
-/// read.
+/// The tile lies outside the volume, the face is not one of six, or a summary (or brick
+/// header) fails to read.
 pub fn strip_inputs(
     snap: &Snapshot,
     key: BrickKey,
