@@ -3,7 +3,8 @@
 //! no brick record.
 //!
 //! - a local file's grids say what its bricks hold (hash and range computed here from the
-//!   decoded voxels the server sends), before and after edits and after the server reopens it;
+//!   decoded voxels the server sends), before and after edits, an undo and a revert, and after
+//!   the server reopens it (an older version's grid too);
 //! - a grid reads no brick record: with every record's header damaged, grids still answer,
 //!   while brick reads fail;
 //! - a checkpoint written after edits keeps the summaries (library writer, checkpoint on every
@@ -97,7 +98,12 @@ fn grid(server: &ServerProcess, level: u8) -> Result<([u32; 3], Vec<Listed>), (u
         .iter()
         .map(|g| g.as_u64().unwrap() as u32)
         .collect();
-    let bricks = v["bricks"]
+    Ok(([dims[0], dims[1], dims[2]], listed(&v)))
+}
+
+/// The bricks a grid answer lists.
+fn listed(grid: &Value) -> Vec<Listed> {
+    grid["bricks"]
         .as_array()
         .unwrap()
         .iter()
@@ -108,8 +114,7 @@ fn grid(server: &ServerProcess, level: u8) -> Result<([u32; 3], Vec<Listed>), (u
                 b["max"].as_u64().unwrap() as u16,
             )
         })
-        .collect();
-    Ok(([dims[0], dims[1], dims[2]], bricks))
+        .collect()
 }
 
 /// What each brick of `level` holds, computed here from the decoded voxels the server sends
@@ -188,10 +193,23 @@ fn grids_say_what_the_bricks_hold_before_and_after_edits_and_after_reopening() {
     }
     let after = assert_grids_tell_the_truth(&server, "after three edits");
     assert_ne!(before[0], after[0], "the edits changed level 0");
+    // An undo, then a revert: entries pointing at records of older versions again, whose
+    // summaries the writer reads from those versions.
+    post_ok(&server, "/v1/volumes/world/undo", json!({"version": 3}));
+    let undone = assert_grids_tell_the_truth(&server, "after an undo");
+    assert_ne!(undone[0], after[0], "the undo changed level 0");
+    post_ok(&server, "/v1/volumes/world/revert", json!({"to": 1}));
+    let reverted = assert_grids_tell_the_truth(&server, "after a revert");
+    assert_eq!(reverted, before, "version 1's grids again");
     drop(server);
     let server = serve(dir.path(), &[]);
     let reopened = assert_grids_tell_the_truth(&server, "reopened");
-    assert_eq!(reopened, after);
+    assert_eq!(reopened, reverted);
+    // An older version's grid, read through the commits' summaries after reopening.
+    let (status, body) = get(&server, "/v1/volumes/world/levels/0?version=4");
+    assert_eq!(status, 200);
+    let v: Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(listed(&v), after[0], "version 4 as it was listed then");
 }
 
 #[test]
