@@ -10,7 +10,8 @@
 //! - a checkpoint written after edits keeps the summaries (library writer, checkpoint on every
 //!   commit);
 //! - a revision-4 file (written without summaries) opens and answers the same grids from its
-//!   brick headers; a revision-5 writer appending to it upgrades what it writes;
+//!   brick headers; a revision-5 writer appending to it upgrades what it writes, and so do
+//!   `isovox compact` and `isovox salvage`;
 //! - a damaged summary is an error naming it (500, cause logged), never a wrong grid.
 //!
 //! The object-store figure (a cold replica's range requests for a grid) is in
@@ -427,4 +428,24 @@ fn a_damaged_summary_is_an_error_naming_it_never_a_wrong_grid() {
     let err = Vod2::open(&path).unwrap_err();
     let why = isovox_server::store::error_chain(&err);
     assert!(why.contains("commit summaries"), "{why}");
+}
+
+#[test]
+fn compaction_and_salvage_give_a_revision_4_file_its_summaries() {
+    let dir = tempfile::tempdir().unwrap();
+    generate_world(dir.path());
+    let old = dir.path().join("old.vod");
+    revision4_copy(&dir.path().join("world.vod"), &old);
+    assert!(!checkpoint_has_summaries(&old));
+    let old_path = old.to_str().unwrap();
+
+    let salvaged = dir.path().join("salvaged.vod");
+    run_isovox(&["salvage", old_path, "-o", salvaged.to_str().unwrap()]);
+    assert!(checkpoint_has_summaries(&salvaged));
+    assert_summaries_match_voxels(&Vod2::open(&salvaged).unwrap(), "salvaged");
+
+    run_isovox(&["compact", old_path]);
+    assert!(checkpoint_has_summaries(&old));
+    let stored = assert_summaries_match_voxels(&Vod2::open(&old).unwrap(), "compacted");
+    assert!(stored > 20, "{stored} stored bricks");
 }
