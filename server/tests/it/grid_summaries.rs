@@ -11,7 +11,8 @@
 //!   commit);
 //! - a revision-4 file (written without summaries) opens and answers the same grids from its
 //!   brick headers; a revision-5 writer appending to it upgrades what it writes, and so do
-//!   `isovox compact` and `isovox salvage`;
+//!   `isovox compact` and `isovox salvage`; a commit without summaries (an older writer's) on
+//!   a revision-5 checkpoint is summarized from its records;
 //! - a damaged summary is an error naming it (500, cause logged), never a wrong grid.
 //!
 //! The object-store figure (a cold replica's range requests for a grid) is in
@@ -448,4 +449,40 @@ fn compaction_and_salvage_give_a_revision_4_file_its_summaries() {
     assert!(checkpoint_has_summaries(&old));
     let stored = assert_summaries_match_voxels(&Vod2::open(&old).unwrap(), "compacted");
     assert!(stored > 20, "{stored} stored bricks");
+}
+
+#[test]
+fn a_commit_by_an_older_writer_in_a_revision_5_file_is_summarized_from_its_records() {
+    let dir = tempfile::tempdir().unwrap();
+    generate_world(dir.path());
+    let path = dir.path().join("world.vod");
+    let vod = Vod2::open(&path).unwrap();
+    let snap = vod.head();
+    let layout = snap.layout().clone();
+    let mut w = Vod2Writer::open_append(&path, Compression::for_edits()).unwrap();
+    w.omit_summaries();
+    let key = BrickKey {
+        level: 0,
+        x: 2,
+        y: 1,
+        z: 3,
+    };
+    let voxels: Vec<u8> = (0..layout.brick_bytes())
+        .map(|i| (i as u8).wrapping_mul(13) % 150)
+        .collect();
+    let mut t = Transaction::on(&mut w, &snap);
+    t.update_level0(vec![(key, BrickVoxels::Data(voxels))])
+        .unwrap();
+    let committed = t.commit(CheckpointPolicy::default()).unwrap();
+    assert!(!committed.checkpoint);
+    drop((w, snap, vod));
+
+    let vod = Vod2::open(&path).unwrap();
+    let (h, _) = vod.commit_at(vod.head().commit_offset()).unwrap();
+    assert!(
+        !h.summaries && h.n_changes > 0,
+        "the commit is as an older writer wrote it"
+    );
+    assert!(checkpoint_has_summaries(&path));
+    assert_summaries_match_voxels(&vod, "a summary-less commit on a revision-5 checkpoint");
 }
