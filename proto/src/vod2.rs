@@ -58,6 +58,19 @@ pub const CHANGE_LEN: usize = 16;
 /// Commit record flag (bytes 4..8, revision 3): a note follows the record's checksum (its
 /// length as u32, the note, an xxh3 checksum of the record and the note).
 pub const COMMIT_HAS_NOTE: u32 = 1;
+/// Commit record flag (revision 5): the summary of each change's new entry follows the record
+/// (after the note, if any): [`SUMMARY_LEN`] bytes per change, then an xxh3 checksum of the
+/// record's bytes from its start.
+pub const COMMIT_HAS_SUMMARIES: u32 = 2;
+/// Bytes per brick summary ([`BrickSummary`]): content hash, smallest and largest value.
+pub const SUMMARY_LEN: usize = 12;
+/// Chunk reference flag (byte 13, revision 5): the chunk's payload is followed by a summary
+/// block ([`SUMMARY_BLOCK_HEADER_LEN`] bytes of header, then the encoded summaries) whose
+/// length is the u16 at bytes 14..16.
+pub const CHUNK_HAS_SUMMARIES: u8 = 1;
+/// The header in front of a summary block: u64 xxh3 of the decoded summaries, u8 codec, seven
+/// zero bytes.
+pub const SUMMARY_BLOCK_HEADER_LEN: usize = 16;
 /// Longest note a commit record may carry.
 pub const MAX_NOTE_LEN: u32 = 4 << 20;
 /// Bytes that frame a note: its length before it, the checksum after it.
@@ -703,6 +716,11 @@ pub enum NodeEntry {
 }
 
 impl NodeEntry {
+    /// Whether a raw index entry is a constant (its flag bit set), before it is decoded.
+    pub fn is_constant(raw: u64) -> bool {
+        raw & NODE_CONSTANT != 0
+    }
+
     /// The entry as stored in the index.
     pub fn encode(self) -> u64 {
         match self {
@@ -741,6 +759,89 @@ impl NodeEntry {
     }
 }
 
+/// What a client choosing bricks needs to know of one (revision 5): its content hash and value
+/// range, the same three values as its record's header, kept in the index (checkpoint chunks
+/// and commit records) so that a level grid is answered without reading any brick record.
+///
+/// A constant entry needs none (its value is all three): its summary is stored as zeros and
+/// never read.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Hash)]
+pub struct BrickSummary {
+    /// [`content_hash`] of the decoded brick.
+    pub hash: u64,
+    /// The smallest voxel value.
+    pub min: u16,
+    /// The largest voxel value.
+    pub max: u16,
+}
+
+impl BrickSummary {
+    /// The summary a brick record's header gives.
+    pub fn of_header(h: &BrickHeader) -> Self {
+        BrickSummary {
+            hash: h.hash,
+            min: h.min,
+            max: h.max,
+        }
+    }
+
+    /// The summary's 12 bytes: u64 hash, u16 min, u16 max.
+    pub fn encode(self) -> [u8; SUMMARY_LEN] {
+        let mut b = [0u8; SUMMARY_LEN];
+        put(&mut b, 0, &self.hash.to_le_bytes());
+        put(&mut b, 8, &self.min.to_le_bytes());
+        put(&mut b, 10, &self.max.to_le_bytes());
+        b
+    }
+
+    /// Decodes one summary from its 12 bytes (`bytes` shorter than that reads as zeros).
+    pub fn decode(bytes: &[u8]) -> Self {
+        let mut b = [0u8; SUMMARY_LEN];
+        let n = bytes.len().min(SUMMARY_LEN);
+        b[..n].copy_from_slice(&bytes[..n]);
+        BrickSummary {
+            hash: u64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]),
+            min: u16::from_le_bytes([b[8], b[9]]),
+            max: u16::from_le_bytes([b[10], b[11]]),
+        }
+    }
+
+    /// Encodes summaries one after another.
+    pub fn encode_all(summaries: &[BrickSummary]) -> Vec<u8> {
+        summaries.iter().flat_map(|s| s.encode()).collect()
+    }
+
+    /// Decodes every whole 12 bytes of `bytes`.
+    pub fn decode_all(bytes: &[u8]) -> Vec<BrickSummary> {
+        bytes.chunks_exact(SUMMARY_LEN).map(Self::decode).collect()
+    }
+
+    /// Checks the value range against the stream's voxel type (`min <= max <= high`), as a
+    /// brick header's is: a summary of a stored brick that fails it is damage.
+    ///
+    /// # Errors
+    /// The range is impossible; `what` and `offset` name where it was read.
+    pub fn validate(
+        self,
+        voxel_type: VoxelType,
+        what: &'static str,
+        offset: u64,
+    ) -> Result<Self, FormatError> {
+        if self.min > self.max || self.max > voxel_type.high() {
+            return Err(FormatError::invalid(
+                what,
+                format!(
+                    "at offset {offset}: range [{}, {}] (max value {})",
+                    self.min,
+                    self.max,
+                    voxel_type.high()
+                ),
+            ));
+        }
+        Ok(self)
+    }
+}
+
 /// The fixed part of a commit record. On disk it is followed by `n_changes` pairs of
 /// (node index u64, [`NodeEntry`] u64) and an xxh3 checksum of everything before it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -758,6 +859,8 @@ pub struct CommitHeader {
     pub n_changes: u64,
     /// Bytes of the note that follows the record (revision 3), 0 for none.
     pub note_len: u32,
+    /// Whether the summaries of the changes' entries follow (revision 5).
+    pub summaries: bool,
 }
 
 impl CommitHeader {
@@ -766,8 +869,8 @@ impl CommitHeader {
         COMMIT_FIXED_LEN as u64 + n_changes * CHANGE_LEN as u64
     }
 
-    /// Bytes of the record with its note, if it has one.
-    pub fn total_len(&self) -> u64 {
+    /// Bytes of the record with its note, if it has one, without the summaries.
+    fn len_with_note(&self) -> u64 {
         let note = if self.note_len > 0 {
             NOTE_FRAMING_LEN as u64 + u64::from(self.note_len)
         } else {
@@ -776,16 +879,45 @@ impl CommitHeader {
         Self::record_len(self.n_changes) + note
     }
 
-    /// Encodes the record with its changes and, when `note` is not empty, the note after it.
-    pub fn encode(&self, changes: &[(u64, NodeEntry)], note: &[u8]) -> Vec<u8> {
+    /// Bytes of the section of summaries (revision 5) for `n_changes` changes: the summaries
+    /// and their checksum.
+    pub fn summaries_len(n_changes: u64) -> u64 {
+        n_changes * SUMMARY_LEN as u64 + 8
+    }
+
+    /// Bytes of the whole record: with its note and its summaries, if it has them.
+    pub fn total_len(&self) -> u64 {
+        let summaries = if self.summaries {
+            Self::summaries_len(self.n_changes)
+        } else {
+            0
+        };
+        self.len_with_note() + summaries
+    }
+
+    /// Encodes the record with its changes; when `note` is not empty, the note after it; when
+    /// `summaries` is given (one per change, `self.summaries` set), the summaries after that.
+    pub fn encode(
+        &self,
+        changes: &[(u64, NodeEntry)],
+        note: &[u8],
+        summaries: Option<&[BrickSummary]>,
+    ) -> Vec<u8> {
         assert_eq!(changes.len() as u64, self.n_changes);
         assert_eq!(note.len() as u64, u64::from(self.note_len));
+        assert_eq!(summaries.is_some(), self.summaries);
+        assert!(summaries.is_none_or(|s| s.len() == changes.len()));
         let len = Self::record_len(self.n_changes) as usize;
         let mut b = vec![0u8; len];
         put(&mut b, 0, &COMMIT_MAGIC);
+        let mut flags = 0;
         if !note.is_empty() {
-            put(&mut b, 4, &COMMIT_HAS_NOTE.to_le_bytes());
+            flags |= COMMIT_HAS_NOTE;
         }
+        if summaries.is_some() {
+            flags |= COMMIT_HAS_SUMMARIES;
+        }
+        put(&mut b, 4, &flags.to_le_bytes());
         put(&mut b, 8, &self.version.to_le_bytes());
         put(&mut b, 16, &self.parent.to_le_bytes());
         put(&mut b, 24, &self.timestamp_ms.to_le_bytes());
@@ -804,6 +936,12 @@ impl CommitHeader {
             let end = b.len();
             seal(&mut b, end - 8);
         }
+        if let Some(summaries) = summaries {
+            b.extend_from_slice(&BrickSummary::encode_all(summaries));
+            b.extend_from_slice(&[0; 8]);
+            let end = b.len();
+            seal(&mut b, end - 8);
+        }
         b
     }
 
@@ -811,8 +949,9 @@ impl CommitHeader {
     /// committed region. Returns the header and the record's bytes without its note (checksums
     /// verified, the note's too: [`CommitHeader::note`] reads it).
     ///
-    /// Flag bits other than [`COMMIT_HAS_NOTE`] are ignored, as readers before revision 3
-    /// ignored every flag: a later revision may add what this reader need not know.
+    /// Flag bits other than [`COMMIT_HAS_NOTE`] and [`COMMIT_HAS_SUMMARIES`] are ignored, as
+    /// readers before revision 3 ignored every flag: a later revision may add what this reader
+    /// need not know.
     ///
     /// # Errors
     /// Bad magic, truncation, checksum mismatch, or a change count or note length the region
@@ -848,14 +987,21 @@ impl CommitHeader {
         } else {
             0
         };
-        let h = CommitHeader {
+        let mut h = CommitHeader {
             version: f.u64(8)?,
             parent: f.u64(16)?,
             timestamp_ms: f.u64(24)?,
             checkpoint: f.u64(32)?,
             n_changes,
             note_len,
+            summaries: false,
         };
+        if f.u32(4)? & COMMIT_HAS_SUMMARIES != 0 {
+            // n_changes is bounded by the region above, so this cannot overflow.
+            let total = (h.len_with_note() + Self::summaries_len(n_changes)) as usize;
+            Fields::new("commit summaries", f.slice(0, total)?, base).checksum(total - 8)?;
+            h.summaries = true;
+        }
         if h.parent >= base || (h.parent != 0 && h.parent < DATA_START) {
             return Err(FormatError::invalid(
                 "commit record",
@@ -892,6 +1038,17 @@ impl CommitHeader {
             .unwrap_or_default()
     }
 
+    /// The summaries of the changes of the record `avail` starts with (revision 5), one per
+    /// change in order, as [`CommitHeader::decode`] checked them; `None` when it has none.
+    pub fn summaries_in(&self, avail: &[u8]) -> Option<Vec<BrickSummary>> {
+        if !self.summaries {
+            return None;
+        }
+        let at = self.len_with_note() as usize;
+        let len = self.n_changes as usize * SUMMARY_LEN;
+        avail.get(at..at + len).map(BrickSummary::decode_all)
+    }
+
     /// The (node, raw entry) pairs of a record returned by [`CommitHeader::decode`].
     pub fn changes(record: &[u8]) -> impl Iterator<Item = (u64, u64)> + '_ {
         let body = &record[48..record.len() - 8];
@@ -916,6 +1073,64 @@ pub struct ChunkRef {
     pub codec: Codec,
     /// xxh3 of the decoded entries' bytes.
     pub hash: u64,
+    /// Bytes of the summary block that follows the payload (revision 5: flag
+    /// [`CHUNK_HAS_SUMMARIES`], the length at bytes 14..16), 0 for none.
+    pub summary_len: u16,
+}
+
+impl ChunkRef {
+    /// The bytes a reader of the chunk needs, relative to the checkpoint's start: the payload
+    /// and the summary block after it, which lie in a row (one fetch from a store).
+    pub fn span(&self) -> (u64, u64) {
+        (
+            self.offset,
+            u64::from(self.stored_len) + u64::from(self.summary_len),
+        )
+    }
+}
+
+/// A chunk's summary block (revision 5), bounds-checked, as [`Checkpoint::summaries`] returns
+/// it: decode `payload` with `codec` and compare its xxh3 with `hash`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SummaryBlock<'a> {
+    /// [`Codec::Raw`] or [`Codec::Zstd`].
+    pub codec: Codec,
+    /// xxh3 of the decoded summaries' bytes.
+    pub hash: u64,
+    /// The encoded summaries.
+    pub payload: &'a [u8],
+    /// Where the block starts in the file.
+    pub offset: u64,
+}
+
+/// One chunk of a checkpoint to encode: its entries' payload (codec, bytes, xxh3 of the decoded
+/// entries) and, in revision 5, its summaries' (the same three, of the decoded summaries).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct EncodedChunk {
+    /// How the entries are stored.
+    pub codec: Codec,
+    /// The stored entries.
+    pub payload: Vec<u8>,
+    /// xxh3 of the decoded entries.
+    pub hash: u64,
+    /// The summaries (codec, stored bytes, xxh3 of the decoded summaries), `None` for a chunk
+    /// written as before revision 5.
+    pub summaries: Option<(Codec, Vec<u8>, u64)>,
+}
+
+impl EncodedChunk {
+    fn summary_block(&self) -> Vec<u8> {
+        match &self.summaries {
+            None => Vec::new(),
+            Some((codec, payload, hash)) => {
+                let mut b = vec![0u8; SUMMARY_BLOCK_HEADER_LEN];
+                put(&mut b, 0, &hash.to_le_bytes());
+                b[8] = *codec as u8;
+                b.extend_from_slice(payload);
+                b
+            }
+        }
+    }
 }
 
 /// Bytes per chunk reference in a checkpoint's directory.
@@ -957,11 +1172,19 @@ impl<'a> Checkpoint<'a> {
         CHECKPOINT_FIXED_LEN as u64 + Self::n_chunks(n_nodes) * CHUNK_REF_LEN as u64
     }
 
-    /// Encodes a checkpoint from already encoded chunks `(codec, payload, hash of decoded)`.
-    pub fn encode(n_nodes: u64, chunks: &[(Codec, Vec<u8>, u64)]) -> Vec<u8> {
+    /// Encodes a checkpoint from already encoded chunks; each chunk's summary block, if it
+    /// has one, follows its payload.
+    ///
+    /// # Panics
+    /// Not one chunk per 512 entries, or a summary block longer than a u16 counts (a block
+    /// of 512 raw summaries takes 6,160 bytes).
+    pub fn encode(n_nodes: u64, chunks: &[EncodedChunk]) -> Vec<u8> {
         assert_eq!(chunks.len() as u64, Self::n_chunks(n_nodes));
+        let blocks: Vec<Vec<u8>> = chunks.iter().map(EncodedChunk::summary_block).collect();
         let dir_len = Self::directory_len(n_nodes) as usize;
-        let total = dir_len + chunks.iter().map(|c| c.1.len()).sum::<usize>();
+        let total = dir_len
+            + chunks.iter().map(|c| c.payload.len()).sum::<usize>()
+            + blocks.iter().map(Vec::len).sum::<usize>();
         let mut b = vec![0u8; dir_len];
         b.reserve(total - dir_len);
         put(&mut b, 0, &CHECKPOINT_MAGIC);
@@ -969,18 +1192,24 @@ impl<'a> Checkpoint<'a> {
         put(&mut b, 8, &n_nodes.to_le_bytes());
         seal(&mut b, 16);
         let mut offset = dir_len as u64;
-        for (i, (codec, payload, hash)) in chunks.iter().enumerate() {
+        for (i, (chunk, block)) in chunks.iter().zip(&blocks).enumerate() {
             let at = CHECKPOINT_FIXED_LEN + i * CHUNK_REF_LEN;
             let r = &mut b[at..at + CHUNK_REF_LEN];
             put(r, 0, &offset.to_le_bytes());
-            put(r, 8, &(payload.len() as u32).to_le_bytes());
-            r[12] = *codec as u8;
-            put(r, 16, &hash.to_le_bytes());
+            put(r, 8, &(chunk.payload.len() as u32).to_le_bytes());
+            r[12] = chunk.codec as u8;
+            if !block.is_empty() {
+                let len = u16::try_from(block.len()).expect("a summary block fits a u16");
+                r[13] = CHUNK_HAS_SUMMARIES;
+                put(r, 14, &len.to_le_bytes());
+            }
+            put(r, 16, &chunk.hash.to_le_bytes());
             seal(r, 24);
-            offset += payload.len() as u64;
+            offset += (chunk.payload.len() + block.len()) as u64;
         }
-        for (_, payload, _) in chunks {
-            b.extend_from_slice(payload);
+        for (chunk, block) in chunks.iter().zip(&blocks) {
+            b.extend_from_slice(&chunk.payload);
+            b.extend_from_slice(block);
         }
         b
     }
@@ -1055,11 +1284,28 @@ impl<'a> Checkpoint<'a> {
                 })
             }
         };
+        // Bytes 13..16 were zero before revision 5, and readers before it ignore them.
+        let summary_len = if f.slice(13, 1)?[0] & CHUNK_HAS_SUMMARIES != 0 {
+            let len = f.u16(14)?;
+            if (len as usize) <= SUMMARY_BLOCK_HEADER_LEN {
+                return Err(FormatError::invalid(
+                    "index chunk reference",
+                    format!(
+                        "at {}: a summary block of {len} bytes",
+                        self.base + at as u64
+                    ),
+                ));
+            }
+            len
+        } else {
+            0
+        };
         let r = ChunkRef {
             offset: f.u64(0)?,
             stored_len: f.u32(8)?,
             codec,
             hash: f.u64(16)?,
+            summary_len,
         };
         let payload = usize::try_from(r.offset)
             .ok()
@@ -1071,6 +1317,55 @@ impl<'a> Checkpoint<'a> {
                 available: (self.bytes.len() as u64).saturating_sub(r.offset),
             })?;
         Ok((r, payload))
+    }
+
+    /// The summary block after a chunk's payload (revision 5; `r` from
+    /// [`Checkpoint::chunk`]), its header checked and its bounds checked; `None` when the chunk
+    /// has none. Its content is checked by decoding it and comparing the hash.
+    ///
+    /// # Errors
+    /// The block lies outside the region, or its header has an unknown codec or stray bits.
+    pub fn summaries(&self, r: &ChunkRef) -> Result<Option<SummaryBlock<'a>>, FormatError> {
+        if r.summary_len == 0 {
+            return Ok(None);
+        }
+        let start = r.offset.saturating_add(u64::from(r.stored_len));
+        let offset = self.base.saturating_add(start);
+        let block = usize::try_from(start)
+            .ok()
+            .and_then(|o| self.bytes.get(o..o.checked_add(r.summary_len as usize)?))
+            .ok_or(FormatError::Truncated {
+                what: "index chunk summaries",
+                offset,
+                needed: u64::from(r.summary_len),
+                available: (self.bytes.len() as u64).saturating_sub(start),
+            })?;
+        let f = Fields::new("index chunk summaries", block, offset);
+        let codec = match f.slice(8, 1)?[0] {
+            0 => Codec::Raw,
+            2 => Codec::Zstd,
+            other => {
+                return Err(FormatError::Unsupported {
+                    what: "index chunk summaries codec",
+                    detail: format!("{other} at offset {offset}"),
+                })
+            }
+        };
+        if f.slice(9, 7)?.iter().any(|&b| b != 0) {
+            return Err(FormatError::invalid(
+                "index chunk summaries",
+                format!("at offset {offset}: reserved bytes are not zero"),
+            ));
+        }
+        Ok(Some(SummaryBlock {
+            codec,
+            hash: f.u64(0)?,
+            payload: f.slice(
+                SUMMARY_BLOCK_HEADER_LEN,
+                block.len() - SUMMARY_BLOCK_HEADER_LEN,
+            )?,
+            offset,
+        }))
     }
 
     /// Entries in chunk `chunk` (512, fewer in the last).
@@ -1087,7 +1382,8 @@ impl<'a> Checkpoint<'a> {
         let mut end = Self::directory_len(self.n_nodes);
         for c in 0..Self::n_chunks(self.n_nodes) {
             let (r, _) = self.chunk(c)?;
-            end = end.max(r.offset + r.stored_len as u64);
+            let (at, len) = r.span();
+            end = end.max(at + len);
         }
         Ok(end)
     }
@@ -1272,9 +1568,10 @@ mod tests {
             checkpoint: 0,
             n_changes: 2,
             note_len: 0,
+            summaries: false,
         };
         let base = DATA_START + 4096;
-        let mut bytes = h.encode(&changes, &[]);
+        let mut bytes = h.encode(&changes, &[], None);
         bytes.extend_from_slice(&[0xAA; 10]); // trailing bytes of the region are ignored
         let (d, rec) = CommitHeader::decode(&bytes, base).unwrap();
         assert_eq!(d, h);
@@ -1284,7 +1581,7 @@ mod tests {
             vec![(3, NodeEntry::Constant(9).encode()), (5, DATA_START)]
         );
         // A huge change count cannot make the decoder allocate or read past the region.
-        let mut hostile = h.encode(&changes, &[]);
+        let mut hostile = h.encode(&changes, &[], None);
         hostile[40..48].copy_from_slice(&u64::MAX.to_le_bytes());
         assert!(CommitHeader::decode(&hostile, base).is_err());
     }
@@ -1300,9 +1597,10 @@ mod tests {
             checkpoint: 0,
             n_changes: 1,
             note_len: note.len() as u32,
+            summaries: false,
         };
         let base = DATA_START + 4096;
-        let bytes = h.encode(&changes, note);
+        let bytes = h.encode(&changes, note, None);
         let record_len = CommitHeader::record_len(1) as usize;
         assert_eq!(bytes.len(), record_len + 4 + note.len() + 8);
         assert_eq!(h.total_len(), bytes.len() as u64);
@@ -1327,10 +1625,16 @@ mod tests {
     #[test]
     fn checkpoint_round_trip_and_bounds() {
         // 1300 entries: chunks of 512, 512, 276.
+        let chunk = |codec, payload, hash| EncodedChunk {
+            codec,
+            payload,
+            hash,
+            summaries: None,
+        };
         let chunks = vec![
-            (Codec::Raw, vec![1u8; 512 * 8], 11),
-            (Codec::Zstd, vec![2u8; 40], 22),
-            (Codec::Raw, vec![3u8; 276 * 8], 33),
+            chunk(Codec::Raw, vec![1u8; 512 * 8], 11),
+            chunk(Codec::Zstd, vec![2u8; 40], 22),
+            chunk(Codec::Raw, vec![3u8; 276 * 8], 33),
         ];
         let b = Checkpoint::encode(1300, &chunks);
         let cp = Checkpoint::decode(&b, DATA_START, 1300).unwrap();
@@ -1339,6 +1643,7 @@ mod tests {
         assert_eq!(cp.total_len().unwrap() as usize, b.len());
         let (r, p) = cp.chunk(1).unwrap();
         assert_eq!((r.codec, r.hash, p), (Codec::Zstd, 22, &[2u8; 40][..]));
+        assert_eq!(cp.summaries(&r).unwrap(), None);
         assert!(cp.chunk(3).is_err());
         assert!(Checkpoint::decode(&b, DATA_START, 1299).is_err());
         // A directory flip fails the checksum; a truncated region fails the chunk bounds.
@@ -1353,5 +1658,137 @@ mod tests {
         let short = &b[..b.len() - 1];
         let cp = Checkpoint::decode(short, DATA_START, 1300).unwrap();
         assert!(cp.chunk(2).is_err());
+    }
+
+    #[test]
+    fn summaries_follow_the_note_where_older_readers_do_not_look() {
+        let changes = vec![
+            (3, NodeEntry::Constant(9)),
+            (5, NodeEntry::Stored(DATA_START)),
+        ];
+        let summaries = [
+            BrickSummary::default(),
+            BrickSummary {
+                hash: 0x0102_0304_0506_0708,
+                min: 3,
+                max: 200,
+            },
+        ];
+        let note = br#"{"author":"alice"}"#;
+        let h = CommitHeader {
+            version: 2,
+            parent: DATA_START + 8,
+            timestamp_ms: 1234,
+            checkpoint: 0,
+            n_changes: 2,
+            note_len: note.len() as u32,
+            summaries: true,
+        };
+        let base = DATA_START + 4096;
+        let bytes = h.encode(&changes, note, Some(&summaries));
+        let record_len = CommitHeader::record_len(2) as usize;
+        let with_note = record_len + 12 + note.len();
+        // Golden layout: 12 bytes a summary, then a checksum of everything before it.
+        assert_eq!(bytes.len(), with_note + 2 * 12 + 8);
+        assert_eq!(h.total_len(), bytes.len() as u64);
+        assert_eq!(&bytes[4..8], &[3, 0, 0, 0]); // note and summaries flags
+        assert_eq!(
+            &bytes[with_note + 12..with_note + 24],
+            &[8, 7, 6, 5, 4, 3, 2, 1, 3, 0, 200, 0]
+        );
+        let stored = u64::from_le_bytes(bytes[bytes.len() - 8..].try_into().unwrap());
+        assert_eq!(stored, xxh3_64(&bytes[..bytes.len() - 8]));
+        // What older readers check is unchanged: the record's and the note's checksums.
+        let stored = u64::from_le_bytes(bytes[record_len - 8..record_len].try_into().unwrap());
+        assert_eq!(stored, xxh3_64(&bytes[..record_len - 8]));
+        let (d, rec) = CommitHeader::decode(&bytes, base).unwrap();
+        assert_eq!(d, h);
+        assert_eq!(d.note(&bytes), note);
+        assert_eq!(CommitHeader::changes(rec).count(), 2);
+        assert_eq!(d.summaries_in(&bytes).unwrap(), summaries.to_vec());
+        // Any flipped summary byte, or a cut section, is refused.
+        for at in with_note..bytes.len() {
+            let mut flipped = bytes.clone();
+            flipped[at] ^= 0x40;
+            assert!(CommitHeader::decode(&flipped, base).is_err(), "byte {at}");
+        }
+        assert!(CommitHeader::decode(&bytes[..bytes.len() - 1], base).is_err());
+        // Without a note the section follows the record directly.
+        let h = CommitHeader { note_len: 0, ..h };
+        let bytes = h.encode(&changes, &[], Some(&summaries));
+        assert_eq!(bytes.len(), record_len + 2 * 12 + 8);
+        let (d, _) = CommitHeader::decode(&bytes, base).unwrap();
+        assert_eq!(d.summaries_in(&bytes).unwrap(), summaries.to_vec());
+    }
+
+    #[test]
+    fn a_chunk_summary_block_follows_its_payload() {
+        let chunks = vec![
+            EncodedChunk {
+                codec: Codec::Raw,
+                payload: vec![1u8; 512 * 8],
+                hash: 11,
+                summaries: Some((Codec::Raw, vec![7u8; 512 * 12], 44)),
+            },
+            EncodedChunk {
+                codec: Codec::Zstd,
+                payload: vec![2u8; 40],
+                hash: 22,
+                summaries: None,
+            },
+        ];
+        let b = Checkpoint::encode(600, &chunks);
+        let cp = Checkpoint::decode(&b, DATA_START, 600).unwrap();
+        assert_eq!(cp.total_len().unwrap() as usize, b.len());
+        let (r, p) = cp.chunk(0).unwrap();
+        assert_eq!((r.stored_len, p.len()), (4096, 4096));
+        // Golden reference bytes 12..16: codec, flag, u16 block length (16 + 6144 = 6160).
+        let dir = CHECKPOINT_FIXED_LEN;
+        assert_eq!(&b[dir + 12..dir + 16], &[0, 1, 0x10, 0x18]);
+        let block = cp.summaries(&r).unwrap().unwrap();
+        assert_eq!((block.codec, block.hash), (Codec::Raw, 44));
+        assert_eq!(block.payload, &[7u8; 512 * 12][..]);
+        assert_eq!(block.offset, DATA_START + r.offset + 4096);
+        // The block lies right after the payload: one span covers both.
+        assert_eq!(r.span(), (r.offset, 4096 + 6160));
+        let (r1, p1) = cp.chunk(1).unwrap();
+        assert_eq!(p1, &[2u8; 40][..]);
+        assert_eq!(r1.offset, r.offset + 4096 + 6160);
+        assert_eq!(cp.summaries(&r1).unwrap(), None);
+        // A reader before revision 5 reads what it always read: offset, length, codec, hash.
+        assert_eq!(
+            u64::from_le_bytes(b[dir..dir + 8].try_into().unwrap()),
+            r.offset
+        );
+        // A bad block header codec or stray bits are refused; a cut block too.
+        let at = (r.offset + 4096) as usize;
+        let mut bad = b.clone();
+        bad[at + 8] = 9;
+        let cp_bad = Checkpoint::decode(&bad, DATA_START, 600).unwrap();
+        assert!(cp_bad.summaries(&r).is_err());
+        let mut bad = b.clone();
+        bad[at + 12] = 1;
+        let cp_bad = Checkpoint::decode(&bad, DATA_START, 600).unwrap();
+        assert!(cp_bad.summaries(&r).is_err());
+        let short = Checkpoint::decode(&b[..at + 100], DATA_START, 600).unwrap();
+        assert!(short.summaries(&r).is_err());
+    }
+
+    #[test]
+    fn summary_ranges_are_validated() {
+        let s = BrickSummary {
+            hash: 1,
+            min: 4,
+            max: 3,
+        };
+        assert!(s.validate(VoxelType::U16, "x", 0).is_err());
+        let s = BrickSummary {
+            min: 0,
+            max: 256,
+            ..s
+        };
+        assert!(s.validate(VoxelType::U8, "x", 0).is_err());
+        assert!(s.validate(VoxelType::U16, "x", 0).is_ok());
+        assert_eq!(BrickSummary::decode(&s.encode()), s);
     }
 }

@@ -348,8 +348,24 @@ fn read_checkpoint(
         let mut node = 0;
         while node < nodes {
             match view.entry_at(node) {
-                Ok(NodeEntry::Stored(offset)) => {
+                Ok(entry @ NodeEntry::Stored(offset)) => {
                     bricks.insert(offset, view.layout().voxel_type());
+                    // Revision 5: the summary stored beside the entry (its block's hash and
+                    // ranges checked) must say what the record's header says. A damaged
+                    // header is the brick check's to report.
+                    match (view.summary_at(node), view.entry_summary(entry)) {
+                        (Err(e), _) => problems.push(format!(
+                            "summary of entry {}: {}",
+                            base + node,
+                            error_chain(&e)
+                        )),
+                        (Ok(indexed), Ok(header)) if indexed != header => problems.push(format!(
+                            "summary of entry {} is {indexed:?}, its brick record's header \
+                                 says {header:?}",
+                            base + node
+                        )),
+                        _ => {}
+                    }
                 }
                 Ok(NodeEntry::Constant(_)) => {}
                 Err(e) => {

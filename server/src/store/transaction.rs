@@ -170,6 +170,14 @@ impl<'a> Transaction<'a> {
         }
         let layout = view.layout();
         let key = layout.key_of(node)?;
+        // The commit stores the brick's summary beside the entry: a record this writer did not
+        // store (an undo's, an older version's) is summarized from the version that has it.
+        if let NodeEntry::Stored(offset) = entry {
+            if !self.writer.knows_summary(offset) {
+                let summary = view.entry_summary(entry)?;
+                self.writer.learn_summary(offset, summary);
+            }
+        }
         changes.push((view.stream() as u64 * layout.node_count() + node, entry));
         let keys = match view.stream() {
             0 => changed,
@@ -390,18 +398,24 @@ impl<'a> Transaction<'a> {
                     || snap.chain_len() + 1 > policy.max_chain;
                 let full = if checkpoint {
                     let mut entries = snap.raw_entries()?;
-                    for (node, entry) in &changes {
-                        entries[*node as usize] = entry.encode();
+                    let mut summaries = snap.raw_summaries(&entries)?;
+                    for &(node, entry) in &changes {
+                        entries[node as usize] = entry.encode();
+                        summaries[node as usize] = self.writer.summary_for(node, entry)?;
                     }
-                    Some(entries)
+                    Some((entries, summaries))
                 } else {
                     None
                 };
-                let slot = self.writer.stage(&changes, full.as_deref(), &self.note)?;
+                let full = full.as_ref().map(|(e, s)| (&e[..], &s[..]));
+                let slot = self.writer.stage(&changes, full, &self.note)?;
                 (slot, changed, checkpoint, channels_changed)
             }
             Base::Empty { entries } => {
-                let slot = self.writer.stage(&[], Some(&entries), &self.note)?;
+                let summaries = self.writer.summaries_of(&entries)?;
+                let slot = self
+                    .writer
+                    .stage(&[], Some((&entries, &summaries)), &self.note)?;
                 (slot, ChangedKeys::new(), true, BTreeMap::new())
             }
         };

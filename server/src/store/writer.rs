@@ -26,8 +26,9 @@ use super::pyramid::BrickVoxels;
 use super::StoreError;
 use super::StoredBrick;
 use isovox_proto::vod2::{
-    content_hash, payload_check, AppendedCheck, BrickHeader, Checkpoint, Codec, CommitHeader,
-    FileHeader, HeaderSlot, NodeEntry, BRICK_HEADER_LEN, CHUNK_ENTRIES, DATA_START, SLOT_OFFSETS,
+    content_hash, payload_check, AppendedCheck, BrickHeader, BrickSummary, Checkpoint, Codec,
+    CommitHeader, EncodedChunk, FileHeader, HeaderSlot, NodeEntry, BRICK_HEADER_LEN, CHUNK_ENTRIES,
+    DATA_START, SLOT_OFFSETS,
 };
 use isovox_proto::VoxelType;
 use std::collections::HashMap;
@@ -110,6 +111,13 @@ pub struct Vod2Writer {
     buf: Vec<u8>,
     /// hash -> offsets of stored brick records with that content hash.
     known: HashMap<u64, Vec<u64>>,
+    /// record offset -> its summary, for the records this writer appended, found as
+    /// duplicates, or was told of ([`Vod2Writer::learn_summary`]): what the commit records and
+    /// checkpoints it writes store beside their entries (revision 5).
+    summaries: HashMap<u64, BrickSummary>,
+    /// Whether commit records and checkpoints carry summaries: always, except to write a file
+    /// as a writer before revision 5 did ([`Vod2Writer::omit_summaries`]).
+    write_summaries: bool,
     compression: Compression,
     head: Option<HeaderSlot>,
     /// The newest version staged since the last sync, as the slot that will name it.
@@ -160,6 +168,8 @@ impl Vod2Writer {
             buf_at: 0,
             buf,
             known: HashMap::new(),
+            summaries: HashMap::new(),
+            write_summaries: true,
             compression,
             head: None,
             staged: None,
@@ -218,6 +228,8 @@ impl Vod2Writer {
             buf_at: head.committed_len,
             buf: Vec::new(),
             known,
+            summaries: HashMap::new(),
+            write_summaries: true,
             compression,
             head: Some(head),
             staged: None,
@@ -240,6 +252,8 @@ impl Vod2Writer {
             buf_at: head.committed_len,
             buf: Vec::new(),
             known: HashMap::new(),
+            summaries: HashMap::new(),
+            write_summaries: true,
             compression: Compression::for_edits(),
             head: Some(head),
             staged: None,
@@ -253,6 +267,48 @@ impl Vod2Writer {
     /// The file's fixed header.
     pub fn header(&self) -> &FileHeader {
         &self.header
+    }
+
+    /// Writes commit records and checkpoints without brick summaries from now on, as writers
+    /// before revision 5 did: to make the older files that readers must still open (tests,
+    /// measurements). Nothing else needs it.
+    pub fn omit_summaries(&mut self) {
+        self.write_summaries = false;
+    }
+
+    /// Whether the writer knows the summary of the record at `offset` without reading it.
+    pub fn knows_summary(&self, offset: u64) -> bool {
+        self.summaries.contains_key(&offset)
+    }
+
+    /// Tells the writer the summary of the record at `offset` (a record of an older version an
+    /// undo points at again, read by whoever knows the version), for the commit that names it.
+    pub fn learn_summary(&mut self, offset: u64, summary: BrickSummary) {
+        self.summaries.insert(offset, summary);
+    }
+
+    /// The summary to store beside `entry` at file-wide `node`: zeros for a constant (never
+    /// read); a record's from what the writer knows, else from its header read back (a local
+    /// file). A remote writer must have been told ([`Vod2Writer::learn_summary`]).
+    ///
+    /// # Errors
+    /// The record's header cannot be read back, or is damaged.
+    pub fn summary_for(&self, node: u64, entry: NodeEntry) -> Result<BrickSummary, StoreError> {
+        let NodeEntry::Stored(offset) = entry else {
+            return Ok(BrickSummary::default());
+        };
+        if let Some(s) = self.summaries.get(&offset) {
+            return Ok(*s);
+        }
+        let voxel_type =
+            self.header.stream_of(node).map(|(_, t)| t).ok_or_else(|| {
+                StoreError::Internal(format!("node {node} is outside the volume"))
+            })?;
+        let layout = self.header.layout.with_voxel_type(voxel_type);
+        let head = self.read_at(offset, BRICK_HEADER_LEN)?;
+        Ok(BrickSummary::of_header(&BrickHeader::decode(
+            &head, offset, &layout,
+        )?))
     }
 
     /// Numbers this new file's first commit `version` instead of 1: a compacted copy keeps its
@@ -309,6 +365,8 @@ impl Vod2Writer {
         self.stats.stored[header.codec as usize] += 1;
         self.stats.stored_bytes[header.codec as usize] += payload.len() as u64;
         self.remember(header.hash, offset);
+        self.summaries
+            .insert(offset, BrickSummary::of_header(&header));
         Ok(NodeEntry::Stored(offset))
     }
 
@@ -449,6 +507,13 @@ impl Vod2Writer {
             for &offset in candidates.clone().iter() {
                 if self.stored_equals(offset, bytes, voxel_type)? {
                     self.stats.deduplicated += 1;
+                    // Equal bytes: the brick's summary is the record's.
+                    let summary = BrickSummary {
+                        hash: brick.hash,
+                        min: brick.min,
+                        max: brick.max,
+                    };
+                    self.summaries.insert(offset, summary);
                     return Ok(NodeEntry::Stored(offset));
                 }
             }
@@ -496,18 +561,42 @@ impl Vod2Writer {
     ///
     /// # Errors
     /// See [`Vod2Writer::stage`] and [`Vod2Writer::sync`]. The head is then unchanged.
+    /// The checkpoint's summaries are found as [`Vod2Writer::summary_for`] does.
     pub fn commit(
         &mut self,
         changes: &[(u64, NodeEntry)],
         checkpoint: Option<&[u64]>,
     ) -> Result<HeaderSlot, StoreError> {
-        self.stage(changes, checkpoint, &[])?;
+        let summaries = match checkpoint {
+            Some(entries) => Some(self.summaries_of(entries)?),
+            None => None,
+        };
+        let full = checkpoint.zip(summaries.as_deref());
+        self.stage(changes, full, &[])?;
         self.sync()
     }
 
+    /// [`Vod2Writer::summary_for`] of every entry of a full index.
+    ///
+    /// # Errors
+    /// As [`Vod2Writer::summary_for`].
+    pub fn summaries_of(&self, entries: &[u64]) -> Result<Vec<BrickSummary>, StoreError> {
+        (0u64..)
+            .zip(entries)
+            .map(|(node, &raw)| {
+                let (_, voxel_type) = self.header.stream_of(node).ok_or_else(|| {
+                    StoreError::Internal(format!("node {node} is outside the volume"))
+                })?;
+                let entry = NodeEntry::decode(raw, voxel_type, u64::MAX)?;
+                self.summary_for(node, entry)
+            })
+            .collect()
+    }
+
     /// Appends the next version's commit record (after the newest staged one, or the head):
-    /// `checkpoint` is the full index after the commit (written as a checkpoint), or `None` to
-    /// record only `changes` relative to its parent; `note` (the commit's
+    /// `checkpoint` is the full index after the commit (written as a checkpoint) with each
+    /// entry's summary, or `None` to record only `changes` relative to its parent (each
+    /// change's summary found by [`Vod2Writer::summary_for`]); `note` (the commit's
     /// [`CommitNote`](isovox_proto::history::CommitNote) as JSON, or empty) follows the
     /// record. The bytes reach the file (so a mapping of
     /// it can read the new version) but are not durable and not named by a slot until
@@ -521,7 +610,7 @@ impl Vod2Writer {
     pub fn stage(
         &mut self,
         changes: &[(u64, NodeEntry)],
-        checkpoint: Option<&[u64]>,
+        checkpoint: Option<(&[u64], &[BrickSummary])>,
         note: &[u8],
     ) -> Result<HeaderSlot, StoreError> {
         let note_len = u32::try_from(note.len())
@@ -570,16 +659,30 @@ impl Vod2Writer {
                 )));
             }
         }
+        // A record without changes has no summaries to carry: no section.
+        let change_summaries = match self.write_summaries && !changes.is_empty() {
+            true => Some(
+                changes
+                    .iter()
+                    .map(|&(node, entry)| self.summary_for(node, entry))
+                    .collect::<Result<Vec<_>, _>>()?,
+            ),
+            false => None,
+        };
         let checkpoint_at = match checkpoint {
-            Some(entries) => {
-                if entries.len() as u64 != self.header.node_count() {
+            Some((entries, summaries)) => {
+                if entries.len() as u64 != self.header.node_count()
+                    || summaries.len() != entries.len()
+                {
                     return Err(StoreError::Internal(format!(
-                        "a checkpoint needs {} entries, got {}",
+                        "a checkpoint needs {} entries and summaries, got {} and {}",
                         self.header.node_count(),
-                        entries.len()
+                        entries.len(),
+                        summaries.len()
                     )));
                 }
-                self.append(&encode_checkpoint(entries))?
+                let summaries = self.write_summaries.then_some(summaries);
+                self.append(&encode_checkpoint(entries, summaries))?
             }
             None => {
                 if parent == 0 {
@@ -600,8 +703,9 @@ impl Vod2Writer {
             checkpoint: checkpoint_at,
             n_changes: changes.len() as u64,
             note_len,
+            summaries: change_summaries.is_some(),
         }
-        .encode(changes, note);
+        .encode(changes, note, change_summaries.as_deref());
         let commit_at = self.append(&record)?;
         self.flush()?;
         let slot = HeaderSlot {
@@ -640,6 +744,7 @@ impl Vod2Writer {
                 self.buf.clear();
                 // What it stored is now below `buf_at`, which it cannot read back.
                 self.known.clear();
+                self.summaries.clear();
                 slot
             }
         };
@@ -692,6 +797,8 @@ impl Vod2Writer {
             self.buf_at = savepoint.end;
         }
         for (hash, offset) in self.appended.drain(savepoint.appended..) {
+            // The offset will be another record's.
+            self.summaries.remove(&offset);
             if let Some(offsets) = self.known.get_mut(&hash) {
                 offsets.retain(|&o| o != offset);
                 if offsets.is_empty() {
@@ -759,17 +866,42 @@ fn damaged(offset: u64, e: &StoreError) -> bool {
 }
 
 /// Encodes a full index as a checkpoint: chunks of 512 entries, each zstd-compressed when that
-/// is smaller (runs of constant entries shrink to a few bytes).
-pub fn encode_checkpoint(entries: &[u64]) -> Vec<u8> {
+/// is smaller (runs of constant entries shrink to a few bytes), each followed by its entries'
+/// summaries (revision 5) when `summaries` is given (one per entry; a constant's stored as
+/// zeros, so that runs of constants shrink here too).
+pub fn encode_checkpoint(entries: &[u64], summaries: Option<&[BrickSummary]>) -> Vec<u8> {
     use rayon::prelude::*;
-    let chunks: Vec<(Codec, Vec<u8>, u64)> = entries
+    let zstd = Compression::Zstd(codec::DEFAULT_ZSTD_LEVEL);
+    let encode = |bytes: Vec<u8>| {
+        let hash = xxhash_rust::xxh3::xxh3_64(&bytes);
+        let (codec, payload) = codec::encode(&bytes, zstd);
+        (codec, payload, hash)
+    };
+    let chunks: Vec<EncodedChunk> = entries
         .par_chunks(CHUNK_ENTRIES as usize)
-        .map(|chunk| {
-            let bytes: Vec<u8> = chunk.iter().flat_map(|e| e.to_le_bytes()).collect();
-            let hash = xxhash_rust::xxh3::xxh3_64(&bytes);
-            let (codec, payload) =
-                codec::encode(&bytes, Compression::Zstd(codec::DEFAULT_ZSTD_LEVEL));
-            (codec, payload, hash)
+        .enumerate()
+        .map(|(c, chunk)| {
+            let (codec, payload, hash) =
+                encode(chunk.iter().flat_map(|e| e.to_le_bytes()).collect());
+            let summaries = summaries.map(|all| {
+                let first = c * CHUNK_ENTRIES as usize;
+                let mine = &all[first..first + chunk.len()];
+                let zeroed: Vec<BrickSummary> = chunk
+                    .iter()
+                    .zip(mine)
+                    .map(|(&raw, &s)| match NodeEntry::is_constant(raw) {
+                        true => BrickSummary::default(),
+                        false => s,
+                    })
+                    .collect();
+                encode(BrickSummary::encode_all(&zeroed))
+            });
+            EncodedChunk {
+                codec,
+                payload,
+                hash,
+                summaries,
+            }
         })
         .collect();
     Checkpoint::encode(entries.len() as u64, &chunks)

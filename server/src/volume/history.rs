@@ -12,7 +12,7 @@ use isovox_proto::history::{
     CommitInfo, CommitKind, CommitNote, HistoryEntry, HistoryList, Tag, TagList, MAX_TAG_LEN,
 };
 use isovox_proto::layout::BrickKey;
-use isovox_proto::vod2::{CommitHeader, NodeEntry};
+use isovox_proto::vod2::{BrickSummary, CommitHeader, NodeEntry};
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
@@ -73,6 +73,12 @@ pub fn read_note(vod: &Vod2, at: u64) -> Result<(CommitHeader, CommitNote), Stor
 pub(crate) fn change_event(vod: &Vod2, at: u64) -> Result<ChangeEvent, StoreError> {
     let (h, note) = read_note(vod, at)?;
     let (_, changes) = vod.commit_at(at)?;
+    // Revision 5: the record carries each change's summary, so the event's grid reads no
+    // brick record.
+    let summaries = vod
+        .mapped()
+        .get(at as usize..)
+        .and_then(|b| h.summaries_in(b));
     let header = vod.header();
     let per_stream = header.layout.node_count();
     let nodes_of = |stream: u64| {
@@ -94,7 +100,7 @@ pub(crate) fn change_event(vod: &Vod2, at: u64) -> Result<ChangeEvent, StoreErro
         .filter(|(_, changed)| changed.iter().any(|level| !level.is_empty()))
         .collect();
     let changed = changed_bricks(vod.layout(), nodes_of(0));
-    let bricks = changed_grid(vod, changes, &changed)?;
+    let bricks = changed_grid(vod, at, changes, summaries, &changed)?;
     Ok(ChangeEvent {
         version: h.version,
         timestamp_ms: h.timestamp_ms,
@@ -105,15 +111,18 @@ pub(crate) fn change_event(vod: &Vod2, at: u64) -> Result<ChangeEvent, StoreErro
     })
 }
 
-/// What each density brick of `changed` holds after the commit whose record's changes are
-/// `changes`: its hash and value range, read from the entries the record wrote (brick headers,
-/// no payload), in `changed`'s order. Empty past [`EVENT_GRID_LIMIT`] bricks.
+/// What each density brick of `changed` holds after the commit at `at` whose record's changes
+/// are `changes`: its hash and value range, from the summaries the record carries (revision 5;
+/// brick headers for a record without them, never a payload), in `changed`'s order. Empty past
+/// [`EVENT_GRID_LIMIT`] bricks.
 ///
 /// # Errors
-/// An entry or a brick header in the record is malformed.
+/// An entry, a summary or a brick header in the record is malformed.
 fn changed_grid(
     vod: &Vod2,
+    at: u64,
     changes: &[u8],
+    summaries: Option<Vec<BrickSummary>>,
     changed: &ChangedBricks,
 ) -> Result<Vec<Vec<LevelBrick>>, StoreError> {
     if changed.iter().map(Vec::len).sum::<usize>() > EVENT_GRID_LIMIT {
@@ -123,9 +132,13 @@ fn changed_grid(
     let layout = snap.layout();
     let per_stream = layout.node_count();
     let mut now = HashMap::new();
-    for (node, raw) in CommitHeader::changes(changes).filter(|(node, _)| *node < per_stream) {
+    for (i, (node, raw)) in CommitHeader::changes(changes).enumerate() {
+        if node >= per_stream {
+            continue;
+        }
         // A node written twice by one record: the later entry is what the version holds.
-        now.insert(node, raw);
+        let summary = summaries.as_ref().and_then(|s| s.get(i).copied());
+        now.insert(node, (raw, summary));
     }
     changed
         .iter()
@@ -140,16 +153,21 @@ fn changed_grid(
                         y,
                         z,
                     };
-                    let raw = now.get(&layout.node_index(key)).ok_or_else(|| {
+                    let &(raw, summary) = now.get(&layout.node_index(key)).ok_or_else(|| {
                         StoreError::Internal(format!("brick {key} changed but has no entry"))
                     })?;
-                    let entry = NodeEntry::decode(*raw, layout.voxel_type(), vod.committed_len())?;
-                    let stored = snap.stored_entry(entry)?;
-                    let (min, max) = stored.min_max();
+                    let entry = NodeEntry::decode(raw, layout.voxel_type(), vod.committed_len())?;
+                    let s = match (entry, summary) {
+                        (NodeEntry::Stored(_), Some(s)) => {
+                            s.validate(layout.voxel_type(), "commit summaries", at)?
+                        }
+                        // A constant's summary is its value; an older record's is its header's.
+                        _ => snap.entry_summary(entry)?,
+                    };
                     Ok(LevelBrick {
-                        hash: format!("{:016x}", stored.content_hash(layout)),
-                        min,
-                        max,
+                        hash: format!("{:016x}", s.hash),
+                        min: s.min,
+                        max: s.max,
                     })
                 })
                 .collect()

@@ -388,12 +388,13 @@ impl LevelRead {
         for z in min[2]..max[2] {
             for y in min[1]..max[1] {
                 for x in min[0]..max[0] {
-                    let stored = snap.stored(BrickKey { level, x, y, z })?;
-                    let (lo, hi) = stored.min_max();
+                    // From the index (revision 5), not the brick records: a grid region
+                    // costs its index chunks, however many bricks it lists.
+                    let s = snap.summary(BrickKey { level, x, y, z })?;
                     bricks.push(LevelBrick {
-                        hash: format!("{:016x}", stored.content_hash(layout)),
-                        min: lo,
-                        max: hi,
+                        hash: format!("{:016x}", s.hash),
+                        min: s.min,
+                        max: s.max,
                     });
                 }
             }

@@ -218,8 +218,10 @@ fn repeated_brick_content_is_stored_once() {
     assert_eq!(offsets.len(), 1, "the repeated tile is stored once");
 
     // The file is the header pages, the distinct records, the index and one empty commit.
-    // The index is at most its fixed part, two chunk references and 585 uncompressed entries.
-    let index_bound = (CHECKPOINT_FIXED_LEN + 2 * CHUNK_REF_LEN + 585 * 8) as u64;
+    // The index is at most its fixed part, two chunk references, 585 uncompressed entries and
+    // their 12-byte summaries in two blocks, each with its 16-byte header (revision 5).
+    let index_bound =
+        (CHECKPOINT_FIXED_LEN + 2 * CHUNK_REF_LEN + 585 * 8 + 2 * 16 + 585 * 12) as u64;
     assert!(
         i.index_bytes <= index_bound,
         "index of {} bytes",
@@ -263,8 +265,9 @@ fn appending_content_already_stored_shares_the_record() {
     model[node as usize] = tile_bytes;
 
     let vod = Vod2::open(&path).unwrap();
-    // Only the commit record was appended: 56 bytes plus one 16-byte change.
-    assert_eq!(vod.file_len(), len_before + 56 + 16);
+    // Only the commit record was appended: 56 bytes plus one 16-byte change, then (revision 5)
+    // the change's 12-byte summary and the section's 8-byte checksum.
+    assert_eq!(vod.file_len(), len_before + 56 + 16 + 12 + 8);
     assert_version_reads(&vod, 2, &model, "after sharing");
     assert_version_reads(&vod, 1, &old_model, "before sharing");
 }

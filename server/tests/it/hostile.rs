@@ -673,8 +673,9 @@ fn reseal_commit(bytes: &mut [u8], at: usize, edit: impl FnOnce(&mut CommitHeade
         .map(|(n, raw)| (n, NodeEntry::decode(raw, VoxelType::U8, u64::MAX).unwrap()))
         .collect();
     let note = h.note(&bytes[at..]).to_vec();
+    let summaries = h.summaries_in(&bytes[at..]);
     edit(&mut h);
-    let encoded = h.encode(&changes, &note);
+    let encoded = h.encode(&changes, &note, summaries.as_deref());
     assert_eq!(encoded.len(), len);
     bytes[at..at + len].copy_from_slice(&encoded);
 }

@@ -25,6 +25,7 @@ mod durability;
 mod edit_cost;
 mod formats_clients;
 mod formats_views;
+mod grid_summaries;
 mod hostile;
 mod icvg_edits;
 mod icvg_golden;

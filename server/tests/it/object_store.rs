@@ -1229,3 +1229,107 @@ fn a_stalled_store_makes_an_edit_a_503_with_retry_after_and_commits_nothing() {
     assert_eq!(voxel(&server, &http, [44, 54, 44]), 255, "the edit after");
     assert_ne!(voxel(&server, &http, [14, 54, 14]), 255, "the stalled edit");
 }
+
+/// Range requests the replica's volumes made of the store so far, and the bytes they fetched
+/// (its Prometheus counters).
+fn store_fetches(http: &Client, replica: &Server) -> (u64, u64) {
+    let root = &replica.base[..replica.base.find("/v1/").unwrap()];
+    let text = http
+        .get(format!("{root}/metrics"))
+        .send()
+        .unwrap()
+        .text()
+        .unwrap();
+    let counter = |name: &str| {
+        text.lines()
+            .find(|l| l.starts_with(name))
+            .and_then(|l| l.rsplit(' ').next()?.parse::<u64>().ok())
+            .unwrap_or_else(|| panic!("no {name} in the metrics"))
+    };
+    (
+        counter("isovox_store_fetches_total "),
+        counter("isovox_store_fetched_bytes_total "),
+    )
+}
+
+#[test]
+fn a_cold_replica_lists_a_level_grid_from_index_chunks_not_brick_records() {
+    // A world larger than the other tests': 256^3 in bricks of 16 is 4,096 level-0 bricks, in
+    // 8 index chunks of 512 entries. `ISOVOX_GRID_EDGE=512` measures the 512^3 world of
+    // docs/scaling.md (32,768 bricks, 64 chunks) with the same code.
+    let edge: u32 = std::env::var("ISOVOX_GRID_EDGE")
+        .ok()
+        .and_then(|e| e.parse().ok())
+        .unwrap_or(256);
+    let s3 = S3::start("isovox-grids");
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("w.vod");
+    let dims = format!("{edge},{edge},{edge}");
+    let path = file.to_str().unwrap();
+    s3.isovox(&[
+        "generate", "world", "-o", path, "--dims", &dims, "--brick", "16",
+    ]);
+    s3.isovox(&["import", path, "-o", &format!("{}/{VOLUME}", s3.url())]);
+    // The same volume as a writer before revision 5 wrote it: no summaries in its index.
+    let old = dir.path().join("w4.vod");
+    crate::grid_summaries::revision4_copy(&file, &old);
+    let old = old.to_str().unwrap();
+    s3.isovox(&["import", old, "-o", &format!("{}/w4", s3.url())]);
+
+    let replica = Server::replica(&s3, None);
+    let http = client();
+    let root = replica.base[..replica.base.find("/v1/").unwrap()].to_string();
+    let grid_cost = |volume: &str| {
+        let (requests, bytes) = store_fetches(&http, &replica);
+        let url = format!("{root}/v1/volumes/{volume}/levels/0");
+        let resp = http.get(&url).send().unwrap();
+        assert_eq!(resp.status().as_u16(), 200, "{url}");
+        let grid: Value = resp.json().unwrap();
+        let (after, after_bytes) = store_fetches(&http, &replica);
+        (grid, after - requests, after_bytes - bytes)
+    };
+    let (grid, requests, bytes) = grid_cost(VOLUME);
+    let (old_grid, old_requests, old_bytes) = grid_cost("w4");
+    let stored = grid["bricks"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|b| b["min"] != b["max"])
+        .count();
+    let bricks = (edge / 16).pow(3) as usize;
+    let chunks = bricks.div_ceil(512) as u64;
+    eprintln!(
+        "level-0 grid of {edge}^3 ({bricks} bricks, {stored} not constant, {chunks} index \
+         chunks) on a cold replica: revision 5 {requests} range requests, {bytes} bytes; \
+         revision 4 {old_requests} requests, {old_bytes} bytes"
+    );
+    // What the summaries cost: the head checkpoint's bytes per index entry, both files.
+    let index_bytes = |path: &Path| {
+        let vod = isovox_server::store::Vod2::open(path).unwrap();
+        let (_, len) = vod.head().checkpoint_span().unwrap();
+        (len, vod.header().node_count())
+    };
+    let ((new_len, nodes), (old_len, _)) = (index_bytes(&file), index_bytes(Path::new(old)));
+    eprintln!(
+        "index of {nodes} entries: revision 5 {new_len} bytes ({:.2} a entry), revision 4 \
+         {old_len} bytes ({:.2} a entry)",
+        new_len as f64 / nodes as f64,
+        old_len as f64 / nodes as f64
+    );
+    assert_eq!(
+        grid["bricks"], old_grid["bricks"],
+        "both files list the same grid"
+    );
+    assert!(
+        stored > bricks / 20,
+        "{stored} of {bricks} bricks are not constant"
+    );
+    // One request per index chunk (its entries and summaries lie in a row), one per page of
+    // 128 chunk references, and a few to spare; nothing per brick.
+    assert!(
+        requests <= chunks + chunks.div_ceil(128) + 2,
+        "{requests} range requests for {chunks} chunks"
+    );
+    // Without summaries the same grid reads the brick headers, pages spread over the file.
+    assert!(old_requests > 4 * requests, "{old_requests} vs {requests}");
+}

@@ -1,14 +1,16 @@
-//! What a tile's mesh and a strip's depend on: content keys computed from the index and the
-//! brick headers alone (no voxel decoded), and whether the iso value can cross what they read.
+//! What a tile's mesh and a strip's depend on: content keys computed from the index alone (its
+//! brick summaries; brick headers in files written before revision 5; no voxel decoded), and
+//! whether the iso value can cross what they read.
 
 use super::Stitching;
 use crate::mesh::lattice::value_range;
-use crate::store::{Snapshot, StoreError, StoredBrick};
+use crate::store::{Snapshot, StoreError};
 use isovox_proto::lod::FACE_DIRECTIONS;
 use isovox_proto::tile::{
     bricks_of, cells, field_box, has_transitions, stored_box, strip_coarse_box, strip_field_box,
     GridBox,
 };
+use isovox_proto::vod2::NodeEntry;
 use isovox_proto::{BrickKey, VolumeLayout};
 
 /// What a tile's mesh depends on: its level, the iso value, the brick edge and voxel type,
@@ -76,18 +78,20 @@ pub(super) fn describe_bricks(
                         y: y as u32,
                         z: z as u32,
                     };
-                    let stored = snap.stored(k)?;
-                    match stored {
-                        StoredBrick::Constant(v) => {
+                    // The index's summary (revision 5), not the brick record: the key and
+                    // the range of a tile cost no record read.
+                    let summary = snap.summary(k)?;
+                    match snap.entry(k)? {
+                        NodeEntry::Constant(v) => {
                             desc.push(1);
                             desc.extend_from_slice(&v.to_le_bytes());
                         }
-                        StoredBrick::Record { header, .. } => {
+                        NodeEntry::Stored(_) => {
                             desc.push(2);
-                            desc.extend_from_slice(&header.hash.to_le_bytes());
+                            desc.extend_from_slice(&summary.hash.to_le_bytes());
                         }
                     }
-                    stored.min_max()
+                    (summary.min, summary.max)
                 } else {
                     desc.push(0);
                     (0, 0)
@@ -119,10 +123,11 @@ fn describe_tile(layout: &VolumeLayout, key: BrickKey, iso: f32, faces: u8) -> V
     desc
 }
 
-/// Computes a tile's inputs from the index and brick headers alone (no voxel decoded).
+/// Computes a tile's inputs from the index alone (its brick summaries; brick headers for
+/// entries written before revision 5; no voxel decoded).
 ///
 /// # Errors
-/// The tile lies outside the volume, or a brick header fails to read.
+/// The tile lies outside the volume, or a summary (or brick header) fails to read.
 pub fn tile_inputs(
     snap: &Snapshot,
     key: BrickKey,
@@ -157,12 +162,12 @@ pub fn tile_inputs(
     })
 }
 
-/// Computes the inputs of the strip of face `face` (0..6) of tile `key` from the index and
-/// brick headers alone.
+/// Computes the inputs of the strip of face `face` (0..6) of tile `key` from the index alone
+/// (as [`tile_inputs`]).
 ///
 /// # Errors
-/// The tile lies outside the volume, the face is not one of six, or a brick header fails to
-/// read.
+/// The tile lies outside the volume, the face is not one of six, or a summary (or brick
+/// header) fails to read.
 pub fn strip_inputs(
     snap: &Snapshot,
     key: BrickKey,

@@ -69,7 +69,7 @@ fn describe_materials(geometry: u128, channel: &Snapshot) -> Vec<u8> {
 /// (`inputs`) and the channel's bricks of the tile's level holding the corners of its cells.
 ///
 /// # Errors
-/// A brick header fails to read.
+/// A brick summary (or, before revision 5, header) fails to read.
 pub fn tile_material_key(
     channel: &Snapshot,
     key: BrickKey,
@@ -86,7 +86,7 @@ pub fn tile_material_key(
 /// can end on (the tile's level along the face, the coarser level on and beside its plane).
 ///
 /// # Errors
-/// A brick header fails to read.
+/// A brick summary (or, before revision 5, header) fails to read.
 pub fn strip_material_key(
     channel: &Snapshot,
     key: BrickKey,

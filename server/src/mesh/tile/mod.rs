@@ -21,8 +21,8 @@
 //! vertices stay bit-identical, across levels too.
 //!
 //! Layout:
-//! - [`inputs`]: what a tile's or a strip's mesh depends on (content keys), from the index and
-//!   brick headers alone.
+//! - [`inputs`]: what a tile's or a strip's mesh depends on (content keys), from the index
+//!   alone (its brick summaries).
 //! - [`regular`]: a tile's regular mesh and its moves.
 //! - [`strip`]: a tile's transition strips, in named steps.
 //! - [`materials`]: per-vertex materials from a u8 channel, and their content keys.

@@ -1,14 +1,17 @@
 //! How a version's index is built: the newest index checkpoint at or before it (its chunks
 //! decoded and checked against their hashes on first use) plus an overlay of the changes of the
-//! commits since.
+//! commits since. Revision 5 keeps each entry's brick summary (content hash, value range) beside
+//! it, in the checkpoint's chunks and in the overlay, so that what a grid lists needs no brick
+//! record.
 
-use super::snapshot::commit_record;
+use super::snapshot::{commit_record, commit_summaries};
 use super::Snapshot;
 use crate::store::codec;
 use crate::store::region::MappedRegion;
 use crate::store::StoreError;
 use isovox_proto::vod2::{
-    Checkpoint, CommitHeader, FileHeader, CHECKPOINT_FIXED_LEN, CHUNK_ENTRIES, CHUNK_REF_LEN,
+    BrickSummary, Checkpoint, CommitHeader, FileHeader, NodeEntry, CHECKPOINT_FIXED_LEN,
+    CHUNK_ENTRIES, CHUNK_REF_LEN, SUMMARY_LEN,
 };
 use isovox_proto::FormatError;
 use std::collections::HashMap;
@@ -22,12 +25,12 @@ impl Snapshot {
     ) -> Result<Snapshot, StoreError> {
         // Walk back to the newest checkpoint, keeping each commit's changes; every record is
         // decoded (and checksummed) once.
-        let mut chain: Vec<&[u8]> = Vec::new();
+        let mut chain: Vec<(u64, CommitHeader, &[u8])> = Vec::new();
         let mut at = commit_at;
         let (head, record) = commit_record(&map, at)?;
         let (mut h, mut record) = (head, record);
         let checkpoint_at = loop {
-            chain.push(record);
+            chain.push((at, h, record));
             if h.checkpoint != 0 {
                 break h.checkpoint;
             }
@@ -49,8 +52,9 @@ impl Snapshot {
         let index = Arc::new(IndexChunks::open(&map, checkpoint_at, nodes)?);
         let mut overlay = HashMap::new();
         // The checkpoint holds the state after its own commit: apply only the later ones.
-        for record in chain.iter().rev().skip(1) {
-            apply_changes(record, nodes, &mut overlay, |_| ())?;
+        for (at, h, record) in chain.iter().rev().skip(1) {
+            let summaries = commit_summaries(&map, *at, h);
+            apply_changes(&header, *at, record, summaries, &mut overlay, |_| ())?;
         }
         Ok(Snapshot {
             version: head.version,
@@ -84,15 +88,28 @@ impl Snapshot {
             let snap = Snapshot::load(self.header.clone(), map.clone(), commit_at)?;
             // A child that wrote a checkpoint still finds what its parents held by hash.
             if child {
-                self.hand_down_hashes(&snap, CommitHeader::changes(record))?;
+                let summaries = commit_summaries(&map, commit_at, &h);
+                let added = CommitHeader::changes(record)
+                    .enumerate()
+                    .map(|(i, (node, raw))| {
+                        let summary = summaries.as_ref().and_then(|s| s.get(i).copied());
+                        (node, Overlaid { raw, summary })
+                    });
+                self.hand_down_hashes(&snap, added)?;
             }
             return Ok(snap);
         }
         let mut overlay = (*self.overlay).clone();
         let mut added = Vec::new();
-        apply_changes(record, self.header.node_count(), &mut overlay, |change| {
-            added.push(change)
-        })?;
+        let summaries = commit_summaries(&map, commit_at, &h);
+        apply_changes(
+            &self.header,
+            commit_at,
+            record,
+            summaries,
+            &mut overlay,
+            |change| added.push(change),
+        )?;
         let snap = Snapshot {
             version: h.version,
             timestamp_ms: h.timestamp_ms,
@@ -142,13 +159,64 @@ impl Snapshot {
                 entries.len()
             )));
         }
-        for (&node, &raw) in self.overlay.iter() {
+        for (&node, o) in self.overlay.iter() {
             let slot = entries.get_mut(node as usize).ok_or_else(|| {
                 StoreError::Internal(format!("node {node} is outside the volume"))
             })?;
-            *slot = raw;
+            *slot = o.raw;
         }
         Ok(entries)
+    }
+
+    /// The summary of every entry of [`Snapshot::raw_entries`], in the same order (zeros for
+    /// constants): what a new checkpoint stores beside its entries. Taken from the index where
+    /// it has them; an entry without one (a file written before revision 5) costs a read of its
+    /// brick record's header, so the first checkpoint a revision-5 writer writes into an older
+    /// file reads every stored brick's header once.
+    ///
+    /// # Errors
+    /// A checkpoint chunk or summary block fails its hash, or a brick header is damaged.
+    pub fn raw_summaries(&self, entries: &[u64]) -> Result<Vec<BrickSummary>, StoreError> {
+        let mut out = Vec::with_capacity(entries.len());
+        for (node, &raw) in (0u64..).zip(entries) {
+            out.push(match self.indexed_summary(node)? {
+                Some(s) => s,
+                None => self.summary_from_record(node, raw)?,
+            });
+        }
+        Ok(out)
+    }
+
+    /// The summary of the entry at file-wide `node` as the index holds it (the overlay's, or
+    /// the checkpoint chunk's); `None` when it holds none (written before revision 5).
+    pub(super) fn indexed_summary(&self, node: u64) -> Result<Option<BrickSummary>, StoreError> {
+        match self.overlay.get(&node) {
+            Some(o) => Ok(o.summary),
+            None => self.index.summary(&self.map, &self.header, node),
+        }
+    }
+
+    /// The summary of the raw entry `raw` of file-wide `node`, from its brick record's header
+    /// (zeros for a constant, as stored).
+    fn summary_from_record(&self, node: u64, raw: u64) -> Result<BrickSummary, StoreError> {
+        let (stream, voxel_type) = self
+            .header
+            .stream_of(node)
+            .ok_or_else(|| StoreError::Internal(format!("node {node} is outside the volume")))?;
+        match NodeEntry::decode(raw, voxel_type, self.map.len())? {
+            NodeEntry::Constant(_) => Ok(BrickSummary::default()),
+            NodeEntry::Stored(offset) => {
+                let layout = self.header.stream_layout(stream).ok_or_else(|| {
+                    StoreError::Internal(format!("stream {stream} has no layout"))
+                })?;
+                match super::bricks::stored_record(&self.map, &layout, offset)? {
+                    super::StoredBrick::Record { header, .. } => {
+                        Ok(BrickSummary::of_header(&header))
+                    }
+                    super::StoredBrick::Constant(_) => Ok(BrickSummary::default()),
+                }
+            }
+        }
     }
 
     /// Number of entries that differ from the checkpoint.
@@ -162,34 +230,59 @@ impl Snapshot {
     }
 }
 
-/// Applies a commit record's changes to `overlay` (node index -> raw entry), checking each node
-/// against the file's `nodes`, and hands each (node, entry) to `added`.
+/// An entry that differs from the checkpoint: as the commit record that wrote it stored it,
+/// with the brick's summary when the record carries one (revision 5).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) struct Overlaid {
+    /// The raw index entry.
+    pub(super) raw: u64,
+    /// Its summary, checked (`None` for a constant, or a record written before revision 5).
+    pub(super) summary: Option<BrickSummary>,
+}
+
+/// Applies the changes of the commit record at `at` (`record`, with `summaries` when it
+/// carries them) to `overlay` (file-wide node index -> entry), checking each node against the
+/// file's nodes and each stored entry's summary range against its stream's type, and hands
+/// each change to `added`.
 fn apply_changes(
+    header: &FileHeader,
+    at: u64,
     record: &[u8],
-    nodes: u64,
-    overlay: &mut HashMap<u64, u64>,
-    mut added: impl FnMut((u64, u64)),
+    summaries: Option<Vec<BrickSummary>>,
+    overlay: &mut HashMap<u64, Overlaid>,
+    mut added: impl FnMut((u64, Overlaid)),
 ) -> Result<(), StoreError> {
-    for (node, entry) in CommitHeader::changes(record) {
-        if node >= nodes {
+    let nodes = header.node_count();
+    for (i, (node, raw)) in CommitHeader::changes(record).enumerate() {
+        let Some((_, voxel_type)) = header.stream_of(node).filter(|_| node < nodes) else {
             return Err(FormatError::invalid(
                 "commit record",
                 format!("change to node {node}, the file has {nodes}"),
             )
             .into());
-        }
-        overlay.insert(node, entry);
-        added((node, entry));
+        };
+        let summary = match summaries.as_ref().and_then(|s| s.get(i)) {
+            // A constant's summary is its value; what is stored for it is never read.
+            Some(_) if NodeEntry::is_constant(raw) => None,
+            Some(s) => Some(s.validate(voxel_type, "commit summaries", at)?),
+            None => None,
+        };
+        let change = Overlaid { raw, summary };
+        overlay.insert(node, change);
+        added((node, change));
     }
     Ok(())
 }
 
-/// The entries of an index checkpoint, decoded chunk by chunk on first use and then kept.
+/// The entries of an index checkpoint, decoded chunk by chunk on first use and then kept; and
+/// their summaries (revision 5), decoded when first asked for.
 #[derive(Debug)]
 pub(super) struct IndexChunks {
     base: u64,
     n_nodes: u64,
     chunks: Vec<OnceLock<Box<[u64]>>>,
+    /// Per chunk: its summaries, or `None` when it has none (written before revision 5).
+    summaries: Vec<OnceLock<Option<Box<[BrickSummary]>>>>,
 }
 
 impl IndexChunks {
@@ -209,7 +302,74 @@ impl IndexChunks {
             chunks: (0..Checkpoint::n_chunks(n_nodes))
                 .map(|_| OnceLock::new())
                 .collect(),
+            summaries: (0..Checkpoint::n_chunks(n_nodes))
+                .map(|_| OnceLock::new())
+                .collect(),
         })
+    }
+
+    /// The summary of file-wide `node` as its chunk stores it, `None` when the chunk has no
+    /// summaries or the entry is a constant (whose summary is its value). The chunk's
+    /// summaries are decoded, hashed and range-checked on first use, then kept.
+    pub(super) fn summary(
+        &self,
+        map: &MappedRegion,
+        header: &FileHeader,
+        node: u64,
+    ) -> Result<Option<BrickSummary>, StoreError> {
+        let c = (node / CHUNK_ENTRIES) as usize;
+        let i = (node % CHUNK_ENTRIES) as usize;
+        if self.summaries[c].get().is_none() {
+            let decoded = self.decode_summaries(map, header, c)?;
+            let _ = self.summaries[c].set(decoded);
+        }
+        let entries = self.chunk(map, c)?;
+        if NodeEntry::is_constant(entries[i]) {
+            return Ok(None);
+        }
+        Ok(self.summaries[c]
+            .get()
+            .and_then(|s| s.as_ref())
+            .map(|s| s[i]))
+    }
+
+    fn decode_summaries(
+        &self,
+        map: &MappedRegion,
+        header: &FileHeader,
+        c: usize,
+    ) -> Result<Option<Box<[BrickSummary]>>, StoreError> {
+        // The entries first: their span covers the summary block too (one fetch).
+        let entries = self.chunk(map, c)?;
+        let cp = self.checkpoint(map.bytes())?;
+        let (r, _) = cp.chunk(c as u64)?;
+        let Some(block) = cp.summaries(&r)? else {
+            return Ok(None);
+        };
+        let mut bytes = vec![0u8; entries.len() * SUMMARY_LEN];
+        codec::decode(block.codec, block.payload, &mut bytes, block.offset)?;
+        let hash = xxhash_rust::xxh3::xxh3_64(&bytes);
+        if hash != block.hash {
+            return Err(FormatError::Checksum {
+                what: "index chunk summaries",
+                offset: block.offset,
+                stored: block.hash,
+                computed: hash,
+            }
+            .into());
+        }
+        let summaries = BrickSummary::decode_all(&bytes);
+        let first = c as u64 * CHUNK_ENTRIES;
+        for (node, (&raw, s)) in (first..).zip(entries.iter().zip(&summaries)) {
+            if NodeEntry::is_constant(raw) {
+                continue;
+            }
+            let (_, voxel_type) = header.stream_of(node).ok_or_else(|| {
+                StoreError::Internal(format!("node {node} is outside the volume"))
+            })?;
+            s.validate(voxel_type, "index chunk summaries", block.offset)?;
+        }
+        Ok(Some(summaries.into_boxed_slice()))
     }
 
     fn checkpoint<'m>(&self, mapped: &'m [u8]) -> Result<Checkpoint<'m>, StoreError> {
@@ -247,7 +407,10 @@ impl IndexChunks {
             CHUNK_REF_LEN as u64,
         )?;
         let (r, payload) = cp.chunk(c)?;
-        map.ensure(self.base + r.offset, r.stored_len as u64)?;
+        // The payload and the summary block after it (revision 5) in one go: a grid needs
+        // both, and from a store each separate range costs a request.
+        let (at, len) = r.span();
+        map.ensure(self.base + at, len)?;
         let mut bytes = vec![0u8; cp.chunk_entries(c) as usize * 8];
         codec::decode(r.codec, payload, &mut bytes, self.base + r.offset)?;
         let hash = xxhash_rust::xxh3::xxh3_64(&bytes);

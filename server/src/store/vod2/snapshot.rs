@@ -1,13 +1,14 @@
 //! One version's index: a [`Snapshot`], its entry lookups, and the content hashes of its bricks
 //! and its ancestors' (found by hash).
 
-use super::checkpoint::IndexChunks;
+use super::checkpoint::{IndexChunks, Overlaid};
 use super::StoredBrick;
 use crate::store::codec;
 use crate::store::region::MappedRegion;
 use crate::store::StoreError;
 use isovox_proto::vod2::{
-    CommitHeader, FileHeader, NodeEntry, COMMIT_HAS_NOTE, MAX_NOTE_LEN, NOTE_FRAMING_LEN,
+    BrickSummary, CommitHeader, FileHeader, NodeEntry, COMMIT_HAS_NOTE, COMMIT_HAS_SUMMARIES,
+    MAX_NOTE_LEN, NOTE_FRAMING_LEN,
 };
 use isovox_proto::{BrickKey, FormatError, VolumeLayout};
 use std::collections::HashMap;
@@ -25,8 +26,8 @@ pub struct Snapshot {
     pub(super) commit_offset: u64,
     pub(super) index: Arc<IndexChunks>,
     /// Entries changed by the commits after the checkpoint: node index (of the file's whole
-    /// index, every stream) -> raw entry.
-    pub(super) overlay: Arc<HashMap<u64, u64>>,
+    /// index, every stream) -> raw entry and its summary.
+    pub(super) overlay: Arc<HashMap<u64, Overlaid>>,
     /// Which stream of the file this is a view of: 0 density, `i + 1` attribute channel `i`
     /// (its `header`'s layout then has the channel's value type).
     pub(super) stream: usize,
@@ -45,7 +46,7 @@ impl Snapshot {
     pub(super) fn hand_down_hashes(
         &self,
         child: &Snapshot,
-        added: impl Iterator<Item = (u64, u64)>,
+        added: impl Iterator<Item = (u64, Overlaid)>,
     ) -> Result<(), StoreError> {
         let Some(parent_hashes) = self.by_hash.get() else {
             return Ok(());
@@ -53,9 +54,9 @@ impl Snapshot {
         let mut hashes = parent_hashes.child();
         let (voxel_type, mapped) = (self.layout().voxel_type(), child.map.len());
         let mine = self.nodes_of_stream();
-        for (_, raw) in added.filter(|(node, _)| mine.contains(node)) {
-            let entry = NodeEntry::decode(raw, voxel_type, mapped)?;
-            hashes.insert(child.entry_hash(entry)?, entry);
+        for (_, o) in added.filter(|(node, _)| mine.contains(node)) {
+            let entry = NodeEntry::decode(o.raw, voxel_type, mapped)?;
+            hashes.insert(child.summarized_hash(entry, o.summary)?, entry);
         }
         let _ = child.by_hash.set(hashes);
         Ok(())
@@ -159,10 +160,77 @@ impl Snapshot {
         }
         let node = self.stream as u64 * layout.node_count() + node;
         let raw = match self.overlay.get(&node) {
-            Some(&raw) => raw,
+            Some(o) => o.raw,
             None => self.index.entry(&self.map, node)?,
         };
         Ok(NodeEntry::decode(raw, layout.voxel_type(), self.map.len())?)
+    }
+
+    /// What a client choosing bricks needs of the brick at a node of this stream: its content
+    /// hash and value range. From the index (revision 5: the checkpoint chunk's summaries or
+    /// the overlay's), so no brick record is read; a constant's follow from its value; only an
+    /// entry written before revision 5 costs a read of its record's header.
+    ///
+    /// # Errors
+    /// See [`Snapshot::entry_at`]; also a summary block that fails its hash or range check, or
+    /// (without a summary) a brick header that fails its checks.
+    pub fn summary_at(&self, node: u64) -> Result<BrickSummary, StoreError> {
+        let entry = self.entry_at(node)?;
+        let global = self.stream as u64 * self.layout().node_count() + node;
+        match entry {
+            NodeEntry::Constant(v) => Ok(self.constant_summary(v)),
+            NodeEntry::Stored(_) => match self.indexed_summary(global)? {
+                Some(s) => Ok(s),
+                None => self.entry_summary(entry),
+            },
+        }
+    }
+
+    /// [`Snapshot::summary_at`] of a brick.
+    ///
+    /// # Errors
+    /// See [`Snapshot::summary_at`]; the key must come from this volume's layout.
+    pub fn summary(&self, key: BrickKey) -> Result<BrickSummary, StoreError> {
+        let layout = self.layout();
+        if !layout.contains(key) {
+            return Err(StoreError::OutOfRange(format!(
+                "brick {key} is outside the volume"
+            )));
+        }
+        self.summary_at(layout.node_index(key))
+    }
+
+    /// The summary of the brick behind an entry read from its record's header (a constant's
+    /// from its value): for entries the index gives no summary of.
+    ///
+    /// # Errors
+    /// See [`Snapshot::stored_entry`].
+    pub fn entry_summary(&self, entry: NodeEntry) -> Result<BrickSummary, StoreError> {
+        Ok(match self.stored_entry(entry)? {
+            StoredBrick::Record { header, .. } => BrickSummary::of_header(&header),
+            StoredBrick::Constant(v) => self.constant_summary(v),
+        })
+    }
+
+    fn constant_summary(&self, v: u16) -> BrickSummary {
+        BrickSummary {
+            hash: codec::constant_hash(v, self.layout()),
+            min: v,
+            max: v,
+        }
+    }
+
+    /// The content hash of `entry`, from `summary` when the index gave one (a stored entry's),
+    /// else from its record's header.
+    fn summarized_hash(
+        &self,
+        entry: NodeEntry,
+        summary: Option<BrickSummary>,
+    ) -> Result<u64, StoreError> {
+        match (entry, summary) {
+            (NodeEntry::Stored(_), Some(s)) => Ok(s.hash),
+            _ => self.entry_hash(entry),
+        }
     }
 
     /// The index entry of a brick.
@@ -181,8 +249,9 @@ impl Snapshot {
 
     /// An entry with content hash `hash` among the bricks of this version and of every older
     /// version the file still holds, if any. The first call scans the oldest version's index
-    /// and the commit records since (reading brick headers, not payloads) and keeps a hash
-    /// table; a version built from its parent by [`Vod2::advance`] inherits the parent's.
+    /// and the commit records since (their summaries; brick headers only for entries written
+    /// before revision 5, never payloads) and keeps a hash table; a version built from its
+    /// parent by [`Vod2::advance`] inherits the parent's.
     ///
     /// [`Vod2::advance`]: super::Vod2::advance
     ///
@@ -213,7 +282,7 @@ impl Snapshot {
         let mut at = self.commit_offset;
         let oldest = loop {
             let (h, record) = commit_record(&self.map, at)?;
-            records.push(record);
+            records.push((record, commit_summaries(&self.map, at, &h)));
             if h.parent == 0 {
                 break at;
             }
@@ -226,24 +295,40 @@ impl Snapshot {
         };
         let mut map = HashMap::new();
         let mut constants = std::collections::HashSet::new();
-        let mut add = |entry: NodeEntry| -> Result<(), StoreError> {
+        let mut add = |entry: NodeEntry, summary: Option<BrickSummary>| -> Result<(), StoreError> {
             let first_sight = match entry {
                 NodeEntry::Constant(v) => constants.insert(v),
                 NodeEntry::Stored(_) => true,
             };
             if first_sight {
-                map.entry(self.entry_hash(entry)?).or_insert(entry);
+                map.entry(self.summarized_hash(entry, summary)?)
+                    .or_insert(entry);
             }
             Ok(())
         };
         for node in 0..self.layout().node_count() {
-            add(oldest.entry_at(node)?)?;
+            let entry = oldest.entry_at(node)?;
+            let summary = match entry {
+                NodeEntry::Constant(_) => None,
+                NodeEntry::Stored(_) => Some(oldest.summary_at(node)?),
+            };
+            add(entry, summary)?;
         }
         let (voxel_type, mapped) = (self.layout().voxel_type(), self.map.len());
         let mine = self.nodes_of_stream();
-        for record in records.iter().rev() {
-            for (_, raw) in CommitHeader::changes(record).filter(|(node, _)| mine.contains(node)) {
-                add(NodeEntry::decode(raw, voxel_type, mapped)?)?;
+        for (record, summaries) in records.iter().rev() {
+            for (i, (node, raw)) in CommitHeader::changes(record).enumerate() {
+                if !mine.contains(&node) {
+                    continue;
+                }
+                let entry = NodeEntry::decode(raw, voxel_type, mapped)?;
+                let summary = match (entry, summaries.as_ref().and_then(|s| s.get(i))) {
+                    (NodeEntry::Stored(offset), Some(s)) => {
+                        Some(s.validate(voxel_type, "commit summaries", offset)?)
+                    }
+                    _ => None,
+                };
+                add(entry, summary)?;
             }
         }
         Ok(map)
@@ -294,6 +379,7 @@ pub(super) fn commit_record(
         let flags = avail
             .get(4..8)
             .map_or(0, |f| u32::from_le_bytes([f[0], f[1], f[2], f[3]]));
+        let mut end = len;
         if flags & COMMIT_HAS_NOTE != 0 {
             map.ensure(at, len + 4)?;
             let note_len = usize::try_from(len)
@@ -301,10 +387,27 @@ pub(super) fn commit_record(
                 .and_then(|l| avail.get(l..l + 4))
                 .map_or(0, |n| u32::from_le_bytes([n[0], n[1], n[2], n[3]]))
                 .min(MAX_NOTE_LEN);
-            map.ensure(at, len + NOTE_FRAMING_LEN as u64 + u64::from(note_len))?;
+            end += NOTE_FRAMING_LEN as u64 + u64::from(note_len);
+            map.ensure(at, end)?;
+        }
+        // The summaries (revision 5) follow the note: fetched with the record, since whatever
+        // replays the record's changes keeps them.
+        if flags & COMMIT_HAS_SUMMARIES != 0 {
+            let n = n_changes.min(avail.len() as u64);
+            map.ensure(at, end + CommitHeader::summaries_len(n))?;
         }
     }
     Ok(CommitHeader::decode(avail, at)?)
+}
+
+/// The summaries of the changes of the commit record at `at` (`h` as [`commit_record`]
+/// returned it, which fetched and checked them), `None` when it has none.
+pub(super) fn commit_summaries(
+    map: &MappedRegion,
+    at: u64,
+    h: &CommitHeader,
+) -> Option<Vec<BrickSummary>> {
+    h.summaries_in(map.bytes().get(at as usize..)?)
 }
 
 /// Content hash -> entry for [`Snapshot::find_by_hash`]: a shared base plus what later versions
