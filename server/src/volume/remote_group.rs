@@ -145,12 +145,14 @@ impl LiveVolume {
         self.leave_the_head_a_turn(remote, won_in);
     }
 
-    /// After a won head race, while another replica asks for a turn and edits still wait
-    /// here: pauses three times as long as the won attempt took (between [`MIN_TURN`] and
-    /// [`MAX_TURN`]), longer than the other needs to catch up, stage and publish its group
-    /// (`store/remote/turns.rs` says why).
+    /// After a won head race, while another replica asks for a turn: pauses three times as
+    /// long as the won attempt took (between [`MIN_TURN`] and [`MAX_TURN`]), longer than the
+    /// other needs to catch up, stage and publish its group (`store/remote/turns.rs` says
+    /// why). The group is answered already; edits that arrive meanwhile wait for the next.
+    /// (Pausing only while edits waited was not enough: with two editors each, the queue was
+    /// empty at that instant and filled again a moment later.)
     fn leave_the_head_a_turn(&self, remote: &RemoteVolume, won_in: Duration) {
-        if won_in.is_zero() || self.queue().len() == 0 || !remote.others_wait() {
+        if won_in.is_zero() || !remote.others_wait() {
             return;
         }
         std::thread::sleep((won_in * 3).clamp(MIN_TURN, MAX_TURN));
