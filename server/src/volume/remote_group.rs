@@ -99,21 +99,21 @@ impl LiveVolume {
             .flatten();
         let mut lost_races = Backoff::new(LOST_RACE_FIRST_WAIT, LOST_RACE_MAX_WAIT);
         let mut attempt = 0u32;
-        let mut won_in = Duration::ZERO;
+        let mut won = false;
         let outcomes = loop {
             let bounded = bound_store_waits(deadline);
             let began = Instant::now();
             match self.stage_and_publish(remote, slot, &mut members, policy) {
                 Ok(outcomes) => {
                     drop(bounded);
-                    won_in = began.elapsed();
+                    won = true;
                     break Ok(outcomes);
                 }
                 Err(StoreError::HeadMoved { .. }) if attempt + 1 < MAX_REMOTE_ATTEMPTS => {
                     drop(bounded);
                     attempt += 1;
                     if attempt >= 2 {
-                        remote.ask_for_a_turn();
+                        remote.ask_for_a_turn(began.elapsed());
                     }
                     // Writers that collide again and again back off apart: exponentially,
                     // with jitter, so the losers do not all come back at the same instant.
@@ -142,20 +142,23 @@ impl LiveVolume {
                 }
             }
         }
-        self.leave_the_head_a_turn(remote, won_in);
+        self.leave_the_head_a_turn(remote, won);
     }
 
-    /// After a won head race, while another replica asks for a turn: pauses three times as
-    /// long as the won attempt took (between [`MIN_TURN`] and [`MAX_TURN`]), longer than the
-    /// other needs to catch up, stage and publish its group (`store/remote/turns.rs` says
-    /// why). The group is answered already; edits that arrive meanwhile wait for the next.
-    /// (Pausing only while edits waited was not enough: with two editors each, the queue was
-    /// empty at that instant and filled again a moment later.)
-    fn leave_the_head_a_turn(&self, remote: &RemoteVolume, won_in: Duration) {
-        if won_in.is_zero() || !remote.others_wait() {
+    /// After a won head race, while another replica asks for a turn: pauses for twice what
+    /// the other's attempts take (catching up, staging and publishing its group), between
+    /// [`MIN_TURN`] and [`MAX_TURN`] (`store/remote/turns.rs` says why). The group is
+    /// answered already; edits that arrive meanwhile wait for the next. (Pausing only while
+    /// edits waited here was not enough: with two editors a replica, the queue was empty at
+    /// that instant and filled again a moment later. Pausing for a multiple of this replica's
+    /// own attempt was not either: a winner's attempt is the shorter one.)
+    fn leave_the_head_a_turn(&self, remote: &RemoteVolume, won: bool) {
+        if !won {
             return;
         }
-        std::thread::sleep((won_in * 3).clamp(MIN_TURN, MAX_TURN));
+        if let Some(needs) = remote.others_wait() {
+            std::thread::sleep((needs * 2).clamp(MIN_TURN, MAX_TURN));
+        }
     }
 
     /// One attempt: catch up with the head, stage every member on the version before it,

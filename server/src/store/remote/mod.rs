@@ -357,13 +357,15 @@ impl RemoteVolume {
         tip.advance_mirror(slot, map, view)
     }
 
-    /// Asks the other replicas for a gap at the head (this one lost the race again).
-    pub fn ask_for_a_turn(&self) {
-        self.turns.ask(&self.bucket);
+    /// Asks the other replicas for a gap at the head (this one lost the race again; its
+    /// attempt took `needs`).
+    pub fn ask_for_a_turn(&self, needs: Duration) {
+        self.turns.ask(&self.bucket, needs);
     }
 
-    /// Whether another replica asked for a gap lately (see `turns.rs`).
-    pub fn others_wait(&self) -> bool {
+    /// How long an attempt takes another replica that asked for a gap lately (see
+    /// `turns.rs`).
+    pub fn others_wait(&self) -> Option<Duration> {
         self.turns.others_wait(&self.bucket)
     }
 
