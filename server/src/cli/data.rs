@@ -9,11 +9,12 @@ use isovox_server::generate::{
     build_scene, build_scene_with_materials, world_header, EllipsoidSource, WorldMaterials,
     WorldSource,
 };
+use isovox_server::progress::Silent;
 use isovox_server::store::build::{build_file, build_streams_file, sibling, FileFormat};
 use isovox_server::store::codec::{Compression, DEFAULT_ZSTD_LEVEL};
 use isovox_server::store::inspect::inspect as inspect_vod2;
 use isovox_server::store::raw::{export_raw, rawvox_header, LevelBox, RawInput, RAWVOX_MAGIC};
-use isovox_server::store::remote::{upload, Bucket, CacheConfig, RemoteVolume};
+use isovox_server::store::remote::{upload_with, Bucket, CacheConfig, Head, RemoteVolume};
 use isovox_server::store::vod1::{write_vod1, Vod1File, Vod1Source};
 use isovox_server::store::{BrickSource, BuildOptions, DenseGrid, Vod2};
 use std::fs::File;
@@ -289,12 +290,13 @@ pub(super) fn import(a: ImportArgs) -> anyhow::Result<()> {
     let field_format = super::formats::input_format(&a)?.is_some();
     if !field_format && matches!(sniff(&a.input)?, InputKind::Vod(2)) {
         // A VOD 2 file goes up as it is (its head version and history with it).
-        let head = upload(&store.child(&name), &a.input, None).with_context(|| {
-            format!(
-                "cannot create {}/{name} (does it exist already?)",
-                store.url()
-            )
-        })?;
+        let head =
+            upload_with(&store.child(&name), &a.input, None, &Silent).with_context(|| {
+                format!(
+                    "cannot create {}/{name} (does it exist already?)",
+                    store.url()
+                )
+            })?;
         return uploaded(&store, &name, &head);
     }
     // Built locally, then uploaded as the volume's first segment.
@@ -304,7 +306,7 @@ pub(super) fn import(a: ImportArgs) -> anyhow::Result<()> {
         ..a
     };
     let built = import_file(local).and_then(|()| {
-        upload(&store.child(&name), &tmp, None).with_context(|| {
+        upload_with(&store.child(&name), &tmp, None, &Silent).with_context(|| {
             format!(
                 "cannot create {}/{name} (does it exist already?)",
                 store.url()
@@ -315,17 +317,18 @@ pub(super) fn import(a: ImportArgs) -> anyhow::Result<()> {
     uploaded(&store, &name, &built?)
 }
 
-/// Says what an import put in the store.
-fn uploaded(
-    store: &Bucket,
-    name: &str,
-    head: &isovox_server::store::remote::Head,
-) -> anyhow::Result<()> {
+/// Says what an import put in the store (the head, and how many parts its segment went up in).
+fn uploaded(store: &Bucket, name: &str, (head, parts): &(Head, u32)) -> anyhow::Result<()> {
     out!(
-        "{}/{name}: version {}, {} bytes in one segment",
+        "{}/{name}: version {}, {} bytes in one segment ({})",
         store.url(),
         head.version,
-        head.committed_len
+        head.committed_len,
+        if *parts > 1 {
+            format!("a multipart upload of {parts} parts")
+        } else {
+            "one PUT".to_string()
+        }
     )?;
     Ok(())
 }
