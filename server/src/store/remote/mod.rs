@@ -26,6 +26,7 @@ pub mod backoff;
 pub mod bucket;
 pub mod head;
 pub mod mirror;
+pub mod parts;
 
 pub use bucket::{bound_store_waits, Bucket, Conditional, StoreWaitBound};
 pub use head::{Head, Manifest, ManifestRef, Segment};
