@@ -511,6 +511,25 @@ fn a_segment_above_the_threshold_goes_up_as_a_multipart_upload() {
         &[("ISOVOX_MULTIPART_BYTES", "67108864")],
     );
     assert!(stdout.contains("(one PUT)"), "{stdout}");
+
+    // A threshold that is not a number is an error, not the default.
+    let out = run(
+        &s3,
+        &[
+            "import",
+            raw.to_str().unwrap(),
+            "--dims",
+            "192,192,192",
+            "--type",
+            "u8",
+            "-o",
+            &format!("{}/badly", s3.url()),
+        ],
+        &[("ISOVOX_MULTIPART_BYTES", "64MiB")],
+    );
+    assert!(!out.status.success());
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(e.contains("ISOVOX_MULTIPART_BYTES=\"64MiB\""), "{e}");
 }
 
 /// The validator `.ci/run` installs: kubernetes-validate (PyPI, pinned) in `target/k8s-venv`.

@@ -52,12 +52,19 @@ pub const MULTIPART_IN_FLIGHT: usize = 4;
 
 /// The multipart threshold and part size: `ISOVOX_MULTIPART_BYTES` if set (tests use a small
 /// one), else [`MULTIPART_DEFAULT_BYTES`]; never below [`MULTIPART_MIN_BYTES`].
-pub fn multipart_part_bytes() -> u64 {
-    std::env::var("ISOVOX_MULTIPART_BYTES")
-        .ok()
-        .and_then(|v| v.trim().parse::<u64>().ok())
-        .unwrap_or(MULTIPART_DEFAULT_BYTES)
-        .max(MULTIPART_MIN_BYTES)
+///
+/// # Errors
+/// The variable is set to something other than a number of bytes.
+pub fn multipart_part_bytes() -> Result<u64, StoreError> {
+    let bytes = match std::env::var("ISOVOX_MULTIPART_BYTES") {
+        Err(_) => MULTIPART_DEFAULT_BYTES,
+        Ok(v) => v.trim().parse::<u64>().map_err(|_| {
+            StoreError::BadInput(format!(
+                "ISOVOX_MULTIPART_BYTES={v:?}: the multipart threshold is a number of bytes"
+            ))
+        })?,
+    };
+    Ok(bytes.max(MULTIPART_MIN_BYTES))
 }
 
 /// The runtime that carries out store calls (two workers: the calls are network waits).
@@ -310,7 +317,7 @@ impl Bucket {
         progress: &dyn crate::progress::Progress,
     ) -> Result<u32, StoreError> {
         use std::io::Read;
-        let part = multipart_part_bytes();
+        let part = multipart_part_bytes()?;
         let mut file =
             std::fs::File::open(path).map_err(StoreError::io_path("cannot open", path))?;
         let mut read = |n: u64| -> Result<Vec<u8>, StoreError> {
