@@ -303,8 +303,9 @@ impl Bucket {
     /// Writes object `key` from the first `len` bytes of the file at `path`: one PUT up to
     /// [`multipart_part_bytes`], above that a multipart upload in parts of that size, up to
     /// [`MULTIPART_IN_FLIGHT`] at a time (a single PUT is limited to 5 GB on S3, and one lost
-    /// connection would send the whole object again). `progress` counts the bytes sent.
-    /// Returns how many parts the object went up in (1 for a single PUT).
+    /// connection would send the whole object again), read from the file as they are sent.
+    /// `progress` counts the bytes sent. Returns how many parts the object went up in (1 for a
+    /// single PUT).
     ///
     /// # Errors
     /// The file cannot be read, or the store fails (a multipart upload that failed is aborted,
@@ -317,18 +318,45 @@ impl Bucket {
         progress: &dyn crate::progress::Progress,
     ) -> Result<u32, StoreError> {
         use std::io::Read;
-        let part = multipart_part_bytes()?;
         let mut file =
             std::fs::File::open(path).map_err(StoreError::io_path("cannot open", path))?;
-        let mut read = |n: u64| -> Result<Vec<u8>, StoreError> {
+        let mut read = |n: u64| -> Result<Bytes, StoreError> {
             let mut buf = vec![0u8; n as usize];
             file.read_exact(&mut buf)
                 .map_err(StoreError::io_path("cannot read", path))?;
-            Ok(buf)
+            Ok(Bytes::from(buf))
         };
+        self.put_in_parts(key, len, &mut read, progress)
+    }
+
+    /// [`Bucket::put_file`] for bytes in memory (a multipart upload above the threshold, its
+    /// parts slices of `body`).
+    ///
+    /// # Errors
+    /// The store fails.
+    pub fn put_large(&self, key: &str, body: Bytes) -> Result<u32, StoreError> {
+        let mut at = 0usize;
+        let mut next = |n: u64| -> Result<Bytes, StoreError> {
+            let part = body.slice(at..at + n as usize);
+            at += n as usize;
+            Ok(part)
+        };
+        self.put_in_parts(key, body.len() as u64, &mut next, &crate::progress::Silent)
+    }
+
+    /// Writes object `key`, `len` bytes taken in order from `next` (asked for a number of
+    /// bytes each time): one PUT, or a multipart upload above the threshold.
+    fn put_in_parts(
+        &self,
+        key: &str,
+        len: u64,
+        next: &mut dyn FnMut(u64) -> Result<Bytes, StoreError>,
+        progress: &dyn crate::progress::Progress,
+    ) -> Result<u32, StoreError> {
+        let part = multipart_part_bytes()?;
         progress.start(len);
         if len <= part {
-            self.put(key, Bytes::from(read(len)?))?;
+            self.put(key, next(len)?)?;
             progress.advance(len);
             progress.finish();
             return Ok(1);
@@ -346,7 +374,7 @@ impl Bucket {
             let mut in_flight = Vec::new();
             while sent < len {
                 let n = part.min(len - sent);
-                in_flight.push(upload.put_part(PutPayload::from(read(n)?)));
+                in_flight.push(upload.put_part(PutPayload::from(next(n)?)));
                 sent += n;
                 parts += 1;
                 if in_flight.len() >= MULTIPART_IN_FLIGHT || sent == len {

@@ -426,7 +426,8 @@ pub fn write_part(
             }
             let bytes = encode_row(&row)?;
             stored_bytes += bytes.len() as u64;
-            volume.put(&row_key, Bytes::from(bytes))?;
+            // A row of a wide volume can pass the multipart threshold (or 5 GB).
+            volume.put_large(&row_key, Bytes::from(bytes))?;
             say(&format!(
                 "part {part}/{parts}: stored row {z} of stream {s} ({done} of {total})"
             ));
