@@ -49,7 +49,7 @@ pub(crate) struct ImportArgs {
     #[arg(long, conflicts_with = "part")]
     pub finish: bool,
     /// With --finish: the N of the parts (by default, the N their markers say).
-    #[arg(long, requires = "finish", value_name = "N")]
+    #[arg(long, value_name = "N")]
     pub parts: Option<u32>,
     /// Voxels per axis of a RAW file: X,Y,Z.
     #[arg(long, value_parser = parse_dims)]
@@ -302,6 +302,10 @@ impl Drop for TempCache {
 }
 
 pub(super) fn import(a: ImportArgs) -> anyhow::Result<()> {
+    // (Not clap's `requires`: a flag that is off still counts as given there.)
+    if a.parts.is_some() && !a.finish {
+        bail!("--parts N goes with --finish (a part is named by --part I/N)");
+    }
     let Some((store, name)) = in_store(&a.output)? else {
         if a.part.is_some() || a.finish {
             bail!(

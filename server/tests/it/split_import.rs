@@ -404,6 +404,14 @@ fn the_finish_refuses_missing_parts_and_parts_of_another_volume() {
             vec!["import", input.0.as_str(), "-o", &volume, "--part", "x"],
             "I/N",
         ),
+        (
+            vec!["import", input.0.as_str(), "-o", &volume, "--parts", "3"],
+            "goes with --finish",
+        ),
+        (
+            vec!["import", input.0.as_str(), "--finish", "-o", &volume],
+            "cannot be used with '--finish'",
+        ),
     ] {
         let out = run(&s3, &args, &[]);
         assert!(!out.status.success(), "{args:?}");
