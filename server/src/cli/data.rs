@@ -9,11 +9,12 @@ use isovox_server::generate::{
     build_scene, build_scene_with_materials, world_header, EllipsoidSource, WorldMaterials,
     WorldSource,
 };
+use isovox_server::progress::Silent;
 use isovox_server::store::build::{build_file, build_streams_file, sibling, FileFormat};
 use isovox_server::store::codec::{Compression, DEFAULT_ZSTD_LEVEL};
 use isovox_server::store::inspect::inspect as inspect_vod2;
 use isovox_server::store::raw::{export_raw, rawvox_header, LevelBox, RawInput, RAWVOX_MAGIC};
-use isovox_server::store::remote::{upload, Bucket, CacheConfig, RemoteVolume};
+use isovox_server::store::remote::{upload_with, Bucket, CacheConfig, Head, RemoteVolume};
 use isovox_server::store::vod1::{write_vod1, Vod1File, Vod1Source};
 use isovox_server::store::{BrickSource, BuildOptions, DenseGrid, Vod2};
 use std::fs::File;
@@ -32,10 +33,24 @@ pub(crate) struct ImportArgs {
     /// Input: .raw (needs --dims), .rawvox (carries its shape), a VOD 1 file, or one of the
     /// field's formats, local or an http(s) URL: OME-Zarr / Zarr v2 or v3, Neuroglancer
     /// precomputed, NIfTI-1 (.nii, .nii.gz), a TIFF stack (multi-page file or folder).
-    pub input: PathBuf,
+    /// Not with --finish.
+    #[arg(required_unless_present = "finish", conflicts_with = "finish")]
+    pub input: Option<PathBuf>,
     /// Output file, or a new volume in an object store (s3://bucket/prefix/NAME).
     #[arg(short, long)]
     pub output: PathBuf,
+    /// Import only part I of N (I from 0 to N-1) of a volume in an object store: the level-0
+    /// bricks of its I-th run of brick rows, stored under NAME/parts/; the volume exists once
+    /// `--finish` has run. A finished part run again is skipped; a killed one resumes.
+    #[arg(long, value_name = "I/N", value_parser = isovox_server::store::remote::parts::parse_part)]
+    pub part: Option<(u32, u32)>,
+    /// Finish a split import (all of its --part runs done): build the levels above level 0
+    /// from the parts, upload the volume and create its head.
+    #[arg(long, conflicts_with = "part")]
+    pub finish: bool,
+    /// With --finish: the N of the parts (by default, the N their markers say).
+    #[arg(long, value_name = "N")]
+    pub parts: Option<u32>,
     /// Voxels per axis of a RAW file: X,Y,Z.
     #[arg(long, value_parser = parse_dims)]
     pub dims: Option<[u32; 3]>,
@@ -55,6 +70,13 @@ pub(crate) struct ImportArgs {
     pub compression: CompressionArgs,
     #[command(flatten)]
     pub formats: super::formats::FormatImportArgs,
+}
+
+impl ImportArgs {
+    /// The input path (clap requires one unless `--finish`, which reads none).
+    pub(crate) fn input(&self) -> &Path {
+        self.input.as_deref().unwrap_or(Path::new(""))
+    }
 }
 
 /// How bricks are compressed.
@@ -188,13 +210,13 @@ pub(crate) struct GetArgs {
 }
 
 /// What kind of file a path holds, by its first bytes.
-enum InputKind {
+pub(super) enum InputKind {
     Vod(u32),
     Rawvox,
     Raw,
 }
 
-fn sniff(path: &Path) -> anyhow::Result<InputKind> {
+pub(super) fn sniff(path: &Path) -> anyhow::Result<InputKind> {
     use std::io::Read;
     let mut head = [0u8; 8];
     let mut f = File::open(path).with_context(|| format!("cannot open {}", path.display()))?;
@@ -280,21 +302,37 @@ impl Drop for TempCache {
 }
 
 pub(super) fn import(a: ImportArgs) -> anyhow::Result<()> {
+    // (Not clap's `requires`: a flag that is off still counts as given there.)
+    if a.parts.is_some() && !a.finish {
+        bail!("--parts N goes with --finish (a part is named by --part I/N)");
+    }
     let Some((store, name)) = in_store(&a.output)? else {
+        if a.part.is_some() || a.finish {
+            bail!(
+                "--part and --finish split an import into a volume in an object store (-o s3://bucket/prefix/NAME), not a file"
+            );
+        }
         return import_file(a);
     };
     if a.format != VodFormat::Vod2 {
         bail!("a volume in a store is VOD 2 (drop --format vod1)");
     }
+    if a.finish {
+        return super::split::finish(&store, &name, a.parts);
+    }
+    if let Some((part, parts)) = a.part {
+        return super::split::part(&a, &store, &name, part, parts);
+    }
     let field_format = super::formats::input_format(&a)?.is_some();
-    if !field_format && matches!(sniff(&a.input)?, InputKind::Vod(2)) {
+    if !field_format && matches!(sniff(a.input())?, InputKind::Vod(2)) {
         // A VOD 2 file goes up as it is (its head version and history with it).
-        let head = upload(&store.child(&name), &a.input, None).with_context(|| {
-            format!(
-                "cannot create {}/{name} (does it exist already?)",
-                store.url()
-            )
-        })?;
+        let head =
+            upload_with(&store.child(&name), a.input(), None, &Silent).with_context(|| {
+                format!(
+                    "cannot create {}/{name} (does it exist already?)",
+                    store.url()
+                )
+            })?;
         return uploaded(&store, &name, &head);
     }
     // Built locally, then uploaded as the volume's first segment.
@@ -304,7 +342,7 @@ pub(super) fn import(a: ImportArgs) -> anyhow::Result<()> {
         ..a
     };
     let built = import_file(local).and_then(|()| {
-        upload(&store.child(&name), &tmp, None).with_context(|| {
+        upload_with(&store.child(&name), &tmp, None, &Silent).with_context(|| {
             format!(
                 "cannot create {}/{name} (does it exist already?)",
                 store.url()
@@ -315,17 +353,18 @@ pub(super) fn import(a: ImportArgs) -> anyhow::Result<()> {
     uploaded(&store, &name, &built?)
 }
 
-/// Says what an import put in the store.
-fn uploaded(
-    store: &Bucket,
-    name: &str,
-    head: &isovox_server::store::remote::Head,
-) -> anyhow::Result<()> {
+/// Says what an import put in the store (the head, and how many parts its segment went up in).
+fn uploaded(store: &Bucket, name: &str, (head, parts): &(Head, u32)) -> anyhow::Result<()> {
     out!(
-        "{}/{name}: version {}, {} bytes in one segment",
+        "{}/{name}: version {}, {} bytes in one segment ({})",
         store.url(),
         head.version,
-        head.committed_len
+        head.committed_len,
+        if *parts > 1 {
+            format!("a multipart upload of {parts} parts")
+        } else {
+            "one PUT".to_string()
+        }
     )?;
     Ok(())
 }
@@ -338,12 +377,12 @@ fn import_file(a: ImportArgs) -> anyhow::Result<()> {
         bail!("--channel is for imports of the field's formats (Zarr, precomputed, NIfTI, TIFF), not RAW or VOD files");
     }
     let compress = a.compression.compression();
-    match sniff(&a.input)? {
+    match sniff(a.input())? {
         InputKind::Vod(1) => {
-            let file = Vod1File::open(&a.input)?;
+            let file = Vod1File::open(a.input())?;
             let vod1 = file
                 .parse()
-                .with_context(|| format!("{} is not a valid VOD 1 file", a.input.display()))?;
+                .with_context(|| format!("{} is not a valid VOD 1 file", a.input().display()))?;
             let source = Vod1Source::new(&vod1);
             build_to(
                 &a.output,
@@ -355,15 +394,15 @@ fn import_file(a: ImportArgs) -> anyhow::Result<()> {
             )?;
             source
                 .finish()
-                .with_context(|| format!("{}: a brick does not decode", a.input.display()))?;
+                .with_context(|| format!("{}: a brick does not decode", a.input().display()))?;
         }
         InputKind::Vod(v) => bail!(
             "{} is already a VOD {v} file; import reads RAW, RAWVOX and VOD 1",
-            a.input.display()
+            a.input().display()
         ),
         kind => {
             let rawvox = matches!(kind, InputKind::Rawvox);
-            let input = RawInput::open(&a.input, rawvox, a.dims, a.voxel_type.map(Into::into))?;
+            let input = RawInput::open(a.input(), rawvox, a.dims, a.voxel_type.map(Into::into))?;
             let layout = VolumeLayout::new(input.dims, a.brick, input.voxel_type)?;
             let grid = DenseGrid::new(input.dims, input.voxel_type, a.brick, input.voxels());
             build_to(&a.output, &layout, a.scale, &grid, compress, a.format)?;

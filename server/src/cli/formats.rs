@@ -38,19 +38,18 @@ fn parse_format(s: &str) -> Result<InputFormat, String> {
     s.parse()
 }
 
-/// The field's format `a.input` is in (`--from`, or detected); `None` when it is in none of
+/// The field's format `a.input()` is in (`--from`, or detected); `None` when it is in none of
 /// them (a RAW or VOD file, for the other importers).
 pub(super) fn input_format(a: &ImportArgs) -> anyhow::Result<Option<InputFormat>> {
     if let Some(f) = a.formats.from {
         return Ok(Some(f));
     }
-    let input = a.input.to_string_lossy();
+    let input = a.input().to_string_lossy();
     detect(&input).with_context(|| format!("cannot read {input}"))
 }
 
-/// Imports `a.input`, in `format`, into a new VOD 2 file.
-pub(super) fn import(a: &ImportArgs, format: InputFormat) -> anyhow::Result<()> {
-    let input = a.input.to_string_lossy();
+/// The options of an import of `a` from the field's formats (also each part of a split one).
+pub(super) fn import_options(a: &ImportArgs, format: InputFormat) -> anyhow::Result<ImportOptions> {
     if a.format != VodFormat::Vod2 {
         bail!(
             "imports from {} write VOD 2 (convert to VOD 1 with a second import)",
@@ -63,7 +62,7 @@ pub(super) fn import(a: &ImportArgs, format: InputFormat) -> anyhow::Result<()> 
             format.name()
         );
     }
-    let options = ImportOptions {
+    Ok(ImportOptions {
         brick: a.brick,
         build: BuildOptions {
             compression: a.compression.compression(),
@@ -85,7 +84,13 @@ pub(super) fn import(a: &ImportArgs, format: InputFormat) -> anyhow::Result<()> 
             .iter()
             .map(|c| channel_input(c))
             .collect::<anyhow::Result<_>>()?,
-    };
+    })
+}
+
+/// Imports `a.input`, in `format`, into a new VOD 2 file.
+pub(super) fn import(a: &ImportArgs, format: InputFormat) -> anyhow::Result<()> {
+    let input = a.input().to_string_lossy();
+    let options = import_options(a, format)?;
     let report = import_input(&input, format, &a.output, &options, &progress("sampling"))
         .with_context(|| format!("cannot import {input}"))?;
     out!("{}: {report}", a.output.display())?;

@@ -21,6 +21,7 @@ mod formats;
 mod mesh;
 mod repair;
 mod serve;
+mod split;
 mod voxelize;
 
 use clap::{Parser, Subcommand, ValueEnum};

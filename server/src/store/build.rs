@@ -231,26 +231,8 @@ pub fn stream_pyramid_by(
         pending: vec![None; layout.levels() as usize],
         progress,
     };
-    let g = layout.grid(0);
-    let brick_bytes = layout.brick_bytes();
-    for z in 0..g[2] {
-        let slab: Vec<BrickVoxels> = (0..g[0] * g[1])
-            .into_par_iter()
-            .map(|i| {
-                let key = BrickKey {
-                    level: 0,
-                    x: i % g[0],
-                    y: i / g[0],
-                    z,
-                };
-                if let Some(v) = source.constant(key) {
-                    return BrickVoxels::Constant(v);
-                }
-                let mut out = vec![0u8; brick_bytes];
-                source.fill(key, &mut out);
-                BrickVoxels::from_bytes(out, layout.voxel_type())
-            })
-            .collect();
+    for z in 0..layout.grid(0)[2] {
+        let slab = level0_row(layout, source, z);
         if source.failed() {
             return Err(StoreError::BadInput(format!(
                 "the input failed at brick row {z}; the build stopped"
@@ -259,6 +241,30 @@ pub fn stream_pyramid_by(
         b.add_slab(0, z, slab)?;
     }
     Ok(())
+}
+
+/// The level-0 bricks of brick row `z` (x fastest, then y), filled in parallel. A split import
+/// ([`super::remote::parts`]) stores these rows as the single build hands them on.
+pub fn level0_row(layout: &VolumeLayout, source: &dyn BrickSource, z: u32) -> Vec<BrickVoxels> {
+    let g = layout.grid(0);
+    let brick_bytes = layout.brick_bytes();
+    (0..g[0] * g[1])
+        .into_par_iter()
+        .map(|i| {
+            let key = BrickKey {
+                level: 0,
+                x: i % g[0],
+                y: i / g[0],
+                z,
+            };
+            if let Some(v) = source.constant(key) {
+                return BrickVoxels::Constant(v);
+            }
+            let mut out = vec![0u8; brick_bytes];
+            source.fill(key, &mut out);
+            BrickVoxels::from_bytes(out, layout.voxel_type())
+        })
+        .collect()
 }
 
 struct Builder<'a> {

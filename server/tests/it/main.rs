@@ -49,6 +49,7 @@ mod roundtrip;
 mod segments;
 mod shared_editing;
 mod shutdown;
+mod split_import;
 mod stitched;
 mod transitions;
 mod vod1;

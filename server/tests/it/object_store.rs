@@ -48,15 +48,15 @@ fn free_port() -> u16 {
         .port()
 }
 
-/// The S3 server, killed when dropped.
-struct S3 {
+/// The S3 server, killed when dropped (also used by [`crate::split_import`]).
+pub(crate) struct S3 {
     child: Child,
-    endpoint: String,
+    pub(crate) endpoint: String,
     bucket: String,
 }
 
 impl S3 {
-    fn start(bucket: &str) -> S3 {
+    pub(crate) fn start(bucket: &str) -> S3 {
         let python = std::env::var("ISOVOX_S3_PYTHON")
             .map(PathBuf::from)
             .unwrap_or_else(|_| workspace().join("target/s3-venv/bin/python"));
@@ -93,11 +93,11 @@ impl S3 {
         }
     }
 
-    fn url(&self) -> String {
+    pub(crate) fn url(&self) -> String {
         format!("s3://{}/vols", self.bucket)
     }
 
-    fn env(&self, cmd: &mut Command) {
+    pub(crate) fn env(&self, cmd: &mut Command) {
         cmd.env("AWS_ENDPOINT", &self.endpoint)
             .env("AWS_ACCESS_KEY_ID", KEY_ID)
             .env("AWS_SECRET_ACCESS_KEY", SECRET)

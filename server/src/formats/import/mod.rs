@@ -26,7 +26,7 @@ use super::FormatsError;
 use crate::progress::Progress;
 use crate::store::build::build_streams;
 use crate::store::build::sibling;
-use crate::store::{build_vod2, BrickSource, BuildOptions};
+use crate::store::{BrickSource, BuildOptions};
 use isovox_proto::channel::ChannelInfo;
 use isovox_proto::vod2::FileHeader;
 use isovox_proto::{VolumeLayout, VoxelType};
@@ -382,6 +382,84 @@ fn open_channels(
     Ok((infos, sources))
 }
 
+/// An input opened for a build: the header of the volume it makes and the sources of its
+/// streams (density, then each `--channel`), with what the report says about it.
+#[derive(Debug)]
+pub struct Prepared {
+    /// The new volume's header (its channels listed).
+    pub header: FileHeader,
+    sources: Vec<SlabSource>,
+    format: InputFormat,
+    dims: [u32; 3],
+    input_type: DType,
+    voxel_type: VoxelType,
+    voxel_scale: [f32; 3],
+    conversion: ConversionNote,
+    channels: Vec<ChannelInfo>,
+}
+
+impl Prepared {
+    /// The level-0 source of each stream, in stream order (density first).
+    pub fn sources(&self) -> Vec<&dyn BrickSource> {
+        self.sources.iter().map(|s| s as &dyn BrickSource).collect()
+    }
+
+    /// Joins every reader.
+    ///
+    /// # Errors
+    /// The first read that failed during the build.
+    pub fn finish(self) -> Result<(), FormatsError> {
+        let finished: Vec<_> = self.sources.into_iter().map(SlabSource::finish).collect();
+        finished.into_iter().find(|r| r.is_err()).unwrap_or(Ok(()))
+    }
+}
+
+/// Opens `input` (a path or http URL) as `format` for a build: chooses its conversion (`scan`
+/// is told the progress of a percentile pass) and opens its channels. An import and each part
+/// of a split import ([`crate::store::remote::parts`]) start here, so they agree on the header
+/// and the voxels.
+///
+/// # Errors
+/// The input cannot be read or is malformed or unsupported.
+pub fn prepare(
+    input: &str,
+    format: InputFormat,
+    options: &ImportOptions,
+    scan: &dyn Progress,
+) -> Result<Prepared, FormatsError> {
+    let source = open(input, format)?;
+    let dims = source.dims();
+    let dtype = source.dtype();
+    let target = options.target.unwrap_or(dtype.default_target());
+    let voxel_scale = options
+        .voxel_scale
+        .or(source.voxel_scale())
+        .unwrap_or([1.0; 3]);
+    let layout = VolumeLayout::new(dims, options.brick, target)
+        .map_err(|e| FormatsError::input(format!("{input}: {e}")))?;
+    let (conversion, note) =
+        choose_conversion(dtype, target, options, dims, &|| open(input, format), scan)?;
+    let slabs = SlabSource::new(layout.clone(), source, conversion)?;
+    let (channels, channel_slabs) = open_channels(&options.channels, &layout)?;
+    let header = if channels.is_empty() {
+        FileHeader::new(layout, voxel_scale)
+    } else {
+        FileHeader::with_channels(layout, voxel_scale, channels.clone())
+            .map_err(|e| FormatsError::BadArgument(e.to_string()))?
+    };
+    Ok(Prepared {
+        header,
+        sources: std::iter::once(slabs).chain(channel_slabs).collect(),
+        format,
+        dims,
+        input_type: dtype,
+        voxel_type: target,
+        voxel_scale,
+        conversion: note,
+        channels,
+    })
+}
+
 /// Imports `input` (a path or http URL) as `format` into a new VOD 2 file at `output`.
 /// `scan` is told the progress of a percentile pass (planes read), `options.build.progress`
 /// that of the import (bricks written).
@@ -397,38 +475,32 @@ pub fn import(
     scan: &dyn Progress,
 ) -> Result<ImportReport, FormatsError> {
     let start = Instant::now();
-    let source = open(input, format)?;
-    let dims = source.dims();
-    let dtype = source.dtype();
-    let target = options.target.unwrap_or(dtype.default_target());
-    let voxel_scale = options
-        .voxel_scale
-        .or(source.voxel_scale())
-        .unwrap_or([1.0; 3]);
-    let layout = VolumeLayout::new(dims, options.brick, target)
-        .map_err(|e| FormatsError::input(format!("{input}: {e}")))?;
-    let (conversion, note) =
-        choose_conversion(dtype, target, options, dims, &|| open(input, format), scan)?;
-    let slabs = SlabSource::new(layout.clone(), source, conversion)?;
-    let (channels, channel_slabs) = open_channels(&options.channels, &layout)?;
-    let imported = channels.clone();
+    let prepared = prepare(input, format, options, scan)?;
     let tmp = sibling(output, ".isovox-tmp");
-    let built = if channels.is_empty() {
-        build_vod2(&tmp, &layout, voxel_scale, &slabs, &options.build)
-    } else {
-        let header = FileHeader::with_channels(layout.clone(), voxel_scale, channels)
-            .map_err(|e| FormatsError::BadArgument(e.to_string()))?;
-        let sources: Vec<&dyn BrickSource> = std::iter::once(&slabs as &dyn BrickSource)
-            .chain(channel_slabs.iter().map(|s| s as &dyn BrickSource))
-            .collect();
-        build_streams(&tmp, header, &sources, &options.build)
+    // A volume without channels is built exactly as `build_vod2` builds it: its header is
+    // `FileHeader::new`, and `build_vod2` is `build_streams` with that header.
+    let built = build_streams(
+        &tmp,
+        prepared.header.clone(),
+        &prepared.sources(),
+        &options.build,
+    );
+    let dims = prepared.dims;
+    let mut summary = ImportReport {
+        format: prepared.format,
+        dims,
+        input_type: prepared.input_type,
+        voxel_type: prepared.voxel_type,
+        voxel_scale: prepared.voxel_scale,
+        conversion: prepared.conversion.clone(),
+        channels: prepared.channels.clone(),
+        input_bytes: dims.iter().map(|&d| u64::from(d)).product::<u64>()
+            * prepared.input_type.bytes() as u64,
+        file_bytes: 0,
+        elapsed: Duration::ZERO,
     };
     // Every source finished (its reader joined), the first error kept.
-    let finished: Vec<_> = std::iter::once(slabs)
-        .chain(channel_slabs)
-        .map(SlabSource::finish)
-        .collect();
-    let finished = finished.into_iter().find(|r| r.is_err()).unwrap_or(Ok(()));
+    let finished = prepared.finish();
     let outcome = match (built, finished) {
         (_, Err(e)) => Err(e),
         (Err(e), Ok(())) => Err(FormatsError::Store(e)),
@@ -443,16 +515,7 @@ pub fn import(
             return Err(e);
         }
     };
-    Ok(ImportReport {
-        format,
-        dims,
-        input_type: dtype,
-        voxel_type: target,
-        voxel_scale,
-        conversion: note,
-        channels: imported,
-        input_bytes: dims.iter().map(|&d| u64::from(d)).product::<u64>() * dtype.bytes() as u64,
-        file_bytes: report.file_bytes,
-        elapsed: start.elapsed(),
-    })
+    summary.file_bytes = report.file_bytes;
+    summary.elapsed = start.elapsed();
+    Ok(summary)
 }

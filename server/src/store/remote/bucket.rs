@@ -39,6 +39,34 @@ pub enum Conditional<T> {
     Refused,
 }
 
+/// The default size of an object above which it goes up as a multipart upload, and of each
+/// part: large enough that a volume of a few GB takes tens of requests, small enough that a
+/// part lost to a broken connection is cheap to send again.
+pub const MULTIPART_DEFAULT_BYTES: u64 = 64 << 20;
+
+/// The smallest part S3 accepts (but for the last one).
+pub const MULTIPART_MIN_BYTES: u64 = 5 << 20;
+
+/// Parts of one multipart upload sent at once (memory: this many parts).
+pub const MULTIPART_IN_FLIGHT: usize = 4;
+
+/// The multipart threshold and part size: `ISOVOX_MULTIPART_BYTES` if set (tests use a small
+/// one), else [`MULTIPART_DEFAULT_BYTES`]; never below [`MULTIPART_MIN_BYTES`].
+///
+/// # Errors
+/// The variable is set to something other than a number of bytes.
+pub fn multipart_part_bytes() -> Result<u64, StoreError> {
+    let bytes = match std::env::var("ISOVOX_MULTIPART_BYTES") {
+        Err(_) => MULTIPART_DEFAULT_BYTES,
+        Ok(v) => v.trim().parse::<u64>().map_err(|_| {
+            StoreError::BadInput(format!(
+                "ISOVOX_MULTIPART_BYTES={v:?}: the multipart threshold is a number of bytes"
+            ))
+        })?,
+    };
+    Ok(bytes.max(MULTIPART_MIN_BYTES))
+}
+
 /// The runtime that carries out store calls (two workers: the calls are network waits).
 fn io_runtime() -> Result<&'static tokio::runtime::Runtime, StoreError> {
     static RUNTIME: OnceLock<Result<tokio::runtime::Runtime, String>> = OnceLock::new();
@@ -270,6 +298,107 @@ impl Bucket {
         })?
         .map_err(failed(what))?;
         Ok(())
+    }
+
+    /// Writes object `key` from the first `len` bytes of the file at `path`: one PUT up to
+    /// [`multipart_part_bytes`], above that a multipart upload in parts of that size, up to
+    /// [`MULTIPART_IN_FLIGHT`] at a time (a single PUT is limited to 5 GB on S3, and one lost
+    /// connection would send the whole object again), read from the file as they are sent.
+    /// `progress` counts the bytes sent. Returns how many parts the object went up in (1 for a
+    /// single PUT).
+    ///
+    /// # Errors
+    /// The file cannot be read, or the store fails (a multipart upload that failed is aborted,
+    /// so its parts are not kept).
+    pub fn put_file(
+        &self,
+        key: &str,
+        path: &std::path::Path,
+        len: u64,
+        progress: &dyn crate::progress::Progress,
+    ) -> Result<u32, StoreError> {
+        use std::io::Read;
+        let mut file =
+            std::fs::File::open(path).map_err(StoreError::io_path("cannot open", path))?;
+        let mut read = |n: u64| -> Result<Bytes, StoreError> {
+            let mut buf = vec![0u8; n as usize];
+            file.read_exact(&mut buf)
+                .map_err(StoreError::io_path("cannot read", path))?;
+            Ok(Bytes::from(buf))
+        };
+        self.put_in_parts(key, len, &mut read, progress)
+    }
+
+    /// [`Bucket::put_file`] for bytes in memory (a multipart upload above the threshold, its
+    /// parts slices of `body`).
+    ///
+    /// # Errors
+    /// The store fails.
+    pub fn put_large(&self, key: &str, body: Bytes) -> Result<u32, StoreError> {
+        let mut at = 0usize;
+        let mut next = |n: u64| -> Result<Bytes, StoreError> {
+            let part = body.slice(at..at + n as usize);
+            at += n as usize;
+            Ok(part)
+        };
+        self.put_in_parts(key, body.len() as u64, &mut next, &crate::progress::Silent)
+    }
+
+    /// Writes object `key`, `len` bytes taken in order from `next` (asked for a number of
+    /// bytes each time): one PUT, or a multipart upload above the threshold.
+    fn put_in_parts(
+        &self,
+        key: &str,
+        len: u64,
+        next: &mut dyn FnMut(u64) -> Result<Bytes, StoreError>,
+        progress: &dyn crate::progress::Progress,
+    ) -> Result<u32, StoreError> {
+        let part = multipart_part_bytes()?;
+        progress.start(len);
+        if len <= part {
+            self.put(key, next(len)?)?;
+            progress.advance(len);
+            progress.finish();
+            return Ok(1);
+        }
+        let (store, object) = (self.store.clone(), self.path(key));
+        let what = format!("cannot write {}/{key} (multipart)", self.url);
+        let mut upload = wait(async move {
+            store
+                .put_multipart_opts(&object, object_store::PutMultipartOptions::default())
+                .await
+        })?
+        .map_err(failed(what.clone()))?;
+        let mut send = || -> Result<u32, StoreError> {
+            let (mut sent, mut parts, mut reported) = (0u64, 0u32, 0u64);
+            let mut in_flight = Vec::new();
+            while sent < len {
+                let n = part.min(len - sent);
+                in_flight.push(upload.put_part(PutPayload::from(next(n)?)));
+                sent += n;
+                parts += 1;
+                if in_flight.len() >= MULTIPART_IN_FLIGHT || sent == len {
+                    let batch = futures_util::future::try_join_all(std::mem::take(&mut in_flight));
+                    wait(batch)?.map_err(failed(what.clone()))?;
+                    progress.advance(sent - reported);
+                    reported = sent;
+                }
+            }
+            Ok(parts)
+        };
+        let sent = send();
+        progress.finish();
+        match sent {
+            Ok(parts) => {
+                wait(async move { upload.complete().await })?.map_err(failed(what))?;
+                Ok(parts)
+            }
+            Err(e) => {
+                // The parts already sent cost storage until the upload is aborted.
+                let _ = wait(async move { upload.abort().await });
+                Err(e)
+            }
+        }
     }
 
     /// Writes object `key` only if its ETag is still `etag` (`If-Match`), or, with `None`,

@@ -26,6 +26,7 @@ pub mod backoff;
 pub mod bucket;
 pub mod head;
 pub mod mirror;
+pub mod parts;
 pub mod turns;
 
 pub use bucket::{bound_store_waits, Bucket, Conditional, StoreWaitBound};
@@ -473,17 +474,30 @@ pub fn upload(
     path: &std::path::Path,
     replace: Option<&str>,
 ) -> Result<Head, StoreError> {
+    upload_with(bucket, path, replace, &crate::progress::Silent).map(|(head, _)| head)
+}
+
+/// [`upload`], telling `progress` the bytes sent; also returns how many parts the segment went
+/// up in (1: one PUT; more: a multipart upload, see [`Bucket::put_file`]).
+///
+/// # Errors
+/// See [`upload`].
+pub fn upload_with(
+    bucket: &Bucket,
+    path: &std::path::Path,
+    replace: Option<&str>,
+    progress: &dyn crate::progress::Progress,
+) -> Result<(Head, u32), StoreError> {
     let vod = Vod2::open(path)?;
     let slot = vod.head_slot();
     drop(vod);
-    let mut bytes = std::fs::read(path).map_err(StoreError::io_path("cannot read", path))?;
-    bytes.truncate(slot.committed_len as usize);
     let segment = Segment {
         start: 0,
-        len: bytes.len() as u64,
+        len: slot.committed_len,
         key: segment_key(0, slot.version),
     };
-    bucket.put(&segment.key, Bytes::from(bytes))?;
+    // Read from the file part by part: a volume of many GB never sits in memory whole.
+    let parts = bucket.put_file(&segment.key, path, segment.len, progress)?;
     let head = Head {
         format: HEAD_FORMAT.into(),
         version: slot.version,
@@ -493,7 +507,7 @@ pub fn upload(
         segments: vec![segment],
     };
     match bucket.put_if(HEAD_KEY, Bytes::from(head.encode()), replace)? {
-        Conditional::Done((), _) => Ok(head),
+        Conditional::Done((), _) => Ok((head, parts)),
         Conditional::Refused => Err(StoreError::HeadMoved {
             url: bucket.url().to_string(),
         }),
