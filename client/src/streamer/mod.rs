@@ -176,6 +176,11 @@ pub struct StreamerConfig {
     pub cache_bytes: usize,
     /// Follow the change feed. Default true. Without it the streamer stays at the start version.
     pub follow_edits: bool,
+    /// Octree descent (default true): skip the desired tiles that cannot hold the surface at
+    /// the iso value (the meshes' iso, or S - 0.5 for bricks), decided from coarser bricks'
+    /// value ranges, so that their grid regions, bricks and meshes are never asked for. False:
+    /// every desired tile is fetched (the behaviour before the descent, kept for comparison).
+    pub descent: bool,
 }
 
 impl Default for StreamerConfig {
@@ -186,6 +191,7 @@ impl Default for StreamerConfig {
             max_in_flight: 16,
             cache_bytes: 256 << 20,
             follow_edits: true,
+            descent: true,
         }
     }
 }
@@ -352,6 +358,13 @@ pub struct StreamerStats {
     pub version: u64,
     /// Delivered tiles refetched because a commit changed their inputs.
     pub stale_refetches: u64,
+    /// Grid regions requested (`GET .../levels/{l}?format=grid`), every cause.
+    pub grid_requests: u64,
+    /// Of those, the regions a tile needed because a commit invalidated it (a hash the event
+    /// did not list, or a descent the new value ranges opened).
+    pub edit_grid_requests: u64,
+    /// Times the descent found a desired tile without surface and skipped it.
+    pub skipped: u64,
 }
 
 /// The camera as the task sees it: a sequence number per [`Streamer::set_camera`].

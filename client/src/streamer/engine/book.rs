@@ -17,6 +17,9 @@ pub(super) type Shape<'a> = (&'a VolumeLayout, &'a VolumeInfo);
 #[derive(Debug, Default)]
 pub(super) struct HashBook {
     hashes: HashMap<BrickKey, u64>,
+    /// Each known brick's smallest and largest voxel value (from the same grid entry or event
+    /// as its hash), which the descent reads.
+    ranges: HashMap<BrickKey, (u16, u16)>,
     /// The grid region (planned or running) that brings an unknown brick's hash, when it is
     /// not the brick's chunk.
     sources: HashMap<BrickKey, JobKey>,
@@ -26,6 +29,11 @@ impl HashBook {
     /// Brick `b`'s content hash, if known.
     pub(super) fn hash(&self, b: BrickKey) -> Option<u64> {
         self.hashes.get(&b).copied()
+    }
+
+    /// Brick `b`'s smallest and largest voxel value, if known.
+    pub(super) fn range(&self, b: BrickKey) -> Option<(u16, u16)> {
+        self.ranges.get(&b).copied()
     }
 
     /// The grid region that brings `brick`'s hash: a designated one, or its chunk.
@@ -174,6 +182,7 @@ impl HashBook {
                     match u64::from_str_radix(&entry.hash, 16) {
                         Ok(h) => {
                             self.hashes.insert(b, h);
+                            self.ranges.insert(b, (entry.min, entry.max));
                             self.sources.remove(&b);
                         }
                         Err(_) => errors.push(StreamEvent::Error {
@@ -187,15 +196,17 @@ impl HashBook {
         errors
     }
 
-    /// Brick `b` changed and holds `hash` now (a commit event said so).
-    pub(super) fn learn(&mut self, b: BrickKey, hash: u64) {
+    /// Brick `b` changed and holds `hash`, with values in `range`, now (a commit event said so).
+    pub(super) fn learn(&mut self, b: BrickKey, hash: u64, range: (u16, u16)) {
         self.hashes.insert(b, hash);
+        self.ranges.insert(b, range);
         self.sources.remove(&b);
     }
 
     /// Brick `b` changed: its hash is unknown again.
     pub(super) fn forget(&mut self, b: BrickKey) {
         self.hashes.remove(&b);
+        self.ranges.remove(&b);
         self.sources.remove(&b);
     }
 
@@ -222,6 +233,7 @@ impl HashBook {
     /// Forgets every hash and source.
     pub(super) fn clear(&mut self) {
         self.hashes.clear();
+        self.ranges.clear();
         self.sources.clear();
     }
 }
