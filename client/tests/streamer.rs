@@ -1789,7 +1789,7 @@ fn holds_surface(snap: &Snapshot, key: BrickKey) -> bool {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_descent_fetches_every_brick_holding_the_surface_and_fewer_grids() {
+async fn the_descent_fetches_every_brick_holding_the_surface() {
     // 256 x 128 x 256 voxels, brick 8: grids 32x16x32 down to 1x1x1 (6 levels); the terrain
     // crosses the middle levels, air above and rock below are most of the volume.
     let w = world([256, 128, 256], 8, [1.0; 3]);

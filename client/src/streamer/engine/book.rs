@@ -2,7 +2,7 @@
 //! come from, and the content keys of mesh tiles and strips computed from them.
 
 use super::scheduler::JobKey;
-use crate::streamer::{StreamEvent, CHUNK};
+use crate::streamer::StreamEvent;
 use isovox_proto::api::{LevelGrid, VolumeInfo};
 use isovox_proto::tile::GridBox;
 use isovox_proto::{BrickKey, VolumeLayout};
@@ -14,8 +14,10 @@ pub(super) type Shape<'a> = (&'a VolumeLayout, &'a VolumeInfo);
 
 /// The hash book: content hashes of bricks as of the engine's version, and where unknown ones
 /// will come from.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub(super) struct HashBook {
+    /// Bricks per axis of the regions unknown hashes come from (aligned).
+    chunk: u32,
     hashes: HashMap<BrickKey, u64>,
     /// Each known brick's smallest and largest voxel value (from the same grid entry or event
     /// as its hash), which the descent reads.
@@ -26,6 +28,21 @@ pub(super) struct HashBook {
 }
 
 impl HashBook {
+    /// An empty book whose regions have `chunk` bricks per axis.
+    pub(super) fn new(chunk: u32) -> HashBook {
+        HashBook {
+            chunk: chunk.max(1),
+            hashes: HashMap::new(),
+            ranges: HashMap::new(),
+            sources: HashMap::new(),
+        }
+    }
+
+    /// Bricks per axis of the regions.
+    pub(super) fn chunk(&self) -> u32 {
+        self.chunk
+    }
+
     /// Brick `b`'s content hash, if known.
     pub(super) fn hash(&self, b: BrickKey) -> Option<u64> {
         self.hashes.get(&b).copied()
@@ -43,11 +60,12 @@ impl HashBook {
         }
         let g = layout.grid(brick.level);
         let p = [brick.x, brick.y, brick.z];
-        let min = p.map(|c| c / CHUNK * CHUNK);
+        let chunk = self.chunk;
+        let min = p.map(|c| c / chunk * chunk);
         JobKey::Region {
             level: brick.level,
             min,
-            max: [0, 1, 2].map(|a| (min[a] + CHUNK).min(g[a])),
+            max: [0, 1, 2].map(|a| (min[a] + chunk).min(g[a])),
         }
     }
 

@@ -44,6 +44,11 @@ pub(super) struct Engine {
     edited: HashSet<BrickKey>,
     /// The grid regions of the current plan that such tiles need.
     edit_regions: HashSet<JobKey>,
+    /// Tiles the descent could not decide yet, with the bricks whose grid entries it waits for.
+    /// Until one of those is learnt the decision stays the same (what else is learnt meanwhile
+    /// only narrows bounds already on one side), so planning reuses it instead of walking every
+    /// tile's bricks again on each answer. Cleared by commits, which change ranges.
+    undecided: HashMap<BrickKey, Vec<BrickKey>>,
     /// The version every known hash and requested tile describes.
     version: u64,
     /// What the camera needs.
@@ -103,6 +108,7 @@ impl Engine {
             descent: config.descent.then_some(iso),
             edited: HashSet::new(),
             edit_regions: HashSet::new(),
+            undecided: HashMap::new(),
             layout,
             radii,
             version: info.version,
@@ -111,7 +117,7 @@ impl Engine {
             }],
             info,
             desired: Desired::default(),
-            book: HashBook::default(),
+            book: HashBook::new(if config.descent { DESCENT_CHUNK } else { CHUNK }),
             scheduler: Scheduler::new(config.max_in_flight),
             stats: Counters::default(),
             cache: Lru::new(config.cache_bytes),
@@ -202,6 +208,7 @@ impl Engine {
         }
         let desired = &self.desired;
         self.edited.retain(|k| desired.contains(*k));
+        self.undecided.retain(|k, _| desired.contains(*k));
         self.scheduler.replan_needed = true;
     }
 
@@ -270,6 +277,15 @@ impl Engine {
     /// descent finds no surface in it, else from the cache or requests into `needed`.
     fn plan_tile(&mut self, key: BrickKey, d: f32, needed: &mut HashMap<JobKey, f32>) -> Plan {
         if let Some(iso) = self.descent {
+            if let Some(waiting) = self.undecided.get(&key) {
+                if waiting.iter().all(|&u| self.book.range(u).is_none()) {
+                    for &u in waiting {
+                        need(needed, self.book.source_of(&self.layout, u), d);
+                    }
+                    return Plan::Waiting;
+                }
+            }
+            self.undecided.remove(&key);
             let reads = match self.kind {
                 // A brick is wanted where its mesh tile would have a surface: the surface
                 // between two bricks is drawn from both.
@@ -279,9 +295,36 @@ impl Engine {
             match self.book.decide(&self.layout, &reads, iso) {
                 Decision::Empty => return Plan::Skip,
                 Decision::Unknown(bricks) => {
-                    for b in bricks {
+                    for &b in &bricks {
                         need(needed, self.book.source_of(&self.layout, b), d);
+                        // The finer levels whose whole grid is one region are asked for at
+                        // once, not one after the other as the descent reaches them: a few
+                        // hundred entries against as many round trips before the first tile.
+                        for level in (0..b.level).rev() {
+                            let g = self.layout.grid(level);
+                            if g.iter().any(|&n| n > self.book.chunk()) {
+                                break;
+                            }
+                            let whole = JobKey::Region {
+                                level,
+                                min: [0; 3],
+                                max: g,
+                            };
+                            if self
+                                .book
+                                .range(BrickKey {
+                                    level,
+                                    x: 0,
+                                    y: 0,
+                                    z: 0,
+                                })
+                                .is_none()
+                            {
+                                need(needed, whole, d);
+                            }
+                        }
                     }
+                    self.undecided.insert(key, bricks);
                     return Plan::Waiting;
                 }
                 Decision::Surface => {}
@@ -616,6 +659,7 @@ impl Engine {
         if ev.version <= self.version {
             return;
         }
+        self.undecided.clear();
         // What the changed bricks hold now, when the event lists it (aligned with `changed`).
         let listed = (ev.bricks.len() == ev.changed.len()
             && ev
@@ -741,6 +785,7 @@ impl Engine {
             self.abort(job, true);
         }
         self.book.clear();
+        self.undecided.clear();
         self.scheduler.reset();
         self.layout = layout;
         self.version = info.version;
