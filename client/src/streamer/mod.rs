@@ -162,9 +162,6 @@ use engine::{follow, Engine};
 const EVENT_CAPACITY: usize = 4096;
 /// Bricks per axis of the grid regions fetched to learn content hashes.
 const CHUNK: u32 = 8;
-/// The same with the octree descent: it asks for regions only where the surface may be, and a
-/// smaller region there carries fewer entries the tiles never read.
-const DESCENT_CHUNK: u32 = 4;
 /// Backoff of a failed request: first delay, doubled per failure up to the last.
 const RETRY_MIN: Duration = Duration::from_millis(250);
 const RETRY_MAX: Duration = Duration::from_secs(10);

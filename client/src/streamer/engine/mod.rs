@@ -117,7 +117,9 @@ impl Engine {
             }],
             info,
             desired: Desired::default(),
-            book: HashBook::new(if config.descent { DESCENT_CHUNK } else { CHUNK }),
+            // (4x4x4 regions under the descent carry fewer unread entries, but on a 2048^3
+            // world the server answered them at a third of the rate: docs/benchmarks.md.)
+            book: HashBook::new(CHUNK),
             scheduler: Scheduler::new(config.max_in_flight),
             stats: Counters::default(),
             cache: Lru::new(config.cache_bytes),
