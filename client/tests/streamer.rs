@@ -536,10 +536,12 @@ async fn a_brick_shared_by_many_positions_is_fetched_once() {
     let server = TestServer::start(w.dir.path(), None);
     let (client, counter) = counted_client(&server.base);
     // Default radii: derived for 1 px at 1080 px and 60 degrees, far larger than this volume,
-    // so the whole level 0 is selected.
-    let (streamer, mut rx) = Streamer::start(client, NAME, StreamerConfig::default())
-        .await
-        .unwrap();
+    // so the whole level 0 is selected. Every tile fetched: no descent.
+    let config = StreamerConfig {
+        descent: false,
+        ..StreamerConfig::default()
+    };
+    let (streamer, mut rx) = Streamer::start(client, NAME, config).await.unwrap();
     let info = streamer.info().clone();
     assert_eq!(
         streamer.radii(),
