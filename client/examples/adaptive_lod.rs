@@ -32,6 +32,9 @@ async fn stream(
         max_in_flight: 8,
         cache_bytes: 1 << 30,
         follow_edits: false,
+        // Every tile of the selection, surfaceless ones too: the tile counts compare the
+        // selections themselves.
+        descent: false,
     };
     let (streamer, mut events) = Streamer::start(client.clone(), volume, config).await?;
     streamer.set_camera(camera);

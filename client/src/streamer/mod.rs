@@ -42,6 +42,28 @@
 //! [`StreamerConfig::cache_bytes`] (brick: its voxel bytes; mesh: positions, normals, indices,
 //! transition data).
 //!
+//! # The octree descent
+//!
+//! Most of a large volume is air or rock, and a tile there has nothing to draw. With
+//! [`StreamerConfig::descent`] (the default) the streamer decides, before asking for a tile's
+//! grid region, whether the surface at the iso value (the meshes' iso, or S - 0.5 for bricks) can
+//! cross it, from the value ranges the grids give for coarser bricks: it asks for the coarsest
+//! level's grid first and for a finer level's region only under bricks where the answer is
+//! "maybe". A tile it rules out is complete without content: no grid region, no blob, no mesh,
+//! no `Ready` (and `Dropped` if it had been delivered before an edit emptied it).
+//!
+//! The rule never drops a surface because it rests on a bound, not on the coarse values
+//! themselves: a level-(k+1) voxel is the mean of its 2x2x2 children rounded half up, so a
+//! parent brick with values in `[lo, hi]` has children in `[max(0, 8 lo - 4 - 7H), min(H, 8 hi +
+//! 3)]` (H the type's highest value). A brick's bound is its own range when known, else its
+//! parent's carried down while that lies wholly on one side of the iso value. A tile is ruled
+//! out when every brick it reads (a mesh tile's own bricks and its strips'; for a brick, the
+//! bricks its mesh tile reads, since a surface between two bricks is drawn from both) is bounded
+//! wholly below the iso value, or every one wholly above. In practice it rules out the tiles
+//! under parents that are nearly all air (u8 at the default iso: max <= 15) or nearly all rock
+//! (min >= 240). An edit's event carries the new ranges of the bricks it changed, so the tiles it
+//! reaches (and, for bricks, the skipped ones next to them) are decided again from those.
+//!
 //! # Versions
 //!
 //! The streamer works at one version at a time: the version of the last commit it applied from
@@ -176,6 +198,11 @@ pub struct StreamerConfig {
     pub cache_bytes: usize,
     /// Follow the change feed. Default true. Without it the streamer stays at the start version.
     pub follow_edits: bool,
+    /// Octree descent (default true): skip the desired tiles that cannot hold the surface at
+    /// the iso value (the meshes' iso, or S - 0.5 for bricks), decided from coarser bricks'
+    /// value ranges, so that their grid regions, bricks and meshes are never asked for. False:
+    /// every desired tile is fetched (the behaviour before the descent, kept for comparison).
+    pub descent: bool,
 }
 
 impl Default for StreamerConfig {
@@ -186,6 +213,7 @@ impl Default for StreamerConfig {
             max_in_flight: 16,
             cache_bytes: 256 << 20,
             follow_edits: true,
+            descent: true,
         }
     }
 }
@@ -352,6 +380,13 @@ pub struct StreamerStats {
     pub version: u64,
     /// Delivered tiles refetched because a commit changed their inputs.
     pub stale_refetches: u64,
+    /// Grid regions requested (`GET .../levels/{l}?format=grid`), every cause.
+    pub grid_requests: u64,
+    /// Of those, the regions a tile needed because a commit invalidated it (a hash the event
+    /// did not list, or a descent the new value ranges opened).
+    pub edit_grid_requests: u64,
+    /// Times the descent found a desired tile without surface and skipped it.
+    pub skipped: u64,
 }
 
 /// The camera as the task sees it: a sequence number per [`Streamer::set_camera`].

@@ -86,6 +86,9 @@ pub struct LoadConfig {
     /// Each streamer's cache. 16 MiB by default (a streamer's own default is 256 MiB, and a run
     /// holds a hundred of them in one process).
     pub cache_bytes: usize,
+    /// The streamers' octree descent ([`StreamerConfig::descent`]); true by default, false to
+    /// measure the behaviour before it.
+    pub descent: bool,
     /// Edits per second per editor.
     pub edit_rate: f64,
     /// Radii of the edited ellipsoids, voxels (each axis drawn in `min..=max`).
@@ -134,6 +137,7 @@ impl LoadConfig {
             max_error_px: 16.0,
             max_in_flight: None,
             cache_bytes: 16 << 20,
+            descent: true,
             edit_rate: 1.0,
             edit_radius: (4, 12),
             carve_fraction: 0.5,
@@ -166,6 +170,7 @@ impl LoadConfig {
             max_in_flight: self.max_in_flight.unwrap_or(d.max_in_flight),
             cache_bytes: self.cache_bytes,
             follow_edits: true,
+            descent: self.descent,
         }
     }
 

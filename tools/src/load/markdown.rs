@@ -235,6 +235,19 @@ impl LoadReport {
             .map(|(l, n)| format!("L{l} {n}"))
             .collect();
         let _ = writeln!(s, "Tiles ready by level: {}.", levels.join(", "));
+        let f = &t.first_tile_ms;
+        let _ = writeln!(
+            s,
+            "\nGrid regions asked: {} ({} for tiles an edit invalidated); tiles skipped by the descent: {}.\n\nFirst tile per viewer (ms, from its start): p50 {:.0}, p99 {:.0}, max {:.0} ({} viewers; {} got none).",
+            t.grid_requests,
+            t.edit_grid_requests,
+            t.skipped,
+            f.p50,
+            f.p99,
+            f.max,
+            f.samples,
+            t.without_tile
+        );
         if t.failed_to_start > 0 || t.never_started > 0 {
             let _ = writeln!(
                 s,

@@ -122,6 +122,16 @@ pub struct StreamerReport {
     /// `cache_hits / (cache_hits + cache_misses)`.
     pub cache_hit_rate: f64,
     pub stale_refetches: u64,
+    /// Grid regions the streamers asked for, and of those the ones a tile needed because a
+    /// commit invalidated it ([`StreamerStats::edit_grid_requests`]).
+    pub grid_requests: u64,
+    pub edit_grid_requests: u64,
+    /// Tiles the octree descent skipped (no surface can cross them).
+    pub skipped: u64,
+    /// Per started viewer, from its start (metadata and subscription included) to its first
+    /// `Ready` tile; viewers that got none are counted in `without_tile`.
+    pub first_tile_ms: Latency,
+    pub without_tile: u64,
     pub resident_at_end: u64,
     pub in_flight_at_end: u64,
     /// The streamers' limits on requests in flight at the end, summed: `max_in_flight` each,
@@ -394,7 +404,13 @@ fn streamer_section(
     };
     let mut closed_early = 0;
     let mut error_span: Option<(Instant, Instant)> = None;
+    let mut first_tiles = Vec::new();
     for v in viewers {
+        match (v.started, v.first_ready) {
+            (true, Some(d)) => first_tiles.push(d),
+            (true, None) => st.without_tile += 1,
+            (false, _) => {}
+        }
         if v.not_started {
             st.never_started += 1;
         } else if !v.started {
@@ -430,6 +446,9 @@ fn streamer_section(
             st.cache_hits += s.cache_hits;
             st.cache_misses += s.cache_misses;
             st.stale_refetches += s.stale_refetches;
+            st.grid_requests += s.grid_requests;
+            st.edit_grid_requests += s.edit_grid_requests;
+            st.skipped += s.skipped;
             st.resident_at_end += s.resident as u64;
             st.in_flight_at_end += s.in_flight as u64;
             st.in_flight_limit_at_end += s.in_flight_limit as u64;
@@ -437,6 +456,7 @@ fn streamer_section(
             st.min_version = st.min_version.min(s.version);
         }
     }
+    st.first_tile_ms = Latency::from_durations(&first_tiles);
     if st.min_version == u64::MAX {
         st.min_version = 0;
     }

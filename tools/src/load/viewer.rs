@@ -27,12 +27,19 @@ pub(super) struct ViewerResult {
     pub(super) error_span: Option<(Instant, Instant)>,
     pub(super) closed_early: bool,
     pub(super) stats: Option<StreamerStats>,
+    /// When the viewer began (before its streamer's start: the metadata and the subscription
+    /// count), and from then to its first `Ready` event.
+    began: Option<Instant>,
+    pub(super) first_ready: Option<Duration>,
 }
 
 impl ViewerResult {
     fn record(&mut self, event: StreamEvent) {
         match event {
             StreamEvent::Ready { key, data, .. } => {
+                if self.first_ready.is_none() {
+                    self.first_ready = self.began.map(|b| b.elapsed());
+                }
                 self.ready += 1;
                 let l = usize::from(key.level);
                 if self.ready_by_level.len() <= l {
@@ -99,6 +106,7 @@ pub(super) async fn viewer(
             return result;
         }
     }
+    result.began = Some(Instant::now());
     let (streamer, mut rx) = match Streamer::start(client, &config.volume, streamer_config).await {
         Ok(s) => s,
         Err(e) => {

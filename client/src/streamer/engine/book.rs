@@ -2,7 +2,7 @@
 //! come from, and the content keys of mesh tiles and strips computed from them.
 
 use super::scheduler::JobKey;
-use crate::streamer::{StreamEvent, CHUNK};
+use crate::streamer::StreamEvent;
 use isovox_proto::api::{LevelGrid, VolumeInfo};
 use isovox_proto::tile::GridBox;
 use isovox_proto::{BrickKey, VolumeLayout};
@@ -14,18 +14,43 @@ pub(super) type Shape<'a> = (&'a VolumeLayout, &'a VolumeInfo);
 
 /// The hash book: content hashes of bricks as of the engine's version, and where unknown ones
 /// will come from.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub(super) struct HashBook {
+    /// Bricks per axis of the regions unknown hashes come from (aligned).
+    chunk: u32,
     hashes: HashMap<BrickKey, u64>,
+    /// Each known brick's smallest and largest voxel value (from the same grid entry or event
+    /// as its hash), which the descent reads.
+    ranges: HashMap<BrickKey, (u16, u16)>,
     /// The grid region (planned or running) that brings an unknown brick's hash, when it is
     /// not the brick's chunk.
     sources: HashMap<BrickKey, JobKey>,
 }
 
 impl HashBook {
+    /// An empty book whose regions have `chunk` bricks per axis.
+    pub(super) fn new(chunk: u32) -> HashBook {
+        HashBook {
+            chunk: chunk.max(1),
+            hashes: HashMap::new(),
+            ranges: HashMap::new(),
+            sources: HashMap::new(),
+        }
+    }
+
+    /// Bricks per axis of the regions.
+    pub(super) fn chunk(&self) -> u32 {
+        self.chunk
+    }
+
     /// Brick `b`'s content hash, if known.
     pub(super) fn hash(&self, b: BrickKey) -> Option<u64> {
         self.hashes.get(&b).copied()
+    }
+
+    /// Brick `b`'s smallest and largest voxel value, if known.
+    pub(super) fn range(&self, b: BrickKey) -> Option<(u16, u16)> {
+        self.ranges.get(&b).copied()
     }
 
     /// The grid region that brings `brick`'s hash: a designated one, or its chunk.
@@ -35,11 +60,12 @@ impl HashBook {
         }
         let g = layout.grid(brick.level);
         let p = [brick.x, brick.y, brick.z];
-        let min = p.map(|c| c / CHUNK * CHUNK);
+        let chunk = self.chunk;
+        let min = p.map(|c| c / chunk * chunk);
         JobKey::Region {
             level: brick.level,
             min,
-            max: [0, 1, 2].map(|a| (min[a] + CHUNK).min(g[a])),
+            max: [0, 1, 2].map(|a| (min[a] + chunk).min(g[a])),
         }
     }
 
@@ -174,6 +200,7 @@ impl HashBook {
                     match u64::from_str_radix(&entry.hash, 16) {
                         Ok(h) => {
                             self.hashes.insert(b, h);
+                            self.ranges.insert(b, (entry.min, entry.max));
                             self.sources.remove(&b);
                         }
                         Err(_) => errors.push(StreamEvent::Error {
@@ -187,15 +214,17 @@ impl HashBook {
         errors
     }
 
-    /// Brick `b` changed and holds `hash` now (a commit event said so).
-    pub(super) fn learn(&mut self, b: BrickKey, hash: u64) {
+    /// Brick `b` changed and holds `hash`, with values in `range`, now (a commit event said so).
+    pub(super) fn learn(&mut self, b: BrickKey, hash: u64, range: (u16, u16)) {
         self.hashes.insert(b, hash);
+        self.ranges.insert(b, range);
         self.sources.remove(&b);
     }
 
     /// Brick `b` changed: its hash is unknown again.
     pub(super) fn forget(&mut self, b: BrickKey) {
         self.hashes.remove(&b);
+        self.ranges.remove(&b);
         self.sources.remove(&b);
     }
 
@@ -222,6 +251,7 @@ impl HashBook {
     /// Forgets every hash and source.
     pub(super) fn clear(&mut self) {
         self.hashes.clear();
+        self.ranges.clear();
         self.sources.clear();
     }
 }

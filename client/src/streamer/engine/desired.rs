@@ -21,7 +21,13 @@ struct Tile {
     /// A mesh tile's delivered drawing: a hash of its content key, mask and strips' content
     /// keys, while current.
     drawn_key: Option<u64>,
+    /// The descent found no surface in it (with this face mask, for a mesh tile): complete
+    /// without content (`ready` holds [`SKIPPED`]).
+    skipped: Option<u8>,
 }
+
+/// The content key a skipped tile is complete with (no content is ever looked up by it).
+pub(super) const SKIPPED: u64 = 0;
 
 /// The desired set: the tiles the camera needs, and what is known about each.
 #[derive(Debug, Default)]
@@ -44,6 +50,11 @@ impl Desired {
     /// Whether `key` is desired.
     pub(super) fn contains(&self, key: BrickKey) -> bool {
         self.tiles.contains_key(&key)
+    }
+
+    /// Whether `key` is desired and skipped by the descent.
+    pub(super) fn is_skipped(&self, key: BrickKey) -> bool {
+        self.tiles.get(&key).is_some_and(|t| t.skipped.is_some())
     }
 
     /// Whether `key` is desired and has no current content.
@@ -103,6 +114,12 @@ impl Desired {
             // strips of its new faces from the cache or a request; the old drawing stays until
             // then).
             let mask = self.masks.get(&key).copied().unwrap_or(0);
+            // A skipped mesh tile whose mask changed reads other strips: decided again.
+            if t.skipped.is_some_and(|m| m != mask) {
+                t.skipped = None;
+                t.ready = None;
+                self.missing += 1;
+            }
             if let (Some(_), Some((_, drawn))) = (t.ready, &t.drawn) {
                 if *drawn != mask {
                     t.ready = None;
@@ -122,6 +139,7 @@ impl Desired {
         }
         t.ready = Some(content);
         t.stale = false;
+        t.skipped = None;
         let first = !t.shown;
         t.shown = true;
         Some(first)
@@ -166,7 +184,26 @@ impl Desired {
         if t.ready.take().is_some() {
             self.missing += 1;
         }
+        t.skipped = None;
         stale
+    }
+
+    /// Desired tile `key` has no surface (the descent says so): complete without content.
+    /// Whether it had been shown (it is then no longer: the caller reports it dropped).
+    pub(super) fn skip(&mut self, key: BrickKey) -> bool {
+        let mask = self.mask(key);
+        let Some(t) = self.tiles.get_mut(&key) else {
+            return false;
+        };
+        if t.ready.is_none() {
+            self.missing -= 1;
+        }
+        t.ready = Some(SKIPPED);
+        t.skipped = Some(mask);
+        t.stale = false;
+        t.drawn = None;
+        t.drawn_key = None;
+        std::mem::take(&mut t.shown)
     }
 
     /// The bricks a desired mesh tile's drawing reads: its own, and those of the strips of the

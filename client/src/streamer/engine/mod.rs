@@ -13,6 +13,7 @@
 
 mod book;
 mod cache;
+mod descent;
 mod desired;
 mod feed;
 mod scheduler;
@@ -22,8 +23,10 @@ pub(super) use feed::{follow, FeedMsg};
 use super::*;
 use book::{HashBook, Shape};
 use cache::{Content, Lru};
+use descent::Decision;
 use desired::Desired;
 use scheduler::{JobKey, Output, Scheduler};
+use std::collections::HashSet;
 
 /// The task's state: what it serves, and its four parts.
 pub(super) struct Engine {
@@ -33,6 +36,19 @@ pub(super) struct Engine {
     info: VolumeInfo,
     layout: VolumeLayout,
     radii: Vec<f32>,
+    /// The iso value the descent skips surfaceless tiles at; `None`: no descent, every desired
+    /// tile is fetched (see [`descent`]).
+    descent: Option<f32>,
+    /// Desired tiles a commit invalidated that have not been delivered (or skipped) since: the
+    /// grid regions they need are counted as caused by edits.
+    edited: HashSet<BrickKey>,
+    /// The grid regions of the current plan that such tiles need.
+    edit_regions: HashSet<JobKey>,
+    /// Tiles the descent could not decide yet, with the bricks whose grid entries it waits for.
+    /// Until one of those is learnt the decision stays the same (what else is learnt meanwhile
+    /// only narrows bounds already on one side), so planning reuses it instead of walking every
+    /// tile's bricks again on each answer. Cleared by commits, which change ranges.
+    undecided: HashMap<BrickKey, Vec<BrickKey>>,
     /// The version every known hash and requested tile describes.
     version: u64,
     /// What the camera needs.
@@ -59,6 +75,9 @@ struct Counters {
     hits: u64,
     misses: u64,
     stale_refetches: u64,
+    grid_requests: u64,
+    edit_grid_requests: u64,
+    skipped: u64,
 }
 
 impl Engine {
@@ -76,10 +95,20 @@ impl Engine {
         shared: Arc<Mutex<Shared>>,
         status: watch::Sender<Status>,
     ) -> Engine {
+        // The descent's iso value: the meshes' own, or the server's default, S - 0.5, which
+        // bricks are drawn at too.
+        let iso = match config.kind {
+            TileKind::Meshes { iso: Some(iso) } => iso,
+            _ => layout.voxel_type().surface() as f32 - 0.5,
+        };
         Engine {
             client,
             name: name.to_string(),
             kind: config.kind,
+            descent: config.descent.then_some(iso),
+            edited: HashSet::new(),
+            edit_regions: HashSet::new(),
+            undecided: HashMap::new(),
             layout,
             radii,
             version: info.version,
@@ -88,7 +117,9 @@ impl Engine {
             }],
             info,
             desired: Desired::default(),
-            book: HashBook::default(),
+            // (4x4x4 regions under the descent carry fewer unread entries, but on a 2048^3
+            // world the server answered them at a third of the rate: docs/benchmarks.md.)
+            book: HashBook::new(CHUNK),
             scheduler: Scheduler::new(config.max_in_flight),
             stats: Counters::default(),
             cache: Lru::new(config.cache_bytes),
@@ -177,6 +208,9 @@ impl Engine {
             lock(&self.shared).resident.remove(&key);
             self.outbox.push(StreamEvent::Dropped { key });
         }
+        let desired = &self.desired;
+        self.edited.retain(|k| desired.contains(*k));
+        self.undecided.retain(|k, _| desired.contains(*k));
         self.scheduler.replan_needed = true;
     }
 
@@ -196,22 +230,34 @@ impl Engine {
         let mut needed: HashMap<JobKey, f32> = HashMap::new();
         let mut from_cache = Vec::new();
         let mut drawings = Vec::new();
+        let mut skipped = Vec::new();
+        self.edit_regions.clear();
         for key in self.desired.without_content() {
             let d = self.distance(key);
-            match self.kind {
-                TileKind::Bricks => match self.book.hash(key) {
-                    Some(h) if self.cache.contains(h) => from_cache.push((key, h)),
-                    Some(h) => {
-                        need(&mut needed, JobKey::Blob(h), d);
-                        self.scheduler.wait(h, key);
-                    }
-                    None => need(&mut needed, self.book.source_of(&self.layout, key), d),
-                },
-                TileKind::Meshes { iso } => {
-                    if let Some(drawing) = self.plan_mesh(key, iso, d, &mut needed) {
-                        drawings.push(drawing);
-                    }
+            // A tile an edit invalidated plans into its own map first, so that the grid
+            // regions it needs are known to be caused by the edit.
+            let edited = self.edited.contains(&key);
+            let mut own = HashMap::new();
+            let into = if edited { &mut own } else { &mut needed };
+            match self.plan_tile(key, d, into) {
+                Plan::Skip => skipped.push(key),
+                Plan::Drawing(drawing) => drawings.push(drawing),
+                Plan::Cached(h) => from_cache.push((key, h)),
+                Plan::Waiting => {}
+            }
+            for (job, d) in own {
+                if matches!(job, JobKey::Region { .. }) {
+                    self.edit_regions.insert(job);
                 }
+                need(&mut needed, job, d);
+            }
+        }
+        for key in skipped {
+            self.stats.skipped += 1;
+            self.edited.remove(&key);
+            if self.desired.skip(key) {
+                lock(&self.shared).resident.remove(&key);
+                self.outbox.push(StreamEvent::Dropped { key });
             }
         }
         for (key, content) in from_cache {
@@ -227,6 +273,83 @@ impl Engine {
             self.abort(job, true);
         }
         self.scheduler.queue_needed(needed);
+    }
+
+    /// Plans desired tile `key` (at distance `d`, without current content): skipped when the
+    /// descent finds no surface in it, else from the cache or requests into `needed`.
+    fn plan_tile(&mut self, key: BrickKey, d: f32, needed: &mut HashMap<JobKey, f32>) -> Plan {
+        if let Some(iso) = self.descent {
+            if let Some(waiting) = self.undecided.get(&key) {
+                if waiting.iter().all(|&u| self.book.range(u).is_none()) {
+                    for &u in waiting {
+                        need(needed, self.book.source_of(&self.layout, u), d);
+                    }
+                    return Plan::Waiting;
+                }
+            }
+            self.undecided.remove(&key);
+            let reads = match self.kind {
+                // A brick is wanted where its mesh tile would have a surface: the surface
+                // between two bricks is drawn from both.
+                TileKind::Bricks => isovox_proto::tile::mesh_tile_reads(&self.layout, key),
+                TileKind::Meshes { .. } => self.desired.drawing_reads(&self.layout, key),
+            };
+            match self.book.decide(&self.layout, &reads, iso) {
+                Decision::Empty => return Plan::Skip,
+                Decision::Unknown(bricks) => {
+                    for &b in &bricks {
+                        need(needed, self.book.source_of(&self.layout, b), d);
+                        // The finer levels whose whole grid is one region are asked for at
+                        // once, not one after the other as the descent reaches them: a few
+                        // hundred entries against as many round trips before the first tile.
+                        for level in (0..b.level).rev() {
+                            let g = self.layout.grid(level);
+                            if g.iter().any(|&n| n > self.book.chunk()) {
+                                break;
+                            }
+                            let whole = JobKey::Region {
+                                level,
+                                min: [0; 3],
+                                max: g,
+                            };
+                            if self
+                                .book
+                                .range(BrickKey {
+                                    level,
+                                    x: 0,
+                                    y: 0,
+                                    z: 0,
+                                })
+                                .is_none()
+                            {
+                                need(needed, whole, d);
+                            }
+                        }
+                    }
+                    self.undecided.insert(key, bricks);
+                    return Plan::Waiting;
+                }
+                Decision::Surface => {}
+            }
+        }
+        match self.kind {
+            TileKind::Bricks => match self.book.hash(key) {
+                Some(h) if self.cache.contains(h) => Plan::Cached(h),
+                Some(h) => {
+                    need(needed, JobKey::Blob(h), d);
+                    self.scheduler.wait(h, key);
+                    Plan::Waiting
+                }
+                None => {
+                    need(needed, self.book.source_of(&self.layout, key), d);
+                    Plan::Waiting
+                }
+            },
+            TileKind::Meshes { iso } => match self.plan_mesh(key, iso, d, needed) {
+                Some(drawing) => Plan::Drawing(drawing),
+                None => Plan::Waiting,
+            },
+        }
     }
 
     /// Plans mesh tile `key` (at `iso`, at distance `d`): the tile and the strips of its mask's
@@ -296,6 +419,10 @@ impl Engine {
     fn start(&mut self, job: JobKey) {
         if let JobKey::Region { level, min, max } = job {
             self.book.claim(level, min, max, job);
+            self.stats.grid_requests += 1;
+            if self.edit_regions.contains(&job) {
+                self.stats.edit_grid_requests += 1;
+            }
         }
         let iso = self.mesh_iso();
         self.scheduler
@@ -364,6 +491,7 @@ impl Engine {
         let Some(first_shown) = self.desired.deliver(key, content) else {
             return;
         };
+        self.edited.remove(&key);
         if first_shown {
             lock(&self.shared).resident.insert(key);
         }
@@ -517,6 +645,9 @@ impl Engine {
 
     /// Marks a delivered tile stale (emitting `Stale`) and any desired tile as needing content.
     fn invalidate(&mut self, key: BrickKey, version: u64) {
+        if self.desired.contains(key) {
+            self.edited.insert(key);
+        }
         let Some(newly_stale) = self.desired.invalidate(key) else {
             return;
         };
@@ -530,6 +661,7 @@ impl Engine {
         if ev.version <= self.version {
             return;
         }
+        self.undecided.clear();
         // What the changed bricks hold now, when the event lists it (aligned with `changed`).
         let listed = (ev.bricks.len() == ev.changed.len()
             && ev
@@ -593,11 +725,12 @@ impl Engine {
                 y: p[1],
                 z: p[2],
             };
-            let learnt = now
-                .and_then(|now| now.get(i))
-                .and_then(|e| u64::from_str_radix(&e.hash, 16).ok());
+            let learnt = now.and_then(|now| now.get(i)).and_then(|e| {
+                let hash = u64::from_str_radix(&e.hash, 16).ok()?;
+                Some((hash, (e.min, e.max)))
+            });
             match learnt {
-                Some(hash) => self.book.learn(b, hash),
+                Some((hash, range)) => self.book.learn(b, hash, range),
                 None => self.book.forget(b),
             }
             let mut is_read = false;
@@ -606,6 +739,16 @@ impl Engine {
                     if self.desired.contains(b) {
                         affected.insert(b);
                         is_read = true;
+                    }
+                    // The descent decided skipped bricks from their neighbours too (the
+                    // bricks their mesh tile reads): those next to a changed brick are
+                    // decided again.
+                    if self.descent.is_some() {
+                        for n in neighbours(b, g) {
+                            if self.desired.is_skipped(n) {
+                                affected.insert(n);
+                            }
+                        }
                     }
                 }
                 TileKind::Meshes { .. } => {
@@ -644,6 +787,7 @@ impl Engine {
             self.abort(job, true);
         }
         self.book.clear();
+        self.undecided.clear();
         self.scheduler.reset();
         self.layout = layout;
         self.version = info.version;
@@ -680,6 +824,9 @@ impl Engine {
                 cache_bytes: self.cache.bytes,
                 version: self.version,
                 stale_refetches: self.stats.stale_refetches,
+                grid_requests: self.stats.grid_requests,
+                edit_grid_requests: self.stats.edit_grid_requests,
+                skipped: self.stats.skipped,
             };
         }
         let now = Status {
@@ -693,6 +840,35 @@ impl Engine {
             changed
         });
     }
+}
+
+/// The bricks of the same level around `b` (grid `g`), itself excluded.
+fn neighbours(b: BrickKey, g: [u32; 3]) -> impl Iterator<Item = BrickKey> {
+    let p = [b.x, b.y, b.z].map(i64::from);
+    let g = g.map(i64::from);
+    (-1..=1i64)
+        .flat_map(|dz| (-1..=1i64).flat_map(move |dy| (-1..=1i64).map(move |dx| [dx, dy, dz])))
+        .filter(|d| *d != [0, 0, 0])
+        .map(move |d| [0, 1, 2].map(|a| p[a] + d[a]))
+        .filter(move |c| (0..3).all(|a| c[a] >= 0 && c[a] < g[a]))
+        .map(move |c| BrickKey {
+            level: b.level,
+            x: c[0] as u32,
+            y: c[1] as u32,
+            z: c[2] as u32,
+        })
+}
+
+/// What planning a tile found.
+enum Plan {
+    /// The descent found no surface in it.
+    Skip,
+    /// A mesh tile whose drawing is all in the cache: its content key and strips'.
+    Drawing((BrickKey, u64, [Option<u64>; 6])),
+    /// A brick whose content (this key) is in the cache.
+    Cached(u64),
+    /// It waits for requests (now in the plan).
+    Waiting,
 }
 
 /// The next feed message; never, without a feed.

@@ -1,0 +1,178 @@
+//! The octree descent: which desired tiles can have no surface at the iso value, decided from
+//! the value ranges (`min`, `max`) of coarser bricks, so that their own grid regions, bricks and
+//! mesh tiles are never asked for.
+//!
+//! A level-(k+1) voxel is the rounded mean (half up) of its 2x2x2 level-k voxels:
+//! `p = floor((s + 4) / 8)` with `s` their sum, so `8p - 4 <= s <= 8p + 3`. Each of the eight
+//! lies in `0..=H` (H the type's highest value), so each is at most `s <= 8p + 3` and at least
+//! `s - 7H >= 8p - 4 - 7H`. A parent brick whose voxels lie in `[lo, hi]` therefore has children
+//! whose voxels lie in [`child_bound`]`(lo, hi) = [max(0, 8 lo - 4 - 7H), min(H, 8 hi + 3)]`.
+//! That is a bound, not an estimate: the mean can hide a thin feature (one solid voxel among
+//! seven of air averages to a low value), and the bound accounts for it. It widens eightfold per
+//! level, so it only ever prunes under parents that are nearly all air or nearly all solid
+//! (u8 at the default iso 126.5: a parent's `max <= 15` or `min >= 240`), which is what most of
+//! a volume is.
+//!
+//! A brick's bound is its own range when the hash book has it, else its parent's bound carried
+//! down one level, as long as that lies wholly on one side of the iso value; otherwise the brick's
+//! own grid entry is needed ([`HashBook::bound`] names the brick to ask for). Asking for it only
+//! where the bound above straddles the iso value is the descent: the coarsest level's grid first,
+//! then finer regions only under bricks that may hold the surface.
+//!
+//! A tile is skipped when every brick it reads (a mesh tile's bricks and its strips', or for a
+//! brick the bricks its mesh tile would read: the surface between two bricks is drawn from both)
+//! is bounded wholly below the iso value, or every one wholly above: no cell then has corners on
+//! both sides, so there is no surface to draw. A skipped tile is complete without content; an
+//! edit that changes what it reads invalidates it and it is decided again.
+
+use super::book::HashBook;
+use isovox_proto::tile::GridBox;
+use isovox_proto::{BrickKey, VolumeLayout};
+
+/// The range of the voxels of any child of a parent brick whose voxels lie in `(lo, hi)`, for
+/// values in `0..=high` (see the module documentation).
+pub(super) fn child_bound((lo, hi): (u16, u16), high: u16) -> (u16, u16) {
+    let h = i64::from(high);
+    let lo = (8 * i64::from(lo) - 4 - 7 * h).clamp(0, h);
+    let hi = (8 * i64::from(hi) + 3).clamp(0, h);
+    (lo as u16, hi as u16)
+}
+
+/// Where values in `(lo, hi)` lie with respect to `iso`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Side {
+    Below,
+    Above,
+    /// Some may be below and some above (or equal to it).
+    Both,
+}
+
+pub(super) fn side((lo, hi): (u16, u16), iso: f32) -> Side {
+    if f32::from(hi) < iso {
+        Side::Below
+    } else if f32::from(lo) > iso {
+        Side::Above
+    } else {
+        Side::Both
+    }
+}
+
+/// What the descent decides for a tile.
+#[derive(Debug, PartialEq, Eq)]
+pub(super) enum Decision {
+    /// No surface can cross it: skip it.
+    Empty,
+    /// It may hold the surface: fetch it as usual.
+    Surface,
+    /// These bricks' grid entries are needed to decide.
+    Unknown(Vec<BrickKey>),
+}
+
+impl HashBook {
+    /// The bound on brick `b`'s voxels, or the brick whose grid entry is needed first (`b`
+    /// itself or an ancestor).
+    pub(super) fn bound(
+        &self,
+        layout: &VolumeLayout,
+        b: BrickKey,
+        iso: f32,
+    ) -> Result<(u16, u16), BrickKey> {
+        if let Some(r) = self.range(b) {
+            return Ok(r);
+        }
+        if b.level + 1 >= layout.levels() {
+            return Err(b);
+        }
+        let parent = BrickKey {
+            level: b.level + 1,
+            x: b.x / 2,
+            y: b.y / 2,
+            z: b.z / 2,
+        };
+        let carried = child_bound(self.bound(layout, parent, iso)?, layout.voxel_type().high());
+        match side(carried, iso) {
+            Side::Both => Err(b),
+            Side::Below | Side::Above => Ok(carried),
+        }
+    }
+
+    /// Whether the bricks `reads` (boxes of brick positions per level, possibly beyond the
+    /// grid: read as 0) can hold the surface at `iso`.
+    pub(super) fn decide(
+        &self,
+        layout: &VolumeLayout,
+        reads: &[(u8, GridBox)],
+        iso: f32,
+    ) -> Decision {
+        let (mut below, mut above) = (false, false);
+        let mut unknown = Vec::new();
+        for &(level, (lo, hi)) in reads {
+            let g = layout.grid(level).map(i64::from);
+            for z in lo[2]..=hi[2] {
+                for y in lo[1]..=hi[1] {
+                    for x in lo[0]..=hi[0] {
+                        let c = [x, y, z];
+                        let bound = if (0..3).any(|a| c[a] < 0 || c[a] >= g[a]) {
+                            Ok((0, 0))
+                        } else {
+                            let b = BrickKey {
+                                level,
+                                x: x as u32,
+                                y: y as u32,
+                                z: z as u32,
+                            };
+                            self.bound(layout, b, iso)
+                        };
+                        match bound.map(|r| side(r, iso)) {
+                            Ok(Side::Both) => return Decision::Surface,
+                            Ok(Side::Below) => below = true,
+                            Ok(Side::Above) => above = true,
+                            Err(u) => unknown.push(u),
+                        }
+                    }
+                }
+            }
+        }
+        if below && above {
+            Decision::Surface
+        } else if !unknown.is_empty() {
+            unknown.sort();
+            unknown.dedup();
+            Decision::Unknown(unknown)
+        } else {
+            Decision::Empty
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The bound holds for every 2x2x2 a mean can come from, checked exhaustively on the
+    /// extreme cases: one voxel at the far end of the range and seven at the near end.
+    #[test]
+    fn child_bound_contains_every_child_of_a_mean() {
+        let high = 255u16;
+        for a in 0..=high {
+            for b in [0u16, 1, 17, 128, 254, 255] {
+                // One voxel `a`, seven `b`: the mean, rounded half up.
+                let p = ((u32::from(a) + 7 * u32::from(b) + 4) / 8) as u16;
+                let (lo, hi) = child_bound((p, p), high);
+                assert!(
+                    lo <= a && a <= hi,
+                    "voxel {a} under parent {p}: bound {lo}..{hi}"
+                );
+                assert!(
+                    lo <= b && b <= hi,
+                    "voxel {b} under parent {p}: bound {lo}..{hi}"
+                );
+            }
+        }
+        // And it prunes where it should: parents of only air-ish or solid-ish values.
+        assert_eq!(side(child_bound((0, 15), high), 126.5), Side::Below);
+        assert_eq!(side(child_bound((0, 16), high), 126.5), Side::Both);
+        assert_eq!(side(child_bound((240, 255), high), 126.5), Side::Above);
+        assert_eq!(side(child_bound((239, 255), high), 126.5), Side::Both);
+    }
+}
