@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The "Many viewers" figures of docs/benchmarks.md: isovox-load against isovox serve on a large
-# world, the streamers' octree descent against the behaviour before it (--no-descent), runs
+# world, the streamers' octree descent against the behaviour before it (--descent), runs
 # alternating in one server's life so that both see the same warm or cold caches.
 #
 #   scripts/bench-load.sh                 # DIMS=2048 (a 2048^3 world, brick 16), 50 viewers, 20 s
@@ -49,12 +49,12 @@ run() {
 
 # Viewers only, bricks then meshes: old, new, new, old.
 for tiles in bricks meshes; do
-  run "$tiles-old-1" --tiles "$tiles" --no-descent
-  run "$tiles-new-1" --tiles "$tiles"
-  run "$tiles-new-2" --tiles "$tiles"
-  run "$tiles-old-2" --tiles "$tiles" --no-descent
+  run "$tiles-old-1" --tiles "$tiles"
+  run "$tiles-new-1" --tiles "$tiles" --descent
+  run "$tiles-new-2" --tiles "$tiles" --descent
+  run "$tiles-old-2" --tiles "$tiles"
 done
 # With 2 editors at 1 edit/s each: grid regions caused by edits.
-run "edits-old" --tiles bricks --editors 2 --edit-rate 1 --no-descent
-run "edits-new" --tiles bricks --editors 2 --edit-rate 1
-run "edits-meshes-new" --tiles meshes --editors 2 --edit-rate 1
+run "edits-old" --tiles bricks --editors 2 --edit-rate 1
+run "edits-new" --tiles bricks --editors 2 --edit-rate 1 --descent
+run "edits-meshes-new" --tiles meshes --editors 2 --edit-rate 1 --descent

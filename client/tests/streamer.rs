@@ -378,7 +378,8 @@ async fn selection_matches_independent_computation_and_streams_the_file_bricks()
         (16, 256 << 20)
     );
     assert!(defaults.follow_edits);
-    assert!(defaults.descent);
+    // The descent is opt-in (see `StreamerConfig::descent`).
+    assert!(!defaults.descent);
 
     // The streamer's resident set for the first case, and every delivered brick is the file's.
     let (camera, radii) = &cases[0];

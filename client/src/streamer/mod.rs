@@ -45,7 +45,7 @@
 //! # The octree descent
 //!
 //! Most of a large volume is air or rock, and a tile there has nothing to draw. With
-//! [`StreamerConfig::descent`] (the default) the streamer decides, before asking for a tile's
+//! [`StreamerConfig::descent`] (off by default, see there) the streamer decides, before asking for a tile's
 //! grid region, whether the surface at the iso value (the meshes' iso, or S - 0.5 for bricks) can
 //! cross it, from the value ranges the grids give for coarser bricks: it asks for the coarsest
 //! level's grid first and for a finer level's region only under bricks where the answer is
@@ -198,10 +198,12 @@ pub struct StreamerConfig {
     pub cache_bytes: usize,
     /// Follow the change feed. Default true. Without it the streamer stays at the start version.
     pub follow_edits: bool,
-    /// Octree descent (default true): skip the desired tiles that cannot hold the surface at
-    /// the iso value (the meshes' iso, or S - 0.5 for bricks), decided from coarser bricks'
-    /// value ranges, so that their grid regions, bricks and meshes are never asked for. False:
-    /// every desired tile is fetched (the behaviour before the descent, kept for comparison).
+    /// Octree descent: skip the desired tiles that cannot hold the surface at the iso value
+    /// (the meshes' iso, or S - 0.5 for bricks), decided from coarser bricks' value ranges, so
+    /// that their grid regions, bricks and meshes are never asked for. False (the default):
+    /// every desired tile is fetched. The descent asks for 70% fewer grid bytes, but 50 load
+    /// viewers on a 2048^3 world got their first tile much later with it
+    /// (docs/benchmarks.md, "Many viewers on a large world"): off until that is understood.
     pub descent: bool,
 }
 
@@ -213,7 +215,7 @@ impl Default for StreamerConfig {
             max_in_flight: 16,
             cache_bytes: 256 << 20,
             follow_edits: true,
-            descent: true,
+            descent: false,
         }
     }
 }

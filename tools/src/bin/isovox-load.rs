@@ -102,10 +102,10 @@ struct Args {
     /// Each streamer's content cache, MiB.
     #[arg(long, default_value_t = 16)]
     cache_mb: usize,
-    /// Streamers fetch every tile of their camera's set, without the octree descent (which skips
-    /// the tiles that cannot hold the surface): the behaviour before it, for comparison.
+    /// Streamers use the octree descent: they skip the tiles that cannot hold the surface
+    /// (off by default: see `StreamerConfig::descent`).
     #[arg(long)]
-    no_descent: bool,
+    descent: bool,
     /// Edits per second per editor.
     #[arg(long, default_value_t = 1.0)]
     edit_rate: f64,
@@ -194,7 +194,7 @@ fn config(a: Args) -> Result<(LoadConfig, Option<PathBuf>), String> {
     c.max_in_flight = a.max_in_flight;
     c.max_error_px = a.max_error_px;
     c.cache_bytes = a.cache_mb << 20;
-    c.descent = !a.no_descent;
+    c.descent = a.descent;
     c.edit_rate = a.edit_rate;
     c.edit_radius = (a.edit_radius[0], a.edit_radius[1]);
     c.carve_fraction = a.carve_fraction;

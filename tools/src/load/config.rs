@@ -137,7 +137,7 @@ impl LoadConfig {
             max_error_px: 16.0,
             max_in_flight: None,
             cache_bytes: 16 << 20,
-            descent: true,
+            descent: false,
             edit_rate: 1.0,
             edit_radius: (4, 12),
             carve_fraction: 0.5,
