@@ -722,6 +722,10 @@ fn group_commits_on_the_store_lose_no_acknowledged_edit_when_a_replica_is_killed
     // Groups: fewer segments than versions (each group is one segment for all its versions).
     let segments = s3.segments().len() - segments_before;
     let made = (head - 1) as usize;
+    assert!(
+        segments < made,
+        "{made} versions took {segments} segments: no group of edits shared one"
+    );
     // The survivor still edits, and a replica started now serves the same head.
     let (status, answer) = survivor.edit(&http, &carve([40, 50, 40]), None);
     assert_eq!(status, 200, "{answer}");

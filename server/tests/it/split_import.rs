@@ -503,10 +503,10 @@ fn a_segment_above_the_threshold_goes_up_as_a_multipart_upload() {
     assert_eq!(file.len(), bytes.len());
     assert!(bytes[..commit] == file[..commit]);
 
-    // Below the threshold: one PUT.
-    let (stdout, _) = ok(
-        &s3,
-        &[
+    // The noise imported again as volume `name` with a multipart threshold of `threshold`.
+    let import_as = |name: &str, threshold: &str| {
+        let output = format!("{}/{name}", s3.url());
+        let args = [
             "import",
             raw.to_str().unwrap(),
             "--dims",
@@ -514,10 +514,14 @@ fn a_segment_above_the_threshold_goes_up_as_a_multipart_upload() {
             "--type",
             "u8",
             "-o",
-            &format!("{}/small", s3.url()),
-        ],
-        &[("ISOVOX_MULTIPART_BYTES", "67108864")],
-    );
+            &output,
+        ];
+        run(&s3, &args, &[("ISOVOX_MULTIPART_BYTES", threshold)])
+    };
+    // Below the threshold: one PUT.
+    let out = import_as("small", "67108864");
+    assert!(out.status.success());
+    let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("(one PUT)"), "{stdout}");
 
     // Bytes in memory (a part's brick rows) go up the same way: 11 MB in three parts.
@@ -537,20 +541,7 @@ fn a_segment_above_the_threshold_goes_up_as_a_multipart_upload() {
     assert!(back.as_ref() == body.as_slice());
 
     // A threshold that is not a number is an error, not the default.
-    let out = run(
-        &s3,
-        &[
-            "import",
-            raw.to_str().unwrap(),
-            "--dims",
-            "192,192,192",
-            "--type",
-            "u8",
-            "-o",
-            &format!("{}/badly", s3.url()),
-        ],
-        &[("ISOVOX_MULTIPART_BYTES", "64MiB")],
-    );
+    let out = import_as("badly", "64MiB");
     assert!(!out.status.success());
     let e = String::from_utf8_lossy(&out.stderr);
     assert!(e.contains("ISOVOX_MULTIPART_BYTES=\"64MiB\""), "{e}");
