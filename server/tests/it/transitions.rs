@@ -271,10 +271,13 @@ fn assemble_reusing(
     (out, transition)
 }
 
+/// A lattice box read: level, lowest and highest point (inclusive).
+type LatticeBox = (u8, [i64; 3], [i64; 3]);
+
 /// Records the lattice boxes read through it (which samples a tile's meshing depends on).
 struct Reads<'a> {
     inner: &'a dyn Samples,
-    boxes: std::cell::RefCell<Vec<(u8, [i64; 3], [i64; 3])>>,
+    boxes: std::cell::RefCell<Vec<LatticeBox>>,
 }
 
 impl Samples for Reads<'_> {
