@@ -24,7 +24,7 @@
 //! group loses nothing it acknowledged, and the segment it may have left is garbage for
 //! `compact`.
 
-use super::group::{copy_of, micros, PendingEdit, Work};
+use super::group::{copy_of, micros, EditAnswer, PendingEdit, Work};
 use super::{change_event, LiveVolume, VolumeError, WriterSlot};
 use crate::cancel::CancelToken;
 use crate::store::remote::backoff::Backoff;
@@ -62,7 +62,7 @@ struct Member {
 /// and its answer, or only an answer (a conflict, a failure, a dry run).
 struct Outcome {
     version: Option<(Arc<Vod2>, ChangeEvent)>,
-    answer: Result<isovox_proto::api::EditResponse, VolumeError>,
+    answer: EditAnswer,
 }
 
 impl LiveVolume {
@@ -90,13 +90,9 @@ impl LiveVolume {
         // Store calls give up when no edit of the group can still be answered in time (503,
         // the store's fault) rather than wait out a stalled store; the head's PUT alone waits
         // on (see its comment). An edit without a deadline waits as long as the store takes.
-        let deadline = members
-            .iter()
-            .map(|m| m.cancel.deadline())
-            .try_fold(None, |latest: Option<(Instant, Duration)>, d| {
-                d.map(|d| Some(latest.map_or(d, |l| if d.0 > l.0 { d } else { l })))
-            })
-            .flatten();
+        let deadlines: Option<Vec<(Instant, Duration)>> =
+            members.iter().map(|m| m.cancel.deadline()).collect();
+        let deadline = deadlines.and_then(|d| d.into_iter().max_by_key(|(at, _)| *at));
         let mut lost_races = Backoff::new(LOST_RACE_FIRST_WAIT, LOST_RACE_MAX_WAIT);
         let mut attempt = 0u32;
         let mut won = false;

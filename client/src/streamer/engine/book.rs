@@ -120,28 +120,11 @@ impl HashBook {
         layout.voxel_type().bytes().hash(&mut h);
         info.voxel_scale.map(f32::to_bits).hash(&mut h);
         let mut unknown = Vec::new();
-        for &(level, (lo, hi)) in reads {
-            let g = layout.grid(level).map(i64::from);
-            for z in lo[2]..=hi[2] {
-                for y in lo[1]..=hi[1] {
-                    for x in lo[0]..=hi[0] {
-                        let c = [x, y, z];
-                        if (0..3).any(|a| c[a] < 0 || c[a] >= g[a]) {
-                            0u8.hash(&mut h);
-                            continue;
-                        }
-                        let b = BrickKey {
-                            level,
-                            x: x as u32,
-                            y: y as u32,
-                            z: z as u32,
-                        };
-                        match self.hashes.get(&b) {
-                            Some(v) => (1u8, *v).hash(&mut h),
-                            None => unknown.push(b),
-                        }
-                    }
-                }
+        for b in bricks_read(layout, reads) {
+            match b.map(|b| (b, self.hashes.get(&b))) {
+                None => 0u8.hash(&mut h),
+                Some((_, Some(v))) => (1u8, *v).hash(&mut h),
+                Some((b, None)) => unknown.push(b),
             }
         }
         if unknown.is_empty() {
@@ -254,4 +237,28 @@ impl HashBook {
         self.ranges.clear();
         self.sources.clear();
     }
+}
+
+/// The bricks of `reads` (boxes of brick positions per level), in order: `None` for a position
+/// beyond the level's grid (read as 0 by the meshes).
+pub(super) fn bricks_read<'a>(
+    layout: &'a VolumeLayout,
+    reads: &'a [(u8, GridBox)],
+) -> impl Iterator<Item = Option<BrickKey>> + 'a {
+    reads.iter().flat_map(move |&(level, (lo, hi))| {
+        let g = layout.grid(level).map(i64::from);
+        (lo[2]..=hi[2]).flat_map(move |z| {
+            (lo[1]..=hi[1]).flat_map(move |y| {
+                (lo[0]..=hi[0]).map(move |x| {
+                    let c = [x, y, z];
+                    (!(0..3).any(|a| c[a] < 0 || c[a] >= g[a])).then_some(BrickKey {
+                        level,
+                        x: x as u32,
+                        y: y as u32,
+                        z: z as u32,
+                    })
+                })
+            })
+        })
+    })
 }

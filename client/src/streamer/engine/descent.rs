@@ -25,7 +25,7 @@
 //! both sides, so there is no surface to draw. A skipped tile is complete without content; an
 //! edit that changes what it reads invalidates it and it is decided again.
 
-use super::book::HashBook;
+use super::book::{bricks_read, HashBook};
 use isovox_proto::tile::GridBox;
 use isovox_proto::{BrickKey, VolumeLayout};
 
@@ -106,31 +106,16 @@ impl HashBook {
     ) -> Decision {
         let (mut below, mut above) = (false, false);
         let mut unknown = Vec::new();
-        for &(level, (lo, hi)) in reads {
-            let g = layout.grid(level).map(i64::from);
-            for z in lo[2]..=hi[2] {
-                for y in lo[1]..=hi[1] {
-                    for x in lo[0]..=hi[0] {
-                        let c = [x, y, z];
-                        let bound = if (0..3).any(|a| c[a] < 0 || c[a] >= g[a]) {
-                            Ok((0, 0))
-                        } else {
-                            let b = BrickKey {
-                                level,
-                                x: x as u32,
-                                y: y as u32,
-                                z: z as u32,
-                            };
-                            self.bound(layout, b, iso)
-                        };
-                        match bound.map(|r| side(r, iso)) {
-                            Ok(Side::Both) => return Decision::Surface,
-                            Ok(Side::Below) => below = true,
-                            Ok(Side::Above) => above = true,
-                            Err(u) => unknown.push(u),
-                        }
-                    }
-                }
+        for b in bricks_read(layout, reads) {
+            let bound = match b {
+                None => Ok((0, 0)),
+                Some(b) => self.bound(layout, b, iso),
+            };
+            match bound.map(|r| side(r, iso)) {
+                Ok(Side::Both) => return Decision::Surface,
+                Ok(Side::Below) => below = true,
+                Ok(Side::Above) => above = true,
+                Err(u) => unknown.push(u),
             }
         }
         if below && above {

@@ -191,13 +191,18 @@ impl Snapshot {
     /// # Errors
     /// See [`Snapshot::summary_at`]; the key must come from this volume's layout.
     pub fn summary(&self, key: BrickKey) -> Result<BrickSummary, StoreError> {
+        self.summary_at(self.node_of(key)?)
+    }
+
+    /// The index node of a brick of this volume.
+    fn node_of(&self, key: BrickKey) -> Result<u64, StoreError> {
         let layout = self.layout();
         if !layout.contains(key) {
             return Err(StoreError::OutOfRange(format!(
                 "brick {key} is outside the volume"
             )));
         }
-        self.summary_at(layout.node_index(key))
+        Ok(layout.node_index(key))
     }
 
     /// The summary of the brick behind an entry read from its record's header (a constant's
@@ -238,13 +243,7 @@ impl Snapshot {
     /// # Errors
     /// See [`Snapshot::entry_at`]; the key must come from this volume's layout.
     pub fn entry(&self, key: BrickKey) -> Result<NodeEntry, StoreError> {
-        let layout = self.layout();
-        if !layout.contains(key) {
-            return Err(StoreError::OutOfRange(format!(
-                "brick {key} is outside the volume"
-            )));
-        }
-        self.entry_at(layout.node_index(key))
+        self.entry_at(self.node_of(key)?)
     }
 
     /// An entry with content hash `hash` among the bricks of this version and of every older
