@@ -20,10 +20,13 @@ try {
   await page.goto(url);
   console.log('opened');
   await new Promise((resolve) => {
-    process.stdin.on('end', resolve);
-    process.stdin.on('close', resolve);
+    // The timer is cleared once stdin ends: a pending timer keeps node running after the
+    // browser closed, and the caller would wait for it (30 s per page in the Neuroglancer test).
+    const timer = setTimeout(resolve, 180_000);
+    const done = () => { clearTimeout(timer); resolve(); };
+    process.stdin.on('end', done);
+    process.stdin.on('close', done);
     process.stdin.resume();
-    setTimeout(resolve, 180_000);
   });
 } finally {
   await browser.close();

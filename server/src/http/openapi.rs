@@ -5,7 +5,7 @@
 //! from it never sends what the server refuses: every bound, enum, pattern and required field
 //! here is one the handlers check, objects whose unknown fields the server refuses say
 //! `additionalProperties: false`, and the term limits come from the server's configuration.
-//! `server/tests/it/openapi_fuzz.rs` (and `scripts/fuzz-api.sh`, longer) hold the two together
+//! `server/tests/it/api_document.rs` (and `scripts/fuzz-api.sh`, longer) hold the two together
 //! with Schemathesis: schema-valid requests accepted, schema-invalid ones refused.
 //!
 //! What no schema can state is said in descriptions and answered with the status a client
