@@ -1924,6 +1924,7 @@ async fn after_an_edit_the_descent_has_every_surface_brick_without_asking_for_gr
     let radii = vec![24.0, 48.0, 96.0];
     let config = StreamerConfig {
         radii: radii.clone(),
+        descent: true,
         ..StreamerConfig::default()
     };
     let mut s = scenario([128, 64, 128], config, (64, 64), 8.0).await;
@@ -1961,11 +1962,17 @@ async fn after_an_edit_the_descent_has_every_surface_brick_without_asking_for_gr
     );
     let stats = s.streamer.stats();
     eprintln!(
-        "after the edits: {} grid regions ({} for edits), {} resident, {} holding the surface",
+        "after the edits: {} grid regions ({} for edits), {} resident, {} holding the surface, {} skipped",
         stats.grid_requests - grids_before,
         stats.edit_grid_requests,
         resident.len(),
-        surface.len()
+        surface.len(),
+        stats.skipped
     );
+    // The descent skipped tiles, and after the edits it decided again from the events alone:
+    // the camera did not move, so no grid region was asked for after the first settle.
+    assert!(stats.skipped > 0, "the descent skipped nothing: {stats:?}");
+    assert_eq!(stats.grid_requests, grids_before, "{stats:?}");
+    assert_eq!(stats.edit_grid_requests, 0, "{stats:?}");
     s.streamer.shutdown().await;
 }

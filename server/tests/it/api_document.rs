@@ -97,7 +97,9 @@ fn schemathesis_finds_the_edit_grammar_and_the_server_in_agreement() {
         .map(str::trim)
         .collect();
     assert!(
-        phases.iter().any(|p| p.ends_with("Coverage") && p.starts_with('✅')),
+        phases
+            .iter()
+            .any(|p| p.ends_with("Coverage") && p.starts_with('✅')),
         "the coverage phase did not run and pass: {phases:?}\n{text}"
     );
 }

@@ -22,6 +22,10 @@ pub(super) struct HashBook {
     /// Each known brick's smallest and largest voxel value (from the same grid entry or event
     /// as its hash), which the descent reads.
     ranges: HashMap<BrickKey, (u16, u16)>,
+    /// Bounds on the voxels of bricks whose range is unknown, kept from before a commit changed
+    /// a coarser brick they were bounded by (the descent reads them; see
+    /// [`HashBook::keep_bounds`]).
+    kept_bounds: HashMap<BrickKey, (u16, u16)>,
     /// The grid region (planned or running) that brings an unknown brick's hash, when it is
     /// not the brick's chunk.
     sources: HashMap<BrickKey, JobKey>,
@@ -34,6 +38,7 @@ impl HashBook {
             chunk: chunk.max(1),
             hashes: HashMap::new(),
             ranges: HashMap::new(),
+            kept_bounds: HashMap::new(),
             sources: HashMap::new(),
         }
     }
@@ -51,6 +56,21 @@ impl HashBook {
     /// Brick `b`'s smallest and largest voxel value, if known.
     pub(super) fn range(&self, b: BrickKey) -> Option<(u16, u16)> {
         self.ranges.get(&b).copied()
+    }
+
+    /// A bound kept on brick `b`'s voxels while its range is unknown.
+    pub(super) fn kept_bound(&self, b: BrickKey) -> Option<(u16, u16)> {
+        self.kept_bounds.get(&b).copied()
+    }
+
+    /// Keeps `bound` on the voxels of brick `b`, whose range is unknown and whose content no
+    /// commit changed since the bound was drawn (with any bound it had: both hold).
+    pub(super) fn keep_bound(&mut self, b: BrickKey, (lo, hi): (u16, u16)) {
+        if self.ranges.contains_key(&b) {
+            return;
+        }
+        let kept = self.kept_bounds.entry(b).or_insert((lo, hi));
+        *kept = (kept.0.max(lo), kept.1.min(hi));
     }
 
     /// The grid region that brings `brick`'s hash: a designated one, or its chunk.
@@ -184,6 +204,7 @@ impl HashBook {
                         Ok(h) => {
                             self.hashes.insert(b, h);
                             self.ranges.insert(b, (entry.min, entry.max));
+                            self.kept_bounds.remove(&b);
                             self.sources.remove(&b);
                         }
                         Err(_) => errors.push(StreamEvent::Error {
@@ -201,6 +222,7 @@ impl HashBook {
     pub(super) fn learn(&mut self, b: BrickKey, hash: u64, range: (u16, u16)) {
         self.hashes.insert(b, hash);
         self.ranges.insert(b, range);
+        self.kept_bounds.remove(&b);
         self.sources.remove(&b);
     }
 
@@ -208,6 +230,7 @@ impl HashBook {
     pub(super) fn forget(&mut self, b: BrickKey) {
         self.hashes.remove(&b);
         self.ranges.remove(&b);
+        self.kept_bounds.remove(&b);
         self.sources.remove(&b);
     }
 
@@ -235,6 +258,7 @@ impl HashBook {
     pub(super) fn clear(&mut self) {
         self.hashes.clear();
         self.ranges.clear();
+        self.kept_bounds.clear();
         self.sources.clear();
     }
 }

@@ -24,10 +24,17 @@
 //! is bounded wholly below the iso value, or every one wholly above: no cell then has corners on
 //! both sides, so there is no surface to draw. A skipped tile is complete without content; an
 //! edit that changes what it reads invalidates it and it is decided again.
+//!
+//! Deciding again needs no grid region when the commit event lists the changed bricks' new
+//! ranges. A brick the commit did not change may still have been bounded by a coarser one it
+//! changed (the new coarse range may straddle the iso value where the old one did not): its
+//! content is what it was, so the bound drawn from the coarser brick's range before the commit
+//! still holds, and [`HashBook::bounds_before`] keeps it ([`HashBook::keep_bound`]).
 
 use super::book::{bricks_read, HashBook};
 use isovox_proto::tile::GridBox;
 use isovox_proto::{BrickKey, VolumeLayout};
+use std::collections::HashSet;
 
 /// The range of the voxels of any child of a parent brick whose voxels lie in `(lo, hi)`, for
 /// values in `0..=high` (see the module documentation).
@@ -77,7 +84,7 @@ impl HashBook {
         b: BrickKey,
         iso: f32,
     ) -> Result<(u16, u16), BrickKey> {
-        if let Some(r) = self.range(b) {
+        if let Some(r) = self.range(b).or_else(|| self.kept_bound(b)) {
             return Ok(r);
         }
         if b.level + 1 >= layout.levels() {
@@ -94,6 +101,46 @@ impl HashBook {
             Side::Both => Err(b),
             Side::Below | Side::Above => Ok(carried),
         }
+    }
+
+    /// The bounds on the children of the bricks a commit `changed` (positions per level) that
+    /// hold before it is applied and lie wholly on one side of `iso`: after it, they still
+    /// bound the children it did not change (keep them with [`HashBook::keep_bound`]).
+    pub(super) fn bounds_before(
+        &self,
+        layout: &VolumeLayout,
+        changed: &[Vec<[u32; 3]>],
+        iso: f32,
+    ) -> Vec<(BrickKey, (u16, u16))> {
+        let high = layout.voxel_type().high();
+        let mut bounds = Vec::new();
+        for (level, positions) in changed.iter().enumerate().skip(1) {
+            if level >= layout.levels() as usize {
+                break;
+            }
+            let changed_below: HashSet<[u32; 3]> = changed[level - 1].iter().copied().collect();
+            for &p in positions {
+                let parent = BrickKey {
+                    level: level as u8,
+                    x: p[0],
+                    y: p[1],
+                    z: p[2],
+                };
+                let Ok(before) = self.bound(layout, parent, iso) else {
+                    continue;
+                };
+                let carried = child_bound(before, high);
+                if side(carried, iso) == Side::Both {
+                    continue;
+                }
+                for (_, child) in layout.children(parent) {
+                    if !changed_below.contains(&[child.x, child.y, child.z]) {
+                        bounds.push((child, carried));
+                    }
+                }
+            }
+        }
+        bounds
     }
 
     /// Whether the bricks `reads` (boxes of brick positions per level, possibly beyond the
@@ -159,5 +206,44 @@ mod tests {
         assert_eq!(side(child_bound((0, 16), high), 126.5), Side::Both);
         assert_eq!(side(child_bound((240, 255), high), 126.5), Side::Above);
         assert_eq!(side(child_bound((239, 255), high), 126.5), Side::Both);
+    }
+
+    /// A commit that changes one of a brick's children, and the brick's range with it: the other
+    /// seven keep the bound they had from the brick's old range, and are decided without a grid.
+    #[test]
+    fn unchanged_children_keep_the_bound_from_before_the_commit() {
+        use isovox_proto::VoxelType;
+        let layout = VolumeLayout::new([32, 32, 32], 16, VoxelType::U8).unwrap();
+        let iso = 126.5;
+        let key = |level, x| BrickKey {
+            level,
+            x,
+            y: 0,
+            z: 0,
+        };
+        let mut book = HashBook::new(4);
+        // Level 1 (one brick) all air: its eight level-0 children are bounded below the iso
+        // value without grid entries of their own.
+        book.learn(key(1, 0), 1, (0, 0));
+        assert_eq!(book.bound(&layout, key(0, 1), iso), Ok((0, 3)));
+        // A commit puts the surface into child (0, 0, 0), and so into the level-1 brick.
+        let changed = vec![vec![[0, 0, 0]], vec![[0, 0, 0]]];
+        let kept = book.bounds_before(&layout, &changed, iso);
+        assert_eq!(kept.len(), 7, "{kept:?}");
+        assert!(kept.iter().all(|&(b, r)| b.level == 0 && r == (0, 3)));
+        assert!(!kept.iter().any(|&(b, _)| b == key(0, 0)));
+        book.learn(key(0, 0), 2, (0, 255));
+        book.learn(key(1, 0), 3, (0, 40));
+        // Without the kept bounds the unchanged children would need their grid entries.
+        assert_eq!(book.bound(&layout, key(0, 1), iso), Err(key(0, 1)));
+        for (b, bound) in kept {
+            book.keep_bound(b, bound);
+        }
+        assert_eq!(book.bound(&layout, key(0, 1), iso), Ok((0, 3)));
+        assert_eq!(book.bound(&layout, key(0, 0), iso), Ok((0, 255)));
+        // A later commit that changes a child drops its kept bound: its range is the event's,
+        // or unknown.
+        book.forget(key(0, 1));
+        assert_eq!(book.bound(&layout, key(0, 1), iso), Err(key(0, 1)));
     }
 }

@@ -662,6 +662,12 @@ impl Engine {
             return;
         }
         self.undecided.clear();
+        // The descent's bounds on bricks under the changed ones, as they were before this
+        // commit: they still hold for the bricks it did not change (see `descent`).
+        let bounds_before = self
+            .descent
+            .map(|iso| self.book.bounds_before(&self.layout, &ev.changed, iso))
+            .unwrap_or_default();
         // What the changed bricks hold now, when the event lists it (aligned with `changed`).
         let listed = (ev.bricks.len() == ev.changed.len()
             && ev
@@ -688,6 +694,9 @@ impl Engine {
                 self.scheduler.abort_tile(key);
                 self.invalidate(key, ev.version);
             }
+        }
+        for (b, bound) in bounds_before {
+            self.book.keep_bound(b, bound);
         }
         self.version = ev.version;
         self.outbox.push(StreamEvent::Version {
