@@ -1976,3 +1976,83 @@ async fn after_an_edit_the_descent_has_every_surface_brick_without_asking_for_gr
     assert_eq!(stats.edit_grid_requests, 0, "{stats:?}");
     s.streamer.shutdown().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_edit_where_the_descent_skipped_whole_regions_asks_for_no_grid() {
+    // A world 32 bricks tall: level 0's grid regions (8 bricks a side) stack four high, so a
+    // camera high in the air sees bricks whose regions are never asked for: the descent skips
+    // them from the coarser levels' ranges (all air).
+    let radii = vec![24.0, 48.0, 96.0];
+    let config = StreamerConfig {
+        radii: radii.clone(),
+        descent: true,
+        ..StreamerConfig::default()
+    };
+    let w = world([128, 256, 128], 8, [1.0; 3]);
+    let server = TestServer::start(w.dir.path(), None);
+    let (client, counter) = counted_client(&server.base);
+    let (streamer, mut rx) = Streamer::start(client, NAME, config).await.unwrap();
+    let g = ground(&w, 64, 64);
+    // 30 voxels below the top, in level 0's highest regions (y 192..256), with no surface
+    // within reach of level 0.
+    let y = 256 - 30;
+    assert!(y - g[1] > 64, "ground at {g:?}: too high for the test");
+    let camera = [64.0, y as f32, 64.0];
+    streamer.set_camera(camera);
+    settle(&streamer, &mut rx, 1).await;
+    let before = streamer.stats();
+    let routes_before = counter.snapshot();
+    assert!(before.skipped > 0, "nothing skipped: {before:?}");
+    // A ball at the camera: its level-0 bricks and their coarser bricks now hold a surface.
+    // The event lists what they hold; their unchanged neighbours, which now show the ball's
+    // side, were never in a grid region the streamer asked for.
+    let (client, _) = counted_client(&server.base);
+    let client = client.with_token(TOKEN);
+    let version = client
+        .edit(
+            NAME,
+            &EditRequest {
+                op: "union".into(),
+                ..carve([64, y, 64], 6)
+            },
+            None,
+        )
+        .await
+        .unwrap()
+        .version;
+    let events = settle(&streamer, &mut rx, version).await;
+    assert!(events
+        .iter()
+        .all(|e| !matches!(e, StreamEvent::Error { .. })));
+    let snap = Vod2::open(&w.path).unwrap().head();
+    assert_bricks_match_file(&events, &snap);
+    let info = streamer.info().clone();
+    let resident: BTreeSet<BrickKey> = streamer.resident().into_iter().collect();
+    let surface: BTreeSet<BrickKey> = select_tiles(&info, camera, &radii)
+        .into_iter()
+        .filter(|&k| holds_surface(&snap, k))
+        .collect();
+    assert!(!surface.is_empty(), "the ball holds no surface");
+    let missed: Vec<_> = surface.difference(&resident).collect();
+    assert!(
+        missed.is_empty(),
+        "surface bricks {missed:?} are not resident"
+    );
+    let after = streamer.stats();
+    let routes = counter.snapshot();
+    let count = |r: &HashMap<&'static str, u64>, route| r.get(route).copied().unwrap_or(0);
+    let by_position = count(&routes, "brick") - count(&routes_before, "brick");
+    eprintln!(
+        "ball: {} grid regions before, {} after ({} for edits), {} bricks by position, {} surface bricks",
+        before.grid_requests,
+        after.grid_requests - before.grid_requests,
+        after.edit_grid_requests,
+        by_position,
+        surface.len(),
+    );
+    // The streamer asked for the bricks themselves at the new version, not for grid regions.
+    assert!(by_position > 0, "no brick fetched by position");
+    assert_eq!(after.grid_requests, before.grid_requests, "{after:?}");
+    assert_eq!(after.edit_grid_requests, 0, "{after:?}");
+    streamer.shutdown().await;
+}

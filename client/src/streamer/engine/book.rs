@@ -73,6 +73,12 @@ impl HashBook {
         *kept = (kept.0.max(lo), kept.1.min(hi));
     }
 
+    /// Whether a grid region was designated to bring `brick`'s hash (a commit changed it and
+    /// did not say what it holds now).
+    pub(super) fn has_designated_source(&self, brick: BrickKey) -> bool {
+        self.sources.contains_key(&brick)
+    }
+
     /// The grid region that brings `brick`'s hash: a designated one, or its chunk.
     pub(super) fn source_of(&self, layout: &VolumeLayout, brick: BrickKey) -> JobKey {
         if let Some(&s) = self.sources.get(&brick) {

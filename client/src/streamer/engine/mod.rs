@@ -21,10 +21,12 @@ mod scheduler;
 pub(super) use feed::{follow, FeedMsg};
 
 use super::*;
+use crate::client::Brick;
 use book::{HashBook, Shape};
 use cache::{Content, Lru};
 use descent::Decision;
 use desired::Desired;
+use isovox_proto::VoxelType;
 use scheduler::{JobKey, Output, Scheduler};
 use std::collections::HashSet;
 
@@ -340,6 +342,21 @@ impl Engine {
                     self.scheduler.wait(h, key);
                     Plan::Waiting
                 }
+                // A brick a commit made wanted whose grid entry was never asked for: the descent
+                // had skipped it from a coarser brick's range, and an edit beside it put the
+                // surface at its side. The brick itself at this version, which a cache can
+                // answer, not a grid region, which only the origin can. (Bricks a commit
+                // changed without saying what they hold now share one designated region
+                // instead, see `bring_together`; after a reload nothing is bounded.)
+                None if self.edited.contains(&key)
+                    && !self.book.has_designated_source(key)
+                    && self
+                        .descent
+                        .is_some_and(|iso| self.book.bound(&self.layout, key, iso).is_ok()) =>
+                {
+                    need(needed, JobKey::Brick(key), d);
+                    Plan::Waiting
+                }
                 None => {
                     need(needed, self.book.source_of(&self.layout, key), d);
                     Plan::Waiting
@@ -407,7 +424,9 @@ impl Engine {
         while let Some(job) = self.scheduler.next_queued(limit) {
             let still_needed = self.scheduler.planned(job)
                 && match job {
-                    JobKey::Mesh(k) | JobKey::Strip(k, _) => self.desired.needs(k),
+                    JobKey::Mesh(k) | JobKey::Strip(k, _) | JobKey::Brick(k) => {
+                        self.desired.needs(k)
+                    }
                     JobKey::Region { .. } | JobKey::Blob(_) => true,
                 };
             if still_needed {
@@ -425,8 +444,15 @@ impl Engine {
             }
         }
         let iso = self.mesh_iso();
-        self.scheduler
-            .start(job, &self.client, &self.name, self.version, iso);
+        let brick_bytes = self.layout.brick_bytes();
+        self.scheduler.start(
+            job,
+            &self.client,
+            &self.name,
+            self.version,
+            iso,
+            brick_bytes,
+        );
         self.stats.requests += 1;
     }
 
@@ -515,6 +541,7 @@ impl Engine {
         match output {
             Output::Region(result) => self.on_region(job, result),
             Output::Blob(result) => self.on_blob(job, result),
+            Output::Brick(result) => self.on_brick(job, result),
             Output::Mesh(content, result) => self.on_mesh(job, content, result),
             Output::Strip(content, result) => self.on_strip(job, content, result),
         }
@@ -586,6 +613,37 @@ impl Engine {
                 self.mark_ready(key, h, data.clone());
             }
         }
+    }
+
+    /// A brick fetched by position at the engine's version: its hash and value range are
+    /// learnt (the descent reads the range), its voxels cached by hash and delivered.
+    fn on_brick(&mut self, job: JobKey, result: Result<Option<Brick>, ClientError>) {
+        let JobKey::Brick(key) = job else {
+            return;
+        };
+        let brick = match result {
+            Ok(Some(b)) if b.key == key => b,
+            Ok(_) => {
+                self.fail(job, Some(key), format!("brick {key}: no content"));
+                return;
+            }
+            Err(e) => {
+                self.fail(job, Some(key), format!("brick {key}: {e}"));
+                return;
+            }
+        };
+        self.scheduler.succeeded(job);
+        self.stats.bytes += brick.voxels.len() as u64;
+        self.stats.misses += 1;
+        let range = value_range(&brick.voxels, self.layout.voxel_type());
+        self.book.learn(key, brick.hash, range);
+        let data = Content::Brick(brick.voxels);
+        self.cache
+            .put(brick.hash, data.clone(), self.layout.brick_bytes());
+        if self.desired.needs(key) {
+            self.mark_ready(key, brick.hash, data);
+        }
+        self.scheduler.replan_needed = true;
     }
 
     fn on_mesh(&mut self, job: JobKey, content: u64, result: Result<TileMesh, ClientError>) {
@@ -900,4 +958,20 @@ async fn sleep_until(at: Option<Instant>) {
 fn need(needed: &mut HashMap<JobKey, f32>, job: JobKey, d: f32) {
     let e = needed.entry(job).or_insert(d);
     *e = e.min(d);
+}
+
+/// The smallest and largest voxel value of a brick's voxels (u16 little endian when `voxel_type`
+/// is u16), as a grid entry would say.
+fn value_range(voxels: &[u8], voxel_type: VoxelType) -> (u16, u16) {
+    let widen = |(lo, hi): (u16, u16), v: u16| (lo.min(v), hi.max(v));
+    match voxel_type {
+        VoxelType::U8 => voxels
+            .iter()
+            .map(|&v| u16::from(v))
+            .fold((u16::MAX, 0), widen),
+        VoxelType::U16 => voxels
+            .chunks_exact(2)
+            .map(|c| u16::from_le_bytes([c[0], c[1]]))
+            .fold((u16::MAX, 0), widen),
+    }
 }

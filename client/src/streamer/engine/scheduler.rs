@@ -1,7 +1,7 @@
 //! The scheduler: the plan (requests to start, nearest first), what runs, what failed and when
 //! to retry it, and the requests themselves.
 
-use crate::client::{Client, ClientError};
+use crate::client::{Brick, Client, ClientError};
 use crate::streamer::limit::{lock_limit, InFlightLimit, Pacer, SharedLimit};
 use crate::streamer::{RETRY_MAX, RETRY_MIN};
 use bytes::Bytes;
@@ -24,6 +24,10 @@ pub(super) enum JobKey {
     },
     /// A brick by content hash.
     Blob(u64),
+    /// A brick by position, at the engine's version: a brick whose hash the book lacks,
+    /// wanted after a commit (so that no grid region is asked for because of an edit; see
+    /// `Engine::plan_tile`).
+    Brick(BrickKey),
     /// A mesh tile.
     Mesh(BrickKey),
     /// The transition strip of a face (0..6) of a mesh tile.
@@ -36,6 +40,7 @@ impl JobKey {
             JobKey::Region {
                 level: l, min, max, ..
             } => l == level && (0..3).all(|a| p[a] >= min[a] && p[a] < max[a]),
+            JobKey::Brick(k) => k.level == level && [k.x, k.y, k.z] == p,
             _ => false,
         }
     }
@@ -46,6 +51,7 @@ impl JobKey {
 pub(super) enum Output {
     Region(Result<LevelGrid, ClientError>),
     Blob(Result<Bytes, ClientError>),
+    Brick(Result<Option<Brick>, ClientError>),
     /// The content key the tile was requested under, and the tile.
     Mesh(u64, Result<TileMesh, ClientError>),
     /// The content key the strip was requested under, and the strip.
@@ -144,7 +150,7 @@ impl Scheduler {
     /// Whether the last plan still asks for `job` (a grid region always does).
     pub(super) fn planned(&self, job: JobKey) -> bool {
         match job {
-            JobKey::Region { .. } => true,
+            JobKey::Region { .. } | JobKey::Brick(_) => true,
             JobKey::Blob(h) => self.waiting.contains_key(&h),
             JobKey::Mesh(k) => self.mesh_keys.contains_key(&k),
             JobKey::Strip(k, f) => self.strip_keys.contains_key(&(k, f)),
@@ -218,7 +224,8 @@ impl Scheduler {
     }
 
     /// Starts `job` through `client` (its exchanges pacing the limit), for volume `name` at
-    /// `version`; mesh tiles and strips at `iso`, under the content keys of the last plan.
+    /// `version`; mesh tiles and strips at `iso`, under the content keys of the last plan;
+    /// bricks by position of `brick_bytes`.
     pub(super) fn start(
         &mut self,
         job: JobKey,
@@ -226,6 +233,7 @@ impl Scheduler {
         name: &str,
         version: u64,
         iso: Option<f32>,
+        brick_bytes: usize,
     ) {
         let id = self.next_id;
         self.next_id += 1;
@@ -247,6 +255,10 @@ impl Scheduler {
             JobKey::Blob(h) => self.jobs.spawn(async move {
                 let r = client.blob(&name, h).await;
                 (id, job, Output::Blob(r))
+            }),
+            JobKey::Brick(key) => self.jobs.spawn(async move {
+                let r = client.brick(&name, key, version, None, brick_bytes).await;
+                (id, job, Output::Brick(r))
             }),
             JobKey::Mesh(key) => {
                 let content = self.mesh_keys.get(&key).copied().unwrap_or_default();
@@ -281,8 +293,10 @@ impl Scheduler {
         true
     }
 
-    /// Aborts the requests of mesh tile `key` and of its strips.
+    /// Aborts the requests of tile `key`: a brick's by position, or a mesh tile's and its
+    /// strips'.
     pub(super) fn abort_tile(&mut self, key: BrickKey) {
+        self.abort(JobKey::Brick(key));
         self.abort(JobKey::Mesh(key));
         for face in 0..6 {
             self.abort(JobKey::Strip(key, face));
