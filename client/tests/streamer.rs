@@ -1979,11 +1979,20 @@ async fn after_an_edit_the_descent_has_every_surface_brick_without_asking_for_gr
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_edit_where_the_descent_skipped_whole_regions_asks_for_no_grid() {
+    for kind in [TileKind::Bricks, TileKind::Meshes { iso: None }] {
+        edit_where_the_descent_skipped_whole_regions(kind).await;
+    }
+}
+
+/// A streamer of `kind` with the descent, high in the air of a tall world, and an edit at the
+/// camera: after it, no grid region is asked for.
+async fn edit_where_the_descent_skipped_whole_regions(kind: TileKind) {
     // A world 32 bricks tall: level 0's grid regions (8 bricks a side) stack four high, so a
     // camera high in the air sees bricks whose regions are never asked for: the descent skips
     // them from the coarser levels' ranges (all air).
     let radii = vec![24.0, 48.0, 96.0];
     let config = StreamerConfig {
+        kind,
         radii: radii.clone(),
         descent: true,
         ..StreamerConfig::default()
@@ -2002,57 +2011,65 @@ async fn an_edit_where_the_descent_skipped_whole_regions_asks_for_no_grid() {
     settle(&streamer, &mut rx, 1).await;
     let before = streamer.stats();
     let routes_before = counter.snapshot();
-    assert!(before.skipped > 0, "nothing skipped: {before:?}");
+    assert!(before.skipped > 0, "{kind:?}: nothing skipped: {before:?}");
     // A ball at the camera: its level-0 bricks and their coarser bricks now hold a surface.
     // The event lists what they hold; their unchanged neighbours, which now show the ball's
     // side, were never in a grid region the streamer asked for.
     let (client, _) = counted_client(&server.base);
     let client = client.with_token(TOKEN);
-    let version = client
-        .edit(
-            NAME,
-            &EditRequest {
-                op: "union".into(),
-                ..carve([64, y, 64], 6)
-            },
-            None,
-        )
-        .await
-        .unwrap()
-        .version;
+    let ball = EditRequest {
+        op: "union".into(),
+        ..carve([64, y, 64], 6)
+    };
+    let version = client.edit(NAME, &ball, None).await.unwrap().version;
     let events = settle(&streamer, &mut rx, version).await;
     assert!(events
         .iter()
         .all(|e| !matches!(e, StreamEvent::Error { .. })));
     let snap = Vod2::open(&w.path).unwrap().head();
-    assert_bricks_match_file(&events, &snap);
     let info = streamer.info().clone();
     let resident: BTreeSet<BrickKey> = streamer.resident().into_iter().collect();
-    let surface: BTreeSet<BrickKey> = select_tiles(&info, camera, &radii)
-        .into_iter()
-        .filter(|&k| holds_surface(&snap, k))
-        .collect();
-    assert!(!surface.is_empty(), "the ball holds no surface");
-    let missed: Vec<_> = surface.difference(&resident).collect();
-    assert!(
-        missed.is_empty(),
-        "surface bricks {missed:?} are not resident"
-    );
-    let after = streamer.stats();
     let routes = counter.snapshot();
     let count = |r: &HashMap<&'static str, u64>, route| r.get(route).copied().unwrap_or(0);
-    let by_position = count(&routes, "brick") - count(&routes_before, "brick");
+    let after = streamer.stats();
+    match kind {
+        TileKind::Bricks => {
+            assert_bricks_match_file(&events, &snap);
+            let surface: BTreeSet<BrickKey> = select_tiles(&info, camera, &radii)
+                .into_iter()
+                .filter(|&k| holds_surface(&snap, k))
+                .collect();
+            assert!(!surface.is_empty(), "the ball holds no surface");
+            let missed: Vec<_> = surface.difference(&resident).collect();
+            assert!(
+                missed.is_empty(),
+                "surface bricks {missed:?} are not resident"
+            );
+            // The streamer asked for the bricks themselves at the new version.
+            let by_position = count(&routes, "brick") - count(&routes_before, "brick");
+            assert!(by_position > 0, "no brick fetched by position");
+        }
+        TileKind::Meshes { .. } => {
+            // The ball is drawn, by meshes the offline mesher makes of the file.
+            let drawn = events.iter().any(|e| {
+                matches!(e, StreamEvent::Ready { data: TileData::Mesh(m), .. } if m.mesh.triangles() > 0)
+            });
+            assert!(drawn, "no tile draws the ball");
+            assert!(assert_meshes_match_file(&events, &w.path) > 0);
+        }
+    }
     eprintln!(
-        "ball: {} grid regions before, {} after ({} for edits), {} bricks by position, {} surface bricks",
+        "{kind:?}: {} grid regions before, {} after ({} for edits), {} bricks, {} mesh tiles after",
         before.grid_requests,
         after.grid_requests - before.grid_requests,
         after.edit_grid_requests,
-        by_position,
-        surface.len(),
+        count(&routes, "brick") - count(&routes_before, "brick"),
+        count(&routes, "mesh") - count(&routes_before, "mesh"),
     );
-    // The streamer asked for the bricks themselves at the new version, not for grid regions.
-    assert!(by_position > 0, "no brick fetched by position");
-    assert_eq!(after.grid_requests, before.grid_requests, "{after:?}");
-    assert_eq!(after.edit_grid_requests, 0, "{after:?}");
+    assert_eq!(
+        after.grid_requests, before.grid_requests,
+        "{kind:?}: {after:?}"
+    );
+    assert_eq!(after.edit_grid_requests, 0, "{kind:?}: {after:?}");
     streamer.shutdown().await;
 }

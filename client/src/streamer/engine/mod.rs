@@ -342,18 +342,7 @@ impl Engine {
                     self.scheduler.wait(h, key);
                     Plan::Waiting
                 }
-                // A brick a commit made wanted whose grid entry was never asked for: the descent
-                // had skipped it from a coarser brick's range, and an edit beside it put the
-                // surface at its side. The brick itself at this version, which a cache can
-                // answer, not a grid region, which only the origin can. (Bricks a commit
-                // changed without saying what they hold now share one designated region
-                // instead, see `bring_together`; after a reload nothing is bounded.)
-                None if self.edited.contains(&key)
-                    && !self.book.has_designated_source(key)
-                    && self
-                        .descent
-                        .is_some_and(|iso| self.book.bound(&self.layout, key, iso).is_ok()) =>
-                {
+                None if self.at_version(key, &[key]) => {
                     need(needed, JobKey::Brick(key), d);
                     Plan::Waiting
                 }
@@ -369,6 +358,23 @@ impl Engine {
         }
     }
 
+    /// Whether tile `key`, whose inputs `unknown` have unknown hashes, is asked for at the
+    /// engine's version rather than after their grid regions: a commit made it wanted, and
+    /// the descent had skipped every one of them from a coarser brick's range, so their grid
+    /// entries were never asked for (an edit beside them put the surface at their side). The
+    /// tile at this version is an answer a cache can give; a grid region only the origin can.
+    /// (Bricks a commit changed without saying what they hold now share one designated region
+    /// instead, see `HashBook::bring_together`; after a reload nothing is bounded.)
+    fn at_version(&self, key: BrickKey, unknown: &[BrickKey]) -> bool {
+        let Some(iso) = self.descent else {
+            return false;
+        };
+        self.edited.contains(&key)
+            && unknown.iter().all(|&b| {
+                !self.book.has_designated_source(b) && self.book.bound(&self.layout, b, iso).is_ok()
+            })
+    }
+
     /// Plans mesh tile `key` (at `iso`, at distance `d`): the tile and the strips of its mask's
     /// faces, each from the cache or a request into `needed`. Returns its drawing (content key
     /// and strips' content keys) when all are in the cache.
@@ -381,26 +387,36 @@ impl Engine {
     ) -> Option<(BrickKey, u64, [Option<u64>; 6])> {
         let mask = self.desired.mask(key);
         let mut unknown = Vec::new();
-        let content = match self.book.mesh_content(self.shape(), key, iso) {
+        let mut known = |c: Result<u64, Vec<BrickKey>>| match c {
             Ok(c) => Some(c),
             Err(u) => {
                 unknown.extend(u);
                 None
             }
         };
+        let content = known(self.book.mesh_content(self.shape(), key, iso));
         let mut strips = [None; 6];
         for face in (0..6u8).filter(|f| mask >> f & 1 == 1) {
-            match self.book.strip_content(self.shape(), key, face, iso) {
-                Ok(c) => strips[usize::from(face)] = Some(c),
-                Err(u) => unknown.extend(u),
-            }
+            strips[usize::from(face)] =
+                known(self.book.strip_content(self.shape(), key, face, iso));
         }
-        let (Some(content), true) = (content, unknown.is_empty()) else {
+        let (content, strips) = if unknown.is_empty() {
+            (content, strips)
+        } else if self.at_version(key, &unknown) {
+            // Keyed by this version: the parts are requested at it (see `at_version`).
+            let at = |face| version_content(key, face, iso, self.version);
+            let mut at_strips = [None; 6];
+            for face in (0..6u8).filter(|f| mask >> f & 1 == 1) {
+                at_strips[usize::from(face)] = Some(at(Some(face)));
+            }
+            (Some(at(None)), at_strips)
+        } else {
             for b in unknown {
                 need(needed, self.book.source_of(&self.layout, b), d);
             }
             return None;
         };
+        let content = content?;
         let mut complete = true;
         if !self.cache.contains(content) {
             complete = false;
@@ -974,4 +990,19 @@ fn value_range(voxels: &[u8], voxel_type: VoxelType) -> (u16, u16) {
             .map(|c| u16::from_le_bytes([c[0], c[1]]))
             .fold((u16::MAX, 0), widen),
     }
+}
+
+/// The content key of a mesh tile (or of the strip of `face`) at `version`, for parts asked for
+/// at a version because some input's hash is unknown (see `Engine::at_version`).
+fn version_content(key: BrickKey, face: Option<u8>, iso: Option<f32>, version: u64) -> u64 {
+    let mut h = DefaultHasher::new();
+    (
+        "isovox tile part at a version",
+        key,
+        face,
+        iso.map(f32::to_bits),
+        version,
+    )
+        .hash(&mut h);
+    h.finish()
 }
