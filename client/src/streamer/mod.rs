@@ -64,6 +64,12 @@
 //! (min >= 240). An edit's event carries the new ranges of the bricks it changed, so the tiles it
 //! reaches (and, for bricks, the skipped ones next to them) are decided again from those.
 //!
+//! Deciding again asks for no grid region. The bricks an edit did not change keep the bound they
+//! had from a coarser brick before the commit changed it (their content is what it was). A tile
+//! an edit makes wanted whose inputs were only ever bounded, never listed in a grid answer, is
+//! asked for at the new version (a brick by position, a mesh tile and its strips under a content
+//! key of that version): answers a cache can give, where a grid region only the origin can.
+//!
 //! # Versions
 //!
 //! The streamer works at one version at a time: the version of the last commit it applied from

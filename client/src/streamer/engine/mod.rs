@@ -41,8 +41,9 @@ pub(super) struct Engine {
     /// The iso value the descent skips surfaceless tiles at; `None`: no descent, every desired
     /// tile is fetched (see [`descent`]).
     descent: Option<f32>,
-    /// Desired tiles a commit invalidated that have not been delivered (or skipped) since: the
-    /// grid regions they need are counted as caused by edits.
+    /// Desired tiles that were complete (delivered, or skipped) until a commit invalidated
+    /// them, and have not been complete since: the grid regions they need are counted as caused
+    /// by edits.
     edited: HashSet<BrickKey>,
     /// The grid regions of the current plan that such tiles need.
     edit_regions: HashSet<JobKey>,
@@ -719,7 +720,9 @@ impl Engine {
 
     /// Marks a delivered tile stale (emitting `Stale`) and any desired tile as needing content.
     fn invalidate(&mut self, key: BrickKey, version: u64) {
-        if self.desired.contains(key) {
+        // Only a tile that was complete (delivered, or skipped by the descent) needs content
+        // again because of the commit: one still loading asks for what it asked for before.
+        if self.desired.contains(key) && !self.desired.needs(key) {
             self.edited.insert(key);
         }
         let Some(newly_stale) = self.desired.invalidate(key) else {
