@@ -210,6 +210,16 @@ struct Staged {
     started: Instant,
 }
 
+/// What staging a group left: its versions, and the answers not given by a version of it
+/// (conflicts, failures, dry runs), by the position among the versions they come at.
+struct StagedGroup {
+    staged: Vec<Staged>,
+    answered: Vec<(usize, PendingEdit, EditAnswer)>,
+}
+
+/// The writer could not roll back, or sync: it no longer knows what its file holds.
+struct WriterLost;
+
 impl LiveVolume {
     pub(super) fn queue(&self) -> std::sync::MutexGuard<'_, EditQueue> {
         // Every update of the queue is one push, one drain or one flag: a panic cannot leave
@@ -351,9 +361,8 @@ impl LiveVolume {
             self.commit_group_remote(&remote, slot, group, policy);
             return;
         }
-        let mut base = self.current();
-        let writer = match writer_at(slot, &base) {
-            Ok(w) => w,
+        let (writer, base) = match self.writer_and_base(slot) {
+            Ok(at) => at,
             Err(e) => {
                 for pending in group {
                     pending.answer(Err(copy_of(&e).into()));
@@ -361,26 +370,50 @@ impl LiveVolume {
                 return;
             }
         };
-        if writer.head().map(|h| h.commit) != Some(base.head_ref().commit_offset()) {
-            // The file holds versions the volume does not serve (a group that stopped after
-            // its sync): serve the file as it is before building on it.
-            tracing::error!(volume = %self.name, "the served head is behind the file; reloading it");
-            match self.reload() {
-                Ok(fresh) => base = fresh,
-                Err(e) => {
-                    slot.writer = None;
-                    for pending in group {
-                        pending.answer(Err(copy_of(&e).into()));
-                    }
-                    return;
-                }
-            }
+        let outcome = self
+            .stage_group(writer, base, group, policy)
+            .and_then(|stage| self.sync_and_answer(writer, stage, began));
+        if let Err(WriterLost) = outcome {
+            // Every edit was answered. The next group reopens the file, cutting off everything
+            // staged, and learns what reached the disk.
+            slot.writer = None;
         }
+    }
+
+    /// The volume's writer, opened if needed, and the version to build on: the served head,
+    /// reloaded from the file first when the file holds versions the volume does not serve (a
+    /// group that stopped after its sync).
+    fn writer_and_base<'a>(
+        &self,
+        slot: &'a mut WriterSlot,
+    ) -> Result<(&'a mut Vod2Writer, Arc<Vod2>), StoreError> {
+        let mut base = self.current();
+        let writer_head = writer_at(slot, &base)?.head().map(|h| h.commit);
+        if writer_head != Some(base.head_ref().commit_offset()) {
+            tracing::error!(volume = %self.name, "the served head is behind the file; reloading it");
+            base = self.reload().inspect_err(|_| slot.writer = None)?;
+        }
+        let writer = slot
+            .writer
+            .as_mut()
+            .ok_or_else(|| StoreError::Internal("the writer was not opened".into()))?;
+        Ok((writer, base))
+    }
+
+    /// Stages the edits of `group` in order on `base`, each on the one before: versions for
+    /// the edits that make one, answers by position for the others (conflicts, failures, dry
+    /// runs). `Err` when the writer could not roll back a dry run or a failed edit: every edit
+    /// of the group is then answered.
+    fn stage_group(
+        &self,
+        writer: &mut Vod2Writer,
+        base: Arc<Vod2>,
+        group: Vec<PendingEdit>,
+        policy: CheckpointPolicy,
+    ) -> Result<StagedGroup, WriterLost> {
         // The newest version so far: the served head, then each staged one.
         let mut tip = base;
         let mut staged: Vec<Staged> = Vec::new();
-        // Answers not given by a version of this group (conflicts, failures, dry runs), by
-        // position.
         let mut answered: Vec<(usize, PendingEdit, EditAnswer)> = Vec::new();
         let mut edits = group.into_iter();
         while let Some(mut pending) = edits.next() {
@@ -401,15 +434,27 @@ impl LiveVolume {
             let savepoint = writer.savepoint();
             let cancel = pending.cancel.restarted();
             let dry_run = matches!(pending.work, Work::Edit { dry_run: true, .. });
-            match self.stage_work(writer, &tip, &mut pending.work, policy, &cancel) {
+            let staging = self.stage_work(writer, &tip, &mut pending.work, policy, &cancel);
+            // A dry run's version, or a failed edit's bytes, are taken back.
+            let undo = match &staging {
+                Ok(_) if !dry_run => None,
+                Ok(_) => Some("cannot roll back a dry run"),
+                Err(_) => Some("cannot roll back a failed edit"),
+            };
+            if let Some(what) = undo {
+                if let Err(cut) = writer.rollback(savepoint) {
+                    tracing::error!(volume = %self.name, error = %error_chain(&cut), "{what}");
+                    let answer = match staging {
+                        Err(e) => Err(e),
+                        Ok(_) => Err(copy_of(&cut).into()),
+                    };
+                    pending.answer(answer);
+                    fail_all(staged, answered, edits, &cut);
+                    return Err(WriterLost);
+                }
+            }
+            match staging {
                 Ok((_, _, mut response)) if dry_run => {
-                    if let Err(cut) = writer.rollback(savepoint) {
-                        tracing::error!(volume = %self.name, error = %error_chain(&cut), "cannot roll back a dry run");
-                        slot.writer = None;
-                        pending.answer(Err(copy_of(&cut).into()));
-                        fail_all(staged, answered, edits, &cut);
-                        return;
-                    }
                     response.dry_run = true;
                     response.committed = false;
                     response.elapsed_us = micros(started.elapsed());
@@ -425,28 +470,28 @@ impl LiveVolume {
                         started,
                     });
                 }
-                Err(e) => {
-                    if let Err(cut) = writer.rollback(savepoint) {
-                        // The writer no longer knows what its file holds: fail the group; the
-                        // next one reopens the file (cutting off everything staged).
-                        tracing::error!(volume = %self.name, error = %error_chain(&cut), "cannot roll back a failed edit");
-                        slot.writer = None;
-                        pending.answer(Err(e));
-                        fail_all(staged, answered, edits, &cut);
-                        return;
-                    }
-                    answered.push((staged.len(), pending, Err(e)));
-                }
+                Err(e) => answered.push((staged.len(), pending, Err(e))),
             }
         }
+        Ok(StagedGroup { staged, answered })
+    }
+
+    /// Makes the staged versions durable with one sync, then publishes them and answers every
+    /// edit in order (the other answers at their places among the versions). A failed sync
+    /// fails the group: `Err`, since the versions may or may not have reached the disk.
+    fn sync_and_answer(
+        &self,
+        writer: &mut Vod2Writer,
+        stage: StagedGroup,
+        began: Instant,
+    ) -> Result<(), WriterLost> {
+        let StagedGroup { staged, answered } = stage;
         if !staged.is_empty() {
             let synced = Instant::now();
             if let Err(e) = writer.sync() {
                 tracing::error!(volume = %self.name, error = %error_chain(&e), "cannot make an edit group durable");
-                // The slot may or may not have reached the disk: reopen to learn which.
-                slot.writer = None;
                 fail_all(staged, answered, std::iter::empty(), &e);
-                return;
+                return Err(WriterLost);
             }
             tracing::debug!(
                 volume = %self.name,
@@ -456,7 +501,6 @@ impl LiveVolume {
                 "edit group durable"
             );
         }
-        // Publish and answer in order: the other answers at their places among the versions.
         let mut answered = answered.into_iter().peekable();
         for (i, s) in staged.into_iter().enumerate() {
             while let Some((_, pending, a)) = answered.next_if(|(at, _, _)| *at <= i) {
@@ -470,6 +514,7 @@ impl LiveVolume {
         for (_, pending, a) in answered {
             pending.answer(a);
         }
+        Ok(())
     }
 
     /// Applies one edit as a group of its own (one sync), holding the writer; what
