@@ -39,12 +39,7 @@ fn schemathesis(part: &str) -> (String, String, String) {
         .env_remove("ISOVOX_LOG")
         .output()
         .unwrap_or_else(|e| panic!("cannot run scripts/fuzz-api.sh: {e}"));
-    let text = format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    println!("{text}");
+    let text = crate::common::printed_output(&out);
     assert!(
         out.status.success(),
         "Schemathesis found the document and the server at odds ({}):\n{text}",

@@ -188,3 +188,15 @@ pub(crate) fn pyramid(level0: &Grid, brick: u32) -> Vec<Grid> {
     }
     out
 }
+
+/// A finished command's standard output then its standard error, as text, printed too (a
+/// failing test shows it).
+pub(crate) fn printed_output(out: &std::process::Output) -> String {
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    println!("{text}");
+    text
+}

@@ -25,12 +25,7 @@ fn run(program: &str, args: &[&str], envs: &[(&str, &str)]) {
         .current_dir(web())
         .output()
         .unwrap_or_else(|e| panic!("cannot run {program} (Node.js 20+ is needed): {e}"));
-    let text = format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    println!("{text}");
+    let text = crate::common::printed_output(&out);
     assert!(
         out.status.success(),
         "{program} {} failed ({}):\n{text}",
