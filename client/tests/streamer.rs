@@ -1848,7 +1848,15 @@ async fn the_descent_fetches_every_brick_holding_the_surface() {
     // docs/benchmarks.md measures them on a large one.)
     // (Nor blobs much: air and rock bricks share one hash each.)
     assert!(count(&some_routes, "blob") <= count(&all_routes, "blob"));
-    assert_eq!(some_stats.grid_requests, count(&some_routes, "level"));
+    // Every region asked for reached the server, but those aborted on the way (a region no
+    // tile needs any more once a coarser answer decided them is aborted, and may or may not
+    // have been sent).
+    let regions = count(&some_routes, "level");
+    assert!(
+        some_stats.grid_requests - some_stats.grid_aborted <= regions
+            && regions <= some_stats.grid_requests,
+        "{regions} grid regions answered; {some_stats:?}"
+    );
     eprintln!(
         "descent: {} of {} tiles ({} holding the surface), {} grid regions instead of {}, {} blobs instead of {}",
         some_keys.len(),

@@ -390,6 +390,9 @@ pub struct StreamerStats {
     pub stale_refetches: u64,
     /// Grid regions requested (`GET .../levels/{l}?format=grid`), every cause.
     pub grid_requests: u64,
+    /// Of those, the regions aborted before their answer was used (no tile needed them any
+    /// more, or a commit made them stale): some of those never reached the server.
+    pub grid_aborted: u64,
     /// Of those, the regions a tile needed because a commit invalidated it (a hash the event
     /// did not list, or a descent the new value ranges opened).
     pub edit_grid_requests: u64,

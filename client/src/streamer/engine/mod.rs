@@ -79,6 +79,7 @@ struct Counters {
     misses: u64,
     stale_refetches: u64,
     grid_requests: u64,
+    grid_aborted: u64,
     edit_grid_requests: u64,
     skipped: u64,
 }
@@ -478,6 +479,9 @@ impl Engine {
     fn abort(&mut self, job: JobKey, forget: bool) {
         if !self.scheduler.abort(job) {
             return;
+        }
+        if matches!(job, JobKey::Region { .. }) {
+            self.stats.grid_aborted += 1;
         }
         if let (true, JobKey::Region { level, min, max }) = (forget, job) {
             self.book.forget_source(level, min, max, job);
@@ -911,6 +915,7 @@ impl Engine {
                 version: self.version,
                 stale_refetches: self.stats.stale_refetches,
                 grid_requests: self.stats.grid_requests,
+                grid_aborted: self.stats.grid_aborted,
                 edit_grid_requests: self.stats.edit_grid_requests,
                 skipped: self.stats.skipped,
             };
