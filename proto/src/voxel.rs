@@ -81,9 +81,39 @@ impl FromStr for VoxelType {
     }
 }
 
+/// Smallest and largest voxel value of a decoded brick.
+pub fn min_max(bytes: &[u8], voxel_type: VoxelType) -> (u16, u16) {
+    match voxel_type {
+        VoxelType::U8 => {
+            let (mut lo, mut hi) = (u8::MAX, u8::MIN);
+            for &v in bytes {
+                lo = lo.min(v);
+                hi = hi.max(v);
+            }
+            (lo as u16, hi as u16)
+        }
+        VoxelType::U16 => {
+            let (mut lo, mut hi) = (u16::MAX, u16::MIN);
+            for c in bytes.chunks_exact(2) {
+                let v = u16::from_le_bytes([c[0], c[1]]);
+                lo = lo.min(v);
+                hi = hi.max(v);
+            }
+            (lo, hi)
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn min_max_of_both_types() {
+        assert_eq!(min_max(&[5, 3, 9, 7], VoxelType::U8), (3, 9));
+        // u16 little endian: 0x0102 = 258, 0x0001 = 256, 0x00ff = 255.
+        assert_eq!(min_max(&[2, 1, 0, 1, 0xff, 0], VoxelType::U16), (255, 258));
+    }
 
     #[test]
     fn range_table_matches_the_spec() {

@@ -6,6 +6,8 @@
 
 use super::StoreError;
 use isovox_proto::vod2::Codec;
+/// The smallest and largest value of a decoded brick (shared with the client streamer).
+pub use isovox_proto::voxel::min_max;
 use isovox_proto::{VolumeLayout, VoxelType};
 use std::cell::RefCell;
 
@@ -66,29 +68,6 @@ impl Compression {
 thread_local! {
     static ZSTD_ENCODER: RefCell<Option<(i32, zstd::bulk::Compressor<'static>)>> = const { RefCell::new(None) };
     static ZSTD_DECODER: RefCell<Option<zstd::bulk::Decompressor<'static>>> = const { RefCell::new(None) };
-}
-
-/// Smallest and largest voxel value of a decoded brick.
-pub fn min_max(bytes: &[u8], voxel_type: VoxelType) -> (u16, u16) {
-    match voxel_type {
-        VoxelType::U8 => {
-            let (mut lo, mut hi) = (u8::MAX, u8::MIN);
-            for &v in bytes {
-                lo = lo.min(v);
-                hi = hi.max(v);
-            }
-            (lo as u16, hi as u16)
-        }
-        VoxelType::U16 => {
-            let (mut lo, mut hi) = (u16::MAX, u16::MIN);
-            for c in bytes.chunks_exact(2) {
-                let v = u16::from_le_bytes([c[0], c[1]]);
-                lo = lo.min(v);
-                hi = hi.max(v);
-            }
-            (lo, hi)
-        }
-    }
 }
 
 /// Fills a decoded brick with one value.
@@ -253,13 +232,6 @@ pub fn decode(codec: Codec, payload: &[u8], out: &mut [u8], offset: u64) -> Resu
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn min_max_of_both_types() {
-        assert_eq!(min_max(&[5, 3, 9, 7], VoxelType::U8), (3, 9));
-        // u16 little endian: 0x0102 = 258, 0x0001 = 256, 0x00ff = 255.
-        assert_eq!(min_max(&[2, 1, 0, 1, 0xff, 0], VoxelType::U16), (255, 258));
-    }
 
     #[test]
     fn constant_fill_is_little_endian() {

@@ -29,10 +29,18 @@ fn workspace() -> PathBuf {
 
 /// `isovox` with the store's environment and `envs`, its output (not checked).
 fn run(s3: &S3, args: &[&str], envs: &[(&str, &str)]) -> Output {
+    isovox(s3, args)
+        .envs(envs.iter().copied())
+        .output()
+        .unwrap()
+}
+
+/// `isovox args`, with the S3 server's endpoint and credentials in its environment.
+fn isovox(s3: &S3, args: &[&str]) -> Command {
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_isovox"));
-    cmd.args(args).envs(envs.iter().copied());
+    cmd.args(args);
     s3.env(&mut cmd);
-    cmd.output().unwrap()
+    cmd
 }
 
 /// `isovox` that must succeed: its stdout and stderr.
@@ -221,12 +229,11 @@ fn four_concurrent_parts_and_a_finish_make_the_single_import_s_volume() {
     let children: Vec<_> = (0..4)
         .map(|i| {
             let part = format!("{i}/4");
-            let mut cmd = Command::new(env!("CARGO_BIN_EXE_isovox"));
-            cmd.args(import_args(&input, &volume, &["--part", &part]))
+            isovox(&s3, &import_args(&input, &volume, &["--part", &part]))
                 .stdout(Stdio::piped())
-                .stderr(Stdio::piped());
-            s3.env(&mut cmd);
-            cmd.spawn().unwrap()
+                .stderr(Stdio::piped())
+                .spawn()
+                .unwrap()
         })
         .collect();
     for (i, child) in children.into_iter().enumerate() {
@@ -283,13 +290,12 @@ fn a_part_killed_mid_way_resumes_and_a_finished_part_is_skipped() {
     }
 
     // Part 2 waits after each row it stores; it is killed after its first.
-    let mut cmd = Command::new(env!("CARGO_BIN_EXE_isovox"));
-    cmd.args(import_args(&input, &volume, &["--part", "2/4"]))
+    let mut child = isovox(&s3, &import_args(&input, &volume, &["--part", "2/4"]))
         .env("ISOVOX_PART_PAUSE_AFTER_ROW_MS", "60000")
         .stdout(Stdio::null())
-        .stderr(Stdio::piped());
-    s3.env(&mut cmd);
-    let mut child = cmd.spawn().unwrap();
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
     let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
     let deadline = Instant::now() + Duration::from_secs(120);
     loop {

@@ -26,7 +26,6 @@ use book::{HashBook, Shape};
 use cache::{Content, Lru};
 use descent::Decision;
 use desired::Desired;
-use isovox_proto::VoxelType;
 use scheduler::{JobKey, Output, Scheduler};
 use std::collections::HashSet;
 
@@ -656,7 +655,7 @@ impl Engine {
         self.scheduler.succeeded(job);
         self.stats.bytes += brick.voxels.len() as u64;
         self.stats.misses += 1;
-        let range = value_range(&brick.voxels, self.layout.voxel_type());
+        let range = isovox_proto::voxel::min_max(&brick.voxels, self.layout.voxel_type());
         self.book.learn(key, brick.hash, range);
         let data = Content::Brick(brick.voxels);
         self.cache
@@ -982,22 +981,6 @@ async fn sleep_until(at: Option<Instant>) {
 fn need(needed: &mut HashMap<JobKey, f32>, job: JobKey, d: f32) {
     let e = needed.entry(job).or_insert(d);
     *e = e.min(d);
-}
-
-/// The smallest and largest voxel value of a brick's voxels (u16 little endian when `voxel_type`
-/// is u16), as a grid entry would say.
-fn value_range(voxels: &[u8], voxel_type: VoxelType) -> (u16, u16) {
-    let widen = |(lo, hi): (u16, u16), v: u16| (lo.min(v), hi.max(v));
-    match voxel_type {
-        VoxelType::U8 => voxels
-            .iter()
-            .map(|&v| u16::from(v))
-            .fold((u16::MAX, 0), widen),
-        VoxelType::U16 => voxels
-            .chunks_exact(2)
-            .map(|c| u16::from_le_bytes([c[0], c[1]]))
-            .fold((u16::MAX, 0), widen),
-    }
 }
 
 /// The content key of a mesh tile (or of the strip of `face`) at `version`, for parts asked for
