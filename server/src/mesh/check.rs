@@ -116,20 +116,41 @@ pub fn crossing_triangles(mesh: &Mesh, chosen: &[bool]) -> usize {
             (l[1]..=h[1]).flat_map(move |y| (l[0]..=h[0]).map(move |x| [x, y, z]))
         })
     };
+    // Only triangles overlapping the box of the chosen ones can cross one of them: the others
+    // stay out of the grid (in a test's small mesh, most of the triangles).
+    let (mut lo_chosen, mut hi_chosen) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for (lo, hi) in (0..n).filter(|&t| chosen[t]).map(|t| boxes[t]) {
+        for a in 0..3 {
+            lo_chosen[a] = lo_chosen[a].min(lo[a]);
+            hi_chosen[a] = hi_chosen[a].max(hi[a]);
+        }
+    }
     let mut grid: HashMap<[i64; 3], Vec<usize>> = HashMap::new();
     for (t, &b) in boxes.iter().enumerate() {
+        let (lo, hi) = b;
+        if (0..3).any(|a| hi[a] < lo_chosen[a] || hi_chosen[a] < lo[a]) {
+            continue;
+        }
         for c in cells(b) {
             grid.entry(c).or_default().push(t);
         }
     }
     let mut count = 0;
     let mut near = Vec::new();
+    // The last triangle `a` whose list took each triangle: each near triangle is taken once
+    // however many cells it shares with `a`.
+    let mut taken_for = vec![usize::MAX; n];
     for a in (0..n).filter(|&t| chosen[t]) {
         let (la, ha) = boxes[a];
         near.clear();
-        near.extend(cells(boxes[a]).flat_map(|c| grid.get(&c).into_iter().flatten().copied()));
-        near.sort_unstable();
-        near.dedup();
+        for c in cells(boxes[a]) {
+            for &b in grid.get(&c).into_iter().flatten() {
+                if taken_for[b] != a {
+                    taken_for[b] = a;
+                    near.push(b);
+                }
+            }
+        }
         for &b in &near {
             if a == b || (chosen[b] && b < a) {
                 continue;
@@ -139,12 +160,17 @@ pub fn crossing_triangles(mesh: &Mesh, chosen: &[bool]) -> usize {
                 continue;
             }
             let ((ia, pa), (ib, pb)) = (tri(a), tri(b));
-            let shared = ia.iter().filter(|v| ib.contains(v)).count();
+            // Which corners of each triangle the other has too (bit k: corner k).
+            let in_other = |ids: [u32; 3], other: [u32; 3]| {
+                (0..3).fold(0u8, |m, k| m | u8::from(other.contains(&ids[k])) << k)
+            };
+            let (shared_a, shared_b) = (in_other(ia, ib), in_other(ib, ia));
+            let shared = shared_a.count_ones();
             let mut hit = false;
-            for (ids, pts, other) in [(ia, pa, pb), (ib, pb, pa)] {
+            for (pts, other, shared_corners) in [(pa, pb, shared_a), (pb, pa, shared_b)] {
                 for k in 0..3 {
-                    let (u, v) = (ids[k], ids[(k + 1) % 3]);
-                    if ia.contains(&u) && ib.contains(&u) || ia.contains(&v) && ib.contains(&v) {
+                    // An edge with a shared corner meets the other triangle there.
+                    if shared_corners >> k & 1 == 1 || shared_corners >> ((k + 1) % 3) & 1 == 1 {
                         continue;
                     }
                     hit |= segment_pierces(pts[k], pts[(k + 1) % 3], other);

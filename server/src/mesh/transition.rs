@@ -143,12 +143,14 @@ impl TileFaces {
     /// `f` when the point lies on `f` and the coarser tile across `f` reaches beyond every
     /// other face the point lies on (see the module doc). At most one of them can touch a
     /// coarser tile at a time.
-    fn moving_faces_on(&self, on: u8) -> u8 {
+    ///
+    /// `reach` is the tile's [`TileFaces::reach`], which does not depend on `on`: a table of
+    /// every mask takes it once.
+    fn moving_faces_on(&self, on: u8, reach: u8) -> u8 {
         if on & self.faces == 0 {
             return 0;
         }
         // The faces p lies on beyond which a coarser tile across another face ends.
-        let reach = (0..6).fold(0u8, |m, g| m | u8::from(self.reaches_past(g)) << g);
         let blocked = on & !reach;
         // Face f moves when no face but f itself blocks.
         match blocked.count_ones() {
@@ -160,7 +162,14 @@ impl TileFaces {
 
     /// [`TileFaces::moving_faces_on`] of every face mask.
     fn moving_table(&self) -> [u8; 64] {
-        std::array::from_fn(|on| self.moving_faces_on(on as u8))
+        let reach = self.reach();
+        std::array::from_fn(|on| self.moving_faces_on(on as u8, reach))
+    }
+
+    /// The faces beyond which a coarser tile across another face reaches: the face mask of
+    /// [`TileFaces::reaches_past`].
+    fn reach(&self) -> u8 {
+        (0..6).fold(0u8, |m, g| m | u8::from(self.reaches_past(g)) << g)
     }
 }
 
