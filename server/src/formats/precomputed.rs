@@ -13,7 +13,9 @@
 //! channels widened: the encoding below is defined for uint32 and uint64 only) and the
 //! `compressed_segmentation` encoding in blocks of 8^3, and `{channel}/{k}/{range}` is the
 //! channel's brick so encoded ([`super::compressed_segmentation`]): Neuroglancer opens it as a
-//! segmentation layer.
+//! segmentation layer. Its info names `segment_properties`, and
+//! `{channel}/segment_properties/info` lists the channel's segments as Neuroglancer's segment
+//! properties ([`segment_properties`]): the layer's segment list shows each one's size and box.
 //!
 //! A raw chunk is the voxels x fastest, then y, then z (little endian), as a brick is; chunks
 //! at the volume's far faces are cropped (`x1 = min(x0 + b, size)`), as Neuroglancer checks the
@@ -24,6 +26,7 @@
 use super::view::{level_segment, Chunk, ChunkEncoding, Document, ViewError};
 use crate::decimal::NotCanonical;
 use crate::store::Snapshot;
+use crate::volume::segments::SegmentInfo;
 use isovox_proto::VolumeLayout;
 use serde_json::{json, Value};
 
@@ -71,12 +74,73 @@ fn scales_info(layout: &VolumeLayout, voxel_scale: [f32; 3], source: Source) -> 
         Source::Image => ("image", super::zarr::data_type(layout.voxel_type())),
         Source::Segmentation => ("segmentation", "uint32"),
     };
-    json!({
+    let mut info = json!({
         "@type": "neuroglancer_multiscale_volume",
         "type": kind,
         "data_type": data_type,
         "num_channels": 1,
         "scales": scales
+    });
+    if source == Source::Segmentation {
+        info["segment_properties"] = json!(SEGMENT_PROPERTIES);
+    }
+    info
+}
+
+/// Where a segmentation source's segment properties are, relative to the source.
+const SEGMENT_PROPERTIES: &str = "segment_properties";
+
+/// The channel whose segment properties `path` (within the view) names:
+/// `{channel}/segment_properties/info`.
+pub fn segment_properties_channel(path: &str) -> Option<&str> {
+    let (channel, rest) = path.split_once('/')?;
+    let named = rest.strip_prefix(SEGMENT_PROPERTIES)? == "/info";
+    (named && channel.starts_with(|c: char| c.is_ascii_lowercase())).then_some(channel)
+}
+
+/// Neuroglancer's segment properties (`neuroglancer_segment_properties`, inline) of
+/// `segments`, in the order given: a `description` (the level-0 voxel count and box, as the
+/// segments list gives them) and the voxel count as a `number` property, which the segment
+/// list can sort and filter by. Neuroglancer's numbers are at most 32 bits: `uint32` while every
+/// count fits, `float32` (rounded) beyond.
+pub fn segment_properties(segments: &[SegmentInfo]) -> Value {
+    let fits = segments.iter().all(|s| s.voxels <= u64::from(u32::MAX));
+    let ids: Vec<String> = segments.iter().map(|s| s.id.to_string()).collect();
+    let descriptions: Vec<String> = segments
+        .iter()
+        .map(|s| {
+            let [lo, hi] = s.bounds;
+            format!(
+                "{} voxels in [{}, {}, {}] .. [{}, {}, {}]",
+                s.voxels, lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]
+            )
+        })
+        .collect();
+    let voxels: Vec<Value> = segments
+        .iter()
+        .map(|s| {
+            if fits {
+                json!(s.voxels)
+            } else {
+                json!(s.voxels as f32)
+            }
+        })
+        .collect();
+    json!({
+        "@type": "neuroglancer_segment_properties",
+        "inline": {
+            "ids": ids,
+            "properties": [
+                {"id": "description", "type": "description", "values": descriptions},
+                {
+                    "id": "voxels",
+                    "type": "number",
+                    "data_type": if fits { "uint32" } else { "float32" },
+                    "description": "level-0 voxels holding the id",
+                    "values": voxels
+                }
+            ]
+        }
     })
 }
 
@@ -144,7 +208,7 @@ fn source_document<'s>(
             }))
         }
         None => Err(ViewError::NoSuchDocument(format!(
-            "{path:?} is not in the precomputed view: it has info, {{level}}/{{x0}}-{{x1}}_{{y0}}-{{y1}}_{{z0}}-{{z1}}, and {{channel}}/ for each channel"
+            "{path:?} is not in the precomputed view: it has info, {{level}}/{{x0}}-{{x1}}_{{y0}}-{{y1}}_{{z0}}-{{z1}}, and {{channel}}/ (with {{channel}}/segment_properties/info) for each channel"
         ))),
     }
 }

@@ -105,7 +105,7 @@ fn view_paths(name: Value) -> Value {
     let mut paths = serde_json::Map::new();
     for (segment, what, path_doc) in [
         ("zarr", "the OME-Zarr 0.5 (Zarr v3) view", "zarr.json, {level}/zarr.json or {level}/c/{z}/{y}/{x} (a chunk of zeros is 404: the fill value)"),
-        ("precomputed", "the Neuroglancer precomputed view", "info or {level}/{x0}-{x1}_{y0}-{y1}_{z0}-{z1} (400 when the range is not a chunk's)"),
+        ("precomputed", "the Neuroglancer precomputed view", "info or {level}/{x0}-{x1}_{y0}-{y1}_{z0}-{z1} (400 when the range is not a chunk's); a channel's source under {channel}/, with {channel}/segment_properties/info"),
     ] {
         let path = path_param("path", json!({"type": "string"}), path_doc);
         let content = json!({"application/json": {"schema": {"type": "object"}},

@@ -13,6 +13,9 @@
 //! number only in its canonical decimal spelling, nothing percent-escaped (`crate::decimal`),
 //! so each document has one URL and caches keep one copy of it.
 //!
+//! A precomputed segmentation source's `segment_properties/info` comes from the channel's
+//! segments (`docs/channels.md`), made on the CPU queue as the segments list is.
+//!
 //! A Zarr chunk of fill values only answers 404 (clients read it as the fill value) with the
 //! same caching headers as a chunk. A chunk that must be decoded or compressed (not stored as a
 //! frame that goes out as it is, not in the shared cache) is made on the CPU queue, waiting up
@@ -23,8 +26,8 @@ use super::cpu::Admission;
 use super::extract::{Named, Path, RawPath};
 use super::{ApiError, AppState};
 use crate::formats::view::{read, ViewAnswer, ViewBody, ViewRead};
-use crate::formats::{ViewError, ViewKind};
-use crate::volume::LiveVolume;
+use crate::formats::{precomputed, ViewError, ViewKind};
+use crate::volume::{LiveVolume, VolumeError};
 use axum::extract::{Request, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
@@ -101,6 +104,26 @@ async fn view(
         .param("path")
         .ok_or_else(|| ApiError::Internal("a view route without {*path}".into()))?
         .to_string();
+    if kind == ViewKind::Precomputed {
+        if let Some(channel) = precomputed::segment_properties_channel(&path) {
+            let channel = channel.to_string();
+            let vol = state.catalog.get(name)?.clone();
+            // From the channel's segment index, which may have to be built or brought up to
+            // date: CPU work, as the segments list is.
+            let answer = state
+                .cpu
+                .run(Admission::Place, move || {
+                    let list = vol.all_segments(version, &channel)?;
+                    let doc = precomputed::segment_properties(&list.segments);
+                    Ok::<_, VolumeError>(ViewAnswer {
+                        version: list.version,
+                        body: ViewBody::Json(serde_json::to_vec(&doc).unwrap_or_default().into()),
+                    })
+                })
+                .await?;
+            return respond(kind, name, version, &path, answer, request.headers());
+        }
+    }
     let (made, path) = state
         .read_volume(name, move |state, vol| {
             read(vol, kind, version, &path, &state.bricks).map(|made| (made, path))

@@ -567,6 +567,21 @@ impl LiveVolume {
         })
     }
 
+    /// Every segment of `channel` at `version` (the head when `None`), on one page: a
+    /// channel's ids are u16, so at most 65,535 of them. Blocking, as [`LiveVolume::segments`].
+    ///
+    /// # Errors
+    /// See [`LiveVolume::with_segments`].
+    pub fn all_segments(
+        &self,
+        version: Option<u64>,
+        channel: &str,
+    ) -> Result<SegmentList, VolumeError> {
+        self.with_segments(version, channel, |index| {
+            Ok(index.list(channel, None, usize::from(u16::MAX)))
+        })
+    }
+
     /// The closed mesh of segment `id` of `channel` at `level` (0 when `None`) and `version`
     /// (the head when `None`): marching cubes on the indicator of `id` (1 where the channel's
     /// level-`level` voxel is `id`, 0 elsewhere; iso 0.5) over the segment's box at that level

@@ -263,6 +263,102 @@ fn segments_follow_paints_undo_redo_and_revert_and_equal_a_recount() {
     assert_eq!(builds(), 2);
 }
 
+/// The precomputed view's segmentation sources name their segment properties, and those list
+/// each segment as Neuroglancer reads them (inline ids as decimal strings, one value per id in
+/// every property), with the hand-counted sizes and boxes of the paints; pinned to a version,
+/// that version's segments, immutable.
+#[test]
+fn precomputed_segmentations_list_their_segments_as_neuroglancer_segment_properties() {
+    isovox_server::client_tls::install_provider();
+    let dir = tempfile::tempdir().unwrap();
+    ground(dir.path());
+    let server = serve(dir.path());
+    let base = "/v1/volumes/world/precomputed";
+    let info = get_json(&server, &format!("{base}/label/info"));
+    assert_eq!(info["segment_properties"], "segment_properties");
+    assert!(get_json(&server, &format!("{base}/info"))
+        .get("segment_properties")
+        .is_none());
+
+    let properties = |path: &str| get_json(&server, &format!("{path}/segment_properties/info"));
+    // Nothing labelled: no ids, and every property empty.
+    let empty = properties(&format!("{base}/label"));
+    assert_eq!(empty["@type"], "neuroglancer_segment_properties");
+    assert_eq!(empty["inline"]["ids"], json!([]));
+
+    // The paints of the test above: id 5 inside [11, 21) x [13, 19) x [15, 19), then id 9 on
+    // [19, 27) x [15, 23) x [11, 19) over 32 of its voxels.
+    let first = paint(&server, [10, 12, 14], [12, 8, 6], 5);
+    paint(&server, [18, 14, 10], [10, 10, 10], 9);
+    let expected = |ids: &[&str], texts: &[&str], voxels: &[u64]| {
+        json!({
+            "@type": "neuroglancer_segment_properties",
+            "inline": {
+                "ids": ids,
+                "properties": [
+                    {"id": "description", "type": "description", "values": texts},
+                    {"id": "voxels", "type": "number", "data_type": "uint32",
+                     "description": "level-0 voxels holding the id", "values": voxels}
+                ]
+            }
+        })
+    };
+    assert_eq!(
+        properties(&format!("{base}/label")),
+        expected(
+            &["5", "9"],
+            &[
+                "208 voxels in [11, 13, 15] .. [21, 19, 19]",
+                "512 voxels in [19, 15, 11] .. [27, 23, 19]"
+            ],
+            &[208, 512]
+        )
+    );
+    // The material channel: rock everywhere.
+    assert_eq!(
+        properties(&format!("{base}/material")),
+        expected(
+            &["1"],
+            &["262144 voxels in [0, 0, 0] .. [64, 64, 64]"],
+            &[262_144]
+        )
+    );
+
+    // Pinned to the first paint's version: id 5 alone, whole, and cached for good.
+    let pinned =
+        format!("/v1/volumes/world/versions/{first}/precomputed/label/segment_properties/info");
+    let r = reqwest::blocking::get(server.url(&pinned)).unwrap();
+    assert_eq!(r.status(), 200);
+    assert!(r.headers()["cache-control"]
+        .to_str()
+        .unwrap()
+        .contains("immutable"));
+    let doc: Value = r.json().unwrap();
+    assert_eq!(
+        doc,
+        expected(
+            &["5"],
+            &["240 voxels in [11, 13, 15] .. [21, 19, 19]"],
+            &[240]
+        )
+    );
+    // The live document names its version's pinned URL.
+    let r = reqwest::blocking::get(server.url(&format!("{base}/label/segment_properties/info")))
+        .unwrap();
+    assert_eq!(
+        r.headers()["content-location"].to_str().unwrap(),
+        format!(
+            "/v1/volumes/world/versions/{}/precomputed/label/segment_properties/info",
+            first + 1
+        )
+    );
+
+    // A channel the volume lacks: 404 naming the ones it has.
+    let (status, body) = get(&server, &format!("{base}/nothing/segment_properties/info"));
+    assert_eq!(status, 404, "{}", String::from_utf8_lossy(&body));
+    assert!(String::from_utf8_lossy(&body).contains("label"));
+}
+
 /// The volume marching cubes (iso 0.5) encloses around an `n x m x k` box of ones in a field
 /// of zeros, voxel units, derived cell by cell: every cell of the grid whose corners are all
 /// inside is whole (as in the box of side n, m, k around the voxel centres, grown by 0.5);
