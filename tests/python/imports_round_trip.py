@@ -2,7 +2,8 @@
 an export reads back equal in the field's readers; bad inputs fail clearly and leave nothing.
 
 Writers: zarr-python (Zarr v3, and v2 with blosc), ome-zarr (an OME-Zarr image with a voxel
-scale), cloud-volume (precomputed, raw and gzip chunks, a voxel offset), nibabel (NIfTI-1 .nii
+scale), cloud-volume (precomputed, raw and gzip chunks, a voxel offset; segmentations in
+compressed_segmentation, uint32 and uint64, as a label channel), nibabel (NIfTI-1 .nii
 and .nii.gz, with the voxel size in the header), tifffile (a multi-page file and a folder of
 pages). Each is imported with the `isovox` binary and exported back to RAW (`isovox export`),
 which must equal the array written. Wider types are checked against the window mapping computed
@@ -174,6 +175,30 @@ def main():
         got = zarr.open_group(exported, mode="r")["labels"]["label"]["0"][...]
         same("NIfTI uint32 label map as channel label", got, seg.astype(np.uint16))
         same("the image beside it", zarr.open_group(exported, mode="r")["0"][...], u8)
+    # cloud-volume: precomputed segmentations in compressed_segmentation (its encoder is the
+    # `compressed-segmentation` package), uint32 and uint64, gzip chunks and plain, chunks that
+    # are not whole 8^3 blocks; imported as the channel `label`, read back as above.
+    for data_type, compress in (("uint32", "gzip"), ("uint64", False)):
+        path = os.path.join(work, f"seg-{data_type}")
+        shutil.rmtree(path, ignore_errors=True)
+        info = CloudVolume.create_new_info(
+            num_channels=1, layer_type="segmentation", data_type=data_type,
+            encoding="compressed_segmentation", resolution=[1, 1, 1], voxel_offset=[0, 0, 0],
+            chunk_size=[20, 12, 9], volume_size=[shape[2], shape[1], shape[0]],
+        )
+        cv = CloudVolume(f"file://{path}", info=info, compress=compress, progress=False)
+        cv.commit_info()
+        cv[:, :, :] = seg.astype(data_type).transpose(2, 1, 0)[..., None]
+        out = os.path.join(work, f"labelled-{data_type}.vod")
+        r = run(a.isovox, "import", os.path.join(work, "v.nii"), "-o", out, "--brick", "16",
+                "--channel", f"label=precomputed://{path}")
+        if r.returncode == 0:
+            exported = os.path.join(work, f"labelled-{data_type}-zarr")
+            shutil.rmtree(exported, ignore_errors=True)
+            run(a.isovox, "export", out, "-o", exported, "--format", "zarr")
+            got = zarr.open_group(exported, mode="r")["labels"]["label"]["0"][...]
+            same(f"cloud-volume {data_type} compressed_segmentation as channel label", got, seg.astype(np.uint16))
+
     # A label map of another shape, or with an id past u16, is refused and leaves nothing.
     big = seg.copy()
     big[1, 1, 1] = 70000

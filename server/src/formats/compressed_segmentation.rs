@@ -11,6 +11,9 @@
 //! where it starts (in words from the chunk's start): here one channel, so the chunk is the word
 //! 1 followed by the encoding. Blocks with the same table share one copy of it.
 //!
+//! [`decode_chunk`] reads the encoding back (the precomputed importer's segmentations, uint32
+//! or uint64).
+//!
 //! No Rust crate implements the encoding (the PyPI `compressed-segmentation` package and
 //! tensorstore are C++); this one is checked against both by the formats tests.
 
@@ -122,6 +125,92 @@ fn pack(block: &[u32], table: &[u32], bits: u32, words: &mut Vec<u32>) {
     }
 }
 
+/// The values of a precomputed chunk of `size` voxels (x fastest, then y, then z) in the
+/// encoding with blocks of `block` voxels, one channel; `wide` for uint64 values (two words
+/// per table entry, low first), else uint32. Every offset and index is checked against the
+/// chunk's words: a hostile or truncated chunk is an error, never a panic or a read past it.
+///
+/// # Errors
+/// What is wrong with the chunk, in words.
+pub fn decode_chunk(
+    bytes: &[u8],
+    size: [u32; 3],
+    block: [u32; 3],
+    wide: bool,
+) -> Result<Vec<u64>, String> {
+    if !bytes.len().is_multiple_of(4) {
+        return Err(format!("{} bytes, not whole 32-bit words", bytes.len()));
+    }
+    if block.contains(&0) || size.contains(&0) {
+        return Err(format!("an empty block {block:?} or chunk {size:?}"));
+    }
+    let words: Vec<u32> = bytes
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect();
+    let word = |at: u64| -> Result<u32, String> {
+        usize::try_from(at)
+            .ok()
+            .and_then(|at| words.get(at).copied())
+            .ok_or_else(|| format!("an offset past the chunk's {} words", words.len()))
+    };
+    let base = u64::from(word(0)?);
+    let grid = [0, 1, 2].map(|a| size[a].div_ceil(block[a]));
+    let per_value = if wide { 2 } else { 1 };
+    let mut out = vec![0u64; size.iter().map(|&s| s as usize).product()];
+    let mut i = 0u64;
+    for bz in 0..grid[2] {
+        for by in 0..grid[1] {
+            for bx in 0..grid[0] {
+                let header = word(base + 2 * i)?;
+                let packed_at = base + u64::from(word(base + 2 * i + 1)?);
+                let table_at = base + u64::from(header & 0x00ff_ffff);
+                let bits = header >> 24;
+                if ![0, 1, 2, 4, 8, 16, 32].contains(&bits) {
+                    return Err(format!("block {i}: {bits} bits per index"));
+                }
+                let lo = [bx * block[0], by * block[1], bz * block[2]];
+                for z in lo[2]..(lo[2] + block[2]).min(size[2]) {
+                    for y in lo[1]..(lo[1] + block[1]).min(size[1]) {
+                        for x in lo[0]..(lo[0] + block[0]).min(size[0]) {
+                            // The voxel's place in its block, x fastest.
+                            let j = u64::from(x - lo[0])
+                                + u64::from(block[0])
+                                    * (u64::from(y - lo[1])
+                                        + u64::from(block[1]) * u64::from(z - lo[2]));
+                            let k = if bits == 0 {
+                                0
+                            } else {
+                                let bit = j * u64::from(bits);
+                                let w = word(packed_at + bit / 32)?;
+                                (u64::from(w) >> (bit % 32)) & ((1u64 << bits) - 1)
+                            };
+                            let at = table_at + k * per_value;
+                            let mut v = u64::from(word(at)?);
+                            if wide {
+                                v |= u64::from(word(at + 1)?) << 32;
+                            }
+                            out[index(size, [x, y, z])] = v;
+                        }
+                    }
+                }
+                i += 1;
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// The most bytes a chunk of `size` voxels in blocks of `block` can take: the offset word,
+/// two header words per block, 32 bits of index per padded voxel and a table entry per padded
+/// voxel (two words each for uint64). What a reader allows before it reads one.
+pub fn max_chunk_bytes(size: [u32; 3], block: [u32; 3], wide: bool) -> u64 {
+    let grid = [0, 1, 2].map(|a| u64::from(size[a].div_ceil(block[a].max(1))));
+    let blocks = grid.iter().product::<u64>();
+    let padded = blocks * block.iter().map(|&b| u64::from(b)).product::<u64>();
+    4 * (1 + 2 * blocks + padded * if wide { 3 } else { 2 })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -164,6 +253,66 @@ mod tests {
         // empty indices start where the words then end (5), its table is block 0's.
         let w = words(&encode_chunk(&vec![3; 16 * 64], [16, 8, 8]));
         assert_eq!(w, vec![1, 4, 4, 4, 5, 3]);
+    }
+
+    #[test]
+    fn decoding_reads_hand_made_chunks() {
+        // The chunks of the tests above, from their hand-written words.
+        let bytes = |w: &[u32]| w.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+        assert_eq!(
+            decode_chunk(&bytes(&[1, 2, 2, 7]), [2, 2, 2], BLOCK, false),
+            Ok(vec![7; 8])
+        );
+        let mut w = vec![1, 18 | (1 << 24), 2, 0b0111_0010];
+        w.extend([0; 15]);
+        w.extend([5, 9]);
+        assert_eq!(
+            decode_chunk(&bytes(&w), [8, 1, 1], BLOCK, false),
+            Ok(vec![5, 9, 5, 5, 9, 9, 9, 5])
+        );
+        // uint64: a table entry is two words, low first; one block of 2x1x1 in blocks of
+        // 2x1x1, values 2^40 + 3 and 1, 1 bit each: indices 1, 0 (table sorted: [1, 2^40+3]).
+        let w = [1, 3 | (1 << 24), 2, 0b01, 1, 0, 3, 1 << 8];
+        assert_eq!(
+            decode_chunk(&bytes(&w), [2, 1, 1], [2, 1, 1], true),
+            Ok(vec![(1 << 40) + 3, 1])
+        );
+    }
+
+    #[test]
+    fn decoding_gives_back_what_encoding_made() {
+        // A chunk that is not whole blocks, with many values per block.
+        let size = [13, 9, 17];
+        let values: Vec<u32> = (0..13 * 9 * 17).map(|i: u32| (i * 7919) % 300).collect();
+        let chunk = encode_chunk(&values, size);
+        assert!(chunk.len() as u64 <= max_chunk_bytes(size, BLOCK, false));
+        let back = decode_chunk(&chunk, size, BLOCK, false).unwrap();
+        assert!(back.iter().zip(&values).all(|(&b, &v)| b == u64::from(v)));
+    }
+
+    #[test]
+    fn hostile_chunks_are_errors() {
+        let bytes = |w: &[u32]| w.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+        let cases: [(&[u8], &str); 5] = [
+            (&[1, 0, 0], "whole"),
+            (&[], "past"),
+            (&bytes(&[1, 2, 2]), "past"),
+            (&bytes(&[1, 0x00ff_ffff, 2, 7]), "past"),
+            (&bytes(&[1, 2 | (3 << 24), 2, 7]), "3 bits"),
+        ];
+        for (chunk, words) in cases {
+            let e = decode_chunk(chunk, [2, 2, 2], BLOCK, false).unwrap_err();
+            assert!(e.contains(words), "{e}");
+        }
+        // An index word past the end: 1 bit per index, indices at word 1000.
+        let e = decode_chunk(
+            &bytes(&[1, 2 | (1 << 24), 1000, 7, 9]),
+            [2, 2, 2],
+            BLOCK,
+            false,
+        )
+        .unwrap_err();
+        assert!(e.contains("past"), "{e}");
     }
 
     #[test]

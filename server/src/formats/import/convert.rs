@@ -24,6 +24,8 @@ pub enum DType {
     U32,
     /// Signed 32 bits.
     I32,
+    /// Unsigned 64 bits (segmentations' ids; as f64, exact up to 2^53).
+    U64,
     /// IEEE 754 single precision.
     F32,
     /// IEEE 754 double precision.
@@ -37,7 +39,7 @@ impl DType {
             DType::U8 | DType::I8 => 1,
             DType::U16 | DType::I16 => 2,
             DType::U32 | DType::I32 | DType::F32 => 4,
-            DType::F64 => 8,
+            DType::U64 | DType::F64 => 8,
         }
     }
 
@@ -69,6 +71,9 @@ impl DType {
             DType::I16 => f64::from(i16::from_le_bytes([b[0], b[1]])),
             DType::U32 => f64::from(u32::from_le_bytes([b[0], b[1], b[2], b[3]])),
             DType::I32 => f64::from(i32::from_le_bytes([b[0], b[1], b[2], b[3]])),
+            DType::U64 => {
+                u64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]) as f64
+            }
             DType::F32 => f64::from(f32::from_le_bytes([b[0], b[1], b[2], b[3]])),
             DType::F64 => f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]),
         }
@@ -84,6 +89,7 @@ impl fmt::Display for DType {
             DType::I16 => "int16",
             DType::U32 => "uint32",
             DType::I32 => "int32",
+            DType::U64 => "uint64",
             DType::F32 => "float32",
             DType::F64 => "float64",
         })

@@ -181,9 +181,10 @@ fn parse_header(h: &[u8; HEADER_LEN], path: &Path) -> Result<Header, FormatsErro
         256 => DType::I8,
         512 => DType::U16,
         768 => DType::U32,
+        1280 => DType::U64,
         other => {
             return Err(bad(format!(
-                "datatype {other} is not supported (uint8, int8, uint16, int16, uint32, int32, float32, float64 are)"
+                "datatype {other} is not supported (uint8, int8, uint16, int16, uint32, int32, uint64, float32, float64 are)"
             )))
         }
     };

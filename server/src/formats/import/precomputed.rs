@@ -1,13 +1,14 @@
 //! Reading Neuroglancer precomputed volumes (the finest scale), local or over http.
 //!
-//! Unsharded chunks with `raw` encoding, stored plain or gzip-compressed (a `.gz` file on disk,
-//! `Content-Encoding: gzip` over http). One channel. A chunk row (all chunks of one z range) is
+//! Unsharded chunks with `raw` encoding, or `compressed_segmentation` for segmentations (uint32
+//! or uint64: Neuroglancer's label encoding), stored plain or gzip-compressed (a `.gz` file on
+//! disk, `Content-Encoding: gzip` over http). One channel. A chunk row (all chunks of one z range) is
 //! fetched in parallel; every chunk must have exactly the bytes its cropped extent needs.
 
 use super::convert::DType;
 use super::location::Location;
 use super::planes::{plane_bytes, PlaneSource};
-use crate::formats::FormatsError;
+use crate::formats::{compressed_segmentation, FormatsError};
 use rayon::prelude::*;
 use serde::Deserialize;
 
@@ -29,7 +30,17 @@ struct Scale {
     voxel_offset: [i64; 3],
     chunk_sizes: Vec<[u64; 3]>,
     encoding: String,
+    compressed_segmentation_block_size: Option<[u32; 3]>,
     sharding: Option<serde_json::Value>,
+}
+
+/// How the chunks of the scale read are encoded.
+#[derive(Debug, Clone, Copy)]
+enum Encoding {
+    /// The voxels as they are.
+    Raw,
+    /// Neuroglancer's `compressed_segmentation`, in blocks of this size.
+    CompressedSegmentation([u32; 3]),
 }
 
 /// The finest scale of a precomputed volume.
@@ -41,6 +52,7 @@ pub struct PrecomputedInput {
     offset: [i64; 3],
     chunk: [u32; 3],
     dtype: DType,
+    encoding: Encoding,
     scale: [f32; 3],
 }
 
@@ -55,6 +67,7 @@ fn dtype_of(name: &str) -> Option<DType> {
         "int16" => DType::I16,
         "uint32" => DType::U32,
         "int32" => DType::I32,
+        "uint64" => DType::U64,
         "float32" => DType::F32,
         "float64" => DType::F64,
         _ => return None,
@@ -111,12 +124,36 @@ impl PrecomputedInput {
                 scale.key
             )));
         }
-        if scale.encoding != "raw" {
-            return Err(FormatsError::input(format!(
-                "{where_}: encoding {:?}; Isovox imports raw chunks (plain or gzip)",
-                scale.encoding
-            )));
-        }
+        let encoding = match scale.encoding.as_str() {
+            "raw" => Encoding::Raw,
+            "compressed_segmentation" if matches!(dtype, DType::U32 | DType::U64) => {
+                let block = scale.compressed_segmentation_block_size.ok_or_else(|| {
+                    FormatsError::input(format!(
+                        "{where_}: scale {:?} is compressed_segmentation without compressed_segmentation_block_size",
+                        scale.key
+                    ))
+                })?;
+                // Neuroglancer's blocks are a few voxels a side (8 by default): a block of
+                // more than 2^24 voxels cannot be indexed by the format's 24-bit offsets.
+                if block.contains(&0) || block.iter().map(|&b| u64::from(b)).product::<u64>() > 1 << 24 {
+                    return Err(FormatsError::input(format!(
+                        "{where_}: compressed_segmentation_block_size {block:?} is empty or too large"
+                    )));
+                }
+                Encoding::CompressedSegmentation(block)
+            }
+            "compressed_segmentation" => {
+                return Err(FormatsError::input(format!(
+                    "{where_}: compressed_segmentation of {} values; the encoding holds uint32 or uint64",
+                    info.data_type
+                )))
+            }
+            other => {
+                return Err(FormatsError::input(format!(
+                    "{where_}: encoding {other:?}; Isovox imports raw chunks, and compressed_segmentation for segmentations (plain or gzip)"
+                )))
+            }
+        };
         let chunk = scale.chunk_sizes.first().copied().ok_or_else(|| {
             FormatsError::input(format!("{where_}: scale {:?} has no chunk size", scale.key))
         })?;
@@ -146,6 +183,7 @@ impl PrecomputedInput {
             offset: scale.voxel_offset,
             chunk: [cx, cy, cz],
             dtype,
+            encoding,
             scale: if voxel.iter().all(|s| s.is_finite() && *s > 0.0) {
                 voxel
             } else {
@@ -208,12 +246,41 @@ impl PlaneSource for PrecomputedInput {
                     let (i, j) = (n % grid[0], n / grid[0]);
                     let (name, extent) = this.chunk_at([i, j, k]);
                     let expected = extent.iter().map(|&e| u64::from(e)).product::<u64>() * vb as u64;
-                    let bytes = this.location.get(&name, expected)?.ok_or_else(|| {
+                    let most = match this.encoding {
+                        Encoding::Raw => expected,
+                        Encoding::CompressedSegmentation(block) => {
+                            compressed_segmentation::max_chunk_bytes(extent, block, this.dtype == DType::U64)
+                        }
+                    };
+                    let bytes = this.location.get(&name, most)?.ok_or_else(|| {
                         FormatsError::input(format!(
                             "{}: chunk missing",
                             this.location.describe(&name)
                         ))
                     })?;
+                    let bytes = match this.encoding {
+                        Encoding::Raw => bytes,
+                        Encoding::CompressedSegmentation(block) => {
+                            let wide = this.dtype == DType::U64;
+                            let values = compressed_segmentation::decode_chunk(&bytes, extent, block, wide)
+                                .map_err(|why| {
+                                    FormatsError::input(format!(
+                                        "{}: not a compressed_segmentation chunk of {}x{}x{} {} voxels: {why}",
+                                        this.location.describe(&name),
+                                        extent[0],
+                                        extent[1],
+                                        extent[2],
+                                        this.dtype
+                                    ))
+                                })?;
+                            if wide {
+                                values.iter().flat_map(|v| v.to_le_bytes()).collect()
+                            } else {
+                                // Each value came from one 32-bit table word.
+                                values.iter().flat_map(|&v| (v as u32).to_le_bytes()).collect()
+                            }
+                        }
+                    };
                     if bytes.len() as u64 != expected {
                         return Err(FormatsError::input(format!(
                             "{}: {} bytes, but a raw chunk of {}x{}x{} {} voxels has {expected} (truncated?)",

@@ -275,11 +275,12 @@ impl ZarrInput {
             DataType::Int16 => DType::I16,
             DataType::UInt32 => DType::U32,
             DataType::Int32 => DType::I32,
+            DataType::UInt64 => DType::U64,
             DataType::Float32 => DType::F32,
             DataType::Float64 => DType::F64,
             other => {
                 return Err(FormatsError::input(format!(
-                    "{name}: data type {other} is not supported (uint8, int8, uint16, int16, uint32, int32, float32, float64 are)"
+                    "{name}: data type {other} is not supported (uint8, int8, uint16, int16, uint32, int32, uint64, float32, float64 are)"
                 )))
             }
         };
@@ -385,6 +386,7 @@ impl PlaneSource for ZarrInput {
             DType::I16 => elements!(i16),
             DType::U32 => elements!(u32),
             DType::I32 => elements!(i32),
+            DType::U64 => elements!(u64),
             DType::F32 => elements!(f32),
             DType::F64 => elements!(f64),
         }
