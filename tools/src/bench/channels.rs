@@ -353,7 +353,8 @@ fn edit_run(path: &Path, world: &WorldSource, edits: usize, seed: u64) -> anyhow
     let size = world.layout.dims()[0];
     let mut rng = Rng(0x5eed_0000_0000_0001 ^ seed);
     let mut writer = Vod2Writer::open_append(path, Compression::for_edits())?;
-    let mut snap = Vod2::open(path)?.head();
+    let mut vod = Vod2::open(path)?;
+    let mut snap = vod.head();
     let start = Instant::now();
     for i in 0..edits {
         let (x, z) = (16 + rng.below(size - 32), 16 + rng.below(size - 32));
@@ -382,7 +383,13 @@ fn edit_run(path: &Path, world: &WorldSource, edits: usize, seed: u64) -> anyhow
             CheckpointPolicy::default(),
             &CancelToken::never(),
         )?;
-        snap = Vod2::open(path)?.head();
+        // The next version as the server sees it after a commit: the file advanced to the
+        // writer's new head (the new index entries read), not opened again.
+        let slot = writer
+            .tip()
+            .ok_or_else(|| anyhow::anyhow!("the edit left the writer without a version"))?;
+        vod = vod.advance(slot)?;
+        snap = vod.head();
     }
     Ok(edits as f64 / start.elapsed().as_secs_f64())
 }

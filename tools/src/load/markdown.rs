@@ -238,9 +238,10 @@ impl LoadReport {
         let f = &t.first_tile_ms;
         let _ = writeln!(
             s,
-            "\nGrid regions asked: {} ({} for tiles an edit invalidated); tiles skipped by the descent: {}.\n\nFirst tile per viewer (ms, from its start): p50 {:.0}, p99 {:.0}, max {:.0} ({} viewers; {} got none).",
+            "\nGrid regions asked: {} ({} for tiles an edit invalidated, {} dropped before their answer was used); tiles skipped by the descent: {}.\n\nFirst tile per viewer (ms, from its start): p50 {:.0}, p99 {:.0}, max {:.0} ({} viewers; {} got none).",
             t.grid_requests,
             t.edit_grid_requests,
+            t.grid_aborted,
             t.skipped,
             f.p50,
             f.p99,

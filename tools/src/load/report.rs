@@ -122,10 +122,13 @@ pub struct StreamerReport {
     /// `cache_hits / (cache_hits + cache_misses)`.
     pub cache_hit_rate: f64,
     pub stale_refetches: u64,
-    /// Grid regions the streamers asked for, and of those the ones a tile needed because a
-    /// commit invalidated it ([`StreamerStats::edit_grid_requests`]).
+    /// Grid regions the streamers asked for, of those the ones a tile needed because a commit
+    /// invalidated it ([`StreamerStats::edit_grid_requests`]), and the ones dropped before
+    /// their answer was used ([`StreamerStats::grid_aborted`]: a coarser answer decided the
+    /// tiles that wanted them, sent or not).
     pub grid_requests: u64,
     pub edit_grid_requests: u64,
+    pub grid_aborted: u64,
     /// Tiles the octree descent skipped (no surface can cross them).
     pub skipped: u64,
     /// Per started viewer, from its start (metadata and subscription included) to its first
@@ -448,6 +451,7 @@ fn streamer_section(
             st.stale_refetches += s.stale_refetches;
             st.grid_requests += s.grid_requests;
             st.edit_grid_requests += s.edit_grid_requests;
+            st.grid_aborted += s.grid_aborted;
             st.skipped += s.skipped;
             st.resident_at_end += s.resident as u64;
             st.in_flight_at_end += s.in_flight as u64;
