@@ -55,6 +55,9 @@ pub struct ChannelsBenchArgs {
     /// A Python with numpy, tinybrain and compressed_segmentation.
     #[arg(long, default_value = "python3")]
     pub python: PathBuf,
+    /// Only part 3, the edit runs (no Python peers needed): for profiling them.
+    #[arg(long)]
+    pub edits_only: bool,
 }
 
 /// A synthetic segmentation: cells about 24 voxels across with wavy walls, one id each (u16),
@@ -87,6 +90,9 @@ fn segmentation(n: u32) -> Vec<u16> {
 
 pub fn run_bench(a: ChannelsBenchArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(&a.dir)?;
+    if a.edits_only {
+        return edits_per_second(&a);
+    }
     let (n, b) = (a.size, a.brick);
     eprintln!("making a {n}^3 segmentation");
     let labels = segmentation(n);
