@@ -2,11 +2,11 @@
 //! come from, and the content keys of mesh tiles and strips computed from them.
 
 use super::scheduler::JobKey;
+use super::FastMap;
 use crate::streamer::StreamEvent;
 use isovox_proto::api::{LevelGrid, VolumeInfo};
 use isovox_proto::tile::GridBox;
 use isovox_proto::{BrickKey, VolumeLayout};
-use std::collections::HashMap;
 use std::hash::{DefaultHasher, Hash, Hasher};
 
 /// The volume's shape as content keys describe it: its layout and metadata.
@@ -18,17 +18,17 @@ pub(super) type Shape<'a> = (&'a VolumeLayout, &'a VolumeInfo);
 pub(super) struct HashBook {
     /// Bricks per axis of the regions unknown hashes come from (aligned).
     chunk: u32,
-    hashes: HashMap<BrickKey, u64>,
+    hashes: FastMap<BrickKey, u64>,
     /// Each known brick's smallest and largest voxel value (from the same grid entry or event
     /// as its hash), which the descent reads.
-    ranges: HashMap<BrickKey, (u16, u16)>,
+    ranges: FastMap<BrickKey, (u16, u16)>,
     /// Bounds on the voxels of bricks whose range is unknown, kept from before a commit changed
     /// a coarser brick they were bounded by (the descent reads them; see
     /// [`HashBook::keep_bounds`]).
-    kept_bounds: HashMap<BrickKey, (u16, u16)>,
+    kept_bounds: FastMap<BrickKey, (u16, u16)>,
     /// The grid region (planned or running) that brings an unknown brick's hash, when it is
     /// not the brick's chunk.
-    sources: HashMap<BrickKey, JobKey>,
+    sources: FastMap<BrickKey, JobKey>,
 }
 
 impl HashBook {
@@ -36,10 +36,10 @@ impl HashBook {
     pub(super) fn new(chunk: u32) -> HashBook {
         HashBook {
             chunk: chunk.max(1),
-            hashes: HashMap::new(),
-            ranges: HashMap::new(),
-            kept_bounds: HashMap::new(),
-            sources: HashMap::new(),
+            hashes: FastMap::default(),
+            ranges: FastMap::default(),
+            kept_bounds: FastMap::default(),
+            sources: FastMap::default(),
         }
     }
 

@@ -1,9 +1,10 @@
 //! The content cache: tile content by content key, least recently used first out, bounded by
 //! bytes.
 
+use super::FastMap;
 use bytes::Bytes;
 use isovox_proto::mesh::{Mesh, TileMesh};
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
 use std::sync::Arc;
 
 /// What the cache keeps by content key.
@@ -20,7 +21,7 @@ pub(super) struct Lru {
     cap: usize,
     pub(super) bytes: usize,
     tick: u64,
-    map: HashMap<u64, LruEntry>,
+    map: FastMap<u64, LruEntry>,
     order: BTreeMap<u64, u64>,
 }
 
@@ -37,7 +38,7 @@ impl Lru {
             cap,
             bytes: 0,
             tick: 0,
-            map: HashMap::new(),
+            map: FastMap::default(),
             order: BTreeMap::new(),
         }
     }

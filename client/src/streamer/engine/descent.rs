@@ -32,9 +32,9 @@
 //! still holds, and [`HashBook::bounds_before`] keeps it ([`HashBook::keep_bound`]).
 
 use super::book::{bricks_read, HashBook};
+use super::FastSet;
 use isovox_proto::tile::GridBox;
 use isovox_proto::{BrickKey, VolumeLayout};
-use std::collections::HashSet;
 
 /// The range of the voxels of any child of a parent brick whose voxels lie in `(lo, hi)`, for
 /// values in `0..=high` (see the module documentation).
@@ -118,7 +118,7 @@ impl HashBook {
             if level >= layout.levels() as usize {
                 break;
             }
-            let changed_below: HashSet<[u32; 3]> = changed[level - 1].iter().copied().collect();
+            let changed_below: FastSet<[u32; 3]> = changed[level - 1].iter().copied().collect();
             for &p in positions {
                 let parent = BrickKey {
                     level: level as u8,

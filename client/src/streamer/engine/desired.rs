@@ -1,10 +1,10 @@
 //! The desired set: the tiles the camera needs, and what is known about each (delivered,
 //! shown, stale, a mesh tile's drawing and face mask).
 
+use super::FastMap;
 use isovox_proto::mesh::TileMesh;
 use isovox_proto::tile::GridBox;
 use isovox_proto::{BrickKey, VolumeLayout};
-use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
 
 /// One tile of the desired set.
@@ -34,11 +34,15 @@ pub(super) const SKIPPED: u64 = 0;
 pub(super) struct Desired {
     pub(super) camera: Option<[f32; 3]>,
     pub(super) camera_seq: u64,
-    tiles: HashMap<BrickKey, Tile>,
+    tiles: FastMap<BrickKey, Tile>,
     /// Mesh tiles: each desired tile's face mask in the desired set.
-    masks: HashMap<BrickKey, u8>,
+    masks: FastMap<BrickKey, u8>,
     /// Desired tiles without current content.
     pub(super) missing: usize,
+    /// The selection and masks `replace` was last given: a camera move that selects the same
+    /// tiles (most moves do) changes nothing, found by comparing two lists rather than by
+    /// hashing every tile again.
+    selection: (Vec<BrickKey>, Option<Vec<u8>>),
 }
 
 impl Desired {
@@ -82,17 +86,23 @@ impl Desired {
     /// it are dropped, mesh tiles whose face mask changed need drawing again. Returns the
     /// dropped tiles that had been shown, in key order.
     pub(super) fn replace(&mut self, new: Vec<BrickKey>, masks: Option<Vec<u8>>) -> Vec<BrickKey> {
+        if self.selection.0 == new && self.selection.1 == masks {
+            return Vec::new();
+        }
+        // The selections come sorted (`select_tiles`, `select_stitched_tiles`): the tiles that
+        // left and those that came are a merge of the two lists, without hashing the tiles that
+        // stayed (most of them, on a camera move).
+        let mut new = new;
+        if !new.windows(2).all(|w| w[0] < w[1]) {
+            new.sort_unstable();
+            new.dedup();
+        }
+        let (gone, added) = sorted_difference(&self.selection.0, &new);
+        self.selection = (new.clone(), masks.clone());
+        let mesh_tiles = masks.is_some();
         if let Some(masks) = masks {
             self.masks = new.iter().copied().zip(masks).collect();
         }
-        let keep: HashSet<BrickKey> = new.iter().copied().collect();
-        let mut gone: Vec<BrickKey> = self
-            .tiles
-            .keys()
-            .filter(|k| !keep.contains(k))
-            .copied()
-            .collect();
-        gone.sort();
         let mut dropped = Vec::new();
         for key in gone {
             let Some(t) = self.tiles.remove(&key) else {
@@ -105,6 +115,9 @@ impl Desired {
                 dropped.push(key);
             }
         }
+        // Bricks: only the tiles that came are new. Mesh tiles: every one, since a tile that
+        // stayed may have a new face mask.
+        let new = if mesh_tiles { new } else { added };
         for key in new {
             let t = self.tiles.entry(key).or_insert_with(|| {
                 self.missing += 1;
@@ -229,5 +242,77 @@ impl Desired {
             .filter(|t| t.level == level || t.level + 1 == level)
             .map(|&t| (t, self.drawing_reads(layout, t)))
             .collect()
+    }
+}
+
+/// The keys of sorted, duplicate-free `old` missing from sorted `new`, and those of `new`
+/// missing from `old`, in order.
+fn sorted_difference(old: &[BrickKey], new: &[BrickKey]) -> (Vec<BrickKey>, Vec<BrickKey>) {
+    let (mut gone, mut added) = (Vec::new(), Vec::new());
+    let (mut i, mut j) = (0, 0);
+    while i < old.len() || j < new.len() {
+        match (old.get(i), new.get(j)) {
+            (Some(a), Some(b)) if a == b => {
+                i += 1;
+                j += 1;
+            }
+            (Some(a), Some(b)) if a < b => {
+                gone.push(*a);
+                i += 1;
+            }
+            (Some(a), None) => {
+                gone.push(*a);
+                i += 1;
+            }
+            (_, Some(b)) => {
+                added.push(*b);
+                j += 1;
+            }
+            (None, None) => break,
+        }
+    }
+    (gone, added)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn k(level: u8, x: u32) -> BrickKey {
+        BrickKey {
+            level,
+            x,
+            y: 0,
+            z: 0,
+        }
+    }
+
+    #[test]
+    fn the_difference_of_two_sorted_selections_by_hand() {
+        let old = [k(0, 1), k(0, 2), k(0, 5), k(1, 0)];
+        let new = [k(0, 2), k(0, 3), k(1, 0), k(2, 0)];
+        assert_eq!(
+            sorted_difference(&old, &new),
+            (vec![k(0, 1), k(0, 5)], vec![k(0, 3), k(2, 0)])
+        );
+        assert_eq!(sorted_difference(&[], &new), (vec![], new.to_vec()));
+        assert_eq!(sorted_difference(&old, &[]), (old.to_vec(), vec![]));
+    }
+
+    #[test]
+    fn a_new_selection_drops_what_left_and_counts_what_came() {
+        let mut d = Desired::default();
+        assert!(d.replace(vec![k(0, 1), k(0, 2)], None).is_empty());
+        assert_eq!(d.missing, 2);
+        assert_eq!(d.deliver(k(0, 1), 7), Some(true));
+        // Unsorted on purpose: sorted before the merge.
+        let dropped = d.replace(vec![k(0, 3), k(0, 2)], None);
+        // k(0, 1) had been shown: dropped; k(0, 2) stays missing, k(0, 3) came.
+        assert_eq!(dropped, vec![k(0, 1)]);
+        assert_eq!(d.missing, 2);
+        assert_eq!(d.sorted_keys(), vec![k(0, 2), k(0, 3)]);
+        // The same selection again changes nothing.
+        assert!(d.replace(vec![k(0, 2), k(0, 3)], None).is_empty());
+        assert_eq!(d.missing, 2);
     }
 }

@@ -27,7 +27,14 @@ use cache::{Content, Lru};
 use descent::Decision;
 use desired::Desired;
 use scheduler::{JobKey, Output, Scheduler};
-use std::collections::HashSet;
+
+/// The engine's maps and sets, keyed by tiles, jobs and content hashes the client makes
+/// itself: foldhash rather than the standard library's SipHash, whose resistance to chosen
+/// keys buys nothing here and whose hashing was a third of a streamer's CPU (the desired set is
+/// rebuilt on every camera move: `isovox-load --descent`).
+type FastMap<K, V> = std::collections::HashMap<K, V, foldhash::fast::RandomState>;
+/// See [`FastMap`].
+type FastSet<K> = std::collections::HashSet<K, foldhash::fast::RandomState>;
 
 /// The task's state: what it serves, and its four parts.
 pub(super) struct Engine {
@@ -43,14 +50,14 @@ pub(super) struct Engine {
     /// Desired tiles that were complete (delivered, or skipped) until a commit invalidated
     /// them, and have not been complete since: the grid regions they need are counted as caused
     /// by edits.
-    edited: HashSet<BrickKey>,
+    edited: FastSet<BrickKey>,
     /// The grid regions of the current plan that such tiles need.
-    edit_regions: HashSet<JobKey>,
+    edit_regions: FastSet<JobKey>,
     /// Tiles the descent could not decide yet, with the bricks whose grid entries it waits for.
     /// Until one of those is learnt the decision stays the same (what else is learnt meanwhile
     /// only narrows bounds already on one side), so planning reuses it instead of walking every
     /// tile's bricks again on each answer. Cleared by commits, which change ranges.
-    undecided: HashMap<BrickKey, Vec<BrickKey>>,
+    undecided: FastMap<BrickKey, Vec<BrickKey>>,
     /// The version every known hash and requested tile describes.
     version: u64,
     /// What the camera needs.
@@ -109,9 +116,9 @@ impl Engine {
             name: name.to_string(),
             kind: config.kind,
             descent: config.descent.then_some(iso),
-            edited: HashSet::new(),
-            edit_regions: HashSet::new(),
-            undecided: HashMap::new(),
+            edited: FastSet::default(),
+            edit_regions: FastSet::default(),
+            undecided: FastMap::default(),
             layout,
             radii,
             version: info.version,
@@ -230,7 +237,7 @@ impl Engine {
     fn replan(&mut self) {
         self.scheduler.replan_needed = false;
         self.scheduler.clear_plan();
-        let mut needed: HashMap<JobKey, f32> = HashMap::new();
+        let mut needed: FastMap<JobKey, f32> = FastMap::default();
         let mut from_cache = Vec::new();
         let mut drawings = Vec::new();
         let mut skipped = Vec::new();
@@ -240,7 +247,7 @@ impl Engine {
             // A tile an edit invalidated plans into its own map first, so that the grid
             // regions it needs are known to be caused by the edit.
             let edited = self.edited.contains(&key);
-            let mut own = HashMap::new();
+            let mut own = FastMap::default();
             let into = if edited { &mut own } else { &mut needed };
             match self.plan_tile(key, d, into) {
                 Plan::Skip => skipped.push(key),
@@ -280,7 +287,7 @@ impl Engine {
 
     /// Plans desired tile `key` (at distance `d`, without current content): skipped when the
     /// descent finds no surface in it, else from the cache or requests into `needed`.
-    fn plan_tile(&mut self, key: BrickKey, d: f32, needed: &mut HashMap<JobKey, f32>) -> Plan {
+    fn plan_tile(&mut self, key: BrickKey, d: f32, needed: &mut FastMap<JobKey, f32>) -> Plan {
         if let Some(iso) = self.descent {
             if let Some(waiting) = self.undecided.get(&key) {
                 if waiting.iter().all(|&u| self.book.range(u).is_none()) {
@@ -384,7 +391,7 @@ impl Engine {
         key: BrickKey,
         iso: Option<f32>,
         d: f32,
-        needed: &mut HashMap<JobKey, f32>,
+        needed: &mut FastMap<JobKey, f32>,
     ) -> Option<(BrickKey, u64, [Option<u64>; 6])> {
         let mask = self.desired.mask(key);
         let mut unknown = Vec::new();
@@ -978,7 +985,7 @@ async fn sleep_until(at: Option<Instant>) {
 
 /// Records that `job` is needed by a tile at distance `d` (the nearest tile that needs it
 /// counts).
-fn need(needed: &mut HashMap<JobKey, f32>, job: JobKey, d: f32) {
+fn need(needed: &mut FastMap<JobKey, f32>, job: JobKey, d: f32) {
     let e = needed.entry(job).or_insert(d);
     *e = e.min(d);
 }

@@ -1,6 +1,7 @@
 //! The scheduler: the plan (requests to start, nearest first), what runs, what failed and when
 //! to retry it, and the requests themselves.
 
+use super::FastMap;
 use crate::client::{Brick, Client, ClientError};
 use crate::streamer::limit::{lock_limit, InFlightLimit, Pacer, SharedLimit};
 use crate::streamer::{RETRY_MAX, RETRY_MIN};
@@ -8,7 +9,6 @@ use bytes::Bytes;
 use isovox_proto::api::LevelGrid;
 use isovox_proto::mesh::{Mesh, TileMesh};
 use isovox_proto::BrickKey;
-use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use tokio::task::{AbortHandle, JoinError, JoinSet};
 use tokio::time::Instant;
@@ -76,17 +76,17 @@ pub(super) struct Scheduler {
     /// Requests that may run at once (the requests' [`Pacer`]s adapt it to 503s).
     limit: SharedLimit,
     /// Content keys of the mesh tiles waiting for a request (from the last plan).
-    mesh_keys: HashMap<BrickKey, u64>,
+    mesh_keys: FastMap<BrickKey, u64>,
     /// Content keys of the strips (tile, face) waiting for a request (from the last plan).
-    strip_keys: HashMap<(BrickKey, u8), u64>,
+    strip_keys: FastMap<(BrickKey, u8), u64>,
     /// Tiles waiting for content by content key (from the last plan).
-    waiting: HashMap<u64, Vec<BrickKey>>,
+    waiting: FastMap<u64, Vec<BrickKey>>,
     pub(super) jobs: JoinSet<(u64, JobKey, Output)>,
-    running: HashMap<JobKey, Running>,
+    running: FastMap<JobKey, Running>,
     next_id: u64,
     /// Requests to start, farthest first (started from the end).
     queue: Vec<(f32, JobKey)>,
-    failures: HashMap<JobKey, Failure>,
+    failures: FastMap<JobKey, Failure>,
     pub(super) retry_at: Option<Instant>,
     pub(super) replan_needed: bool,
 }
@@ -95,14 +95,14 @@ impl Scheduler {
     pub(super) fn new(max_in_flight: usize) -> Scheduler {
         Scheduler {
             limit: Arc::new(Mutex::new(InFlightLimit::new(max_in_flight))),
-            mesh_keys: HashMap::new(),
-            strip_keys: HashMap::new(),
-            waiting: HashMap::new(),
+            mesh_keys: FastMap::default(),
+            strip_keys: FastMap::default(),
+            waiting: FastMap::default(),
             jobs: JoinSet::new(),
-            running: HashMap::new(),
+            running: FastMap::default(),
             next_id: 0,
             queue: Vec::new(),
-            failures: HashMap::new(),
+            failures: FastMap::default(),
             retry_at: None,
             replan_needed: false,
         }
@@ -158,7 +158,7 @@ impl Scheduler {
     }
 
     /// The running requests that are not in `needed`.
-    pub(super) fn unneeded(&self, needed: &HashMap<JobKey, f32>) -> Vec<JobKey> {
+    pub(super) fn unneeded(&self, needed: &FastMap<JobKey, f32>) -> Vec<JobKey> {
         self.running
             .keys()
             .filter(|k| !needed.contains_key(k))
@@ -193,7 +193,7 @@ impl Scheduler {
     /// Queues the `needed` requests (each with the distance to the nearest tile that needs it),
     /// nearest last, but those running and those waiting out a failure's backoff; forgets the
     /// failures of requests nobody needs; `retry_at` becomes the end of the first backoff.
-    pub(super) fn queue_needed(&mut self, needed: HashMap<JobKey, f32>) {
+    pub(super) fn queue_needed(&mut self, needed: FastMap<JobKey, f32>) {
         self.failures.retain(|k, _| needed.contains_key(k));
         let now = Instant::now();
         self.retry_at = None;
