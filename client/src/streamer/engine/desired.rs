@@ -35,20 +35,20 @@ pub(super) struct Desired {
     pub(super) camera: Option<[f32; 3]>,
     pub(super) camera_seq: u64,
     tiles: FastMap<BrickKey, Tile>,
-    /// Mesh tiles: each desired tile's face mask in the desired set.
-    masks: FastMap<BrickKey, u8>,
+    /// The desired tiles sorted by key, each with its face mask (mesh tiles; 0 for bricks): what
+    /// `replace` was last given. A camera move is merged with it as two sorted lists, without
+    /// hashing the tiles that stayed.
+    selection: Vec<(BrickKey, u8)>,
     /// Desired tiles without current content.
     pub(super) missing: usize,
-    /// The selection and masks `replace` was last given: a camera move that selects the same
-    /// tiles (most moves do) changes nothing, found by comparing two lists rather than by
-    /// hashing every tile again.
-    selection: (Vec<BrickKey>, Option<Vec<u8>>),
 }
 
 impl Desired {
     /// A desired mesh tile's face mask in the desired set (0 otherwise).
     pub(super) fn mask(&self, key: BrickKey) -> u8 {
-        self.masks.get(&key).copied().unwrap_or(0)
+        self.selection
+            .binary_search_by_key(&key, |&(k, _)| k)
+            .map_or(0, |i| self.selection[i].1)
     }
 
     /// Whether `key` is desired.
@@ -86,23 +86,21 @@ impl Desired {
     /// it are dropped, mesh tiles whose face mask changed need drawing again. Returns the
     /// dropped tiles that had been shown, in key order.
     pub(super) fn replace(&mut self, new: Vec<BrickKey>, masks: Option<Vec<u8>>) -> Vec<BrickKey> {
-        if self.selection.0 == new && self.selection.1 == masks {
+        let mut new: Vec<(BrickKey, u8)> = match masks {
+            Some(masks) => new.into_iter().zip(masks).collect(),
+            None => new.into_iter().map(|k| (k, 0)).collect(),
+        };
+        // The selections come sorted (`select_tiles`, `select_stitched_tiles`); sorted here
+        // otherwise, each key with its own mask.
+        if !new.windows(2).all(|w| w[0].0 < w[1].0) {
+            new.sort_unstable_by_key(|&(k, _)| k);
+            new.dedup_by_key(|&mut (k, _)| k);
+        }
+        if new == self.selection {
             return Vec::new();
         }
-        // The selections come sorted (`select_tiles`, `select_stitched_tiles`): the tiles that
-        // left and those that came are a merge of the two lists, without hashing the tiles that
-        // stayed (most of them, on a camera move).
-        let mut new = new;
-        if !new.windows(2).all(|w| w[0] < w[1]) {
-            new.sort_unstable();
-            new.dedup();
-        }
-        let (gone, added) = sorted_difference(&self.selection.0, &new);
-        self.selection = (new.clone(), masks.clone());
-        let mesh_tiles = masks.is_some();
-        if let Some(masks) = masks {
-            self.masks = new.iter().copied().zip(masks).collect();
-        }
+        let (gone, came) = sorted_changes(&self.selection, &new);
+        self.selection = new;
         let mut dropped = Vec::new();
         for key in gone {
             let Some(t) = self.tiles.remove(&key) else {
@@ -115,24 +113,20 @@ impl Desired {
                 dropped.push(key);
             }
         }
-        // Bricks: only the tiles that came are new. Mesh tiles: every one, since a tile that
-        // stayed may have a new face mask.
-        let new = if mesh_tiles { new } else { added };
-        for key in new {
+        for (key, mask) in came {
             let t = self.tiles.entry(key).or_insert_with(|| {
                 self.missing += 1;
                 Tile::default()
             });
-            // A mesh tile whose mask changed is drawn again (its tile from the cache, the
-            // strips of its new faces from the cache or a request; the old drawing stays until
-            // then).
-            let mask = self.masks.get(&key).copied().unwrap_or(0);
             // A skipped mesh tile whose mask changed reads other strips: decided again.
             if t.skipped.is_some_and(|m| m != mask) {
                 t.skipped = None;
                 t.ready = None;
                 self.missing += 1;
             }
+            // A drawn mesh tile whose mask changed is drawn again (its tile from the cache, the
+            // strips of its new faces from the cache or a request; the old drawing stays until
+            // then).
             if let (Some(_), Some((_, drawn))) = (t.ready, &t.drawn) {
                 if *drawn != mask {
                     t.ready = None;
@@ -245,33 +239,39 @@ impl Desired {
     }
 }
 
-/// The keys of sorted, duplicate-free `old` missing from sorted `new`, and those of `new`
-/// missing from `old`, in order.
-fn sorted_difference(old: &[BrickKey], new: &[BrickKey]) -> (Vec<BrickKey>, Vec<BrickKey>) {
-    let (mut gone, mut added) = (Vec::new(), Vec::new());
+/// Between two selections sorted by key: the keys of `old` missing from `new` (gone), and the
+/// tiles of `new` that are not in `old` or have another mask there (came), in key order.
+fn sorted_changes(
+    old: &[(BrickKey, u8)],
+    new: &[(BrickKey, u8)],
+) -> (Vec<BrickKey>, Vec<(BrickKey, u8)>) {
+    let (mut gone, mut came) = (Vec::new(), Vec::new());
     let (mut i, mut j) = (0, 0);
-    while i < old.len() || j < new.len() {
+    loop {
         match (old.get(i), new.get(j)) {
-            (Some(a), Some(b)) if a == b => {
+            (Some(a), Some(b)) if a.0 == b.0 => {
+                if a.1 != b.1 {
+                    came.push(*b);
+                }
                 i += 1;
                 j += 1;
             }
-            (Some(a), Some(b)) if a < b => {
-                gone.push(*a);
+            (Some(a), Some(b)) if a.0 < b.0 => {
+                gone.push(a.0);
                 i += 1;
             }
             (Some(a), None) => {
-                gone.push(*a);
+                gone.push(a.0);
                 i += 1;
             }
             (_, Some(b)) => {
-                added.push(*b);
+                came.push(*b);
                 j += 1;
             }
             (None, None) => break,
         }
     }
-    (gone, added)
+    (gone, came)
 }
 
 #[cfg(test)]
@@ -289,14 +289,23 @@ mod tests {
 
     #[test]
     fn the_difference_of_two_sorted_selections_by_hand() {
-        let old = [k(0, 1), k(0, 2), k(0, 5), k(1, 0)];
-        let new = [k(0, 2), k(0, 3), k(1, 0), k(2, 0)];
+        let old = [(k(0, 1), 0), (k(0, 2), 0), (k(0, 5), 0), (k(1, 0), 3)];
+        let new = [(k(0, 2), 0), (k(0, 3), 0), (k(1, 0), 3), (k(2, 0), 0)];
         assert_eq!(
-            sorted_difference(&old, &new),
-            (vec![k(0, 1), k(0, 5)], vec![k(0, 3), k(2, 0)])
+            sorted_changes(&old, &new),
+            (vec![k(0, 1), k(0, 5)], vec![(k(0, 3), 0), (k(2, 0), 0)])
         );
-        assert_eq!(sorted_difference(&[], &new), (vec![], new.to_vec()));
-        assert_eq!(sorted_difference(&old, &[]), (old.to_vec(), vec![]));
+        assert_eq!(sorted_changes(&[], &new), (vec![], new.to_vec()));
+        assert_eq!(
+            sorted_changes(&old, &[]),
+            (old.iter().map(|&(k, _)| k).collect(), vec![])
+        );
+        // A tile that stays with another face mask comes again, with its new mask.
+        let remasked = [(k(0, 1), 0), (k(0, 2), 5), (k(0, 5), 0), (k(1, 0), 3)];
+        assert_eq!(
+            sorted_changes(&old, &remasked),
+            (vec![], vec![(k(0, 2), 5)])
+        );
     }
 
     #[test]
