@@ -106,21 +106,7 @@ async fn view(
         .to_string();
     if kind == ViewKind::Precomputed {
         if let Some(channel) = precomputed::segment_properties_channel(&path) {
-            let channel = channel.to_string();
-            let vol = state.catalog.get(name)?.clone();
-            // From the channel's segment index, which may have to be built or brought up to
-            // date: CPU work, as the segments list is.
-            let answer = state
-                .cpu
-                .run(Admission::Place, move || {
-                    let list = vol.all_segments(version, &channel)?;
-                    let doc = precomputed::segment_properties(&list.segments);
-                    Ok::<_, VolumeError>(ViewAnswer {
-                        version: list.version,
-                        body: ViewBody::Json(serde_json::to_vec(&doc).unwrap_or_default().into()),
-                    })
-                })
-                .await?;
+            let answer = segment_properties(state, name, version, channel.to_string()).await?;
             return respond(kind, name, version, &path, answer, request.headers());
         }
     }
@@ -142,6 +128,29 @@ async fn view(
         }
     };
     respond(kind, name, version, &path, answer, request.headers())
+}
+
+/// The segment properties of `channel` of volume `name` at `version` (the head when `None`),
+/// from the channel's segment index, which may have to be built or brought up to date: CPU
+/// work, as the segments list is.
+async fn segment_properties(
+    state: &AppState,
+    name: &str,
+    version: Option<u64>,
+    channel: String,
+) -> Result<ViewAnswer, ApiError> {
+    let vol = state.catalog.get(name)?.clone();
+    state
+        .cpu
+        .run(Admission::Place, move || {
+            let list = vol.all_segments(version, &channel)?;
+            let doc = precomputed::segment_properties(&list.segments);
+            Ok::<_, VolumeError>(ViewAnswer {
+                version: list.version,
+                body: ViewBody::Json(serde_json::to_vec(&doc).unwrap_or_default().into()),
+            })
+        })
+        .await
 }
 
 /// The response to a request of a live view that takes no work (metadata, a stored frame, a

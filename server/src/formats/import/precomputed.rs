@@ -210,6 +210,59 @@ impl PrecomputedInput {
         }
         (format!("{}/{}", self.key, parts.join("_")), extent)
     }
+
+    /// The voxels of chunk `name` of `extent` (x fastest, little endian), decoded when the scale
+    /// is compressed_segmentation; read with at most the bytes its encoding can take.
+    ///
+    /// # Errors
+    /// The chunk is missing, cannot be read, does not decode, or holds the wrong number of
+    /// bytes.
+    fn chunk_voxels(&self, name: &str, extent: [u32; 3]) -> Result<Vec<u8>, FormatsError> {
+        let expected =
+            extent.iter().map(|&e| u64::from(e)).product::<u64>() * self.dtype.bytes() as u64;
+        let wide = self.dtype == DType::U64;
+        let most = match self.encoding {
+            Encoding::Raw => expected,
+            Encoding::CompressedSegmentation(block) => {
+                compressed_segmentation::max_chunk_bytes(extent, block, wide)
+            }
+        };
+        let [ex, ey, ez] = extent;
+        let bytes = self.location.get(name, most)?.ok_or_else(|| {
+            FormatsError::input(format!("{}: chunk missing", self.location.describe(name)))
+        })?;
+        let bytes = match self.encoding {
+            Encoding::Raw => bytes,
+            Encoding::CompressedSegmentation(block) => {
+                let values = compressed_segmentation::decode_chunk(&bytes, extent, block, wide)
+                    .map_err(|why| {
+                        FormatsError::input(format!(
+                            "{}: not a compressed_segmentation chunk of {ex}x{ey}x{ez} {} voxels: {why}",
+                            self.location.describe(name),
+                            self.dtype
+                        ))
+                    })?;
+                if wide {
+                    values.iter().flat_map(|v| v.to_le_bytes()).collect()
+                } else {
+                    // Each value came from one 32-bit table word.
+                    values
+                        .iter()
+                        .flat_map(|&v| (v as u32).to_le_bytes())
+                        .collect()
+                }
+            }
+        };
+        if bytes.len() as u64 != expected {
+            return Err(FormatsError::input(format!(
+                "{}: {} bytes, but a raw chunk of {ex}x{ey}x{ez} {} voxels has {expected} (truncated?)",
+                self.location.describe(name),
+                bytes.len(),
+                self.dtype
+            )));
+        }
+        Ok(bytes)
+    }
 }
 
 impl PlaneSource for PrecomputedInput {
@@ -245,53 +298,7 @@ impl PlaneSource for PrecomputedInput {
                 .map(|n| {
                     let (i, j) = (n % grid[0], n / grid[0]);
                     let (name, extent) = this.chunk_at([i, j, k]);
-                    let expected = extent.iter().map(|&e| u64::from(e)).product::<u64>() * vb as u64;
-                    let most = match this.encoding {
-                        Encoding::Raw => expected,
-                        Encoding::CompressedSegmentation(block) => {
-                            compressed_segmentation::max_chunk_bytes(extent, block, this.dtype == DType::U64)
-                        }
-                    };
-                    let bytes = this.location.get(&name, most)?.ok_or_else(|| {
-                        FormatsError::input(format!(
-                            "{}: chunk missing",
-                            this.location.describe(&name)
-                        ))
-                    })?;
-                    let bytes = match this.encoding {
-                        Encoding::Raw => bytes,
-                        Encoding::CompressedSegmentation(block) => {
-                            let wide = this.dtype == DType::U64;
-                            let values = compressed_segmentation::decode_chunk(&bytes, extent, block, wide)
-                                .map_err(|why| {
-                                    FormatsError::input(format!(
-                                        "{}: not a compressed_segmentation chunk of {}x{}x{} {} voxels: {why}",
-                                        this.location.describe(&name),
-                                        extent[0],
-                                        extent[1],
-                                        extent[2],
-                                        this.dtype
-                                    ))
-                                })?;
-                            if wide {
-                                values.iter().flat_map(|v| v.to_le_bytes()).collect()
-                            } else {
-                                // Each value came from one 32-bit table word.
-                                values.iter().flat_map(|&v| (v as u32).to_le_bytes()).collect()
-                            }
-                        }
-                    };
-                    if bytes.len() as u64 != expected {
-                        return Err(FormatsError::input(format!(
-                            "{}: {} bytes, but a raw chunk of {}x{}x{} {} voxels has {expected} (truncated?)",
-                            this.location.describe(&name),
-                            bytes.len(),
-                            extent[0],
-                            extent[1],
-                            extent[2],
-                            this.dtype
-                        )));
-                    }
+                    let bytes = this.chunk_voxels(&name, extent)?;
                     Ok((i, j, bytes, extent))
                 })
                 .collect::<Result<_, FormatsError>>()?;
