@@ -143,6 +143,11 @@ pub struct Client {
 /// `reqwest` idles connections per host; a viewer keeps a few dozen requests in flight.
 const POOL_PER_HOST: usize = 64;
 
+/// The most bytes a zstd-encoded answer may decode to (a level's voxels are at most 64 MiB, a
+/// whole level's grid of a very large volume a few hundred): past it the answer is refused
+/// rather than decoded without bound.
+const MAX_DECODED_BYTES: u64 = 1 << 30;
+
 impl Client {
     /// A client of the server at `base` (e.g. `http://127.0.0.1:7070`).
     ///
@@ -300,8 +305,37 @@ impl Client {
         build: impl Fn() -> RequestBuilder,
         idempotent: bool,
     ) -> Result<T, ClientError> {
-        let bytes = self.send(route, build, idempotent).await?.bytes().await?;
+        let bytes = self.body(route, build, idempotent).await?;
         serde_json::from_slice(&bytes).map_err(|e| ClientError::Decode(e.to_string()))
+    }
+
+    /// The body of a successful answer, asked for with `Accept-Encoding: zstd` and decoded
+    /// here. The server compresses what it builds per request (grids, voxels, meshes, change
+    /// lists): a level grid's JSON shrinks tens of times, which is most of what a streamer
+    /// fetches besides bricks. Brick routes are not asked this way: they send stored frames.
+    async fn body(
+        &self,
+        route: &'static str,
+        build: impl Fn() -> RequestBuilder,
+        idempotent: bool,
+    ) -> Result<Bytes, ClientError> {
+        let answer = self
+            .send(
+                route,
+                || build().header(reqwest::header::ACCEPT_ENCODING, "zstd"),
+                idempotent,
+            )
+            .await?;
+        let zstd = answer
+            .headers()
+            .get(reqwest::header::CONTENT_ENCODING)
+            .is_some_and(|e| e.as_bytes().eq_ignore_ascii_case(b"zstd"));
+        let bytes = answer.bytes().await?;
+        if zstd {
+            decode_zstd(&bytes, MAX_DECODED_BYTES).map(Bytes::from)
+        } else {
+            Ok(bytes)
+        }
     }
 
     /// `GET /v1/volumes`.
@@ -460,11 +494,8 @@ impl Client {
         version: Option<u64>,
     ) -> Result<Bytes, ClientError> {
         let path = level_path(name, level, "voxels", region, version);
-        Ok(self
-            .send("level", || self.request(Method::GET, &path), true)
-            .await?
-            .bytes()
-            .await?)
+        self.body("level", || self.request(Method::GET, &path), true)
+            .await
     }
 
     /// One mesh tile in world coordinates, with its moves (the compact encoding, version 3;
@@ -530,11 +561,8 @@ impl Client {
         if let Some(v) = version {
             path.push_str(&format!("&version={v}"));
         }
-        Ok(self
-            .send(route, || self.request(Method::GET, &path), true)
-            .await?
-            .bytes()
-            .await?)
+        self.body(route, || self.request(Method::GET, &path), true)
+            .await
     }
 
     /// Applies an edit (needs a write token); with `if_match`, only at that version.
@@ -685,6 +713,24 @@ fn level_path(
 }
 
 /// The content hash an ETag (`"16 hex digits"`, maybe weak) names.
+/// `bytes` decoded from zstd, refused when they would decode to more than `limit` bytes.
+fn decode_zstd(bytes: &[u8], limit: u64) -> Result<Vec<u8>, ClientError> {
+    use std::io::Read;
+    let bad = |e: std::io::Error| ClientError::Decode(format!("zstd body: {e}"));
+    let mut out = Vec::new();
+    zstd::stream::read::Decoder::new(bytes)
+        .map_err(bad)?
+        .take(limit + 1)
+        .read_to_end(&mut out)
+        .map_err(bad)?;
+    if out.len() as u64 > limit {
+        return Err(ClientError::Decode(format!(
+            "zstd body decodes to more than {limit} bytes"
+        )));
+    }
+    Ok(out)
+}
+
 fn etag_hash(headers: &HeaderMap) -> Option<u64> {
     let v = headers.get("etag")?.to_str().ok()?;
     u64::from_str_radix(v.trim_start_matches("W/").trim_matches('"'), 16).ok()
@@ -786,4 +832,27 @@ fn parse_event(event: &str, data: &str) -> Result<Option<FeedEvent>, ClientError
         )),
         _ => None,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn zstd_bodies_decode_within_their_limit_only() {
+        let body: Vec<u8> = (0..10_000u32).flat_map(|i| (i % 7).to_le_bytes()).collect();
+        let packed = zstd::bulk::compress(&body, 3).unwrap();
+        assert!(packed.len() < body.len() / 10);
+        assert_eq!(decode_zstd(&packed, 40_000).unwrap(), body);
+        // One byte over the limit is refused, not truncated.
+        assert!(matches!(
+            decode_zstd(&packed, 39_999),
+            Err(ClientError::Decode(_))
+        ));
+        // Not zstd at all.
+        assert!(matches!(
+            decode_zstd(b"{\"level\": 0}", 1 << 20),
+            Err(ClientError::Decode(_))
+        ));
+    }
 }
