@@ -288,6 +288,10 @@ pub async fn batch(
     Ok(body.respond(BATCH_MEDIA_TYPE, HeaderMap::new()))
 }
 
+/// A grid region of at most this many bricks (a streamer's chunk is 512) is answered where it
+/// is read, never queued as CPU work: see [`level`].
+const SMALL_GRID_BRICKS: u64 = 4096;
+
 /// Query of a level.
 #[derive(Debug, Deserialize)]
 pub struct LevelQuery {
@@ -349,28 +353,62 @@ pub async fn level(
         }
     };
     let region = query.region.as_deref().map(parse_region).transpose()?;
-    let read = state
+    let zstd = accepts_zstd(&headers);
+    // A small region of a grid is a few index reads and a JSON document of tens of kilobytes:
+    // about what answering a brick costs. Viewers ask for hundreds at once when they start,
+    // and each tile waits for its region, so these are answered where they are read (inline
+    // for a local volume, on the store-read threads for a remote one) instead of waiting in
+    // the CPU queue behind mesh tiles or being refused when it is full.
+    let small = form == LevelForm::Grid
+        && region.is_some_and(|(min, max)| {
+            (0..3)
+                .map(|a| max[a].saturating_sub(min[a]))
+                .product::<u64>()
+                <= SMALL_GRID_BRICKS
+        });
+    let (tag, job) = state
         .read_volume(&name, move |_, vol| {
-            vol.level(version, channel.as_deref(), level, form, region)
+            let read = vol.level(version, channel.as_deref(), level, form, region)?;
+            let tag = read.tag();
+            let job = if small {
+                LevelJob::Ready(level_body(read.run()?, zstd))
+            } else {
+                LevelJob::Queued(read)
+            };
+            Ok::<_, VolumeError>((tag, job))
         })
         .await?;
-    let response_headers = match validate(read.tag(), version, &headers) {
+    let response_headers = match validate(tag, version, &headers) {
         Validated::NotModified(response) => return Ok(response),
         Validated::Changed(response_headers) => response_headers,
     };
-    let zstd = accepts_zstd(&headers);
     let media = match form {
         LevelForm::Grid => "application/json",
         LevelForm::Voxels => "application/octet-stream",
     };
-    let body = state
-        .cpu
-        .answer(read.known_bytes(), move || {
-            Ok::<_, VolumeError>(match read.run()? {
-                LevelAnswer::Grid(grid) => Body::json(&grid, zstd),
-                LevelAnswer::Voxels(voxels) => Body::new(voxels, zstd),
-            })
-        })
-        .await?;
+    let body = match job {
+        LevelJob::Ready(body) => body,
+        LevelJob::Queued(read) => {
+            state
+                .cpu
+                .answer(read.known_bytes(), move || {
+                    Ok::<_, VolumeError>(level_body(read.run()?, zstd))
+                })
+                .await?
+        }
+    };
     Ok(body.respond(media, response_headers))
+}
+
+/// A level read, answered already or to be run as CPU work.
+enum LevelJob {
+    Ready(Body),
+    Queued(crate::volume::read::LevelRead),
+}
+
+fn level_body(answer: LevelAnswer, zstd: bool) -> Body {
+    match answer {
+        LevelAnswer::Grid(grid) => Body::json(&grid, zstd),
+        LevelAnswer::Voxels(voxels) => Body::new(voxels, zstd),
+    }
 }

@@ -227,6 +227,57 @@ async fn a_burst_of_chunks_to_make_waits_for_the_cpu_queue() {
     assert_eq!(refused, 0, "{answers:?}");
 }
 
+/// A streamer asks for a level's grid in regions (512 bricks each), and many viewers starting
+/// at once ask for hundreds: small regions are answered where they are read, so a burst of
+/// them far larger than the CPU queue is never refused with 503s.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_burst_of_grid_regions_is_answered_without_the_cpu_queue() {
+    let s = start_with_queue(1).await;
+    let layout = Vod2::open(&s.path).unwrap().head().layout().clone();
+    // Every brick of every level as a region of its own, each asked twice.
+    let mut urls = Vec::new();
+    for level in 0..layout.levels() {
+        let [gx, gy, gz] = layout.grid(level);
+        for (x, y, z) in
+            (0..gz).flat_map(|z| (0..gy).flat_map(move |y| (0..gx).map(move |x| (x, y, z))))
+        {
+            let url = format!(
+                "{}/levels/{level}?format=grid&region={x},{y},{z},{},{},{}",
+                s.base,
+                x + 1,
+                y + 1,
+                z + 1
+            );
+            urls.push(url.clone());
+            urls.push(url);
+        }
+    }
+    assert!(urls.len() > 40, "{} regions", urls.len());
+    isovox_server::client_tls::install_provider();
+    let client = reqwest::Client::new();
+    let answers = futures_util::future::join_all(urls.iter().map(|url| {
+        let client = client.clone();
+        async move {
+            let response = client.get(url).send().await.unwrap();
+            let status = response.status().as_u16();
+            let grid: serde_json::Value = if status == 200 {
+                response.json().await.unwrap()
+            } else {
+                serde_json::Value::Null
+            };
+            (status, grid["bricks"].as_array().map_or(0, Vec::len))
+        }
+    }))
+    .await;
+    let refused = answers.iter().filter(|(status, _)| *status != 200).count();
+    assert_eq!(refused, 0, "{answers:?}");
+    // Each answer lists its one brick.
+    assert!(
+        answers.iter().all(|&(_, bricks)| bricks == 1),
+        "{answers:?}"
+    );
+}
+
 #[tokio::test]
 async fn precomputed_chunks_are_bricks_cropped_at_the_far_faces() {
     let s = start().await;
