@@ -96,7 +96,10 @@
 //! aborted (their results are never delivered), and the rest are queued by the distance from the
 //! camera to the nearest tile box that needs them. A failed request is reported as
 //! [`StreamEvent::Error`] and retried after a backoff (250 ms doubling to 10 s) while a tile still
-//! needs it.
+//! needs it. Planning visits every waiting tile, so while requests of the last plan wait to
+//! start it runs at most every 25 ms however many answers and camera moves come, and a waiting
+//! mesh tile's plan (content keys from up to 27 bricks' hashes) is kept until a request it needs
+//! ends, content it waits for comes, a commit comes or its face mask changes.
 //!
 //! # Requests in flight
 //!

@@ -26,7 +26,7 @@ use book::{HashBook, Shape};
 use cache::{Content, Lru};
 use descent::Decision;
 use desired::Desired;
-use scheduler::{JobKey, Output, Scheduler};
+use scheduler::{JobKey, Output, Scheduler, TilePlan, Wait};
 
 /// The engine's maps and sets, keyed by tiles, jobs and content hashes the client makes
 /// itself: foldhash rather than the standard library's SipHash, whose resistance to chosen
@@ -58,6 +58,12 @@ pub(super) struct Engine {
     /// only narrows bounds already on one side), so planning reuses it instead of walking every
     /// tile's bricks again on each answer. Cleared by commits, which change ranges.
     undecided: FastMap<BrickKey, Vec<BrickKey>>,
+    /// The plans of waiting tiles, kept while they hold (see [`Engine::replan`]).
+    plans: FastMap<BrickKey, KeptPlan>,
+    /// Counts commits and reloads: a plan made before the last one no longer holds.
+    epoch: u64,
+    /// When the last replan ended.
+    last_replan: Instant,
     /// The version every known hash and requested tile describes.
     version: u64,
     /// What the camera needs.
@@ -119,6 +125,9 @@ impl Engine {
             edited: FastSet::default(),
             edit_regions: FastSet::default(),
             undecided: FastMap::default(),
+            plans: FastMap::default(),
+            epoch: 0,
+            last_replan: Instant::now(),
             layout,
             radii,
             version: info.version,
@@ -148,13 +157,24 @@ impl Engine {
         mut shutdown: oneshot::Receiver<()>,
     ) {
         loop {
+            // A replan visits every waiting tile. Answers and camera moves each ask for one,
+            // hundreds a second, while what the last plan queued is still being started: so
+            // it is put off (at most REPLAN_EVERY) while the queue has work to start.
+            let mut replan_at = None;
             if self.scheduler.replan_needed {
-                self.replan();
+                let due = self.last_replan + REPLAN_EVERY;
+                if !self.scheduler.has_queued() || Instant::now() >= due {
+                    self.replan();
+                    self.last_replan = Instant::now();
+                } else {
+                    replan_at = Some(due);
+                }
             }
             self.fill();
             self.flush().await;
             let retry_at = self.scheduler.retry_at;
             tokio::select! {
+                () = sleep_until(replan_at) => {}
                 // A shutdown, or the Streamer dropped.
                 _ = &mut shutdown => break,
                 changed = camera_rx.changed() => {
@@ -221,6 +241,7 @@ impl Engine {
         let desired = &self.desired;
         self.edited.retain(|k| desired.contains(*k));
         self.undecided.retain(|k, _| desired.contains(*k));
+        self.plans.retain(|k, _| desired.contains(*k));
         self.scheduler.replan_needed = true;
     }
 
@@ -234,32 +255,63 @@ impl Engine {
 
     /// Works out what every desired tile without current content needs, makes cached ones
     /// ready, aborts requests nobody needs, and queues the rest nearest first.
+    ///
+    /// Planning a tile (its content key from up to 27 bricks' hashes, its strips', the
+    /// descent's bounds) costs microseconds, and a replan runs after every answer and camera
+    /// move over thousands of waiting tiles. So a waiting mesh tile's plan is kept and only
+    /// its distance taken anew while it still holds: no request it needs has ended, none of
+    /// the content it waits for has come, no commit came since, and its face mask is the same.
+    /// Tiles a commit made stale are planned afresh each time (their grid regions are counted
+    /// as caused by the edit). A brick's plan is one hash lookup, cheaper than keeping it
+    /// (with plans kept, viewers of bricks got their first tile later).
     fn replan(&mut self) {
         self.scheduler.replan_needed = false;
         self.scheduler.clear_plan();
+        let ended = self.scheduler.take_ended();
         let mut needed: FastMap<JobKey, f32> = FastMap::default();
         let mut from_cache = Vec::new();
         let mut drawings = Vec::new();
         let mut skipped = Vec::new();
         self.edit_regions.clear();
+        let keep_plans = matches!(self.kind, TileKind::Meshes { .. });
         for key in self.desired.without_content() {
             let d = self.distance(key);
-            // A tile an edit invalidated plans into its own map first, so that the grid
-            // regions it needs are known to be caused by the edit.
             let edited = self.edited.contains(&key);
-            let mut own = FastMap::default();
-            let into = if edited { &mut own } else { &mut needed };
-            match self.plan_tile(key, d, into) {
+            let mask = self.desired.mask(key);
+            if let Some(kept) = self.plans.get(&key) {
+                if !edited
+                    && kept.epoch == self.epoch
+                    && kept.mask == mask
+                    && kept.plan.holds(&ended, &self.cache)
+                {
+                    for &job in &kept.plan.jobs {
+                        need(&mut needed, job, d);
+                    }
+                    self.scheduler.register(key, &kept.plan.waits);
+                    continue;
+                }
+            }
+            let mut plan = TilePlan::default();
+            let planned = self.plan_tile(key, &mut plan);
+            for &job in &plan.jobs {
+                // The grid regions a tile a commit made stale needs are caused by the edit.
+                if edited && matches!(job, JobKey::Region { .. }) {
+                    self.edit_regions.insert(job);
+                }
+                need(&mut needed, job, d);
+            }
+            self.scheduler.register(key, &plan.waits);
+            match planned {
                 Plan::Skip => skipped.push(key),
                 Plan::Drawing(drawing) => drawings.push(drawing),
                 Plan::Cached(h) => from_cache.push((key, h)),
                 Plan::Waiting => {}
             }
-            for (job, d) in own {
-                if matches!(job, JobKey::Region { .. }) {
-                    self.edit_regions.insert(job);
-                }
-                need(&mut needed, job, d);
+            if keep_plans && matches!(planned, Plan::Waiting) && !edited {
+                let epoch = self.epoch;
+                self.plans.insert(key, KeptPlan { epoch, mask, plan });
+            } else {
+                self.plans.remove(&key);
             }
         }
         for key in skipped {
@@ -285,14 +337,15 @@ impl Engine {
         self.scheduler.queue_needed(needed);
     }
 
-    /// Plans desired tile `key` (at distance `d`, without current content): skipped when the
-    /// descent finds no surface in it, else from the cache or requests into `needed`.
-    fn plan_tile(&mut self, key: BrickKey, d: f32, needed: &mut FastMap<JobKey, f32>) -> Plan {
+    /// Plans desired tile `key` (without current content): skipped when the descent finds no
+    /// surface in it, else from the cache or the requests and content it waits for, recorded
+    /// in `plan`.
+    fn plan_tile(&mut self, key: BrickKey, plan: &mut TilePlan) -> Plan {
         if let Some(iso) = self.descent {
             if let Some(waiting) = self.undecided.get(&key) {
                 if waiting.iter().all(|&u| self.book.range(u).is_none()) {
                     for &u in waiting {
-                        need(needed, self.book.source_of(&self.layout, u), d);
+                        plan.jobs.push(self.book.source_of(&self.layout, u));
                     }
                     return Plan::Waiting;
                 }
@@ -308,7 +361,7 @@ impl Engine {
                 Decision::Empty => return Plan::Skip,
                 Decision::Unknown(bricks) => {
                     for &b in &bricks {
-                        need(needed, self.book.source_of(&self.layout, b), d);
+                        plan.jobs.push(self.book.source_of(&self.layout, b));
                         // The finer levels whose whole grid is one region are asked for at
                         // once, not one after the other as the descent reaches them: a few
                         // hundred entries against as many round trips before the first tile.
@@ -332,7 +385,7 @@ impl Engine {
                                 })
                                 .is_none()
                             {
-                                need(needed, whole, d);
+                                plan.jobs.push(whole);
                             }
                         }
                     }
@@ -346,20 +399,20 @@ impl Engine {
             TileKind::Bricks => match self.book.hash(key) {
                 Some(h) if self.cache.contains(h) => Plan::Cached(h),
                 Some(h) => {
-                    need(needed, JobKey::Blob(h), d);
-                    self.scheduler.wait(h, key);
+                    plan.jobs.push(JobKey::Blob(h));
+                    plan.waits.push(Wait::Content(h));
                     Plan::Waiting
                 }
                 None if self.at_version(key, &[key]) => {
-                    need(needed, JobKey::Brick(key), d);
+                    plan.jobs.push(JobKey::Brick(key));
                     Plan::Waiting
                 }
                 None => {
-                    need(needed, self.book.source_of(&self.layout, key), d);
+                    plan.jobs.push(self.book.source_of(&self.layout, key));
                     Plan::Waiting
                 }
             },
-            TileKind::Meshes { iso } => match self.plan_mesh(key, iso, d, needed) {
+            TileKind::Meshes { iso } => match self.plan_mesh(key, iso, plan) {
                 Some(drawing) => Plan::Drawing(drawing),
                 None => Plan::Waiting,
             },
@@ -383,15 +436,14 @@ impl Engine {
             })
     }
 
-    /// Plans mesh tile `key` (at `iso`, at distance `d`): the tile and the strips of its mask's
-    /// faces, each from the cache or a request into `needed`. Returns its drawing (content key
-    /// and strips' content keys) when all are in the cache.
+    /// Plans mesh tile `key` (at `iso`): the tile and the strips of its mask's faces, each from
+    /// the cache or a request recorded in `plan`. Returns its drawing (content key and strips'
+    /// content keys) when all are in the cache.
     fn plan_mesh(
         &mut self,
         key: BrickKey,
         iso: Option<f32>,
-        d: f32,
-        needed: &mut FastMap<JobKey, f32>,
+        plan: &mut TilePlan,
     ) -> Option<(BrickKey, u64, [Option<u64>; 6])> {
         let mask = self.desired.mask(key);
         let mut unknown = Vec::new();
@@ -420,7 +472,7 @@ impl Engine {
             (Some(at(None)), at_strips)
         } else {
             for b in unknown {
-                need(needed, self.book.source_of(&self.layout, b), d);
+                plan.jobs.push(self.book.source_of(&self.layout, b));
             }
             return None;
         };
@@ -428,15 +480,15 @@ impl Engine {
         let mut complete = true;
         if !self.cache.contains(content) {
             complete = false;
-            need(needed, JobKey::Mesh(key), d);
-            self.scheduler.wait_for_mesh(key, content);
+            plan.jobs.push(JobKey::Mesh(key));
+            plan.waits.push(Wait::Mesh(content));
         }
         for (face, strip) in strips.iter().enumerate() {
             let Some(strip) = *strip else { continue };
             if !self.cache.contains(strip) {
                 complete = false;
-                need(needed, JobKey::Strip(key, face as u8), d);
-                self.scheduler.wait_for_strip(key, face as u8, strip);
+                plan.jobs.push(JobKey::Strip(key, face as u8));
+                plan.waits.push(Wait::Strip(face as u8, strip));
             }
         }
         complete.then_some((key, content, strips))
@@ -749,6 +801,7 @@ impl Engine {
             return;
         }
         self.undecided.clear();
+        self.epoch += 1;
         // The descent's bounds on bricks under the changed ones, as they were before this
         // commit: they still hold for the bricks it did not change (see `descent`).
         let bounds_before = self
@@ -884,6 +937,8 @@ impl Engine {
         }
         self.book.clear();
         self.undecided.clear();
+        self.plans.clear();
+        self.epoch += 1;
         self.scheduler.reset();
         self.layout = layout;
         self.version = info.version;
@@ -957,6 +1012,14 @@ fn neighbours(b: BrickKey, g: [u32; 3]) -> impl Iterator<Item = BrickKey> {
 }
 
 /// What planning a tile found.
+/// A waiting tile's plan as [`Engine::replan`] keeps it: made before `epoch` ended, for the
+/// face mask `mask`.
+struct KeptPlan {
+    epoch: u64,
+    mask: u8,
+    plan: TilePlan,
+}
+
 enum Plan {
     /// The descent found no surface in it.
     Skip,
@@ -982,6 +1045,9 @@ async fn sleep_until(at: Option<Instant>) {
         None => std::future::pending().await,
     }
 }
+
+/// The least time between two replans while requests of the last one wait to start.
+const REPLAN_EVERY: std::time::Duration = std::time::Duration::from_millis(25);
 
 /// Records that `job` is needed by a tile at distance `d` (the nearest tile that needs it
 /// counts).

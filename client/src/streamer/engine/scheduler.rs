@@ -1,7 +1,7 @@
 //! The scheduler: the plan (requests to start, nearest first), what runs, what failed and when
 //! to retry it, and the requests themselves.
 
-use super::FastMap;
+use super::{FastMap, FastSet};
 use crate::client::{Brick, Client, ClientError};
 use crate::streamer::limit::{lock_limit, InFlightLimit, Pacer, SharedLimit};
 use crate::streamer::{RETRY_MAX, RETRY_MIN};
@@ -42,6 +42,43 @@ impl JobKey {
             } => l == level && (0..3).all(|a| p[a] >= min[a] && p[a] < max[a]),
             JobKey::Brick(k) => k.level == level && [k.x, k.y, k.z] == p,
             _ => false,
+        }
+    }
+}
+
+/// What a waiting tile needs: the requests, and the content it waits for (see
+/// [`Scheduler::register`]).
+#[derive(Debug, Default)]
+pub(super) struct TilePlan {
+    pub(super) jobs: Vec<JobKey>,
+    pub(super) waits: Vec<Wait>,
+}
+
+impl TilePlan {
+    /// Whether planning the tile again would give this plan: none of the requests it needs
+    /// has `ended` and none of the content it waits for is in `cache` (what else can change a
+    /// plan, commits and face masks, the engine checks).
+    pub(super) fn holds(&self, ended: &FastSet<JobKey>, cache: &super::cache::Lru) -> bool {
+        !self.jobs.iter().any(|j| ended.contains(j))
+            && !self.waits.iter().any(|w| cache.contains(w.content()))
+    }
+}
+
+/// Content a waiting tile waits for, by content key.
+#[derive(Debug, Clone, Copy)]
+pub(super) enum Wait {
+    /// A brick.
+    Content(u64),
+    /// Its mesh tile, to be requested under this key.
+    Mesh(u64),
+    /// The strip of a face, to be requested under this key.
+    Strip(u8, u64),
+}
+
+impl Wait {
+    fn content(self) -> u64 {
+        match self {
+            Wait::Content(c) | Wait::Mesh(c) | Wait::Strip(_, c) => c,
         }
     }
 }
@@ -89,6 +126,8 @@ pub(super) struct Scheduler {
     failures: FastMap<JobKey, Failure>,
     pub(super) retry_at: Option<Instant>,
     pub(super) replan_needed: bool,
+    /// Requests that ended (answered or aborted) since the last plan.
+    ended: FastSet<JobKey>,
 }
 
 impl Scheduler {
@@ -105,6 +144,7 @@ impl Scheduler {
             failures: FastMap::default(),
             retry_at: None,
             replan_needed: false,
+            ended: FastSet::default(),
         }
     }
 
@@ -116,22 +156,25 @@ impl Scheduler {
         self.strip_keys.clear();
     }
 
-    /// Tile `key` waits for content `content`.
-    pub(super) fn wait(&mut self, content: u64, key: BrickKey) {
-        self.waiting.entry(content).or_default().push(key);
+    /// Tile `key` waits for `waits` (until the next plan).
+    pub(super) fn register(&mut self, key: BrickKey, waits: &[Wait]) {
+        for &w in waits {
+            self.waiting.entry(w.content()).or_default().push(key);
+            match w {
+                Wait::Content(_) => {}
+                Wait::Mesh(content) => {
+                    self.mesh_keys.insert(key, content);
+                }
+                Wait::Strip(face, content) => {
+                    self.strip_keys.insert((key, face), content);
+                }
+            }
+        }
     }
 
-    /// Mesh tile `key` waits for its tile, to be requested under content key `content`.
-    pub(super) fn wait_for_mesh(&mut self, key: BrickKey, content: u64) {
-        self.wait(content, key);
-        self.mesh_keys.insert(key, content);
-    }
-
-    /// Mesh tile `key` waits for the strip of `face`, to be requested under content key
-    /// `content`.
-    pub(super) fn wait_for_strip(&mut self, key: BrickKey, face: u8, content: u64) {
-        self.wait(content, key);
-        self.strip_keys.insert((key, face), content);
+    /// The requests that ended since the last call.
+    pub(super) fn take_ended(&mut self) -> FastSet<JobKey> {
+        std::mem::take(&mut self.ended)
     }
 
     /// The tiles that waited for content `content` (none wait any more).
@@ -145,6 +188,11 @@ impl Scheduler {
         if self.waiting.remove(&content).is_some() {
             self.replan_needed = true;
         }
+    }
+
+    /// Whether requests of the last plan wait to start.
+    pub(super) fn has_queued(&self) -> bool {
+        !self.queue.is_empty()
     }
 
     /// Whether the last plan still asks for `job` (a grid region always does).
@@ -290,6 +338,7 @@ impl Scheduler {
             return false;
         };
         r.abort.abort();
+        self.ended.insert(job);
         true
     }
 
@@ -324,6 +373,7 @@ impl Scheduler {
         match self.running.get(&job) {
             Some(r) if r.id == id => {
                 self.running.remove(&job);
+                self.ended.insert(job);
             }
             _ => return None, // aborted (or superseded) before it finished
         }
