@@ -677,7 +677,9 @@ pub fn channel_voxels(
 }
 
 /// The channel brick `values` after the term's `term_density` and `term_values` over `eff`
-/// are taken where CVG's rule (or `paint`'s mode) says; `None` when nothing changes.
+/// are taken where CVG's rule (or `paint`'s mode) says; `None` when nothing changes. Works on
+/// the bricks' bytes: only the voxels the term reaches are read, and the channel brick is
+/// copied only once a value changes.
 #[allow(clippy::too_many_arguments)]
 fn take_values(
     density: &BrickVoxels,
@@ -691,12 +693,12 @@ fn take_values(
     term_values: &[u64],
 ) -> Option<BrickVoxels> {
     let size = [0, 1, 2].map(|a| (eff.max[a] - eff.min[a]) as usize);
-    let channel_layout = layout.with_voxel_type(channel.voxel_type);
-    let old_density = to_u16(density, layout);
-    let mut new = to_u16(values, &channel_layout);
-    let (surface, high) = (layout.voxel_type().surface(), channel.voxel_type.high());
+    let (density_type, channel_type) = (layout.voxel_type(), channel.voxel_type);
+    let (surface, high) = (density_type.surface(), u64::from(channel_type.high()));
     let b = layout.brick() as usize;
     let o = [0, 1, 2].map(|a| (eff.min[a] - whole.min[a]) as usize);
+    // The channel's bytes, made on the first change.
+    let mut new: Option<Vec<u8>> = None;
     let mut i = 0;
     for z in 0..size[2] {
         for y in 0..size[1] {
@@ -708,19 +710,58 @@ fn take_values(
                     continue;
                 }
                 let at = row + x;
-                let takes = match paint {
-                    None => d > old_density[at],
-                    Some(Overwrite::All) => d >= surface,
-                    Some(Overwrite::Empty) => d >= surface && new[at] == 0,
+                let current = match &new {
+                    Some(bytes) => value_at(bytes, channel_type, at),
+                    None => voxel_of(values, channel_type, at),
                 };
-                if takes {
-                    new[at] = v.min(u64::from(high)) as u16;
+                let takes = match paint {
+                    None => d > voxel_of(density, density_type, at),
+                    Some(Overwrite::All) => d >= surface,
+                    Some(Overwrite::Empty) => d >= surface && current == 0,
+                };
+                let value = v.min(high) as u16;
+                if takes && value != current {
+                    let bytes = new.get_or_insert_with(|| bytes_of(values, layout, channel_type));
+                    set_value(bytes, channel_type, at, value);
                 }
             }
         }
     }
-    let result = from_u16(&new, &channel_layout);
-    (result != *values).then_some(result)
+    new.map(|bytes| BrickVoxels::from_bytes(bytes, channel_type))
+}
+
+/// Voxel `at` of a brick of `voxel_type`.
+fn voxel_of(brick: &BrickVoxels, voxel_type: VoxelType, at: usize) -> u16 {
+    match brick {
+        BrickVoxels::Constant(c) => *c,
+        BrickVoxels::Data(bytes) => value_at(bytes, voxel_type, at),
+    }
+}
+
+fn value_at(bytes: &[u8], voxel_type: VoxelType, at: usize) -> u16 {
+    match voxel_type {
+        VoxelType::U8 => u16::from(bytes[at]),
+        VoxelType::U16 => u16::from_le_bytes([bytes[2 * at], bytes[2 * at + 1]]),
+    }
+}
+
+fn set_value(bytes: &mut [u8], voxel_type: VoxelType, at: usize, value: u16) {
+    match voxel_type {
+        VoxelType::U8 => bytes[at] = value as u8,
+        VoxelType::U16 => bytes[2 * at..2 * at + 2].copy_from_slice(&value.to_le_bytes()),
+    }
+}
+
+/// A brick's bytes as values of `voxel_type` (`layout` gives its size).
+fn bytes_of(brick: &BrickVoxels, layout: &VolumeLayout, voxel_type: VoxelType) -> Vec<u8> {
+    match brick {
+        BrickVoxels::Data(bytes) => bytes.clone(),
+        BrickVoxels::Constant(c) => {
+            let mut bytes = vec![0u8; layout.brick_voxels() * voxel_type.bytes()];
+            crate::store::codec::fill_constant(&mut bytes, *c, voxel_type);
+            bytes
+        }
+    }
 }
 
 /// Applies `edit` to the version `snap` of the file `writer` appends to, and commits the result
