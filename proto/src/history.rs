@@ -4,7 +4,8 @@
 //! A commit's [`CommitNote`] is stored in its commit record (VOD 2 revision 3, `docs/vod2.md`);
 //! the change feed, `changes?since=N` and `history` all read it from there, so they agree.
 
-use crate::icvg::{EditRequest, Region, Term};
+use crate::geometry::Box3;
+use crate::icvg::{EditRequest, Term};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
@@ -71,12 +72,12 @@ pub struct OpSummary {
     pub leaves: Vec<String>,
     /// The level-0 voxels it can change (min inclusive, max exclusive).
     #[serde(rename = "box")]
-    pub bbox: Region,
+    pub bbox: Box3,
 }
 
 impl OpSummary {
     /// The summary of `request`, whose reach in the volume is `bbox`.
-    pub fn of(request: &EditRequest, bbox: Region) -> OpSummary {
+    pub fn of(request: &EditRequest, bbox: Box3) -> OpSummary {
         let mut leaves = Vec::new();
         if let Some(term) = &request.term {
             leaf_kinds(term, &mut leaves);
@@ -282,7 +283,7 @@ mod tests {
                            {"ellipsoid": {"center": [9, 9, 9], "radii": [2, 2, 2]}}]}]}}"#,
         )
         .unwrap();
-        let bbox = Region {
+        let bbox = Box3 {
             min: [0; 3],
             max: [8; 3],
         };

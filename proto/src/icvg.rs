@@ -4,6 +4,7 @@
 //! stored volumes; inner nodes are operators. Every variant below serializes as a one-key object
 //! (`{"union": [A, B]}`, `{"ellipsoid": {...}}`), exactly the grammar of the spec.
 
+use crate::geometry::Box3;
 use serde::{Deserialize, Serialize};
 
 /// The largest magnitude of a placed coordinate (a primitive's origin, centre or base, a volume
@@ -101,7 +102,7 @@ pub enum Term {
         origin: [i64; 3],
         /// Only this box of it; all of it when absent.
         #[serde(default, skip_serializing_if = "Option::is_none")]
-        region: Option<Region>,
+        region: Option<Box3>,
     },
     /// max(D1, D2).
     Union(Box<Term>, Box<Term>),
@@ -281,16 +282,6 @@ impl<'de> Deserialize<'de> for Term {
     }
 }
 
-/// A box of level-0 voxels: `min` inclusive, `max` exclusive.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Region {
-    /// The first voxel (inclusive).
-    pub min: [i64; 3],
-    /// The end (exclusive).
-    pub max: [i64; 3],
-}
-
 /// An edit: `op(volume, term)` for a binary operator, or a unary operator on the volume.
 ///
 /// ```json
@@ -315,7 +306,7 @@ pub struct EditRequest {
     pub k: Option<i32>,
     /// Where the edit applies; the whole volume when absent.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub region: Option<Region>,
+    pub region: Option<Box3>,
     /// Why, in a few words (at most 200 characters): the history and the change feed show it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub message: Option<String>,

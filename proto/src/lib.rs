@@ -26,6 +26,7 @@ pub mod api;
 pub mod batch;
 pub mod channel;
 pub mod error;
+pub mod geometry;
 pub mod history;
 pub mod icvg;
 pub mod layout;

@@ -9,11 +9,12 @@ use isovox_server::generate::{
     build_scene, build_scene_with_materials, world_header, EllipsoidSource, WorldMaterials,
     WorldSource,
 };
+use isovox_server::geometry::Box3;
 use isovox_server::progress::Silent;
 use isovox_server::store::build::{build_file, build_streams_file, sibling, FileFormat};
 use isovox_server::store::codec::{Compression, DEFAULT_ZSTD_LEVEL};
 use isovox_server::store::inspect::inspect as inspect_vod2;
-use isovox_server::store::raw::{export_raw, rawvox_header, LevelBox, RawInput, RAWVOX_MAGIC};
+use isovox_server::store::raw::{export_raw, rawvox_header, RawInput, RAWVOX_MAGIC};
 use isovox_server::store::remote::{upload_with, Bucket, CacheConfig, Head, RemoteVolume};
 use isovox_server::store::vod1::{write_vod1, Vod1File, Vod1Source};
 use isovox_server::store::{BrickSource, BuildOptions, DenseGrid, Vod2};
@@ -411,7 +412,7 @@ fn import_file(a: ImportArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn parse_region(s: &str) -> anyhow::Result<LevelBox> {
+fn parse_region(s: &str) -> anyhow::Result<Box3> {
     let v: Vec<u32> = s
         .split(',')
         .map(|p| {
@@ -426,10 +427,8 @@ fn parse_region(s: &str) -> anyhow::Result<LevelBox> {
             v.len()
         );
     }
-    Ok(LevelBox {
-        min: [v[0], v[1], v[2]],
-        max: [v[3], v[4], v[5]],
-    })
+    let v: Vec<i64> = v.into_iter().map(i64::from).collect();
+    Ok(Box3::new([v[0], v[1], v[2]], [v[3], v[4], v[5]]))
 }
 
 pub(super) fn export(a: ExportArgs) -> anyhow::Result<()> {
@@ -486,14 +485,12 @@ pub(super) fn export(a: ExportArgs) -> anyhow::Result<()> {
             }
             let region = match &a.region {
                 Some(r) => parse_region(r)?,
-                None => LevelBox {
-                    min: [0; 3],
-                    max: layout.level_dims(a.level),
-                },
+                None => Box3::new([0; 3], layout.level_dims(a.level).map(i64::from)),
             };
             write_through_tmp(&a.output, |out| {
                 if a.format == ExportFormat::Rawvox {
-                    let dims = [0, 1, 2].map(|i| region.max[i].saturating_sub(region.min[i]));
+                    let dims = [0, 1, 2]
+                        .map(|i| u32::try_from(region.max[i] - region.min[i]).unwrap_or(0));
                     out.write_all(&rawvox_header(dims, layout.voxel_type()))?;
                 }
                 export_raw(&snap, a.level, region, out, &progress("exporting"))?;

@@ -9,7 +9,7 @@ use super::primitives::{
 };
 use super::term::{CompiledTerm, Node, Scope, TermError, TermLimits, VolumeResolver};
 use crate::geometry::Box3;
-use isovox_proto::icvg::{Attributes, Region, Term, MAX_COORDINATE};
+use isovox_proto::icvg::{Attributes, Term, MAX_COORDINATE};
 use isovox_proto::VoxelType;
 
 impl CompiledTerm {
@@ -528,7 +528,7 @@ fn pyramid(
 fn volume(
     name: &str,
     origin: [i64; 3],
-    region: Option<&Region>,
+    region: Option<&Box3>,
     t: VoxelType,
     volumes: &dyn VolumeResolver,
 ) -> Result<Node, TermError> {
@@ -543,7 +543,7 @@ fn volume(
     let whole = Box3::of_volume(snap.layout());
     let source = match region {
         Some(r) => {
-            let b = Box3::new(r.min, r.max);
+            let b = *r;
             if b.is_empty() || b.intersect(&whole) != b {
                 return Err(TermError::Invalid(format!(
                     "region {:?}..{:?} is empty or outside volume {name:?} ({:?})",

@@ -27,7 +27,7 @@ use crate::store::writer::Vod2Writer;
 use crate::store::{BrickVoxels, Snapshot};
 use isovox_proto::channel::ChannelInfo;
 use isovox_proto::history::{CommitInfo, CommitKind, CommitNote, OpSummary};
-use isovox_proto::icvg::{EditRequest, Overwrite, Region, MAX_COORDINATE};
+use isovox_proto::icvg::{EditRequest, Overwrite, MAX_COORDINATE};
 use isovox_proto::vod2::FileHeader;
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use rayon::prelude::*;
@@ -154,13 +154,7 @@ impl Edit {
             info: CommitInfo {
                 kind: Some(CommitKind::Edit),
                 message: req.message.clone(),
-                op: Some(OpSummary::of(
-                    req,
-                    Region {
-                        min: reach.min,
-                        max: reach.max,
-                    },
-                )),
+                op: Some(OpSummary::of(req, reach)),
                 ..CommitInfo::default()
             },
             request: Some(request),
@@ -188,7 +182,7 @@ impl Edit {
                         r.min, r.max
                     )));
                 }
-                Some(Box3::new(r.min, r.max))
+                Some(r)
             }
             None => None,
         };

@@ -7,6 +7,7 @@
 use super::mapping::Mapping;
 use super::vod2::Snapshot;
 use super::StoreError;
+use crate::geometry::Box3;
 use crate::progress::Progress;
 use isovox_proto::{BrickKey, VoxelType};
 use rayon::prelude::*;
@@ -149,15 +150,6 @@ pub fn rawvox_header(dims: [u32; 3], voxel_type: VoxelType) -> [u8; RAWVOX_HEADE
     h
 }
 
-/// A box of voxels at one level: `min` inclusive, `max` exclusive.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct LevelBox {
-    /// The first voxel (inclusive).
-    pub min: [u32; 3],
-    /// The end (exclusive).
-    pub max: [u32; 3],
-}
-
 /// Writes the voxels of `region` of `level` as RAW (x fastest), streaming one row of bricks at a
 /// time: memory holds one z-slab of decoded bricks, whatever the volume's size.
 ///
@@ -166,7 +158,7 @@ pub struct LevelBox {
 pub fn export_raw(
     snap: &Snapshot,
     level: u8,
-    region: LevelBox,
+    region: Box3,
     out: &mut dyn Write,
     progress: &dyn Progress,
 ) -> Result<(), StoreError> {
@@ -179,23 +171,28 @@ pub fn export_raw(
     }
     let extent = layout.level_dims(level);
     for axis in 0..3 {
-        if region.min[axis] >= region.max[axis] || region.max[axis] > extent[axis] {
+        if region.min[axis] < 0
+            || region.min[axis] >= region.max[axis]
+            || region.max[axis] > i64::from(extent[axis])
+        {
             return Err(StoreError::BadInput(format!(
                 "region {:?}..{:?} is empty or outside level {level} ({}x{}x{} voxels)",
                 region.min, region.max, extent[0], extent[1], extent[2]
             )));
         }
     }
+    // Within the level's extent: voxel positions of the level, as its bricks count them.
+    let (min, max) = (region.min.map(|c| c as u32), region.max.map(|c| c as u32));
     let b = layout.brick();
     let vb = layout.voxel_type().bytes();
     let brick_bytes = layout.brick_bytes();
-    let (bx0, bx1) = (region.min[0] / b, (region.max[0] - 1) / b);
-    let (by0, by1) = (region.min[1] / b, (region.max[1] - 1) / b);
-    let (bz0, bz1) = (region.min[2] / b, (region.max[2] - 1) / b);
+    let (bx0, bx1) = (min[0] / b, (max[0] - 1) / b);
+    let (by0, by1) = (min[1] / b, (max[1] - 1) / b);
+    let (bz0, bz1) = (min[2] / b, (max[2] - 1) / b);
     let (nbx, nby) = ((bx1 - bx0 + 1) as usize, (by1 - by0 + 1) as usize);
-    progress.start((region.max[2] - region.min[2]) as u64);
-    let row_voxels = (region.max[0] - region.min[0]) as usize;
-    let mut plane = vec![0u8; row_voxels * (region.max[1] - region.min[1]) as usize * vb];
+    progress.start((max[2] - min[2]) as u64);
+    let row_voxels = (max[0] - min[0]) as usize;
+    let mut plane = vec![0u8; row_voxels * (max[1] - min[1]) as usize * vb];
     for bz in bz0..=bz1 {
         let slab: Vec<Vec<u8>> = (0..nbx * nby)
             .into_par_iter()
@@ -210,19 +207,19 @@ pub fn export_raw(
                 snap.read_into(key, &mut buf).map(|_| buf)
             })
             .collect::<Result<_, _>>()?;
-        let z_lo = region.min[2].max(bz * b);
-        let z_hi = region.max[2].min((bz + 1) * b);
+        let z_lo = min[2].max(bz * b);
+        let z_hi = max[2].min((bz + 1) * b);
         for z in z_lo..z_hi {
             let lz = (z - bz * b) as usize;
-            for (row, y) in (region.min[1]..region.max[1]).enumerate() {
+            for (row, y) in (min[1]..max[1]).enumerate() {
                 let (jy, ly) = (((y / b) - by0) as usize, (y % b) as usize);
-                let mut x = region.min[0];
-                while x < region.max[0] {
+                let mut x = min[0];
+                while x < max[0] {
                     let (ix, lx) = (((x / b) - bx0) as usize, (x % b) as usize);
-                    let n = ((b as usize - lx) as u32).min(region.max[0] - x) as usize;
+                    let n = ((b as usize - lx) as u32).min(max[0] - x) as usize;
                     let src = &slab[jy * nbx + ix]
                         [((lz * b as usize + ly) * b as usize + lx) * vb..][..n * vb];
-                    let dst = (row * row_voxels + (x - region.min[0]) as usize) * vb;
+                    let dst = (row * row_voxels + (x - min[0]) as usize) * vb;
                     plane[dst..dst + n * vb].copy_from_slice(src);
                     x += n as u32;
                 }

@@ -8,8 +8,7 @@
 //! read. Everything read is checksummed anyway (records, index chunks, brick headers and
 //! contents), so a range read without its fill would be an error, never wrong voxels.
 //!
-//! (Not to be confused with a box of voxels: [`crate::store::raw::LevelBox`] for exports,
-//! [`crate::geometry::Box3`] in world voxels, `isovox_proto::icvg::Region` for an edit's bounds.)
+//! (Not to be confused with a box of voxels, [`crate::geometry::Box3`].)
 
 use super::mapping::Mapping;
 use super::StoreError;

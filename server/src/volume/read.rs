@@ -4,6 +4,7 @@
 //! runtime (decoding, encoding, meshing).
 
 use super::{stream_of, LiveVolume, VolumeError};
+use crate::geometry::Box3;
 use crate::mesh::cache::MeshCache;
 use crate::mesh::tile::{
     check_material_channel, iso_value, strip_inputs, strip_material_key, strip_to_world,
@@ -11,7 +12,7 @@ use crate::mesh::tile::{
 };
 use crate::store::codec::constant_hash;
 use crate::store::decoded::{decode, DecodedBricks};
-use crate::store::raw::{export_raw, LevelBox};
+use crate::store::raw::export_raw;
 use crate::store::{Snapshot, StoredBrick};
 use isovox_proto::api::{LevelBrick, LevelGrid};
 use isovox_proto::batch::MAX_BATCH;
@@ -378,7 +379,7 @@ impl LevelRead {
             export_raw(
                 snap,
                 level,
-                LevelBox { min, max },
+                Box3::new(min.map(i64::from), max.map(i64::from)),
                 &mut out,
                 &crate::progress::Silent,
             )?;

@@ -89,10 +89,7 @@ fn brick_area(snap: &Snapshot, b: &Box3) -> Box3 {
 }
 
 fn op_box(r: &CommitRecord) -> Option<Box3> {
-    r.info
-        .op
-        .as_ref()
-        .map(|op| Box3::new(op.bbox.min, op.bbox.max))
+    r.info.op.as_ref().map(|op| op.bbox)
 }
 
 fn meets(r: &CommitRecord, area: &Box3) -> bool {

@@ -7,7 +7,7 @@
 //! unchanged elsewhere), and downsampled level by level (`(sum of 2x2x2 + 4) / 8`, voxels beyond
 //! a level's extent 0).
 
-use isovox_proto::icvg::{EditRequest, Region, Term};
+use isovox_proto::icvg::{EditRequest, Term};
 use isovox_proto::{VolumeLayout, VoxelType};
 use isovox_server::cancel::CancelToken;
 use isovox_server::geometry::Box3;
@@ -368,13 +368,13 @@ fn small_term() -> impl Strategy<Value = Term> {
     })
 }
 
-fn region() -> impl Strategy<Value = Option<Region>> {
+fn region() -> impl Strategy<Value = Option<Box3>> {
     prop::option::of(
         (
             prop::array::uniform3(-5i64..36),
             prop::array::uniform3(1i64..30),
         )
-            .prop_map(|(min, size)| Region {
+            .prop_map(|(min, size)| Box3 {
                 min,
                 max: [0, 1, 2].map(|a| min[a] + size[a]),
             }),
@@ -506,7 +506,7 @@ fn every_operator_in_sequence() {
             term: None,
             s_l: None,
             k: None,
-            region: Some(Region {
+            region: Some(Box3 {
                 min: [5, 5, 5],
                 max: [30, 20, 17],
             }),
@@ -778,7 +778,7 @@ fn term_outside_the_volume_changes_nothing() {
                 term,
                 s_l: None,
                 k: None,
-                region: Some(Region {
+                region: Some(Box3 {
                     min: [37, 0, 0],
                     max: [60, 29, 23],
                 }),
@@ -799,7 +799,7 @@ fn term_outside_the_volume_changes_nothing() {
 }
 
 /// An operator, its term, an optional region, and the level-0 bricks the edit may touch.
-type BboxCase = (&'static str, Term, Option<Region>, BTreeSet<[u32; 3]>);
+type BboxCase = (&'static str, Term, Option<Box3>, BTreeSet<[u32; 3]>);
 
 #[test]
 fn identity_edit_visits_only_bricks_in_the_bbox() {
@@ -838,7 +838,7 @@ fn identity_edit_visits_only_bricks_in_the_bbox() {
                 origin: [-5, -5, -5],
                 size: [50, 40, 40],
             },
-            Some(Region {
+            Some(Box3 {
                 min: [0, 0, 0],
                 max: [8, 8, 8],
             }),
@@ -966,7 +966,7 @@ fn checkpoint_every_commit() {
                 term: None,
                 s_l: None,
                 k: Some(-k),
-                region: Some(Region {
+                region: Some(Box3 {
                     min: [0, 0, 0],
                     max: [20, 20, 20],
                 }),
@@ -1190,7 +1190,7 @@ fn stored_volume_operand() {
         let part = Term::Volume {
             name: "boulder".into(),
             origin,
-            region: Some(Region {
+            region: Some(Box3 {
                 min: rmin,
                 max: rmax,
             }),
@@ -1231,7 +1231,7 @@ fn stored_volume_operand() {
         let outside = Term::Volume {
             name: "boulder".into(),
             origin,
-            region: Some(Region {
+            region: Some(Box3 {
                 min: [0, 0, 0],
                 max: [14, 1, 1],
             }),
@@ -1252,7 +1252,7 @@ fn stored_volume_operand() {
             (
                 "product",
                 [10, 8, 4],
-                Some(Region {
+                Some(Box3 {
                     min: [8, 6, 2],
                     max: [26, 20, 15],
                 }),

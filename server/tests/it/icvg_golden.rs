@@ -3,7 +3,7 @@
 //!
 //! Value ranges: u8 L = 0, H = 255, S = floor(255 / 2) = 127; u16 L = 0, H = 65535, S = 32767.
 
-use isovox_proto::icvg::{EditRequest, Region, Term};
+use isovox_proto::icvg::{EditRequest, Term};
 use isovox_proto::VoxelType;
 use isovox_server::geometry::Box3;
 use isovox_server::icvg::edit::{Edit, EditKind};
@@ -1421,7 +1421,7 @@ fn spec_edit_request_examples_parse() {
     .unwrap();
     assert_eq!(
         req.region,
-        Some(Region {
+        Some(Box3 {
             min: [0, 1, 2],
             max: [32, 33, 34]
         })

@@ -226,10 +226,7 @@ fn morph_edit_matches_naive(dims: [usize; 3], r: i64, dilate: bool, value: impl 
     isovox_server::store::raw::export_raw(
         &after,
         0,
-        isovox_server::store::raw::LevelBox {
-            min: [0; 3],
-            max: d32,
-        },
+        isovox_server::geometry::Box3::new([0; 3], d32.map(i64::from)),
         &mut out,
         &isovox_server::progress::Silent,
     )

@@ -10,10 +10,11 @@
 // unwrap is how a test says "this must work"; clippy exempts only #[test] functions.
 
 use isovox_proto::{VolumeLayout, VoxelType};
+use isovox_server::geometry::Box3;
 use isovox_server::progress::Silent;
 use isovox_server::store::codec::Compression;
 use isovox_server::store::inspect::inspect;
-use isovox_server::store::raw::{export_raw, LevelBox, RawInput};
+use isovox_server::store::raw::{export_raw, RawInput};
 use isovox_server::store::{build_vod2, BuildOptions, DenseGrid, Snapshot, Vod2};
 use std::path::Path;
 
@@ -45,7 +46,8 @@ fn build_from_raw_file(
 
 fn export(snap: &Snapshot, level: u8, min: [u32; 3], max: [u32; 3]) -> Vec<u8> {
     let mut out = Vec::new();
-    export_raw(snap, level, LevelBox { min, max }, &mut out, &Silent).unwrap();
+    let region = Box3::new(min.map(i64::from), max.map(i64::from));
+    export_raw(snap, level, region, &mut out, &Silent).unwrap();
     out
 }
 
@@ -281,10 +283,11 @@ fn export_rejects_empty_and_out_of_range_regions() {
         (0, [0, 0, 0], [18, 33, 5]),                    // beyond x
         (1, [0, 0, 0], [9, 17, 4]),                     // level 1 is 9x17x3
         (snap.layout().levels(), [0, 0, 0], [1, 1, 1]), // no such level
+        (0, [-1, 0, 0], [2, 33, 5]),                    // before x
     ];
     for (level, min, max) in bad {
         let mut out = Vec::new();
-        let r = export_raw(&snap, level, LevelBox { min, max }, &mut out, &Silent);
+        let r = export_raw(&snap, level, Box3::new(min, max), &mut out, &Silent);
         let e = r.expect_err("export of an invalid region must fail");
         assert!(!e.to_string().is_empty());
     }

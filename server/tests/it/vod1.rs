@@ -10,9 +10,10 @@
 // unwrap is how a test says "this must work"; clippy exempts only #[test] functions.
 
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
+use isovox_server::geometry::Box3;
 use isovox_server::progress::Silent;
 use isovox_server::store::codec::Compression;
-use isovox_server::store::raw::{export_raw, LevelBox};
+use isovox_server::store::raw::export_raw;
 use isovox_server::store::vod1::{write_vod1, Vod1, Vod1Source};
 use isovox_server::store::{build_vod2, BuildOptions, DenseGrid, Vod2};
 use std::collections::HashMap;
@@ -174,10 +175,7 @@ fn chain(voxel_type: VoxelType, compress: bool) {
     source.finish().unwrap();
     let second = Vod2::open(&second_path).unwrap();
     let mut exported = Vec::new();
-    let region = LevelBox {
-        min: [0; 3],
-        max: dims,
-    };
+    let region = Box3::new([0; 3], dims.map(i64::from));
     export_raw(&second.head(), 0, region, &mut exported, &Silent).unwrap();
     assert!(
         exported == volume.to_bytes(voxel_type),

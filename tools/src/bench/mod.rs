@@ -19,9 +19,10 @@ use anyhow::Context;
 use clap::Subcommand;
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use isovox_server::generate::{EllipsoidSource, WorldSource};
+use isovox_server::geometry::Box3;
 use isovox_server::progress::Silent;
 use isovox_server::store::codec::{Compression, DEFAULT_ZSTD_LEVEL};
-use isovox_server::store::raw::{export_raw, LevelBox, RawInput};
+use isovox_server::store::raw::{export_raw, RawInput};
 use isovox_server::store::{
     build_vod2, stream_pyramid, BrickSource, BuildOptions, DenseGrid, MemorySink, Vod2,
 };
@@ -172,10 +173,7 @@ fn write_raw(
 /// Writes a volume's level 0 as a RAW file (what the peers and the RAW timings read).
 pub fn write_level0_raw(vod: &Vod2, raw: &Path) -> anyhow::Result<()> {
     let mut out = BufWriter::with_capacity(1 << 20, File::create(raw)?);
-    let region = LevelBox {
-        min: [0; 3],
-        max: vod.layout().dims(),
-    };
+    let region = Box3::new([0; 3], vod.layout().dims().map(i64::from));
     export_raw(&vod.head(), 0, region, &mut out, &Silent)?;
     out.flush()?;
     Ok(())
