@@ -387,7 +387,11 @@ pub async fn level(
         LevelForm::Voxels => "application/octet-stream",
     };
     let body = match job {
-        LevelJob::Ready(body) => body,
+        // Held against the response memory until sent, as the CPU queue's answers are.
+        LevelJob::Ready(body) => {
+            let reservation = state.cpu.memory.reserve(body.len())?;
+            body.hold(reservation)
+        }
         LevelJob::Queued(read) => {
             state
                 .cpu
