@@ -712,7 +712,6 @@ fn level_path(
     path
 }
 
-/// The content hash an ETag (`"16 hex digits"`, maybe weak) names.
 /// `bytes` decoded from zstd, refused when they would decode to more than `limit` bytes.
 fn decode_zstd(bytes: &[u8], limit: u64) -> Result<Vec<u8>, ClientError> {
     use std::io::Read;
@@ -731,6 +730,7 @@ fn decode_zstd(bytes: &[u8], limit: u64) -> Result<Vec<u8>, ClientError> {
     Ok(out)
 }
 
+/// The content hash an ETag (`"16 hex digits"`, maybe weak) names.
 fn etag_hash(headers: &HeaderMap) -> Option<u64> {
     let v = headers.get("etag")?.to_str().ok()?;
     u64::from_str_radix(v.trim_start_matches("W/").trim_matches('"'), 16).ok()

@@ -355,10 +355,11 @@ pub async fn level(
     let region = query.region.as_deref().map(parse_region).transpose()?;
     let zstd = accepts_zstd(&headers);
     // A small region of a grid is a few index reads and a JSON document of tens of kilobytes:
-    // about what answering a brick costs. Viewers ask for hundreds at once when they start,
-    // and each tile waits for its region, so these are answered where they are read (inline
-    // for a local volume, on the store-read threads for a remote one) instead of waiting in
-    // the CPU queue behind mesh tiles or being refused when it is full.
+    // about twice what answering a brick costs. Viewers ask for hundreds at once when they
+    // start, and each tile waits for its region, so these are answered where they are read
+    // (inline for a local volume, on the store-read threads for a remote one) instead of
+    // waiting in the CPU queue behind mesh tiles or being refused when it is full. A
+    // revalidation (a cache in front asks again) is answered from the tag, before any of that.
     let small = form == LevelForm::Grid
         && region.is_some_and(|(min, max)| {
             (0..3)
@@ -366,48 +367,51 @@ pub async fn level(
                 .product::<u64>()
                 <= SMALL_GRID_BRICKS
         });
-    let (tag, job) = state
+    let request_headers = headers.clone();
+    let job = state
         .read_volume(&name, move |_, vol| {
             let read = vol.level(version, channel.as_deref(), level, form, region)?;
-            let tag = read.tag();
-            let job = if small {
-                LevelJob::Ready(level_body(read.run()?, zstd))
-            } else {
-                LevelJob::Queued(read)
+            let response_headers = match validate(read.tag(), version, &request_headers) {
+                Validated::NotModified(response) => return Ok(LevelJob::NotModified(response)),
+                Validated::Changed(response_headers) => response_headers,
             };
-            Ok::<_, VolumeError>((tag, job))
+            Ok::<_, VolumeError>(if small {
+                LevelJob::Ready(level_body(read.run()?, zstd), response_headers)
+            } else {
+                LevelJob::Queued(read, response_headers)
+            })
         })
         .await?;
-    let response_headers = match validate(tag, version, &headers) {
-        Validated::NotModified(response) => return Ok(response),
-        Validated::Changed(response_headers) => response_headers,
-    };
     let media = match form {
         LevelForm::Grid => "application/json",
         LevelForm::Voxels => "application/octet-stream",
     };
-    let body = match job {
+    let (body, response_headers) = match job {
+        LevelJob::NotModified(response) => return Ok(response),
         // Held against the response memory until sent, as the CPU queue's answers are.
-        LevelJob::Ready(body) => {
+        LevelJob::Ready(body, response_headers) => {
             let reservation = state.cpu.memory.reserve(body.len())?;
-            body.hold(reservation)
+            (body.hold(reservation), response_headers)
         }
-        LevelJob::Queued(read) => {
-            state
+        LevelJob::Queued(read, response_headers) => {
+            let body = state
                 .cpu
                 .answer(read.known_bytes(), move || {
                     Ok::<_, VolumeError>(level_body(read.run()?, zstd))
                 })
-                .await?
+                .await?;
+            (body, response_headers)
         }
     };
     Ok(body.respond(media, response_headers))
 }
 
-/// A level read, answered already or to be run as CPU work.
+/// A level read: the client holds it already, it is answered already, or it is to be run as
+/// CPU work; with the answer's caching headers.
 enum LevelJob {
-    Ready(Body),
-    Queued(crate::volume::read::LevelRead),
+    NotModified(Response),
+    Ready(Body, HeaderMap),
+    Queued(crate::volume::read::LevelRead, HeaderMap),
 }
 
 fn level_body(answer: LevelAnswer, zstd: bool) -> Body {

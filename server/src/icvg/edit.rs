@@ -715,7 +715,11 @@ fn take_values(
                 };
                 let value = v.min(high) as u16;
                 if takes && value != current {
-                    let bytes = new.get_or_insert_with(|| bytes_of(values, layout, channel_type));
+                    let bytes = new.get_or_insert_with(|| {
+                        values
+                            .clone()
+                            .into_bytes(layout.brick_voxels(), channel_type)
+                    });
                     set_value(bytes, channel_type, at, value);
                 }
             }
@@ -743,18 +747,6 @@ fn set_value(bytes: &mut [u8], voxel_type: VoxelType, at: usize, value: u16) {
     match voxel_type {
         VoxelType::U8 => bytes[at] = value as u8,
         VoxelType::U16 => bytes[2 * at..2 * at + 2].copy_from_slice(&value.to_le_bytes()),
-    }
-}
-
-/// A brick's bytes as values of `voxel_type` (`layout` gives its size).
-fn bytes_of(brick: &BrickVoxels, layout: &VolumeLayout, voxel_type: VoxelType) -> Vec<u8> {
-    match brick {
-        BrickVoxels::Data(bytes) => bytes.clone(),
-        BrickVoxels::Constant(c) => {
-            let mut bytes = vec![0u8; layout.brick_voxels() * voxel_type.bytes()];
-            crate::store::codec::fill_constant(&mut bytes, *c, voxel_type);
-            bytes
-        }
     }
 }
 

@@ -28,6 +28,18 @@ impl BrickVoxels {
             BrickVoxels::Data(bytes)
         }
     }
+
+    /// Its bytes: a constant brick expanded to `voxels` values of `voxel_type`.
+    pub fn into_bytes(self, voxels: usize, voxel_type: VoxelType) -> Vec<u8> {
+        match self {
+            BrickVoxels::Data(bytes) => bytes,
+            BrickVoxels::Constant(v) => {
+                let mut bytes = vec![0u8; voxels * voxel_type.bytes()];
+                super::codec::fill_constant(&mut bytes, v, voxel_type);
+                bytes
+            }
+        }
+    }
 }
 
 /// Where the voxels of level 0 come from when a volume is built: a RAW file, a generator, a

@@ -5,7 +5,6 @@
 //! Edits stage level-0 bricks on top of the head ([`Transaction::on`]); a build and a compaction
 //! fill every entry of a new file ([`Transaction::first`]), whose first commit is a checkpoint.
 
-use super::codec::fill_constant;
 use super::pyramid::{constant_parent, downsample, downsample_changed, BrickVoxels, Downsampling};
 use super::writer::{PreparedBrick, Vod2Writer};
 use super::{Snapshot, StoreError, StoredBrick};
@@ -347,14 +346,7 @@ impl<'a> Transaction<'a> {
                     } else {
                         // The other octants are those of the parent as it was: one brick read
                         // instead of each unchanged child.
-                        let mut out = match snap.voxels(parent)? {
-                            BrickVoxels::Data(bytes) => bytes,
-                            BrickVoxels::Constant(v) => {
-                                let mut bytes = vec![0u8; layout.brick_bytes()];
-                                fill_constant(&mut bytes, v, t);
-                                bytes
-                            }
-                        };
+                        let mut out = snap.voxels(parent)?.into_bytes(layout.brick_voxels(), t);
                         downsample_changed(&changed, layout.brick(), t, how, &mut out);
                         BrickVoxels::from_bytes(out, t)
                     };

@@ -58,10 +58,9 @@ pub(super) struct Engine {
     /// only narrows bounds already on one side), so planning reuses it instead of walking every
     /// tile's bricks again on each answer. Cleared by commits, which change ranges.
     undecided: FastMap<BrickKey, Vec<BrickKey>>,
-    /// The plans of waiting tiles, kept while they hold (see [`Engine::replan`]).
+    /// The plans of waiting mesh tiles, kept while they hold (see [`Engine::replan`]). Cleared
+    /// by commits, which change hashes.
     plans: FastMap<BrickKey, KeptPlan>,
-    /// Counts commits and reloads: a plan made before the last one no longer holds.
-    epoch: u64,
     /// When the last replan ended.
     last_replan: Instant,
     /// The version every known hash and requested tile describes.
@@ -126,7 +125,6 @@ impl Engine {
             edit_regions: FastSet::default(),
             undecided: FastMap::default(),
             plans: FastMap::default(),
-            epoch: 0,
             last_replan: Instant::now(),
             layout,
             radii,
@@ -260,7 +258,7 @@ impl Engine {
     /// descent's bounds) costs microseconds, and a replan runs after every answer and camera
     /// move over thousands of waiting tiles. So a waiting mesh tile's plan is kept and only
     /// its distance taken anew while it still holds: no request it needs has ended, none of
-    /// the content it waits for has come, no commit came since, and its face mask is the same.
+    /// the content it waits for has come, and its face mask is the same (commits clear them).
     /// Tiles a commit made stale are planned afresh each time (their grid regions are counted
     /// as caused by the edit). A brick's plan is one hash lookup, cheaper than keeping it
     /// (with plans kept, viewers of bricks got their first tile later).
@@ -274,16 +272,14 @@ impl Engine {
         let mut skipped = Vec::new();
         self.edit_regions.clear();
         let keep_plans = matches!(self.kind, TileKind::Meshes { .. });
+        // One plan's buffers for the tiles whose plan is not kept.
+        let mut plan = TilePlan::default();
         for key in self.desired.without_content() {
             let d = self.distance(key);
             let edited = self.edited.contains(&key);
             let mask = self.desired.mask(key);
             if let Some(kept) = self.plans.get(&key) {
-                if !edited
-                    && kept.epoch == self.epoch
-                    && kept.mask == mask
-                    && kept.plan.holds(&ended, &self.cache)
-                {
+                if !edited && kept.mask == mask && kept.plan.holds(&ended, &self.cache) {
                     for &job in &kept.plan.jobs {
                         need(&mut needed, job, d);
                     }
@@ -291,7 +287,7 @@ impl Engine {
                     continue;
                 }
             }
-            let mut plan = TilePlan::default();
+            plan.clear();
             let planned = self.plan_tile(key, &mut plan);
             for &job in &plan.jobs {
                 // The grid regions a tile a commit made stale needs are caused by the edit.
@@ -308,8 +304,8 @@ impl Engine {
                 Plan::Waiting => {}
             }
             if keep_plans && matches!(planned, Plan::Waiting) && !edited {
-                let epoch = self.epoch;
-                self.plans.insert(key, KeptPlan { epoch, mask, plan });
+                let plan = std::mem::take(&mut plan);
+                self.plans.insert(key, KeptPlan { mask, plan });
             } else {
                 self.plans.remove(&key);
             }
@@ -801,7 +797,7 @@ impl Engine {
             return;
         }
         self.undecided.clear();
-        self.epoch += 1;
+        self.plans.clear();
         // The descent's bounds on bricks under the changed ones, as they were before this
         // commit: they still hold for the bricks it did not change (see `descent`).
         let bounds_before = self
@@ -938,7 +934,6 @@ impl Engine {
         self.book.clear();
         self.undecided.clear();
         self.plans.clear();
-        self.epoch += 1;
         self.scheduler.reset();
         self.layout = layout;
         self.version = info.version;
@@ -1011,15 +1006,13 @@ fn neighbours(b: BrickKey, g: [u32; 3]) -> impl Iterator<Item = BrickKey> {
         })
 }
 
-/// What planning a tile found.
-/// A waiting tile's plan as [`Engine::replan`] keeps it: made before `epoch` ended, for the
-/// face mask `mask`.
+/// A waiting tile's plan as [`Engine::replan`] keeps it, made for the face mask `mask`.
 struct KeptPlan {
-    epoch: u64,
     mask: u8,
     plan: TilePlan,
 }
 
+/// What planning a tile found.
 enum Plan {
     /// The descent found no surface in it.
     Skip,

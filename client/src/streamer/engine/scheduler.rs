@@ -55,9 +55,15 @@ pub(super) struct TilePlan {
 }
 
 impl TilePlan {
+    /// Empties it, keeping its buffers.
+    pub(super) fn clear(&mut self) {
+        self.jobs.clear();
+        self.waits.clear();
+    }
+
     /// Whether planning the tile again would give this plan: none of the requests it needs
     /// has `ended` and none of the content it waits for is in `cache` (what else can change a
-    /// plan, commits and face masks, the engine checks).
+    /// plan, commits and face masks, the engine handles).
     pub(super) fn holds(&self, ended: &FastSet<JobKey>, cache: &super::cache::Lru) -> bool {
         !self.jobs.iter().any(|j| ended.contains(j))
             && !self.waits.iter().any(|w| cache.contains(w.content()))
