@@ -687,41 +687,48 @@ fn take_values(
     term_values: &[u64],
 ) -> Option<BrickVoxels> {
     let size = [0, 1, 2].map(|a| (eff.max[a] - eff.min[a]) as usize);
+    if size.contains(&0) {
+        return None;
+    }
     let (density_type, channel_type) = (layout.voxel_type(), channel.voxel_type);
     let (surface, high) = (density_type.surface(), u64::from(channel_type.high()));
     let b = layout.brick() as usize;
     let o = [0, 1, 2].map(|a| (eff.min[a] - whole.min[a]) as usize);
     // The channel's bytes, made on the first change.
     let mut new: Option<Vec<u8>> = None;
-    let mut i = 0;
-    for z in 0..size[2] {
-        for y in 0..size[1] {
-            let row = ((o[2] + z) * b + o[1] + y) * b + o[0];
-            for x in 0..size[0] {
-                let (d, v) = (term_density[i], term_values[i]);
-                i += 1;
-                if v == KEEP {
-                    continue;
-                }
-                let at = row + x;
-                let current = match &new {
-                    Some(bytes) => value_at(bytes, channel_type, at),
-                    None => voxel_of(values, channel_type, at),
-                };
-                let takes = match paint {
-                    None => d > voxel_of(density, density_type, at),
-                    Some(Overwrite::All) => d >= surface,
-                    Some(Overwrite::Empty) => d >= surface && current == 0,
-                };
-                let value = v.min(high) as u16;
-                if takes && value != current {
-                    let bytes = new.get_or_insert_with(|| {
-                        values
-                            .clone()
-                            .into_bytes(layout.brick_voxels(), channel_type)
-                    });
-                    set_value(bytes, channel_type, at, value);
-                }
+    let rows = term_density
+        .chunks_exact(size[0])
+        .zip(term_values.chunks_exact(size[0]));
+    for (r, (densities, term_row)) in rows.enumerate() {
+        // Rows the term gives nothing to (the corners of a ball's bounding box) are skipped
+        // whole.
+        if term_row.iter().all(|&v| v == KEEP) {
+            continue;
+        }
+        let (y, z) = (r % size[1], r / size[1]);
+        let row = ((o[2] + z) * b + o[1] + y) * b + o[0];
+        for (x, (&d, &v)) in densities.iter().zip(term_row).enumerate() {
+            if v == KEEP {
+                continue;
+            }
+            let at = row + x;
+            let current = match &new {
+                Some(bytes) => value_at(bytes, channel_type, at),
+                None => voxel_of(values, channel_type, at),
+            };
+            let takes = match paint {
+                None => d > voxel_of(density, density_type, at),
+                Some(Overwrite::All) => d >= surface,
+                Some(Overwrite::Empty) => d >= surface && current == 0,
+            };
+            let value = v.min(high) as u16;
+            if takes && value != current {
+                let bytes = new.get_or_insert_with(|| {
+                    values
+                        .clone()
+                        .into_bytes(layout.brick_voxels(), channel_type)
+                });
+                set_value(bytes, channel_type, at, value);
             }
         }
     }
@@ -896,9 +903,11 @@ fn stage_bricks(
     if edit.note.info.kind.is_some() {
         transaction.set_note(note_bytes(&edit.note));
     }
-    transaction.update_level0(level0)?;
+    // Nothing outside the edit's reach changed: the levels above recompute only what lies over it.
+    let reach = edit.reach(layout);
+    transaction.update_level0(level0, &reach)?;
     for (view, changed) in channels {
-        transaction.update_channel_level0(&view, changed)?;
+        transaction.update_channel_level0(&view, changed, &reach)?;
     }
     let staged = transaction.stage(policy)?;
     let channels = channel_names(snap.header(), staged.channels_changed);

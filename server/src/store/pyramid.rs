@@ -6,7 +6,9 @@
 //! is even, every 2x2x2 group lies inside one child, so the rule is the same as downsampling the
 //! whole level as one array.
 
+use isovox_proto::geometry::Box3;
 use isovox_proto::{BrickKey, VoxelType};
+use std::ops::Range;
 
 /// The voxels of one brick: one value everywhere, or the decoded bytes (x fastest, then y, then
 /// z; u16 little endian).
@@ -172,50 +174,75 @@ pub fn downsample(
     how: Downsampling,
     out: &mut [u8],
 ) {
+    let whole = Box3::new([0; 3], [i64::from(brick); 3]);
     for (octant, child) in children.iter().enumerate() {
-        downsample_octant(octant, *child, brick, voxel_type, how, out);
+        downsample_octant(octant, *child, brick, voxel_type, how, &whole, out);
     }
 }
 
-/// Rewrites in `out`, a parent brick's bytes, only the octants whose child is given: the
-/// others keep what `out` holds. A parent of which a few children changed is its old content
-/// with those octants downsampled again (each octant of a parent depends on its own child
-/// only), without reading the children that did not change.
+/// The voxels of the next coarser level that a change within `changed` (voxels of one level,
+/// in that level's coordinates) can reach: each coarser voxel is made of the 2x2x2 below it.
+pub fn coarser(changed: &Box3) -> Box3 {
+    Box3::new(
+        changed.min.map(|c| c.div_euclid(2)),
+        changed.max.map(|c| (c + 1).div_euclid(2)),
+    )
+}
+
+/// Rewrites in `out`, a parent brick's bytes, only the octants whose child is given, and of
+/// those only the voxels in `within` (in the parent brick's own voxels, `0..brick` on each
+/// axis): the rest keeps what `out` holds. A parent of which a few children changed is its old
+/// content with those octants downsampled again (each octant of a parent depends on its own
+/// child only), without reading the children that did not change; where the children changed
+/// only within a box, only the parent's voxels above that box ([`coarser`]) can differ.
 pub fn downsample_changed(
     changed: &[Option<&BrickVoxels>; 8],
     brick: u32,
     voxel_type: VoxelType,
     how: Downsampling,
+    within: &Box3,
     out: &mut [u8],
 ) {
     for (octant, child) in changed.iter().enumerate() {
         if child.is_some() {
-            downsample_octant(octant, *child, brick, voxel_type, how, out);
+            downsample_octant(octant, *child, brick, voxel_type, how, within, out);
         }
     }
 }
 
-/// The octant `octant` (x fastest) of a parent brick from its child (`None`: all L).
+/// Voxels of an octant, per axis, relative to the octant's first voxel.
+type Span = [Range<usize>; 3];
+
+/// The octant `octant` (x fastest) of a parent brick from its child (`None`: all L), only
+/// its voxels in `within` (parent brick coordinates).
 fn downsample_octant(
     octant: usize,
     child: Option<&BrickVoxels>,
     brick: u32,
     voxel_type: VoxelType,
     how: Downsampling,
+    within: &Box3,
     out: &mut [u8],
 ) {
     let b = brick as usize;
     let h = b / 2;
-    let (ox, oy, oz) = ((octant & 1) * h, (octant >> 1 & 1) * h, (octant >> 2) * h);
+    let o = [octant & 1, octant >> 1 & 1, octant >> 2].map(|bit| bit * h);
+    let span: Span = std::array::from_fn(|a| {
+        let clamp = |c: i64| (c.clamp(o[a] as i64, (o[a] + h) as i64) as usize) - o[a];
+        clamp(within.min[a])..clamp(within.max[a])
+    });
+    if span.iter().any(|r| r.is_empty()) {
+        return;
+    }
     match (child, how) {
-        (None, _) => fill_subcube(out, b, [ox, oy, oz], 0, voxel_type),
-        (Some(BrickVoxels::Constant(v)), _) => fill_subcube(out, b, [ox, oy, oz], *v, voxel_type),
+        (None, _) => fill_subcube(out, b, o, &span, 0, voxel_type),
+        (Some(BrickVoxels::Constant(v)), _) => fill_subcube(out, b, o, &span, *v, voxel_type),
         (Some(BrickVoxels::Data(d)), Downsampling::Mean) => match voxel_type {
-            VoxelType::U8 => mean_subcube_u8(d, out, b, [ox, oy, oz]),
-            VoxelType::U16 => mean_subcube_u16(d, out, b, [ox, oy, oz]),
+            VoxelType::U8 => mean_subcube_u8(d, out, b, o, &span),
+            VoxelType::U16 => mean_subcube_u16(d, out, b, o, &span),
         },
         (Some(BrickVoxels::Data(d)), Downsampling::Mode { sparse }) => {
-            mode_subcube(d, out, b, [ox, oy, oz], voxel_type, sparse)
+            mode_subcube(d, out, b, o, &span, voxel_type, sparse)
         }
     }
 }
@@ -227,6 +254,7 @@ fn mode_subcube(
     out: &mut [u8],
     b: usize,
     o: [usize; 3],
+    span: &Span,
     voxel_type: VoxelType,
     sparse: bool,
 ) {
@@ -236,6 +264,7 @@ fn mode_subcube(
             out,
             b,
             o,
+            span,
             sparse,
             1,
             |r, x| r[x] as u64,
@@ -246,12 +275,25 @@ fn mode_subcube(
             out,
             b,
             o,
+            span,
             sparse,
             2,
             |r, x| u16::from_le_bytes([r[2 * x], r[2 * x + 1]]) as u64,
             |d, x, v| d[2 * x..2 * x + 2].copy_from_slice(&(v as u16).to_le_bytes()),
         ),
     }
+}
+
+/// Bytes of each of a group's four input rows that [`mode_rows`] compares at once.
+const MODE_CHUNK: usize = 16;
+
+/// Whether every pair of neighbouring values (0 and 1, 2 and 3, ...) of a chunk of `vb`-byte
+/// values is equal: the pair's XOR with its right neighbour is zero in the pair's low value.
+fn pairs_equal(chunk: u128, vb: usize) -> bool {
+    const LOW_BYTES: u128 = 0x00ff_00ff_00ff_00ff_00ff_00ff_00ff_00ff;
+    const LOW_WORDS: u128 = 0x0000_ffff_0000_ffff_0000_ffff_0000_ffff;
+    let mask = if vb == 1 { LOW_BYTES } else { LOW_WORDS };
+    (chunk ^ (chunk >> (8 * vb))) & mask == 0
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -261,6 +303,7 @@ fn mode_rows(
     out: &mut [u8],
     b: usize,
     o: [usize; 3],
+    span: &Span,
     sparse: bool,
     vb: usize,
     get: impl Fn(&[u8], usize) -> u64,
@@ -268,55 +311,101 @@ fn mode_rows(
 ) {
     let h = b / 2;
     let row = |y: usize, z: usize| &child[(z * b + y) * b * vb..][..b * vb];
-    for z in 0..h {
-        for y in 0..h {
+    let word = |r: &[u8], at: usize| {
+        u128::from_le_bytes(
+            r[at..at + MODE_CHUNK]
+                .try_into()
+                .expect("a chunk of 16 bytes"),
+        )
+    };
+    // Output values per chunk of the input rows.
+    let per_chunk = MODE_CHUNK / (2 * vb);
+    for z in span[2].clone() {
+        for y in span[1].clone() {
             let (r00, r01) = (row(2 * y, 2 * z), row(2 * y + 1, 2 * z));
             let (r10, r11) = (row(2 * y, 2 * z + 1), row(2 * y + 1, 2 * z + 1));
             let dst = &mut out[((o[2] + z) * b + o[1] + y) * b * vb + o[0] * vb..][..h * vb];
-            for x in 0..h {
-                let group = [
-                    get(r00, 2 * x),
-                    get(r00, 2 * x + 1),
-                    get(r01, 2 * x),
-                    get(r01, 2 * x + 1),
-                    get(r10, 2 * x),
-                    get(r10, 2 * x + 1),
-                    get(r11, 2 * x),
-                    get(r11, 2 * x + 1),
-                ];
-                // Most 2x2x2 groups of a material or label brick hold one value: no counting.
-                let v = if group.iter().all(|&v| v == group[0]) {
-                    group[0]
+            let mut x = span[0].start;
+            while x < span[0].end {
+                // Most 2x2x2 groups of a material or label brick hold one value. Where the four
+                // rows agree over a chunk and each row's values come in equal pairs, every group
+                // of the chunk is one value: the chunk's even values, without counting.
+                let at = 2 * x * vb;
+                let end = if x + per_chunk <= span[0].end {
+                    let first = word(r00, at);
+                    if first == word(r01, at)
+                        && first == word(r10, at)
+                        && first == word(r11, at)
+                        && pairs_equal(first, vb)
+                    {
+                        for g in 0..per_chunk {
+                            dst[(x + g) * vb..][..vb]
+                                .copy_from_slice(&r00[at + 2 * g * vb..][..vb]);
+                        }
+                        x += per_chunk;
+                        continue;
+                    }
+                    x + per_chunk
                 } else {
-                    isovox_proto::channel::mode_of_8(group, sparse)
+                    span[0].end
                 };
-                put(dst, x, v);
+                for x in x..end {
+                    let group = [
+                        get(r00, 2 * x),
+                        get(r00, 2 * x + 1),
+                        get(r01, 2 * x),
+                        get(r01, 2 * x + 1),
+                        get(r10, 2 * x),
+                        get(r10, 2 * x + 1),
+                        get(r11, 2 * x),
+                        get(r11, 2 * x + 1),
+                    ];
+                    let v = if group.iter().all(|&v| v == group[0]) {
+                        group[0]
+                    } else {
+                        isovox_proto::channel::mode_of_8(group, sparse)
+                    };
+                    put(dst, x, v);
+                }
+                x = end;
             }
         }
     }
 }
 
-fn fill_subcube(out: &mut [u8], b: usize, o: [usize; 3], value: u16, voxel_type: VoxelType) {
-    let h = b / 2;
+fn fill_subcube(
+    out: &mut [u8],
+    b: usize,
+    o: [usize; 3],
+    span: &Span,
+    value: u16,
+    voxel_type: VoxelType,
+) {
     let vb = voxel_type.bytes();
-    for z in 0..h {
-        for y in 0..h {
-            let at = ((o[2] + z) * b + o[1] + y) * b + o[0];
-            super::codec::fill_constant(&mut out[at * vb..(at + h) * vb], value, voxel_type);
+    for z in span[2].clone() {
+        for y in span[1].clone() {
+            let row = ((o[2] + z) * b + o[1] + y) * b + o[0];
+            let (from, to) = (row + span[0].start, row + span[0].end);
+            super::codec::fill_constant(&mut out[from * vb..to * vb], value, voxel_type);
         }
     }
 }
 
-fn mean_subcube_u8(child: &[u8], out: &mut [u8], b: usize, o: [usize; 3]) {
+fn mean_subcube_u8(child: &[u8], out: &mut [u8], b: usize, o: [usize; 3], span: &Span) {
     let h = b / 2;
-    for z in 0..h {
-        for y in 0..h {
+    for z in span[2].clone() {
+        for y in span[1].clone() {
             let r00 = &child[((2 * z) * b + 2 * y) * b..][..b];
             let r01 = &child[((2 * z) * b + 2 * y + 1) * b..][..b];
             let r10 = &child[((2 * z + 1) * b + 2 * y) * b..][..b];
             let r11 = &child[((2 * z + 1) * b + 2 * y + 1) * b..][..b];
             let dst = &mut out[((o[2] + z) * b + o[1] + y) * b + o[0]..][..h];
-            for (x, d) in dst.iter_mut().enumerate() {
+            for (x, d) in dst
+                .iter_mut()
+                .enumerate()
+                .take(span[0].end)
+                .skip(span[0].start)
+            {
                 let sum = r00[2 * x] as u32
                     + r00[2 * x + 1] as u32
                     + r01[2 * x] as u32
@@ -331,15 +420,14 @@ fn mean_subcube_u8(child: &[u8], out: &mut [u8], b: usize, o: [usize; 3]) {
     }
 }
 
-fn mean_subcube_u16(child: &[u8], out: &mut [u8], b: usize, o: [usize; 3]) {
-    let h = b / 2;
+fn mean_subcube_u16(child: &[u8], out: &mut [u8], b: usize, o: [usize; 3], span: &Span) {
     let at = |x: usize, y: usize, z: usize| -> u32 {
         let i = ((z * b + y) * b + x) * 2;
         u16::from_le_bytes([child[i], child[i + 1]]) as u32
     };
-    for z in 0..h {
-        for y in 0..h {
-            for x in 0..h {
+    for z in span[2].clone() {
+        for y in span[1].clone() {
+            for x in span[0].clone() {
                 let mut sum = 0u32;
                 for (dx, dy, dz) in [
                     (0, 0, 0),
@@ -509,6 +597,65 @@ mod tests {
     }
 
     proptest::proptest! {
+        /// Mode downsampling equals the mode of each 2x2x2 group taken one group at a time,
+        /// on bricks of few values in blocks (where whole chunks of groups hold one value, the
+        /// fast path) with single voxels changed at random (where they do not).
+        #[test]
+        fn mode_downsampling_equals_the_mode_of_each_group(
+            seed in proptest::prelude::any::<u64>(),
+            wide in proptest::prelude::any::<bool>(),
+            small in proptest::prelude::any::<bool>(),
+            block in 1usize..6,
+            specks in 0usize..40,
+            sparse in proptest::prelude::any::<bool>(),
+        ) {
+            let t = if wide { VoxelType::U16 } else { VoxelType::U8 };
+            let b: usize = if small { 4 } else { 32 };
+            let mut state = seed | 1;
+            let mut noise = move || {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                state
+            };
+            let choices: [u16; 4] = [0, 6, 200, if wide { 40_000 } else { 77 }];
+            let palette: Vec<u16> = (0..3).map(|_| choices[(noise() % 4) as usize]).collect();
+            let mut values: Vec<u16> = (0..b * b * b)
+                .map(|i| {
+                    let (x, y, z) = (i % b / block, i / b % b / block, i / (b * b) / block);
+                    palette[(x * 7 + y * 3 + z * 5 + (seed as usize)) % palette.len()]
+                })
+                .collect();
+            for _ in 0..specks {
+                let at = noise() as usize % values.len();
+                values[at] = (noise() % 4) as u16;
+            }
+            let bytes: Vec<u8> = match t {
+                VoxelType::U8 => values.iter().map(|&v| v as u8).collect(),
+                VoxelType::U16 => values.iter().flat_map(|v| v.to_le_bytes()).collect(),
+            };
+            let child = BrickVoxels::Data(bytes);
+            let mut out = vec![0u8; b * b * b * t.bytes()];
+            let kids = [None, None, None, None, None, None, None, Some(&child)];
+            downsample(&kids, b as u32, t, Downsampling::Mode { sparse }, &mut out);
+            let h = b / 2;
+            for (z, y, x) in (0..h).flat_map(|z| (0..h).flat_map(move |y| (0..h).map(move |x| (z, y, x)))) {
+                let group: [u64; 8] = std::array::from_fn(|i| {
+                    let (dx, dy, dz) = (i & 1, i >> 1 & 1, i >> 2);
+                    let v = values[((2 * z + dz) * b + 2 * y + dy) * b + 2 * x + dx];
+                    u64::from(v)
+                });
+                let expected = isovox_proto::channel::mode_of_8(group, sparse);
+                // Octant 7: the parent's x, y, z >= h.
+                let at = ((h + z) * b + h + y) * b + h + x;
+                let got = match t {
+                    VoxelType::U8 => u64::from(out[at]),
+                    VoxelType::U16 => u64::from(u16::from_le_bytes([out[2 * at], out[2 * at + 1]])),
+                };
+                proptest::prop_assert_eq!(got, expected, "group ({}, {}, {})", x, y, z);
+            }
+        }
+
         /// A parent updated only where children changed equals the parent downsampled from
         /// all its children again, whatever the children (data, constant, absent) and whichever
         /// of them changed.
@@ -556,8 +703,71 @@ mod tests {
                 let changed: [Option<&BrickVoxels>; 8] = std::array::from_fn(|o| {
                     new[o].as_ref().filter(|_| old[o].is_some() && changed_mask >> o & 1 == 1)
                 });
-                downsample_changed(&changed, b, t, how, &mut parent);
+                let whole = Box3::new([0; 3], [i64::from(b); 3]);
+                downsample_changed(&changed, b, t, how, &whole, &mut parent);
                 proptest::prop_assert_eq!(parent, expected);
+            }
+        }
+
+        /// Where the children changed only within a box, the parent updated only over that
+        /// box ([`coarser`]) equals the parent downsampled from all the new children: the box
+        /// at odd and even corners, in one child or across several.
+        #[test]
+        fn updating_within_the_changed_box_equals_downsampling_all(
+            seed in proptest::prelude::any::<u64>(),
+            wide in proptest::prelude::any::<bool>(),
+            corner in proptest::collection::vec(0i64..16, 3),
+            extent in proptest::collection::vec(1i64..9, 3),
+        ) {
+            let t = if wide { VoxelType::U16 } else { VoxelType::U8 };
+            let b = 8usize;
+            let mut state = seed | 1;
+            let mut noise = move || {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                state
+            };
+            // The 8 children as one 16^3 grid of values (in the children's level coordinates).
+            let old: Vec<u16> = (0..8 * b * b * b).map(|_| (noise() % 4) as u16 * 60).collect();
+            let changed_box = Box3::new(
+                [0, 1, 2].map(|a| corner[a]),
+                [0, 1, 2].map(|a| (corner[a] + extent[a]).min(16)),
+            );
+            let mut new = old.clone();
+            for (i, v) in new.iter_mut().enumerate() {
+                let p = [i % 16, i / 16 % 16, i / 256].map(|c| c as i64);
+                if changed_box.contains(p) {
+                    *v = (noise() % 5) as u16 * 50;
+                }
+            }
+            let bricks = |grid: &[u16]| -> Vec<BrickVoxels> {
+                (0..8)
+                    .map(|octant| {
+                        let o = [octant & 1, octant >> 1 & 1, octant >> 2].map(|c| c * b);
+                        let values = (0..b * b * b).map(|i| {
+                            let (x, y, z) = (o[0] + i % b, o[1] + i / b % b, o[2] + i / (b * b));
+                            grid[(z * 16 + y) * 16 + x]
+                        });
+                        BrickVoxels::Data(match t {
+                            VoxelType::U8 => values.map(|v| v as u8).collect(),
+                            VoxelType::U16 => values.flat_map(u16::to_le_bytes).collect(),
+                        })
+                    })
+                    .collect()
+            };
+            let (old_kids, new_kids) = (bricks(&old), bricks(&new));
+            fn all(kids: &[BrickVoxels]) -> [Option<&BrickVoxels>; 8] {
+                std::array::from_fn(|o| Some(&kids[o]))
+            }
+            let bytes = b * b * b * t.bytes();
+            for how in [Downsampling::Mean, Downsampling::Mode { sparse: false }, Downsampling::Mode { sparse: true }] {
+                let mut parent = vec![0u8; bytes];
+                downsample(&all(&old_kids), b as u32, t, how, &mut parent);
+                let mut expected = vec![0u8; bytes];
+                downsample(&all(&new_kids), b as u32, t, how, &mut expected);
+                downsample_changed(&all(&new_kids), b as u32, t, how, &coarser(&changed_box), &mut parent);
+                proptest::prop_assert_eq!(&parent, &expected);
             }
         }
     }

@@ -5,9 +5,12 @@
 //! Edits stage level-0 bricks on top of the head ([`Transaction::on`]); a build and a compaction
 //! fill every entry of a new file ([`Transaction::first`]), whose first commit is a checkpoint.
 
-use super::pyramid::{constant_parent, downsample, downsample_changed, BrickVoxels, Downsampling};
+use super::pyramid::{
+    coarser, constant_parent, downsample, downsample_changed, BrickVoxels, Downsampling,
+};
 use super::writer::{PreparedBrick, Vod2Writer};
 use super::{Snapshot, StoreError, StoredBrick};
+use isovox_proto::geometry::Box3;
 use isovox_proto::vod2::{HeaderSlot, NodeEntry};
 use isovox_proto::BrickKey;
 use rayon::prelude::*;
@@ -256,16 +259,24 @@ impl<'a> Transaction<'a> {
     /// children downsampled again (a parent is the downsampling of its children, octant by
     /// octant, in every version this writer or a build wrote).
     ///
+    /// `within` bounds the level-0 voxels that changed (an edit's reach; the whole volume when
+    /// unknown): only the parents' voxels above it are downsampled again, so a small edit
+    /// recomputes a few voxels of each level rather than whole octants.
+    ///
     /// # Errors
     /// A brick of the base fails to read, storing fails, or this is the first transaction of a
     /// file (there is no base to read siblings from).
-    pub fn update_level0(&mut self, level: Vec<(BrickKey, BrickVoxels)>) -> Result<(), StoreError> {
+    pub fn update_level0(
+        &mut self,
+        level: Vec<(BrickKey, BrickVoxels)>,
+        within: &Box3,
+    ) -> Result<(), StoreError> {
         let Base::Version { snap, .. } = self.base else {
             return Err(StoreError::Internal(
                 "level-of-detail upkeep needs a base version".into(),
             ));
         };
-        self.update_stream(snap, level, Downsampling::Mean)
+        self.update_stream(snap, level, within, Downsampling::Mean)
     }
 
     /// [`Transaction::update_level0`] of an attribute channel: `view` is the base version's
@@ -277,19 +288,21 @@ impl<'a> Transaction<'a> {
         &mut self,
         view: &Snapshot,
         level: Vec<(BrickKey, BrickVoxels)>,
+        within: &Box3,
     ) -> Result<(), StoreError> {
         let stream = view.stream();
         let info = stream
             .checked_sub(1)
             .and_then(|i| view.header().channels.get(i))
             .ok_or_else(|| StoreError::Internal(format!("stream {stream} is no channel")))?;
-        self.update_stream(view, level, Downsampling::of_channel(info))
+        self.update_stream(view, level, within, Downsampling::of_channel(info))
     }
 
     fn update_stream(
         &mut self,
         snap: &Snapshot,
         mut level: Vec<(BrickKey, BrickVoxels)>,
+        within: &Box3,
         how: Downsampling,
     ) -> Result<(), StoreError> {
         if !matches!(self.base, Base::Version { .. }) {
@@ -299,6 +312,8 @@ impl<'a> Transaction<'a> {
         }
         let layout = snap.layout();
         let t = layout.voxel_type();
+        // The voxels of the current level that can have changed, in that level's coordinates.
+        let mut changed_within = *within;
         for lvl in 0..layout.levels() {
             if level.is_empty() {
                 break;
@@ -324,6 +339,7 @@ impl<'a> Transaction<'a> {
                 kept.keys().filter_map(|&k| layout.parent(k)).collect();
             parents.sort();
             parents.dedup();
+            changed_within = coarser(&changed_within);
             level = parents
                 .par_iter()
                 .with_min_len(BRICKS_PER_JOB)
@@ -347,7 +363,13 @@ impl<'a> Transaction<'a> {
                         // The other octants are those of the parent as it was: one brick read
                         // instead of each unchanged child.
                         let mut out = snap.voxels(parent)?.into_bytes(layout.brick_voxels(), t);
-                        downsample_changed(&changed, layout.brick(), t, how, &mut out);
+                        let parent_box = Box3::of_brick(layout, parent);
+                        let changed_here = changed_within.intersect(&parent_box);
+                        let local = Box3::new(
+                            [0, 1, 2].map(|a| changed_here.min[a] - parent_box.min[a]),
+                            [0, 1, 2].map(|a| changed_here.max[a] - parent_box.min[a]),
+                        );
+                        downsample_changed(&changed, layout.brick(), t, how, &local, &mut out);
                         BrickVoxels::from_bytes(out, t)
                     };
                     Ok((parent, voxels))

@@ -280,9 +280,12 @@ impl LiveVolume {
         let mut transaction = Transaction::on(writer, head);
         transaction.set_note(note_bytes(&note));
         let mut level0 = level0.into_iter();
-        transaction.update_level0(level0.next().unwrap_or_default())?;
+        // A replay changes bricks wherever the edits it replays reached: no bound tighter than
+        // the volume is kept for them.
+        let everywhere = Box3::of_volume(head.layout());
+        transaction.update_level0(level0.next().unwrap_or_default(), &everywhere)?;
         for (view, changed) in head.channel_views().iter().zip(level0) {
-            transaction.update_channel_level0(view, changed)?;
+            transaction.update_channel_level0(view, changed, &everywhere)?;
         }
         Ok(StagedCommit {
             committed: transaction.stage(policy)?,

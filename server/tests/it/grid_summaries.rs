@@ -278,8 +278,11 @@ fn edit_with_checkpoint(path: &Path, key: BrickKey, seed: u8) {
         .map(|i| (i as u8).wrapping_mul(31).wrapping_add(seed) % 200)
         .collect();
     let mut t = Transaction::on(&mut w, &snap);
-    t.update_level0(vec![(key, BrickVoxels::Data(voxels))])
-        .unwrap();
+    t.update_level0(
+        vec![(key, BrickVoxels::Data(voxels))],
+        &isovox_proto::geometry::Box3::of_volume(&layout),
+    )
+    .unwrap();
     let committed = t
         .commit(CheckpointPolicy {
             max_overlay: 0,
@@ -471,8 +474,11 @@ fn a_commit_by_an_older_writer_in_a_revision_5_file_is_summarized_from_its_recor
         .map(|i| (i as u8).wrapping_mul(13) % 150)
         .collect();
     let mut t = Transaction::on(&mut w, &snap);
-    t.update_level0(vec![(key, BrickVoxels::Data(voxels))])
-        .unwrap();
+    t.update_level0(
+        vec![(key, BrickVoxels::Data(voxels))],
+        &isovox_proto::geometry::Box3::of_volume(&layout),
+    )
+    .unwrap();
     let committed = t.commit(CheckpointPolicy::default()).unwrap();
     assert!(!committed.checkpoint);
     drop((w, snap, vod));

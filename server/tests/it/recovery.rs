@@ -132,7 +132,11 @@ fn write_history(dir: &Path) -> History {
         let snap = vod.head();
         let mut writer = Vod2Writer::open_append(&path, Compression::default()).unwrap();
         let mut t = Transaction::on(&mut writer, &snap);
-        t.update_level0(level0.clone()).unwrap();
+        t.update_level0(
+            level0.clone(),
+            &isovox_proto::geometry::Box3::of_volume(snap.layout()),
+        )
+        .unwrap();
         t.commit(policy).unwrap();
         let head = Vod2::open(&path).unwrap().head();
         let NodeEntry::Stored(offset) = head.entry(level0[0].0).unwrap() else {
