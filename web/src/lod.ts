@@ -132,16 +132,27 @@ export function tileDistance(
 }
 
 /**
+ * How far, as a fraction of its level's radius, a tile out of the view frustum is refined: at
+ * half the reach it ends about one level coarser than a tile in view at the same distance. It is
+ * there for when the camera turns, drawn nowhere until then, so it need not be as fine as
+ * what is on screen (an eighth of the tiles, fetched after those in view).
+ */
+export const OUT_OF_VIEW_REACH = 0.5;
+
+/**
  * The tiles the spherical detail bias selects, sorted: with radii `r0 < r1 < ... < r(n-1)`,
  * level k where the tile's nearest point lies within `r(k)` of the camera, level n (or the
  * coarsest) beyond the last radius. `lod::adaptive_tiles`: walking down from the root, a tile of
- * level k+1 is refined when it is within `r(k)`, and always while k+1 > n.
+ * level k+1 is refined when it is within `r(k)`, and always while k+1 > n. With `inView`, a tile
+ * it says is out of the view frustum is refined only within `OUT_OF_VIEW_REACH` of that radius;
+ * without it every tile counts as in view (the Rust streamer's and the server's selection).
  */
 export function adaptiveTiles(
   layout: Layout,
   voxelScale: readonly number[],
   camera: readonly number[],
   radii: readonly number[],
+  inView?: (k: TileKey) => boolean,
 ): TileKey[] {
   const top = layout.levels - 1;
   const g = layout.grid(top);
@@ -154,9 +165,9 @@ export function adaptiveTiles(
   const r = radii.map(f);
   const out: TileKey[] = [];
   for (let k = stack.pop(); k !== undefined; k = stack.pop()) {
+    const reach = (r[k.level - 1] ?? NaN) * (inView && !inView(k) ? OUT_OF_VIEW_REACH : 1);
     const refine =
-      k.level > r.length ||
-      (k.level > 0 && tileDistance(layout, voxelScale, k, camera) <= (r[k.level - 1] ?? NaN));
+      k.level > r.length || (k.level > 0 && tileDistance(layout, voxelScale, k, camera) <= reach);
     if (refine) stack.push(...layout.children(k));
     else out.push(k);
   }
@@ -173,8 +184,9 @@ export function balancedTiles(
   voxelScale: readonly number[],
   camera: readonly number[],
   radii: readonly number[],
+  inView?: (k: TileKey) => boolean,
 ): TileKey[] {
-  return balance(layout, adaptiveTiles(layout, voxelScale, camera, radii));
+  return balance(layout, adaptiveTiles(layout, voxelScale, camera, radii, inView));
 }
 
 /** `lod::balance`: refines `tiles` (covering the volume once) until it is 2:1 balanced. */

@@ -225,6 +225,8 @@ export class Streamer {
   readonly traces = new Map<number, CommitTrace>();
   private desired: TileKey[] = [];
   private selectionKey = "";
+  /** Counts `setView` calls: the view frustum is part of what the selection depends on. */
+  private viewCount = 0;
   private planned = false;
   private retryTimer: ReturnType<typeof setTimeout> | null = null;
   private stopped = false;
@@ -300,6 +302,8 @@ export class Streamer {
     this.camera = camera;
     this.inView = inView;
     this.visible = new Map();
+    // Tiles out of the view frustum are selected coarser: a turn changes the selection too.
+    this.viewCount++;
     this.plan();
   }
 
@@ -626,13 +630,13 @@ export class Streamer {
     this.planned = true;
     this.statsCache = null;
     const scale = this.info.voxel_scale;
-    // The selection depends on the camera, the radii and the layout only.
-    const selectionKey = `${this.camera.join(",")}|${this.radii.join(",")}|${this.layout.grids.length}`;
+    // The selection depends on the camera, its view frustum, the radii and the layout only.
+    const selectionKey = `${this.camera.join(",")}|${this.viewCount}|${this.radii.join(",")}|${this.layout.grids.length}`;
     if (selectionKey !== this.selectionKey) {
       this.selectionKey = selectionKey;
-      this.desired = balancedTiles(this.layout, scale, this.camera, this.radii);
-      this.masks = stitchMasks(this.layout, this.desired);
       this.visible = new Map();
+      this.desired = balancedTiles(this.layout, scale, this.camera, this.radii, (k) => this.isVisible(k));
+      this.masks = stitchMasks(this.layout, this.desired);
     }
     // Stand-ins: the tiles of the selection's coarsest level over selected tiles in the view
     // frustum that have nothing to show yet (out of it, nothing shows either way: they must not

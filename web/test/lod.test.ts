@@ -5,6 +5,7 @@ import {
   balancedTiles,
   keyText,
   Layout,
+  OUT_OF_VIEW_REACH,
   radiiForScreenError,
   stitchMasks,
   tileDistance,
@@ -98,6 +99,52 @@ describe("layout", () => {
   it("rejects bad shapes", () => {
     expect(() => new Layout([0, 1, 1], 16)).toThrow();
     expect(() => new Layout([8, 8, 8], 12)).toThrow();
+  });
+});
+
+describe("tiles out of the view frustum", () => {
+  // 64^3, brick 8: grids 8^3, 4^3, 2^3, 1. Camera at the centre of level-0 tile (0, 0, 0).
+  const layout = new Layout([64, 64, 64], 8);
+  const camera = [4, 4, 4];
+  const radii = [8, 20, 40];
+
+  it("are refined within half their level's radius", () => {
+    // Every tile out of view: the selection of radii 4, 10, 20.
+    const none = adaptiveTiles(layout, [1, 1, 1], camera, radii, () => false).map(keyText);
+    const halved = adaptiveTiles(layout, [1, 1, 1], camera, radii.map((r) => r * OUT_OF_VIEW_REACH));
+    expect(none).toEqual(halved.map(keyText));
+    // Every tile in view: the plain selection, as the Rust streamer makes it.
+    const all = adaptiveTiles(layout, [1, 1, 1], camera, radii, () => true).map(keyText);
+    expect(all).toEqual(adaptiveTiles(layout, [1, 1, 1], camera, radii).map(keyText));
+  });
+
+  it("are never finer than without a frustum, and cover the volume once", () => {
+    // In view: tiles whose box starts below x = 32 (the camera's half).
+    const wide = [16, 40, 80];
+    const inView = (k: TileKey) => k.x * 8 * 2 ** k.level < 32;
+    const plain = balancedTiles(layout, [1, 1, 1], camera, wide);
+    const framed = balancedTiles(layout, [1, 1, 1], camera, wide, inView);
+    expect(framed.length).toBeLessThan(plain.length);
+    // Where a tile out of view lies, the plain selection has it or finer tiles under it.
+    const levelAt = (tiles: TileKey[], x: number, y: number, z: number) =>
+      tiles.find((k) => {
+        const e = 8 * 2 ** k.level;
+        return [k.x, k.y, k.z].every((c, a) => c * e <= [x, y, z][a]! && [x, y, z][a]! < (c + 1) * e);
+      })?.level;
+    for (let z = 0; z < 64; z += 8) {
+      for (let y = 0; y < 64; y += 8) {
+        for (let x = 32; x < 64; x += 8) {
+          expect(levelAt(framed, x, y, z)).toBeGreaterThanOrEqual(levelAt(plain, x, y, z)!);
+        }
+      }
+    }
+    // Covering the volume once: the level-0 voxels of the tiles add up to 64^3, none overlap.
+    expect(framed.reduce((n, k) => n + (8 * 2 ** k.level) ** 3, 0)).toBe(64 ** 3);
+    for (let z = 0; z < 64; z += 8) {
+      for (let y = 0; y < 64; y += 8) {
+        for (let x = 0; x < 64; x += 8) expect(levelAt(framed, x, y, z)).toBeDefined();
+      }
+    }
   });
 });
 

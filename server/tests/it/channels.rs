@@ -206,7 +206,12 @@ fn channels_are_pyramids_of_their_own_built_edited_compacted_and_checked() {
             }
         }
         let mut t = Transaction::on(&mut writer, &head);
-        t.update_channel_level0(&view, level0).unwrap();
+        t.update_channel_level0(
+            &view,
+            level0,
+            &isovox_proto::geometry::Box3::of_volume(head.layout()),
+        )
+        .unwrap();
         let committed = t.commit(CheckpointPolicy::default()).unwrap();
         assert!(
             committed.changed.iter().all(|l| l.is_empty()),
