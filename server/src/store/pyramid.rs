@@ -596,6 +596,17 @@ mod tests {
         assert_eq!(out, vec![3, 0, 6, 0, 0, 0, 0, 0]);
     }
 
+    /// A xorshift64 stream from `seed`: test bricks' values.
+    fn xorshift(seed: u64) -> impl FnMut() -> u64 {
+        let mut state = seed | 1;
+        move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        }
+    }
+
     proptest::proptest! {
         /// Mode downsampling equals the mode of each 2x2x2 group taken one group at a time,
         /// on bricks of few values in blocks (where whole chunks of groups hold one value, the
@@ -611,13 +622,7 @@ mod tests {
         ) {
             let t = if wide { VoxelType::U16 } else { VoxelType::U8 };
             let b: usize = if small { 4 } else { 32 };
-            let mut state = seed | 1;
-            let mut noise = move || {
-                state ^= state << 13;
-                state ^= state >> 7;
-                state ^= state << 17;
-                state
-            };
+            let mut noise = xorshift(seed);
             let choices: [u16; 4] = [0, 6, 200, if wide { 40_000 } else { 77 }];
             let palette: Vec<u16> = (0..3).map(|_| choices[(noise() % 4) as usize]).collect();
             let mut values: Vec<u16> = (0..b * b * b)
@@ -669,13 +674,7 @@ mod tests {
             let t = if wide { VoxelType::U16 } else { VoxelType::U8 };
             let b = 4u32;
             let bytes = (b * b * b) as usize * t.bytes();
-            let mut state = seed | 1;
-            let mut noise = move || {
-                state ^= state << 13;
-                state ^= state >> 7;
-                state ^= state << 17;
-                state
-            };
+            let mut noise = xorshift(seed);
             let mut brick = |kind: u64| match kind {
                 0 => Some(BrickVoxels::Data((0..bytes).map(|_| noise() as u8).collect())),
                 1 => Some(BrickVoxels::Constant(noise() as u16 & 0xff)),
@@ -721,13 +720,7 @@ mod tests {
         ) {
             let t = if wide { VoxelType::U16 } else { VoxelType::U8 };
             let b = 8usize;
-            let mut state = seed | 1;
-            let mut noise = move || {
-                state ^= state << 13;
-                state ^= state >> 7;
-                state ^= state << 17;
-                state
-            };
+            let mut noise = xorshift(seed);
             // The 8 children as one 16^3 grid of values (in the children's level coordinates).
             let old: Vec<u16> = (0..8 * b * b * b).map(|_| (noise() % 4) as u16 * 60).collect();
             let changed_box = Box3::new(
