@@ -58,12 +58,11 @@ pub async fn events(
 ) -> Result<Response, ApiError> {
     let since = query.since.or(last_event_id(&headers)?);
     let closing = state.closing.closed();
-    // Checking `since` reads the file: where `read_volume` says.
-    let feed = state
-        .read_volume(&name, move |state, vol| {
-            Feed::start(vol, since, closing, state.clone())
-        })
-        .await?;
+    // Starting reads nothing from the file or the store (the head and the history are in
+    // memory; the backlog after `since` is read later, on the CPU queue): a subscription is
+    // taken even while a replica's store reads are all busy, as a new viewer's first request.
+    let vol = state.catalog.get(&name)?;
+    let feed = Feed::start(vol, since, closing, state.clone())?;
     let stream = futures_util::stream::unfold(feed, |mut feed| async move {
         feed.next()
             .await

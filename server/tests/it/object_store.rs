@@ -1240,6 +1240,69 @@ fn a_stalled_store_makes_an_edit_a_503_with_retry_after_and_commits_nothing() {
     assert_ne!(voxel(&server, &http, [14, 54, 14]), 255, "the stalled edit");
 }
 
+#[test]
+fn a_replica_whose_store_reads_are_all_busy_still_takes_feed_subscriptions() {
+    let s3 = S3::start("isovox-busy-reads");
+    let data = tempfile::tempdir().unwrap();
+    world(&s3, data.path());
+    let http = client();
+    let server = Server::replica(&s3, None);
+    assert_eq!(server.version(&http), 1);
+
+    // The store stops answering; cold brick reads pile up on the replica's store-read threads
+    // and places (16 and 128 on two cores) until it refuses more with 503.
+    signal(&s3, "-STOP");
+    let (done_tx, done_rx) = mpsc::channel();
+    let bricks = all_bricks();
+    let readers: Vec<_> = (0..300)
+        .map(|i| {
+            let url = format!("{}/bricks/{}", server.base, bricks[i % bricks.len()]);
+            let done = done_tx.clone();
+            std::thread::spawn(move || {
+                let status = Client::new().get(url).send().map(|r| r.status().as_u16());
+                let _ = done.send(status.ok());
+            })
+        })
+        .collect();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let mut refused = 0;
+    while refused == 0 {
+        assert!(Instant::now() < deadline, "the store reads never filled up");
+        if let Ok(Some(503)) = done_rx.recv_timeout(Duration::from_millis(100)) {
+            refused += 1;
+        }
+    }
+
+    // A new viewer subscribes to the change feed: taken, and told the head at once.
+    let mut feed = Client::builder()
+        .timeout(Duration::from_secs(5))
+        .build()
+        .unwrap()
+        .get(format!("{}/events", server.base))
+        .send()
+        .unwrap();
+    let status = feed.status().as_u16();
+    let mut first = [0u8; 64];
+    let n = if status == 200 {
+        std::io::Read::read(&mut feed, &mut first).unwrap()
+    } else {
+        0
+    };
+    signal(&s3, "-CONT");
+    for r in readers {
+        r.join().unwrap();
+    }
+    assert_eq!(
+        status, 200,
+        "the feed subscription while store reads were full"
+    );
+    let hello = String::from_utf8_lossy(&first[..n]);
+    assert!(
+        hello.contains("event: hello") && hello.contains("\"version\":1"),
+        "{hello}"
+    );
+}
+
 /// Range requests the replica's volumes made of the store so far, and the bytes they fetched
 /// (its Prometheus counters).
 fn store_fetches(http: &Client, replica: &Server) -> (u64, u64) {
