@@ -284,18 +284,6 @@ fn mode_subcube(
     }
 }
 
-/// Bytes of each of a group's four input rows that [`mode_rows`] compares at once.
-const MODE_CHUNK: usize = 16;
-
-/// Whether every pair of neighbouring values (0 and 1, 2 and 3, ...) of a chunk of `vb`-byte
-/// values is equal: the pair's XOR with its right neighbour is zero in the pair's low value.
-fn pairs_equal(chunk: u128, vb: usize) -> bool {
-    const LOW_BYTES: u128 = 0x00ff_00ff_00ff_00ff_00ff_00ff_00ff_00ff;
-    const LOW_WORDS: u128 = 0x0000_ffff_0000_ffff_0000_ffff_0000_ffff;
-    let mask = if vb == 1 { LOW_BYTES } else { LOW_WORDS };
-    (chunk ^ (chunk >> (8 * vb))) & mask == 0
-}
-
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn mode_rows(
@@ -311,63 +299,29 @@ fn mode_rows(
 ) {
     let h = b / 2;
     let row = |y: usize, z: usize| &child[(z * b + y) * b * vb..][..b * vb];
-    let word = |r: &[u8], at: usize| {
-        u128::from_le_bytes(
-            r[at..at + MODE_CHUNK]
-                .try_into()
-                .expect("a chunk of 16 bytes"),
-        )
-    };
-    // Output values per chunk of the input rows.
-    let per_chunk = MODE_CHUNK / (2 * vb);
     for z in span[2].clone() {
         for y in span[1].clone() {
             let (r00, r01) = (row(2 * y, 2 * z), row(2 * y + 1, 2 * z));
             let (r10, r11) = (row(2 * y, 2 * z + 1), row(2 * y + 1, 2 * z + 1));
             let dst = &mut out[((o[2] + z) * b + o[1] + y) * b * vb + o[0] * vb..][..h * vb];
-            let mut x = span[0].start;
-            while x < span[0].end {
-                // Most 2x2x2 groups of a material or label brick hold one value. Where the four
-                // rows agree over a chunk and each row's values come in equal pairs, every group
-                // of the chunk is one value: the chunk's even values, without counting.
-                let at = 2 * x * vb;
-                let end = if x + per_chunk <= span[0].end {
-                    let first = word(r00, at);
-                    if first == word(r01, at)
-                        && first == word(r10, at)
-                        && first == word(r11, at)
-                        && pairs_equal(first, vb)
-                    {
-                        for g in 0..per_chunk {
-                            dst[(x + g) * vb..][..vb]
-                                .copy_from_slice(&r00[at + 2 * g * vb..][..vb]);
-                        }
-                        x += per_chunk;
-                        continue;
-                    }
-                    x + per_chunk
+            for x in span[0].clone() {
+                let group = [
+                    get(r00, 2 * x),
+                    get(r00, 2 * x + 1),
+                    get(r01, 2 * x),
+                    get(r01, 2 * x + 1),
+                    get(r10, 2 * x),
+                    get(r10, 2 * x + 1),
+                    get(r11, 2 * x),
+                    get(r11, 2 * x + 1),
+                ];
+                // Most 2x2x2 groups of a material or label brick hold one value: no counting.
+                let v = if group.iter().all(|&v| v == group[0]) {
+                    group[0]
                 } else {
-                    span[0].end
+                    isovox_proto::channel::mode_of_8(group, sparse)
                 };
-                for x in x..end {
-                    let group = [
-                        get(r00, 2 * x),
-                        get(r00, 2 * x + 1),
-                        get(r01, 2 * x),
-                        get(r01, 2 * x + 1),
-                        get(r10, 2 * x),
-                        get(r10, 2 * x + 1),
-                        get(r11, 2 * x),
-                        get(r11, 2 * x + 1),
-                    ];
-                    let v = if group.iter().all(|&v| v == group[0]) {
-                        group[0]
-                    } else {
-                        isovox_proto::channel::mode_of_8(group, sparse)
-                    };
-                    put(dst, x, v);
-                }
-                x = end;
+                put(dst, x, v);
             }
         }
     }
@@ -609,8 +563,8 @@ mod tests {
 
     proptest::proptest! {
         /// Mode downsampling equals the mode of each 2x2x2 group taken one group at a time,
-        /// on bricks of few values in blocks (where whole chunks of groups hold one value, the
-        /// fast path) with single voxels changed at random (where they do not).
+        /// on bricks of few values in blocks (groups of one value) with single voxels changed
+        /// at random (groups of several).
         #[test]
         fn mode_downsampling_equals_the_mode_of_each_group(
             seed in proptest::prelude::any::<u64>(),
