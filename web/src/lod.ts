@@ -135,7 +135,7 @@ export function tileDistance(
  * How far, as a fraction of its level's radius, a tile out of the view frustum is refined: at
  * half the reach it ends about one level coarser than a tile in view at the same distance. It is
  * there for when the camera turns, drawn nowhere until then, so it need not be as fine as
- * what is on screen (an eighth of the tiles, fetched after those in view).
+ * what is on screen (a level coarser: an eighth as many tiles there; fetched after those in view).
  */
 export const OUT_OF_VIEW_REACH = 0.5;
 
