@@ -782,6 +782,9 @@ fn a_stalled_writer_cannot_overwrite_a_newer_head() {
     }
 
     // The slow writer starts on version 1 and stalls before the head; r1 commits meanwhile.
+    // (The store's segments are counted before the edit is sent: it may write its segment
+    // before this thread looks.)
+    let segments = s3.segments().len();
     let slow_base = slow.base.clone();
     let stalled = std::thread::spawn(move || {
         let http = client();
@@ -793,7 +796,6 @@ fn a_stalled_writer_cannot_overwrite_a_newer_head() {
             .unwrap();
         (resp.status().as_u16(), resp.json::<Value>().unwrap())
     });
-    let segments = s3.segments().len();
     let deadline = Instant::now() + Duration::from_secs(30);
     while s3.segments().len() == segments {
         assert!(
@@ -827,6 +829,7 @@ fn a_stalled_writer_cannot_overwrite_a_newer_head() {
         untouched, 255,
         "the world is not full where the refused edit would go"
     );
+    let segments = s3.segments().len();
     let slow_base = slow.base.clone();
     let conditional = std::thread::spawn(move || {
         let resp = client()
@@ -838,7 +841,6 @@ fn a_stalled_writer_cannot_overwrite_a_newer_head() {
             .unwrap();
         (resp.status().as_u16(), resp.json::<Value>().unwrap())
     });
-    let segments = s3.segments().len();
     while s3.segments().len() == segments {
         assert!(Instant::now() < deadline + Duration::from_secs(30));
         std::thread::sleep(Duration::from_millis(10));
