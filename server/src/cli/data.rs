@@ -287,6 +287,7 @@ fn open_in_store(
     let cache = CacheConfig {
         dir: dir.clone(),
         max_bytes: u64::MAX,
+        ..CacheConfig::default()
     };
     let (remote, vod) = RemoteVolume::open(store, name, cache)
         .with_context(|| format!("cannot open {}/{name}", store.url()))?;

@@ -125,6 +125,11 @@ pub(crate) struct ServeArgs {
     /// Disk for fetched pages per volume, in MiB; past it a volume starts a fresh cache.
     #[arg(long, env = "ISOVOX_CACHE_MB", default_value_t = 1024)]
     pub cache_mb: u64,
+    /// The smallest read from the store, in KiB: a cold read fetches the aligned blocks of this
+    /// size it lies in (4 fetches single pages).
+    #[arg(long, env = "ISOVOX_READ_AHEAD_KB", default_value_t = 64,
+          value_parser = clap::value_parser!(u64).range(4..=65536))]
+    pub read_ahead_kb: u64,
     /// On Ctrl-C or SIGTERM, seconds to let requests in flight finish before closing their
     /// connections (change feeds end at once).
     #[arg(long, env = "ISOVOX_SHUTDOWN_GRACE", default_value_t = 10.0)]
@@ -273,6 +278,7 @@ fn open_catalog(a: &ServeArgs) -> anyhow::Result<Catalog> {
     let cache = CacheConfig {
         dir: a.cache_dir.clone().unwrap_or_else(|| a.data.join("cache")),
         max_bytes: a.cache_mb << 20,
+        read_ahead: a.read_ahead_kb << 10,
     };
     let catalog = Catalog::open_store(&bucket, &cache)?;
     if catalog.is_empty() {

@@ -1248,7 +1248,8 @@ fn a_replica_whose_store_reads_are_all_busy_still_takes_feed_subscriptions() {
     let data = tempfile::tempdir().unwrap();
     world(&s3, data.path());
     let http = client();
-    let server = Server::replica(&s3, None);
+    // Page by page: with blocks of 64 KiB, opening the volume fetches most of this small world.
+    let server = Server::replica_with(&s3, None, &["--read-ahead-kb", "4"]);
     assert_eq!(server.version(&http), 1);
 
     // The store stops answering; cold brick reads pile up on the replica's store-read threads
@@ -1351,7 +1352,9 @@ fn a_cold_replica_lists_a_level_grid_from_index_chunks_not_brick_records() {
     let old = old.to_str().unwrap();
     s3.isovox(&["import", old, "-o", &format!("{}/w4", s3.url())]);
 
-    let replica = Server::replica(&s3, None);
+    // Page by page (no read-ahead), so the requests count the records read, not the blocks
+    // around them.
+    let replica = Server::replica_with(&s3, None, &["--read-ahead-kb", "4"]);
     let http = client();
     let root = replica.base[..replica.base.find("/v1/").unwrap()].to_string();
     let grid_cost = |volume: &str| {
@@ -1407,4 +1410,94 @@ fn a_cold_replica_lists_a_level_grid_from_index_chunks_not_brick_records() {
     );
     // Without summaries the same grid reads the brick headers, pages spread over the file.
     assert!(old_requests > 4 * requests, "{old_requests} vs {requests}");
+}
+
+#[test]
+fn a_cold_replica_reads_ahead_in_blocks_and_fetches_each_block_once_for_many_readers() {
+    let s3 = S3::start("isovox-read-ahead");
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("w.vod");
+    let path = file.to_str().unwrap();
+    s3.isovox(&[
+        "generate",
+        "world",
+        "-o",
+        path,
+        "--dims",
+        "256,256,256",
+        "--brick",
+        "16",
+    ]);
+    s3.isovox(&["import", path, "-o", &format!("{}/{VOLUME}", s3.url())]);
+    let http = client();
+    let root = |replica: &Server| replica.base[..replica.base.find("/v1/").unwrap()].to_string();
+    // The voxels of level 1 (512 bricks, read in the file's order on the CPU threads) and the
+    // grids of levels 0, 2 and 3 (read on the store-read threads), on a cold replica; what the store was asked for meanwhile. With several readers the store is
+    // stopped while they send their requests, so that all of them miss the same pages at once.
+    let cost = |replica: &Server, readers: usize| {
+        let (requests, bytes) = store_fetches(&http, replica);
+        let base = root(replica);
+        let bodies: Vec<Vec<u8>> = std::thread::scope(|scope| {
+            if readers > 1 {
+                signal(&s3, "-STOP");
+            }
+            let readers: Vec<_> = (0..readers)
+                .map(|_| {
+                    let base = &base;
+                    scope.spawn(move || {
+                        let http = client();
+                        let mut body = Vec::new();
+                        for route in [
+                            "levels/1?format=voxels",
+                            "levels/0?region=0,0,0,16,16,16",
+                            "levels/2",
+                            "levels/3",
+                        ] {
+                            let url = format!("{base}/v1/volumes/{VOLUME}/{route}");
+                            let resp = http.get(&url).send().unwrap();
+                            assert_eq!(resp.status().as_u16(), 200, "{url}");
+                            body.extend_from_slice(&resp.bytes().unwrap());
+                        }
+                        body
+                    })
+                })
+                .collect();
+            if readers.len() > 1 {
+                std::thread::sleep(Duration::from_millis(500));
+                signal(&s3, "-CONT");
+            }
+            readers.into_iter().map(|r| r.join().unwrap()).collect()
+        });
+        assert!(bodies.iter().all(|b| *b == bodies[0]), "readers disagree");
+        let (after, after_bytes) = store_fetches(&http, replica);
+        (bodies[0].clone(), after - requests, after_bytes - bytes)
+    };
+    let paged = Server::replica_with(&s3, None, &["--read-ahead-kb", "4"]);
+    let (paged_body, paged_requests, paged_bytes) = cost(&paged, 1);
+    let ahead = Server::replica(&s3, None);
+    let (ahead_body, ahead_requests, ahead_bytes) = cost(&ahead, 1);
+    // Sixteen readers at once on a third cold replica: each block is fetched by one of them
+    // while the others wait for it.
+    let many = Server::replica(&s3, None);
+    let (many_body, many_requests, many_bytes) = cost(&many, 16);
+    eprintln!(
+        "level-1 voxels + grids of 256^3 on a cold replica: page by page \
+         {paged_requests} range requests, {paged_bytes} bytes; 64 KiB read-ahead \
+         {ahead_requests} requests, {ahead_bytes} bytes; 16 readers at once {many_requests} \
+         requests, {many_bytes} bytes"
+    );
+    assert_eq!(paged_body, ahead_body);
+    assert_eq!(paged_body, many_body);
+    assert!(
+        2 * ahead_requests <= paged_requests,
+        "read-ahead {ahead_requests} requests vs page by page {paged_requests}"
+    );
+    // No byte of the volume's one segment (the imported file) is fetched twice, however many
+    // readers miss it at once: a level read by several threads, sixteen readers.
+    let segment = std::fs::metadata(&file).unwrap().len();
+    assert!(
+        ahead_bytes <= segment && many_bytes <= segment,
+        "{ahead_bytes} bytes (one reader) and {many_bytes} (16 readers) fetched of a \
+         {segment}-byte segment"
+    );
 }

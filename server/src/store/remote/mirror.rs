@@ -5,9 +5,17 @@
 //! Pages are [`PAGE`] bytes of one segment (a segment's last page may be shorter), so a page is
 //! whole once fetched and never changes: segments are immutable. Which pages are here is one bit
 //! each, set after the bytes are written (release) and tested before they are read (acquire).
-//! Two readers missing the same page may both fetch it and write the same bytes; either way the
-//! bytes under the mapping go from a hole (zeros no reader looks at) to the segment's content,
-//! once, through `pwrite`, never through the mapping.
+//! The bytes under the mapping go from a hole (zeros no reader looks at) to the segment's
+//! content, once, through `pwrite`, never through the mapping.
+//!
+//! Two rules keep the store's requests few when many readers start at once (fifty viewers
+//! asking for the same grid regions in the same second):
+//! - read-ahead: a fetch covers whole aligned blocks of [`CacheConfig::read_ahead`] bytes (64 KiB
+//!   by default), so the index chunks a grid region reads, which lie in a row, and neighbouring
+//!   bricks come in one request instead of one per page;
+//! - one fetch per block at a time: a reader missing pages that another reader is fetching
+//!   waits for that fetch instead of sending the same range request again (and fetches what is
+//!   still missing itself if that fetch failed).
 //!
 //! The bound: the file is unlinked as soon as it is created (a crash leaves nothing behind) and
 //! its pages count against the cache size; past it, the volume starts a fresh file (a new
@@ -18,11 +26,12 @@ use super::super::region::Fill;
 use super::super::StoreError;
 use super::bucket::Bucket;
 use super::head::Segment;
+use super::CacheConfig;
 use std::fs::{File, OpenOptions};
 use std::os::unix::fs::FileExt;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Condvar, Mutex};
 
 /// The unit fetched: small enough that a compressed brick costs one or two pages, large enough
 /// that a brick's header and payload mostly share one.
@@ -43,6 +52,8 @@ pub struct MirrorFile {
     file: File,
     path: PathBuf,
     bucket: Bucket,
+    /// Pages a fetch covers at least: aligned blocks of this many.
+    block_pages: u64,
     /// Bytes of pages present.
     cached: AtomicU64,
     counters: Arc<FetchCounters>,
@@ -53,6 +64,50 @@ pub struct MirrorFile {
 pub struct Pages {
     segment: Segment,
     present: Box<[AtomicU64]>,
+    /// The fetches of this segment's pages in flight.
+    fetching: Mutex<Vec<Arc<Flight>>>,
+}
+
+/// A range request in flight for pages `first..=last` of one segment.
+#[derive(Debug)]
+struct Flight {
+    first: u64,
+    last: u64,
+    landed: Mutex<bool>,
+    wake: Condvar,
+}
+
+impl Flight {
+    fn overlaps(&self, first: u64, last: u64) -> bool {
+        self.first <= last && first <= self.last
+    }
+
+    /// Waits until the fetch has ended, well or not.
+    fn wait(&self) {
+        let mut landed = self.landed.lock().unwrap_or_else(|e| e.into_inner());
+        while !*landed {
+            landed = self.wake.wait(landed).unwrap_or_else(|e| e.into_inner());
+        }
+    }
+}
+
+/// Ends a flight when its fetcher is done with it, however it got there (an error, a panic):
+/// a waiter must never wait for a fetch nobody is making.
+struct Landing<'a> {
+    pages: &'a Pages,
+    flight: Arc<Flight>,
+}
+
+impl Drop for Landing<'_> {
+    fn drop(&mut self) {
+        self.pages
+            .fetching
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .retain(|f| !Arc::ptr_eq(f, &self.flight));
+        *self.flight.landed.lock().unwrap_or_else(|e| e.into_inner()) = true;
+        self.flight.wake.notify_all();
+    }
 }
 
 impl Pages {
@@ -62,6 +117,7 @@ impl Pages {
         Pages {
             segment,
             present: (0..n).map(|_| AtomicU64::new(0)).collect(),
+            fetching: Mutex::new(Vec::new()),
         }
     }
 
@@ -90,20 +146,27 @@ impl Pages {
     fn page_len(&self, page: u64) -> u64 {
         PAGE.min(self.segment.len - page * PAGE)
     }
+
+    /// The segment's last page.
+    fn last_page(&self) -> u64 {
+        self.segment.len.div_ceil(PAGE).max(1) - 1
+    }
 }
 
 impl MirrorFile {
-    /// A new, empty mirror file in `dir` (unlinked at once: only this process's handle keeps
-    /// it), fetching from `bucket` (the volume's objects).
+    /// A new, empty mirror file in `cache.dir` (unlinked at once: only this process's handle
+    /// keeps it), fetching from `bucket` (the volume's objects) in blocks of
+    /// `cache.read_ahead` bytes.
     ///
     /// # Errors
     /// The file cannot be created.
     pub fn create(
-        dir: &Path,
+        cache: &CacheConfig,
         label: &str,
         bucket: Bucket,
         counters: Arc<FetchCounters>,
     ) -> Result<MirrorFile, StoreError> {
+        let dir = &cache.dir;
         std::fs::create_dir_all(dir).map_err(StoreError::io_path(
             "cannot create the cache directory",
             dir,
@@ -125,6 +188,7 @@ impl MirrorFile {
             file,
             path,
             bucket,
+            block_pages: (cache.read_ahead / PAGE).max(1),
             cached: AtomicU64::new(0),
             counters,
         })
@@ -201,13 +265,40 @@ impl MirrorFile {
         Ok(pages)
     }
 
-    /// Makes pages `first..=last` of `pages` present, fetching the span from the first missing
-    /// to the last missing one in one range request.
+    /// Makes pages `first..=last` of `pages` present: the whole blocks they lie in, each
+    /// missing span fetched in one range request, or waited for where another reader is
+    /// fetching it.
     fn fetch(&self, pages: &Pages, first: u64, last: u64) -> Result<(), StoreError> {
-        let Some(lo) = (first..=last).find(|&p| !pages.has(p)) else {
-            return Ok(());
-        };
-        let hi = (lo..=last).rev().find(|&p| !pages.has(p)).unwrap_or(lo);
+        let first = first - first % self.block_pages;
+        let last = (last - last % self.block_pages + self.block_pages - 1).min(pages.last_page());
+        loop {
+            let Some(lo) = (first..=last).find(|&p| !pages.has(p)) else {
+                return Ok(());
+            };
+            let hi = (lo..=last).rev().find(|&p| !pages.has(p)).unwrap_or(lo);
+            let flight = {
+                let mut fetching = pages.fetching.lock().unwrap_or_else(|e| e.into_inner());
+                if let Some(other) = fetching.iter().find(|f| f.overlaps(lo, hi)).cloned() {
+                    drop(fetching);
+                    other.wait();
+                    continue;
+                }
+                let flight = Arc::new(Flight {
+                    first: lo,
+                    last: hi,
+                    landed: Mutex::new(false),
+                    wake: Condvar::new(),
+                });
+                fetching.push(flight.clone());
+                flight
+            };
+            let _ended = Landing { pages, flight };
+            self.fetch_span(pages, lo, hi)?;
+        }
+    }
+
+    /// Fetches pages `lo..=hi` of `pages` in one range request and marks them present.
+    fn fetch_span(&self, pages: &Pages, lo: u64, hi: u64) -> Result<(), StoreError> {
         let from = lo * PAGE;
         let to = hi * PAGE + pages.page_len(hi);
         let bytes = self.bucket.get_range(&pages.segment.key, from..to)?;

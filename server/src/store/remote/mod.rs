@@ -55,13 +55,21 @@ pub struct CacheConfig {
     pub dir: PathBuf,
     /// Bytes of fetched pages per volume before a fresh mirror is started.
     pub max_bytes: u64,
+    /// The smallest fetch: a cold read fetches the aligned blocks of this many bytes it lies
+    /// in (rounded down to whole pages, at least one). On S3 a request costs tens of
+    /// milliseconds before its first byte and a 64 KiB one little more than a 4 KiB one.
+    pub read_ahead: u64,
 }
+
+/// The default [`CacheConfig::read_ahead`].
+pub const DEFAULT_READ_AHEAD: u64 = 64 << 10;
 
 impl Default for CacheConfig {
     fn default() -> Self {
         CacheConfig {
             dir: std::env::temp_dir().join("isovox-cache"),
             max_bytes: 1 << 30,
+            read_ahead: DEFAULT_READ_AHEAD,
         }
     }
 }
@@ -187,7 +195,7 @@ impl RemoteVolume {
         let (head, etag) = read_head(&bucket)?;
         let counters = Arc::new(FetchCounters::default());
         let file = Arc::new(MirrorFile::create(
-            &cache.dir,
+            &cache,
             name,
             bucket.clone(),
             counters.clone(),
@@ -253,7 +261,7 @@ impl RemoteVolume {
     /// The volume as of `state` in a fresh mirror file.
     fn reopen(&self, state: &mut Followed) -> Result<Vod2, StoreError> {
         state.file = Arc::new(MirrorFile::create(
-            &self.cache.dir,
+            &self.cache,
             &self.name,
             self.bucket.clone(),
             self.counters.clone(),
