@@ -9,9 +9,10 @@
 # Prints: the cold start of a replica (until it serves the volume's metadata) and what it fetched
 # doing so; range requests and bytes fetched per cold brick; the delay from an acknowledged edit
 # on one replica to its event on another (p50/p99); edits per second with writers on two
-# replicas; and, during a streaming load from isovox-load, the share of brick and blob requests
-# nginx answers without reaching the replica, with the load's throughput through nginx and
-# against a replica alone (same run), and what the replica answered on the level route.
+# replicas; and, during a streaming load from isovox-load (50 viewers, bricks), errors and each
+# viewer's first tile on two cold replicas, then through nginx in front of both and against one
+# alone: the share of requests nginx answers without reaching a replica, the load's throughput
+# both ways, and what the replicas answered on the level route.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DIMS=${DIMS:-2048}
@@ -164,11 +165,10 @@ for per_replica in (2, 8):
 EOF
 [ -n "${EDITS_ONLY:-}" ] && exit 0  # the edit figures alone
 
-# nginx in front of one replica, streaming load through it, then against another replica alone.
+# nginx in front of two replicas, streaming load through it, then against one replica alone.
 # Both replicas are warmed first by the same load run against each directly (nginx's cache
-# stays empty), so the two runs differ by nginx alone: run in turn on one replica, the second
-# found the store's pages the first had fetched, and the figures compared a cold replica
-# through nginx with a warm one alone.
+# stays empty): those two runs are cold starts (50 viewers on a replica that has fetched
+# nothing but the volume's metadata), and the two later runs differ by nginx alone.
 R=$(free_port); R2=$(free_port); N=$(free_port)
 replica r "$R"
 replica r2 "$R2"
@@ -186,7 +186,7 @@ http { access_log off;
   client_body_temp_path $WORK/nginx/b; proxy_temp_path $WORK/nginx/p; fastcgi_temp_path $WORK/nginx/f;
   uwsgi_temp_path $WORK/nginx/u; scgi_temp_path $WORK/nginx/s;
   proxy_cache_path $WORK/nginx/cache levels=1:2 keys_zone=isovox:64m max_size=8g inactive=30d use_temp_path=off;
-  upstream isovox { server 127.0.0.1:$R; keepalive 64; }
+  upstream isovox { server 127.0.0.1:$R; server 127.0.0.1:$R2; keepalive 64; }
   server { listen 127.0.0.1:$N; include $PWD/docker/nginx/isovox-locations.conf; } }
 EOF
 nginx -c "$WORK/nginx/nginx.conf" -p "$WORK/nginx/" -e "$WORK/nginx/error.log" &
@@ -240,12 +240,13 @@ EOF
   fi
   kill "$sampler"
 }
-load "http://127.0.0.1:$R" warm-up-1 "$R"
-load "http://127.0.0.1:$R2" warm-up-2 "$R2"
+load "http://127.0.0.1:$R" cold-replica-1 "$R"
+load "http://127.0.0.1:$R2" cold-replica-2 "$R2"
 counters "$R" > "$WORK/c0.json"
+counters "$R2" > "$WORK/e0.json"
 load "http://127.0.0.1:$N" through-nginx "$R"
 counters "$R" > "$WORK/c1.json"
-counters "$R2" > "$WORK/d0.json"
+counters "$R2" > "$WORK/e1.json"
 load "http://127.0.0.1:$R2" replica-alone "$R2"
 counters "$R2" > "$WORK/d1.json"
 python3 - "$WORK" <<'EOF'
@@ -253,14 +254,28 @@ import json, sys
 work = sys.argv[1]
 def read(name):
     return json.load(open(f"{work}/{name}"))
-c0, c1, d0, d1 = read("c0.json"), read("c1.json"), read("d0.json"), read("d1.json")
+c0, c1, e0, e1 = read("c0.json"), read("c1.json"), read("e0.json"), read("e1.json")
+d0, d1 = e1, read("d1.json")
 def tiles(r):
     return sum(x["requests"] for x in r["routes"] if x["route"] in ("brick", "blob"))
+for name in ("cold-replica-1", "cold-replica-2", "through-nginx", "replica-alone"):
+    r = read(f"{name}.json")
+    f, st = r["streamers"]["first_tile_ms"], r["streamers"]
+    print(f"{name}: {r['errors_total']} errors, first tile p50 {f['p50']:.0f} / p99 {f['p99']:.0f} / "
+          f"max {f['max']:.0f} ms over {f['samples']} viewers ({st['without_tile']} without a tile), "
+          f"{r['total']['requests_per_s']:.0f} req/s")
 through, alone = read("through-nginx.json"), read("replica-alone.json")
-asked, reached = tiles(through), c1["tiles"] - c0["tiles"]
+asked = tiles(through)
+reached = (c1["tiles"] - c0["tiles"]) + (e1["tiles"] - e0["tiles"])
 if asked:
     print(f"nginx answered {100.0 * (1 - reached / asked):.1f}% of {asked} brick and blob requests "
-          f"without the replica ({reached} reached it)")
+          f"without the replicas ({reached} reached them)")
+    def all_levels(before, after):
+        return sum(after[k] - before.get(k, 0) for k in after if k.startswith("levels_"))
+    asked_all = through["total"]["requests"]
+    reached_all = reached + all_levels(c0, c1) + all_levels(e0, e1)
+    print(f"nginx answered {100.0 * (1 - reached_all / asked_all):.1f}% of all {asked_all} requests "
+          f"(bricks, blobs, level grids) without the replicas ({reached_all} reached them)")
 else:
     asked_for = ", ".join(f"{x['requests']} {x['route']} ({x['outcomes'].get('503', 0)} answered 503)"
                           for x in through["routes"] if x["requests"])
@@ -275,7 +290,7 @@ def levels(before, after):
 def peak(name):
     seen = [int(float(l)) for l in open(f"{work}/{name}.connections") if l.strip()]
     return max(seen, default=0)
-print(f"level requests at the replica: {levels(c0, c1)} through nginx, {levels(d0, d1)} alone; "
-      f"open connections at the replica, at most: {peak('through-nginx')} through nginx, "
-      f"{peak('replica-alone')} alone")
+print(f"level requests at the replicas: {levels(c0, c1)} and {levels(e0, e1)} through nginx, "
+      f"{levels(d0, d1)} alone; open connections at the first replica, at most: "
+      f"{peak('through-nginx')} through nginx, {peak('replica-alone')} alone")
 EOF

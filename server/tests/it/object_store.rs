@@ -1173,6 +1173,18 @@ fn nginx_in_front_of_a_replica_makes_each_level_and_tile_once_and_revalidates_th
     let resp = http.get(format!("{}/levels/1", nginx.base)).send().unwrap();
     assert_eq!(resp.headers()["x-cache"], "REVALIDATED");
     assert!(resp.bytes().unwrap().as_ref() == edited.as_slice());
+
+    // A pinned answer is kept as the server says (immutable): seconds later nginx serves it
+    // without asking the replica, not even for a revalidation. The pinned version is the one
+    // the stampede above cached.
+    let pinned = "levels/0?region=0,0,0,6,4,6&version=1";
+    let (_, direct, _) = replica.get(&http, pinned, None);
+    let asked = |status| answered(&http, replica, levels, Some(status));
+    let before = (asked(200), asked(304));
+    let resp = http.get(format!("{}/{pinned}", nginx.base)).send().unwrap();
+    assert_eq!(resp.headers()["x-cache"], "HIT", "{pinned}");
+    assert!(resp.bytes().unwrap().as_ref() == direct.as_slice());
+    assert_eq!((asked(200), asked(304)), before, "{pinned} reached the replica");
 }
 
 /// Sends `signal` (`-STOP`, `-CONT`) to the S3 server.
