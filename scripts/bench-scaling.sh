@@ -89,10 +89,27 @@ def start(name, port, *more):
             time.sleep(0.005)
 
 subprocess.run(["mkdir", "-p", f"{work}/a", f"{work}/b"])
-pa, cold = start("a", a)
+# Without the index prefetch, so that what the start and each cold brick fetch is theirs alone.
+pa, cold = start("a", a, "--prefetch-index-mb", "0")
 print(f"cold start: serving the {dims}^3 volume's metadata {cold*1000:.0f} ms after launch; "
       f"fetched {metric(a, 'isovox_store_fetched_bytes_total')} bytes in "
       f"{metric(a, 'isovox_store_fetches_total')} range requests (header page, head commit, checkpoint fixed part)")
+
+# The index prefetch of a replica started with the defaults: when its fetches stop.
+import socket
+with socket.socket() as sock:
+    sock.bind(("127.0.0.1", 0))
+    p_port = sock.getsockname()[1]
+pp, _ = start("p", p_port)
+t0, last, quiet = time.perf_counter(), None, None
+while quiet is None or time.perf_counter() - quiet < 0.5:
+    now = (metric(p_port, "isovox_store_fetches_total"), metric(p_port, "isovox_store_fetched_bytes_total"))
+    if now != last:
+        last, quiet = now, time.perf_counter()
+    time.sleep(0.01)
+print(f"index prefetch: {last[1]} bytes in {last[0]} range requests (the open's included), "
+      f"done within {(quiet - t0) * 1000:.0f} ms of the metadata being served")
+pp.terminate(); pp.wait()
 
 grid = (dims + 15) // 16
 rng = random.Random(1)

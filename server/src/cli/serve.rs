@@ -130,6 +130,10 @@ pub(crate) struct ServeArgs {
     #[arg(long, env = "ISOVOX_READ_AHEAD_KB", default_value_t = 64,
           value_parser = clap::value_parser!(u64).range(4..=65536))]
     pub read_ahead_kb: u64,
+    /// When a replica opens a volume, it fetches the volume's index (what level grids read) in
+    /// the background if the index is at most this many MiB; 0 turns that off.
+    #[arg(long, env = "ISOVOX_PREFETCH_INDEX_MB", default_value_t = 64)]
+    pub prefetch_index_mb: u64,
     /// On Ctrl-C or SIGTERM, seconds to let requests in flight finish before closing their
     /// connections (change feeds end at once).
     #[arg(long, env = "ISOVOX_SHUTDOWN_GRACE", default_value_t = 10.0)]
@@ -279,6 +283,7 @@ fn open_catalog(a: &ServeArgs) -> anyhow::Result<Catalog> {
         dir: a.cache_dir.clone().unwrap_or_else(|| a.data.join("cache")),
         max_bytes: a.cache_mb << 20,
         read_ahead: a.read_ahead_kb << 10,
+        prefetch_index: a.prefetch_index_mb << 20,
     };
     let catalog = Catalog::open_store(&bucket, &cache)?;
     if catalog.is_empty() {

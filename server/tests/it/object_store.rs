@@ -284,6 +284,19 @@ fn client() -> Client {
         .unwrap()
 }
 
+/// Generates an `edge`^3 world in bricks of 16 into `dir/w.vod` (larger than [`world`]'s: its
+/// index spans several chunks and pages) and imports it into the store as [`VOLUME`].
+fn large_world(s3: &S3, dir: &Path, edge: u32) -> PathBuf {
+    let file = dir.join("w.vod");
+    let dims = format!("{edge},{edge},{edge}");
+    let path = file.to_str().unwrap();
+    s3.isovox(&[
+        "generate", "world", "-o", path, "--dims", &dims, "--brick", "16",
+    ]);
+    s3.isovox(&["import", path, "-o", &format!("{}/{VOLUME}", s3.url())]);
+    file
+}
+
 /// Generates the world into `dir/w.vod` and imports it into the store.
 fn world(s3: &S3, dir: &Path) -> PathBuf {
     let file = dir.join(format!("{VOLUME}.vod"));
@@ -1184,7 +1197,11 @@ fn nginx_in_front_of_a_replica_makes_each_level_and_tile_once_and_revalidates_th
     let resp = http.get(format!("{}/{pinned}", nginx.base)).send().unwrap();
     assert_eq!(resp.headers()["x-cache"], "HIT", "{pinned}");
     assert!(resp.bytes().unwrap().as_ref() == direct.as_slice());
-    assert_eq!((asked(200), asked(304)), before, "{pinned} reached the replica");
+    assert_eq!(
+        (asked(200), asked(304)),
+        before,
+        "{pinned} reached the replica"
+    );
 }
 
 /// Sends `signal` (`-STOP`, `-CONT`) to the S3 server.
@@ -1351,22 +1368,20 @@ fn a_cold_replica_lists_a_level_grid_from_index_chunks_not_brick_records() {
         .unwrap_or(256);
     let s3 = S3::start("isovox-grids");
     let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("w.vod");
-    let dims = format!("{edge},{edge},{edge}");
-    let path = file.to_str().unwrap();
-    s3.isovox(&[
-        "generate", "world", "-o", path, "--dims", &dims, "--brick", "16",
-    ]);
-    s3.isovox(&["import", path, "-o", &format!("{}/{VOLUME}", s3.url())]);
+    let file = large_world(&s3, dir.path(), edge);
     // The same volume as a writer before revision 5 wrote it: no summaries in its index.
     let old = dir.path().join("w4.vod");
     crate::grid_summaries::revision4_copy(&file, &old);
     let old = old.to_str().unwrap();
     s3.isovox(&["import", old, "-o", &format!("{}/w4", s3.url())]);
 
-    // Page by page (no read-ahead), so the requests count the records read, not the blocks
-    // around them.
-    let replica = Server::replica_with(&s3, None, &["--read-ahead-kb", "4"]);
+    // Page by page (no read-ahead) and without the index prefetched at open, so the requests
+    // count the records the grid reads, not the blocks around them.
+    let replica = Server::replica_with(
+        &s3,
+        None,
+        &["--read-ahead-kb", "4", "--prefetch-index-mb", "0"],
+    );
     let http = client();
     let root = replica.base[..replica.base.find("/v1/").unwrap()].to_string();
     let grid_cost = |volume: &str| {
@@ -1428,19 +1443,7 @@ fn a_cold_replica_lists_a_level_grid_from_index_chunks_not_brick_records() {
 fn a_cold_replica_reads_ahead_in_blocks_and_fetches_each_block_once_for_many_readers() {
     let s3 = S3::start("isovox-read-ahead");
     let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("w.vod");
-    let path = file.to_str().unwrap();
-    s3.isovox(&[
-        "generate",
-        "world",
-        "-o",
-        path,
-        "--dims",
-        "256,256,256",
-        "--brick",
-        "16",
-    ]);
-    s3.isovox(&["import", path, "-o", &format!("{}/{VOLUME}", s3.url())]);
+    let file = large_world(&s3, dir.path(), 256);
     let http = client();
     let root = |replica: &Server| replica.base[..replica.base.find("/v1/").unwrap()].to_string();
     // The voxels of level 1 (512 bricks, read in the file's order on the CPU threads) and the
@@ -1484,13 +1487,14 @@ fn a_cold_replica_reads_ahead_in_blocks_and_fetches_each_block_once_for_many_rea
         let (after, after_bytes) = store_fetches(&http, replica);
         (bodies[0].clone(), after - requests, after_bytes - bytes)
     };
-    let paged = Server::replica_with(&s3, None, &["--read-ahead-kb", "4"]);
+    let no_prefetch = ["--prefetch-index-mb", "0"];
+    let paged = Server::replica_with(&s3, None, &["--read-ahead-kb", "4", no_prefetch[0], "0"]);
     let (paged_body, paged_requests, paged_bytes) = cost(&paged, 1);
-    let ahead = Server::replica(&s3, None);
+    let ahead = Server::replica_with(&s3, None, &no_prefetch);
     let (ahead_body, ahead_requests, ahead_bytes) = cost(&ahead, 1);
     // Sixteen readers at once on a third cold replica: each block is fetched by one of them
     // while the others wait for it.
-    let many = Server::replica(&s3, None);
+    let many = Server::replica_with(&s3, None, &no_prefetch);
     let (many_body, many_requests, many_bytes) = cost(&many, 16);
     eprintln!(
         "level-1 voxels + grids of 256^3 on a cold replica: page by page \
@@ -1511,5 +1515,60 @@ fn a_cold_replica_reads_ahead_in_blocks_and_fetches_each_block_once_for_many_rea
         ahead_bytes <= segment && many_bytes <= segment,
         "{ahead_bytes} bytes (one reader) and {many_bytes} (16 readers) fetched of a \
          {segment}-byte segment"
+    );
+}
+
+#[test]
+fn a_replica_prefetches_the_index_so_its_first_grids_wait_for_no_store_read() {
+    let s3 = S3::start("isovox-prefetch");
+    let data = tempfile::tempdir().unwrap();
+    large_world(&s3, data.path(), 256);
+    let http = client();
+    // Every level's grid on a replica once its open has settled (no fetch for half a second):
+    // the range requests they cost.
+    let grids_cost = |replica: &Server| {
+        let mut last = store_fetches(&http, replica);
+        let mut quiet_since = Instant::now();
+        let deadline = Instant::now() + Duration::from_secs(30);
+        while quiet_since.elapsed() < Duration::from_millis(500) {
+            assert!(Instant::now() < deadline, "the replica keeps fetching");
+            std::thread::sleep(Duration::from_millis(50));
+            let now = store_fetches(&http, replica);
+            if now != last {
+                (last, quiet_since) = (now, Instant::now());
+            }
+        }
+        let info: Value = http.get(&replica.base).send().unwrap().json().unwrap();
+        let levels = info["levels"].as_array().unwrap().len();
+        let grids: Vec<Vec<u8>> = (0..levels)
+            .map(|l| {
+                let (status, body, _) = replica.get(&http, &format!("levels/{l}"), None);
+                assert_eq!(status, 200, "levels/{l}");
+                body
+            })
+            .collect();
+        (grids, store_fetches(&http, replica).0 - last.0)
+    };
+    // Page by page, so that the reads at open fetch no more of the index than they parse.
+    let cold = Server::replica_with(
+        &s3,
+        None,
+        &["--read-ahead-kb", "4", "--prefetch-index-mb", "0"],
+    );
+    let (cold_grids, cold_requests) = grids_cost(&cold);
+    let prefetched = Server::replica_with(&s3, None, &["--read-ahead-kb", "4"]);
+    let (grids, requests) = grids_cost(&prefetched);
+    eprintln!(
+        "every level's grid after the open settled: {cold_requests} range requests without \
+         the prefetch, {requests} with it"
+    );
+    assert_eq!(grids, cold_grids);
+    assert!(
+        cold_requests > 0,
+        "without the prefetch the grids read the store"
+    );
+    assert_eq!(
+        requests, 0,
+        "the grids read index pages the prefetch did not fetch"
     );
 }

@@ -35,7 +35,7 @@ pub use mirror::FetchCounters;
 
 use super::region::Fill;
 use super::writer::Publish;
-use super::{StoreError, Vod2};
+use super::{Snapshot, StoreError, Vod2};
 use arc_swap::ArcSwap;
 use bytes::Bytes;
 use head::{HEAD_FORMAT, TAIL_MAX};
@@ -59,7 +59,14 @@ pub struct CacheConfig {
     /// in (rounded down to whole pages, at least one). On S3 a request costs tens of
     /// milliseconds before its first byte and a 64 KiB one little more than a 4 KiB one.
     pub read_ahead: u64,
+    /// When a volume is opened, its head checkpoint's index (what level grids read) is fetched
+    /// in the background if it is at most this many bytes; 0 turns that off.
+    pub prefetch_index: u64,
 }
+
+/// The default [`CacheConfig::prefetch_index`]: the index of a 2048^3 world in bricks of 16 is
+/// a few MB; one of a volume thousands of times larger is left to be fetched as it is read.
+pub const DEFAULT_PREFETCH_INDEX: u64 = 64 << 20;
 
 /// The default [`CacheConfig::read_ahead`].
 pub const DEFAULT_READ_AHEAD: u64 = 64 << 10;
@@ -70,6 +77,7 @@ impl Default for CacheConfig {
             dir: std::env::temp_dir().join("isovox-cache"),
             max_bytes: 1 << 30,
             read_ahead: DEFAULT_READ_AHEAD,
+            prefetch_index: DEFAULT_PREFETCH_INDEX,
         }
     }
 }
@@ -179,6 +187,35 @@ pub fn read_head(bucket: &Bucket) -> Result<(Head, String), StoreError> {
     }
 }
 
+/// Fetches the index checkpoint `head` builds on, on a thread of its own, if it is at most
+/// `limit` bytes: a cold replica's first grid regions (fifty viewers ask for hundreds at once)
+/// then find their index chunks here or arriving, instead of each waiting for the store on a
+/// store-read thread. A failure is logged and left to the readers, which fetch what they miss.
+fn prefetch_index(name: &str, head: Arc<Snapshot>, limit: u64) {
+    const STEP: u64 = 8 << 20;
+    let name = name.to_string();
+    let fetch = move || -> Result<u64, StoreError> {
+        let (start, len) = head.checkpoint_span()?;
+        if len > limit {
+            return Ok(0);
+        }
+        for at in (start..start + len).step_by(STEP as usize) {
+            head.prefetch(at, STEP.min(start + len - at))?;
+        }
+        Ok(len)
+    };
+    let spawned = std::thread::Builder::new()
+        .name("isovox-prefetch".into())
+        .spawn(move || {
+            if let Err(e) = fetch() {
+                tracing::warn!(volume = %name, error = %e, "prefetching the index failed");
+            }
+        });
+    if let Err(e) = spawned {
+        tracing::warn!(error = %e, "cannot start a thread to prefetch the index");
+    }
+}
+
 impl RemoteVolume {
     /// Opens volume `name` of `store`: reads its head (and manifest), maps a fresh mirror and
     /// reads the file header, the head's commit record and the fixed part of its index
@@ -230,6 +267,9 @@ impl RemoteVolume {
             map,
             view,
         )?;
+        if volume.cache.prefetch_index > 0 {
+            prefetch_index(name, vod.head(), volume.cache.prefetch_index);
+        }
         Ok((volume, vod))
     }
 

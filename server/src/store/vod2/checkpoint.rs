@@ -140,6 +140,15 @@ impl Snapshot {
         Ok((self.index.base, cp.total_len()?))
     }
 
+    /// Makes `len` bytes from `start` present in the mapping (fetched, for a volume in an
+    /// object store; nothing to do for a local file).
+    ///
+    /// # Errors
+    /// The fetch fails.
+    pub fn prefetch(&self, start: u64, len: u64) -> Result<(), StoreError> {
+        self.map.ensure(start, len)
+    }
+
     /// Every index entry of this version (every stream's) in node order, raw (as a checkpoint stores them): the
     /// checkpoint's chunks (each checked against its hash when first used) with the overlay
     /// applied (each entry checked when its commit was read). What a new checkpoint is written
