@@ -55,10 +55,10 @@ pub async fn brick(
 ) -> Result<Response, ApiError> {
     let position = brick_position(&raw)?;
     state
-        .read_volume(&name, move |state, vol| match channel {
+        .read_volume(&name, move |state, vol| match &channel {
             None => brick_at(state, vol, version, position, request.headers()),
             Some(channel) => {
-                let snap = vol.snapshot_of(version, Some(&channel))?;
+                let snap = vol.snapshot_of(version, Some(channel))?;
                 brick_of(state, &snap, position, request.headers())
             }
         })

@@ -265,12 +265,14 @@ impl AppState {
     }
 
     /// `read` of volume `name` (with this state), where reading it may wait: in place for a
-    /// volume kept in a local file (mapped memory; no allocation, no hop), on the store-read
-    /// threads for one kept in an object store, whose reads may fetch pages from the store
-    /// and wait for them ([`cpu::StoreReads::run`]: 503 when they are all busy). Every
-    /// synchronous read of a volume in a handler goes through here: a read of a remote volume
-    /// on a connection thread would stall all of that thread's connections for a round trip
-    /// (debug builds assert against it in `Bucket`).
+    /// volume kept in a local file (mapped memory; no allocation, no hop); for one kept in an
+    /// object store, in place too when every page it reads is in the replica's mirror, else
+    /// again on the store-read threads, whose reads may fetch pages from the store and wait
+    /// for them ([`cpu::StoreReads::run`]: 503 when they are all busy). So reads of what a
+    /// replica holds are never queued behind, or refused because of, reads waiting for the
+    /// store. Every synchronous read of a volume in a handler goes through here: a read of a
+    /// remote volume that fetched on a connection thread would stall all of that thread's
+    /// connections for a round trip (debug builds assert against it in `Bucket`).
     ///
     /// # Errors
     /// 404 when no volume is called `name`; as [`cpu::StoreReads::run`]; whatever `read`
@@ -278,7 +280,7 @@ impl AppState {
     pub async fn read_volume<T, E>(
         &self,
         name: &str,
-        read: impl FnOnce(&AppState, &Arc<LiveVolume>) -> Result<T, E> + Send + 'static,
+        read: impl Fn(&AppState, &Arc<LiveVolume>) -> Result<T, E> + Send + 'static,
     ) -> Result<T, ApiError>
     where
         T: Send + 'static,
@@ -288,6 +290,9 @@ impl AppState {
         let volume = self.catalog.get(name)?;
         if volume.remote().is_none() {
             return Ok(read(self, volume)?);
+        }
+        if let Some(done) = crate::store::remote::mirror::without_fetching(|| read(self, volume)) {
+            return Ok(done?);
         }
         let (state, volume) = (self.clone(), volume.clone());
         self.store_reads.run(move || read(&state, &volume)).await

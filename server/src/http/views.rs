@@ -112,7 +112,7 @@ async fn view(
     }
     let (made, path) = state
         .read_volume(name, move |state, vol| {
-            read(vol, kind, version, &path, &state.bricks).map(|made| (made, path))
+            read(vol, kind, version, &path, &state.bricks).map(|made| (made, path.clone()))
         })
         .await?;
     let answer = match made {

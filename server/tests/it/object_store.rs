@@ -1272,7 +1272,8 @@ fn a_stalled_store_makes_an_edit_a_503_with_retry_after_and_commits_nothing() {
 }
 
 #[test]
-fn a_replica_whose_store_reads_are_all_busy_still_takes_feed_subscriptions() {
+fn a_replica_whose_store_reads_are_all_busy_still_takes_feed_subscriptions_and_reads_what_it_holds()
+{
     let s3 = S3::start("isovox-busy-reads");
     let data = tempfile::tempdir().unwrap();
     world(&s3, data.path());
@@ -1280,13 +1281,16 @@ fn a_replica_whose_store_reads_are_all_busy_still_takes_feed_subscriptions() {
     // Page by page: with blocks of 64 KiB, opening the volume fetches most of this small world.
     let server = Server::replica_with(&s3, None, &["--read-ahead-kb", "4"]);
     assert_eq!(server.version(&http), 1);
+    // A brick read once: its pages are in the replica's mirror from then on.
+    let warm = format!("{}/bricks/0/2/2/2", server.base);
+    let warm_body = http.get(&warm).send().unwrap().bytes().unwrap();
 
     // The store stops answering; cold brick reads pile up on the replica's store-read threads
     // and places (16 and 128 on two cores) until it refuses more with 503.
     signal(&s3, "-STOP");
     let (done_tx, done_rx) = mpsc::channel();
     let bricks = all_bricks();
-    let readers: Vec<_> = (0..300)
+    let readers: Vec<_> = (0..600)
         .map(|i| {
             let url = format!("{}/bricks/{}", server.base, bricks[i % bricks.len()]);
             let done = done_tx.clone();
@@ -1304,6 +1308,12 @@ fn a_replica_whose_store_reads_are_all_busy_still_takes_feed_subscriptions() {
             refused += 1;
         }
     }
+
+    // The brick read before is answered from the mirror, in place: not refused, and not
+    // queued behind the reads waiting for the store.
+    let resp = http.get(&warm).send().unwrap();
+    let warm_status = resp.status().as_u16();
+    let warm_again = resp.bytes().unwrap();
 
     // A new viewer subscribes to the change feed: taken, and told the head at once.
     let mut feed = Client::builder()
@@ -1328,6 +1338,11 @@ fn a_replica_whose_store_reads_are_all_busy_still_takes_feed_subscriptions() {
         status, 200,
         "the feed subscription while store reads were full"
     );
+    assert_eq!(
+        warm_status, 200,
+        "a read of mirrored pages while store reads were full"
+    );
+    assert_eq!(warm_again, warm_body);
     let hello = String::from_utf8_lossy(&first[..n]);
     assert!(
         hello.contains("event: hello") && hello.contains("\"version\":1"),

@@ -322,6 +322,38 @@ impl MirrorFile {
     }
 }
 
+thread_local! {
+    /// Whether this thread runs a read that must not wait for the store
+    /// ([`without_fetching`]): 0 no, 1 yes, 2 yes and it needed a fetch.
+    static NO_FETCH: std::cell::Cell<u8> = const { std::cell::Cell::new(0) };
+}
+
+/// Runs `read` on this thread so that a fill that would fetch from the store fails at once
+/// instead: `None` when one did. The read's result is then discarded whatever it was (it may
+/// have failed with that failure, or handled it), and the caller runs the read again where it
+/// may wait. So a read of pages already here never waits for a store-read thread.
+pub fn without_fetching<T>(read: impl FnOnce() -> T) -> Option<T> {
+    struct Disarm;
+    impl Drop for Disarm {
+        fn drop(&mut self) {
+            NO_FETCH.set(0);
+        }
+    }
+    NO_FETCH.set(1);
+    let _disarm = Disarm;
+    let out = read();
+    (NO_FETCH.get() == 1).then_some(out)
+}
+
+/// Whether a fill must not fetch (see [`without_fetching`]); notes that one wanted to.
+fn fetch_refused() -> bool {
+    let armed = NO_FETCH.get() != 0;
+    if armed {
+        NO_FETCH.set(2);
+    }
+    armed
+}
+
 /// A mirror as of one head: the file and every segment's pages, in order (shared with the
 /// views of earlier heads: a segment's pages are fetched once per file).
 #[derive(Debug)]
@@ -350,6 +382,11 @@ impl Fill for MirrorView {
             let b = end.min(s.end()) - s.start;
             let (first, last) = (a / PAGE, (b - 1) / PAGE);
             if (first..=last).any(|p| !pages.has(p)) {
+                if fetch_refused() {
+                    return Err(StoreError::Internal(
+                        "a page to fetch in a read that may not wait for the store".into(),
+                    ));
+                }
                 self.file.fetch(pages, first, last)?;
             }
             i += 1;
