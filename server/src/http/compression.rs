@@ -13,6 +13,7 @@
 use super::held::Reservation;
 use axum::http::{header, HeaderMap, HeaderValue};
 use axum::response::{IntoResponse, Response};
+use bytes::Bytes;
 
 /// Below this many bytes a body is sent as it is (the frame header would eat the gain).
 const MIN_BYTES: usize = 512;
@@ -78,14 +79,48 @@ impl Body {
     /// The response: `headers` plus `Content-Type: media`, `Vary: Accept-Encoding` (caches must
     /// keep the two forms apart) and, when compressed, `Content-Encoding: zstd`.
     pub(super) fn respond(self, media: &'static str, mut headers: HeaderMap) -> Response {
-        headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(media));
-        headers.insert(header::VARY, HeaderValue::from_static("Accept-Encoding"));
-        if self.zstd {
-            headers.insert(header::CONTENT_ENCODING, HeaderValue::from_static("zstd"));
-        }
+        content_headers(&mut headers, media, self.zstd);
         match self.held {
             Some(held) => (headers, held.body(self.bytes)).into_response(),
             None => (headers, self.bytes).into_response(),
         }
+    }
+
+    /// A copy of the body to keep and send again ([`SharedBody`]).
+    pub(super) fn share(&self) -> SharedBody {
+        SharedBody {
+            bytes: Bytes::copy_from_slice(&self.bytes),
+            zstd: self.zstd,
+        }
+    }
+}
+
+/// A body kept to be sent again, as [`Body::new`] made it: each response shares its bytes.
+#[derive(Debug)]
+pub(super) struct SharedBody {
+    bytes: Bytes,
+    zstd: bool,
+}
+
+impl SharedBody {
+    /// Bytes of the body as sent.
+    pub(super) fn len(&self) -> usize {
+        self.bytes.len()
+    }
+
+    /// The response, as [`Body::respond`] makes it.
+    pub(super) fn respond(&self, media: &'static str, mut headers: HeaderMap) -> Response {
+        content_headers(&mut headers, media, self.zstd);
+        (headers, self.bytes.clone()).into_response()
+    }
+}
+
+/// `Content-Type: media`, `Vary: Accept-Encoding` and, for a compressed body,
+/// `Content-Encoding: zstd`.
+fn content_headers(headers: &mut HeaderMap, media: &'static str, zstd: bool) {
+    headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(media));
+    headers.insert(header::VARY, HeaderValue::from_static("Accept-Encoding"));
+    if zstd {
+        headers.insert(header::CONTENT_ENCODING, HeaderValue::from_static("zstd"));
     }
 }

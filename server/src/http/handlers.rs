@@ -141,9 +141,10 @@ pub async fn mesh_tile(
     .await
 }
 
-/// A mesh answer named by `tag`: 304 when `If-None-Match` names it, else `make` run off the async
-/// runtime with the mesh cache and the decoded bricks, its bytes (zstd-compressed for clients
-/// that take it) with the caching headers [`validate`] gives.
+/// A mesh answer named by `tag`: 304 when `If-None-Match` names it, else the answer kept from an
+/// earlier request (`mesh_answers.rs`), else `make` run off the async runtime with the mesh
+/// cache and the decoded bricks, its bytes (zstd-compressed for clients that take it) with the
+/// caching headers [`validate`] gives.
 async fn answer_mesh(
     state: &AppState,
     tag: u64,
@@ -156,17 +157,18 @@ async fn answer_mesh(
         Validated::NotModified(response) => return Ok(response),
         Validated::Changed(response_headers) => response_headers,
     };
-    let (meshes, bricks, zstd) = (
-        state.meshes.clone(),
-        state.bricks.clone(),
-        accepts_zstd(headers),
-    );
+    let zstd = accepts_zstd(headers);
+    if let Some(kept) = state.mesh_answers.get(tag, zstd) {
+        return Ok(kept.respond(media_type, response_headers));
+    }
+    let (meshes, bricks) = (state.meshes.clone(), state.bricks.clone());
     let body = state
         .cpu
         .answer(0, move || {
             Ok::<_, VolumeError>(Body::new(make(&meshes, bricks)?, zstd))
         })
         .await?;
+    state.mesh_answers.put(tag, zstd, body.share());
     Ok(body.respond(media_type, response_headers))
 }
 

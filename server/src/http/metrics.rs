@@ -297,6 +297,11 @@ fn gauges(state: &AppState, registry: &mut Registry) {
         state.meshes.misses(),
     );
     counter(
+        "isovox_mesh_answers_kept_hits",
+        "Mesh tiles and strips sent as an earlier request's answer, with no CPU job",
+        state.mesh_answers.hits(),
+    );
+    counter(
         "isovox_connections_refused",
         "Connections closed on arrival: the limit was reached and none was idle",
         open.refused(),
@@ -331,11 +336,16 @@ fn gauges(state: &AppState, registry: &mut Registry) {
         "Bytes those range requests returned",
         fetched,
     );
-    let gauges: [(&str, &str, u64); 11] = [
+    let gauges: [(&str, &str, u64); 12] = [
         (
             "isovox_mesh_cache_bytes",
             "Bytes held by the mesh cache",
             state.meshes.bytes() as u64,
+        ),
+        (
+            "isovox_mesh_answers_kept_bytes",
+            "Bytes of mesh answers kept as sent",
+            state.mesh_answers.bytes() as u64,
         ),
         (
             "isovox_cpu_queue_depth",

@@ -50,6 +50,7 @@ pub mod feed;
 pub mod handlers;
 pub mod held;
 pub mod history;
+mod mesh_answers;
 pub mod meshes;
 pub mod metrics;
 pub mod oidc;
@@ -73,6 +74,7 @@ use axum::handler::Handler;
 use axum::http::StatusCode;
 use axum::routing::{get, post, put, MethodRouter};
 use axum::Router;
+use mesh_answers::MeshAnswers;
 use std::sync::Arc;
 use std::time::Duration;
 use tower_http::timeout::TimeoutLayer;
@@ -80,7 +82,7 @@ use tower_http::timeout::TimeoutLayer;
 /// How a server runs: caches, queues, connections, access control and edit limits.
 #[derive(Debug, Clone)]
 pub struct ServerConfig {
-    /// Memory for cached mesh tiles.
+    /// Memory for cached mesh tiles; a quarter as much again keeps their answers as sent.
     pub mesh_cache_bytes: usize,
     /// Memory for decoded bricks and what is made from them (lz4 blocks, the views' zstd
     /// chunks): brick bodies, the formats' views and meshing share it.
@@ -179,6 +181,10 @@ pub struct Shared {
     pub catalog: Arc<Catalog>,
     /// Tile meshes by the content of their inputs.
     pub meshes: Arc<MeshCache>,
+    /// Mesh answers (tiles and strips) as sent, by their tag and encoding: asked again (fifty
+    /// viewers start on the same tiles), they are answered where the request is read, with no
+    /// CPU job to wait for or be refused by.
+    pub(crate) mesh_answers: Arc<MeshAnswers>,
     /// Decoded bricks and the bodies made from them by content hash, for brick bodies, the
     /// formats' views and meshing.
     pub bricks: Arc<DecodedBricks>,
@@ -229,6 +235,7 @@ impl AppState {
         AppState(Arc::new(Shared {
             catalog: Arc::new(catalog),
             meshes: Arc::new(MeshCache::new(config.mesh_cache_bytes)),
+            mesh_answers: Arc::new(MeshAnswers::new(config.mesh_cache_bytes / 4)),
             bricks: Arc::new(DecodedBricks::new(config.brick_cache_bytes)),
             cpu: cpu::CpuQueue::new(
                 config.cpu_queue,

@@ -196,3 +196,71 @@ async fn bad_faces_unknown_volumes_and_tiles_are_problems() {
         assert_eq!(strip, tile, "{route}: as the tile route");
     }
 }
+
+/// A counter from the server's `/metrics`.
+async fn metric(base: &str, name: &str) -> u64 {
+    let root = &base[..base.find("/v1/").unwrap()];
+    let text = get(&format!("{root}/metrics"), None)
+        .await
+        .text()
+        .await
+        .unwrap();
+    text.lines()
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.parse().ok())
+        .unwrap_or_else(|| panic!("no {name} in the metrics"))
+}
+
+#[tokio::test]
+async fn a_mesh_answer_asked_again_is_sent_as_kept_without_a_cpu_job() {
+    let s = start().await;
+    let jobs = |base: String| async move {
+        metric(&base, "isovox_mesh_cache_hits_total").await
+            + metric(&base, "isovox_mesh_cache_misses_total").await
+    };
+    let kept =
+        |base: String| async move { metric(&base, "isovox_mesh_answers_kept_hits_total").await };
+    // The level-0 tile with the most triangles (offline), so that its answer compresses, and
+    // its face with the longest strip.
+    let grid = s.snap.layout().grid(0);
+    let iso = default_iso(VoxelType::U8);
+    let triangles = |key: BrickKey| {
+        let mut offline = TileMesh::default();
+        mesh_tile_with_moves(&s.snap, key, iso, &mut offline, &mut TileScratch::default()).unwrap();
+        offline.mesh.indices.len()
+    };
+    let key = (0..grid[2])
+        .flat_map(|z| (0..grid[1]).flat_map(move |y| (0..grid[0]).map(move |x| (x, y, z))))
+        .map(|(x, y, z)| BrickKey { level: 0, x, y, z })
+        .max_by_key(|&k| triangles(k))
+        .unwrap();
+    let face = (0..6)
+        .max_by_key(|&f| offline_strip(&s.snap, key, f).indices.len())
+        .unwrap();
+    let tile = format!("{}/{}", s.base, path(key));
+    let strip = format!("{tile}/strips/{}", FACE_NAMES[face]);
+    for url in [&tile, &strip] {
+        let (jobs0, kept0) = (jobs(s.base.clone()).await, kept(s.base.clone()).await);
+        let first = get(url, None).await;
+        assert_eq!(first.status(), 200);
+        let etag = first.headers()["etag"].clone();
+        let first = first.bytes().await.unwrap();
+        let again = get(url, None).await;
+        assert_eq!(again.status(), 200);
+        assert_eq!(again.headers()["etag"], etag);
+        assert_eq!(again.bytes().await.unwrap(), first, "{url}");
+        // One tile meshed or taken from the mesh cache, in a CPU job; the second answer kept.
+        assert_eq!(jobs(s.base.clone()).await - jobs0, 1, "{url}");
+        assert_eq!(kept(s.base.clone()).await - kept0, 1, "{url}");
+        // Compressed for a client that takes zstd: an answer of its own, the same content.
+        let zstd = reqwest::Client::new()
+            .get(url.as_str())
+            .header("Accept-Encoding", "zstd")
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(zstd.headers()["content-encoding"], "zstd", "{url}");
+        let packed = zstd.bytes().await.unwrap();
+        assert_eq!(zstd::bulk::decompress(&packed, 1 << 24).unwrap(), first);
+        assert_eq!(jobs(s.base.clone()).await - jobs0, 2, "{url}");
+    }
+}

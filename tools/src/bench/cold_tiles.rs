@@ -291,7 +291,11 @@ fn run_once(
                 .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.parse().ok())
                 .unwrap_or(0.0)
         };
-        anyhow::Ok(sample("isovox_mesh_cache_bytes") + sample("isovox_brick_cache_bytes"))
+        anyhow::Ok(
+            sample("isovox_mesh_cache_bytes")
+                + sample("isovox_mesh_answers_kept_bytes")
+                + sample("isovox_brick_cache_bytes"),
+        )
     })?;
     let peak_kib = proc_status(pid, "VmHWM").context("cannot read the server's memory")?;
     let end_kib = proc_status(pid, "VmRSS").context("cannot read the server's memory")?;
