@@ -1039,28 +1039,45 @@ async fn metrics_count_requests_and_mesh_cache() {
     assert!(body.contains("# TYPE isovox_requests_total counter"));
     assert_eq!(sample(&body, "isovox_volumes"), Some(1.0));
 
-    // Mesh cache: a miss, then a hit for the same tile.
+    // Mesh cache: a miss, then a hit for the same tile in another encoding (an answer of its
+    // own, from the cached mesh), then the first answer again, sent as kept (no mesh cache
+    // lookup at all).
     let tile = s.url("/v1/volumes/terrain/meshes/0/2/1/2");
     let r = c.get(&tile).send().await.unwrap();
     assert_eq!(r.status().as_u16(), 200);
-    r.bytes().await.unwrap();
+    let first = r.bytes().await.unwrap();
     let body = metrics(&c, &s).await;
     let misses = sample(&body, "isovox_mesh_cache_misses_total").unwrap();
     let hits = sample(&body, "isovox_mesh_cache_hits_total").unwrap();
+    let kept = sample(&body, "isovox_mesh_answers_kept_hits_total").unwrap();
     assert!(misses >= 1.0, "misses {misses}");
-    let r = c.get(&tile).send().await.unwrap();
+    let r = c.get(format!("{tile}?format=glb")).send().await.unwrap();
     assert_eq!(r.status().as_u16(), 200);
     r.bytes().await.unwrap();
     let body = metrics(&c, &s).await;
-    assert!(sample(&body, "isovox_mesh_cache_hits_total").unwrap() >= hits + 1.0);
+    let hits_after = sample(&body, "isovox_mesh_cache_hits_total").unwrap();
+    assert!(hits_after >= hits + 1.0);
     assert_eq!(
         sample(&body, "isovox_mesh_cache_misses_total").unwrap(),
         misses,
         "the repeat was not meshed again"
     );
     assert!(sample(&body, "isovox_mesh_cache_bytes").unwrap() > 0.0);
+    let r = c.get(&tile).send().await.unwrap();
+    assert_eq!(r.status().as_u16(), 200);
+    assert_eq!(r.bytes().await.unwrap(), first);
+    let body = metrics(&c, &s).await;
+    assert_eq!(
+        sample(&body, "isovox_mesh_answers_kept_hits_total").unwrap(),
+        kept + 1.0
+    );
+    assert_eq!(
+        sample(&body, "isovox_mesh_cache_hits_total").unwrap(),
+        hits_after
+    );
+    assert!(sample(&body, "isovox_mesh_answers_kept_bytes").unwrap() > 0.0);
     let meshes = format!("isovox_requests_total{{route=\"{MESH_ROUTE}\",status=\"200\"}}");
-    assert_eq!(sample(&body, &meshes), Some(2.0));
+    assert_eq!(sample(&body, &meshes), Some(3.0));
 }
 
 /// `isovox_response_bytes_total` ("response body bytes sent (known lengths)") grows by the bodies
