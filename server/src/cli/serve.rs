@@ -9,7 +9,9 @@ use isovox_server::http::connections::{default_max_connections, raise_fd_limit, 
 use isovox_server::http::cpu;
 use isovox_server::http::oidc::{KeySource, Oidc, OidcConfig, DEFAULT_ROLES_CLAIM};
 use isovox_server::http::{run, run_tls, shutdown_signal, AppState, ServerConfig};
-use isovox_server::store::remote::{Bucket, CacheConfig};
+use isovox_server::store::remote::{
+    Bucket, CacheConfig, DEFAULT_PREFETCH_INDEX, DEFAULT_READ_AHEAD,
+};
 use isovox_server::store::BuildOptions;
 use std::path::{Path, PathBuf};
 
@@ -127,12 +129,12 @@ pub(crate) struct ServeArgs {
     pub cache_mb: u64,
     /// The smallest read from the store, in KiB: a cold read fetches the aligned blocks of this
     /// size it lies in (4 fetches single pages).
-    #[arg(long, env = "ISOVOX_READ_AHEAD_KB", default_value_t = 64,
+    #[arg(long, env = "ISOVOX_READ_AHEAD_KB", default_value_t = DEFAULT_READ_AHEAD >> 10,
           value_parser = clap::value_parser!(u64).range(4..=65536))]
     pub read_ahead_kb: u64,
     /// When a replica opens a volume, it fetches the volume's index (what level grids read) in
     /// the background if the index is at most this many MiB; 0 turns that off.
-    #[arg(long, env = "ISOVOX_PREFETCH_INDEX_MB", default_value_t = 64)]
+    #[arg(long, env = "ISOVOX_PREFETCH_INDEX_MB", default_value_t = DEFAULT_PREFETCH_INDEX >> 20)]
     pub prefetch_index_mb: u64,
     /// On Ctrl-C or SIGTERM, seconds to let requests in flight finish before closing their
     /// connections (change feeds end at once).

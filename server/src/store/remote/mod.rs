@@ -194,15 +194,15 @@ pub fn read_head(bucket: &Bucket) -> Result<(Head, String), StoreError> {
 fn prefetch_index(name: &str, head: Arc<Snapshot>, limit: u64) {
     const STEP: u64 = 8 << 20;
     let name = name.to_string();
-    let fetch = move || -> Result<u64, StoreError> {
+    let fetch = move || -> Result<(), StoreError> {
         let (start, len) = head.checkpoint_span()?;
         if len > limit {
-            return Ok(0);
+            return Ok(());
         }
         for at in (start..start + len).step_by(STEP as usize) {
             head.prefetch(at, STEP.min(start + len - at))?;
         }
-        Ok(len)
+        Ok(())
     };
     let spawned = std::thread::Builder::new()
         .name("isovox-prefetch".into())
