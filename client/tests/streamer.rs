@@ -1528,6 +1528,77 @@ async fn missing_tiles_come_nearest_first_within_the_concurrency_bound() {
     streamer.shutdown().await;
 }
 
+/// A streamer plans only the nearest few hundred waiting tiles at a time (so that many
+/// streamers in one process spend their time on answers, not on planning thousands of tiles).
+/// With four times as many tiles waiting, of bricks or of meshes, every one still arrives (the
+/// window moves on as tiles arrive, also bricks, whose blobs complete tiles without a replan),
+/// each grid region and each mesh tile is asked for once (a plan kept while its tile was beyond
+/// the window would ask again), and the nearer half of the tiles comes first.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn thousands_of_waiting_tiles_each_arrive_once_nearest_first() {
+    // Every tile within the first radius, all at level 0: bricks of a 32x8x32 grid (8,192
+    // tiles, over a thousand of them with a brick of their own, in 4x1x4 regions of 8x8x8),
+    // mesh tiles of a 16x8x16 grid (2,048 tiles, each asked for, in 2x1x2 regions).
+    let radii = vec![1000.0];
+    let camera = [20.5, 40.5, 30.5];
+    let cases = [
+        (TileKind::Bricks, [256, 64, 256], 8192, 16),
+        (TileKind::Meshes { iso: None }, [128, 64, 128], 2048, 4),
+    ];
+    for (kind, dims, tiles, regions) in cases {
+        let w = world(dims, 8, [1.0; 3]);
+        let server = TestServer::start(w.dir.path(), None);
+        let (client, counter) = counted_client(&server.base);
+        let config = StreamerConfig {
+            kind,
+            radii: radii.clone(),
+            follow_edits: false,
+            descent: false,
+            ..StreamerConfig::default()
+        };
+        let (streamer, mut rx) = Streamer::start(client, NAME, config).await.unwrap();
+        let info = streamer.info().clone();
+        let all = select_tiles(&info, camera, &radii);
+        assert_eq!(all.len(), tiles);
+        assert!(all.iter().all(|k| k.level == 0));
+        streamer.set_camera(camera);
+        let events = settle(&streamer, &mut rx, 1).await;
+        let ready = ready_keys(&events);
+        let delivered = once(&ready, "ready");
+        assert_eq!(delivered, all.iter().copied().collect::<BTreeSet<_>>());
+        let snapshot = counter.snapshot();
+        let count = |route| snapshot.get(route).copied().unwrap_or(0);
+        assert_eq!(count("level"), regions, "{kind:?}: grid regions");
+        let distinct: HashSet<u64> = events
+            .iter()
+            .filter_map(|e| match e {
+                StreamEvent::Ready { hash, .. } => Some(*hash),
+                _ => None,
+            })
+            .collect();
+        match kind {
+            TileKind::Bricks => {
+                assert!(distinct.len() > 1000, "{} distinct bricks", distinct.len());
+                assert_eq!(count("blob") as usize, distinct.len(), "each blob once");
+            }
+            TileKind::Meshes { .. } => {
+                assert!(count("mesh") <= 2048, "{} mesh requests", count("mesh"));
+                assert_eq!(count("strip"), 0, "one level: no strips");
+            }
+        }
+        let d = |k: BrickKey| box_distance(&info, 0, [k.x, k.y, k.z], camera);
+        let half = ready.len() / 2;
+        let mean = |s: &[BrickKey]| s.iter().map(|&k| d(k)).sum::<f64>() / s.len() as f64;
+        assert!(
+            mean(&ready[..half]) < mean(&ready[half..]),
+            "{kind:?}: nearer first: {} vs {}",
+            mean(&ready[..half]),
+            mean(&ready[half..])
+        );
+        streamer.shutdown().await;
+    }
+}
+
 // ---------------------------------------------------------------------------------------------
 // 8. Cancelling requests the camera no longer needs
 // ---------------------------------------------------------------------------------------------

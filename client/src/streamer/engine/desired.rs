@@ -66,15 +66,6 @@ impl Desired {
         self.tiles.get(&key).is_some_and(|t| t.ready.is_none())
     }
 
-    /// The desired tiles without current content.
-    pub(super) fn without_content(&self) -> Vec<BrickKey> {
-        self.tiles
-            .iter()
-            .filter(|(_, t)| t.ready.is_none())
-            .map(|(k, _)| *k)
-            .collect()
-    }
-
     /// The desired tiles, in key order.
     pub(super) fn sorted_keys(&self) -> Vec<BrickKey> {
         let mut keys: Vec<BrickKey> = self.tiles.keys().copied().collect();

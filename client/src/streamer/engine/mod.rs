@@ -63,6 +63,18 @@ pub(super) struct Engine {
     plans: FastMap<BrickKey, KeptPlan>,
     /// When the last replan ended.
     last_replan: Instant,
+    /// The newest camera, and whether it is newer than the one selected for.
+    camera_next: CameraMsg,
+    camera_waiting: bool,
+    /// When the last selection was made (see `Engine::run`).
+    last_select: Instant,
+    /// Replans so far (see [`KeptPlan::checked`]).
+    replans: u64,
+    /// The desired tiles nearest first, with their distances: the order tiles are planned in,
+    /// kept from one replan to the next until the camera moves (empty: to be sorted again).
+    nearest: Vec<(f32, BrickKey)>,
+    /// The last replan stopped at the window: a tile that arrives asks for the next replan.
+    planned_part: bool,
     /// The version every known hash and requested tile describes.
     version: u64,
     /// What the camera needs.
@@ -126,6 +138,14 @@ impl Engine {
             undecided: FastMap::default(),
             plans: FastMap::default(),
             last_replan: Instant::now(),
+            camera_next: CameraMsg::default(),
+            camera_waiting: false,
+            last_select: Instant::now()
+                .checked_sub(SELECT_EVERY)
+                .unwrap_or_else(Instant::now),
+            replans: 0,
+            nearest: Vec::new(),
+            planned_part: false,
             layout,
             radii,
             version: info.version,
@@ -171,8 +191,16 @@ impl Engine {
             self.fill();
             self.flush().await;
             let retry_at = self.scheduler.retry_at;
+            // Selecting the tiles for a camera (thousands of them, balanced and masked) is
+            // the streamer's largest cost once planning is bounded, and cameras move every
+            // frame: a move is taken at once when the last selection is SELECT_EVERY old,
+            // else when it is (the newest position then).
+            let select_at = self
+                .camera_waiting
+                .then_some(self.last_select + SELECT_EVERY);
             tokio::select! {
                 () = sleep_until(replan_at) => {}
+                () = sleep_until(select_at) => self.select(),
                 // A shutdown, or the Streamer dropped.
                 _ = &mut shutdown => break,
                 changed = camera_rx.changed() => {
@@ -180,9 +208,11 @@ impl Engine {
                         break;
                     }
                     let c = *camera_rx.borrow_and_update();
-                    self.desired.camera = c.position;
-                    self.desired.camera_seq = c.seq;
-                    self.update_desired();
+                    self.camera_waiting = true;
+                    self.camera_next = c;
+                    if Instant::now() >= self.last_select + SELECT_EVERY {
+                        self.select();
+                    }
                 }
                 Some(done) = self.scheduler.jobs.join_next(), if !self.scheduler.jobs.is_empty() => {
                     self.on_join(done);
@@ -206,6 +236,15 @@ impl Engine {
             f.abort();
         }
         self.scheduler.jobs.abort_all();
+    }
+
+    /// Takes the newest camera: selects its tiles.
+    fn select(&mut self) {
+        self.camera_waiting = false;
+        self.last_select = Instant::now();
+        self.desired.camera = self.camera_next.position;
+        self.desired.camera_seq = self.camera_next.seq;
+        self.update_desired();
     }
 
     fn distance(&self, key: BrickKey) -> f32 {
@@ -240,6 +279,7 @@ impl Engine {
         self.edited.retain(|k| desired.contains(*k));
         self.undecided.retain(|k, _| desired.contains(*k));
         self.plans.retain(|k, _| desired.contains(*k));
+        self.nearest.clear();
         self.scheduler.replan_needed = true;
     }
 
@@ -251,20 +291,29 @@ impl Engine {
         }
     }
 
-    /// Works out what every desired tile without current content needs, makes cached ones
-    /// ready, aborts requests nobody needs, and queues the rest nearest first.
+    /// Works out what the nearest desired tiles without current content need, makes cached
+    /// ones ready, aborts requests nobody needs, and queues the rest nearest first.
+    ///
+    /// A replan runs after answers and camera moves, and a viewer of a large volume has
+    /// thousands of tiles waiting (7,000 on a 2048^3 world): planning all of them each time
+    /// kept 50 streamers of one process busy planning instead of reading answers. Only
+    /// requests near the front of the queue can start before the next replan, so tiles are
+    /// planned nearest first until [`PLAN_AHEAD`] of them wait for something; tiles that turn
+    /// out complete (cached, or skipped by the descent) do not count, so the window moves on
+    /// as tiles arrive.
     ///
     /// Planning a tile (its content key from up to 27 bricks' hashes, its strips', the
-    /// descent's bounds) costs microseconds, and a replan runs after every answer and camera
-    /// move over thousands of waiting tiles. So a waiting mesh tile's plan is kept and only
-    /// its distance taken anew while it still holds: no request it needs has ended, none of
-    /// the content it waits for has come, and its face mask is the same (commits clear them).
-    /// Tiles a commit made stale are planned afresh each time (their grid regions are counted
-    /// as caused by the edit). A brick's plan is one hash lookup, cheaper than keeping it
-    /// (with plans kept, viewers of bricks got their first tile later).
+    /// descent's bounds) costs microseconds, so a waiting mesh tile's plan is also kept and
+    /// only its distance taken anew while it still holds: it was checked in the last replan,
+    /// no request it needs has ended since, none of the content it waits for has come, and its
+    /// face mask is the same (commits clear them). Tiles a commit made stale are planned afresh
+    /// each time (their grid regions are counted as caused by the edit). A brick's plan is one
+    /// hash lookup, cheaper than keeping it (with plans kept, viewers of bricks got their first
+    /// tile later).
     fn replan(&mut self) {
         self.scheduler.replan_needed = false;
         self.scheduler.clear_plan();
+        self.replans += 1;
         let ended = self.scheduler.take_ended();
         let mut needed: FastMap<JobKey, f32> = FastMap::default();
         let mut from_cache = Vec::new();
@@ -274,16 +323,37 @@ impl Engine {
         let keep_plans = matches!(self.kind, TileKind::Meshes { .. });
         // One plan's buffers for the tiles whose plan is not kept.
         let mut plan = TilePlan::default();
-        for key in self.desired.without_content() {
-            let d = self.distance(key);
+        if self.nearest.is_empty() {
+            let tiles = self.desired.sorted_keys();
+            self.nearest = tiles.into_iter().map(|k| (self.distance(k), k)).collect();
+            self.nearest
+                .sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        }
+        let nearest = std::mem::take(&mut self.nearest);
+        let mut waiting_tiles = 0;
+        let mut partial = false;
+        for &(d, key) in &nearest {
+            if !self.desired.needs(key) {
+                continue;
+            }
+            if waiting_tiles == PLAN_AHEAD {
+                partial = true;
+                break;
+            }
             let edited = self.edited.contains(&key);
             let mask = self.desired.mask(key);
-            if let Some(kept) = self.plans.get(&key) {
-                if !edited && kept.mask == mask && kept.plan.holds(&ended, &self.cache) {
+            if let Some(kept) = self.plans.get_mut(&key) {
+                if !edited
+                    && kept.mask == mask
+                    && kept.checked + 1 == self.replans
+                    && kept.plan.holds(&ended, &self.cache)
+                {
+                    kept.checked = self.replans;
                     for &job in &kept.plan.jobs {
                         need(&mut needed, job, d);
                     }
                     self.scheduler.register(key, &kept.plan.waits);
+                    waiting_tiles += 1;
                     continue;
                 }
             }
@@ -301,15 +371,25 @@ impl Engine {
                 Plan::Skip => skipped.push(key),
                 Plan::Drawing(drawing) => drawings.push(drawing),
                 Plan::Cached(h) => from_cache.push((key, h)),
-                Plan::Waiting => {}
+                Plan::Waiting => waiting_tiles += 1,
             }
             if keep_plans && matches!(planned, Plan::Waiting) && !edited {
                 let plan = std::mem::take(&mut plan);
-                self.plans.insert(key, KeptPlan { mask, plan });
+                let checked = self.replans;
+                self.plans.insert(
+                    key,
+                    KeptPlan {
+                        mask,
+                        plan,
+                        checked,
+                    },
+                );
             } else {
                 self.plans.remove(&key);
             }
         }
+        self.nearest = nearest;
+        self.planned_part = partial;
         for key in skipped {
             self.stats.skipped += 1;
             self.edited.remove(&key);
@@ -328,7 +408,18 @@ impl Engine {
             self.draw(key, content, strips);
         }
         for job in self.scheduler.unneeded(&needed) {
-            self.abort(job, true);
+            // Tiles beyond the window may need a running grid region or brick, and a tile's
+            // own requests while it is desired: left to finish (their answers are cached).
+            let beyond_window = partial
+                && match job {
+                    JobKey::Mesh(k) | JobKey::Strip(k, _) | JobKey::Brick(k) => {
+                        self.desired.needs(k)
+                    }
+                    JobKey::Region { .. } | JobKey::Blob(_) => true,
+                };
+            if !beyond_window {
+                self.abort(job, true);
+            }
         }
         self.scheduler.queue_needed(needed);
     }
@@ -595,6 +686,10 @@ impl Engine {
         self.edited.remove(&key);
         if first_shown {
             lock(&self.shared).resident.insert(key);
+        }
+        // A tile of a window that left tiles unplanned arrived: the window moves on.
+        if self.planned_part {
+            self.scheduler.replan_needed = true;
         }
         self.outbox.push(StreamEvent::Ready {
             key,
@@ -1010,6 +1105,9 @@ fn neighbours(b: BrickKey, g: [u32; 3]) -> impl Iterator<Item = BrickKey> {
 struct KeptPlan {
     mask: u8,
     plan: TilePlan,
+    /// The replan that last found it holding: a plan not checked in the replan before may
+    /// have missed requests that ended meanwhile (its tile was beyond the window).
+    checked: u64,
 }
 
 /// What planning a tile found.
@@ -1038,6 +1136,15 @@ async fn sleep_until(at: Option<Instant>) {
         None => std::future::pending().await,
     }
 }
+
+/// The waiting tiles a replan plans, nearest first (see [`Engine::replan`]): far more
+/// requests than a streamer keeps in flight between two replans.
+const PLAN_AHEAD: usize = 512;
+
+/// The least time between two selections of tiles while the camera moves (see
+/// [`Engine::run`]): a tenth of a second's move is small against the detail radii, and
+/// answers take about as long.
+const SELECT_EVERY: std::time::Duration = std::time::Duration::from_millis(100);
 
 /// The least time between two replans while requests of the last one wait to start.
 const REPLAN_EVERY: std::time::Duration = std::time::Duration::from_millis(25);
