@@ -91,15 +91,23 @@
 //! commits in order.
 //!
 //! Each time the camera, the feed or a grid region changes what is known, the task plans again:
-//! for every desired tile not yet current it finds what is missing (a grid region, a blob, a
-//! mesh), cached content makes tiles ready at once, requests no desired tile needs any more are
-//! aborted (their results are never delivered), and the rest are queued by the distance from the
-//! camera to the nearest tile box that needs them. A failed request is reported as
-//! [`StreamEvent::Error`] and retried after a backoff (250 ms doubling to 10 s) while a tile still
-//! needs it. Planning visits every waiting tile, so while requests of the last plan wait to
-//! start it runs at most every 25 ms however many answers and camera moves come, and a waiting
-//! mesh tile's plan (content keys from up to 27 bricks' hashes) is kept until a request it needs
-//! ends, content it waits for comes, a commit comes or its face mask changes.
+//! for the desired tiles not yet current, nearest first, it finds what is missing (a grid
+//! region, a blob, a mesh), cached content makes tiles ready at once, requests no planned tile
+//! needs any more are aborted (their results are never delivered), and the rest are queued by
+//! the distance from the camera to the nearest tile box that needs them. A failed request is
+//! reported as [`StreamEvent::Error`] and retried after a backoff (250 ms doubling to 10 s)
+//! while a tile still needs it.
+//!
+//! Planning is bounded, because a viewer of a large volume has thousands of tiles waiting and
+//! one load tester runs fifty streamers: a plan stops once 512 tiles wait for something (tiles
+//! found complete do not count, and each tile that arrives moves the window on), since only
+//! requests near the front of the queue start before the next plan; requests of tiles beyond
+//! the window that are running are left to finish. The tiles' order by distance is kept until
+//! the camera moves; the camera's tiles are selected again at most every 100 ms while it moves
+//! (the newest position then); while requests of the last plan wait to start, planning runs at
+//! most every 25 ms however many answers come; and a waiting mesh tile's plan (content keys
+//! from up to 27 bricks' hashes) is kept until a request it needs ends, content it waits for
+//! comes, a commit comes or its face mask changes.
 //!
 //! # Requests in flight
 //!
