@@ -151,6 +151,18 @@ impl Counter {
     }
 }
 
+/// A streamer of `kind` tiles within `radii` that fetches every tile of its desired set (the
+/// descent has its own tests) and follows no edits.
+fn every_tile(kind: TileKind, radii: &[f32]) -> StreamerConfig {
+    StreamerConfig {
+        kind,
+        radii: radii.to_vec(),
+        follow_edits: false,
+        descent: false,
+        ..StreamerConfig::default()
+    }
+}
+
 fn counted_client(base: &str) -> (Client, Arc<Counter>) {
     let counter = Arc::new(Counter::default());
     isovox_server::client_tls::install_provider();
@@ -1199,14 +1211,7 @@ async fn streamed_mesh_tiles_stitch_closed_wherever_the_camera_goes() {
     let server = TestServer::start(w.dir.path(), None);
     let (client, counter) = counted_client(&server.base);
     let radii = vec![10.0, 22.0, 45.0];
-    let config = StreamerConfig {
-        kind: TileKind::Meshes { iso: None },
-        radii: radii.clone(),
-        follow_edits: false,
-        // The whole desired set, every tile fetched (the descent has its own tests).
-        descent: false,
-        ..StreamerConfig::default()
-    };
+    let config = every_tile(TileKind::Meshes { iso: None }, &radii);
     let (streamer, mut rx) = Streamer::start(client, NAME, config).await.unwrap();
     let info = streamer.info().clone();
     let mut drawn = HashMap::new();
@@ -1549,13 +1554,7 @@ async fn thousands_of_waiting_tiles_each_arrive_once_nearest_first() {
         let w = world(dims, 8, [1.0; 3]);
         let server = TestServer::start(w.dir.path(), None);
         let (client, counter) = counted_client(&server.base);
-        let config = StreamerConfig {
-            kind,
-            radii: radii.clone(),
-            follow_edits: false,
-            descent: false,
-            ..StreamerConfig::default()
-        };
+        let config = every_tile(kind, &radii);
         let (streamer, mut rx) = Streamer::start(client, NAME, config).await.unwrap();
         let info = streamer.info().clone();
         let all = select_tiles(&info, camera, &radii);
