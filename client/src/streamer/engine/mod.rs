@@ -74,7 +74,7 @@ pub(super) struct Engine {
     /// kept from one replan to the next until the camera moves (empty: to be sorted again).
     nearest: Vec<(f32, BrickKey)>,
     /// The last replan stopped at the window: a tile that arrives asks for the next replan.
-    planned_part: bool,
+    plan_stopped_early: bool,
     /// The version every known hash and requested tile describes.
     version: u64,
     /// What the camera needs.
@@ -145,7 +145,7 @@ impl Engine {
                 .unwrap_or_else(Instant::now),
             replans: 0,
             nearest: Vec::new(),
-            planned_part: false,
+            plan_stopped_early: false,
             layout,
             radii,
             version: info.version,
@@ -389,7 +389,7 @@ impl Engine {
             }
         }
         self.nearest = nearest;
-        self.planned_part = partial;
+        self.plan_stopped_early = partial;
         for key in skipped {
             self.stats.skipped += 1;
             self.edited.remove(&key);
@@ -688,7 +688,7 @@ impl Engine {
             lock(&self.shared).resident.insert(key);
         }
         // A tile of a window that left tiles unplanned arrived: the window moves on.
-        if self.planned_part {
+        if self.plan_stopped_early {
             self.scheduler.replan_needed = true;
         }
         self.outbox.push(StreamEvent::Ready {
