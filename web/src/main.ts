@@ -66,11 +66,15 @@ new PerformanceObserver((list) => {
 // --- the volume --------------------------------------------------------------------------
 
 /**
- * Requests a browser runs at once per host: about six over HTTP/1.1, of which the change feed
- * holds one and edits and the slice view need one; many more share one HTTP/2 connection.
+ * Requests the streamer keeps in flight. Over HTTP/1.1 a browser opens six connections per
+ * host and the change feed holds one: five carry tiles and the sixth request waits in the
+ * browser's queue, which starts it the moment a connection frees instead of when the page's
+ * main thread next runs (with software rendering it may be drawing a frame for hundreds of
+ * milliseconds). An edit or a slice then waits behind that one request. Many more share one
+ * HTTP/2 connection.
  */
 function inFlightBudget(): number {
-  return protocol === "h2" || protocol === "h3" ? 16 : 4;
+  return protocol === "h2" || protocol === "h3" ? 16 : 6;
 }
 
 function radii(v: VolumeInfo): number[] {
@@ -156,6 +160,9 @@ async function openVolume(name: string, state: UrlState | null): Promise<void> {
 }
 
 let changePending = false;
+/** Whether the view was complete (every tile, every tile in view) at the last change. */
+let wasComplete = false;
+let wasCompleteInView = false;
 
 /** The streamer changed what it shows or knows: update the rest once per frame. */
 function changed(): void {
@@ -201,11 +208,13 @@ function afterChange(): void {
       });
     }
   }
-  // The last tiles may have come out of the view frustum, which draws no frame: one marks it.
+  // The frame that completes the view (every tile in it, or every tile) is drawn at once, not
+  // after the last frame's pause; when the last tiles were out of the view frustum, which draws
+  // no frame by itself, it marks the view complete.
   const st = s.stats();
-  if ((completeMs === null && st.complete) || (completeInViewMs === null && st.completeInView)) {
-    viewport.requestRender();
-  }
+  if ((st.complete && !wasComplete) || (st.completeInView && !wasCompleteInView)) viewport.requestRender(true);
+  wasComplete = st.complete;
+  wasCompleteInView = st.completeInView;
   // No frame otherwise: the view draws a frame when a tile comes or goes (and swiftshader takes
   // about 100 ms for one of the default view, time the requests after it would wait for).
   updateOverlay();

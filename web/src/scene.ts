@@ -116,6 +116,13 @@ void main() {
 /** The sky behind the volume (also what the browser tests tell from the surface). */
 export const SKY = 0x9cc4e4;
 
+/**
+ * A frame drawn while tiles stream in is followed by a pause of this many times its cost
+ * (`requestRender`). With software rendering the close view's frames cost 250-500 ms each; at
+ * 4 the close view completed 15-25% sooner than at 2 (docs/benchmarks.md, "The web viewer").
+ */
+const FRAME_PAUSE = 4;
+
 interface TileView {
   mesh: THREE.Mesh;
   data: TileMesh;
@@ -144,6 +151,8 @@ export class Viewport implements TileSink {
   private frameTimer: ReturnType<typeof setTimeout> | null = null;
   /** A frame was asked for and when to draw it is decided at the end of the task. */
   private deciding = false;
+  /** The frame being decided is drawn at once, pause or not (`requestRender(true)`). */
+  private frameNow = false;
   /** When the next frame may be drawn (performance.now()), after the last one's pause. */
   private nextFrameAt = 0;
   /**
@@ -397,13 +406,15 @@ export class Viewport implements TileSink {
 
   /**
    * Draws a frame soon. A frame that takes long (software rendering: about 100 ms for the
-   * default view, several hundred close to the ground) is followed by a pause of twice its
-   * length while requests are in flight (`busy`), so that drawing takes at most a third of the
+   * default view, several hundred close to the ground, during which the page's main thread
+   * waits for the canvas to be read back) is followed by a pause of `FRAME_PAUSE` times its
+   * length while requests are in flight (`busy`), so that drawing takes at most a fifth of the
    * main thread while tiles stream in and their responses are not kept waiting. With nothing in
-   * flight (the last tile of an edit arrived and its region swapped, or a quiet moment) the
-   * frame is drawn at once: no response is waiting for the main thread.
+   * flight (the last tile of an edit arrived and its region swapped, or a quiet moment), or
+   * when `now` (the frame that completes the view) the frame is drawn at once.
    */
-  requestRender(): void {
+  requestRender(now = false): void {
+    if (now) this.frameNow = true;
     // Drawn at the next animation frame already, or decided below.
     if ((this.frameRequested && this.frameTimer === null) || this.deciding) return;
     this.deciding = true;
@@ -411,7 +422,8 @@ export class Viewport implements TileSink {
     // its next requests.
     queueMicrotask(() => {
       this.deciding = false;
-      const wait = this.busy() ? this.nextFrameAt - performance.now() : 0;
+      const wait = this.busy() && !this.frameNow ? this.nextFrameAt - performance.now() : 0;
+      this.frameNow = false;
       if (this.frameRequested) {
         // A frame put off for the pause is drawn now when no response waits any more.
         if (this.frameTimer === null || wait > 1) return;
@@ -435,7 +447,7 @@ export class Viewport implements TileSink {
       // with SwiftShader the rasterizing): it ends when the next task runs.
       setTimeout(() => {
         const end = performance.now();
-        this.nextFrameAt = end + 2 * (end - start);
+        this.nextFrameAt = end + FRAME_PAUSE * (end - start);
       }, 0);
     });
   }

@@ -20,9 +20,8 @@
 // Order. Requests go coarse first, then nearest first: every tile of the selection's coarsest
 // level that covers a selected tile is fetched first (a stand-in for the finer tiles under it
 // until they are all there), then the selection by level, coarse to fine, and within a level by
-// distance from the camera. At most `maxInFlight` requests run at once (a browser opens about six
-// HTTP/1.1 connections per host and the change feed holds one), and a request no tile needs any
-// more (the camera moved on) is aborted.
+// distance from the camera. At most `maxInFlight` requests run at once (`inFlightBudget` in
+// main.ts), and a request no tile needs any more (the camera moved on) is aborted.
 //
 // Edits. `applyCommit` takes the changed bricks' new hashes from the event (`bricks`; when it
 // does not list them, it forgets them and the chunks holding them are fetched at the new
