@@ -10,11 +10,147 @@
 
 use crate::{BrickKey, VolumeLayout};
 
-/// The tile sets of a selection: foldhash, not the standard library's SipHash. A streamer
-/// selects thousands of tiles as its camera moves, and SipHash's rounds and the set's probes
-/// were the hottest instructions of a selection in a profile of fifty streamers; the keys come
-/// from the layout, so resistance to chosen keys buys nothing.
+/// The tile sets of a selection too large for [`Members`]' bits: foldhash, not the standard
+/// library's SipHash (the keys come from the layout, so resistance to chosen keys buys
+/// nothing).
 type TileSet = std::collections::HashSet<BrickKey, foldhash::fast::RandomState>;
+
+/// Pyramids of at most this many bricks keep a selection's members as one bit per brick (2 MiB
+/// at most; a 2048^3 volume in bricks of 16 has 2.4 M bricks, 300 KB); larger ones in a hash
+/// set.
+const MEMBER_BITS_MAX: u64 = 1 << 24;
+
+/// The tiles of a selection, for the membership tests of [`balance`] and [`face_masks`]: tens
+/// per tile (each of its 26 neighbours, and their ancestors up to the tile that covers them),
+/// so they are a bit test where the pyramid allows, with each level's grid computed once. A
+/// streamer selects thousands of tiles on every camera move, and with a hash set these tests
+/// were most of a selection's time (`cargo bench -p isovox-tools -- selection`).
+struct Members {
+    grids: Vec<[u32; 3]>,
+    index: MemberIndex,
+}
+
+enum MemberIndex {
+    /// Bit `base[level] + x + gx (y + gy z)`, as [`VolumeLayout::node_index`] numbers bricks.
+    Bits {
+        base: Vec<u64>,
+        bits: Vec<u64>,
+    },
+    Set(TileSet),
+}
+
+impl Members {
+    /// `tiles` as members, as bits when `bits` (and the pyramid has at most
+    /// [`MEMBER_BITS_MAX`] bricks), else in a hash set.
+    fn new(layout: &VolumeLayout, tiles: &[BrickKey], bits: bool) -> Members {
+        let grids: Vec<[u32; 3]> = (0..layout.levels()).map(|l| layout.grid(l)).collect();
+        let index = if bits && layout.node_count() <= MEMBER_BITS_MAX {
+            let base = (0..layout.levels())
+                .map(|l| layout.level_range(l).0)
+                .collect();
+            let words = layout.node_count().div_ceil(64) as usize;
+            MemberIndex::Bits {
+                base,
+                bits: vec![0; words],
+            }
+        } else {
+            MemberIndex::Set(TileSet::default())
+        };
+        let mut members = Members { grids, index };
+        for &k in tiles {
+            members.insert(k);
+        }
+        members
+    }
+
+    /// The word and bit of `key`; `None` outside the layout (never a member).
+    fn bit(grids: &[[u32; 3]], base: &[u64], key: BrickKey) -> Option<(usize, u64)> {
+        let g = grids.get(usize::from(key.level))?;
+        if key.x >= g[0] || key.y >= g[1] || key.z >= g[2] {
+            return None;
+        }
+        let i = base[usize::from(key.level)]
+            + u64::from(key.x)
+            + u64::from(g[0]) * (u64::from(key.y) + u64::from(g[1]) * u64::from(key.z));
+        Some(((i / 64) as usize, 1 << (i % 64)))
+    }
+
+    fn contains(&self, key: BrickKey) -> bool {
+        match &self.index {
+            MemberIndex::Bits { base, bits } => {
+                Members::bit(&self.grids, base, key).is_some_and(|(w, b)| bits[w] & b != 0)
+            }
+            MemberIndex::Set(set) => set.contains(&key),
+        }
+    }
+
+    fn insert(&mut self, key: BrickKey) {
+        match &mut self.index {
+            MemberIndex::Bits { base, bits } => {
+                if let Some((w, b)) = Members::bit(&self.grids, base, key) {
+                    bits[w] |= b;
+                }
+            }
+            MemberIndex::Set(set) => {
+                set.insert(key);
+            }
+        }
+    }
+
+    fn remove(&mut self, key: BrickKey) {
+        match &mut self.index {
+            MemberIndex::Bits { base, bits } => {
+                if let Some((w, b)) = Members::bit(&self.grids, base, key) {
+                    bits[w] &= !b;
+                }
+            }
+            MemberIndex::Set(set) => {
+                set.remove(&key);
+            }
+        }
+    }
+
+    /// [`VolumeLayout::neighbour`], with the grids computed once.
+    fn neighbour(&self, key: BrickKey, d: [i32; 3]) -> Option<BrickKey> {
+        let g = self.grids[key.level as usize];
+        let step = |c: u32, d: i32, n: u32| c.checked_add_signed(d).filter(|&c| c < n);
+        Some(BrickKey {
+            level: key.level,
+            x: step(key.x, d[0], g[0])?,
+            y: step(key.y, d[1], g[1])?,
+            z: step(key.z, d[2], g[2])?,
+        })
+    }
+
+    /// The member whose region contains tile `key`'s: `key` itself or an ancestor; `None`
+    /// when that region is divided into finer members.
+    fn covering(&self, key: BrickKey) -> Option<BrickKey> {
+        let mut k = key;
+        loop {
+            if self.contains(k) {
+                return Some(k);
+            }
+            if usize::from(k.level) + 1 >= self.grids.len() {
+                return None;
+            }
+            k = BrickKey {
+                level: k.level + 1,
+                x: k.x / 2,
+                y: k.y / 2,
+                z: k.z / 2,
+            };
+        }
+    }
+}
+
+/// Sorts tiles in [`BrickKey`]'s order (level, x, y, z), compared as one integer: a camera
+/// move re-selects thousands of tiles, and comparing four fields was most of a streamer's
+/// selection time.
+fn sort_tiles(tiles: &mut [BrickKey]) {
+    tiles.sort_unstable_by_key(|k| {
+        u128::from(k.level) << 96 | u128::from(k.x) << 64 | u128::from(k.y) << 32 | u128::from(k.z)
+    });
+}
 
 /// The face directions in face-mask order: -x, +x, -y, +y, -z, +z.
 pub const FACE_DIRECTIONS: [[i32; 3]; 6] = [
@@ -103,24 +239,8 @@ pub fn adaptive_tiles(
             out.push(k);
         }
     }
-    // BrickKey's order (level, x, y, z) as one integer: a camera move re-selects thousands of
-    // tiles, and comparing four fields was most of a streamer's selection time.
-    out.sort_unstable_by_key(|k| {
-        u128::from(k.level) << 96 | u128::from(k.x) << 64 | u128::from(k.y) << 32 | u128::from(k.z)
-    });
+    sort_tiles(&mut out);
     out
-}
-
-/// The tile of `tiles` whose region contains tile `key`'s: `key` itself or an ancestor; `None`
-/// when that region is divided into finer tiles.
-fn covering(layout: &VolumeLayout, tiles: &TileSet, key: BrickKey) -> Option<BrickKey> {
-    let mut k = key;
-    loop {
-        if tiles.contains(&k) {
-            return Some(k);
-        }
-        k = layout.parent(k)?;
-    }
 }
 
 /// Refines `tiles` (a set covering the volume once) until no two tiles that touch, across a
@@ -132,37 +252,46 @@ fn covering(layout: &VolumeLayout, tiles: &TileSet, key: BrickKey) -> Option<Bri
 /// to close: a tile's transition strips end on its edges, where they meet the strips of the
 /// tiles around that edge, all of them one level finer than the coarse tile they border.
 pub fn balance(layout: &VolumeLayout, tiles: Vec<BrickKey>) -> Vec<BrickKey> {
-    let mut set: TileSet = tiles.iter().copied().collect();
+    balance_with(layout, tiles, true)
+}
+
+/// [`balance`], its members as bits when `bits` allows (the tests compare both ways).
+fn balance_with(layout: &VolumeLayout, tiles: Vec<BrickKey>, bits: bool) -> Vec<BrickKey> {
+    let mut members = Members::new(layout, &tiles, bits);
+    // Every tile that was a member at some point; those split are left out at the end.
+    let mut seen = tiles.clone();
     let mut work = tiles;
     let around: Vec<[i32; 3]> = (0..27)
         .map(|i| [i % 3 - 1, i / 3 % 3 - 1, i / 9 - 1])
         .filter(|d| *d != [0, 0, 0])
         .collect();
     while let Some(fine) = work.pop() {
-        if !set.contains(&fine) {
+        if !members.contains(fine) {
             continue;
         }
         for &d in &around {
-            let Some(n) = layout.neighbour(fine, d) else {
+            let Some(n) = members.neighbour(fine, d) else {
                 continue;
             };
-            let Some(coarse) = covering(layout, &set, n) else {
+            let Some(coarse) = members.covering(n) else {
                 continue;
             };
             if coarse.level >= fine.level + 2 {
-                set.remove(&coarse);
+                members.remove(coarse);
                 for (_, child) in layout.children(coarse) {
-                    set.insert(child);
+                    members.insert(child);
                     work.push(child);
+                    seen.push(child);
                 }
                 work.push(fine); // its neighbour across d may still be too coarse
                 break;
             }
         }
     }
-    let mut out: Vec<BrickKey> = set.into_iter().collect();
-    out.sort();
-    out
+    seen.retain(|&k| members.contains(k));
+    sort_tiles(&mut seen);
+    seen.dedup();
+    seen
 }
 
 /// For each tile of `tiles` (a balanced selection covering the volume once, as
@@ -171,15 +300,20 @@ pub fn balance(layout: &VolumeLayout, tiles: Vec<BrickKey>) -> Vec<BrickKey> {
 /// the strip's way. Faces on the volume's boundary, or touching tiles of the same or a finer
 /// level, have no bit.
 pub fn face_masks(layout: &VolumeLayout, tiles: &[BrickKey]) -> Vec<u8> {
-    let set: TileSet = tiles.iter().copied().collect();
+    face_masks_with(layout, tiles, true)
+}
+
+/// [`face_masks`], the members as bits when `bits` allows (the tests compare both ways).
+fn face_masks_with(layout: &VolumeLayout, tiles: &[BrickKey], bits: bool) -> Vec<u8> {
+    let members = Members::new(layout, tiles, bits);
     tiles
         .iter()
         .map(|&tile| {
             let mut mask = 0u8;
             for (f, d) in FACE_DIRECTIONS.into_iter().enumerate() {
-                let coarser = layout
+                let coarser = members
                     .neighbour(tile, d)
-                    .and_then(|n| covering(layout, &set, n))
+                    .and_then(|n| members.covering(n))
                     .is_some_and(|c| c.level > tile.level);
                 mask |= u8::from(coarser) << f;
             }
@@ -287,6 +421,8 @@ mod tests {
                 let radii = [r0, r0 * (1.0 + next() * 1.5), r0 * (2.5 + next() * 2.0)];
                 let before = adaptive_tiles(&layout, [1.0; 3], camera, &radii);
                 let tiles = balanced_tiles(&layout, [1.0; 3], camera, &radii);
+                // The hash set that pyramids too large for bits use gives the same tiles.
+                assert_eq!(balance_with(&layout, before.clone(), false), tiles);
                 let (level, owners) = raster(&layout, &tiles);
                 assert!(
                     owners.iter().all(|&n| n == 1),
@@ -323,6 +459,7 @@ mod tests {
                 // face f belong to tiles one level coarser (all of them: a face touches one
                 // coarser tile, or same-level or finer ones).
                 let masks = face_masks(&layout, &tiles);
+                assert_eq!(face_masks_with(&layout, &tiles, false), masks);
                 for (t, &mask) in tiles.iter().zip(&masks) {
                     let span = 1i64 << t.level;
                     let lo = [t.x, t.y, t.z].map(|c| c as i64 * span);

@@ -1,7 +1,8 @@
 //! Micro-benchmarks of the kernels a regression would hide in (criterion; `cargo bench -p
 //! isovox-tools`): marching cubes on one tile (with and without its transition data), term
 //! evaluation on one brick, brick decoding (zstd, lz4), the check of a stored payload before it
-//! is sent as it is, and index lookups. The data is a generated terrain, built once per run.
+//! is sent as it is, index lookups, and a streamer's selection of stitched tiles for a camera.
+//! The data is a generated terrain, built once per run.
 
 #![allow(clippy::unwrap_used)] // a benchmark that cannot set up should stop loudly
 
@@ -173,6 +174,27 @@ fn kernels(c: &mut Criterion) {
             }
         })
     });
+    group.finish();
+
+    // A streamer of mesh tiles selects its tiles (balanced, with face masks) for each camera
+    // move: isovox-load's viewers over a 2048^3 world in bricks of 16, at a point of their
+    // orbit (0.35 of the width from the centre, 0.95 of the height), with its radii.
+    let layout = VolumeLayout::new([2048; 3], 16, VoxelType::U8).unwrap();
+    let radii: Vec<f32> = (0..7).map(|k| 116.9 * (1u32 << k) as f32).collect();
+    let camera = [1024.0 + 0.35 * 2048.0, 0.95 * 2048.0, 1024.0];
+    let tiles = isovox_proto::lod::balanced_tiles(&layout, [1.0; 3], camera, &radii);
+    let mut group = c.benchmark_group("selection");
+    group.throughput(Throughput::Elements(tiles.len() as u64));
+    group.bench_function(
+        format!("stitched tiles and masks, 2048^3 ({} tiles)", tiles.len()),
+        |b| {
+            b.iter(|| {
+                let tiles =
+                    isovox_proto::lod::balanced_tiles(&layout, [1.0; 3], black_box(camera), &radii);
+                black_box(isovox_proto::lod::face_masks(&layout, &tiles))
+            })
+        },
+    );
     group.finish();
 }
 
