@@ -26,7 +26,8 @@ const MEMBER_BITS_MAX: u64 = 1 << 24;
 /// streamer selects thousands of tiles on every camera move; with a hash set and the layout's
 /// checked neighbour lookups a selection took 3.1 times as long
 /// (`cargo bench -p isovox-tools -- selection`). Keys outside the layout are never members.
-struct Members {
+struct Members<'a> {
+    layout: &'a VolumeLayout,
     grids: Vec<[u32; 3]>,
     index: MemberIndex,
 }
@@ -40,10 +41,10 @@ enum MemberIndex {
     Set(TileSet),
 }
 
-impl Members {
+impl<'a> Members<'a> {
     /// `tiles` as members, as bits when `bits` (and the pyramid has at most
     /// [`MEMBER_BITS_MAX`] bricks), else in a hash set.
-    fn new(layout: &VolumeLayout, tiles: &[BrickKey], bits: bool) -> Members {
+    fn new(layout: &'a VolumeLayout, tiles: &[BrickKey], bits: bool) -> Members<'a> {
         let grids: Vec<[u32; 3]> = (0..layout.levels()).map(|l| layout.grid(l)).collect();
         let index = if bits && layout.node_count() <= MEMBER_BITS_MAX {
             let base = (0..layout.levels())
@@ -57,7 +58,11 @@ impl Members {
         } else {
             MemberIndex::Set(TileSet::default())
         };
-        let mut members = Members { grids, index };
+        let mut members = Members {
+            layout,
+            grids,
+            index,
+        };
         for &k in tiles {
             members.insert(k);
         }
@@ -140,15 +145,7 @@ impl Members {
             if self.contains(k) {
                 return Some(k);
             }
-            if usize::from(k.level) + 1 >= self.grids.len() {
-                return None;
-            }
-            k = BrickKey {
-                level: k.level + 1,
-                x: k.x / 2,
-                y: k.y / 2,
-                z: k.z / 2,
-            };
+            k = self.layout.parent(k)?;
         }
     }
 }
