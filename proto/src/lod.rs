@@ -127,7 +127,12 @@ impl<'a> Members<'a> {
 
     /// [`VolumeLayout::neighbour`], with the grids computed once.
     fn neighbour(&self, key: BrickKey, d: [i32; 3]) -> Option<BrickKey> {
-        let g = self.grids.get(usize::from(key.level))?;
+        Members::step(&self.grids, key, d)
+    }
+
+    /// The neighbour of `key` in direction `d` in a layout of level grids `grids`.
+    fn step(grids: &[[u32; 3]], key: BrickKey, d: [i32; 3]) -> Option<BrickKey> {
+        let g = grids.get(usize::from(key.level))?;
         let step = |c: u32, d: i32, n: u32| c.checked_add_signed(d).filter(|&c| c < n);
         Some(BrickKey {
             level: key.level,
@@ -199,13 +204,108 @@ pub fn tile_distance(
 /// The tiles to stitch for `camera`: [`adaptive_tiles`], then [`balance`] refines where a tile
 /// would touch one two or more levels finer. The result covers the volume once, tiles that touch
 /// differ by at most one level, and [`face_masks`] gives each its strips. Sorted.
+///
+/// Radii far enough apart ([`radii_keep_balance`]) select balanced tiles by themselves, and are
+/// not balanced again.
 pub fn balanced_tiles(
     layout: &VolumeLayout,
     voxel_scale: [f32; 3],
     camera: [f32; 3],
     radii: &[f32],
 ) -> Vec<BrickKey> {
-    balance(layout, adaptive_tiles(layout, voxel_scale, camera, radii))
+    let tiles = adaptive_tiles(layout, voxel_scale, camera, radii);
+    if radii_keep_balance(layout, voxel_scale, camera, radii) {
+        tiles
+    } else {
+        balance(layout, tiles)
+    }
+}
+
+/// [`balanced_tiles`] and their [`face_masks`], as a streamer of mesh tiles needs them on every
+/// camera move. Where [`radii_keep_balance`] holds, a mask bit is read off the radii: the tile
+/// across a face is coarser exactly when that tile's parent was not refined, so no membership
+/// test is made. That is what lets 50 streamers of one process select 10 times a second on a
+/// 2048^3 world (`cargo bench -p isovox-tools -- selection`).
+pub fn stitched_tiles(
+    layout: &VolumeLayout,
+    voxel_scale: [f32; 3],
+    camera: [f32; 3],
+    radii: &[f32],
+) -> (Vec<BrickKey>, Vec<u8>) {
+    let tiles = adaptive_tiles(layout, voxel_scale, camera, radii);
+    if !radii_keep_balance(layout, voxel_scale, camera, radii) {
+        let tiles = balance(layout, tiles);
+        let masks = face_masks(layout, &tiles);
+        return (tiles, masks);
+    }
+    let grids: Vec<[u32; 3]> = (0..layout.levels()).map(|l| layout.grid(l)).collect();
+    let masks = tiles
+        .iter()
+        .map(|&tile| {
+            let mut mask = 0u8;
+            let parent = layout.parent(tile);
+            for (f, d) in FACE_DIRECTIONS.into_iter().enumerate() {
+                // Balanced, the region across face f is covered by the neighbour itself, finer
+                // tiles, or the neighbour's parent: the parent when the walk from the root
+                // stopped there. The tile's own parent was refined (half the faces: no distance
+                // to compute).
+                let coarser = Members::step(&grids, tile, d)
+                    .and_then(|n| layout.parent(n))
+                    .is_some_and(|p| {
+                        Some(p) != parent && !refined(layout, voxel_scale, camera, radii, p)
+                    });
+                mask |= u8::from(coarser) << f;
+            }
+            mask
+        })
+        .collect();
+    (tiles, masks)
+}
+
+/// Whether [`adaptive_tiles`] refines tile `key`: always above the last radius's level, else
+/// when its nearest point lies within the radius of the level below it (never at level 0).
+fn refined(
+    layout: &VolumeLayout,
+    voxel_scale: [f32; 3],
+    camera: [f32; 3],
+    radii: &[f32],
+    key: BrickKey,
+) -> bool {
+    let level = usize::from(key.level);
+    level > radii.len()
+        || (level > 0 && tile_distance(layout, voxel_scale, key, camera) <= radii[level - 1])
+}
+
+/// Whether [`adaptive_tiles`] is balanced (2:1 across faces, edges and corners) for any camera
+/// near the volume because each radius exceeds the one before by more than the diagonal of a
+/// tile of its level: `r(j) - r(j-1) > d(j)` for every `j >= 1`.
+///
+/// Why: let tile T of level k touch a tile F of level k - 2 or finer. F's ancestor A of level
+/// k - 1 was refined, so its nearest point p lies within `r(k-2)` of the camera. A touches T
+/// (it holds F and is not inside T, which would then have been refined), so some point of T lies
+/// within `d(k-1)` of p: T's distance is at most `r(k-2) + d(k-1) < r(k-1)`, and T was refined
+/// too, not selected. Distances are computed in `f32`: the margin (1% of the diagonal, and a
+/// millionth of the coordinates' size) covers their rounding.
+pub fn radii_keep_balance(
+    layout: &VolumeLayout,
+    voxel_scale: [f32; 3],
+    camera: [f32; 3],
+    radii: &[f32],
+) -> bool {
+    let size = (0..3)
+        .map(|a| {
+            f64::from(camera[a]).abs()
+                + f64::from(layout.dims()[a]) * f64::from(voxel_scale[a]).abs()
+        })
+        .fold(0.0, f64::max);
+    radii.windows(2).enumerate().all(|(i, r)| {
+        let span = f64::from(layout.brick()) * (1u64 << (i + 1)) as f64;
+        let diagonal = (0..3)
+            .map(|a| (span * f64::from(voxel_scale[a])).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        f64::from(r[1]) - f64::from(r[0]) > diagonal * 1.01 + size * 1e-6
+    })
 }
 
 /// The tiles the spherical detail bias selects, sorted: with radii `r0 < r1 < ... < r(n-1)`,
@@ -237,10 +337,7 @@ pub fn adaptive_tiles(
     }
     let mut out = Vec::new();
     while let Some(k) = stack.pop() {
-        let level = k.level as usize;
-        let refine = level > radii.len()
-            || (level > 0 && tile_distance(layout, voxel_scale, k, camera) <= radii[level - 1]);
-        if refine {
+        if refined(layout, voxel_scale, camera, radii, k) {
             stack.extend(layout.children(k).into_iter().map(|(_, c)| c));
         } else {
             out.push(k);
@@ -467,6 +564,11 @@ mod tests {
                 // coarser tile, or same-level or finer ones).
                 let masks = face_masks(&layout, &tiles);
                 assert_eq!(face_masks_with(&layout, &tiles, false), masks);
+                // Where the radii keep the balance, the masks read off the radii are the same.
+                assert_eq!(
+                    stitched_tiles(&layout, [1.0; 3], camera, &radii),
+                    (tiles.clone(), masks.clone())
+                );
                 for (t, &mask) in tiles.iter().zip(&masks) {
                     let span = 1i64 << t.level;
                     let lo = [t.x, t.y, t.z].map(|c| c as i64 * span);
@@ -498,6 +600,74 @@ mod tests {
         }
         // The cameras exercise the rule: without it some selections break 2:1.
         assert!(unbalanced_before > 0);
+    }
+
+    #[test]
+    fn radii_a_diagonal_apart_keep_the_balance() {
+        // Brick 16, scale 1: a level-1 tile's diagonal is 32 sqrt 3 = 55.43, with the 1% margin
+        // 55.98; a level-2 tile's 110.85 (111.96).
+        let layout = VolumeLayout::new([256, 256, 256], 16, VoxelType::U8).unwrap_or_else(|e| {
+            panic!("{e}");
+        });
+        let keeps = |radii: &[f32], scale| radii_keep_balance(&layout, scale, [0.0; 3], radii);
+        assert!(keeps(&[100.0, 156.0], [1.0; 3]));
+        assert!(!keeps(&[100.0, 155.0], [1.0; 3]));
+        assert!(keeps(&[100.0, 156.0, 268.0], [1.0; 3]));
+        assert!(!keeps(&[100.0, 156.0, 267.0], [1.0; 3]));
+        // One radius, or none: nothing to balance.
+        assert!(keeps(&[5.0], [1.0; 3]));
+        assert!(keeps(&[], [1.0; 3]));
+        // Voxels twice as tall: the diagonal is 32 sqrt 6 = 78.38 (79.17).
+        assert!(keeps(&[100.0, 179.2], [1.0, 2.0, 1.0]));
+        assert!(!keeps(&[100.0, 179.1], [1.0, 2.0, 1.0]));
+    }
+
+    #[test]
+    fn radii_that_keep_the_balance_select_as_balancing_does() {
+        // Random cameras in and around odd grids with anisotropic voxels, radii each a random
+        // 1-3 diagonals beyond the last: the tiles equal the balanced ones and the masks read
+        // off the radii equal those found by membership, on both membership paths.
+        let layouts = [
+            (
+                VolumeLayout::new([512, 384, 512], 16, VoxelType::U8),
+                [1.0, 1.0, 1.0],
+            ),
+            (
+                VolumeLayout::new([104, 80, 56], 8, VoxelType::U8),
+                [0.5, 1.5, 1.0],
+            ),
+        ];
+        let mut next = rng(0x51);
+        let mut mixed = 0;
+        for (layout, scale) in layouts {
+            let layout = layout.unwrap_or_else(|e| panic!("{e}"));
+            let extent = [0, 1, 2].map(|a| layout.dims()[a] as f32 * scale[a]);
+            for _ in 0..100 {
+                let camera = [0, 1, 2].map(|a| (next() * 1.6 - 0.3) * extent[a]);
+                let mut radii = vec![2.0 + next() * extent[0] * 0.1];
+                for j in 1..layout.levels() as u32 {
+                    let span = layout.brick() as f32 * (1u32 << j) as f32;
+                    let diagonal = (0..3)
+                        .map(|a| (span * scale[a]).powi(2))
+                        .sum::<f32>()
+                        .sqrt();
+                    radii.push(radii[radii.len() - 1] + diagonal * (1.02 + 2.0 * next()));
+                }
+                assert!(radii_keep_balance(&layout, scale, camera, &radii));
+                let before = adaptive_tiles(&layout, scale, camera, &radii);
+                let (tiles, masks) = stitched_tiles(&layout, scale, camera, &radii);
+                assert_eq!(tiles, before, "no tile split");
+                for bits in [true, false] {
+                    assert_eq!(balance_with(&layout, before.clone(), bits), tiles);
+                    assert_eq!(face_masks_with(&layout, &tiles, bits), masks);
+                }
+                if masks.iter().any(|&m| m != 0) {
+                    mixed += 1;
+                }
+            }
+        }
+        // Most selections mix levels, so the masks are tested, not only zeros.
+        assert!(mixed > 150, "{mixed} selections with a coarser face");
     }
 
     #[test]

@@ -178,19 +178,43 @@ fn kernels(c: &mut Criterion) {
 
     // A streamer of mesh tiles selects its tiles (balanced, with face masks) for each camera
     // move: isovox-load's viewers over a 2048^3 world in bricks of 16, at a point of their
-    // orbit (0.35 of the width from the centre, 0.95 of the height), with its radii.
+    // orbit (0.35 of the width from the centre, 0.95 of the height), with its radii. These radii
+    // keep the balance by themselves (`lod::radii_keep_balance`), so the streamer's selection
+    // (`lod::stitched_tiles`) skips balancing and reads the masks off the radii; the general
+    // path balances and finds the masks by membership tests, as it does for radii closer
+    // together.
     let layout = VolumeLayout::new([2048; 3], 16, VoxelType::U8).unwrap();
     let radii: Vec<f32> = (0..7).map(|k| 116.9 * (1u32 << k) as f32).collect();
     let camera = [1024.0 + 0.35 * 2048.0, 0.95 * 2048.0, 1024.0];
-    let tiles = isovox_proto::lod::balanced_tiles(&layout, [1.0; 3], camera, &radii);
+    assert!(isovox_proto::lod::radii_keep_balance(
+        &layout, [1.0; 3], camera, &radii
+    ));
+    let (tiles, _) = isovox_proto::lod::stitched_tiles(&layout, [1.0; 3], camera, &radii);
     let mut group = c.benchmark_group("selection");
     group.throughput(Throughput::Elements(tiles.len() as u64));
     group.bench_function(
         format!("stitched tiles and masks, 2048^3 ({} tiles)", tiles.len()),
         |b| {
             b.iter(|| {
-                let tiles =
-                    isovox_proto::lod::balanced_tiles(&layout, [1.0; 3], black_box(camera), &radii);
+                black_box(isovox_proto::lod::stitched_tiles(
+                    &layout,
+                    [1.0; 3],
+                    black_box(camera),
+                    &radii,
+                ))
+            })
+        },
+    );
+    group.bench_function(
+        format!(
+            "balanced and masked by membership, 2048^3 ({} tiles)",
+            tiles.len()
+        ),
+        |b| {
+            b.iter(|| {
+                let adaptive =
+                    isovox_proto::lod::adaptive_tiles(&layout, [1.0; 3], black_box(camera), &radii);
+                let tiles = isovox_proto::lod::balance(&layout, adaptive);
                 black_box(isovox_proto::lod::face_masks(&layout, &tiles))
             })
         },

@@ -68,9 +68,8 @@ impl Desired {
 
     /// The desired tiles, in key order.
     pub(super) fn sorted_keys(&self) -> Vec<BrickKey> {
-        let mut keys: Vec<BrickKey> = self.tiles.keys().copied().collect();
-        keys.sort();
-        keys
+        // The selection holds the same keys as `tiles`, already sorted.
+        self.selection.iter().map(|&(k, _)| k).collect()
     }
 
     /// Makes `new` the desired set, mesh tiles with their face `masks` in it: tiles that leave
@@ -81,7 +80,7 @@ impl Desired {
             Some(masks) => new.into_iter().zip(masks).collect(),
             None => new.into_iter().map(|k| (k, 0)).collect(),
         };
-        // The selections come sorted (`select_tiles`, `select_stitched_tiles`); sorted here
+        // The selections come sorted (`select_tiles`, `lod::stitched_tiles`); sorted here
         // otherwise, each key with its own mask.
         if !new.windows(2).all(|w| w[0].0 < w[1].0) {
             new.sort_unstable_by_key(|&(k, _)| k);

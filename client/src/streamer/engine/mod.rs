@@ -264,13 +264,19 @@ impl Engine {
     /// The desired set for the current camera; tiles that leave it are dropped, mesh tiles
     /// whose face mask changed are stitched again.
     fn update_desired(&mut self) {
-        let new = match (self.desired.camera, self.kind) {
-            (Some(c), TileKind::Bricks) => select_tiles(&self.info, c, &self.radii),
-            (Some(c), TileKind::Meshes { .. }) => select_stitched_tiles(&self.info, c, &self.radii),
-            (None, _) => Vec::new(),
+        let scale = self.info.voxel_scale;
+        let (new, masks) = match (self.desired.camera, self.kind) {
+            (Some(c), TileKind::Bricks) => (select_tiles(&self.info, c, &self.radii), None),
+            (Some(c), TileKind::Meshes { .. }) => {
+                let (tiles, masks) =
+                    isovox_proto::lod::stitched_tiles(&self.layout, scale, c, &self.radii);
+                (tiles, Some(masks))
+            }
+            (None, kind) => (
+                Vec::new(),
+                matches!(kind, TileKind::Meshes { .. }).then(Vec::new),
+            ),
         };
-        let masks = matches!(self.kind, TileKind::Meshes { .. })
-            .then(|| isovox_proto::lod::face_masks(&self.layout, &new));
         for key in self.desired.replace(new, masks) {
             lock(&self.shared).resident.remove(&key);
             self.outbox.push(StreamEvent::Dropped { key });
