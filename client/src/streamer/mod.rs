@@ -105,7 +105,7 @@
 //! the window that are running are left to finish. The tiles' order by distance is kept until
 //! the camera moves; the camera's tiles are selected again at most every 100 ms while it moves
 //! (the newest position then); while requests of the last plan wait to start, planning runs at
-//! most every 25 ms however many answers come; and a waiting mesh tile's plan (content keys
+//! most every 50 ms however many answers come; and a waiting mesh tile's plan (content keys
 //! from up to 27 bricks' hashes) is kept until a request it needs ends, content it waits for
 //! comes, a commit comes or its face mask changes.
 //!

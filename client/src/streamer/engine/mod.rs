@@ -1152,8 +1152,11 @@ const PLAN_AHEAD: usize = 512;
 /// answers take about as long.
 const SELECT_EVERY: std::time::Duration = std::time::Duration::from_millis(100);
 
-/// The least time between two replans while requests of the last one wait to start.
-const REPLAN_EVERY: std::time::Duration = std::time::Duration::from_millis(25);
+/// The least time between two replans while requests of the last one wait to start: each
+/// replan plans up to [`PLAN_AHEAD`] tiles, and at 25 ms fifty streamers of one process spent
+/// more CPU planning than the requests it started gained them (docs/benchmarks.md, "What the
+/// streamers' planning costs").
+const REPLAN_EVERY: std::time::Duration = std::time::Duration::from_millis(50);
 
 /// Records that `job` is needed by a tile at distance `d` (the nearest tile that needs it
 /// counts).
