@@ -382,6 +382,18 @@ async fn selection_matches_independent_computation_and_streams_the_file_bricks()
         select_tiles(&info, [5.0, 30.0, 5.0], &radii),
         expected.iter().copied().collect::<Vec<_>>()
     );
+    // Radii from a screen-space error double per level, so their selection needs no balancing
+    // (`lod::radii_keep_balance`: each exceeds the one before by 1.01 tile diagonals) while
+    // H / (2 tan(fov/2) e) > 1.01 * 8 sqrt(0.5^2 + 0.75^2 + 1^2) = 10.878, that is for a
+    // 1080-pixel, 60-degree view while the error e is under 85.98 pixels.
+    let layout = VolumeLayout::new(info.dims, info.brick, info.voxel_type).unwrap();
+    let balanced_for = |error_px: f32| {
+        let radii =
+            StreamerConfig::radii_for_screen_error(&info, 60f32.to_radians(), 1080.0, error_px);
+        isovox_client::proto::lod::radii_keep_balance(&layout, info.voxel_scale, [0.0; 3], &radii)
+    };
+    assert!(balanced_for(1.0) && balanced_for(16.0) && balanced_for(85.0));
+    assert!(!balanced_for(87.0));
     let defaults = StreamerConfig::default();
     assert_eq!(defaults.kind, TileKind::Bricks);
     assert!(defaults.radii.is_empty());

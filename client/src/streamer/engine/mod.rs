@@ -266,7 +266,10 @@ impl Engine {
     fn update_desired(&mut self) {
         let scale = self.info.voxel_scale;
         let (new, masks) = match (self.desired.camera, self.kind) {
-            (Some(c), TileKind::Bricks) => (select_tiles(&self.info, c, &self.radii), None),
+            (Some(c), TileKind::Bricks) => (
+                isovox_proto::lod::adaptive_tiles(&self.layout, scale, c, &self.radii),
+                None,
+            ),
             (Some(c), TileKind::Meshes { .. }) => {
                 let (tiles, masks) =
                     isovox_proto::lod::stitched_tiles(&self.layout, scale, c, &self.radii);
