@@ -77,6 +77,12 @@ function inFlightBudget(): number {
   return protocol === "h2" || protocol === "h3" ? 16 : 6;
 }
 
+/**
+ * A plan after a response waits out three times the last plan's cost (`StreamerOptions`
+ * `planPause`): planning then takes at most a quarter of the main thread while tiles stream in.
+ */
+const PLAN_PAUSE = 3;
+
 function radii(v: VolumeInfo): number[] {
   const detail = Number($<HTMLInputElement>("detail").value);
   const h = viewport.renderer.domElement.clientHeight || 720;
@@ -126,6 +132,7 @@ async function openVolume(name: string, state: UrlState | null): Promise<void> {
     sink: viewport,
     radii: radii(v),
     maxInFlight: inFlightBudget(),
+    planPause: PLAN_PAUSE,
     onChange: changed,
     inView: inViewNow(),
   });

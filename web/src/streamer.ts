@@ -116,6 +116,12 @@ export interface StreamerStats {
  */
 type Priority = [number, number, number];
 
+/** A request a plan wants: how urgent, and what starts it. */
+interface Wanted {
+  priority: Priority;
+  start: () => void;
+}
+
 /** When a commit's changes reached the page and the screen (performance.now() milliseconds). */
 export interface CommitTrace {
   version: number;
@@ -159,6 +165,13 @@ export interface StreamerOptions {
    * frustum; by default everything is.
    */
   inView?: (min: [number, number, number], max: [number, number, number]) => boolean;
+  /**
+   * After a plan that took t ms, a response plans again only once `planPause` x t ms have
+   * passed (meanwhile the next requests of the last plan's queue start at once): a plan walks
+   * every selected tile, and with hundreds selected, planning after each response took half of
+   * the page's main thread. 0 (the default): every response plans at once.
+   */
+  planPause?: number;
 }
 
 export class Streamer {
@@ -228,6 +241,13 @@ export class Streamer {
   private viewCount = 0;
   private planned = false;
   private retryTimer: ReturnType<typeof setTimeout> | null = null;
+  private readonly planPause: number;
+  /** A plan put off by `planPause`, and when the last plan ended and how long it took. */
+  private planTimer: ReturnType<typeof setTimeout> | null = null;
+  private lastPlanEnd = -Infinity;
+  private lastPlanCost = 0;
+  /** The last plan's requests not started yet, most urgent first. */
+  private queue: Array<[string, Wanted]> = [];
   private stopped = false;
   private readonly counters = { requests: 0, bytes: 0 };
   private lastError: string | null = null;
@@ -244,6 +264,7 @@ export class Streamer {
     this.version = o.info.version;
     this.onChange = o.onChange ?? (() => {});
     this.inView = o.inView ?? (() => true);
+    this.planPause = o.planPause ?? 0;
     this.hashes = this.layout.grids.map(() => new Map());
   }
 
@@ -386,6 +407,7 @@ export class Streamer {
     this.stopped = true;
     for (const job of this.jobs.values()) this.abort(job);
     if (this.retryTimer !== null) clearTimeout(this.retryTimer);
+    if (this.planTimer !== null) clearTimeout(this.planTimer);
     for (const id of this.displayed.keys()) this.sink.hide(id);
     this.displayed.clear();
   }
@@ -626,6 +648,11 @@ export class Streamer {
   /** Plans again: the selection, what is drawn, and which requests run. */
   plan(): void {
     if (this.stopped) return;
+    const began = performance.now();
+    if (this.planTimer !== null) {
+      clearTimeout(this.planTimer);
+      this.planTimer = null;
+    }
     this.planned = true;
     this.statsCache = null;
     const scale = this.info.voxel_scale;
@@ -658,7 +685,7 @@ export class Streamer {
 
     // What each tile needs, with its priority: stale tiles on screen first, then those in the
     // view frustum, then the rest; within each, coarse first, then nearest.
-    const wanted = new Map<string, { priority: Priority; start: () => void }>();
+    const wanted = new Map<string, Wanted>();
     const want = (id: string, priority: Priority, start: () => void) => {
       const w = wanted.get(id);
       if (!w || compare(priority, w.priority) < 0) wanted.set(id, { priority, start });
@@ -705,7 +732,29 @@ export class Streamer {
         return true;
       })
       .sort((a, b) => compare(a[1].priority, b[1].priority));
-    for (const [id, w] of queue) {
+    this.queue = queue;
+    this.startQueued(now, true);
+    if (this.retryTimer !== null) clearTimeout(this.retryTimer);
+    this.retryTimer =
+      nextRetry < Infinity ? setTimeout(() => this.plan(), nextRetry - now + 1) : null;
+    this.onChange();
+    this.lastPlanEnd = performance.now();
+    this.lastPlanCost = this.lastPlanEnd - began;
+  }
+
+  /**
+   * Starts the most urgent requests of the last plan's queue while there is room. Between
+   * plans (`fresh` false), those started, answered or waiting to retry since are passed over,
+   * and so are grid chunks (an answered one is not told apart from one still needed without
+   * walking its bricks): they wait for the next plan.
+   */
+  private startQueued(now: number, fresh: boolean): void {
+    let i = 0;
+    for (; i < this.queue.length; i++) {
+      const [id, w] = this.queue[i]!;
+      const passed = this.jobs.has(id) || id.startsWith("g:") || this.cache.has(id.slice(2));
+      if (!fresh && passed) continue;
+      if (!fresh && (this.retryAt.get(id)?.at ?? 0) > now) continue;
       // Stale tiles on screen may take one place beyond the limit, so an edit is never queued
       // behind a long load.
       const room = this.limit.get() + (w.priority[0] === 0 ? 1 : 0);
@@ -720,10 +769,24 @@ export class Streamer {
       this.trace(this.version, (t) => t.requests++);
       w.start();
     }
-    if (this.retryTimer !== null) clearTimeout(this.retryTimer);
-    this.retryTimer =
-      nextRetry < Infinity ? setTimeout(() => this.plan(), nextRetry - now + 1) : null;
-    this.onChange();
+    this.queue = this.queue.slice(i);
+    this.statsCache = null;
+  }
+
+  /**
+   * Plans after a response: at once when nothing else is in flight, when the answer was for a
+   * stale tile on screen (an edit's), or when the last plan's pause is over; otherwise the next
+   * queued requests start now and the plan waits for the end of the pause (`planPause`).
+   */
+  private planAfterResponse(job: Job): void {
+    const now = performance.now();
+    const wait = this.lastPlanEnd + this.planPause * this.lastPlanCost - now;
+    if (wait <= 0 || this.jobs.size === 0 || job.priority[0] === 0) {
+      this.plan();
+      return;
+    }
+    this.startQueued(now, false);
+    if (this.planTimer === null) this.planTimer = setTimeout(() => this.plan(), wait);
   }
 
   /**
@@ -872,7 +935,7 @@ export class Streamer {
       this.limit.succeeded();
       this.retryAt.delete(id);
     }
-    this.plan();
+    this.planAfterResponse(job);
   }
 
   private fetchChunk(chunk: string): void {

@@ -180,6 +180,50 @@ describe("the streamer", () => {
     s.stop();
   });
 
+  it("puts its plans off by their pause, keeping the bound full from the last plan's queue", async () => {
+    const server = new ScriptedServer();
+    const camera: Vec3 = [0, 40, 0];
+    const shown = new Map<string, TileMesh>();
+    let plans = 0;
+    const s = new Streamer({
+      api: server.api(),
+      info: INFO,
+      sink: { show: (id, _k, m) => shown.set(id, m), hide: (id) => shown.delete(id) },
+      radii: [12, 24, 48],
+      maxInFlight: 3,
+      // A pause that never ends: a response plans only when nothing else is in flight.
+      planPause: 1e6,
+      onChange: () => plans++,
+    });
+    s.setCamera(camera);
+    await settle();
+    const plansBefore = plans;
+    const inFlightAfter: number[] = [];
+    const tiles: string[] = [];
+    for (;;) {
+      const c = await server.answerOne();
+      if (!c) break;
+      if (c.face === undefined) tiles.push(keyText(c.key));
+      inFlightAfter.push(server.pendingAll().length);
+    }
+    const desired = balancedTiles(layout, [1, 1, 1], camera, [12, 24, 48]);
+    // Every tile (and stand-in) once, all shown, complete: the plan after the last response
+    // draws them.
+    expect(new Set(tiles).size).toBe(tiles.length);
+    for (const k of desired) expect(tiles).toContain(keyText(k));
+    expect(s.stats().complete).toBe(true);
+    expect(shown.size).toBe(desired.length);
+    // Between plans, each answer started the next queued request: three in flight after every
+    // answer but the last three.
+    const answers = inFlightAfter.length;
+    expect(answers).toBeGreaterThan(10);
+    expect(inFlightAfter.slice(0, answers - 3)).toEqual(new Array(answers - 3).fill(3));
+    expect(inFlightAfter.slice(answers - 3)).toEqual([2, 1, 0]);
+    // And far fewer plans than answers.
+    expect(plans - plansBefore).toBeLessThan(answers / 4);
+    s.stop();
+  });
+
   it("fetches only the newly needed strips when the camera moves, and tiles only once", async () => {
     const server = new ScriptedServer();
     const { s } = start(server, [0, 40, 0]);
