@@ -302,6 +302,11 @@ fn gauges(state: &AppState, registry: &mut Registry) {
         state.mesh_answers.hits(),
     );
     counter(
+        "isovox_mesh_answers_joined",
+        "Mesh tiles and strips asked for while another request was making the same answer, sent when it was made",
+        state.mesh_answers.joined(),
+    );
+    counter(
         "isovox_connections_refused",
         "Connections closed on arrival: the limit was reached and none was idle",
         open.refused(),

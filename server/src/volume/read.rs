@@ -438,6 +438,12 @@ pub struct TileRead {
 }
 
 impl TileRead {
+    /// Whether a surface can cross the tile's cells (from the bricks' value ranges in the
+    /// index): when not, its mesh is empty and making it reads no voxel.
+    pub fn may_cross(&self) -> bool {
+        self.inputs.may_cross
+    }
+
     /// A hash of everything the tile's encoded mesh depends on (its inputs, with materials the
     /// channel's bricks too, position and the volume's voxel scale) and of `variant` (which
     /// encoding): equal tags, equal bytes.
@@ -488,6 +494,12 @@ pub struct StripRead {
 }
 
 impl StripRead {
+    /// Whether a surface can cross the strip (as [`TileRead::may_cross`]; never for a face
+    /// that cannot touch a coarser tile): when not, it is empty and making it reads no voxel.
+    pub fn may_cross(&self) -> bool {
+        self.inputs.may_cross && self.face < 6 && self.inputs.faces >> self.face & 1 == 1
+    }
+
     /// A hash of everything the strip's encoded mesh depends on (its inputs, which name its
     /// face, with materials the channel's bricks too, the tile's position and the volume's
     /// voxel scale) and of `variant` (which encoding): equal tags, equal bytes.

@@ -10,7 +10,10 @@ use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use isovox_server::catalog::Catalog;
 use isovox_server::generate::WorldSource;
 use isovox_server::http::{spawn, AppState, ServerConfig, Spawned};
-use isovox_server::mesh::tile::{default_iso, mesh_strip_world, mesh_tile_with_moves, TileScratch};
+use isovox_server::mesh::tile::{
+    default_iso, mesh_strip_world, mesh_tile_with_moves, strip_inputs, tile_inputs, Stitching,
+    TileScratch,
+};
 use isovox_server::store::{build_vod2, BuildOptions, Snapshot, Vod2};
 
 struct Server {
@@ -23,6 +26,11 @@ struct Server {
 
 /// A 64 x 48 x 64 world (brick 8: grids 8x6x8, 4x3x4, 2x2x2, 1x1x1), anisotropic voxels.
 async fn start() -> Server {
+    start_with(ServerConfig::default()).await
+}
+
+/// As [`start`], served with `config`.
+async fn start_with(config: ServerConfig) -> Server {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("w.vod");
     let layout = VolumeLayout::new([64, 48, 64], 8, VoxelType::U8).unwrap();
@@ -37,12 +45,9 @@ async fn start() -> Server {
     let vod = Vod2::open(&path).unwrap();
     let snap = vod.head();
     let catalog = Catalog::open_dir(dir.path()).unwrap();
-    let server = spawn(
-        "127.0.0.1:0",
-        AppState::with_config(catalog, ServerConfig::default()),
-    )
-    .await
-    .unwrap();
+    let server = spawn("127.0.0.1:0", AppState::with_config(catalog, config))
+        .await
+        .unwrap();
     Server {
         base: format!("{}/v1/volumes/w", server.base()),
         snap,
@@ -262,5 +267,99 @@ async fn a_mesh_answer_asked_again_is_sent_as_kept_without_a_cpu_job() {
         let packed = zstd.bytes().await.unwrap();
         assert_eq!(zstd::bulk::decompress(&packed, 1 << 24).unwrap(), first);
         assert_eq!(jobs(s.base.clone()).await - jobs0, 2, "{url}");
+    }
+}
+
+/// Viewers starting together ask for the same coarse tiles at the same moment: the requests for
+/// an answer being made wait for it instead of each taking a place in the CPU queue (16) for
+/// the same work and the rest being refused.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn many_requests_for_one_cold_answer_share_one_cpu_job() {
+    let s = start().await;
+    let jobs = |base: String| async move {
+        metric(&base, "isovox_mesh_cache_hits_total").await
+            + metric(&base, "isovox_mesh_cache_misses_total").await
+    };
+    let shared = |base: String| async move {
+        metric(&base, "isovox_mesh_answers_kept_hits_total").await
+            + metric(&base, "isovox_mesh_answers_joined_total").await
+    };
+    let tile = format!("{}/meshes/1/1/1/1", s.base);
+    let strip = format!("{tile}/strips/+y");
+    const ASKED: usize = 48;
+    for url in [&tile, &strip] {
+        let (jobs0, shared0) = (jobs(s.base.clone()).await, shared(s.base.clone()).await);
+        // Each on a connection of its own, all at once.
+        let answers = futures_util::future::join_all((0..ASKED).map(|_| async {
+            let r = get(url, None).await;
+            (r.status().as_u16(), r.bytes().await.unwrap())
+        }))
+        .await;
+        let statuses: Vec<u16> = answers.iter().map(|(status, _)| *status).collect();
+        assert!(statuses.iter().all(|&s| s == 200), "{url}: {statuses:?}");
+        assert!(!answers[0].1.is_empty(), "{url}");
+        assert!(answers.iter().all(|(_, b)| *b == answers[0].1), "{url}");
+        // Made once; every other request got that answer.
+        assert_eq!(jobs(s.base.clone()).await - jobs0, 1, "{url}");
+        assert_eq!(
+            shared(s.base.clone()).await - shared0,
+            ASKED as u64 - 1,
+            "{url}"
+        );
+    }
+}
+
+/// Most tiles of a large world hold no surface (air, rock), and the bricks' value ranges in the
+/// index say so: such a tile or strip is answered where it is read, not as a job of the CPU
+/// queue. With one place in the queue, a burst of them is never refused.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tiles_no_surface_crosses_are_answered_without_the_cpu_queue() {
+    let s = start_with(ServerConfig {
+        cpu_queue: 1,
+        ..ServerConfig::default()
+    })
+    .await;
+    let iso = default_iso(VoxelType::U8);
+    let layout = s.snap.layout().clone();
+    let mut urls = Vec::new();
+    for level in 0..2 {
+        let [gx, gy, gz] = layout.grid(level);
+        for (x, y, z) in
+            (0..gz).flat_map(|z| (0..gy).flat_map(move |y| (0..gx).map(move |x| (x, y, z))))
+        {
+            let key = BrickKey { level, x, y, z };
+            let inputs = tile_inputs(&s.snap, key, iso, Stitching::Moves).unwrap();
+            if inputs.may_cross {
+                continue;
+            }
+            // Empty as the offline mesher makes it.
+            let mut offline = TileMesh::default();
+            mesh_tile_with_moves(&s.snap, key, iso, &mut offline, &mut TileScratch::default())
+                .unwrap();
+            assert!(offline.mesh.indices.is_empty(), "{key}");
+            let tile = format!("{}/{}", s.base, path(key));
+            // Its +x strip too when that cannot hold a surface either (it also reads the
+            // coarser level beside the face).
+            let strip = strip_inputs(&s.snap, key, 1, iso).unwrap();
+            if !strip.may_cross || strip.faces >> 1 & 1 == 0 {
+                assert!(offline_strip(&s.snap, key, 1).indices.is_empty(), "{key}");
+                urls.push(format!("{tile}/strips/+x"));
+            }
+            urls.push(tile);
+        }
+    }
+    assert!(urls.len() > 100, "{} empty tiles and strips", urls.len());
+    let answers = futures_util::future::join_all(urls.iter().map(|url| async move {
+        let r = get(url, None).await;
+        (r.status().as_u16(), r.bytes().await.unwrap())
+    }))
+    .await;
+    for ((status, body), url) in answers.iter().zip(&urls) {
+        assert_eq!(*status, 200, "{url}");
+        if url.contains("/strips/") {
+            assert!(decode_strip(body).unwrap().indices.is_empty(), "{url}");
+        } else {
+            assert!(decode_tile(body).unwrap().mesh.indices.is_empty(), "{url}");
+        }
     }
 }
