@@ -79,7 +79,8 @@ function inFlightBudget(): number {
 
 /**
  * A plan after a response waits out three times the last plan's cost (`StreamerOptions`
- * `planPause`): planning then takes at most a quarter of the main thread while tiles stream in.
+ * `planPause`): plans after responses then take about a quarter of the main thread at most
+ * while tiles stream in.
  */
 const PLAN_PAUSE = 3;
 
