@@ -753,9 +753,10 @@ export class Streamer {
     let i = 0;
     for (; i < this.queue.length; i++) {
       const [id, w] = this.queue[i]!;
-      const passed = this.jobs.has(id) || id.startsWith("g:") || this.cache.has(id.slice(2));
-      if (!fresh && passed) continue;
-      if (!fresh && (this.retryAt.get(id)?.at ?? 0) > now) continue;
+      if (!fresh) {
+        const passed = this.jobs.has(id) || id.startsWith("g:") || this.cache.has(id.slice(2));
+        if (passed || (this.retryAt.get(id)?.at ?? 0) > now) continue;
+      }
       // Stale tiles on screen may take one place beyond the limit, so an edit is never queued
       // behind a long load.
       const room = this.limit.get() + (w.priority[0] === 0 ? 1 : 0);

@@ -94,8 +94,8 @@ impl MeshAnswers {
         let answer: Result<Arc<SharedBody>, ApiError> = cell
             .get_or_try_init(|| async move {
                 // Made and kept by another request between the lookup above and here (it is
-                // kept before it leaves `making`).
-                if let Some(kept) = self.get(tag, zstd) {
+                // kept before it leaves `making`): counted as joined, not as a hit.
+                if let Some(kept) = self.answers.get(key) {
                     return Ok(kept);
                 }
                 let body = make().await?;
