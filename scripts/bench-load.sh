@@ -47,11 +47,15 @@ run() {
     --duration "$DURATION" --token "$TOKEN" --json "$OUT/$name.json" "$@" || true
 }
 
-# Viewers only, bricks then meshes: old, new, new, old.
+# Viewers only, bricks then meshes: old, new, new, old; for meshes also every tile asked for,
+# the empty ones included (--fetch-empty-tiles), inside each pair.
+every() { if [ "$1" = meshes ]; then run "meshes-every-$2" --tiles meshes --fetch-empty-tiles; fi; }
 for tiles in bricks meshes; do
   run "$tiles-old-1" --tiles "$tiles"
+  every "$tiles" 1
   run "$tiles-new-1" --tiles "$tiles" --descent
   run "$tiles-new-2" --tiles "$tiles" --descent
+  every "$tiles" 2
   run "$tiles-old-2" --tiles "$tiles"
 done
 # With 2 editors at 1 edit/s each: grid regions caused by edits.

@@ -35,6 +35,7 @@ async fn stream(
         // Every tile of the selection, surfaceless ones too: the tile counts compare the
         // selections themselves.
         descent: false,
+        skip_empty: false,
     };
     let (streamer, mut events) = Streamer::start(client.clone(), volume, config).await?;
     streamer.set_camera(camera);

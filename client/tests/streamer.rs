@@ -152,13 +152,14 @@ impl Counter {
 }
 
 /// A streamer of `kind` tiles within `radii` that fetches every tile of its desired set (the
-/// descent has its own tests) and follows no edits.
+/// descent and the skipping of empty mesh tiles have their own tests) and follows no edits.
 fn every_tile(kind: TileKind, radii: &[f32]) -> StreamerConfig {
     StreamerConfig {
         kind,
         radii: radii.to_vec(),
         follow_edits: false,
         descent: false,
+        skip_empty: false,
         ..StreamerConfig::default()
     }
 }
@@ -1070,8 +1071,10 @@ async fn an_edit_by_another_client_refetches_exactly_the_affected_mesh_tiles() {
     let config = StreamerConfig {
         kind: TileKind::Meshes { iso: None },
         radii: radii.clone(),
-        // The whole desired set, every tile fetched (the descent has its own tests).
+        // The whole desired set, every tile fetched (the descent and the skipping of empty
+        // tiles have their own tests).
         descent: false,
+        skip_empty: false,
         ..StreamerConfig::default()
     };
     let Scenario {
@@ -1962,6 +1965,8 @@ async fn the_descent_fetches_every_mesh_tile_that_draws_a_triangle() {
         kind: TileKind::Meshes { iso: None },
         radii: radii.clone(),
         descent,
+        // The reference run asks for every tile.
+        skip_empty: descent,
         ..StreamerConfig::default()
     };
     let (all, _, all_routes) = settled_run(&server.base, config(false), camera).await;
@@ -2007,6 +2012,101 @@ async fn the_descent_fetches_every_mesh_tile_that_draws_a_triangle() {
         count(&some_routes, "mesh"),
         count(&all_routes, "mesh"),
     );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn without_the_descent_only_mesh_tiles_that_draw_nothing_are_skipped() {
+    let w = world([256, 128, 256], 8, [1.0; 3]);
+    let server = TestServer::start(w.dir.path(), None);
+    let g = ground(&w, 100, 140);
+    let camera = [100.0, g[1] as f32 + 20.0, 140.0];
+    let radii = vec![32.0, 64.0, 128.0, 256.0];
+    let config = |skip_empty| StreamerConfig {
+        kind: TileKind::Meshes { iso: None },
+        radii: radii.clone(),
+        descent: false,
+        skip_empty,
+        ..StreamerConfig::default()
+    };
+    let (all, all_stats, all_routes) = settled_run(&server.base, config(false), camera).await;
+    let (some, some_stats, some_routes) = settled_run(&server.base, config(true), camera).await;
+    for events in [&all, &some] {
+        assert!(events
+            .iter()
+            .all(|e| !matches!(e, StreamEvent::Error { .. })));
+        assert_meshes_match_file(events, &w.path);
+    }
+    let all_keys = once(&ready_keys(&all), "was ready");
+    let some_keys = once(&ready_keys(&some), "was ready");
+    // The reference asked for every desired tile, each checked against the offline mesher:
+    // the tiles whose drawing (regular mesh and strips) has no triangle.
+    let empty: BTreeSet<BrickKey> = all
+        .iter()
+        .filter_map(|e| match e {
+            StreamEvent::Ready {
+                key,
+                data: TileData::Mesh(m),
+                ..
+            } if m.mesh.triangles() == 0 => Some(*key),
+            _ => None,
+        })
+        .collect();
+    assert!(some_keys.is_subset(&all_keys));
+    let skipped: BTreeSet<BrickKey> = all_keys.difference(&some_keys).copied().collect();
+    let drawn: Vec<_> = skipped.difference(&empty).collect();
+    assert!(drawn.is_empty(), "skipped tiles that draw: {drawn:?}");
+    assert!(!skipped.is_empty(), "nothing skipped");
+    assert_eq!(some_stats.skipped as usize, skipped.len());
+    assert_eq!(all_stats.skipped, 0);
+    // A tile is asked for once, and a skipped one never.
+    let count = |r: &HashMap<&'static str, u64>, route| r.get(route).copied().unwrap_or(0);
+    assert_eq!(count(&all_routes, "mesh"), all_keys.len() as u64);
+    assert_eq!(count(&some_routes, "mesh"), some_keys.len() as u64);
+    // The same grid regions: the skipping reads the ranges the tiles' regions bring anyway.
+    assert_eq!(count(&some_routes, "level"), count(&all_routes, "level"));
+    eprintln!(
+        "skipping empty mesh tiles: {} of {} tiles asked for ({} draw nothing)",
+        some_keys.len(),
+        all_keys.len(),
+        empty.len()
+    );
+
+    // A cave carved into rock where every tile was skipped (all solid) is drawn after the
+    // commit, from the event's ranges.
+    let mut s = scenario([256, 128, 256], config(true), (100, 140), 20.0).await;
+    let resident_before: BTreeSet<BrickKey> = s.streamer.resident().into_iter().collect();
+    let g = ground(&s.w, 100, 140);
+    let cave = [g[0] + 12, g[1] - 30, g[2] - 12];
+    let (client, _) = counted_client(&s.server.base);
+    let version = client
+        .with_token(TOKEN)
+        .edit(NAME, &carve(cave, 5), None)
+        .await
+        .unwrap()
+        .version;
+    let events = settle(&s.streamer, &mut s.rx, version).await;
+    assert!(events
+        .iter()
+        .all(|e| !matches!(e, StreamEvent::Error { .. })));
+    assert_meshes_match_file(&events, &s.w.path);
+    let info = s.streamer.info().clone();
+    let resident: BTreeSet<BrickKey> = s.streamer.resident().into_iter().collect();
+    let desired = expected_balanced(&info, s.camera, &radii);
+    assert!(resident.is_subset(&desired));
+    let missed: Vec<_> = desired
+        .iter()
+        .filter(|&&k| !resident.contains(&k) && offline_tile(&s.w.path, k).mesh.triangles() > 0)
+        .collect();
+    assert!(
+        missed.is_empty(),
+        "tiles that draw are not resident: {missed:?}"
+    );
+    let opened: Vec<_> = resident.difference(&resident_before).collect();
+    assert!(
+        !opened.is_empty(),
+        "the cave was drawn in no tile skipped before it"
+    );
+    s.streamer.shutdown().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -197,6 +197,15 @@ fn check_run(report: &LoadReport, users: usize) {
     assert_eq!(st.ready_by_level.iter().sum::<u64>(), st.tiles_ready);
     assert!(st.cache_misses > 0);
     assert_eq!(report.radii, vec![24.0, 48.0, 96.0]);
+    // Every viewer is counted once in each first-tile figure, and the tiles of the world's
+    // surface within the radii are drawn by every viewer; a tile that draws is a tile, so
+    // each viewer's first drawn tile comes no sooner than its first tile (and so does every
+    // quantile over the viewers).
+    let (tile, drawn) = (&st.first_tile_ms, &st.first_drawn_ms);
+    assert_eq!(tile.samples + st.without_tile, users as u64);
+    assert_eq!(drawn.samples + st.without_drawn, users as u64);
+    assert_eq!(st.without_drawn, 0, "a viewer never drew the surface");
+    assert!(drawn.p50 >= tile.p50 && drawn.p99 >= tile.p99 && drawn.max >= tile.max);
 
     // The report's figures add up.
     let sum =

@@ -42,6 +42,11 @@
 //! [`StreamerConfig::cache_bytes`] (brick: its voxel bytes; mesh: positions, normals, indices,
 //! transition data).
 //!
+//! A mesh tile whose input bricks' value ranges (from the same grid regions) lie wholly below the
+//! iso value, or wholly above, has no surface: it is complete without a request, and without
+//! `Ready` (as a tile the descent below skips). Without this ([`StreamerConfig::skip_empty`]),
+//! most of the mesh requests of a viewer of a large world ask for empty meshes.
+//!
 //! # The octree descent
 //!
 //! Most of a large volume is air or rock, and a tile there has nothing to draw. With
@@ -218,10 +223,15 @@ pub struct StreamerConfig {
     /// Octree descent: skip the desired tiles that cannot hold the surface at the iso value
     /// (the meshes' iso, or S - 0.5 for bricks), decided from coarser bricks' value ranges, so
     /// that their grid regions, bricks and meshes are never asked for. False (the default):
-    /// every desired tile is fetched. The descent asks for 70% fewer grid bytes, but 50 load
+    /// every desired tile's grid entries are fetched (and of the tiles, all but the mesh tiles
+    /// [`StreamerConfig::skip_empty`] skips). The descent asks for 70% fewer grid bytes, but 50 load
     /// viewers on a 2048^3 world got their first tile much later with it
     /// (docs/benchmarks.md, "Many viewers on a large world"): off until that is understood.
     pub descent: bool,
+    /// Mesh tiles whose input bricks' value ranges (from the grid regions asked for anyway)
+    /// rule out the surface are complete without a request. Default true. False asks for every
+    /// desired mesh tile, empty ones included (the reference the skipping is tested against).
+    pub skip_empty: bool,
 }
 
 impl Default for StreamerConfig {
@@ -233,6 +243,7 @@ impl Default for StreamerConfig {
             cache_bytes: 256 << 20,
             follow_edits: true,
             descent: false,
+            skip_empty: true,
         }
     }
 }
@@ -407,7 +418,8 @@ pub struct StreamerStats {
     /// Of those, the regions a tile needed because a commit invalidated it (a hash the event
     /// did not list, or a descent the new value ranges opened).
     pub edit_grid_requests: u64,
-    /// Times the descent found a desired tile without surface and skipped it.
+    /// Times a desired tile was found without surface and skipped (by the descent, or
+    /// without it, a mesh tile from its bricks' ranges).
     pub skipped: u64,
 }
 

@@ -106,6 +106,10 @@ struct Args {
     /// (off by default: see `StreamerConfig::descent`).
     #[arg(long)]
     descent: bool,
+    /// Mesh streamers ask for every desired tile, even those their bricks' value ranges show
+    /// to be empty (see `StreamerConfig::skip_empty`).
+    #[arg(long)]
+    fetch_empty_tiles: bool,
     /// Edits per second per editor.
     #[arg(long, default_value_t = 1.0)]
     edit_rate: f64,
@@ -195,6 +199,7 @@ fn config(a: Args) -> Result<(LoadConfig, Option<PathBuf>), String> {
     c.max_error_px = a.max_error_px;
     c.cache_bytes = a.cache_mb << 20;
     c.descent = a.descent;
+    c.skip_empty = !a.fetch_empty_tiles;
     c.edit_rate = a.edit_rate;
     c.edit_radius = (a.edit_radius[0], a.edit_radius[1]);
     c.carve_fraction = a.carve_fraction;

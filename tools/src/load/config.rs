@@ -86,9 +86,11 @@ pub struct LoadConfig {
     /// Each streamer's cache. 16 MiB by default (a streamer's own default is 256 MiB, and a run
     /// holds a hundred of them in one process).
     pub cache_bytes: usize,
-    /// The streamers' octree descent ([`StreamerConfig::descent`]); true by default, false to
-    /// measure the behaviour before it.
+    /// The streamers' octree descent ([`StreamerConfig::descent`]); off by default.
     pub descent: bool,
+    /// Whether mesh streamers skip the tiles their bricks' ranges rule out
+    /// ([`StreamerConfig::skip_empty`]); true by default, false to ask for every tile.
+    pub skip_empty: bool,
     /// Edits per second per editor.
     pub edit_rate: f64,
     /// Radii of the edited ellipsoids, voxels (each axis drawn in `min..=max`).
@@ -138,6 +140,7 @@ impl LoadConfig {
             max_in_flight: None,
             cache_bytes: 16 << 20,
             descent: false,
+            skip_empty: true,
             edit_rate: 1.0,
             edit_radius: (4, 12),
             carve_fraction: 0.5,
@@ -171,6 +174,7 @@ impl LoadConfig {
             cache_bytes: self.cache_bytes,
             follow_edits: true,
             descent: self.descent,
+            skip_empty: self.skip_empty,
         }
     }
 

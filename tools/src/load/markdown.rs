@@ -238,7 +238,7 @@ impl LoadReport {
         let f = &t.first_tile_ms;
         let _ = writeln!(
             s,
-            "\nGrid regions asked: {} ({} for tiles an edit invalidated, {} dropped before their answer was used); tiles skipped by the descent: {}.\n\nFirst tile per viewer (ms, from its start): p50 {:.0}, p99 {:.0}, max {:.0} ({} viewers; {} got none).",
+            "\nGrid regions asked: {} ({} for tiles an edit invalidated, {} dropped before their answer was used); tiles skipped (no surface): {}.\n\nFirst tile per viewer (ms, from its start): p50 {:.0}, p99 {:.0}, max {:.0} ({} viewers; {} got none).",
             t.grid_requests,
             t.edit_grid_requests,
             t.grid_aborted,
@@ -248,6 +248,12 @@ impl LoadReport {
             f.max,
             f.samples,
             t.without_tile
+        );
+        let d = &t.first_drawn_ms;
+        let _ = writeln!(
+            s,
+            "First tile that draws per viewer (a mesh with a triangle, a brick holding the surface; ms): p50 {:.0}, p99 {:.0}, max {:.0} ({} viewers; {} got none).",
+            d.p50, d.p99, d.max, d.samples, t.without_drawn
         );
         if t.failed_to_start > 0 || t.never_started > 0 {
             let _ = writeln!(

@@ -129,12 +129,18 @@ pub struct StreamerReport {
     pub grid_requests: u64,
     pub edit_grid_requests: u64,
     pub grid_aborted: u64,
-    /// Tiles the octree descent skipped (no surface can cross them).
+    /// Tiles skipped because no surface can cross them (by the descent, or from the bricks'
+    /// ranges: [`StreamerConfig::skip_empty`]).
     pub skipped: u64,
     /// Per started viewer, from its start (metadata and subscription included) to its first
     /// `Ready` tile; viewers that got none are counted in `without_tile`.
     pub first_tile_ms: Latency,
     pub without_tile: u64,
+    /// Per started viewer, from its start to its first tile that draws something (a mesh
+    /// tile with a triangle, a brick with voxels on both sides of the surface value); viewers
+    /// that got none are counted in `without_drawn`.
+    pub first_drawn_ms: Latency,
+    pub without_drawn: u64,
     pub resident_at_end: u64,
     pub in_flight_at_end: u64,
     /// The streamers' limits on requests in flight at the end, summed: `max_in_flight` each,
@@ -407,11 +413,16 @@ fn streamer_section(
     };
     let mut closed_early = 0;
     let mut error_span: Option<(Instant, Instant)> = None;
-    let mut first_tiles = Vec::new();
+    let (mut first_tiles, mut first_drawn) = (Vec::new(), Vec::new());
     for v in viewers {
         match (v.started, v.first_ready) {
             (true, Some(d)) => first_tiles.push(d),
             (true, None) => st.without_tile += 1,
+            (false, _) => {}
+        }
+        match (v.started, v.first_drawn) {
+            (true, Some(d)) => first_drawn.push(d),
+            (true, None) => st.without_drawn += 1,
             (false, _) => {}
         }
         if v.not_started {
@@ -461,6 +472,7 @@ fn streamer_section(
         }
     }
     st.first_tile_ms = Latency::from_durations(&first_tiles);
+    st.first_drawn_ms = Latency::from_durations(&first_drawn);
     if st.min_version == u64::MAX {
         st.min_version = 0;
     }

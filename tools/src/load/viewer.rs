@@ -2,7 +2,8 @@
 
 use super::{CameraPath, LoadConfig};
 use isovox_client::client::Client;
-use isovox_client::streamer::{StreamEvent, Streamer, StreamerConfig, StreamerStats};
+use isovox_client::streamer::{StreamEvent, Streamer, StreamerConfig, StreamerStats, TileData};
+use isovox_proto::VoxelType;
 use std::future::Future;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -31,6 +32,36 @@ pub(super) struct ViewerResult {
     /// count), and from then to its first `Ready` event.
     began: Option<Instant>,
     pub(super) first_ready: Option<Duration>,
+    /// The volume's voxel type, once the streamer started (what a brick's surface value is).
+    voxel_type: Option<VoxelType>,
+    /// From the viewer's start to its first `Ready` tile that draws something: a mesh tile
+    /// with a triangle, or a brick with voxels on both sides of the surface value. An empty
+    /// tile is `Ready` too (air near the camera comes first), so the first tile alone says
+    /// little of when a viewer sees the surface.
+    pub(super) first_drawn: Option<Duration>,
+}
+
+/// Whether a delivered tile draws something: a mesh tile with a triangle, or a brick whose
+/// voxels lie on both sides of the surface value S (`docs/icvg.md`).
+fn draws(data: &TileData, voxel_type: VoxelType) -> bool {
+    match data {
+        TileData::Mesh(m) => m.mesh.triangles() > 0,
+        TileData::Brick(bytes) => {
+            let s = voxel_type.surface();
+            let (mut below, mut above) = (false, false);
+            let mut see = |v: u16| {
+                below |= v < s;
+                above |= v >= s;
+            };
+            match voxel_type {
+                VoxelType::U8 => bytes.iter().for_each(|&v| see(u16::from(v))),
+                VoxelType::U16 => bytes
+                    .chunks_exact(2)
+                    .for_each(|v| see(u16::from_le_bytes([v[0], v[1]]))),
+            }
+            below && above
+        }
+    }
 }
 
 impl ViewerResult {
@@ -39,6 +70,9 @@ impl ViewerResult {
             StreamEvent::Ready { key, data, .. } => {
                 if self.first_ready.is_none() {
                     self.first_ready = self.began.map(|b| b.elapsed());
+                }
+                if self.first_drawn.is_none() && self.voxel_type.is_some_and(|t| draws(&data, t)) {
+                    self.first_drawn = self.began.map(|b| b.elapsed());
                 }
                 self.ready += 1;
                 let l = usize::from(key.level);
@@ -116,6 +150,7 @@ pub(super) async fn viewer(
         }
     };
     result.started = true;
+    result.voxel_type = Some(streamer.info().voxel_type);
     result.radii = streamer.radii().to_vec();
     let start = Instant::now();
     streamer.set_camera(path.at(0.0));

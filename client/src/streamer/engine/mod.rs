@@ -45,8 +45,12 @@ pub(super) struct Engine {
     layout: VolumeLayout,
     radii: Vec<f32>,
     /// The iso value the descent skips surfaceless tiles at; `None`: no descent, every desired
-    /// tile is fetched (see [`descent`]).
+    /// tile's grid entries are fetched (see [`descent`]).
     descent: Option<f32>,
+    /// The iso value tiles are drawn at: the meshes' own, or the server's default.
+    iso: f32,
+    /// Without the descent, mesh tiles whose bricks' ranges rule out the surface are skipped.
+    skip_empty: bool,
     /// Desired tiles that were complete (delivered, or skipped) until a commit invalidated
     /// them, and have not been complete since: the grid regions they need are counted as caused
     /// by edits.
@@ -133,6 +137,8 @@ impl Engine {
             name: name.to_string(),
             kind: config.kind,
             descent: config.descent.then_some(iso),
+            iso,
+            skip_empty: config.skip_empty,
             edited: FastSet::default(),
             edit_regions: FastSet::default(),
             undecided: FastMap::default(),
@@ -308,7 +314,7 @@ impl Engine {
     /// kept 50 streamers of one process busy planning instead of reading answers. Only
     /// requests near the front of the queue can start before the next replan, so tiles are
     /// planned nearest first until [`PLAN_AHEAD`] of them wait for something; tiles that turn
-    /// out complete (cached, or skipped by the descent) do not count, so the window moves on
+    /// out complete (cached, or skipped for want of a surface) do not count, so the window moves on
     /// as tiles arrive.
     ///
     /// Planning a tile (its content key from up to 27 bricks' hashes, its strips', the
@@ -433,8 +439,8 @@ impl Engine {
         self.scheduler.queue_needed(needed);
     }
 
-    /// Plans desired tile `key` (without current content): skipped when the descent finds no
-    /// surface in it, else from the cache or the requests and content it waits for, recorded
+    /// Plans desired tile `key` (without current content): skipped when the descent (without
+    /// it, for a mesh tile, its bricks' known ranges) finds no surface in it, else from the cache or the requests and content it waits for, recorded
     /// in `plan`.
     fn plan_tile(&mut self, key: BrickKey, plan: &mut TilePlan) -> Plan {
         if let Some(iso) = self.descent {
@@ -489,6 +495,15 @@ impl Engine {
                     return Plan::Waiting;
                 }
                 Decision::Surface => {}
+            }
+        } else if self.skip_empty && matches!(self.kind, TileKind::Meshes { .. }) {
+            // Without the descent every desired tile's grid entries are asked for; a mesh tile
+            // whose bricks' ranges rule out the surface has nothing to draw and is skipped, as
+            // the descent would (most of a large world: ~95% of the tiles 50 load viewers of
+            // a 2048^3 world wanted, each a request answered with an empty mesh).
+            let reads = self.desired.drawing_reads(&self.layout, key);
+            if self.book.decide_from_ranges(&self.layout, &reads, self.iso) == Decision::Empty {
+                return Plan::Skip;
             }
         }
         match self.kind {
@@ -882,7 +897,7 @@ impl Engine {
 
     /// Marks a delivered tile stale (emitting `Stale`) and any desired tile as needing content.
     fn invalidate(&mut self, key: BrickKey, version: u64) {
-        // Only a tile that was complete (delivered, or skipped by the descent) needs content
+        // Only a tile that was complete (delivered, or skipped) needs content
         // again because of the commit: one still loading asks for what it asked for before.
         if self.desired.contains(key) && !self.desired.needs(key) {
             self.edited.insert(key);
