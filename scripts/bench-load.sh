@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The "Many viewers" figures of docs/benchmarks.md: isovox-load against isovox serve on a large
-# world, the streamers' octree descent against the behaviour before it (--descent), runs
+# world, the streamers' octree descent (the default) against streaming without it (--no-descent), runs
 # alternating in one server's life so that both see the same warm or cold caches.
 #
 #   scripts/bench-load.sh                 # DIMS=2048 (a 2048^3 world, brick 16), 50 viewers, 20 s
@@ -47,18 +47,18 @@ run() {
     --duration "$DURATION" --token "$TOKEN" --json "$OUT/$name.json" "$@" || true
 }
 
-# Viewers only, bricks then meshes: old, new, new, old; for meshes also every tile asked for,
-# the empty ones included (--fetch-empty-tiles), inside each pair.
-every() { if [ "$1" = meshes ]; then run "meshes-every-$2" --tiles meshes --fetch-empty-tiles; fi; }
+# Viewers only, bricks then meshes: without the descent ("flat"), with, with, without; for
+# meshes also, inside each pair, every tile asked for, empty ones included (--fetch-empty-tiles).
+every() { if [ "$1" = meshes ]; then run "meshes-every-$2" --tiles meshes --no-descent --fetch-empty-tiles; fi; }
 for tiles in bricks meshes; do
-  run "$tiles-old-1" --tiles "$tiles"
+  run "$tiles-flat-1" --tiles "$tiles" --no-descent
   every "$tiles" 1
-  run "$tiles-new-1" --tiles "$tiles" --descent
-  run "$tiles-new-2" --tiles "$tiles" --descent
+  run "$tiles-descent-1" --tiles "$tiles"
+  run "$tiles-descent-2" --tiles "$tiles"
   every "$tiles" 2
-  run "$tiles-old-2" --tiles "$tiles"
+  run "$tiles-flat-2" --tiles "$tiles" --no-descent
 done
 # With 2 editors at 1 edit/s each: grid regions caused by edits.
-run "edits-old" --tiles bricks --editors 2 --edit-rate 1
-run "edits-new" --tiles bricks --editors 2 --edit-rate 1 --descent
-run "edits-meshes-new" --tiles meshes --editors 2 --edit-rate 1 --descent
+run "edits-flat" --tiles bricks --editors 2 --edit-rate 1 --no-descent
+run "edits-descent" --tiles bricks --editors 2 --edit-rate 1
+run "edits-meshes-descent" --tiles meshes --editors 2 --edit-rate 1

@@ -242,7 +242,7 @@ load() { # load URL NAME REPLICA_PORT
   local status=0
   sample_connections "$3" "$WORK/$2.connections" &
   local sampler=$!
-  $BIN/isovox-load --url "$1" --volume w --viewers 50 --duration 20 --json "$WORK/$2.json" > "$WORK/$2.txt" 2>&1 || status=$?
+  $BIN/isovox-load --url "$1" --volume w --viewers 50 --duration 20 --no-descent --json "$WORK/$2.json" > "$WORK/$2.txt" 2>&1 || status=$?
   if [ "$status" -eq 1 ] && [ -s "$WORK/$2.json" ]; then
     echo "isovox-load against $1 counted errors:" >&2
     python3 - "$WORK/$2.json" >&2 <<'EOF'

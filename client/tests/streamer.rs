@@ -403,8 +403,9 @@ async fn selection_matches_independent_computation_and_streams_the_file_bricks()
         (16, 256 << 20)
     );
     assert!(defaults.follow_edits);
-    // The descent is opt-in (see `StreamerConfig::descent`).
-    assert!(!defaults.descent);
+    // The descent is on unless asked otherwise, and without it empty mesh tiles are skipped
+    // (see `StreamerConfig::descent` and `skip_empty`).
+    assert!(defaults.descent && defaults.skip_empty);
 
     // The streamer's resident set for the first case, and every delivered brick is the file's.
     let (camera, radii) = &cases[0];

@@ -102,10 +102,11 @@ struct Args {
     /// Each streamer's content cache, MiB.
     #[arg(long, default_value_t = 16)]
     cache_mb: usize,
-    /// Streamers use the octree descent: they skip the tiles that cannot hold the surface
-    /// (off by default: see `StreamerConfig::descent`).
+    /// Streamers do without the octree descent (which skips the tiles that cannot hold the
+    /// surface, deciding from coarser bricks' ranges; see `StreamerConfig::descent`): they ask
+    /// for the grid regions of every tile they want.
     #[arg(long)]
-    descent: bool,
+    no_descent: bool,
     /// Mesh streamers ask for every desired tile, even those their bricks' value ranges show
     /// to be empty (see `StreamerConfig::skip_empty`).
     #[arg(long)]
@@ -198,7 +199,7 @@ fn config(a: Args) -> Result<(LoadConfig, Option<PathBuf>), String> {
     c.max_in_flight = a.max_in_flight;
     c.max_error_px = a.max_error_px;
     c.cache_bytes = a.cache_mb << 20;
-    c.descent = a.descent;
+    c.descent = !a.no_descent;
     c.skip_empty = !a.fetch_empty_tiles;
     c.edit_rate = a.edit_rate;
     c.edit_radius = (a.edit_radius[0], a.edit_radius[1]);

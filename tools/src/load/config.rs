@@ -86,7 +86,7 @@ pub struct LoadConfig {
     /// Each streamer's cache. 16 MiB by default (a streamer's own default is 256 MiB, and a run
     /// holds a hundred of them in one process).
     pub cache_bytes: usize,
-    /// The streamers' octree descent ([`StreamerConfig::descent`]); off by default.
+    /// The streamers' octree descent ([`StreamerConfig::descent`]); on by default.
     pub descent: bool,
     /// Whether mesh streamers skip the tiles their bricks' ranges rule out
     /// ([`StreamerConfig::skip_empty`]); true by default, false to ask for every tile.
@@ -139,7 +139,7 @@ impl LoadConfig {
             max_error_px: 16.0,
             max_in_flight: None,
             cache_bytes: 16 << 20,
-            descent: false,
+            descent: true,
             skip_empty: true,
             edit_rate: 1.0,
             edit_radius: (4, 12),

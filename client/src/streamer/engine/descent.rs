@@ -151,51 +151,60 @@ impl HashBook {
         reads: &[(u8, GridBox)],
         iso: f32,
     ) -> Decision {
-        decide_by(layout, reads, iso, |b| self.bound(layout, b, iso))
+        let (mut below, mut above) = (false, false);
+        let mut unknown = Vec::new();
+        for b in bricks_read(layout, reads) {
+            let bound = match b {
+                None => Ok((0, 0)),
+                Some(b) => self.bound(layout, b, iso),
+            };
+            match bound.map(|r| side(r, iso)) {
+                Ok(Side::Both) => return Decision::Surface,
+                Ok(Side::Below) => below = true,
+                Ok(Side::Above) => above = true,
+                Err(u) => unknown.push(u),
+            }
+        }
+        if below && above {
+            Decision::Surface
+        } else if !unknown.is_empty() {
+            unknown.sort();
+            unknown.dedup();
+            Decision::Unknown(unknown)
+        } else {
+            Decision::Empty
+        }
     }
 
-    /// [`HashBook::decide`] from the bricks' own ranges alone, never a coarser brick's bound:
-    /// what a streamer without the descent knows from the grid regions it asked for anyway.
-    pub(super) fn decide_from_ranges(
+    /// Whether the bricks `reads` are known to lie wholly below `iso`, or wholly above, from
+    /// their own ranges alone (never a coarser brick's bound): what a streamer without the
+    /// descent knows from the grid regions it asks for anyway. Stops at the first brick whose
+    /// range is unknown or straddles `iso`: a replan asks this of every tile it plans.
+    pub(super) fn ranges_rule_out_surface(
         &self,
         layout: &VolumeLayout,
         reads: &[(u8, GridBox)],
         iso: f32,
-    ) -> Decision {
-        decide_by(layout, reads, iso, |b| self.range(b).ok_or(b))
-    }
-}
-
-/// Whether the bricks `reads` can hold the surface at `iso`, given each read brick's bound (or
-/// the brick whose grid entry is needed first) from `bound`.
-fn decide_by(
-    layout: &VolumeLayout,
-    reads: &[(u8, GridBox)],
-    iso: f32,
-    bound: impl Fn(BrickKey) -> Result<(u16, u16), BrickKey>,
-) -> Decision {
-    let (mut below, mut above) = (false, false);
-    let mut unknown = Vec::new();
-    for b in bricks_read(layout, reads) {
-        let bound = match b {
-            None => Ok((0, 0)),
-            Some(b) => bound(b),
-        };
-        match bound.map(|r| side(r, iso)) {
-            Ok(Side::Both) => return Decision::Surface,
-            Ok(Side::Below) => below = true,
-            Ok(Side::Above) => above = true,
-            Err(u) => unknown.push(u),
+    ) -> bool {
+        let (mut below, mut above) = (false, false);
+        for b in bricks_read(layout, reads) {
+            let range = match b {
+                None => (0, 0),
+                Some(b) => match self.range(b) {
+                    Some(r) => r,
+                    None => return false,
+                },
+            };
+            match side(range, iso) {
+                Side::Both => return false,
+                Side::Below => below = true,
+                Side::Above => above = true,
+            }
+            if below && above {
+                return false;
+            }
         }
-    }
-    if below && above {
-        Decision::Surface
-    } else if !unknown.is_empty() {
-        unknown.sort();
-        unknown.dedup();
-        Decision::Unknown(unknown)
-    } else {
-        Decision::Empty
+        true
     }
 }
 

@@ -24,7 +24,7 @@ use super::*;
 use crate::client::Brick;
 use book::{HashBook, Shape};
 use cache::{Content, Lru};
-use descent::Decision;
+use descent::{side, Decision, Side};
 use desired::Desired;
 use scheduler::{JobKey, Output, Scheduler, TilePlan, Wait};
 
@@ -496,13 +496,23 @@ impl Engine {
                 }
                 Decision::Surface => {}
             }
-        } else if self.skip_empty && matches!(self.kind, TileKind::Meshes { .. }) {
+        } else if self.skip_empty
+            && matches!(self.kind, TileKind::Meshes { .. })
+            && self
+                .book
+                .range(key)
+                .is_some_and(|r| side(r, self.iso) != Side::Both)
+        {
             // Without the descent every desired tile's grid entries are asked for; a mesh tile
             // whose bricks' ranges rule out the surface has nothing to draw and is skipped, as
             // the descent would (most of a large world: ~95% of the tiles 50 load viewers of
-            // a 2048^3 world wanted, each a request answered with an empty mesh).
+            // a 2048^3 world wanted, each a request answered with an empty mesh). Its own
+            // brick first: one lookup settles most tiles (unknown yet, or holding the surface).
             let reads = self.desired.drawing_reads(&self.layout, key);
-            if self.book.decide_from_ranges(&self.layout, &reads, self.iso) == Decision::Empty {
+            if self
+                .book
+                .ranges_rule_out_surface(&self.layout, &reads, self.iso)
+            {
                 return Plan::Skip;
             }
         }
