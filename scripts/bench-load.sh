@@ -35,16 +35,27 @@ echo "t $TOKEN write" > "$WORK/tokens"
 PORT=$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])')
 $BIN/isovox serve --data "$WORK/data" --token-file "$WORK/tokens" --addr "127.0.0.1:$PORT" \
   > "$WORK/serve.log" 2>&1 &
+SERVER=$!
 until curl -sf "http://127.0.0.1:$PORT/v1/volumes/w" >/dev/null; do sleep 0.2; done
 
-# run NAME ARGS...: one isovox-load run, its report on stdout and in $OUT/NAME.json.
+# CPU seconds (user + system) process $1 has used so far.
+cpu_seconds() { awk -v hz="$(getconf CLK_TCK)" '{printf "%.1f", ($14 + $15) / hz}' "/proc/$1/stat"; }
+
+# run NAME ARGS...: one isovox-load run, its report on stdout and in $OUT/NAME.json, then the CPU
+# time the server and the load tester used during it (they share the machine's cores).
 run() {
   local name=$1
   shift
   echo
   echo "### $name: isovox-load --viewers $VIEWERS --duration $DURATION $*"
-  $BIN/isovox-load --url "http://127.0.0.1:$PORT" --volume w --viewers "$VIEWERS" \
-    --duration "$DURATION" --token "$TOKEN" --json "$OUT/$name.json" "$@" || true
+  local before
+  before=$(cpu_seconds "$SERVER")
+  # `times` in the subshell: the CPU time of its one child, the load tester.
+  ( $BIN/isovox-load --url "http://127.0.0.1:$PORT" --volume w --viewers "$VIEWERS" \
+      --duration "$DURATION" --token "$TOKEN" --json "$OUT/$name.json" "$@" || true
+    times > "$WORK/load-cpu" )
+  echo "CPU during the run: server $(python3 -c "print(round($(cpu_seconds "$SERVER") - $before, 1))") s," \
+    "load tester $(python3 -c "import re,sys; print(round(sum(int(m)*60+float(s) for m,s in re.findall(r'(\d+)m([\d.]+)s', sys.argv[1])), 1))" "$(tail -1 "$WORK/load-cpu")") s (user + system)"
 }
 
 # Viewers only, bricks then meshes: without the descent ("flat"), with, with, without; for
