@@ -226,8 +226,9 @@ pub struct StreamerConfig {
     /// that their grid regions, bricks and meshes are never asked for. True (the default): a
     /// viewer reaches the surface sooner, because the tiles next to the camera are mostly air
     /// and the descent rules them out from a few coarse ranges (on a 2048^3 world, one mesh
-    /// viewer drew its first triangle after 67 ms with it and 141 ms without; fifty at once,
-    /// 5-7 s and 22 s at p99: docs/benchmarks.md, "Many viewers on a large world"). False:
+    /// viewer drew its first triangle after 67 ms with it and 141 ms without; fifty at once
+    /// on two cores, 5-16 s against 22-24 s at p99 over two runs: docs/benchmarks.md, "Many
+    /// viewers on a large world"). False:
     /// every desired tile's grid entries are fetched, and every tile but the mesh tiles
     /// [`StreamerConfig::skip_empty`] skips.
     pub descent: bool,
