@@ -227,8 +227,8 @@ pub struct StreamerConfig {
     /// viewer reaches the surface sooner, because the tiles next to the camera are mostly air
     /// and the descent rules them out from a few coarse ranges (on a 2048^3 world, one mesh
     /// viewer drew its first triangle after 67 ms with it and 141 ms without; fifty at once
-    /// on two cores, 5-16 s against 22-24 s at p99 over two runs: docs/benchmarks.md, "Many
-    /// viewers on a large world"). False:
+    /// on two cores, 4.3-4.6 s against 9.4-9.8 s at p99: docs/benchmarks.md, "Many viewers on
+    /// a large world"). False:
     /// every desired tile's grid entries are fetched, and every tile but the mesh tiles
     /// [`StreamerConfig::skip_empty`] skips.
     pub descent: bool,
