@@ -1845,16 +1845,15 @@ fn layout_of(info: &VolumeInfo) -> VolumeLayout {
 // 10. The octree descent
 // ---------------------------------------------------------------------------------------------
 
-/// One settled streamer on `w` at `camera`: its events, stats and the HTTP exchanges by route.
-async fn settled_run(
-    base: &str,
-    config: StreamerConfig,
-    camera: [f32; 3],
-) -> (
+/// A settled run's events, stats and HTTP exchanges by route ([`settled_run`]).
+type Run = (
     Vec<StreamEvent>,
     isovox_client::StreamerStats,
     HashMap<&'static str, u64>,
-) {
+);
+
+/// One settled streamer on `w` at `camera`: its events, stats and the HTTP exchanges by route.
+async fn settled_run(base: &str, config: StreamerConfig, camera: [f32; 3]) -> Run {
     let (client, counter) = counted_client(base);
     let (streamer, mut rx) = Streamer::start(client, NAME, config).await.unwrap();
     streamer.set_camera(camera);
@@ -1955,41 +1954,69 @@ async fn the_descent_fetches_every_brick_holding_the_surface() {
     );
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_descent_fetches_every_mesh_tile_that_draws_a_triangle() {
-    let w = world([256, 128, 256], 8, [1.0; 3]);
-    let server = TestServer::start(w.dir.path(), None);
-    let g = ground(&w, 100, 140);
-    let camera = [100.0, g[1] as f32 + 20.0, 140.0];
-    let radii = vec![32.0, 64.0, 128.0, 256.0];
-    let config = |descent| StreamerConfig {
+/// The radii of the mesh runs of [`two_mesh_runs`].
+const MESH_RUN_RADII: [f32; 4] = [32.0, 64.0, 128.0, 256.0];
+
+/// A mesh streamer within [`MESH_RUN_RADII`], with or without the descent and the skipping of
+/// empty tiles.
+fn mesh_run_config(descent: bool, skip_empty: bool) -> StreamerConfig {
+    StreamerConfig {
         kind: TileKind::Meshes { iso: None },
-        radii: radii.clone(),
+        radii: MESH_RUN_RADII.to_vec(),
         descent,
-        // The reference run asks for every tile.
-        skip_empty: descent,
+        skip_empty,
         ..StreamerConfig::default()
-    };
-    let (all, _, all_routes) = settled_run(&server.base, config(false), camera).await;
-    let (some, some_stats, some_routes) = settled_run(&server.base, config(true), camera).await;
-    for events in [&all, &some] {
+    }
+}
+
+/// The world of the skipping tests and a camera 20 voxels over its ground at (100, 140).
+const MESH_RUN_WORLD: ([u32; 3], (u32, u32), f32) = ([256, 128, 256], (100, 140), 20.0);
+
+/// Two settled runs of mesh streamers on one world at one camera ([`MESH_RUN_WORLD`]): the
+/// `reference`, then the `tested`, each without an error and equal to the offline mesher.
+async fn two_mesh_runs(
+    reference: StreamerConfig,
+    tested: StreamerConfig,
+) -> (World, TestServer, Run, Run) {
+    let (dims, (x, z), above) = MESH_RUN_WORLD;
+    let w = world(dims, 8, [1.0; 3]);
+    let server = TestServer::start(w.dir.path(), None);
+    let g = ground(&w, x, z);
+    let camera = [x as f32, g[1] as f32 + above, z as f32];
+    let a = settled_run(&server.base, reference, camera).await;
+    let b = settled_run(&server.base, tested, camera).await;
+    for events in [&a.0, &b.0] {
         assert!(events
             .iter()
             .all(|e| !matches!(e, StreamEvent::Error { .. })));
         assert_meshes_match_file(events, &w.path);
     }
-    // The tiles whose drawing (regular mesh and strips) has a triangle, without the descent.
-    let drawn: BTreeSet<BrickKey> = all
+    (w, server, a, b)
+}
+
+/// The mesh tiles of `events` whose drawing (regular mesh and strips) has a triangle, or
+/// (`draws` false) has none.
+fn tiles_drawing(events: &[StreamEvent], draws: bool) -> BTreeSet<BrickKey> {
+    events
         .iter()
         .filter_map(|e| match e {
             StreamEvent::Ready {
                 key,
                 data: TileData::Mesh(m),
                 ..
-            } if m.mesh.triangles() > 0 => Some(*key),
+            } if (m.mesh.triangles() > 0) == draws => Some(*key),
             _ => None,
         })
-        .collect();
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_descent_fetches_every_mesh_tile_that_draws_a_triangle() {
+    // The reference run asks for every tile.
+    let (_w, _server, (all, _, all_routes), (some, some_stats, some_routes)) =
+        two_mesh_runs(mesh_run_config(false, false), mesh_run_config(true, true)).await;
+    // The tiles whose drawing has a triangle, without the descent.
+    let drawn = tiles_drawing(&all, true);
     let all_keys = once(&ready_keys(&all), "was ready");
     let some_keys = once(&ready_keys(&some), "was ready");
     assert!(!drawn.is_empty());
@@ -2017,41 +2044,13 @@ async fn the_descent_fetches_every_mesh_tile_that_draws_a_triangle() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn without_the_descent_only_mesh_tiles_that_draw_nothing_are_skipped() {
-    let w = world([256, 128, 256], 8, [1.0; 3]);
-    let server = TestServer::start(w.dir.path(), None);
-    let g = ground(&w, 100, 140);
-    let camera = [100.0, g[1] as f32 + 20.0, 140.0];
-    let radii = vec![32.0, 64.0, 128.0, 256.0];
-    let config = |skip_empty| StreamerConfig {
-        kind: TileKind::Meshes { iso: None },
-        radii: radii.clone(),
-        descent: false,
-        skip_empty,
-        ..StreamerConfig::default()
-    };
-    let (all, all_stats, all_routes) = settled_run(&server.base, config(false), camera).await;
-    let (some, some_stats, some_routes) = settled_run(&server.base, config(true), camera).await;
-    for events in [&all, &some] {
-        assert!(events
-            .iter()
-            .all(|e| !matches!(e, StreamEvent::Error { .. })));
-        assert_meshes_match_file(events, &w.path);
-    }
+    let (_w, _server, (all, all_stats, all_routes), (some, some_stats, some_routes)) =
+        two_mesh_runs(mesh_run_config(false, false), mesh_run_config(false, true)).await;
     let all_keys = once(&ready_keys(&all), "was ready");
     let some_keys = once(&ready_keys(&some), "was ready");
     // The reference asked for every desired tile, each checked against the offline mesher:
-    // the tiles whose drawing (regular mesh and strips) has no triangle.
-    let empty: BTreeSet<BrickKey> = all
-        .iter()
-        .filter_map(|e| match e {
-            StreamEvent::Ready {
-                key,
-                data: TileData::Mesh(m),
-                ..
-            } if m.mesh.triangles() == 0 => Some(*key),
-            _ => None,
-        })
-        .collect();
+    // the tiles whose drawing has no triangle.
+    let empty = tiles_drawing(&all, false);
     assert!(some_keys.is_subset(&all_keys));
     let skipped: BTreeSet<BrickKey> = all_keys.difference(&some_keys).copied().collect();
     let drawn: Vec<_> = skipped.difference(&empty).collect();
@@ -2074,9 +2073,10 @@ async fn without_the_descent_only_mesh_tiles_that_draw_nothing_are_skipped() {
 
     // A cave carved into rock where every tile was skipped (all solid) is drawn after the
     // commit, from the event's ranges.
-    let mut s = scenario([256, 128, 256], config(true), (100, 140), 20.0).await;
+    let (dims, (x, z), above) = MESH_RUN_WORLD;
+    let mut s = scenario(dims, mesh_run_config(false, true), (x, z), above).await;
     let resident_before: BTreeSet<BrickKey> = s.streamer.resident().into_iter().collect();
-    let g = ground(&s.w, 100, 140);
+    let g = ground(&s.w, x, z);
     let cave = [g[0] + 12, g[1] - 30, g[2] - 12];
     let (client, _) = counted_client(&s.server.base);
     let version = client
@@ -2092,7 +2092,7 @@ async fn without_the_descent_only_mesh_tiles_that_draw_nothing_are_skipped() {
     assert_meshes_match_file(&events, &s.w.path);
     let info = s.streamer.info().clone();
     let resident: BTreeSet<BrickKey> = s.streamer.resident().into_iter().collect();
-    let desired = expected_balanced(&info, s.camera, &radii);
+    let desired = expected_balanced(&info, s.camera, &MESH_RUN_RADII);
     assert!(resident.is_subset(&desired));
     let missed: Vec<_> = desired
         .iter()
