@@ -51,11 +51,11 @@
 //! # The octree descent
 //!
 //! Most of a large volume is air or rock, and a tile there has nothing to draw. With
-//! [`StreamerConfig::descent`] (on by default, see there) the streamer decides, before asking for a tile's
-//! grid region, whether the surface at the iso value (the meshes' iso, or S - 0.5 for bricks) can
-//! cross it, from the value ranges the grids give for coarser bricks: it asks for the coarsest
-//! level's grid first and for a finer level's region only under bricks where the answer is
-//! "maybe". A tile it rules out is complete without content: no grid region, no blob, no mesh,
+//! [`StreamerConfig::descent`] (on by default, see there) the streamer decides, before asking
+//! for a tile's grid region, whether the surface at the iso value (the meshes' iso, or S - 0.5
+//! for bricks) can cross it, from the value ranges the grids give for coarser bricks: it asks
+//! for the coarsest level's grid first and for a finer level's region only under bricks where
+//! the answer is "maybe". A tile it rules out is complete without content: no grid region, no blob, no mesh,
 //! no `Ready` (and `Dropped` if it had been delivered before an edit emptied it).
 //!
 //! The rule never drops a surface because it rests on a bound, not on the coarse values
@@ -228,9 +228,8 @@ pub struct StreamerConfig {
     /// and the descent rules them out from a few coarse ranges (on a 2048^3 world, one mesh
     /// viewer drew its first triangle after 67 ms with it and 141 ms without; fifty at once
     /// on two cores, 4.3-4.6 s against 9.4-9.8 s at p99: docs/benchmarks.md, "Many viewers on
-    /// a large world"). False:
-    /// every desired tile's grid entries are fetched, and every tile but the mesh tiles
-    /// [`StreamerConfig::skip_empty`] skips.
+    /// a large world"). False: every desired tile's grid entries are fetched, and every tile
+    /// but the mesh tiles [`StreamerConfig::skip_empty`] skips.
     pub descent: bool,
     /// Mesh tiles whose input bricks' value ranges (from the grid regions asked for anyway)
     /// rule out the surface are complete without a request. Default true. False asks for every

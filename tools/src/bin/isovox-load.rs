@@ -17,7 +17,8 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 // Fifty streamers in one process allocate small plans and answers from every worker thread:
-// under glibc's malloc a tenth of the load tester's time went to the allocator and its locks.
+// under glibc's malloc about a fifth of the load tester's time went to the allocator and its
+// locks (docs/benchmarks.md, "Many viewers on a large world").
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 

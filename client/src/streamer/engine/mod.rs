@@ -314,8 +314,8 @@ impl Engine {
     /// kept 50 streamers of one process busy planning instead of reading answers. Only
     /// requests near the front of the queue can start before the next replan, so tiles are
     /// planned nearest first until [`PLAN_AHEAD`] of them wait for something; tiles that turn
-    /// out complete (cached, or skipped for want of a surface) do not count, so the window moves on
-    /// as tiles arrive.
+    /// out complete (cached, or skipped for want of a surface) do not count, so the window
+    /// moves on as tiles arrive.
     ///
     /// Planning a tile (its content key from up to 27 bricks' hashes, its strips', the
     /// descent's bounds) costs microseconds, so a waiting mesh tile's plan is also kept and
@@ -440,8 +440,8 @@ impl Engine {
     }
 
     /// Plans desired tile `key` (without current content): skipped when the descent (without
-    /// it, for a mesh tile, its bricks' known ranges) finds no surface in it, else from the cache or the requests and content it waits for, recorded
-    /// in `plan`.
+    /// it, for a mesh tile, its bricks' known ranges) finds no surface in it, else from the
+    /// cache or the requests and content it waits for, recorded in `plan`.
     fn plan_tile(&mut self, key: BrickKey, plan: &mut TilePlan) -> Plan {
         if let Some(iso) = self.descent {
             if let Some(waiting) = self.undecided.get(&key) {
@@ -907,8 +907,8 @@ impl Engine {
 
     /// Marks a delivered tile stale (emitting `Stale`) and any desired tile as needing content.
     fn invalidate(&mut self, key: BrickKey, version: u64) {
-        // Only a tile that was complete (delivered, or skipped) needs content
-        // again because of the commit: one still loading asks for what it asked for before.
+        // Only a tile that was complete (delivered, or skipped) needs content again because
+        // of the commit: one still loading asks for what it asked for before.
         if self.desired.contains(key) && !self.desired.needs(key) {
             self.edited.insert(key);
         }
