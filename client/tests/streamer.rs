@@ -196,6 +196,13 @@ async fn settle(s: &Streamer, rx: &mut Receiver<StreamEvent>, version: u64) -> V
     out
 }
 
+/// Asserts that no event of `events` is an error.
+fn assert_no_errors(events: &[StreamEvent]) {
+    assert!(events
+        .iter()
+        .all(|e| !matches!(e, StreamEvent::Error { .. })));
+}
+
 fn ready_keys(events: &[StreamEvent]) -> Vec<BrickKey> {
     events
         .iter()
@@ -438,9 +445,7 @@ async fn selection_matches_independent_computation_and_streams_the_file_bricks()
     );
     assert_eq!(once(&ready_keys(&events), "was ready"), expected);
     assert!(dropped_keys(&events).is_empty() && stale_keys(&events).is_empty());
-    assert!(events
-        .iter()
-        .all(|e| !matches!(e, StreamEvent::Error { .. })));
+    assert_no_errors(&events);
     let vod = Vod2::open(&w.path).unwrap();
     let snap = vod.head();
     assert_bricks_match_file(&events, &snap);
@@ -1895,9 +1900,7 @@ async fn the_descent_fetches_every_brick_holding_the_surface() {
     let (some, some_stats, some_routes) = settled_run(&server.base, config(true), camera).await;
     let snap = Vod2::open(&w.path).unwrap().head();
     for events in [&all, &some] {
-        assert!(events
-            .iter()
-            .all(|e| !matches!(e, StreamEvent::Error { .. })));
+        assert_no_errors(events);
         assert_bricks_match_file(events, &snap);
     }
     let all_keys = once(&ready_keys(&all), "was ready");
@@ -1986,9 +1989,7 @@ async fn two_mesh_runs(
     let a = settled_run(&server.base, reference, camera).await;
     let b = settled_run(&server.base, tested, camera).await;
     for events in [&a.0, &b.0] {
-        assert!(events
-            .iter()
-            .all(|e| !matches!(e, StreamEvent::Error { .. })));
+        assert_no_errors(events);
         assert_meshes_match_file(events, &w.path);
     }
     (w, server, a, b)
@@ -2086,9 +2087,7 @@ async fn without_the_descent_only_mesh_tiles_that_draw_nothing_are_skipped() {
         .unwrap()
         .version;
     let events = settle(&s.streamer, &mut s.rx, version).await;
-    assert!(events
-        .iter()
-        .all(|e| !matches!(e, StreamEvent::Error { .. })));
+    assert_no_errors(&events);
     assert_meshes_match_file(&events, &s.w.path);
     let info = s.streamer.info().clone();
     let resident: BTreeSet<BrickKey> = s.streamer.resident().into_iter().collect();
@@ -2134,9 +2133,7 @@ async fn after_an_edit_the_descent_has_every_surface_brick_without_asking_for_gr
             .version;
     }
     let events = settle(&s.streamer, &mut s.rx, version).await;
-    assert!(events
-        .iter()
-        .all(|e| !matches!(e, StreamEvent::Error { .. })));
+    assert_no_errors(&events);
     let snap = Vod2::open(&s.w.path).unwrap().head();
     assert_bricks_match_file(&events, &snap);
     let info = s.streamer.info().clone();
@@ -2214,9 +2211,7 @@ async fn edit_where_the_descent_skipped_whole_regions(kind: TileKind) {
     };
     let version = client.edit(NAME, &ball, None).await.unwrap().version;
     let events = settle(&streamer, &mut rx, version).await;
-    assert!(events
-        .iter()
-        .all(|e| !matches!(e, StreamEvent::Error { .. })));
+    assert_no_errors(&events);
     let snap = Vod2::open(&w.path).unwrap().head();
     let info = streamer.info().clone();
     let resident: BTreeSet<BrickKey> = streamer.resident().into_iter().collect();
