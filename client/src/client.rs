@@ -120,13 +120,16 @@ pub enum FeedEvent {
 pub trait Observer: Send + Sync + std::fmt::Debug {
     /// `route` names the API route (`"brick"`, `"mesh"`, `"edit"`, ...); `outcome` is the
     /// status code, or the kind of transport failure; `bytes` the response body's length when
-    /// it is known up front.
+    /// it is known up front; `retried` says that the client tries the call again after this
+    /// exchange (a 503 or 429, or a transport failure it may repeat), so it is not the call's
+    /// outcome.
     fn exchange(
         &self,
         route: &'static str,
         outcome: Result<u16, &str>,
         latency: Duration,
         bytes: u64,
+        retried: bool,
     );
 }
 
@@ -240,6 +243,16 @@ impl Client {
             let last = attempt >= attempts.max(1);
             let start = std::time::Instant::now();
             let answer = build().send().await;
+            // Whether this exchange ends the call, decided before the observer sees it, so
+            // that load tests tell an answer the client tried again after from a failure.
+            let retried = !last
+                && match &answer {
+                    Ok(r) => {
+                        r.status() == StatusCode::SERVICE_UNAVAILABLE
+                            || r.status() == StatusCode::TOO_MANY_REQUESTS
+                    }
+                    Err(e) => idempotent || e.is_connect(),
+                };
             if let Some(o) = &self.observer {
                 match &answer {
                     Ok(r) => o.exchange(
@@ -247,6 +260,7 @@ impl Client {
                         Ok(r.status().as_u16()),
                         start.elapsed(),
                         r.content_length().unwrap_or(0),
+                        retried,
                     ),
                     Err(e) => o.exchange(
                         route,
@@ -259,6 +273,7 @@ impl Client {
                         }),
                         start.elapsed(),
                         0,
+                        retried,
                     ),
                 }
             }
@@ -266,21 +281,10 @@ impl Client {
                 Ok(r) if r.status().is_success() || r.status() == StatusCode::NOT_MODIFIED => {
                     return Ok(r)
                 }
-                Ok(r) => {
-                    let status = r.status();
-                    let retryable = status == StatusCode::SERVICE_UNAVAILABLE
-                        || status == StatusCode::TOO_MANY_REQUESTS;
-                    if !retryable || last {
-                        return Err(problem(r).await);
-                    }
-                    retry_after(r.headers())
-                }
-                Err(e) => {
-                    if last || !(idempotent || e.is_connect()) {
-                        return Err(e.into());
-                    }
-                    None
-                }
+                Ok(r) if !retried => return Err(problem(r).await),
+                Ok(r) => retry_after(r.headers()),
+                Err(e) if !retried => return Err(e.into()),
+                Err(_) => None,
             };
             tokio::time::sleep(wait.unwrap_or_else(|| self.backoff(attempt))).await;
         }
@@ -854,5 +858,89 @@ mod tests {
             decode_zstd(b"{\"level\": 0}", 1 << 20),
             Err(ClientError::Decode(_))
         ));
+    }
+
+    /// Keeps each exchange's status and whether the client said it would try again.
+    #[derive(Debug, Default)]
+    struct Exchanges(std::sync::Mutex<Vec<(u16, bool)>>);
+
+    impl Observer for Exchanges {
+        fn exchange(&self, _: &'static str, o: Result<u16, &str>, _: Duration, _: u64, r: bool) {
+            self.0.lock().unwrap().push((o.unwrap_or(0), r));
+        }
+    }
+
+    /// A server on loopback that answers its connections' requests with `statuses`, one each.
+    async fn answering(statuses: Vec<u16>) -> String {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        tokio::spawn(async move {
+            for status in statuses {
+                let (mut socket, _) = listener.accept().await.unwrap();
+                let mut head = Vec::new();
+                let mut buf = [0u8; 1024];
+                while !head.ends_with(b"\r\n\r\n") {
+                    let n = socket.read(&mut buf).await.unwrap();
+                    assert!(n > 0, "the client closed before its request ended");
+                    head.extend_from_slice(&buf[..n]);
+                }
+                let body = if status == 200 {
+                    "{\"volumes\": []}"
+                } else {
+                    "{}"
+                };
+                let answer = format!(
+                    "HTTP/1.1 {status} X\r\ncontent-type: application/json\r\nretry-after: 0\r\n\
+                     content-length: {}\r\nconnection: close\r\n\r\n{body}",
+                    body.len()
+                );
+                socket.write_all(answer.as_bytes()).await.unwrap();
+            }
+        });
+        format!("http://{addr}")
+    }
+
+    #[tokio::test]
+    async fn the_observer_is_told_which_answers_the_client_tries_again_after() {
+        isovox_server::client_tls::install_provider();
+        let retry = RetryPolicy {
+            attempts: 3,
+            base_delay: Duration::from_millis(1),
+            max_delay: Duration::from_millis(1),
+        };
+        // Shed twice, then answered: two exchanges retried, the third ends the call.
+        let seen = std::sync::Arc::new(Exchanges::default());
+        let base = answering(vec![503, 429, 200]).await;
+        let client = Client::new(&base)
+            .unwrap()
+            .with_retry(retry)
+            .with_observer(seen.clone());
+        client.volumes().await.unwrap();
+        assert_eq!(
+            *seen.0.lock().unwrap(),
+            [(503, true), (429, true), (200, false)]
+        );
+        // Shed on every attempt: the last 503 is the call's failure, not retried.
+        let seen = std::sync::Arc::new(Exchanges::default());
+        let base = answering(vec![503, 503, 503]).await;
+        let client = Client::new(&base)
+            .unwrap()
+            .with_retry(retry)
+            .with_observer(seen.clone());
+        assert!(client.volumes().await.is_err());
+        assert_eq!(
+            *seen.0.lock().unwrap(),
+            [(503, true), (503, true), (503, false)]
+        );
+        // A status the client never retries ends the call at once.
+        let seen = std::sync::Arc::new(Exchanges::default());
+        let base = answering(vec![500]).await;
+        let client = Client::new(&base)
+            .unwrap()
+            .with_retry(retry)
+            .with_observer(seen.clone());
+        assert!(client.volumes().await.is_err());
+        assert_eq!(*seen.0.lock().unwrap(), [(500, false)]);
     }
 }

@@ -134,7 +134,7 @@ impl Drop for TestServer {
 struct Counter(Mutex<HashMap<&'static str, u64>>);
 
 impl Observer for Counter {
-    fn exchange(&self, route: &'static str, _: Result<u16, &str>, _: Duration, _: u64) {
+    fn exchange(&self, route: &'static str, _: Result<u16, &str>, _: Duration, _: u64, _: bool) {
         *self.0.lock().unwrap().entry(route).or_default() += 1;
     }
 }
@@ -1708,7 +1708,7 @@ async fn requests_the_camera_no_longer_needs_are_cancelled() {
 struct Refusals(std::sync::atomic::AtomicU64);
 
 impl Observer for Refusals {
-    fn exchange(&self, _: &'static str, outcome: Result<u16, &str>, _: Duration, _: u64) {
+    fn exchange(&self, _: &'static str, outcome: Result<u16, &str>, _: Duration, _: u64, _: bool) {
         if outcome == Ok(503) {
             self.0.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
         }

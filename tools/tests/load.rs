@@ -212,8 +212,13 @@ fn check_run(report: &LoadReport, users: usize) {
         |f: fn(&isovox_tools::load::RouteReport) -> u64| report.routes.iter().map(f).sum::<u64>();
     assert_eq!(report.total.requests, sum(|r| r.requests));
     assert_eq!(report.total.bytes, sum(|r| r.bytes));
+    assert_eq!(report.total.retried, sum(|r| r.retried));
     for r in report.routes.iter().chain([&report.total]) {
-        assert_eq!(r.requests, r.ok + r.not_modified + r.errors, "{r:?}");
+        assert_eq!(
+            r.requests,
+            r.ok + r.not_modified + r.retried + r.errors,
+            "{r:?}"
+        );
         assert_eq!(r.latency_ms.samples, r.requests);
         assert!(r.latency_ms.p50 <= r.latency_ms.p90);
         assert!(r.latency_ms.p90 <= r.latency_ms.p99);

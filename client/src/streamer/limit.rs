@@ -94,6 +94,7 @@ impl Observer for Pacer {
         outcome: Result<u16, &str>,
         latency: Duration,
         bytes: u64,
+        retried: bool,
     ) {
         match outcome {
             Ok(503 | 429) => lock_limit(&self.limit).overloaded(self.started, Instant::now()),
@@ -101,7 +102,7 @@ impl Observer for Pacer {
             _ => {}
         }
         if let Some(next) = &self.next {
-            next.exchange(route, outcome, latency, bytes);
+            next.exchange(route, outcome, latency, bytes, retried);
         }
     }
 }

@@ -55,11 +55,11 @@ impl LoadReport {
     fn write_routes(&self, s: &mut String) {
         let _ = writeln!(
             s,
-            "| route | requests | 2xx | 304 | errors | MiB | req/s | MiB/s | p50 ms | p90 ms | p99 ms | max ms |"
+            "| route | requests | 2xx | 304 | retried | errors | MiB | req/s | MiB/s | p50 ms | p90 ms | p99 ms | max ms |"
         );
         let _ = writeln!(
             s,
-            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
         );
         for r in self.routes.iter().chain(std::iter::once(&self.total)) {
             let l = &r.latency_ms;
@@ -70,10 +70,11 @@ impl LoadReport {
             };
             let _ = writeln!(
                 s,
-                "| {name} | {} | {} | {} | {} | {:.2} | {:.0} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} |",
+                "| {name} | {} | {} | {} | {} | {} | {:.2} | {:.0} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} |",
                 r.requests,
                 r.ok,
                 r.not_modified,
+                r.retried,
                 r.errors,
                 r.bytes as f64 / f64::from(1u32 << 20),
                 r.requests_per_s,

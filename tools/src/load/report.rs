@@ -2,7 +2,7 @@
 //! notifications, streamers) from the recorder and the workers' results.
 
 use super::editor::EditorResult;
-use super::stats::{is_success, Latency, Recorder};
+use super::stats::{Latency, Recorder};
 use super::subscriber::SubscriberResult;
 use super::viewer::ViewerResult;
 use super::{LoadConfig, Tiles};
@@ -22,8 +22,13 @@ pub struct RouteReport {
     pub ok: u64,
     /// 304 answers (revalidated bricks).
     pub not_modified: u64,
-    /// Other statuses and transport failures.
+    /// Exchanges that failed their call: other statuses and transport failures, but for those
+    /// the client tried again after (`retried`).
     pub errors: u64,
+    /// Unsuccessful exchanges the client tried again after (503 or 429 while the server sheds
+    /// load, a transport failure of a call it may repeat); the call's last attempt decides
+    /// whether it failed.
+    pub retried: u64,
     /// Response body bytes (as announced by Content-Length; 0 for streams).
     pub bytes: u64,
     pub requests_per_s: f64,
@@ -249,31 +254,32 @@ fn route_section(
     let mut routes = Vec::new();
     let mut all_latencies = Vec::new();
     let mut all_outcomes: BTreeMap<String, u64> = BTreeMap::new();
-    let (mut all_bytes, mut all_errors) = (0, 0);
+    let (mut all_bytes, mut all_errors, mut all_retried) = (0, 0, 0);
     {
         let mut accs = recorder.lock();
         for (route, acc) in accs.iter_mut() {
             all_latencies.extend_from_slice(&acc.latencies);
             for (k, v) in &acc.outcomes {
                 *all_outcomes.entry(k.clone()).or_default() += v;
-                let ok = k.parse::<u16>().is_ok_and(|s| is_success(Ok(s)));
-                if !ok {
-                    let times = acc.error_times.get(k);
-                    errors.push(ErrorCount {
-                        source: (*route).to_string(),
-                        kind: k.clone(),
-                        count: *v,
-                        first_s: times.map(|t| t.0),
-                        last_s: times.map(|t| t.1),
-                    });
-                }
             }
+            for (k, v) in &acc.failures {
+                let times = acc.error_times.get(k);
+                errors.push(ErrorCount {
+                    source: (*route).to_string(),
+                    kind: k.clone(),
+                    count: *v,
+                    first_s: times.map(|t| t.0),
+                    last_s: times.map(|t| t.1),
+                });
+            }
+            let failed = acc.failures.values().sum();
             all_bytes += acc.bytes;
-            all_errors += acc.errors;
+            all_errors += failed;
+            all_retried += acc.retried;
             routes.push(route_report(
                 route,
                 acc.bytes,
-                acc.errors,
+                (failed, acc.retried),
                 &mut acc.latencies,
                 &acc.outcomes,
                 secs,
@@ -283,7 +289,7 @@ fn route_section(
     let total = route_report(
         "all",
         all_bytes,
-        all_errors,
+        (all_errors, all_retried),
         &mut all_latencies,
         &all_outcomes,
         secs,
@@ -500,10 +506,12 @@ fn streamer_section(
     st
 }
 
+/// One route's figures, with its exchanges that failed their call and those the client tried
+/// again after.
 fn route_report(
     route: &str,
     bytes: u64,
-    errors: u64,
+    (errors, retried): (u64, u64),
     latencies: &mut [u32],
     outcomes: &BTreeMap<String, u64>,
     secs: f64,
@@ -522,6 +530,7 @@ fn route_report(
         ok: count(&|s| (200..300).contains(&s)),
         not_modified: count(&|s| s == 304),
         errors,
+        retried,
         bytes,
         requests_per_s: requests as f64 / secs,
         mib_per_s: bytes as f64 / secs / f64::from(1u32 << 20),

@@ -34,8 +34,13 @@ pub(super) struct RouteAcc {
     pub(super) bytes: u64,
     /// Microseconds, one per exchange.
     pub(super) latencies: Vec<u32>,
+    /// Every exchange, by status code or transport failure kind.
     pub(super) outcomes: BTreeMap<String, u64>,
-    pub(super) errors: u64,
+    /// The exchanges that failed their call (the client did not try again), by kind.
+    pub(super) failures: BTreeMap<String, u64>,
+    /// Unsuccessful exchanges the client tried again after (503, 429, a transport failure it
+    /// may repeat): not errors, unless the last attempt failed too.
+    pub(super) retried: u64,
     /// Seconds since the start when each failure kind was first and last seen.
     pub(super) error_times: BTreeMap<String, (f64, f64)>,
 }
@@ -46,7 +51,7 @@ impl Recorder {
         self.requests.load(Ordering::Relaxed)
     }
 
-    /// Failed exchanges so far.
+    /// Exchanges that failed their call so far (not those the client tried again after).
     pub fn errors(&self) -> u64 {
         self.errors.load(Ordering::Relaxed)
     }
@@ -70,8 +75,10 @@ impl Observer for Recorder {
         outcome: Result<u16, &str>,
         latency: Duration,
         bytes: u64,
+        retried: bool,
     ) {
         let ok = is_success(outcome);
+        let failed = !ok && !retried;
         let name = match outcome {
             Ok(s) => s.to_string(),
             Err(kind) => kind.to_string(),
@@ -82,8 +89,11 @@ impl Observer for Recorder {
             r.bytes += bytes;
             r.latencies
                 .push(latency.as_micros().min(u128::from(u32::MAX)) as u32);
-            if !ok {
-                r.errors += 1;
+            if !ok && retried {
+                r.retried += 1;
+            }
+            if failed {
+                *r.failures.entry(name.clone()).or_default() += 1;
                 let t = self.start.elapsed().as_secs_f64();
                 let span = r.error_times.entry(name.clone()).or_insert((t, t));
                 span.1 = t;
@@ -91,7 +101,7 @@ impl Observer for Recorder {
             *r.outcomes.entry(name).or_default() += 1;
         }
         self.requests.fetch_add(1, Ordering::Relaxed);
-        if !ok {
+        if failed {
             self.errors.fetch_add(1, Ordering::Relaxed);
         }
     }
@@ -137,5 +147,33 @@ impl Latency {
             .map(|d| d.as_micros().min(u128::from(u32::MAX)) as u32)
             .collect();
         Latency::from_micros(&mut us)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_answer_the_client_tried_again_after_is_not_an_error() {
+        let r = Recorder::default();
+        let ms = Duration::from_millis(1);
+        // A brick shed twice then sent; a mesh shed on its last attempt.
+        r.exchange("brick", Ok(503), ms, 0, true);
+        r.exchange("brick", Err("connect"), ms, 0, true);
+        r.exchange("brick", Ok(200), ms, 10, false);
+        r.exchange("mesh", Ok(503), ms, 0, true);
+        r.exchange("mesh", Ok(503), ms, 0, false);
+        assert_eq!((r.requests(), r.errors()), (5, 1));
+        let routes = r.lock();
+        let brick = &routes["brick"];
+        assert_eq!(brick.retried, 2);
+        assert!(brick.failures.is_empty());
+        assert_eq!(brick.outcomes.len(), 3, "{:?}", brick.outcomes);
+        let mesh = &routes["mesh"];
+        assert_eq!(mesh.retried, 1);
+        assert_eq!(mesh.failures, BTreeMap::from([("503".to_string(), 1)]));
+        assert_eq!(mesh.outcomes, BTreeMap::from([("503".to_string(), 2)]));
+        assert!(mesh.error_times.contains_key("503"));
     }
 }
