@@ -13,7 +13,7 @@
 #   bash scripts/fuzz-api.sh --install  # only install Schemathesis (what .ci/run does)
 #
 # FUZZ_PART splits a run in two: `edit-coverage` is only the coverage phase of `POST .../edits`
-# (its term grammar is recursive: that phase alone is about 70,000 cases, most of a run's time),
+# (its term grammar is recursive: that phase alone is about 45,000 cases, most of a run's time),
 # on the served volume; `rest` is every other operation and phase. Unset: both in one run.
 #
 # Environment: FUZZ_EXAMPLES (test cases per operation and phase, default 500), FUZZ_SEED

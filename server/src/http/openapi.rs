@@ -479,7 +479,7 @@ fn term_schemas(limits: &TermLimits) -> Value {
     let s_l = json!({"type": "number", "exclusiveMinimum": 0, "maximum": 1});
     let k = int(-i64::from(u16::MAX), u16::MAX.into());
     let term = schema_ref("Term");
-    let two_terms = json!({"type": "array", "prefixItems": [term, term], "items": false, "minItems": 2, "maxItems": 2});
+    let two_terms = tuple(2, term.clone());
     let mut leaves = vec![
         (
             "cuboid",
