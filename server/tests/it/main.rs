@@ -9,12 +9,14 @@
 //! - [`tls`]: self-signed certificates and a TLS client;
 //! - [`random_terms`]: random ICVG terms for the property tests.
 //!
-//! libtest starts tests in the order of their names, two at a time here: the longest,
+//! libtest starts tests in the order of their names, three at a time in `.ci/run`: the longest,
 //! Schemathesis against the API document (minutes of Python on one core), is in the module that
-//! sorts first, so that it runs beside the others instead of alone at the end.
+//! sorts first, and the viewer's pages in chromium (a minute and a half) in the one after, so
+//! that they run beside the others instead of alone at the end.
 #![allow(clippy::unwrap_used)] // tests fail loudly on purpose
 
 mod api_document;
+mod browser;
 
 mod channel_volumes;
 mod common;

@@ -1,24 +1,22 @@
 //! The web viewer's tests, run by the README's test command (`cargo test --workspace`):
+//! `npm test` in `web/` (vitest, the unit tests of the TypeScript, among them the tile selection
+//! against the vectors `proto/tests/lod_vectors.rs` writes), and what the server sends the
+//! viewer. The pages in chromium are [`crate::browser`]'s.
 //!
-//! - `npm test` in `web/`: vitest, the unit tests of the TypeScript (among them the tile
-//!   selection against the vectors `proto/tests/lod_vectors.rs` writes);
-//! - `node --test tests/browser.test.mjs` in `web/`: Debian's chromium (playwright-core,
-//!   SwiftShader WebGL2) against this build's `isovox serve`, started and killed by the script.
-//!
-//! They need Node.js 20+ and `/usr/bin/chromium` (`.ci/run` installs both); `web/node_modules`
-//! is installed here if building the server did not already (`build.rs` runs `npm ci`).
+//! They need Node.js 20+ (`.ci/run` installs it); `web/node_modules` is installed here if
+//! building the server did not already (`build.rs` runs `npm ci`).
 
 use crate::server_process::{run_isovox, ServerProcess};
 use std::path::PathBuf;
 use std::process::Command;
 use std::sync::Mutex;
 
-fn web() -> PathBuf {
+pub(crate) fn web() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../web")
 }
 
 /// Runs `program args` in `web/` and fails with its output unless it succeeds.
-fn run(program: &str, args: &[&str], envs: &[(&str, &str)]) {
+pub(crate) fn run(program: &str, args: &[&str], envs: &[(&str, &str)]) {
     let out = Command::new(program)
         .args(args)
         .envs(envs.iter().copied())
@@ -35,7 +33,7 @@ fn run(program: &str, args: &[&str], envs: &[(&str, &str)]) {
 }
 
 /// `npm ci` once, when `web/node_modules` is missing.
-fn node_modules() {
+pub(crate) fn node_modules() {
     static DONE: Mutex<bool> = Mutex::new(false);
     let mut done = DONE.lock().unwrap_or_else(|e| e.into_inner());
     if !*done && !web().join("node_modules/.package-lock.json").exists() {
@@ -48,48 +46,6 @@ fn node_modules() {
 fn typescript_unit_tests() {
     node_modules();
     run("npm", &["test", "--silent"], &[]);
-}
-
-/// One browser test file at a time: each runs chromium on SwiftShader and a server.
-static BROWSER: Mutex<()> = Mutex::new(());
-
-#[test]
-fn browser_tests() {
-    node_modules();
-    let _one = BROWSER.lock().unwrap_or_else(|e| e.into_inner());
-    let chromium = std::env::var("CHROMIUM").unwrap_or_else(|_| "/usr/bin/chromium".into());
-    assert!(
-        std::path::Path::new(&chromium).exists(),
-        "{chromium} is missing: install Debian's chromium (apt-get install chromium), as .ci/run does"
-    );
-    run(
-        "node",
-        &["--test", "--test-reporter=spec", "tests/browser.test.mjs"],
-        &[
-            ("ISOVOX_BIN", env!("CARGO_BIN_EXE_isovox")),
-            ("CHROMIUM", &chromium),
-        ],
-    );
-}
-
-/// `web/tests/people.test.mjs`: two users' pages, each other's names, cursors and undo.
-#[test]
-fn browser_tests_of_editing_together() {
-    node_modules();
-    let _one = BROWSER.lock().unwrap_or_else(|e| e.into_inner());
-    let chromium = std::env::var("CHROMIUM").unwrap_or_else(|_| "/usr/bin/chromium".into());
-    assert!(
-        std::path::Path::new(&chromium).exists(),
-        "{chromium} is missing: install Debian's chromium (apt-get install chromium), as .ci/run does"
-    );
-    run(
-        "node",
-        &["--test", "--test-reporter=spec", "tests/people.test.mjs"],
-        &[
-            ("ISOVOX_BIN", env!("CARGO_BIN_EXE_isovox")),
-            ("CHROMIUM", &chromium),
-        ],
-    );
 }
 
 /// A world of 128x64x128 voxels served by this build's `isovox serve` on a free port.
