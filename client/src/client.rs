@@ -901,46 +901,41 @@ mod tests {
         format!("http://{addr}")
     }
 
-    #[tokio::test]
-    async fn the_observer_is_told_which_answers_the_client_tries_again_after() {
+    /// `GET /v1/volumes` (three attempts at most) against a server answering `statuses`: the
+    /// call's success, and each exchange's status and whether the client said it would retry.
+    async fn volumes_answered(statuses: Vec<u16>) -> (bool, Vec<(u16, bool)>) {
         isovox_server::client_tls::install_provider();
         let retry = RetryPolicy {
             attempts: 3,
             base_delay: Duration::from_millis(1),
             max_delay: Duration::from_millis(1),
         };
-        // Shed twice, then answered: two exchanges retried, the third ends the call.
         let seen = std::sync::Arc::new(Exchanges::default());
-        let base = answering(vec![503, 429, 200]).await;
-        let client = Client::new(&base)
+        let client = Client::new(&answering(statuses).await)
             .unwrap()
             .with_retry(retry)
             .with_observer(seen.clone());
-        client.volumes().await.unwrap();
+        let ok = client.volumes().await.is_ok();
+        let exchanges = seen.0.lock().unwrap().clone();
+        (ok, exchanges)
+    }
+
+    #[tokio::test]
+    async fn the_observer_is_told_which_answers_the_client_tries_again_after() {
+        // Shed twice, then answered: two exchanges retried, the third ends the call.
         assert_eq!(
-            *seen.0.lock().unwrap(),
-            [(503, true), (429, true), (200, false)]
+            volumes_answered(vec![503, 429, 200]).await,
+            (true, vec![(503, true), (429, true), (200, false)])
         );
         // Shed on every attempt: the last 503 is the call's failure, not retried.
-        let seen = std::sync::Arc::new(Exchanges::default());
-        let base = answering(vec![503, 503, 503]).await;
-        let client = Client::new(&base)
-            .unwrap()
-            .with_retry(retry)
-            .with_observer(seen.clone());
-        assert!(client.volumes().await.is_err());
         assert_eq!(
-            *seen.0.lock().unwrap(),
-            [(503, true), (503, true), (503, false)]
+            volumes_answered(vec![503, 503, 503]).await,
+            (false, vec![(503, true), (503, true), (503, false)])
         );
         // A status the client never retries ends the call at once.
-        let seen = std::sync::Arc::new(Exchanges::default());
-        let base = answering(vec![500]).await;
-        let client = Client::new(&base)
-            .unwrap()
-            .with_retry(retry)
-            .with_observer(seen.clone());
-        assert!(client.volumes().await.is_err());
-        assert_eq!(*seen.0.lock().unwrap(), [(500, false)]);
+        assert_eq!(
+            volumes_answered(vec![500]).await,
+            (false, vec![(500, false)])
+        );
     }
 }
