@@ -22,7 +22,7 @@ pub struct RouteReport {
     pub ok: u64,
     /// 304 answers (revalidated bricks).
     pub not_modified: u64,
-    /// Exchanges that failed their call: other statuses and transport failures, but for those
+    /// Exchanges that failed their call: other statuses and transport failures, except those
     /// the client tried again after (`retried`).
     pub errors: u64,
     /// Unsuccessful exchanges the client tried again after (503 or 429 while the server sheds
