@@ -55,8 +55,8 @@
 //! for a tile's grid region, whether the surface at the iso value (the meshes' iso, or S - 0.5
 //! for bricks) can cross it, from the value ranges the grids give for coarser bricks: it asks
 //! for the coarsest level's grid first and for a finer level's region only under bricks where
-//! the answer is "maybe". A tile it rules out is complete without content: no grid region, no blob, no mesh,
-//! no `Ready` (and `Dropped` if it had been delivered before an edit emptied it).
+//! the answer is "maybe". A tile it rules out is complete without content: no grid region, no
+//! blob, no mesh, no `Ready` (and `Dropped` if it had been delivered before an edit emptied it).
 //!
 //! The rule never drops a surface because it rests on a bound, not on the coarse values
 //! themselves: a level-(k+1) voxel is the mean of its 2x2x2 children rounded half up, so a

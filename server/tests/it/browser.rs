@@ -5,7 +5,7 @@
 //!
 //! One test runs both files, one after the other (`--test-concurrency=1`): each keeps chromium
 //! on SwiftShader busy, and two at once would share the cores with each other rather than with
-//! the rest of the suite. It is about a minute and a half of work on its own, so its module
+//! the rest of the suite. It is over a minute of work on its own (67 s alone), so its module
 //! sorts near the start (libtest starts tests in the order of their names) and it runs beside
 //! the other tests instead of after them. It needs `/usr/bin/chromium` (`.ci/run` installs it).
 

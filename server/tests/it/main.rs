@@ -11,7 +11,7 @@
 //!
 //! libtest starts tests in the order of their names, three at a time in `.ci/run`: the longest,
 //! Schemathesis against the API document (minutes of Python on one core), is in the module that
-//! sorts first, and the viewer's pages in chromium (a minute and a half) in the one after, so
+//! sorts first, and the viewer's pages in chromium (over a minute) in the one after, so
 //! that they run beside the others instead of alone at the end.
 #![allow(clippy::unwrap_used)] // tests fail loudly on purpose
 
