@@ -8,7 +8,7 @@
 use super::pyramid::{
     coarser, constant_parent, downsample, downsample_changed, BrickVoxels, Downsampling,
 };
-use super::writer::{PreparedBrick, Vod2Writer};
+use super::writer::{CheckpointChunk, PreparedBrick, Vod2Writer};
 use super::{Snapshot, StoreError, StoredBrick};
 use isovox_proto::geometry::Box3;
 use isovox_proto::vod2::{HeaderSlot, NodeEntry};
@@ -411,25 +411,22 @@ impl<'a> Transaction<'a> {
                 let checkpoint = snap.overlay_len() + changes.len() > policy.max_overlay
                     || snap.chain_len() + 1 > policy.max_chain;
                 let full = if checkpoint {
-                    let mut entries = snap.raw_entries()?;
-                    let mut summaries = snap.raw_summaries(&entries)?;
-                    for &(node, entry) in &changes {
-                        entries[node as usize] = entry.encode();
-                        summaries[node as usize] = self.writer.summary_for(node, entry)?;
-                    }
-                    Some((entries, summaries))
+                    let writer = &*self.writer;
+                    Some(snap.next_checkpoint(
+                        &changes,
+                        writer.writes_summaries(),
+                        |node, entry| writer.summary_for(node, entry),
+                    )?)
                 } else {
                     None
                 };
-                let full = full.as_ref().map(|(e, s)| (&e[..], &s[..]));
                 let slot = self.writer.stage(&changes, full, &self.note)?;
                 (slot, changed, checkpoint, channels_changed)
             }
             Base::Empty { entries } => {
                 let summaries = self.writer.summaries_of(&entries)?;
-                let slot = self
-                    .writer
-                    .stage(&[], Some((&entries, &summaries)), &self.note)?;
+                let chunks = CheckpointChunk::all_fresh(&entries, &summaries);
+                let slot = self.writer.stage(&[], Some(chunks), &self.note)?;
                 (slot, ChangedKeys::new(), true, BTreeMap::new())
             }
         };

@@ -276,6 +276,11 @@ impl Vod2Writer {
         self.write_summaries = false;
     }
 
+    /// Whether checkpoints and commit records this writer writes carry brick summaries.
+    pub fn writes_summaries(&self) -> bool {
+        self.write_summaries
+    }
+
     /// Whether the writer knows the summary of the record at `offset` without reading it.
     pub fn knows_summary(&self, offset: u64) -> bool {
         self.summaries.contains_key(&offset)
@@ -567,11 +572,13 @@ impl Vod2Writer {
         changes: &[(u64, NodeEntry)],
         checkpoint: Option<&[u64]>,
     ) -> Result<HeaderSlot, StoreError> {
-        let summaries = match checkpoint {
-            Some(entries) => Some(self.summaries_of(entries)?),
+        let full = match checkpoint {
+            Some(entries) => Some(CheckpointChunk::all_fresh(
+                entries,
+                &self.summaries_of(entries)?,
+            )),
             None => None,
         };
-        let full = checkpoint.zip(summaries.as_deref());
         self.stage(changes, full, &[])?;
         self.sync()
     }
@@ -610,7 +617,7 @@ impl Vod2Writer {
     pub fn stage(
         &mut self,
         changes: &[(u64, NodeEntry)],
-        checkpoint: Option<(&[u64], &[BrickSummary])>,
+        checkpoint: Option<Vec<CheckpointChunk>>,
         note: &[u8],
     ) -> Result<HeaderSlot, StoreError> {
         let note_len = u32::try_from(note.len())
@@ -670,19 +677,14 @@ impl Vod2Writer {
             false => None,
         };
         let checkpoint_at = match checkpoint {
-            Some((entries, summaries)) => {
-                if entries.len() as u64 != self.header.node_count()
-                    || summaries.len() != entries.len()
-                {
-                    return Err(StoreError::Internal(format!(
-                        "a checkpoint needs {} entries and summaries, got {} and {}",
-                        self.header.node_count(),
-                        entries.len(),
-                        summaries.len()
-                    )));
-                }
-                let summaries = self.write_summaries.then_some(summaries);
-                self.append(&encode_checkpoint(entries, summaries))?
+            Some(chunks) => {
+                self.check_checkpoint(&chunks)?;
+                let n_nodes = self.header.node_count();
+                self.append(&encode_checkpoint_chunks(
+                    n_nodes,
+                    chunks,
+                    self.write_summaries,
+                ))?
             }
             None => {
                 if parent == 0 {
@@ -718,6 +720,56 @@ impl Vod2Writer {
         };
         self.staged = Some(slot);
         Ok(slot)
+    }
+
+    /// Checks that `chunks` make a checkpoint of this file: one chunk per [`CHUNK_ENTRIES`]
+    /// nodes, a fresh one with an entry and a summary per node, a kept one with summaries
+    /// exactly when this writer writes them.
+    fn check_checkpoint(&self, chunks: &[CheckpointChunk]) -> Result<(), StoreError> {
+        let n_nodes = self.header.node_count();
+        let wrong = |what: String| {
+            Err(StoreError::Internal(format!(
+                "a checkpoint of {n_nodes} entries: {what}"
+            )))
+        };
+        if chunks.len() as u64 != Checkpoint::n_chunks(n_nodes) {
+            return wrong(format!(
+                "{} chunks, {} needed",
+                chunks.len(),
+                Checkpoint::n_chunks(n_nodes)
+            ));
+        }
+        for (c, chunk) in (0u64..).zip(chunks) {
+            let expected = (n_nodes - c * CHUNK_ENTRIES).min(CHUNK_ENTRIES) as usize;
+            match chunk {
+                CheckpointChunk::Fresh { entries, summaries }
+                    if entries.len() != expected || summaries.len() != expected =>
+                {
+                    return wrong(format!(
+                        "chunk {c} has {} entries and {} summaries, {expected} needed",
+                        entries.len(),
+                        summaries.len()
+                    ));
+                }
+                CheckpointChunk::Kept(kept) if kept.summaries.is_some() != self.write_summaries => {
+                    return wrong(format!(
+                        "kept chunk {c} {} summaries, the writer {} them",
+                        if kept.summaries.is_some() {
+                            "has"
+                        } else {
+                            "has no"
+                        },
+                        if self.write_summaries {
+                            "writes"
+                        } else {
+                            "omits"
+                        }
+                    ));
+                }
+                _ => {}
+            }
+        }
+        Ok(())
     }
 
     /// Makes every version staged since the last sync durable: the slot naming the newest of
@@ -865,11 +917,65 @@ fn damaged(offset: u64, e: &StoreError) -> bool {
     false
 }
 
+/// One chunk of a new index checkpoint ([`CHUNK_ENTRIES`] entries, the last chunk possibly
+/// fewer).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum CheckpointChunk {
+    /// A chunk of the previous checkpoint that no commit since has touched, as it is stored
+    /// there (checked against its hashes when read). Copying it costs a fraction of encoding
+    /// it again, and most chunks of a large volume are untouched between two checkpoints.
+    Kept(EncodedChunk),
+    /// Entries and their summaries, to encode.
+    Fresh {
+        /// The raw entries.
+        entries: Vec<u64>,
+        /// One per entry (a constant's is not read: stored as zeros).
+        summaries: Vec<BrickSummary>,
+    },
+}
+
+impl CheckpointChunk {
+    /// A whole index as fresh chunks.
+    pub fn all_fresh(entries: &[u64], summaries: &[BrickSummary]) -> Vec<CheckpointChunk> {
+        entries
+            .chunks(CHUNK_ENTRIES as usize)
+            .zip(summaries.chunks(CHUNK_ENTRIES as usize))
+            .map(|(e, s)| CheckpointChunk::Fresh {
+                entries: e.to_vec(),
+                summaries: s.to_vec(),
+            })
+            .collect()
+    }
+}
+
 /// Encodes a full index as a checkpoint: chunks of 512 entries, each zstd-compressed when that
 /// is smaller (runs of constant entries shrink to a few bytes), each followed by its entries'
 /// summaries (revision 5) when `summaries` is given (one per entry; a constant's stored as
 /// zeros, so that runs of constants shrink here too).
 pub fn encode_checkpoint(entries: &[u64], summaries: Option<&[BrickSummary]>) -> Vec<u8> {
+    let with_summaries = summaries.is_some();
+    let blank;
+    let summaries = match summaries {
+        Some(s) => s,
+        None => {
+            blank = vec![BrickSummary::default(); entries.len()];
+            &blank
+        }
+    };
+    encode_checkpoint_chunks(
+        entries.len() as u64,
+        CheckpointChunk::all_fresh(entries, summaries),
+        with_summaries,
+    )
+}
+
+/// Encodes a checkpoint of `n_nodes` entries from its chunks: kept chunks as they are, fresh
+/// ones encoded (in parallel), with their summaries when `with_summaries`.
+pub fn encode_checkpoint_chunks(
+    n_nodes: u64,
+    chunks: Vec<CheckpointChunk>,
+    with_summaries: bool,
+) -> Vec<u8> {
     use rayon::prelude::*;
     let zstd = Compression::Zstd(codec::DEFAULT_ZSTD_LEVEL);
     let encode = |bytes: Vec<u8>| {
@@ -877,34 +983,34 @@ pub fn encode_checkpoint(entries: &[u64], summaries: Option<&[BrickSummary]>) ->
         let (codec, payload) = codec::encode(&bytes, zstd);
         (codec, payload, hash)
     };
-    let chunks: Vec<EncodedChunk> = entries
-        .par_chunks(CHUNK_ENTRIES as usize)
-        .enumerate()
-        .map(|(c, chunk)| {
-            let (codec, payload, hash) =
-                encode(chunk.iter().flat_map(|e| e.to_le_bytes()).collect());
-            let summaries = summaries.map(|all| {
-                let first = c * CHUNK_ENTRIES as usize;
-                let mine = &all[first..first + chunk.len()];
-                let zeroed: Vec<BrickSummary> = chunk
-                    .iter()
-                    .zip(mine)
-                    .map(|(&raw, &s)| match NodeEntry::is_constant(raw) {
-                        true => BrickSummary::default(),
-                        false => s,
-                    })
-                    .collect();
-                encode(BrickSummary::encode_all(&zeroed))
-            });
-            EncodedChunk {
-                codec,
-                payload,
-                hash,
-                summaries,
+    let chunks: Vec<EncodedChunk> = chunks
+        .into_par_iter()
+        .map(|chunk| match chunk {
+            CheckpointChunk::Kept(kept) => kept,
+            CheckpointChunk::Fresh { entries, summaries } => {
+                let (codec, payload, hash) =
+                    encode(entries.iter().flat_map(|e| e.to_le_bytes()).collect());
+                let summaries = with_summaries.then(|| {
+                    let zeroed: Vec<BrickSummary> = entries
+                        .iter()
+                        .zip(&summaries)
+                        .map(|(&raw, &s)| match NodeEntry::is_constant(raw) {
+                            true => BrickSummary::default(),
+                            false => s,
+                        })
+                        .collect();
+                    encode(BrickSummary::encode_all(&zeroed))
+                });
+                EncodedChunk {
+                    codec,
+                    payload,
+                    hash,
+                    summaries,
+                }
             }
         })
         .collect();
-    Checkpoint::encode(entries.len() as u64, &chunks)
+    Checkpoint::encode(n_nodes, &chunks)
 }
 
 fn prepare(

@@ -26,6 +26,7 @@ mod server_process;
 mod tls;
 
 mod channels;
+mod checkpoints;
 mod cli;
 mod connection_limits;
 mod dedup_and_versions;

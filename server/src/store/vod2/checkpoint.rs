@@ -8,10 +8,11 @@ use super::snapshot::{commit_record, commit_summaries};
 use super::Snapshot;
 use crate::store::codec;
 use crate::store::region::MappedRegion;
+use crate::store::writer::CheckpointChunk;
 use crate::store::StoreError;
 use isovox_proto::vod2::{
-    BrickSummary, Checkpoint, CommitHeader, FileHeader, NodeEntry, CHECKPOINT_FIXED_LEN,
-    CHUNK_ENTRIES, CHUNK_REF_LEN, SUMMARY_LEN,
+    BrickSummary, Checkpoint, CommitHeader, EncodedChunk, FileHeader, NodeEntry,
+    CHECKPOINT_FIXED_LEN, CHUNK_ENTRIES, CHUNK_REF_LEN, SUMMARY_LEN,
 };
 use isovox_proto::FormatError;
 use std::collections::HashMap;
@@ -149,51 +150,79 @@ impl Snapshot {
         self.map.ensure(start, len)
     }
 
-    /// Every index entry of this version (every stream's) in node order, raw (as a checkpoint stores them): the
-    /// checkpoint's chunks (each checked against its hash when first used) with the overlay
-    /// applied (each entry checked when its commit was read). What a new checkpoint is written
-    /// from: copying chunks costs a fraction of looking up and decoding each entry.
+    /// The chunks of a checkpoint of this version with `changes` applied (in order: a node
+    /// changed twice takes the later entry), whose summaries `summary_of` gives. A chunk that
+    /// neither the commits since the base checkpoint nor `changes` touch is kept as the base
+    /// checkpoint stores it, after checking it against its hashes (decoding is cheap, encoding
+    /// is what a checkpoint costs), when it carries summaries exactly when `with_summaries`
+    /// says; every other chunk is the base's entries with the overlay and the changes applied,
+    /// and their summaries.
     ///
     /// # Errors
-    /// A checkpoint chunk fails its hash, or the chunks do not hold one entry per node.
-    pub fn raw_entries(&self) -> Result<Vec<u64>, StoreError> {
+    /// A change names a node outside the volume; a checkpoint chunk or summary block fails its
+    /// hash; a brick header is damaged; `summary_of` fails.
+    pub fn next_checkpoint(
+        &self,
+        changes: &[(u64, NodeEntry)],
+        with_summaries: bool,
+        summary_of: impl Fn(u64, NodeEntry) -> Result<BrickSummary, StoreError>,
+    ) -> Result<Vec<CheckpointChunk>, StoreError> {
         let nodes = self.header.node_count();
-        let mut entries = Vec::with_capacity(usize::try_from(nodes).unwrap_or(0));
-        for c in 0..self.index.chunks.len() {
-            entries.extend_from_slice(self.index.chunk(&self.map, c)?);
+        let n_chunks = self.index.chunks.len();
+        let mut changed_in: Vec<Vec<(u64, NodeEntry)>> = vec![Vec::new(); n_chunks];
+        for &(node, entry) in changes {
+            if node >= nodes {
+                return Err(StoreError::Internal(format!(
+                    "node {node} is outside the volume ({nodes} nodes)"
+                )));
+            }
+            changed_in[(node / CHUNK_ENTRIES) as usize].push((node, entry));
         }
-        if entries.len() as u64 != nodes {
-            return Err(StoreError::Internal(format!(
-                "the index checkpoint holds {} entries for {nodes} nodes",
-                entries.len()
-            )));
+        let mut overlaid = vec![false; n_chunks];
+        for &node in self.overlay.keys() {
+            if let Some(touched) = overlaid.get_mut((node / CHUNK_ENTRIES) as usize) {
+                *touched = true;
+            }
         }
-        for (&node, o) in self.overlay.iter() {
-            let slot = entries.get_mut(node as usize).ok_or_else(|| {
-                StoreError::Internal(format!("node {node} is outside the volume"))
-            })?;
-            *slot = o.raw;
+        let mut chunks = Vec::with_capacity(n_chunks);
+        for (c, changed) in changed_in.into_iter().enumerate() {
+            let base_entries = self.index.chunk(&self.map, c)?;
+            if !overlaid[c] && changed.is_empty() {
+                if let Some(kept) =
+                    self.index
+                        .stored_chunk(&self.map, &self.header, c, with_summaries)?
+                {
+                    chunks.push(CheckpointChunk::Kept(kept));
+                    continue;
+                }
+            }
+            let first = c as u64 * CHUNK_ENTRIES;
+            let mut entries = base_entries.to_vec();
+            for (node, slot) in (first..).zip(entries.iter_mut()) {
+                if let Some(o) = self.overlay.get(&node) {
+                    *slot = o.raw;
+                }
+            }
+            let mut summaries = Vec::with_capacity(entries.len());
+            for (node, &raw) in (first..).zip(&entries) {
+                summaries.push(match with_summaries {
+                    false => BrickSummary::default(),
+                    true => match self.indexed_summary(node)? {
+                        Some(s) => s,
+                        None => self.summary_from_record(node, raw)?,
+                    },
+                });
+            }
+            for (node, entry) in changed {
+                let i = (node - first) as usize;
+                entries[i] = entry.encode();
+                if with_summaries {
+                    summaries[i] = summary_of(node, entry)?;
+                }
+            }
+            chunks.push(CheckpointChunk::Fresh { entries, summaries });
         }
-        Ok(entries)
-    }
-
-    /// The summary of every entry of [`Snapshot::raw_entries`], in the same order (zeros for
-    /// constants): what a new checkpoint stores beside its entries. Taken from the index where
-    /// it has them; an entry without one (a file written before revision 5) costs a read of its
-    /// brick record's header, so the first checkpoint a revision-5 writer writes into an older
-    /// file reads every stored brick's header once.
-    ///
-    /// # Errors
-    /// A checkpoint chunk or summary block fails its hash, or a brick header is damaged.
-    pub fn raw_summaries(&self, entries: &[u64]) -> Result<Vec<BrickSummary>, StoreError> {
-        let mut out = Vec::with_capacity(entries.len());
-        for (node, &raw) in (0u64..).zip(entries) {
-            out.push(match self.indexed_summary(node)? {
-                Some(s) => s,
-                None => self.summary_from_record(node, raw)?,
-            });
-        }
-        Ok(out)
+        Ok(chunks)
     }
 
     /// The summary of the entry at file-wide `node` as the index holds it (the overlay's, or
@@ -328,18 +357,26 @@ impl IndexChunks {
     ) -> Result<Option<BrickSummary>, StoreError> {
         let c = (node / CHUNK_ENTRIES) as usize;
         let i = (node % CHUNK_ENTRIES) as usize;
+        let summaries = self.chunk_summaries(map, header, c)?;
+        if NodeEntry::is_constant(self.chunk(map, c)?[i]) {
+            return Ok(None);
+        }
+        Ok(summaries.map(|s| s[i]))
+    }
+
+    /// Chunk `c`'s summaries (`None` when it has none), decoded, hashed and range-checked on
+    /// first use, then kept.
+    fn chunk_summaries(
+        &self,
+        map: &MappedRegion,
+        header: &FileHeader,
+        c: usize,
+    ) -> Result<Option<&[BrickSummary]>, StoreError> {
         if self.summaries[c].get().is_none() {
             let decoded = self.decode_summaries(map, header, c)?;
             let _ = self.summaries[c].set(decoded);
         }
-        let entries = self.chunk(map, c)?;
-        if NodeEntry::is_constant(entries[i]) {
-            return Ok(None);
-        }
-        Ok(self.summaries[c]
-            .get()
-            .and_then(|s| s.as_ref())
-            .map(|s| s[i]))
+        Ok(self.summaries[c].get().and_then(|s| s.as_deref()))
     }
 
     fn decode_summaries(
@@ -379,6 +416,33 @@ impl IndexChunks {
             s.validate(voxel_type, "index chunk summaries", block.offset)?;
         }
         Ok(Some(summaries.into_boxed_slice()))
+    }
+
+    /// Chunk `c` as stored (its payload and summary block copied), after checking both
+    /// against their hashes (decoded on first use, as any reader does); `None` when it carries
+    /// summaries and `with_summaries` is false, or the other way round.
+    fn stored_chunk(
+        &self,
+        map: &MappedRegion,
+        header: &FileHeader,
+        c: usize,
+        with_summaries: bool,
+    ) -> Result<Option<EncodedChunk>, StoreError> {
+        // Decoding fetches the chunk's bytes, payload and summaries, into the mapping.
+        self.chunk(map, c)?;
+        self.chunk_summaries(map, header, c)?;
+        let cp = self.checkpoint(map.bytes())?;
+        let (r, payload) = cp.chunk(c as u64)?;
+        let summaries = cp.summaries(&r)?;
+        if summaries.is_some() != with_summaries {
+            return Ok(None);
+        }
+        Ok(Some(EncodedChunk {
+            codec: r.codec,
+            payload: payload.to_vec(),
+            hash: r.hash,
+            summaries: summaries.map(|b| (b.codec, b.payload.to_vec(), b.hash)),
+        }))
     }
 
     fn checkpoint<'m>(&self, mapped: &'m [u8]) -> Result<Checkpoint<'m>, StoreError> {
