@@ -108,8 +108,11 @@
 //! one load tester runs fifty streamers: a plan stops once 512 tiles wait for something (tiles
 //! found complete do not count, and each tile that arrives moves the window on), since only
 //! requests near the front of the queue start before the next plan; requests of tiles beyond
-//! the window that are running are left to finish. The tiles' order by distance is kept until
-//! the camera moves; the camera's tiles are selected again at most every 100 ms while it moves
+//! the window that are running are left to finish. The order by distance of the tiles still
+//! without content is kept until the camera moves or a commit makes tiles need content again,
+//! each plan dropping from it the tiles that got content meanwhile (once most tiles are
+//! complete, a plan does not walk past thousands of them); the camera's tiles are selected
+//! again at most every 100 ms while it moves
 //! (the newest position then); while requests of the last plan wait to start, planning runs at
 //! most every 50 ms however many answers come; and a waiting mesh tile's plan (content keys
 //! from up to 27 bricks' hashes) is kept until a request it needs ends, content it waits for

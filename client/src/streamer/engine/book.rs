@@ -7,6 +7,7 @@ use crate::streamer::StreamEvent;
 use isovox_proto::api::{LevelGrid, VolumeInfo};
 use isovox_proto::tile::GridBox;
 use isovox_proto::{BrickKey, VolumeLayout};
+use std::cell::RefCell;
 use std::hash::{DefaultHasher, Hash, Hasher};
 
 /// The volume's shape as content keys describe it: its layout and metadata.
@@ -29,6 +30,25 @@ pub(super) struct HashBook {
     /// The grid region (planned or running) that brings an unknown brick's hash, when it is
     /// not the brick's chunk.
     sources: FastMap<BrickKey, JobKey>,
+    /// Counts the changes to `ranges` and `kept_bounds`, which the descent's bounds are drawn
+    /// from.
+    generation: u64,
+    /// The descent's bounds worked out since the last such change.
+    pub(super) memo: RefCell<BoundMemo>,
+}
+
+/// The bounds the descent worked out ([`HashBook::bound`]), kept while the ranges they were
+/// drawn from stay as they were. Tiles a moving camera brings into view read many of the same
+/// bricks (a tile reads its neighbours, and they share ancestors): a bound is then one lookup
+/// instead of a walk up the octree.
+#[derive(Debug, Default)]
+pub(super) struct BoundMemo {
+    /// The book's generation they were worked out at.
+    pub(super) generation: u64,
+    /// The iso value's bits they were worked out for.
+    pub(super) iso: u32,
+    /// Each brick's bound, or the brick whose grid entry is needed first.
+    pub(super) bounds: FastMap<BrickKey, Result<(u16, u16), BrickKey>>,
 }
 
 impl HashBook {
@@ -40,6 +60,8 @@ impl HashBook {
             ranges: FastMap::default(),
             kept_bounds: FastMap::default(),
             sources: FastMap::default(),
+            generation: 0,
+            memo: RefCell::default(),
         }
     }
 
@@ -58,6 +80,11 @@ impl HashBook {
         self.ranges.get(&b).copied()
     }
 
+    /// The count of changes to what the descent's bounds are drawn from.
+    pub(super) fn generation(&self) -> u64 {
+        self.generation
+    }
+
     /// A bound kept on brick `b`'s voxels while its range is unknown.
     pub(super) fn kept_bound(&self, b: BrickKey) -> Option<(u16, u16)> {
         self.kept_bounds.get(&b).copied()
@@ -71,6 +98,7 @@ impl HashBook {
         }
         let kept = self.kept_bounds.entry(b).or_insert((lo, hi));
         *kept = (kept.0.max(lo), kept.1.min(hi));
+        self.generation += 1;
     }
 
     /// Whether a grid region was designated to bring `brick`'s hash (a commit changed it and
@@ -197,6 +225,7 @@ impl HashBook {
         (min, max): ([u32; 3], [u32; 3]),
         grid: &LevelGrid,
     ) -> Vec<StreamEvent> {
+        self.generation += 1;
         let mut errors = Vec::new();
         let mut bricks = grid.bricks.iter();
         for z in min[2]..max[2] {
@@ -226,6 +255,7 @@ impl HashBook {
 
     /// Brick `b` changed and holds `hash`, with values in `range`, now (a commit event said so).
     pub(super) fn learn(&mut self, b: BrickKey, hash: u64, range: (u16, u16)) {
+        self.generation += 1;
         self.hashes.insert(b, hash);
         self.ranges.insert(b, range);
         self.kept_bounds.remove(&b);
@@ -234,6 +264,7 @@ impl HashBook {
 
     /// Brick `b` changed: its hash is unknown again.
     pub(super) fn forget(&mut self, b: BrickKey) {
+        self.generation += 1;
         self.hashes.remove(&b);
         self.ranges.remove(&b);
         self.kept_bounds.remove(&b);
@@ -262,6 +293,7 @@ impl HashBook {
 
     /// Forgets every hash and source.
     pub(super) fn clear(&mut self) {
+        self.generation += 1;
         self.hashes.clear();
         self.ranges.clear();
         self.kept_bounds.clear();

@@ -72,6 +72,19 @@ impl Desired {
         self.selection.iter().map(|&(k, _)| k).collect()
     }
 
+    /// The desired tiles without current content, in no particular order (read off the tiles
+    /// themselves, without a lookup per key).
+    pub(super) fn needing(&self) -> Vec<BrickKey> {
+        let mut keys = Vec::with_capacity(self.missing);
+        keys.extend(
+            self.tiles
+                .iter()
+                .filter(|(_, t)| t.ready.is_none())
+                .map(|(&k, _)| k),
+        );
+        keys
+    }
+
     /// Makes `new` the desired set, mesh tiles with their face `masks` in it: tiles that leave
     /// it are dropped, mesh tiles whose face mask changed need drawing again. Returns the
     /// dropped tiles that had been shown, in key order.

@@ -74,9 +74,11 @@ pub(super) struct Engine {
     last_select: Instant,
     /// Replans so far (see [`KeptPlan::checked`]).
     replans: u64,
-    /// The desired tiles nearest first, with their distances: the order tiles are planned in,
-    /// kept from one replan to the next until the camera moves (empty: to be sorted again).
-    nearest: Vec<(f32, BrickKey)>,
+    /// The desired tiles without current content nearest first, with their distances: the
+    /// order tiles are planned in. Kept from one replan to the next, each dropping the tiles
+    /// that have content by then, until the camera moves or a commit makes tiles need content
+    /// again (`None`: to be sorted again).
+    nearest: Option<Vec<(f32, BrickKey)>>,
     /// The last replan stopped at the window: a tile that arrives asks for the next replan.
     plan_stopped_early: bool,
     /// The version every known hash and requested tile describes.
@@ -150,7 +152,7 @@ impl Engine {
                 .checked_sub(SELECT_EVERY)
                 .unwrap_or_else(Instant::now),
             replans: 0,
-            nearest: Vec::new(),
+            nearest: None,
             plan_stopped_early: false,
             layout,
             radii,
@@ -294,7 +296,7 @@ impl Engine {
         self.edited.retain(|k| desired.contains(*k));
         self.undecided.retain(|k, _| desired.contains(*k));
         self.plans.retain(|k, _| desired.contains(*k));
-        self.nearest.clear();
+        self.nearest = None;
         self.scheduler.replan_needed = true;
     }
 
@@ -338,23 +340,36 @@ impl Engine {
         let keep_plans = matches!(self.kind, TileKind::Meshes { .. });
         // One plan's buffers for the tiles whose plan is not kept.
         let mut plan = TilePlan::default();
-        if self.nearest.is_empty() {
-            let tiles = self.desired.sorted_keys();
-            self.nearest = tiles.into_iter().map(|k| (self.distance(k), k)).collect();
-            self.nearest
-                .sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        }
-        let nearest = std::mem::take(&mut self.nearest);
+        let mut nearest = match self.nearest.take() {
+            Some(nearest) => nearest,
+            None => {
+                let needing = self.desired.needing();
+                let mut nearest: Vec<(f32, BrickKey)> =
+                    needing.into_iter().map(|k| (self.distance(k), k)).collect();
+                nearest.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                nearest
+            }
+        };
         let mut waiting_tiles = 0;
         let mut partial = false;
-        for &(d, key) in &nearest {
+        // Tiles that have content are dropped from `nearest` as the loop passes them (those
+        // after where it stops stay): once most tiles are complete, a replan no longer walks
+        // past thousands of them.
+        let mut retained = 0;
+        let mut next = 0;
+        while next < nearest.len() {
+            let (d, key) = nearest[next];
             if !self.desired.needs(key) {
+                next += 1;
                 continue;
             }
             if waiting_tiles == PLAN_AHEAD {
                 partial = true;
                 break;
             }
+            nearest[retained] = (d, key);
+            retained += 1;
+            next += 1;
             let edited = self.edited.contains(&key);
             let mask = self.desired.mask(key);
             if let Some(kept) = self.plans.get_mut(&key) {
@@ -403,7 +418,9 @@ impl Engine {
                 self.plans.remove(&key);
             }
         }
-        self.nearest = nearest;
+        nearest.copy_within(next.., retained);
+        nearest.truncate(retained + (nearest.len() - next));
+        self.nearest = Some(nearest);
         self.plan_stopped_early = partial;
         for key in skipped {
             self.stats.skipped += 1;
@@ -911,6 +928,8 @@ impl Engine {
         // of the commit: one still loading asks for what it asked for before.
         if self.desired.contains(key) && !self.desired.needs(key) {
             self.edited.insert(key);
+            // It needs content again: the next replan sorts the tiles that do afresh.
+            self.nearest = None;
         }
         let Some(newly_stale) = self.desired.invalidate(key) else {
             return;
