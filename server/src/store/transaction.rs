@@ -415,6 +415,7 @@ impl<'a> Transaction<'a> {
                     Some(snap.next_checkpoint(
                         &changes,
                         writer.writes_summaries(),
+                        true,
                         |node, entry| writer.summary_for(node, entry),
                     )?)
                 } else {

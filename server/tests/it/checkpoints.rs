@@ -25,7 +25,7 @@ const ALWAYS_CHECKPOINT: CheckpointPolicy = CheckpointPolicy {
 
 /// Writes noise into the level-0 brick at `(x, y, z)` of the head of `path`, committed with
 /// `policy`; returns whether the commit wrote a checkpoint.
-fn edit(path: &Path, [x, y, z]: [u32; 3], seed: u8, policy: CheckpointPolicy) -> bool {
+pub(crate) fn edit(path: &Path, [x, y, z]: [u32; 3], seed: u8, policy: CheckpointPolicy) -> bool {
     let vod = Vod2::open(path).unwrap();
     let snap = vod.head();
     let layout = snap.layout().clone();
@@ -91,7 +91,7 @@ fn a_checkpoint_copies_untouched_chunks_and_equals_one_encoded_from_every_entry(
     let vod = Vod2::open(&with).unwrap();
     let chunks = vod
         .head()
-        .next_checkpoint(&[], true, |_, _| unreachable!("no changes"))
+        .next_checkpoint(&[], true, true, |_, _| unreachable!("no changes"))
         .unwrap();
     let kept = chunks
         .iter()

@@ -270,26 +270,16 @@ fn assert_summaries_match_voxels(vod: &Vod2, what: &str) -> usize {
 /// Writes new noise into the level-0 brick at `key` of the file's head with a revision-5
 /// writer, a full checkpoint with the commit.
 fn edit_with_checkpoint(path: &Path, key: BrickKey, seed: u8) {
-    let vod = Vod2::open(path).unwrap();
-    let snap = vod.head();
-    let layout = snap.layout().clone();
-    let mut w = Vod2Writer::open_append(path, Compression::for_edits()).unwrap();
-    let voxels: Vec<u8> = (0..layout.brick_bytes())
-        .map(|i| (i as u8).wrapping_mul(31).wrapping_add(seed) % 200)
-        .collect();
-    let mut t = Transaction::on(&mut w, &snap);
-    t.update_level0(
-        vec![(key, BrickVoxels::Data(voxels))],
-        &isovox_proto::geometry::Box3::of_volume(&layout),
-    )
-    .unwrap();
-    let committed = t
-        .commit(CheckpointPolicy {
-            max_overlay: 0,
-            max_chain: 0,
-        })
-        .unwrap();
-    assert!(committed.checkpoint);
+    let policy = CheckpointPolicy {
+        max_overlay: 0,
+        max_chain: 0,
+    };
+    assert!(crate::checkpoints::edit(
+        path,
+        [key.x, key.y, key.z],
+        seed,
+        policy
+    ));
 }
 
 #[test]

@@ -5,6 +5,7 @@
 //! each figure is the median of several runs where a run is short.
 
 pub mod channels;
+pub mod checkpoint;
 pub mod cold_tiles;
 pub mod edits;
 pub mod http;
@@ -59,6 +60,9 @@ pub enum BenchCommand {
     /// Solid voxelization of a ~300k-triangle closed model into 512^3 and 1024^3, next to the
     /// paper's GPU figures.
     Voxelize(voxelize::VoxelizeBenchArgs),
+    /// An index checkpoint of a large volume after small edits: copying the untouched chunks
+    /// of the previous checkpoint against encoding every chunk.
+    Checkpoint(checkpoint::CheckpointBenchArgs),
     /// Attribute channels: mode downsampling next to tinybrain, label storage next to
     /// compressed_segmentation + gzip, edits/s with a material channel against density alone.
     Channels(channels::ChannelsBenchArgs),
@@ -96,6 +100,7 @@ pub fn run(cmd: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Memory(a) => memory::run_bench(a),
         BenchCommand::Voxelize(a) => voxelize::run_bench(a),
         BenchCommand::Channels(a) => channels::run_bench(a),
+        BenchCommand::Checkpoint(a) => checkpoint::run_bench(a),
         BenchCommand::ColdTiles(a) => cold_tiles::run_bench(a),
     }
 }

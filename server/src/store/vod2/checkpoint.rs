@@ -156,7 +156,8 @@ impl Snapshot {
     /// checkpoint stores it, after checking it against its hashes (decoding is cheap, encoding
     /// is what a checkpoint costs), when it carries summaries exactly when `with_summaries`
     /// says; every other chunk is the base's entries with the overlay and the changes applied,
-    /// and their summaries.
+    /// and their summaries. With `keep_untouched` false, every chunk is fresh (what encoding
+    /// the whole index costs, as `isovox-bench checkpoint` measures against).
     ///
     /// # Errors
     /// A change names a node outside the volume; a checkpoint chunk or summary block fails its
@@ -165,6 +166,7 @@ impl Snapshot {
         &self,
         changes: &[(u64, NodeEntry)],
         with_summaries: bool,
+        keep_untouched: bool,
         summary_of: impl Fn(u64, NodeEntry) -> Result<BrickSummary, StoreError>,
     ) -> Result<Vec<CheckpointChunk>, StoreError> {
         let nodes = self.header.node_count();
@@ -187,7 +189,7 @@ impl Snapshot {
         let mut chunks = Vec::with_capacity(n_chunks);
         for (c, changed) in changed_in.into_iter().enumerate() {
             let base_entries = self.index.chunk(&self.map, c)?;
-            if !overlaid[c] && changed.is_empty() {
+            if keep_untouched && !overlaid[c] && changed.is_empty() {
                 if let Some(kept) =
                     self.index
                         .stored_chunk(&self.map, &self.header, c, with_summaries)?
