@@ -753,17 +753,9 @@ impl Vod2Writer {
                 }
                 CheckpointChunk::Kept(kept) if kept.summaries.is_some() != self.write_summaries => {
                     return wrong(format!(
-                        "kept chunk {c} {} summaries, the writer {} them",
-                        if kept.summaries.is_some() {
-                            "has"
-                        } else {
-                            "has no"
-                        },
-                        if self.write_summaries {
-                            "writes"
-                        } else {
-                            "omits"
-                        }
+                        "kept chunk {c} has summaries: {}, the writer writes them: {}",
+                        kept.summaries.is_some(),
+                        self.write_summaries
                     ));
                 }
                 _ => {}
@@ -950,22 +942,13 @@ impl CheckpointChunk {
 
 /// Encodes a full index as a checkpoint: chunks of 512 entries, each zstd-compressed when that
 /// is smaller (runs of constant entries shrink to a few bytes), each followed by its entries'
-/// summaries (revision 5) when `summaries` is given (one per entry; a constant's stored as
-/// zeros, so that runs of constants shrink here too).
-pub fn encode_checkpoint(entries: &[u64], summaries: Option<&[BrickSummary]>) -> Vec<u8> {
-    let with_summaries = summaries.is_some();
-    let blank;
-    let summaries = match summaries {
-        Some(s) => s,
-        None => {
-            blank = vec![BrickSummary::default(); entries.len()];
-            &blank
-        }
-    };
+/// summaries (revision 5; one per entry, a constant's stored as zeros, so that runs of
+/// constants shrink here too).
+pub fn encode_checkpoint(entries: &[u64], summaries: &[BrickSummary]) -> Vec<u8> {
     encode_checkpoint_chunks(
         entries.len() as u64,
         CheckpointChunk::all_fresh(entries, summaries),
-        with_summaries,
+        true,
     )
 }
 

@@ -118,7 +118,7 @@ fn a_checkpoint_copies_untouched_chunks_and_equals_one_encoded_from_every_entry(
     let (at, len) = vod.head().checkpoint_span().unwrap();
     let bytes = std::fs::read(&with).unwrap();
     let written = &bytes[at as usize..(at + len) as usize];
-    let fresh = encode_checkpoint(&entries, Some(&summaries));
+    let fresh = encode_checkpoint(&entries, &summaries);
     assert_eq!(written.len(), fresh.len());
     assert!(written == &fresh[..], "the checkpoints differ");
 }

@@ -72,23 +72,21 @@ pub fn run_bench(args: CheckpointBenchArgs) -> anyhow::Result<()> {
         args.edits,
         started.elapsed().as_secs_f64()
     );
-    let vod = Vod2::open(&path)?;
-    let snap = vod.head();
-    let nodes = vod.header().node_count();
+    let nodes = Vod2::open(&path)?.header().node_count();
     let checkpoint = |keep: bool| -> anyhow::Result<(Vec<u8>, usize, usize, f64)> {
         // A fresh open each time: no chunk decoded beforehand by the other way.
         let vod = Vod2::open(&path)?;
         let snap = vod.head();
         let t0 = Instant::now();
         let chunks = snap.next_checkpoint(&[], true, keep, |_, _| unreachable!("no changes"))?;
-        let kept = (chunks.iter())
+        let kept = chunks
+            .iter()
             .filter(|c| matches!(c, CheckpointChunk::Kept(_)))
             .count();
         let total = chunks.len();
         let bytes = encode_checkpoint_chunks(nodes, chunks, true);
         Ok((bytes, kept, total, t0.elapsed().as_secs_f64() * 1e3))
     };
-    drop(snap);
     let (mut copying, mut encoding) = (Vec::new(), Vec::new());
     let (mut kept, mut total) = (0, 0);
     for _ in 0..args.rounds {
@@ -107,7 +105,6 @@ pub fn run_bench(args: CheckpointBenchArgs) -> anyhow::Result<()> {
         args.rounds,
         all / copy
     );
-    drop(vod);
     std::fs::remove_file(&path)?;
     Ok(())
 }

@@ -36,7 +36,7 @@ use super::FastSet;
 use isovox_proto::tile::GridBox;
 use isovox_proto::{BrickKey, VolumeLayout};
 
-/// Most bounds the memo keeps (each 24 bytes and a table slot) before it starts again.
+/// Most bounds the memo keeps before it starts again.
 const MEMO_BOUNDS: usize = 1 << 18;
 
 /// The range of the voxels of any child of a parent brick whose voxels lie in `(lo, hi)`, for
@@ -229,9 +229,9 @@ impl HashBook {
     /// grid read as 0), stopping once they show a surface.
     ///
     /// A tile reads a box of neighbouring bricks, which share parents: where a parent's bound
-    /// carried down lies on one side of `iso`, so do all its children (a child's own range or
-    /// kept bound lies within it), and the children are not looked up one by one. The decision
-    /// is the one each brick's [`HashBook::bound`] gives, at a third of the lookups.
+    /// carried down lies on one side of `iso`, so do all its children's voxels (and so their
+    /// own ranges, and any kept bound, which bounds the same voxels), and the children are not
+    /// looked up one by one. The decision is the one each brick's [`HashBook::bound`] gives.
     fn box_sides(
         &self,
         layout: &VolumeLayout,

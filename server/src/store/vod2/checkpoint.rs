@@ -156,8 +156,11 @@ impl Snapshot {
     /// checkpoint stores it, after checking it against its hashes (decoding is cheap, encoding
     /// is what a checkpoint costs), when it carries summaries exactly when `with_summaries`
     /// says; every other chunk is the base's entries with the overlay and the changes applied,
-    /// and their summaries. With `keep_untouched` false, every chunk is fresh (what encoding
-    /// the whole index costs, as `isovox-bench checkpoint` measures against).
+    /// and their summaries: taken from the index where it has them; an entry without one (a
+    /// file written before revision 5) costs a read of its brick record's header, so the first
+    /// checkpoint a revision-5 writer writes into an older file reads every stored brick's
+    /// header once. With `keep_untouched` false, every chunk is fresh (what encoding the whole
+    /// index costs, as `isovox-bench checkpoint` measures against).
     ///
     /// # Errors
     /// A change names a node outside the volume; a checkpoint chunk or summary block fails its
@@ -188,7 +191,6 @@ impl Snapshot {
         }
         let mut chunks = Vec::with_capacity(n_chunks);
         for (c, changed) in changed_in.into_iter().enumerate() {
-            let base_entries = self.index.chunk(&self.map, c)?;
             if keep_untouched && !overlaid[c] && changed.is_empty() {
                 if let Some(kept) =
                     self.index
@@ -199,7 +201,7 @@ impl Snapshot {
                 }
             }
             let first = c as u64 * CHUNK_ENTRIES;
-            let mut entries = base_entries.to_vec();
+            let mut entries = self.index.chunk(&self.map, c)?.to_vec();
             for (node, slot) in (first..).zip(entries.iter_mut()) {
                 if let Some(o) = self.overlay.get(&node) {
                     *slot = o.raw;
