@@ -100,9 +100,9 @@ pub struct LevelBrick {
     /// Content hash, 16 hex digits: `GET .../blobs/{hash}` fetches it.
     pub hash: String,
     /// The brick's smallest voxel value.
-    pub min: u16,
+    pub min: u64,
     /// The brick's largest voxel value.
-    pub max: u16,
+    pub max: u64,
 }
 
 /// `GET /v1/volumes/{name}/levels/{level}`: the brick grid of a level, or of the box

@@ -8,7 +8,8 @@
 //! ```text
 //! 0     magic "IVBB", u32 count n
 //! 8     n x 28-byte entries: u8 level, u8 codec (0 raw voxels, 1 lz4 block, 2 zstd frame,
-//!       3 constant: the payload is the u16 value), u16 zero, u32 x, u32 y, u32 z,
+//!       3 constant: the payload is the value, a u16, or a u64 in a u32 or u64 stream),
+//!       u16 zero, u32 x, u32 y, u32 z,
 //!       u64 content hash, u32 payload length
 //! 8+28n payloads, in entry order
 //! ```
@@ -56,8 +57,18 @@ pub enum BatchCodec {
     Lz4 = 1,
     /// A zstd frame of the voxels.
     Zstd = 2,
-    /// A constant brick: the payload is its one value (u16 little endian).
+    /// A constant brick: the payload is its one value, little endian: a u16 for u8 and u16
+    /// bricks, a u64 for u32 and u64 bricks ([`constant_payload`]).
     Constant = 3,
+}
+
+/// The payload of a [`BatchCodec::Constant`] entry of value `v` in a stream of `voxel_type`.
+pub fn constant_payload(v: u64, voxel_type: crate::VoxelType) -> Vec<u8> {
+    if voxel_type.is_wide() {
+        v.to_le_bytes().to_vec()
+    } else {
+        (v as u16).to_le_bytes().to_vec()
+    }
 }
 
 /// One brick of a batch.

@@ -60,9 +60,15 @@ impl VolumeLayout {
     /// A validated layout.
     ///
     /// # Errors
-    /// Any dimension is zero, the brick edge is not a power of two in `[2, 256]`, or the pyramid
+    /// Density of a type other than u8 or u16, any dimension is zero, the brick edge is not a power of two in `[2, 256]`, or the pyramid
     /// would have more than [`MAX_NODES`] nodes.
     pub fn new(dims: [u32; 3], brick: u32, voxel_type: VoxelType) -> Result<Self, FormatError> {
+        if !voxel_type.is_density() {
+            return Err(FormatError::invalid(
+                "voxel type",
+                format!("density is u8 or u16, not {voxel_type} (u32 and u64 are for channels)"),
+            ));
+        }
         if dims.contains(&0) {
             return Err(FormatError::invalid(
                 "volume dimensions",

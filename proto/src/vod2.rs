@@ -42,13 +42,19 @@ pub const SLOT_LEN: usize = 72;
 pub const SLOT_APPENDED_CHECKED: u32 = 1;
 /// Where the append-only region starts.
 pub const DATA_START: u64 = 12288;
-/// Size of the header in front of every stored brick payload.
+/// Size of the header in front of every stored brick payload of a u8 or u16 stream.
 pub const BRICK_HEADER_LEN: usize = 24;
+/// Size of the header in front of a brick payload of a u32 or u64 stream (revision 6): its
+/// value range takes two u64 ([`RECORD_WIDE_RANGE`]).
+pub const WIDE_BRICK_HEADER_LEN: usize = 40;
 /// Brick record flag (header byte 13): the payload is followed by its checksum
 /// ([`payload_check`], [`PAYLOAD_CHECK_LEN`] bytes), so that it can be verified without
 /// decoding before it is sent as it is. Every record written since this revision of the format
 /// has it; records written before have no flag and no checksum.
 pub const RECORD_PAYLOAD_CHECKED: u8 = 1;
+/// Brick record flag (header byte 13, revision 6): the record belongs to a u32 or u64 stream
+/// and its header is [`WIDE_BRICK_HEADER_LEN`] bytes, the range two u64 at 16 and 24.
+pub const RECORD_WIDE_RANGE: u8 = 2;
 /// Size of the checksum that follows a checked payload.
 pub const PAYLOAD_CHECK_LEN: usize = 4;
 /// Size of a commit record without its changes.
@@ -62,8 +68,14 @@ pub const COMMIT_HAS_NOTE: u32 = 1;
 /// (after the note, if any): [`SUMMARY_LEN`] bytes per change, then an xxh3 checksum of the
 /// record's bytes from its start.
 pub const COMMIT_HAS_SUMMARIES: u32 = 2;
+/// Commit record flag (revision 6): the summaries are [`WIDE_SUMMARY_LEN`] bytes each (the
+/// file has a u32 or u64 channel).
+pub const COMMIT_WIDE_SUMMARIES: u32 = 4;
 /// Bytes per brick summary ([`BrickSummary`]): content hash, smallest and largest value.
 pub const SUMMARY_LEN: usize = 12;
+/// Bytes per brick summary in a file with a u32 or u64 channel (revision 6): the range is two
+/// u64.
+pub const WIDE_SUMMARY_LEN: usize = 24;
 /// Chunk reference flag (byte 13, revision 5): the chunk's payload is followed by a summary
 /// block ([`SUMMARY_BLOCK_HEADER_LEN`] bytes of header, then the encoded summaries) whose
 /// length is the u16 at bytes 14..16.
@@ -86,6 +98,8 @@ const SLOT_MAGIC: [u8; 4] = *b"VSLT";
 const COMMIT_MAGIC: [u8; 4] = *b"VCMT";
 const CHECKPOINT_MAGIC: [u8; 4] = *b"VIDX";
 const NODE_CONSTANT: u64 = 1 << 63;
+/// The largest value a constant index entry holds: the entry's other 63 bits.
+pub const MAX_CONSTANT: u64 = NODE_CONSTANT - 1;
 
 /// The content hash of a decoded brick: xxh3-64 of its bytes (u16 little endian).
 pub fn content_hash(bytes: &[u8]) -> u64 {
@@ -272,6 +286,12 @@ impl FileHeader {
                 .get(s - 1)
                 .map(|c| self.layout.with_voxel_type(c.voxel_type)),
         }
+    }
+
+    /// Whether the file's brick summaries are wide ([`WIDE_SUMMARY_LEN`]): it has a u32 or
+    /// u64 channel (revision 6).
+    pub fn wide_summaries(&self) -> bool {
+        self.channels.iter().any(|c| c.voxel_type.is_wide())
     }
 
     /// Index entries of the whole file: one pyramid per stream (density, then each channel).
@@ -608,34 +628,67 @@ pub struct BrickHeader {
     pub codec: Codec,
     /// Smallest and largest voxel value of the brick (answers "can this hold a surface?"
     /// without decoding).
-    pub min: u16,
+    pub min: u64,
     /// The largest voxel value.
-    pub max: u16,
+    pub max: u64,
     /// Whether the payload is followed by its checksum ([`RECORD_PAYLOAD_CHECKED`]); false
     /// only in records written before payload checksums.
     pub checked: bool,
+    /// Whether the record belongs to a u32 or u64 stream ([`RECORD_WIDE_RANGE`]): its header
+    /// is [`WIDE_BRICK_HEADER_LEN`] bytes.
+    pub wide: bool,
 }
 
 impl BrickHeader {
+    /// Bytes of the header of a record of a stream of `voxel_type`.
+    pub const fn len_for(voxel_type: VoxelType) -> usize {
+        if voxel_type.is_wide() {
+            WIDE_BRICK_HEADER_LEN
+        } else {
+            BRICK_HEADER_LEN
+        }
+    }
+
+    /// Bytes of this header.
+    pub const fn header_len(&self) -> usize {
+        if self.wide {
+            WIDE_BRICK_HEADER_LEN
+        } else {
+            BRICK_HEADER_LEN
+        }
+    }
+
     /// Bytes of the whole record: header, payload and, when checked, the payload's checksum.
     pub fn record_len(&self) -> u64 {
         let check = if self.checked { PAYLOAD_CHECK_LEN } else { 0 };
-        (BRICK_HEADER_LEN + check) as u64 + self.stored_len as u64
+        (self.header_len() + check) as u64 + self.stored_len as u64
     }
 
     /// The header's bytes.
-    pub fn encode(&self) -> [u8; BRICK_HEADER_LEN] {
-        let mut b = [0u8; BRICK_HEADER_LEN];
+    ///
+    /// # Panics
+    /// A narrow header (`wide` false) with a range beyond u16.
+    pub fn encode(&self) -> Vec<u8> {
+        let mut b = vec![0u8; self.header_len()];
         put(&mut b, 0, &self.hash.to_le_bytes());
         put(&mut b, 8, &self.stored_len.to_le_bytes());
         b[12] = self.codec as u8;
         if self.checked {
-            b[13] = RECORD_PAYLOAD_CHECKED;
+            b[13] |= RECORD_PAYLOAD_CHECKED;
         }
-        put(&mut b, 14, &self.min.to_le_bytes());
-        put(&mut b, 16, &self.max.to_le_bytes());
-        let check = xxh3_64(&b[..20]) as u32;
-        put(&mut b, 20, &check.to_le_bytes());
+        let check_at = if self.wide {
+            b[13] |= RECORD_WIDE_RANGE;
+            put(&mut b, 16, &self.min.to_le_bytes());
+            put(&mut b, 24, &self.max.to_le_bytes());
+            32
+        } else {
+            let narrow = |v: u64| u16::try_from(v).expect("a u8 or u16 stream's range");
+            put(&mut b, 14, &narrow(self.min).to_le_bytes());
+            put(&mut b, 16, &narrow(self.max).to_le_bytes());
+            20
+        };
+        let check = xxh3_64(&b[..check_at]) as u32;
+        put(&mut b, check_at, &check.to_le_bytes());
         b
     }
 
@@ -646,8 +699,10 @@ impl BrickHeader {
     /// Checksum mismatch, unknown codec or flags, impossible length or value range.
     pub fn decode(bytes: &[u8], base: u64, layout: &VolumeLayout) -> Result<Self, FormatError> {
         let f = Fields::new("brick header", bytes, base);
-        let stored = f.u32(20)?;
-        let computed = xxh3_64(f.slice(0, 20)?) as u32;
+        let wide = layout.voxel_type().is_wide();
+        let check_at = if wide { 32 } else { 20 };
+        let stored = f.u32(check_at)?;
+        let computed = xxh3_64(f.slice(0, check_at)?) as u32;
         if stored != computed {
             return Err(FormatError::Checksum {
                 what: "brick header",
@@ -668,19 +723,29 @@ impl BrickHeader {
             }
         };
         let flags = f.slice(13, 1)?[0];
-        if flags & !RECORD_PAYLOAD_CHECKED != 0 {
+        let wide_flag = if wide { RECORD_WIDE_RANGE } else { 0 };
+        if flags & !RECORD_PAYLOAD_CHECKED != wide_flag {
             return Err(FormatError::Unsupported {
                 what: "brick record flags",
-                detail: format!("{flags:#04x} at offset {base}"),
+                detail: format!(
+                    "{flags:#04x} at offset {base} in a stream of {}",
+                    layout.voxel_type()
+                ),
             });
         }
+        let (min, max) = if wide {
+            (f.u64(16)?, f.u64(24)?)
+        } else {
+            (u64::from(f.u16(14)?), u64::from(f.u16(16)?))
+        };
         let h = BrickHeader {
             hash: f.u64(0)?,
             stored_len: f.u32(8)?,
             codec,
-            min: f.u16(14)?,
-            max: f.u16(16)?,
+            min,
+            max,
             checked: flags & RECORD_PAYLOAD_CHECKED != 0,
+            wide,
         };
         let brick_bytes = layout.brick_bytes() as u64;
         let len_ok = match codec {
@@ -689,7 +754,7 @@ impl BrickHeader {
             // raw brick would have been stored raw.
             Codec::Lz4 | Codec::Zstd => h.stored_len > 0 && (h.stored_len as u64) < brick_bytes,
         };
-        let high = layout.voxel_type().high();
+        let high = layout.voxel_type().max_value();
         if !len_ok || h.min > h.max || h.max > high {
             return Err(FormatError::invalid(
                 "brick header",
@@ -709,8 +774,9 @@ impl BrickHeader {
 /// One entry of the pyramidal index: what a brick of the volume is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum NodeEntry {
-    /// Every voxel holds this value; no payload is stored (the "constant" codec).
-    Constant(u16),
+    /// Every voxel holds this value; no payload is stored (the "constant" codec). At most
+    /// [`MAX_CONSTANT`]: a u64 brick of one larger value is stored as a record.
+    Constant(u64),
     /// A brick record (header and payload) at this file offset.
     Stored(u64),
 }
@@ -724,7 +790,15 @@ impl NodeEntry {
     /// The entry as stored in the index.
     pub fn encode(self) -> u64 {
         match self {
-            NodeEntry::Constant(v) => NODE_CONSTANT | v as u64,
+            NodeEntry::Constant(v) => {
+                // Writers store a larger u64 value as a record (see MAX_CONSTANT): a constant
+                // past it would lose its top bit to the flag.
+                assert!(
+                    v <= MAX_CONSTANT,
+                    "constant {v} does not fit an index entry"
+                );
+                NODE_CONSTANT | v
+            }
             NodeEntry::Stored(off) => off,
         }
     }
@@ -739,13 +813,13 @@ impl NodeEntry {
     ) -> Result<Self, FormatError> {
         if raw & NODE_CONSTANT != 0 {
             let v = raw & !NODE_CONSTANT;
-            if v > voxel_type.high() as u64 {
+            if v > voxel_type.max_value() {
                 return Err(FormatError::invalid(
                     "index entry",
                     format!("constant {v} out of range for {voxel_type}"),
                 ));
             }
-            return Ok(NodeEntry::Constant(v as u16));
+            return Ok(NodeEntry::Constant(v));
         }
         if raw < DATA_START || raw.saturating_add(BRICK_HEADER_LEN as u64) > committed_len {
             return Err(FormatError::invalid(
@@ -764,15 +838,16 @@ impl NodeEntry {
 /// and commit records) so that a level grid is answered without reading any brick record.
 ///
 /// A constant entry needs none (its value is all three): its summary is stored as zeros and
-/// never read.
+/// never read. Encoded in [`SUMMARY_LEN`] bytes (u16 range), or [`WIDE_SUMMARY_LEN`] in a
+/// file with a u32 or u64 channel (u64 range, revision 6), for every stream of that file.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Hash)]
 pub struct BrickSummary {
     /// [`content_hash`] of the decoded brick.
     pub hash: u64,
     /// The smallest voxel value.
-    pub min: u16,
+    pub min: u64,
     /// The largest voxel value.
-    pub max: u16,
+    pub max: u64,
 }
 
 impl BrickSummary {
@@ -785,35 +860,61 @@ impl BrickSummary {
         }
     }
 
-    /// The summary's 12 bytes: u64 hash, u16 min, u16 max.
-    pub fn encode(self) -> [u8; SUMMARY_LEN] {
-        let mut b = [0u8; SUMMARY_LEN];
-        put(&mut b, 0, &self.hash.to_le_bytes());
-        put(&mut b, 8, &self.min.to_le_bytes());
-        put(&mut b, 10, &self.max.to_le_bytes());
-        b
+    /// Bytes of one summary: [`WIDE_SUMMARY_LEN`] when `wide`, else [`SUMMARY_LEN`].
+    pub const fn encoded_len(wide: bool) -> usize {
+        if wide {
+            WIDE_SUMMARY_LEN
+        } else {
+            SUMMARY_LEN
+        }
     }
 
-    /// Decodes one summary from its 12 bytes (`bytes` shorter than that reads as zeros).
-    pub fn decode(bytes: &[u8]) -> Self {
-        let mut b = [0u8; SUMMARY_LEN];
-        let n = bytes.len().min(SUMMARY_LEN);
+    /// The summary's bytes: u64 hash, then u16 min and max, or u64 min and max when `wide`.
+    ///
+    /// # Panics
+    /// A range beyond u16 when not `wide`.
+    pub fn encode_into(self, out: &mut Vec<u8>, wide: bool) {
+        out.extend_from_slice(&self.hash.to_le_bytes());
+        if wide {
+            out.extend_from_slice(&self.min.to_le_bytes());
+            out.extend_from_slice(&self.max.to_le_bytes());
+        } else {
+            let narrow = |v: u64| u16::try_from(v).expect("a u8 or u16 stream's range");
+            out.extend_from_slice(&narrow(self.min).to_le_bytes());
+            out.extend_from_slice(&narrow(self.max).to_le_bytes());
+        }
+    }
+
+    /// Decodes one summary from its bytes (`bytes` shorter than [`BrickSummary::encoded_len`] reads
+    /// as zeros).
+    pub fn decode(bytes: &[u8], wide: bool) -> Self {
+        let mut b = [0u8; WIDE_SUMMARY_LEN];
+        let n = bytes.len().min(Self::encoded_len(wide));
         b[..n].copy_from_slice(&bytes[..n]);
+        let u64_at = |at: usize| u64::from_le_bytes(b[at..at + 8].try_into().expect("8 bytes"));
+        let u16_at = |at: usize| u64::from(u16::from_le_bytes([b[at], b[at + 1]]));
         BrickSummary {
-            hash: u64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]),
-            min: u16::from_le_bytes([b[8], b[9]]),
-            max: u16::from_le_bytes([b[10], b[11]]),
+            hash: u64_at(0),
+            min: if wide { u64_at(8) } else { u16_at(8) },
+            max: if wide { u64_at(16) } else { u16_at(10) },
         }
     }
 
     /// Encodes summaries one after another.
-    pub fn encode_all(summaries: &[BrickSummary]) -> Vec<u8> {
-        summaries.iter().flat_map(|s| s.encode()).collect()
+    pub fn encode_all(summaries: &[BrickSummary], wide: bool) -> Vec<u8> {
+        let mut out = Vec::with_capacity(summaries.len() * Self::encoded_len(wide));
+        for s in summaries {
+            s.encode_into(&mut out, wide);
+        }
+        out
     }
 
-    /// Decodes every whole 12 bytes of `bytes`.
-    pub fn decode_all(bytes: &[u8]) -> Vec<BrickSummary> {
-        bytes.chunks_exact(SUMMARY_LEN).map(Self::decode).collect()
+    /// Decodes every whole summary of `bytes`.
+    pub fn decode_all(bytes: &[u8], wide: bool) -> Vec<BrickSummary> {
+        bytes
+            .chunks_exact(Self::encoded_len(wide))
+            .map(|b| Self::decode(b, wide))
+            .collect()
     }
 
     /// Checks the value range against the stream's voxel type (`min <= max <= high`), as a
@@ -827,14 +928,14 @@ impl BrickSummary {
         what: &'static str,
         offset: u64,
     ) -> Result<Self, FormatError> {
-        if self.min > self.max || self.max > voxel_type.high() {
+        if self.min > self.max || self.max > voxel_type.max_value() {
             return Err(FormatError::invalid(
                 what,
                 format!(
                     "at offset {offset}: range [{}, {}] (max value {})",
                     self.min,
                     self.max,
-                    voxel_type.high()
+                    voxel_type.max_value()
                 ),
             ));
         }
@@ -861,6 +962,9 @@ pub struct CommitHeader {
     pub note_len: u32,
     /// Whether the summaries of the changes' entries follow (revision 5).
     pub summaries: bool,
+    /// Whether those summaries are wide ([`COMMIT_WIDE_SUMMARIES`], revision 6: the file has a
+    /// u32 or u64 channel).
+    pub wide_summaries: bool,
 }
 
 impl CommitHeader {
@@ -881,14 +985,14 @@ impl CommitHeader {
 
     /// Bytes of the section of summaries (revision 5) for `n_changes` changes: the summaries
     /// and their checksum.
-    pub fn summaries_len(n_changes: u64) -> u64 {
-        n_changes * SUMMARY_LEN as u64 + 8
+    pub fn summaries_len(n_changes: u64, wide: bool) -> u64 {
+        n_changes * BrickSummary::encoded_len(wide) as u64 + 8
     }
 
     /// Bytes of the whole record: with its note and its summaries, if it has them.
     pub fn total_len(&self) -> u64 {
         let summaries = if self.summaries {
-            Self::summaries_len(self.n_changes)
+            Self::summaries_len(self.n_changes, self.wide_summaries)
         } else {
             0
         };
@@ -916,6 +1020,9 @@ impl CommitHeader {
         }
         if summaries.is_some() {
             flags |= COMMIT_HAS_SUMMARIES;
+            if self.wide_summaries {
+                flags |= COMMIT_WIDE_SUMMARIES;
+            }
         }
         put(&mut b, 4, &flags.to_le_bytes());
         put(&mut b, 8, &self.version.to_le_bytes());
@@ -937,7 +1044,7 @@ impl CommitHeader {
             seal(&mut b, end - 8);
         }
         if let Some(summaries) = summaries {
-            b.extend_from_slice(&BrickSummary::encode_all(summaries));
+            b.extend_from_slice(&BrickSummary::encode_all(summaries, self.wide_summaries));
             b.extend_from_slice(&[0; 8]);
             let end = b.len();
             seal(&mut b, end - 8);
@@ -995,12 +1102,16 @@ impl CommitHeader {
             n_changes,
             note_len,
             summaries: false,
+            wide_summaries: false,
         };
-        if f.u32(4)? & COMMIT_HAS_SUMMARIES != 0 {
+        let flags = f.u32(4)?;
+        if flags & COMMIT_HAS_SUMMARIES != 0 {
+            let wide = flags & COMMIT_WIDE_SUMMARIES != 0;
             // n_changes is bounded by the region above, so this cannot overflow.
-            let total = (h.len_with_note() + Self::summaries_len(n_changes)) as usize;
+            let total = (h.len_with_note() + Self::summaries_len(n_changes, wide)) as usize;
             Fields::new("commit summaries", f.slice(0, total)?, base).checksum(total - 8)?;
             h.summaries = true;
+            h.wide_summaries = wide;
         }
         if h.parent >= base || (h.parent != 0 && h.parent < DATA_START) {
             return Err(FormatError::invalid(
@@ -1045,8 +1156,10 @@ impl CommitHeader {
             return None;
         }
         let at = self.len_with_note() as usize;
-        let len = self.n_changes as usize * SUMMARY_LEN;
-        avail.get(at..at + len).map(BrickSummary::decode_all)
+        let len = self.n_changes as usize * BrickSummary::encoded_len(self.wide_summaries);
+        avail
+            .get(at..at + len)
+            .map(|b| BrickSummary::decode_all(b, self.wide_summaries))
     }
 
     /// The (node, raw entry) pairs of a record returned by [`CommitHeader::decode`].
@@ -1101,6 +1214,8 @@ pub struct SummaryBlock<'a> {
     pub payload: &'a [u8],
     /// Where the block starts in the file.
     pub offset: u64,
+    /// Whether the summaries are wide (revision 6: block byte 9 is 1).
+    pub wide: bool,
 }
 
 /// One chunk of a checkpoint to encode: its entries' payload (codec, bytes, xxh3 of the decoded
@@ -1116,6 +1231,8 @@ pub struct EncodedChunk {
     /// The summaries (codec, stored bytes, xxh3 of the decoded summaries), `None` for a chunk
     /// written as before revision 5.
     pub summaries: Option<(Codec, Vec<u8>, u64)>,
+    /// Whether the summaries are wide (revision 6, a file with a u32 or u64 channel).
+    pub wide_summaries: bool,
 }
 
 impl EncodedChunk {
@@ -1126,6 +1243,7 @@ impl EncodedChunk {
                 let mut b = vec![0u8; SUMMARY_BLOCK_HEADER_LEN];
                 put(&mut b, 0, &hash.to_le_bytes());
                 b[8] = *codec as u8;
+                b[9] = u8::from(self.wide_summaries);
                 b.extend_from_slice(payload);
                 b
             }
@@ -1351,7 +1469,8 @@ impl<'a> Checkpoint<'a> {
                 })
             }
         };
-        if f.slice(9, 7)?.iter().any(|&b| b != 0) {
+        let wide = f.slice(9, 1)?[0];
+        if wide > 1 || f.slice(10, 6)?.iter().any(|&b| b != 0) {
             return Err(FormatError::invalid(
                 "index chunk summaries",
                 format!("at offset {offset}: reserved bytes are not zero"),
@@ -1365,6 +1484,7 @@ impl<'a> Checkpoint<'a> {
                 block.len() - SUMMARY_BLOCK_HEADER_LEN,
             )?,
             offset,
+            wide: wide == 1,
         }))
     }
 
@@ -1500,6 +1620,7 @@ mod tests {
             min: 0,
             max: 65535,
             checked: true,
+            wide: false,
         };
         assert_eq!(BrickHeader::decode(&h.encode(), 0, &l).unwrap(), h);
         assert_eq!(h.record_len(), 24 + 100 + 4);
@@ -1530,6 +1651,43 @@ mod tests {
             ..h
         };
         assert!(BrickHeader::decode(&inverted.encode(), 0, &l).is_err());
+        // A wide record where the stream is u16: refused by its flag, not misread.
+        let wide = BrickHeader { wide: true, ..h };
+        assert!(BrickHeader::decode(&wide.encode(), 0, &l).is_err());
+    }
+
+    #[test]
+    fn a_wide_brick_header_holds_a_u64_range_in_40_bytes() {
+        let l = layout().with_voxel_type(VoxelType::U64);
+        let h = BrickHeader {
+            hash: 7,
+            stored_len: 100,
+            codec: Codec::Zstd,
+            min: 1 << 40,
+            max: u64::MAX,
+            checked: true,
+            wide: true,
+        };
+        let b = h.encode();
+        // Written by hand from docs/vod2.md: flags 1 | 2 at 13, min at 16, max at 24, the
+        // checksum of [0, 32) at 32.
+        assert_eq!(b.len(), 40);
+        assert_eq!(b[13], 3);
+        assert_eq!(b[16..24], (1u64 << 40).to_le_bytes());
+        assert_eq!(b[24..32], [0xff; 8]);
+        assert_eq!(b[32..36], (xxh3_64(&b[..32]) as u32).to_le_bytes());
+        assert_eq!(BrickHeader::decode(&b, 0, &l).unwrap(), h);
+        assert_eq!(h.record_len(), 40 + 100 + 4);
+        // A u32 stream refuses a range past u32, and a narrow record where it expects wide.
+        let l32 = layout().with_voxel_type(VoxelType::U32);
+        assert!(BrickHeader::decode(&b, 0, &l32).is_err());
+        let narrow = BrickHeader {
+            wide: false,
+            min: 1,
+            max: 2,
+            ..h
+        };
+        assert!(BrickHeader::decode(&narrow.encode(), 0, &l32).is_err());
     }
 
     #[test]
@@ -1569,6 +1727,7 @@ mod tests {
             n_changes: 2,
             note_len: 0,
             summaries: false,
+            wide_summaries: false,
         };
         let base = DATA_START + 4096;
         let mut bytes = h.encode(&changes, &[], None);
@@ -1598,6 +1757,7 @@ mod tests {
             n_changes: 1,
             note_len: note.len() as u32,
             summaries: false,
+            wide_summaries: false,
         };
         let base = DATA_START + 4096;
         let bytes = h.encode(&changes, note, None);
@@ -1630,6 +1790,7 @@ mod tests {
             payload,
             hash,
             summaries: None,
+            wide_summaries: false,
         };
         let chunks = vec![
             chunk(Codec::Raw, vec![1u8; 512 * 8], 11),
@@ -1683,6 +1844,7 @@ mod tests {
             n_changes: 2,
             note_len: note.len() as u32,
             summaries: true,
+            wide_summaries: false,
         };
         let base = DATA_START + 4096;
         let bytes = h.encode(&changes, note, Some(&summaries));
@@ -1729,12 +1891,14 @@ mod tests {
                 payload: vec![1u8; 512 * 8],
                 hash: 11,
                 summaries: Some((Codec::Raw, vec![7u8; 512 * 12], 44)),
+                wide_summaries: false,
             },
             EncodedChunk {
                 codec: Codec::Zstd,
                 payload: vec![2u8; 40],
                 hash: 22,
                 summaries: None,
+                wide_summaries: true,
             },
         ];
         let b = Checkpoint::encode(600, &chunks);
@@ -1746,7 +1910,10 @@ mod tests {
         let dir = CHECKPOINT_FIXED_LEN;
         assert_eq!(&b[dir + 12..dir + 16], &[0, 1, 0x10, 0x18]);
         let block = cp.summaries(&r).unwrap().unwrap();
-        assert_eq!((block.codec, block.hash), (Codec::Raw, 44));
+        assert_eq!(
+            (block.codec, block.hash, block.wide),
+            (Codec::Raw, 44, false)
+        );
         assert_eq!(block.payload, &[7u8; 512 * 12][..]);
         assert_eq!(block.offset, DATA_START + r.offset + 4096);
         // The block lies right after the payload: one span covers both.
@@ -1775,6 +1942,58 @@ mod tests {
     }
 
     #[test]
+    fn wide_summaries_are_flagged_in_commits_and_summary_blocks() {
+        let changes = vec![
+            (3, NodeEntry::Stored(DATA_START)),
+            (4, NodeEntry::Constant(9)),
+        ];
+        let summaries = [
+            BrickSummary {
+                hash: 5,
+                min: 1 << 33,
+                max: u64::MAX,
+            },
+            BrickSummary::default(),
+        ];
+        let h = CommitHeader {
+            version: 2,
+            parent: DATA_START + 8,
+            timestamp_ms: 1,
+            checkpoint: 0,
+            n_changes: 2,
+            note_len: 0,
+            summaries: true,
+            wide_summaries: true,
+        };
+        let base = DATA_START + 4096;
+        let bytes = h.encode(&changes, &[], Some(&summaries));
+        // Flags 2 | 4; the record, then 2 x 24 bytes and the section's checksum.
+        assert_eq!(bytes[4..8], 6u32.to_le_bytes());
+        let record_len = CommitHeader::record_len(2) as usize;
+        assert_eq!(bytes.len(), record_len + 2 * 24 + 8);
+        assert_eq!(bytes[record_len + 16..record_len + 24], [0xff; 8]);
+        let (d, _) = CommitHeader::decode(&bytes, base).unwrap();
+        assert!(d.wide_summaries);
+        assert_eq!(d.summaries_in(&bytes).unwrap(), summaries.to_vec());
+        // A summary block says its width in byte 9; other values there are refused.
+        let chunk = EncodedChunk {
+            codec: Codec::Raw,
+            payload: vec![1u8; 8],
+            hash: 1,
+            summaries: Some((Codec::Raw, vec![0u8; 24], 2)),
+            wide_summaries: true,
+        };
+        let b = Checkpoint::encode(1, std::slice::from_ref(&chunk));
+        let cp = Checkpoint::decode(&b, DATA_START, 1).unwrap();
+        let (r, _) = cp.chunk(0).unwrap();
+        assert!(cp.summaries(&r).unwrap().unwrap().wide);
+        let mut bad = b.clone();
+        bad[(r.offset + 8 + 9) as usize] = 2;
+        let cp_bad = Checkpoint::decode(&bad, DATA_START, 1).unwrap();
+        assert!(cp_bad.summaries(&r).is_err());
+    }
+
+    #[test]
     fn summary_ranges_are_validated() {
         let s = BrickSummary {
             hash: 1,
@@ -1789,6 +2008,20 @@ mod tests {
         };
         assert!(s.validate(VoxelType::U8, "x", 0).is_err());
         assert!(s.validate(VoxelType::U16, "x", 0).is_ok());
-        assert_eq!(BrickSummary::decode(&s.encode()), s);
+        let mut b = Vec::new();
+        s.encode_into(&mut b, false);
+        assert_eq!(b, [1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1]);
+        assert_eq!(BrickSummary::decode(&b, false), s);
+        let big = BrickSummary {
+            hash: 2,
+            min: 70_000,
+            max: u64::MAX,
+        };
+        assert!(big.validate(VoxelType::U32, "x", 0).is_err());
+        assert!(big.validate(VoxelType::U64, "x", 0).is_ok());
+        let all = BrickSummary::encode_all(&[s, big], true);
+        assert_eq!(all.len(), 48);
+        assert_eq!(all[32..40], 70_000u64.to_le_bytes());
+        assert_eq!(BrickSummary::decode_all(&all, true), [s, big]);
     }
 }

@@ -18,10 +18,7 @@ use std::path::{Path, PathBuf};
 
 /// Writes `value` at voxel `(x, y, z)` of a brick buffer.
 fn put(out: &mut [u8], index: usize, value: u16, voxel_type: VoxelType) {
-    match voxel_type {
-        VoxelType::U8 => out[index] = value as u8,
-        VoxelType::U16 => out[2 * index..2 * index + 2].copy_from_slice(&value.to_le_bytes()),
-    }
+    isovox_proto::voxel::set_value_at(out, voxel_type, index, value.into());
 }
 
 /// The brick's voxel box at level 0 clipped to the volume, and whether the brick lies wholly
@@ -72,12 +69,12 @@ impl BrickSource for EllipsoidSource {
         }
     }
 
-    fn constant(&self, key: BrickKey) -> Option<u16> {
+    fn constant(&self, key: BrickKey) -> Option<u64> {
         let (inside, whole) = clipped_brick(&self.layout, key);
         let t = self.layout.voxel_type();
         match self.ellipsoid.constant_over(&inside, t) {
             // A partial brick is padded with L: constant only if the inside is L too.
-            Some(v) if whole || v == t.low() => Some(v),
+            Some(v) if whole || v == t.low() => Some(v.into()),
             _ => None,
         }
     }
@@ -163,7 +160,7 @@ impl BrickSource for WorldSource {
         }
     }
 
-    fn constant(&self, key: BrickKey) -> Option<u16> {
+    fn constant(&self, key: BrickKey) -> Option<u64> {
         let (Box3 { min: lo, max: hi }, whole) = clipped_brick(&self.layout, key);
         let (hmin, hmax) = self.column_range[(key.z * self.layout.grid(0)[0] + key.x) as usize];
         let high = self.layout.voxel_type().high();
@@ -172,7 +169,7 @@ impl BrickSource for WorldSource {
             return Some(0);
         }
         if whole && ((hi[1] - 1) as f32) <= hmin - 0.5 {
-            return Some(high);
+            return Some(high.into());
         }
         None
     }
@@ -268,9 +265,9 @@ impl BrickSource for WorldMaterials {
         }
     }
 
-    fn constant(&self, key: BrickKey) -> Option<u16> {
+    fn constant(&self, key: BrickKey) -> Option<u64> {
         // Air above the ground is air; the rest is worth looking at.
-        (self.world.constant(key) == Some(0)).then_some(materials::AIR)
+        (self.world.constant(key) == Some(0)).then_some(materials::AIR.into())
     }
 }
 

@@ -59,6 +59,8 @@ def import_and_read(isovox, work, source, shape_zyx, dtype, *extra):
 def same(what, got, want):
     if got is None:
         failures.append(f"{what}: the import failed")
+    elif got.dtype != want.dtype:
+        failures.append(f"{what}: {got.dtype}, expected {want.dtype}")
     elif got.shape != want.shape or not np.array_equal(got, want):
         failures.append(f"{what}: the imported voxels differ ({np.count_nonzero(got != want)} of {want.size})")
     else:
@@ -162,23 +164,28 @@ def main():
     seg[5:20, 10:30, 8:40] = 7
     seg[12:30, 2:15, 30:50] = 40000
     seg[0:3, :, :] = 3
+    seg[20:26, 30:40, 40:60] = 4_000_000_000
     nib.save(nib.Nifti1Image(seg.transpose(2, 1, 0), np.eye(4)), os.path.join(work, "seg.nii.gz"))
     labelled = os.path.join(work, "labelled.vod")
     r = run(a.isovox, "import", os.path.join(work, "v.nii"), "-o", labelled, "--brick", "16",
             "--channel", f"label={os.path.join(work, 'seg.nii.gz')}")
     if r.returncode == 0:
-        if "channel label (u16, sparse)" not in r.stdout:
+        if "channel label (u32, sparse)" not in r.stdout:
             failures.append(f"label import: the output does not name the channel: {r.stdout!r}")
         exported = os.path.join(work, "labelled-zarr")
         shutil.rmtree(exported, ignore_errors=True)
         run(a.isovox, "export", labelled, "-o", exported, "--format", "zarr")
         got = zarr.open_group(exported, mode="r")["labels"]["label"]["0"][...]
-        same("NIfTI uint32 label map as channel label", got, seg.astype(np.uint16))
+        same("NIfTI uint32 label map as channel label", got, seg)
         same("the image beside it", zarr.open_group(exported, mode="r")["0"][...], u8)
     # cloud-volume: precomputed segmentations in compressed_segmentation (its encoder is the
     # `compressed-segmentation` package), uint32 and uint64, gzip chunks and plain, chunks that
-    # are not whole 8^3 blocks; imported as the channel `label`, read back as above.
-    for data_type, compress in (("uint32", "gzip"), ("uint64", False)):
+    # are not whole 8^3 blocks; imported as the channel `label` of their own type, read back as
+    # above. The uint64 map holds ids past 2^53 (where a float64 would round them) and past 2^63.
+    seg64 = seg.astype(np.uint64)
+    seg64[2:10, 20:30, 5:15] = 2**53 + 1
+    seg64[28:32, 0:8, 50:56] = 2**63 + 5
+    for data_type, compress, want in (("uint32", "gzip", seg), ("uint64", False, seg64)):
         path = os.path.join(work, f"seg-{data_type}")
         shutil.rmtree(path, ignore_errors=True)
         info = CloudVolume.create_new_info(
@@ -188,7 +195,7 @@ def main():
         )
         cv = CloudVolume(f"file://{path}", info=info, compress=compress, progress=False)
         cv.commit_info()
-        cv[:, :, :] = seg.astype(data_type).transpose(2, 1, 0)[..., None]
+        cv[:, :, :] = want.transpose(2, 1, 0)[..., None]
         out = os.path.join(work, f"labelled-{data_type}.vod")
         r = run(a.isovox, "import", os.path.join(work, "v.nii"), "-o", out, "--brick", "16",
                 "--channel", f"label=precomputed://{path}")
@@ -197,14 +204,14 @@ def main():
             shutil.rmtree(exported, ignore_errors=True)
             run(a.isovox, "export", out, "-o", exported, "--format", "zarr")
             got = zarr.open_group(exported, mode="r")["labels"]["label"]["0"][...]
-            same(f"cloud-volume {data_type} compressed_segmentation as channel label", got, seg.astype(np.uint16))
+            same(f"cloud-volume {data_type} compressed_segmentation as channel label", got, want)
 
-    # A label map of another shape, or with an id past u16, is refused and leaves nothing.
-    big = seg.copy()
-    big[1, 1, 1] = 70000
+    # A label map of another shape, or with a negative id, is refused and leaves nothing.
+    big = seg.astype(np.int32)
+    big[1, 1, 1] = -70000
     nib.save(nib.Nifti1Image(big.transpose(2, 1, 0), np.eye(4)), os.path.join(work, "big.nii.gz"))
     nib.save(nib.Nifti1Image(seg[:, :, :50].transpose(2, 1, 0), np.eye(4)), os.path.join(work, "small.nii.gz"))
-    for bad, words in [("big.nii.gz", "70000"), ("small.nii.gz", "shape")]:
+    for bad, words in [("big.nii.gz", "-70000"), ("small.nii.gz", "shape")]:
         out = os.path.join(work, "refused.vod")
         r = run(a.isovox, "import", os.path.join(work, "v.nii"), "-o", out, "--channel",
                 f"label={os.path.join(work, bad)}", ok=False)

@@ -72,12 +72,13 @@ def zarr_python_label(root, channel, level):
 
 def ome_zarr_label(root, channel, level):
     nodes = list(Reader(parse_url(f"{root}/zarr/labels/{channel}/"))())
-    label = next(n for n in nodes if n.load(Label) is not None)
+    # The reader also walks to the image and its other label images: take this channel's.
+    label = next(n for n in nodes if n.load(Label) is not None and n.zarr.basename() == channel)
     return np.asarray(label.data[level])
 
 
-# The attribute channels' data sources of the precomputed view: uint32 labels in the
-# compressed_segmentation encoding, which both decode.
+# The attribute channels' data sources of the precomputed view: uint32 (uint64 for a u64
+# channel) labels in the compressed_segmentation encoding, which both decode.
 SEGMENTATION_CLIENTS = {
     "tensorstore neuroglancer_precomputed": tensorstore_segmentation,
     "cloud-volume": cloud_volume_segmentation,
@@ -151,13 +152,15 @@ def main():
         print(f"{name}: {levels} levels of {info['dims']} {info['voxel_type']} read back equal by {len(CLIENTS)} clients")
         for channel in info.get("channels", []):
             cname = channel["name"]
-            dtype_c = {"u8": np.uint8, "u16": np.uint16}[channel["type"]]
+            dtype_c = {"u8": np.uint8, "u16": np.uint16, "u32": np.uint32, "u64": np.uint64}[channel["type"]]
+            # compressed_segmentation holds uint32 or uint64: narrower channels widen to uint32.
+            segmentation_dtype = np.uint64 if channel["type"] == "u64" else np.uint32
             for k in range(levels):
                 want = level_voxels(base, k, dtype_c, channel=cname)
                 if k == 0 and len(np.unique(want)) < 2:
                     failures.append(f"{name} channel {cname}: one value only; the check would prove little")
                 for client, read in SEGMENTATION_CLIENTS.items():
-                    check(failures, f"{name} channel {cname} level {k} via {client}", read(base, cname, k), want.astype(np.uint32))
+                    check(failures, f"{name} channel {cname} level {k} via {client}", read(base, cname, k), want.astype(segmentation_dtype))
                 for client, read in LABEL_CLIENTS.items():
                     check(failures, f"{name} label image {cname} level {k} via {client}", read(base, cname, k), want)
             colors = zarr.open_group(f"{base}/zarr/labels/{cname}/", mode="r").attrs["ome"]["image-label"]["colors"]

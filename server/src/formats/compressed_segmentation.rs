@@ -1,10 +1,11 @@
-//! Neuroglancer's `compressed_segmentation` encoding of a label chunk (uint32 values), which
-//! Neuroglancer draws as a segmentation and tensorstore and cloud-volume decode.
+//! Neuroglancer's `compressed_segmentation` encoding of a label chunk (uint32 or uint64
+//! values), which Neuroglancer draws as a segmentation and tensorstore and cloud-volume decode.
 //!
 //! The chunk is cut into blocks of [`BLOCK`] voxels (the last ones of an axis padded to a whole
 //! block); each block stores the sorted distinct values it holds (its lookup table) and, per
 //! voxel, the index of its value in that table, packed in 0, 1, 2, 4, 8, 16 or 32 bits into
-//! little-endian 32-bit words. The data starts with one 64-bit header per block, x fastest: the
+//! little-endian 32-bit words; a uint64 table entry takes two words, the low one first. The data
+//! starts with one 64-bit header per block, x fastest: the
 //! table's offset (24 bits) and the bits per index (8 bits) in the first word, the offset of the
 //! packed indices in the second; offsets in 32-bit words from the start of the channel's data.
 //! A precomputed chunk holds one such encoding per channel, after one u32 per channel giving
@@ -22,12 +23,12 @@ use std::collections::HashMap;
 /// The block edge, per axis: Neuroglancer's default, and what `info` declares.
 pub const BLOCK: [u32; 3] = [8, 8, 8];
 
-/// The precomputed chunk of `values` (one channel of uint32 labels, x fastest, then y, then z)
-/// of `size` voxels.
+/// The precomputed chunk of `values` (one channel of labels, x fastest, then y, then z) of
+/// `size` voxels: uint64 when `wide`, else uint32 (every value must then fit a u32).
 ///
 /// # Panics
 /// When `values` does not hold `size` voxels: a caller's bug.
-pub fn encode_chunk(values: &[u32], size: [u32; 3]) -> Vec<u8> {
+pub fn encode_chunk(values: &[u64], size: [u32; 3], wide: bool) -> Vec<u8> {
     assert_eq!(
         values.len(),
         size.iter().map(|&s| s as usize).product::<usize>(),
@@ -39,7 +40,7 @@ pub fn encode_chunk(values: &[u32], size: [u32; 3]) -> Vec<u8> {
     let mut words: Vec<u32> = vec![1];
     let start = words.len();
     words.resize(start + 2 * blocks, 0);
-    let mut tables: HashMap<Vec<u32>, u32> = HashMap::new();
+    let mut tables: HashMap<Vec<u64>, u32> = HashMap::new();
     let mut block = Vec::with_capacity(BLOCK.iter().map(|&b| b as usize).product());
     let mut i = 0;
     for bz in 0..grid[2] {
@@ -56,7 +57,12 @@ pub fn encode_chunk(values: &[u32], size: [u32; 3]) -> Vec<u8> {
                     Some(&at) => at,
                     None => {
                         let at = (words.len() - start) as u32;
-                        words.extend_from_slice(&table);
+                        for &v in &table {
+                            words.push(v as u32);
+                            if wide {
+                                words.push((v >> 32) as u32);
+                            }
+                        }
                         tables.insert(table, at);
                         at
                     }
@@ -72,7 +78,7 @@ pub fn encode_chunk(values: &[u32], size: [u32; 3]) -> Vec<u8> {
 
 /// The values of block `b` of a chunk of `size`, x fastest, padded past the chunk's far faces
 /// with the block's first value (the format lets any value of the block pad it).
-fn block_values(values: &[u32], size: [u32; 3], b: [u32; 3], out: &mut Vec<u32>) {
+fn block_values(values: &[u64], size: [u32; 3], b: [u32; 3], out: &mut Vec<u64>) {
     out.clear();
     let lo = [0, 1, 2].map(|a| b[a] * BLOCK[a]);
     let first = values[index(size, lo)];
@@ -109,7 +115,7 @@ fn index_bits(n: usize) -> u32 {
 
 /// Appends the indices of `block`'s values in `table`, `bits` each, packed into words from
 /// their low bits up.
-fn pack(block: &[u32], table: &[u32], bits: u32, words: &mut Vec<u32>) {
+fn pack(block: &[u64], table: &[u64], bits: u32, words: &mut Vec<u32>) {
     if bits == 0 {
         return;
     }
@@ -227,7 +233,7 @@ mod tests {
         // A 2x2x2 chunk of 7s: one block (padded with 7), no packed words, table [7].
         // Words: channel offset 1; header: table at 2 (after the 2 header words), 0 bits;
         // indices at 2 (none); the table.
-        let w = words(&encode_chunk(&[7; 8], [2, 2, 2]));
+        let w = words(&encode_chunk(&[7; 8], [2, 2, 2], false));
         assert_eq!(w, vec![1, 2, 2, 7]);
     }
 
@@ -236,7 +242,7 @@ mod tests {
         // A 8x1x1 chunk 5 9 5 5 9 9 9 5 in one 8x8x8 block: table [5, 9], 1 bit each. The
         // block's 512 voxels are 8 given then padding with the first value (5, index 0): 16
         // words of indices, the first 0b0111_0010 (bits 1, 4, 5, 6 set), the rest 0.
-        let w = words(&encode_chunk(&[5, 9, 5, 5, 9, 9, 9, 5], [8, 1, 1]));
+        let w = words(&encode_chunk(&[5, 9, 5, 5, 9, 9, 9, 5], [8, 1, 1], false));
         assert_eq!(w[0], 1);
         // Header: the table after the 16 index words, at 2 + 16 = 18; 1 bit; indices at 2.
         assert_eq!(w[1], 18 | (1 << 24));
@@ -251,8 +257,34 @@ mod tests {
         // 16x8x8: two blocks, both all 3: two headers, one table. Block 0's (empty) indices
         // and its table start at word 4 of the channel (after the 4 header words); block 1's
         // empty indices start where the words then end (5), its table is block 0's.
-        let w = words(&encode_chunk(&vec![3; 16 * 64], [16, 8, 8]));
+        let w = words(&encode_chunk(&vec![3; 16 * 64], [16, 8, 8], false));
         assert_eq!(w, vec![1, 4, 4, 4, 5, 3]);
+    }
+
+    #[test]
+    fn uint64_tables_take_two_words_low_first() {
+        // The 8x1x1 chunk of the one-bit test with 2^40 + 5 and 9: the same header and indices
+        // (table [9, 2^40 + 5] sorted, so 2^40 + 5 is index 1), then the table as (lo, hi)
+        // pairs: 9, 0, 5, 256. The padding repeats the first value, index 1 here: every bit of
+        // the index words past the 8 given voxels is set.
+        let big = (1u64 << 40) + 5;
+        let w = words(&encode_chunk(
+            &[big, 9, big, big, 9, 9, 9, big],
+            [8, 1, 1],
+            true,
+        ));
+        assert_eq!(w[1], 18 | (1 << 24));
+        assert_eq!(w[3], 0xffff_ff00 | 0b1000_1101);
+        assert!(w[4..19].iter().all(|&x| x == u32::MAX));
+        assert_eq!(&w[19..], &[9, 0, 5, 256]);
+        let back = decode_chunk(
+            &w.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<_>>(),
+            [8, 1, 1],
+            BLOCK,
+            true,
+        )
+        .unwrap();
+        assert_eq!(back, [big, 9, big, big, 9, 9, 9, big]);
     }
 
     #[test]
@@ -283,11 +315,15 @@ mod tests {
     fn decoding_gives_back_what_encoding_made() {
         // A chunk that is not whole blocks, with many values per block.
         let size = [13, 9, 17];
-        let values: Vec<u32> = (0..13 * 9 * 17).map(|i: u32| (i * 7919) % 300).collect();
-        let chunk = encode_chunk(&values, size);
+        let values: Vec<u64> = (0..13 * 9 * 17).map(|i: u64| (i * 7919) % 300).collect();
+        let chunk = encode_chunk(&values, size, false);
         assert!(chunk.len() as u64 <= max_chunk_bytes(size, BLOCK, false));
         let back = decode_chunk(&chunk, size, BLOCK, false).unwrap();
-        assert!(back.iter().zip(&values).all(|(&b, &v)| b == u64::from(v)));
+        assert_eq!(back, values);
+        let wide: Vec<u64> = values.iter().map(|v| v << 35 | v).collect();
+        let chunk = encode_chunk(&wide, size, true);
+        assert!(chunk.len() as u64 <= max_chunk_bytes(size, BLOCK, true));
+        assert_eq!(decode_chunk(&chunk, size, BLOCK, true).unwrap(), wide);
     }
 
     #[test]

@@ -9,8 +9,9 @@
 //! ```
 //!
 //! Each attribute channel (`docs/channels.md`) is a data source of its own under
-//! `{channel}/`: `{channel}/info` says `"type": "segmentation"`, uint32 values (u8 and u16
-//! channels widened: the encoding below is defined for uint32 and uint64 only) and the
+//! `{channel}/`: `{channel}/info` says `"type": "segmentation"`, uint32 values (u8, u16 and
+//! u32 channels; the encoding below is defined for uint32 and uint64 only) or uint64 (u64
+//! channels) and the
 //! `compressed_segmentation` encoding in blocks of 8^3, and `{channel}/{k}/{range}` is the
 //! channel's brick so encoded ([`super::compressed_segmentation`]): Neuroglancer opens it as a
 //! segmentation layer. Its info names `segment_properties`, and
@@ -27,7 +28,7 @@ use super::view::{level_segment, Chunk, ChunkEncoding, Document, ViewError};
 use crate::decimal::NotCanonical;
 use crate::store::Snapshot;
 use crate::volume::segments::SegmentInfo;
-use isovox_proto::VolumeLayout;
+use isovox_proto::{VolumeLayout, VoxelType};
 use serde_json::{json, Value};
 
 /// The `info` document.
@@ -72,7 +73,7 @@ fn scales_info(layout: &VolumeLayout, voxel_scale: [f32; 3], source: Source) -> 
         .collect();
     let (kind, data_type) = match source {
         Source::Image => ("image", super::zarr::data_type(layout.voxel_type())),
-        Source::Segmentation => ("segmentation", "uint32"),
+        Source::Segmentation => ("segmentation", segmentation_type(layout.voxel_type())),
     };
     let mut info = json!({
         "@type": "neuroglancer_multiscale_volume",
@@ -85,6 +86,15 @@ fn scales_info(layout: &VolumeLayout, voxel_scale: [f32; 3], source: Source) -> 
         info["segment_properties"] = json!(SEGMENT_PROPERTIES);
     }
     info
+}
+
+/// The precomputed data type of a channel's labels: the encoding is defined for uint32 and
+/// uint64 only, so u8 and u16 channels are widened to uint32.
+pub fn segmentation_type(voxel_type: VoxelType) -> &'static str {
+    match voxel_type {
+        VoxelType::U64 => "uint64",
+        _ => "uint32",
+    }
 }
 
 /// Where a segmentation source's segment properties are, relative to the source.
@@ -105,7 +115,7 @@ pub fn segment_properties_channel(path: &str) -> Option<&str> {
 /// count fits, `float32` (rounded) beyond.
 pub fn segment_properties(segments: &[SegmentInfo]) -> Value {
     let fits = segments.iter().all(|s| s.voxels <= u64::from(u32::MAX));
-    let ids: Vec<String> = segments.iter().map(|s| s.id.to_string()).collect();
+    let ids: Vec<String> = segments.iter().map(|s| s.id.value.to_string()).collect();
     let descriptions: Vec<String> = segments
         .iter()
         .map(|s| {

@@ -16,7 +16,7 @@ use crate::store::{Snapshot, StoreError, StoredBrick};
 use crate::volume::{LiveVolume, VolumeError};
 use bytes::Bytes;
 use isovox_proto::vod2::Codec;
-use isovox_proto::{BrickKey, VolumeLayout};
+use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use std::sync::Arc;
 use thiserror::Error;
 
@@ -149,14 +149,12 @@ impl Chunk<'_> {
             }
             ChunkEncoding::CompressedSegmentation { extent } => {
                 let voxels = self.crop(layout, extent, bricks.voxels(hash, &self.stored, layout)?);
-                let labels: Vec<u32> = match layout.voxel_type().bytes() {
-                    1 => voxels.iter().map(|&v| u32::from(v)).collect(),
-                    _ => voxels
-                        .chunks_exact(2)
-                        .map(|p| u32::from(u16::from_le_bytes([p[0], p[1]])))
-                        .collect(),
-                };
-                Ok(super::compressed_segmentation::encode_chunk(&labels, extent).into())
+                let t = layout.voxel_type();
+                let labels: Vec<u64> = (0..voxels.len() / t.bytes())
+                    .map(|i| isovox_proto::voxel::value_at(&voxels, t, i))
+                    .collect();
+                let wide = t == VoxelType::U64;
+                Ok(super::compressed_segmentation::encode_chunk(&labels, extent, wide).into())
             }
         }
     }

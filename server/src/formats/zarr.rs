@@ -43,6 +43,8 @@ pub fn data_type(voxel_type: VoxelType) -> &'static str {
     match voxel_type {
         VoxelType::U8 => "uint8",
         VoxelType::U16 => "uint16",
+        VoxelType::U32 => "uint32",
+        VoxelType::U64 => "uint64",
     }
 }
 

@@ -25,12 +25,12 @@ const MAX_CONSTANTS: usize = 256;
 /// replaced whole on the rare insert), so cores serving bricks never wait on each other here.
 #[derive(Debug, Default)]
 pub struct ConstantBricks {
-    map: ArcSwap<HashMap<(u16, usize, usize), ConstantBrick>>,
+    map: ArcSwap<HashMap<(u64, usize, usize), ConstantBrick>>,
 }
 
 impl ConstantBricks {
     /// Reads the entry for `value` in `layout`'s brick shape (made on first use) with `read`.
-    fn with<R>(&self, value: u16, layout: &VolumeLayout, read: impl Fn(&ConstantBrick) -> R) -> R {
+    fn with<R>(&self, value: u64, layout: &VolumeLayout, read: impl Fn(&ConstantBrick) -> R) -> R {
         let key = (value, layout.brick_bytes(), layout.voxel_type().bytes());
         if let Some(hit) = self.map.load().get(&key) {
             return read(hit);
@@ -56,18 +56,18 @@ impl ConstantBricks {
     }
 
     /// The content hash of the constant brick of `value` in `layout`'s brick shape.
-    pub fn hash(&self, value: u16, layout: &VolumeLayout) -> u64 {
+    pub fn hash(&self, value: u64, layout: &VolumeLayout) -> u64 {
         self.with(value, layout, |c| c.hash)
     }
 
     /// Its voxels (shared).
-    pub fn raw(&self, value: u16, layout: &VolumeLayout) -> Bytes {
+    pub fn raw(&self, value: u64, layout: &VolumeLayout) -> Bytes {
         self.with(value, layout, |c| c.raw.clone())
     }
 
     /// Its lz4 block (copied: it is small, and a copy costs less than a reference count every
     /// core updates).
-    pub fn lz4(&self, value: u16, layout: &VolumeLayout) -> Bytes {
+    pub fn lz4(&self, value: u64, layout: &VolumeLayout) -> Bytes {
         self.with(value, layout, |c| Bytes::copy_from_slice(&c.lz4))
     }
 }

@@ -21,6 +21,7 @@ use axum::response::{IntoResponse, Response};
 use axum::Json;
 use isovox_proto::batch::MAX_BATCH;
 use isovox_proto::icvg::MAX_COORDINATE;
+use isovox_proto::VoxelType;
 use serde_json::{json, Value};
 
 fn problem_responses(codes: &[&str]) -> Value {
@@ -572,7 +573,7 @@ fn term_schemas(limits: &TermLimits) -> Value {
         leaves.push((op, two_terms.clone()));
     }
     // A leaf's object may carry attribute values (docs/channels.md).
-    let attribute = int(0, u16::MAX.into());
+    let attribute = int(0, crate::icvg::edit::largest_attribute(VoxelType::U64));
     for (key, schema) in &mut leaves {
         if isovox_proto::icvg::LEAVES.contains(key) {
             if let Some(props) = schema.get_mut("properties").and_then(Value::as_object_mut) {

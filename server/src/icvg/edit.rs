@@ -29,6 +29,7 @@ use isovox_proto::channel::ChannelInfo;
 use isovox_proto::history::{CommitInfo, CommitKind, CommitNote, OpSummary};
 use isovox_proto::icvg::{EditRequest, Overwrite, MAX_COORDINATE};
 use isovox_proto::vod2::FileHeader;
+use isovox_proto::voxel::{set_value_at as set_value, value_at};
 use isovox_proto::{BrickKey, VolumeLayout, VoxelType};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -318,15 +319,16 @@ impl Edit {
     /// Refuses what the volume `header` describes cannot take: paint of a channel it does not
     /// have, an attribute value beyond its channel's type.
     fn check_channels(&self, header: &FileHeader) -> Result<(), TermError> {
-        // Whatever the volume: no channel type holds more than u16 (the document says so).
+        // Whatever the volume: no channel holds more than a u64 channel does (the document
+        // says so).
         if let EditKind::Binary(_, term) | EditKind::Paint { term, .. } = &self.kind {
+            let high = largest_attribute(VoxelType::U64);
             for name in ["material", "label"] {
                 let mut values = Vec::new();
                 term.attribute_values(name, &mut values);
-                if let Some(v) = values.iter().find(|&&v| v > u64::from(u16::MAX)) {
+                if let Some(v) = values.iter().find(|&&v| v > high) {
                     return Err(TermError::Invalid(format!(
-                        "\"{name}\": {v} is beyond every channel type (at most {})",
-                        u16::MAX
+                        "\"{name}\": {v} is beyond every channel type (at most {high})"
                     )));
                 }
             }
@@ -348,7 +350,7 @@ impl Edit {
         for c in &header.channels {
             let mut values = Vec::new();
             term.attribute_values(&c.name, &mut values);
-            let high = u64::from(c.voxel_type.high());
+            let high = largest_attribute(c.voxel_type);
             if let Some(v) = values.iter().find(|&&v| v > high) {
                 return Err(TermError::Invalid(format!(
                     "\"{}\": {v} is beyond the channel's type {} (at most {high})",
@@ -430,25 +432,32 @@ pub fn bricks_meeting(layout: &VolumeLayout, b: &Box3) -> Vec<BrickKey> {
     out
 }
 
+/// A density brick's values (density is u8 or u16: its values fit a u16).
 fn to_u16(v: &BrickVoxels, layout: &VolumeLayout) -> Vec<u16> {
     match v {
-        BrickVoxels::Constant(c) => vec![*c; layout.brick_voxels()],
+        BrickVoxels::Constant(c) => vec![*c as u16; layout.brick_voxels()],
         BrickVoxels::Data(d) => match layout.voxel_type() {
             VoxelType::U8 => d.iter().map(|&x| x as u16).collect(),
-            VoxelType::U16 => d
-                .chunks_exact(2)
-                .map(|c| u16::from_le_bytes([c[0], c[1]]))
+            t => (0..layout.brick_voxels())
+                .map(|i| value_at(d, t, i) as u16)
                 .collect(),
         },
     }
 }
 
 fn from_u16(values: &[u16], layout: &VolumeLayout) -> BrickVoxels {
-    let bytes = match layout.voxel_type() {
+    let t = layout.voxel_type();
+    let bytes = match t {
         VoxelType::U8 => values.iter().map(|&v| v as u8).collect(),
-        VoxelType::U16 => values.iter().flat_map(|v| v.to_le_bytes()).collect(),
+        _ => {
+            let mut bytes = vec![0u8; values.len() * t.bytes()];
+            for (i, &v) in values.iter().enumerate() {
+                set_value(&mut bytes, t, i, v.into());
+            }
+            bytes
+        }
     };
-    BrickVoxels::from_bytes(bytes, layout.voxel_type())
+    BrickVoxels::from_bytes(bytes, t)
 }
 
 /// The content of the level-0 brick `key` after `edit` (whose target is `target`) is applied
@@ -473,7 +482,7 @@ pub fn edit_voxels(
     // Without touching voxels when the brick is wholly edited and both sides are constant.
     if eff == whole {
         let d1 = match old {
-            BrickVoxels::Constant(v) => Some(*v),
+            BrickVoxels::Constant(v) => Some(*v as u16),
             BrickVoxels::Data(_) => None,
         };
         let new = match &edit.kind {
@@ -490,7 +499,7 @@ pub fn edit_voxels(
             EditKind::Paint { .. } => None,
         };
         if let Some(v) = new {
-            let result = BrickVoxels::Constant(v);
+            let result = BrickVoxels::Constant(v.into());
             return Ok((result != *old).then_some(result));
         }
     }
@@ -691,7 +700,7 @@ fn take_values(
         return None;
     }
     let (density_type, channel_type) = (layout.voxel_type(), channel.voxel_type);
-    let (surface, high) = (density_type.surface(), u64::from(channel_type.high()));
+    let (surface, high) = (density_type.surface(), largest_attribute(channel_type));
     let b = layout.brick() as usize;
     let o = [0, 1, 2].map(|a| (eff.min[a] - whole.min[a]) as usize);
     // The channel's bytes, made on the first change.
@@ -717,11 +726,11 @@ fn take_values(
                 None => voxel_of(values, channel_type, at),
             };
             let takes = match paint {
-                None => d > voxel_of(density, density_type, at),
+                None => u64::from(d) > voxel_of(density, density_type, at),
                 Some(Overwrite::All) => d >= surface,
                 Some(Overwrite::Empty) => d >= surface && current == 0,
             };
-            let value = v.min(high) as u16;
+            let value = v.min(high);
             if takes && value != current {
                 let bytes = new.get_or_insert_with(|| {
                     values
@@ -735,25 +744,18 @@ fn take_values(
     new.map(|bytes| BrickVoxels::from_bytes(bytes, channel_type))
 }
 
+/// The largest value a term's attribute may give a channel of `voxel_type`: the type's
+/// largest, except for u64, whose largest value is the evaluator's mark for "no attribute"
+/// ([`KEEP`]), so an edit writes ids up to 2^64 - 2.
+pub fn largest_attribute(voxel_type: VoxelType) -> u64 {
+    voxel_type.max_value().min(KEEP - 1)
+}
+
 /// Voxel `at` of a brick of `voxel_type`.
-fn voxel_of(brick: &BrickVoxels, voxel_type: VoxelType, at: usize) -> u16 {
+fn voxel_of(brick: &BrickVoxels, voxel_type: VoxelType, at: usize) -> u64 {
     match brick {
         BrickVoxels::Constant(c) => *c,
         BrickVoxels::Data(bytes) => value_at(bytes, voxel_type, at),
-    }
-}
-
-fn value_at(bytes: &[u8], voxel_type: VoxelType, at: usize) -> u16 {
-    match voxel_type {
-        VoxelType::U8 => u16::from(bytes[at]),
-        VoxelType::U16 => u16::from_le_bytes([bytes[2 * at], bytes[2 * at + 1]]),
-    }
-}
-
-fn set_value(bytes: &mut [u8], voxel_type: VoxelType, at: usize, value: u16) {
-    match voxel_type {
-        VoxelType::U8 => bytes[at] = value as u8,
-        VoxelType::U16 => bytes[2 * at..2 * at + 2].copy_from_slice(&value.to_le_bytes()),
     }
 }
 

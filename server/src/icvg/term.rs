@@ -671,10 +671,8 @@ fn volume_voxel(snap: &Snapshot, v: [i64; 3]) -> Option<u16> {
     };
     let bytes = snap.read(key).ok()?;
     let i = (((v[2] % b) * b + v[1] % b) * b + v[0] % b) as usize;
-    Some(match layout.voxel_type() {
-        VoxelType::U8 => bytes[i] as u16,
-        VoxelType::U16 => u16::from_le_bytes([bytes[2 * i], bytes[2 * i + 1]]),
-    })
+    // Density: its values fit a u16.
+    Some(isovox_proto::voxel::value_at(&bytes, layout.voxel_type(), i) as u16)
 }
 
 /// Copies the voxels of world box `b` from the box `source` of a volume moved by `origin`
@@ -724,7 +722,8 @@ fn read_volume_box(
                                 - bx * edge) as usize;
                             let v = match vt {
                                 VoxelType::U8 => buf[i] as u16,
-                                VoxelType::U16 => u16::from_le_bytes([buf[2 * i], buf[2 * i + 1]]),
+                                // Density: u16 (its values fit a u16).
+                                t => isovox_proto::voxel::value_at(&buf, t, i) as u16,
                             };
                             let o = [
                                 x + origin[0] - b.min[0],

@@ -71,22 +71,22 @@ thread_local! {
 }
 
 /// Fills a decoded brick with one value.
-pub fn fill_constant(out: &mut [u8], value: u16, voxel_type: VoxelType) {
-    match voxel_type {
-        VoxelType::U8 => out.fill(value as u8),
-        VoxelType::U16 => {
-            let le = value.to_le_bytes();
-            for c in out.chunks_exact_mut(2) {
-                c.copy_from_slice(&le);
-            }
-        }
+pub fn fill_constant(out: &mut [u8], value: u64, voxel_type: VoxelType) {
+    let n = voxel_type.bytes();
+    if n == 1 {
+        out.fill(value as u8);
+        return;
+    }
+    let le = &value.to_le_bytes()[..n];
+    for c in out.chunks_exact_mut(n) {
+        c.copy_from_slice(le);
     }
 }
 
 /// The content hash of the constant brick of `value` in `layout`'s brick shape: the hash of its
 /// expanded bytes, as for any other brick. Remembered per thread (most bricks of a sparse volume
 /// are constant, and hashing 32 KiB for each would dominate a level listing).
-pub fn constant_hash(value: u16, layout: &VolumeLayout) -> u64 {
+pub fn constant_hash(value: u64, layout: &VolumeLayout) -> u64 {
     /// Constants remembered per thread at most (a u16 volume may hold thousands of them).
     const REMEMBERED: usize = 256;
     let key = (value, layout.brick_bytes(), layout.voxel_type().bytes());
@@ -106,7 +106,7 @@ pub fn constant_hash(value: u16, layout: &VolumeLayout) -> u64 {
 }
 
 thread_local! {
-    static CONSTANT_HASHES: RefCell<std::collections::HashMap<(u16, usize, usize), u64>> =
+    static CONSTANT_HASHES: RefCell<std::collections::HashMap<(u64, usize, usize), u64>> =
         RefCell::default();
 }
 
@@ -238,6 +238,10 @@ mod tests {
         let mut b = [0u8; 6];
         fill_constant(&mut b, 0x1234, VoxelType::U16);
         assert_eq!(b, [0x34, 0x12, 0x34, 0x12, 0x34, 0x12]);
+        let mut b = [0u8; 16];
+        fill_constant(&mut b, 0x0102_0304_0506_0708, VoxelType::U64);
+        assert_eq!(b[..8], [8, 7, 6, 5, 4, 3, 2, 1]);
+        assert_eq!(b[..8], b[8..]);
     }
 
     fn noise(n: usize) -> Vec<u8> {

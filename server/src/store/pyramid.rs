@@ -11,11 +11,11 @@ use isovox_proto::{BrickKey, VoxelType};
 use std::ops::Range;
 
 /// The voxels of one brick: one value everywhere, or the decoded bytes (x fastest, then y, then
-/// z; u16 little endian).
+/// z; little endian).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum BrickVoxels {
     /// Every voxel holds this value.
-    Constant(u16),
+    Constant(u64),
     /// The voxels' bytes.
     Data(Vec<u8>),
 }
@@ -53,7 +53,7 @@ pub trait BrickSource: Sync {
 
     /// A cheap answer for bricks known to be constant without looking at their voxels (for
     /// example the air above a terrain). `None` means "fill it and see".
-    fn constant(&self, _key: BrickKey) -> Option<u16> {
+    fn constant(&self, _key: BrickKey) -> Option<u64> {
         None
     }
 
@@ -240,6 +240,9 @@ fn downsample_octant(
         (Some(BrickVoxels::Data(d)), Downsampling::Mean) => match voxel_type {
             VoxelType::U8 => mean_subcube_u8(d, out, b, o, &span),
             VoxelType::U16 => mean_subcube_u16(d, out, b, o, &span),
+            // Density is never wide; a wide stream is a channel, whose levels take the mode.
+            // The mean is still the mean if ever asked for.
+            VoxelType::U32 | VoxelType::U64 => mean_subcube_wide(d, out, b, o, &span, voxel_type),
         },
         (Some(BrickVoxels::Data(d)), Downsampling::Mode { sparse }) => {
             mode_subcube(d, out, b, o, &span, voxel_type, sparse)
@@ -259,29 +262,38 @@ fn mode_subcube(
     sparse: bool,
 ) {
     match voxel_type {
-        VoxelType::U8 => mode_rows(
-            child,
-            out,
-            b,
-            o,
-            span,
-            sparse,
-            1,
-            |r, x| r[x] as u64,
-            |d, x, v| d[x] = v as u8,
-        ),
-        VoxelType::U16 => mode_rows(
-            child,
-            out,
-            b,
-            o,
-            span,
-            sparse,
-            2,
-            |r, x| u16::from_le_bytes([r[2 * x], r[2 * x + 1]]) as u64,
-            |d, x, v| d[2 * x..2 * x + 2].copy_from_slice(&(v as u16).to_le_bytes()),
-        ),
+        VoxelType::U8 => mode_rows_of::<1>(child, out, b, o, span, sparse),
+        VoxelType::U16 => mode_rows_of::<2>(child, out, b, o, span, sparse),
+        VoxelType::U32 => mode_rows_of::<4>(child, out, b, o, span, sparse),
+        VoxelType::U64 => mode_rows_of::<8>(child, out, b, o, span, sparse),
     }
+}
+
+/// [`mode_rows`] for values of `N` bytes, little endian.
+#[inline(always)]
+fn mode_rows_of<const N: usize>(
+    child: &[u8],
+    out: &mut [u8],
+    b: usize,
+    o: [usize; 3],
+    span: &Span,
+    sparse: bool,
+) {
+    mode_rows(
+        child,
+        out,
+        b,
+        o,
+        span,
+        sparse,
+        N,
+        |r, x| {
+            let mut v = [0u8; 8];
+            v[..N].copy_from_slice(&r[N * x..N * x + N]);
+            u64::from_le_bytes(v)
+        },
+        |d, x, v| d[N * x..N * x + N].copy_from_slice(&v.to_le_bytes()[..N]),
+    )
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -332,7 +344,7 @@ fn fill_subcube(
     b: usize,
     o: [usize; 3],
     span: &Span,
-    value: u16,
+    value: u64,
     voxel_type: VoxelType,
 ) {
     let vb = voxel_type.bytes();
@@ -403,9 +415,34 @@ fn mean_subcube_u16(child: &[u8], out: &mut [u8], b: usize, o: [usize; 3], span:
     }
 }
 
+fn mean_subcube_wide(
+    child: &[u8],
+    out: &mut [u8],
+    b: usize,
+    o: [usize; 3],
+    span: &Span,
+    voxel_type: VoxelType,
+) {
+    use isovox_proto::voxel::{set_value_at, value_at};
+    for z in span[2].clone() {
+        for y in span[1].clone() {
+            for x in span[0].clone() {
+                let mut sum = 0u128;
+                for d in 0..8 {
+                    let (dx, dy, dz) = (d & 1, d >> 1 & 1, d >> 2);
+                    let i = ((2 * z + dz) * b + 2 * y + dy) * b + 2 * x + dx;
+                    sum += u128::from(value_at(child, voxel_type, i));
+                }
+                let i = ((o[2] + z) * b + o[1] + y) * b + o[0] + x;
+                set_value_at(out, voxel_type, i, ((sum + 4) / 8) as u64);
+            }
+        }
+    }
+}
+
 /// The parent of 8 children without looking at voxels when that is possible: all children
 /// constant with one value (or absent, counting as L, when that value is L) gives that value.
-pub fn constant_parent(children: &[Option<&BrickVoxels>; 8]) -> Option<u16> {
+pub fn constant_parent(children: &[Option<&BrickVoxels>; 8]) -> Option<u64> {
     let mut value = None;
     for c in children {
         let v = match c {
@@ -591,7 +628,7 @@ mod tests {
             }
             let bytes: Vec<u8> = match t {
                 VoxelType::U8 => values.iter().map(|&v| v as u8).collect(),
-                VoxelType::U16 => values.iter().flat_map(|v| v.to_le_bytes()).collect(),
+                _ => values.iter().flat_map(|v| v.to_le_bytes()).collect(),
             };
             let child = BrickVoxels::Data(bytes);
             let mut out = vec![0u8; b * b * b * t.bytes()];
@@ -609,7 +646,7 @@ mod tests {
                 let at = ((h + z) * b + h + y) * b + h + x;
                 let got = match t {
                     VoxelType::U8 => u64::from(out[at]),
-                    VoxelType::U16 => u64::from(u16::from_le_bytes([out[2 * at], out[2 * at + 1]])),
+                    _ => u64::from(u16::from_le_bytes([out[2 * at], out[2 * at + 1]])),
                 };
                 proptest::prop_assert_eq!(got, expected, "group ({}, {}, {})", x, y, z);
             }
@@ -631,7 +668,7 @@ mod tests {
             let mut noise = xorshift(seed);
             let mut brick = |kind: u64| match kind {
                 0 => Some(BrickVoxels::Data((0..bytes).map(|_| noise() as u8).collect())),
-                1 => Some(BrickVoxels::Constant(noise() as u16 & 0xff)),
+                1 => Some(BrickVoxels::Constant(noise() & 0xff)),
                 _ => None,
             };
             let old: Vec<Option<BrickVoxels>> =
@@ -698,7 +735,7 @@ mod tests {
                         });
                         BrickVoxels::Data(match t {
                             VoxelType::U8 => values.map(|v| v as u8).collect(),
-                            VoxelType::U16 => values.flat_map(u16::to_le_bytes).collect(),
+                            _ => values.flat_map(u16::to_le_bytes).collect(),
                         })
                     })
                     .collect()

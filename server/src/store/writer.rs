@@ -27,10 +27,10 @@ use super::StoreError;
 use super::StoredBrick;
 use isovox_proto::vod2::{
     content_hash, payload_check, AppendedCheck, BrickHeader, BrickSummary, Checkpoint, Codec,
-    CommitHeader, EncodedChunk, FileHeader, HeaderSlot, NodeEntry, BRICK_HEADER_LEN, CHUNK_ENTRIES,
-    DATA_START, SLOT_OFFSETS,
+    CommitHeader, EncodedChunk, FileHeader, HeaderSlot, NodeEntry, CHUNK_ENTRIES, DATA_START,
+    MAX_CONSTANT, SLOT_OFFSETS,
 };
-use isovox_proto::VoxelType;
+use isovox_proto::{VolumeLayout, VoxelType};
 use std::collections::HashMap;
 use std::fs::{File, OpenOptions};
 use std::os::unix::fs::FileExt;
@@ -49,12 +49,15 @@ const ONE_SYNC_MAX: u64 = 16 << 20;
 /// copy with the same hash is already stored) compressed.
 #[derive(Debug)]
 pub struct PreparedBrick {
-    /// Set when every voxel holds this value.
-    constant: Option<u16>,
+    /// Set when every voxel holds this value (at most [`MAX_CONSTANT`]).
+    constant: Option<u64>,
     hash: u64,
-    min: u16,
-    max: u16,
+    min: u64,
+    max: u64,
     encoded: Option<(Codec, Vec<u8>)>,
+    /// The bytes of a constant brick whose value no index entry holds (a u64 id past
+    /// [`MAX_CONSTANT`]): stored as a record.
+    expanded: Option<Vec<u8>>,
 }
 
 /// Counters of what a writer stored.
@@ -310,7 +313,7 @@ impl Vod2Writer {
                 StoreError::Internal(format!("node {node} is outside the volume"))
             })?;
         let layout = self.header.layout.with_voxel_type(voxel_type);
-        let head = self.read_at(offset, BRICK_HEADER_LEN)?;
+        let head = self.read_at(offset, BrickHeader::len_for(voxel_type))?;
         Ok(BrickSummary::of_header(&BrickHeader::decode(
             &head, offset, &layout,
         )?))
@@ -460,7 +463,8 @@ impl Vod2Writer {
 
     /// [`Vod2Writer::prepare`] for a brick of values of `voxel_type` (an attribute channel's).
     pub fn prepare_as(&self, voxels: &BrickVoxels, voxel_type: VoxelType) -> PreparedBrick {
-        prepare(voxels, voxel_type, self.compression, &self.known)
+        let layout = self.header.layout.with_voxel_type(voxel_type);
+        prepare(voxels, &layout, self.compression, &self.known)
     }
 
     /// [`Vod2Writer::prepare_as`] compressing an attribute channel's brick as a build does
@@ -468,7 +472,7 @@ impl Vod2Writer {
     pub fn prepare_channel(&self, voxels: &BrickVoxels, voxel_type: VoxelType) -> PreparedBrick {
         prepare(
             voxels,
-            voxel_type,
+            &self.header.layout.with_voxel_type(voxel_type),
             self.compression.for_channels(),
             &self.known,
         )
@@ -500,12 +504,17 @@ impl Vod2Writer {
         brick: PreparedBrick,
         voxel_type: VoxelType,
     ) -> Result<NodeEntry, StoreError> {
-        let bytes = match (voxels, brick.constant.as_ref()) {
-            (BrickVoxels::Data(d), None) => d,
-            (BrickVoxels::Constant(v), _) | (BrickVoxels::Data(_), Some(v)) => {
-                let v = *v;
+        let bytes = match (voxels, brick.constant, brick.expanded.as_deref()) {
+            (_, None, Some(expanded)) => expanded,
+            (BrickVoxels::Data(d), None, None) => d,
+            (_, Some(v), _) => {
                 self.stats.constant += 1;
                 return Ok(NodeEntry::Constant(v));
+            }
+            (BrickVoxels::Constant(v), None, None) => {
+                return Err(StoreError::Internal(format!(
+                    "the constant brick of {v} was not prepared as one"
+                )))
             }
         };
         if let Some(candidates) = self.known.get(&brick.hash) {
@@ -535,6 +544,7 @@ impl Vod2Writer {
             min: brick.min,
             max: brick.max,
             checked: true,
+            wide: voxel_type.is_wide(),
         };
         self.append_record(header, &payload)
     }
@@ -547,13 +557,13 @@ impl Vod2Writer {
         bytes: &[u8],
         voxel_type: VoxelType,
     ) -> Result<bool, StoreError> {
-        let head = self.read_at(offset, BRICK_HEADER_LEN)?;
+        let head = self.read_at(offset, BrickHeader::len_for(voxel_type))?;
         let layout = self.header.layout.with_voxel_type(voxel_type);
         let h = match BrickHeader::decode(&head, offset, &layout) {
             Ok(h) => h,
             Err(e) => return Ok(damaged(offset, &e.into())),
         };
-        let payload = self.read_at(offset + BRICK_HEADER_LEN as u64, h.stored_len as usize)?;
+        let payload = self.read_at(offset + h.header_len() as u64, h.stored_len as usize)?;
         let mut decoded = vec![0u8; bytes.len()];
         if let Err(e) = codec::decode(h.codec, &payload, &mut decoded, offset) {
             return Ok(damaged(offset, &e));
@@ -657,7 +667,9 @@ impl Vod2Writer {
         for (node, entry) in changes {
             let valid = match (self.header.stream_of(*node), *entry) {
                 (None, _) => false,
-                (Some((_, voxel_type)), NodeEntry::Constant(v)) => v <= voxel_type.high(),
+                (Some((_, voxel_type)), NodeEntry::Constant(v)) => {
+                    v <= voxel_type.max_value() && v <= MAX_CONSTANT
+                }
                 (Some(_), NodeEntry::Stored(offset)) => offset >= DATA_START && offset < self.end(),
             };
             if !valid {
@@ -684,6 +696,7 @@ impl Vod2Writer {
                     n_nodes,
                     chunks,
                     self.write_summaries,
+                    self.header.wide_summaries(),
                 ))?
             }
             None => {
@@ -706,6 +719,7 @@ impl Vod2Writer {
             n_changes: changes.len() as u64,
             note_len,
             summaries: change_summaries.is_some(),
+            wide_summaries: self.header.wide_summaries(),
         }
         .encode(changes, note, change_summaries.as_deref());
         let commit_at = self.append(&record)?;
@@ -949,15 +963,18 @@ pub fn encode_checkpoint(entries: &[u64], summaries: &[BrickSummary]) -> Vec<u8>
         entries.len() as u64,
         CheckpointChunk::all_fresh(entries, summaries),
         true,
+        false,
     )
 }
 
 /// Encodes a checkpoint of `n_nodes` entries from its chunks: kept chunks as they are, fresh
-/// ones encoded (in parallel), with their summaries when `with_summaries`.
+/// ones encoded (in parallel), with their summaries when `with_summaries` (wide ones when
+/// `wide`: the file has a u32 or u64 channel).
 pub fn encode_checkpoint_chunks(
     n_nodes: u64,
     chunks: Vec<CheckpointChunk>,
     with_summaries: bool,
+    wide: bool,
 ) -> Vec<u8> {
     use rayon::prelude::*;
     let zstd = Compression::Zstd(codec::DEFAULT_ZSTD_LEVEL);
@@ -982,13 +999,14 @@ pub fn encode_checkpoint_chunks(
                             false => s,
                         })
                         .collect();
-                    encode(BrickSummary::encode_all(&zeroed))
+                    encode(BrickSummary::encode_all(&zeroed, wide))
                 });
                 EncodedChunk {
                     codec,
                     payload,
                     hash,
                     summaries,
+                    wide_summaries: wide,
                 }
             }
         })
@@ -998,7 +1016,7 @@ pub fn encode_checkpoint_chunks(
 
 fn prepare(
     voxels: &BrickVoxels,
-    voxel_type: VoxelType,
+    layout: &VolumeLayout,
     compression: Compression,
     known: &HashMap<u64, Vec<u64>>,
 ) -> PreparedBrick {
@@ -1008,24 +1026,35 @@ fn prepare(
         min: v,
         max: v,
         encoded: None,
+        expanded: None,
+    };
+    let record = |bytes: &[u8], min, max, expanded| {
+        let hash = content_hash(bytes);
+        // Probably a duplicate of a stored brick: compress only if that turns out false.
+        let encoded = (!known.contains_key(&hash)).then(|| codec::encode(bytes, compression));
+        PreparedBrick {
+            constant: None,
+            hash,
+            min,
+            max,
+            encoded,
+            expanded,
+        }
     };
     match voxels {
-        BrickVoxels::Constant(v) => constant(*v),
+        BrickVoxels::Constant(v) if *v <= MAX_CONSTANT => constant(*v),
+        BrickVoxels::Constant(v) => {
+            let bytes = voxels
+                .clone()
+                .into_bytes(layout.brick_voxels(), layout.voxel_type());
+            record(&bytes, *v, *v, Some(bytes.clone()))
+        }
         BrickVoxels::Data(bytes) => {
-            let (min, max) = codec::min_max(bytes, voxel_type);
-            if min == max {
+            let (min, max) = codec::min_max(bytes, layout.voxel_type());
+            if min == max && min <= MAX_CONSTANT {
                 return constant(min);
             }
-            let hash = content_hash(bytes);
-            // Probably a duplicate of a stored brick: compress only if that turns out false.
-            let encoded = (!known.contains_key(&hash)).then(|| codec::encode(bytes, compression));
-            PreparedBrick {
-                constant: None,
-                hash,
-                min,
-                max,
-                encoded,
-            }
+            record(bytes, min, max, None)
         }
     }
 }

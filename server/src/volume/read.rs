@@ -262,7 +262,7 @@ impl BatchRead {
                     key,
                     codec: BatchCodec::Constant,
                     hash: constant_hash(v, layout),
-                    payload: v.to_le_bytes().to_vec(),
+                    payload: isovox_proto::batch::constant_payload(v, layout.voxel_type()),
                 },
                 (
                     BatchEncoding::Stored,

@@ -45,11 +45,32 @@ pub const MAX_MESH_VOXELS: u64 = 1 << 24;
 /// about 25 MiB of mesh (positions, normals, twice as many triangles) and less encoded.
 pub const MAX_MESH_VERTICES: u64 = 1 << 19;
 
+/// A segment id as the JSON answers give it: a number, except in a u64 channel, where it is
+/// a decimal string (JavaScript's numbers hold integers exactly only up to 2^53, and a u64
+/// segmentation's ids use all 64 bits; Neuroglancer's segment properties spell ids so too).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SegmentId {
+    /// The id.
+    pub value: u64,
+    /// Whether it is written as a string.
+    pub as_text: bool,
+}
+
+impl Serialize for SegmentId {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        if self.as_text {
+            s.collect_str(&self.value)
+        } else {
+            s.serialize_u64(self.value)
+        }
+    }
+}
+
 /// One segment: a non-zero value of a channel.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize)]
 pub struct SegmentInfo {
     /// The value.
-    pub id: u16,
+    pub id: SegmentId,
     /// Level-0 voxels holding it.
     pub voxels: u64,
     /// The level-0 voxels' bounding box, `[[x0, y0, z0], [x1, y1, z1]]`, max exclusive.
@@ -71,7 +92,7 @@ pub struct SegmentList {
     /// When more follow: the `after` of the next page (the last id listed). Absent on the last
     /// page.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub next: Option<u16>,
+    pub next: Option<SegmentId>,
 }
 
 /// A segment's mesh, in world coordinates.
@@ -88,7 +109,7 @@ pub struct SegmentMesh {
 /// One id's share of a brick: its voxels and their box in the brick (max exclusive).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct Part {
-    id: u16,
+    id: u64,
     voxels: u32,
     lo: [u32; 3],
     hi: [u32; 3],
@@ -98,7 +119,7 @@ struct Part {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 enum Content {
     /// Every voxel holds this value.
-    Constant(u16),
+    Constant(u64),
     /// A stored brick with this content hash.
     Hash(u64),
 }
@@ -170,7 +191,7 @@ pub struct ChannelIndex {
     /// Summaries kept after the last pruning of [`ChannelIndex::summaries`].
     kept_at_prune: usize,
     /// The sums per id.
-    segments: BTreeMap<u16, Aggregate>,
+    segments: BTreeMap<u64, Aggregate>,
 }
 
 impl ChannelIndex {
@@ -347,25 +368,23 @@ impl ChannelIndex {
     fn list(&self, channel: &str, after: Option<u64>, limit: usize) -> SegmentList {
         let start = match after {
             None => Bound::Unbounded,
-            Some(a) => match u16::try_from(a) {
-                Ok(a) => Bound::Excluded(a),
-                // Past every id a channel can hold.
-                Err(_) => Bound::Excluded(u16::MAX),
-            },
+            Some(a) => Bound::Excluded(a),
         };
+        let as_text = self.snap.layout().voxel_type() == VoxelType::U64;
+        let id = |value| SegmentId { value, as_text };
         let mut segments: Vec<SegmentInfo> = self
             .segments
             .range((start, Bound::Unbounded))
             .take(limit + 1)
-            .map(|(&id, agg)| SegmentInfo {
-                id,
+            .map(|(&value, agg)| SegmentInfo {
+                id: id(value),
                 voxels: agg.voxels,
                 bounds: agg.bounds(),
             })
             .collect();
         let next = (segments.len() > limit).then(|| {
             segments.truncate(limit);
-            segments.last().map_or(0, |s| s.id)
+            segments.last().map_or(id(0), |s| s.id)
         });
         SegmentList {
             version: self.version(),
@@ -377,7 +396,7 @@ impl ChannelIndex {
     }
 
     /// Segment `id`'s box, if there is one.
-    fn bounds_of(&self, id: u16) -> Option<[[u32; 3]; 2]> {
+    fn bounds_of(&self, id: u64) -> Option<[[u32; 3]; 2]> {
         self.segments.get(&id).map(Aggregate::bounds)
     }
 }
@@ -390,13 +409,8 @@ fn level0_bricks(snap: &Snapshot) -> usize {
 /// The non-zero ids of a decoded brick (`b`^3 voxels of `voxel_type`, x fastest) within
 /// `extent`, with their counts and boxes, ascending by id.
 fn summarize(bytes: &[u8], voxel_type: VoxelType, b: u32, extent: [u32; 3]) -> BrickSummary {
-    let value = |i: usize| -> u16 {
-        match voxel_type {
-            VoxelType::U8 => u16::from(bytes[i]),
-            _ => u16::from_le_bytes([bytes[2 * i], bytes[2 * i + 1]]),
-        }
-    };
-    let mut slot_of: HashMap<u16, usize> = HashMap::new();
+    let value = |i: usize| isovox_proto::voxel::value_at(bytes, voxel_type, i);
+    let mut slot_of: HashMap<u64, usize> = HashMap::new();
     let mut parts: Vec<Part> = Vec::new();
     let b = b as usize;
     for z in 0..extent[2] {
@@ -603,10 +617,7 @@ impl LiveVolume {
     ) -> Result<SegmentMesh, VolumeError> {
         let head = stream_of(self.head(), Some(channel))?;
         let layout = head.layout();
-        let max = match layout.voxel_type() {
-            VoxelType::U8 => u64::from(u8::MAX),
-            _ => u64::from(u16::MAX),
-        };
+        let max = layout.voxel_type().max_value();
         if id == 0 || id > max {
             return Err(VolumeError::OutOfRange(format!(
                 "segment {id}: channel {channel:?} holds segments 1..={max} (0 is unlabelled)"
@@ -620,7 +631,7 @@ impl LiveVolume {
             )));
         }
         let (snap, bounds) = self.with_segments(version, channel, |index| {
-            Ok((index.snap.clone(), index.bounds_of(id as u16)))
+            Ok((index.snap.clone(), index.bounds_of(id)))
         })?;
         let Some([lo0, hi0]) = bounds else {
             return Err(VolumeError::OutOfRange(format!(
@@ -636,7 +647,7 @@ impl LiveVolume {
                 fits.map_or("none".into(), |l| l.to_string())
             )));
         }
-        let mesh = mesh_indicator(&snap, level, lo, hi, id as u16)?;
+        let mesh = mesh_indicator(&snap, level, lo, hi, id)?;
         Ok(SegmentMesh {
             version: snap.version,
             level,
@@ -670,14 +681,14 @@ fn indicator(
     level: u8,
     lo: [u32; 3],
     hi: [u32; 3],
-    id: u16,
+    id: u64,
 ) -> Result<(Vec<u8>, [usize; 3]), StoreError> {
     let n = [0, 1, 2].map(|a| (hi[a] - lo[a]) as usize);
     let size = n.map(|c| c + 4);
     let mut values = vec![0u8; size.iter().product()];
     let layout = snap.layout();
     let b = layout.brick();
-    let two = layout.voxel_type() != VoxelType::U8;
+    let t = layout.voxel_type();
     for bz in lo[2] / b..=(hi[2] - 1) / b {
         for by in lo[1] / b..=(hi[1] - 1) / b {
             for bx in lo[0] / b..=(hi[0] - 1) / b {
@@ -702,12 +713,7 @@ fn indicator(
                                 crate::store::BrickVoxels::Constant(v) => *v == id,
                                 crate::store::BrickVoxels::Data(d) => {
                                     let i = (local + x - origin[0]) as usize;
-                                    let v = if two {
-                                        u16::from_le_bytes([d[2 * i], d[2 * i + 1]])
-                                    } else {
-                                        u16::from(d[i])
-                                    };
-                                    v == id
+                                    isovox_proto::voxel::value_at(d, t, i) == id
                                 }
                             };
                             out[(x - lo[0]) as usize] = u8::from(inside);
@@ -753,7 +759,7 @@ fn mesh_indicator(
     level: u8,
     lo: [u32; 3],
     hi: [u32; 3],
-    id: u16,
+    id: u64,
 ) -> Result<Mesh, VolumeError> {
     let (values, size) = indicator(snap, level, lo, hi, id)?;
     let vertices = crossed_edges(&values, size);
@@ -872,7 +878,10 @@ mod tests {
                         continue;
                     }
                     let s = found.entry(v).or_insert(SegmentInfo {
-                        id: v,
+                        id: SegmentId {
+                            value: v.into(),
+                            as_text: false,
+                        },
                         voxels: 0,
                         bounds: [[u32::MAX; 3], [0; 3]],
                     });

@@ -328,7 +328,7 @@ fn fill_values(grid: &BitGrid, dims: [u32; 3], s: usize, t: VoxelType, passes: P
                     let at = (y * nx + x) * bpv;
                     match t {
                         VoxelType::U8 => slice[at] = v as u8,
-                        VoxelType::U16 => slice[at..at + 2].copy_from_slice(&v.to_le_bytes()),
+                        _ => slice[at..at + 2].copy_from_slice(&v.to_le_bytes()),
                     }
                 }
             }
@@ -401,7 +401,7 @@ fn fill_density_2(grid: &BitGrid, dims: [u32; 3], table: &[u16], t: VoxelType, o
                             VoxelType::U8 => {
                                 dest.iter_mut().zip(values).for_each(|(d, v)| *d = v as u8)
                             }
-                            VoxelType::U16 => dest
+                            _ => dest
                                 .chunks_exact_mut(2)
                                 .zip(values)
                                 .for_each(|(d, v)| d.copy_from_slice(&v.to_le_bytes())),
@@ -443,7 +443,7 @@ pub fn density_box(
     let bytes = fill_values(&grid, dims.map(|d| d as u32), s, t, Passes::Current);
     Ok(match t {
         VoxelType::U8 => bytes.into_iter().map(u16::from).collect(),
-        VoxelType::U16 => bytes
+        _ => bytes
             .chunks_exact(2)
             .map(|c| u16::from_le_bytes([c[0], c[1]]))
             .collect(),

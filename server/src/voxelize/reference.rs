@@ -150,7 +150,7 @@ pub(super) fn fill_density_2(
                         let i = z * plane + at;
                         match t {
                             VoxelType::U8 => slab[i] = v as u8,
-                            VoxelType::U16 => slab[i..i + 2].copy_from_slice(&v.to_le_bytes()),
+                            _ => slab[i..i + 2].copy_from_slice(&v.to_le_bytes()),
                         }
                     }
                 }

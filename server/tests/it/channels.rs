@@ -378,7 +378,7 @@ fn level0(path: &std::path::Path, channel: Option<&str>) -> Vec<u16> {
                     let (x, y, z) = (i % b, i / b % b, i / (b * b));
                     let v = match t {
                         VoxelType::U8 => bytes[i] as u16,
-                        VoxelType::U16 => u16::from_le_bytes([bytes[2 * i], bytes[2 * i + 1]]),
+                        _ => u16::from_le_bytes([bytes[2 * i], bytes[2 * i + 1]]),
                     };
                     let at = ((bz as usize * b + z) * 24 + by as usize * b + y) * 24
                         + bx as usize * b

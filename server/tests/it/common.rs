@@ -127,7 +127,7 @@ pub(crate) fn to_bytes(values: &[u16], voxel_type: VoxelType) -> Vec<u8> {
             .iter()
             .map(|&v| u8::try_from(v).expect("u8 voxel above 255"))
             .collect(),
-        VoxelType::U16 => values.iter().flat_map(|v| v.to_le_bytes()).collect(),
+        _ => values.iter().flat_map(|v| v.to_le_bytes()).collect(),
     }
 }
 

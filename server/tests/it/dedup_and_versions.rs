@@ -117,7 +117,7 @@ fn append_version(
             }
             Constant(value) => {
                 model[node as usize] = vec![value as u8; layout.brick_bytes()];
-                NodeEntry::Constant(value)
+                NodeEntry::Constant(value.into())
             }
         };
         entries.push((node, entry));

@@ -85,7 +85,8 @@ fn script(name: &str, server: &ServerProcess, args: &[&str]) {
     );
 }
 
-/// A u8 world and a u16 ellipsoid whose dimensions are not multiples of their bricks.
+/// A u8 world and a u16 ellipsoid whose dimensions are not multiples of their bricks, and
+/// [`wide_labels`].
 fn odd_volumes(data: &Path) {
     std::fs::create_dir_all(data).expect("create the data directory");
     ok(isovox()
@@ -113,6 +114,60 @@ fn odd_volumes(data: &Path) {
             "-o",
         ])
         .arg(data.join("ellipsoid16.vod")));
+    wide_labels(&data.join("labels64.vod"));
+}
+
+/// A 45 x 38 x 29 volume (brick 16) with a u32 channel `label32` and a sparse u64 channel
+/// `label`: boxes of ids past u16 and past u32, past 2^53 (where a float64 would round them),
+/// past 2^63 (more than a constant index entry holds: whole bricks of them are records) and
+/// 2^64 - 1, so that every level of both reads back through the field's clients.
+fn wide_labels(path: &Path) {
+    use isovox_proto::channel::ChannelInfo;
+    use isovox_proto::vod2::FileHeader;
+    use isovox_proto::{VolumeLayout, VoxelType};
+    use isovox_server::store::{build_streams, BrickSource, BuildOptions, DenseGrid};
+    let dims = [45u32, 38, 29];
+    let n = (dims[0] * dims[1] * dims[2]) as usize;
+    let at = |i: usize| (i % 45, i / 45 % 38, i / (45 * 38));
+    let density: Vec<u8> = (0..n).map(|i| if at(i).1 < 19 { 255 } else { 0 }).collect();
+    let id32 = |i: usize| -> u32 {
+        let (x, y, z) = at(i);
+        match (x / 9, y / 10, z / 8) {
+            (0, _, _) => 0,
+            (1, 0, _) => 70_000,
+            (a, b, c) => 4_000_000_000 - (a + 7 * b + 31 * c) as u32,
+        }
+    };
+    let id64 = |i: usize| -> u64 {
+        let (x, y, z) = at(i);
+        if x < 16 && y < 16 && z < 16 {
+            return (1 << 63) + 5; // brick (0, 0, 0) whole: a record, not a constant
+        }
+        match (x / 11, y / 9, z / 7) {
+            (1, _, _) => 0,
+            (0, _, _) => u64::MAX,
+            (2, b, _) => (1 << 53) + 1 + b as u64,
+            (a, b, c) => ((a + 3 * b + 17 * c) as u64) << 40,
+        }
+    };
+    let label32: Vec<u8> = (0..n).flat_map(|i| id32(i).to_le_bytes()).collect();
+    let label64: Vec<u8> = (0..n).flat_map(|i| id64(i).to_le_bytes()).collect();
+    let grids = [
+        DenseGrid::new(dims, VoxelType::U8, 16, &density),
+        DenseGrid::new(dims, VoxelType::U32, 16, &label32),
+        DenseGrid::new(dims, VoxelType::U64, 16, &label64),
+    ];
+    let sources: Vec<&dyn BrickSource> = grids.iter().map(|g| g as _).collect();
+    let layout = VolumeLayout::new(dims, 16, VoxelType::U8).expect("a layout");
+    let channels = vec![
+        ChannelInfo::new("label32", VoxelType::U32),
+        ChannelInfo {
+            sparse: true,
+            ..ChannelInfo::new("label", VoxelType::U64)
+        },
+    ];
+    let header = FileHeader::with_channels(layout, [1.0; 3], channels).expect("a header");
+    build_streams(path, header, &sources, &BuildOptions::default()).expect("the volume builds");
 }
 
 #[test]
@@ -125,7 +180,15 @@ fn python_clients_read_every_level_live_and_pinned() {
     script(
         "views_read_back.py",
         &server,
-        &["--url", &url, "--token", TOKEN, "world8", "ellipsoid16"],
+        &[
+            "--url",
+            &url,
+            "--token",
+            TOKEN,
+            "world8",
+            "ellipsoid16",
+            "labels64",
+        ],
     );
 }
 

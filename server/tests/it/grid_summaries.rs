@@ -258,8 +258,8 @@ fn assert_summaries_match_voxels(vod: &Vod2, what: &str) -> usize {
         let s = snap.summary(key).unwrap();
         let want = (
             xxhash_rust::xxh3::xxh3_64(&voxels),
-            *voxels.iter().min().unwrap() as u16,
-            *voxels.iter().max().unwrap() as u16,
+            u64::from(*voxels.iter().min().unwrap()),
+            u64::from(*voxels.iter().max().unwrap()),
         );
         assert_eq!((s.hash, s.min, s.max), want, "{what}: brick {key}");
         stored += usize::from(matches!(snap.entry(key).unwrap(), NodeEntry::Stored(_)));

@@ -210,7 +210,7 @@ fn fixture() -> &'static Fixture {
                     }
                     Constant(value) => {
                         model[n as usize] = vec![value as u8; 64];
-                        NodeEntry::Constant(value)
+                        NodeEntry::Constant(value.into())
                     }
                 };
                 entries.push((n, entry));
@@ -959,7 +959,7 @@ proptest! {
         b[20..24].copy_from_slice(&check.to_le_bytes());
         for layout in layouts() {
             if let Ok(h) = BrickHeader::decode(&b, DATA_START, &layout) {
-                prop_assert!(h.min <= h.max && h.max <= layout.voxel_type().high());
+                prop_assert!(h.min <= h.max && h.max <= layout.voxel_type().max_value());
                 prop_assert!(h.stored_len as usize <= layout.brick_bytes());
             }
         }

@@ -80,7 +80,7 @@ impl Grid {
     fn bytes(&self, t: VoxelType) -> Vec<u8> {
         match t {
             VoxelType::U8 => self.values.iter().map(|&v| v as u8).collect(),
-            VoxelType::U16 => self.values.iter().flat_map(|v| v.to_le_bytes()).collect(),
+            _ => self.values.iter().flat_map(|v| v.to_le_bytes()).collect(),
         }
     }
 }
@@ -132,7 +132,7 @@ fn build(path: &Path, grid: &Grid, t: VoxelType) -> VolumeLayout {
 fn values(bytes: &[u8], t: VoxelType) -> Vec<u16> {
     match t {
         VoxelType::U8 => bytes.iter().map(|&b| b as u16).collect(),
-        VoxelType::U16 => bytes
+        _ => bytes
             .chunks_exact(2)
             .map(|c| u16::from_le_bytes([c[0], c[1]]))
             .collect(),

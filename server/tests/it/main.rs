@@ -63,3 +63,4 @@ mod transitions;
 mod vod1;
 mod voxelize;
 mod web;
+mod wide_labels;

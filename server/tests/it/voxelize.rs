@@ -684,7 +684,7 @@ fn value(v: &Voxelized, t: VoxelType, x: usize, y: usize, z: usize) -> u16 {
     let i = (z * ny + y) * nx + x;
     match t {
         VoxelType::U8 => u16::from(v.bytes[i]),
-        VoxelType::U16 => u16::from_le_bytes([v.bytes[2 * i], v.bytes[2 * i + 1]]),
+        _ => u16::from_le_bytes([v.bytes[2 * i], v.bytes[2 * i + 1]]),
     }
 }
 

@@ -58,13 +58,28 @@ pub struct ChannelsBenchArgs {
     /// Only part 3, the edit runs (no Python peers needed): for profiling them.
     #[arg(long)]
     pub edits_only: bool,
+    /// The segmentation's id type (parts 1 and 2): u16 (ids below 60,000), u32 (ids spread
+    /// over 31 bits) or u64 (ids spread over 48 bits, as connectomics numbers its segments).
+    #[arg(long, default_value = "u16")]
+    pub label_type: VoxelType,
 }
 
-/// A synthetic segmentation: cells about 24 voxels across with wavy walls, one id each (u16),
-/// a seventh of them background (0). Deterministic.
-fn segmentation(n: u32) -> Vec<u16> {
+/// The id of cell hash `h` (24 bits) in a segmentation of `t`: never 0; in u32 and u64 one id
+/// per hash, spread over 31 and 48 bits.
+fn cell_id(h: u64, t: VoxelType) -> u64 {
+    match t {
+        VoxelType::U8 => 1 + h % 250,
+        VoxelType::U16 => 1 + h % 60_000,
+        VoxelType::U32 => 1 + (h << 7),
+        VoxelType::U64 => 1 + (h << 24 | h),
+    }
+}
+
+/// A synthetic segmentation: cells about 24 voxels across with wavy walls, one id each
+/// ([`cell_id`]), a seventh of them background (0). Deterministic.
+fn segmentation(n: u32, t: VoxelType) -> Vec<u64> {
     let n = n as usize;
-    let mut out = vec![0u16; n * n * n];
+    let mut out = vec![0u64; n * n * n];
     for z in 0..n {
         for y in 0..n {
             for x in 0..n {
@@ -80,7 +95,7 @@ fn segmentation(n: u32) -> Vec<u16> {
                 out[(z * n + y) * n + x] = if h.is_multiple_of(7) {
                     0
                 } else {
-                    1 + (h % 60_000) as u16
+                    cell_id(h, t)
                 };
             }
         }
@@ -93,16 +108,29 @@ pub fn run_bench(a: ChannelsBenchArgs) -> anyhow::Result<()> {
     if a.edits_only {
         return edits_per_second(&a);
     }
-    let (n, b) = (a.size, a.brick);
-    eprintln!("making a {n}^3 segmentation");
-    let labels = segmentation(n);
-    let bytes: Vec<u8> = labels.iter().flat_map(|v| v.to_le_bytes()).collect();
-    let raw = a.dir.join("labels.u16");
+    let (n, b, t) = (a.size, a.brick, a.label_type);
+    eprintln!("making a {n}^3 {t} segmentation");
+    let labels = segmentation(n, t);
+    let width = t.bytes();
+    let bytes: Vec<u8> = labels
+        .iter()
+        .flat_map(|v| v.to_le_bytes()[..width].to_vec())
+        .collect();
+    drop(labels);
+    let raw = a.dir.join(format!("labels.{t}"));
     std::fs::write(&raw, &bytes)?;
+    // The array's NumPy type, as the peers read it.
+    let np_type = format!("<u{width}");
+    // compressed_segmentation takes uint32 or uint64.
+    let cseg_type = if t == VoxelType::U64 {
+        "uint64"
+    } else {
+        "uint32"
+    };
 
     // 1. Mode downsampling, one level, one thread.
-    let layout = VolumeLayout::new([n; 3], b, VoxelType::U16)?;
-    let grid = DenseGrid::new([n; 3], VoxelType::U16, b, &bytes);
+    let layout = VolumeLayout::new([n; 3], b, VoxelType::U8)?.with_voxel_type(t);
+    let grid = DenseGrid::new([n; 3], t, b, &bytes);
     let g = layout.grid(0);
     let bricks: Vec<BrickVoxels> = (0..g[0] * g[1] * g[2])
         .map(|i| {
@@ -138,7 +166,7 @@ pub fn run_bench(a: ChannelsBenchArgs) -> anyhow::Result<()> {
                     });
                     let mut out = vec![0u8; layout.brick_bytes()];
                     let how = Downsampling::Mode { sparse: false };
-                    downsample(&kids, b, VoxelType::U16, how, &mut out);
+                    downsample(&kids, b, t, how, &mut out);
                     level1.push(out);
                 }
             }
@@ -150,7 +178,7 @@ pub fn run_bench(a: ChannelsBenchArgs) -> anyhow::Result<()> {
         &format!(
             r#"
 import numpy as np, time, tinybrain
-a = np.fromfile({raw:?}, dtype='<u2').reshape(({n},{n},{n})).transpose(2, 1, 0)
+a = np.fromfile({raw:?}, dtype={np_type:?}).reshape(({n},{n},{n})).transpose(2, 1, 0)
 best = []
 for _ in range({runs}):
     t = time.perf_counter()
@@ -158,7 +186,7 @@ for _ in range({runs}):
     best.append(time.perf_counter() - t)
 best.sort()
 print(best[len(best) // 2])
-np.ascontiguousarray(out.transpose(2, 1, 0)).astype('<u2').tofile({raw:?} + '.tinybrain')
+np.ascontiguousarray(out.transpose(2, 1, 0)).astype({np_type:?}).tofile({raw:?} + '.tinybrain')
 "#,
             raw = raw.to_string_lossy(),
             runs = a.runs
@@ -167,7 +195,7 @@ np.ascontiguousarray(out.transpose(2, 1, 0)).astype('<u2').tofile({raw:?} + '.ti
     let peer_s: f64 = peer.trim().parse()?;
     let ours_s = median(ours);
     // How often the two agree (tie rules differ: ours is documented, tinybrain's is its own).
-    let theirs = std::fs::read(a.dir.join("labels.u16.tinybrain"))?;
+    let theirs = std::fs::read(a.dir.join(format!("labels.{t}.tinybrain")))?;
     let h = (n / 2) as usize;
     let (mut same, mut total) = (0usize, 0usize);
     let hb = b as usize;
@@ -176,14 +204,14 @@ np.ascontiguousarray(out.transpose(2, 1, 0)).astype('<u2').tofile({raw:?} + '.ti
             for x in 0..h {
                 let brick = &level1
                     [((z / hb * parents[1] as usize + y / hb) * parents[0] as usize) + x / hb];
-                let i = ((z % hb * hb + y % hb) * hb + x % hb) * 2;
-                let j = ((z * h + y) * h + x) * 2;
-                same += usize::from(brick[i..i + 2] == theirs[j..j + 2]);
+                let i = ((z % hb * hb + y % hb) * hb + x % hb) * width;
+                let j = ((z * h + y) * h + x) * width;
+                same += usize::from(brick[i..i + width] == theirs[j..j + width]);
                 total += 1;
             }
         }
     }
-    println!("### Mode downsampling: a {n}^3 u16 segmentation to level 1, one thread (median of {} runs)\n", a.runs);
+    println!("### Mode downsampling: a {n}^3 {t} segmentation to level 1, one thread (median of {} runs)\n", a.runs);
     println!("| | seconds | Mvoxels/s (input) |\n|---|---:|---:|");
     let mv = |s: f64| (n as f64).powi(3) / s / 1e6;
     println!("| isovox (brick {b}) | {ours_s:.3} | {:.0} |", mv(ours_s));
@@ -208,7 +236,7 @@ np.ascontiguousarray(out.transpose(2, 1, 0)).astype('<u2').tofile({raw:?} + '.ti
         [1.0; 3],
         vec![ChannelInfo {
             sparse: true,
-            ..ChannelInfo::new("label", VoxelType::U16)
+            ..ChannelInfo::new("label", t)
         }],
     )?;
     build_streams(&path, header, &[&density, &grid], &BuildOptions::default())?;
@@ -218,7 +246,7 @@ np.ascontiguousarray(out.transpose(2, 1, 0)).astype('<u2').tofile({raw:?} + '.ti
         &format!(
             r#"
 import numpy as np, gzip, compressed_segmentation as cseg
-a = np.fromfile({raw:?}, dtype='<u2').reshape(({n},{n},{n})).transpose(2, 1, 0).astype(np.uint32)
+a = np.fromfile({raw:?}, dtype={np_type:?}).reshape(({n},{n},{n})).transpose(2, 1, 0).astype({cseg_type:?})
 total = 0
 for z in range(0, {n}, {b}):
     for y in range(0, {n}, {b}):
@@ -241,7 +269,7 @@ print(total)
         bpv(ours_bytes)
     );
     println!(
-        "| compressed_segmentation {} (8^3 blocks, u32) + gzip 6 | {peer_bytes} | {:.3} |",
+        "| compressed_segmentation {} (8^3 blocks, {cseg_type}) + gzip 6 | {peer_bytes} | {:.3} |",
         version(&a.python, "compressed_segmentation")?,
         bpv(peer_bytes)
     );

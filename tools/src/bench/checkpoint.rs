@@ -84,7 +84,8 @@ pub fn run_bench(args: CheckpointBenchArgs) -> anyhow::Result<()> {
             .filter(|c| matches!(c, CheckpointChunk::Kept(_)))
             .count();
         let total = chunks.len();
-        let bytes = encode_checkpoint_chunks(nodes, chunks, true);
+        let wide = snap.header().wide_summaries();
+        let bytes = encode_checkpoint_chunks(nodes, chunks, true, wide);
         Ok((bytes, kept, total, t0.elapsed().as_secs_f64() * 1e3))
     };
     let (mut copying, mut encoding) = (Vec::new(), Vec::new());

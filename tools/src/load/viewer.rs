@@ -58,6 +58,8 @@ fn draws(data: &TileData, voxel_type: VoxelType) -> bool {
                 VoxelType::U16 => bytes
                     .chunks_exact(2)
                     .for_each(|v| see(u16::from_le_bytes([v[0], v[1]]))),
+                // Density is u8 or u16: a volume of another type draws nothing here.
+                VoxelType::U32 | VoxelType::U64 => {}
             }
             below && above
         }

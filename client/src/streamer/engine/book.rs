@@ -238,7 +238,7 @@ impl HashBook {
                     match u64::from_str_radix(&entry.hash, 16) {
                         Ok(h) => {
                             self.hashes.insert(b, h);
-                            self.ranges.insert(b, (entry.min, entry.max));
+                            self.ranges.insert(b, density_range(entry.min, entry.max));
                             self.kept_bounds.remove(&b);
                             self.sources.remove(&b);
                         }
@@ -254,7 +254,8 @@ impl HashBook {
     }
 
     /// Brick `b` changed and holds `hash`, with values in `range`, now (a commit event said so).
-    pub(super) fn learn(&mut self, b: BrickKey, hash: u64, range: (u16, u16)) {
+    pub(super) fn learn(&mut self, b: BrickKey, hash: u64, range: (u64, u64)) {
+        let range = density_range(range.0, range.1);
         self.generation += 1;
         self.hashes.insert(b, hash);
         self.ranges.insert(b, range);
@@ -323,4 +324,11 @@ pub(super) fn bricks_read<'a>(
             })
         })
     })
+}
+
+/// A density brick's value range as the book keeps it: density is u8 or u16, so a range past
+/// u16 (only a damaged or hostile answer has one) saturates instead of wrapping.
+fn density_range(min: u64, max: u64) -> (u16, u16) {
+    let narrow = |v: u64| u16::try_from(v).unwrap_or(u16::MAX);
+    (narrow(min), narrow(max))
 }

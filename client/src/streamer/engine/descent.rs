@@ -412,7 +412,7 @@ mod tests {
             let mut book = HashBook::new(4);
             for (&b, &r) in &truth {
                 match draw(4) {
-                    0 | 1 => book.learn(b, 1, r),
+                    0 | 1 => book.learn(b, 1, (r.0.into(), r.1.into())),
                     // A kept bound: a true one (the parent's carried), one-sided.
                     2 if b.level < top => {
                         let p = BrickKey {

@@ -52,6 +52,41 @@ impl DType {
         }
     }
 
+    /// The channel type a label map of this type is stored as: its own width for unsigned
+    /// integers (u8, u16, u32, u64), the unsigned type of the same width for signed ones (a
+    /// negative id is an error), u16 for floats (whole values only, as the file may hold ids in
+    /// a float type; more than 65,535 ids in a float map is an error naming the value).
+    pub fn label_type(self) -> VoxelType {
+        match self {
+            DType::U8 | DType::I8 => VoxelType::U8,
+            DType::U16 | DType::I16 | DType::F32 | DType::F64 => VoxelType::U16,
+            DType::U32 | DType::I32 => VoxelType::U32,
+            DType::U64 => VoxelType::U64,
+        }
+    }
+
+    /// The value at `i` of little-endian `bytes` as an id: exact for every integer type,
+    /// `None` for a negative value or a float that is not a whole number from 0 to 2^64 - 1.
+    pub fn id(self, bytes: &[u8], i: usize) -> Option<u64> {
+        let at = i * self.bytes();
+        let b = &bytes[at..at + self.bytes()];
+        match self {
+            DType::U8 => Some(u64::from(b[0])),
+            DType::U16 => Some(u64::from(u16::from_le_bytes([b[0], b[1]]))),
+            DType::U32 => Some(u64::from(u32::from_le_bytes([b[0], b[1], b[2], b[3]]))),
+            DType::U64 => Some(u64::from_le_bytes(b.try_into().ok()?)),
+            DType::I8 => u64::try_from(b[0] as i8).ok(),
+            DType::I16 => u64::try_from(i16::from_le_bytes([b[0], b[1]])).ok(),
+            DType::I32 => u64::try_from(i32::from_le_bytes([b[0], b[1], b[2], b[3]])).ok(),
+            DType::F32 | DType::F64 => {
+                let v = self.value(bytes, i);
+                // 2^64 itself is the first float past u64.
+                ((0.0..18_446_744_073_709_551_616.0).contains(&v) && v.fract() == 0.0)
+                    .then_some(v as u64)
+            }
+        }
+    }
+
     /// Whether values of this type are stored without conversion as `target`.
     pub fn is(self, target: VoxelType) -> bool {
         matches!(
@@ -154,25 +189,24 @@ impl Conversion {
                 };
                 Ok(match target {
                     VoxelType::U8 => (0..n).map(|i| map(i) as u8).collect(),
-                    VoxelType::U16 => (0..n).flat_map(|i| map(i).to_le_bytes()).collect(),
+                    _ => (0..n).flat_map(|i| map(i).to_le_bytes()).collect(),
                 })
             }
             Conversion::Labels(target) => {
                 let n = values.len() / dtype.bytes();
-                let high = f64::from(target.high());
-                let mut out = Vec::with_capacity(n * target.bytes());
+                let high = target.max_value();
+                let mut out = vec![0u8; n * target.bytes()];
                 for i in 0..n {
-                    let v = dtype.value(values, i);
-                    if !(0.0..=high).contains(&v) || v.fract() != 0.0 {
-                        return Err(FormatsError::input(format!(
-                            "label value {} is not an id from 0 to {high} (a {target} channel; \
-                             u32 and u64 labels are not stored yet)",
-                            number(v)
-                        )));
-                    }
-                    match target {
-                        VoxelType::U8 => out.push(v as u8),
-                        VoxelType::U16 => out.extend_from_slice(&(v as u16).to_le_bytes()),
+                    match dtype.id(values, i) {
+                        Some(id) if id <= high => {
+                            isovox_proto::voxel::set_value_at(&mut out, target, i, id);
+                        }
+                        _ => {
+                            return Err(FormatsError::input(format!(
+                                "label value {} is not an id from 0 to {high} (a {target} channel)",
+                                number(dtype.value(values, i))
+                            )))
+                        }
                     }
                 }
                 Ok(out)

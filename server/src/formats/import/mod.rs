@@ -337,8 +337,8 @@ fn choose_conversion(
 }
 
 /// The label maps `inputs` as channels of a volume of `layout`: their descriptions and their
-/// sources. A map must have the image's shape; its values are kept as ids (u8 for a u8 input,
-/// u16 otherwise: a value past the channel's type is an error). A `material` channel counts 0
+/// sources. A map must have the image's shape; its values are kept as ids, in the channel type
+/// [`DType::label_type`] gives (a value past it is an error). A `material` channel counts 0
 /// like any value in its coarser levels; every other name is a segmentation's, where 0
 /// (unlabelled) loses (`sparse`).
 ///
@@ -361,12 +361,8 @@ fn open_channels(
                 layout.dims()
             )));
         }
-        let voxel_type = match source.dtype() {
-            DType::U8 => VoxelType::U8,
-            _ => VoxelType::U16,
-        };
-        let channel_layout = VolumeLayout::new(layout.dims(), layout.brick(), voxel_type)
-            .map_err(|e| FormatsError::input(e.to_string()))?;
+        let voxel_type = DType::label_type(source.dtype());
+        let channel_layout = layout.with_voxel_type(voxel_type);
         infos.push(ChannelInfo {
             sparse: c.name != "material",
             ..ChannelInfo::new(&c.name, voxel_type)

@@ -61,12 +61,12 @@ pub(super) fn describe_bricks(
     read: GridBox,
     crossing: GridBox,
     desc: &mut Vec<u8>,
-) -> Result<(u16, u16), StoreError> {
+) -> Result<(u64, u64), StoreError> {
     let layout = snap.layout();
     let grid = layout.grid(level).map(|g| g as i64);
     let (first, last) = bricks_of(layout.brick(), read);
     let (cross_first, cross_last) = bricks_of(layout.brick(), crossing);
-    let (mut min, mut max) = (u16::MAX, u16::MIN);
+    let (mut min, mut max) = (u64::MAX, u64::MIN);
     for z in first[2]..=last[2] {
         for y in first[1]..=last[1] {
             for x in first[0]..=last[0] {
@@ -151,7 +151,7 @@ pub fn tile_inputs(
     let field = stored_box(key.level, field_box(layout, key));
     let corners = stored_box(key.level, (lo, hi));
     let (min, max) = describe_bricks(snap, key.level, field, corners, &mut desc)?;
-    let (low, high) = value_range(key.level, f32::from(min), f32::from(max));
+    let (low, high) = value_range(key.level, min as f32, max as f32);
     // At or below L every voxel, and the padding outside the volume, is inside: there is no
     // surface.
     let surface_possible = iso > layout.voxel_type().low() as f32;
@@ -193,10 +193,10 @@ pub fn strip_inputs(
     }
     let fine = stored_box(key.level, strip_field_box(layout, key, face));
     let (min, max) = describe_bricks(snap, key.level, fine, fine, &mut desc)?;
-    let (mut low, mut high) = value_range(key.level, f32::from(min), f32::from(max));
+    let (mut low, mut high) = value_range(key.level, min as f32, max as f32);
     let coarse = stored_box(key.level + 1, strip_coarse_box(layout, key, face));
     let (min, max) = describe_bricks(snap, key.level + 1, coarse, coarse, &mut desc)?;
-    let (l, h) = value_range(key.level + 1, f32::from(min), f32::from(max));
+    let (l, h) = value_range(key.level + 1, min as f32, max as f32);
     low = low.min(l);
     high = high.max(h);
     // At or below L there is no surface; the coarser lattice values can still dip below L

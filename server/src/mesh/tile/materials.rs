@@ -48,10 +48,7 @@ pub fn check_material_channel(channel: &Snapshot) -> Result<(), String> {
         VoxelType::U8 => Ok(()),
         other => Err(format!(
             "per-vertex materials need a u8 channel; this one holds {}",
-            match other {
-                VoxelType::U16 => "u16",
-                VoxelType::U8 => "u8",
-            }
+            other.name()
         )),
     }
 }

@@ -120,6 +120,11 @@ fn mesh_into(
                     &mut scratch.march,
                 );
             }
+            wide => {
+                return Err(StoreError::Internal(format!(
+                    "a mesh of {wide} values: density is u8 or u16"
+                )))
+            }
         }
     } else {
         let fine = lattice(

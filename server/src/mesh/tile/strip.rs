@@ -188,7 +188,7 @@ fn value_bounds(
     read: GridBox,
 ) -> (f32, f32) {
     let (min, max) = voxel_range(window, layout, read);
-    value_range(level, f32::from(min), f32::from(max))
+    value_range(level, min as f32, max as f32)
 }
 
 /// Opens the bricks the strip reads: of the tile's level under the face, of the coarser level

@@ -90,8 +90,8 @@ pub(super) fn pad_outside(
 #[derive(Debug, Clone)]
 enum BrickVoxels {
     /// One value throughout: a constant brick, or L outside the volume.
-    Constant(u16),
-    /// The brick's voxels as stored (little-endian for u16).
+    Constant(u64),
+    /// The brick's voxels as stored (little-endian).
     Voxels(Bytes),
 }
 
@@ -161,8 +161,8 @@ impl BrickWindow {
 /// One row of stored voxels, as its brick holds it.
 enum Row<'a> {
     /// One value across the row: a constant brick, or L outside the volume.
-    Constant(u16),
-    /// The row's voxels as stored (little-endian for u16).
+    Constant(u64),
+    /// The row's voxels as stored (little-endian).
     Voxels(&'a [u8]),
 }
 
@@ -224,7 +224,7 @@ pub(super) fn gather(
     for_each_row(window, layout, origin, size, |at, width, row| {
         let dst = &mut out[at..at + width];
         match (row, t) {
-            (Row::Constant(v), _) => dst.fill(f32::from(v)),
+            (Row::Constant(v), _) => dst.fill(v as f32),
             (Row::Voxels(bytes), VoxelType::U8) => {
                 for (d, s) in dst.iter_mut().zip(bytes) {
                     *d = f32::from(*s);
@@ -235,6 +235,11 @@ pub(super) fn gather(
                     *d = f32::from(u16::from_le_bytes([s[0], s[1]]));
                 }
             }
+            (Row::Voxels(bytes), wide) => {
+                for (i, d) in dst.iter_mut().enumerate() {
+                    *d = isovox_proto::voxel::value_at(bytes, wide, i) as f32;
+                }
+            }
         }
     });
 }
@@ -242,13 +247,13 @@ pub(super) fn gather(
 /// A voxel type as a tile's samples hold it.
 pub(super) trait StoredVoxel: Copy + Default {
     /// The value of a constant brick (or of L outside the volume).
-    fn from_constant(v: u16) -> Self;
+    fn from_constant(v: u64) -> Self;
     /// Copies a row of stored voxels (little-endian for u16) into `dst`.
     fn copy_row(dst: &mut [Self], stored: &[u8]);
 }
 
 impl StoredVoxel for u8 {
-    fn from_constant(v: u16) -> Self {
+    fn from_constant(v: u64) -> Self {
         // A u8 volume's values fit a u8.
         v as u8
     }
@@ -259,8 +264,8 @@ impl StoredVoxel for u8 {
 }
 
 impl StoredVoxel for u16 {
-    fn from_constant(v: u16) -> Self {
-        v
+    fn from_constant(v: u64) -> Self {
+        v as u16
     }
 
     fn copy_row(dst: &mut [u16], stored: &[u8]) {
@@ -296,9 +301,9 @@ pub(super) fn voxel_range(
     window: &BrickWindow,
     layout: &VolumeLayout,
     (lo, hi): GridBox,
-) -> (u16, u16) {
+) -> (u64, u64) {
     let t = layout.voxel_type();
-    let mut range = (u16::MAX, u16::MIN);
+    let mut range = (u64::MAX, u64::MIN);
     for_each_row(window, layout, lo, field_size((lo, hi)), |_, _, row| {
         let (l, h) = match row {
             Row::Constant(v) => (v, v),

@@ -46,7 +46,7 @@ pub const PARTS_DIR: &str = "parts";
 const MARKER_FORMAT: &str = "isovox-import-part-1";
 
 /// The first bytes of a stored row (before its zstd frame).
-const ROW_MAGIC: &[u8; 8] = b"IVXROW01";
+const ROW_MAGIC: &[u8; 8] = b"IVXROW02";
 
 /// The zstd level of stored rows: they are read once, by the finish, so fast beats small.
 const ROW_ZSTD_LEVEL: i32 = 1;
@@ -233,7 +233,7 @@ impl Marker {
 }
 
 /// A row of bricks as stored: [`ROW_MAGIC`], then a zstd frame holding, per brick in row order,
-/// a tag byte and its voxels: 0 and a u16 (little endian) for a constant brick, 1 and the
+/// a tag byte and its voxels: 0 and a u64 (little endian) for a constant brick, 1 and the
 /// brick's bytes for the others.
 pub fn encode_row(row: &[BrickVoxels]) -> Result<Vec<u8>, StoreError> {
     let mut plain = Vec::new();
@@ -282,9 +282,16 @@ pub fn decode_row(
         let (brick, len) = match tag {
             0 => {
                 let v = plain
-                    .get(at + 1..at + 3)
+                    .get(at + 1..at + 9)
                     .ok_or_else(|| bad("a constant brick is cut short".into()))?;
-                (BrickVoxels::Constant(u16::from_le_bytes([v[0], v[1]])), 3)
+                let v = u64::from_le_bytes(v.try_into().expect("8 bytes"));
+                if v > layout.voxel_type().max_value() {
+                    return Err(bad(format!(
+                        "a constant {v} past the largest {}",
+                        layout.voxel_type()
+                    )));
+                }
+                (BrickVoxels::Constant(v), 9)
             }
             1 => {
                 let d = plain
@@ -521,7 +528,7 @@ impl RowSource<'_> {
 }
 
 impl BrickSource for RowSource<'_> {
-    fn constant(&self, key: BrickKey) -> Option<u16> {
+    fn constant(&self, key: BrickKey) -> Option<u64> {
         let (row, i) = self.brick(key)?;
         match row.get(i)? {
             BrickVoxels::Constant(v) => Some(*v),

@@ -6,8 +6,7 @@ use crate::store::codec;
 use crate::store::region::MappedRegion;
 use crate::store::StoreError;
 use isovox_proto::vod2::{
-    content_hash, payload_check, BrickHeader, Fields, NodeEntry, BRICK_HEADER_LEN,
-    PAYLOAD_CHECK_LEN,
+    content_hash, payload_check, BrickHeader, Fields, NodeEntry, PAYLOAD_CHECK_LEN,
 };
 use isovox_proto::{BrickKey, FormatError, VolumeLayout};
 use std::sync::Arc;
@@ -17,7 +16,7 @@ use std::sync::Arc;
 #[derive(Debug, Clone, Copy)]
 pub enum StoredBrick<'a> {
     /// Every voxel holds this value (no payload).
-    Constant(u16),
+    Constant(u64),
     /// A brick record.
     Record {
         /// Where the record starts.
@@ -45,7 +44,7 @@ pub enum PayloadCheck {
 
 impl StoredBrick<'_> {
     /// The brick's smallest and largest voxel value.
-    pub fn min_max(&self) -> (u16, u16) {
+    pub fn min_max(&self) -> (u64, u64) {
         match self {
             StoredBrick::Constant(v) => (*v, *v),
             StoredBrick::Record { header, .. } => (header.min, header.max),
@@ -164,7 +163,8 @@ pub(super) fn stored_record<'m>(
 ) -> Result<StoredBrick<'m>, StoreError> {
     // A record is its header, its payload and (checked records) the payload's checksum, in a
     // row: filled in one go when they share a page, which they mostly do.
-    map.ensure(offset, BRICK_HEADER_LEN as u64)?;
+    let header_len = BrickHeader::len_for(layout.voxel_type());
+    map.ensure(offset, header_len as u64)?;
     let fields = Fields::new("brick record", map.bytes(), 0);
     let at = usize::try_from(offset).map_err(|_| {
         FormatError::invalid(
@@ -172,8 +172,8 @@ pub(super) fn stored_record<'m>(
             format!("offset {offset} is not addressable"),
         )
     })?;
-    let header = BrickHeader::decode(fields.slice(at, BRICK_HEADER_LEN)?, offset, layout)?;
-    let start = at + BRICK_HEADER_LEN;
+    let header = BrickHeader::decode(fields.slice(at, header_len)?, offset, layout)?;
+    let start = at + header_len;
     let tail = if header.checked { PAYLOAD_CHECK_LEN } else { 0 };
     map.ensure(start as u64, (header.stored_len as usize + tail) as u64)?;
     let payload = fields.slice(start, header.stored_len as usize)?;
@@ -227,7 +227,10 @@ impl Snapshot {
         verified: &crate::store::decoded::DecodedBricks,
     ) -> Result<bytes::Bytes, StoreError> {
         let StoredBrick::Record {
-            offset, payload, ..
+            offset,
+            payload,
+            header,
+            ..
         } = *stored
         else {
             return Err(StoreError::Internal(
@@ -235,7 +238,7 @@ impl Snapshot {
             ));
         };
         let mapped = self.map.bytes();
-        let start = offset as usize + BRICK_HEADER_LEN;
+        let start = offset as usize + header.header_len();
         let end = start + payload.len();
         // The bytes checked must be the bytes sent: the payload is this mapping's slice.
         if mapped.get(start..end).map(<[u8]>::as_ptr) != Some(payload.as_ptr()) {
@@ -292,7 +295,7 @@ impl crate::store::BrickSource for SnapshotSource {
         }
     }
 
-    fn constant(&self, key: BrickKey) -> Option<u16> {
+    fn constant(&self, key: BrickKey) -> Option<u64> {
         match self.snap.entry(key) {
             Ok(NodeEntry::Constant(v)) => Some(v),
             _ => None,

@@ -12,7 +12,7 @@ use crate::store::writer::CheckpointChunk;
 use crate::store::StoreError;
 use isovox_proto::vod2::{
     BrickSummary, Checkpoint, CommitHeader, EncodedChunk, FileHeader, NodeEntry,
-    CHECKPOINT_FIXED_LEN, CHUNK_ENTRIES, CHUNK_REF_LEN, SUMMARY_LEN,
+    CHECKPOINT_FIXED_LEN, CHUNK_ENTRIES, CHUNK_REF_LEN,
 };
 use isovox_proto::FormatError;
 use std::collections::HashMap;
@@ -396,7 +396,19 @@ impl IndexChunks {
         let Some(block) = cp.summaries(&r)? else {
             return Ok(None);
         };
-        let mut bytes = vec![0u8; entries.len() * SUMMARY_LEN];
+        if block.wide != header.wide_summaries() {
+            return Err(FormatError::invalid(
+                "index chunk summaries",
+                format!(
+                    "at offset {}: {} summaries in a file whose channels need {}",
+                    block.offset,
+                    if block.wide { "wide" } else { "narrow" },
+                    if block.wide { "narrow" } else { "wide" }
+                ),
+            )
+            .into());
+        }
+        let mut bytes = vec![0u8; entries.len() * BrickSummary::encoded_len(block.wide)];
         codec::decode(block.codec, block.payload, &mut bytes, block.offset)?;
         let hash = xxhash_rust::xxh3::xxh3_64(&bytes);
         if hash != block.hash {
@@ -408,7 +420,7 @@ impl IndexChunks {
             }
             .into());
         }
-        let summaries = BrickSummary::decode_all(&bytes);
+        let summaries = BrickSummary::decode_all(&bytes, block.wide);
         let first = c as u64 * CHUNK_ENTRIES;
         for (node, (&raw, s)) in (first..).zip(entries.iter().zip(&summaries)) {
             if NodeEntry::is_constant(raw) {
@@ -445,6 +457,7 @@ impl IndexChunks {
             codec: r.codec,
             payload: payload.to_vec(),
             hash: r.hash,
+            wide_summaries: summaries.is_some_and(|b| b.wide),
             summaries: summaries.map(|b| (b.codec, b.payload.to_vec(), b.hash)),
         }))
     }

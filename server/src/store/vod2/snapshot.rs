@@ -8,7 +8,7 @@ use crate::store::region::MappedRegion;
 use crate::store::StoreError;
 use isovox_proto::vod2::{
     BrickSummary, CommitHeader, FileHeader, NodeEntry, COMMIT_HAS_NOTE, COMMIT_HAS_SUMMARIES,
-    MAX_NOTE_LEN, NOTE_FRAMING_LEN,
+    COMMIT_WIDE_SUMMARIES, MAX_NOTE_LEN, NOTE_FRAMING_LEN,
 };
 use isovox_proto::{BrickKey, FormatError, VolumeLayout};
 use std::collections::HashMap;
@@ -217,7 +217,7 @@ impl Snapshot {
         })
     }
 
-    fn constant_summary(&self, v: u16) -> BrickSummary {
+    fn constant_summary(&self, v: u64) -> BrickSummary {
         BrickSummary {
             hash: codec::constant_hash(v, self.layout()),
             min: v,
@@ -393,7 +393,8 @@ pub(super) fn commit_record(
         // replays the record's changes keeps them.
         if flags & COMMIT_HAS_SUMMARIES != 0 {
             let n = n_changes.min(avail.len() as u64);
-            map.ensure(at, end + CommitHeader::summaries_len(n))?;
+            let wide = flags & COMMIT_WIDE_SUMMARIES != 0;
+            map.ensure(at, end + CommitHeader::summaries_len(n, wide))?;
         }
     }
     Ok(CommitHeader::decode(avail, at)?)
