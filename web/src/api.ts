@@ -1,6 +1,8 @@
 // The server's HTTP API as the viewer uses it: JSON types (`proto/src/api.rs`), requests, and
 // errors (RFC 9457 problem details) put into words a person can act on.
 
+import type { VoxelType } from "./voxels";
+
 export type Vec3 = [number, number, number];
 
 export interface LevelInfo {
@@ -27,7 +29,8 @@ export interface VolumeInfo {
 /** A categorical channel: `material` (worlds) or `label` (segmentations). */
 export interface ChannelInfo {
   name: string;
-  type: "u8" | "u16" | "u32" | "u64";
+  /** Bytes per voxel 1, 2, 4 or 8 (`decodeVoxels` reads them). */
+  type: VoxelType;
   /** Display colour per value ("#rrggbb", index = value), when the volume gives them. */
   palette?: string[];
   sparse?: boolean;
@@ -247,9 +250,15 @@ function lookQuery(look: MeshLook): string {
   return look.channel === null ? iso : `${iso}&channel=${encodeURIComponent(look.channel)}`;
 }
 
+/**
+ * A segment id as the server writes it: a number for u8, u16 and u32 channels, a decimal string
+ * for u64 channels (a number holds integers exactly only to 2^53).
+ */
+export type SegmentId = number | string;
+
 /** One segment of a channel (`GET .../channels/{channel}/segments`). */
 export interface Segment {
-  id: number;
+  id: SegmentId;
   /** Level-0 voxels holding it. */
   voxels: number;
   /** Its level-0 box, [min, max) per axis as [[x0, y0, z0], [x1, y1, z1]]. */
@@ -263,7 +272,7 @@ export interface SegmentList {
   total?: number;
   segments: Segment[];
   /** The `after` of the next page, absent on the last. */
-  next?: number;
+  next?: SegmentId;
 }
 
 export class Api {
@@ -349,7 +358,7 @@ export class Api {
     return r.arrayBuffer();
   }
 
-  /** One brick's voxels (raw, x fastest, u16 little endian). */
+  /** One brick's voxels (raw, x fastest, little endian, of density's type or the channel's). */
   async brick(
     name: string,
     key: { level: number; x: number; y: number; z: number },
@@ -370,9 +379,12 @@ export class Api {
     );
   }
 
-  /** Segment `id`'s closed mesh at `level` (compact encoding, version 1). */
-  async segmentMesh(name: string, channel: string, id: number, level: number, signal?: AbortSignal): Promise<ArrayBuffer> {
-    const path = `/v1/volumes/${encodeURIComponent(name)}/channels/${encodeURIComponent(channel)}/segments/${id}/mesh?level=${level}&format=compact`;
+  /**
+   * Segment `id`'s closed mesh at `level` (compact encoding, version 1). The path takes the id in
+   * decimal: a u64 id's string as it is, every digit kept.
+   */
+  async segmentMesh(name: string, channel: string, id: SegmentId, level: number, signal?: AbortSignal): Promise<ArrayBuffer> {
+    const path = `/v1/volumes/${encodeURIComponent(name)}/channels/${encodeURIComponent(channel)}/segments/${encodeURIComponent(String(id))}/mesh?level=${level}&format=compact`;
     const r = await this.send(path, signal ? { signal } : {});
     return r.arrayBuffer();
   }

@@ -15,6 +15,7 @@ import { readUrl, writeUrl, type UrlState } from "./url";
 import "./people.css";
 import { People } from "./people";
 import { SegmentPanel } from "./segments";
+import { decodeVoxels, voxelValue, type VoxelType, type Voxels } from "./voxels";
 
 const $ = <T extends HTMLElement>(id: string) => document.getElementById(id) as T;
 
@@ -663,8 +664,11 @@ let probe: {
   position: [number, number, number];
   level: number;
   value: number;
-  /** Over the surface: the channels' values at the voxel (material, label, ...). */
-  channels?: Record<string, number>;
+  /**
+   * Over the surface: the channels' values at the voxel (material, label, ...), exact: u64
+   * values as decimal strings, as the segment list writes their ids.
+   */
+  channels?: Record<string, number | string>;
 } | null = null;
 
 function showProbe(): void {
@@ -695,7 +699,7 @@ function showProbe(): void {
   // Over the 3D view: the level-0 voxel nearest the surface point under the pointer, its value
   // read from its brick (one request per brick and version, at most every 100 ms).
   const canvas = viewport.renderer.domElement;
-  const bricks = new Map<string, Promise<Uint8Array | Uint16Array>>();
+  const bricks = new Map<string, Promise<Voxels>>();
   let timer: ReturnType<typeof setTimeout> | null = null;
   let last: { x: number; y: number } | null = null;
   const look = async () => {
@@ -716,13 +720,12 @@ function showProbe(): void {
     const key = { level: 0, x: Math.floor(pos[0] / b), y: Math.floor(pos[1] / b), z: Math.floor(pos[2] / b) };
     const version = streamer.version;
     // The brick's voxels of density (channel null) or of a channel, each once per version.
-    const voxelsOf = (channel: string | null, type: string) => {
+    const voxelsOf = (channel: string | null, type: VoxelType) => {
       const id = `${v.name}/${version}/${channel ?? ""}/${key.x}/${key.y}/${key.z}`;
       let voxels = bricks.get(id);
       if (!voxels) {
         if (bricks.size > 64) bricks.clear();
-        const u16 = type === "u16";
-        voxels = api.brick(v.name, key, undefined, channel).then((buf) => (u16 ? new Uint16Array(buf) : new Uint8Array(buf)));
+        voxels = api.brick(v.name, key, undefined, channel).then((buf) => decodeVoxels(buf, type));
         bricks.set(id, voxels);
         voxels.catch(() => bricks.delete(id));
       }
@@ -732,11 +735,12 @@ function showProbe(): void {
     const at = l[0]! + b * (l[1]! + b * l[2]!);
     const data = await voxelsOf(null, v.voxel_type);
     const channels = await Promise.all(
-      (v.channels ?? []).map(async (c) => [c.name, (await voxelsOf(c.name, c.type))[at] ?? 0] as [string, number]),
+      (v.channels ?? []).map(async (c) => [c.name, voxelValue(await voxelsOf(c.name, c.type), at)] as const),
     );
     // The pointer left the view meanwhile: what is under it now (the slice, or nothing) stands.
     if (!last) return;
-    probe = { where: "surface", position: pos, level: 0, value: data[at] ?? 0, channels: Object.fromEntries(channels) };
+    // Density is u8 or u16: always a number.
+    probe = { where: "surface", position: pos, level: 0, value: Number(data[at] ?? 0), channels: Object.fromEntries(channels) };
     showProbe();
   };
   canvas.addEventListener("pointermove", (e) => {

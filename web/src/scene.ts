@@ -141,8 +141,8 @@ export class Viewport implements TileSink {
   /** The page's own edits drawn until the server's tiles show them, by id. */
   private readonly previews = new Map<number, THREE.Mesh>();
   private previewId = 0;
-  /** Segment meshes shown from the segment list, by id. */
-  private readonly segments = new Map<number, THREE.Mesh>();
+  /** Segment meshes shown from the segment list, by key (decimal id, exact for u64 ids). */
+  private readonly segments = new Map<string, THREE.Mesh>();
   private readonly material: THREE.ShaderMaterial;
   private readonly orbit: OrbitControls;
   private readonly fly: FlyNavigation;
@@ -323,7 +323,7 @@ export class Viewport implements TileSink {
    * Shows segment `id`'s closed mesh in `color` (lit, drawn over the surface where both lie:
    * a segment's boundary on the surface is the surface).
    */
-  showSegment(id: number, mesh: TriangleSet, color: [number, number, number]): void {
+  showSegment(id: string, mesh: TriangleSet, color: [number, number, number]): void {
     this.hideSegment(id);
     const material = new THREE.MeshLambertMaterial({
       color: new THREE.Color().setRGB(color[0] / 255, color[1] / 255, color[2] / 255, THREE.SRGBColorSpace),
@@ -338,7 +338,7 @@ export class Viewport implements TileSink {
     this.requestRender();
   }
 
-  hideSegment(id: number): void {
+  hideSegment(id: string): void {
     const m = this.segments.get(id);
     if (!m) return;
     this.scene.remove(m);

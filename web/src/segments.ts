@@ -2,26 +2,61 @@
 // with its colour and voxel count, and a checkbox that shows or hides its closed mesh (`.../
 // segments/{id}/mesh`) in the 3D view. Colours are the channel's palette where it gives one,
 // else a function of the id alone, so an id keeps its colour across pages, sessions and viewers.
+// Ids are kept as decimal strings (`segmentKey`) from the list to the mesh request and the 3D
+// view: a u64 channel's ids go past 2^53, where a number would drop their last digits.
 
-import type { Api, ChangeEvent, ChannelInfo, Segment, VolumeInfo } from "./api";
+import type { Api, ChangeEvent, ChannelInfo, Segment, SegmentId, VolumeInfo } from "./api";
 import { decodeStrip, type TriangleSet } from "./mesh";
 
 /** Voxels (with the padding) a segment mesh is asked for at most: the level follows from it. */
 export const MESH_VOXELS = 1 << 21;
 
+/** The golden ratio's fraction: the hue step from one id to the next. */
+const GOLDEN = 0.618033988749895;
+/** The hue step of a large id's high 32 bits: sqrt(2) - 1, irrational and unrelated to GOLDEN. */
+const HIGH_STEP = Math.SQRT2 - 1;
+
+/** The key of segment `id` in the panel, the 3D view and URLs: its exact decimal digits. */
+export function segmentKey(id: SegmentId): string {
+  return String(id);
+}
+
+/** `id` as a number where a number holds it exactly (below 2^53), else as a bigint. */
+function exactId(id: SegmentId | bigint): number | bigint {
+  if (typeof id === "number") return id;
+  const v = BigInt(id);
+  return v <= BigInt(Number.MAX_SAFE_INTEGER) ? Number(v) : v;
+}
+
+/**
+ * The hue (0..1) of an id from its exact value. Below 2^53, `id` times the golden ratio (mod 1):
+ * neighbouring ids are 0.38 of the circle apart and no two of a run of ids coincide. Above, the
+ * product of a float would have lost the low digits (all such ids would share a few hues): the
+ * low 32 bits times the golden ratio plus the high 32 bits times sqrt(2) - 1 (mod 1), computed
+ * from the bigint, so ids differing in their last digits differ in hue as small ids do.
+ */
+function hueOf(id: number | bigint): number {
+  if (typeof id === "number") return (id * GOLDEN) % 1;
+  const low = Number(id & 0xffffffffn);
+  const high = Number((id >> 32n) & 0xffffffffn);
+  return (((low * GOLDEN) % 1) + ((high * HIGH_STEP) % 1)) % 1;
+}
+
 /**
  * The display colour of value `id` (0..255 per channel): the palette's ("#rrggbb") when it has
- * one for `id`, else a colour of its own: the hue `id` times the golden ratio (mod 1), so the
- * hues of neighbouring ids are 0.38 of the circle apart and no two of a run of ids coincide;
- * saturation and lightness fixed to stay readable.
+ * one for `id` (ids below the palette's length), else a colour of its own: the hue `hueOf` the
+ * exact id (ids below 2^53 keep the colours they always had; a u64 id as a string or a bigint
+ * gets the same colour as the number when below 2^53), saturation and lightness fixed to stay
+ * readable.
  */
-export function segmentColor(id: number, palette: readonly string[] = []): [number, number, number] {
-  const m = /^#([0-9a-f]{6})$/i.exec(palette[id] ?? "");
+export function segmentColor(id: SegmentId | bigint, palette: readonly string[] = []): [number, number, number] {
+  const v = exactId(id);
+  const m = typeof v === "number" ? /^#([0-9a-f]{6})$/i.exec(palette[v] ?? "") : null;
   if (m) {
-    const v = parseInt(m[1]!, 16);
-    return [v >> 16, (v >> 8) & 255, v & 255];
+    const rgb = parseInt(m[1]!, 16);
+    return [rgb >> 16, (rgb >> 8) & 255, rgb & 255];
   }
-  const hue = ((id * 0.618033988749895) % 1) * 6;
+  const hue = hueOf(v) * 6;
   const s = 0.65;
   const l = 0.55;
   const c = (1 - Math.abs(2 * l - 1)) * s;
@@ -47,16 +82,17 @@ export function meshLevel(box: Segment["box"], levels: number, cap = MESH_VOXELS
 
 /** Where the segment meshes are drawn (the 3D view). */
 export interface SegmentSink {
-  showSegment(id: number, mesh: TriangleSet, color: [number, number, number]): void;
-  hideSegment(id: number): void;
+  /** `id`: the segment's key (`segmentKey`), exact for u64 ids. */
+  showSegment(id: string, mesh: TriangleSet, color: [number, number, number]): void;
+  hideSegment(id: string): void;
 }
 
 /** The panel: its channel, its list, and the meshes it shows. */
 export class SegmentPanel {
   private info: VolumeInfo | null = null;
   private channel: ChannelInfo | null = null;
-  /** Shown segments, by id, with the version their mesh is of. */
-  private readonly shown = new Map<number, number>();
+  /** Shown segments, by key, with the version their mesh is of. */
+  private readonly shown = new Map<string, number>();
   private refresh: ReturnType<typeof setTimeout> | null = null;
   private version = 0;
 
@@ -77,8 +113,8 @@ export class SegmentPanel {
     });
   }
 
-  /** Segments shown now (ids). */
-  get showing(): number[] {
+  /** Segments shown now (keys: decimal ids). */
+  get showing(): string[] {
     return [...this.shown.keys()];
   }
 
@@ -127,25 +163,26 @@ export class SegmentPanel {
   }
 
   private item(s: Segment): HTMLElement {
+    const key = segmentKey(s.id);
     const li = document.createElement("li");
     const box = document.createElement("input");
     box.type = "checkbox";
-    box.checked = this.shown.has(s.id);
-    box.dataset["segment"] = String(s.id);
+    box.checked = this.shown.has(key);
+    box.dataset["segment"] = key;
     box.addEventListener("change", () => {
-      if (box.checked) void this.showMesh(s.id, s.box);
-      else this.hide(s.id);
+      if (box.checked) void this.showMesh(key, s.box);
+      else this.hide(key);
     });
     const swatch = document.createElement("span");
     swatch.className = "swatch";
-    swatch.style.background = `rgb(${segmentColor(s.id, this.channel?.palette).join(",")})`;
+    swatch.style.background = `rgb(${segmentColor(key, this.channel?.palette).join(",")})`;
     const label = document.createElement("label");
-    label.append(box, swatch, ` ${s.id} (${s.voxels.toLocaleString("en")} voxels)`);
+    label.append(box, swatch, ` ${key} (${s.voxels.toLocaleString("en")} voxels)`);
     li.append(label);
     return li;
   }
 
-  private async showMesh(id: number, box?: Segment["box"]): Promise<void> {
+  private async showMesh(id: string, box?: Segment["box"]): Promise<void> {
     const info = this.info;
     const channel = this.channel;
     if (!info || !channel) return;
@@ -163,9 +200,9 @@ export class SegmentPanel {
   }
 
   /** The level each shown segment's mesh was asked for at. */
-  private readonly levelOf = new Map<number, number>();
+  private readonly levelOf = new Map<string, number>();
 
-  private hide(id: number): void {
+  private hide(id: string): void {
     this.shown.delete(id);
     this.sink.hideSegment(id);
   }
