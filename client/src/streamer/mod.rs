@@ -172,7 +172,7 @@ use isovox_proto::api::{ChangeEvent, LevelBrick, LevelGrid, VolumeInfo};
 use isovox_proto::mesh::{Mesh, TileMesh};
 use isovox_proto::{BrickKey, VolumeLayout};
 use std::collections::BTreeSet;
-use std::hash::{DefaultHasher, Hash, Hasher};
+use std::hash::{Hash, Hasher};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::sync::{mpsc, oneshot, watch};

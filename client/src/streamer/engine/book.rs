@@ -8,7 +8,7 @@ use isovox_proto::api::{LevelGrid, VolumeInfo};
 use isovox_proto::tile::GridBox;
 use isovox_proto::{BrickKey, VolumeLayout};
 use std::cell::RefCell;
-use std::hash::{DefaultHasher, Hash, Hasher};
+use std::hash::{Hash, Hasher};
 
 /// The volume's shape as content keys describe it: its layout and metadata.
 pub(super) type Shape<'a> = (&'a VolumeLayout, &'a VolumeInfo);
@@ -165,7 +165,7 @@ impl HashBook {
         iso: Option<f32>,
         reads: &[(u8, GridBox)],
     ) -> Result<u64, Vec<BrickKey>> {
-        let mut h = DefaultHasher::new();
+        let mut h = super::content_hasher();
         what.hash(&mut h);
         key.hash(&mut h);
         face.hash(&mut h);
