@@ -604,6 +604,9 @@ pub enum Codec {
     /// A zstd frame; decodes to exactly one brick. Denser than lz4 (what the compression goals
     /// need) and still decoded at over 1 GB/s; HTTP can send it as `Content-Encoding: zstd`.
     Zstd = 2,
+    /// A zstd frame of the brick's distinct values (its palette) and, per voxel, the index of
+    /// its value in the palette (revision 6, u32 and u64 streams only: `docs/vod2.md`).
+    Palette = 3,
 }
 
 impl Codec {
@@ -613,6 +616,7 @@ impl Codec {
             Codec::Raw => "raw",
             Codec::Lz4 => "lz4",
             Codec::Zstd => "zstd",
+            Codec::Palette => "palette",
         }
     }
 }
@@ -715,6 +719,7 @@ impl BrickHeader {
             0 => Codec::Raw,
             1 => Codec::Lz4,
             2 => Codec::Zstd,
+            3 if wide => Codec::Palette,
             other => {
                 return Err(FormatError::Unsupported {
                     what: "brick codec",
@@ -752,7 +757,9 @@ impl BrickHeader {
             Codec::Raw => h.stored_len as u64 == brick_bytes,
             // An lz4 block of n bytes decodes to at most ~255 * n bytes; anything longer than the
             // raw brick would have been stored raw.
-            Codec::Lz4 | Codec::Zstd => h.stored_len > 0 && (h.stored_len as u64) < brick_bytes,
+            Codec::Lz4 | Codec::Zstd | Codec::Palette => {
+                h.stored_len > 0 && (h.stored_len as u64) < brick_bytes
+            }
         };
         let high = layout.voxel_type().max_value();
         if !len_ok || h.min > h.max || h.max > high {

@@ -654,6 +654,13 @@ pub(super) fn inspect(a: InspectArgs) -> anyhow::Result<()> {
                 "  by codec    constant {} bricks (no payload); zstd {} records, {}; lz4 {} records, {}; raw {} records, {}",
                 c.constant_bricks, c.zstd_records, human(c.zstd_bytes), c.lz4_records, human(c.lz4_bytes), c.raw_records, human(c.raw_bytes)
             )?;
+            if c.palette_records > 0 {
+                out!(
+                    "              palette {} records, {}",
+                    c.palette_records,
+                    human(c.palette_bytes)
+                )?;
+            }
             out!("  index       {}", human(i.index_bytes))?;
             out!(
                 "  size        {} on disk, {} as RAW: ratio {:.2}:1",

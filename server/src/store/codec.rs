@@ -121,6 +121,123 @@ fn zstd_compress(bytes: &[u8], level: i32) -> Option<Vec<u8>> {
     })
 }
 
+/// Encodes the bytes of a brick of `voxel_type` with `compression`: as [`encode`], except that
+/// a u32 or u64 brick compressed with zstd is stored with the palette codec when that is
+/// smaller ([`palette_encode`]): a label brick holds a few distinct ids of 4 or 8 bytes each,
+/// which one byte of index per voxel names.
+pub fn encode_typed(
+    bytes: &[u8],
+    voxel_type: VoxelType,
+    compression: Compression,
+) -> (Codec, Vec<u8>) {
+    let plain = encode(bytes, compression);
+    let Compression::Zstd(level) = compression else {
+        return plain;
+    };
+    if !voxel_type.is_wide() {
+        return plain;
+    }
+    match palette_encode(bytes, voxel_type.bytes(), level) {
+        Some(p) if p.len() < plain.1.len() => (Codec::Palette, p),
+        _ => plain,
+    }
+}
+
+/// The palette codec's frame of a brick of `width`-byte values: a zstd frame (at `level`) of
+/// an 8-byte header (u8 value width, u8 index width, u16 zero, u32 palette length k), the k
+/// distinct values ascending (`width` bytes each, little endian), then each voxel's index in
+/// them, 1, 2 or 4 bytes (the fewest that count to k). `None` when the indices would be no
+/// narrower than the values.
+pub fn palette_encode(bytes: &[u8], width: usize, level: i32) -> Option<Vec<u8>> {
+    let value = |i: usize| {
+        let mut v = [0u8; 8];
+        v[..width].copy_from_slice(&bytes[i * width..(i + 1) * width]);
+        u64::from_le_bytes(v)
+    };
+    let n = bytes.len() / width;
+    let mut palette: Vec<u64> = (0..n).map(value).collect();
+    palette.sort_unstable();
+    palette.dedup();
+    let index_width = palette_index_width(palette.len());
+    if index_width >= width {
+        return None;
+    }
+    let mut plain = Vec::with_capacity(8 + palette.len() * width + n * index_width);
+    plain.extend_from_slice(&[width as u8, index_width as u8, 0, 0]);
+    plain.extend_from_slice(&(palette.len() as u32).to_le_bytes());
+    for v in &palette {
+        plain.extend_from_slice(&v.to_le_bytes()[..width]);
+    }
+    // Runs of one value are the rule: look an index up only where the value changes.
+    let mut last = (u64::MAX, 0usize);
+    for i in 0..n {
+        let v = value(i);
+        if v != last.0 || i == 0 {
+            last = (v, palette.binary_search(&v).unwrap_or(0));
+        }
+        plain.extend_from_slice(&(last.1 as u32).to_le_bytes()[..index_width]);
+    }
+    zstd_compress(&plain, level)
+}
+
+/// Bytes per index into a palette of `k` values.
+fn palette_index_width(k: usize) -> usize {
+    match k {
+        0..=256 => 1,
+        257..=65_536 => 2,
+        _ => 4,
+    }
+}
+
+/// Decodes a palette frame ([`palette_encode`]) into `out`, checking every field against
+/// `out`'s size: a frame that decodes to more than the largest well-formed one is refused
+/// without being decoded further.
+fn palette_decode(payload: &[u8], out: &mut [u8], offset: u64) -> Result<(), StoreError> {
+    let bad = |detail: String| StoreError::corrupt(offset, "a palette frame", detail);
+    let header = |plain: &[u8]| -> Option<(usize, usize, usize)> {
+        let h = plain.get(..8)?;
+        let k = u32::from_le_bytes([h[4], h[5], h[6], h[7]]) as usize;
+        Some((h[0] as usize, h[1] as usize, k))
+    };
+    // The largest well-formed frame: a palette of one value per voxel (the brick's bytes) and
+    // 4-byte indices for voxels of 4 bytes or more (the brick's bytes again).
+    let mut plain = Vec::with_capacity(8 + 2 * out.len());
+    zstd_decode(payload, &mut plain, offset)?;
+    let (width, index_width, k) =
+        header(&plain).ok_or_else(|| bad("one shorter than its header".into()))?;
+    if !matches!(width, 4 | 8) || !out.len().is_multiple_of(width) {
+        return Err(bad(format!(
+            "values of {width} bytes in a brick of {} bytes",
+            out.len()
+        )));
+    }
+    let n = out.len() / width;
+    if k == 0 || k > n || index_width != palette_index_width(k) {
+        return Err(bad(format!(
+            "{k} values with indices of {index_width} bytes for {n} voxels"
+        )));
+    }
+    let (values, indices) = plain[8..]
+        .split_at_checked(k * width)
+        .ok_or_else(|| bad(format!("a palette of {k} values cut short")))?;
+    if indices.len() != n * index_width {
+        return Err(bad(format!(
+            "{} bytes of indices for {n} voxels of {index_width}",
+            indices.len()
+        )));
+    }
+    for (i, dst) in out.chunks_exact_mut(width).enumerate() {
+        let mut at = [0u8; 4];
+        at[..index_width].copy_from_slice(&indices[i * index_width..(i + 1) * index_width]);
+        let at = u32::from_le_bytes(at) as usize;
+        let v = values
+            .get(at * width..(at + 1) * width)
+            .ok_or_else(|| bad(format!("index {at} past its {k} values")))?;
+        dst.copy_from_slice(v);
+    }
+    Ok(())
+}
+
 /// Encodes bytes with `compression`, falling back to raw when that is not smaller.
 /// (Constant bricks never get here: they are stored in the index.)
 pub fn encode(bytes: &[u8], compression: Compression) -> (Codec, Vec<u8>) {
@@ -189,7 +306,7 @@ pub fn decode_new(
             }
             Ok(out)
         }
-        Codec::Raw | Codec::Lz4 => {
+        Codec::Raw | Codec::Lz4 | Codec::Palette => {
             let mut out = vec![0; len];
             decode(codec, payload, &mut out, offset)?;
             Ok(out)
@@ -218,6 +335,10 @@ pub fn decode(codec: Codec, payload: &[u8], out: &mut [u8], offset: u64) -> Resu
             )
         })?,
         Codec::Zstd => zstd_decode(payload, out, offset)?,
+        Codec::Palette => {
+            palette_decode(payload, out, offset)?;
+            out.len()
+        }
     };
     if n != out.len() {
         return Err(StoreError::corrupt(
@@ -232,6 +353,90 @@ pub fn decode(codec: Codec, payload: &[u8], out: &mut [u8], offset: u64) -> Resu
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A u64 brick of `n` voxels cycling through `ids` in runs of `run`.
+    fn labels(n: usize, ids: &[u64], run: usize) -> Vec<u8> {
+        (0..n)
+            .flat_map(|i| ids[i / run % ids.len()].to_le_bytes())
+            .collect()
+    }
+
+    #[test]
+    fn a_palette_frame_is_laid_out_as_documented_and_decodes_back() {
+        // Voxels 7, 7, 2^40, 7 (u64): palette [7, 2^40], one-byte indices 0 0 1 0.
+        let bytes = labels(4, &[7, 7, 1 << 40, 7], 1);
+        let frame = palette_encode(&bytes, 8, 3).unwrap();
+        let plain = zstd::bulk::decompress(&frame, 1 << 10).unwrap();
+        let mut want = vec![8, 1, 0, 0, 2, 0, 0, 0];
+        want.extend(7u64.to_le_bytes());
+        want.extend((1u64 << 40).to_le_bytes());
+        want.extend([0, 0, 1, 0]);
+        assert_eq!(plain, want);
+        let mut out = vec![0u8; bytes.len()];
+        decode(Codec::Palette, &frame, &mut out, 0).unwrap();
+        assert_eq!(out, bytes);
+        // 300 distinct u32 values: two-byte indices; u32 with 70,000 would need four, as wide
+        // as the values: no palette.
+        let many: Vec<u8> = (0..4096u32)
+            .flat_map(|i| (i % 300 * 1000).to_le_bytes())
+            .collect();
+        let frame = palette_encode(&many, 4, 3).unwrap();
+        assert_eq!(zstd::bulk::decompress(&frame, 1 << 20).unwrap()[1], 2);
+        assert_eq!(
+            decode_new(Codec::Palette, &frame, many.len(), 0).unwrap(),
+            many
+        );
+        let wide: Vec<u8> = (0..70_000u32).flat_map(u32::to_le_bytes).collect();
+        assert_eq!(palette_encode(&wide, 4, 3), None);
+    }
+
+    #[test]
+    fn label_bricks_take_the_palette_codec_where_it_is_smaller() {
+        let bytes = labels(32 * 32 * 32, &[(1 << 50) + 3, 9, (1 << 33) + 1], 700);
+        let (codec, payload) = encode_typed(&bytes, VoxelType::U64, Compression::Zstd(15));
+        assert_eq!(codec, Codec::Palette);
+        assert!(payload.len() < encode(&bytes, Compression::Zstd(15)).1.len());
+        assert_eq!(decode_new(codec, &payload, bytes.len(), 0).unwrap(), bytes);
+        // u8 and u16 streams never do (revision-5 readers read them); nor lz4.
+        let narrow: Vec<u8> = bytes.chunks_exact(4).map(|c| c[0]).collect();
+        assert_ne!(
+            encode_typed(&narrow, VoxelType::U16, Compression::Zstd(15)).0,
+            Codec::Palette
+        );
+        assert_eq!(
+            encode_typed(&bytes, VoxelType::U64, Compression::Lz4).0,
+            Codec::Lz4
+        );
+    }
+
+    #[test]
+    fn damaged_palette_frames_are_errors() {
+        let frame = |plain: &[u8]| zstd::bulk::compress(plain, 1).unwrap();
+        let mut out = vec![0u8; 32];
+        // Four u64 voxels: an index past the palette, a palette longer than the brick, a width
+        // that is not the codec's, indices cut short, a frame past the largest well-formed one.
+        let mut past = vec![8, 1, 0, 0, 1, 0, 0, 0];
+        past.extend(5u64.to_le_bytes());
+        past.extend([0, 0, 1, 0]);
+        let mut long = vec![8, 1, 0, 0, 5, 0, 0, 0];
+        long.extend([0u8; 5 * 8 + 4]);
+        let mut two = vec![2, 1, 0, 0, 1, 0, 0, 0];
+        two.extend([0u8; 2 + 16]);
+        let mut short = vec![8, 1, 0, 0, 1, 0, 0, 0];
+        short.extend(5u64.to_le_bytes());
+        short.extend([0, 0, 0]);
+        let huge = vec![0u8; 1 << 16];
+        for (what, plain) in [
+            ("past", past),
+            ("long", long),
+            ("two", two),
+            ("short", short),
+            ("huge", huge),
+        ] {
+            let e = decode(Codec::Palette, &frame(&plain), &mut out, 77).unwrap_err();
+            assert!(matches!(e, StoreError::Corrupt { .. }), "{what}: {e}");
+        }
+    }
 
     #[test]
     fn constant_fill_is_little_endian() {

@@ -81,6 +81,10 @@ pub struct CodecStats {
     pub zstd_records: u64,
     /// Their payload bytes.
     pub zstd_bytes: u64,
+    /// Distinct records stored with the palette codec (u32 and u64 channels).
+    pub palette_records: u64,
+    /// Their payload bytes.
+    pub palette_bytes: u64,
 }
 
 /// Scans every index entry of the head version.
@@ -120,6 +124,9 @@ pub fn inspect(vod: &Vod2) -> Result<Inspection, StoreError> {
                             Codec::Raw => (&mut codecs.raw_records, &mut codecs.raw_bytes),
                             Codec::Lz4 => (&mut codecs.lz4_records, &mut codecs.lz4_bytes),
                             Codec::Zstd => (&mut codecs.zstd_records, &mut codecs.zstd_bytes),
+                            Codec::Palette => {
+                                (&mut codecs.palette_records, &mut codecs.palette_bytes)
+                            }
                         };
                         *records += 1;
                         *bytes += len;

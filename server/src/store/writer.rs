@@ -68,10 +68,10 @@ pub struct WriteStats {
     /// Bricks whose content was already stored (by hash and byte comparison).
     pub deduplicated: u64,
     /// Brick records written and their payload bytes (headers not included), by codec:
-    /// raw, lz4, zstd.
-    pub stored: [u64; 3],
+    /// raw, lz4, zstd, palette (the [`Codec`] values).
+    pub stored: [u64; 4],
     /// Their payload bytes, by codec.
-    pub stored_bytes: [u64; 3],
+    pub stored_bytes: [u64; 4],
     /// Hash matches whose bytes differed (collisions kept apart).
     pub hash_collisions: u64,
 }
@@ -535,7 +535,7 @@ impl Vod2Writer {
         }
         let (codec, payload) = match brick.encoded {
             Some(e) => e,
-            None => codec::encode(bytes, self.compression),
+            None => codec::encode_typed(bytes, voxel_type, self.compression),
         };
         let header = BrickHeader {
             hash: brick.hash,
@@ -1031,7 +1031,8 @@ fn prepare(
     let record = |bytes: &[u8], min, max, expanded| {
         let hash = content_hash(bytes);
         // Probably a duplicate of a stored brick: compress only if that turns out false.
-        let encoded = (!known.contains_key(&hash)).then(|| codec::encode(bytes, compression));
+        let encoded = (!known.contains_key(&hash))
+            .then(|| codec::encode_typed(bytes, layout.voxel_type(), compression));
         PreparedBrick {
             constant: None,
             hash,

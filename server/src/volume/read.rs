@@ -255,6 +255,14 @@ impl BatchRead {
     pub fn encode(self, verified: &DecodedBricks) -> Result<Vec<u8>, VolumeError> {
         let layout = self.snap.layout();
         let mut entries = Vec::with_capacity(self.keys.len());
+        let raw_entry = |key, stored: &StoredBrick<'_>| -> Result<BatchEntry, VolumeError> {
+            Ok(BatchEntry {
+                key,
+                codec: BatchCodec::Raw,
+                hash: stored.content_hash(layout),
+                payload: decode(stored, layout)?.to_vec(),
+            })
+        };
         for key in self.keys {
             let stored = self.snap.stored(key)?;
             let entry = match (self.encoding, stored) {
@@ -269,25 +277,19 @@ impl BatchRead {
                     StoredBrick::Record {
                         header, payload, ..
                     },
-                ) => BatchEntry {
-                    key,
-                    codec: match header.codec {
-                        Codec::Raw => BatchCodec::Raw,
-                        Codec::Lz4 => BatchCodec::Lz4,
-                        Codec::Zstd => BatchCodec::Zstd,
+                ) => match sent_as_stored(header.codec) {
+                    Some(codec) => BatchEntry {
+                        key,
+                        codec,
+                        hash: header.hash,
+                        payload: {
+                            verified.verify_payload(&stored, layout)?;
+                            payload.to_vec()
+                        },
                     },
-                    hash: header.hash,
-                    payload: {
-                        verified.verify_payload(&stored, layout)?;
-                        payload.to_vec()
-                    },
+                    None => raw_entry(key, &stored)?,
                 },
-                (BatchEncoding::Raw, stored) => BatchEntry {
-                    key,
-                    codec: BatchCodec::Raw,
-                    hash: stored.content_hash(layout),
-                    payload: decode(&stored, layout)?.to_vec(),
-                },
+                (BatchEncoding::Raw, stored) => raw_entry(key, &stored)?,
             };
             entries.push(entry);
         }
@@ -528,5 +530,16 @@ impl StripRead {
             &mut scratch,
         )?;
         Ok(strip_to_world((*cached.tile).clone(), self.key, &self.snap))
+    }
+}
+
+/// The batch codec a stored payload of `codec` is sent as, as it is; `None` for a codec the
+/// batch encoding has no name for (a palette record: sent decoded, as raw voxels).
+fn sent_as_stored(codec: Codec) -> Option<BatchCodec> {
+    match codec {
+        Codec::Raw => Some(BatchCodec::Raw),
+        Codec::Lz4 => Some(BatchCodec::Lz4),
+        Codec::Zstd => Some(BatchCodec::Zstd),
+        Codec::Palette => None,
     }
 }

@@ -147,18 +147,32 @@ fn a_u64_label_channel_holds_ids_past_2_to_the_53_and_63_at_every_level() {
     assert_eq!((status, bytes.len()), (200, 8 * 16 * 16 * 16));
     assert!(bytes.chunks_exact(8).all(|c| c == C.to_le_bytes()));
 
-    // A batch of stored bricks: a constant's payload is its value as a u64 in a u64 channel,
-    // a record's (brick (2, 2, 2): C past MAX_CONSTANT) is its stored payload.
+    // A batch of stored bricks: a constant's payload is its value as a u64 in a u64 channel;
+    // every record's payload (sent as stored in a codec the batch names, or decoded: a palette
+    // record) decodes to the brick's voxels.
+    use isovox_proto::batch::BatchCodec;
+    let keys = [[0, 3, 3, 3], [0, 2, 2, 2], [0, 0, 0, 0], [0, 1, 0, 0]];
     let r = reqwest::blocking::Client::new()
         .post(server.url("/v1/volumes/world/batch?channel=label"))
-        .json(&json!({"keys": [[0, 3, 3, 3], [0, 2, 2, 2]], "encoding": "stored"}))
+        .json(&json!({"keys": keys, "encoding": "stored"}))
         .send()
         .unwrap();
     assert_eq!(r.status().as_u16(), 200);
     let entries = isovox_proto::batch::decode_batch(&r.bytes().unwrap()).unwrap();
-    assert_eq!(entries[0].codec, isovox_proto::batch::BatchCodec::Constant);
+    assert_eq!(entries[0].codec, BatchCodec::Constant);
     assert_eq!(entries[0].payload, 0u64.to_le_bytes());
-    assert_ne!(entries[1].codec, isovox_proto::batch::BatchCodec::Constant);
+    for (e, [l, x, y, z]) in entries.iter().zip(keys).skip(1) {
+        let voxels = match e.codec {
+            BatchCodec::Raw => e.payload.clone(),
+            BatchCodec::Zstd => zstd::bulk::decompress(&e.payload, 1 << 16).unwrap(),
+            other => panic!("brick {x} {y} {z}: {other:?}"),
+        };
+        let (_, want) = get(
+            &server,
+            &format!("/v1/volumes/world/bricks/{l}/{x}/{y}/{z}?channel=label"),
+        );
+        assert_eq!(voxels, want, "brick {x} {y} {z}");
+    }
 
     // Segments: ids as decimal strings in a u64 channel, numbers in a u16 one.
     let (status, list) = get(&server, "/v1/volumes/world/channels/label/segments");
@@ -247,6 +261,19 @@ fn a_u64_label_channel_holds_ids_past_2_to_the_53_and_63_at_every_level() {
     let salvaged = dir.path().join("salvaged.vod");
     let (p, s) = (path.to_str().unwrap(), salvaged.to_str().unwrap());
     crate::server_process::run_isovox(&["check", p]);
+    // The painted brick of B and 0 was stored with the palette codec (one byte a voxel before
+    // zstd, not eight).
+    let stored = label.stored(BrickKey {
+        level: 0,
+        x: 0,
+        y: 0,
+        z: 0,
+    });
+    let codec = match stored.unwrap() {
+        isovox_server::store::StoredBrick::Record { header, .. } => header.codec,
+        other => panic!("brick (0, 0, 0) is {other:?}"),
+    };
+    assert_eq!(codec, isovox_proto::vod2::Codec::Palette);
     crate::server_process::run_isovox(&["salvage", p, "-o", s]);
     crate::server_process::run_isovox(&["compact", p]);
     crate::server_process::run_isovox(&["check", p]);

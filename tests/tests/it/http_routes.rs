@@ -540,6 +540,7 @@ async fn batches_match_the_file() {
                         Codec::Raw => BatchCodec::Raw,
                         Codec::Lz4 => BatchCodec::Lz4,
                         Codec::Zstd => BatchCodec::Zstd,
+                        Codec::Palette => panic!("{ctx}: a density brick in the palette codec"),
                     };
                     assert_eq!(e.codec, codec, "{ctx}");
                     assert_eq!(e.payload, payload, "{ctx}: as stored");
