@@ -83,8 +83,10 @@ pub(super) fn describe_bricks(
                     let summary = snap.summary(k)?;
                     match snap.entry(k)? {
                         NodeEntry::Constant(v) => {
+                            // Two bytes, as before values were u64 in memory: density's fit,
+                            // and the keys (and the tiles' ETags) stay what they were.
                             desc.push(1);
-                            desc.extend_from_slice(&v.to_le_bytes());
+                            desc.extend_from_slice(&(v as u16).to_le_bytes());
                         }
                         NodeEntry::Stored(_) => {
                             desc.push(2);
