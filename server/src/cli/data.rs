@@ -640,26 +640,23 @@ pub(super) fn inspect(a: InspectArgs) -> anyhow::Result<()> {
                 i.voxel_scale
             )?;
             out!("  levels      {}", i.levels.len())?;
-            for l in &i.levels {
-                let [gx, gy, gz] = l.grid;
-                out!("    level {:>2}  grid {gx:>5} x {gy:>5} x {gz:>5}  {:>10} bricks  {:>10} constant  {:>10} stored", l.level, l.bricks, l.constant, l.stored)?;
-            }
+            print_levels(&i.levels)?;
             out!(
                 "  bricks      {} total, {} unique",
                 i.bricks_total,
                 i.bricks_unique
             )?;
-            let c = &i.codecs;
-            out!(
-                "  by codec    constant {} bricks (no payload); zstd {} records, {}; lz4 {} records, {}; raw {} records, {}",
-                c.constant_bricks, c.zstd_records, human(c.zstd_bytes), c.lz4_records, human(c.lz4_bytes), c.raw_records, human(c.raw_bytes)
-            )?;
-            if c.palette_records > 0 {
+            print_codecs(&i.codecs)?;
+            for c in &i.channels {
                 out!(
-                    "              palette {} records, {}",
-                    c.palette_records,
-                    human(c.palette_bytes)
+                    "  channel     {} ({}): {} unique bricks, {} as RAW",
+                    c.name,
+                    c.voxel_type,
+                    c.bricks_unique,
+                    human(c.raw_bytes)
                 )?;
+                print_levels(&c.levels)?;
+                print_codecs(&c.codecs)?;
             }
             out!("  index       {}", human(i.index_bytes))?;
             out!(
@@ -787,5 +784,30 @@ pub(super) fn compact(a: CompactArgs) -> anyhow::Result<()> {
         100.0 * (1.0 - report.bytes_after as f64 / report.bytes_before.max(1) as f64),
         report.elapsed.as_secs_f64()
     )?;
+    Ok(())
+}
+
+/// The levels of one stream's pyramid, one line each.
+fn print_levels(levels: &[isovox_server::store::inspect::LevelStats]) -> anyhow::Result<()> {
+    for l in levels {
+        let [gx, gy, gz] = l.grid;
+        out!("    level {:>2}  grid {gx:>5} x {gy:>5} x {gz:>5}  {:>10} bricks  {:>10} constant  {:>10} stored", l.level, l.bricks, l.constant, l.stored)?;
+    }
+    Ok(())
+}
+
+/// One stream's bricks by codec.
+fn print_codecs(c: &isovox_server::store::inspect::CodecStats) -> anyhow::Result<()> {
+    out!(
+        "  by codec    constant {} bricks (no payload); zstd {} records, {}; lz4 {} records, {}; raw {} records, {}",
+        c.constant_bricks, c.zstd_records, human(c.zstd_bytes), c.lz4_records, human(c.lz4_bytes), c.raw_records, human(c.raw_bytes)
+    )?;
+    if c.palette_records > 0 {
+        out!(
+            "              palette {} records, {}",
+            c.palette_records,
+            human(c.palette_bytes)
+        )?;
+    }
     Ok(())
 }

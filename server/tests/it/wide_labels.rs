@@ -279,4 +279,13 @@ fn a_u64_label_channel_holds_ids_past_2_to_the_53_and_63_at_every_level() {
     crate::server_process::run_isovox(&["check", p]);
     assert_eq!(level1(&salvaged), before);
     assert_eq!(level1(&path), before);
+    // Inspect lists the channel with its palette records, and counts its records as the head's:
+    // a file just compacted references every byte it holds.
+    let i = isovox_server::store::inspect::inspect(&Vod2::open(&path).unwrap()).unwrap();
+    assert_eq!(i.channels.len(), 1);
+    let c = &i.channels[0];
+    assert_eq!((c.name.as_str(), c.voxel_type), ("label", VoxelType::U64));
+    assert!(c.codecs.palette_records >= 1, "{:?}", c.codecs);
+    assert_eq!(c.raw_bytes, 8 * (G * G * G) as u64);
+    assert_eq!(i.garbage_bytes, 0);
 }
