@@ -156,18 +156,35 @@ pub fn min_max(bytes: &[u8], voxel_type: VoxelType) -> (u64, u64) {
     }
 }
 
-/// Value `i` of little-endian voxels of `voxel_type`.
+/// Value `i` of little-endian voxels of `voxel_type`. One fixed-size read per type: it is
+/// called per voxel (segment summaries, label chunks, palettes).
+#[inline]
 pub fn value_at(bytes: &[u8], voxel_type: VoxelType, i: usize) -> u64 {
-    let n = voxel_type.bytes();
-    let mut b = [0u8; 8];
-    b[..n].copy_from_slice(&bytes[i * n..(i + 1) * n]);
-    u64::from_le_bytes(b)
+    fn read<const N: usize>(bytes: &[u8], i: usize) -> u64 {
+        let mut b = [0u8; 8];
+        b[..N].copy_from_slice(&bytes[i * N..(i + 1) * N]);
+        u64::from_le_bytes(b)
+    }
+    match voxel_type {
+        VoxelType::U8 => u64::from(bytes[i]),
+        VoxelType::U16 => read::<2>(bytes, i),
+        VoxelType::U32 => read::<4>(bytes, i),
+        VoxelType::U64 => read::<8>(bytes, i),
+    }
 }
 
 /// Writes `value` (at most the type's largest) as voxel `i` of little-endian voxels.
+#[inline]
 pub fn set_value_at(bytes: &mut [u8], voxel_type: VoxelType, i: usize, value: u64) {
-    let n = voxel_type.bytes();
-    bytes[i * n..(i + 1) * n].copy_from_slice(&value.to_le_bytes()[..n]);
+    fn write<const N: usize>(bytes: &mut [u8], i: usize, value: u64) {
+        bytes[i * N..(i + 1) * N].copy_from_slice(&value.to_le_bytes()[..N]);
+    }
+    match voxel_type {
+        VoxelType::U8 => bytes[i] = value as u8,
+        VoxelType::U16 => write::<2>(bytes, i, value),
+        VoxelType::U32 => write::<4>(bytes, i, value),
+        VoxelType::U64 => write::<8>(bytes, i, value),
+    }
 }
 
 #[cfg(test)]

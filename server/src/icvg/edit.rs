@@ -438,6 +438,11 @@ fn to_u16(v: &BrickVoxels, layout: &VolumeLayout) -> Vec<u16> {
         BrickVoxels::Constant(c) => vec![*c as u16; layout.brick_voxels()],
         BrickVoxels::Data(d) => match layout.voxel_type() {
             VoxelType::U8 => d.iter().map(|&x| x as u16).collect(),
+            VoxelType::U16 => d
+                .chunks_exact(2)
+                .map(|c| u16::from_le_bytes([c[0], c[1]]))
+                .collect(),
+            // Never density; read as any other type, for a total match.
             t => (0..layout.brick_voxels())
                 .map(|i| value_at(d, t, i) as u16)
                 .collect(),
@@ -449,6 +454,7 @@ fn from_u16(values: &[u16], layout: &VolumeLayout) -> BrickVoxels {
     let t = layout.voxel_type();
     let bytes = match t {
         VoxelType::U8 => values.iter().map(|&v| v as u8).collect(),
+        VoxelType::U16 => values.iter().flat_map(|v| v.to_le_bytes()).collect(),
         _ => {
             let mut bytes = vec![0u8; values.len() * t.bytes()];
             for (i, &v) in values.iter().enumerate() {

@@ -137,23 +137,20 @@ pub fn encode_typed(
     if !voxel_type.is_wide() {
         return plain;
     }
-    match palette_encode(bytes, voxel_type.bytes(), level) {
+    match palette_encode(bytes, voxel_type, level) {
         Some(p) if p.len() < plain.1.len() => (Codec::Palette, p),
         _ => plain,
     }
 }
 
-/// The palette codec's frame of a brick of `width`-byte values: a zstd frame (at `level`) of
-/// an 8-byte header (u8 value width, u8 index width, u16 zero, u32 palette length k), the k
-/// distinct values ascending (`width` bytes each, little endian), then each voxel's index in
+/// The palette codec's frame of a brick of `voxel_type`: a zstd frame (at `level`) of an
+/// 8-byte header (u8 value width, u8 index width, u16 zero, u32 palette length k), the k
+/// distinct values ascending (little endian, of the type's width), then each voxel's index in
 /// them, 1, 2 or 4 bytes (the fewest that count to k). `None` when the indices would be no
 /// narrower than the values.
-pub fn palette_encode(bytes: &[u8], width: usize, level: i32) -> Option<Vec<u8>> {
-    let value = |i: usize| {
-        let mut v = [0u8; 8];
-        v[..width].copy_from_slice(&bytes[i * width..(i + 1) * width]);
-        u64::from_le_bytes(v)
-    };
+pub fn palette_encode(bytes: &[u8], voxel_type: VoxelType, level: i32) -> Option<Vec<u8>> {
+    let value = |i: usize| isovox_proto::voxel::value_at(bytes, voxel_type, i);
+    let width = voxel_type.bytes();
     let n = bytes.len() / width;
     let mut palette: Vec<u64> = (0..n).map(value).collect();
     palette.sort_unstable();
@@ -365,7 +362,7 @@ mod tests {
     fn a_palette_frame_is_laid_out_as_documented_and_decodes_back() {
         // Voxels 7, 7, 2^40, 7 (u64): palette [7, 2^40], one-byte indices 0 0 1 0.
         let bytes = labels(4, &[7, 7, 1 << 40, 7], 1);
-        let frame = palette_encode(&bytes, 8, 3).unwrap();
+        let frame = palette_encode(&bytes, VoxelType::U64, 3).unwrap();
         let plain = zstd::bulk::decompress(&frame, 1 << 10).unwrap();
         let mut want = vec![8, 1, 0, 0, 2, 0, 0, 0];
         want.extend(7u64.to_le_bytes());
@@ -380,14 +377,14 @@ mod tests {
         let many: Vec<u8> = (0..4096u32)
             .flat_map(|i| (i % 300 * 1000).to_le_bytes())
             .collect();
-        let frame = palette_encode(&many, 4, 3).unwrap();
+        let frame = palette_encode(&many, VoxelType::U32, 3).unwrap();
         assert_eq!(zstd::bulk::decompress(&frame, 1 << 20).unwrap()[1], 2);
         assert_eq!(
             decode_new(Codec::Palette, &frame, many.len(), 0).unwrap(),
             many
         );
         let wide: Vec<u8> = (0..70_000u32).flat_map(u32::to_le_bytes).collect();
-        assert_eq!(palette_encode(&wide, 4, 3), None);
+        assert_eq!(palette_encode(&wide, VoxelType::U32, 3), None);
     }
 
     #[test]

@@ -1028,7 +1028,7 @@ fn prepare(
         encoded: None,
         expanded: None,
     };
-    let record = |bytes: &[u8], min, max, expanded| {
+    let record = |bytes: &[u8], min, max| {
         let hash = content_hash(bytes);
         // Probably a duplicate of a stored brick: compress only if that turns out false.
         let encoded = (!known.contains_key(&hash))
@@ -1039,7 +1039,7 @@ fn prepare(
             min,
             max,
             encoded,
-            expanded,
+            expanded: None,
         }
     };
     match voxels {
@@ -1048,14 +1048,16 @@ fn prepare(
             let bytes = voxels
                 .clone()
                 .into_bytes(layout.brick_voxels(), layout.voxel_type());
-            record(&bytes, *v, *v, Some(bytes.clone()))
+            let mut prepared = record(&bytes, *v, *v);
+            prepared.expanded = Some(bytes);
+            prepared
         }
         BrickVoxels::Data(bytes) => {
             let (min, max) = codec::min_max(bytes, layout.voxel_type());
             if min == max && min <= MAX_CONSTANT {
                 return constant(min);
             }
-            record(bytes, min, max, None)
+            record(bytes, min, max)
         }
     }
 }
