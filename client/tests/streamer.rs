@@ -558,6 +558,59 @@ async fn moving_the_camera_drops_and_adds_the_right_tiles() {
     streamer.shutdown().await;
 }
 
+/// Moves shorter than an eighth of the finest radius are selected once the camera rests (a
+/// streamer selects them late, not never): the resident set ends exactly the one of the
+/// camera's last position, after one small move that changes the set and after many that
+/// each stay short but add up.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn small_camera_moves_are_selected_once_the_camera_rests() {
+    let w = world([128, 64, 96], 8, [0.5, 0.75, 1.0]);
+    let server = TestServer::start(w.dir.path(), None);
+    let (client, _) = counted_client(&server.base);
+    let radii = vec![6.5, 14.3, 29.9, 61.1];
+    let config = StreamerConfig {
+        radii: radii.clone(),
+        descent: false,
+        ..StreamerConfig::default()
+    };
+    let (streamer, mut rx) = Streamer::start(client, NAME, config).await.unwrap();
+    let info = streamer.info().clone();
+    // Two points a twentieth of a unit apart (an eighth of the finest radius is 0.8) whose
+    // sets differ: the first along x from (8.2, 20.3, 12.7) where the set changes.
+    let at = |i: u32| [8.2 + 0.05 * i as f32, 20.3, 12.7];
+    let i = (0..400)
+        .find(|&i| expected_set(&info, at(i), &radii) != expected_set(&info, at(i + 1), &radii))
+        .expect("the set never changes along x");
+    let (a, small) = (at(i), at(i + 1));
+    streamer.set_camera(a);
+    settle(&streamer, &mut rx, 1).await;
+    assert_eq!(
+        streamer.resident().into_iter().collect::<BTreeSet<_>>(),
+        expected_set(&info, a, &radii)
+    );
+    streamer.set_camera(small);
+    settle(&streamer, &mut rx, 1).await;
+    assert_eq!(
+        streamer.resident().into_iter().collect::<BTreeSet<_>>(),
+        expected_set(&info, small, &radii)
+    );
+    // Forty steps of a tenth of a unit, one every 5 ms: each short, together four units.
+    let mut c = small;
+    for _ in 0..40 {
+        c[2] += 0.1;
+        streamer.set_camera(c);
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    settle(&streamer, &mut rx, 1).await;
+    let last = expected_set(&info, c, &radii);
+    assert_ne!(last, expected_set(&info, small, &radii));
+    assert_eq!(
+        streamer.resident().into_iter().collect::<BTreeSet<_>>(),
+        last
+    );
+    streamer.shutdown().await;
+}
+
 // ---------------------------------------------------------------------------------------------
 // 3. Content deduplication, and the byte bound of the cache
 // ---------------------------------------------------------------------------------------------

@@ -112,8 +112,9 @@
 //! without content is kept until the camera moves or a commit makes tiles need content again,
 //! each plan dropping from it the tiles that got content meanwhile (once most tiles are
 //! complete, a plan does not walk past thousands of them); the camera's tiles are selected
-//! again at most every 100 ms while it moves
-//! (the newest position then); while requests of the last plan wait to start, planning runs at
+//! again at most every 100 ms while it moves an eighth of the finest detail radius or more
+//! since the last selection, and 300 ms after the last selection when it moved less (the
+//! newest position then: a camera at rest is always selected where it rests); while requests of the last plan wait to start, planning runs at
 //! most every 50 ms however many answers come; and a waiting mesh tile's plan (content keys
 //! from up to 27 bricks' hashes) is kept until a request it needs ends, content it waits for
 //! comes, a commit comes or its face mask changes.

@@ -47,6 +47,9 @@ fn content_hasher() -> foldhash::quality::FoldHasher<'static> {
 
 /// The task's state: what it serves, and its four parts.
 pub(super) struct Engine {
+    /// How far the camera moves before it is selected again without waiting to settle (see
+    /// [`Engine::select_at`]): an eighth of the finest detail radius.
+    reselect_distance: f32,
     client: Client,
     name: String,
     kind: TileKind,
@@ -143,6 +146,7 @@ impl Engine {
             TileKind::Meshes { iso: Some(iso) } => iso,
             _ => layout.voxel_type().surface() as f32 - 0.5,
         };
+        let reselect_distance = reselect_distance(&radii, &layout, info.voxel_scale);
         Engine {
             client,
             name: name.to_string(),
@@ -175,6 +179,7 @@ impl Engine {
             // world the server answered them at a third of the rate: docs/benchmarks.md.)
             book: HashBook::new(CHUNK),
             scheduler: Scheduler::new(config.max_in_flight),
+            reselect_distance,
             stats: Counters::default(),
             cache: Lru::new(config.cache_bytes),
             events,
@@ -208,13 +213,7 @@ impl Engine {
             self.fill();
             self.flush().await;
             let retry_at = self.scheduler.retry_at;
-            // Selecting the tiles for a camera (thousands of them, balanced and masked) is
-            // the streamer's largest cost once planning is bounded, and cameras move every
-            // frame: a move is taken at once when the last selection is SELECT_EVERY old,
-            // else when it is (the newest position then).
-            let select_at = self
-                .camera_waiting
-                .then_some(self.last_select + SELECT_EVERY);
+            let select_at = self.select_at();
             tokio::select! {
                 () = sleep_until(replan_at) => {}
                 () = sleep_until(select_at) => self.select(),
@@ -227,7 +226,7 @@ impl Engine {
                     let c = *camera_rx.borrow_and_update();
                     self.camera_waiting = true;
                     self.camera_next = c;
-                    if Instant::now() >= self.last_select + SELECT_EVERY {
+                    if self.select_at().is_some_and(|at| Instant::now() >= at) {
                         self.select();
                     }
                 }
@@ -253,6 +252,34 @@ impl Engine {
             f.abort();
         }
         self.scheduler.jobs.abort_all();
+    }
+
+    /// When the newest camera is to be selected, if it is not yet.
+    ///
+    /// Selecting the tiles for a camera (thousands of them, balanced and masked) is the
+    /// streamer's largest cost once planning is bounded, and cameras move every frame. A
+    /// selection changes only where tiles cross the detail radii, so a move shorter than an
+    /// eighth of the finest radius (`reselect_distance`) changes what a tile's distance says
+    /// of its screen error by at most an eighth: such moves are taken once the camera has
+    /// settled (SELECT_SETTLE after the last selection), longer ones at most every
+    /// SELECT_EVERY (the newest position then).
+    fn select_at(&self) -> Option<Instant> {
+        if !self.camera_waiting {
+            return None;
+        }
+        let moved_far = match (self.desired.camera, self.camera_next.position) {
+            (Some(a), Some(b)) => {
+                let d2: f32 = (0..3).map(|i| (a[i] - b[i]) * (a[i] - b[i])).sum();
+                d2 >= self.reselect_distance * self.reselect_distance
+            }
+            _ => true,
+        };
+        let wait = if moved_far {
+            SELECT_EVERY
+        } else {
+            SELECT_SETTLE
+        };
+        Some(self.last_select + wait)
     }
 
     /// Takes the newest camera: selects its tiles.
@@ -1192,6 +1219,15 @@ async fn recv_feed(rx: &mut Option<mpsc::Receiver<FeedMsg>>) -> Option<FeedMsg> 
     }
 }
 
+/// An eighth of the finest detail radius; with no radii (level 0 everywhere), half a brick
+/// along its shortest side.
+fn reselect_distance(radii: &[f32], layout: &VolumeLayout, voxel_scale: [f32; 3]) -> f32 {
+    match radii.first() {
+        Some(&r0) => r0 / 8.0,
+        None => layout.brick() as f32 * voxel_scale.into_iter().fold(f32::INFINITY, f32::min) / 2.0,
+    }
+}
+
 async fn sleep_until(at: Option<Instant>) {
     match at {
         Some(at) => tokio::time::sleep_until(at).await,
@@ -1203,10 +1239,13 @@ async fn sleep_until(at: Option<Instant>) {
 /// requests than a streamer keeps in flight between two replans.
 const PLAN_AHEAD: usize = 512;
 
-/// The least time between two selections of tiles while the camera moves (see
-/// [`Engine::run`]): a tenth of a second's move is small against the detail radii, and
-/// answers take about as long.
+/// The least time between two selections of tiles while the camera moves far (see
+/// [`Engine::select_at`]): answers take about as long.
 const SELECT_EVERY: std::time::Duration = std::time::Duration::from_millis(100);
+
+/// How long after the last selection a camera that moved less than the reselect distance is
+/// selected (see [`Engine::select_at`]): where it came to rest, soon after it stopped.
+const SELECT_SETTLE: std::time::Duration = std::time::Duration::from_millis(300);
 
 /// The least time between two replans while requests of the last one wait to start: each
 /// replan plans up to [`PLAN_AHEAD`] tiles, and at 25 ms fifty streamers of one process spent
