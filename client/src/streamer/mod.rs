@@ -105,19 +105,25 @@
 //! while a tile still needs it.
 //!
 //! Planning is bounded, because a viewer of a large volume has thousands of tiles waiting and
-//! one load tester runs fifty streamers: a plan stops once 512 tiles wait for something (tiles
-//! found complete do not count, and each tile that arrives moves the window on), since only
-//! requests near the front of the queue start before the next plan; requests of tiles beyond
-//! the window that are running are left to finish. The order by distance of the tiles still
-//! without content is kept until the camera moves or a commit makes tiles need content again,
-//! each plan dropping from it the tiles that got content meanwhile (once most tiles are
-//! complete, a plan does not walk past thousands of them); the camera's tiles are selected
-//! again at most every 100 ms while it moves an eighth of the finest detail radius or more
-//! since the last selection, and 300 ms after the last selection when it moved less (the
-//! newest position then: a camera at rest is always selected where it rests); while requests of the last plan wait to start, planning runs at
-//! most every 50 ms however many answers come; and a waiting mesh tile's plan (content keys
-//! from up to 27 bricks' hashes) is kept until a request it needs ends, content it waits for
-//! comes, a commit comes or its face mask changes.
+//! one load tester runs fifty streamers:
+//!
+//! - a plan stops once 512 tiles wait for something (tiles found complete do not count), since
+//!   only requests near the front of the queue start before the next plan; requests of tiles
+//!   beyond the window that are running are left to finish. The window moves on once fewer of
+//!   its requests wait to start than may run at once;
+//! - a mesh tile or strip that arrives draws the tiles that waited for it without a plan;
+//! - the order by distance of the tiles still without content is kept until the camera moves
+//!   or a commit makes tiles need content again, each plan dropping from it the tiles that got
+//!   content meanwhile (once most tiles are complete, a plan does not walk past thousands);
+//! - the camera's tiles are selected again at most every 100 ms while it moves an eighth of the
+//!   finest detail radius or more since the last selection, and 300 ms after the last
+//!   selection when it moved less (the newest position then: a camera at rest is always
+//!   selected where it rests);
+//! - while requests of the last plan wait to start, planning runs at most every 50 ms however
+//!   many answers come;
+//! - a waiting mesh tile's plan (content keys from up to 27 bricks' hashes) is kept until a
+//!   request it needs ends, content it waits for comes, a commit comes or its face mask
+//!   changes.
 //!
 //! # Requests in flight
 //!

@@ -188,17 +188,14 @@ impl Scheduler {
         self.waiting.remove(&content).unwrap_or_default()
     }
 
-    /// A mesh tile or strip with content key `content` is in the cache: the tiles waiting for
-    /// it are drawn once all their parts are there (the next plan finds them complete).
-    pub(super) fn arrived(&mut self, content: u64) {
-        if self.waiting.remove(&content).is_some() {
-            self.replan_needed = true;
-        }
-    }
-
     /// Whether requests of the last plan wait to start.
     pub(super) fn has_queued(&self) -> bool {
         !self.queue.is_empty()
+    }
+
+    /// How many requests of the last plan wait to start (some may have become unneeded).
+    pub(super) fn queued(&self) -> usize {
+        self.queue.len()
     }
 
     /// Whether the last plan still asks for `job` (a grid region always does).
