@@ -2064,6 +2064,29 @@ fn tiles_drawing(events: &[StreamEvent], draws: bool) -> BTreeSet<BrickKey> {
         .collect()
 }
 
+/// A cache far smaller than the view's mesh tiles and strips: parts are evicted while other
+/// parts of their tiles are still on their way, and every tile is still drawn, as the offline
+/// mesher draws it, with the same tiles as with room for all.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_mesh_cache_smaller_than_the_view_still_draws_every_tile() {
+    const SMALL: usize = 256 << 10;
+    let small = StreamerConfig {
+        cache_bytes: SMALL,
+        ..mesh_run_config(true, true)
+    };
+    let (_w, _server, (roomy, roomy_stats, _), (tight, tight_stats, _)) =
+        two_mesh_runs(mesh_run_config(true, true), small).await;
+    assert!(
+        roomy_stats.cache_bytes > 4 * SMALL,
+        "the view's parts fit in a small cache: {roomy_stats:?}"
+    );
+    assert!(tight_stats.cache_bytes <= SMALL, "{tight_stats:?}");
+    assert_eq!(
+        once(&ready_keys(&tight), "was ready"),
+        once(&ready_keys(&roomy), "was ready")
+    );
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_descent_fetches_every_mesh_tile_that_draws_a_triangle() {
     // The reference run asks for every tile.

@@ -651,6 +651,7 @@ impl Engine {
             return None;
         };
         let content = content?;
+        plan.drawing = Some((content, strips));
         let mut complete = true;
         if !self.cache.contains(content) {
             complete = false;
@@ -957,10 +958,38 @@ impl Engine {
             if !self.desired.needs(key) {
                 continue;
             }
+            // A kept plan (same mask, no commit since: commits clear them) names the drawing's
+            // parts, which need no working out again.
+            let cache = &self.cache;
+            let kept = self
+                .plans
+                .get(&key)
+                .filter(|k| k.mask == self.desired.mask(key))
+                .and_then(|k| {
+                    let came = k.plan.waits.iter().all(|w| cache.contains(w.content()));
+                    k.plan.drawing.map(|d| (d, came))
+                });
+            if let Some(((content, strips), all_came)) = kept {
+                let cached = |c: u64| self.cache.contains(c);
+                if cached(content) && strips.iter().flatten().all(|&s| cached(s)) {
+                    self.plans.remove(&key);
+                    self.draw(key, content, strips);
+                } else if all_came {
+                    // What it waited for came, yet a part cached when it was planned has been
+                    // evicted since: the next plan asks for it again.
+                    self.scheduler.replan_needed = true;
+                }
+                continue;
+            }
             plan.clear();
-            if let Plan::Drawing((key, content, strips)) = self.plan_tile(key, &mut plan) {
-                self.plans.remove(&key);
-                self.draw(key, content, strips);
+            match self.plan_tile(key, &mut plan) {
+                Plan::Drawing((key, content, strips)) => {
+                    self.plans.remove(&key);
+                    self.draw(key, content, strips);
+                }
+                // It still waits: for parts already asked for, or for ones the next plan asks
+                // for (this plan's requests are not queued).
+                _ => self.scheduler.replan_needed = true,
             }
         }
     }

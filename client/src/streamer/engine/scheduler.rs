@@ -52,6 +52,9 @@ impl JobKey {
 pub(super) struct TilePlan {
     pub(super) jobs: Vec<JobKey>,
     pub(super) waits: Vec<Wait>,
+    /// A mesh tile's drawing once its content keys are known: the tile's and the strips' of
+    /// its mask's faces (what it waits for is the part of it not in the cache).
+    pub(super) drawing: Option<(u64, [Option<u64>; 6])>,
 }
 
 impl TilePlan {
@@ -59,6 +62,7 @@ impl TilePlan {
     pub(super) fn clear(&mut self) {
         self.jobs.clear();
         self.waits.clear();
+        self.drawing = None;
     }
 
     /// Whether planning the tile again would give this plan: none of the requests it needs
@@ -82,7 +86,7 @@ pub(super) enum Wait {
 }
 
 impl Wait {
-    fn content(self) -> u64 {
+    pub(super) fn content(self) -> u64 {
         match self {
             Wait::Content(c) | Wait::Mesh(c) | Wait::Strip(_, c) => c,
         }
