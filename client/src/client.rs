@@ -515,12 +515,26 @@ impl Client {
         iso: Option<f32>,
         version: Option<u64>,
     ) -> Result<TileMesh, ClientError> {
+        Ok(self.sized_mesh_tile(name, key, iso, version).await?.0)
+    }
+
+    /// [`Client::mesh_tile`] and the size of its encoding (what the streamer counts as
+    /// received, without encoding the tile again).
+    pub(crate) async fn sized_mesh_tile(
+        &self,
+        name: &str,
+        key: BrickKey,
+        iso: Option<f32>,
+        version: Option<u64>,
+    ) -> Result<(TileMesh, usize), ClientError> {
         let path = format!(
             "/v1/volumes/{name}/meshes/{}/{}/{}/{}",
             key.level, key.x, key.y, key.z
         );
         let bytes = self.mesh_bytes("mesh", path, iso, version).await?;
-        decode_tile(&bytes).map_err(|e| ClientError::Decode(format!("tile {key}: {e}")))
+        let tile =
+            decode_tile(&bytes).map_err(|e| ClientError::Decode(format!("tile {key}: {e}")))?;
+        Ok((tile, bytes.len()))
     }
 
     /// The transition strip of face `face` (0..6, in `FACE_NAMES` order) of a mesh tile, in
@@ -537,6 +551,21 @@ impl Client {
         iso: Option<f32>,
         version: Option<u64>,
     ) -> Result<Mesh, ClientError> {
+        Ok(self
+            .sized_mesh_strip(name, key, face, iso, version)
+            .await?
+            .0)
+    }
+
+    /// [`Client::mesh_strip`] and the size of its encoding.
+    pub(crate) async fn sized_mesh_strip(
+        &self,
+        name: &str,
+        key: BrickKey,
+        face: usize,
+        iso: Option<f32>,
+        version: Option<u64>,
+    ) -> Result<(Mesh, usize), ClientError> {
         let Some(face_name) = FACE_NAMES.get(face) else {
             return Err(ClientError::Decode(format!("tile {key}: no face {face}")));
         };
@@ -545,8 +574,9 @@ impl Client {
             key.level, key.x, key.y, key.z
         );
         let bytes = self.mesh_bytes("strip", path, iso, version).await?;
-        decode_strip(&bytes)
-            .map_err(|e| ClientError::Decode(format!("strip {face_name} of tile {key}: {e}")))
+        let strip = decode_strip(&bytes)
+            .map_err(|e| ClientError::Decode(format!("strip {face_name} of tile {key}: {e}")))?;
+        Ok((strip, bytes.len()))
     }
 
     /// The compact encoding of the mesh answer at `path` (a tile's or a strip's), at `iso` and

@@ -352,8 +352,8 @@ impl Engine {
     /// kept 50 streamers of one process busy planning instead of reading answers. Only
     /// requests near the front of the queue can start before the next replan, so tiles are
     /// planned nearest first until [`PLAN_AHEAD`] of them wait for something; tiles that turn
-    /// out complete (cached, or skipped for want of a surface) do not count, so the window
-    /// moves on as tiles arrive.
+    /// out complete (cached, or skipped for want of a surface) do not count, and the window
+    /// moves on once fewer of its requests wait to start than may run (see `deliver`).
     ///
     /// Planning a tile (its content key from up to 27 bricks' hashes, its strips', the
     /// descent's bounds) costs microseconds, so a waiting mesh tile's plan is also kept and
@@ -905,11 +905,16 @@ impl Engine {
         self.scheduler.replan_needed = true;
     }
 
-    fn on_mesh(&mut self, job: JobKey, content: u64, result: Result<TileMesh, ClientError>) {
+    fn on_mesh(
+        &mut self,
+        job: JobKey,
+        content: u64,
+        result: Result<(TileMesh, usize), ClientError>,
+    ) {
         let JobKey::Mesh(key) = job else {
             return;
         };
-        let tile = match result {
+        let (tile, encoded) = match result {
             Ok(t) => t,
             Err(e) => {
                 self.fail(job, Some(key), format!("mesh tile {key}: {e}"));
@@ -917,18 +922,18 @@ impl Engine {
             }
         };
         self.scheduler.succeeded(job);
-        self.stats.bytes += isovox_proto::mesh::encode_tile(&tile).len() as u64;
+        self.stats.bytes += encoded as u64;
         self.stats.misses += 1;
         let size = tile_size(&tile);
         self.cache.put(content, Content::Mesh(Arc::new(tile)), size);
         self.draw_waiters(content);
     }
 
-    fn on_strip(&mut self, job: JobKey, content: u64, result: Result<Mesh, ClientError>) {
+    fn on_strip(&mut self, job: JobKey, content: u64, result: Result<(Mesh, usize), ClientError>) {
         let JobKey::Strip(key, face) = job else {
             return;
         };
-        let strip = match result {
+        let (strip, encoded) = match result {
             Ok(s) => s,
             Err(e) => {
                 let name = isovox_proto::mesh::FACE_NAMES[usize::from(face) % 6];
@@ -941,7 +946,7 @@ impl Engine {
             }
         };
         self.scheduler.succeeded(job);
-        self.stats.bytes += isovox_proto::mesh::encode_compact(&strip).len() as u64;
+        self.stats.bytes += encoded as u64;
         let size = mesh_size(&strip) + 64;
         self.cache
             .put(content, Content::Strip(Arc::new(strip)), size);

@@ -99,10 +99,10 @@ pub(super) enum Output {
     Region(Result<LevelGrid, ClientError>),
     Blob(Result<Bytes, ClientError>),
     Brick(Result<Option<Brick>, ClientError>),
-    /// The content key the tile was requested under, and the tile.
-    Mesh(u64, Result<TileMesh, ClientError>),
-    /// The content key the strip was requested under, and the strip.
-    Strip(u64, Result<Mesh, ClientError>),
+    /// The content key the tile was requested under, and the tile with its encoding's size.
+    Mesh(u64, Result<(TileMesh, usize), ClientError>),
+    /// The content key the strip was requested under, and the strip with its encoding's size.
+    Strip(u64, Result<(Mesh, usize), ClientError>),
 }
 
 #[derive(Debug)]
@@ -318,7 +318,7 @@ impl Scheduler {
             JobKey::Mesh(key) => {
                 let content = self.mesh_keys.get(&key).copied().unwrap_or_default();
                 self.jobs.spawn(async move {
-                    let r = client.mesh_tile(&name, key, iso, version).await;
+                    let r = client.sized_mesh_tile(&name, key, iso, version).await;
                     (id, job, Output::Mesh(content, r))
                 })
             }
@@ -330,7 +330,7 @@ impl Scheduler {
                     .unwrap_or_default();
                 self.jobs.spawn(async move {
                     let r = client
-                        .mesh_strip(&name, key, usize::from(face), iso, version)
+                        .sized_mesh_strip(&name, key, usize::from(face), iso, version)
                         .await;
                     (id, job, Output::Strip(content, r))
                 })
