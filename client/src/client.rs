@@ -515,26 +515,8 @@ impl Client {
         iso: Option<f32>,
         version: Option<u64>,
     ) -> Result<TileMesh, ClientError> {
-        Ok(self.sized_mesh_tile(name, key, iso, version).await?.0)
-    }
-
-    /// [`Client::mesh_tile`] and the size of its encoding (what the streamer counts as
-    /// received, without encoding the tile again).
-    pub(crate) async fn sized_mesh_tile(
-        &self,
-        name: &str,
-        key: BrickKey,
-        iso: Option<f32>,
-        version: Option<u64>,
-    ) -> Result<(TileMesh, usize), ClientError> {
-        let path = format!(
-            "/v1/volumes/{name}/meshes/{}/{}/{}/{}",
-            key.level, key.x, key.y, key.z
-        );
-        let bytes = self.mesh_bytes("mesh", path, iso, version).await?;
-        let tile =
-            decode_tile(&bytes).map_err(|e| ClientError::Decode(format!("tile {key}: {e}")))?;
-        Ok((tile, bytes.len()))
+        let bytes = self.mesh_part(name, key, None, iso, version).await?;
+        tile_answer(key, &bytes)
     }
 
     /// The transition strip of face `face` (0..6, in `FACE_NAMES` order) of a mesh tile, in
@@ -551,32 +533,35 @@ impl Client {
         iso: Option<f32>,
         version: Option<u64>,
     ) -> Result<Mesh, ClientError> {
-        Ok(self
-            .sized_mesh_strip(name, key, face, iso, version)
-            .await?
-            .0)
+        let bytes = self.mesh_part(name, key, Some(face), iso, version).await?;
+        strip_answer(key, face, &bytes)
     }
 
-    /// [`Client::mesh_strip`] and the size of its encoding.
-    pub(crate) async fn sized_mesh_strip(
+    /// The compact encoding of mesh tile `key` (`face` `None`) or of the strip of its face
+    /// `face`, undecoded (the streamer counts its size; [`tile_answer`] and [`strip_answer`]
+    /// decode it).
+    pub(crate) async fn mesh_part(
         &self,
         name: &str,
         key: BrickKey,
-        face: usize,
+        face: Option<usize>,
         iso: Option<f32>,
         version: Option<u64>,
-    ) -> Result<(Mesh, usize), ClientError> {
-        let Some(face_name) = FACE_NAMES.get(face) else {
-            return Err(ClientError::Decode(format!("tile {key}: no face {face}")));
-        };
-        let path = format!(
-            "/v1/volumes/{name}/meshes/{}/{}/{}/{}/strips/{face_name}",
+    ) -> Result<Bytes, ClientError> {
+        let tile = format!(
+            "/v1/volumes/{name}/meshes/{}/{}/{}/{}",
             key.level, key.x, key.y, key.z
         );
-        let bytes = self.mesh_bytes("strip", path, iso, version).await?;
-        let strip = decode_strip(&bytes)
-            .map_err(|e| ClientError::Decode(format!("strip {face_name} of tile {key}: {e}")))?;
-        Ok((strip, bytes.len()))
+        match face {
+            None => self.mesh_bytes("mesh", tile, iso, version).await,
+            Some(face) => {
+                let Some(face_name) = FACE_NAMES.get(face) else {
+                    return Err(ClientError::Decode(format!("tile {key}: no face {face}")));
+                };
+                let path = format!("{tile}/strips/{face_name}");
+                self.mesh_bytes("strip", path, iso, version).await
+            }
+        }
     }
 
     /// The compact encoding of the mesh answer at `path` (a tile's or a strip's), at `iso` and
@@ -891,6 +876,17 @@ fn parse_event(event: &str, data: &str) -> Result<Option<FeedEvent>, ClientError
         )),
         _ => None,
     })
+}
+
+/// Mesh tile `key` from its answer's compact encoding.
+pub(crate) fn tile_answer(key: BrickKey, bytes: &[u8]) -> Result<TileMesh, ClientError> {
+    decode_tile(bytes).map_err(|e| ClientError::Decode(format!("tile {key}: {e}")))
+}
+
+/// The strip of face `face` of mesh tile `key` from its answer's compact encoding.
+pub(crate) fn strip_answer(key: BrickKey, face: usize, bytes: &[u8]) -> Result<Mesh, ClientError> {
+    let name = FACE_NAMES.get(face).copied().unwrap_or("?");
+    decode_strip(bytes).map_err(|e| ClientError::Decode(format!("strip {name} of tile {key}: {e}")))
 }
 
 #[cfg(test)]

@@ -477,24 +477,26 @@ async fn selection_matches_independent_computation_and_streams_the_file_bricks()
 // 2. Moving the camera
 // ---------------------------------------------------------------------------------------------
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn moving_the_camera_drops_and_adds_the_right_tiles() {
+/// The camera tests' streamer: a 128 x 64 x 96 world of anisotropic voxels, radii 6.5 to 61.1,
+/// the whole desired set fetched (the descent has its own tests). Returns the world and server
+/// to keep them alive, and the radii.
+async fn camera_test_streamer() -> (World, TestServer, Streamer, Receiver<StreamEvent>, Vec<f32>) {
     let w = world([128, 64, 96], 8, [0.5, 0.75, 1.0]);
     let server = TestServer::start(w.dir.path(), None);
     let (client, _) = counted_client(&server.base);
     let radii = vec![6.5, 14.3, 29.9, 61.1];
-    let (streamer, mut rx) = Streamer::start(
-        client,
-        NAME,
-        StreamerConfig {
-            radii: radii.clone(),
-            // The whole desired set, every tile fetched (the descent has its own tests).
-            descent: false,
-            ..StreamerConfig::default()
-        },
-    )
-    .await
-    .unwrap();
+    let config = StreamerConfig {
+        radii: radii.clone(),
+        descent: false,
+        ..StreamerConfig::default()
+    };
+    let (streamer, rx) = Streamer::start(client, NAME, config).await.unwrap();
+    (w, server, streamer, rx, radii)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn moving_the_camera_drops_and_adds_the_right_tiles() {
+    let (_w, _server, streamer, mut rx, radii) = camera_test_streamer().await;
     let info = streamer.info().clone();
     let a = [8.2, 20.3, 12.7];
     let b = [50.9, 30.1, 70.3];
@@ -564,16 +566,7 @@ async fn moving_the_camera_drops_and_adds_the_right_tiles() {
 /// each stay short but add up.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn small_camera_moves_are_selected_once_the_camera_rests() {
-    let w = world([128, 64, 96], 8, [0.5, 0.75, 1.0]);
-    let server = TestServer::start(w.dir.path(), None);
-    let (client, _) = counted_client(&server.base);
-    let radii = vec![6.5, 14.3, 29.9, 61.1];
-    let config = StreamerConfig {
-        radii: radii.clone(),
-        descent: false,
-        ..StreamerConfig::default()
-    };
-    let (streamer, mut rx) = Streamer::start(client, NAME, config).await.unwrap();
+    let (_w, _server, streamer, mut rx, radii) = camera_test_streamer().await;
     let info = streamer.info().clone();
     // Two points a twentieth of a unit apart (an eighth of the finest radius is 0.8) whose
     // sets differ: the first along x from (8.2, 20.3, 12.7) where the set changes.

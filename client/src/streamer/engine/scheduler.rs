@@ -2,7 +2,7 @@
 //! to retry it, and the requests themselves.
 
 use super::{FastMap, FastSet};
-use crate::client::{Brick, Client, ClientError};
+use crate::client::{strip_answer, tile_answer, Brick, Client, ClientError};
 use crate::streamer::limit::{lock_limit, InFlightLimit, Pacer, SharedLimit};
 use crate::streamer::{RETRY_MAX, RETRY_MIN};
 use bytes::Bytes;
@@ -318,7 +318,10 @@ impl Scheduler {
             JobKey::Mesh(key) => {
                 let content = self.mesh_keys.get(&key).copied().unwrap_or_default();
                 self.jobs.spawn(async move {
-                    let r = client.sized_mesh_tile(&name, key, iso, version).await;
+                    let r = client
+                        .mesh_part(&name, key, None, iso, version)
+                        .await
+                        .and_then(|b| Ok((tile_answer(key, &b)?, b.len())));
                     (id, job, Output::Mesh(content, r))
                 })
             }
@@ -329,9 +332,11 @@ impl Scheduler {
                     .copied()
                     .unwrap_or_default();
                 self.jobs.spawn(async move {
+                    let face = usize::from(face);
                     let r = client
-                        .sized_mesh_strip(&name, key, usize::from(face), iso, version)
-                        .await;
+                        .mesh_part(&name, key, Some(face), iso, version)
+                        .await
+                        .and_then(|b| Ok((strip_answer(key, face, &b)?, b.len())));
                     (id, job, Output::Strip(content, r))
                 })
             }
