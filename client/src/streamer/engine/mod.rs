@@ -47,9 +47,6 @@ fn content_hasher() -> foldhash::quality::FoldHasher<'static> {
 
 /// The task's state: what it serves, and its four parts.
 pub(super) struct Engine {
-    /// How far the camera moves before it is selected again without waiting to settle (see
-    /// [`Engine::select_at`]): an eighth of the finest detail radius.
-    reselect_distance: f32,
     client: Client,
     name: String,
     kind: TileKind,
@@ -84,6 +81,9 @@ pub(super) struct Engine {
     camera_waiting: bool,
     /// When the last selection was made (see `Engine::run`).
     last_select: Instant,
+    /// How far the camera moves before it is selected again without waiting to settle (see
+    /// [`Engine::select_at`]): an eighth of the finest detail radius.
+    reselect_distance: f32,
     /// Replans so far (see [`KeptPlan::checked`]).
     replans: u64,
     /// The desired tiles without current content nearest first, with their distances: the
@@ -164,6 +164,7 @@ impl Engine {
             last_select: Instant::now()
                 .checked_sub(SELECT_EVERY)
                 .unwrap_or_else(Instant::now),
+            reselect_distance,
             replans: 0,
             nearest: None,
             plan_stopped_early: false,
@@ -179,7 +180,6 @@ impl Engine {
             // world the server answered them at a third of the rate: docs/benchmarks.md.)
             book: HashBook::new(CHUNK),
             scheduler: Scheduler::new(config.max_in_flight),
-            reselect_distance,
             stats: Counters::default(),
             cache: Lru::new(config.cache_bytes),
             events,
