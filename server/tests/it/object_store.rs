@@ -6,6 +6,8 @@
 //!   after the same edit;
 //! - two replicas editing one volume concurrently lose no acknowledged edit and end at the same
 //!   head, with the same history; a replica started later serves that head;
+//! - a replica catching up with another's commits fetches the volume's manifest once, not at
+//!   each commit (counted in the S3 server's request log);
 //! - a writer killed between writing its segment and advancing the head leaves the volume at its
 //!   last acknowledged version, and `isovox compact` collects the orphan;
 //! - a stalled writer cannot overwrite a newer head: it re-applies its edit on top, or, asked
@@ -53,6 +55,8 @@ pub(crate) struct S3 {
     child: Child,
     pub(crate) endpoint: String,
     bucket: String,
+    /// The server's request log (werkzeug's access log: one line per request).
+    log: tempfile::NamedTempFile,
 }
 
 impl S3 {
@@ -66,12 +70,13 @@ impl S3 {
             python.display()
         );
         let port = free_port();
+        let log = tempfile::NamedTempFile::new().unwrap();
         let mut child = Command::new(&python)
             .arg(workspace().join("scripts/s3-server.py"))
             .arg(port.to_string())
             .arg(bucket)
             .stdout(Stdio::piped())
-            .stderr(Stdio::null())
+            .stderr(log.reopen().unwrap())
             .spawn()
             .expect("the S3 server starts");
         let stdout = child.stdout.take().unwrap();
@@ -90,7 +95,20 @@ impl S3 {
             child,
             endpoint: format!("http://127.0.0.1:{port}"),
             bucket: bucket.to_string(),
+            log,
         }
+    }
+
+    /// How many `method` requests the server has answered for objects of the volume whose key
+    /// starts with `prefix` (below the volume's).
+    fn requests(&self, method: &str, prefix: &str) -> usize {
+        let wanted = format!("\"{method} /{}/vols/{VOLUME}/{prefix}", self.bucket);
+        std::fs::read_to_string(self.log.path())
+            .unwrap()
+            .lines()
+            // Lines of answers other than 200 are coloured: the quote may follow an escape.
+            .filter(|line| line.replace("\u{1b}[33m", "").contains(&wanted))
+            .count()
     }
 
     pub(crate) fn url(&self) -> String {
@@ -540,6 +558,53 @@ fn two_replicas_editing_concurrently_lose_no_acknowledged_edit_and_converge() {
     let late = Server::replica(&s3, None);
     assert_eq!(late.version(&http), total + 1);
     assert_same_answers(&http, &r1, &late);
+}
+
+/// A replica following another's commits fetches the volume's manifest when the head names a
+/// new one, not at every commit it catches up with: a manifest's key is unique and its content
+/// never changes, and the head names the same one until the next 64 segments are folded.
+#[test]
+fn a_replica_catching_up_fetches_a_manifest_once_not_at_every_commit() {
+    let s3 = S3::start("isovox-manifests");
+    let data = tempfile::tempdir().unwrap();
+    world(&s3, data.path());
+    let http = client();
+    let writer = Server::replica(&s3, None);
+    // Cuboids above the terrain, each a commit of its own: past 64 segments (the import's and
+    // 64 edits') the head folds them into a manifest.
+    let edit = |i: u32| {
+        let origin = [2 + 10 * (i % 9), 50, 2 + 10 * (i / 9)];
+        let (status, answer) = writer.edit(&http, &carve(origin), None);
+        assert_eq!(status, 200, "edit {i}: {answer}");
+        answer["version"].as_u64().unwrap()
+    };
+    let mut version = 0;
+    for i in 0..66 {
+        version = edit(i);
+    }
+    assert_eq!(
+        s3.requests("PUT", "manifests/"),
+        1,
+        "the head names one manifest"
+    );
+    let follower = Server::replica(&s3, None);
+    follower.wait_for(&http, version);
+    let opened = s3.requests("GET", "manifests/");
+    assert_eq!(
+        opened, 1,
+        "the follower reads the manifest when it opens the volume"
+    );
+    for i in 66..81 {
+        let v = edit(i);
+        follower.wait_for(&http, v);
+    }
+    assert_eq!(s3.requests("PUT", "manifests/"), 1);
+    assert_eq!(
+        s3.requests("GET", "manifests/"),
+        opened,
+        "the follower fetched the manifest again while catching up with 15 commits"
+    );
+    assert_same_answers(&http, &writer, &follower);
 }
 
 #[test]

@@ -156,9 +156,31 @@ fn pause_before_head() {
 
 /// Every segment a head names, the manifest's first.
 fn all_segments(bucket: &Bucket, head: &Head) -> Result<Vec<Segment>, StoreError> {
-    let mut out = match &head.manifest {
-        None => Vec::new(),
-        Some(m) => {
+    all_segments_after(bucket, head, None)
+}
+
+/// [`all_segments`], given the head a replica followed before and the segments it named
+/// (`known`): a manifest is immutable (its key is unique), so when the new head names the same
+/// one, its segments are the first ones known and it is not fetched again. (Every commit of
+/// another replica moves the head, and a manifest lists every segment since the volume's
+/// start: fetched at each catch-up, it would cost one more request and a download growing with
+/// the volume's history per commit.)
+fn all_segments_after(
+    bucket: &Bucket,
+    head: &Head,
+    known: Option<(&Head, &[Arc<Pages>])>,
+) -> Result<Vec<Segment>, StoreError> {
+    let mut out = match (&head.manifest, known) {
+        (None, _) => Vec::new(),
+        (Some(m), Some((before, pages)))
+            if before.manifest.as_ref() == Some(m) && pages.len() as u64 >= m.segments =>
+        {
+            pages[..m.segments as usize]
+                .iter()
+                .map(|p| p.segment().clone())
+                .collect()
+        }
+        (Some(m), _) => {
             let bytes = bucket.get(&m.key)?.ok_or_else(|| {
                 StoreError::corrupt(
                     0,
@@ -353,7 +375,7 @@ impl RemoteVolume {
                 )))
             }
         };
-        let segments = all_segments(&self.bucket, &head)?;
+        let segments = all_segments_after(&self.bucket, &head, Some((&state.head, &state.pages)))?;
         let extends = segments.len() >= state.pages.len()
             && state
                 .pages
