@@ -9,7 +9,7 @@
 //! `turn`: its id and how long its lost attempt took, from catching up to the refused PUT. A
 //! replica that commits looks at `turn` now and then (a conditional GET, 304 while nothing
 //! changed), and while another replica asked within the last [`WAITING_FOR`], it pauses after
-//! each won group for longer than the loser said it needs. The two then take turns; the edits
+//! each won group for as long as the loser said it needs. The two then take turns; the edits
 //! that arrive during a pause join the pausing replica's next group.
 
 use super::bucket::{Bucket, Conditional};
