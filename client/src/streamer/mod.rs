@@ -90,11 +90,11 @@
 //! [`Streamer::start`] fetches the metadata, subscribes to the change feed from that version (so
 //! no commit falls between the two), and spawns one task that owns all state: the desired set,
 //! per tile whether its current content was delivered, the known brick hashes, the cache, and the
-//! requests in flight (a [`JoinSet`](tokio::task::JoinSet) with one abort handle per request). The camera reaches it
-//! through a `watch` (only the latest position matters); events leave through a bounded channel
-//! of 4,096 (`send().await`: a slow consumer slows the streamer down; a dropped receiver is
-//! ignored and the streamer keeps working). A second task follows the change feed and forwards
-//! commits in order.
+//! requests in flight (a [`JoinSet`](tokio::task::JoinSet) with one abort handle per request).
+//! The camera reaches it through a `watch` (only the latest position matters); events leave
+//! through a bounded channel of 4,096 (`send().await`: a slow consumer slows the streamer down;
+//! a dropped receiver is ignored and the streamer keeps working). A second task follows the
+//! change feed and forwards commits in order.
 //!
 //! Each time the camera, the feed or a grid region changes what is known, the task plans again:
 //! for the desired tiles not yet current, nearest first, it finds what is missing (a grid

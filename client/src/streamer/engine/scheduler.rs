@@ -321,7 +321,7 @@ impl Scheduler {
                     let r = client
                         .mesh_part(&name, key, None, iso, version)
                         .await
-                        .and_then(|b| Ok((tile_answer(key, &b)?, b.len())));
+                        .and_then(|b| tile_answer(key, &b).map(|tile| (tile, b.len())));
                     (id, job, Output::Mesh(content, r))
                 })
             }
@@ -336,7 +336,7 @@ impl Scheduler {
                     let r = client
                         .mesh_part(&name, key, Some(face), iso, version)
                         .await
-                        .and_then(|b| Ok((strip_answer(key, face, &b)?, b.len())));
+                        .and_then(|b| strip_answer(key, face, &b).map(|strip| (strip, b.len())));
                     (id, job, Output::Strip(content, r))
                 })
             }
