@@ -1,5 +1,5 @@
-//! The camera-distance streamer: keeps the tiles a viewer at a camera position needs, nearest
-//! first, and keeps them current while other users edit the volume.
+//! The camera-distance streamer: keeps the tiles a viewer at a camera position needs, in the
+//! order they show on screen, and keeps them current while other users edit the volume.
 //!
 //! # What it selects
 //!
@@ -97,10 +97,13 @@
 //! change feed and forwards commits in order.
 //!
 //! Each time the camera, the feed or a grid region changes what is known, the task plans again:
-//! for the desired tiles not yet current, nearest first, it finds what is missing (a grid
+//! for the desired tiles not yet current, in screen order, it finds what is missing (a grid
 //! region, a blob, a mesh), cached content makes tiles ready at once, requests no planned tile
-//! needs any more are aborted (their results are never delivered), and the rest are queued by
-//! the distance from the camera to the nearest tile box that needs them. A failed request is
+//! needs any more are aborted (their results are never delivered), and the rest are queued in
+//! the screen order of the first tile that needs them. A tile's screen order is its distance
+//! from the camera over its edge length (how small it shows): the radii double per level as
+//! tiles do, so the levels interleave and the coarse tiles that hold a distant surface come as
+//! early as the fine ones around the camera, not after all of them. A failed request is
 //! reported as [`StreamEvent::Error`] and retried after a backoff (250 ms doubling to 10 s)
 //! while a tile still needs it.
 //!
@@ -112,7 +115,7 @@
 //!   beyond the window that are running are left to finish. The window moves on once fewer of
 //!   its requests wait to start than may run at once;
 //! - a mesh tile or strip that arrives draws the tiles that waited for it without a plan;
-//! - the order by distance of the tiles still without content is kept until the camera moves
+//! - the screen order of the tiles still without content is kept until the camera moves
 //!   or a commit makes tiles need content again, each plan dropping from it the tiles that got
 //!   content meanwhile (once most tiles are complete, a plan does not walk past thousands);
 //! - the camera's tiles are selected again at most every 100 ms while it moves an eighth of the

@@ -86,11 +86,11 @@ pub(super) struct Engine {
     reselect_distance: f32,
     /// Replans so far (see [`KeptPlan::checked`]).
     replans: u64,
-    /// The desired tiles without current content nearest first, with their distances: the
-    /// order tiles are planned in. Kept from one replan to the next, each dropping the tiles
-    /// that have content by then, until the camera moves or a commit makes tiles need content
-    /// again (`None`: to be sorted again).
-    nearest: Option<Vec<(f32, BrickKey)>>,
+    /// The desired tiles without current content in screen order (see
+    /// [`Engine::screen_order`]), with their order keys: the order tiles are planned in. Kept
+    /// from one replan to the next, each dropping the tiles that have content by then, until
+    /// the camera moves or a commit makes tiles need content again (`None`: to be sorted again).
+    in_order: Option<Vec<(f32, BrickKey)>>,
     /// The last replan stopped at the window: a tile that arrives asks for the next replan.
     plan_stopped_early: bool,
     /// The version every known hash and requested tile describes.
@@ -166,7 +166,7 @@ impl Engine {
                 .unwrap_or_else(Instant::now),
             reselect_distance,
             replans: 0,
-            nearest: None,
+            in_order: None,
             plan_stopped_early: false,
             layout,
             radii,
@@ -291,10 +291,22 @@ impl Engine {
         self.update_desired();
     }
 
-    fn distance(&self, key: BrickKey) -> f32 {
+    /// Where tile `key` comes in the order tiles are planned and requests started: its
+    /// distance from the camera over its edge length, which is how small it shows on screen.
+    ///
+    /// The detail radii double per level as the tiles' edges do, so every selected tile of
+    /// every level shows about as large as any other, and this order interleaves the levels:
+    /// the coarse tiles at the near edge of their ring come as early as the fine tiles near
+    /// the camera. Nearest first, a viewer above a large world planned the hundreds of fine
+    /// air tiles around its camera before any coarse tile that holds the surface; each of
+    /// those waited for a fine grid region to be skipped, and its first tile that drew came
+    /// three times later (docs/benchmarks.md, "Many viewers on a large world").
+    fn screen_order(&self, key: BrickKey) -> f32 {
         match self.desired.camera {
             Some(c) => {
-                isovox_proto::lod::tile_distance(&self.layout, self.info.voxel_scale, key, c)
+                let d =
+                    isovox_proto::lod::tile_distance(&self.layout, self.info.voxel_scale, key, c);
+                d / (1u32 << key.level) as f32
             }
             None => 0.0,
         }
@@ -332,7 +344,7 @@ impl Engine {
         self.edited.retain(|k| desired.contains(*k));
         self.undecided.retain(|k, _| desired.contains(*k));
         self.plans.retain(|k, _| desired.contains(*k));
-        self.nearest = None;
+        self.in_order = None;
         self.scheduler.replan_needed = true;
     }
 
@@ -344,22 +356,23 @@ impl Engine {
         }
     }
 
-    /// Works out what the nearest desired tiles without current content need, makes cached
-    /// ones ready, aborts requests nobody needs, and queues the rest nearest first.
+    /// Works out what the first desired tiles without current content (in screen order, see
+    /// [`Engine::screen_order`]) need, makes cached ones ready, aborts requests nobody needs,
+    /// and queues the rest in the same order.
     ///
     /// A replan runs after answers and camera moves, and a viewer of a large volume has
     /// thousands of tiles waiting (7,000 on a 2048^3 world): planning all of them each time
     /// kept 50 streamers of one process busy planning instead of reading answers. Only
     /// requests near the front of the queue can start before the next replan, so tiles are
-    /// planned nearest first until [`PLAN_AHEAD`] of them wait for something; tiles that turn
+    /// planned in order until [`PLAN_AHEAD`] of them wait for something; tiles that turn
     /// out complete (cached, or skipped for want of a surface) do not count, and the window
     /// moves on once fewer of its requests wait to start than may run (see `deliver`).
     ///
     /// Planning a tile (its content key from up to 27 bricks' hashes, its strips', the
     /// descent's bounds) costs microseconds, so a waiting mesh tile's plan is also kept and
-    /// only its distance taken anew while it still holds: it was checked in the last replan,
-    /// no request it needs has ended since, none of the content it waits for has come, and its
-    /// face mask is the same (commits clear them). Tiles a commit made stale are planned afresh
+    /// only its place in the order taken anew while it still holds: it was checked in the last
+    /// replan, no request it needs has ended since, none of the content it waits for has come,
+    /// and its face mask is the same (commits clear them). Tiles a commit made stale are planned afresh
     /// each time (their grid regions are counted as caused by the edit). A brick's plan is one
     /// hash lookup, cheaper than keeping it (with plans kept, viewers of bricks got their first
     /// tile later).
@@ -376,25 +389,27 @@ impl Engine {
         let keep_plans = matches!(self.kind, TileKind::Meshes { .. });
         // One plan's buffers for the tiles whose plan is not kept.
         let mut plan = TilePlan::default();
-        let mut nearest = match self.nearest.take() {
-            Some(nearest) => nearest,
+        let mut in_order = match self.in_order.take() {
+            Some(in_order) => in_order,
             None => {
                 let needing = self.desired.needing();
-                let mut nearest: Vec<(f32, BrickKey)> =
-                    needing.into_iter().map(|k| (self.distance(k), k)).collect();
-                nearest.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-                nearest
+                let mut in_order: Vec<(f32, BrickKey)> = needing
+                    .into_iter()
+                    .map(|k| (self.screen_order(k), k))
+                    .collect();
+                in_order.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                in_order
             }
         };
         let mut waiting_tiles = 0;
         let mut partial = false;
-        // Tiles that have content are dropped from `nearest` as the loop passes them (those
+        // Tiles that have content are dropped from `in_order` as the loop passes them (those
         // after where it stops stay): once most tiles are complete, a replan no longer walks
         // past thousands of them.
         let mut retained = 0;
         let mut next = 0;
-        while next < nearest.len() {
-            let (d, key) = nearest[next];
+        while next < in_order.len() {
+            let (d, key) = in_order[next];
             if !self.desired.needs(key) {
                 next += 1;
                 continue;
@@ -403,7 +418,7 @@ impl Engine {
                 partial = true;
                 break;
             }
-            nearest[retained] = (d, key);
+            in_order[retained] = (d, key);
             retained += 1;
             next += 1;
             let edited = self.edited.contains(&key);
@@ -454,9 +469,9 @@ impl Engine {
                 self.plans.remove(&key);
             }
         }
-        nearest.copy_within(next.., retained);
-        nearest.truncate(retained + (nearest.len() - next));
-        self.nearest = Some(nearest);
+        in_order.copy_within(next.., retained);
+        in_order.truncate(retained + (in_order.len() - next));
+        self.in_order = Some(in_order);
         self.plan_stopped_early = partial;
         for key in skipped {
             self.stats.skipped += 1;
@@ -1018,7 +1033,7 @@ impl Engine {
         if self.desired.contains(key) && !self.desired.needs(key) {
             self.edited.insert(key);
             // It needs content again: the next replan sorts the tiles that do afresh.
-            self.nearest = None;
+            self.in_order = None;
         }
         let Some(newly_stale) = self.desired.invalidate(key) else {
             return;
@@ -1288,7 +1303,7 @@ async fn sleep_until(at: Option<Instant>) {
     }
 }
 
-/// The waiting tiles a replan plans, nearest first (see [`Engine::replan`]): far more
+/// The waiting tiles a replan plans, in screen order (see [`Engine::replan`]): far more
 /// requests than a streamer keeps in flight between two replans.
 const PLAN_AHEAD: usize = 512;
 
@@ -1306,7 +1321,7 @@ const SELECT_SETTLE: std::time::Duration = std::time::Duration::from_millis(300)
 /// streamers' planning costs").
 const REPLAN_EVERY: std::time::Duration = std::time::Duration::from_millis(50);
 
-/// Records that `job` is needed by a tile at distance `d` (the nearest tile that needs it
+/// Records that `job` is needed by a tile at screen order `d` (the first tile that needs it
 /// counts).
 fn need(needed: &mut FastMap<JobKey, f32>, job: JobKey, d: f32) {
     let e = needed.entry(job).or_insert(d);

@@ -1,4 +1,4 @@
-//! The scheduler: the plan (requests to start, nearest first), what runs, what failed and when
+//! The scheduler: the plan (requests to start, in screen order), what runs, what failed and when
 //! to retry it, and the requests themselves.
 
 use super::{FastMap, FastSet};
@@ -117,7 +117,7 @@ struct Failure {
     retry_at: Instant,
 }
 
-/// The scheduler: the plan (requests to start, nearest first), what runs, what failed and when
+/// The scheduler: the plan (requests to start, in screen order), what runs, what failed and when
 /// to retry it.
 pub(super) struct Scheduler {
     /// Requests that may run at once (the requests' [`Pacer`]s adapt it to 503s).
@@ -245,8 +245,8 @@ impl Scheduler {
         lock_limit(&self.limit).get()
     }
 
-    /// Queues the `needed` requests (each with the distance to the nearest tile that needs it),
-    /// nearest last, but those running and those waiting out a failure's backoff; forgets the
+    /// Queues the `needed` requests (each with the screen order of the first tile that needs
+    /// it, see `Engine::screen_order`), first last, but those running and those waiting out a failure's backoff; forgets the
     /// failures of requests nobody needs; `retry_at` becomes the end of the first backoff.
     pub(super) fn queue_needed(&mut self, needed: FastMap<JobKey, f32>) {
         self.failures.retain(|k, _| needed.contains_key(k));
