@@ -10,9 +10,11 @@
 # doing so; range requests and bytes fetched per cold brick; the delay from an acknowledged edit
 # on one replica to its event on another (p50/p99); edits per second with writers on two
 # replicas; and, during a streaming load from isovox-load (50 viewers, bricks), errors and each
-# viewer's first tile on two cold replicas, then through nginx in front of both and against one
-# alone: the share of requests nginx answers without reaching a replica, the load's throughput
-# both ways, and what the replicas answered on the level route.
+# viewer's first tile (of any kind, and the first that draws) on two cold replicas, then through
+# nginx in front of both and against one alone: the share of requests nginx answers without
+# reaching a replica, the load's throughput both ways, and what the replicas answered on the
+# level route; last, 50 viewers streaming mesh tiles through nginx twice: with nothing of them
+# cached anywhere, then again with nginx holding what the first run fetched.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DIMS=${DIMS:-2048}
@@ -214,17 +216,20 @@ until curl -sf "http://127.0.0.1:$N/v1/volumes/w" >/dev/null; do
 done
 
 # A replica's counters, from its /metrics, as JSON: requests for bricks and blobs ("tiles",
-# any status) and level requests by status ("levels_200", "levels_503", ...).
+# any status), for mesh tiles and strips ("meshes") and level requests by status ("levels_200",
+# "levels_503", ...).
 counters() { # counters PORT
   curl -sf "http://127.0.0.1:$1/metrics" | python3 -c '
 import json, re, sys
-c = {"tiles": 0}
+c = {"tiles": 0, "meshes": 0}
 for line in sys.stdin:
     m = re.match(r"isovox_requests_total\{route=\"/v1/volumes/\{name\}/([a-z]+)/[^\"]*\",status=\"(\d+)\"\} (\S+)", line)
     if m:
         route, status, n = m.group(1), m.group(2), int(float(m.group(3)))
         if route in ("blobs", "bricks"):
             c["tiles"] += n
+        elif route == "meshes":
+            c["meshes"] += n
         elif route == "levels":
             c["levels_" + status] = c.get("levels_" + status, 0) + n
 print(json.dumps(c))'
@@ -238,11 +243,11 @@ sample_connections() { # sample_connections PORT FILE
 }
 # isovox-load exits 1 when any request failed during the run: its figures still count, printed
 # with the errors it saw, so a failing run is visible rather than silently fatal.
-load() { # load URL NAME REPLICA_PORT
+load() { # load URL NAME REPLICA_PORT [ISOVOX-LOAD ARGS...]
   local status=0
   sample_connections "$3" "$WORK/$2.connections" &
   local sampler=$!
-  $BIN/isovox-load --url "$1" --volume w --viewers 50 --duration 20 --no-descent --json "$WORK/$2.json" > "$WORK/$2.txt" 2>&1 || status=$?
+  $BIN/isovox-load --url "$1" --volume w --viewers 50 --duration 20 --json "$WORK/$2.json" "${@:4}" > "$WORK/$2.txt" 2>&1 || status=$?
   if [ "$status" -eq 1 ] && [ -s "$WORK/$2.json" ]; then
     echo "isovox-load against $1 counted errors:" >&2
     python3 - "$WORK/$2.json" >&2 <<'EOF'
@@ -266,6 +271,13 @@ counters "$R" > "$WORK/c1.json"
 counters "$R2" > "$WORK/e1.json"
 load "http://127.0.0.1:$R2" replica-alone "$R2"
 counters "$R2" > "$WORK/d1.json"
+counters "$R" > "$WORK/m0.json"
+load "http://127.0.0.1:$N" meshes-through-nginx "$R" --tiles meshes
+counters "$R" > "$WORK/m1.json"
+counters "$R2" > "$WORK/n1.json"
+load "http://127.0.0.1:$N" meshes-through-nginx-again "$R" --tiles meshes
+counters "$R" > "$WORK/m2.json"
+counters "$R2" > "$WORK/n2.json"
 python3 - "$WORK" <<'EOF'
 import json, sys
 work = sys.argv[1]
@@ -275,12 +287,14 @@ c0, c1, e0, e1 = read("c0.json"), read("c1.json"), read("e0.json"), read("e1.jso
 d0, d1 = e1, read("d1.json")
 def tiles(r):
     return sum(x["requests"] for x in r["routes"] if x["route"] in ("brick", "blob"))
-for name in ("cold-replica-1", "cold-replica-2", "through-nginx", "replica-alone"):
+for name in ("cold-replica-1", "cold-replica-2", "through-nginx", "replica-alone",
+             "meshes-through-nginx", "meshes-through-nginx-again"):
     r = read(f"{name}.json")
-    f, st = r["streamers"]["first_tile_ms"], r["streamers"]
+    f, d, st = r["streamers"]["first_tile_ms"], r["streamers"]["first_drawn_ms"], r["streamers"]
     print(f"{name}: {r['errors_total']} errors, first tile p50 {f['p50']:.0f} / p99 {f['p99']:.0f} / "
           f"max {f['max']:.0f} ms over {f['samples']} viewers ({st['without_tile']} without a tile), "
-          f"{r['total']['requests_per_s']:.0f} req/s")
+          f"first tile that draws p50 {d['p50']:.0f} / p99 {d['p99']:.0f} / max {d['max']:.0f} ms "
+          f"over {d['samples']} viewers, {r['total']['requests_per_s']:.0f} req/s")
 through, alone = read("through-nginx.json"), read("replica-alone.json")
 asked = tiles(through)
 reached = (c1["tiles"] - c0["tiles"]) + (e1["tiles"] - e0["tiles"])
@@ -310,4 +324,21 @@ def peak(name):
 print(f"level requests at the replicas: {levels(c0, c1)} and {levels(e0, e1)} through nginx, "
       f"{levels(d0, d1)} alone; open connections at the first replica, at most: "
       f"{peak('through-nginx')} through nginx, {peak('replica-alone')} alone")
+# Meshes through nginx: every request a run made against those that reached a replica (the
+# second replica's counters before the first meshes run are d1: the run against it alone ended
+# there).
+def meshes_share(name, before, after, before2, after2):
+    r = read(f"{name}.json")
+    asked_all = r["total"]["requests"]
+    reached_all = sum(after[k] - before.get(k, 0) + after2[k] - before2.get(k, 0)
+                      for k in after if k in ("tiles", "meshes") or k.startswith("levels_"))
+    asked = sum(x["requests"] for x in r["routes"] if x["route"] in ("mesh", "strip"))
+    reached = after["meshes"] - before["meshes"] + after2["meshes"] - before2["meshes"]
+    print(f"{name}: nginx answered {100.0 * (1 - reached_all / max(asked_all, 1)):.1f}% of all "
+          f"{asked_all} requests ({reached_all} reached the replicas), "
+          f"{100.0 * (1 - reached / max(asked, 1)):.1f}% of {asked} mesh tiles and strips; "
+          f"level requests at the replicas: {levels(before, after)} and {levels(before2, after2)}")
+m0, m1, n1, m2, n2 = (read(f"{n}.json") for n in ("m0", "m1", "n1", "m2", "n2"))
+meshes_share("meshes-through-nginx", m0, m1, d1, n1)
+meshes_share("meshes-through-nginx-again", m1, m2, n1, n2)
 EOF
