@@ -372,10 +372,10 @@ impl Engine {
     /// descent's bounds) costs microseconds, so a waiting mesh tile's plan is also kept and
     /// only its place in the order taken anew while it still holds: it was checked in the last
     /// replan, no request it needs has ended since, none of the content it waits for has come,
-    /// and its face mask is the same (commits clear them). Tiles a commit made stale are planned afresh
-    /// each time (their grid regions are counted as caused by the edit). A brick's plan is one
-    /// hash lookup, cheaper than keeping it (with plans kept, viewers of bricks got their first
-    /// tile later).
+    /// and its face mask is the same (commits clear them). Tiles a commit made stale are
+    /// planned afresh each time (their grid regions are counted as caused by the edit). A
+    /// brick's plan is one hash lookup, cheaper than keeping it (with plans kept, viewers of
+    /// bricks got their first tile later).
     fn replan(&mut self) {
         self.scheduler.replan_needed = false;
         self.scheduler.clear_plan();

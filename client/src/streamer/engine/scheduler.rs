@@ -1,5 +1,5 @@
-//! The scheduler: the plan (requests to start, in screen order), what runs, what failed and when
-//! to retry it, and the requests themselves.
+//! The scheduler: the plan (requests to start, in screen order), what runs, what failed and
+//! when to retry it, and the requests themselves.
 
 use super::{FastMap, FastSet};
 use crate::client::{strip_answer, tile_answer, Brick, Client, ClientError};
@@ -117,8 +117,8 @@ struct Failure {
     retry_at: Instant,
 }
 
-/// The scheduler: the plan (requests to start, in screen order), what runs, what failed and when
-/// to retry it.
+/// The scheduler: the plan (requests to start, in screen order), what runs, what failed and
+/// when to retry it.
 pub(super) struct Scheduler {
     /// Requests that may run at once (the requests' [`Pacer`]s adapt it to 503s).
     limit: SharedLimit,
@@ -246,8 +246,9 @@ impl Scheduler {
     }
 
     /// Queues the `needed` requests (each with the screen order of the first tile that needs
-    /// it, see `Engine::screen_order`), first last, but those running and those waiting out a failure's backoff; forgets the
-    /// failures of requests nobody needs; `retry_at` becomes the end of the first backoff.
+    /// it, see `Engine::screen_order`) so that the first in that order starts first, but those
+    /// running and those waiting out a failure's backoff; forgets the failures of requests
+    /// nobody needs; `retry_at` becomes the end of the first backoff.
     pub(super) fn queue_needed(&mut self, needed: FastMap<JobKey, f32>) {
         self.failures.retain(|k, _| needed.contains_key(k));
         let now = Instant::now();
