@@ -330,8 +330,9 @@ print(f"level requests at the replicas: {levels(c0, c1)} and {levels(e0, e1)} th
 def meshes_share(name, before, after, before2, after2):
     r = read(f"{name}.json")
     asked_all = r["total"]["requests"]
-    reached_all = sum(after[k] - before.get(k, 0) + after2[k] - before2.get(k, 0)
-                      for k in after if k in ("tiles", "meshes") or k.startswith("levels_"))
+    def counted(b, a):
+        return sum(a[k] - b.get(k, 0) for k in a if k in ("tiles", "meshes") or k.startswith("levels_"))
+    reached_all = counted(before, after) + counted(before2, after2)
     asked = sum(x["requests"] for x in r["routes"] if x["route"] in ("mesh", "strip"))
     reached = after["meshes"] - before["meshes"] + after2["meshes"] - before2["meshes"]
     print(f"{name}: nginx answered {100.0 * (1 - reached_all / max(asked_all, 1)):.1f}% of all "
