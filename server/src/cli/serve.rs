@@ -398,7 +398,7 @@ pub(super) fn serve(a: ServeArgs) -> anyhow::Result<()> {
         };
         let state = AppState::with_config(catalog, config);
         let every = std::time::Duration::from_millis(a.follow_ms.max(1));
-        tokio::spawn(isovox_server::volume::follow::follow(followed, every));
+        tokio::spawn(isovox_server::volume::follow::follow(followed, every, edit_timeout));
         match tls {
             Some(tls) => run_tls(listener, tls, state, shutdown_signal()).await,
             None => run(listener, state, shutdown_signal()).await,

@@ -15,12 +15,13 @@ use std::time::Duration;
 pub const MAX_FAILING_WAIT: Duration = Duration::from_secs(30);
 
 /// Polls each volume kept in an object store about every `every`, for as long as the task runs
-/// (local volumes are left out: their writer is this process).
-pub async fn follow(volumes: Vec<Arc<LiveVolume>>, every: Duration) {
+/// (local volumes are left out: their writer is this process). A poll gives up store calls
+/// after `limit` (the server's edit timeout: see [`LiveVolume::follow_blocking`]).
+pub async fn follow(volumes: Vec<Arc<LiveVolume>>, every: Duration, limit: Duration) {
     let followers: Vec<_> = volumes
         .into_iter()
         .filter(|v| v.remote().is_some())
-        .map(|volume| tokio::spawn(follow_one(volume, every)))
+        .map(|volume| tokio::spawn(follow_one(volume, every, limit)))
         .collect();
     for follower in followers {
         if let Err(e) = follower.await {
@@ -31,17 +32,18 @@ pub async fn follow(volumes: Vec<Arc<LiveVolume>>, every: Duration) {
 
 /// Follows one volume: the next poll after a jittered `every`, or, while polls fail, after the
 /// next wait of a backoff starting from `every`.
-async fn follow_one(volume: Arc<LiveVolume>, every: Duration) {
+async fn follow_one(volume: Arc<LiveVolume>, every: Duration, limit: Duration) {
     let mut failures = Backoff::new(every, MAX_FAILING_WAIT);
     let mut wait = jittered(every);
     loop {
         tokio::time::sleep(wait).await;
         let following = volume.clone();
-        let failure = match tokio::task::spawn_blocking(move || following.follow_blocking()).await {
-            Ok(Ok(())) => None,
-            Ok(Err(e)) => Some(crate::store::error_chain(&e)),
-            Err(e) => Some(format!("the follower failed: {e}")),
-        };
+        let failure =
+            match tokio::task::spawn_blocking(move || following.follow_blocking(limit)).await {
+                Ok(Ok(())) => None,
+                Ok(Err(e)) => Some(crate::store::error_chain(&e)),
+                Err(e) => Some(format!("the follower failed: {e}")),
+            };
         match failure {
             None => {
                 failures.reset();

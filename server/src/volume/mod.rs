@@ -45,6 +45,7 @@ use isovox_proto::VolumeLayout;
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, RwLock};
+use std::time::{Duration, Instant};
 use tokio::sync::broadcast;
 
 /// Versions a subscriber may fall behind before it is told to resync.
@@ -329,12 +330,17 @@ impl LiveVolume {
         Ok(())
     }
 
-    /// [`LiveVolume::catch_up`] from a thread that may block, taking the writer first.
+    /// [`LiveVolume::catch_up`] from a thread that may block, taking the writer first. Its
+    /// store calls are given up after `limit` ([`StoreError::Stalled`]): edits queue for the
+    /// writer it holds, and a poll that waited out a stalled store's own retries (minutes)
+    /// would hold them past their edit timeout, unanswered.
     ///
     /// # Errors
     /// See [`LiveVolume::catch_up`].
-    pub fn follow_blocking(&self) -> Result<(), StoreError> {
+    pub fn follow_blocking(&self, limit: Duration) -> Result<(), StoreError> {
         let mut writer = self.writer.blocking_lock();
+        let _bounded =
+            crate::store::remote::bound_store_waits(Some((Instant::now() + limit, limit)));
         self.catch_up(&mut writer)
     }
 

@@ -184,7 +184,8 @@ impl Server {
         Server::replica_with(s3, pause_before_head_ms, &[])
     }
 
-    /// [`Server::replica`] with more arguments for `isovox serve`.
+    /// [`Server::replica`] with more arguments for `isovox serve` (polling the head every 50 ms
+    /// unless they say otherwise).
     fn replica_with(s3: &S3, pause_before_head_ms: Option<u64>, more: &[&str]) -> Server {
         let store = s3.url();
         let pause = pause_before_head_ms.map(|ms| ms.to_string());
@@ -198,7 +199,10 @@ impl Server {
         if let Some(ms) = &pause {
             envs.push(("ISOVOX_STORE_PAUSE_BEFORE_HEAD_MS", ms));
         }
-        let mut args = vec!["--store", &store, "--follow-ms", "50"];
+        let mut args = vec!["--store", &store];
+        if !more.contains(&"--follow-ms") {
+            args.extend(["--follow-ms", "50"]);
+        }
         args.extend_from_slice(more);
         Server::start(&args, &envs)
     }
@@ -1284,7 +1288,9 @@ fn a_stalled_store_makes_an_edit_a_503_with_retry_after_and_commits_nothing() {
     let data = tempfile::tempdir().unwrap();
     world(&s3, data.path());
     let http = client();
-    let server = Server::replica_with(&s3, None, &["--edit-timeout", "1"]);
+    // Polling the head all the time, the replica is most likely in a poll when the store
+    // stops: the poll holds the writer the edit waits for, and must give up in time too.
+    let server = Server::replica_with(&s3, None, &["--edit-timeout", "1", "--follow-ms", "1"]);
     assert_eq!(server.version(&http), 1);
 
     // The store stops answering; the edit (a few bricks: its own evaluation takes
