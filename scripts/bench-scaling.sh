@@ -145,8 +145,8 @@ print(f"edit on replica a -> event on replica b: p50 {q(0.5):.1f} ms, p99 {q(0.9
       f"({len(delays)} events, {missing} missing; follow interval 50 ms)")
 
 # Editors on both replicas for 10 s: with group commit (the default: a replica's waiting edits
-# become one segment and one head PUT), then with --edit-group 1 (one segment and one head PUT
-# per edit), each on a fresh pair of replicas, in turn.
+# become one segment and one head PUT), then with --edit-group 1 (one commit per edit), each
+# way on a fresh pair of replicas, in turn.
 def edit_rate(ports, per_replica, seconds=10):
     count = {p: 0 for p in ports}; busy = [0]; stop = time.perf_counter() + seconds
     def writer(port, k):
@@ -168,19 +168,29 @@ pa.kill(); pb.kill()
 import os, socket
 def free():
     s = socket.socket(); s.bind(("127.0.0.1", 0)); port = s.getsockname()[1]; s.close(); return port
+# "every segment an object" (--inline-kb 0): no segment rides in the head, so each commit is a
+# segment PUT and a head PUT, and catching up a head GET and a segment GET; one commit per edit
+# that way is the protocol before groups and inline segments.
+ways = (("groups", ()), ("one per edit", ("--edit-group", "1")),
+        ("groups, every segment an object", ("--inline-kb", "0")),
+        ("one per edit, every segment an object", ("--edit-group", "1", "--inline-kb", "0")))
 rates = {}
 for per_replica in (2, 8):
-    for label, more in (("groups", ()), ("one per edit", ("--edit-group", "1"))):
+    for w, (label, more) in enumerate(ways):
         ports = [free(), free()]
-        procs = [start(f"{label[0]}{per_replica}{i}", port, *more)[0] for i, port in enumerate(ports)]
+        procs = [start(f"e{per_replica}{w}{i}", port, *more)[0] for i, port in enumerate(ports)]
         rate, busy, each = edit_rate(ports, per_replica)
         for p in procs:
             p.kill()
         rates[(per_replica, label)] = rate
         print(f"edits with {per_replica} editors on each of 2 replicas, {label}: {rate:.1f} edits/s on one volume "
               f"({' + '.join(f'{r:.1f}' for r in each)} by replica; {busy} answered 503 after losing the head race 16 times)")
+    r = lambda label: rates[(per_replica, label)]
     print(f"  group commit / one commit per edit, {per_replica} editors per replica: "
-          f"{rates[(per_replica, 'groups')] / rates[(per_replica, 'one per edit')]:.2f}x")
+          f"{r('groups') / r('one per edit'):.2f}x; against one commit per edit with every segment an object: "
+          f"{r('groups') / r('one per edit, every segment an object'):.2f}x "
+          f"(segments in the head: {r('groups') / r('groups, every segment an object'):.2f}x with groups, "
+          f"{r('one per edit') / r('one per edit, every segment an object'):.2f}x one per edit)")
 EOF
 [ -n "${EDITS_ONLY:-}" ] && exit 0  # the edit figures alone
 

@@ -9,6 +9,7 @@ use isovox_server::http::connections::{default_max_connections, raise_fd_limit, 
 use isovox_server::http::cpu;
 use isovox_server::http::oidc::{KeySource, Oidc, OidcConfig, DEFAULT_ROLES_CLAIM};
 use isovox_server::http::{run, run_tls, shutdown_signal, AppState, ServerConfig};
+use isovox_server::store::remote::head::{DEFAULT_INLINE_MAX, INLINE_LIMIT};
 use isovox_server::store::remote::{
     Bucket, CacheConfig, DEFAULT_PREFETCH_INDEX, DEFAULT_READ_AHEAD,
 };
@@ -136,6 +137,11 @@ pub(crate) struct ServeArgs {
     /// the background if the index is at most this many MiB; 0 turns that off.
     #[arg(long, env = "ISOVOX_PREFETCH_INDEX_MB", default_value_t = DEFAULT_PREFETCH_INDEX >> 20)]
     pub prefetch_index_mb: u64,
+    /// KiB of small commits' segments one head object may carry (a commit is then one PUT and
+    /// a replica catching up reads it with the head); 0: every segment an object of its own.
+    #[arg(long, env = "ISOVOX_INLINE_KB", default_value_t = DEFAULT_INLINE_MAX >> 10,
+          value_parser = clap::value_parser!(u64).range(0..=INLINE_LIMIT >> 10))]
+    pub inline_kb: u64,
     /// On Ctrl-C or SIGTERM, seconds to let requests in flight finish before closing their
     /// connections (change feeds end at once).
     #[arg(long, env = "ISOVOX_SHUTDOWN_GRACE", default_value_t = 10.0)]
@@ -286,6 +292,7 @@ fn open_catalog(a: &ServeArgs) -> anyhow::Result<Catalog> {
         max_bytes: a.cache_mb << 20,
         read_ahead: a.read_ahead_kb << 10,
         prefetch_index: a.prefetch_index_mb << 20,
+        inline_max: a.inline_kb << 10,
     };
     let catalog = Catalog::open_store(&bucket, &cache)?;
     if catalog.is_empty() {

@@ -184,6 +184,13 @@ impl Server {
         Server::replica_with(s3, pause_before_head_ms, &[])
     }
 
+    /// [`Server::replica`] whose every segment is an object of its own, none carried in the
+    /// head (`--inline-kb 0`): a commit writes its segment, then the head, and a test sees the
+    /// window between the two in the store.
+    fn replica_of_objects(s3: &S3, pause_before_head_ms: Option<u64>) -> Server {
+        Server::replica_with(s3, pause_before_head_ms, &["--inline-kb", "0"])
+    }
+
     /// [`Server::replica`] with more arguments for `isovox serve` (polling the head every 50 ms
     /// unless they say otherwise).
     fn replica_with(s3: &S3, pause_before_head_ms: Option<u64>, more: &[&str]) -> Server {
@@ -611,20 +618,126 @@ fn a_replica_catching_up_fetches_a_manifest_once_not_at_every_commit() {
     assert_same_answers(&http, &writer, &follower);
 }
 
+/// A small commit's segment rides in the head: the commit is one PUT (no segment object), and
+/// a replica following reads it with the head, no segment GET. When the next would not fit,
+/// the writer spills the inlined segments and its own into one object, which a replica that
+/// opens later reads them from.
+#[test]
+fn small_commits_ride_in_the_head_and_spill_into_one_object() {
+    let s3 = S3::start("isovox-inline");
+    let data = tempfile::tempdir().unwrap();
+    world(&s3, data.path());
+    let http = client();
+    let writer = Server::replica(&s3, None);
+    let follower = Server::replica(&s3, None);
+    assert_eq!(follower.version(&http), 1);
+    let imported = s3.segments();
+    assert_eq!(imported.len(), 1, "{imported:?}");
+    let origin = |i: u32| [2 + 10 * (i % 9), 50, 2 + 10 * (i / 9)];
+    let centre = |i: u32| origin(i).map(|c| c + 4);
+    let edit = |i: u32| {
+        assert_ne!(voxel(&writer, &http, centre(i)), 255, "edit {i} before");
+        let (status, answer) = writer.edit(&http, &carve(origin(i)), None);
+        assert_eq!(status, 200, "edit {i}: {answer}");
+        let version = answer["version"].as_u64().unwrap();
+        follower.wait_for(&http, version);
+        version
+    };
+
+    for i in 0..8 {
+        edit(i);
+    }
+    assert_eq!(
+        s3.segments(),
+        imported,
+        "a small commit wrote a segment object"
+    );
+    assert_eq!(s3.requests("PUT", "seg/"), 1, "the import's alone");
+    assert_eq!(
+        s3.requests("PUT", "head"),
+        1 + 8,
+        "the import's and one a commit"
+    );
+    let (head, _) = isovox_server::store::remote::read_head(&s3.volume_bucket()).unwrap();
+    let carried: Vec<_> = head
+        .segments
+        .iter()
+        .filter(|s| s.inline.is_some())
+        .collect();
+    assert_eq!(carried.len(), 8, "{head:?}");
+    // The follower caught up with all eight from the head alone: its only segment reads are of
+    // the import's (opening, and its index fetched ahead).
+    let import_gets = s3.requests("GET", &imported[0]);
+    assert_eq!(s3.requests("GET", "seg/"), import_gets);
+    for i in 0..8 {
+        assert_eq!(
+            voxel(&follower, &http, centre(i)),
+            255,
+            "edit {i} on the follower"
+        );
+    }
+
+    // Until a segment object appears: at the latest when the head would list 65 segments.
+    let mut i = 8;
+    while s3.segments().len() == 1 {
+        assert!(i < 64, "no spill after {i} commits");
+        edit(i);
+        i += 1;
+    }
+    let spilled: Vec<String> = s3
+        .segments()
+        .into_iter()
+        .filter(|k| !imported.contains(k))
+        .collect();
+    assert_eq!(
+        spilled.len(),
+        1,
+        "one object for every inlined segment: {spilled:?}"
+    );
+    let (head, _) = isovox_server::store::remote::read_head(&s3.volume_bucket()).unwrap();
+    let after_import: Vec<_> = head.segments.iter().skip(1).collect();
+    assert_eq!(after_import.len() as u32, i, "{head:?}");
+    let mut at = 0;
+    for s in &after_import {
+        let within = s.within.as_ref().expect("spilled");
+        assert!(s.inline.is_none());
+        assert_eq!((within.key.as_str(), within.at), (spilled[0].as_str(), at));
+        at += s.len;
+    }
+    let object = s3.volume_bucket().get(&spilled[0]).unwrap().unwrap();
+    assert_eq!(object.len() as u64, at, "the spilled segments end to end");
+
+    // One more commit rides in the head again; a replica opened now reads the spilled ones
+    // from their object and the last from the head.
+    let last = edit(i);
+    assert_eq!(s3.segments().len(), 2);
+    let late = Server::replica(&s3, None);
+    assert_eq!(late.version(&http), last);
+    for e in 0..=i {
+        assert_eq!(
+            voxel(&late, &http, centre(e)),
+            255,
+            "edit {e} on a late replica"
+        );
+    }
+    assert_same_answers(&http, &writer, &late);
+    assert_same_answers(&http, &writer, &follower);
+}
+
 #[test]
 fn a_writer_killed_before_the_head_leaves_the_last_acknowledged_version() {
     let s3 = S3::start("isovox-killed");
     let data = tempfile::tempdir().unwrap();
     world(&s3, data.path());
     let http = client();
-    let r1 = Server::replica(&s3, None);
+    let r1 = Server::replica_of_objects(&s3, None);
     let (status, ack) = r1.edit(&http, &carve([10, 10, 10]), None);
     assert_eq!((status, ack["version"].as_u64()), (200, Some(2)));
     let before = s3.segments();
     assert_eq!(before.len(), 2, "{before:?}");
 
     // A writer that stops between its segment and the head, killed there.
-    let doomed = Server::replica(&s3, Some(60_000));
+    let doomed = Server::replica_of_objects(&s3, Some(60_000));
     let base = doomed.base.clone();
     std::thread::spawn(move || {
         let _ = http_post_edit(&base, &carve([40, 50, 40]));
@@ -856,8 +969,8 @@ fn a_stalled_writer_cannot_overwrite_a_newer_head() {
     let data = tempfile::tempdir().unwrap();
     world(&s3, data.path());
     let http = client();
-    let r1 = Server::replica(&s3, None);
-    let slow = Server::replica(&s3, Some(1500));
+    let r1 = Server::replica_of_objects(&s3, None);
+    let slow = Server::replica_of_objects(&s3, Some(1500));
     // Both edits go above the terrain, where they change voxels.
     for p in [[14, 54, 14], [44, 54, 44], [74, 54, 74]] {
         assert_ne!(voxel(&r1, &http, p), 255);

@@ -254,11 +254,7 @@ impl MirrorFile {
         self.file
             .write_all_at(bytes, start)
             .map_err(StoreError::io_path("cannot write", &self.path))?;
-        let pages = Pages::new(Segment {
-            start,
-            len: bytes.len() as u64,
-            key: "staged".into(),
-        });
+        let pages = Pages::new(Segment::object(start, bytes.len() as u64, "staged".into()));
         for word in pages.present.iter() {
             word.store(u64::MAX, Ordering::Release);
         }
@@ -301,7 +297,8 @@ impl MirrorFile {
     fn fetch_span(&self, pages: &Pages, lo: u64, hi: u64) -> Result<(), StoreError> {
         let from = lo * PAGE;
         let to = hi * PAGE + pages.page_len(hi);
-        let bytes = self.bucket.get_range(&pages.segment.key, from..to)?;
+        let (object, at) = pages.segment.location();
+        let bytes = self.bucket.get_range(object, at + from..at + to)?;
         if bytes.len() as u64 != to - from {
             return Err(StoreError::corrupt(
                 pages.segment.start + from,

@@ -2,20 +2,23 @@
 //!
 //! A volume `NAME` under `s3://bucket/prefix` is the objects below `prefix/NAME/`:
 //!
-//! - `seg/{start}-{version}-{tag}`: immutable segments, each the bytes one commit appended to
-//!   the volume's logical VOD 2 file (the first: the file's header pages and its first version,
-//!   as an import or a compaction wrote them). Brick records, index checkpoints and commit
-//!   records are where they would be in a local file, at the same offsets.
+//! - `seg/{start}-{version}-{tag}`: immutable objects of segments, a segment being the bytes
+//!   one commit appended to the volume's logical VOD 2 file (the first: the file's header pages
+//!   and its first version, as an import or a compaction wrote them). Brick records, index
+//!   checkpoints and commit records are where they would be in a local file, at the same
+//!   offsets. An object holds one segment, or several spilled from the head together.
 //! - `manifests/{end}-{tag}.json`: immutable lists of the segments up to `end` (a head past
 //!   [`head::TAIL_MAX`] segments folds them into one, so the head stays small).
 //! - `head`: the one object that changes: the head version, its commit record's offset, the
-//!   committed length and the segments (JSON, [`head::Head`]).
+//!   committed length and the segments (JSON, [`head::Head`]), small ones with their bytes.
 //!
-//! A commit writes its segment (and a manifest, when due), then replaces `head` with a
-//! conditional PUT (`If-Match` on the ETag it read). Of two writers that read the same head,
+//! A commit whose segment fits in the head (up to [`CacheConfig::inline_max`] bytes of
+//! segments in all) writes only the head; otherwise it writes its segment and those the head
+//! carried as one object (and a manifest, when due) first. Either way the head is replaced with
+//! a conditional PUT (`If-Match` on the ETag it read). Of two writers that read the same head,
 //! one wins; the other's PUT is refused and it learns the new head ([`StoreError::HeadMoved`]).
-//! A writer that dies between its segment and the head leaves the head as it was: its segment
-//! is garbage that [`collect_garbage`] removes. No lock service is involved.
+//! A writer that dies before the head leaves the head as it was: an object it wrote is garbage
+//! that [`collect_garbage`] removes. No lock service is involved.
 //!
 //! A replica reads through a [`mirror`]: a sparse local file laid out as the logical file and
 //! memory-mapped, so a brick read is the same index lookup and slice as for a local file, once
@@ -30,7 +33,7 @@ pub mod parts;
 pub mod turns;
 
 pub use bucket::{bound_store_waits, Bucket, Conditional, StoreWaitBound};
-pub use head::{Head, Manifest, ManifestRef, Segment};
+pub use head::{Head, Inline, Manifest, ManifestRef, Segment, Within};
 pub use mirror::FetchCounters;
 
 use super::region::Fill;
@@ -62,6 +65,9 @@ pub struct CacheConfig {
     /// When a volume is opened, its head checkpoint's index (what level grids read) is fetched
     /// in the background if it is at most this many bytes; 0 turns that off.
     pub prefetch_index: u64,
+    /// Bytes of small commits' segments this process's writer lets one head carry (at most
+    /// [`head::INLINE_LIMIT`]); 0: every segment an object of its own.
+    pub inline_max: u64,
 }
 
 /// The default [`CacheConfig::prefetch_index`]: the index of a 2048^3 world in bricks of 16 is
@@ -78,6 +84,7 @@ impl Default for CacheConfig {
             max_bytes: 1 << 30,
             read_ahead: DEFAULT_READ_AHEAD,
             prefetch_index: DEFAULT_PREFETCH_INDEX,
+            inline_max: head::DEFAULT_INLINE_MAX,
         }
     }
 }
@@ -99,8 +106,35 @@ pub enum Refreshed {
 struct Followed {
     etag: String,
     head: Head,
+    /// Every segment the head names (the manifest's first), without inline bytes, each where
+    /// the store says it is kept now: what a manifest this process writes lists.
+    segments: Vec<Segment>,
+    /// The same segments' pages in the mirror. A segment's pages keep where it was kept when
+    /// this process first saw it: one first seen inline has every page present from then on.
     pages: Vec<Arc<Pages>>,
     file: Arc<MirrorFile>,
+    /// A segment this process committed inline could not be written into the mirror: no
+    /// object holds it, so the next poll starts a fresh mirror, which takes it from the head.
+    missing_inline: bool,
+}
+
+/// The mirror's pages of `segments` (the ones carried inline written into `file` at once:
+/// no object holds them), and the segments without their bytes.
+fn pages_of(
+    file: &MirrorFile,
+    segments: Vec<Segment>,
+) -> Result<(Vec<Segment>, Vec<Arc<Pages>>), StoreError> {
+    let mut kept = Vec::with_capacity(segments.len());
+    let mut pages = Vec::with_capacity(segments.len());
+    for s in segments {
+        let p = Arc::new(Pages::new(s.without_bytes()));
+        if let Some(bytes) = &s.inline {
+            file.put_segment(&p, &bytes.0)?;
+        }
+        kept.push(s.without_bytes());
+        pages.push(p);
+    }
+    Ok((kept, pages))
 }
 
 /// One volume in an object store, as one process reads and writes it.
@@ -168,17 +202,14 @@ fn all_segments(bucket: &Bucket, head: &Head) -> Result<Vec<Segment>, StoreError
 fn all_segments_after(
     bucket: &Bucket,
     head: &Head,
-    known: Option<(&Head, &[Arc<Pages>])>,
+    known: Option<(&Head, &[Segment])>,
 ) -> Result<Vec<Segment>, StoreError> {
     let mut out = match (&head.manifest, known) {
         (None, _) => Vec::new(),
-        (Some(m), Some((before, pages)))
-            if before.manifest.as_ref() == Some(m) && pages.len() as u64 >= m.segments =>
+        (Some(m), Some((before, segments)))
+            if before.manifest.as_ref() == Some(m) && segments.len() as u64 >= m.segments =>
         {
-            pages[..m.segments as usize]
-                .iter()
-                .map(|p| p.segment().clone())
-                .collect()
+            segments[..m.segments as usize].to_vec()
         }
         (Some(m), _) => {
             let bytes = bucket.get(&m.key)?.ok_or_else(|| {
@@ -259,10 +290,7 @@ impl RemoteVolume {
             bucket.clone(),
             counters.clone(),
         )?);
-        let pages: Vec<Arc<Pages>> = all_segments(&bucket, &head)?
-            .into_iter()
-            .map(|s| Arc::new(Pages::new(s)))
-            .collect();
+        let (segments, pages) = pages_of(&file, all_segments(&bucket, &head)?)?;
         let view = Arc::new(MirrorView::new(file.clone(), pages.clone()));
         let map = file.map(head.committed_len)?;
         view.fill(0, DATA_PAGE as u64)?;
@@ -276,8 +304,10 @@ impl RemoteVolume {
             state: Mutex::new(Followed {
                 etag,
                 head: head.clone(),
+                segments,
                 pages,
                 file,
+                missing_inline: false,
             }),
             bucket,
             turns: turns::Turns::default(),
@@ -320,35 +350,35 @@ impl RemoteVolume {
         self.state.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// The volume as of `state` in a fresh mirror file.
-    fn reopen(&self, state: &mut Followed) -> Result<Vod2, StoreError> {
-        state.file = Arc::new(MirrorFile::create(
+    /// The volume as of `head` in a fresh mirror file, which `state` follows from then on. On
+    /// an error `state` is left as it was (its head and its pages still go together).
+    fn reopen(&self, state: &mut Followed, head: Head, etag: String) -> Result<Vod2, StoreError> {
+        let file = Arc::new(MirrorFile::create(
             &self.cache,
             &self.name,
             self.bucket.clone(),
             self.counters.clone(),
         )?);
-        self.mirror.store(state.file.clone());
-        state.pages = all_segments(&self.bucket, &state.head)?
-            .into_iter()
-            .map(|s| Arc::new(Pages::new(s)))
-            .collect();
-        let map = state.file.map(state.head.committed_len)?;
-        let view = Arc::new(MirrorView::new(state.file.clone(), state.pages.clone()));
-        Vod2::open_mirror(
+        let (segments, pages) = pages_of(&file, all_segments(&self.bucket, &head)?)?;
+        let map = file.map(head.committed_len)?;
+        let view = Arc::new(MirrorView::new(file.clone(), pages.clone()));
+        let vod = Vod2::open_mirror(
             PathBuf::from(self.bucket.url()),
             self.header.clone(),
-            state.head.slot(),
+            head.slot(),
             map,
             view,
-        )
-    }
-
-    /// `current` advanced to the state's head, in the same mirror file.
-    fn advance(&self, state: &Followed, current: &Vod2) -> Result<Vod2, StoreError> {
-        let map = state.file.map(state.head.committed_len)?;
-        let view = Arc::new(MirrorView::new(state.file.clone(), state.pages.clone()));
-        current.advance_mirror(state.head.slot(), map, view)
+        )?;
+        self.mirror.store(file.clone());
+        *state = Followed {
+            etag,
+            head,
+            segments,
+            pages,
+            file,
+            missing_inline: false,
+        };
+        Ok(vod)
     }
 
     /// Follows the head: one conditional GET; when the head moved, the volume as of the new
@@ -361,9 +391,10 @@ impl RemoteVolume {
         let got = self.bucket.get_if_changed(HEAD_KEY, Some(&state.etag))?;
         let (head, etag) = match got {
             Conditional::Refused => {
-                if state.file.cached() > self.cache.max_bytes {
-                    tracing::info!(volume = %self.name, cached = state.file.cached(), "the mirror outgrew its bound; starting a fresh one");
-                    return Ok(Refreshed::Replaced(self.reopen(&mut state)?));
+                if state.file.cached() > self.cache.max_bytes || state.missing_inline {
+                    tracing::info!(volume = %self.name, cached = state.file.cached(), missing_inline = state.missing_inline, "the mirror outgrew its bound or misses a segment; starting a fresh one");
+                    let (head, etag) = (state.head.clone(), state.etag.clone());
+                    return Ok(Refreshed::Replaced(self.reopen(&mut state, head, etag)?));
                 }
                 return Ok(Refreshed::Same);
             }
@@ -375,28 +406,34 @@ impl RemoteVolume {
                 )))
             }
         };
-        let segments = all_segments_after(&self.bucket, &head, Some((&state.head, &state.pages)))?;
-        let extends = segments.len() >= state.pages.len()
+        let segments =
+            all_segments_after(&self.bucket, &head, Some((&state.head, &state.segments)))?;
+        let extends = segments.len() >= state.segments.len()
             && state
-                .pages
+                .segments
                 .iter()
                 .zip(&segments)
-                .all(|(p, s)| p.segment() == s)
+                .all(|(known, s)| known.same_as(s))
             && head.version >= state.head.version;
-        let outgrown = state.file.cached() > self.cache.max_bytes;
-        let known = state.pages.len();
+        let outgrown = state.file.cached() > self.cache.max_bytes || state.missing_inline;
+        if !extends || outgrown {
+            return Ok(Refreshed::Replaced(self.reopen(&mut state, head, etag)?));
+        }
+        let mut segments = segments;
+        let (new_segments, new_pages) =
+            pages_of(&state.file, segments.split_off(state.segments.len()))?;
+        segments.extend(new_segments);
+        let pages: Vec<Arc<Pages>> = state.pages.iter().cloned().chain(new_pages).collect();
+        let map = state.file.map(head.committed_len)?;
+        let view = Arc::new(MirrorView::new(state.file.clone(), pages.clone()));
+        let next = current.advance_mirror(head.slot(), map, view)?;
+        // Only now that all of it holds (where the known segments are kept may have changed:
+        // inlined ones spilled).
         state.head = head;
         state.etag = etag;
-        if !extends || outgrown {
-            return Ok(Refreshed::Replaced(self.reopen(&mut state)?));
-        }
-        state.pages.extend(
-            segments
-                .into_iter()
-                .skip(known)
-                .map(|s| Arc::new(Pages::new(s))),
-        );
-        Ok(Refreshed::Advanced(self.advance(&state, current)?))
+        state.segments = segments;
+        state.pages = pages;
+        Ok(Refreshed::Advanced(next))
     }
 
     /// A version this process's writer staged on top of `tip` and has not published yet, as
@@ -466,14 +503,7 @@ impl Publish for RemoteVolume {
         if base.map(|b| b.commit) != Some(state.head.commit) || from != state.head.committed_len {
             return Err(moved());
         }
-        let segment = Segment {
-            start: from,
-            len: appended.len() as u64,
-            key: segment_key(from, slot.version),
-        };
-        let bytes = Bytes::copy_from_slice(appended);
-        self.bucket.put(&segment.key, bytes)?;
-        pause_before_head();
+        let segment = Segment::object(from, appended.len() as u64, segment_key(from, slot.version));
         let mut next = Head {
             format: HEAD_FORMAT.into(),
             version: slot.version,
@@ -482,18 +512,35 @@ impl Publish for RemoteVolume {
             manifest: state.head.manifest.clone(),
             segments: state.head.segments.clone(),
         };
+        let carried: u64 = next
+            .segments
+            .iter()
+            .filter(|s| s.inline.is_some())
+            .map(|s| s.len)
+            .sum();
         next.segments.push(segment.clone());
+        let budget = self.cache.inline_max.min(head::INLINE_LIMIT);
+        let fits = carried + segment.len <= budget && next.segments.len() <= TAIL_MAX;
+        if fits {
+            let last = next.segments.len() - 1;
+            next.segments[last].inline = Some(Inline(Bytes::copy_from_slice(appended)));
+        } else {
+            spill(&self.bucket, &mut next.segments, appended, slot.version)?;
+        }
+        pause_before_head();
+        // Every segment the next head names, as the store will say they are kept: the
+        // manifest's (the segments before the head's) and the head's.
+        let before_tail = state.segments.len() - state.head.segments.len();
+        let all: Vec<Segment> = state.segments[..before_tail]
+            .iter()
+            .cloned()
+            .chain(next.segments.iter().map(Segment::without_bytes))
+            .collect();
         if next.segments.len() > TAIL_MAX {
-            let all: Vec<Segment> = state
-                .pages
-                .iter()
-                .map(|p| p.segment().clone())
-                .chain(std::iter::once(segment.clone()))
-                .collect();
             let end = segment.end();
             let manifest = Manifest {
                 format: HEAD_FORMAT.into(),
-                segments: all,
+                segments: all.clone(),
             };
             let key = format!("manifests/{end:016x}-{}.json", tag());
             self.bucket.put(
@@ -517,11 +564,17 @@ impl Publish for RemoteVolume {
         match put? {
             Conditional::Refused => Err(moved()),
             Conditional::Done((), etag) => {
-                let pages = Arc::new(Pages::new(segment));
-                // The commit is published; the mirror copy only saves fetching it back.
+                // Where the store keeps it (in an object, or only in the head and this copy).
+                let pages = Arc::new(Pages::new(all.last().cloned().unwrap_or(segment)));
+                // The commit is published; the mirror copy only saves fetching it back, but
+                // for an inlined segment no object holds it: a fresh mirror reads it from the
+                // head.
                 if let Err(e) = state.file.put_segment(&pages, appended) {
                     tracing::warn!(error = %super::error_chain(&e), "cannot keep a committed segment in the mirror");
+                    state.missing_inline |=
+                        next.segments.last().is_some_and(|s| s.inline.is_some());
                 }
+                state.segments = all;
                 state.pages.push(pages);
                 state.head = next;
                 state.etag = etag;
@@ -529,6 +582,46 @@ impl Publish for RemoteVolume {
             }
         }
     }
+}
+
+/// Writes the last of `segments` (a commit's, `appended`) and every one of them the head
+/// carries inline into one object, in order, and says so in each (`within`): one PUT however
+/// many were inlined. Alone, the commit's segment is an object of its own under its key.
+///
+/// # Errors
+/// The store fails.
+fn spill(
+    bucket: &Bucket,
+    segments: &mut [Segment],
+    appended: &[u8],
+    version: u64,
+) -> Result<(), StoreError> {
+    let (last, earlier) = segments
+        .split_last_mut()
+        .ok_or_else(|| StoreError::Internal("spilling no segment".into()))?;
+    let carried: Vec<&mut Segment> = earlier.iter_mut().filter(|s| s.inline.is_some()).collect();
+    if carried.is_empty() {
+        return bucket.put(&last.key, Bytes::copy_from_slice(appended));
+    }
+    let key = segment_key(carried[0].start, version);
+    let mut bytes =
+        Vec::with_capacity(carried.iter().map(|s| s.len as usize).sum::<usize>() + appended.len());
+    for s in carried {
+        let at = bytes.len() as u64;
+        if let Some(inline) = s.inline.take() {
+            bytes.extend_from_slice(&inline.0);
+        }
+        s.within = Some(Within {
+            key: key.clone(),
+            at,
+        });
+    }
+    last.within = Some(Within {
+        key: key.clone(),
+        at: bytes.len() as u64,
+    });
+    bytes.extend_from_slice(appended);
+    bucket.put(&key, Bytes::from(bytes))
 }
 
 /// Uploads the local VOD 2 file `path` as the volume at `bucket` (`store.child(NAME)`; its
@@ -561,11 +654,7 @@ pub fn upload_with(
     let vod = Vod2::open(path)?;
     let slot = vod.head_slot();
     drop(vod);
-    let segment = Segment {
-        start: 0,
-        len: slot.committed_len,
-        key: segment_key(0, slot.version),
-    };
+    let segment = Segment::object(0, slot.committed_len, segment_key(0, slot.version));
     // Read from the file part by part: a volume of many GB never sits in memory whole.
     let parts = bucket.put_file(&segment.key, path, segment.len, progress)?;
     let head = Head {
@@ -594,8 +683,8 @@ pub fn upload_with(
 pub fn collect_garbage(bucket: &Bucket, grace: Duration) -> Result<usize, StoreError> {
     let (head, _) = read_head(bucket)?;
     let mut live: std::collections::HashSet<String> = all_segments(bucket, &head)?
-        .into_iter()
-        .map(|s| s.key)
+        .iter()
+        .map(|s| s.location().0.to_string())
         .collect();
     if let Some(m) = &head.manifest {
         live.insert(m.key.clone());
