@@ -174,17 +174,38 @@ def free():
 ways = (("groups", ()), ("one per edit", ("--edit-group", "1")),
         ("groups, every segment an object", ("--inline-kb", "0")),
         ("one per edit, every segment an object", ("--edit-group", "1", "--inline-kb", "0")))
+# What the store answered, from moto's request log: (method, the volume's object kind, status).
+import re
+def store_requests():
+    counts = {}
+    line_re = re.compile(r'"(GET|PUT|HEAD|POST|DELETE) /isovox-bench/vols/w/([a-z]+)[^"]*" (\d+)')
+    with open(f"{work}/s3.log", errors="replace") as log:
+        for line in log:
+            m = line_re.search(re.sub(r"\x1b\[[0-9;]*m", "", line))
+            if m:
+                counts[m.groups()] = counts.get(m.groups(), 0) + 1
+    return counts
 rates = {}
 for per_replica in (2, 8):
     for w, (label, more) in enumerate(ways):
         ports = [free(), free()]
         procs = [start(f"e{per_replica}{w}{i}", port, *more)[0] for i, port in enumerate(ports)]
+        before = store_requests()
         rate, busy, each = edit_rate(ports, per_replica)
+        after = store_requests()
         for p in procs:
             p.kill()
+        n = lambda method, kind, status=None: sum(v - before.get(k, 0) for k, v in after.items()
+                                                  if k[:2] == (method, kind) and status in (None, k[2]))
+        groups = n("PUT", "head", "200")
+        total = sum(v - before.get(k, 0) for k, v in after.items())
         rates[(per_replica, label)] = rate
         print(f"edits with {per_replica} editors on each of 2 replicas, {label}: {rate:.1f} edits/s on one volume "
               f"({' + '.join(f'{r:.1f}' for r in each)} by replica; {busy} answered 503 after losing the head race 16 times)")
+        print(f"  the store: {groups} commits (head PUTs answered 200), {total} requests "
+              f"({total / max(groups, 1):.1f} a commit): head PUTs refused {n('PUT', 'head', '412')}, "
+              f"segment PUTs {n('PUT', 'seg')}, head GETs {n('GET', 'head')} ({n('GET', 'head', '304')} answered 304), "
+              f"segment GETs {n('GET', 'seg')}, turns {n('GET', 'turn') + n('PUT', 'turn')}")
     r = lambda label: rates[(per_replica, label)]
     print(f"  group commit / one commit per edit, {per_replica} editors per replica: "
           f"{r('groups') / r('one per edit'):.2f}x; against one commit per edit with every segment an object: "
