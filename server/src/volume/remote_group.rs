@@ -1,9 +1,9 @@
 //! Group commit on an object store: the edits waiting for a replica's writer become one segment
-//! PUT and one conditional PUT of the head, as a group on a local file becomes one sync
-//! (`group.rs`).
+//! and one conditional PUT of the head (the segment carried in it when small), as a group on a
+//! local file becomes one sync (`group.rs`).
 //!
-//! A commit on an object store costs two requests in series whatever it holds, and the head's
-//! PUT admits one commit at a time for the whole volume: committed one by one, the edits of all
+//! A commit on an object store costs one or two requests in series whatever it holds, and the
+//! head's PUT admits one commit at a time for the whole volume: committed one by one, the edits of all
 //! replicas together were bounded by that one PUT's rate. So a replica's writer takes its queue
 //! as a group, as on a file:
 //!
@@ -13,15 +13,15 @@
 //!    written into the mirror file past the head's segments, so the next edit reads the
 //!    version it builds on as any version is read (`RemoteVolume::staged`). A failing edit is
 //!    rolled back alone;
-//! 3. publish: one segment with every version's bytes, then the head naming the last version,
-//!    conditional on the head the group was staged on;
+//! 3. publish: one segment with every version's bytes, carried in the head or written first,
+//!    then the head naming the last version, conditional on the head the group was staged on;
 //! 4. serve, announce and answer each version in order.
 //!
 //! When another writer won the head meanwhile (3 refused), the whole group is staged again on
 //! top of the new head, with a random wait that doubles with each loss, up to
 //! [`MAX_REMOTE_ATTEMPTS`] times; an edit with `If-Match` is then refused, since its version is
 //! gone. An edit is acknowledged only after the head's PUT succeeded: a replica killed during a
-//! group loses nothing it acknowledged, and the segment it may have left is garbage for
+//! group loses nothing it acknowledged, and an object it may have left is garbage for
 //! `compact`.
 
 use super::group::{copy_of, micros, EditAnswer, PendingEdit, Work};
@@ -161,8 +161,8 @@ impl LiveVolume {
     }
 
     /// One attempt: catch up with the head, stage every member on the version before it,
-    /// publish them in one segment and one head PUT. Returns each member's outcome, in order;
-    /// nothing is served yet.
+    /// publish them in one segment and one head PUT (the segment in it when small). Returns
+    /// each member's outcome, in order; nothing is served yet.
     ///
     /// # Errors
     /// [`StoreError::HeadMoved`]: another writer's commit came first (stage again); the store
