@@ -262,12 +262,7 @@ impl Head {
             None => 0,
         };
         let end = check_run("head object", &head.segments, start, true)?;
-        let carried: u64 = head
-            .segments
-            .iter()
-            .filter(|s| s.inline.is_some())
-            .map(|s| s.len)
-            .sum();
+        let carried = head.carried();
         if carried > INLINE_LIMIT {
             return Err(invalid(
                 "head object",
@@ -284,6 +279,15 @@ impl Head {
             ));
         }
         Ok(head)
+    }
+
+    /// Bytes of the segments it carries inline.
+    pub fn carried(&self) -> u64 {
+        self.segments
+            .iter()
+            .filter(|s| s.inline.is_some())
+            .map(|s| s.len)
+            .sum()
     }
 
     /// The object's bytes.

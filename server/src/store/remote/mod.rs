@@ -512,12 +512,7 @@ impl Publish for RemoteVolume {
             manifest: state.head.manifest.clone(),
             segments: state.head.segments.clone(),
         };
-        let carried: u64 = next
-            .segments
-            .iter()
-            .filter(|s| s.inline.is_some())
-            .map(|s| s.len)
-            .sum();
+        let carried = next.carried();
         next.segments.push(segment.clone());
         let budget = self.cache.inline_max.min(head::INLINE_LIMIT);
         let fits = carried + segment.len <= budget && next.segments.len() <= TAIL_MAX;
