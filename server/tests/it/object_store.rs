@@ -724,6 +724,75 @@ fn small_commits_ride_in_the_head_and_spill_into_one_object() {
     assert_same_answers(&http, &writer, &follower);
 }
 
+/// A replica that read segments from the head and then saw them spilled keeps where the store
+/// says they are: a manifest it writes later names their object, and a replica that opens from
+/// that manifest finds every one of them. (Its mirror's pages of those segments still say
+/// "inline": they never need fetching, but a manifest written from them would be wrong.)
+#[test]
+fn a_manifest_names_where_segments_first_read_inline_were_spilled() {
+    let s3 = S3::start("isovox-inline-manifest");
+    let data = tempfile::tempdir().unwrap();
+    world(&s3, data.path());
+    let http = client();
+    let a = Server::replica(&s3, None);
+    let b = Server::replica(&s3, None);
+    // 81 places above the terrain: a cuboid added at each, then taken away again.
+    const PLACES: u32 = 81;
+    let origin = |i: u32| [2 + 10 * (i % 9), 50, 2 + 10 * ((i % PLACES) / 9)];
+    let edit = |on: &Server, i: u32| {
+        let op = if i < PLACES { "union" } else { "difference" };
+        let term = json!({"op": op, "term": {"cuboid": {"origin": origin(i), "size": [8, 8, 8]}}});
+        let (status, answer) = on.edit(&http, &term, None);
+        assert_eq!(status, 200, "edit {i}: {answer}");
+        let version = answer["version"].as_u64().unwrap();
+        a.wait_for(&http, version);
+        b.wait_for(&http, version);
+    };
+    let manifests = || s3.requests("PUT", "manifests/");
+    // On a, with b following every commit (reading the small ones from the head), until a
+    // folds the head's segments, spilled on the way, into a first manifest.
+    let mut i = 0;
+    while manifests() == 0 {
+        assert!(i < 70, "no manifest after {i} commits");
+        edit(&a, i);
+        i += 1;
+    }
+    // On b, until it folds the next 64 into a second manifest, which lists the first's too.
+    while manifests() == 1 {
+        assert!(i < 2 * PLACES, "no second manifest after {i} commits");
+        edit(&b, i);
+        i += 1;
+    }
+    let bucket = s3.volume_bucket();
+    let key = isovox_server::store::remote::read_head(&bucket)
+        .unwrap()
+        .0
+        .manifest
+        .unwrap()
+        .key;
+    let manifest: Value = serde_json::from_slice(&bucket.get(&key).unwrap().unwrap()).unwrap();
+    let listed = manifest["segments"].as_array().unwrap();
+    assert_eq!(listed.len() as u32, 1 + i, "the import's and one a commit");
+    assert!(
+        listed.iter().all(|s| s.get("inline").is_none()),
+        "{manifest}"
+    );
+    assert!(listed.iter().filter(|s| s.get("within").is_some()).count() >= 2);
+
+    let late = Server::replica(&s3, None);
+    for e in 0..PLACES.min(i) {
+        let centre = origin(e).map(|c| c + 4);
+        let taken_away = e + PLACES < i;
+        assert_eq!(
+            voxel(&late, &http, centre) == 255,
+            !taken_away,
+            "place {e} on a late replica"
+        );
+    }
+    assert_same_answers(&http, &a, &late);
+    assert_same_answers(&http, &b, &late);
+}
+
 #[test]
 fn a_writer_killed_before_the_head_leaves_the_last_acknowledged_version() {
     let s3 = S3::start("isovox-killed");
