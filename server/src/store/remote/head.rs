@@ -5,8 +5,8 @@
 //! named once) and the head keeps only the segments after it.
 //!
 //! A small commit's segment rides in the head itself ([`Segment::inline`], up to
-//! [`DEFAULT_INLINE_MAX`] bytes of them in one head by default): the commit is then one PUT, and a replica
-//! catching up reads it with the head, one GET. When the next segment would not fit, the
+//! [`DEFAULT_INLINE_MAX`] bytes of them in one head by default): the commit is then one PUT,
+//! and a replica catching up reads it with the head, one GET. When the next segment would not fit, the
 //! writer spills every inlined segment and its own into one object (each then names it in
 //! [`Segment::within`]) before its head PUT, so a manifest never carries bytes.
 
@@ -21,7 +21,8 @@ use serde::{Deserialize, Serialize};
 /// revision 1 still reads, a binary that knows only revision 1 refuses this one.)
 pub const HEAD_FORMAT: &str = "isovox-head/2";
 
-/// The `format` of heads and manifests written before segments could ride in the head.
+/// The `format` of heads and manifests of the first revision, whose every segment is an object
+/// of its own.
 pub const HEAD_FORMAT_1: &str = "isovox-head/1";
 
 /// Bytes of segments one head may carry inline (their base64 is a third larger): a head
@@ -211,7 +212,7 @@ fn check_run(
                 return Err(invalid(
                     what,
                     format!(
-                        "segment {} carries bytes it may not (not {} of them, or in a manifest, or spilled too)",
+                        "segment {}: inline bytes where none may be, or not {} of them",
                         s.key, s.len
                     ),
                 ))
