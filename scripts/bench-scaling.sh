@@ -170,7 +170,7 @@ def free():
     s = socket.socket(); s.bind(("127.0.0.1", 0)); port = s.getsockname()[1]; s.close(); return port
 # "every segment an object" (--inline-kb 0): no segment rides in the head, so each commit is a
 # segment PUT and a head PUT, and catching up a head GET and a segment GET; one commit per edit
-# that way is the protocol before groups and inline segments.
+# that way is the protocol without either groups or segments in the head.
 ways = (("groups", ()), ("one per edit", ("--edit-group", "1")),
         ("groups, every segment an object", ("--inline-kb", "0")),
         ("one per edit, every segment an object", ("--edit-group", "1", "--inline-kb", "0")))
