@@ -131,7 +131,7 @@ fn pages_of(
         if let Some(bytes) = &s.inline {
             file.put_segment(&p, &bytes.0)?;
         }
-        kept.push(s.without_bytes());
+        kept.push(p.segment().clone());
         pages.push(p);
     }
     Ok((kept, pages))
@@ -423,16 +423,16 @@ impl RemoteVolume {
         let (new_segments, new_pages) =
             pages_of(&state.file, segments.split_off(state.segments.len()))?;
         segments.extend(new_segments);
-        let pages: Vec<Arc<Pages>> = state.pages.iter().cloned().chain(new_pages).collect();
+        let view_pages = state.pages.iter().chain(&new_pages).cloned().collect();
         let map = state.file.map(head.committed_len)?;
-        let view = Arc::new(MirrorView::new(state.file.clone(), pages.clone()));
+        let view = Arc::new(MirrorView::new(state.file.clone(), view_pages));
         let next = current.advance_mirror(head.slot(), map, view)?;
         // Only now that all of it holds (where the known segments are kept may have changed:
         // inlined ones spilled).
         state.head = head;
         state.etag = etag;
         state.segments = segments;
-        state.pages = pages;
+        state.pages.extend(new_pages);
         Ok(Refreshed::Advanced(next))
     }
 
@@ -523,19 +523,19 @@ impl Publish for RemoteVolume {
             spill(&self.bucket, &mut next.segments, appended, slot.version)?;
         }
         pause_before_head();
-        // Every segment the next head names, as the store will say they are kept: the
-        // manifest's (the segments before the head's) and the head's.
+        // The segments after the manifest's as the store will say they are kept (a fold below
+        // moves them into a manifest, after the ones before them).
         let before_tail = state.segments.len() - state.head.segments.len();
-        let all: Vec<Segment> = state.segments[..before_tail]
-            .iter()
-            .cloned()
-            .chain(next.segments.iter().map(Segment::without_bytes))
-            .collect();
+        let tail: Vec<Segment> = next.segments.iter().map(Segment::without_bytes).collect();
         if next.segments.len() > TAIL_MAX {
             let end = segment.end();
             let manifest = Manifest {
                 format: HEAD_FORMAT.into(),
-                segments: all.clone(),
+                segments: state.segments[..before_tail]
+                    .iter()
+                    .chain(&tail)
+                    .cloned()
+                    .collect(),
             };
             let key = format!("manifests/{end:016x}-{}.json", tag());
             self.bucket.put(
@@ -560,7 +560,7 @@ impl Publish for RemoteVolume {
             Conditional::Refused => Err(moved()),
             Conditional::Done((), etag) => {
                 // Where the store keeps it (in an object, or only in the head and this copy).
-                let pages = Arc::new(Pages::new(all.last().cloned().unwrap_or(segment)));
+                let pages = Arc::new(Pages::new(tail.last().cloned().unwrap_or(segment)));
                 // The commit is published; the mirror copy only saves fetching it back, but
                 // for an inlined segment no object holds it: a fresh mirror reads it from the
                 // head.
@@ -569,7 +569,8 @@ impl Publish for RemoteVolume {
                     state.missing_inline |=
                         next.segments.last().is_some_and(|s| s.inline.is_some());
                 }
-                state.segments = all;
+                state.segments.truncate(before_tail);
+                state.segments.extend(tail);
                 state.pages.push(pages);
                 state.head = next;
                 state.etag = etag;
